@@ -1,0 +1,40 @@
+"""KITTI odometry layout: ``velodyne/NNNNNN.bin``, ``poses.txt``, ``calib.txt``.
+
+``poses.txt`` holds left-camera poses; with a ``calib.txt`` carrying ``Tr`` (velodyne→camera)
+they are converted to the LiDAR frame. Without ``calib.txt`` the poses are taken as
+LiDAR-frame already (our synthetic generator writes an identity ``Tr`` for clarity anyway).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lidar_core.datasets.base import Sequence
+from lidar_core.errors import DatasetError
+from lidar_core.poses import camera_to_lidar, read_calib, read_poses
+
+
+def looks_like(root: Path) -> bool:
+    return (root / "velodyne").is_dir()
+
+
+def open_kitti(root: str | Path, *, sensor: str | None = "kitti-hdl64") -> Sequence:
+    root = Path(root)
+    velodyne = root / "velodyne"
+    if not velodyne.is_dir():
+        raise DatasetError(f"{root} is not a KITTI sequence: no velodyne/ folder")
+    scans = tuple(sorted(velodyne.glob("*.bin")))
+    pose_file = root / "poses.txt"
+    if not pose_file.is_file():
+        raise DatasetError(f"{root}: poses.txt is missing (one 3×4 pose per scan)")
+    poses = read_poses(pose_file)
+    calib_file = root / "calib.txt"
+    if calib_file.is_file():
+        calib = read_calib(calib_file)
+        if "Tr" not in calib or np.shape(calib["Tr"]) != (4, 4):
+            raise DatasetError(f"{calib_file}: no 12-number 'Tr:' (velodyne→camera) entry")
+        if len(poses):
+            poses = camera_to_lidar(poses, calib["Tr"])
+    return Sequence(root=root, scan_paths=scans, poses=poses, sensor=sensor)

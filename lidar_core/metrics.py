@@ -1,0 +1,230 @@
+"""Place-recognition metrics, with the exact protocols written down.
+
+Distances are squared L2 between descriptors (equivalent to cosine ranking for unit vectors).
+
+**Loop-closure protocol** (OverlapTransformer, KITTI), :func:`evaluate_loop_closure`:
+
+* Query i's database is frames 0 … i − exclude_recent − 1 (exclude_recent = 100); queries with
+  an empty database are skipped. Its *positives* are the database frames that are true loops
+  (see :mod:`lidar_core.overlap`).
+* Top-1 retrieval gives a candidate and its distance d_i.
+* PR curve — sweep a threshold t over every distinct d_i (plus t = −∞):
+  accept when d_i ≤ t → TP if the candidate is a positive, else FP;
+  reject otherwise → FN if query i has any positive, else TN.
+  precision = TP / (TP + FP), taken as 1 when nothing is accepted;
+  recall = TP / (TP + FN), taken as 1 when no query has a positive.
+* **AUC** is the area under that precision–recall curve (trapezoids over recall, the
+  t = −∞ point being recall 0, precision 1). **F1max** = max over t of 2PR / (P + R).
+* **Recall@N** is over queries that have a positive: a hit if any of the N nearest database
+  frames is a positive. **Recall@1%** uses, per query, N_i = max(1, ⌈0.01 · |database_i|⌉)
+  (the reference code is ambiguous; this is what we use).
+
+**Database/query protocol** (e.g. odd → even frames, or NCLT), :func:`recall_at_n_curve`:
+Recall@N as above over queries with at least one positive; **AR@N** (NCLT) is the mean of
+Recall@1 … Recall@N, reported for N = 1, 5, 20.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def squared_distances(queries: np.ndarray, database: np.ndarray) -> np.ndarray:
+    """(Q, D), (M, D) → (Q, M) float64 squared L2 distances, clamped at 0."""
+    q = np.asarray(queries, dtype=np.float64)
+    d = np.asarray(database, dtype=np.float64)
+    out = (q * q).sum(1)[:, None] + (d * d).sum(1)[None, :] - 2.0 * q @ d.T
+    return np.maximum(out, 0.0)
+
+
+def nearest(
+    queries: np.ndarray,
+    database: np.ndarray,
+    k: int,
+    *,
+    allowed: np.ndarray | None = None,
+    chunk: int = 1024,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force k nearest database entries of each query.
+
+    allowed: optional (Q, M) bool — which database entries each query may return.
+    → indices (Q, k) int64 padded with −1, distances (Q, k) float64 padded with +inf;
+    ties are broken by the lower database index.
+    """
+    Q, M = len(queries), len(database)
+    k = max(0, min(k, M))
+    idx = np.full((Q, k), -1, dtype=np.int64)
+    dist = np.full((Q, k), np.inf)
+    if k == 0:
+        return idx, dist
+    for s in range(0, Q, chunk):
+        d = squared_distances(queries[s : s + chunk], database)
+        if allowed is not None:
+            d[~allowed[s : s + chunk]] = np.inf
+        order = np.argsort(d, axis=1, kind="stable")[:, :k]
+        dd = np.take_along_axis(d, order, axis=1)
+        order[np.isinf(dd)] = -1
+        idx[s : s + chunk], dist[s : s + chunk] = order, dd
+    return idx, dist
+
+
+def recall_at_n_curve(
+    ranked: np.ndarray, positives: Sequence[np.ndarray], max_n: int | None = None
+) -> np.ndarray:
+    """Recall@1 … Recall@max_n over queries with ≥ 1 positive.
+
+    ranked: (Q, k) database indices, nearest first (−1 = none); positives: Q index arrays.
+    Returns (max_n,) float64; NaN where no query has a positive.
+    """
+    max_n = ranked.shape[1] if max_n is None else max_n
+    first_hit = []
+    for row, pos in zip(ranked, positives, strict=True):
+        if len(pos) == 0:
+            continue
+        hits = np.flatnonzero(np.isin(row, pos) & (row >= 0))
+        first_hit.append(hits[0] if len(hits) else np.inf)
+    if not first_hit:
+        return np.full(max_n, np.nan)
+    fh = np.asarray(first_hit, dtype=np.float64)
+    return np.array([(fh < n).mean() for n in range(1, max_n + 1)])
+
+
+def average_recall_at_n(curve: np.ndarray, n: int) -> float:
+    """AR@N (NCLT): mean of Recall@1 … Recall@N."""
+    return float(np.mean(curve[:n]))
+
+
+def pr_curve(
+    top1_distance: np.ndarray, top1_correct: np.ndarray, has_positive: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Precision, recall and thresholds of the loop-closure protocol (see module doc).
+
+    Returns arrays of length T + 1: index 0 is t = −∞, then each distinct distance ascending.
+    """
+    d = np.asarray(top1_distance, dtype=np.float64)
+    ok = np.asarray(top1_correct, dtype=bool)
+    has = np.asarray(has_positive, dtype=bool)
+    if d.size == 0:
+        return np.ones(1), np.ones(1), np.full(1, -np.inf)
+    order = np.argsort(d, kind="stable")
+    d, ok, has = d[order], ok[order], has[order]
+    tp = np.cumsum(ok)
+    fp = np.cumsum(~ok)
+    accepted_with_loop = np.cumsum(has)
+    # The last index of each group of equal distances is where that threshold lands.
+    last = np.flatnonzero(np.r_[d[1:] != d[:-1], True])
+    tp, fp = np.r_[0, tp[last]], np.r_[0, fp[last]]
+    fn = has.sum() - np.r_[0, accepted_with_loop[last]]
+    thresholds = np.r_[-np.inf, d[last]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
+        recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1), 1.0)
+    return precision, recall, thresholds
+
+
+def pr_curve_reference(
+    top1_distance: np.ndarray, top1_correct: np.ndarray, has_positive: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slow, obvious twin of :func:`pr_curve`, one threshold at a time. For tests."""
+    thresholds = [-math.inf, *sorted(set(float(x) for x in top1_distance))]
+    precision, recall = [], []
+    for t in thresholds:
+        tp = fp = fn = 0
+        for d, ok, has in zip(top1_distance, top1_correct, has_positive, strict=True):
+            if d <= t:
+                tp, fp = tp + bool(ok), fp + (not ok)
+            elif has:
+                fn += 1
+        precision.append(tp / (tp + fp) if tp + fp else 1.0)
+        recall.append(tp / (tp + fn) if tp + fn else 1.0)
+    return np.array(precision), np.array(recall), np.array(thresholds)
+
+
+def pr_auc(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Trapezoidal area under the PR curve, integrating over recall (non-decreasing)."""
+    return float(np.trapezoid(precision, recall))
+
+
+def f1_max(precision: np.ndarray, recall: np.ndarray) -> float:
+    p, r = np.asarray(precision), np.asarray(recall)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+    return float(f1.max()) if len(f1) else 0.0
+
+
+@dataclass(frozen=True)
+class LoopClosureResult:
+    auc: float
+    f1max: float
+    recall_at_1: float
+    recall_at_1pct: float
+    recall_curve: np.ndarray  # Recall@1 … Recall@max_n
+    precision: np.ndarray
+    recall: np.ndarray
+    thresholds: np.ndarray
+    n_queries: int
+    n_with_loop: int
+
+    def summary(self) -> dict[str, float | int]:
+        return {
+            "auc": self.auc,
+            "f1max": self.f1max,
+            "recall@1": self.recall_at_1,
+            "recall@1%": self.recall_at_1pct,
+            "queries": self.n_queries,
+            "queries_with_loop": self.n_with_loop,
+        }
+
+
+def evaluate_loop_closure(
+    descriptors: np.ndarray,
+    positives: Sequence[np.ndarray],
+    *,
+    exclude_recent: int = 100,
+    query_mask: np.ndarray | None = None,
+    max_n: int = 25,
+) -> LoopClosureResult:
+    """Score one sequence under the loop-closure protocol (see module doc).
+
+    descriptors: (N, D); positives: N arrays of earlier frame indices that are true loops
+    (``LoopGroundTruth.positives()``); query_mask: optional (N,) bool to score a subset
+    (e.g. reverse-direction revisits) — the database stays the full past.
+    """
+    desc = np.asarray(descriptors)
+    N = len(desc)
+    if len(positives) != N:
+        raise ValueError(f"{N} descriptors but {len(positives)} positive lists")
+    queries = np.arange(exclude_recent + 1, N)
+    if query_mask is not None:
+        queries = queries[np.asarray(query_mask, dtype=bool)[queries]]
+    db_size = queries - exclude_recent  # frames 0 … i − exclude_recent − 1
+    k_pct = np.maximum(1, np.ceil(0.01 * db_size)).astype(int)
+    k = int(max(max_n, k_pct.max(initial=1)))
+    allowed = np.arange(N)[None, :] < db_size[:, None]
+    ranked, dist = nearest(desc[queries], desc, k, allowed=allowed)
+    pos = [positives[int(i)] for i in queries]
+    has = np.array([len(p) > 0 for p in pos], dtype=bool)
+    correct = np.array([r[0] in p for r, p in zip(ranked, pos, strict=True)], dtype=bool)
+    precision, recall, thresholds = pr_curve(dist[:, 0], correct, has)
+    curve = recall_at_n_curve(ranked, pos, max_n)
+    pct_hits = [
+        bool(np.isin(r[:kk], p).any())
+        for r, p, kk in zip(ranked, pos, k_pct, strict=True)
+        if len(p)
+    ]
+    return LoopClosureResult(
+        auc=pr_auc(precision, recall),
+        f1max=f1_max(precision, recall),
+        recall_at_1=float(curve[0]) if len(curve) else math.nan,
+        recall_at_1pct=float(np.mean(pct_hits)) if pct_hits else math.nan,
+        recall_curve=curve,
+        precision=precision,
+        recall=recall,
+        thresholds=thresholds,
+        n_queries=len(queries),
+        n_with_loop=int(has.sum()),
+    )

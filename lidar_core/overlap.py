@@ -1,0 +1,288 @@
+"""Overlap ground truth (OverlapNet's definition) and loop-closure tables.
+
+Overlap of a reference scan j with a query scan i:
+
+    1. move j's points into i's frame with the relative pose T_i⁻¹ · T_j;
+    2. project both with the same sensor profile (nearest point wins each pixel);
+    3. overlap = #(pixels valid in both with |r_j − r_i| < τ) / #(valid pixels of i).
+
+τ = 1 m by default. Overlap is asymmetric in general. Relative yaw is the rotation about z
+of T_i⁻¹ · T_j, in degrees.
+
+A *loop* for query i is a frame j with i − j > exclude_recent (100), ‖t_i − t_j‖ < radius
+(30 m) and overlap > min_overlap (0.3), as in OverlapTransformer's KITTI protocol.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from lidar_core.datasets.base import Sequence
+from lidar_core.poses import relative_transform, yaw_deg
+from lidar_core.projection import pixel_coordinates, project
+from lidar_core.sensors import SensorProfile
+
+GT_FORMAT_VERSION = 1
+
+
+def overlap_and_yaw(
+    query_xyz: np.ndarray,
+    query_pose: np.ndarray,
+    ref_xyz: Seq[np.ndarray],
+    ref_poses: np.ndarray,
+    profile: SensorProfile,
+    *,
+    threshold: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap and relative yaw of K reference scans against one query, vectorised.
+
+    query_xyz: (N, 3); query_pose: (4, 4); ref_xyz: K arrays (M_k, 3); ref_poses: (K, 4, 4)
+    → overlap (K,) float32 in [0, 1], yaw (K,) float32 degrees.
+    """
+    ref_poses = np.asarray(ref_poses, dtype=np.float64).reshape(-1, 4, 4)
+    K = len(ref_xyz)
+    if ref_poses.shape[0] != K:
+        raise ValueError(f"{K} reference scans but {ref_poses.shape[0]} reference poses")
+    rel = relative_transform(np.asarray(query_pose, dtype=np.float64), ref_poses)
+    yaws = yaw_deg(rel).astype(np.float32)
+    if K == 0:
+        return np.zeros(0, np.float32), yaws
+    H, W = profile.height, profile.width
+    query = project(query_xyz, profile)
+    query_valid = query != np.float32(profile.empty_value)
+    n_query = int(query_valid.sum())
+
+    # All references in one projection: each gets its own H·W slab of one flat buffer.
+    moved = np.concatenate(
+        [
+            (np.asarray(xyz, np.float64)[:, :3] @ t[:3, :3].T + t[:3, 3]).astype(np.float32)
+            for xyz, t in zip(ref_xyz, rel, strict=True)
+        ]
+    )
+    owner = np.repeat(np.arange(K, dtype=np.int64), [len(x) for x in ref_xyz])
+    pc = pixel_coordinates(moved, profile)
+    pix = owner[pc.keep] * (H * W) + pc.row.astype(np.int64) * W + pc.col
+    flat = np.full(K * H * W, np.inf, dtype=np.float32)
+    np.minimum.at(flat, pix, pc.depth)
+    refs = flat.reshape(K, H, W)
+
+    hit = np.isfinite(refs) & query_valid & (np.abs(refs - query) < np.float32(threshold))
+    if n_query == 0:
+        return np.zeros(K, np.float32), yaws
+    return (hit.reshape(K, -1).sum(axis=1) / n_query).astype(np.float32), yaws
+
+
+def candidate_pairs(
+    positions: np.ndarray, *, radius: float, min_gap: int = 0, chunk: int = 2048
+) -> np.ndarray:
+    """(P, 2) int pairs (i, j) with ‖p_i − p_j‖ < radius and i − j ≥ min_gap (j earlier).
+
+    With min_gap = 0 every ordered pair within the radius is returned, i == j included.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    out = []
+    for start in range(0, len(pos), chunk):
+        q = pos[start : start + chunk]
+        d2 = ((q[:, None, :] - pos[None, :, :]) ** 2).sum(-1)
+        ok = d2 < radius * radius
+        if min_gap > 0:
+            i = np.arange(start, start + len(q))[:, None]
+            ok &= (i - np.arange(len(pos))[None, :]) >= min_gap
+        qi, rj = np.nonzero(ok)
+        out.append(np.stack([qi + start, rj], axis=1))
+    return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 2), np.int64)
+
+
+def pair_overlaps(
+    seq: Sequence,
+    pairs: np.ndarray,
+    profile: SensorProfile,
+    *,
+    threshold: float = 1.0,
+    progress: bool = True,
+    desc: str = "overlap",
+    cache_scans: int = 512,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap and yaw for arbitrary (query, reference) pairs of one sequence.
+
+    Pairs are grouped by query so each query is projected once; scans are read through a
+    small LRU cache because neighbouring queries share most of their references.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    overlaps = np.zeros(len(pairs), np.float32)
+    yaws = np.zeros(len(pairs), np.float32)
+    load: Callable[[int], np.ndarray] = lru_cache(maxsize=cache_scans)(lambda i: seq.points(i).xyz)
+    order = np.argsort(pairs[:, 0], kind="stable")
+    queries, starts = np.unique(pairs[order, 0], return_index=True)
+    bounds = [*starts[1:], len(order)]
+    for q, s, e in tqdm(
+        list(zip(queries, starts, bounds, strict=True)),
+        desc=desc,
+        unit="query",
+        disable=not progress,
+    ):
+        idx = order[s:e]
+        refs = pairs[idx, 1]
+        ov, yw = overlap_and_yaw(
+            load(int(q)),
+            seq.poses[q],
+            [load(int(j)) for j in refs],
+            seq.poses[refs],
+            profile,
+            threshold=threshold,
+        )
+        overlaps[idx], yaws[idx] = ov, yw
+    return overlaps, yaws
+
+
+@dataclass(frozen=True)
+class LoopGroundTruth:
+    """Every candidate pair within the radius, with its overlap; loops are those above
+    ``min_overlap``. Pairs are (query, reference) with reference earlier than query.
+
+    query, reference: (P,) int64; overlap, yaw_deg, distance: (P,) float32
+    """
+
+    n_frames: int
+    query: np.ndarray
+    reference: np.ndarray
+    overlap: np.ndarray
+    yaw_deg: np.ndarray
+    distance: np.ndarray
+    params: dict = field(default_factory=dict)
+
+    @property
+    def min_overlap(self) -> float:
+        return float(self.params.get("min_overlap", 0.3))
+
+    @property
+    def is_loop(self) -> np.ndarray:
+        return self.overlap > self.min_overlap
+
+    def positives(self) -> list[np.ndarray]:
+        """For each frame, the sorted earlier frames that are true loops."""
+        loop = self.is_loop
+        out: list[list[int]] = [[] for _ in range(self.n_frames)]
+        for q, r in zip(self.query[loop], self.reference[loop], strict=True):
+            out[int(q)].append(int(r))
+        return [np.array(sorted(x), dtype=np.int64) for x in out]
+
+    def has_loop(self) -> np.ndarray:
+        """(n_frames,) bool: the frame revisits a place seen earlier."""
+        mask = np.zeros(self.n_frames, dtype=bool)
+        mask[self.query[self.is_loop]] = True
+        return mask
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
+        np.savez_compressed(
+            tmp,
+            n_frames=self.n_frames,
+            query=self.query,
+            reference=self.reference,
+            overlap=self.overlap,
+            yaw_deg=self.yaw_deg,
+            distance=self.distance,
+            params=json.dumps(self.params, sort_keys=True),
+        )
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> LoopGroundTruth:
+        with np.load(path, allow_pickle=False) as z:
+            return cls(
+                n_frames=int(z["n_frames"]),
+                query=z["query"],
+                reference=z["reference"],
+                overlap=z["overlap"],
+                yaw_deg=z["yaw_deg"],
+                distance=z["distance"],
+                params=json.loads(str(z["params"])),
+            )
+
+
+def _fingerprint(seq: Sequence, params: dict) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps(params, sort_keys=True).encode())
+    h.update(np.ascontiguousarray(seq.poses).tobytes())
+    for p in seq.scan_paths:
+        h.update(f"{p.name}:{p.stat().st_size}".encode())
+    return h.hexdigest()[:16]
+
+
+def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
+    """``$OVERLAPMAMBA_CACHE`` (default ``~/.cache/overlapmamba``)``/ground_truth/…``.
+
+    Never the sequence folder itself: real data is shared and must stay untouched. Writers
+    that own their folder (the synthetic generator) pass an explicit path instead.
+    """
+    base = Path(os.environ.get("OVERLAPMAMBA_CACHE", Path.home() / ".cache" / "overlapmamba"))
+    return base / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
+
+
+def loop_ground_truth(
+    seq: Sequence,
+    profile: SensorProfile,
+    *,
+    exclude_recent: int = 100,
+    radius: float = 30.0,
+    min_overlap: float = 0.3,
+    threshold: float = 1.0,
+    cache: str | Path | bool = True,
+    progress: bool = True,
+) -> LoopGroundTruth:
+    """Loop table of a sequence (OverlapTransformer protocol), cached to ``.npz``.
+
+    ``cache=True`` uses :func:`default_cache_path`; a path uses that file; False disables.
+    A cached table is reused only if sequence, profile and parameters are unchanged.
+    """
+    params = {
+        "format": GT_FORMAT_VERSION,
+        "exclude_recent": exclude_recent,
+        "radius": radius,
+        "min_overlap": min_overlap,
+        "threshold": threshold,
+        "profile": profile.model_dump(),
+    }
+    fp = _fingerprint(seq, params)
+    params["fingerprint"] = fp
+    path = None
+    if cache is not False:
+        path = default_cache_path(seq, fp) if cache is True else Path(cache)
+        if path.is_file():
+            try:
+                gt = LoopGroundTruth.load(path)
+                if gt.params.get("fingerprint") == fp:
+                    return gt
+            except (OSError, ValueError, KeyError):
+                pass  # unreadable or stale cache: recompute and overwrite
+    pos = seq.positions()
+    pairs = candidate_pairs(pos, radius=radius, min_gap=exclude_recent + 1)
+    overlaps, yaws = pair_overlaps(
+        seq, pairs, profile, threshold=threshold, progress=progress, desc="loop ground truth"
+    )
+    dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1).astype(np.float32)
+    gt = LoopGroundTruth(
+        n_frames=len(seq),
+        query=pairs[:, 0],
+        reference=pairs[:, 1],
+        overlap=overlaps,
+        yaw_deg=yaws,
+        distance=dist,
+        params=params,
+    )
+    if path is not None:
+        gt.save(path)
+    return gt

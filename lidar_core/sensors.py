@@ -1,0 +1,140 @@
+"""Sensor profiles: everything the range projection needs to know about a spinning LiDAR.
+
+A profile is the single source of projection parameters. Training caches range images with
+it, the exported ONNX model stores it in its metadata, and the service reads it back from
+there, so scans are never projected differently in training and in serving.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from lidar_core.errors import ProfileError
+
+
+class SensorProfile(BaseModel):
+    """Projection parameters of one sensor (paper eq. 4).
+
+    Angles are degrees, ranges metres. Points are kept where ``min_range < r < max_range``;
+    pixels that receive no point hold ``empty_value``.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(min_length=1, max_length=64)
+    fov_up_deg: float = Field(ge=-90.0, le=90.0, description="upper edge of the vertical FOV")
+    fov_down_deg: float = Field(ge=-90.0, le=90.0, description="lower edge of the vertical FOV")
+    height: int = Field(gt=0, le=1024, description="rows of the range image (beams)")
+    width: int = Field(gt=0, le=8192, description="columns of the range image (azimuth bins)")
+    max_range: float = Field(gt=0.0, le=1000.0, description="points at or beyond are dropped")
+    min_range: float = Field(default=0.0, ge=0.0, description="points at or below are dropped")
+    empty_value: float = Field(default=-1.0, description="value of pixels with no return")
+
+    @model_validator(mode="after")
+    def _check_geometry(self) -> SensorProfile:
+        if self.fov_up_deg <= self.fov_down_deg:
+            raise ValueError(
+                f"fov_up_deg ({self.fov_up_deg}) must be greater than "
+                f"fov_down_deg ({self.fov_down_deg})"
+            )
+        if self.min_range >= self.max_range:
+            raise ValueError(
+                f"min_range ({self.min_range}) must be below max_range ({self.max_range})"
+            )
+        if not math.isfinite(self.empty_value) or 0.0 < self.empty_value < self.max_range:
+            # A positive in-range empty value would be indistinguishable from a real return.
+            raise ValueError(
+                f"empty_value ({self.empty_value}) must be finite and not inside "
+                f"(0, max_range={self.max_range}); use -1 or 0"
+            )
+        return self
+
+    @property
+    def fov_deg(self) -> float:
+        return self.fov_up_deg - self.fov_down_deg
+
+    def replace(self, **changes: Any) -> SensorProfile:
+        """A validated copy with some fields changed (``None`` values are ignored)."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        if not changes:
+            return self
+        try:
+            return SensorProfile.model_validate({**self.model_dump(), **changes})
+        except ValidationError as err:
+            raise ProfileError(f"invalid sensor profile override: {_first_error(err)}") from err
+
+
+BUILTIN_PROFILES: dict[str, SensorProfile] = {
+    p.name: p
+    for p in (
+        # Velodyne HDL-64E as used on KITTI (OverlapNet/OverlapTransformer settings).
+        SensorProfile(
+            name="kitti-hdl64",
+            fov_up_deg=3.0,
+            fov_down_deg=-25.0,
+            height=64,
+            width=900,
+            max_range=80.0,
+        ),
+        # Velodyne HDL-32E (NCLT/nuScenes) as used by SeqOT/CVTNet.
+        SensorProfile(
+            name="hdl32",
+            fov_up_deg=10.67,
+            fov_down_deg=-30.67,
+            height=32,
+            width=900,
+            max_range=80.0,
+        ),
+    )
+}
+
+
+def get_profile(name_or_path: str | Path | SensorProfile) -> SensorProfile:
+    """A built-in profile by name, or a custom one from a ``.json``/``.toml`` file."""
+    if isinstance(name_or_path, SensorProfile):
+        return name_or_path
+    key = str(name_or_path)
+    if key in BUILTIN_PROFILES:
+        return BUILTIN_PROFILES[key]
+    path = Path(key)
+    if path.suffix.lower() in {".json", ".toml"}:
+        return load_profile(path)
+    raise ProfileError(
+        f"unknown sensor profile {key!r}; allowed: {', '.join(sorted(BUILTIN_PROFILES))}, "
+        "or a path to a .json/.toml profile file",
+        allowed=sorted(BUILTIN_PROFILES),
+    )
+
+
+def load_profile(path: str | Path) -> SensorProfile:
+    """Read a custom profile; a TOML file may hold it at top level or under ``[sensor]``."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ProfileError(f"cannot read sensor profile file {path}: {err.strerror}") from err
+    try:
+        data: Any = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise ProfileError(f"sensor profile file {path} is not valid: {err}") from err
+    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
+        data = data["sensor"]
+    if isinstance(data, dict) and "base" in data:
+        base = get_profile(str(data.pop("base")))
+        return base.replace(**data)
+    try:
+        return SensorProfile.model_validate(data)
+    except ValidationError as err:
+        raise ProfileError(f"sensor profile file {path}: {_first_error(err)}") from err
+
+
+def _first_error(err: ValidationError) -> str:
+    e = err.errors()[0]
+    where = ".".join(str(x) for x in e["loc"]) or "profile"
+    return f"{where}: {e['msg']}"
