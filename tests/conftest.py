@@ -1,0 +1,102 @@
+"""Shared fixtures: the real scans in ../shared/data (skipped cleanly when absent) and a
+tiny seeded synthetic drive with a revisit."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_core.poses import rotation_z, write_poses
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("OVERLAPMAMBA_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+def _need(sub: str) -> Path:
+    path = SHARED_DATA / sub
+    if not path.exists():
+        pytest.skip(f"real LiDAR data not available: {path} is missing (see shared/data/README)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def kitti_seq_dir() -> Path:
+    return _need("kitti00_0000-0100")
+
+
+@pytest.fixture(scope="session")
+def kitti_reference_dir() -> Path:
+    return _need("kitti00_overlapnet_reference")
+
+
+@pytest.fixture(scope="session")
+def nuscenes_dir() -> Path:
+    return _need("nuscenes_scene0061")
+
+
+@pytest.fixture(autouse=True)
+def _isolated_cache(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
+def make_world(rng: np.random.Generator, extent: float = 60.0) -> np.ndarray:
+    """Points on vertical walls and poles around a square road, plus a ground plane."""
+    parts = []
+    for _ in range(60):  # wall segments of random length and orientation off the road
+        c = rng.uniform(-extent, extent, 2)
+        if np.abs(c).max() < 28 and np.abs(c).min() < 22:
+            continue
+        a = rng.uniform(0, np.pi)
+        length, height = rng.uniform(4, 15), rng.uniform(3, 10)
+        s = rng.uniform(-0.5, 0.5, 400)[:, None] * length
+        h = rng.uniform(0, height, 400)
+        xy = c + s * np.array([np.cos(a), np.sin(a)])
+        parts.append(np.column_stack([xy, h - 1.7]))
+    for _ in range(80):  # poles
+        c = rng.uniform(-extent, extent, 2)
+        h = rng.uniform(0, 6, 40)
+        parts.append(np.column_stack([np.repeat(c[None], 40, 0), h - 1.7]))
+    g = rng.uniform(-extent, extent, (6000, 2))
+    parts.append(np.column_stack([g, np.full(len(g), -1.7)]))
+    return np.concatenate(parts).astype(np.float32)
+
+
+def square_loop_poses(n_per_lap: int, laps: int, side: float = 40.0) -> np.ndarray:
+    """Drive around a square ``laps`` times; the second lap revisits the first."""
+    perim = 4 * side
+    poses = []
+    for k in range(n_per_lap * laps):
+        s = (k % n_per_lap) / n_per_lap * perim
+        edge, t = int(s // side), s % side
+        start = np.array([[-20, -20], [20, -20], [20, 20], [-20, 20]], float)[edge]
+        heading = edge * 90.0
+        d = np.array([np.cos(np.radians(heading)), np.sin(np.radians(heading))])
+        pose = rotation_z(heading)
+        pose[:2, 3] = start + d * t
+        poses.append(pose)
+    return np.stack(poses)
+
+
+def write_synthetic_kitti(root: Path, seed: int = 0, n_per_lap: int = 24, laps: int = 2) -> Path:
+    """A tiny KITTI-layout sequence (no calib.txt: poses are LiDAR-frame) with a revisit."""
+    rng = np.random.default_rng(seed)
+    world = make_world(rng)
+    poses = square_loop_poses(n_per_lap, laps)
+    (root / "velodyne").mkdir(parents=True)
+    for i, pose in enumerate(poses):
+        inv = np.linalg.inv(pose)
+        local = world @ inv[:3, :3].T.astype(np.float32) + inv[:3, 3].astype(np.float32)
+        local = local[np.linalg.norm(local, axis=1) < 50]
+        local = local + rng.normal(0, 0.01, local.shape).astype(np.float32)
+        xyzi = np.column_stack([local, rng.uniform(0, 1, len(local))]).astype("<f4")
+        xyzi.tofile(root / "velodyne" / f"{i:06d}.bin")
+    write_poses(root / "poses.txt", poses)
+    return root
+
+
+@pytest.fixture(scope="session")
+def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "loop")

@@ -1,0 +1,85 @@
+"""The ``overlapmamba`` command line, through typer's CliRunner."""
+
+from __future__ import annotations
+
+import numpy as np
+from PIL import Image
+from typer.testing import CliRunner
+
+from overlapmamba.cli import app
+
+runner = CliRunner()
+
+
+def text(res) -> str:
+    """Output with line wrapping and box borders flattened."""
+    return " ".join(res.output.replace("│", " ").split())
+
+
+def test_range_image_on_real_reference_scan(kitti_reference_dir, tmp_path):
+    scan = kitti_reference_dir / "000000.bin"
+    out = tmp_path / "d.npy"
+    res = runner.invoke(app, ["range-image", str(scan), "--max-range", "50", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    img = np.load(out)
+    assert img.shape == (64, 900) and img.dtype == np.float32
+    ref = np.load(kitti_reference_dir / "depth_000000.npy")
+    assert ((img > 0) == (ref > 0)).mean() > 0.999
+
+
+def test_range_image_png_and_custom_profile(synthetic_seq_dir, tmp_path):
+    scan = synthetic_seq_dir / "velodyne" / "000000.bin"
+    out = tmp_path / "view.png"
+    res = runner.invoke(
+        app,
+        [
+            "range-image",
+            str(scan),
+            "-s",
+            "hdl32",
+            "--width",
+            "360",
+            "--row-scale",
+            "2",
+            "--out",
+            str(out),
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    im = Image.open(out)
+    assert im.size == (360, 64) and im.mode == "RGB"
+    assert np.asarray(im).max() > 0
+
+
+def test_range_image_errors_are_clear(synthetic_seq_dir, tmp_path):
+    scan = synthetic_seq_dir / "velodyne" / "000000.bin"
+    res = runner.invoke(app, ["range-image", str(scan), "--out", str(tmp_path / "x.jpg")])
+    assert res.exit_code == 2 and "allowed output suffixes are .npy and .png" in text(res)
+    res = runner.invoke(
+        app, ["range-image", str(scan), "-s", "lidar9000", "--out", str(tmp_path / "x.npy")]
+    )
+    assert res.exit_code == 2 and "unknown sensor profile 'lidar9000'" in text(res)
+    bad = tmp_path / "bad.bin"
+    bad.write_bytes(b"\0" * 17)
+    res = runner.invoke(app, ["range-image", str(bad), "--out", str(tmp_path / "x.npy")])
+    assert res.exit_code == 2 and "not a multiple of the 16-byte" in text(res)
+
+
+def test_ground_truth_command(synthetic_seq_dir, tmp_path):
+    out = tmp_path / "gt.npz"
+    args = [
+        "ground-truth",
+        str(synthetic_seq_dir),
+        "--exclude-recent",
+        "12",
+        "--radius",
+        "10",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "queries with a loop" in text(res) and out.is_file()
+    res = runner.invoke(app, ["ground-truth", str(tmp_path), "-q"])
+    assert res.exit_code == 2 and "matches no known sequence layout" in text(res)

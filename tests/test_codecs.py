@@ -1,0 +1,204 @@
+"""Point-cloud codecs: round trips, and every malformed input rejected with a typed error."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import pickle
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from pypcd4 import Encoding
+from pypcd4 import PointCloud as PcdCloud
+
+from lidar_core.errors import DecodeError, NonFiniteError, PointCloudError, PointCountError
+from lidar_core.io import decode, decode_npy, decode_pcd, decode_raw, read_points
+from lidar_core.points import PointLimits, validate
+
+finite32 = st.floats(-1e4, 1e4, allow_nan=False, width=32)
+
+
+def clouds(cols: int, dtype=np.float32, max_n: int = 64):
+    return arrays(dtype, st.tuples(st.integers(1, max_n), st.just(cols)), elements=finite32)
+
+
+@given(clouds(4))
+def test_raw_xyzi_round_trip(xyzi):
+    pc = decode_raw(xyzi.astype("<f4").tobytes(), "xyzi")
+    np.testing.assert_array_equal(pc.xyz, xyzi[:, :3])
+    np.testing.assert_array_equal(pc.intensity, xyzi[:, 3])
+    np.testing.assert_array_equal(pc.as_xyzi(), xyzi)
+
+
+@given(clouds(3))
+def test_raw_xyz_round_trip(xyz):
+    pc = decode(xyz.astype("<f4").tobytes(), "raw", fields="xyz")
+    np.testing.assert_array_equal(pc.xyz, xyz)
+    assert pc.intensity is None
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=512), st.sampled_from(["xyz", "xyzi"]))
+def test_raw_any_bytes_decode_or_raise_typed(data, fields):
+    try:
+        pc = decode_raw(data, fields)
+    except PointCloudError:
+        return
+    assert np.isfinite(pc.xyz).all() and len(pc) >= 1
+
+
+@given(st.sampled_from(["npy", "pcd", "raw"]), st.binary(max_size=400))
+def test_any_format_any_bytes_never_crashes(fmt, data):
+    with contextlib.suppress(PointCloudError):
+        decode(data, fmt)
+
+
+def test_raw_rejections_name_the_problem():
+    good = np.ones((10, 4), "<f4")
+    with pytest.raises(DecodeError, match="not a multiple of the 16-byte xyzi record"):
+        decode_raw(good.tobytes()[:-3], "xyzi")
+    with pytest.raises(DecodeError, match="allowed: xyz, xyzi"):
+        decode_raw(good.tobytes(), "xyzrgb")
+    with pytest.raises(PointCountError, match="0 points; allowed: 1 to"):
+        decode_raw(b"", "xyzi")
+    bad = good.copy()
+    bad[3, 1] = np.nan
+    bad[5, 0] = np.inf
+    with pytest.raises(NonFiniteError, match="2 points with NaN or infinite"):
+        decode_raw(bad.tobytes(), "xyzi")
+    bad = good.copy()
+    bad[0, 3] = np.nan
+    with pytest.raises(NonFiniteError, match="intensities"):
+        decode_raw(bad.tobytes(), "xyzi")
+
+
+def test_point_limits_are_checked_before_decoding():
+    limits = PointLimits(min_points=5, max_points=8)
+    with pytest.raises(PointCountError, match="9 points; allowed: 5 to 8"):
+        decode_raw(np.zeros((9, 4), "<f4").tobytes(), limits=limits)
+    with pytest.raises(PointCountError, match="4 points"):
+        decode_raw(np.ones((4, 3), "<f4").tobytes(), "xyz", limits=limits)
+    assert len(decode_raw(np.ones((8, 3), "<f4").tobytes(), "xyz", limits=limits)) == 8
+    with pytest.raises(ValueError):
+        PointLimits(min_points=10, max_points=2)
+
+
+def test_validate_rejects_wrong_shapes_and_dtypes():
+    with pytest.raises(PointCloudError, match=r"shape \(10, 5\)"):
+        validate(np.zeros((10, 5), np.float32))
+    with pytest.raises(PointCloudError, match="dtype int32"):
+        validate(np.zeros((10, 3), np.int32))
+    with pytest.raises(NonFiniteError):  # finite float64 that overflows float32
+        validate(np.full((2, 3), 1e300))
+
+
+def _npy_bytes(arr) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, arr, allow_pickle=True)
+    return buf.getvalue()
+
+
+@given(
+    st.sampled_from([np.float32, np.float64, ">f4"]),
+    st.sampled_from([3, 4]),
+    st.booleans(),
+    st.data(),
+)
+def test_npy_round_trip(dtype, cols, fortran, data):
+    arr = data.draw(clouds(cols, dtype=np.dtype(dtype)))
+    if fortran:
+        arr = np.asfortranarray(arr)
+    pc = decode_npy(_npy_bytes(arr))
+    np.testing.assert_array_equal(pc.xyz, arr[:, :3].astype(np.float32))
+    assert (pc.intensity is not None) == (cols == 4)
+
+
+def test_npy_refuses_pickles_objects_and_bad_shapes():
+    with pytest.raises(DecodeError, match="no object arrays"):
+        decode_npy(_npy_bytes(np.array([[1, 2, 3]], dtype=object)))
+    with pytest.raises(DecodeError, match="not a valid .npy"):
+        decode_npy(pickle.dumps(np.zeros((3, 3))))
+    with pytest.raises(DecodeError, match=r"allowed: \(N, 3\) or \(N, 4\)"):
+        decode_npy(_npy_bytes(np.zeros((4, 4, 4), np.float32)))
+    with pytest.raises(DecodeError, match="dtype int64"):
+        decode_npy(_npy_bytes(np.zeros((4, 3), np.int64)))
+    with pytest.raises(DecodeError, match="holds"):
+        decode_npy(_npy_bytes(np.zeros((40, 3), np.float32))[:-8])
+
+
+def test_npy_header_bomb_is_refused_before_allocation():
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<f4", "fortran_order": False, "shape": (10**12, 3)}
+    )
+    with pytest.raises(PointCountError, match="1000000000000 points"):
+        decode_npy(header.getvalue() + b"\0" * 64)
+
+
+@pytest.mark.parametrize("encoding", [Encoding.ASCII, Encoding.BINARY, Encoding.BINARY_COMPRESSED])
+@pytest.mark.parametrize("with_intensity", [False, True])
+def test_pcd_round_trip(encoding, with_intensity):
+    rng = np.random.default_rng(0)
+    arr = rng.uniform(-50, 50, (257, 4 if with_intensity else 3)).astype(np.float32)
+    if encoding == Encoding.ASCII:
+        arr = np.round(arr, 3)  # ascii PCD keeps limited digits
+    pcd = PcdCloud.from_xyzi_points(arr) if with_intensity else PcdCloud.from_xyz_points(arr)
+    buf = io.BytesIO()
+    pcd.save(buf, encoding=encoding)
+    pc = decode_pcd(buf.getvalue())
+    np.testing.assert_allclose(pc.xyz, arr[:, :3], rtol=1e-6)
+    assert pc.has_intensity == with_intensity
+
+
+def _pcd(points: int = 3, data: str = "binary", fields: str = "x y z") -> bytes:
+    n = len(fields.split())
+    return (
+        f"VERSION 0.7\nFIELDS {fields}\nSIZE {' '.join(['4'] * n)}\nTYPE {' '.join(['F'] * n)}\n"
+        f"COUNT {' '.join(['1'] * n)}\nWIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {points}\nDATA {data}\n"
+    ).encode()
+
+
+def test_pcd_malformed_inputs_are_rejected():
+    body = np.ones((3, 3), "<f4").tobytes()
+    assert len(decode_pcd(_pcd() + body)) == 3
+    with pytest.raises(DecodeError, match="holds 24 bytes"):
+        decode_pcd(_pcd() + body[:24])  # truncated
+    with pytest.raises(DecodeError, match="missing"):
+        decode_pcd(_pcd(fields="x y intensity") + body)
+    with pytest.raises(DecodeError, match="malformed PCD header|DATA"):
+        decode_pcd(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4\nDATA binary\n" + body)
+    with pytest.raises(DecodeError):
+        decode_pcd(b"\x89PNG\r\n\x1a\n" + body)
+    with pytest.raises(DecodeError, match="no DATA line"):
+        decode_pcd(b"# comment\n" * 100)
+    with pytest.raises(PointCountError):
+        decode_pcd(_pcd(points=5_000_000) + body)
+
+
+def test_pcd_decompression_bomb_is_refused():
+    # Declares 3 points but claims 4 GB uncompressed: pypcd4 alone would allocate it.
+    payload = struct.pack("<II", 10, 0xFFFFFFF0) + b"\0" * 10
+    with pytest.raises(DecodeError, match="inconsistent"):
+        decode_pcd(_pcd(data="binary_compressed") + payload)
+
+
+def test_read_real_scans(kitti_reference_dir, nuscenes_dir):
+    pc = read_points(kitti_reference_dir / "000000.bin")
+    assert len(pc) > 100_000 and pc.intensity is not None
+    assert pc.intensity.min() >= 0 and pc.intensity.max() < 1
+    nu = read_points(nuscenes_dir / "clouds" / "0.pcd")
+    assert len(nu) == 34688 and nu.intensity is None
+
+
+def test_read_points_rejects_unknown_suffix(tmp_path):
+    p = tmp_path / "scan.las"
+    p.write_bytes(b"x")
+    with pytest.raises(DecodeError, match="allowed suffixes: .bin, .npy, .pcd"):
+        read_points(p)
+    with pytest.raises(DecodeError, match="cannot read"):
+        read_points(tmp_path / "absent.bin")

@@ -1,0 +1,96 @@
+"""Poses, calibration and the sequence readers, on real and written data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_core.datasets import REGISTRY, detect_kind, open_sequence
+from lidar_core.errors import DatasetError
+from lidar_core.poses import (
+    camera_to_lidar,
+    read_calib,
+    read_poses,
+    relative_transform,
+    rotation_z,
+    write_poses,
+    yaw_deg,
+)
+
+
+def test_poses_round_trip_and_reject_junk(tmp_path):
+    poses = np.stack([rotation_z(a) for a in (0, 30, -100)])
+    poses[:, :3, 3] = [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    write_poses(tmp_path / "poses.txt", poses)
+    np.testing.assert_allclose(read_poses(tmp_path / "poses.txt"), poses, atol=1e-9)
+    (tmp_path / "bad.txt").write_text("1 2 3\n")
+    with pytest.raises(DatasetError, match="has 3 numbers; expected 12"):
+        read_poses(tmp_path / "bad.txt")
+    (tmp_path / "nan.txt").write_text(" ".join(["nan"] * 12) + "\n")
+    with pytest.raises(DatasetError, match="NaN"):
+        read_poses(tmp_path / "nan.txt")
+
+
+def test_relative_yaw():
+    a, b = rotation_z(10.0), rotation_z(-35.0)
+    assert yaw_deg(relative_transform(a, b[None]))[0] == pytest.approx(-45.0)
+
+
+def test_camera_to_lidar_on_synthetic_calibration():
+    # Camera frame: z forward, x right, y down. A LiDAR (x forward, y left, z up) drives forward.
+    tr = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], float)
+    cam = np.stack([np.eye(4)] * 3)
+    cam[:, 2, 3] = [0, 1, 2]  # forward along camera z
+    lidar = camera_to_lidar(cam, tr)
+    np.testing.assert_allclose(lidar[:, :3, 3], [[0, 0, 0], [1, 0, 0], [2, 0, 0]], atol=1e-12)
+
+
+def test_kitti_reader_on_real_sequence(kitti_seq_dir):
+    seq = open_sequence(kitti_seq_dir)
+    assert detect_kind(kitti_seq_dir) == "kitti" and len(seq) == 101
+    calib = read_calib(kitti_seq_dir / "calib.txt")
+    assert calib["Tr"].shape == (4, 4) and calib["P0"].shape == (4, 4)
+    t = seq.positions()
+    # In the LiDAR frame the car drives forward along +x on a flat road (83 m, no revisit).
+    assert np.allclose(seq.poses[0], np.eye(4), atol=1e-6)
+    assert 75 < t[-1, 0] < 90 and abs(t[-1, 2]) < 3
+    assert np.all(np.diff(t[:, 0]) > 0)
+    assert len(seq.points(0)) > 100_000
+
+
+def test_pcd_folder_reader_on_real_nuscenes(nuscenes_dir):
+    seq = open_sequence(nuscenes_dir, sensor="hdl32")
+    assert detect_kind(nuscenes_dir) == "pcd-folder" and len(seq) == 39
+    # Natural order: 0, 1, 2, …, 10 — not 0, 1, 10, 11.
+    assert [p.stem for p in seq.scan_paths[:12]] == [str(i) for i in range(12)]
+    steps = np.linalg.norm(np.diff(seq.positions(), axis=0), axis=1)
+    assert steps.max() < 10 and 80 < steps.sum() < 110
+
+
+def test_pcd_folder_written(tmp_path):
+    from pypcd4 import PointCloud as PcdCloud
+
+    clouds = tmp_path / "clouds"
+    clouds.mkdir()
+    for i in (0, 1, 2, 10):
+        PcdCloud.from_xyz_points(np.full((5, 3), i, np.float32)).save(clouds / f"{i}.pcd")
+    write_poses(tmp_path / "poses.txt", np.stack([np.eye(4)] * 4))
+    seq = open_sequence(tmp_path)
+    assert [float(seq.points(i).xyz[0, 0]) for i in range(4)] == [0, 1, 2, 10]
+
+
+def test_bad_sequences_name_the_problem(tmp_path, synthetic_seq_dir):
+    with pytest.raises(DatasetError, match="does not exist"):
+        open_sequence(tmp_path / "nope")
+    with pytest.raises(DatasetError, match="matches no known sequence layout"):
+        open_sequence(tmp_path)
+    with pytest.raises(DatasetError, match="unknown sequence kind 'rosbag'"):
+        open_sequence(synthetic_seq_dir, kind="rosbag")
+    (tmp_path / "velodyne").mkdir()
+    with pytest.raises(DatasetError, match="poses.txt is missing"):
+        open_sequence(tmp_path)
+    write_poses(tmp_path / "poses.txt", np.stack([np.eye(4)] * 2))
+    np.zeros((3, 4), "<f4").tofile(tmp_path / "velodyne" / "000000.bin")
+    with pytest.raises(DatasetError, match="1 scans but 2 poses"):
+        open_sequence(tmp_path)
+    assert set(REGISTRY) == {"kitti", "pcd-folder"}

@@ -1,0 +1,125 @@
+"""Metrics: fast vs reference, cross-checked against scikit-learn, and edge cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sklearn.metrics import auc as sk_auc
+from sklearn.metrics import precision_recall_curve
+
+from lidar_core.metrics import (
+    average_recall_at_n,
+    evaluate_loop_closure,
+    f1_max,
+    nearest,
+    pr_auc,
+    pr_curve,
+    pr_curve_reference,
+    recall_at_n_curve,
+    squared_distances,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 60))
+def test_pr_curve_matches_reference(seed, n):
+    rng = np.random.default_rng(seed)
+    d = rng.integers(0, 8, n).astype(float)  # many ties on purpose
+    has = rng.random(n) < 0.6
+    ok = has & (rng.random(n) < 0.7)
+    for fast, ref in zip(pr_curve(d, ok, has), pr_curve_reference(d, ok, has), strict=True):
+        np.testing.assert_allclose(fast, ref)
+
+
+def test_pr_curve_agrees_with_sklearn_when_loops_equal_correct_answers():
+    """When every query with a loop retrieves a true loop and the others retrieve none,
+    our protocol reduces to a plain binary PR curve over (correct, −distance)."""
+    rng = np.random.default_rng(3)
+    d = rng.random(200)
+    correct = rng.random(200) < 0.4
+    d[correct] -= 0.3  # correct answers tend to be closer
+    p, r, _ = pr_curve(d, correct, correct)
+    sp, sr, _ = precision_recall_curve(correct, -d)
+    ours = sorted(zip(r.round(12), p.round(12), strict=True))
+    theirs = sorted(zip(sr.round(12), sp.round(12), strict=True))
+    assert ours == theirs
+    assert pr_auc(p, r) == pytest.approx(sk_auc(sr, sp))
+    with np.errstate(invalid="ignore"):
+        sk_f1 = np.nanmax(2 * sp * sr / (sp + sr))
+    assert f1_max(p, r) == pytest.approx(sk_f1)
+
+
+def test_pr_edge_cases():
+    p, r, _ = pr_curve(np.array([]), np.array([], bool), np.array([], bool))
+    assert (p.tolist(), r.tolist()) == ([1.0], [1.0])
+    # No query has a loop: recall is 1 by definition, precision falls as FPs are accepted.
+    p, r, _ = pr_curve(np.array([0.1, 0.2]), np.zeros(2, bool), np.zeros(2, bool))
+    assert r.tolist() == [1.0, 1.0, 1.0] and p.tolist() == [1.0, 0.0, 0.0]
+
+
+def test_nearest_matches_brute_force_and_respects_allowed():
+    rng = np.random.default_rng(0)
+    q, db = rng.normal(size=(7, 5)), rng.normal(size=(30, 5))
+    allowed = rng.random((7, 30)) < 0.5
+    allowed[0] = False
+    idx, dist = nearest(q, db, 4, allowed=allowed, chunk=3)
+    assert (idx[0] == -1).all() and np.isinf(dist[0]).all()
+    for i in range(1, 7):
+        d = ((q[i] - db) ** 2).sum(1)
+        d[~allowed[i]] = np.inf
+        expect = np.argsort(d, kind="stable")[:4]
+        expect = np.where(np.isinf(d[expect]), -1, expect)
+        assert idx[i].tolist() == expect.tolist()
+    np.testing.assert_allclose(squared_distances(q, db)[1, 2], ((q[1] - db[2]) ** 2).sum())
+
+
+def test_recall_curve_and_ar():
+    ranked = np.array([[3, 1, 2], [0, 5, 6], [9, 9, 9], [4, 2, -1]])
+    positives = [np.array([1]), np.array([0]), np.array([], int), np.array([7])]
+    curve = recall_at_n_curve(ranked, positives)
+    assert curve.tolist() == pytest.approx([1 / 3, 2 / 3, 2 / 3])
+    assert average_recall_at_n(curve, 2) == pytest.approx(0.5)
+    assert math.isnan(recall_at_n_curve(ranked, [np.array([], int)] * 4)[0])
+
+
+def _loop_world(n=300, noise=0.05, seed=0):
+    """Frames 200+ revisit frames 0+ (same place → similar descriptor)."""
+    rng = np.random.default_rng(seed)
+    places = rng.normal(size=(200, 16))
+    desc = np.concatenate([places, places[:100] + rng.normal(scale=noise, size=(100, 16))])
+    positives = [np.array([], int)] * 200 + [np.array([i]) for i in range(100)]
+    return desc, positives
+
+
+def test_loop_closure_perfect_and_random():
+    desc, pos = _loop_world()
+    res = evaluate_loop_closure(desc, pos)
+    assert res.n_queries == 300 - 101 and res.n_with_loop == 100
+    assert res.recall_at_1 == 1.0 and res.recall_at_1pct == 1.0 and res.f1max == 1.0
+    assert res.auc == pytest.approx(1.0)
+    rnd = evaluate_loop_closure(np.random.default_rng(1).normal(size=desc.shape), pos)
+    assert rnd.recall_at_1 < 0.1 and rnd.f1max < 0.6
+
+
+def test_loop_closure_database_excludes_recent_frames():
+    # Frame 150 is identical to frame 120, but 120 is too recent (150 − 120 ≤ 100).
+    desc, _ = _loop_world()
+    desc[150] = desc[120]
+    pos = [np.array([], int)] * 300
+    pos[150] = np.array([120])
+    res = evaluate_loop_closure(desc[:151], pos[:151])
+    assert res.n_with_loop == 1 and res.recall_at_1 == 0.0
+    assert res.n_queries == 50
+
+
+def test_query_mask_scores_a_subset():
+    desc, pos = _loop_world()
+    mask = np.zeros(300, bool)
+    mask[250:] = True
+    res = evaluate_loop_closure(desc, pos, query_mask=mask)
+    assert res.n_queries == 50 and res.n_with_loop == 50
+    assert res.summary()["recall@1"] == 1.0

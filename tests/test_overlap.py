@@ -1,0 +1,124 @@
+"""Overlap ground truth (OverlapNet's definition) and the loop table."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_core.datasets import open_sequence
+from lidar_core.overlap import (
+    LoopGroundTruth,
+    candidate_pairs,
+    loop_ground_truth,
+    overlap_and_yaw,
+    pair_overlaps,
+)
+from lidar_core.poses import rotation_z, transform_points
+from lidar_core.projection import project
+from lidar_core.sensors import get_profile
+
+KITTI = get_profile("kitti-hdl64")
+
+
+def overlap_reference(q_xyz, q_pose, r_xyz, r_pose, profile, tau=1.0):
+    """One pair, spelled out step by step."""
+    rel = np.linalg.inv(q_pose) @ r_pose
+    ref = project(transform_points(r_xyz, rel), profile)
+    cur = project(q_xyz, profile)
+    empty = np.float32(profile.empty_value)
+    both = (ref != empty) & (cur != empty)
+    return (both & (np.abs(ref - cur) < tau)).sum() / (cur != empty).sum()
+
+
+def test_self_overlap_is_one_and_yaw_is_recovered(synthetic_seq_dir):
+    seq = open_sequence(synthetic_seq_dir)
+    xyz = seq.points(3).xyz
+    turned = transform_points(xyz, rotation_z(-40.0))  # same place, sensor turned by +40°
+    pose_turned = seq.poses[3] @ rotation_z(40.0)
+    ov, yaw = overlap_and_yaw(
+        xyz, seq.poses[3], [xyz, turned], np.stack([seq.poses[3], pose_turned]), KITTI
+    )
+    assert ov[0] == pytest.approx(1.0)
+    assert ov[1] > 0.97  # float rounding moves a few points across pixel boundaries
+    assert yaw.tolist() == pytest.approx([0.0, 40.0], abs=1e-4)
+
+
+def test_vectorised_overlap_matches_pairwise_reference(kitti_seq_dir):
+    seq = open_sequence(kitti_seq_dir)
+    refs = [40, 45, 49, 50, 60, 90]
+    ov, _ = overlap_and_yaw(
+        seq.points(50).xyz,
+        seq.poses[50],
+        [seq.points(j).xyz for j in refs],
+        seq.poses[refs],
+        KITTI,
+    )
+    expected = [
+        overlap_reference(seq.points(50).xyz, seq.poses[50], seq.points(j).xyz, seq.poses[j], KITTI)
+        for j in refs
+    ]
+    np.testing.assert_allclose(ov, expected, atol=1e-6)
+
+
+def test_overlap_falls_with_distance_on_real_kitti(kitti_seq_dir):
+    seq = open_sequence(kitti_seq_dir)
+    refs = np.array([49, 51, 30, 0])
+    ov, yaw = overlap_and_yaw(
+        seq.points(50).xyz,
+        seq.poses[50],
+        [seq.points(j).xyz for j in refs],
+        seq.poses[refs],
+        KITTI,
+    )
+    assert ov[0] > 0.7 and ov[1] > 0.7  # adjacent frames, ≈1 m apart
+    assert ov[0] > ov[2] > ov[3]
+    assert ov[3] < 0.05  # 45 m apart
+    assert np.abs(yaw).max() < 10  # a straight drive
+
+
+def test_candidate_pairs_respect_radius_and_gap():
+    pos = np.array([[0, 0, 0], [1, 0, 0], [50, 0, 0], [0.5, 0, 0]], float)
+    assert sorted(map(tuple, candidate_pairs(pos, radius=2.0, min_gap=2))) == [(3, 0), (3, 1)]
+    assert len(candidate_pairs(pos, radius=2.0)) == 3 * 3 + 1  # incl. i == j
+
+
+def test_loop_table_finds_the_revisit_and_is_cached(synthetic_seq_dir, tmp_path):
+    seq = open_sequence(synthetic_seq_dir)  # 24 frames per lap, 2 laps
+    kw = dict(exclude_recent=12, radius=10.0, min_overlap=0.3, progress=False)
+    cache = tmp_path / "gt.npz"
+    gt = loop_ground_truth(seq, KITTI, cache=cache, **kw)
+    assert cache.is_file()
+    has = gt.has_loop()
+    # Frame 23 ends the first lap 6.7 m before frame 0: a genuine loop closure.
+    assert not has[:23].any(), "the first lap cannot close a loop before it ends"
+    assert has[24:].mean() > 0.9, "nearly every second-lap frame revisits the first lap"
+    pos = gt.positives()
+    for i in range(24, 48):
+        if len(pos[i]):
+            assert (i - 24) in pos[i] or ((i - 24) - 1) in pos[i] or ((i - 24) + 1) in pos[i]
+    assert (gt.query - gt.reference > 12).all() and (gt.distance < 10).all()
+    # Cached: the same object back, bit for bit; other parameters recompute.
+    again = loop_ground_truth(seq, KITTI, cache=cache, **kw)
+    np.testing.assert_array_equal(again.overlap, gt.overlap)
+    assert LoopGroundTruth.load(cache).params["fingerprint"] == gt.params["fingerprint"]
+    other = loop_ground_truth(seq, KITTI, cache=cache, **{**kw, "radius": 5.0})
+    assert len(other.query) < len(gt.query)
+
+
+def test_corrupt_cache_is_recomputed(synthetic_seq_dir, tmp_path):
+    seq = open_sequence(synthetic_seq_dir)
+    cache = tmp_path / "gt.npz"
+    cache.write_bytes(b"not a zip file")
+    gt = loop_ground_truth(seq, KITTI, exclude_recent=12, radius=10.0, cache=cache, progress=False)
+    assert len(gt.query) > 0 and LoopGroundTruth.load(cache).n_frames == len(seq)
+
+
+def test_pair_overlaps_groups_by_query(synthetic_seq_dir):
+    seq = open_sequence(synthetic_seq_dir)
+    pairs = np.array([[5, 4], [2, 3], [5, 6], [2, 2]])
+    ov, _ = pair_overlaps(seq, pairs, KITTI, progress=False)
+    assert ov[3] == pytest.approx(1.0)
+    single, _ = overlap_and_yaw(
+        seq.points(5).xyz, seq.poses[5], [seq.points(6).xyz], seq.poses[[6]], KITTI
+    )
+    assert ov[2] == pytest.approx(single[0])
