@@ -1,0 +1,48 @@
+# `make test` and `make serve` work on a fresh machine: each creates .venv and installs what
+# it needs first. Installs are re-run only when pyproject.toml changes.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+HOST   ?= 127.0.0.1
+PORT   ?= 8000
+
+# torch is pinned to the CPU build. Use the local wheel where this machine has it; elsewhere
+# ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
+TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
+
+.PHONY: test lint format typecheck serve bench clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(VENV)/.installed-all: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
+	@touch $@
+
+$(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[serve]'
+	@touch $@
+
+test: $(VENV)/.installed-all lint
+	$(BIN)/python -m pytest
+
+lint: $(VENV)/.installed-all
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+
+format: $(VENV)/.installed-all
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
+
+serve: $(VENV)/.installed-serve
+	@echo "The place-recognition service is not built yet (issue 7): nothing to start."
+	@echo "Available now: $(BIN)/overlapmamba --help (range images, loop ground truth)."
+	@exit 2
+
+bench: $(VENV)/.installed-all
+	$(BIN)/python benchmarks/projection.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis bench-results

@@ -1,0 +1,100 @@
+"""Range-projection speed: median and p90 over repeated runs on a ~125k-point scan.
+
+Uses a real KITTI scan when ../shared/data is present (padded to 125k points), else a seeded
+synthetic one. Prints a table and writes JSON (default bench-results/projection.json).
+Goal (issue 2): median ≤ 3 ms for 125k points with the kitti-hdl64 profile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lidar_core.io import read_points
+from lidar_core.projection import project, project_with_index
+from lidar_core.sensors import get_profile
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "kitti00_overlapnet_reference" / "000000.bin"
+
+
+def scan(n: int) -> tuple[np.ndarray, str]:
+    if REAL.is_file():
+        xyz = read_points(REAL).xyz
+        reps = int(np.ceil(n / len(xyz)))
+        jitter = np.random.default_rng(0).normal(0, 0.01, (reps * len(xyz), 3))
+        return (np.tile(xyz, (reps, 1)) + jitter.astype(np.float32))[:n], f"KITTI {REAL.name}"
+    rng = np.random.default_rng(0)
+    az, el = rng.uniform(-np.pi, np.pi, n), np.radians(rng.uniform(-25, 3, n))
+    r = rng.uniform(2, 70, n)
+    xyz = np.column_stack(
+        [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
+    )
+    return xyz.astype(np.float32), "synthetic"
+
+
+def time_it(fn, repeats: int) -> np.ndarray:
+    for _ in range(5):
+        fn()
+    out = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return np.array(out) * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--points", type=int, default=125_000)
+    ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "projection.json")
+    args = ap.parse_args()
+    xyz, source = scan(args.points)
+    rows = []
+    for name, profile in [
+        ("kitti-hdl64", get_profile("kitti-hdl64")),
+        ("hdl32", get_profile("hdl32")),
+    ]:
+        for label, fn in [
+            ("project", lambda p=profile: project(xyz, p)),
+            ("project_with_index", lambda p=profile: project_with_index(xyz, p)),
+        ]:
+            ms = time_it(fn, args.repeats)
+            rows.append(
+                {
+                    "profile": name,
+                    "function": label,
+                    "points": len(xyz),
+                    "median_ms": float(np.median(ms)),
+                    "p90_ms": float(np.percentile(ms, 90)),
+                    "goal_ms": 3.0 if label == "project" else None,
+                }
+            )
+    print(
+        f"range projection, {len(xyz)} points ({source}), {args.repeats} runs, "
+        f"{platform.processor() or platform.machine()}"
+    )
+    print(f"{'profile':<12} {'function':<20} {'median ms':>10} {'p90 ms':>8}  goal")
+    for r in rows:
+        goal = (
+            ""
+            if r["goal_ms"] is None
+            else (f"≤ {r['goal_ms']:g} ms {'met' if r['median_ms'] <= r['goal_ms'] else 'MISSED'}")
+        )
+        print(
+            f"{r['profile']:<12} {r['function']:<20} {r['median_ms']:>10.2f} "
+            f"{r['p90_ms']:>8.2f}  {goal}"
+        )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"source": source, "results": rows}, indent=2))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,3 @@
+from overlapmamba.cli import main
+
+main()
