@@ -83,3 +83,15 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     assert "queries with a loop" in text(res) and out.is_file()
     res = runner.invoke(app, ["ground-truth", str(tmp_path), "-q"])
     assert res.exit_code == 2 and "matches no known sequence layout" in text(res)
+
+
+def test_installed_console_script_runs():
+    """The packaging entry point, as a user runs it (not through CliRunner)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).with_name("overlapmamba")
+    assert script.is_file(), "pip install did not create the overlapmamba console script"
+    res = subprocess.run([str(script), "--help"], capture_output=True, text=True, check=True)
+    assert "range-image" in res.stdout and "ground-truth" in res.stdout
