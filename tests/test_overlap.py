@@ -43,16 +43,21 @@ def test_self_overlap_is_one_and_yaw_is_recovered(synthetic_seq_dir):
     assert yaw.tolist() == pytest.approx([0.0, 40.0], abs=1e-4)
 
 
-def test_vectorised_overlap_matches_pairwise_reference(kitti_seq_dir):
-    seq = open_sequence(kitti_seq_dir)
-    refs = [40, 45, 49, 50, 60, 90]
-    ov, _ = overlap_and_yaw(
-        seq.points(50).xyz,
-        seq.poses[50],
-        [seq.points(j).xyz for j in refs],
+def overlaps_against(seq, query: int, refs) -> tuple[np.ndarray, np.ndarray]:
+    refs = np.asarray(refs)
+    return overlap_and_yaw(
+        seq.points(query).xyz,
+        seq.poses[query],
+        [seq.points(int(j)).xyz for j in refs],
         seq.poses[refs],
         KITTI,
     )
+
+
+def test_vectorised_overlap_matches_pairwise_reference(kitti_seq_dir):
+    seq = open_sequence(kitti_seq_dir)
+    refs = [40, 45, 49, 50, 60, 90]
+    ov, _ = overlaps_against(seq, 50, refs)
     expected = [
         overlap_reference(seq.points(50).xyz, seq.poses[50], seq.points(j).xyz, seq.poses[j], KITTI)
         for j in refs
@@ -62,14 +67,7 @@ def test_vectorised_overlap_matches_pairwise_reference(kitti_seq_dir):
 
 def test_overlap_falls_with_distance_on_real_kitti(kitti_seq_dir):
     seq = open_sequence(kitti_seq_dir)
-    refs = np.array([49, 51, 30, 0])
-    ov, yaw = overlap_and_yaw(
-        seq.points(50).xyz,
-        seq.poses[50],
-        [seq.points(j).xyz for j in refs],
-        seq.poses[refs],
-        KITTI,
-    )
+    ov, yaw = overlaps_against(seq, 50, [49, 51, 30, 0])
     assert ov[0] > 0.7 and ov[1] > 0.7  # adjacent frames, ≈1 m apart
     assert ov[0] > ov[2] > ov[3]
     assert ov[3] < 0.05  # 45 m apart
