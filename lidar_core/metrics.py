@@ -12,7 +12,8 @@ Distances are squared L2 between descriptors (equivalent to cosine ranking for u
   accept when d_i ≤ t → TP if the candidate is a positive, else FP;
   reject otherwise → FN if query i has any positive, else TN.
   precision = TP / (TP + FP), taken as 1 when nothing is accepted;
-  recall = TP / (TP + FN), taken as 1 when no query has a positive.
+  recall = TP / (TP + FN), taken as 1 when no query has a positive and as 0 when every
+  query with a positive was accepted with a wrong candidate.
 * **AUC** is the area under that precision–recall curve (trapezoids over recall, the
   t = −∞ point being recall 0, precision 1). **F1max** = max over t of 2PR / (P + R).
 * **Recall@N** is over queries that have a positive: a hit if any of the N nearest database
@@ -122,7 +123,10 @@ def pr_curve(
     thresholds = np.r_[-np.inf, d[last]]
     with np.errstate(invalid="ignore", divide="ignore"):
         precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
-        recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1), 1.0)
+        # TP + FN = 0 with some query having a positive means every such query was accepted
+        # with a wrong candidate: recall 0, not 1.
+        no_positive = 1.0 if not has.any() else 0.0
+        recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1), no_positive)
     return precision, recall, thresholds
 
 
@@ -131,6 +135,7 @@ def pr_curve_reference(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Slow, obvious twin of :func:`pr_curve`, one threshold at a time. For tests."""
     thresholds = [-math.inf, *sorted(set(float(x) for x in top1_distance))]
+    any_positive = any(bool(h) for h in has_positive)
     precision, recall = [], []
     for t in thresholds:
         tp = fp = fn = 0
@@ -140,7 +145,7 @@ def pr_curve_reference(
             elif has:
                 fn += 1
         precision.append(tp / (tp + fp) if tp + fp else 1.0)
-        recall.append(tp / (tp + fn) if tp + fn else 1.0)
+        recall.append(tp / (tp + fn) if tp + fn else (0.0 if any_positive else 1.0))
     return np.array(precision), np.array(recall), np.array(thresholds)
 
 
@@ -206,7 +211,11 @@ def evaluate_loop_closure(
     k = int(max(max_n, k_pct.max(initial=1)))
     allowed = np.arange(N)[None, :] < db_size[:, None]
     ranked, dist = nearest(desc[queries], desc, k, allowed=allowed)
-    pos = [positives[int(i)] for i in queries]
+    # Only database frames count: a positive inside the excluded window cannot be retrieved.
+    pos = [
+        np.asarray(positives[int(i)])[np.asarray(positives[int(i)]) < n]
+        for i, n in zip(queries, db_size, strict=True)
+    ]
     has = np.array([len(p) > 0 for p in pos], dtype=bool)
     correct = np.array([r[0] in p for r, p in zip(ranked, pos, strict=True)], dtype=bool)
     precision, recall, thresholds = pr_curve(dist[:, 0], correct, has)

@@ -174,7 +174,7 @@ def test_pcd_malformed_inputs_are_rejected():
         decode_pcd(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4\nDATA binary\n" + body)
     with pytest.raises(DecodeError):
         decode_pcd(b"\x89PNG\r\n\x1a\n" + body)
-    with pytest.raises(DecodeError, match="no DATA line"):
+    with pytest.raises(DecodeError, match="DATA line"):
         decode_pcd(b"# comment\n" * 100)
     with pytest.raises(PointCountError):
         decode_pcd(_pcd(points=5_000_000) + body)
@@ -202,3 +202,45 @@ def test_read_points_rejects_unknown_suffix(tmp_path):
         read_points(p)
     with pytest.raises(DecodeError, match="cannot read"):
         read_points(tmp_path / "absent.bin")
+
+
+def test_pcd_header_tricks_found_in_review():
+    body = np.ones((3, 3), "<f4").tobytes()
+    # An alternative spelling pypcd4 accepts would skip our size checks: refused outright.
+    with pytest.raises(DecodeError, match="allowed: ascii, binary, binary_compressed"):
+        decode_pcd(_pcd(data="binaryscompressed") + body)
+    # More than 10 header entries: pypcd4 would stop early and misread the DATA line.
+    padded = _pcd().replace(b"VERSION 0.7\n", b"VERSION 0.7\nHEIGHT 1\n")
+    with pytest.raises(DecodeError, match="no DATA line in its first 10 entries"):
+        decode_pcd(padded + body)
+    with pytest.raises(DecodeError, match="header line longer"):
+        decode_pcd(b"#" * 5000 + b"\n" + _pcd() + body)
+    header = _pcd(points=1, fields="x y z intensity").replace(b"COUNT 1 1 1 1", b"COUNT 1 1 1 2")
+    with pytest.raises(DecodeError, match="intensity has COUNT 2; allowed: 1"):
+        decode_pcd(header + np.ones(5, "<f4").tobytes())
+    # Comments inside the header are fine and do not shift what pypcd4 reads.
+    commented = b"# made by a test\n" + _pcd().replace(b"HEIGHT 1\n", b"HEIGHT 1\n# note\n")
+    assert len(decode_pcd(commented + body)) == 3
+
+
+def _npy_with_header(header: bytes, version: bytes = b"\x01\x00") -> bytes:
+    header += b" " * (53 - len(header)) + b"\n"
+    return b"\x93NUMPY" + version + struct.pack("<H", len(header)) + header + b"\0" * 12
+
+
+def test_npy_header_tricks_found_in_review():
+    with pytest.raises(DecodeError, match="allowed: \\(N, 3\\)"):
+        decode_npy(
+            _npy_with_header(b"{'descr': '<f4', 'fortran_order': False, 'shape': (True, 3), }")
+        )
+    with pytest.raises(DecodeError, match="version"):
+        decode_npy(
+            _npy_with_header(
+                b"{'descr': '<f4', 'fortran_order': False, 'shape': (1, 3), }", version=b"\x03\x00"
+            )
+        )
+
+
+def test_raw_rejects_non_contiguous_buffers():
+    with pytest.raises(DecodeError, match="contiguous"):
+        decode_raw(memoryview(np.zeros(32, np.float32)[::2]), "xyzi")

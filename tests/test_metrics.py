@@ -61,6 +61,11 @@ def test_pr_edge_cases():
     assert r.tolist() == [1.0, 1.0, 1.0] and p.tolist() == [1.0, 0.0, 0.0]
 
 
+def test_wrong_answers_for_every_loop_query_give_zero_recall():
+    p, r, _ = pr_curve(np.array([0.5, 0.5]), np.zeros(2, bool), np.ones(2, bool))
+    assert r.tolist() == [0.0, 0.0] and pr_auc(p, r) == 0.0
+
+
 def test_nearest_matches_brute_force_and_respects_allowed():
     rng = np.random.default_rng(0)
     q, db = rng.normal(size=(7, 5)), rng.normal(size=(30, 5))
@@ -112,8 +117,12 @@ def test_loop_closure_database_excludes_recent_frames():
     pos = [np.array([], int)] * 300
     pos[150] = np.array([120])
     res = evaluate_loop_closure(desc[:151], pos[:151])
-    assert res.n_with_loop == 1 and res.recall_at_1 == 0.0
+    # Frame 120 is outside query 150's database, so it does not count as a positive.
+    assert res.n_with_loop == 0 and math.isnan(res.recall_at_1)
     assert res.n_queries == 50
+    pos[150] = np.array([3, 120])  # one reachable positive, one not
+    res = evaluate_loop_closure(desc[:151], pos[:151])
+    assert res.n_with_loop == 1 and res.recall_at_1 == 0.0
 
 
 def test_query_mask_scores_a_subset():

@@ -22,10 +22,14 @@ def decode_npy(
     buf = io.BytesIO(data)
     try:
         version = np.lib.format.read_magic(buf)
+        if version not in ((1, 0), (2, 0)):
+            raise DecodeError(f"{source}: .npy format version {version}; allowed: 1.0, 2.0")
         if version == (1, 0):
             shape, fortran, dtype = np.lib.format.read_array_header_1_0(buf)
         else:
             shape, fortran, dtype = np.lib.format.read_array_header_2_0(buf)
+    except DecodeError:
+        raise
     except Exception as err:  # numpy raises ValueError/SyntaxError/... on junk headers
         raise DecodeError(f"{source} is not a valid .npy file: {err}") from err
     if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
@@ -33,7 +37,7 @@ def decode_npy(
             f"{source} has dtype {dtype}; allowed: float32 or float64 (no object arrays)",
             dtype=str(dtype),
         )
-    if len(shape) != 2 or shape[1] not in (3, 4):
+    if len(shape) != 2 or shape[1] not in (3, 4) or any(type(d) is not int for d in shape):
         raise DecodeError(
             f"{source} has shape {shape}; allowed: (N, 3) or (N, 4)", shape=list(shape)
         )

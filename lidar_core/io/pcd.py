@@ -18,15 +18,24 @@ from lidar_core.errors import DecodeError
 from lidar_core.points import DEFAULT_LIMITS, PointCloud, PointLimits, validate
 
 INTENSITY_FIELDS = ("intensity", "i")
-_MAX_HEADER_LINES = 64
+DATA_ENCODINGS = ("ascii", "binary", "binary_compressed")
+# The PCD v0.7 header has at most 10 entries (VERSION … DATA); pypcd4 stops reading at 10.
+_MAX_HEADER_ENTRIES = 10
+_MAX_HEADER_BYTES = 4096
 
 
-def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, int]:
+def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, list[str], int]:
+    """Parse the header ourselves; return it, its cleaned lines and the data offset.
+
+    pypcd4 is later handed exactly these lines, so it cannot read the header differently.
+    """
     lines: list[str] = []
-    for _ in range(_MAX_HEADER_LINES):
-        raw = buf.readline(4096)
+    while True:
+        raw = buf.readline(_MAX_HEADER_BYTES + 1)
         if not raw:
-            break
+            raise DecodeError(f"{source}: PCD header ends without a DATA line")
+        if len(raw) > _MAX_HEADER_BYTES:
+            raise DecodeError(f"{source}: PCD header line longer than {_MAX_HEADER_BYTES} bytes")
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError as err:
@@ -34,12 +43,21 @@ def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, int]:
         if not line or line.startswith("#"):
             continue
         lines.append(line)
-        if line.upper().startswith("DATA"):
+        if line.startswith("DATA"):
             break
-    else:
-        raise DecodeError(f"{source}: PCD header has no DATA line in {_MAX_HEADER_LINES} lines")
-    if not lines or not lines[-1].upper().startswith("DATA"):
-        raise DecodeError(f"{source}: PCD header ends without a DATA line")
+        if len(lines) >= _MAX_HEADER_ENTRIES:
+            raise DecodeError(
+                f"{source}: PCD header has no DATA line in its first {_MAX_HEADER_ENTRIES} "
+                "entries (VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT, VIEWPOINT, POINTS, "
+                "DATA)"
+            )
+    encoding = lines[-1].split()[1:]
+    if encoding not in ([e] for e in DATA_ENCODINGS):
+        raise DecodeError(
+            f"{source}: PCD 'DATA {' '.join(encoding)}' is not supported; allowed: "
+            f"{', '.join(DATA_ENCODINGS)}",
+            allowed=list(DATA_ENCODINGS),
+        )
     try:
         meta = MetaData.parse_header(lines)
     except Exception as err:  # pydantic.ValidationError, ValueError on junk numbers
@@ -55,7 +73,7 @@ def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, int]:
             f"{source}: PCD header declares POINTS {meta.points} but WIDTH×HEIGHT is "
             f"{meta.width * meta.height}"
         )
-    return meta, buf.tell()
+    return meta, lines, buf.tell()
 
 
 def _short(err: Exception) -> str:
@@ -69,7 +87,7 @@ def decode_pcd(
     source: str = "scan",
 ) -> PointCloud:
     buf = io.BytesIO(data)
-    meta, offset = _read_header(buf, source)
+    meta, lines, offset = _read_header(buf, source)
     missing = [f for f in ("x", "y", "z") if f not in meta.fields]
     if missing:
         raise DecodeError(
@@ -81,6 +99,8 @@ def decode_pcd(
             raise DecodeError(
                 f"{source}: PCD field {name} is TYPE {typ} COUNT {count}; allowed: F with COUNT 1"
             )
+        if name in INTENSITY_FIELDS and count != 1:
+            raise DecodeError(f"{source}: PCD field {name} has COUNT {count}; allowed: 1")
         if (typ == "F" and size not in (4, 8)) or (typ in "UI" and size not in (1, 2, 4, 8)):
             raise DecodeError(f"{source}: PCD field {name} has unsupported SIZE {size}")
     limits.check_count(meta.points, source=source)
@@ -89,12 +109,13 @@ def decode_pcd(
     except Exception as err:
         raise DecodeError(f"{source}: PCD field types are invalid: {_short(err)}") from err
     body = len(data) - offset
-    if meta.data.value == "binary" and body < meta.points * record:
+    encoding = meta.data.value
+    if encoding == "binary" and body < meta.points * record:
         raise DecodeError(
             f"{source}: PCD declares {meta.points} points ({meta.points * record} bytes) "
             f"but holds {body} bytes of data"
         )
-    if meta.data.value == "binary_compressed":
+    if encoding == "binary_compressed":
         if body < 8:
             raise DecodeError(f"{source}: binary_compressed PCD lacks its size header")
         compressed, uncompressed = struct.unpack("<II", bytes(data[offset : offset + 8]))
@@ -105,7 +126,8 @@ def decode_pcd(
                 f"{meta.points * record}, {body - 8} bytes present)"
             )
     try:
-        pc = PcdCloud.from_fileobj(io.BytesIO(data))  # type: ignore[arg-type]
+        clean = "\n".join(lines).encode() + b"\n" + bytes(memoryview(data)[offset:])
+        pc = PcdCloud.from_fileobj(io.BytesIO(clean))  # type: ignore[arg-type]
         arr = np.atleast_1d(pc.pc_data)
     except Exception as err:  # lzf, numpy and pypcd4 raise a variety of types
         raise DecodeError(f"{source}: PCD data cannot be decoded: {_short(err)}") from err

@@ -28,7 +28,10 @@ def decode_raw(
             allowed=list(FIELD_LAYOUTS),
         )
     record = 4 * FIELD_LAYOUTS[fields]
-    nbytes = len(memoryview(data).cast("B"))
+    view = memoryview(data)
+    if not view.c_contiguous:
+        raise DecodeError(f"{source}: the point buffer must be contiguous")
+    nbytes = view.nbytes
     if nbytes % record:
         raise DecodeError(
             f"{source} is {nbytes} bytes, not a multiple of the {record}-byte {fields} record "
