@@ -244,3 +244,12 @@ def test_npy_header_tricks_found_in_review():
 def test_raw_rejects_non_contiguous_buffers():
     with pytest.raises(DecodeError, match="contiguous"):
         decode_raw(memoryview(np.zeros(32, np.float32)[::2]), "xyzi")
+
+
+def test_pcd_edge_cases_raise_typed_errors_without_warnings():
+    # pytest turns warnings into errors here, so these also prove no warning leaks out.
+    with pytest.raises(DecodeError, match="declares 2 points but its data holds 0"):
+        decode_pcd(_pcd(points=2, data="ascii"))  # declares rows, holds none
+    big = _pcd(points=1).replace(b"SIZE 4 4 4", b"SIZE 8 8 8")
+    with pytest.raises(NonFiniteError):
+        decode_pcd(big + np.array([1e300, 0, 0], "<f8").tobytes())

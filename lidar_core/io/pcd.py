@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import struct
+import warnings
 
 import numpy as np
 from pypcd4 import PointCloud as PcdCloud
@@ -127,7 +128,10 @@ def decode_pcd(
             )
     try:
         clean = "\n".join(lines).encode() + b"\n" + bytes(memoryview(data)[offset:])
-        pc = PcdCloud.from_fileobj(io.BytesIO(clean))  # type: ignore[arg-type]
+        with warnings.catch_warnings():
+            # e.g. loadtxt's "input contained no data": the count check below reports it.
+            warnings.simplefilter("ignore")
+            pc = PcdCloud.from_fileobj(io.BytesIO(clean))  # type: ignore[arg-type]
         arr = np.atleast_1d(pc.pc_data)
     except Exception as err:  # lzf, numpy and pypcd4 raise a variety of types
         raise DecodeError(f"{source}: PCD data cannot be decoded: {_short(err)}") from err
@@ -135,7 +139,9 @@ def decode_pcd(
         raise DecodeError(
             f"{source}: PCD declares {meta.points} points but its data holds {arr.shape[0]}"
         )
-    xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
-    field = next((f for f in INTENSITY_FIELDS if f in meta.fields), None)
-    intensity = None if field is None else np.asarray(arr[field], dtype=np.float32)
+    # float64 fields beyond float32's range become inf here; validate() reports them.
+    with np.errstate(over="ignore"):
+        xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
+        field = next((f for f in INTENSITY_FIELDS if f in meta.fields), None)
+        intensity = None if field is None else np.asarray(arr[field], dtype=np.float32)
     return validate(xyz, intensity, limits=limits, source=source)
