@@ -28,7 +28,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from lidar_core.datasets.base import Sequence
-from lidar_core.poses import relative_transform, yaw_deg
+from lidar_core.poses import relative_transform, transform_points, yaw_deg
 from lidar_core.projection import pixel_coordinates, project
 from lidar_core.sensors import SensorProfile
 
@@ -64,10 +64,7 @@ def overlap_and_yaw(
 
     # All references in one projection: each gets its own H·W slab of one flat buffer.
     moved = np.concatenate(
-        [
-            (np.asarray(xyz, np.float64)[:, :3] @ t[:3, :3].T + t[:3, 3]).astype(np.float32)
-            for xyz, t in zip(ref_xyz, rel, strict=True)
-        ]
+        [transform_points(np.asarray(xyz)[:, :3], t) for xyz, t in zip(ref_xyz, rel, strict=True)]
     )
     owner = np.repeat(np.arange(K, dtype=np.int64), [len(x) for x in ref_xyz])
     pc = pixel_coordinates(moved, profile)
