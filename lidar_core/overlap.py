@@ -229,6 +229,63 @@ def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
     return base / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
 
 
+def loop_params(
+    seq: Sequence,
+    profile: SensorProfile,
+    *,
+    exclude_recent: int = 100,
+    radius: float = 30.0,
+    min_overlap: float = 0.3,
+    threshold: float = 1.0,
+) -> dict:
+    """The parameters that identify a loop table, with their fingerprint over the sequence."""
+    params = {
+        "format": GT_FORMAT_VERSION,
+        "exclude_recent": exclude_recent,
+        "radius": radius,
+        "min_overlap": min_overlap,
+        "threshold": threshold,
+        "profile": profile.model_dump(),
+    }
+    params["fingerprint"] = _fingerprint(seq, params)
+    return params
+
+
+def loop_table_from_pairs(
+    seq: Sequence,
+    params: dict,
+    query: np.ndarray,
+    reference: np.ndarray,
+    overlap: np.ndarray,
+    yaw: np.ndarray,
+) -> LoopGroundTruth:
+    """A loop table from overlaps already computed for a superset of its candidate pairs
+    (the same pairs :func:`loop_ground_truth` would compute, with the same overlap code)."""
+    pos = seq.positions()
+    query, reference = np.asarray(query, np.int64), np.asarray(reference, np.int64)
+    dist = np.linalg.norm(pos[query] - pos[reference], axis=1)
+    keep = (query - reference > params["exclude_recent"]) & (dist < params["radius"])
+    return LoopGroundTruth(
+        n_frames=len(seq),
+        query=query[keep],
+        reference=reference[keep],
+        overlap=np.asarray(overlap, np.float32)[keep],
+        yaw_deg=np.asarray(yaw, np.float32)[keep],
+        distance=dist[keep].astype(np.float32),
+        params=params,
+    )
+
+
+def _load_matching(path: Path, fingerprint: str) -> LoopGroundTruth | None:
+    if not path.is_file():
+        return None
+    try:
+        gt = LoopGroundTruth.load(path)
+    except (OSError, ValueError, KeyError):
+        return None  # unreadable or stale: recompute
+    return gt if gt.params.get("fingerprint") == fingerprint else None
+
+
 def loop_ground_truth(
     seq: Sequence,
     profile: SensorProfile,
@@ -242,44 +299,36 @@ def loop_ground_truth(
 ) -> LoopGroundTruth:
     """Loop table of a sequence (OverlapTransformer protocol), cached to ``.npz``.
 
-    ``cache=True`` uses :func:`default_cache_path`; a path uses that file; False disables.
-    A cached table is reused only if sequence, profile and parameters are unchanged.
+    ``cache=True`` uses :func:`default_cache_path`, after looking for a table the data's
+    writer shipped in ``<sequence>/ground_truth/loops.npz`` (the synthetic generator does);
+    a path uses that file; False disables. A table is reused only if sequence, profile and
+    parameters are unchanged.
     """
-    params = {
-        "format": GT_FORMAT_VERSION,
-        "exclude_recent": exclude_recent,
-        "radius": radius,
-        "min_overlap": min_overlap,
-        "threshold": threshold,
-        "profile": profile.model_dump(),
-    }
-    fp = _fingerprint(seq, params)
-    params["fingerprint"] = fp
+    params = loop_params(
+        seq,
+        profile,
+        exclude_recent=exclude_recent,
+        radius=radius,
+        min_overlap=min_overlap,
+        threshold=threshold,
+    )
+    fp = params["fingerprint"]
     path = None
     if cache is not False:
+        if cache is True:
+            shipped = _load_matching(seq.root / "ground_truth" / "loops.npz", fp)
+            if shipped is not None:
+                return shipped
         path = default_cache_path(seq, fp) if cache is True else Path(cache)
-        if path.is_file():
-            try:
-                gt = LoopGroundTruth.load(path)
-                if gt.params.get("fingerprint") == fp:
-                    return gt
-            except (OSError, ValueError, KeyError):
-                pass  # unreadable or stale cache: recompute and overwrite
+        cached = _load_matching(path, fp)
+        if cached is not None:
+            return cached
     pos = seq.positions()
     pairs = candidate_pairs(pos, radius=radius, min_gap=exclude_recent + 1)
     overlaps, yaws = pair_overlaps(
         seq, pairs, profile, threshold=threshold, progress=progress, desc="loop ground truth"
     )
-    dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1).astype(np.float32)
-    gt = LoopGroundTruth(
-        n_frames=len(seq),
-        query=pairs[:, 0],
-        reference=pairs[:, 1],
-        overlap=overlaps,
-        yaw_deg=yaws,
-        distance=dist,
-        params=params,
-    )
+    gt = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlaps, yaws)
     if path is not None:
         gt.save(path)
     return gt

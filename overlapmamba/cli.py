@@ -189,5 +189,196 @@ def ground_truth(
     out.print(table)
 
 
+@app.command(
+    "gen-data",
+    epilog="Examples:\n\n  overlapmamba gen-data data/synth/train --preset train\n\n"
+    "  overlapmamba gen-data data/synth/s42 --seed 42 --frames 1200 --sensor hdl32",
+)
+@_friendly_errors
+def gen_data(
+    out_dir: Annotated[
+        Path, typer.Argument(file_okay=False, help="new, empty folder for the sequence")
+    ],
+    seed: Annotated[int | None, typer.Option(min=0, help="world and drive seed")] = None,
+    frames: Annotated[
+        int | None, typer.Option(min=2, max=100_000, help="scans to simulate")
+    ] = None,
+    sensor: Annotated[str, typer.Option(help="kitti-hdl64 or hdl32")] = "kitti-hdl64",
+    preset: Annotated[
+        str | None, typer.Option(help="train, val or test: fixed seed, size and sensor")
+    ] = None,
+    split: Annotated[
+        str, typer.Option(help="train, val or test (recorded in the manifest)")
+    ] = "train",
+    nodes: Annotated[
+        int | None, typer.Option(min=2, max=20, help="street-grid nodes per side (town size)")
+    ] = None,
+    gt_radius: Annotated[
+        float,
+        typer.Option(min=1.0, max=200.0, help="pairwise overlaps for pairs closer than this (m)"),
+    ] = 30.0,
+    no_ground_truth: Annotated[
+        bool, typer.Option("--no-ground-truth", help="skip the overlap tables")
+    ] = False,
+    workers: Annotated[int, typer.Option(min=1, max=64, help="processes (one per core)")] = 2,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Simulate a synthetic town and a drive with revisits; write a KITTI-layout sequence."""
+    from model_export.synth.generate import GenConfig, generate
+    from model_export.synth.presets import preset as get_preset
+
+    if preset is not None:
+        if seed is not None or frames is not None or nodes is not None:
+            raise typer.BadParameter(
+                "--preset fixes seed, frames and town size; drop --seed/--frames/--nodes "
+                "or drop --preset"
+            )
+        try:
+            cfg = get_preset(preset)
+        except ValueError as err:
+            raise typer.BadParameter(str(err)) from None
+        cfg = cfg.model_copy(update={"gt_radius": gt_radius})
+    else:
+        if seed is None or frames is None:
+            raise typer.BadParameter("give --seed and --frames, or a --preset")
+        from pydantic import ValidationError
+
+        try:
+            cfg = GenConfig(
+                seed=seed,
+                frames=frames,
+                sensor=sensor,
+                split=split,
+                world={"nx": nodes, "ny": nodes} if nodes else {},
+                gt_radius=gt_radius,
+            )
+        except ValidationError as err:
+            raise typer.BadParameter(err.errors()[0]["msg"]) from None
+    try:
+        manifest = generate(
+            out_dir, cfg, workers=workers, ground_truth=not no_ground_truth, progress=not quiet
+        )
+    except FileExistsError as err:
+        raise typer.BadParameter(str(err)) from None
+    c, t = manifest["counts"], manifest["timing_s"]
+    table = Table(title=f"Synthetic sequence: {out_dir}", show_header=False)
+    rows = [
+        ("seed / sensor / split", f"{cfg.seed} / {cfg.sensor} / {cfg.split}"),
+        ("scans", c["frames"]),
+        ("points per scan (mean)", f"{c['points_per_scan']['mean']:.0f}"),
+        (
+            "drive",
+            f"{c['drive']['length_m']:.0f} m at {c['drive']['speed_mps']['mean']:.1f} m/s mean",
+        ),
+        (
+            "town",
+            f"{c['world']['street_km']} km of street, {c['world']['static_triangles']} triangles",
+        ),
+        (
+            "simulation",
+            f"{t['simulate']:.1f} s ({t['scans_per_s']:.1f} scans/s, {workers} workers)",
+        ),
+    ]
+    if "ground_truth" in c:
+        g = c["ground_truth"]
+        rows += [
+            ("overlap pairs", f"{g['pairs_within_radius']} ({t['ground_truth']:.1f} s)"),
+            ("revisiting scans", f"{g['queries_with_loop']} ({g['reverse_fraction']:.0%} reverse)"),
+            ("longest revisit gap", f"{g['max_revisit_gap_frames']} frames"),
+        ]
+    for k, v in rows:
+        table.add_row(k, str(v))
+    out.print(table)
+
+
+@app.command(
+    "sim-report",
+    epilog="Example:\n\n  overlapmamba sim-report --synthetic data/synth/val --out reports/realism",
+)
+@_friendly_errors
+def sim_report(
+    synthetic: Annotated[
+        Path | None,
+        typer.Option(
+            exists=True, file_okay=False, help="synthetic sequence (default: generate one)"
+        ),
+    ] = None,
+    real: Annotated[Path, typer.Option(help="real KITTI sequence folder")] = Path(
+        "../shared/data/kitti00_0000-0100"
+    ),
+    reference: Annotated[
+        Path, typer.Option(help="folder with the real scans that carry intensity")
+    ] = Path("../shared/data/kitti00_overlapnet_reference"),
+    scans: Annotated[int, typer.Option(min=1, help="scans to use from each side")] = 50,
+    output: Annotated[
+        Path, typer.Option("--out", "-o", help="folder for realism.json/.png")
+    ] = Path("reports/realism"),
+) -> None:
+    """Compare synthetic scans with real KITTI scans: beams, ranges, empties, ground, intensity."""
+    import json
+    import tempfile
+
+    import numpy as np
+
+    from model_export.synth import realism
+
+    real_dir = real / "velodyne"
+    if not real_dir.is_dir():
+        raise typer.BadParameter(f"{real_dir} does not exist; point --real at a KITTI sequence")
+    real_paths = sorted(real_dir.glob("*.bin"))[:scans]
+    with tempfile.TemporaryDirectory() as tmp:
+        if synthetic is None:
+            from model_export.synth.generate import GenConfig, generate
+
+            synthetic = Path(tmp) / "synthetic"
+            generate(
+                synthetic, GenConfig(seed=4242, frames=scans), ground_truth=False, progress=False
+            )
+        syn_paths = sorted((synthetic / "velodyne").glob("*.bin"))[:scans]
+        if not syn_paths:
+            raise typer.BadParameter(f"{synthetic} holds no velodyne/*.bin scans")
+        # Compare within the real data's range: its files may be clipped (KITTI here: 80 m).
+        cap = min(120.0, np.ceil(realism.max_range_of(real_paths)))
+        r_stats = realism.scan_stats(real_paths, max_range=cap)
+        s_stats = realism.scan_stats(syn_paths, max_range=cap)
+    ref_paths = sorted(reference.glob("*.bin")) if reference.is_dir() else []
+    i_stats = realism.scan_stats(ref_paths, max_range=cap) if ref_paths else None
+    rows = realism.compare(r_stats, s_stats, i_stats)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "realism.json").write_text(
+        json.dumps(
+            {
+                "rows": rows,
+                "compared_within_m": cap,
+                "real": r_stats,
+                "synthetic": s_stats,
+                "real_intensity": i_stats,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    realism.plot(r_stats, s_stats, i_stats, output / "realism.png")
+    table = Table(
+        title=f"Synthetic vs real ({len(real_paths)} real, {len(syn_paths)} synthetic scans, "
+        f"points within {cap:g} m)"
+    )
+    for col in ("statistic", "real", "synthetic", "gap"):
+        table.add_column(col)
+
+    def fmt(v: Any) -> str:
+        return "—" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v)
+
+    for row in rows:
+        table.add_row(
+            row["statistic"],
+            fmt(row["real"]),
+            fmt(row["synthetic"]),
+            f"{fmt(row['gap'])} ({row['gap_kind']})",
+        )
+    out.print(table)
+    out.print(f"wrote {output / 'realism.json'} and {output / 'realism.png'}")
+
+
 def main() -> None:
     app()

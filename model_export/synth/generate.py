@@ -1,0 +1,418 @@
+"""Write a synthetic sequence in the KITTI odometry layout, with ground truth and a manifest.
+
+    OUT/
+      velodyne/000000.bin …   float32 N×4 (x, y, z, intensity), sensor frame
+      poses.txt               3×4 sensor→world per scan, relative to the first scan (as KITTI)
+      calib.txt               identity Tr (the poses are already in the LiDAR frame)
+      times.txt               scan timestamps (s)
+      ground_truth/
+        overlaps.npz          overlap and yaw of every pair (i > j) closer than gt_radius
+        loops.npz             the loop table (lidar_core.overlap.LoopGroundTruth)
+      manifest.json           seed, generator version, parameters, counts, loop statistics
+      map.png                 top-down world with the coloured drive and its revisits
+
+Scans are simulated in worker processes; each scan draws its noise from (seed, frame), so
+the output is byte-identical for a seed whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from tqdm.auto import tqdm
+
+from lidar_core.datasets import open_sequence
+from lidar_core.overlap import (
+    LoopGroundTruth,
+    candidate_pairs,
+    loop_params,
+    loop_table_from_pairs,
+    pair_overlaps,
+)
+from lidar_core.poses import write_poses
+from lidar_core.sensors import get_profile
+from model_export.synth.dynamics import Dynamics, DynamicsParams
+from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
+from model_export.synth.trajectory import Drive, DriveParams, plan_drive
+from model_export.synth.world import World, WorldParams, build_world
+
+GENERATOR_VERSION = "1.0.0"
+DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
+
+
+class GenConfig(BaseModel):
+    """Everything that determines a generated sequence."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    seed: int = Field(ge=0, le=2**31 - 1)
+    frames: int = Field(ge=2, le=100_000)
+    sensor: str = "kitti-hdl64"
+    preset: str | None = None
+    split: str = Field(default="train", description="train, val or test; test is never trained on")
+    world: dict = Field(default_factory=dict, description="WorldParams overrides")
+    drive: dict = Field(default_factory=dict, description="DriveParams overrides")
+    dynamics: dict = Field(default_factory=dict, description="DynamicsParams overrides")
+    gt_radius: float = Field(default=30.0, gt=0, le=200)
+    loop_exclude: int = Field(default=100, ge=0)
+    loop_min_overlap: float = Field(default=0.3, ge=0, le=1)
+
+    @field_validator("sensor")
+    @classmethod
+    def _known_sensor(cls, v: str) -> str:
+        if v not in LIDAR_MODELS:
+            raise ValueError(f"unknown sensor {v!r}; allowed: {', '.join(LIDAR_MODELS)}")
+        return v
+
+    @field_validator("split")
+    @classmethod
+    def _known_split(cls, v: str) -> str:
+        if v not in ("train", "val", "test"):
+            raise ValueError(f"unknown split {v!r}; allowed: train, val, test")
+        return v
+
+    def world_params(self) -> WorldParams:
+        return _build(WorldParams, self.world)
+
+    def drive_params(self) -> DriveParams:
+        lidar = get_lidar(self.sensor)
+        base = {"rate_hz": lidar.rate_hz, "mount_height": lidar.mount_height}
+        return _build(DriveParams, {**base, **self.drive})
+
+    def dynamics_params(self) -> DynamicsParams:
+        return _build(DynamicsParams, self.dynamics)
+
+
+def _build(cls, overrides: dict):
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(overrides) - names
+    if unknown:
+        raise ValueError(
+            f"unknown {cls.__name__} fields {sorted(unknown)}; allowed: {sorted(names)}"
+        )
+    fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    return cls(**fixed)
+
+
+# ---- scan simulation in worker processes ---------------------------------------------------
+_W: dict = {}
+
+
+def _init_worker(world: World, drive: Drive, dynamics: Dynamics, sensor: str, seed: int, out: str):
+    _W.update(
+        scanner=Scanner(world.static, get_lidar(sensor)),
+        drive=drive,
+        dyn=dynamics,
+        seed=seed,
+        out=Path(out),
+    )
+
+
+def _simulate(k: int) -> tuple[int, int]:
+    drive: Drive = _W["drive"]
+    t = float(drive.times[k])
+    heading = float(np.arctan2(drive.poses[k, 1, 0], drive.poses[k, 0, 0]))
+    mesh = _W["dyn"].mesh_at(t, drive.poses[k, :2, 3], DYNAMIC_RADIUS, heading)
+    pts = _W["scanner"].scan(drive.pose_at, t, mesh, np.random.default_rng([_W["seed"], 1, k]))
+    path = _W["out"] / "velodyne" / f"{k:06d}.bin"
+    tmp = path.with_suffix(".tmp")
+    pts.tofile(tmp)
+    os.replace(tmp, path)
+    return k, len(pts)
+
+
+def _single_threaded(initializer=None, *initargs) -> None:
+    # One process per core: a BLAS thread pool per worker on top oversubscribes the cores
+    # (measured: 2 workers ran 2.1× *slower* than one until this was set).
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def _pool(workers: int, initializer=None, initargs=()):
+    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+    return ctx.Pool(workers, initializer=_single_threaded, initargs=(initializer, *initargs))
+
+
+def simulate_scans(
+    out: Path,
+    world: World,
+    drive: Drive,
+    dynamics: Dynamics,
+    cfg: GenConfig,
+    workers: int,
+    progress: bool,
+) -> np.ndarray:
+    (out / "velodyne").mkdir(parents=True, exist_ok=True)
+    counts = np.zeros(cfg.frames, np.int64)
+    args = (world, drive, dynamics, cfg.sensor, cfg.seed, str(out))
+    bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
+    if workers <= 1:
+        _init_worker(*args)
+        it: Iterator[tuple[int, int]] = map(_simulate, range(cfg.frames))
+        for k, n in it:
+            counts[k] = n
+            bar.update()
+    else:
+        with _pool(workers, _init_worker, args) as pool:
+            for k, n in pool.imap_unordered(_simulate, range(cfg.frames), chunksize=4):
+                counts[k] = n
+                bar.update()
+    bar.close()
+    return counts
+
+
+# ---- ground truth -----------------------------------------------------------------------------
+def _overlap_chunk(args) -> tuple[np.ndarray, np.ndarray]:
+    root, sensor, pairs = args
+    seq = open_sequence(root, kind="kitti", sensor=sensor)
+    return pair_overlaps(seq, pairs, get_profile(sensor), progress=False)
+
+
+def compute_ground_truth(
+    out: Path, cfg: GenConfig, workers: int, progress: bool
+) -> tuple[dict, LoopGroundTruth]:
+    """Overlap/yaw of every pair closer than ``gt_radius`` (query later than reference), with
+    lidar_core's overlap code; the loop table is the subset the loop protocol asks for."""
+    seq = open_sequence(out, kind="kitti", sensor=cfg.sensor)
+    profile = get_profile(cfg.sensor)
+    pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=1)
+    # Chunks of whole queries, so each chunk projects its queries once.
+    queries = np.unique(pairs[:, 0])
+    chunks = [
+        pairs[np.isin(pairs[:, 0], q)] for q in np.array_split(queries, max(1, len(queries) // 25))
+    ]
+    overlap = np.zeros(len(pairs), np.float32)
+    yaw = np.zeros(len(pairs), np.float32)
+    jobs = [(str(out), cfg.sensor, c) for c in chunks]
+    bar = tqdm(total=len(pairs), desc="overlap ground truth", unit="pair", disable=not progress)
+    results = []
+    if workers <= 1:
+        for j in jobs:
+            results.append(_overlap_chunk(j))
+            bar.update(len(j[2]))
+    else:
+        with _pool(workers) as pool:
+            for j, res in zip(jobs, pool.imap(_overlap_chunk, jobs), strict=True):
+                results.append(res)
+                bar.update(len(j[2]))
+    bar.close()
+    at = 0
+    ordered = np.concatenate(chunks) if chunks else pairs
+    for (ov, yw), c in zip(results, chunks, strict=True):
+        overlap[at : at + len(c)], yaw[at : at + len(c)] = ov, yw
+        at += len(c)
+    pos = seq.positions()
+    dist = np.linalg.norm(pos[ordered[:, 0]] - pos[ordered[:, 1]], axis=1).astype(np.float32)
+    gt_dir = out / "ground_truth"
+    gt_dir.mkdir(exist_ok=True)
+    table = {
+        "query": ordered[:, 0],
+        "reference": ordered[:, 1],
+        "overlap": overlap,
+        "yaw_deg": yaw,
+        "distance": dist,
+    }
+    tmp = gt_dir / "overlaps.tmp.npz"
+    np.savez_compressed(
+        tmp, **table, radius=cfg.gt_radius, profile=json.dumps(profile.model_dump())
+    )
+    os.replace(tmp, gt_dir / "overlaps.npz")
+    params = loop_params(
+        seq,
+        profile,
+        exclude_recent=cfg.loop_exclude,
+        radius=min(30.0, cfg.gt_radius),
+        min_overlap=cfg.loop_min_overlap,
+    )
+    loops = loop_table_from_pairs(seq, params, ordered[:, 0], ordered[:, 1], overlap, yaw)
+    loops.save(gt_dir / "loops.npz")
+    return table, loops
+
+
+def read_overlaps(root: str | Path) -> dict[str, np.ndarray]:
+    """The pair table written by :func:`compute_ground_truth`."""
+    with np.load(Path(root) / "ground_truth" / "overlaps.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+# ---- statistics and manifest --------------------------------------------------------------------
+def revisit_frames(loops: LoopGroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames that revisit a place, split by direction (best-overlap reference's |yaw| > 90°),
+    and each such frame's gap to that reference in frames."""
+    best: dict[int, tuple[float, float, int]] = {}
+    for q, r, ov, yw in zip(
+        loops.query, loops.reference, loops.overlap, loops.yaw_deg, strict=True
+    ):
+        if ov > loops.min_overlap and (q not in best or ov > best[q][0]):
+            best[int(q)] = (float(ov), float(yw), int(q - r))
+    frames = np.array(sorted(best), dtype=np.int64)
+    rev = np.array([abs(best[q][1]) > 90 for q in frames], bool)
+    gaps = np.array([best[q][2] for q in frames], np.int64)
+    return frames[~rev], frames[rev], gaps
+
+
+def _stats(
+    out: Path, world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: GenConfig
+) -> dict:
+    kinds: dict[str, int] = {}
+    for _, kind in world.footprints:
+        kinds[kind] = kinds.get(kind, 0) + 1
+    districts: dict[str, int] = {}
+    for s in world.network.streets:
+        districts[s.district] = districts.get(s.district, 0) + 1
+    step = np.linalg.norm(np.diff(drive.poses[:, :3, 3], axis=0), axis=1)
+    stats = {
+        "frames": cfg.frames,
+        "points_per_scan": {
+            "mean": float(counts.mean()),
+            "min": int(counts.min()),
+            "max": int(counts.max()),
+        },
+        "world": {
+            "static_triangles": len(world.static),
+            "streets": len(world.network.streets),
+            "street_km": round(world.street_length / 1000, 3),
+            "streets_by_district": districts,
+            "buildings": kinds,
+            "trees": len(world.trees),
+            "parking_slots": len(world.parking),
+        },
+        "drive": {
+            "length_m": round(float(step.sum()), 1),
+            "speed_mps": {
+                "min": round(float(drive.speed.min()), 2),
+                "mean": round(float(drive.speed.mean()), 2),
+                "max": round(float(drive.speed.max()), 2),
+            },
+            # Planned revisits the drive completed within its scans.
+            "planned_revisits": len(
+                driven := [r for r in drive.revisits if r["end_m"] <= step.sum()]
+            ),
+            "planned_reversed": sum(r["reversed"] for r in driven),
+        },
+    }
+    if loops is not None:
+        same, rev, gaps = revisit_frames(loops)
+        n = len(same) + len(rev)
+        stats["ground_truth"] = {
+            "pairs_within_radius": len(table["query"]),
+            "adjacent_overlap_mean": float(
+                table["overlap"][table["query"] - table["reference"] == 1].mean()
+            )
+            if (table["query"] - table["reference"] == 1).any()
+            else None,
+            "loop_pairs": int(loops.is_loop.sum()),
+            "queries_with_loop": n,
+            "same_direction_queries": len(same),
+            "reverse_direction_queries": len(rev),
+            "reverse_fraction": round(len(rev) / n, 3) if n else 0.0,
+            "max_revisit_gap_frames": int(gaps.max()) if n else 0,
+            "queries_with_gap_over_1000": int((gaps > 1000).sum()),
+        }
+    return stats
+
+
+def data_fingerprint(out: Path) -> str:
+    """sha256 over poses and every scan: identifies the data a model was trained on."""
+    h = hashlib.sha256()
+    h.update((out / "poses.txt").read_bytes())
+    for p in sorted((out / "velodyne").glob("*.bin")):
+        with p.open("rb") as f:
+            h.update(f.read())
+    return h.hexdigest()
+
+
+def generate(
+    out: str | Path,
+    cfg: GenConfig,
+    *,
+    workers: int = 2,
+    ground_truth: bool = True,
+    progress: bool = True,
+) -> dict:
+    """Generate one sequence into ``out`` (must be empty or absent); return the manifest."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"{out} is not empty; choose a new folder for the sequence")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    world = build_world(cfg.seed, cfg.world_params())
+    drive = plan_drive(
+        world.network,
+        world.terrain,
+        np.random.default_rng([cfg.seed, 0xD21]),
+        cfg.frames,
+        cfg.drive_params(),
+    )
+    dynamics = Dynamics(world, cfg.seed, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
+    t_world = time.perf_counter() - t0
+
+    counts = simulate_scans(out, world, drive, dynamics, cfg, workers, progress)
+    t_sim = time.perf_counter() - t0 - t_world
+
+    origin_inv = np.linalg.inv(drive.poses[0])
+    write_poses(out / "poses.txt", origin_inv @ drive.poses)
+    ident = " ".join(f"{v:.12e}" for v in np.eye(4)[:3].ravel())
+    (out / "calib.txt").write_text("".join(f"P{i}: {ident}\n" for i in range(4)) + f"Tr: {ident}\n")
+    np.savetxt(out / "times.txt", drive.times, fmt="%.6e")
+
+    table = loops = None
+    if ground_truth:
+        table, loops = compute_ground_truth(out, cfg, workers, progress)
+    t_gt = time.perf_counter() - t0 - t_world - t_sim
+
+    same = rev = None
+    if loops is not None:
+        same, rev, _ = revisit_frames(loops)
+    from model_export.synth.mapview import draw_map
+
+    pos_world = drive.poses[:, :2, 3]
+    draw_map(
+        world,
+        out / "map.png",
+        pos_world,
+        same,
+        rev,
+        title=f"seed {cfg.seed} · {cfg.frames} scans · {cfg.sensor}"
+        + (f" · preset {cfg.preset}" if cfg.preset else ""),
+    )
+
+    manifest = {
+        "generator": "overlapmamba synthetic LiDAR world",
+        "generator_version": GENERATOR_VERSION,
+        "config": cfg.model_dump(),
+        "resolved": {
+            "world": dataclasses.asdict(cfg.world_params()),
+            "drive": dataclasses.asdict(cfg.drive_params()),
+            "dynamics": dataclasses.asdict(cfg.dynamics_params()),
+            "lidar": dataclasses.asdict(get_lidar(cfg.sensor)),
+            "profile": get_profile(cfg.sensor).model_dump(),
+        },
+        "world_from_sequence": drive.poses[0].tolist(),
+        "counts": _stats(out, world, drive, counts, table, loops, cfg),
+        "data_sha256": data_fingerprint(out),
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    manifest["timing_s"] = {
+        "world": t_world,
+        "simulate": t_sim,
+        "ground_truth": t_gt,
+        "scans_per_s": cfg.frames / max(t_sim, 1e-9),
+    }
+    return manifest
+
+
+def read_manifest(root: str | Path) -> dict:
+    return json.loads((Path(root) / "manifest.json").read_text())

@@ -1,0 +1,610 @@
+"""A procedural town: streets, terrain, buildings and street furniture, as one static mesh.
+
+Placement walks along both sides of every street and fills lots according to the street's
+district; a 0.5 m occupancy raster keeps buildings off roads and off each other. Building
+and house *types* come from small per-town catalogues, so similar-looking places exist (as
+in real towns) while their arrangement keeps every place distinguishable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from model_export.synth.geometry import (
+    BOX,
+    CYLINDER,
+    MAT,
+    REFLECTIVITY,
+    Mesh,
+    instances,
+    ribbon,
+    template,
+)
+from model_export.synth.streets import DISTRICTS, Street, StreetNetwork, build_streets
+from model_export.synth.terrain import Terrain
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """Size and character of a town. Defaults give a ≈0.6 km² town with ≈8 km of street."""
+
+    nx: int = 6  # street-grid nodes along x
+    ny: int = 6
+    block_min: float = 70.0  # block edge lengths (m)
+    block_max: float = 140.0
+    terrain_amplitude: float = 4.0  # metres, summed over the terrain waves
+    terrain_cell: float = 2.5
+    parked_car_fill: float = 0.6  # probability a parking slot holds a car at a given time
+    traffic_per_km: float = 4.0  # moving cars per km of street
+    pedestrians_per_km: float = 6.0
+
+
+@dataclass
+class World:
+    params: WorldParams
+    terrain: Terrain
+    network: StreetNetwork
+    static: Mesh
+    parking: np.ndarray  # (S, 3): x, y, yaw of parking slots
+    parking_district: np.ndarray  # (S,) index into DISTRICTS
+    lo: np.ndarray
+    hi: np.ndarray
+    footprints: list[tuple[np.ndarray, str]] = field(default_factory=list)  # (4, 2) corners, kind
+    trees: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    surface: np.ndarray | None = None  # coarse material raster for the map picture
+    surface_res: float = 2.0
+
+    @property
+    def street_length(self) -> float:
+        return sum(s.length for s in self.network.streets)
+
+
+class _Raster:
+    """Occupancy at 0.5 m: roads (with kerb margin) and everything placed so far."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, res: float = 0.5) -> None:
+        self.lo, self.res = lo, res
+        self.shape = tuple(np.ceil((hi - lo) / res).astype(int) + 1)
+        self.road = np.zeros(self.shape, bool)
+        self.occ = np.zeros(self.shape, bool)
+
+    def idx(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ij = np.floor((np.asarray(xy) - self.lo) / self.res).astype(int)
+        ij = np.clip(ij, 0, np.array(self.shape) - 1)
+        return ij[..., 0], ij[..., 1]
+
+    def rect(self, c: np.ndarray, yaw: float, length: float, width: float) -> tuple:
+        u = np.arange(-length / 2, length / 2 + 1e-9, self.res / 1.5)
+        v = np.arange(-width / 2, width / 2 + 1e-9, self.res / 1.5)
+        uu, vv = np.meshgrid(u, v, indexing="ij")
+        cs, sn = np.cos(yaw), np.sin(yaw)
+        xy = np.stack([c[0] + cs * uu - sn * vv, c[1] + sn * uu + cs * vv], -1).reshape(-1, 2)
+        return self.idx(xy)
+
+    def free(self, c, yaw, length, width, road_margin: bool = True) -> bool:
+        i, j = self.rect(c, yaw, length, width)
+        inside = (c - self.lo > length).all() and (
+            self.lo + np.array(self.shape) * self.res - c > length
+        ).all()
+        return bool(
+            inside and not self.occ[i, j].any() and not (road_margin and self.road[i, j].any())
+        )
+
+    def mark(self, c, yaw, length, width) -> None:
+        i, j = self.rect(c, yaw, length, width)
+        self.occ[i, j] = True
+
+
+def _resample(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(0.0, s[-1] + 1e-9, step)
+    return np.column_stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])]), t
+
+
+def _frame_at(points: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (M, 2) and unit tangent (M, 2) at arc lengths s along a polyline."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    pos = np.column_stack([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])])
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    tan = (points[k + 1] - points[k]) / np.maximum(seg[k], 1e-9)[:, None]
+    return pos, tan
+
+
+class _Builder:
+    def __init__(self, rng: np.random.Generator, params: WorldParams) -> None:
+        self.rng, self.p = rng, params
+        self.net = build_streets(rng, params.nx, params.ny, (params.block_min, params.block_max))
+        self.terrain = Terrain(rng, params.terrain_amplitude)
+        self.lo, self.hi = self.net.bounds(margin=140.0)
+        self.raster = _Raster(self.lo, self.hi)
+        self.parts: list[Mesh] = []
+        self.footprints: list[tuple[np.ndarray, str]] = []
+        self.trees: list[np.ndarray] = []
+        self.parking: list[tuple[float, float, float, int]] = []
+        # Per-town catalogues: repeated types make look-alike places.
+        r = rng
+        self.house_types = [
+            dict(
+                l=r.uniform(8, 13),
+                w=r.uniform(7, 10),
+                h=r.uniform(5.5, 8.5),
+                gable=r.random() < 0.7,
+            )
+            for _ in range(5)
+        ]
+        self.urban_types = [
+            dict(l=r.uniform(8, 22), w=r.uniform(12, 20), h=r.uniform(9, 24), top=r.random() < 0.4)
+            for _ in range(8)
+        ]
+        self.hall_types = [
+            dict(l=r.uniform(25, 70), w=r.uniform(20, 45), h=r.uniform(7, 13)) for _ in range(5)
+        ]
+
+    # ---- primitives -------------------------------------------------------------------
+    def z(self, xy: np.ndarray) -> np.ndarray:
+        return self.terrain.height(xy)
+
+    def _albedo(self, mat: str, n: int, spread: float = 0.25) -> np.ndarray:
+        base = REFLECTIVITY[MAT[mat]]
+        return np.clip(base * self.rng.uniform(1 - spread, 1 + spread, n), 0.02, 1.0)
+
+    def box(self, c, yaw, length, w, h, mat: str, z0: float | None = None) -> None:
+        c = np.asarray(c, float)
+        corners = self._corners(c, yaw, length, w)
+        base = float(self.z(corners).min()) - 0.3 if z0 is None else z0
+        self.parts.append(
+            instances(
+                BOX,
+                c[None],
+                [yaw],
+                [[length, w, h + (0.3 if z0 is None else 0)]],
+                [base],
+                [MAT[mat]],
+                self._albedo(mat, 1),
+            )
+        )
+
+    @staticmethod
+    def _corners(c, yaw, length, w) -> np.ndarray:
+        cs, sn = np.cos(yaw), np.sin(yaw)
+        loc = np.array([[-length, -w], [length, -w], [length, w], [-length, w]]) / 2
+        return c + loc @ np.array([[cs, sn], [-sn, cs]])
+
+    def tree(self, xy: np.ndarray, scale: float = 1.0) -> None:
+        n = len(xy)
+        if n == 0:
+            return
+        r = self.rng
+        trunk_h = r.uniform(1.8, 3.5, n) * scale
+        crown_d = r.uniform(3.0, 7.0, n) * scale
+        crown_h = crown_d * r.uniform(0.8, 1.3, n)
+        z0 = self.z(xy)
+        trunk_r = r.uniform(0.25, 0.5, n) * scale
+        self.parts.append(
+            instances(
+                CYLINDER,
+                xy,
+                r.uniform(0, 6.3, n),
+                np.column_stack([trunk_r, trunk_r, trunk_h + 0.5]),
+                z0 - 0.2,
+                [MAT["bark"]],
+                self._albedo("bark", n),
+            )
+        )
+        self.parts.append(
+            instances(
+                template("ellipsoid"),
+                xy,
+                r.uniform(0, 6.3, n),
+                np.column_stack([crown_d, crown_d * r.uniform(0.8, 1.2, n), crown_h]),
+                z0 + trunk_h * 0.75,
+                [MAT["foliage"]],
+                self._albedo("foliage", n),
+            )
+        )
+        self.trees.append(xy)
+
+    def bush(self, xy: np.ndarray) -> None:
+        n = len(xy)
+        if n == 0:
+            return
+        r = self.rng
+        d = r.uniform(1.0, 2.6, n)
+        self.parts.append(
+            instances(
+                template("ellipsoid"),
+                xy,
+                r.uniform(0, 6.3, n),
+                np.column_stack([d, d * r.uniform(0.7, 1.3, n), r.uniform(0.8, 1.7, n)]),
+                self.z(xy) - 0.2,
+                [MAT["foliage"]],
+                self._albedo("foliage", n),
+            )
+        )
+
+    def pole(self, xy: np.ndarray, yaw: np.ndarray, lamp: bool = True) -> None:
+        n = len(xy)
+        if n == 0:
+            return
+        r = self.rng
+        h = r.uniform(6.0, 9.0, n)
+        rad = r.uniform(0.18, 0.3, n)
+        z0 = self.z(xy)
+        self.parts.append(
+            instances(
+                CYLINDER,
+                xy,
+                0.0,
+                np.column_stack([rad, rad, h]),
+                z0 - 0.2,
+                [MAT["pole"]],
+                self._albedo("pole", n),
+            )
+        )
+        if lamp:  # arm reaching over the road
+            arm = xy + np.column_stack([np.cos(yaw), np.sin(yaw)]) * 0.9
+            self.parts.append(
+                instances(
+                    BOX,
+                    arm,
+                    yaw,
+                    np.column_stack([np.full(n, 1.8), np.full(n, 0.25), np.full(n, 0.2)]),
+                    z0 + h - 0.4,
+                    [MAT["pole"]],
+                    self._albedo("pole", n),
+                )
+            )
+
+    def sign(self, xy: np.ndarray, yaw: np.ndarray) -> None:
+        n = len(xy)
+        if n == 0:
+            return
+        z0 = self.z(xy)
+        self.parts.append(
+            instances(
+                CYLINDER,
+                xy,
+                0.0,
+                [[0.12, 0.12, 2.6]],
+                z0 - 0.2,
+                [MAT["pole"]],
+                self._albedo("pole", n),
+            )
+        )
+        self.parts.append(
+            instances(
+                BOX,
+                xy,
+                yaw,
+                [[0.08, 0.7, 0.7]],
+                z0 + 1.9,
+                [MAT["sign"]],
+                self._albedo("sign", n, 0.05),
+            )
+        )
+
+    # ---- layout -----------------------------------------------------------------------
+    def rasterise_roads(self) -> None:
+        """Road mask: cells closer to a centreline than its half-width plus a kerb margin."""
+        R = self.raster
+        centre = np.zeros(R.shape, bool)
+        hw = np.zeros(R.shape, np.float32)
+        for s in self.net.streets:
+            pts, _ = _resample(s.points, R.res / 2)
+            i, j = R.idx(pts)
+            centre[i, j] = True
+            hw[i, j] = np.maximum(hw[i, j], s.half_width)
+        dist, (ii, jj) = ndimage.distance_transform_edt(~centre, return_indices=True)
+        self.road_dist = dist * R.res
+        self.road_hw = hw[ii, jj]
+        R.road = self.road_dist < self.road_hw + 0.8
+
+    def street_side(self, s: Street, side: int) -> None:
+        """Fill one side of a street (side = +1 left of u→v, −1 right)."""
+        r, d = self.rng, s.district
+        L = s.length
+        hw = s.half_width
+        junction = hw + 10.0  # keep lot frontages out of intersections
+
+        def frame(at: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            pos, tan = _frame_at(s.points, at)
+            nrm = np.column_stack([-tan[:, 1], tan[:, 0]]) * side
+            return pos + nrm * offset, tan, nrm
+
+        # Parking slots along the kerb.
+        if d != "open" and r.random() < {"urban": 0.75, "suburban": 0.45, "industrial": 0.35}[d]:
+            at = np.arange(junction + 2, L - junction - 2, r.uniform(5.6, 6.6))
+            if len(at):
+                pos, tan, _ = frame(at, hw - 1.1)
+                yaw = np.arctan2(tan[:, 1], tan[:, 0])
+                for (x, y), a in zip(pos, yaw, strict=True):
+                    self.parking.append((x, y, a, DISTRICTS.index(d)))
+
+        # Buildings.
+        if d == "urban":
+            self._lots(
+                s,
+                side,
+                frame,
+                setback=(2.5, 4.5),
+                gap=(0.0, 0.0),
+                catalogue=self.urban_types,
+                kind="urban",
+                junction=junction - 6,
+            )
+        elif d == "suburban":
+            self._lots(
+                s,
+                side,
+                frame,
+                setback=(6.0, 10.0),
+                gap=(3.0, 10.0),
+                catalogue=self.house_types,
+                kind="house",
+                junction=junction,
+            )
+        elif d == "industrial":
+            self._lots(
+                s,
+                side,
+                frame,
+                setback=(9.0, 18.0),
+                gap=(8.0, 20.0),
+                catalogue=self.hall_types,
+                kind="hall",
+                junction=junction,
+            )
+        elif r.random() < 0.25:  # a lone barn on the open road
+            self._lots(
+                s,
+                side,
+                frame,
+                setback=(12.0, 25.0),
+                gap=(60.0, 150.0),
+                catalogue=self.hall_types[:2],
+                kind="hall",
+                junction=junction,
+            )
+
+        # Street lights.
+        pitch = {"urban": (24, 34), "suburban": (30, 45), "industrial": (35, 50), "open": (45, 70)}[
+            d
+        ]
+        if d != "open" or side == 1:
+            at = np.arange(r.uniform(5, 20), L, r.uniform(*pitch))
+            pos, tan, nrm = frame(at, hw + 0.7)
+            ok = self._clear(pos, 0.5)
+            self.pole(pos[ok], np.arctan2(-nrm[ok, 1], -nrm[ok, 0]))
+
+        # Street trees, yard trees, bushes.
+        if d == "urban" and r.random() < 0.5:
+            at = np.arange(r.uniform(3, 10), L, r.uniform(8, 14))
+            pos, _, _ = frame(at, hw + 1.8)
+            self.tree(pos[self._clear(pos, 0.8)], 0.8)
+        elif d == "open":
+            n = int(L / r.uniform(8, 30))
+            pos, _, nrm = frame(r.uniform(0, L, n), 0.0)
+            pos = pos + nrm * (hw + r.uniform(4, 30, n))[:, None]
+            ok = self._clear(pos, 2.5)
+            self.tree(pos[ok])
+            n = int(L / r.uniform(10, 25))
+            pos, _, nrm = frame(r.uniform(0, L, n), 0.0)
+            pos = pos + nrm * (hw + r.uniform(2, 15, n))[:, None]
+            self.bush(pos[self._clear(pos, 1.5)])
+            if r.random() < 0.4:  # guard rail on posts
+                at = np.arange(junction, L - junction, 1.0)
+                if len(at) > 2:
+                    pos, _, _ = frame(at, 0.0)
+                    z = self.z(pos)
+                    self._ribbon_mesh(
+                        ribbon(pos, side * (hw + 0.6), 0.08, z + 0.55, 0.32), "guardrail"
+                    )
+                    posts, _, _ = frame(at[::4], hw + 0.6)
+                    self.parts.append(
+                        instances(
+                            BOX,
+                            posts,
+                            0.0,
+                            [[0.12, 0.12, 0.9]],
+                            self.z(posts) - 0.1,
+                            [MAT["metal"]],
+                            self._albedo("metal", len(posts)),
+                        )
+                    )
+        elif d == "industrial" and r.random() < 0.7:  # site fence with gates
+            at = np.arange(junction, L - junction, 1.0)
+            gates = r.uniform(0, L, 2)
+            at = at[np.abs(at[:, None] - gates[None]).min(1) > 4]
+            if len(at) > 2:
+                pos, _, _ = frame(at, 0.0)
+                for run in np.split(pos, np.nonzero(np.diff(at) > 1.5)[0] + 1):
+                    if len(run) > 2:
+                        self._ribbon_mesh(
+                            ribbon(run, side * (hw + 4.0), 0.05, self.z(run) - 0.1, 2.1), "fence"
+                        )
+
+        # Kerb.
+        at = np.arange(hw + 3.0, L - hw - 3.0, 1.0)
+        if len(at) > 2:
+            pos, _, _ = frame(at, 0.0)
+            self._ribbon_mesh(ribbon(pos, side * (hw + 0.15), 0.3, self.z(pos) - 0.1, 0.25), "kerb")
+
+    def _clear(self, pos: np.ndarray, radius: float) -> np.ndarray:
+        """Points at least ``radius`` off every road and not on anything placed."""
+        i, j = self.raster.idx(pos)
+        ok = (self.road_dist[i, j] > self.road_hw[i, j] + radius) & ~self.raster.occ[i, j]
+        return ok
+
+    def _ribbon_mesh(self, tris: np.ndarray, mat: str) -> None:
+        if len(tris):
+            self.parts.append(
+                Mesh(
+                    tris.astype(np.float32),
+                    np.full(len(tris), MAT[mat], np.uint8),
+                    self._albedo(mat, 1).repeat(len(tris)).astype(np.float32),
+                )
+            )
+
+    def _lots(
+        self, s: Street, side: int, frame, setback, gap, catalogue, kind: str, junction: float
+    ) -> None:
+        r = self.rng
+        at = junction + r.uniform(0, 4)
+        while at < s.length - junction:
+            t = catalogue[r.integers(len(catalogue))]
+            length, depth, _height = t["l"], t["w"], t["h"]
+            back = r.uniform(*setback)
+            if kind == "urban" and r.random() < 0.25:
+                back += r.uniform(1.0, 3.0)  # recess in the facade line
+            mid = np.array([at + length / 2])
+            pos, tan, _nrm = frame(mid, s.half_width + back + depth / 2)
+            c, yaw = pos[0], float(np.arctan2(tan[0, 1], tan[0, 0]))
+            # Terraced lots (no gap) may touch their neighbours; detached ones keep clear.
+            clearance = 0.4 if gap[1] > 0 else -0.4
+            if self.raster.free(c, yaw, length + clearance, depth + clearance):
+                self.raster.mark(c, yaw, length, depth)
+                self.footprints.append((self._corners(c, yaw, length, depth), kind))
+                self._building(c, yaw, t, kind)
+                if kind == "house":
+                    self._yard(s, frame, at, length, back)
+            at += length + r.uniform(*gap)
+
+    def _building(self, c, yaw, t: dict, kind: str) -> None:
+        r = self.rng
+        length, depth, height = t["l"], t["w"], t["h"]
+        corners = self._corners(c, yaw, length, depth)
+        base = float(self.z(corners).min()) - 0.3
+        if kind == "house" and t["gable"]:
+            self.parts.append(
+                instances(
+                    template("gable_house"),
+                    c[None],
+                    [yaw],
+                    [[length, depth, height + 0.3]],
+                    [base],
+                    [MAT["facade"], MAT["roof"]],
+                    self._albedo("facade", 1)[:, None].repeat(2, 1),
+                )
+            )
+        else:
+            mat = "metal" if kind == "hall" else "facade"
+            self.box(c, yaw, length, depth, height, mat)
+            if kind == "urban" and t["top"]:  # a set-back top storey
+                self.box(
+                    c + r.uniform(-1, 1, 2),
+                    yaw,
+                    length * 0.7,
+                    depth * 0.6,
+                    3.0,
+                    "facade",
+                    z0=base + 0.3 + height,
+                )
+
+    def _yard(self, s: Street, frame, at: float, length: float, back: float) -> None:
+        r = self.rng
+        if r.random() < 0.5:  # hedge or fence along the front
+            stations = np.arange(at, at + length, 1.0)
+            if len(stations) > 2:
+                pos, _, _ = frame(stations, s.half_width + back - 1.5)
+                side_sign = 1.0  # already offset; a centred ribbon
+                mat = "foliage" if r.random() < 0.5 else "fence"
+                h = 1.1 if mat == "foliage" else 1.0
+                self._ribbon_mesh(ribbon(pos, 0.0 * side_sign, 0.5, self.z(pos) - 0.1, h), mat)
+        n = r.integers(0, 3)
+        if n:
+            pos, _, _nrm = frame(
+                at + r.uniform(0, length, n), s.half_width + r.uniform(2.5, back - 1.0, n)
+            )
+            if r.random() < 0.5:
+                self.bush(pos)
+            else:
+                self.tree(pos, 0.8)
+
+    def junctions(self) -> None:
+        """Signs at intersection corners and dashed centre lines."""
+        r = self.rng
+        for node, nbrs in self.net.adjacency.items():
+            if len(nbrs) < 3 or r.random() < 0.3:
+                continue
+            c = self.net.nodes[node]
+            for _, k in nbrs[: r.integers(1, 3)]:
+                s = self.net.streets[k]
+                pts = s.oriented(node)
+                d = pts[min(6, len(pts) - 1)] - c
+                d /= np.linalg.norm(d)
+                nrm = np.array([d[1], -d[0]])
+                p = c + d * (s.half_width + 4) + nrm * (s.half_width + 1.2)
+                if self._clear(p[None], 0.3)[0]:
+                    self.sign(p[None], np.array([np.arctan2(d[1], d[0])]))
+        for s in self.net.streets:
+            if s.half_width < 4.0:
+                continue
+            at = np.arange(s.half_width + 6, s.length - s.half_width - 6, 9.0)
+            if len(at):
+                pos, tan = _frame_at(s.points, at)
+                self.parts.append(
+                    instances(
+                        BOX,
+                        pos,
+                        np.arctan2(tan[:, 1], tan[:, 0]),
+                        [[3.0, 0.15, 0.035]],
+                        self.z(pos) - 0.02,
+                        [MAT["marking"]],
+                        self._albedo("marking", len(pos), 0.1),
+                    )
+                )
+
+    def ground(self) -> Mesh:
+        R = self.raster
+
+        def surface(xy: np.ndarray) -> np.ndarray:
+            i, j = R.idx(xy)
+            d, hw = self.road_dist[i, j], self.road_hw[i, j]
+            district = self.net.district_at(xy)
+            soft = np.isin(district, [DISTRICTS.index("suburban"), DISTRICTS.index("open")])
+            out = np.where(soft, MAT["grass"], MAT["pavement"])
+            out = np.where(d < hw + 4.0, MAT["pavement"], out)
+            return np.where(d < hw, MAT["asphalt"], out).astype(np.uint8)
+
+        self.surface_fn = surface
+        return self.terrain.mesh(self.lo, self.hi, self.p.terrain_cell, surface)
+
+
+def build_world(seed: int, params: WorldParams | None = None) -> World:
+    """The static town for ``seed``: the same seed always gives the same world."""
+    params = params or WorldParams()
+    rng = np.random.default_rng([seed, 0x5EED])
+    b = _Builder(rng, params)
+    b.rasterise_roads()
+    for s in b.net.streets:
+        for side in (1, -1):
+            b.street_side(s, side)
+    b.junctions()
+    ground = b.ground()
+    static = Mesh.concat([ground, *b.parts])
+    parking = np.array([p[:3] for p in b.parking], np.float64).reshape(-1, 3)
+    # Coarse surface raster for the map picture.
+    res = 2.0
+    xs = np.arange(b.lo[0], b.hi[0], res) + res / 2
+    ys = np.arange(b.lo[1], b.hi[1], res) + res / 2
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    surface = b.surface_fn(np.column_stack([gx.ravel(), gy.ravel()])).reshape(gx.shape)
+    return World(
+        params=params,
+        terrain=b.terrain,
+        network=b.net,
+        static=static,
+        parking=parking,
+        parking_district=np.array([p[3] for p in b.parking], np.int64),
+        lo=b.lo,
+        hi=b.hi,
+        footprints=b.footprints,
+        trees=np.concatenate(b.trees) if b.trees else np.zeros((0, 2)),
+        surface=surface,
+        surface_res=res,
+    )
