@@ -10,7 +10,7 @@ PORT   ?= 8000
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test lint format typecheck serve bench clean
+.PHONY: test lint format typecheck serve bench data clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,13 @@ serve: $(VENV)/.installed-serve
 
 bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/projection.py
+	$(BIN)/python benchmarks/simulator.py
+
+# The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
+data: $(VENV)/.installed-all
+	for p in train val test; do \
+	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \
+	done
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis bench-results

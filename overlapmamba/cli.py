@@ -253,7 +253,7 @@ def gen_data(
                 gt_radius=gt_radius,
             )
         except ValidationError as err:
-            raise typer.BadParameter(err.errors()[0]["msg"]) from None
+            raise typer.BadParameter(err.errors()[0]["msg"].removeprefix("Value error, ")) from None
     try:
         manifest = generate(
             out_dir, cfg, workers=workers, ground_truth=not no_ground_truth, progress=not quiet

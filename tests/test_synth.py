@@ -317,3 +317,48 @@ def test_sim_report_compares_with_real_kitti(
     } <= stats
     assert report["compared_within_m"] <= 81
     assert (tmp_path / "r" / "realism.png").stat().st_size > 10_000
+
+
+# ---- command line ----------------------------------------------------------------------------
+def _plain(output: str) -> str:
+    """CLI output without Rich's box drawing, whitespace collapsed."""
+    return " ".join(output.replace("│", " ").replace("╭", " ").replace("╰", " ").split())
+
+
+def test_gen_data_command_writes_a_sequence(tmp_path):
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    out = tmp_path / "seq"
+    args = ["gen-data", str(out), "--seed", "3", "--frames", "4", "--sensor", "hdl32"]
+    res = CliRunner().invoke(
+        app, [*args, "--nodes", "2", "--gt-radius", "5", "--workers", "1", "-q"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "Synthetic sequence" in res.output and "scans/s" in res.output
+    assert len(open_sequence(out)) == 4
+    assert read_manifest(out)["config"]["sensor"] == "hdl32"
+    again = CliRunner().invoke(app, [*args, "-q"])
+    assert again.exit_code == 2 and "is not empty" in _plain(again.output)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--preset", "test", "--seed", "1"], "--preset fixes seed"),
+        (["--preset", "nope"], "allowed: train, val, test"),
+        (["--frames", "10"], "give --seed and --frames"),
+        (["--seed", "1", "--frames", "10", "--sensor", "vlp16"], "allowed: kitti-hdl64, hdl32"),
+        (["--seed", "1", "--frames", "1"], "greater than or equal to 2"),
+    ],
+)
+def test_gen_data_refuses_bad_options(tmp_path, args, message):
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    res = CliRunner().invoke(app, ["gen-data", str(tmp_path / "x"), *args])
+    assert res.exit_code == 2
+    assert message in _plain(res.output), res.output
+    assert not (tmp_path / "x").exists()

@@ -466,6 +466,19 @@ class _Builder:
             c, yaw = pos[0], float(np.arctan2(tan[0, 1], tan[0, 0]))
             # Terraced lots (no gap) may touch their neighbours; detached ones keep clear.
             clearance = 0.4 if gap[1] > 0 else -0.4
+            if kind == "urban" and r.random() < 0.12:
+                # A courtyard wall instead of a facade: the street front stays closed.
+                wall_at = s.half_width + back + 0.2
+                wall_mid = frame(mid, wall_at)[0][0]
+                if self.raster.free(wall_mid, yaw, length, 0.6):
+                    stations = np.arange(at, at + length + 0.5, 1.0)
+                    pts, _, _ = frame(stations, wall_at)
+                    self._ribbon_mesh(
+                        ribbon(pts, 0.0, 0.35, self.z(pts) - 0.1, r.uniform(2.2, 3.2)), "facade"
+                    )
+                    self.raster.mark(wall_mid, yaw, length, 0.6)
+                at += length
+                continue
             if self.raster.free(c, yaw, length + clearance, depth + clearance):
                 self.raster.mark(c, yaw, length, depth)
                 self.footprints.append((self._corners(c, yaw, length, depth), kind))
@@ -507,14 +520,14 @@ class _Builder:
 
     def _yard(self, s: Street, frame, at: float, length: float, back: float) -> None:
         r = self.rng
-        if r.random() < 0.5:  # hedge or fence along the front
+        if r.random() < 0.6:  # hedge, fence or low garden wall along the front
             stations = np.arange(at, at + length, 1.0)
             if len(stations) > 2:
                 pos, _, _ = frame(stations, s.half_width + back - 1.5)
-                side_sign = 1.0  # already offset; a centred ribbon
-                mat = "foliage" if r.random() < 0.5 else "fence"
-                h = 1.1 if mat == "foliage" else 1.0
-                self._ribbon_mesh(ribbon(pos, 0.0 * side_sign, 0.5, self.z(pos) - 0.1, h), mat)
+                mat, width, h = [("foliage", 0.6, 1.1), ("fence", 0.05, 1.0), ("facade", 0.3, 0.9)][
+                    int(r.integers(3))
+                ]
+                self._ribbon_mesh(ribbon(pos, 0.0, width, self.z(pos) - 0.1, h), mat)
         n = r.integers(0, 3)
         if n:
             pos, _, _nrm = frame(
