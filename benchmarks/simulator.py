@@ -22,10 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model_export.synth.dynamics import Dynamics
-from model_export.synth.generate import GenConfig, compute_ground_truth, simulate_scans
-from model_export.synth.trajectory import plan_drive
-from model_export.synth.world import build_world
+from model_export.synth.generate import GenConfig, build_scene, compute_ground_truth, simulate_scans
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,16 +36,8 @@ def main() -> None:
 
     cfg = GenConfig(seed=args.seed, frames=args.frames, gt_radius=30.0)
     t = time.perf_counter()
-    world = build_world(cfg.seed, cfg.world_params())
+    world, drive, dyn = build_scene(cfg)
     t_world = time.perf_counter() - t
-    drive = plan_drive(
-        world.network,
-        world.terrain,
-        np.random.default_rng([cfg.seed, 0xD21]),
-        cfg.frames,
-        cfg.drive_params(),
-    )
-    dyn = Dynamics(world, cfg.seed, float(drive.times[-1]) + 1.0)
 
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="simbench-"))
@@ -94,9 +83,9 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
     print(
-        f"Town: {len(world.static)} triangles, {world.street_length / 1000:.1f} km of street, "
-        f"built in {t_world:.2f} s; {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} cores\n"
+        f"Town: {len(world.static)} triangles, {world.street_length / 1000:.1f} km of street; "
+        f"town, drive and traffic built in {t_world:.2f} s; "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores\n"
     )
     print(
         f"| {'what':<22} | workers | frames | seconds | rate | points/scan | min per 4000 scans |"

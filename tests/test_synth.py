@@ -17,6 +17,7 @@ from lidar_core.sensors import get_profile
 from model_export.synth.dynamics import Dynamics
 from model_export.synth.generate import (
     GenConfig,
+    build_scene,
     generate,
     read_manifest,
     read_overlaps,
@@ -270,14 +271,7 @@ def test_presets_are_fixed_distinct_towns_that_plan():
     seeds = {c.seed for c in PRESETS.values()}
     assert len(seeds) == 3 and PRESETS["test"].split == "test"
     for cfg in PRESETS.values():
-        w = build_world(cfg.seed, cfg.world_params())
-        d = plan_drive(
-            w.network,
-            w.terrain,
-            np.random.default_rng([cfg.seed, 0xD21]),
-            cfg.frames,
-            cfg.drive_params(),
-        )
+        _, d, _ = build_scene(cfg)
         assert len(d.poses) == cfg.frames
 
 

@@ -45,7 +45,7 @@ from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
 from model_export.synth.trajectory import Drive, DriveParams, plan_drive
 from model_export.synth.world import World, WorldParams, build_world
 
-GENERATOR_VERSION = "1.1.0"
+GENERATOR_VERSION = "1.2.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -334,6 +334,15 @@ def data_fingerprint(out: Path) -> str:
     return h.hexdigest()
 
 
+def build_scene(cfg: GenConfig) -> tuple[World, Drive, Dynamics]:
+    """The town, the drive through it and its moving parts: everything but the scans."""
+    world = build_world(cfg.seed, cfg.world_params())
+    rng = np.random.default_rng([cfg.seed, 0xD21])
+    drive = plan_drive(world.network, world.terrain, rng, cfg.frames, cfg.drive_params())
+    dynamics = Dynamics(world, cfg.seed, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
+    return world, drive, dynamics
+
+
 def generate(
     out: str | Path,
     cfg: GenConfig,
@@ -348,15 +357,7 @@ def generate(
         raise FileExistsError(f"{out} is not empty; choose a new folder for the sequence")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    world = build_world(cfg.seed, cfg.world_params())
-    drive = plan_drive(
-        world.network,
-        world.terrain,
-        np.random.default_rng([cfg.seed, 0xD21]),
-        cfg.frames,
-        cfg.drive_params(),
-    )
-    dynamics = Dynamics(world, cfg.seed, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
+    world, drive, dynamics = build_scene(cfg)
     t_world = time.perf_counter() - t0
 
     counts = simulate_scans(out, world, drive, dynamics, cfg, workers, progress)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import heapq
 import itertools
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 from scipy import ndimage
@@ -37,8 +38,8 @@ class DriveParams:
     lane_wander: float = 0.25  # std of the slow lateral wander within the lane (m)
     turn_smoothing: float = 7.0  # Gaussian σ (m) that rounds the route's corners
     max_turn_deg: float = 110.0  # sharper turns (into acute intersections) are not planned
-    revisit_every: tuple[float, float] = (450.0, 1100.0)  # metres of exploring between revisits
-    revisit_min_age: float = 300.0  # a revisited stretch was driven at least this long ago (m)
+    revisit_every: tuple[float, float] = (200.0, 450.0)  # metres of exploring between revisits
+    revisit_min_age: float = 250.0  # a revisited stretch was driven at least this long ago (m)
     old_age: float = 1500.0  # "old" revisits (> ~1000 frames later) are at least this old (m)
     old_share: float = 0.4
     reverse_share: float = 0.5
@@ -152,6 +153,10 @@ def _shortest(
     return None
 
 
+def _path_length(net: StreetNetwork, nodes: list[int]) -> float:
+    return sum(net.streets[_street_between(net, a, b)].length for a, b in pairwise(nodes))
+
+
 def _toward_undriven(
     net: StreetNetwork, visits: np.ndarray, cur: int, prev: int | None, max_turn: float
 ) -> list[int]:
@@ -198,25 +203,29 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
 
     while driven < length:
         if driven >= next_revisit:
-            next_revisit = driven + rng.uniform(*p.revisit_every)
             ages = np.array([driven - leg[2] for leg in legs[:-2]])
             old = np.nonzero(ages >= p.old_age)[0]
             ok = np.nonzero(ages >= p.revisit_min_age)[0]
             pool = old if len(old) and rng.random() < p.old_share else ok
             if len(pool):
-                # Prefer stretches near here: the detour back costs driving that could explore.
-                near = np.linalg.norm(
-                    net.nodes[[legs[j][0] for j in pool]] - net.nodes[cur], axis=1
-                )
-                w = np.exp(-near / 250.0)
-                i = int(rng.choice(pool, p=w / w.sum()))
-                n_legs = int(rng.integers(2, 4))
-                stretch = [legs[i][0]] + [leg[1] for leg in legs[i : i + n_legs]]
+                # Of a few candidate stretches, drive to the one with the cheapest path back:
+                # the detour costs driving that could explore.
                 reverse = n_reversed < p.reverse_share * (len(revisits) + 1)
-                if reverse:
-                    stretch = stretch[::-1]
-                path = _shortest(net, cur, prev, stretch[0], stretch[1], p.max_turn_deg)
-                if path is not None:
+                best = None
+                for i in rng.choice(pool, size=min(6, len(pool)), replace=False):
+                    n_legs = int(rng.integers(2, 4))
+                    stretch = [legs[i][0]] + [leg[1] for leg in legs[i : i + n_legs]]
+                    if reverse:
+                        stretch = stretch[::-1]
+                    path = _shortest(net, cur, prev, stretch[0], stretch[1], p.max_turn_deg)
+                    if path is not None:
+                        cost = _path_length(net, [cur, *path])
+                        if best is None or cost < best[0]:
+                            best = (cost, int(i), stretch, path)
+                # Nothing reachable now: try again after the next street.
+                next_revisit = driven + (rng.uniform(*p.revisit_every) if best else 0.0)
+                if best is not None:
+                    _, i, stretch, path = best
                     for nxt in path:
                         drive_to(nxt)
                     start = driven

@@ -62,6 +62,15 @@ class World:
         return sum(s.length for s in self.network.streets)
 
 
+# District → (setback range, gap range between lots, catalogue, footprint kind, how much
+# closer to an intersection lots may start). Urban lots are terraced: no gap.
+_LOTS = {
+    "urban": ((2.5, 4.5), (0.0, 0.0), "urban_types", "urban", -6.0),
+    "suburban": ((6.0, 10.0), (3.0, 10.0), "house_types", "house", 0.0),
+    "industrial": ((9.0, 18.0), (8.0, 20.0), "hall_types", "hall", 0.0),
+}
+
+
 class _Raster:
     """Occupancy at 0.5 m: roads (with kerb margin) and everything placed so far."""
 
@@ -326,38 +335,17 @@ class _Builder:
                     self.parking.append((x, y, a, DISTRICTS.index(d)))
 
         # Buildings.
-        if d == "urban":
+        if d in _LOTS:
+            setback, gap, catalogue, kind, junction_shift = _LOTS[d]
             self._lots(
                 s,
                 side,
                 frame,
-                setback=(2.5, 4.5),
-                gap=(0.0, 0.0),
-                catalogue=self.urban_types,
-                kind="urban",
-                junction=junction - 6,
-            )
-        elif d == "suburban":
-            self._lots(
-                s,
-                side,
-                frame,
-                setback=(6.0, 10.0),
-                gap=(3.0, 10.0),
-                catalogue=self.house_types,
-                kind="house",
-                junction=junction,
-            )
-        elif d == "industrial":
-            self._lots(
-                s,
-                side,
-                frame,
-                setback=(9.0, 18.0),
-                gap=(8.0, 20.0),
-                catalogue=self.hall_types,
-                kind="hall",
-                junction=junction,
+                setback,
+                gap,
+                getattr(self, catalogue),
+                kind,
+                junction + junction_shift,
             )
         elif r.random() < 0.25:  # a lone barn on the open road
             self._lots(
