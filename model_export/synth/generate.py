@@ -263,9 +263,7 @@ def revisit_frames(loops: LoopGroundTruth) -> tuple[np.ndarray, np.ndarray, np.n
     return frames[~rev], frames[rev], gaps
 
 
-def _stats(
-    out: Path, world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: GenConfig
-) -> dict:
+def _stats(world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: GenConfig) -> dict:
     kinds: dict[str, int] = {}
     for _, kind in world.footprints:
         kinds[kind] = kinds.get(kind, 0) + 1
@@ -402,7 +400,7 @@ def generate(
             "profile": get_profile(cfg.sensor).model_dump(),
         },
         "world_from_sequence": drive.poses[0].tolist(),
-        "counts": _stats(out, world, drive, counts, table, loops, cfg),
+        "counts": _stats(world, drive, counts, table, loops, cfg),
         "data_sha256": data_fingerprint(out),
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")

@@ -1,0 +1,121 @@
+"""The selective scan (Mamba's S6 recurrence): a plain reference and a fast chunked path.
+
+Shapes (one legend for both functions):
+
+    u:     (B, E, L)   inputs, E channels over L steps (image columns)
+    delta: (B, E, L)   step sizes Δ, positive (after softplus)
+    A:     (E, N)      continuous-time decay rates, negative
+    Bm:    (B, N, L)   input projection per step
+    Cm:    (B, N, L)   output projection per step
+    D:     (E,)        skip connection
+    → y:   (B, E, L)
+
+Zero-order hold discretisation, as in Mamba:
+
+    h_t = exp(Δ_t A) ⊙ h_{t−1} + Δ_t B_t u_t        h: (B, E, N)
+    y_t = Σ_n C_t,n h_t,n + D u_t
+
+**Circular mode.** Over a ring of columns (a 360° range image) there is no first column.
+The recurrence is linear and diagonal, so its periodic steady state has a closed form: run
+from h = 0 to get h_L and the product of all decays P = Π_t exp(Δ_t A); the state entering
+the ring is h_L / (1 − P) elementwise. Starting from it, rolling the inputs by k columns
+rolls every output by exactly k columns (up to float rounding).
+
+The fast path splits the sequence into chunks of T steps and runs (a) the T steps of every
+chunk at once from a zero state, (b) a carry pass over the L/T chunk boundaries, and (c) a
+correction pass that adds each chunk's incoming state. That is 2T + L/T small steps instead
+of L, and no tensor of shape (B, E, L, N) is ever materialised: peak extra memory is
+(B, E, L/T, N).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _ring_start(h_end: Tensor, log_p: Tensor) -> Tensor:
+    """State entering the ring: h_L / (1 − P), P = exp(log_p) < 1 elementwise."""
+    # 1 − P ≥ 1e-6 keeps a ring with almost no decay (Δ·A ≈ 0) finite.
+    return h_end / (-torch.expm1(log_p)).clamp_min(1e-6)
+
+
+def selective_scan_ref(
+    u: Tensor, delta: Tensor, A: Tensor, Bm: Tensor, Cm: Tensor, D: Tensor, circular: bool = False
+) -> Tensor:
+    """Step by step, exactly as the equations read. Slow; the yardstick for the fast path."""
+    Bsz, E, L = u.shape
+    h = u.new_zeros(Bsz, E, A.shape[1])
+    if circular:
+        log_p = u.new_zeros(Bsz, E, A.shape[1])
+        for t in range(L):
+            dA = delta[:, :, t, None] * A  # (B, E, N)
+            h = torch.exp(dA) * h + (delta[:, :, t] * u[:, :, t])[..., None] * Bm[:, None, :, t]
+            log_p = log_p + dA
+        h = _ring_start(h, log_p)
+    ys = []
+    for t in range(L):
+        dA = delta[:, :, t, None] * A
+        h = torch.exp(dA) * h + (delta[:, :, t] * u[:, :, t])[..., None] * Bm[:, None, :, t]
+        ys.append((h * Cm[:, None, :, t]).sum(-1))
+    return torch.stack(ys, dim=-1) + D[:, None] * u
+
+
+def selective_scan(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    Bm: Tensor,
+    Cm: Tensor,
+    D: Tensor,
+    circular: bool = False,
+    chunk: int | None = None,
+) -> Tensor:
+    """Same result as :func:`selective_scan_ref` (to float rounding), in 2T + L/T steps."""
+    Bsz, E, L = u.shape
+    N = A.shape[1]
+    T = chunk or max(1, round(L**0.5))
+    pad = (-L) % T
+    if pad:  # pad with Δ = 0 (no decay, no input): the state passes through unchanged
+        u, delta = (torch.nn.functional.pad(x, (0, pad)) for x in (u, delta))
+        Bm, Cm = (torch.nn.functional.pad(x, (0, pad)) for x in (Bm, Cm))
+    K = (L + pad) // T  # chunks
+    # Step t of chunk k is column k·T + t: view as (…, K, T) and walk t.
+    du = (delta * u).view(Bsz, E, K, T)
+    dl = delta.view(Bsz, E, K, T)
+    Bv = Bm.view(Bsz, N, K, T)
+    Cv = Cm.view(Bsz, N, K, T)
+
+    # (a) every chunk from a zero state; keep only the outputs and the chunk-end state.
+    h = u.new_zeros(Bsz, E, K, N)
+    log_p = u.new_zeros(Bsz, E, K, N)  # Σ Δ·A within the chunk, so far
+    y0 = []
+    for t in range(T):
+        dA = dl[..., t, None] * A[:, None, :]  # (B, E, K, N)
+        h = torch.exp(dA) * h + du[..., t, None] * Bv[..., t].transpose(1, 2)[:, None]
+        log_p = log_p + dA
+        y0.append((h * Cv[..., t].transpose(1, 2)[:, None]).sum(-1))  # (B, E, K)
+
+    # (b) carry across chunk boundaries: state entering chunk k.
+    def carry(start: Tensor) -> list[Tensor]:
+        enter, state = [], start
+        for k in range(K):
+            enter.append(state)
+            state = torch.exp(log_p[:, :, k]) * state + h[:, :, k]
+        enter.append(state)
+        return enter
+
+    enter = carry(u.new_zeros(Bsz, E, N))
+    if circular:
+        enter = carry(_ring_start(enter[-1], log_p.sum(2)))
+    h_in = torch.stack(enter[:K], dim=2)  # (B, E, K, N)
+
+    # (c) add each chunk's incoming state, decayed to every step of the chunk.
+    ys = []
+    cum = u.new_zeros(Bsz, E, K, N)
+    for t in range(T):
+        cum = cum + dl[..., t, None] * A[:, None, :]
+        corr = (torch.exp(cum) * h_in * Cv[..., t].transpose(1, 2)[:, None]).sum(-1)
+        ys.append(y0[t] + corr)
+    y = torch.stack(ys, dim=-1).reshape(Bsz, E, K * T)[..., :L]
+    return y + D[:, None] * u[..., :L]
