@@ -1,0 +1,107 @@
+"""OverlapMamba network: shapes, configurations and exact yaw equivariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+
+SMALL = dict(width=120, d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+
+
+def model(**kw) -> OverlapMamba:
+    torch.manual_seed(0)
+    return OverlapMamba(OverlapMambaConfig(**{**SMALL, **kw})).eval()
+
+
+def image(B: int = 2, H: int = 64, W: int = 120, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(B, 1, H, W, generator=g) * 60
+    x[torch.rand(B, 1, H, W, generator=g) < 0.2] = -1.0  # empty pixels, as projected
+    return x
+
+
+def test_reference_configuration_has_the_reference_size():
+    m = OverlapMamba()
+    n = sum(p.numel() for p in m.parameters())
+    assert 17.5e6 < n < 18.8e6  # model-facts.md: ≈18.2M effective
+    d, yaw = m.eval()(image(1, W=900))
+    assert d.shape == (1, 256) and yaw.shape == (1, 16, 900)
+    torch.testing.assert_close(d.norm(dim=-1), torch.ones(1))
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},
+        {"spp": False},
+        {"shift": False},
+        {"bidirectional": False},
+        {"n_blocks": 2},
+        {"gating": False},
+        {"height": 32},
+    ],
+)
+def test_ablations_are_config_changes_and_stay_equivariant(kw):
+    m = model(**kw)
+    x = image(H=kw.get("height", 64))
+    with torch.no_grad():
+        d, yaw = m(x)
+        for k in (1, 37, 119):
+            d_k, yaw_k = m(torch.roll(x, k, dims=-1))
+            assert (d * d_k).sum(-1).min() >= 0.99999
+            torch.testing.assert_close(yaw_k, torch.roll(yaw, k, dims=-1), rtol=1e-4, atol=1e-5)
+
+
+def test_without_circular_mode_equivariance_breaks():
+    m = model(circular=False)
+    x = image()
+    with torch.no_grad():
+        y = m(x)[1]
+        y_k = m(torch.roll(x, 37, dims=-1))[1]
+    assert (y_k - torch.roll(y, 37, dims=-1)).abs().max() > 1e-4
+
+
+def test_inference_is_deterministic_and_the_shift_is_training_only():
+    x = image()
+    # Circular: the random shift changes nothing, so training evaluates the inference network
+    # (no SPP here: its batch norm uses batch statistics in training).
+    m = model(spp=False)
+    with torch.no_grad():
+        torch.testing.assert_close(m(x)[0], m(x)[0], rtol=0, atol=0)
+        ref = m(x)[0]
+        m.train()
+        torch.testing.assert_close(m(x)[0], ref, rtol=1e-5, atol=1e-6)
+    # Open scan: the shift is an augmentation, different on each training call.
+    m = model(spp=False, circular=False).train()
+    torch.manual_seed(1)
+    a = m(x)[0]
+    torch.manual_seed(2)
+    b = m(x)[0]
+    assert not torch.allclose(a, b)
+    a.sum().backward()
+    assert m.blocks[0].shifted.x_proj.weight.grad is not None
+
+
+@pytest.mark.real_data
+def test_descriptor_is_invariant_to_yaw_on_a_real_scan(kitti_seq_dir):
+    from lidar_core.io import read_points
+    from lidar_core.projection import project
+    from lidar_core.sensors import get_profile
+
+    scan = read_points(kitti_seq_dir / "velodyne" / "000040.bin")
+    x = torch.from_numpy(project(scan, get_profile("kitti-hdl64")))[None, None]
+    torch.manual_seed(0)
+    m = OverlapMamba().eval()
+    rng = np.random.default_rng(7)
+    with torch.no_grad():
+        d, yaw = m(x)
+        for k in rng.integers(1, 900, 2):
+            d_k, yaw_k = m(torch.roll(x, int(k), dims=-1))
+            assert float((d * d_k).sum()) >= 0.99999
+            torch.testing.assert_close(
+                yaw_k, torch.roll(yaw, int(k), dims=-1), rtol=1e-4, atol=1e-5
+            )
