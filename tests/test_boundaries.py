@@ -23,6 +23,7 @@ LIDAR_CORE_MODULES = [
     "lidar_core.overlap",
     "lidar_core.metrics",
     "lidar_core.visualize",
+    "lidar_core.yaw",
 ]
 
 
