@@ -108,6 +108,12 @@ def test_routes_never_u_turn_and_revisit_both_ways():
     assert np.mean(reversed_) >= 0.4
     assert not all(reversed_)
     assert max(r["age_m"] for r in revisits) > 1500  # some revisits are long after the first
+    # Revisits do not chain: the drive explores between them, and reaches most of the town.
+    gap = DriveParams().revisit_every[0]
+    for a, b in zip(revisits, revisits[1:], strict=False):
+        assert b["start_m"] >= a["end_m"] + gap
+    driven = {frozenset(e) for e in zip(route, route[1:], strict=False)}
+    assert len(driven) > 0.6 * len(net.streets)
 
 
 @pytest.mark.parametrize(

@@ -45,7 +45,7 @@ from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
 from model_export.synth.trajectory import Drive, DriveParams, plan_drive
 from model_export.synth.world import World, WorldParams, build_world
 
-GENERATOR_VERSION = "1.2.0"
+GENERATOR_VERSION = "1.3.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 

@@ -4,9 +4,9 @@ can refuse test data.
 
 | preset | seed | scans | sensor      | town           | use                      |
 |--------|------|-------|-------------|----------------|--------------------------|
-| train  | 1005 | 4000  | kitti-hdl64 | 6 × 6 nodes    | training                 |
+| train  | 1001 | 4000  | kitti-hdl64 | 6 × 6 nodes    | training                 |
 | val    | 2002 | 1500  | kitti-hdl64 | 5 × 5 nodes    | model selection          |
-| test   | 3009 | 2500  | kitti-hdl64 | 6 × 6 nodes    | reported numbers only    |
+| test   | 3003 | 2500  | kitti-hdl64 | 6 × 6 nodes    | reported numbers only    |
 
 How the seeds were chosen: for each split, the first seed counting up from 1001, 2002 and
 3003 whose planned drive has at least 40 % opposite-direction revisits among the scans that
@@ -20,9 +20,9 @@ from __future__ import annotations
 from model_export.synth.generate import GenConfig
 
 PRESETS: dict[str, GenConfig] = {
-    "train": GenConfig(seed=1005, frames=4000, preset="train", split="train"),
+    "train": GenConfig(seed=1001, frames=4000, preset="train", split="train"),
     "val": GenConfig(seed=2002, frames=1500, preset="val", split="val", world={"nx": 5, "ny": 5}),
-    "test": GenConfig(seed=3009, frames=2500, preset="test", split="test"),
+    "test": GenConfig(seed=3003, frames=2500, preset="test", split="test"),
 }
 
 

@@ -222,9 +222,9 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
                         cost = _path_length(net, [cur, *path])
                         if best is None or cost < best[0]:
                             best = (cost, int(i), stretch, path)
-                # Nothing reachable now: try again after the next street.
-                next_revisit = driven + (rng.uniform(*p.revisit_every) if best else 0.0)
-                if best is not None:
+                if best is None:  # nothing reachable from here: try after the next street
+                    next_revisit = driven
+                else:
                     _, i, stretch, path = best
                     for nxt in path:
                         drive_to(nxt)
@@ -241,6 +241,8 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
                         }
                     )
                     n_reversed += int(reverse)
+                    # Explore again before the next revisit: counted from where this one ended.
+                    next_revisit = driven + rng.uniform(*p.revisit_every)
                     continue
         options = [
             (n, k) for n, k in net.adjacency[cur] if _can_turn(net, prev, cur, n, p.max_turn_deg)
