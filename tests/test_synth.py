@@ -11,6 +11,8 @@ import pytest
 
 pytest.importorskip("embreex")
 
+import itertools
+
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import loop_ground_truth, overlap_and_yaw
 from lidar_core.sensors import get_profile
@@ -110,9 +112,9 @@ def test_routes_never_u_turn_and_revisit_both_ways():
     assert max(r["age_m"] for r in revisits) > 1500  # some revisits are long after the first
     # Revisits do not chain: the drive explores between them, and reaches most of the town.
     gap = DriveParams().revisit_every[0]
-    for a, b in zip(revisits, revisits[1:], strict=False):
+    for a, b in itertools.pairwise(revisits):
         assert b["start_m"] >= a["end_m"] + gap
-    driven = {frozenset(e) for e in zip(route, route[1:], strict=False)}
+    driven = {frozenset(e) for e in itertools.pairwise(route)}
     assert len(driven) > 0.6 * len(net.streets)
 
 
