@@ -20,9 +20,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from model_export.synth.generate import GenConfig, build_scene, compute_ground_truth, simulate_scans
+from model_export.synth.generate import (
+    GenConfig,
+    build_scene,
+    compute_ground_truth,
+    simulate_scans,
+    write_layout,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,11 +62,8 @@ def main() -> None:
                     "minutes_per_4000_scans": 4000 / (cfg.frames / dt) / 60,
                 }
             )
-        # Ground truth needs poses beside the scans.
-        from lidar_core.poses import write_poses
-
         out = tmp / "w2"
-        write_poses(out / "poses.txt", np.linalg.inv(drive.poses[0]) @ drive.poses)
+        write_layout(out, drive)  # ground truth reads the poses beside the scans
         t = time.perf_counter()
         table, _ = compute_ground_truth(out, cfg, workers=2, progress=False)
         dt = time.perf_counter() - t

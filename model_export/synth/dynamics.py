@@ -21,6 +21,7 @@ from model_export.synth.streets import DISTRICTS
 from model_export.synth.world import World, _frame_at
 
 # length, width, height (m)
+_PARKED, _TRAFFIC, _PEDESTRIAN = 0, 1, 2  # kinds of dynamic object
 CAR_TYPES = np.array(
     [[4.5, 1.8, 1.5], [4.0, 1.75, 1.5], [4.8, 1.95, 1.75], [5.2, 2.0, 2.1], [8.5, 2.5, 3.3]]
 )
@@ -121,7 +122,7 @@ class Dynamics:
             yaw.append(a[sel])
             size.append(CAR_TYPES[self.park_type[win, cols][sel]])
             alb.append(self.park_albedo[win, cols][sel])
-            kind.append(np.zeros(sel.sum(), int))
+            kind.append(np.full(sel.sum(), _PARKED))
 
         # Traffic.
         for i, (pts, tyaw, s) in enumerate(self.traffic):
@@ -133,7 +134,7 @@ class Dynamics:
                 yaw.append([tyaw[j]])
                 size.append(CAR_TYPES[[self.traffic_type[i]]])
                 alb.append([self.traffic_albedo[i]])
-                kind.append([0])
+                kind.append([_TRAFFIC])
 
         # Pedestrians walk to the end of their street and back.
         streets = w.network.streets
@@ -149,14 +150,13 @@ class Dynamics:
                 yaw.append([np.arctan2(tan[0, 1], tan[0, 0])])
                 size.append(self.ped_size[[i]])
                 alb.append([REFLECTIVITY[MAT["person"]]])
-                kind.append([1])
+                kind.append([_PEDESTRIAN])
 
         if not xy:
             return Mesh.empty()
         xy_a = np.concatenate(xy).reshape(-1, 2)
         kind_all = np.concatenate(kind)
-        moving = np.ones(len(kind_all), bool)
-        moving[: len(xy[0]) if len(w.parking) else 0] = False  # parked cars come first
+        moving = kind_all != _PARKED
         size_all = np.concatenate(size).reshape(-1, 3)
         rel = xy_a - center
         c, s = np.cos(heading), np.sin(heading)
@@ -168,10 +168,10 @@ class Dynamics:
         yaw_a = np.concatenate(yaw)[keep]
         size_a = size_all[keep]
         alb_a = np.concatenate(alb)[keep]
-        kind_a = np.concatenate(kind)[keep]
+        kind_a = kind_all[keep]
         xy_a = xy_a[keep]
         z0 = w.terrain.height(xy_a) - 0.05
-        cars, peds = kind_a == 0, kind_a == 1
+        cars, peds = kind_a != _PEDESTRIAN, kind_a == _PEDESTRIAN
         return Mesh.concat(
             [
                 instances(

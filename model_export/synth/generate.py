@@ -45,7 +45,7 @@ from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
 from model_export.synth.trajectory import Drive, DriveParams, plan_drive
 from model_export.synth.world import World, WorldParams, build_world
 
-GENERATOR_VERSION = "1.3.0"
+GENERATOR_VERSION = "1.3.1"  # 1.3.1: manifest lists only parameters in use
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -188,13 +188,11 @@ def compute_ground_truth(
     seq = open_sequence(out, kind="kitti", sensor=cfg.sensor)
     profile = get_profile(cfg.sensor)
     pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=1)
-    # Chunks of whole queries, so each chunk projects its queries once.
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    # Chunks of ≈25 whole queries, so each chunk projects its queries once.
     queries = np.unique(pairs[:, 0])
-    chunks = [
-        pairs[np.isin(pairs[:, 0], q)] for q in np.array_split(queries, max(1, len(queries) // 25))
-    ]
-    overlap = np.zeros(len(pairs), np.float32)
-    yaw = np.zeros(len(pairs), np.float32)
+    firsts = [q[0] for q in np.array_split(queries, max(1, len(queries) // 25)) if len(q)]
+    chunks = np.split(pairs, np.searchsorted(pairs[:, 0], firsts[1:]))
     jobs = [(str(out), cfg.sensor, c) for c in chunks]
     bar = tqdm(total=len(pairs), desc="overlap ground truth", unit="pair", disable=not progress)
     results = []
@@ -208,18 +206,15 @@ def compute_ground_truth(
                 results.append(res)
                 bar.update(len(j[2]))
     bar.close()
-    at = 0
-    ordered = np.concatenate(chunks) if chunks else pairs
-    for (ov, yw), c in zip(results, chunks, strict=True):
-        overlap[at : at + len(c)], yaw[at : at + len(c)] = ov, yw
-        at += len(c)
+    overlap = np.concatenate([r[0] for r in results]).astype(np.float32)
+    yaw = np.concatenate([r[1] for r in results]).astype(np.float32)
     pos = seq.positions()
-    dist = np.linalg.norm(pos[ordered[:, 0]] - pos[ordered[:, 1]], axis=1).astype(np.float32)
+    dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1).astype(np.float32)
     gt_dir = out / "ground_truth"
     gt_dir.mkdir(exist_ok=True)
     table = {
-        "query": ordered[:, 0],
-        "reference": ordered[:, 1],
+        "query": pairs[:, 0],
+        "reference": pairs[:, 1],
         "overlap": overlap,
         "yaw_deg": yaw,
         "distance": dist,
@@ -236,7 +231,7 @@ def compute_ground_truth(
         radius=min(30.0, cfg.gt_radius),
         min_overlap=cfg.loop_min_overlap,
     )
-    loops = loop_table_from_pairs(seq, params, ordered[:, 0], ordered[:, 1], overlap, yaw)
+    loops = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlap, yaw)
     loops.save(gt_dir / "loops.npz")
     return table, loops
 
@@ -332,6 +327,14 @@ def data_fingerprint(out: Path) -> str:
     return h.hexdigest()
 
 
+def write_layout(out: Path, drive: Drive) -> None:
+    """poses.txt relative to the first scan (as KITTI), identity calib.txt, times.txt."""
+    write_poses(out / "poses.txt", np.linalg.inv(drive.poses[0]) @ drive.poses)
+    ident = " ".join(f"{v:.12e}" for v in np.eye(4)[:3].ravel())
+    (out / "calib.txt").write_text("".join(f"P{i}: {ident}\n" for i in range(4)) + f"Tr: {ident}\n")
+    np.savetxt(out / "times.txt", drive.times, fmt="%.6e")
+
+
 def build_scene(cfg: GenConfig) -> tuple[World, Drive, Dynamics]:
     """The town, the drive through it and its moving parts: everything but the scans."""
     world = build_world(cfg.seed, cfg.world_params())
@@ -361,11 +364,7 @@ def generate(
     counts = simulate_scans(out, world, drive, dynamics, cfg, workers, progress)
     t_sim = time.perf_counter() - t0 - t_world
 
-    origin_inv = np.linalg.inv(drive.poses[0])
-    write_poses(out / "poses.txt", origin_inv @ drive.poses)
-    ident = " ".join(f"{v:.12e}" for v in np.eye(4)[:3].ravel())
-    (out / "calib.txt").write_text("".join(f"P{i}: {ident}\n" for i in range(4)) + f"Tr: {ident}\n")
-    np.savetxt(out / "times.txt", drive.times, fmt="%.6e")
+    write_layout(out, drive)
 
     table = loops = None
     if ground_truth:

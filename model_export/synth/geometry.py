@@ -37,7 +37,6 @@ MATERIALS: dict[str, tuple[int, float, float]] = {
     "sign": (15, 0.95, 0.0),
 }
 MAT = {name: v[0] for name, v in MATERIALS.items()}
-MAT_NAMES = {v[0]: name for name, v in MATERIALS.items()}
 REFLECTIVITY = np.array([v[1] for v in sorted(MATERIALS.values())], dtype=np.float32)
 TRANSMIT = np.array([v[2] for v in sorted(MATERIALS.values())], dtype=np.float32)
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model_export.synth.geometry import REFLECTIVITY, TRANSMIT, Mesh
+from model_export.synth.geometry import TRANSMIT, Mesh
 
 
 def _hdl64_elevations() -> tuple[float, ...]:
@@ -168,7 +168,7 @@ class Scanner:
 
         # Porous surfaces: some rays go on and hit what lies behind.
         hit = np.isfinite(t)
-        porous = hit & (rng.random(len(t)) < TRANSMIT[np.minimum(mat, len(TRANSMIT) - 1)] * hit)
+        porous = hit & (rng.random(len(t)) < TRANSMIT[np.minimum(mat, len(TRANSMIT) - 1)])
         if porous.any():
             idx = np.nonzero(porous)[0]
             skip = t[idx] + 0.05
@@ -199,4 +199,4 @@ class Scanner:
         return np.column_stack([local, intensity]).astype("<f4")
 
 
-__all__ = ["LIDAR_MODELS", "REFLECTIVITY", "LidarModel", "Scanner", "get_lidar"]
+__all__ = ["LIDAR_MODELS", "LidarModel", "Scanner", "get_lidar"]

@@ -63,6 +63,20 @@ class StreetNetwork:
             self.adjacency[s.u].append((s.v, k))
             self.adjacency[s.v].append((s.u, k))
 
+    def street_between(self, a: int, b: int) -> int:
+        """Index of the street joining nodes a and b."""
+        for nbr, k in self.adjacency[a]:
+            if nbr == b:
+                return k
+        raise KeyError((a, b))
+
+    def turn_deg(self, a: int, b: int, c: int) -> float:
+        """Heading change (degrees) driving a → b → c, from the streets' end tangents."""
+        inc = self.streets[self.street_between(a, b)].oriented(a)
+        out = self.streets[self.street_between(b, c)].oriented(b)
+        d1, d2 = inc[-1] - inc[-3], out[2] - out[0]
+        return float(abs(np.degrees(np.arctan2(d1[0] * d2[1] - d1[1] * d2[0], d1 @ d2))))
+
     def district_at(self, xy: np.ndarray) -> np.ndarray:
         """(M, 2) → (M,) index into DISTRICTS."""
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
@@ -197,17 +211,8 @@ def build_streets(
     # than 100°, straighten them (the grid angle stays, ≈90° ± jitter).
     net = StreetNetwork(nodes, streets, seeds, types)
     for node, nbrs in net.adjacency.items():
-        if len(nbrs) == 2 and corner_turn_deg(net, node) > 100.0:
+        if len(nbrs) == 2 and net.turn_deg(nbrs[0][0], node, nbrs[1][0]) > 100.0:
             for _, k in nbrs:
                 st = streets[k]
                 st.points = _bezier(nodes[st.u], nodes[st.v], 0.0)
     return StreetNetwork(nodes, streets, seeds, types)
-
-
-def corner_turn_deg(net: StreetNetwork, node: int) -> float:
-    """Heading change driving through a node between its first two streets."""
-    (a, ka), (_, kb) = net.adjacency[node][:2]
-    inc = net.streets[ka].oriented(a)
-    out = net.streets[kb].oriented(node)
-    d1, d2 = inc[-1] - inc[-3], out[2] - out[0]
-    return float(abs(np.degrees(np.arctan2(d1[0] * d2[1] - d1[1] * d2[0], d1 @ d2))))

@@ -5,8 +5,9 @@ stretch driven earlier: in the same or the opposite direction (the opposite shar
 ``reverse_share``), some of them long after the first visit. Paths never U-turn: shortest
 paths run over (node, arrived-from) states.
 
-The route's centreline is smoothed into realistic turns, moved into the right-hand lane
-(so opposite-direction visits are a lane apart, ≈3 m) with a slow lateral wander, and driven
+Each leg is moved into the right-hand lane (so opposite-direction visits are a lane apart,
+≈3 m), the corners are then rounded into realistic turns, a slow lateral wander is added,
+and the path is driven
 with a speed profile limited by cruise speed, lateral acceleration in turns and
 acceleration/braking. The vehicle sits on the terrain and pitches and rolls with it.
 """
@@ -14,7 +15,6 @@ acceleration/braking. The vehicle sits on the terrain and pitches and rolls with
 from __future__ import annotations
 
 import heapq
-import itertools
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -89,24 +89,8 @@ def vehicle_pose(xy: np.ndarray, yaw: np.ndarray, terrain: Terrain, mount: float
     return T
 
 
-def _street_between(net: StreetNetwork, a: int, b: int) -> int:
-    for nbr, k in net.adjacency[a]:
-        if nbr == b:
-            return k
-    raise KeyError((a, b))
-
-
-def _turn_deg(net: StreetNetwork, a: int, b: int, c: int) -> float:
-    """Heading change (degrees) driving a → b → c."""
-    inc = net.streets[_street_between(net, a, b)].oriented(a)
-    out = net.streets[_street_between(net, b, c)].oriented(b)
-    d1, d2 = inc[-1] - inc[-3], out[2] - out[0]
-    ang = np.arctan2(d1[0] * d2[1] - d1[1] * d2[0], d1 @ d2)
-    return float(abs(np.degrees(ang)))
-
-
 def _can_turn(net: StreetNetwork, prev: int | None, cur: int, nxt: int, max_turn: float) -> bool:
-    return prev is None or (nxt != prev and _turn_deg(net, prev, cur, nxt) <= max_turn)
+    return prev is None or (nxt != prev and net.turn_deg(prev, cur, nxt) <= max_turn)
 
 
 def _shortest(
@@ -154,7 +138,7 @@ def _shortest(
 
 
 def _path_length(net: StreetNetwork, nodes: list[int]) -> float:
-    return sum(net.streets[_street_between(net, a, b)].length for a, b in pairwise(nodes))
+    return sum(net.streets[net.street_between(a, b)].length for a, b in pairwise(nodes))
 
 
 def _toward_undriven(
@@ -194,7 +178,7 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
 
     def drive_to(nxt: int) -> None:
         nonlocal cur, prev, driven
-        k = _street_between(net, cur, nxt)
+        k = net.street_between(cur, nxt)
         legs.append((cur, nxt, driven))
         visits[k] += 1
         driven += net.streets[k].length
@@ -271,8 +255,8 @@ def plan_drive(
     # offset *before* the corners are rounded: offsetting a rounded acute turn towards its
     # inside would fold the path into a cusp where the offset exceeds the turn's radius.
     pts, cruise = [], []
-    for a, b in itertools.pairwise(route):
-        st = net.streets[_street_between(net, a, b)]
+    for a, b in pairwise(route):
+        st = net.streets[net.street_between(a, b)]
         poly = st.oriented(a)
         d = np.diff(poly, axis=0)
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)

@@ -29,7 +29,8 @@ from model_export.synth.terrain import Terrain
 
 @dataclass(frozen=True)
 class WorldParams:
-    """Size and character of a town. Defaults give a ≈0.6 km² town with ≈8 km of street."""
+    """Size and shape of a town. Defaults give ≈6–7 km of street (the train preset: 6.7 km).
+    Parked cars, traffic and pedestrians are set by DynamicsParams."""
 
     nx: int = 6  # street-grid nodes along x
     ny: int = 6
@@ -37,9 +38,6 @@ class WorldParams:
     block_max: float = 140.0
     terrain_amplitude: float = 4.0  # metres, summed over the terrain waves
     terrain_cell: float = 2.5
-    parked_car_fill: float = 0.6  # probability a parking slot holds a car at a given time
-    traffic_per_km: float = 4.0  # moving cars per km of street
-    pedestrians_per_km: float = 6.0
 
 
 @dataclass
@@ -93,14 +91,13 @@ class _Raster:
         xy = np.stack([c[0] + cs * uu - sn * vv, c[1] + sn * uu + cs * vv], -1).reshape(-1, 2)
         return self.idx(xy)
 
-    def free(self, c, yaw, length, width, road_margin: bool = True) -> bool:
+    def free(self, c, yaw, length, width) -> bool:
+        """The rectangle lies inside the raster, off roads and off everything placed."""
         i, j = self.rect(c, yaw, length, width)
         inside = (c - self.lo > length).all() and (
             self.lo + np.array(self.shape) * self.res - c > length
         ).all()
-        return bool(
-            inside and not self.occ[i, j].any() and not (road_margin and self.road[i, j].any())
-        )
+        return bool(inside and not self.occ[i, j].any() and not self.road[i, j].any())
 
     def mark(self, c, yaw, length, width) -> None:
         i, j = self.rect(c, yaw, length, width)
@@ -236,7 +233,8 @@ class _Builder:
             )
         )
 
-    def pole(self, xy: np.ndarray, yaw: np.ndarray, lamp: bool = True) -> None:
+    def pole(self, xy: np.ndarray, yaw: np.ndarray) -> None:
+        """Street lights with an arm reaching over the road (``yaw`` points at the road)."""
         n = len(xy)
         if n == 0:
             return
@@ -255,19 +253,18 @@ class _Builder:
                 self._albedo("pole", n),
             )
         )
-        if lamp:  # arm reaching over the road
-            arm = xy + np.column_stack([np.cos(yaw), np.sin(yaw)]) * 0.9
-            self.parts.append(
-                instances(
-                    BOX,
-                    arm,
-                    yaw,
-                    np.column_stack([np.full(n, 1.8), np.full(n, 0.25), np.full(n, 0.2)]),
-                    z0 + h - 0.4,
-                    [MAT["pole"]],
-                    self._albedo("pole", n),
-                )
+        arm = xy + np.column_stack([np.cos(yaw), np.sin(yaw)]) * 0.9
+        self.parts.append(
+            instances(
+                BOX,
+                arm,
+                yaw,
+                np.column_stack([np.full(n, 1.8), np.full(n, 0.25), np.full(n, 0.2)]),
+                z0 + h - 0.4,
+                [MAT["pole"]],
+                self._albedo("pole", n),
             )
+        )
 
     def sign(self, xy: np.ndarray, yaw: np.ndarray) -> None:
         n = len(xy)
