@@ -1,4 +1,4 @@
-"""The selective scan (Mamba's S6 recurrence): a plain reference and a fast chunked path.
+"""The selective scan (Mamba's S6 recurrence): a plain reference, a chunked path, one dispatch.
 
 Shapes (one legend for both functions):
 
@@ -119,3 +119,41 @@ def selective_scan(
         ys.append(y0[t] + corr)
     y = torch.stack(ys, dim=-1).reshape(Bsz, E, K * T)[..., :L]
     return y + D[:, None] * u[..., :L]
+
+
+BACKENDS = ("auto", "fused", "chunked", "ref")
+
+
+def scan(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    Bm: Tensor,
+    Cm: Tensor,
+    D: Tensor,
+    circular: bool = False,
+    *,
+    backend: str = "auto",
+    chunk: int | None = None,
+) -> Tensor:
+    """One entry point for every implementation; all give the same result to float rounding.
+
+    - ``fused``: the C kernel of :mod:`model_export.scan_fused` (CPU, fastest there);
+    - ``chunked``: :func:`selective_scan` (any device, autograd through PyTorch ops);
+    - ``ref``: :func:`selective_scan_ref` (slow, obvious);
+    - ``auto``: fused on CPU when the kernel builds, chunked otherwise (GPU, no compiler).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown scan backend {backend!r}; allowed: {', '.join(BACKENDS)}")
+    if backend == "auto":
+        from model_export import scan_fused
+
+        on_cpu = u.device.type == "cpu" and u.dtype in (torch.float32, torch.float64)
+        backend = "fused" if on_cpu and scan_fused.available() else "chunked"
+    if backend == "fused":
+        from model_export.scan_fused import selective_scan_fused
+
+        return selective_scan_fused(u, delta, A, Bm, Cm, D, circular)
+    if backend == "chunked":
+        return selective_scan(u, delta, A, Bm, Cm, D, circular, chunk)
+    return selective_scan_ref(u, delta, A, Bm, Cm, D, circular)
