@@ -26,13 +26,13 @@ the gate multiplies the tokens it was computed from (the reference gates misalig
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from model_export.scan import selective_scan
+from model_export.scan import BACKENDS, scan
 
 
 @dataclass
@@ -55,8 +55,29 @@ class OverlapMambaConfig:
     out_dim: int = 256  # descriptor size
     gating: bool = True  # context gating on the descriptor
     yaw_channels: int = 16  # per-column features for yaw estimation
-    scan_chunk: int | None = None  # fast-scan chunk length (None: √W)
+    scan_backend: str = "auto"  # auto, fused, chunked or ref (model_export.scan.scan)
+    scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
     extra: dict = field(default_factory=dict)  # free-form notes carried in checkpoints
+
+    def __post_init__(self) -> None:
+        sizes = ("height", "width", "d_model", "d_state", "expand", "d_conv", "dt_rank")
+        sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels")
+        for name in sizes:
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        if self.scan_backend not in BACKENDS:
+            raise ValueError(
+                f"scan_backend {self.scan_backend!r} is unknown; allowed: {', '.join(BACKENDS)}"
+            )
+
+    @classmethod
+    def from_dict(cls, d: dict) -> OverlapMambaConfig:
+        """The inverse of :meth:`to_dict`; unknown keys are an error, missing ones default."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown config fields {unknown}; allowed: {sorted(known)}")
+        return cls(**d)
 
     @property
     def d_inner(self) -> int:
@@ -139,8 +160,8 @@ class _Branch(nn.Module):
             self.dt_proj.bias.copy_(dt + torch.log(-torch.expm1(-dt)))
         nn.init.uniform_(self.dt_proj.weight, -(R**-0.5), R**-0.5)
 
-    def forward(self, x: Tensor, A: Tensor, D: Tensor, chunk: int | None) -> Tensor:
-        # x: (B, E, L) tokens in this branch's order
+    def prepare(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Tokens (B, E, L) in this branch's order → the scan's u, Δ (B, E, L), B, C (B, N, L)."""
         k = self.conv.kernel_size[0]
         if self.circular:  # the column before the first is the last one
             xc = torch.cat([x[..., -(k - 1) :], x], dim=-1) if k > 1 else x
@@ -148,12 +169,11 @@ class _Branch(nn.Module):
             xc = F.pad(x, (k - 1, 0))
         x = F.silu(self.conv(xc))
         R = self.dt_proj.in_features
+        N = (self.x_proj.out_features - R) // 2
         dbc = self.x_proj(x.transpose(1, 2))  # (B, L, R + 2N)
-        dt, Bm, Cm = dbc.split([R, A.shape[1], A.shape[1]], dim=-1)
+        dt, Bm, Cm = dbc.split([R, N, N], dim=-1)
         delta = F.softplus(self.dt_proj(dt)).transpose(1, 2)  # (B, E, L)
-        return selective_scan(
-            x, delta, A, Bm.transpose(1, 2), Cm.transpose(1, 2), D, self.circular, chunk
-        )
+        return x, delta, Bm.transpose(1, 2), Cm.transpose(1, 2)
 
 
 class OverlapMambaBlock(nn.Module):
@@ -177,15 +197,33 @@ class OverlapMambaBlock(nn.Module):
         cfg = self.cfg
         xz = self.in_proj(self.norm(x)).transpose(1, 2)  # (B, 2E, L)
         u, z = xz.chunk(2, dim=1)
+        Bsz, _, L = u.shape
         A = -torch.exp(self.A_log)
-        y = self.main(u, A, self.D, cfg.scan_chunk)
-        if cfg.bidirectional:
-            y = y + self.main(u.flip(-1), A, self.D, cfg.scan_chunk).flip(-1)
+        # Every direction goes through one scan call, stacked on the batch axis:
+        # [forward, flipped (same weights), shifted (own weights)].
+        main_in = torch.cat([u, u.flip(-1)]) if cfg.bidirectional else u
+        parts = [self.main.prepare(main_in)]
+        s = 0
         if self.shifted is not None:
-            s = int(torch.randint(1, u.shape[-1], ())) if self.training else 0
-            y = y + torch.roll(
-                self.shifted(torch.roll(u, s, -1), A, self.D, cfg.scan_chunk), -s, -1
-            )
+            s = int(torch.randint(1, L, ())) if self.training and L > 1 else 0
+            parts.append(self.shifted.prepare(torch.roll(u, s, -1)))
+        xs, deltas, Bs, Cs = (torch.cat(p) for p in zip(*parts, strict=True))
+        ys = scan(
+            xs,
+            deltas,
+            A,
+            Bs,
+            Cs,
+            self.D,
+            cfg.circular,
+            backend=cfg.scan_backend,
+            chunk=cfg.scan_chunk,
+        ).split(Bsz)
+        y = ys[0]
+        if cfg.bidirectional:
+            y = y + ys[1].flip(-1)
+        if self.shifted is not None:
+            y = y + torch.roll(ys[-1], -s, -1)  # un-roll before the gate
         y = y * F.silu(z)  # gate the tokens it was computed from
         return x + self.out_proj(y.transpose(1, 2))
 
@@ -220,6 +258,13 @@ class OverlapMamba(nn.Module):
         self.reduce = nn.Linear(cfg.clusters * cfg.conv_last2, cfg.out_dim, bias=False)
         self.gate = nn.Linear(cfg.out_dim, cfg.out_dim) if cfg.gating else None
         self.yaw_head = nn.Conv1d(cfg.d_model, cfg.yaw_channels, 1)
+        # He initialisation for the ReLU convolutions. PyTorch's default (uniform, gain 1/√3)
+        # shrinks the signal about 4× per bias-free layer: after the 11 backbone layers every
+        # scan looked alike (std 2e-4), SPP's batch norm cannot undo that in eval mode, and
+        # the untrained network gave one descriptor for every scan.
+        for conv in [*self.backbone, self.conv_last1[0], self.conv_last2[0]]:
+            if isinstance(conv, nn.Conv1d | nn.Conv2d):
+                nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
 
     def forward(self, image: Tensor) -> tuple[Tensor, Tensor]:
         """image (B, 1, H, W) → descriptor (B, out_dim) unit norm, yaw features (B, C, W)."""
