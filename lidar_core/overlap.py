@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from lidar_core.cache import cache_root
 from lidar_core.datasets.base import Sequence
 from lidar_core.poses import relative_transform, transform_points, yaw_deg
 from lidar_core.projection import pixel_coordinates, project
@@ -180,6 +181,26 @@ class LoopGroundTruth:
         mask[self.query[self.is_loop]] = True
         return mask
 
+    def best_loops(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each revisiting frame (ascending), the reference of its highest-overlap loop, and
+        that pair's relative yaw in degrees: (F,) int64, (F,) int64, (F,) float32."""
+        loop = self.is_loop
+        q, r = self.query[loop], self.reference[loop]
+        order = np.lexsort((-self.overlap[loop], q))  # by query, best overlap first (stable)
+        q, r, yaw = q[order], r[order], self.yaw_deg[loop][order]
+        first = np.r_[True, q[1:] != q[:-1]] if len(q) else np.zeros(0, bool)
+        return q[first], r[first], yaw[first]
+
+    def direction_masks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n_frames,) bool masks of same- and reverse-direction revisits: a revisit is
+        reverse when its best loop is turned by more than 90°."""
+        frames, _, yaw = self.best_loops()
+        same = np.zeros(self.n_frames, bool)
+        reverse = np.zeros(self.n_frames, bool)
+        same[frames[np.abs(yaw) <= 90]] = True
+        reverse[frames[np.abs(yaw) > 90]] = True
+        return same, reverse
+
     def save(self, path: str | Path) -> None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -213,9 +234,7 @@ class LoopGroundTruth:
 def _fingerprint(seq: Sequence, params: dict) -> str:
     h = hashlib.sha256()
     h.update(json.dumps(params, sort_keys=True).encode())
-    h.update(np.ascontiguousarray(seq.poses).tobytes())
-    for p in seq.scan_paths:
-        h.update(f"{p.name}:{p.stat().st_size}".encode())
+    seq.update_digest(h)
     return h.hexdigest()[:16]
 
 
@@ -225,8 +244,7 @@ def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
     Never the sequence folder itself: real data is shared and must stay untouched. Writers
     that own their folder (the synthetic generator) pass an explicit path instead.
     """
-    base = Path(os.environ.get("OVERLAPMAMBA_CACHE", Path.home() / ".cache" / "overlapmamba"))
-    return base / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
+    return cache_root() / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
 
 
 def loop_params(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,13 @@ class Sequence:
     def __iter__(self) -> Iterator[PointCloud]:
         for i in range(len(self)):
             yield self.points(i)
+
+    def update_digest(self, h: hashlib._Hash) -> None:
+        """Feed what identifies the recording (poses, scan names and sizes) into a hash, cheaply:
+        no scan is read. Caches keyed by it go stale when a scan or pose changes."""
+        h.update(np.ascontiguousarray(self.poses).tobytes())
+        for p in self.scan_paths:
+            h.update(f"{p.name}:{p.stat().st_size}".encode())
 
     def positions(self) -> np.ndarray:
         """(N, 3) scan positions in the world frame."""

@@ -246,16 +246,9 @@ def read_overlaps(root: str | Path) -> dict[str, np.ndarray]:
 def revisit_frames(loops: LoopGroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frames that revisit a place, split by direction (best-overlap reference's |yaw| > 90°),
     and each such frame's gap to that reference in frames."""
-    best: dict[int, tuple[float, float, int]] = {}
-    for q, r, ov, yw in zip(
-        loops.query, loops.reference, loops.overlap, loops.yaw_deg, strict=True
-    ):
-        if ov > loops.min_overlap and (q not in best or ov > best[q][0]):
-            best[int(q)] = (float(ov), float(yw), int(q - r))
-    frames = np.array(sorted(best), dtype=np.int64)
-    rev = np.array([abs(best[q][1]) > 90 for q in frames], bool)
-    gaps = np.array([best[q][2] for q in frames], np.int64)
-    return frames[~rev], frames[rev], gaps
+    frames, refs, yaw = loops.best_loops()
+    rev = np.abs(yaw) > 90
+    return frames[~rev], frames[rev], frames - refs
 
 
 def _stats(world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: GenConfig) -> dict:
