@@ -18,8 +18,13 @@
  * at 1e−6 like the reference; where the clamp holds, s does not depend on P.
  *
  * Backward (adjoint g_t = ∂loss/∂h_t):  g_t = C_t dy_t + a_{t+1} g_{t+1};  μ = ∂loss/∂s = a_0 g_0.
- * Circular: s = z/(1−P) sends ν = μ/(1−P) into z (a second, output-free run from 0, whose
- * adjoint is g'_t = a_{t+1} g'_{t+1} with g'_{L−1} = ν) and ν·s·P into every ∂/∂(Δ_t A).
+ * Circular: s = z/(1−P) sends ν = μ/(1−P) into z (the output-free run from 0, whose adjoint
+ * is g'_t = ν Π_{k>t} a_k) and ν·s·P into every ∂/∂(Δ_t A). With G = g + g' (the plain
+ * adjoint recurrence, seeded with ν at the last step) and h_{t−1} = h0_{t−1} + Π_{k<t} a_k · s,
+ * the terms collapse to
+ *   ∂/∂(Δ_t A) = a_t G_t h_{t−1} − [clamped] ν P s,      ∂/∂b_t = G_t,
+ * so the backward needs neither the run from 0's states nor a second adjoint: one pass for
+ * μ, one for everything else.
  */
 #include <math.h>
 #include <stdlib.h>
@@ -39,34 +44,26 @@
 
 #define RING_EPS ((REAL)1e-6)
 
-/* a[t, n] = exp(Δ_t A_n); returns nothing. Vectorised over n (libmvec with -ffast-math). */
-static void decays(const REAL *restrict delta, const REAL *restrict A, REAL *restrict a, int L,
-                   int N) {
-    for (int t = 0; t < L; t++) {
-        const REAL dt = delta[t];
-        REAL *restrict at = a + (size_t)t * N;
-        for (int n = 0; n < N; n++) at[n] = EXP(dt * A[n]);
-    }
-}
-
-/* Start state s (N,) of one row; also returns P (N,) in p when circular. */
-static void ring_start(const REAL *restrict u, const REAL *restrict delta,
-                       const REAL *restrict Bt, const REAL *restrict a, REAL *restrict s,
-                       REAL *restrict logp, int L, int N, const REAL *restrict A) {
+/* a[t, n] = exp(Δ_t A_n) for every step, and the start state s (N,): the ring's periodic
+ * state when circular, else 0. logp returns Σ_t Δ_t A (N,). */
+static void decays_and_start(const REAL *restrict u, const REAL *restrict delta,
+                             const REAL *restrict Bt, const REAL *restrict A, REAL *restrict a,
+                             REAL *restrict s, REAL *restrict logp, int L, int N, int circular) {
     memset(s, 0, sizeof(REAL) * N);
     memset(logp, 0, sizeof(REAL) * N);
     for (int t = 0; t < L; t++) {
-        const REAL du = delta[t] * u[t];
-        const REAL *restrict at = a + (size_t)t * N;
+        const REAL dt = delta[t], dtu = delta[t] * u[t];
+        REAL *restrict at = a + (size_t)t * N;
         const REAL *restrict bt = Bt + (size_t)t * N;
         for (int n = 0; n < N; n++) {
-            s[n] = at[n] * s[n] + du * bt[n];
-            logp[n] += delta[t] * A[n];
+            at[n] = EXP(dt * A[n]);
+            s[n] = at[n] * s[n] + dtu * bt[n]; /* the run from 0: z = its last state */
+            logp[n] += dt * A[n];
         }
     }
     for (int n = 0; n < N; n++) {
-        REAL one_minus_p = -EXPM1(logp[n]);
-        s[n] = s[n] / (one_minus_p > RING_EPS ? one_minus_p : RING_EPS);
+        const REAL one_minus_p = -EXPM1(logp[n]);
+        s[n] = circular ? s[n] / (one_minus_p > RING_EPS ? one_minus_p : RING_EPS) : 0;
     }
 }
 
@@ -74,19 +71,15 @@ void FN(scan_fwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
                   const REAL *D, REAL *y, int B, int E, int L, int N, int circular, int b0,
                   int b1) {
     REAL *a = malloc(sizeof(REAL) * (size_t)L * N);
-    REAL *h = malloc(sizeof(REAL) * 2 * (size_t)N);
-    REAL *logp = h + N;
+    REAL *v = malloc(sizeof(REAL) * 2 * (size_t)N);
+    REAL *restrict h = v, *restrict logp = v + N;
     for (int b = b0; b < b1; b++) {
         const REAL *Bb = Bm + (size_t)b * L * N, *Cb = Cm + (size_t)b * L * N;
         for (int e = 0; e < E; e++) {
             const size_t row = ((size_t)b * E + e) * L;
             const REAL *ur = u + row, *dr = delta + row, *Ae = A + (size_t)e * N;
             REAL *yr = y + row;
-            decays(dr, Ae, a, L, N);
-            if (circular)
-                ring_start(ur, dr, Bb, a, h, logp, L, N, Ae);
-            else
-                memset(h, 0, sizeof(REAL) * N);
+            decays_and_start(ur, dr, Bb, Ae, a, h, logp, L, N, circular);
             const REAL De = D[e];
             for (int t = 0; t < L; t++) {
                 const REAL du = dr[t] * ur[t];
@@ -103,20 +96,18 @@ void FN(scan_fwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
         }
     }
     free(a);
-    free(h);
+    free(v);
 }
 
 void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm, const REAL *Cm,
                   const REAL *D, const REAL *dy, REAL *du, REAL *ddelta, REAL *dA, REAL *dB,
                   REAL *dC, int B, int E, int L, int N, int circular, int b0, int b1) {
     const size_t LN = (size_t)L * N;
-    REAL *a = malloc(sizeof(REAL) * LN);   /* decays a_t */
-    REAL *hs = malloc(sizeof(REAL) * LN);  /* states h_t of the scan from s */
-    REAL *h0 = malloc(sizeof(REAL) * LN);  /* states of the run from 0 (circular only) */
-    REAL *v = malloc(sizeof(REAL) * 8 * (size_t)N);
-    REAL *restrict s = v, *restrict logp = v + N, *restrict g = v + 2 * N,
-         *restrict gp = v + 3 * N, *restrict nusp = v + 4 * N, *restrict dAe = v + 5 * N,
-         *restrict db = v + 6 * N, *restrict dla = v + 7 * N;
+    REAL *a = malloc(sizeof(REAL) * LN);  /* decays a_t */
+    REAL *hs = malloc(sizeof(REAL) * LN); /* states h_t of the scan from s */
+    REAL *v = malloc(sizeof(REAL) * 6 * (size_t)N);
+    REAL *restrict s = v, *restrict logp = v + N, *restrict G = v + 2 * N,
+         *restrict corr = v + 3 * N, *restrict dAe = v + 4 * N, *restrict dla = v + 5 * N;
     for (int b = b0; b < b1; b++) {
         const REAL *Bb = Bm + (size_t)b * LN, *Cb = Cm + (size_t)b * LN;
         REAL *dBb = dB + (size_t)b * LN, *dCb = dC + (size_t)b * LN;
@@ -126,92 +117,54 @@ void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
             const size_t row = ((size_t)b * E + e) * L;
             const REAL *ur = u + row, *dr = delta + row, *dyr = dy + row, *Ae = A + (size_t)e * N;
             REAL *dur = du + row, *ddr = ddelta + row;
-            decays(dr, Ae, a, L, N);
-            memset(s, 0, sizeof(REAL) * N);
-            if (circular) { /* run from 0, kept: its states feed the adjoint of z */
-                memset(logp, 0, sizeof(REAL) * N);
-                for (int t = 0; t < L; t++) {
-                    const REAL dtu = dr[t] * ur[t];
-                    const REAL *at = a + (size_t)t * N, *bt = Bb + (size_t)t * N;
-                    const REAL *prev = t ? h0 + (size_t)(t - 1) * N : s;
-                    REAL *cur = h0 + (size_t)t * N;
-                    for (int n = 0; n < N; n++) {
-                        cur[n] = at[n] * prev[n] + dtu * bt[n];
-                        logp[n] += dr[t] * Ae[n];
-                    }
-                }
-                for (int n = 0; n < N; n++) {
-                    const REAL one_minus_p = -EXPM1(logp[n]);
-                    s[n] = h0[(size_t)(L - 1) * N + n] /
-                           (one_minus_p > RING_EPS ? one_minus_p : RING_EPS);
-                }
-            }
+            decays_and_start(ur, dr, Bb, Ae, a, s, logp, L, N, circular);
             for (int t = 0; t < L; t++) { /* states of the scan from s */
                 const REAL dtu = dr[t] * ur[t];
-                const REAL *at = a + (size_t)t * N, *bt = Bb + (size_t)t * N;
-                const REAL *prev = t ? hs + (size_t)(t - 1) * N : s;
-                REAL *cur = hs + (size_t)t * N;
+                const REAL *restrict at = a + (size_t)t * N, *restrict bt = Bb + (size_t)t * N;
+                const REAL *restrict prev = t ? hs + (size_t)(t - 1) * N : s;
+                REAL *restrict cur = hs + (size_t)t * N;
                 for (int n = 0; n < N; n++) cur[n] = at[n] * prev[n] + dtu * bt[n];
             }
-            memset(gp, 0, sizeof(REAL) * N);
-            memset(nusp, 0, sizeof(REAL) * N);
-            if (circular) { /* μ = ∂loss/∂s first: it seeds the adjoint of z */
-                memset(g, 0, sizeof(REAL) * N);
+            memset(G, 0, sizeof(REAL) * N);
+            memset(corr, 0, sizeof(REAL) * N);
+            if (circular) { /* μ = ∂loss/∂s first: ν = μ/(1−P) seeds G at the last step */
                 for (int t = L - 1; t >= 0; t--) {
-                    const REAL *at = a + (size_t)t * N, *ct = Cb + (size_t)t * N;
-                    for (int n = 0; n < N; n++) g[n] = at[n] * (g[n] + ct[n] * dyr[t]);
+                    const REAL *restrict at = a + (size_t)t * N, *restrict ct = Cb + (size_t)t * N;
+                    for (int n = 0; n < N; n++) G[n] = at[n] * (G[n] + ct[n] * dyr[t]);
                 }
                 for (int n = 0; n < N; n++) {
                     const REAL one_minus_p = -EXPM1(logp[n]);
                     const int clamped = !(one_minus_p > RING_EPS);
-                    const REAL denom = clamped ? RING_EPS : one_minus_p;
-                    gp[n] = g[n] / denom;                               /* ν */
-                    nusp[n] = clamped ? 0 : gp[n] * s[n] * EXP(logp[n]); /* ν s P */
+                    G[n] = G[n] / (clamped ? RING_EPS : one_minus_p); /* ν */
+                    corr[n] = clamped ? G[n] * EXP(logp[n]) * s[n] : 0;
                 }
             }
-            memset(g, 0, sizeof(REAL) * N);
             memset(dAe, 0, sizeof(REAL) * N);
             const REAL De = D[e];
             for (int t = L - 1; t >= 0; t--) {
                 const REAL *restrict at = a + (size_t)t * N, *restrict bt = Bb + (size_t)t * N;
                 const REAL *restrict ct = Cb + (size_t)t * N, *restrict ht = hs + (size_t)t * N;
                 const REAL *restrict hprev = t ? hs + (size_t)(t - 1) * N : s;
-                const REAL *restrict h0prev = t ? h0 + (size_t)(t - 1) * N : s; /* unused at t = 0 */
                 REAL *restrict dbt = dBb + (size_t)t * N, *restrict dct = dCb + (size_t)t * N;
                 const REAL dyt = dyr[t], dt = dr[t], ut = ur[t];
-                REAL sum_dla_a = 0, sum_db_b = 0;
+                REAL sum_dla_a = 0, sum_g_b = 0;
                 for (int n = 0; n < N; n++) {
-                    g[n] += ct[n] * dyt; /* g_t = C_t dy_t + a_{t+1} g_{t+1} */
+                    G[n] += ct[n] * dyt; /* G_t = C_t dy_t + a_{t+1} G_{t+1} */
                     dct[n] += dyt * ht[n];
-                }
-                if (circular) {
-                    for (int n = 0; n < N; n++) {
-                        const REAL hz = t ? h0prev[n] : 0; /* the run from 0 starts at 0 */
-                        dla[n] = at[n] * (g[n] * hprev[n] + gp[n] * hz) + nusp[n];
-                        db[n] = g[n] + gp[n];
-                    }
-                } else {
-                    for (int n = 0; n < N; n++) {
-                        dla[n] = at[n] * g[n] * hprev[n];
-                        db[n] = g[n];
-                    }
-                }
-                for (int n = 0; n < N; n++) {
+                    dla[n] = at[n] * G[n] * hprev[n] - corr[n];
                     sum_dla_a += dla[n] * Ae[n];
-                    sum_db_b += db[n] * bt[n];
+                    sum_g_b += G[n] * bt[n];
                     dAe[n] += dla[n] * dt;
-                    dbt[n] += db[n] * dt * ut;
-                    g[n] *= at[n];  /* carry to t − 1 */
-                    gp[n] *= at[n];
+                    dbt[n] += G[n] * dt * ut;
+                    G[n] *= at[n]; /* carry to t − 1 */
                 }
-                ddr[t] = sum_dla_a + ut * sum_db_b;
-                dur[t] = dt * sum_db_b + De * dyt;
+                ddr[t] = sum_dla_a + ut * sum_g_b;
+                dur[t] = dt * sum_g_b + De * dyt;
             }
             memcpy(dA + ((size_t)b * E + e) * N, dAe, sizeof(REAL) * N);
         }
     }
     free(a);
     free(hs);
-    free(h0);
     free(v);
 }
