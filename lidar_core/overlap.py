@@ -122,7 +122,7 @@ def pair_overlaps(
     load: Callable[[int], np.ndarray] = lru_cache(maxsize=cache_scans)(lambda i: seq.points(i).xyz)
     order = np.argsort(pairs[:, 0], kind="stable")
     queries, starts = np.unique(pairs[order, 0], return_index=True)
-    bounds = [*starts[1:], len(order)]
+    bounds = [*starts[1:], len(order)] if len(starts) else []  # no pairs: nothing to do
     for q, s, e in tqdm(
         list(zip(queries, starts, bounds, strict=True)),
         desc=desc,

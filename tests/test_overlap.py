@@ -120,3 +120,12 @@ def test_pair_overlaps_groups_by_query(synthetic_seq_dir):
         seq.points(5).xyz, seq.poses[5], [seq.points(6).xyz], seq.poses[[6]], KITTI
     )
     assert ov[2] == pytest.approx(single[0])
+
+
+def test_pair_overlaps_of_no_pairs_is_empty(synthetic_seq_dir):
+    # Regression: a drive that never comes back has no candidate pairs; this used to raise.
+    from lidar_core.overlap import pair_overlaps
+
+    seq = open_sequence(synthetic_seq_dir)
+    ov, yaw = pair_overlaps(seq, np.zeros((0, 2), np.int64), get_profile("kitti-hdl64"))
+    assert ov.shape == yaw.shape == (0,)
