@@ -94,20 +94,37 @@ def imtrihard_loss(
     return _mean_over_queries(per_query, valid)
 
 
+def _batch_candidates(desc: Tensor, overlap: Tensor, threshold: float):
+    """Every scan of the batch is a query; the others are its positives (overlap above the
+    threshold) and negatives. desc: (B, D), overlap: (B, B) → (B, B, D), (B, B), (B, B)."""
+    B = desc.shape[0]
+    other = ~torch.eye(B, dtype=torch.bool, device=desc.device)
+    pos_mask = (overlap > threshold) & other
+    neg_mask = (overlap <= threshold) & other
+    return desc[None].expand(B, B, -1), pos_mask, neg_mask
+
+
 def batch_hard_imtrihard(
     desc: Tensor,
     overlap: Tensor,
     threshold: float = 0.3,
     params: ImTrihardParams = ImTrihardParams(),
 ) -> Tensor:
-    """ImTrihard with batch-hard mining: every scan of the batch is a query, its positives
-    and negatives are the other scans of the batch by their overlap.
+    """ImTrihard with batch-hard mining from the batch's overlap matrix.
 
     desc: (B, D); overlap: (B, B) ground-truth overlap between the batch's scans.
     """
-    B = desc.shape[0]
-    other = ~torch.eye(B, dtype=torch.bool, device=desc.device)
-    pos_mask = (overlap > threshold) & other
-    neg_mask = (overlap <= threshold) & other
-    everyone = desc[None].expand(B, B, -1)
+    everyone, pos_mask, neg_mask = _batch_candidates(desc, overlap, threshold)
     return imtrihard_loss(desc, everyone, pos_mask, everyone, neg_mask, params)
+
+
+def batch_triplet(
+    desc: Tensor, overlap: Tensor, threshold: float = 0.3, margin: float = 0.5
+) -> Tensor:
+    """OT's lazy triplet over the batch: each scan's positives and negatives are the other
+    scans of the batch, by overlap. desc: (B, D); overlap: (B, B)."""
+    everyone, pos_mask, neg_mask = _batch_candidates(desc, overlap, threshold)
+    return triplet_loss(desc, everyone, pos_mask, everyone, neg_mask, margin)
+
+
+BATCH_LOSSES = {"imtrihard": batch_hard_imtrihard, "triplet": batch_triplet}

@@ -214,9 +214,13 @@ def gen_data(
         int | None, typer.Option(min=2, max=20, help="street-grid nodes per side (town size)")
     ] = None,
     gt_radius: Annotated[
-        float,
-        typer.Option(min=1.0, max=200.0, help="pairwise overlaps for pairs closer than this (m)"),
-    ] = 30.0,
+        float | None,
+        typer.Option(
+            min=1.0,
+            max=200.0,
+            help="pairwise overlaps for pairs closer than this (m; default 30, or the preset's)",
+        ),
+    ] = None,
     no_ground_truth: Annotated[
         bool, typer.Option("--no-ground-truth", help="skip the overlap tables")
     ] = False,
@@ -237,7 +241,8 @@ def gen_data(
             cfg = get_preset(preset)
         except ValueError as err:
             raise typer.BadParameter(str(err)) from None
-        cfg = cfg.model_copy(update={"gt_radius": gt_radius})
+        if gt_radius is not None:
+            cfg = cfg.model_copy(update={"gt_radius": gt_radius})
     else:
         if seed is None or frames is None:
             raise typer.BadParameter("give --seed and --frames, or a --preset")
@@ -250,7 +255,7 @@ def gen_data(
                 sensor=sensor,
                 split=split,
                 world={"nx": nodes, "ny": nodes} if nodes else {},
-                gt_radius=gt_radius,
+                gt_radius=30.0 if gt_radius is None else gt_radius,
             )
         except ValidationError as err:
             raise typer.BadParameter(err.errors()[0]["msg"].removeprefix("Value error, ")) from None
@@ -378,6 +383,210 @@ def sim_report(
         )
     out.print(table)
     out.print(f"wrote {output / 'realism.json'} and {output / 'realism.png'}")
+
+
+def _metrics_table(title: str, results: dict[str, dict[str, Any]]) -> Table:
+    table = Table(title=title)
+    for col in ("revisits", "queries", "with loop", "AUC", "F1max", "Recall@1", "Recall@1%"):
+        table.add_column(col, justify="right" if col != "revisits" else "left")
+    for name, m in results.items():
+        table.add_row(
+            name,
+            str(m["queries"]),
+            str(m["queries_with_loop"]),
+            *(f"{m[k]:.3f}" for k in ("auc", "f1max", "recall@1", "recall@1%")),
+        )
+    return table
+
+
+def _check_torch() -> None:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        console.print(
+            "[bold red]error:[/] training and evaluation need PyTorch: "
+            "pip install -e '.[train]' (make test installs it)"
+        )
+        raise typer.Exit(2) from None
+
+
+@app.command(
+    "train",
+    epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
+    "--out runs/om\n\n  overlapmamba train --out runs/om --resume --epochs 20\n\n"
+    "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml",
+)
+@_friendly_errors
+def train_cmd(
+    output: Annotated[Path, typer.Option("--out", "-o", help="run folder (checkpoints, metrics)")],
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--data",
+            help="training sequence (repeat for several); needs "
+            "ground_truth/overlaps.npz as gen-data writes it",
+        ),
+    ] = None,
+    val: Annotated[Path | None, typer.Option(help="validation sequence")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help=".json/.toml with [model] and [train] sections")
+    ] = None,
+    epochs: Annotated[
+        int | None, typer.Option(min=1, help="total epochs (extends on --resume)")
+    ] = None,
+    epoch_scans: Annotated[int | None, typer.Option(min=1, help="scans per epoch")] = None,
+    batch_size: Annotated[int | None, typer.Option(min=4, help="a multiple of 4")] = None,
+    lr: Annotated[float | None, typer.Option(min=0.0)] = None,
+    loss: Annotated[str | None, typer.Option(help="imtrihard or triplet")] = None,
+    seed: Annotated[int | None, typer.Option(min=0)] = None,
+    device: Annotated[str | None, typer.Option(help="cpu or cuda")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Train OverlapMamba on synthetic sequences; validate, checkpoint and plot every epoch."""
+    _check_torch()
+    from model_export.model import OverlapMambaConfig
+    from model_export.train import TrainConfig, load_config_file, train
+
+    overrides = {
+        k: v
+        for k, v in dict(
+            epoch_scans=epoch_scans,
+            batch_size=batch_size,
+            lr=lr,
+            loss=loss,
+            seed=seed,
+            device=device,
+        ).items()
+        if v is not None
+    }
+    model_cfg = train_cfg = None
+    if resume:
+        if config is not None or overrides or data or val:
+            raise typer.BadParameter(
+                "--resume continues the run as configured: give only --out and --epochs"
+            )
+    else:
+        if not data or val is None:
+            raise typer.BadParameter("give --data (at least one) and --val, or --resume")
+        model_d, train_d = load_config_file(config) if config else ({}, {})
+        try:
+            model_cfg = OverlapMambaConfig.from_dict(model_d)
+        except (TypeError, ValueError) as err:
+            raise typer.BadParameter(f"[model] config: {err}") from None
+        train_cfg = TrainConfig.from_dict({**train_d, **overrides})
+    history = train(
+        data or [],
+        val,
+        output,
+        model_cfg,
+        train_cfg,
+        resume=resume,
+        epochs=epochs,
+        progress=not quiet,
+    )
+    if history:
+        out.print(
+            _metrics_table(f"Validation after epoch {history[-1]['epoch']}", history[-1]["val"])
+        )
+    out.print(f"checkpoints, metrics.json and curves.png in {output}")
+
+
+@app.command(
+    "eval",
+    epilog="Example:\n\n  overlapmamba eval --checkpoint runs/om/best.pt "
+    "--sequence data/synth/test --json test.json --plot pr.png",
+)
+@_friendly_errors
+def eval_cmd(
+    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    sequence: Annotated[Path, typer.Option(help="sequence with loops (e.g. the test preset)")],
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Loop-closure AUC, F1max, Recall@1 and Recall@1%: all, same- and reverse-direction."""
+    _check_torch()
+    import json
+
+    from lidar_core.datasets import open_sequence
+    from model_export.checkpoint import load_model
+    from model_export.evaluate import describe, loop_closure, plot_pr, sequence_loops, summary
+    from model_export.rangecache import range_images
+
+    model, profile, _ = load_model(checkpoint)
+    seq = open_sequence(sequence)
+    gt = sequence_loops(seq, profile, progress=not quiet)
+    desc, _ = describe(model, range_images(seq, profile, progress=not quiet))
+    results = loop_closure(desc, gt)
+    metrics = summary(results)
+    out.print(_metrics_table(f"{checkpoint.name} on {seq.name} ({len(seq)} scans)", metrics))
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        record = {"checkpoint": str(checkpoint), "sequence": str(sequence), "metrics": metrics}
+        json_out.write_text(json.dumps(record, indent=2) + "\n")
+    if plot is not None:
+        plot_pr(results, plot, f"{seq.name}: loop closure")
+    if json_out or plot:
+        out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
+
+
+@app.command(
+    "eval-real",
+    epilog="Example:\n\n  overlapmamba eval-real --checkpoint runs/om/best.pt --json real.json",
+)
+@_friendly_errors
+def eval_real_cmd(
+    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    sequence: Annotated[Path, typer.Option(help="real KITTI-layout sequence")] = Path(
+        "../shared/data/kitti00_0000-0100"
+    ),
+    seed: Annotated[int, typer.Option(min=0, help="seed of the random yaw angles")] = 0,
+    hit_radius: Annotated[float, typer.Option(min=0.1, help="retrieval hit radius (m)")] = 3.0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+) -> None:
+    """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error."""
+    _check_torch()
+    import json
+
+    from lidar_core.datasets import open_sequence
+    from model_export.checkpoint import load_model
+    from model_export.evaluate import eval_real
+
+    model, profile, _ = load_model(checkpoint)
+    seq = open_sequence(sequence)
+    r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius)
+    inv, ret, yaw = r["yaw_invariance"], r["retrieval_odd_to_even"], r["yaw_error_deg"]
+    table = Table(title=f"{checkpoint.name} on real scans: {seq.name} ({r['scans']} scans)")
+    table.add_column("check")
+    table.add_column("result", justify="right")
+    rows = [
+        (
+            "descriptor cosine under random yaw (min / mean)",
+            f"{inv['cosine_min']:.6f} / {inv['cosine_mean']:.6f}",
+        ),
+        (
+            "turned-copy distance / distance between different scans",
+            f"{inv['turned_over_other_distance']:.2e}",
+        ),
+        (f"odd→even Recall@1 (hit within {ret['hit_radius_m']:g} m)", f"{ret['recall@1']:.3f}"),
+        ("odd→even Recall@5", f"{ret['recall@5']:.3f}"),
+    ]
+    for name, key in (("turned copy", "vs_turned_copy"), ("retrieved frame", "vs_retrieved_frame")):
+        e = yaw[key]
+        rows.append(
+            (
+                f"yaw error vs {name} (median / p90 / max, °)",
+                f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f}",
+            )
+        )
+    for k, v in rows:
+        table.add_row(k, v)
+    out.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps({"checkpoint": str(checkpoint), **r}, indent=2) + "\n")
+        out.print(f"wrote {json_out}")
 
 
 def main() -> None:

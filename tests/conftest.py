@@ -100,3 +100,25 @@ def write_synthetic_kitti(root: Path, seed: int = 0, n_per_lap: int = 24, laps: 
 @pytest.fixture(scope="session")
 def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "loop")
+
+
+def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    pytest.importorskip("embreex")
+    from model_export.synth.generate import generate
+    from model_export.synth.presets import PRESETS
+
+    out = tmp_path_factory.mktemp("synth") / name
+    generate(out, PRESETS[name], workers=2, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ``tiny`` preset (600 HDL-64E scans, loops both ways), generated once per session."""
+    return _generate_preset(tmp_path_factory, "tiny")
+
+
+@pytest.fixture(scope="session")
+def tiny_val_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ``tiny-val`` preset: another small town, for validating tiny training runs."""
+    return _generate_preset(tmp_path_factory, "tiny-val")

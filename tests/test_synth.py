@@ -32,22 +32,7 @@ from model_export.synth.trajectory import DriveParams, plan_drive, plan_route
 from model_export.synth.world import WorldParams, build_world
 
 SMALL = {"nx": 3, "ny": 3, "block_min": 50.0, "block_max": 65.0}
-# A small town and frequent revisits: loops of both directions within 600 scans.
-TINY = GenConfig(
-    seed=5,
-    frames=600,
-    sensor="kitti-hdl64",
-    world={**SMALL, "nx": 4},
-    drive={"revisit_every": [30, 60], "revisit_min_age": 70, "old_age": 150},
-    gt_radius=12.0,
-)
-
-
-@pytest.fixture(scope="module")
-def tiny_seq(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("synth") / "tiny"
-    generate(out, TINY, workers=2, progress=False)
-    return out
+TINY = PRESETS["tiny"]  # the session-wide ``tiny_seq`` fixture (conftest) is this preset
 
 
 def _digest(root: Path) -> dict[str, str]:
@@ -277,7 +262,7 @@ def test_generate_refuses_a_non_empty_folder_and_bad_config(tmp_path):
 
 def test_presets_are_fixed_distinct_towns_that_plan():
     seeds = {c.seed for c in PRESETS.values()}
-    assert len(seeds) == 3 and PRESETS["test"].split == "test"
+    assert len(seeds) == len(PRESETS) and PRESETS["test"].split == "test"
     for cfg in PRESETS.values():
         _, d, _ = build_scene(cfg)
         assert len(d.poses) == cfg.frames

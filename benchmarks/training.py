@@ -1,0 +1,116 @@
+"""Training throughput: scans/s of one training step (forward, ImTrihard, backward, Adam).
+
+The reference configuration (18.1 M parameters, three scan directions, convLast2 1024,
+64 NetVLAD clusters) at batch 16, on real KITTI range images when ../shared/data is present
+(else seeded random ones: the speed does not depend on the content), with each scan backend
+in the same run so their ratio is fair. Prints a table and writes JSON
+(default bench-results/training.json).
+
+Goal (issue 4): one epoch of 2,000 scans in ≤ 600 s on 2 CPU cores, i.e. ≥ 3.33 scans/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lidar_core.sensors import get_profile
+from model_export.losses import batch_hard_imtrihard
+from model_export.model import OverlapMamba, OverlapMambaConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
+
+
+def images(n: int) -> tuple[torch.Tensor, str]:
+    profile = get_profile("kitti-hdl64")
+    if (REAL / "velodyne").is_dir():
+        from lidar_core.io import read_points
+        from lidar_core.projection import project
+
+        paths = sorted((REAL / "velodyne").glob("*.bin"))[:n]
+        x = np.stack([project(read_points(p), profile) for p in paths])
+        return torch.from_numpy(x)[:, None], f"real KITTI 00 frames 0–{n - 1}"
+    g = torch.Generator().manual_seed(0)
+    return torch.rand(n, 1, profile.height, profile.width, generator=g) * 50, "random images"
+
+
+def step_times(backend: str, x: torch.Tensor, steps: int) -> np.ndarray:
+    torch.manual_seed(0)
+    model = OverlapMamba(OverlapMambaConfig(scan_backend=backend)).train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    B = len(x)
+    # Four groups of four: each group overlaps within itself.
+    overlap = torch.block_diag(*[torch.full((4, 4), 0.8)] * (B // 4))
+    out = []
+    for i in range(steps + 1):  # the first step warms up (allocations, kernel build)
+        t = time.perf_counter()
+        desc, _ = model(x)
+        loss = batch_hard_imtrihard(desc, overlap)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if i:
+            out.append(time.perf_counter() - t)
+    return np.array(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--backends", nargs="+", default=["fused", "chunked"])
+    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "training.json")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    x, source = images(args.batch)
+    rows = []
+    for backend in args.backends:
+        t = step_times(backend, x, args.steps)
+        med = float(np.median(t))
+        rows.append(
+            {
+                "backend": backend,
+                "step_median_s": med,
+                "step_p90_s": float(np.percentile(t, 90)),
+                "scans_per_s": args.batch / med,
+                "epoch_2000_scans_s": 2000 * med / args.batch,
+            }
+        )
+    base = rows[0]["scans_per_s"]
+    print(f"Training step, reference config, batch {args.batch}, {args.threads} threads, {source}")
+    print(
+        f"{'scan backend':<14}{'step (median)':>15}{'p90':>9}{'scans/s':>10}"
+        f"{'2,000-scan epoch':>18}{'vs first':>10}"
+    )
+    for r in rows:
+        print(
+            f"{r['backend']:<14}{r['step_median_s']:>13.2f} s{r['step_p90_s']:>7.2f} s"
+            f"{r['scans_per_s']:>10.2f}{r['epoch_2000_scans_s']:>16.0f} s"
+            f"{r['scans_per_s'] / base:>9.2f}×"
+        )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    record = {
+        "benchmark": "training-step",
+        "source": source,
+        "batch": args.batch,
+        "threads": args.threads,
+        "steps": args.steps,
+        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+        "torch": torch.__version__,
+        "goal_scans_per_s": 2000 / 600,
+        "rows": rows,
+    }
+    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

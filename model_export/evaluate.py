@@ -1,0 +1,181 @@
+"""Evaluation: descriptors of a sequence, loop-closure metrics split by revisit direction,
+and the real-scan checks of ``eval-real``.
+
+Loop closure follows lidar_core.metrics' protocol (OverlapTransformer's): query i searches
+frames 0 … i − 101, top-1 by squared L2, PR over the top-1 distance; Recall@1% uses
+N = max(1, ⌈1 % of the query's database⌉). Queries are split by the direction of their
+best-overlap loop: same direction (|yaw| ≤ 90°) or reverse.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lidar_core.datasets.base import Sequence
+from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure
+from lidar_core.overlap import LoopGroundTruth, loop_ground_truth, loop_params
+from lidar_core.sensors import SensorProfile
+from model_export.model import OverlapMamba
+
+SUBSETS = ("all", "same", "reverse")
+
+
+@torch.no_grad()
+def describe(
+    model: OverlapMamba, images: np.ndarray, *, batch: int = 32, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, H, W) range images → descriptors (N, D) float32, yaw features (N, C, W) float32."""
+    was_training = model.training
+    model.eval()
+    descs, yaws = [], []
+    for s in range(0, len(images), batch):
+        x = torch.from_numpy(np.asarray(images[s : s + batch], dtype=np.float32))[:, None]
+        d, y = model(x.to(device))
+        descs.append(d.cpu().numpy())
+        yaws.append(y.cpu().numpy())
+    model.train(was_training)
+    return np.concatenate(descs), np.concatenate(yaws)
+
+
+def sequence_loops(
+    seq: Sequence, profile: SensorProfile, progress: bool = False
+) -> LoopGroundTruth:
+    """The loop table of a sequence: the one its writer shipped (``ground_truth/loops.npz``,
+    with that table's own radius and thresholds) when it matches the sequence, else the
+    default protocol's table (computed once, then cached)."""
+    shipped = seq.root / "ground_truth" / "loops.npz"
+    if shipped.is_file():
+        gt = LoopGroundTruth.load(shipped)
+        keys = ("exclude_recent", "radius", "min_overlap", "threshold")
+        params = loop_params(seq, profile, **{k: gt.params[k] for k in keys if k in gt.params})
+        if params["fingerprint"] == gt.params.get("fingerprint"):
+            return gt
+    return loop_ground_truth(seq, profile, progress=progress)
+
+
+def loop_closure(desc: np.ndarray, gt: LoopGroundTruth) -> dict[str, LoopClosureResult]:
+    """Loop-closure results over all queries and over same-/reverse-direction revisits.
+
+    A subset keeps every query that is *not* a revisit of the other direction, so its
+    precision still pays for false alarms on non-revisiting scans.
+    """
+    positives = gt.positives()
+    same, reverse = gt.direction_masks()
+    exclude = int(gt.params.get("exclude_recent", 100))
+    masks = {"all": None, "same": ~reverse, "reverse": ~same}
+    return {
+        name: evaluate_loop_closure(desc, positives, exclude_recent=exclude, query_mask=m)
+        for name, m in masks.items()
+    }
+
+
+def summary(results: dict[str, LoopClosureResult]) -> dict[str, dict[str, Any]]:
+    return {k: r.summary() for k, r in results.items()}
+
+
+def plot_pr(results: dict[str, LoopClosureResult], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 4.2), dpi=120)
+    for name, r in results.items():
+        ax.plot(r.recall, r.precision, label=f"{name} (F1max {r.f1max:.3f}, AUC {r.auc:.3f})")
+    ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1), ylim=(0, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def eval_real(
+    model: OverlapMamba,
+    profile: SensorProfile,
+    seq: Sequence,
+    *,
+    seed: int = 0,
+    hit_radius: float = 3.0,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Checks on real scans that have no loops (``../shared/data``'s KITTI 00, 0–100).
+
+    - **yaw invariance**: every scan turned about z by a random, continuous angle (not a
+      multiple of a column): descriptor cosine to the original, and the turned copy's
+      distance as a fraction of the median distance between *different* scans;
+    - **odd → even retrieval**: queries are the odd frames, each turned by its random yaw;
+      the database is the even frames; a hit is a top-N frame within ``hit_radius`` metres;
+    - **yaw estimate**: from the yaw features by circular cross-correlation, against the
+      turned copy (truth: the turn) and against the retrieved frame (truth: the poses).
+    """
+    from lidar_core.metrics import nearest, squared_distances
+    from lidar_core.poses import rotation_z, transform_points, yaw_deg
+    from lidar_core.projection import project
+    from lidar_core.yaw import estimate_yaw
+
+    rng = np.random.default_rng(seed)
+    n = len(seq)
+    theta = rng.uniform(-180.0, 180.0, n)
+    plain, turned = [], []
+    for i in range(n):
+        xyz = seq.points(i).xyz
+        plain.append(project(xyz, profile))
+        turned.append(project(transform_points(xyz, rotation_z(-theta[i])), profile))
+    desc, feats = describe(model, np.stack(plain))
+    desc_t, feats_t = describe(model, np.stack(turned))
+
+    cos = (desc * desc_t).sum(1)
+    d_turn = ((desc - desc_t) ** 2).sum(1)
+    d_other = squared_distances(desc, desc)[~np.eye(n, dtype=bool)]
+    yaw_copy = np.array([estimate_yaw(feats[i], feats_t[i])[0][0] for i in range(n)])
+    err_copy = np.abs((yaw_copy - theta + 180.0) % 360.0 - 180.0)
+
+    odd, even = np.arange(1, n, 2), np.arange(0, n, 2)
+    pos = seq.positions()
+    ranked, _ = nearest(desc_t[odd], desc[even], k=min(5, len(even)))
+    found = even[ranked]  # (Q, 5) frame numbers
+    close = np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < hit_radius
+    # The turned query's pose: its sensor frame is turned by +θ about z.
+    q_poses = seq.poses[odd] @ np.stack([rotation_z(t) for t in theta[odd]])
+    top1 = found[:, 0]
+    truth = yaw_deg(np.linalg.inv(q_poses) @ seq.poses[top1])  # T_query←retrieved
+    est = np.array(
+        [estimate_yaw(feats_t[i], feats[j])[0][0] for i, j in zip(odd, top1, strict=True)]
+    )
+    err_ret = np.abs((est - truth + 180.0) % 360.0 - 180.0)[close[:, 0]]
+
+    def stats(x: np.ndarray) -> dict[str, float]:
+        if len(x) == 0:
+            return {"median": math.nan, "p90": math.nan, "max": math.nan}
+        return {
+            "median": float(np.median(x)),
+            "p90": float(np.percentile(x, 90)),
+            "max": float(x.max()),
+        }
+
+    return {
+        "scans": n,
+        "yaw_invariance": {
+            "cosine_min": float(cos.min()),
+            "cosine_mean": float(cos.mean()),
+            "turned_over_other_distance": float(np.median(d_turn) / np.median(d_other)),
+        },
+        "retrieval_odd_to_even": {
+            "queries": len(odd),
+            "database": len(even),
+            "hit_radius_m": hit_radius,
+            "recall@1": float(close[:, 0].mean()),
+            "recall@5": float(close.any(1).mean()),
+        },
+        "yaw_error_deg": {
+            "vs_turned_copy": stats(err_copy),
+            "vs_retrieved_frame": stats(err_ret),
+        },
+    }

@@ -1,0 +1,194 @@
+"""Training, checkpoints and evaluation end to end on the tiny generated towns."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("embreex")
+
+from typer.testing import CliRunner  # noqa: E402
+
+from lidar_core.datasets import open_sequence  # noqa: E402
+from lidar_core.errors import DatasetError  # noqa: E402
+from model_export.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
+from model_export.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
+from model_export.errors import CheckpointError, ConfigError  # noqa: E402
+from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from model_export.train import TrainConfig, train  # noqa: E402
+from overlapmamba.cli import app  # noqa: E402
+
+SMALL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+runner = CliRunner()
+
+
+def small_run(**kw) -> TrainConfig:
+    return TrainConfig(**{"epochs": 2, "epoch_scans": 32, "batch_size": 16, **kw})
+
+
+def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
+    pairs = PairIndex.from_sequences([open_sequence(tiny_seq)])
+    sampler = BatchSampler(pairs, BatchPlan(batch_size=16))
+    rng = np.random.default_rng(0)
+    revisit_pairs = 0
+    for idx in sampler.epoch(rng, 160):
+        assert len(idx) == 16 and len(set(idx.tolist())) == 16
+        ov = pairs.submatrix(idx)
+        np.testing.assert_array_equal(ov, ov.T)
+        for g in range(0, 16, GROUP):
+            a, p1 = idx[g], idx[g + 1]
+            assert ov[g, g + 1] > 0.3 and ov[g, g + 2] > 0.3  # two positives
+            assert ov[g, g + 3] <= 0.3  # the near miss is a negative
+            revisit_pairs += abs(int(a) - int(p1)) > 100
+    assert revisit_pairs >= 10  # about half the anchors meet an old pass of their place
+    with pytest.raises(ValueError, match="multiple of 4"):
+        BatchSampler(pairs, BatchPlan(batch_size=10))
+
+
+def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tmp_path):
+    cfg = OverlapMambaConfig(**SMALL)
+    straight = tmp_path / "straight"
+    history = train([tiny_seq], tiny_val_seq, straight, cfg, small_run(), progress=False)
+    assert [h["epoch"] for h in history] == [1, 2]
+    for h in history:
+        assert np.isfinite(h["loss"]) and h["scans_per_s"] > 0
+        assert h["val"]["all"]["queries_with_loop"] > 0
+        assert set(h["val"]) == {"all", "same", "reverse"}
+    for name in ("last.pt", "best.pt", "epoch-001.pt", "epoch-002.pt", "curves.png"):
+        assert (straight / name).is_file(), name
+    metrics = json.loads((straight / "metrics.json").read_text())
+    assert len(metrics["history"]) == 2 and metrics["model_config"]["d_model"] == 32
+
+    # One epoch, then --resume to two: the same weights as the uninterrupted run.
+    resumed = tmp_path / "resumed"
+    train([tiny_seq], tiny_val_seq, resumed, cfg, small_run(epochs=1), progress=False)
+    result = runner.invoke(app, ["train", "--out", str(resumed), "--resume", "--epochs", "2", "-q"])
+    assert result.exit_code == 0, result.output
+    a = read_checkpoint(straight / "last.pt")["state_dict"]
+    b = read_checkpoint(resumed / "last.pt")["state_dict"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-5, msg=k)
+
+    # The checkpoint describes itself: the model rebuilds from it alone.
+    model, profile, ckpt = load_model(straight / "best.pt")
+    assert model.cfg == cfg and profile.name == "kitti-hdl64"
+    assert ckpt["train"]["data"]["val"]["path"] == str(tiny_val_seq)
+
+    out_json, out_png = tmp_path / "eval.json", tmp_path / "pr.png"
+    result = runner.invoke(
+        app,
+        [
+            "eval",
+            "--checkpoint",
+            str(straight / "best.pt"),
+            "--sequence",
+            str(tiny_val_seq),
+            "--json",
+            str(out_json),
+            "--plot",
+            str(out_png),
+            "-q",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    for word in ("AUC", "F1max", "Recall@1", "reverse", "same"):
+        assert word in result.output
+    record = json.loads(out_json.read_text())["metrics"]
+    assert record["all"]["queries_with_loop"] > 0 and 0 <= record["all"]["f1max"] <= 1
+    assert out_png.stat().st_size > 10_000
+
+    # A finished run refuses to be overwritten.
+    with pytest.raises(ConfigError, match="already holds a run"):
+        train([tiny_seq], tiny_val_seq, straight, cfg, small_run(), progress=False)
+
+
+def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, kitti_seq_dir):
+    cfg = OverlapMambaConfig(**SMALL)
+    with pytest.raises(DatasetError, match="no ground_truth/overlaps.npz"):
+        train([kitti_seq_dir], tiny_val_seq, tmp_path / "a", cfg, small_run(), progress=False)
+    with pytest.raises(DatasetError, match="no loop closure"):
+        train([tiny_seq], kitti_seq_dir, tmp_path / "b", cfg, small_run(), progress=False)
+    with pytest.raises(ConfigError, match="both training and validation"):
+        train([tiny_seq], tiny_seq, tmp_path / "c", cfg, small_run(), progress=False)
+    with pytest.raises(ConfigError, match="nothing to resume"):
+        train([], None, tmp_path / "d", resume=True, progress=False)
+    with pytest.raises(ConfigError, match="does not match sensor"):
+        train(
+            [tiny_seq],
+            tiny_val_seq,
+            tmp_path / "e",
+            OverlapMambaConfig(width=512),
+            small_run(),
+            progress=False,
+        )
+    with pytest.raises(ConfigError, match="unknown loss"):
+        TrainConfig(loss="contrastive")
+    with pytest.raises(ConfigError, match="unknown training fields"):
+        TrainConfig.from_dict({"epoch": 3})
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["train", "--out", "x"], "give --data"),
+        (["train", "--out", "x", "--resume", "--lr", "0.1"], "--resume continues"),
+        (["eval", "--checkpoint", "nope.pt", "--sequence", "."], "does not exist"),
+    ],
+)
+def test_cli_errors_are_one_line(args, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2
+    assert message in result.output
+
+
+def test_checkpoint_errors_name_the_problem(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        read_checkpoint(junk)
+    torch.save({"weights": torch.zeros(1)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not an OverlapMamba checkpoint"):
+        read_checkpoint(tmp_path / "foreign.pt")
+    save_checkpoint(tmp_path / "bad.pt", {"model_config": {"d_modle": 3}, "state_dict": {}})
+    with pytest.raises(CheckpointError, match="does not rebuild its model"):
+        load_model(tmp_path / "bad.pt")
+
+
+@pytest.mark.real_data
+def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
+    from lidar_core.sensors import get_profile
+
+    torch.manual_seed(0)
+    cfg = OverlapMambaConfig(**SMALL)
+    save_checkpoint(
+        tmp_path / "random.pt",
+        {
+            "model_config": cfg.to_dict(),
+            "profile": get_profile(cfg.sensor).model_dump(),
+            "state_dict": OverlapMamba(cfg).state_dict(),
+        },
+    )
+    out = tmp_path / "real.json"
+    result = runner.invoke(
+        app,
+        [
+            "eval-real",
+            "--checkpoint",
+            str(tmp_path / "random.pt"),
+            "--sequence",
+            str(kitti_seq_dir),
+            "--json",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "odd→even Recall@1" in result.output and "yaw error" in result.output
+    r = json.loads(out.read_text())
+    assert r["scans"] == 101 and r["retrieval_odd_to_even"]["queries"] == 50
+    # Exact equivariance holds for column rolls; a continuous turn also re-samples the scan.
+    assert r["yaw_invariance"]["cosine_min"] > 0.999
+    assert r["yaw_error_deg"]["vs_turned_copy"]["median"] < 1.0
