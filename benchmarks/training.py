@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -23,6 +24,7 @@ import torch
 from lidar_core.sensors import get_profile
 from model_export.losses import batch_hard_imtrihard
 from model_export.model import OverlapMamba, OverlapMambaConfig
+from model_export.runtime import reexec_with_hugepages
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -62,6 +64,7 @@ def step_times(backend: str, x: torch.Tensor, steps: int) -> np.ndarray:
 
 
 def main() -> None:
+    reexec_with_hugepages()  # as `overlapmamba train` does; OVERLAPMAMBA_NO_REEXEC=1 opts out
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--steps", type=int, default=6)
@@ -85,7 +88,10 @@ def main() -> None:
             }
         )
     base = rows[0]["scans_per_s"]
-    print(f"Training step, reference config, batch {args.batch}, {args.threads} threads, {source}")
+    print(
+        f"Training step, reference config, batch {args.batch}, {args.threads} threads, {source}, "
+        f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '') or 'unset'}"
+    )
     print(
         f"{'scan backend':<14}{'step (median)':>15}{'p90':>9}{'scans/s':>10}"
         f"{'2,000-scan epoch':>18}{'vs first':>10}"
@@ -105,6 +111,7 @@ def main() -> None:
         "steps": args.steps,
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "torch": torch.__version__,
+        "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),
         "goal_scans_per_s": 2000 / 600,
         "rows": rows,
     }

@@ -193,37 +193,38 @@ class OverlapMambaBlock(nn.Module):
         self.main = _Branch(cfg)  # forward and flipped-backward
         self.shifted = _Branch(cfg) if cfg.shift else None
 
+    def _scan(self, prepared: tuple[Tensor, Tensor, Tensor, Tensor], A: Tensor) -> Tensor:
+        u, delta, Bm, Cm = prepared
+        cfg = self.cfg
+        return scan(
+            u,
+            delta,
+            A,
+            Bm,
+            Cm,
+            self.D,
+            cfg.circular,
+            backend=cfg.scan_backend,
+            chunk=cfg.scan_chunk,
+        )
+
     def forward(self, x: Tensor) -> Tensor:  # (B, L, d) → (B, L, d)
         cfg = self.cfg
         xz = self.in_proj(self.norm(x)).transpose(1, 2)  # (B, 2E, L)
         u, z = xz.chunk(2, dim=1)
         Bsz, _, L = u.shape
         A = -torch.exp(self.A_log)
-        # Every direction goes through one scan call, stacked on the batch axis:
-        # [forward, flipped (same weights), shifted (own weights)].
+        # Forward and flipped share weights, so they go through prepare() and scan() stacked on
+        # the batch axis; the shifted branch has its own weights and its own scan call.
+        # (Stacking it too would copy two (3B, E, L) tensors for nothing: each scan call
+        # splits its rows across threads anyway.)
         main_in = torch.cat([u, u.flip(-1)]) if cfg.bidirectional else u
-        parts = [self.main.prepare(main_in)]
-        s = 0
+        ys = self._scan(self.main.prepare(main_in), A).split(Bsz)
+        y = ys[0] + ys[1].flip(-1) if cfg.bidirectional else ys[0]
         if self.shifted is not None:
             s = int(torch.randint(1, L, ())) if self.training and L > 1 else 0
-            parts.append(self.shifted.prepare(torch.roll(u, s, -1)))
-        xs, deltas, Bs, Cs = (torch.cat(p) for p in zip(*parts, strict=True))
-        ys = scan(
-            xs,
-            deltas,
-            A,
-            Bs,
-            Cs,
-            self.D,
-            cfg.circular,
-            backend=cfg.scan_backend,
-            chunk=cfg.scan_chunk,
-        ).split(Bsz)
-        y = ys[0]
-        if cfg.bidirectional:
-            y = y + ys[1].flip(-1)
-        if self.shifted is not None:
-            y = y + torch.roll(ys[-1], -s, -1)  # un-roll before the gate
+            shifted = self._scan(self.shifted.prepare(torch.roll(u, s, -1) if s else u), A)
+            y = y + (torch.roll(shifted, -s, -1) if s else shifted)  # un-roll before the gate
         y = y * F.silu(z)  # gate the tokens it was computed from
         return x + self.out_proj(y.transpose(1, 2))
 

@@ -589,5 +589,16 @@ def eval_real_cmd(
         out.print(f"wrote {json_out}")
 
 
+# Commands that train or run the network on whole sequences: they restart once with glibc's
+# huge-page malloc tunable (model_export/runtime.py says why and what it measured).
+_HEAVY = {"train", "eval", "eval-real"}
+
+
 def main() -> None:
+    import sys
+
+    if len(sys.argv) > 1 and sys.argv[1] in _HEAVY:
+        from model_export.runtime import reexec_with_hugepages
+
+        reexec_with_hugepages()
     app()
