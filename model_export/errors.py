@@ -11,6 +11,9 @@ prints their message instead of a traceback.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 from lidar_core.errors import LidarCoreError
 
 
@@ -24,3 +27,12 @@ class CheckpointError(ModelError):
 
 class ConfigError(ModelError):
     code = "invalid_config"
+
+
+def dataclass_from_dict(cls: Any, d: dict, what: str) -> Any:
+    """``cls(**d)`` for a config dataclass, refusing unknown keys with the allowed ones."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ConfigError(f"unknown {what} fields {unknown}; allowed: {sorted(known)}")
+    return cls(**d)

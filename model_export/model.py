@@ -26,12 +26,13 @@ the gate multiplies the tokens it was computed from (the reference gates misalig
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from model_export.errors import dataclass_from_dict
 from model_export.scan import BACKENDS, scan
 
 
@@ -73,11 +74,8 @@ class OverlapMambaConfig:
     @classmethod
     def from_dict(cls, d: dict) -> OverlapMambaConfig:
         """The inverse of :meth:`to_dict`; unknown keys are an error, missing ones default."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown config fields {unknown}; allowed: {sorted(known)}")
-        return cls(**d)
+        cfg: OverlapMambaConfig = dataclass_from_dict(cls, d, "config")
+        return cfg
 
     @property
     def d_inner(self) -> int:

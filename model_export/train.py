@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from lidar_core.errors import DatasetError
 from lidar_core.sensors import SensorProfile, get_profile
 from model_export.batches import BatchPlan, BatchSampler, PairIndex
 from model_export.checkpoint import read_checkpoint, save_checkpoint
-from model_export.errors import ConfigError
+from model_export.errors import ConfigError, dataclass_from_dict
 from model_export.evaluate import describe, loop_closure, sequence_loops, summary
 from model_export.losses import BATCH_LOSSES, ImTrihardParams
 from model_export.model import OverlapMamba, OverlapMambaConfig
@@ -76,11 +76,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ConfigError(f"unknown training fields {unknown}; allowed: {sorted(known)}")
-        return cls(**d)
+        cfg: TrainConfig = dataclass_from_dict(cls, d, "training")
+        return cfg
 
     def loss_fn(self):
         fn = BATCH_LOSSES[self.loss]
