@@ -142,6 +142,14 @@ def _profile(cfg: OverlapMambaConfig) -> SensorProfile:
     return profile
 
 
+def _random_yaw(images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(B, H, W) → float32, each image rolled by its own random number of columns: the sensor
+    turned about z. (With the circular model this changes the descriptor by rounding only; it
+    keeps mattering for the non-circular ablations.)"""
+    shifts = rng.integers(images.shape[-1], size=len(images))
+    return np.stack([np.roll(img, int(k), axis=-1) for img, k in zip(images, shifts, strict=True)])
+
+
 def _plot_curves(history: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -202,9 +210,9 @@ def train(
     device = torch.device(train_cfg.device)
     profile = _profile(model_cfg)
 
-    seqs = [_open(p, model_cfg, "training") for p in data]
     if not data or val is None:
         raise ConfigError("training needs at least one training sequence and a validation one")
+    seqs = [_open(p, model_cfg, "training") for p in data]
     val_seq = _open(val, model_cfg, "validation")
     if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
         raise ConfigError(f"{val} is both training and validation data")
@@ -240,7 +248,6 @@ def train(
         sched.load_state_dict(state["train"]["scheduler"])
         history, best = list(state["train"]["history"]), dict(state["train"]["best"])
     loss_fn = train_cfg.loss_fn()
-    W = model_cfg.width
 
     def payload(with_optimizer: bool, metrics: dict) -> dict[str, Any]:
         train_state: dict[str, Any] = {
@@ -270,13 +277,7 @@ def train(
         t0 = time.perf_counter()
         bar = tqdm(batches, desc=f"epoch {epoch}/{train_cfg.epochs}", disable=not progress)
         for idx in bar:
-            x = images[idx].astype(np.float32)
-            x = np.stack(
-                [
-                    np.roll(img, int(s), axis=-1)
-                    for img, s in zip(x, rng.integers(W, size=len(idx)), strict=True)
-                ]
-            )  # random yaw
+            x = _random_yaw(images[idx].astype(np.float32), rng)
             desc, _ = model(torch.from_numpy(x)[:, None].to(device))
             overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
             loss = loss_fn(desc, overlap)
@@ -309,22 +310,20 @@ def train(
         is_best = not math.isnan(f1) and f1 > best["f1max"]
         if is_best:
             best = {"epoch": epoch, "f1max": f1}
-        save_checkpoint(out / f"epoch-{epoch:03d}.pt", payload(False, val_metrics))
+        weights_only = payload(False, val_metrics)
+        save_checkpoint(out / f"epoch-{epoch:03d}.pt", weights_only)
         if is_best:
-            save_checkpoint(out / "best.pt", payload(False, val_metrics))
+            save_checkpoint(out / "best.pt", weights_only)
         save_checkpoint(last, payload(True, val_metrics))
-        (out / "metrics.json").write_text(
-            json.dumps(
-                {
-                    "model_config": model_cfg.to_dict(),
-                    "train_config": asdict(train_cfg),
-                    "best": best,
-                    "history": history,
-                },
-                indent=1,
-            )
-            + "\n"
-        )
+        record = {
+            "model_config": model_cfg.to_dict(),
+            "train_config": asdict(train_cfg),
+            "best": best,
+            "history": history,
+        }
+        tmp = out / ".metrics.json.tmp"
+        tmp.write_text(json.dumps(record, indent=1) + "\n")
+        tmp.replace(out / "metrics.json")
         _plot_curves(history, out / "curves.png")
         if progress:
             v = val_metrics
