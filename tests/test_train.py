@@ -48,6 +48,8 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
         BatchSampler(pairs, BatchPlan(batch_size=10))
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # its set-up generates the tiny-val town (≈2 min on 2 busy cores)
 def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tmp_path):
     cfg = OverlapMambaConfig(**SMALL)
     straight = tmp_path / "straight"
