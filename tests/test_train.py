@@ -107,6 +107,7 @@ def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tmp_path):
         train([tiny_seq], tiny_val_seq, straight, cfg, small_run(), progress=False)
 
 
+@pytest.mark.timeout(900)  # when run alone, its set-up generates both tiny towns
 def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, kitti_seq_dir):
     cfg = OverlapMambaConfig(**SMALL)
     with pytest.raises(DatasetError, match="no ground_truth/overlaps.npz"):
