@@ -162,7 +162,7 @@ def _plot_curves(history: list[dict], path: Path) -> None:
     a.set(xlabel="epoch", ylabel="training loss", title="loss")
     for sub in ("all", "same", "reverse"):
         b.plot(ep, [h["val"][sub]["f1max"] for h in history], "o-", label=f"F1max {sub}")
-    b.plot(ep, [h["val"]["all"]["recall@1"] for h in history], "k--", label="R@1 all")
+    b.plot(ep, [h["val"]["all"]["recall@1"] for h in history], "ks--", label="R@1 all")
     b.set(xlabel="epoch", ylim=(0, 1), title="validation")
     b.legend(fontsize=7)
     for ax in (a, b):
