@@ -56,7 +56,7 @@ class OverlapMambaConfig:
     out_dim: int = 256  # descriptor size
     gating: bool = True  # context gating on the descriptor
     yaw_channels: int = 16  # per-column features for yaw estimation
-    scan_backend: str = "auto"  # auto, fused, chunked or ref (model_export.scan.scan)
+    scan_backend: str = "auto"  # auto, fused, chunked, loop or ref (model_export.scan.scan)
     scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
     extra: dict = field(default_factory=dict)  # free-form notes carried in checkpoints
 
@@ -159,19 +159,27 @@ class _Branch(nn.Module):
         nn.init.uniform_(self.dt_proj.weight, -(R**-0.5), R**-0.5)
 
     def prepare(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Tokens (B, E, L) in this branch's order → the scan's u, Δ (B, E, L), B, C (B, N, L)."""
+        """Tokens (B, L, E) in this branch's order → the scan's u, Δ (B, L, E), B, C (B, L, N)."""
         k = self.conv.kernel_size[0]
+        x = x.transpose(1, 2)  # the depthwise conv runs channel-major
         if self.circular:  # the column before the first is the last one
             xc = torch.cat([x[..., -(k - 1) :], x], dim=-1) if k > 1 else x
         else:
             xc = F.pad(x, (k - 1, 0))
-        x = F.silu(self.conv(xc))
+        x = F.silu(self.conv(xc)).transpose(1, 2)  # (B, L, E)
         R = self.dt_proj.in_features
         N = (self.x_proj.out_features - R) // 2
-        dbc = self.x_proj(x.transpose(1, 2))  # (B, L, R + 2N)
-        dt, Bm, Cm = dbc.split([R, N, N], dim=-1)
-        delta = F.softplus(self.dt_proj(dt)).transpose(1, 2)  # (B, E, L)
-        return x, delta, Bm.transpose(1, 2), Cm.transpose(1, 2)
+        dt, Bm, Cm = self.x_proj(x).split([R, N, N], dim=-1)
+        return x, softplus(self.dt_proj(dt)), Bm, Cm
+
+
+def softplus(x: Tensor) -> Tensor:
+    """log(1 + eˣ), stable for any x; the same as F.softplus to float rounding.
+
+    Written out because onnxruntime's Softplus kernel is scalar code: on the reference
+    model's Δ it took longer than the rest of the mixer.
+    """
+    return F.relu(x) + torch.log1p(torch.exp(-x.abs()))
 
 
 class OverlapMambaBlock(nn.Module):
@@ -191,13 +199,24 @@ class OverlapMambaBlock(nn.Module):
         self.main = _Branch(cfg)  # forward and flipped-backward
         self.shifted = _Branch(cfg) if cfg.shift else None
 
-    def _scan(self, prepared: tuple[Tensor, Tensor, Tensor, Tensor], A: Tensor) -> Tensor:
-        u, delta, Bm, Cm = prepared
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, d) → (B, L, d)
         cfg = self.cfg
-        return scan(
-            u,
+        u, z = self.in_proj(self.norm(x)).chunk(2, dim=-1)  # (B, L, E) each
+        Bsz, L, _ = u.shape
+        # Every direction goes through one scan call, stacked on the batch axis: forward and
+        # flipped share the main branch's weights, the shifted branch has its own. A and D
+        # are shared by all. Batch slices use explicit bounds (not chunk/split), which keeps
+        # the batch size symbolic in an exported graph.
+        parts = [self.main.prepare(torch.cat([u, u.flip(1)]) if cfg.bidirectional else u)]
+        s = 0
+        if self.shifted is not None:
+            s = int(torch.randint(1, L, ())) if self.training and L > 1 else 0
+            parts.append(self.shifted.prepare(torch.roll(u, s, 1) if s else u))
+        u_all, delta, Bm, Cm = (torch.cat(p) if len(parts) > 1 else p[0] for p in zip(*parts))
+        ys = scan(
+            u_all,
             delta,
-            A,
+            -torch.exp(self.A_log),
             Bm,
             Cm,
             self.D,
@@ -205,26 +224,16 @@ class OverlapMambaBlock(nn.Module):
             backend=cfg.scan_backend,
             chunk=cfg.scan_chunk,
         )
-
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, d) → (B, L, d)
-        cfg = self.cfg
-        xz = self.in_proj(self.norm(x)).transpose(1, 2)  # (B, 2E, L)
-        u, z = xz.chunk(2, dim=1)
-        Bsz, _, L = u.shape
-        A = -torch.exp(self.A_log)
-        # Forward and flipped share weights, so they go through prepare() and scan() stacked on
-        # the batch axis; the shifted branch has its own weights and its own scan call.
-        # (Stacking it too would copy two (3B, E, L) tensors for nothing: each scan call
-        # splits its rows across threads anyway.)
-        main_in = torch.cat([u, u.flip(-1)]) if cfg.bidirectional else u
-        ys = self._scan(self.main.prepare(main_in), A).split(Bsz)
-        y = ys[0] + ys[1].flip(-1) if cfg.bidirectional else ys[0]
+        y = ys[:Bsz]
+        i = Bsz
+        if cfg.bidirectional:
+            y = y + ys[i : i + Bsz].flip(1)
+            i += Bsz
         if self.shifted is not None:
-            s = int(torch.randint(1, L, ())) if self.training and L > 1 else 0
-            shifted = self._scan(self.shifted.prepare(torch.roll(u, s, -1) if s else u), A)
-            y = y + (torch.roll(shifted, -s, -1) if s else shifted)  # un-roll before the gate
+            shifted = ys[i : i + Bsz]
+            y = y + (torch.roll(shifted, -s, 1) if s else shifted)  # un-roll before the gate
         y = y * F.silu(z)  # gate the tokens it was computed from
-        return x + self.out_proj(y.transpose(1, 2))
+        return x + self.out_proj(y)
 
 
 class NetVLAD(nn.Module):

@@ -189,6 +189,7 @@ def selective_scan_fused(
     """Same result as :func:`model_export.scan.selective_scan_ref`; CPU, float32/float64."""
     if u.device.type != "cpu":
         raise ValueError(f"the fused scan runs on CPU tensors, not {u.device}")
-    # The kernel reads B and C per step: (B, L, N) keeps each step's N values together.
-    y: Tensor = _FusedScan.apply(u, delta, A, Bm.transpose(1, 2), Cm.transpose(1, 2), D, circular)
-    return y
+    # The kernel walks channel-major rows of u and Δ and reads B and C per step, token-major
+    # as given: (B, L, N) keeps each step's N values together.
+    y: Tensor = _FusedScan.apply(u.transpose(1, 2), delta.transpose(1, 2), A, Bm, Cm, D, circular)
+    return y.transpose(1, 2)

@@ -532,6 +532,45 @@ def eval_cmd(
 
 
 @app.command(
+    "export",
+    epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
+    "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32",
+)
+@_friendly_errors
+def export_cmd(
+    checkpoint: Annotated[Path, typer.Argument(help="a .pt written by train")],
+    out_path: Annotated[Path, typer.Option("--out", help="the .onnx file to write")],
+    weights: Annotated[
+        str, typer.Option(help="storage of the large head matrix: int8 or float32")
+    ] = "int8",
+) -> None:
+    """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
+    _check_torch()
+    from model_export.checkpoint import load_model
+    from model_export.export import export_onnx
+
+    if out_path.suffix != ".onnx":
+        raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    model, profile, ckpt = load_model(checkpoint)
+    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights)
+    meta, v = res.metadata, res.verification
+    table = Table(title=f"exported {res.path}", show_header=False)
+    for key, value in (
+        ("model id", meta.model_id),
+        ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
+        ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
+        ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
+        ("descriptor vs PyTorch", f"max abs {v['descriptor_max_abs']:.2e}, "
+         f"min cosine {v['descriptor_min_cosine']:.6f}"),
+        ("yaw features vs PyTorch", f"max abs {v['yaw_features_max_abs']:.2e}"),
+        ("source", meta.source_commit),
+        ("time", f"{res.seconds:.1f} s"),
+    ):
+        table.add_row(key, value)
+    out.print(table)
+
+
+@app.command(
     "eval-real",
     epilog="Example:\n\n  overlapmamba eval-real --checkpoint runs/om/best.pt --json real.json",
 )

@@ -8,17 +8,22 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from model_export import scan_fused  # noqa: E402
-from model_export.scan import scan, selective_scan, selective_scan_ref  # noqa: E402
+from model_export.scan import (  # noqa: E402
+    scan,
+    selective_scan,
+    selective_scan_loop,
+    selective_scan_ref,
+)
 
 
 def inputs(B: int, E: int, L: int, N: int, seed: int = 0, dtype=torch.float64):
     g = torch.Generator().manual_seed(seed)
-    u = torch.randn(B, E, L, generator=g, dtype=dtype)
+    u = torch.randn(B, L, E, generator=g, dtype=dtype)  # token-major, as the model feeds it
     # Mamba's initialisation: Δ in [0.001, 0.1], A = −(1 … N).
-    delta = torch.exp(torch.empty(B, E, L, dtype=dtype).uniform_(-6.9, -2.3, generator=g))
+    delta = torch.exp(torch.empty(B, L, E, dtype=dtype).uniform_(-6.9, -2.3, generator=g))
     A = -torch.arange(1, N + 1, dtype=dtype).repeat(E, 1)
-    Bm = torch.randn(B, N, L, generator=g, dtype=dtype)
-    Cm = torch.randn(B, N, L, generator=g, dtype=dtype)
+    Bm = torch.randn(B, L, N, generator=g, dtype=dtype)
+    Cm = torch.randn(B, L, N, generator=g, dtype=dtype)
     D = torch.randn(E, generator=g, dtype=dtype)
     return u, delta, A, Bm, Cm, D
 
@@ -47,19 +52,33 @@ def test_any_chunk_length_gives_the_same_result(chunk):
     )
 
 
-@pytest.mark.parametrize("fn", [selective_scan_ref, selective_scan])
+@pytest.mark.parametrize("L", [1, 7, 30, 45, 128])
+@pytest.mark.parametrize("circular", [False, True])
+@pytest.mark.parametrize("chunk", [None, 1, 4, 64])
+def test_loop_form_matches_reference(L, circular, chunk):
+    # The form the ONNX export uses: chunks side by side, three loops (padding when T ∤ L).
+    args = inputs(3, 5, L, 4, seed=L)
+    torch.testing.assert_close(
+        selective_scan_loop(*args, circular=circular, chunk=chunk),
+        selective_scan_ref(*args, circular=circular),
+        rtol=1e-6,
+        atol=1e-9,
+    )
+
+
+@pytest.mark.parametrize("fn", [selective_scan_ref, selective_scan, selective_scan_loop])
 def test_circular_scan_is_equivariant_to_rolls(fn):
     u, delta, A, Bm, Cm, D = inputs(2, 4, 60, 8, seed=3, dtype=torch.float32)
     y = fn(u, delta, A, Bm, Cm, D, circular=True)
     for k in (1, 17, 59):
-        rolled = [torch.roll(x, k, dims=-1) for x in (u, delta, Bm, Cm)]
+        rolled = [torch.roll(x, k, dims=1) for x in (u, delta, Bm, Cm)]
         y_k = fn(rolled[0], rolled[1], A, rolled[2], rolled[3], D, circular=True)
-        torch.testing.assert_close(y_k, torch.roll(y, k, dims=-1), rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(y_k, torch.roll(y, k, dims=1), rtol=1e-4, atol=1e-5)
     # Without the ring start, the first columns see a different history: not equivariant.
     y_open = fn(u, delta, A, Bm, Cm, D, circular=False)
-    rolled = [torch.roll(x, 17, dims=-1) for x in (u, delta, Bm, Cm)]
+    rolled = [torch.roll(x, 17, dims=1) for x in (u, delta, Bm, Cm)]
     y_open_k = fn(rolled[0], rolled[1], A, rolled[2], rolled[3], D, circular=False)
-    assert (y_open_k - torch.roll(y_open, 17, dims=-1)).abs().max() > 1e-3
+    assert (y_open_k - torch.roll(y_open, 17, dims=1)).abs().max() > 1e-3
 
 
 def test_ring_with_almost_no_decay_stays_finite():
@@ -131,7 +150,7 @@ def test_loading_the_kernel_keeps_subnormal_floats():
 
 def test_scan_rejects_unknown_backends_and_dtypes():
     args = inputs(1, 2, 5, 3)
-    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, ref"):
+    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, ref"):
         scan(*args, backend="cuda")
     with pytest.raises(TypeError, match="float32 or float64"):
         scan(*(x.half() for x in args), backend="fused")

@@ -1,0 +1,87 @@
+"""What an exported encoder says about itself: one schema for the writer and the readers.
+
+The export (``model_export.export``) writes these fields into the ONNX file's
+``metadata_props``; the service reads them back (onnxruntime's ``custom_metadata_map``) and
+needs nothing else: the sensor profile gives the projection, ``descriptor_dim`` sizes the
+index, ``model_id`` keeps descriptors of different models out of one map.
+
+Every value in ``metadata_props`` is a string; structured fields are JSON. The keys are
+namespaced ``overlapmamba.*`` so they never collide with a tool's own.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from lidar_core.errors import LidarCoreError
+from lidar_core.sensors import SensorProfile
+
+FORMAT = "overlapmamba-encoder"
+VERSION = 1
+PREFIX = "overlapmamba."
+INPUT = "range_image"  # (B, 1, H, W) float32
+OUTPUTS = ("descriptor", "yaw_features")  # (B, D) unit norm; (B, C, W)
+
+
+class ModelMetadataError(LidarCoreError, ValueError):
+    code = "invalid_model_metadata"
+
+
+class EncoderMetadata(BaseModel):
+    """Everything a consumer of the exported encoder needs, besides the graph."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", protected_namespaces=())
+
+    format: str = FORMAT
+    version: int = VERSION
+    model_id: str = Field(min_length=1, description="content hash of the graph and weights")
+    profile: SensorProfile = Field(description="sensor profile: every projection parameter")
+    network: dict[str, Any] = Field(alias="model_config", description="the network config")
+    descriptor_dim: int = Field(gt=0)
+    yaw_channels: int = Field(gt=0)
+    weights: str = Field(description="'trained' or 'random' (an untrained network)")
+    weight_format: str = Field(description="storage of the large matrices: float32 or int8")
+    training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
+    metrics: dict[str, Any] = Field(default_factory=dict, description="validation summary")
+    source_commit: str = Field(description="git commit of the exporting code ('-dirty' if so)")
+    exported_at: str = Field(description="UTC time, ISO 8601")
+    torch_version: str = ""
+    opset: int = Field(gt=0)
+
+    def to_props(self) -> dict[str, str]:
+        """String → string pairs for ``metadata_props``."""
+        out = {}
+        for key, value in self.model_dump(by_alias=True, mode="json").items():
+            out[PREFIX + key] = value if isinstance(value, str) else json.dumps(value)
+        return out
+
+    @classmethod
+    def from_props(cls, props: dict[str, str]) -> EncoderMetadata:
+        """The inverse of :meth:`to_props`; a model without our metadata is refused."""
+        fields = {k[len(PREFIX) :]: v for k, v in props.items() if k.startswith(PREFIX)}
+        if fields.get("format") != FORMAT:
+            raise ModelMetadataError(
+                f"the model has no '{PREFIX}format={FORMAT}' metadata: export it with "
+                "`overlapmamba export CHECKPOINT --out model.onnx`",
+                found=sorted(props),
+            )
+        strings = {"format", "model_id", "weights", "weight_format", "source_commit"}
+        strings |= {"exported_at", "torch_version"}
+        try:
+            values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
+        except json.JSONDecodeError as err:
+            raise ModelMetadataError(f"model metadata is not valid JSON: {err}") from None
+        if values.get("version") != VERSION:
+            raise ModelMetadataError(
+                f"model metadata version {values.get('version')!r} is not supported; "
+                f"this code reads {VERSION}",
+                version=values.get("version"),
+                allowed=[VERSION],
+            )
+        try:
+            return cls.model_validate(values)
+        except ValidationError as err:
+            raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None

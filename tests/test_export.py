@@ -1,0 +1,207 @@
+"""ONNX export: interface, metadata, the scan as Scan loops, parity with PyTorch (random and
+real scans, B = 1 and 8), yaw-roll invariance in onnxruntime, int8 storage, the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from typer.testing import CliRunner  # noqa: E402
+
+from lidar_core.datasets import open_sequence  # noqa: E402
+from lidar_core.modelmeta import EncoderMetadata, ModelMetadataError  # noqa: E402
+from lidar_core.projection import project  # noqa: E402
+from lidar_core.sensors import get_profile  # noqa: E402
+from model_export.checkpoint import save_checkpoint  # noqa: E402
+from model_export.export import (  # noqa: E402
+    ExportError,
+    count_nodes,
+    export_onnx,
+    read_metadata,
+    run_onnx,
+    verification_images,
+)
+from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from overlapmamba.cli import app  # noqa: E402
+
+PROFILE = get_profile("kitti-hdl64")
+TINY = dict(d_model=16, d_state=4, dt_rank=4, conv_last2=32, clusters=4, out_dim=16)
+TINY |= dict(yaw_channels=4)
+
+
+def tiny_model(seed: int = 0, **over) -> OverlapMamba:
+    torch.manual_seed(seed)
+    return OverlapMamba(OverlapMambaConfig(**(TINY | over))).eval()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> dict:
+    d = tmp_path_factory.mktemp("onnx")
+    model = tiny_model()
+    f32 = export_onnx(model, PROFILE, d / "f32.onnx", weight_format="float32")
+    # A low threshold so the tiny model's NetVLAD reduction matrix goes int8 as the real one.
+    i8 = export_onnx(model, PROFILE, d / "i8.onnx", weight_format="int8", int8_min_size=2000)
+    return {"model": model, "f32": f32, "i8": i8}
+
+
+def torch_out(model: OverlapMamba, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    with torch.no_grad():
+        d, y = model(torch.from_numpy(images))
+    return d.numpy(), y.numpy()
+
+
+def test_interface_batch_axis_and_scan_loops(exported):
+    proto = onnx.load(str(exported["f32"].path))
+    onnx.checker.check_model(proto, full_check=True)
+    (inp,) = proto.graph.input
+    dims = inp.type.tensor_type.shape.dim
+    assert inp.name == "range_image" and dims[0].dim_param == "batch"
+    assert [d.dim_value for d in dims[1:]] == [1, 64, 900]
+    assert inp.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+    assert [o.name for o in proto.graph.output] == ["descriptor", "yaw_features"]
+    total, loops = count_nodes(proto.graph)
+    ops = {n.op_type for n in proto.graph.node}
+    # The scan is ONNX Scan loops over an (M, N, E) state: not unrolled, no custom domain.
+    assert loops >= 3 and total < 400, (loops, total)
+    assert "Scan" in ops
+    assert {o.domain for o in proto.opset_import} <= {"", "ai.onnx"}
+
+
+def test_metadata_describes_the_model(exported):
+    meta = read_metadata(exported["f32"].path)
+    assert meta == exported["f32"].metadata
+    assert meta.profile == PROFILE
+    assert OverlapMambaConfig.from_dict(meta.network) == exported["model"].cfg
+    assert meta.descriptor_dim == 16 and meta.yaw_channels == 4
+    assert meta.weights == "random" and meta.weight_format == "float32"
+    assert meta.model_id.startswith("om-") and meta.source_commit
+    # The service's view: onnxruntime's metadata map alone rebuilds the same record.
+    sess = ort.InferenceSession(str(exported["f32"].path), providers=["CPUExecutionProvider"])
+    assert EncoderMetadata.from_props(sess.get_modelmeta().custom_metadata_map) == meta
+    assert exported["i8"].metadata.model_id != meta.model_id
+
+
+@pytest.mark.parametrize("batch", [1, 8])
+def test_parity_on_random_range_images(exported, batch):
+    images = verification_images(PROFILE, count=batch, seed=batch)
+    ref_d, ref_y = torch_out(exported["model"], images)
+    d, y = run_onnx(exported["f32"].path, images, threads=2)
+    assert d.shape == (batch, 16) and y.shape == (batch, 4, 900)
+    np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def kitti_images(kitti_seq_dir) -> np.ndarray:
+    seq = open_sequence(kitti_seq_dir)
+    frames = range(0, 80, 10)  # 8 real scans
+    return np.stack([project(seq.points(i).xyz, PROFILE) for i in frames])[:, None]
+
+
+@pytest.mark.parametrize("batch", [1, 8])
+def test_parity_on_real_kitti_scans(exported, kitti_images, batch):
+    images = kitti_images[:batch]
+    ref_d, ref_y = torch_out(exported["model"], images)
+    d, y = run_onnx(exported["f32"].path, images)
+    np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
+
+
+def test_yaw_roll_invariance_holds_in_onnxruntime(exported, kitti_images):
+    images = kitti_images[:4]
+    d, y = run_onnx(exported["f32"].path, images)
+    for k in (1, 225, 613):
+        d_k, y_k = run_onnx(exported["f32"].path, np.roll(images, k, axis=-1))
+        np.testing.assert_allclose(d_k, d, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(y_k, np.roll(y, k, axis=-1), rtol=0, atol=1e-4)
+
+
+def dequantized(model: OverlapMamba, path: Path) -> OverlapMamba:
+    """The PyTorch model with the int8-stored matrix replaced by its dequantised value."""
+    proto = onnx.load(str(path))
+    inits = {t.name: onnx.numpy_helper.to_array(t) for t in proto.graph.initializer}
+    (name,) = [n[: -len("_int8")] for n in inits if n.endswith("_int8")]
+    w = inits[f"{name}_int8"].astype(np.float32) * inits[f"{name}_scale"]
+    copy = tiny_model()
+    copy.load_state_dict(model.state_dict())
+    weight = copy.reduce.weight
+    value = torch.from_numpy(w if w.shape == weight.shape else w.T)
+    with torch.no_grad():
+        weight.copy_(value)
+    return copy.eval()
+
+
+def test_int8_weights_match_their_dequantised_model_and_keep_the_cosine(exported, kitti_images):
+    assert exported["i8"].size_bytes < exported["f32"].size_bytes
+    proto = onnx.load(str(exported["i8"].path))
+    assert any(t.data_type == onnx.TensorProto.INT8 for t in proto.graph.initializer)
+    images = kitti_images
+    d, y = run_onnx(exported["i8"].path, images)
+    ref_d, ref_y = torch_out(dequantized(exported["model"], exported["i8"].path), images)
+    np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
+    f32_d, _ = torch_out(exported["model"], images)
+    assert (d * f32_d).sum(1).min() >= 0.999
+
+
+def test_open_scan_one_direction_exports_too(tmp_path):
+    model = tiny_model(seed=1, circular=False, bidirectional=False, shift=False, spp=False)
+    res = export_onnx(model, PROFILE, tmp_path / "open.onnx", weight_format="float32")
+    images = verification_images(PROFILE, count=2, seed=5)
+    ref_d, ref_y = torch_out(model, images)
+    d, y = run_onnx(res.path, images)
+    np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
+
+
+def test_export_refuses_a_profile_of_another_size_and_unknown_formats(tmp_path):
+    model = tiny_model()
+    with pytest.raises(ExportError, match="makes 32×900 images but the model takes 64×900"):
+        export_onnx(model, get_profile("hdl32"), tmp_path / "x.onnx")
+    with pytest.raises(ExportError, match="allowed: int8, float32"):
+        export_onnx(model, PROFILE, tmp_path / "x.onnx", weight_format="fp8")
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_model_without_our_metadata_is_refused(tmp_path):
+    graph = onnx.helper.make_graph(
+        [onnx.helper.make_node("Identity", ["x"], ["y"])],
+        "g",
+        [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+        [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])],
+    )
+    onnx.save(onnx.helper.make_model(graph), tmp_path / "foreign.onnx")
+    with pytest.raises(ModelMetadataError, match="overlapmamba export"):
+        read_metadata(tmp_path / "foreign.onnx")
+
+
+def test_cli_exports_a_checkpoint(tmp_path):
+    model = tiny_model(seed=2)
+    ckpt = tmp_path / "m.pt"
+    save_checkpoint(
+        ckpt,
+        {
+            "model_config": model.cfg.to_dict(),
+            "profile": PROFILE.model_dump(),
+            "state_dict": model.state_dict(),
+            "train": {},
+            "metrics": {},
+        },
+    )
+    runner = CliRunner()
+    res = runner.invoke(app, ["export", str(ckpt), "--out", str(tmp_path / "m.onnx")])
+    assert res.exit_code == 0, res.output
+    assert "om-" in res.output and (tmp_path / "m.onnx").is_file()
+    res = runner.invoke(app, ["export", str(ckpt), "--out", str(tmp_path / "m.bin")])
+    assert res.exit_code != 0 and "must end in .onnx" in res.output
+    res = runner.invoke(
+        app, ["export", str(ckpt), "--out", str(tmp_path / "n.onnx"), "--weights", "fp8"]
+    )
+    assert res.exit_code == 2 and "allowed: int8, float32" in res.output
