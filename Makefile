@@ -45,6 +45,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/projection.py
 	$(BIN)/python benchmarks/simulator.py
 	$(BIN)/python benchmarks/training.py
+	$(BIN)/python benchmarks/encoder.py
 
 # The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
 data: $(VENV)/.installed-all

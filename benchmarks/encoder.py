@@ -1,0 +1,318 @@
+"""ONNX encoder speed: the exported graph against the same graph with the scan taken out.
+
+Variants, all the reference configuration (18.1 M parameters, three scan directions) with
+the same random weights, exported by ``model_export.export`` and run by onnxruntime on CPU:
+
+- ``scan-loop`` — the shipped form: the scan as ONNX Scan loops over L/T chunks side by
+  side (T = √L = 30), NetVLAD's reduction matrix stored int8;
+- ``scan-loop fp32`` — the same with every weight float32;
+- ``scan-seq`` — one chunk (T = L = 900): the same loops, step by step, as a plain
+  per-column loop would run;
+- ``no-scan`` — the scan replaced by y = u (everything else identical): the yardstick of
+  the goal "encoder ÷ encoder without scan ≤ 1.25";
+- ``torch eager`` — PyTorch on the same inputs (fused C scan kernel).
+
+Reports medians and p90 (B = 1 at 1 and 2 threads, B = 8 at 2 threads per scan), max
+error against PyTorch, node count (loop bodies included), file size, load time, the ratios,
+the FLOP count of the shipped graph with the fraction of this machine's peak, and
+onnxruntime's per-operator-type profile of the shipped graph. Prints tables and writes JSON
+(default bench-results/encoder.json). Real KITTI range images when ../shared/data is
+present, else seeded random ones (speed does not depend on the content).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from rich.console import Console
+from rich.table import Table
+from torch.utils.flop_counter import FlopCounterMode
+
+import model_export.model as model_module
+from lidar_core.sensors import get_profile
+from model_export.export import count_nodes, export_onnx
+from model_export.model import OverlapMamba, OverlapMambaConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
+PROFILE = get_profile("kitti-hdl64")
+
+
+def images(n: int) -> tuple[np.ndarray, str]:
+    if (REAL / "velodyne").is_dir():
+        from lidar_core.io import read_points
+        from lidar_core.projection import project
+
+        paths = sorted((REAL / "velodyne").glob("*.bin"))[:n]
+        x = np.stack([project(read_points(p), PROFILE) for p in paths])[:, None]
+        return x.astype(np.float32), f"real KITTI 00 frames 0–{n - 1}"
+    rng = np.random.default_rng(0)
+    return rng.uniform(0, 50, (n, 1, 64, 900)).astype(np.float32), "random images"
+
+
+@contextlib.contextmanager
+def scan_taken_out():
+    """Benchmark only: the model's scan call returns its input u (no recurrence)."""
+    real = model_module.scan
+    model_module.scan = lambda u, *args, **kwargs: u * 1.0
+    try:
+        yield
+    finally:
+        model_module.scan = real
+
+
+def session(path: Path, threads: int, profile: bool = False) -> ort.InferenceSession:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    if profile:
+        so.enable_profiling = True
+        so.profile_file_prefix = str(path.with_suffix(""))
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def timed(fn, reps: int) -> np.ndarray:
+    for _ in range(3):
+        fn()
+    out = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return np.asarray(out) * 1e3
+
+
+def stats(ms: np.ndarray) -> dict[str, float]:
+    return {"median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
+
+
+def measure(run_b1, run_b8, reps: int, set_threads) -> dict[str, Any]:
+    res: dict[str, Any] = {}
+    for threads in (1, 2):
+        set_threads(threads)
+        res[f"b1_t{threads}"] = stats(timed(run_b1, reps))
+    set_threads(2)
+    b8 = timed(run_b8, max(5, reps // 4))
+    res["b8_t2"] = stats(b8)
+    res["b8_t2_per_scan_ms"] = float(np.median(b8)) / 8
+    return res
+
+
+def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
+    t = time.perf_counter()
+    session(path, 1)
+    load_s = time.perf_counter() - t
+    sessions = {th: session(path, th) for th in (1, 2)}
+    current = {"t": 1}
+
+    def run(x):
+        return sessions[current["t"]].run(None, {"range_image": x})
+
+    res = measure(lambda: run(x1), lambda: run(x8), reps, lambda th: current.update(t=th))
+    d, y = sessions[2].run(None, {"range_image": x8})
+    total, loops = count_nodes(onnx.load(str(path)).graph)
+    res |= {
+        "descriptor_max_abs": float(np.abs(d - ref[0]).max()),
+        "yaw_max_abs": float(np.abs(y - ref[1]).max()),
+        "nodes": total,
+        "scan_nodes": loops,
+        "file_mb": path.stat().st_size / 1e6,
+        "load_s": load_s,
+    }
+    return res
+
+
+def op_profile(path: Path, x1: np.ndarray, runs: int = 10) -> dict[str, dict[str, float]]:
+    """ms per run by operator type: the top level (Scan includes its loop bodies; the
+    entries partition the run) and, separately, the nodes inside the loop bodies."""
+    body_names = {n.name for n in _body_nodes(onnx.load(str(path)).graph)}
+    sess = session(path, 1, profile=True)
+    for _ in range(runs):
+        sess.run(None, {"range_image": x1})
+    trace = Path(sess.end_profiling())
+    top: collections.Counter = collections.Counter()
+    body: collections.Counter = collections.Counter()
+    for ev in json.loads(trace.read_text()):
+        if ev.get("cat") == "Node" and ev["name"].endswith("_kernel_time"):
+            node = ev["name"][: -len("_kernel_time")]
+            (body if node in body_names else top)[ev["args"]["op_name"]] += ev["dur"] / 1e3 / runs
+    trace.unlink()
+    return {"top_level": dict(top.most_common()), "inside_scan": dict(body.most_common())}
+
+
+def _body_nodes(graph: onnx.GraphProto) -> list[onnx.NodeProto]:
+    out = []
+    for node in graph.node:
+        for attr in node.attribute:
+            if attr.type == onnx.AttributeProto.GRAPH:
+                out += list(attr.g.node) + _body_nodes(attr.g)
+    return out
+
+
+def flops(cfg: OverlapMambaConfig, x1: torch.Tensor) -> dict[str, float]:
+    """Convolution/matmul FLOPs counted by PyTorch, plus the scan's elementwise work as the
+    shipped graph runs it: per (direction, channel, state, column) 7 operations in the
+    chunk loop (Δ·A, exp, ·h, B·Δu, +, and C·h as a multiply-add) and 5 in the correction
+    loop; exp counts as one."""
+    model = OverlapMamba(cfg).eval()
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model(x1)
+    dense = float(counter.get_total_flops())
+    directions = 1 + cfg.bidirectional + cfg.shift
+    scan = 12.0 * directions * cfg.d_inner * cfg.d_state * cfg.width * cfg.n_blocks
+    return {"dense_flops": dense, "scan_flops": scan, "total_flops": dense + scan}
+
+
+def cpu_peak_gflops(cores: int) -> tuple[float, str]:
+    """AVX2 + 2 FMA units: 32 float32 FLOP per cycle per core, at the reported clock."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+        mhz = max(float(ln.split(":")[1]) for ln in info.splitlines() if ln.startswith("cpu MHz"))
+        model = next(ln.split(":")[1].strip() for ln in info.splitlines() if "model name" in ln)
+    except (OSError, StopIteration, ValueError):
+        return float("nan"), "unknown"
+    return cores * 32 * mhz / 1e3, f"{model}, {mhz:.0f} MHz"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--reps", type=int, default=30, help="timed runs per B = 1 setting")
+    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "encoder.json")
+    args = ap.parse_args()
+    console = Console()
+    x8, source = images(8)
+    x1 = x8[:1]
+    cfg = OverlapMambaConfig()
+    torch.manual_seed(0)
+    model = OverlapMamba(cfg).eval()
+    with torch.no_grad():
+        ref = tuple(t.numpy() for t in model(torch.from_numpy(x8)))
+
+    results: dict[str, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = {}
+        for name, over, wf in (
+            ("scan-loop", {}, "int8"),
+            ("scan-loop fp32", {}, "float32"),
+            ("scan-seq (T=L)", {"scan_chunk": cfg.width}, "int8"),
+        ):
+            m = OverlapMamba(OverlapMambaConfig(**over)).eval()
+            m.load_state_dict(model.state_dict())
+            out = Path(tmp) / f"{len(paths)}.onnx"
+            paths[name] = export_onnx(m, PROFILE, out, weight_format=wf, images=x8[:2]).path
+        with scan_taken_out():
+            # No verification against PyTorch here: without the scan the graphs differ.
+            path = Path(tmp) / "noscan.onnx"
+            paths["no-scan"] = _export_unverified(model, path)
+        for name, path in paths.items():
+            console.print(f"timing {name} …")
+            results[name] = onnx_variant(path, x1, x8, ref, args.reps)
+        profile = op_profile(paths["scan-loop"], x1)
+
+    console.print("timing torch eager …")
+    before = torch.get_num_threads()
+    t1, t8 = torch.from_numpy(x1), torch.from_numpy(x8)
+
+    def eager(x):
+        with torch.no_grad():
+            return model(x)
+
+    results["torch eager"] = measure(
+        lambda: eager(t1), lambda: eager(t8), max(5, args.reps // 3), torch.set_num_threads
+    )
+    torch.set_num_threads(before)
+
+    base = results["no-scan"]
+    ship = results["scan-loop"]
+    ratios = {
+        "scan_over_noscan_b1_t1": ship["b1_t1"]["median_ms"] / base["b1_t1"]["median_ms"],
+        "scan_over_noscan_b1_t2": ship["b1_t2"]["median_ms"] / base["b1_t2"]["median_ms"],
+        "b8_throughput_over_b1_t2": ship["b1_t2"]["median_ms"] / ship["b8_t2_per_scan_ms"],
+        "onnx_over_torch_b1_t2": ship["b1_t2"]["median_ms"]
+        / results["torch eager"]["b1_t2"]["median_ms"],
+    }
+    work = flops(cfg, t1)
+    peak, cpu = cpu_peak_gflops(2)
+    achieved = work["total_flops"] / (ship["b1_t2"]["median_ms"] / 1e3) / 1e9
+    work |= {"achieved_gflops_b1_t2": achieved, "peak_gflops_2_cores": peak}
+    work["fraction_of_peak"] = achieved / peak
+
+    table = Table(title=f"ONNX encoder, {source}, onnxruntime {ort.__version__}")
+    cols = ["variant", "B=1 1T med/p90 ms", "B=1 2T med/p90 ms", "B=8 2T ms/scan"]
+    cols += ["max err desc/yaw", "nodes", "MB", "load s"]
+    for c in cols:
+        table.add_column(c, justify="right")
+    for name, r in results.items():
+        table.add_row(
+            name,
+            f"{r['b1_t1']['median_ms']:.1f} / {r['b1_t1']['p90_ms']:.1f}",
+            f"{r['b1_t2']['median_ms']:.1f} / {r['b1_t2']['p90_ms']:.1f}",
+            f"{r['b8_t2_per_scan_ms']:.1f}",
+            f"{r['descriptor_max_abs']:.1e} / {r['yaw_max_abs']:.1e}" if "nodes" in r else "—",
+            str(r.get("nodes", "—")),
+            f"{r['file_mb']:.1f}" if "file_mb" in r else "—",
+            f"{r['load_s']:.2f}" if "load_s" in r else "—",
+        )
+    console.print(table)
+    rt = Table(title="ratios (goal: scan ÷ no-scan ≤ 1.25 at B=1; B=8 ≥ 1.5× B=1 per scan)")
+    rt.add_column("ratio")
+    rt.add_column("value", justify="right")
+    for k, v in ratios.items():
+        rt.add_row(k, f"{v:.2f}")
+    console.print(rt)
+    console.print(
+        f"shipped graph: {work['total_flops'] / 1e9:.2f} GFLOP per scan "
+        f"(dense {work['dense_flops'] / 1e9:.2f}, scan {work['scan_flops'] / 1e9:.2f}); "
+        f"{achieved:.1f} GFLOP/s at B=1, 2 threads = {100 * work['fraction_of_peak']:.1f}% "
+        f"of the {peak:.0f} GFLOP/s peak of 2 cores ({cpu})"
+    )
+    for part, title in (("top_level", "top level"), ("inside_scan", "inside the Scan bodies")):
+        rows = profile[part]
+        total = sum(rows.values())
+        pt = Table(title=f"onnxruntime profile of scan-loop, B=1, 1 thread: {title}")
+        for c in ("op type", "ms/run", "share"):
+            pt.add_column(c, justify="right")
+        for k, v in list(rows.items())[:12]:
+            pt.add_row(k, f"{v:.2f}", f"{100 * v / total:.0f}%")
+        console.print(pt)
+
+    record = {
+        "machine": {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version()},
+        "onnxruntime": ort.__version__,
+        "torch": torch.__version__,
+        "inputs": source,
+        "variants": results,
+        "ratios": ratios,
+        "flops": work,
+        "op_profile_ms": profile,
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    console.print(f"wrote {args.json}")
+
+
+def _export_unverified(model: OverlapMamba, path: Path) -> Path:
+    from model_export.export import _check_interface, _trace, quantize_int8
+
+    proto = _trace(model)
+    _check_interface(proto, model.cfg.height, model.cfg.width)
+    quantize_int8(proto)
+    onnx.save(proto, path)
+    return path
+
+
+if __name__ == "__main__":
+    main()
