@@ -181,7 +181,10 @@ def quantize_int8(proto: onnx.ModelProto, min_size: int = INT8_MIN_SIZE) -> list
         q = np.clip(np.rint(w / scale), -127, 127).astype(np.int8)
         graph.initializer.remove(t)
         graph.initializer.extend(
-            [numpy_helper.from_array(q, f"{name}_int8"), numpy_helper.from_array(scale, f"{name}_scale")]
+            [
+                numpy_helper.from_array(q, f"{name}_int8"),
+                numpy_helper.from_array(scale, f"{name}_scale"),
+            ]
         )
         new_nodes += [
             helper.make_node("Cast", [f"{name}_int8"], [f"{name}_f"], to=onnx.TensorProto.FLOAT),

@@ -212,7 +212,9 @@ class OverlapMambaBlock(nn.Module):
         if self.shifted is not None:
             s = int(torch.randint(1, L, ())) if self.training and L > 1 else 0
             parts.append(self.shifted.prepare(torch.roll(u, s, 1) if s else u))
-        u_all, delta, Bm, Cm = (torch.cat(p) if len(parts) > 1 else p[0] for p in zip(*parts))
+        u_all, delta, Bm, Cm = (
+            torch.cat(p) if len(parts) > 1 else p[0] for p in zip(*parts, strict=True)
+        )
         ys = scan(
             u_all,
             delta,

@@ -560,8 +560,10 @@ def export_cmd(
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
-        ("descriptor vs PyTorch", f"max abs {v['descriptor_max_abs']:.2e}, "
-         f"min cosine {v['descriptor_min_cosine']:.6f}"),
+        (
+            "descriptor vs PyTorch",
+            f"max abs {v['descriptor_max_abs']:.2e}, min cosine {v['descriptor_min_cosine']:.6f}",
+        ),
         ("yaw features vs PyTorch", f"max abs {v['yaw_features_max_abs']:.2e}"),
         ("source", meta.source_commit),
         ("time", f"{res.seconds:.1f} s"),
