@@ -28,7 +28,7 @@ Recall@1 … Recall@N, reported for N = 1, 5, 20.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -200,17 +200,49 @@ def evaluate_loop_closure(
     (e.g. reverse-direction revisits) — the database stays the full past.
     """
     desc = np.asarray(descriptors)
-    N = len(desc)
+
+    def by_l2(queries: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        allowed = np.arange(len(desc))[None, :] < db_size[:, None]
+        return nearest(desc[queries], desc, k, allowed=allowed)
+
+    return evaluate_retrieval(
+        by_l2,
+        len(desc),
+        positives,
+        exclude_recent=exclude_recent,
+        query_mask=query_mask,
+        max_n=max_n,
+    )
+
+
+Retriever = Callable[[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]]
+
+
+def evaluate_retrieval(
+    retrieve: Retriever,
+    n_frames: int,
+    positives: Sequence[np.ndarray],
+    *,
+    exclude_recent: int = 100,
+    query_mask: np.ndarray | None = None,
+    max_n: int = 25,
+) -> LoopClosureResult:
+    """The loop-closure protocol for any retrieval method (e.g. Scan Context's two stages).
+
+    ``retrieve(queries, db_size, k)`` returns, for query frame ``queries[i]`` searching frames
+    0 … db_size[i] − 1, its k best frames (Q, k), padded with −1, and their distances (Q, k);
+    only the top-1 distance enters the PR curve, the ranks give Recall@N.
+    """
+    N = n_frames
     if len(positives) != N:
-        raise ValueError(f"{N} descriptors but {len(positives)} positive lists")
+        raise ValueError(f"{N} frames but {len(positives)} positive lists")
     queries = np.arange(exclude_recent + 1, N)
     if query_mask is not None:
         queries = queries[np.asarray(query_mask, dtype=bool)[queries]]
     db_size = queries - exclude_recent  # frames 0 … i − exclude_recent − 1
     k_pct = np.maximum(1, np.ceil(0.01 * db_size)).astype(int)
     k = int(max(max_n, k_pct.max(initial=1)))
-    allowed = np.arange(N)[None, :] < db_size[:, None]
-    ranked, dist = nearest(desc[queries], desc, k, allowed=allowed)
+    ranked, dist = retrieve(queries, db_size, k)
     # Only database frames count: a positive inside the excluded window cannot be retrieved.
     pos = [
         np.asarray(positives[int(i)])[np.asarray(positives[int(i)]) < n]

@@ -17,8 +17,10 @@ import numpy as np
 import torch
 
 from lidar_core.datasets.base import Sequence
-from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure
+from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
 from lidar_core.overlap import LoopGroundTruth, loop_ground_truth, loop_params
+from lidar_core.scancontext import ScanContextParams, scan_context
+from lidar_core.scancontext import retrieve as sc_retrieve
 from lidar_core.sensors import SensorProfile
 from model_export.model import OverlapMamba
 
@@ -64,14 +66,42 @@ def loop_closure(desc: np.ndarray, gt: LoopGroundTruth) -> dict[str, LoopClosure
     A subset keeps every query that is *not* a revisit of the other direction, so its
     precision still pays for false alarms on non-revisiting scans.
     """
+    return _by_direction(gt, lambda pos, **kw: evaluate_loop_closure(desc, pos, **kw))
+
+
+def _by_direction(gt: LoopGroundTruth, score: Any) -> dict[str, LoopClosureResult]:
     positives = gt.positives()
     same, reverse = gt.direction_masks()
     exclude = int(gt.params.get("exclude_recent", 100))
     masks = {"all": None, "same": ~reverse, "reverse": ~same}
     return {
-        name: evaluate_loop_closure(desc, positives, exclude_recent=exclude, query_mask=m)
-        for name, m in masks.items()
+        name: score(positives, exclude_recent=exclude, query_mask=m) for name, m in masks.items()
     }
+
+
+def scan_contexts(
+    seq: Sequence, params: ScanContextParams | None = None, progress: bool = False
+) -> np.ndarray:
+    """(N, rings, sectors) Scan Context of every frame of a sequence."""
+    from tqdm.auto import tqdm
+
+    p = params or ScanContextParams()
+    frames = tqdm(range(len(seq)), desc="scan context", disable=not progress, unit="scan")
+    return np.stack([scan_context(seq.points(i).xyz, p) for i in frames])
+
+
+def scancontext_loop_closure(
+    contexts: np.ndarray, gt: LoopGroundTruth, params: ScanContextParams | None = None
+) -> dict[str, LoopClosureResult]:
+    """:func:`loop_closure` for Scan Context: ring-key pre-selection, then shift distance."""
+    p = params or ScanContextParams()
+
+    def retrieve_sc(queries: np.ndarray, db_size: np.ndarray, k: int) -> Any:
+        return sc_retrieve(contexts, queries, db_size, k, p.candidates)
+
+    return _by_direction(
+        gt, lambda pos, **kw: evaluate_retrieval(retrieve_sc, len(contexts), pos, **kw)
+    )
 
 
 def summary(results: dict[str, LoopClosureResult]) -> dict[str, dict[str, Any]]:
@@ -114,6 +144,9 @@ def eval_real(
       the database is the even frames; a hit is a top-N frame within ``hit_radius`` metres;
     - **yaw estimate**: from the yaw features by circular cross-correlation, against the
       turned copy (truth: the turn) and against the retrieved frame (truth: the poses).
+
+    ``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into the
+    HDL-64 model's 64) has each row repeated: the sensor-transfer check.
     """
     from lidar_core.metrics import nearest, squared_distances
     from lidar_core.poses import rotation_z, transform_points, yaw_deg
@@ -123,11 +156,24 @@ def eval_real(
     rng = np.random.default_rng(seed)
     n = len(seq)
     theta = rng.uniform(-180.0, 180.0, n)
+    rows = model.cfg.height
+    if rows % profile.height:
+        raise ValueError(
+            f"profile {profile.name} makes {profile.height}-row images; the model takes {rows} "
+            "rows, which is not a whole multiple"
+        )
+    repeat = rows // profile.height
+
+    def image(xyz: np.ndarray) -> np.ndarray:
+        # A sensor with fewer beams (e.g. HDL-32E into an HDL-64 model): each row is repeated.
+        img = project(xyz, profile)
+        return np.repeat(img, repeat, axis=0) if repeat > 1 else img
+
     plain, turned = [], []
     for i in range(n):
         xyz = seq.points(i).xyz
-        plain.append(project(xyz, profile))
-        turned.append(project(transform_points(xyz, rotation_z(-theta[i])), profile))
+        plain.append(image(xyz))
+        turned.append(image(transform_points(xyz, rotation_z(-theta[i]))))
     desc, feats = describe(model, np.stack(plain))
     desc_t, feats_t = describe(model, np.stack(turned))
 
@@ -162,6 +208,8 @@ def eval_real(
 
     return {
         "scans": n,
+        "profile": profile.name,
+        "rows_repeated": repeat,
         "yaw_invariance": {
             "cosine_min": float(cos.min()),
             "cosine_mean": float(cos.mean()),

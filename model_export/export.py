@@ -255,6 +255,11 @@ def export_onnx(
             f"weight format {weight_format!r} is unknown; allowed: {', '.join(WEIGHT_FORMATS)}"
         )
     cfg = model.cfg
+    if cfg.mixer != "mamba":
+        raise ExportError(
+            f"only OverlapMamba models (mixer 'mamba') are exported; this is a {cfg.mixer!r} "
+            "baseline, evaluated in PyTorch"
+        )
     if (profile.height, profile.width) != (cfg.height, cfg.width):
         raise ExportError(
             f"sensor profile {profile.name} makes {profile.height}×{profile.width} images but "

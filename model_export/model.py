@@ -35,6 +35,8 @@ from torch import Tensor, nn
 from model_export.errors import dataclass_from_dict
 from model_export.scan import BACKENDS, scan
 
+MIXERS = ("mamba", "transformer")
+
 
 @dataclass
 class OverlapMambaConfig:
@@ -48,6 +50,9 @@ class OverlapMambaConfig:
     d_conv: int = 4  # depthwise conv kernel inside the mixer
     dt_rank: int = 16  # rank of the Δ projection
     n_blocks: int = 1  # stacked OverlapMamba blocks (paper Table III: 1 vs 2)
+    mixer: str = "mamba"  # mamba (OverlapMamba blocks) or transformer (OverlapTransformer-style)
+    heads: int = 4  # attention heads of the transformer mixer
+    ff_dim: int = 1024  # feed-forward width of the transformer mixer
     bidirectional: bool = True  # also scan the flipped sequence (shared weights)
     shift: bool = True  # third branch; its sequence is rolled at random in training only
     circular: bool = True  # ring start for the scan, circular conv padding
@@ -62,10 +67,15 @@ class OverlapMambaConfig:
 
     def __post_init__(self) -> None:
         sizes = ("height", "width", "d_model", "d_state", "expand", "d_conv", "dt_rank")
-        sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels")
+        sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels", "heads")
+        sizes += ("ff_dim",)
         for name in sizes:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        if self.mixer not in MIXERS:
+            raise ValueError(f"mixer {self.mixer!r} is unknown; allowed: {', '.join(MIXERS)}")
+        if self.mixer == "transformer" and self.d_model % self.heads:
+            raise ValueError(f"d_model {self.d_model} is not divisible by heads {self.heads}")
         if self.scan_backend not in BACKENDS:
             raise ValueError(
                 f"scan_backend {self.scan_backend!r} is unknown; allowed: {', '.join(BACKENDS)}"
@@ -238,6 +248,21 @@ class OverlapMambaBlock(nn.Module):
         return x + self.out_proj(y)
 
 
+def _mixer_block(cfg: OverlapMambaConfig) -> nn.Module:
+    """One token mixer (B, L, d) → (B, L, d).
+
+    ``transformer`` is the OverlapTransformer-style baseline (the paper's "Baseline" row):
+    one post-norm encoder layer as in OverlapTransformer (ReLU feed-forward, dropout 0.1).
+    It has no positional encoding, so it is permutation-equivariant over columns and the
+    descriptor stays yaw-invariant; OverlapTransformer also has no SPP (set ``spp = False``).
+    """
+    if cfg.mixer == "transformer":
+        return nn.TransformerEncoderLayer(
+            cfg.d_model, cfg.heads, cfg.ff_dim, dropout=0.1, batch_first=True
+        )
+    return OverlapMambaBlock(cfg)
+
+
 class NetVLAD(nn.Module):
     """Soft-assignment VLAD over W column features, intra-normalised, then L2."""
 
@@ -260,7 +285,7 @@ class OverlapMamba(nn.Module):
         self.backbone = _backbone(cfg.height)
         self.spp = SPP(128, circular=cfg.circular) if cfg.spp else None
         self.conv_last1 = nn.Sequential(nn.Conv2d(128, cfg.d_model, 1, bias=True), nn.ReLU())
-        self.blocks = nn.ModuleList(OverlapMambaBlock(cfg) for _ in range(cfg.n_blocks))
+        self.blocks = nn.ModuleList(_mixer_block(cfg) for _ in range(cfg.n_blocks))
         self.conv_last2 = nn.Sequential(
             nn.Conv1d(2 * cfg.d_model, cfg.conv_last2, 1, bias=False), nn.ReLU()
         )

@@ -414,11 +414,22 @@ def _check_torch() -> None:
     "train",
     epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
     "--out runs/om\n\n  overlapmamba train --out runs/om --resume --epochs 20\n\n"
-    "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml",
+    "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml\n\n"
+    "  overlapmamba train --preset default   (the shipped model; writes runs/default)",
 )
 @_friendly_errors
 def train_cmd(
-    output: Annotated[Path, typer.Option("--out", "-o", help="run folder (checkpoints, metrics)")],
+    output: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="run folder (checkpoints, metrics); --preset: runs/NAME"),
+    ] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="named recipe with its data and configs (model_export/presets.py): default, "
+            "ot, abl-full, abl-triplet, abl-noshift, abl-nospp, abl-open, abl-2blocks, abl-ot"
+        ),
+    ] = None,
     data: Annotated[
         list[Path] | None,
         typer.Option(
@@ -461,7 +472,26 @@ def train_cmd(
         if v is not None
     }
     model_cfg = train_cfg = None
-    if resume:
+    if preset is not None:
+        from model_export.presets import get_preset
+
+        if resume or config is not None or data or val:
+            raise typer.BadParameter(
+                "--preset fixes the data and configs: drop --data/--val/--config/--resume "
+                "(resume a preset run with --out runs/NAME --resume)"
+            )
+        recipe = get_preset(preset)
+        data, val = [Path(d) for d in recipe.data], Path(recipe.val)
+        missing = [p for p in (*data, val) if not (p / "manifest.json").is_file()]
+        if missing:
+            raise typer.BadParameter(
+                f"preset {preset!r} needs {', '.join(map(str, missing))}: run `make data` "
+                "(or overlapmamba gen-data DIR --preset train|val) from the repository root"
+            )
+        model_cfg = OverlapMambaConfig.from_dict(recipe.model)
+        train_cfg = TrainConfig.from_dict({**recipe.train, **overrides})
+        output = output or Path("runs") / preset
+    elif resume:
         if config is not None or overrides or data or val:
             raise typer.BadParameter(
                 "--resume continues the run as configured: give only --out and --epochs"
@@ -475,6 +505,8 @@ def train_cmd(
         except (TypeError, ValueError) as err:
             raise typer.BadParameter(f"[model] config: {err}") from None
         train_cfg = TrainConfig.from_dict({**train_d, **overrides})
+    if output is None:
+        raise typer.BadParameter("give --out (the run folder), or a --preset")
     history = train(
         data or [],
         val,
@@ -585,6 +617,14 @@ def eval_real_cmd(
     seed: Annotated[int, typer.Option(min=0, help="seed of the random yaw angles")] = 0,
     hit_radius: Annotated[float, typer.Option(min=0.1, help="retrieval hit radius (m)")] = 3.0,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    profile_name: Annotated[
+        str | None,
+        typer.Option(
+            "--profile",
+            help="project with this sensor profile instead of the model's (e.g. hdl32 for the "
+            "nuScenes scans; rows are repeated up to the model's height)",
+        ),
+    ] = None,
 ) -> None:
     """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error."""
     _check_torch()
@@ -595,8 +635,13 @@ def eval_real_cmd(
     from model_export.evaluate import eval_real
 
     model, profile, _ = load_model(checkpoint)
+    if profile_name is not None:
+        profile = _profile(profile_name)
     seq = open_sequence(sequence)
-    r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius)
+    try:
+        r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
     inv, ret, yaw = r["yaw_invariance"], r["retrieval_odd_to_even"], r["yaw_error_deg"]
     table = Table(title=f"{checkpoint.name} on real scans: {seq.name} ({r['scans']} scans)")
     table.add_column("check")
@@ -630,9 +675,33 @@ def eval_real_cmd(
         out.print(f"wrote {json_out}")
 
 
+@app.command(
+    "report",
+    epilog="Example (after `make data` and the training presets):\n\n"
+    "  overlapmamba report --runs runs --test data/synth/test --out reports/model",
+)
+@_friendly_errors
+def report_cmd(
+    runs: Annotated[Path, typer.Option(help="folder holding the preset runs")] = Path("runs"),
+    test: Annotated[Path, typer.Option(help="test sequence with loops")] = Path("data/synth/test"),
+    out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Model-card tables I–IV and real-scan checks: JSON, Markdown and PNG plots."""
+    _check_torch()
+    from model_export.report import build_report
+
+    if not (test / "manifest.json").is_file():
+        raise typer.BadParameter(f"{test} is not a generated sequence: run `make data` first")
+    report = build_report(runs, test, out_dir, progress=not quiet)
+    for label, subs in report["table1"].items():
+        out.print(_metrics_table(f"test preset: {label}", subs))
+    out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")
+
+
 # Commands that train or run the network on whole sequences: they restart once with glibc's
 # huge-page malloc tunable (model_export/runtime.py says why and what it measured).
-_HEAVY = {"train", "eval", "eval-real"}
+_HEAVY = {"train", "eval", "eval-real", "report"}
 
 
 def main() -> None:

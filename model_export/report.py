@@ -1,0 +1,275 @@
+"""The model card's accuracy tables, from trained runs and the synthetic test preset.
+
+    overlapmamba report [--runs runs] [--test data/synth/test] [--out reports/model]
+
+- **Table I**: loop closure on the test preset (AUC, F1max, Recall@1, Recall@1 %), overall and
+  for same- and reverse-direction revisits, for Scan Context and every trained network found
+  among the runs (``default``, ``ot``, ``abl-full``, ``abl-ot``), one evaluation path for all
+  (:mod:`model_export.evaluate`); PR curves as PNG.
+- **Table II** (ablation) and **Table III** (1 vs 2 blocks): the ``abl-*`` runs' validation
+  metrics after their last epoch, with parameter counts and the measured forward time.
+- **Table IV**: loss and validation F1max per epoch, ImTrihard vs triplet (and the default run).
+- **Real scans**: ``eval_real`` on KITTI 00 (HDL-64) and on nuScenes (HDL-32E, hdl32 profile).
+
+Everything lands in ``OUT/report.json``, ``OUT/tables.md`` and the PNGs beside them. Search
+and extraction times (Table V) are a benchmark: ``benchmarks/place_recognition.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lidar_core.datasets import open_sequence
+from lidar_core.metrics import LoopClosureResult
+from model_export.checkpoint import load_model
+from model_export.evaluate import (
+    SUBSETS,
+    describe,
+    eval_real,
+    loop_closure,
+    scan_contexts,
+    scancontext_loop_closure,
+    sequence_loops,
+    summary,
+)
+from model_export.model import OverlapMamba, OverlapMambaConfig
+from model_export.rangecache import range_images
+
+# Table I rows: label → run folder (its best.pt), in display order. Scan Context comes first.
+NETWORKS = {
+    "OT-style, ablation budget": "abl-ot",
+    "OverlapMamba, ablation budget": "abl-full",
+    "OT-style, default recipe": "ot",
+    "OverlapMamba, default recipe (shipped)": "default",
+}
+ABLATIONS = {
+    "full": "abl-full",
+    "without shift": "abl-noshift",
+    "without SPP": "abl-nospp",
+    "non-circular scan": "abl-open",
+    "triplet instead of ImTrihard": "abl-triplet",
+    "2 blocks": "abl-2blocks",
+    "OT-style (transformer mixer, no SPP)": "abl-ot",
+}
+REAL = {
+    "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),
+    # nuScenes keyframes are ≈ 4.5 m apart at 2 Hz: a hit is the adjacent keyframe.
+    "nuscenes-hdl32": ("../shared/data/nuscenes_scene0061", "hdl32", 6.0),
+}
+
+
+def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict]:
+    """→ (metrics per method and subset, raw results for the PR plot)."""
+    seq = open_sequence(test)
+    results: dict[str, dict[str, LoopClosureResult]] = {}
+    gt = None
+    for label, run in NETWORKS.items():
+        ckpt = runs / run / "best.pt"
+        if not ckpt.is_file():
+            continue
+        model, profile, _ = load_model(ckpt)
+        gt = gt or sequence_loops(seq, profile, progress=progress)
+        desc, _ = describe(model, range_images(seq, profile, progress=progress))
+        results[label] = loop_closure(desc, gt)
+    if gt is None:
+        raise FileNotFoundError(f"no trained run under {runs} (expected e.g. {runs}/default)")
+    sc = scan_contexts(seq, progress=progress)
+    results = {"Scan Context": scancontext_loop_closure(sc, gt), **results}
+    return {k: summary(v) for k, v in results.items()}, results
+
+
+def plot_pr_methods(results: dict[str, dict[str, LoopClosureResult]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), dpi=110, sharey=True)
+    for ax, sub in zip(axes, SUBSETS, strict=True):
+        for label, res in results.items():
+            r = res[sub]
+            ax.plot(r.recall, r.precision, label=f"{label} ({r.f1max:.3f})")
+        ax.set(xlabel="recall", xlim=(0, 1), ylim=(0, 1.02), title=f"test preset: {sub}")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower left", fontsize=7, title="F1max", title_fontsize=7)
+    axes[0].set_ylabel("precision")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+@torch.no_grad()
+def forward_ms(cfg: dict, reps: int = 5) -> float:
+    """Median eval-mode forward time of one 64×900 image (B = 1), random weights."""
+    model = OverlapMamba(OverlapMambaConfig.from_dict(cfg)).eval()
+    x = torch.rand(1, 1, model.cfg.height, model.cfg.width) * 50
+    model(x)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        model(x)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+def run_rows(runs: Path, names: dict[str, str], timing: bool = True) -> dict[str, dict]:
+    """Per run: config, parameters, forward ms, and validation metrics after the last epoch."""
+    rows: dict[str, dict] = {}
+    for label, run in names.items():
+        f = runs / run / "metrics.json"
+        if not f.is_file():
+            continue
+        rec = json.loads(f.read_text())
+        last = rec["history"][-1]
+        model = OverlapMamba(OverlapMambaConfig.from_dict(rec["model_config"]))
+        rows[label] = {
+            "run": run,
+            "epochs": last["epoch"],
+            "scans_seen": last["epoch"] * rec["train_config"]["epoch_scans"],
+            "loss": rec["train_config"]["loss"],
+            "params": sum(p.numel() for p in model.parameters()),
+            "forward_ms": forward_ms(rec["model_config"]) if timing else None,
+            "train_scans_per_s": float(np.mean([h["scans_per_s"] for h in rec["history"]])),
+            "val": last["val"],
+            "history": [
+                {
+                    "epoch": h["epoch"],
+                    "loss": h["loss"],
+                    "f1max": h["val"]["all"]["f1max"],
+                    "recall@1": h["val"]["all"]["recall@1"],
+                }
+                for h in rec["history"]
+            ],
+        }
+    return rows
+
+
+def plot_epochs(rows: dict[str, dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
+    for label, row in rows.items():
+        ep = [h["epoch"] for h in row["history"]]
+        a.plot(ep, [h["loss"] for h in row["history"]], "o-", label=label)
+        b.plot(ep, [h["f1max"] for h in row["history"]], "o-", label=label)
+    a.set(xlabel="epoch", ylabel="training loss (own scale per loss)", title="loss")
+    b.set(xlabel="epoch", ylabel="val F1max", ylim=(0, 1), title="validation F1max")
+    for ax in (a, b):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def real_checks(runs: Path, progress: bool = False) -> dict[str, Any]:
+    from lidar_core.sensors import get_profile
+
+    ckpt = runs / "default" / "best.pt"
+    if not ckpt.is_file():
+        return {}
+    model, own, _ = load_model(ckpt)
+    out: dict[str, Any] = {}
+    for name, (folder, profile, radius) in REAL.items():
+        if not Path(folder).is_dir():
+            out[name] = {"skipped": f"{folder} is absent"}
+            continue
+        prof = get_profile(profile) if profile else own
+        out[name] = eval_real(model, prof, open_sequence(folder), hit_radius=radius)
+    return out
+
+
+def _fmt(x: Any, digits: int = 3) -> str:
+    return "–" if x is None or (isinstance(x, float) and np.isnan(x)) else f"{x:.{digits}f}"
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lines = ["### Table I: loop closure on the synthetic test preset", ""]
+    lines += [
+        "| method | subset | AUC | F1max | Recall@1 | Recall@1% | queries (with loop) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, subs in report["table1"].items():
+        for sub in SUBSETS:
+            m = subs[sub]
+            lines.append(
+                f"| {label} | {sub} | {_fmt(m['auc'])} | {_fmt(m['f1max'])} | "
+                f"{_fmt(m['recall@1'])} | {_fmt(m['recall@1%'])} | "
+                f"{m['queries']} ({m['queries_with_loop']}) |"
+            )
+    lines += ["", "### Tables II and III: ablations (validation preset, equal budget)", ""]
+    lines += [
+        "| variant | run | scans seen | params | forward ms (B=1) | F1max all | same | reverse "
+        "| Recall@1 all | reverse |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, r in report["ablation"].items():
+        v = r["val"]
+        lines.append(
+            f"| {label} | `{r['run']}` | {r['scans_seen']} | {r['params'] / 1e6:.2f} M | "
+            f"{_fmt(r['forward_ms'], 0)} | {_fmt(v['all']['f1max'])} | "
+            f"{_fmt(v['same']['f1max'])} | {_fmt(v['reverse']['f1max'])} | "
+            f"{_fmt(v['all']['recall@1'])} | {_fmt(v['reverse']['recall@1'])} |"
+        )
+    lines += ["", "### Table IV: loss and validation F1max per epoch", ""]
+    lines += ["| run | loss | epoch | training loss | val F1max | val Recall@1 |"]
+    lines += ["|---|---|---|---|---|---|"]
+    for label, r in report["epochs"].items():
+        for h in r["history"]:
+            lines.append(
+                f"| {label} | {r['loss']} | {h['epoch']} | {h['loss']:.4f} | "
+                f"{_fmt(h['f1max'])} | {_fmt(h['recall@1'])} |"
+            )
+    if report.get("real"):
+        lines += ["", "### Real scans (shipped model's checkpoint)", ""]
+        lines += [
+            "| scans | profile | cosine under random yaw (min) | odd→even Recall@1 (radius) "
+            "| Recall@5 | yaw error vs turned copy (median) | vs retrieved frame (median) |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for name, r in report["real"].items():
+            if "skipped" in r:
+                lines.append(f"| {name} | skipped: {r['skipped']} ||||||")
+                continue
+            ret, yaw = r["retrieval_odd_to_even"], r["yaw_error_deg"]
+            lines.append(
+                f"| {name} ({r['scans']}) | {r['profile']} (rows ×{r['rows_repeated']}) | "
+                f"{r['yaw_invariance']['cosine_min']:.5f} | "
+                f"{ret['recall@1']:.3f} ({ret['hit_radius_m']:g} m) | {ret['recall@5']:.3f} | "
+                f"{yaw['vs_turned_copy']['median']:.2f}° | "
+                f"{yaw['vs_retrieved_frame']['median']:.2f}° |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def build_report(runs: Path, test: Path, out: Path, progress: bool = True) -> dict[str, Any]:
+    out.mkdir(parents=True, exist_ok=True)
+    t1, results = table_one(runs, test, progress)
+    plot_pr_methods(results, out / "pr_test.png")
+    ablation = run_rows(runs, ABLATIONS)
+    epoch_runs = {"ImTrihard (abl-full)": "abl-full", "triplet (abl-triplet)": "abl-triplet"}
+    epoch_runs["ImTrihard (default)"] = "default"
+    epochs = run_rows(runs, epoch_runs, timing=False)
+    if epochs:
+        plot_epochs(epochs, out / "epochs.png")
+    report = {
+        "test": str(test),
+        "table1": t1,
+        "ablation": ablation,
+        "epochs": epochs,
+        "real": real_checks(runs),
+        "torch_threads": torch.get_num_threads(),
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    (out / "tables.md").write_text(markdown(report))
+    return report

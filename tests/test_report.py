@@ -1,0 +1,221 @@
+"""The baselines (Scan Context, the OT-style network), the training presets and the report."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import make_world
+
+from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
+from lidar_core.poses import rotation_z, transform_points
+from lidar_core.scancontext import (
+    ScanContextParams,
+    brute_force_shift_distance,
+    match,
+    retrieve,
+    ring_key,
+    scan_context,
+)
+
+
+@pytest.fixture(scope="module")
+def world() -> np.ndarray:
+    return make_world(np.random.default_rng(3))
+
+
+def test_scan_context_bins_heights_and_ring_key():
+    p = ScanContextParams(rings=4, sectors=8, max_range=40.0, lidar_height=2.0)
+    pts = np.array(
+        [
+            [5.0, 0.1, 1.0],  # ring 0, sector 0 → 3.0
+            [5.0, 0.2, -1.0],  # same bin, lower → max stays 3.0
+            [-0.1, 15.0, 0.5],  # ring 1, sector 2 (azimuth 90.4°) → 2.5
+            [-35.0, -0.1, -5.0],  # ring 3, sector 4, below ground → clipped to 0
+            [90.0, 0.0, 1.0],  # beyond max_range: dropped
+            [np.nan, 1.0, 1.0],  # not finite: dropped
+        ]
+    )
+    sc = scan_context(pts, p)
+    assert sc.shape == (4, 8) and sc.dtype == np.float32
+    assert sc[0, 0] == 3.0 and sc[1, 2] == 2.5 and sc.sum() == 5.5
+    np.testing.assert_allclose(ring_key(sc), [1 / 8, 1 / 8, 0, 0])
+
+
+@pytest.mark.parametrize("theta", [0.0, 30.0, -84.0, 150.0, 179.0])
+def test_scan_context_recovers_yaw_and_matches_the_slow_twin(world, theta):
+    sc = scan_context(world)
+    turned = scan_context(transform_points(world, rotation_z(-theta)))
+    d, yaw = match(turned, sc[None])
+    err = (yaw[0] - theta + 180) % 360 - 180
+    assert abs(err) <= 6.0  # one sector
+    assert d[0] < 0.1
+    assert d[0] == pytest.approx(brute_force_shift_distance(turned, sc), abs=1e-9)
+    # The ring key does not see the turn beyond points changing bins at sector edges.
+    assert np.abs(ring_key(turned) - ring_key(sc)).max() <= 0.05
+
+
+def test_scan_context_tells_places_apart(world):
+    here = scan_context(world)
+    moved = world.copy()
+    moved[:, 0] += 25.0  # 25 m away
+    d_same, _ = match(scan_context(transform_points(world, rotation_z(-40.0))), here[None])
+    d_other, _ = match(scan_context(moved), here[None])
+    assert d_same[0] < d_other[0]
+
+
+def test_scan_context_retrieval_respects_the_database_limit():
+    rng = np.random.default_rng(0)
+    ctx = rng.uniform(0, 5, (30, 20, 60)).astype(np.float32)
+    ctx[25] = ctx[3]  # frame 25 revisits frame 3
+    queries, db_size = np.array([25, 26]), np.array([10, 1])
+    ranked, dist = retrieve(ctx, queries, db_size, k=12, candidates=10)
+    assert ranked[0, 0] == 3 and dist[0, 0] == pytest.approx(0.0, abs=1e-6)
+    assert set(ranked[0][ranked[0] >= 0]) <= set(range(10))
+    assert ranked[1, 0] == 0 and (ranked[1, 1:] == -1).all()
+    assert np.isinf(dist[0, 10:]).all()  # beyond the re-ranked candidates: ranks only
+
+
+def test_evaluate_retrieval_with_l2_equals_evaluate_loop_closure():
+    rng = np.random.default_rng(1)
+    desc = rng.normal(size=(160, 8))
+    desc[130:] = desc[:30] + rng.normal(0, 0.05, (30, 8))
+    positives = [np.array([i - 130]) if i >= 130 else np.array([], int) for i in range(160)]
+
+    def l2(q, n, k):
+        return nearest(desc[q], desc, k, allowed=np.arange(160)[None] < n[:, None])
+
+    a = evaluate_loop_closure(desc, positives, exclude_recent=20)
+    b = evaluate_retrieval(l2, 160, positives, exclude_recent=20)
+    assert (a.auc, a.f1max, a.recall_at_1) == (b.auc, b.f1max, b.recall_at_1)
+    assert a.recall_at_1 == 1.0
+
+
+torch = pytest.importorskip("torch")
+
+from typer.testing import CliRunner  # noqa: E402
+
+from model_export.errors import ConfigError  # noqa: E402
+from model_export.export import ExportError, export_onnx  # noqa: E402
+from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from model_export.presets import PRESETS, get_preset  # noqa: E402
+from model_export.train import TrainConfig, train  # noqa: E402
+from overlapmamba.cli import app  # noqa: E402
+
+SMALL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+runner = CliRunner()
+
+
+def test_transformer_mixer_is_yaw_invariant_and_not_exported(tmp_path):
+    from lidar_core.sensors import get_profile
+
+    torch.manual_seed(0)
+    cfg = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
+    model = OverlapMamba(cfg).eval()
+    x = torch.rand(2, 1, 64, 900) * 40
+    with torch.no_grad():
+        d, y = model(x)
+        d2, y2 = model(torch.roll(x, 321, -1))
+    torch.testing.assert_close(d, d2, atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.roll(y, 321, -1), y2, atol=1e-4, rtol=0)
+    with pytest.raises(ExportError, match="only OverlapMamba models"):
+        export_onnx(model, get_profile("kitti-hdl64"), tmp_path / "x.onnx")
+    with pytest.raises(ValueError, match="mixer 'lstm' is unknown"):
+        OverlapMambaConfig(mixer="lstm")
+    with pytest.raises(ValueError, match="not divisible by heads"):
+        OverlapMambaConfig(mixer="transformer", d_model=30, heads=4)
+
+
+def test_every_preset_builds_its_configs():
+    assert {"default", "ot", "abl-full", "abl-ot"} <= set(PRESETS)
+    for p in PRESETS.values():
+        cfg = OverlapMambaConfig.from_dict(p.model)
+        tc = TrainConfig.from_dict(p.train)
+        assert "data/synth/test" not in p.data and p.val == "data/synth/val"
+        if p.name.startswith("abl-"):
+            assert tc.epochs * tc.epoch_scans == 800  # one equal budget
+        assert (cfg.mixer == "transformer") == p.name.endswith("ot")
+    d = get_preset("default")
+    assert d.model == {} and TrainConfig.from_dict(d.train).loss == "imtrihard"
+    with pytest.raises(ConfigError, match="unknown training preset 'x'; allowed: default"):
+        get_preset("x")
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--preset", "nope"], "unknown training preset 'nope'"),
+        (["--preset", "default", "--data", "x"], "--preset fixes the data"),
+        (["--preset", "default"], "needs data/synth/train"),
+        ([], "give --data"),
+    ],
+)
+def test_train_preset_cli_errors(args, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no data/synth here
+    result = runner.invoke(app, ["train", *args])
+    assert result.exit_code != 0
+    assert message in result.output
+
+
+@pytest.mark.real_data
+def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
+    from lidar_core.sensors import get_profile
+    from model_export.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    cfg = OverlapMambaConfig(**SMALL)
+    save_checkpoint(
+        tmp_path / "random.pt",
+        {
+            "model_config": cfg.to_dict(),
+            "profile": get_profile(cfg.sensor).model_dump(),
+            "state_dict": OverlapMamba(cfg).state_dict(),
+        },
+    )
+    out = tmp_path / "real.json"
+    args = ["eval-real", "--checkpoint", str(tmp_path / "random.pt"), "--sequence"]
+    args += [str(nuscenes_dir), "--profile", "hdl32", "--hit-radius", "6", "--json", str(out)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    r = json.loads(out.read_text())
+    assert r["profile"] == "hdl32" and r["rows_repeated"] == 2 and r["scans"] == 39
+    assert r["yaw_invariance"]["cosine_min"] > 0.999
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tmp_path):
+    from model_export.report import build_report
+
+    runs = tmp_path / "runs"
+    small = TrainConfig(epochs=2, epoch_scans=32, batch_size=16)
+    full = OverlapMambaConfig(**SMALL)
+    train([tiny_seq], tiny_val_seq, runs / "abl-full", full, small, progress=False)
+    ot = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
+    one = TrainConfig(epochs=1, epoch_scans=32, batch_size=16)
+    train([tiny_seq], tiny_val_seq, runs / "abl-ot", ot, one, progress=False)
+    shutil.copytree(runs / "abl-full", runs / "default")
+
+    report = build_report(runs, tiny_val_seq, tmp_path / "report", progress=False)
+    t1 = report["table1"]
+    assert list(t1) == [
+        "Scan Context",
+        "OT-style, ablation budget",
+        "OverlapMamba, ablation budget",
+        "OverlapMamba, default recipe (shipped)",
+    ]
+    for subs in t1.values():
+        assert set(subs) == {"all", "same", "reverse"}
+        assert 0 <= subs["all"]["f1max"] <= 1 and subs["all"]["queries_with_loop"] > 0
+    assert set(report["ablation"]) == {"full", "OT-style (transformer mixer, no SPP)"}
+    assert report["ablation"]["full"]["scans_seen"] == 64
+    assert report["ablation"]["full"]["forward_ms"] > 0
+    assert [h["epoch"] for h in report["epochs"]["ImTrihard (abl-full)"]["history"]] == [1, 2]
+    md = (tmp_path / "report" / "tables.md").read_text()
+    assert "| Scan Context | reverse |" in md and "Table IV" in md
+    for png in ("pr_test.png", "epochs.png"):
+        assert (tmp_path / "report" / png).stat().st_size > 10_000
+    on_disk = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert on_disk["table1"]["Scan Context"]["all"]["f1max"] == t1["Scan Context"]["all"]["f1max"]
