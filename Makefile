@@ -5,6 +5,8 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
+# The bundled default model (its card: models/README.md).
+MODEL  ?= models/overlapmamba-hdl64.onnx
 
 # torch is pinned to the CPU build. Use the local wheel where this machine has it; elsewhere
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
@@ -38,6 +40,7 @@ format: $(VENV)/.installed-all
 
 serve: $(VENV)/.installed-serve
 	@echo "The place-recognition service is not built yet (issue 7): nothing to start."
+	@echo "Its default model is ready: $(MODEL) (card: models/README.md)."
 	@echo "Available now: $(BIN)/overlapmamba --help (range images, loop ground truth)."
 	@exit 2
 
@@ -46,6 +49,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/simulator.py
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/encoder.py
+	$(BIN)/python benchmarks/place_recognition.py
 
 # The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
 data: $(VENV)/.installed-all

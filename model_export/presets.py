@@ -7,10 +7,10 @@ root, where the command is meant to run.
 - ``default`` is the shipped model (``models/overlapmamba-hdl64.onnx``): 3 epochs of 2000
   scans, ImTrihard, the reference architecture.
 - ``ot`` is the OverlapTransformer-style baseline on the same recipe.
-- ``abl-*`` are the ablations (paper Tables II–IV) on a smaller, equal budget of 800 scans
-  each (≈ 4 min of training on 2 CPU cores plus ≈ 2.5 min of validation per epoch);
-  ``abl-full`` and ``abl-triplet`` spend it as 2 epochs of 400 so that the loss and F1 are
-  recorded twice (Table IV), the others as 1 epoch of 800.
+- ``abl-*`` are the ablations (paper Tables II–IV) on a small, equal budget of 600 scans
+  each (≈ 3 min of training on 2 CPU cores plus ≈ 2.5 min of validation per epoch);
+  ``abl-full`` and ``abl-triplet`` spend it as 2 epochs of 300 so that the loss and F1 are
+  recorded twice (Table IV), the others as 1 epoch of 600.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ TRAIN_DATA = ("data/synth/train",)
 VAL_DATA = "data/synth/val"
 TEST_DATA = "data/synth/test"
 
-_ABLATION = {"epochs": 1, "epoch_scans": 800}
-_ABLATION_2 = {"epochs": 2, "epoch_scans": 400}
+_ABLATION = {"epochs": 1, "epoch_scans": 600}
+_ABLATION_2 = {"epochs": 2, "epoch_scans": 300}
 
 
 @dataclass(frozen=True)

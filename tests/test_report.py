@@ -135,7 +135,7 @@ def test_every_preset_builds_its_configs():
         tc = TrainConfig.from_dict(p.train)
         assert "data/synth/test" not in p.data and p.val == "data/synth/val"
         if p.name.startswith("abl-"):
-            assert tc.epochs * tc.epoch_scans == 800  # one equal budget
+            assert tc.epochs * tc.epoch_scans == 600  # one equal budget
         assert (cfg.mixer == "transformer") == p.name.endswith("ot")
     d = get_preset("default")
     assert d.model == {} and TrainConfig.from_dict(d.train).loss == "imtrihard"

@@ -1,0 +1,89 @@
+"""The bundled default model: its metadata agrees with its model card, it is small enough,
+and on a real KITTI scan its descriptor does not move when the sensor turns.
+
+It is read the way the service reads it: onnxruntime and lidar_core only, no torch."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+
+ort = pytest.importorskip("onnxruntime")
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "models" / "overlapmamba-hdl64.onnx"
+CARD = ROOT / "models" / "README.md"
+
+
+def card_facts() -> dict[str, str]:
+    """The ``key: value`` lines of the card's fenced ``facts`` block."""
+    m = re.search(r"```facts\n(.*?)```", CARD.read_text(), re.S)
+    assert m, f"{CARD} has no ```facts block"
+    return dict(
+        (k.strip(), v.strip()) for k, v in (line.split(":", 1) for line in m[1].splitlines())
+    )
+
+
+@pytest.fixture(scope="module")
+def session():
+    assert MODEL.is_file(), f"the default model {MODEL} is missing from the repository"
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 2
+    return ort.InferenceSession(str(MODEL), so, providers=["CPUExecutionProvider"])
+
+
+@pytest.fixture(scope="module")
+def meta(session) -> EncoderMetadata:
+    return EncoderMetadata.from_props(session.get_modelmeta().custom_metadata_map)
+
+
+def test_shipped_model_metadata_matches_its_card(session, meta):
+    facts = card_facts()
+    assert MODEL.stat().st_size <= 25e6
+    assert f"{MODEL.stat().st_size / 1e6:.1f} MB" == facts["file_size"]
+    assert meta.weights == "trained" == facts["weights"]
+    assert meta.model_id == facts["model_id"]
+    assert meta.weight_format == facts["weight_format"]
+    assert meta.source_commit == facts["source_commit"]
+    assert meta.profile.name == facts["sensor"]
+    assert f"{meta.profile.height}x{meta.profile.width}" == facts["range_image"]
+    assert str(meta.descriptor_dim) == facts["descriptor_dim"]
+    assert meta.network["mixer"] == "mamba" and meta.network["n_blocks"] == 1
+    best = meta.metrics["best"]
+    assert str(best["epoch"]) == facts["best_epoch"]
+    assert f"{best['f1max']:.3f}" == facts["val_f1max"]
+    assert f"{meta.metrics['val']['all']['recall@1']:.3f}" == facts["val_recall@1"]
+    train = [Path(d["path"]).name for d in meta.training_data["train"]]
+    assert train == facts["train_data"].split(",")
+    assert Path(meta.training_data["val"]["path"]).name == facts["val_data"]
+    assert "test" not in train  # never trained on the test preset, nor on real scans
+    assert [i.name for i in session.get_inputs()] == [INPUT]
+    assert [o.name for o in session.get_outputs()] == list(OUTPUTS)
+
+
+@pytest.mark.real_data
+def test_shipped_model_descriptor_ignores_yaw_on_a_real_scan(session, meta, kitti_seq_dir):
+    from lidar_core.datasets import open_sequence
+    from lidar_core.poses import rotation_z, transform_points
+    from lidar_core.projection import project
+
+    seq = open_sequence(kitti_seq_dir)
+    rng = np.random.default_rng(7)
+    xyz = seq.points(40).xyz
+    angles = rng.uniform(-180, 180, 4)
+    images = [project(xyz, meta.profile)]
+    images += [project(transform_points(xyz, rotation_z(a)), meta.profile) for a in angles]
+    desc, yaw = session.run(list(OUTPUTS), {INPUT: np.stack(images)[:, None]})
+    assert desc.shape == (5, meta.descriptor_dim) and yaw.shape[1] == meta.yaw_channels
+    np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-4)
+    cos = desc[1:] @ desc[0]
+    assert cos.min() >= 0.999, (angles, cos)
+    # … while another place is clearly further away than any turned copy.
+    other = project(seq.points(100).xyz, meta.profile)
+    d_other = session.run(["descriptor"], {INPUT: other[None, None]})[0][0]
+    assert d_other @ desc[0] < cos.min()
