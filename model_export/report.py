@@ -41,8 +41,11 @@ from model_export.evaluate import (
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import range_images
 
+UNTRAINED = "untrained"
 # Table I rows: label → run folder (its best.pt), in display order. Scan Context comes first.
 NETWORKS = {
+    # The default run's starting point: its seed-0 initialisation, before any step.
+    "OverlapMamba, untrained (default run's initial weights)": UNTRAINED,
     "OT-style, ablation budget": "abl-ot",
     "OverlapMamba, ablation budget": "abl-full",
     "OT-style, default recipe": "ot",
@@ -70,10 +73,13 @@ def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict
     results: dict[str, dict[str, LoopClosureResult]] = {}
     gt = None
     for label, run in NETWORKS.items():
-        ckpt = runs / run / "best.pt"
+        ckpt = runs / ("default" if run == UNTRAINED else run) / "best.pt"
         if not ckpt.is_file():
             continue
-        model, profile, _ = load_model(ckpt)
+        model, profile, state = load_model(ckpt)
+        if run == UNTRAINED:  # the same construction as train(): seed, then the network
+            torch.manual_seed(state["train"]["config"]["seed"])
+            model = OverlapMamba(OverlapMambaConfig.from_dict(state["model_config"])).eval()
         gt = gt or sequence_loops(seq, profile, progress=progress)
         desc, _ = describe(model, range_images(seq, profile, progress=progress))
         results[label] = loop_closure(desc, gt)

@@ -202,10 +202,13 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tmp_path):
     t1 = report["table1"]
     assert list(t1) == [
         "Scan Context",
+        "OverlapMamba, untrained (default run's initial weights)",
         "OT-style, ablation budget",
         "OverlapMamba, ablation budget",
         "OverlapMamba, default recipe (shipped)",
     ]
+    untrained = t1["OverlapMamba, untrained (default run's initial weights)"]["all"]
+    assert untrained != t1["OverlapMamba, default recipe (shipped)"]["all"]
     for subs in t1.values():
         assert set(subs) == {"all", "same", "reverse"}
         assert 0 <= subs["all"]["f1max"] <= 1 and subs["all"]["queries_with_loop"] > 0
