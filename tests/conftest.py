@@ -122,3 +122,22 @@ def tiny_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def tiny_val_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The ``tiny-val`` preset: another small town, for validating tiny training runs."""
     return _generate_preset(tmp_path_factory, "tiny-val")
+
+
+def save_random_checkpoint(path: Path, **config) -> Path:
+    """A checkpoint of an untrained OverlapMamba (seed 0) with the given config overrides."""
+    import torch
+
+    from lidar_core.sensors import get_profile
+    from model_export.checkpoint import save_checkpoint
+    from model_export.model import OverlapMamba, OverlapMambaConfig
+
+    torch.manual_seed(0)
+    cfg = OverlapMambaConfig(**config)
+    payload = {
+        "model_config": cfg.to_dict(),
+        "profile": get_profile(cfg.sensor).model_dump(),
+        "state_dict": OverlapMamba(cfg).state_dict(),
+    }
+    save_checkpoint(path, payload)
+    return path

@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import make_world
+from conftest import make_world, save_random_checkpoint
 
 from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
 from lidar_core.poses import rotation_z, transform_points
@@ -161,19 +161,7 @@ def test_train_preset_cli_errors(args, message, tmp_path, monkeypatch):
 
 @pytest.mark.real_data
 def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
-    from lidar_core.sensors import get_profile
-    from model_export.checkpoint import save_checkpoint
-
-    torch.manual_seed(0)
-    cfg = OverlapMambaConfig(**SMALL)
-    save_checkpoint(
-        tmp_path / "random.pt",
-        {
-            "model_config": cfg.to_dict(),
-            "profile": get_profile(cfg.sensor).model_dump(),
-            "state_dict": OverlapMamba(cfg).state_dict(),
-        },
-    )
+    save_random_checkpoint(tmp_path / "random.pt", **SMALL)
     out = tmp_path / "real.json"
     args = ["eval-real", "--checkpoint", str(tmp_path / "random.pt"), "--sequence"]
     args += [str(nuscenes_dir), "--profile", "hdl32", "--hit-radius", "6", "--json", str(out)]

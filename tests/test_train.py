@@ -10,6 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("embreex")
 
+from conftest import save_random_checkpoint  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from lidar_core.datasets import open_sequence  # noqa: E402
@@ -17,7 +18,7 @@ from lidar_core.errors import DatasetError  # noqa: E402
 from model_export.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
 from model_export.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
 from model_export.errors import CheckpointError, ConfigError  # noqa: E402
-from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from model_export.model import OverlapMambaConfig  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
@@ -163,18 +164,7 @@ def test_checkpoint_errors_name_the_problem(tmp_path):
 
 @pytest.mark.real_data
 def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
-    from lidar_core.sensors import get_profile
-
-    torch.manual_seed(0)
-    cfg = OverlapMambaConfig(**SMALL)
-    save_checkpoint(
-        tmp_path / "random.pt",
-        {
-            "model_config": cfg.to_dict(),
-            "profile": get_profile(cfg.sensor).model_dump(),
-            "state_dict": OverlapMamba(cfg).state_dict(),
-        },
-    )
+    save_random_checkpoint(tmp_path / "random.pt", **SMALL)
     out = tmp_path / "real.json"
     result = runner.invoke(
         app,
