@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidar_core.metrics import nearest
+
 
 @dataclass(frozen=True)
 class ScanContextParams:
@@ -120,8 +122,6 @@ def retrieve(
     order. → ranked (Q, k) indices padded with −1, distances (Q, k): the shift distance for
     re-ranked candidates, +inf beyond them (only ranks, not distances, exist there).
     """
-    from lidar_core.metrics import nearest
-
     keys = ring_key(contexts)
     allowed = np.arange(len(contexts))[None, :] < np.asarray(db_size)[:, None]
     depth = max(k, candidates)

@@ -10,6 +10,7 @@ best-overlap loop: same direction (|yaw| ≤ 90°) or reverse.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +70,10 @@ def loop_closure(desc: np.ndarray, gt: LoopGroundTruth) -> dict[str, LoopClosure
     return _by_direction(gt, lambda pos, **kw: evaluate_loop_closure(desc, pos, **kw))
 
 
-def _by_direction(gt: LoopGroundTruth, score: Any) -> dict[str, LoopClosureResult]:
+def _by_direction(
+    gt: LoopGroundTruth, score: Callable[..., LoopClosureResult]
+) -> dict[str, LoopClosureResult]:
+    """``score(positives, exclude_recent=, query_mask=)`` over all, same and reverse."""
     positives = gt.positives()
     same, reverse = gt.direction_masks()
     exclude = int(gt.params.get("exclude_recent", 100))
@@ -96,7 +100,9 @@ def scancontext_loop_closure(
     """:func:`loop_closure` for Scan Context: ring-key pre-selection, then shift distance."""
     p = params or ScanContextParams()
 
-    def retrieve_sc(queries: np.ndarray, db_size: np.ndarray, k: int) -> Any:
+    def retrieve_sc(
+        queries: np.ndarray, db_size: np.ndarray, k: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         return sc_retrieve(contexts, queries, db_size, k, p.candidates)
 
     return _by_direction(

@@ -112,9 +112,9 @@ def plot_pr_methods(results: dict[str, dict[str, LoopClosureResult]], path: Path
 
 
 @torch.no_grad()
-def forward_ms(cfg: dict, reps: int = 5) -> float:
-    """Median eval-mode forward time of one 64×900 image (B = 1), random weights."""
-    model = OverlapMamba(OverlapMambaConfig.from_dict(cfg)).eval()
+def forward_ms(model: OverlapMamba, reps: int = 5) -> float:
+    """Median eval-mode forward time of one 64×900 image (B = 1)."""
+    model.eval()
     x = torch.rand(1, 1, model.cfg.height, model.cfg.width) * 50
     model(x)
     times = []
@@ -141,7 +141,7 @@ def run_rows(runs: Path, names: dict[str, str], timing: bool = True) -> dict[str
             "scans_seen": last["epoch"] * rec["train_config"]["epoch_scans"],
             "loss": rec["train_config"]["loss"],
             "params": sum(p.numel() for p in model.parameters()),
-            "forward_ms": forward_ms(rec["model_config"]) if timing else None,
+            "forward_ms": forward_ms(model) if timing else None,  # random weights
             "train_scans_per_s": float(np.mean([h["scans_per_s"] for h in rec["history"]])),
             "val": last["val"],
             "history": [

@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.errors import LidarCoreError
+from model_export.presets import PRESETS
 
 app = typer.Typer(
     name="overlapmamba",
@@ -426,8 +427,8 @@ def train_cmd(
     preset: Annotated[
         str | None,
         typer.Option(
-            help="named recipe with its data and configs (model_export/presets.py): default, "
-            "ot, abl-full, abl-triplet, abl-noshift, abl-nospp, abl-open, abl-2blocks, abl-ot"
+            help="named recipe with its data and configs (model_export/presets.py): "
+            + ", ".join(PRESETS)
         ),
     ] = None,
     data: Annotated[
