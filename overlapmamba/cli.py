@@ -16,7 +16,6 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.errors import LidarCoreError
-from model_export.presets import PRESETS
 
 app = typer.Typer(
     name="overlapmamba",
@@ -427,8 +426,8 @@ def train_cmd(
     preset: Annotated[
         str | None,
         typer.Option(
-            help="named recipe with its data and configs (model_export/presets.py): "
-            + ", ".join(PRESETS)
+            help="named recipe with its data and configs, e.g. default (the shipped model); "
+            "the list is in model_export/presets.py, and an unknown name prints it"
         ),
     ] = None,
     data: Annotated[
