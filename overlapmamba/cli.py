@@ -699,6 +699,155 @@ def report_cmd(
     out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")
 
 
+def _service_settings(config: Path | None, **overrides: Any) -> Any:
+    from pydantic import ValidationError
+
+    from service.settings import load_settings
+
+    try:
+        return load_settings(config, **overrides)
+    except (ValidationError, ValueError) as err:
+        raise typer.BadParameter(f"invalid service settings: {err}") from None
+
+
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config", help="TOML settings file (also OVERLAPMAMBA_CONFIG); env OVERLAPMAMBA_*"
+    ),
+]
+DataDirOpt = Annotated[
+    Path | None, typer.Option("--data-dir", help="where maps live [default: ./data]")
+]
+
+
+@app.command(
+    "serve",
+    epilog="Examples:\n\n  overlapmamba serve\n\n"
+    "  overlapmamba serve --host 0.0.0.0 --port 8080 --config service.toml\n\n"
+    "  OVERLAPMAMBA_BATCHING__MAX_BATCH=4 overlapmamba serve --data-dir /var/lib/om",
+)
+def serve_cmd(
+    host: Annotated[str | None, typer.Option(help="bind address [default: 127.0.0.1]")] = None,
+    port: Annotated[int | None, typer.Option(min=0, max=65535, help="[default: 8000]")] = None,
+    data_dir: DataDirOpt = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(help="exported .onnx encoder [default: models/overlapmamba-hdl64.onnx]"),
+    ] = None,
+    config: ConfigOpt = None,
+    insecure: Annotated[
+        bool, typer.Option("--insecure", help="allow a non-loopback host without API keys")
+    ] = False,
+) -> None:
+    """Run the place-recognition HTTP service (uvicorn)."""
+    import logging
+
+    import uvicorn
+
+    from service.app import create_app
+
+    settings = _service_settings(
+        config, host=host, port=port, data_dir=data_dir, model=model, insecure=insecure or None
+    )
+    try:
+        settings.check_binding()
+    except ValueError as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    if not settings.model.is_file():
+        console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
+        raise typer.Exit(2)
+    logging.basicConfig(
+        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    if not settings.auth.keys and not settings.loopback:
+        logging.getLogger("overlapmamba.service").warning(
+            "INSECURE: listening on %s with NO API KEYS — anyone who can reach this port can "
+            "read and change every map",
+            settings.host,
+        )
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=10,
+    )
+
+
+@app.command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")
+def dump_config_cmd(config: ConfigOpt = None) -> None:
+    """Print the merged service settings (defaults, file, environment) as JSON."""
+    settings = _service_settings(config)
+    out.print_json(settings.model_dump_json())
+
+
+@app.command("hash-key", epilog="Example:\n\n  overlapmamba hash-key --role robot --name r1")
+def hash_key_cmd(
+    name: Annotated[str, typer.Option(help="a name for the key, shown in logs")] = "key",
+    role: Annotated[str, typer.Option(help="robot, mapper, viewer or admin")] = "robot",
+    key: Annotated[
+        str | None, typer.Option(help="hash this key instead of generating a new one")
+    ] = None,
+) -> None:
+    """Make an API key: prints the key once, and the TOML to put in the settings (its hash)."""
+    from service.auth import ROLE_ACTIONS, hash_key, new_key
+
+    if role not in ROLE_ACTIONS:
+        raise typer.BadParameter(f"role {role!r}; allowed: {', '.join(ROLE_ACTIONS)}")
+    secret = key or new_key()
+    if key is None:
+        console.print(f"key (shown once, give it to the client): [bold]{secret}[/]")
+    out.print(
+        f'[[auth.keys]]\nname = "{name}"\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',
+        markup=False,
+    )
+
+
+@app.command(
+    "export-map",
+    epilog="Example:\n\n  overlapmamba export-map town backups/town.sqlite --data-dir data",
+)
+def export_map_cmd(
+    map_id: Annotated[str, typer.Argument(help="the map to back up")],
+    out_file: Annotated[Path, typer.Argument(help="the backup file to write (new)")],
+    data_dir: DataDirOpt = None,
+) -> None:
+    """Back up a map (its durable store), consistently, even while the service runs."""
+    from service.backup import BackupError, export_map
+    from service.errors import ServiceError
+
+    try:
+        r = export_map(data_dir or Path("data"), map_id, out_file)
+    except (BackupError, ServiceError) as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    out.print(f"exported map {r['map_id']}: {r['keyframes']} keyframes, {r['bytes']} bytes")
+
+
+@app.command(
+    "import-map",
+    epilog="Example:\n\n  overlapmamba import-map town backups/town.sqlite --data-dir data",
+)
+def import_map_cmd(
+    map_id: Annotated[str, typer.Argument(help="the map to create from the backup")],
+    src: Annotated[Path, typer.Argument(help="a file written by export-map")],
+    data_dir: DataDirOpt = None,
+    replace: Annotated[bool, typer.Option("--replace", help="overwrite an existing map")] = False,
+) -> None:
+    """Restore a map from a backup. The service must be stopped; its next start indexes it."""
+    from service.backup import BackupError, import_map
+    from service.errors import ServiceError
+
+    try:
+        r = import_map(data_dir or Path("data"), map_id, src, replace=replace)
+    except (BackupError, ServiceError) as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    out.print(f"imported map {r['map_id']}: {r['keyframes']} keyframes (model {r['model_id']})")
+
+
 # Commands that train or run the network on whole sequences: they restart once with glibc's
 # huge-page malloc tunable (model_export/runtime.py says why and what it measured).
 _HEAVY = {"train", "eval", "eval-real", "report"}

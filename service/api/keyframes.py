@@ -1,0 +1,179 @@
+"""``/v1/maps/{map_id}/keyframes``: insert (scan or precomputed batch), get, delete."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Header, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from service.api.openapi import SCAN_BODY, error_responses
+from service.auth import Action
+from service.bodies import read_body
+from service.core import check_descriptor, check_pose, parse_pose
+from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
+from service.errors import Conflict, NotFound, PayloadTooLarge, Unprocessable
+from service.maps import content_hash
+from service.schemas import (
+    KEYFRAME_ID_PATTERN,
+    NAME_PATTERN,
+    POSE_FORMAT,
+    KeyframeBatchIn,
+    KeyframeBatchOut,
+    KeyframeOut,
+)
+from service.store import NewKeyframe
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["keyframes"])
+
+
+def _out(kf: object, created: bool | None = None) -> KeyframeOut:
+    return KeyframeOut(**kf.public(), created=created)  # type: ignore[attr-defined]
+
+
+@router.post(
+    "/keyframes",
+    response_model=KeyframeOut,
+    openapi_extra=SCAN_BODY,
+    responses={
+        201: {"description": "inserted"},
+        **error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503),
+    },
+    summary="Insert one keyframe from a scan",
+)
+async def insert_keyframe(
+    map_id: str,
+    request: Request,
+    response: Response,
+    svc: ServiceDep,
+    who: CanInsert,
+    keyframe_id: Annotated[str, Query(pattern=KEYFRAME_ID_PATTERN)],
+    timestamp: Annotated[float, Query(allow_inf_nan=False, description="seconds")],
+    robot_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "unknown",
+    session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
+    pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
+    x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> KeyframeOut:
+    """Encode the scan and store it as a keyframe: descriptor, yaw features, metadata.
+    Idempotent on `keyframe_id`: the same id with the same scan and metadata returns the
+    stored keyframe (200, `created: false`); with anything different, 409."""
+    request.app.state.auth.authorize(who, Action.INSERT, map_id)
+    m = svc.registry.get(map_id)
+    svc.check_model(m)
+    pose_values = parse_pose(pose)
+    body = await read_body(request, svc.settings.limits)
+    d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
+    row = svc.scan_keyframe(
+        d,
+        keyframe_id=keyframe_id,
+        robot_id=robot_id,
+        session_id=session_id,
+        timestamp=timestamp,
+        pose=pose_values,
+    )
+    (result,) = await svc.insert(m, [row], robot_id)
+    svc.stats.timings({**d.timings, "total": sum(d.timings.values())})
+    response.status_code = 201 if result.created else 200
+    return _out(result.keyframe, result.created)
+
+
+@router.post(
+    "/keyframes:batch",
+    response_model=KeyframeBatchOut,
+    responses=error_responses(400, 401, 403, 404, 409, 413, 422),
+    summary="Insert precomputed descriptors (offline map building)",
+)
+async def insert_batch(
+    map_id: str, batch: KeyframeBatchIn, svc: ServiceDep, _: CanWriteMaps
+) -> KeyframeBatchOut:
+    """All or nothing: one transaction. The batch's `model_id` must be the map's model;
+    known keyframe ids with identical content are reported as existing, with other
+    content the whole batch is refused (409)."""
+    m = svc.registry.get(map_id)
+    svc.check_model(m)
+    if batch.model_id != m.model_id:
+        raise Conflict(
+            f"descriptors of model {batch.model_id!r} cannot go into map {map_id!r} of model "
+            f"{m.model_id!r}",
+            code="model_mismatch",
+            map_model_id=m.model_id,
+        )
+    limit = svc.settings.limits.max_batch_keyframes
+    if len(batch.keyframes) > limit:
+        raise PayloadTooLarge(
+            f"batch has {len(batch.keyframes)} keyframes; allowed: at most {limit}",
+            max_batch_keyframes=limit,
+        )
+    rows = []
+    for i, k in enumerate(batch.keyframes):
+        try:
+            desc = check_descriptor(k.descriptor, m.dim)
+        except Unprocessable as err:
+            err.message = f"keyframes[{i}]: {err.message}"
+            raise
+        yaw = None
+        if k.yaw_features is not None:
+            yaw = np.asarray(k.yaw_features, dtype=np.float32)
+            expect = (svc.encoder.meta.yaw_channels, svc.encoder.meta.profile.width)
+            if yaw.shape != expect or not np.isfinite(yaw).all():
+                raise Unprocessable(
+                    f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {expect}, finite",
+                    code="bad_yaw_features",
+                )
+        meta = {"robot": k.robot_id, "session": k.session_id, "timestamp": k.timestamp}
+        meta["pose"] = k.pose
+        payload = desc.astype(np.float16).tobytes() + (
+            b"" if yaw is None else yaw.astype(np.float16).tobytes()
+        )
+        rows.append(
+            NewKeyframe(
+                keyframe_id=k.keyframe_id,
+                robot_id=k.robot_id,
+                session_id=k.session_id,
+                timestamp=k.timestamp,
+                pose=check_pose(k.pose) if k.pose else None,
+                descriptor=desc,
+                yaw=yaw,
+                content_hash=content_hash("descriptor", payload, meta),
+            )
+        )
+    results = await svc.insert(m, rows, None)
+    inserted = sum(r.created for r in results)
+    return KeyframeBatchOut(
+        inserted=inserted,
+        existing=len(results) - inserted,
+        keyframes=[_out(r.keyframe, r.created) for r in results],
+    )
+
+
+@router.get(
+    "/keyframes/{keyframe_id}",
+    response_model=KeyframeOut,
+    responses=error_responses(400, 401, 403, 404),
+    summary="One keyframe's metadata",
+)
+async def get_keyframe(
+    map_id: str, keyframe_id: str, svc: ServiceDep, _: CanReadMaps
+) -> KeyframeOut:
+    m = svc.registry.get(map_id)
+    kf = await run_in_threadpool(m.store.get, keyframe_id)
+    if kf is None:
+        raise NotFound(f"map {map_id!r} has no keyframe {keyframe_id!r}", code="keyframe_not_found")
+    return _out(kf)
+
+
+@router.delete(
+    "/keyframes/{keyframe_id}",
+    status_code=204,
+    responses=error_responses(400, 401, 403, 404),
+    summary="Delete one keyframe",
+)
+async def delete_keyframe(
+    map_id: str, keyframe_id: str, svc: ServiceDep, _: CanWriteMaps
+) -> Response:
+    m = svc.registry.get(map_id)
+    await run_in_threadpool(m.delete, keyframe_id)
+    svc.stats.p_keyframes.labels(map_id).set(m.index.ntotal)
+    m.maintain()
+    return Response(status_code=204)

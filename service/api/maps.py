@@ -1,0 +1,88 @@
+"""``/v1/maps``: create, list, inspect, delete, snapshot; per-map stats."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Body, Response
+from starlette.concurrency import run_in_threadpool
+
+from service.api.openapi import error_responses
+from service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
+from service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
+
+router = APIRouter(prefix="/v1/maps", tags=["maps"])
+
+
+@router.put(
+    "/{map_id}",
+    response_model=MapOut,
+    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409)},
+    summary="Create a map (idempotent)",
+)
+async def create_map(
+    map_id: str,
+    response: Response,
+    svc: ServiceDep,
+    _: CanWriteMaps,
+    settings: MapSettingsIn | None = Body(None),  # noqa: B008
+) -> MapOut:
+    """Create the map, or return it unchanged if it exists with the same settings (200).
+    Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
+    m, created = await run_in_threadpool(
+        svc.registry.create, map_id, settings.index if settings else None
+    )
+    response.status_code = 201 if created else 200
+    return MapOut(**m.info(), created=created)
+
+
+@router.get("", response_model=MapList, responses=error_responses(401, 403), summary="List maps")
+async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
+    infos = await run_in_threadpool(lambda: [m.info() for m in svc.registry.maps.values()])
+    return MapList(maps=[MapOut(**i) for i in infos])
+
+
+@router.get(
+    "/{map_id}",
+    response_model=MapOut,
+    responses=error_responses(400, 401, 403, 404),
+    summary="A map's info and counts",
+)
+async def get_map(map_id: str, svc: ServiceDep, _: CanReadMaps) -> MapOut:
+    m = svc.registry.get(map_id)
+    return MapOut(**await run_in_threadpool(m.info))
+
+
+@router.delete(
+    "/{map_id}",
+    status_code=204,
+    responses=error_responses(400, 401, 403, 404),
+    summary="Delete a map and everything in it",
+)
+async def delete_map(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> Response:
+    await run_in_threadpool(svc.registry.delete, map_id)
+    svc.stats.forget_map(map_id)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/{map_id}/snapshot",
+    response_model=SnapshotOut,
+    responses=error_responses(400, 401, 403, 404),
+    summary="Write the map's index snapshot now",
+)
+async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut:
+    """Atomically writes the FAISS index and the store sequence number it reflects; a
+    restart then replays only later writes. The store itself is always durable."""
+    m = svc.registry.get(map_id)
+    return SnapshotOut(**await run_in_threadpool(m.snapshot))
+
+
+@router.get(
+    "/{map_id}/stats",
+    responses=error_responses(400, 401, 403, 404),
+    summary="Recognition statistics of one map",
+)
+async def map_stats(map_id: str, svc: ServiceDep, _: CanView) -> dict[str, Any]:
+    m = svc.registry.get(map_id)
+    return {**svc.stats.public(map_id), "map": await run_in_threadpool(m.info)}

@@ -1,0 +1,302 @@
+"""Place queries and the robot's round trip: ``query``, ``observe``, and the ``stream`` socket.
+
+WebSocket protocol (``/v1/maps/{map_id}/stream?robot_id=&session_id=&k=``):
+each observation is two frames from the client —
+
+1. a text frame, JSON: ``{"seq": any, "timestamp": float, "pose": "x,y,z,qx,qy,qz,qw" |
+   [7 numbers] | null, "insert": "auto"|"always"|"never", "content_type":
+   "application/octet-stream"|"application/x-npy"|"application/x-pcd", "fields":
+   "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd"}`` (all but ``timestamp`` optional);
+2. a binary frame: the scan bytes.
+
+For each observation the server sends one text frame, in the order received:
+``{"seq", "ok": true, ...the observe answer}`` or ``{"seq", "ok": false, "error": {...}}``.
+A bad observation gets an error frame and the stream goes on. Backpressure: at most
+``observe.stream_queue`` observations may wait; a client that sends more before reading
+its results is closed with code 1013 (try again later) and a reason. Authentication uses
+the same headers as HTTP; a refused key closes the handshake with 1008.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from lidar_core.errors import LidarCoreError
+from service.api.openapi import SCAN_BODY, error_responses
+from service.auth import Action, presented_key
+from service.bodies import decompress, read_body
+from service.core import check_descriptor, check_pose, parse_pose
+from service.deps import CanEncode, ServiceDep
+from service.errors import BadRequest, ServiceError, error_body
+from service.maps import Filters
+from service.schemas import NAME_PATTERN, POSE_FORMAT, DescriptorQueryIn, ObserveOut, QueryOut
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
+ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
+InsertMode = Literal["auto", "always", "never"]
+
+QUERY_BODY = {
+    **SCAN_BODY,
+    "requestBody": {
+        **SCAN_BODY["requestBody"],
+        "description": SCAN_BODY["requestBody"]["description"]
+        + ' Or `application/json` `{"descriptor": [256 floats]}` to query by descriptor.',
+        "content": {
+            **SCAN_BODY["requestBody"]["content"],
+            "application/json": {
+                "schema": {"$ref": "#/components/schemas/DescriptorQueryIn"},
+                "example": {"descriptor": [0.0625, "…256 values"]},
+            },
+        },
+    },
+}
+
+
+@router.post(
+    "/query",
+    response_model=QueryOut,
+    openapi_extra=QUERY_BODY,
+    responses=ERRORS,
+    summary="Top-k places for a scan or a descriptor",
+)
+async def query(
+    map_id: str,
+    request: Request,
+    svc: ServiceDep,
+    who: CanEncode,
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    exclude_session: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
+    exclude_robot: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
+    exclude_recent_s: Annotated[
+        float | None,
+        Query(ge=0, allow_inf_nan=False, description="with session_id and timestamp"),
+    ] = None,
+    session_id: Annotated[
+        str | None, Query(pattern=NAME_PATTERN, description="the querying session")
+    ] = None,
+    timestamp: Annotated[
+        float | None, Query(allow_inf_nan=False, description="the query's time")
+    ] = None,
+    max_distance: Annotated[float | None, Query(ge=0, le=2)] = None,
+    time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> dict[str, Any]:
+    """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
+    query each match carries the relative yaw from the stored yaw features. The loop closure
+    is accepted when the best distance is under the configured threshold (and the margin to
+    the runner-up is large enough). k results come back whenever k eligible keyframes exist."""
+    m = svc.registry.get(map_id)
+    svc.check_model(m)
+    filters = Filters(
+        exclude_session=exclude_session,
+        exclude_robot=exclude_robot,
+        exclude_recent_s=exclude_recent_s,
+        session_id=session_id,
+        timestamp=timestamp,
+        time_from=time_from,
+        time_to=time_to,
+        max_distance=max_distance,
+    )
+    filters_ok = exclude_recent_s is None or (session_id is not None and timestamp is not None)
+    if not filters_ok:
+        raise BadRequest(
+            "exclude_recent_s needs the query's session_id and timestamp", code="missing_parameter"
+        )
+    body = await read_body(request, svc.settings.limits)
+    ctype = (request.headers.get("content-type") or "").split(";")[0].strip().lower()
+    t0 = time.perf_counter()
+    if ctype == "application/json":
+        try:
+            q = DescriptorQueryIn.model_validate_json(body)
+        except ValidationError as err:
+            raise BadRequest(
+                'body is not {"descriptor": [numbers]}',
+                code="bad_descriptor",
+                errors=json.loads(err.json(include_url=False, include_input=False)),
+            ) from None
+        desc, yaw = check_descriptor(q.descriptor, m.dim), None
+        timings = {"decode": (time.perf_counter() - t0) * 1e3}
+    else:
+        d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
+        desc, yaw, timings = d.descriptor, d.yaw, dict(d.timings)
+    answer = await svc.query(m, desc, yaw, k, filters, timings, robot=None)
+    timings["total"] = (time.perf_counter() - t0) * 1e3
+    svc.stats.timings(timings)
+    return answer
+
+
+@router.post(
+    "/observe",
+    response_model=ObserveOut,
+    openapi_extra=SCAN_BODY,
+    responses=ERRORS,
+    summary="The robot's round trip: query, then maybe insert",
+)
+async def observe(
+    map_id: str,
+    request: Request,
+    svc: ServiceDep,
+    who: CanEncode,
+    timestamp: Annotated[float, Query(allow_inf_nan=False)],
+    robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
+    session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
+    pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
+    insert: InsertMode = "auto",
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> dict[str, Any]:
+    """Query the map excluding this session's own recent keyframes, then insert the scan as
+    a keyframe when due (`auto`: the robot moved `observe.insert_min_distance_m` or
+    `observe.insert_min_interval_s` passed since its last keyframe). The keyframe id is
+    `robot:session:timestamp`, so a retried observation is not inserted twice."""
+    if insert != "never":
+        request.app.state.auth.authorize(who, Action.INSERT, map_id)
+    m = svc.registry.get(map_id)
+    svc.check_model(m)
+    pose_values = parse_pose(pose)
+    t0 = time.perf_counter()
+    body = await read_body(request, svc.settings.limits)
+    d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
+    o = await svc.observe(
+        m,
+        d,
+        robot_id=robot_id,
+        session_id=session_id,
+        timestamp=timestamp,
+        pose=pose_values,
+        insert=insert,
+        k=k,
+    )
+    o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
+    svc.stats.timings(o.answer["timings_ms"])
+    return {
+        **o.answer,
+        "inserted": o.inserted,
+        "keyframe_id": o.keyframe_id,
+        "insert_reason": o.reason,
+    }
+
+
+class StreamMeta(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    seq: Any = None
+    timestamp: float = Field(allow_inf_nan=False)
+    pose: str | list[float] | None = None
+    insert: InsertMode = "auto"
+    content_type: str = "application/octet-stream"
+    fields: str = "xyzi"
+    encoding: str = "identity"
+
+
+@router.websocket("/stream")
+async def stream(
+    websocket: WebSocket,
+    map_id: str,
+    robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
+    session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+) -> None:
+    """Observations over one WebSocket; see the module docstring for the frame format."""
+    app = websocket.app
+    svc = getattr(app.state, "service", None)
+    try:
+        if svc is None or not app.state.ready:
+            raise ServiceError("the service is starting", code="not_ready")
+        who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
+        app.state.auth.authorize(who, Action.ENCODE)
+        m = svc.registry.get(map_id)
+        svc.check_model(m)
+    except ServiceError as err:
+        await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
+        return
+    await websocket.accept()
+    limit = svc.settings.observe.stream_queue
+    queue: asyncio.Queue[tuple[Any, bytes | None, str | None] | None] = asyncio.Queue()
+
+    async def process() -> None:
+        while (item := await queue.get()) is not None:
+            meta, scan, problem = item
+            seq = meta.seq if isinstance(meta, StreamMeta) else meta
+            try:
+                if problem is not None:
+                    raise BadRequest(problem, code="bad_stream_frame")
+                assert isinstance(meta, StreamMeta) and scan is not None
+                if meta.insert != "never":
+                    app.state.auth.authorize(who, Action.INSERT, map_id)
+                pose = (
+                    check_pose(meta.pose) if isinstance(meta.pose, list) else parse_pose(meta.pose)
+                )
+                t0 = time.perf_counter()
+                body = decompress(scan, meta.encoding, svc.settings.limits.max_decoded_bytes)
+                d = await svc.describe(body, meta.content_type, meta.fields)
+                o = await svc.observe(
+                    m,
+                    d,
+                    robot_id=robot_id,
+                    session_id=session_id,
+                    timestamp=meta.timestamp,
+                    pose=pose,
+                    insert=meta.insert,
+                    k=k,
+                )
+                o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
+                svc.stats.timings(o.answer["timings_ms"])
+                msg = {
+                    "seq": seq,
+                    "ok": True,
+                    **o.answer,
+                    "inserted": o.inserted,
+                    "keyframe_id": o.keyframe_id,
+                    "insert_reason": o.reason,
+                }
+            except (ServiceError, LidarCoreError) as err:
+                msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
+            await websocket.send_text(json.dumps(msg))
+
+    worker = asyncio.create_task(process())
+    pending: StreamMeta | str | None = None
+    try:
+        while True:
+            frame = await websocket.receive()
+            if frame["type"] == "websocket.disconnect":
+                break
+            if worker.done():  # the sender failed (client gone)
+                break
+            if frame.get("text") is not None:
+                try:
+                    pending = StreamMeta.model_validate_json(frame["text"])
+                except ValidationError as err:
+                    item: tuple[Any, bytes | None, str | None] = (
+                        None,
+                        None,
+                        f"metadata frame is not valid: {err.errors(include_url=False)[0]['msg']}",
+                    )
+                    pending = None
+                else:
+                    continue
+            elif pending is None:
+                item = (None, None, "binary frame without a metadata frame before it")
+            else:
+                item = (pending, frame.get("bytes") or b"", None)
+                pending = None
+            if queue.qsize() >= limit:
+                await websocket.close(
+                    code=1013,
+                    reason=f"client outran the server: {limit} observations pending",
+                )
+                break
+            queue.put_nowait(item)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        queue.put_nowait(None)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(worker, timeout=svc.settings.limits.request_timeout_s)

@@ -1,0 +1,66 @@
+"""Health, readiness, statistics, Prometheus metrics and the dashboard."""
+
+from __future__ import annotations
+
+from importlib import resources
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import HTMLResponse, JSONResponse
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from service.api.openapi import error_responses
+from service.deps import CanView, ServiceDep
+from service.schemas import Health
+
+router = APIRouter(tags=["system"])
+
+
+@router.get("/healthz", response_model=Health, summary="The process is alive")
+async def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get(
+    "/readyz",
+    response_model=Health,
+    responses={503: {"description": "still loading the model or replaying map indexes"}},
+    summary="Ready: the model and every map index are loaded and replayed",
+)
+async def readyz(request: Request) -> Response:
+    state = request.app.state
+    if not getattr(state, "ready", False):
+        return JSONResponse(
+            Health(status="loading", detail={"stage": state.stage}).model_dump(),
+            status_code=503,
+            headers={"Retry-After": "1"},
+        )
+    svc = state.service
+    return JSONResponse(
+        Health(
+            status="ready",
+            detail={"model_id": svc.model_id, "maps": len(svc.registry.maps)},
+        ).model_dump()
+    )
+
+
+@router.get("/v1/stats", responses=error_responses(401, 403), summary="Recognition statistics")
+async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
+    """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
+    2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
+    maps = {m.map_id: {"keyframes": m.index.ntotal} for m in list(svc.registry.maps.values())}
+    return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
+
+
+@router.get("/metrics", summary="Prometheus metrics", responses=error_responses(401, 403))
+async def metrics(svc: ServiceDep, _: CanView) -> Response:
+    svc.stats.p_queue.set(svc.batcher.pending)
+    return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+@router.get("/dashboard", response_class=HTMLResponse, summary="Live dashboard (HTML)")
+async def dashboard(_: CanView) -> HTMLResponse:
+    """A self-contained page that polls /v1/stats and draws live charts. With API keys
+    configured, the browser asks for one (HTTP Basic; the key is the password)."""
+    page = resources.files("service").joinpath("static/dashboard.html").read_text()
+    return HTMLResponse(page)

@@ -1,0 +1,125 @@
+"""Request bodies → bytes → points, with every limit checked before the memory is spent.
+
+    read_body(request, limits)        Content-Length and the streamed size against
+                                      max_body_bytes (413), then Content-Encoding
+                                      (gzip | zstd | identity) bounded by max_decoded_bytes
+    decode_scan(body, content_type, fields, limits)
+                                      application/octet-stream (X-Point-Fields xyzi | xyz),
+                                      application/x-npy, application/x-pcd → PointCloud
+
+A decompression bomb is stopped at max_decoded_bytes + 1 bytes of output: the decoders are
+asked for at most that much, never for "everything".
+"""
+
+from __future__ import annotations
+
+import io
+import zlib
+
+import zstandard
+from fastapi import Request
+
+from lidar_core.io import FIELD_LAYOUTS, decode
+from lidar_core.points import PointCloud, PointLimits
+from service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from service.settings import LimitSettings
+
+SCAN_TYPES = {
+    "application/octet-stream": "raw",
+    "application/x-npy": "npy",
+    "application/x-pcd": "pcd",
+}
+ENCODINGS = ("identity", "gzip", "zstd")
+
+
+async def read_body(request: Request, limits: LimitSettings) -> bytes:
+    """The decoded request body. 413 as soon as a limit is crossed, before reading the rest."""
+    length = request.headers.get("content-length")
+    if length is not None:
+        try:
+            declared = int(length)
+        except ValueError:
+            raise BadRequest(f"Content-Length {length!r} is not an integer") from None
+        if declared > limits.max_body_bytes:
+            raise PayloadTooLarge(
+                f"body is {declared} bytes; allowed: at most {limits.max_body_bytes}",
+                bytes=declared,
+                max_body_bytes=limits.max_body_bytes,
+            )
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limits.max_body_bytes:
+            raise PayloadTooLarge(
+                f"body exceeds {limits.max_body_bytes} bytes", max_body_bytes=limits.max_body_bytes
+            )
+        chunks.append(chunk)
+    body = b"".join(chunks)
+    return decompress(body, request.headers.get("content-encoding"), limits.max_decoded_bytes)
+
+
+def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
+    enc = (encoding or "identity").strip().lower()
+    if enc == "identity":
+        return body
+    if enc == "gzip":
+        d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        try:
+            out = d.decompress(body, max_bytes + 1)
+        except zlib.error as err:
+            raise BadRequest(f"gzip body does not decompress: {err}") from None
+        if len(out) > max_bytes or d.unconsumed_tail:
+            raise _bomb(max_bytes)
+        if not d.eof:
+            raise BadRequest("gzip body is truncated")
+        return out
+    if enc == "zstd":
+        try:
+            with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(body)) as reader:
+                out = reader.read(max_bytes + 1)
+        except zstandard.ZstdError as err:
+            raise BadRequest(f"zstd body does not decompress: {err}") from None
+        if len(out) > max_bytes:
+            raise _bomb(max_bytes)
+        return out
+    raise UnsupportedMediaType(
+        f"Content-Encoding {encoding!r} is not supported; allowed: {', '.join(ENCODINGS)}",
+        allowed=list(ENCODINGS),
+    )
+
+
+def _bomb(max_bytes: int) -> PayloadTooLarge:
+    return PayloadTooLarge(
+        f"body decompresses to more than {max_bytes} bytes", max_decoded_bytes=max_bytes
+    )
+
+
+def scan_format(content_type: str | None) -> str:
+    media = (content_type or "").split(";")[0].strip().lower()
+    if media not in SCAN_TYPES:
+        raise UnsupportedMediaType(
+            f"content type {media or '(none)'!r} is not a scan format; allowed: "
+            f"{', '.join(SCAN_TYPES)} (never a JSON list of floats)",
+            allowed=list(SCAN_TYPES),
+        )
+    return SCAN_TYPES[media]
+
+
+def decode_scan(
+    body: bytes,
+    content_type: str | None,
+    fields: str | None,
+    limits: LimitSettings,
+    *,
+    source: str = "scan",
+) -> PointCloud:
+    fmt = scan_format(content_type)
+    layout = (fields or "xyzi").strip().lower()
+    if fmt == "raw" and layout not in FIELD_LAYOUTS:
+        raise BadRequest(
+            f"X-Point-Fields {fields!r} is not supported; allowed: {', '.join(FIELD_LAYOUTS)}",
+            allowed=list(FIELD_LAYOUTS),
+        )
+    point_limits = PointLimits(min_points=limits.min_points, max_points=limits.max_points)
+    return decode(body, fmt, fields=layout, limits=point_limits, source=source)

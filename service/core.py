@@ -1,0 +1,304 @@
+"""The service's work, independent of HTTP: scan → descriptor → index → answer.
+
+Routes (``service.api``) and the WebSocket stream call these; they parse and authorise,
+this module decides. Blocking work (decoding, projection, FAISS, SQLite) runs in worker
+threads; encoding goes through the micro-batcher.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from starlette.concurrency import run_in_threadpool
+
+from service.batcher import MicroBatcher
+from service.bodies import decode_scan
+from service.encoder import Encoder
+from service.errors import BadRequest, Conflict, Unprocessable
+from service.maps import Filters, Map, MapRegistry, content_hash
+from service.schemas import POSE_FORMAT
+from service.settings import Settings
+from service.stats import Stats
+from service.store import NewKeyframe
+
+
+def parse_pose(text: str | None) -> list[float] | None:
+    if text is None or text == "":
+        return None
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    return check_pose(values, text)
+
+
+def check_pose(values: list[float], text: object = None) -> list[float]:
+    """7 finite numbers with a non-zero quaternion → the pose with a unit quaternion."""
+    shown = values if text is None else text
+    if len(values) != 7 or not all(math.isfinite(v) for v in values):
+        raise BadRequest(f"pose {shown!r} is not valid; allowed: {POSE_FORMAT}", code="bad_pose")
+    q = np.array(values[3:])
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-6:
+        raise BadRequest(
+            f"pose {shown!r} has a zero quaternion; allowed: {POSE_FORMAT}", code="bad_pose"
+        )
+    return [float(v) for v in values[:3]] + [float(v) for v in q / norm]
+
+
+def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
+    d = np.asarray(values, dtype=np.float32)
+    if d.shape != (dim,):
+        raise Unprocessable(
+            f"descriptor has {d.size} values; allowed: exactly {dim}",
+            code="bad_descriptor",
+            dim=dim,
+        )
+    if not np.isfinite(d).all():
+        raise Unprocessable("descriptor has NaN or infinite values", code="bad_descriptor")
+    norm = float(np.linalg.norm(d))
+    if norm < 1e-6:
+        raise Unprocessable(
+            "descriptor is all zeros; allowed: a unit vector", code="bad_descriptor"
+        )
+    return d / norm
+
+
+@dataclass
+class Described:
+    descriptor: np.ndarray  # (D,)
+    yaw: np.ndarray  # (C, W)
+    points_hash: str
+    timings: dict[str, float]
+
+
+@dataclass
+class Observed:
+    answer: dict[str, Any]
+    inserted: bool
+    keyframe_id: str | None
+    reason: str
+
+
+class PlaceService:
+    def __init__(self, settings: Settings, encoder: Encoder, registry: MapRegistry) -> None:
+        self.settings = settings
+        self.encoder = encoder
+        self.registry = registry
+        self.stats = Stats(encoder.model_id)
+        b = settings.batching
+        self.batcher = MicroBatcher(
+            encoder.encode,
+            max_batch=b.max_batch,
+            max_wait_ms=b.max_wait_ms,
+            queue_size=b.queue_size,
+            on_batch=self.stats.batch,
+        )
+        # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto
+        self._last_kf: dict[tuple[str, str], tuple[float, np.ndarray | None]] = {}
+
+    @property
+    def model_id(self) -> str:
+        return self.encoder.model_id
+
+    # ---- scan → descriptor ------------------------------------------------------------------
+
+    def _decode_project(
+        self, body: bytes, content_type: str | None, fields: str | None, source: str
+    ) -> tuple[np.ndarray, str, float, float]:
+        t0 = time.perf_counter()
+        points = decode_scan(body, content_type, fields, self.settings.limits, source=source)
+        digest = hashlib.sha256(points.as_xyzi().tobytes()).hexdigest()
+        t1 = time.perf_counter()
+        image = self.encoder.project(points)
+        t2 = time.perf_counter()
+        return image, digest, (t1 - t0) * 1e3, (t2 - t1) * 1e3
+
+    async def describe(
+        self, body: bytes, content_type: str | None, fields: str | None, *, source: str = "scan"
+    ) -> Described:
+        image, digest, t_dec, t_proj = await run_in_threadpool(
+            self._decode_project, body, content_type, fields, source
+        )
+        t0 = time.perf_counter()
+        desc, yaw = await self.batcher.encode(
+            image, timeout_s=self.settings.limits.request_timeout_s
+        )
+        t_enc = (time.perf_counter() - t0) * 1e3
+        timings = {"decode": t_dec, "project": t_proj, "encode": t_enc}
+        return Described(np.asarray(desc), np.asarray(yaw), digest, timings)
+
+    # ---- maps ---------------------------------------------------------------------------------
+
+    def check_model(self, m: Map) -> None:
+        if m.model_id != self.model_id:
+            raise Conflict(
+                f"map {m.map_id!r} holds descriptors of model {m.model_id!r}; this service "
+                f"runs {self.model_id!r}, whose descriptors are not comparable",
+                code="model_mismatch",
+                map_model_id=m.model_id,
+                model_id=self.model_id,
+            )
+
+    async def insert(self, m: Map, rows: list[NewKeyframe], robot: str | None) -> list[Any]:
+        self.check_model(m)
+        results = await run_in_threadpool(m.insert, rows)
+        created = sum(r.created for r in results)
+        if created:
+            self.stats.insert(m.map_id, robot, created)
+            self.stats.p_keyframes.labels(m.map_id).set(m.index.ntotal)
+            for r in results:
+                if r.created:
+                    self._remember(
+                        m.map_id, r.keyframe.robot_id, r.keyframe.timestamp, r.keyframe.pose
+                    )
+        m.maintain()
+        return results
+
+    def scan_keyframe(
+        self,
+        described: Described,
+        *,
+        keyframe_id: str,
+        robot_id: str,
+        session_id: str,
+        timestamp: float,
+        pose: list[float] | None,
+    ) -> NewKeyframe:
+        meta = {"robot": robot_id, "session": session_id, "timestamp": timestamp, "pose": pose}
+        return NewKeyframe(
+            keyframe_id=keyframe_id,
+            robot_id=robot_id,
+            session_id=session_id,
+            timestamp=timestamp,
+            pose=pose,
+            descriptor=described.descriptor,
+            yaw=described.yaw,
+            content_hash=content_hash("scan", described.points_hash.encode(), meta),
+        )
+
+    async def query(
+        self,
+        m: Map,
+        descriptor: np.ndarray,
+        yaw: np.ndarray | None,
+        k: int,
+        filters: Filters,
+        timings: dict[str, float],
+        *,
+        robot: str | None = None,
+    ) -> dict[str, Any]:
+        self.check_model(m)
+        if not 1 <= k <= self.settings.limits.max_k:
+            raise BadRequest(f"k={k} is out of range; allowed: 1 to {self.settings.limits.max_k}")
+        t0 = time.perf_counter()
+        # One more than asked: the runner-up gives the loop-closure margin.
+        matches = await run_in_threadpool(m.search, descriptor, k + 1, filters, yaw)
+        timings["search"] = (time.perf_counter() - t0) * 1e3
+        lc = self.settings.loop_closure
+        margin = matches[1].distance - matches[0].distance if len(matches) > 1 else None
+        accepted = bool(
+            matches
+            and matches[0].distance <= lc.max_distance
+            and (margin is None or margin >= lc.min_margin)
+        )
+        self.stats.query(m.map_id, robot, accepted)
+        return {
+            "matches": [x.public() for x in matches[:k]],
+            "loop_closure": {
+                "accepted": accepted,
+                "threshold": lc.max_distance,
+                "margin_top1_top2": margin,
+            },
+            "timings_ms": timings,
+        }
+
+    # ---- the robot's round trip -------------------------------------------------------------
+
+    def _remember(
+        self, map_id: str, robot: str, timestamp: float, pose: list[float] | None
+    ) -> None:
+        pos = None if pose is None else np.array(pose[:3])
+        old = self._last_kf.get((map_id, robot))
+        if old is None or timestamp >= old[0]:
+            self._last_kf[(map_id, robot)] = (timestamp, pos)
+
+    def _last(self, m: Map, robot: str) -> tuple[float, np.ndarray | None] | None:
+        key = (m.map_id, robot)
+        if key not in self._last_kf:
+            kf = m.store.last_keyframe(robot)
+            if kf is None:
+                return None
+            self._remember(m.map_id, robot, kf.timestamp, kf.pose)
+        return self._last_kf.get(key)
+
+    def insert_due(
+        self, m: Map, robot: str, timestamp: float, pose: list[float] | None, mode: str
+    ) -> str | None:
+        """Why this observation becomes a keyframe, or None if it does not."""
+        if mode == "always":
+            return "always"
+        if mode == "never":
+            return None
+        last = self._last(m, robot)
+        if last is None:
+            return "first"
+        o = self.settings.observe
+        if abs(timestamp - last[0]) >= o.insert_min_interval_s:
+            return "time"
+        moved = (
+            None
+            if pose is None or last[1] is None
+            else np.linalg.norm(np.array(pose[:3]) - last[1])
+        )
+        if moved is not None and float(moved) >= o.insert_min_distance_m:
+            return "distance"
+        return None
+
+    async def observe(
+        self,
+        m: Map,
+        described: Described,
+        *,
+        robot_id: str,
+        session_id: str,
+        timestamp: float,
+        pose: list[float] | None,
+        insert: str,
+        k: int,
+    ) -> Observed:
+        filters = Filters(
+            exclude_recent_s=self.settings.observe.exclude_recent_s,
+            session_id=session_id,
+            timestamp=timestamp,
+        )
+        timings = dict(described.timings)
+        answer = await self.query(
+            m, described.descriptor, described.yaw, k, filters, timings, robot=robot_id
+        )
+        reason = self.insert_due(m, robot_id, timestamp, pose, insert)
+        keyframe_id = None
+        inserted = False
+        if reason is not None:
+            keyframe_id = f"{robot_id}:{session_id}:{timestamp!r}"
+            row = self.scan_keyframe(
+                described,
+                keyframe_id=keyframe_id,
+                robot_id=robot_id,
+                session_id=session_id,
+                timestamp=timestamp,
+                pose=pose,
+            )
+            (result,) = await self.insert(m, [row], robot_id)
+            inserted = result.created
+            if not inserted:
+                reason = "existing"
+        return Observed(
+            answer, inserted, keyframe_id, reason or ("never" if insert == "never" else "not_due")
+        )

@@ -1,0 +1,43 @@
+"""FastAPI dependencies as ``Annotated`` aliases: the service, and the caller's rights."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from service.auth import Action, Authenticator, Principal, presented_key
+from service.core import PlaceService
+from service.errors import NotReady
+
+
+def get_service(request: Request) -> PlaceService:
+    svc: PlaceService | None = getattr(request.app.state, "service", None)
+    if svc is None or not request.app.state.ready:
+        raise NotReady("the service is starting: the model or the map indexes are still loading")
+    return svc
+
+
+def get_principal(request: Request) -> Principal:
+    auth: Authenticator = request.app.state.auth
+    return auth.identify(presented_key(request))
+
+
+def require(action: Action) -> Callable[..., Principal]:
+    """A dependency that lets through only callers whose role allows ``action``
+    (map-scoped checks, such as a robot's allowed maps, happen in the route)."""
+
+    def check(request: Request, who: Annotated[Principal, Depends(get_principal)]) -> Principal:
+        request.app.state.auth.authorize(who, action)
+        return who
+
+    return check
+
+
+ServiceDep = Annotated[PlaceService, Depends(get_service)]
+CanEncode = Annotated[Principal, Depends(require(Action.ENCODE))]
+CanInsert = Annotated[Principal, Depends(require(Action.INSERT))]
+CanWriteMaps = Annotated[Principal, Depends(require(Action.MAP_WRITE))]
+CanReadMaps = Annotated[Principal, Depends(require(Action.MAP_READ))]
+CanView = Annotated[Principal, Depends(require(Action.VIEW))]

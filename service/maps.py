@@ -1,0 +1,593 @@
+"""Maps: a durable store, the FAISS index derived from it, and the rules that join them.
+
+    data_dir/maps/<map_id>/store.sqlite   the source of truth (:mod:`service.store`)
+    data_dir/maps/<map_id>/index.snap     FAISS snapshot + the store seq it contains
+
+A write takes the map's write lock, commits to the store, then updates the index, so the
+index never holds what the store does not, and ``applied_seq`` is exact. A crash between
+the commit and the index update loses nothing: on start the snapshot is loaded and every
+store change after its seq is replayed. Searches share a read lock and run concurrently.
+
+Snapshots are written atomically (temporary file, fsync, rename, fsync of the folder), every
+``snapshot_every`` writes, on shutdown, and on request.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import re
+import shutil
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_core.yaw import estimate_yaw
+from service.errors import BadRequest, Conflict, NotFound
+from service.index import VectorIndex
+from service.settings import MAP_ID_PATTERN, IndexSettings
+from service.store import Keyframe, NewKeyframe, Store, index_vector, to_f16
+
+log = logging.getLogger("overlapmamba.service")
+_MAGIC = b"OMSNAP01"
+_MAP_ID = re.compile(MAP_ID_PATTERN)
+
+
+def check_map_id(map_id: str) -> str:
+    if not _MAP_ID.fullmatch(map_id):
+        raise BadRequest(
+            f"map id {map_id!r} is not allowed; allowed: {MAP_ID_PATTERN} "
+            "(lower-case letters, digits, '_' and '-', at most 64 characters)",
+            pattern=MAP_ID_PATTERN,
+        )
+    return map_id
+
+
+class RWLock:
+    """Many readers or one writer; a waiting writer blocks new readers (no starvation)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._readers = 0
+        self._writer = False
+        self._waiting_writers = 0
+
+    @contextlib.contextmanager
+    def read(self) -> Iterator[None]:
+        with self._cond:
+            while self._writer or self._waiting_writers:
+                self._cond.wait()
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._readers -= 1
+                if not self._readers:
+                    self._cond.notify_all()
+
+    @contextlib.contextmanager
+    def write(self) -> Iterator[None]:
+        with self._cond:
+            self._waiting_writers += 1
+            while self._writer or self._readers:
+                self._cond.wait()
+            self._waiting_writers -= 1
+            self._writer = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._writer = False
+                self._cond.notify_all()
+
+
+class FilterColumns:
+    """Per-row metadata by row id, for filter masks: robot, session, timestamp, alive."""
+
+    def __init__(self) -> None:
+        self.robot = np.zeros(0, np.int32)
+        self.session = np.zeros(0, np.int32)
+        self.ts = np.zeros(0, np.float64)
+        self.alive = np.zeros(0, bool)
+        self._codes: dict[str, int] = {}
+
+    def code(self, value: str) -> int:
+        return self._codes.setdefault(value, len(self._codes))
+
+    def lookup(self, value: str) -> int:
+        return self._codes.get(value, -1)
+
+    def _grow(self, size: int) -> None:
+        if size <= len(self.alive):
+            return
+        new = max(size, 2 * len(self.alive), 1024)
+        for name in ("robot", "session", "ts", "alive"):
+            old = getattr(self, name)
+            arr = np.zeros(new, old.dtype)
+            arr[: len(old)] = old
+            setattr(self, name, arr)
+
+    def add(self, ids: np.ndarray, meta: list[tuple[str, str, float]]) -> None:
+        if not len(ids):
+            return
+        self._grow(int(ids.max()) + 1)
+        self.robot[ids] = [self.code(m[0]) for m in meta]
+        self.session[ids] = [self.code(m[1]) for m in meta]
+        self.ts[ids] = [m[2] for m in meta]
+        self.alive[ids] = True
+
+    def remove(self, ids: np.ndarray) -> None:
+        ids = ids[ids < len(self.alive)]
+        self.alive[ids] = False
+
+
+@dataclass(frozen=True)
+class Filters:
+    exclude_session: str | None = None
+    exclude_robot: str | None = None
+    exclude_recent_s: float | None = None
+    session_id: str | None = None  # the querying session, for exclude_recent_s
+    timestamp: float | None = None  # the query's time, for exclude_recent_s
+    time_from: float | None = None
+    time_to: float | None = None
+    max_distance: float | None = None
+
+    @property
+    def restricts_rows(self) -> bool:
+        return any(
+            v is not None
+            for v in (
+                self.exclude_session,
+                self.exclude_robot,
+                self.exclude_recent_s,
+                self.time_from,
+                self.time_to,
+            )
+        )
+
+
+@dataclass(frozen=True)
+class Match:
+    keyframe: Keyframe
+    similarity: float
+    distance: float
+    yaw_deg: float | None
+    yaw_confidence: float | None
+
+    def public(self) -> dict[str, Any]:
+        return {
+            **self.keyframe.public(),
+            "distance": self.distance,
+            "similarity": self.similarity,
+            "yaw_deg": self.yaw_deg,
+            "yaw_confidence": self.yaw_confidence,
+        }
+
+
+@dataclass(frozen=True)
+class InsertResult:
+    keyframe: Keyframe
+    created: bool
+
+
+def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
+    h = hashlib.sha256(kind.encode())
+    h.update(payload)
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+class Map:
+    def __init__(
+        self,
+        map_id: str,
+        folder: Path,
+        store: Store,
+        index: VectorIndex,
+        settings: IndexSettings,
+        *,
+        applied_seq: int,
+        snapshot_seq: int,
+    ) -> None:
+        self.map_id = map_id
+        self.folder = folder
+        self.store = store
+        self.index = index
+        self.settings = settings
+        self.applied_seq = applied_seq
+        self.snapshot_seq = snapshot_seq
+        self.lock = RWLock()
+        self.columns = FilterColumns()
+        self._snapshot_lock = threading.Lock()
+        self._maintenance = threading.Lock()
+        self.kind: str = store.get_meta("index_kind") or "flat"
+        self.model_id: str = store.get_meta("model_id") or ""
+        self.created_at = float(store.get_meta("created_at") or 0.0)
+        self.dim = int(store.get_meta("dim") or index.dim)
+
+    # ---- opening and snapshots --------------------------------------------------------------
+
+    @classmethod
+    def create(
+        cls,
+        map_id: str,
+        folder: Path,
+        *,
+        model_id: str,
+        dim: int,
+        kind: str,
+        settings: IndexSettings,
+    ) -> Map:
+        folder.mkdir(parents=True, exist_ok=False)
+        store = Store(folder / "store.sqlite")
+        store.set_meta(
+            map_id=map_id, model_id=model_id, dim=dim, index_kind=kind, created_at=time.time()
+        )
+        return cls.open(map_id, folder, settings)
+
+    @classmethod
+    def open(cls, map_id: str, folder: Path, settings: IndexSettings) -> Map:
+        """Load the snapshot (if any, and sound) and replay the store's newer changes."""
+        store = Store(folder / "store.sqlite")
+        dim = int(store.get_meta("dim") or 0)
+        kind = store.get_meta("index_kind") or "flat"
+        index, seq = _read_snapshot(folder / "index.snap", dim, settings)
+        replay_from = seq
+        if index is None:
+            index, replay_from = VectorIndex.flat(dim), 0
+        m = cls(map_id, folder, store, index, settings, applied_seq=seq, snapshot_seq=seq)
+        m.kind = kind
+        with m.lock.write():
+            for ids, _, meta in store.live_rows(0):  # filter columns for every live row
+                m.columns.add(ids, meta)
+            added = 0
+            for ids, vecs, _ in store.live_rows(replay_from):
+                m.index.add(ids, vecs)
+                added += len(ids)
+            removed = m.index.remove(store.deleted_after(replay_from))
+            m.applied_seq = store.last_seq
+        if added or removed:
+            log.info("map %s: replayed %d inserts, %d deletes", map_id, added, removed)
+        if m.wants_rebuild():
+            m.rebuild()
+        return m
+
+    def _use_ivf(self, n: int) -> bool:
+        auto = self.kind == "auto" and n > self.settings.approximate_above
+        return (self.kind == "ivf" or auto) and n >= 64  # IVF needs vectors to train on
+
+    def wants_rebuild(self) -> bool:
+        n = self.index.ntotal
+        if not self._use_ivf(n):
+            return self.index.kind != "flat"  # e.g. an IVF snapshot of a map now flat
+        if self.index.kind != "ivf":
+            return True
+        return n > 4 * self.index.nlist**2  # grown well past what its lists were sized for
+
+    def maintain(self) -> None:
+        """After writes: rebuild or snapshot in a background thread when due (one at a time)."""
+        due_rebuild = self.wants_rebuild()
+        due_snapshot = self.writes_since_snapshot >= self.settings.snapshot_every
+        if not (due_rebuild or due_snapshot) or not self._maintenance.acquire(blocking=False):
+            return
+
+        def work() -> None:
+            try:
+                if due_rebuild:
+                    self.rebuild()
+                self.snapshot()
+            except Exception:  # a failed derived-file write must not take the map down
+                log.exception("map %s: background maintenance failed", self.map_id)
+            finally:
+                self._maintenance.release()
+
+        threading.Thread(target=work, name=f"maintain-{self.map_id}", daemon=True).start()
+
+    def rebuild(self) -> None:
+        """Build the index this map's kind and size call for, from the store, then swap it in.
+        Searches and writes go on meanwhile; the writes made during the build are applied
+        under the write lock before the swap."""
+        with self._snapshot_lock:  # no tombstone purge while rows are being read
+            self._rebuild()
+
+    def _rebuild(self) -> None:
+        with self.lock.read():
+            seq = self.applied_seq
+        ids, vecs = [], []
+        for i, v, _ in self.store.live_rows(0, upto_seq=seq):
+            ids.append(i)
+            vecs.append(v)
+        all_ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        all_vecs = np.concatenate(vecs) if vecs else np.zeros((0, self.dim), np.float32)
+        if self._use_ivf(len(all_ids)):
+            new = VectorIndex.ivf(all_vecs, nprobe=self.settings.ivf_nprobe)
+        else:
+            new = VectorIndex.flat(self.dim)
+        new.add(all_ids, all_vecs)
+        with self.lock.write():
+            for rows, v, _ in self.store.live_rows(seq):
+                new.add(rows, v)
+            new.remove(self.store.deleted_after(seq))
+            self.index = new
+        log.info("map %s: index rebuilt as %s with %d vectors", self.map_id, new.kind, new.ntotal)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Write the index and its seq atomically; then purge tombstones it reflects."""
+        with self._snapshot_lock:
+            with self.lock.read():
+                seq = self.applied_seq
+                payload = self.index.serialize()
+                kind = self.index.kind
+            header = json.dumps({"seq": seq, "kind": kind, "dim": self.dim}).encode()
+            path = self.folder / "index.snap"
+            tmp = path.with_suffix(".snap.tmp")
+            with open(tmp, "wb") as f:
+                f.write(_MAGIC + struct.pack("<I", len(header)) + header + payload)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+            dir_fd = os.open(self.folder, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+            self.snapshot_seq = seq
+            purged = self.store.purge_tombstones(seq)
+        return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
+
+    def close(self) -> None:
+        self.store.close()
+
+    # ---- writes -----------------------------------------------------------------------------
+
+    def lookup(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
+        return self.store.get_many(keyframe_ids)
+
+    def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
+        """Insert rows, idempotent on keyframe_id: a known id with the same content returns
+        the stored keyframe; with other content the whole request is refused (409)."""
+        for r in rows:
+            if r.descriptor.shape != (self.dim,):
+                raise BadRequest(f"descriptor has shape {r.descriptor.shape}; need ({self.dim},)")
+        seen: dict[str, str] = {}
+        for r in rows:
+            if seen.setdefault(r.keyframe_id, r.content_hash) != r.content_hash:
+                raise Conflict(
+                    f"keyframe {r.keyframe_id!r} appears twice in the request with different "
+                    "content",
+                    code="keyframe_conflict",
+                    keyframe_id=r.keyframe_id,
+                )
+        with self.lock.write():
+            existing = self.store.get_many(list(seen))
+            for r in rows:
+                old = existing.get(r.keyframe_id)
+                if old is not None and old.content_hash != r.content_hash:
+                    raise Conflict(
+                        f"keyframe {r.keyframe_id!r} already exists with different content; "
+                        "keyframe ids are write-once (DELETE it first to replace it)",
+                        code="keyframe_conflict",
+                        keyframe_id=r.keyframe_id,
+                    )
+            new: list[NewKeyframe] = []
+            for r in rows:
+                if r.keyframe_id not in existing and all(
+                    n.keyframe_id != r.keyframe_id for n in new
+                ):
+                    new.append(r)
+            if new:
+                ids, seq = self.store.insert(new)
+                id_arr = np.array(ids, dtype=np.int64)
+                vecs = np.stack([index_vector(to_f16(r.descriptor).tobytes()) for r in new])
+                self.index.add(id_arr, vecs)
+                self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
+                self.applied_seq = seq
+                created = self.store.get_many([r.keyframe_id for r in new])
+            else:
+                created = {}
+        out = []
+        for r in rows:
+            if r.keyframe_id in existing:
+                out.append(InsertResult(existing[r.keyframe_id], created=False))
+            else:
+                out.append(InsertResult(created[r.keyframe_id], created=True))
+                created.pop(r.keyframe_id)  # a repeated id in one request is created once
+                existing[r.keyframe_id] = out[-1].keyframe
+        return out
+
+    def delete(self, keyframe_id: str) -> None:
+        with self.lock.write():
+            row_id = self.store.delete(keyframe_id)
+            if row_id is None:
+                raise NotFound(
+                    f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
+                    code="keyframe_not_found",
+                )
+            ids = np.array([row_id], dtype=np.int64)
+            self.index.remove(ids)
+            self.columns.remove(ids)
+            self.applied_seq = self.store.last_seq
+
+    @property
+    def writes_since_snapshot(self) -> int:
+        return self.applied_seq - self.snapshot_seq
+
+    # ---- reads ------------------------------------------------------------------------------
+
+    def allowed(self, f: Filters) -> np.ndarray | None:
+        if not f.restricts_rows:
+            return None
+        c = self.columns
+        mask = c.alive.copy()
+        if f.exclude_session is not None:
+            mask &= c.session != c.lookup(f.exclude_session)
+        if f.exclude_robot is not None:
+            mask &= c.robot != c.lookup(f.exclude_robot)
+        if f.exclude_recent_s is not None:
+            if f.session_id is None or f.timestamp is None:
+                raise BadRequest(
+                    "exclude_recent_s needs the query's session_id and timestamp",
+                    code="missing_parameter",
+                )
+            own = c.session == c.lookup(f.session_id)
+            mask &= ~(own & (c.ts > f.timestamp - f.exclude_recent_s))
+        if f.time_from is not None:
+            mask &= c.ts >= f.time_from
+        if f.time_to is not None:
+            mask &= c.ts <= f.time_to
+        return mask
+
+    def search(
+        self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
+    ) -> list[Match]:
+        q = np.asarray(descriptor, dtype=np.float32)
+        q = q / max(float(np.linalg.norm(q)), 1e-12)
+        with self.lock.read():
+            mask = self.allowed(filters)
+            sims, ids = self.index.search(q, k, mask)
+            rows = self.store.by_ids([int(i) for i in ids])
+        matches = []
+        found = [(float(s), int(i)) for s, i in zip(sims, ids, strict=True) if int(i) in rows]
+        yaws: dict[int, tuple[float, float]] = {}
+        stored = {i: rows[i][1] for _, i in found}
+        with_yaw = [i for i, f in stored.items() if f is not None]
+        if yaw is not None and with_yaw:
+            refs = np.stack([stored[i] for i in with_yaw])  # type: ignore[misc]  # (K, C, W)
+            if refs.shape[1:] == yaw.shape:
+                deg, conf = estimate_yaw(yaw, refs)
+                yaws = {
+                    i: (float(d), float(c)) for i, d, c in zip(with_yaw, deg, conf, strict=True)
+                }
+        for sim, i in found:
+            dist = float(np.sqrt(max(0.0, 2.0 - 2.0 * sim)))
+            if filters.max_distance is not None and dist > filters.max_distance:
+                continue
+            y = yaws.get(i)
+            matches.append(
+                Match(
+                    keyframe=rows[i][0],
+                    similarity=sim,
+                    distance=dist,
+                    yaw_deg=None if y is None else y[0],
+                    yaw_confidence=None if y is None else y[1],
+                )
+            )
+        return matches
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "map_id": self.map_id,
+            "model_id": self.model_id,
+            "index": {
+                "kind": self.kind,
+                "active": self.index.kind,
+                "nlist": self.index.nlist,
+                "vectors": self.index.ntotal,
+            },
+            "keyframes": self.store.count(),
+            "seq": self.applied_seq,
+            "snapshot_seq": self.snapshot_seq,
+            "created_at": self.created_at,
+        }
+
+
+def _read_snapshot(path: Path, dim: int, settings: IndexSettings) -> tuple[VectorIndex | None, int]:
+    """(index, seq), or (None, 0) when there is no usable snapshot — the index is derived,
+    so a missing or damaged snapshot costs a rebuild, never data."""
+    if not path.exists():
+        return None, 0
+    try:
+        data = path.read_bytes()
+        if data[:8] != _MAGIC:
+            raise ValueError("bad magic")
+        (n,) = struct.unpack("<I", data[8:12])
+        header = json.loads(data[12 : 12 + n])
+        index = VectorIndex.deserialize(data[12 + n :], header["kind"], nprobe=settings.ivf_nprobe)
+        if index.dim != dim:
+            raise ValueError(f"dimension {index.dim}, map has {dim}")
+        return index, int(header["seq"])
+    except Exception as err:  # anything wrong with a derived file means: rebuild it
+        log.warning("snapshot %s is unusable (%s); rebuilding the index from the store", path, err)
+        return None, 0
+
+
+class MapRegistry:
+    """Every map under ``data_dir/maps``, opened at start-up."""
+
+    def __init__(self, root: Path, settings: IndexSettings, *, model_id: str, dim: int) -> None:
+        self.root = Path(root) / "maps"
+        self.settings = settings
+        self.model_id = model_id
+        self.dim = dim
+        self.maps: dict[str, Map] = {}
+        self._lock = threading.Lock()
+
+    def load_all(self) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        for folder in sorted(self.root.iterdir()):
+            if folder.is_dir() and _MAP_ID.fullmatch(folder.name):
+                if (folder / "store.sqlite").exists():
+                    self.maps[folder.name] = Map.open(folder.name, folder, self.settings)
+            elif folder.name.startswith((".trash-", ".import-")):
+                shutil.rmtree(folder, ignore_errors=True)
+
+    def get(self, map_id: str) -> Map:
+        check_map_id(map_id)
+        m = self.maps.get(map_id)
+        if m is None:
+            raise NotFound(
+                f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",
+                code="map_not_found",
+                map_id=map_id,
+            )
+        return m
+
+    def create(self, map_id: str, kind: str | None) -> tuple[Map, bool]:
+        check_map_id(map_id)
+        kind = kind or self.settings.kind
+        with self._lock:
+            m = self.maps.get(map_id)
+            if m is not None:
+                if m.kind != kind:
+                    raise Conflict(
+                        f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
+                        code="map_conflict",
+                        index=m.kind,
+                    )
+                return m, False
+            m = Map.create(
+                map_id,
+                self.root / map_id,
+                model_id=self.model_id,
+                dim=self.dim,
+                kind=kind,
+                settings=self.settings,
+            )
+            self.maps[map_id] = m
+            return m, True
+
+    def delete(self, map_id: str) -> None:
+        with self._lock:
+            m = self.get(map_id)
+            del self.maps[map_id]
+        with m.lock.write():
+            m.close()
+            trash = self.root / f".trash-{map_id}-{time.time_ns()}"
+            os.replace(m.folder, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    def close(self, *, snapshot: bool = True) -> None:
+        for m in list(self.maps.values()):
+            if snapshot and m.writes_since_snapshot:
+                m.snapshot()
+            m.close()

@@ -1,0 +1,224 @@
+"""Request and response models of the HTTP API (separate, as the template does)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from service.settings import IndexKind
+
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$"
+KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
+POSE_FORMAT = "x,y,z,qx,qy,qz,qw (7 finite numbers, metres and a non-zero quaternion)"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Timings(BaseModel):
+    decode: float | None = None
+    project: float | None = None
+    encode: float | None = None
+    search: float | None = None
+    total: float | None = None
+
+
+class DescriptorOut(BaseModel):
+    descriptor: list[float] = Field(description="unit-norm descriptor")
+    model_id: str
+    timings_ms: Timings
+
+    model_config = ConfigDict(
+        protected_namespaces=(),
+        json_schema_extra={
+            "examples": [
+                {
+                    "descriptor": [0.0625] * 4 + ["…256 values"],
+                    "model_id": "om-18fea85287536f08",
+                    "timings_ms": {"decode": 0.4, "project": 6.1, "encode": 92.0},
+                }
+            ]
+        },
+    )
+
+
+class DescriptorBatchOut(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+    descriptors: list[list[float]]
+    model_id: str
+    timings_ms: list[Timings]
+
+
+class MapSettingsIn(_Model):
+    index: IndexKind | None = Field(
+        None, description="'flat' (exact), 'ivf' (approximate) or 'auto' (flat until large)"
+    )
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"index": "auto"}]})
+
+
+class MapOut(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+    map_id: str
+    model_id: str
+    index: dict[str, Any]
+    keyframes: int
+    seq: int
+    snapshot_seq: int
+    created_at: float
+    created: bool | None = None
+
+
+class MapList(BaseModel):
+    maps: list[MapOut]
+
+
+class KeyframeOut(BaseModel):
+    keyframe_id: str
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    created: bool | None = Field(
+        None, description="false when this keyframe id was already stored with this content"
+    )
+
+
+def _finite(values: list[float], what: str) -> list[float]:
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{what} has NaN or infinite values; allowed: finite numbers")
+    return values
+
+
+class KeyframeIn(_Model):
+    keyframe_id: str = Field(pattern=KEYFRAME_ID_PATTERN)
+    robot_id: str = Field("unknown", pattern=NAME_PATTERN)
+    session_id: str = Field("default", pattern=NAME_PATTERN)
+    timestamp: float = Field(allow_inf_nan=False)
+    pose: list[float] | None = Field(None, min_length=7, max_length=7, description=POSE_FORMAT)
+    descriptor: list[float] = Field(description="the model's descriptor (unit norm)")
+    yaw_features: list[list[float]] | None = Field(
+        None, description="(C, W) yaw features; without them matches carry no yaw"
+    )
+
+    @field_validator("descriptor")
+    @classmethod
+    def _desc(cls, v: list[float]) -> list[float]:
+        return _finite(v, "descriptor")
+
+    @field_validator("pose")
+    @classmethod
+    def _pose(cls, v: list[float] | None) -> list[float] | None:
+        return None if v is None else _finite(v, "pose")
+
+
+class KeyframeBatchIn(_Model):
+    model_id: str = Field(description="the model that computed the descriptors; must match")
+    keyframes: list[KeyframeIn] = Field(min_length=1)
+
+    model_config = ConfigDict(
+        extra="forbid",
+        protected_namespaces=(),
+        json_schema_extra={
+            "examples": [
+                {
+                    "model_id": "om-18fea85287536f08",
+                    "keyframes": [
+                        {
+                            "keyframe_id": "drive1-000042",
+                            "robot_id": "mapper-1",
+                            "session_id": "drive1",
+                            "timestamp": 1700000042.5,
+                            "pose": [12.0, -3.5, 0.0, 0.0, 0.0, 0.0, 1.0],
+                            "descriptor": [0.0625, "…256 values"],
+                        }
+                    ],
+                }
+            ]
+        },
+    )
+
+
+class KeyframeBatchOut(BaseModel):
+    inserted: int
+    existing: int
+    keyframes: list[KeyframeOut]
+
+
+class DescriptorQueryIn(_Model):
+    descriptor: list[float]
+
+    @field_validator("descriptor")
+    @classmethod
+    def _desc(cls, v: list[float]) -> list[float]:
+        return _finite(v, "descriptor")
+
+
+class MatchOut(BaseModel):
+    keyframe_id: str
+    distance: float = Field(description="L2 distance between unit descriptors, in [0, 2]")
+    similarity: float = Field(description="cosine similarity, in [-1, 1]")
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    yaw_deg: float | None = Field(
+        description="yaw of the match's sensor frame in the query's, degrees (−180, 180]"
+    )
+    yaw_confidence: float | None = Field(description="feature correlation at that yaw, [-1, 1]")
+
+
+class LoopClosureOut(BaseModel):
+    accepted: bool
+    threshold: float
+    margin_top1_top2: float | None
+
+
+class QueryOut(BaseModel):
+    matches: list[MatchOut]
+    loop_closure: LoopClosureOut
+    timings_ms: Timings
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "matches": [
+                        {
+                            "keyframe_id": "drive1-000042",
+                            "distance": 0.21,
+                            "similarity": 0.978,
+                            "robot_id": "mapper-1",
+                            "session_id": "drive1",
+                            "timestamp": 1700000042.5,
+                            "pose": [12.0, -3.5, 0.0, 0.0, 0.0, 0.0, 1.0],
+                            "yaw_deg": 178.6,
+                            "yaw_confidence": 0.83,
+                        }
+                    ],
+                    "loop_closure": {"accepted": True, "threshold": 0.5, "margin_top1_top2": 0.12},
+                    "timings_ms": {"decode": 0.3, "project": 5.8, "encode": 91.0, "search": 0.4},
+                }
+            ]
+        }
+    )
+
+
+class ObserveOut(QueryOut):
+    inserted: bool
+    keyframe_id: str | None = Field(description="the keyframe this scan became, if inserted")
+    insert_reason: Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
+
+
+class SnapshotOut(BaseModel):
+    seq: int
+    bytes: int
+    purged_tombstones: int
+
+
+class Health(BaseModel):
+    status: str
+    detail: dict[str, Any] = Field(default_factory=dict)

@@ -1,0 +1,187 @@
+"""The service's configuration: one typed tree, validated before anything starts.
+
+Sources, highest priority first: explicit overrides (the CLI's options), environment
+variables ``OVERLAPMAMBA_*`` (nested fields with ``__``: ``OVERLAPMAMBA_BATCHING__MAX_BATCH=4``),
+an optional TOML file (``--config`` or ``OVERLAPMAMBA_CONFIG``), then these defaults.
+``overlapmamba dump-config`` prints the merged result as TOML-ready JSON.
+
+The projection is deliberately absent: it comes from the model's own metadata.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+Role = Literal["robot", "mapper", "viewer", "admin"]
+IndexKind = Literal["auto", "flat", "ivf"]
+MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LimitSettings(_Section):
+    max_body_bytes: int = Field(64 << 20, gt=0, description="largest request body, as sent")
+    max_decoded_bytes: int = Field(
+        128 << 20, gt=0, description="largest body after Content-Encoding (bomb guard)"
+    )
+    min_points: int = Field(100, ge=1, description="fewer points than this is not a scan")
+    max_points: int = Field(2_000_000, ge=1)
+    max_batch_scans: int = Field(64, ge=1, description="scans per descriptors:batch request")
+    max_batch_keyframes: int = Field(10_000, ge=1, description="rows per keyframes:batch")
+    max_k: int = Field(100, ge=1, description="largest k a query may ask for")
+    request_timeout_s: float = Field(30.0, gt=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> LimitSettings:
+        if self.min_points > self.max_points:
+            raise ValueError("limits.min_points exceeds limits.max_points")
+        return self
+
+
+class BatchSettings(_Section):
+    max_batch: int = Field(8, ge=1, le=256, description="scans per encoder call")
+    max_wait_ms: float = Field(2.0, ge=0, description="how long a batch waits to fill")
+    queue_size: int = Field(64, ge=1, description="scans waiting to encode; beyond: 503")
+    intra_op_threads: int = Field(0, ge=0, description="onnxruntime threads (0: all cores)")
+
+
+class IndexSettings(_Section):
+    kind: IndexKind = Field("auto", description="default index for new maps")
+    approximate_above: int = Field(
+        100_000, ge=1, description="'auto' maps switch from exact to IVF above this size"
+    )
+    ivf_nprobe: int = Field(32, ge=1, description="IVF lists searched per query")
+    snapshot_every: int = Field(5_000, ge=1, description="writes between automatic snapshots")
+    search_threads: int = Field(1, ge=1, description="FAISS threads per search")
+
+
+class ObserveSettings(_Section):
+    insert_min_distance_m: float = Field(
+        2.0, ge=0, description="insert=auto: distance moved since the robot's last keyframe"
+    )
+    insert_min_interval_s: float = Field(
+        10.0, ge=0, description="insert=auto: or time elapsed since the robot's last keyframe"
+    )
+    exclude_recent_s: float = Field(
+        30.0, ge=0, description="observe: skip the session's own keyframes this recent"
+    )
+    stream_queue: int = Field(
+        4, ge=1, description="WebSocket frames buffered per connection; beyond: close 1013"
+    )
+
+
+class LoopClosureSettings(_Section):
+    max_distance: float = Field(
+        0.5,
+        gt=0,
+        le=2,
+        description="accept a loop closure when the top-1 descriptor L2 distance is below",
+    )
+    min_margin: float = Field(
+        0.0, ge=0, description="and the top-2 distance exceeds the top-1 by at least this"
+    )
+
+
+class ApiKey(_Section):
+    name: str = Field(min_length=1)
+    role: Role
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="hex SHA-256 of the key")
+    maps: list[str] | None = Field(None, description="robot keys: maps it may insert into")
+
+
+class AuthSettings(_Section):
+    keys: list[ApiKey] = Field(default_factory=list)
+
+    @field_validator("keys")
+    @classmethod
+    def _unique(cls, keys: list[ApiKey]) -> list[ApiKey]:
+        names = [k.name for k in keys]
+        if len(set(names)) != len(names):
+            raise ValueError("auth.keys: names must be unique")
+        return keys
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(
+        env_prefix="OVERLAPMAMBA_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        protected_namespaces=(),
+    )
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Path("data")
+    model: Path = Path("models/overlapmamba-hdl64.onnx")
+    insecure: bool = Field(False, description="allow a non-loopback host without API keys")
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    limits: LimitSettings = Field(default_factory=LimitSettings)  # type: ignore[arg-type]
+    batching: BatchSettings = Field(default_factory=BatchSettings)  # type: ignore[arg-type]
+    index: IndexSettings = Field(default_factory=IndexSettings)  # type: ignore[arg-type]
+    observe: ObserveSettings = Field(default_factory=ObserveSettings)  # type: ignore[arg-type]
+    loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources = [init_settings, env_settings]
+        config = os.environ.get("OVERLAPMAMBA_CONFIG")
+        if config:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(config)))
+        return tuple(sources)
+
+    @property
+    def loopback(self) -> bool:
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+    def check_binding(self) -> None:
+        """Without API keys the service answers anyone who can reach it: loopback only,
+        unless ``insecure`` says otherwise."""
+        if not self.auth.keys and not self.loopback and not self.insecure:
+            raise ValueError(
+                f"refusing to listen on {self.host} without API keys: configure auth.keys "
+                "(see `overlapmamba hash-key`), bind to 127.0.0.1, or pass --insecure"
+            )
+
+
+def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
+    """Settings from a TOML file (if given), the environment and explicit overrides."""
+    values = {k: v for k, v in overrides.items() if v is not None}
+    if config is None:
+        return Settings(**values)
+    if not config.is_file():
+        raise ValueError(f"config file {config} does not exist")
+    previous = os.environ.get("OVERLAPMAMBA_CONFIG")
+    os.environ["OVERLAPMAMBA_CONFIG"] = str(config)
+    try:
+        return Settings(**values)
+    finally:
+        if previous is None:
+            del os.environ["OVERLAPMAMBA_CONFIG"]
+        else:
+            os.environ["OVERLAPMAMBA_CONFIG"] = previous

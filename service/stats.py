@@ -1,0 +1,176 @@
+"""Recognition statistics: JSON for dashboards (``/v1/stats``) and Prometheus (``/metrics``).
+
+Percentiles come from a sliding window of the last ``WINDOW`` samples per stage, so they
+describe now, not the process's lifetime; Prometheus gets cumulative histograms.
+Each app has its own ``CollectorRegistry`` so several apps (tests) never share counters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections import Counter, defaultdict, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from prometheus_client import CollectorRegistry, Gauge, Histogram
+from prometheus_client import Counter as PCounter
+
+WINDOW = 2048
+STAGES = ("decode", "project", "encode", "search", "total")
+_LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+
+
+@dataclass
+class _Robot:
+    last_seen: float = 0.0
+    observations: int = 0
+    inserts: int = 0
+    loop_closures: int = 0
+
+
+@dataclass
+class _Counts:
+    inserts: int = 0
+    queries: int = 0
+    loop_closures: int = 0
+    robots: dict[str, _Robot] = field(default_factory=lambda: defaultdict(_Robot))
+    recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
+
+    def public(self) -> dict[str, Any]:
+        now = time.time()
+        last_min = sum(1 for t in self.recent if now - t <= 60.0)
+        return {
+            "inserts": self.inserts,
+            "queries": self.queries,
+            "queries_per_s_1m": last_min / 60.0,
+            "loop_closures": self.loop_closures,
+            "loop_closure_rate": self.loop_closures / self.queries if self.queries else 0.0,
+            "robots": {
+                name: {
+                    "last_seen": r.last_seen,
+                    "observations": r.observations,
+                    "inserts": r.inserts,
+                    "loop_closures": r.loop_closures,
+                }
+                for name, r in sorted(self.robots.items())
+            },
+        }
+
+
+class Stats:
+    def __init__(self, model_id: str) -> None:
+        self.model_id = model_id
+        self.started = time.time()
+        self._lock = threading.Lock()
+        self.total = _Counts()
+        self.by_map: dict[str, _Counts] = defaultdict(_Counts)
+        self.latency: dict[str, deque[float]] = {s: deque(maxlen=WINDOW) for s in STAGES}
+        self.batch_sizes: Counter[int] = Counter()
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.p_latency = Histogram(
+            "overlapmamba_stage_seconds",
+            "Time per request stage",
+            ["stage"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.p_requests = PCounter(
+            "overlapmamba_requests",
+            "HTTP requests by route and status",
+            ["route", "status"],
+            registry=r,
+        )
+        self.p_queries = PCounter("overlapmamba_queries", "Place queries", ["map"], registry=r)
+        self.p_inserts = PCounter("overlapmamba_inserts", "Keyframes inserted", ["map"], registry=r)
+        self.p_loops = PCounter(
+            "overlapmamba_loop_closures", "Accepted loop closures", ["map", "robot"], registry=r
+        )
+        self.p_batch = Histogram(
+            "overlapmamba_encoder_batch_size",
+            "Scans per encoder call",
+            buckets=(1, 2, 4, 8, 16, 32, 64),
+            registry=r,
+        )
+        self.p_keyframes = Gauge(
+            "overlapmamba_map_keyframes", "Keyframes per map", ["map"], registry=r
+        )
+        self.p_queue = Gauge("overlapmamba_encoder_queue", "Scans waiting to encode", registry=r)
+
+    def timings(self, ms: dict[str, float]) -> None:
+        with self._lock:
+            for stage, v in ms.items():
+                if stage in self.latency:
+                    self.latency[stage].append(v)
+                    self.p_latency.labels(stage).observe(v / 1000.0)
+
+    def batch(self, size: int, _seconds: float) -> None:
+        with self._lock:
+            self.batch_sizes[size] += 1
+        self.p_batch.observe(size)
+
+    def request(self, route: str, status: int) -> None:
+        self.p_requests.labels(route, str(status)).inc()
+
+    def _robot(self, counts: _Counts, robot: str | None) -> _Robot | None:
+        if robot is None:
+            return None
+        rec = counts.robots[robot]
+        rec.last_seen = time.time()
+        return rec
+
+    def query(self, map_id: str, robot: str | None, accepted: bool) -> None:
+        self.p_queries.labels(map_id).inc()
+        if accepted:
+            self.p_loops.labels(map_id, robot or "").inc()
+        with self._lock:
+            for c in (self.total, self.by_map[map_id]):
+                c.queries += 1
+                c.recent.append(time.time())
+                c.loop_closures += accepted
+                rec = self._robot(c, robot)
+                if rec is not None:
+                    rec.observations += 1
+                    rec.loop_closures += accepted
+
+    def insert(self, map_id: str, robot: str | None, n: int = 1) -> None:
+        self.p_inserts.labels(map_id).inc(n)
+        with self._lock:
+            for c in (self.total, self.by_map[map_id]):
+                c.inserts += n
+                rec = self._robot(c, robot)
+                if rec is not None:
+                    rec.inserts += n
+
+    def forget_map(self, map_id: str) -> None:
+        with self._lock:
+            self.by_map.pop(map_id, None)
+        with contextlib.suppress(KeyError):
+            self.p_keyframes.remove(map_id)
+
+    def percentiles(self) -> dict[str, dict[str, float | int]]:
+        out: dict[str, dict[str, float | int]] = {}
+        with self._lock:
+            for stage, window in self.latency.items():
+                a = np.array(window, dtype=np.float64)
+                if a.size:
+                    p50, p90, p99 = np.percentile(a, [50, 90, 99])
+                    out[stage] = {"p50": p50, "p90": p90, "p99": p99, "n": int(a.size)}
+                else:
+                    out[stage] = {"p50": 0.0, "p90": 0.0, "p99": 0.0, "n": 0}
+        return out
+
+    def public(self, map_id: str | None = None) -> dict[str, Any]:
+        with self._lock:
+            counts = (self.by_map[map_id] if map_id is not None else self.total).public()
+            hist = {str(k): v for k, v in sorted(self.batch_sizes.items())}
+        return {
+            "model_id": self.model_id,
+            "uptime_s": time.time() - self.started,
+            **counts,
+            "latency_ms": self.percentiles(),
+            "batch_size_histogram": hist,
+        }

@@ -1,0 +1,351 @@
+"""The durable store of one map: SQLite in WAL mode, the source of truth.
+
+Every write is one transaction, committed (``synchronous=FULL``: fsynced) before the caller
+acknowledges it. Each write takes the next value of the map's sequence number ``seq``;
+an insert stamps its row with it, a delete stamps ``deleted_seq`` on the row and keeps it as
+a tombstone, so "everything after seq S" — what a FAISS snapshot at S is missing — is two
+indexed range scans. Tombstones older than the newest snapshot are purged.
+
+Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the FAISS ids.
+
+    descriptor  (D,) float16 blob — compact, and the exact values the index holds
+    yaw         (C, W) float16 blob, or NULL when a batch insert sent none
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    keyframe_id TEXT UNIQUE,
+    deleted_keyframe_id TEXT,
+    robot_id TEXT NOT NULL,
+    session_id TEXT NOT NULL,
+    timestamp REAL NOT NULL,
+    pose TEXT,
+    descriptor BLOB NOT NULL,
+    yaw BLOB,
+    yaw_shape TEXT,
+    content_hash TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    deleted_seq INTEGER,
+    created_at REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
+CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
+"""
+
+
+class StoreError(RuntimeError):
+    """The store file is missing, of another schema, or of another model."""
+
+
+@dataclass(frozen=True)
+class NewKeyframe:
+    keyframe_id: str
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    descriptor: np.ndarray  # (D,) float32
+    yaw: np.ndarray | None  # (C, W) float32
+    content_hash: str
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    id: int
+    keyframe_id: str
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    content_hash: str
+    seq: int
+    created_at: float
+
+    def public(self) -> dict[str, Any]:
+        return {
+            "keyframe_id": self.keyframe_id,
+            "robot_id": self.robot_id,
+            "session_id": self.session_id,
+            "timestamp": self.timestamp,
+            "pose": self.pose,
+        }
+
+
+_KF_COLUMNS = (
+    "id, keyframe_id, robot_id, session_id, timestamp, pose, content_hash, seq, created_at"
+)
+
+
+def _keyframe(row: tuple[Any, ...]) -> Keyframe:
+    return Keyframe(
+        id=row[0],
+        keyframe_id=row[1],
+        robot_id=row[2],
+        session_id=row[3],
+        timestamp=row[4],
+        pose=json.loads(row[5]) if row[5] else None,
+        content_hash=row[6],
+        seq=row[7],
+        created_at=row[8],
+    )
+
+
+def to_f16(descriptor: np.ndarray) -> np.ndarray:
+    return np.asarray(descriptor, dtype=np.float16)
+
+
+def index_vector(blob: bytes) -> np.ndarray:
+    """The float32 unit vector the index holds for a stored float16 descriptor."""
+    v = np.frombuffer(blob, dtype=np.float16).astype(np.float32)
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+class Store:
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._write = self._connect()
+        self._write_lock = threading.Lock()
+        self._local = threading.local()
+        with self._write:
+            self._write.executescript(_SCHEMA)
+        version = self.get_meta("schema_version")
+        if version is None:
+            self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
+        elif int(version) != SCHEMA_VERSION:
+            raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
+
+    def _connect(self) -> sqlite3.Connection:
+        con = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA synchronous=FULL")
+        con.execute("PRAGMA busy_timeout=10000")
+        return con
+
+    def _reader(self) -> sqlite3.Connection:
+        con = getattr(self._local, "con", None)
+        if con is None:
+            con = self._connect()
+            self._local.con = con
+        return con
+
+    def close(self) -> None:
+        self._write.close()
+
+    # ---- meta -----------------------------------------------------------------------------
+
+    def get_meta(self, key: str) -> str | None:
+        row = self._reader().execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def set_meta(self, **values: Any) -> None:
+        with self._write_lock:
+            self._write.execute("BEGIN IMMEDIATE")
+            try:
+                self._write.executemany(
+                    "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                    [(k, v if isinstance(v, str) else json.dumps(v)) for k, v in values.items()],
+                )
+                self._write.execute("COMMIT")
+            except BaseException:
+                self._write.execute("ROLLBACK")
+                raise
+
+    @property
+    def last_seq(self) -> int:
+        return int(self.get_meta("seq") or 0)
+
+    # ---- writes ---------------------------------------------------------------------------
+
+    def insert(self, rows: list[NewKeyframe]) -> tuple[list[int], int]:
+        """Insert rows in one committed transaction → (their ids, the new seq)."""
+        now = time.time()
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                seq = int(con.execute("SELECT value FROM meta WHERE key='seq'").fetchone()[0]) + 1
+                ids = []
+                for r in rows:
+                    yaw = None if r.yaw is None else to_f16(r.yaw)
+                    cur = con.execute(
+                        "INSERT INTO keyframes(keyframe_id, robot_id, session_id, timestamp, "
+                        "pose, descriptor, yaw, yaw_shape, content_hash, seq, created_at) "
+                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (
+                            r.keyframe_id,
+                            r.robot_id,
+                            r.session_id,
+                            r.timestamp,
+                            None if r.pose is None else json.dumps(r.pose),
+                            to_f16(r.descriptor).tobytes(),
+                            None if yaw is None else yaw.tobytes(),
+                            None if yaw is None else json.dumps(list(yaw.shape)),
+                            r.content_hash,
+                            seq,
+                            now,
+                        ),
+                    )
+                    ids.append(int(cur.lastrowid or 0))
+                con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        return ids, seq
+
+    def delete(self, keyframe_id: str) -> int | None:
+        """Tombstone one keyframe → its id, or None if there is no such live keyframe."""
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                row = con.execute(
+                    "SELECT id FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
+                ).fetchone()
+                if row is None:
+                    con.execute("ROLLBACK")
+                    return None
+                seq = int(con.execute("SELECT value FROM meta WHERE key='seq'").fetchone()[0]) + 1
+                con.execute(
+                    "UPDATE keyframes SET keyframe_id = NULL, deleted_keyframe_id = ?, "
+                    "deleted_seq = ? WHERE id = ?",
+                    (keyframe_id, seq, row[0]),
+                )
+                con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        return int(row[0])
+
+    def purge_tombstones(self, upto_seq: int) -> int:
+        """Drop tombstones that a durable snapshot at ``upto_seq`` already reflects."""
+        with self._write_lock:
+            cur = self._write.execute(
+                "DELETE FROM keyframes WHERE deleted_seq IS NOT NULL AND deleted_seq <= ?",
+                (upto_seq,),
+            )
+        return cur.rowcount
+
+    # ---- reads ----------------------------------------------------------------------------
+
+    def count(self) -> int:
+        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+        return int(self._reader().execute(sql).fetchone()[0])
+
+    def get(self, keyframe_id: str) -> Keyframe | None:
+        row = (
+            self._reader()
+            .execute(f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
+            .fetchone()
+        )
+        return None if row is None else _keyframe(row)
+
+    def get_many(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
+        out: dict[str, Keyframe] = {}
+        for start in range(0, len(keyframe_ids), 500):
+            chunk = keyframe_ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            for row in self._reader().execute(
+                f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id IN ({marks})", chunk
+            ):
+                kf = _keyframe(row)
+                out[kf.keyframe_id] = kf
+        return out
+
+    def by_ids(self, ids: list[int]) -> dict[int, tuple[Keyframe, np.ndarray | None]]:
+        """Live keyframes and their yaw features (C, W) float32, by row id."""
+        if not ids:
+            return {}
+        marks = ",".join("?" * len(ids))
+        out = {}
+        for row in self._reader().execute(
+            f"SELECT {_KF_COLUMNS}, yaw, yaw_shape FROM keyframes "
+            f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
+            ids,
+        ):
+            kf = _keyframe(row[:9])
+            yaw = None
+            if row[9] is not None:
+                shape = tuple(json.loads(row[10]))
+                yaw = np.frombuffer(row[9], dtype=np.float16).reshape(shape).astype(np.float32)
+            out[kf.id] = (kf, yaw)
+        return out
+
+    def descriptor(self, keyframe_id: str) -> np.ndarray | None:
+        row = (
+            self._reader()
+            .execute("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
+            .fetchone()
+        )
+        return None if row is None else index_vector(row[0])
+
+    def live_rows(
+        self, after_seq: int = 0, chunk: int = 20_000, *, upto_seq: int | None = None
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, list[tuple[str, str, float]]]]:
+        """Rows inserted after ``after_seq`` (and up to ``upto_seq``) that are live — or were
+        deleted only after ``upto_seq`` — in chunks:
+        ids (n,) int64, vectors (n, D) float32, [(robot, session, timestamp)]."""
+        args: tuple[int, ...]
+        if upto_seq is None:
+            where, args = "seq > ? AND keyframe_id IS NOT NULL", (after_seq,)
+        else:
+            where = "seq > ? AND seq <= ? AND (deleted_seq IS NULL OR deleted_seq > ?)"
+            args = (after_seq, upto_seq, upto_seq)
+        cur = self._reader().execute(
+            "SELECT id, descriptor, robot_id, session_id, timestamp FROM keyframes "
+            f"WHERE {where} ORDER BY id",
+            args,
+        )
+        while rows := cur.fetchmany(chunk):
+            ids = np.array([r[0] for r in rows], dtype=np.int64)
+            vecs = np.stack([index_vector(r[1]) for r in rows])
+            yield ids, vecs, [(r[2], r[3], r[4]) for r in rows]
+
+    def deleted_after(self, after_seq: int) -> np.ndarray:
+        rows = self._reader().execute(
+            "SELECT id FROM keyframes WHERE deleted_seq > ? AND seq <= ?", (after_seq, after_seq)
+        )
+        return np.array([r[0] for r in rows], dtype=np.int64)
+
+    def filter_columns(self) -> Iterator[tuple[int, str, str, float]]:
+        yield from self._reader().execute(
+            "SELECT id, robot_id, session_id, timestamp FROM keyframes "
+            "WHERE keyframe_id IS NOT NULL ORDER BY id"
+        )
+
+    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+        row = (
+            self._reader()
+            .execute(
+                f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND "
+                "keyframe_id IS NOT NULL ORDER BY timestamp DESC LIMIT 1",
+                (robot_id,),
+            )
+            .fetchone()
+        )
+        return None if row is None else _keyframe(row)
+
+    def backup(self, dest: Path) -> None:
+        """A consistent copy, safe while the service writes (SQLite's online backup)."""
+        target = sqlite3.connect(dest)
+        try:
+            self._reader().backup(target)
+        finally:
+            target.close()
