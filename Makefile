@@ -38,11 +38,9 @@ format: $(VENV)/.installed-all
 	$(BIN)/ruff format .
 	$(BIN)/ruff check --fix .
 
+# Maps live under ./data/maps; settings: `overlapmamba dump-config`, OVERLAPMAMBA_* variables.
 serve: $(VENV)/.installed-serve
-	@echo "The place-recognition service is not built yet (issue 7): nothing to start."
-	@echo "Its default model is ready: $(MODEL) (card: models/README.md)."
-	@echo "Available now: $(BIN)/overlapmamba --help (range images, loop ground truth)."
-	@exit 2
+	$(BIN)/overlapmamba serve --host $(HOST) --port $(PORT) --model $(MODEL)
 
 bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/projection.py
@@ -50,6 +48,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/encoder.py
 	$(BIN)/python benchmarks/place_recognition.py
+	$(BIN)/python benchmarks/service.py
 
 # The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
 data: $(VENV)/.installed-all

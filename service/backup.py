@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from service.maps import check_map_id
+from service.schemas import check_map_id
 from service.store import SCHEMA_VERSION, Store
 
 LOCK_NAME = "service.lock"

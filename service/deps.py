@@ -26,10 +26,10 @@ def get_principal(request: Request) -> Principal:
 
 def require(action: Action) -> Callable[..., Principal]:
     """A dependency that lets through only callers whose role allows ``action``
-    (map-scoped checks, such as a robot's allowed maps, happen in the route)."""
+    (on the route's ``map_id`` where it has one: a robot key may list its maps)."""
 
     def check(request: Request, who: Annotated[Principal, Depends(get_principal)]) -> Principal:
-        request.app.state.auth.authorize(who, action)
+        request.app.state.auth.authorize(who, action, request.path_params.get("map_id"))
         return who
 
     return check

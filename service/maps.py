@@ -19,7 +19,6 @@ import hashlib
 import json
 import logging
 import os
-import re
 import shutil
 import struct
 import threading
@@ -34,22 +33,12 @@ import numpy as np
 from lidar_core.yaw import estimate_yaw
 from service.errors import BadRequest, Conflict, NotFound
 from service.index import VectorIndex
-from service.settings import MAP_ID_PATTERN, IndexSettings
+from service.schemas import MAP_ID, check_map_id
+from service.settings import IndexSettings
 from service.store import Keyframe, NewKeyframe, Store, index_vector, to_f16
 
 log = logging.getLogger("overlapmamba.service")
 _MAGIC = b"OMSNAP01"
-_MAP_ID = re.compile(MAP_ID_PATTERN)
-
-
-def check_map_id(map_id: str) -> str:
-    if not _MAP_ID.fullmatch(map_id):
-        raise BadRequest(
-            f"map id {map_id!r} is not allowed; allowed: {MAP_ID_PATTERN} "
-            "(lower-case letters, digits, '_' and '-', at most 64 characters)",
-            pattern=MAP_ID_PATTERN,
-        )
-    return map_id
 
 
 class RWLock:
@@ -535,7 +524,7 @@ class MapRegistry:
     def load_all(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         for folder in sorted(self.root.iterdir()):
-            if folder.is_dir() and _MAP_ID.fullmatch(folder.name):
+            if folder.is_dir() and MAP_ID.fullmatch(folder.name):
                 if (folder / "store.sqlite").exists():
                     self.maps[folder.name] = Map.open(folder.name, folder, self.settings)
             elif folder.name.startswith((".trash-", ".import-")):

@@ -1,0 +1,535 @@
+"""HTTP contract of every route, in-process (httpx ASGITransport), on the shipped model."""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import io
+import json
+import math
+import struct
+
+import numpy as np
+import pytest
+import zstandard
+from service_kit import MODEL, OCTET, running, scan
+
+from service.auth import hash_key
+from service.encoder import Encoder
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def anyio_backend():
+    return "asyncio"
+
+
+@pytest.fixture(scope="module")
+def encoder() -> Encoder:
+    return Encoder(MODEL, intra_op_threads=2)
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    return Settings(data_dir=tmp_path / "data")
+
+
+def kf_params(kid: str, ts: float, **extra: object) -> dict[str, object]:
+    return {"keyframe_id": kid, "timestamp": ts, "robot_id": "r1", "session_id": "s1", **extra}
+
+
+def err(r) -> dict:
+    body = r.json()
+    assert set(body) == {"error"} and set(body["error"]) == {"code", "message", "detail"}, body
+    return body["error"]
+
+
+async def test_health_descriptors_and_every_scan_encoding(settings, encoder):
+    s = scan(0)
+    async with running(settings, encoder) as c:
+        assert (await c.get("/healthz")).json()["status"] == "ok"
+        ready = (await c.get("/readyz")).json()
+        assert ready["status"] == "ready" and ready["detail"]["model_id"] == encoder.model_id
+        r = await c.post("/v1/descriptors", content=s.tobytes(), headers=OCTET)
+        assert r.status_code == 200, r.text
+        body = r.json()
+        ref = np.array(body["descriptor"])
+        assert ref.shape == (256,) and abs(np.linalg.norm(ref) - 1) < 1e-4
+        assert body["model_id"] == encoder.model_id
+        assert set(body["timings_ms"]) >= {"decode", "project", "encode"}
+        npy = io.BytesIO()
+        np.save(npy, s)
+        from pypcd4 import Encoding
+        from pypcd4 import PointCloud as Pcd
+
+        pcd_buf = io.BytesIO()
+        Pcd.from_xyzi_points(s).save(pcd_buf, encoding=Encoding.BINARY_COMPRESSED)
+        bodies = [
+            (s[:, :3].tobytes(), {**OCTET, "x-point-fields": "xyz"}),
+            (npy.getvalue(), {"content-type": "application/x-npy"}),
+            (gzip.compress(s.tobytes()), {**OCTET, "content-encoding": "gzip"}),
+            (
+                zstandard.ZstdCompressor().compress(s.tobytes()),
+                {**OCTET, "content-encoding": "zstd"},
+            ),
+        ]
+        bodies.append((pcd_buf.getvalue(), {"content-type": "application/x-pcd"}))
+        for content, headers in bodies:
+            r = await c.post("/v1/descriptors", content=content, headers=headers)
+            assert r.status_code == 200, (headers, r.text)
+            assert np.dot(np.array(r.json()["descriptor"]), ref) > 0.9999, headers
+        # the length-prefixed batch: same descriptors, in order
+        scans = [s, scan(1)]
+        batch = b"".join(struct.pack("<I", len(x.tobytes())) + x.tobytes() for x in scans)
+        r = await c.post(
+            "/v1/descriptors:batch",
+            content=batch,
+            headers={"content-type": "application/x-scan-batch; format=application/octet-stream"},
+        )
+        assert r.status_code == 200, r.text
+        descs = np.array(r.json()["descriptors"])
+        assert descs.shape == (2, 256) and np.dot(descs[0], ref) > 0.9999
+        assert np.dot(descs[1], ref) < 0.9999
+        r = await c.post(
+            "/v1/descriptors:batch",
+            content=batch[:-10],
+            headers={"content-type": "application/x-scan-batch"},
+        )
+        assert r.status_code == 400 and "truncated" in err(r)["message"]
+
+
+async def test_maps_keyframes_queries_and_stats(settings, encoder):
+    async with running(settings, encoder) as c:
+        r = await c.put("/v1/maps/town", json={"index": "flat"})
+        assert r.status_code == 201 and r.json()["created"] is True
+        r = await c.put("/v1/maps/town", json={"index": "flat"})
+        assert r.status_code == 200 and r.json()["created"] is False
+        assert (await c.put("/v1/maps/town", json={"index": "ivf"})).status_code == 409
+        assert (await c.put("/v1/maps/Town!")).status_code == 400
+        assert (await c.put("/v1/maps/yard")).status_code == 201
+        assert [m["map_id"] for m in (await c.get("/v1/maps")).json()["maps"]] == ["town", "yard"]
+
+        scans = [scan(i) for i in range(3)]
+        for i, s in enumerate(scans):
+            r = await c.post(
+                "/v1/maps/town/keyframes",
+                params=kf_params(f"k{i}", 100.0 + i, pose=f"{i},0,0,0,0,0,1"),
+                content=s.tobytes(),
+                headers=OCTET,
+            )
+            assert r.status_code == 201, r.text
+        # idempotent on keyframe_id
+        again = await c.post(
+            "/v1/maps/town/keyframes",
+            params=kf_params("k0", 100.0, pose="0,0,0,0,0,0,1"),
+            content=scans[0].tobytes(),
+            headers=OCTET,
+        )
+        assert again.status_code == 200 and again.json()["created"] is False
+        clash = await c.post(
+            "/v1/maps/town/keyframes",
+            params=kf_params("k0", 100.0),
+            content=scans[1].tobytes(),
+            headers=OCTET,
+        )
+        assert clash.status_code == 409 and err(clash)["code"] == "keyframe_conflict"
+
+        kf = (await c.get("/v1/maps/town/keyframes/k1")).json()
+        assert kf["pose"] == [1.0, 0, 0, 0, 0, 0, 1.0] and kf["timestamp"] == 101.0
+        info = (await c.get("/v1/maps/town")).json()
+        assert info["keyframes"] == 3 and info["index"]["vectors"] == 3
+
+        # a turned copy of k2 finds k2 first, with the turn as its yaw
+        r = await c.post(
+            "/v1/maps/town/query", params={"k": 2}, content=scan(2, 40.0).tobytes(), headers=OCTET
+        )
+        assert r.status_code == 200, r.text
+        q = r.json()
+        best = q["matches"][0]
+        assert best["keyframe_id"] == "k2" and best["robot_id"] == "r1"
+        assert abs(best["yaw_deg"] - 40.0) < 1.5 and best["yaw_confidence"] > 0.9
+        assert math.isclose(
+            best["distance"], math.sqrt(max(0, 2 - 2 * best["similarity"])), abs_tol=1e-6
+        )
+        assert len(q["matches"]) == 2
+        assert q["loop_closure"]["accepted"] is True
+        assert q["loop_closure"]["margin_top1_top2"] > 0
+        assert set(q["timings_ms"]) >= {"decode", "project", "encode", "search", "total"}
+
+        # by descriptor (JSON), with filters
+        d = (await c.post("/v1/descriptors", content=scans[1].tobytes(), headers=OCTET)).json()
+        r = await c.post(
+            "/v1/maps/town/query", params={"k": 3}, json={"descriptor": d["descriptor"]}
+        )
+        assert next(m["keyframe_id"] for m in r.json()["matches"]) == "k1"
+        assert r.json()["matches"][0]["yaw_deg"] is None  # no scan, no yaw
+        r = await c.post(
+            "/v1/maps/town/query",
+            params={"k": 3, "time_from": 100.5, "time_to": 101.5},
+            json={"descriptor": d["descriptor"]},
+        )
+        assert [m["keyframe_id"] for m in r.json()["matches"]] == ["k1"]
+        r = await c.post(
+            "/v1/maps/town/query",
+            params={"k": 3, "exclude_session": "s1"},
+            json={"descriptor": d["descriptor"]},
+        )
+        assert r.json()["matches"] == [] and r.json()["loop_closure"]["accepted"] is False
+
+        # delete a keyframe
+        assert (await c.delete("/v1/maps/town/keyframes/k1")).status_code == 204
+        assert (await c.get("/v1/maps/town/keyframes/k1")).status_code == 404
+        assert (await c.delete("/v1/maps/town/keyframes/k1")).status_code == 404
+        r = await c.post(
+            "/v1/maps/town/query", params={"k": 3}, json={"descriptor": d["descriptor"]}
+        )
+        assert "k1" not in [m["keyframe_id"] for m in r.json()["matches"]]
+
+        snap = (await c.post("/v1/maps/town/snapshot")).json()
+        assert snap["seq"] == 4 and snap["bytes"] > 0
+
+        stats = (await c.get("/v1/stats")).json()
+        assert stats["model_id"] == encoder.model_id and stats["inserts"] == 3
+        assert stats["queries"] == 5 and stats["loop_closures"] >= 2
+        assert stats["robots"]["r1"]["inserts"] == 3
+        assert stats["latency_ms"]["encode"]["n"] >= 5
+        assert sum(stats["batch_size_histogram"].values()) >= 5
+        assert stats["maps"]["town"]["keyframes"] == 2
+        mstats = (await c.get("/v1/maps/town/stats")).json()
+        assert mstats["map"]["keyframes"] == 2 and mstats["inserts"] == 3
+        metrics = (await c.get("/metrics")).text
+        assert 'overlapmamba_stage_seconds_bucket{le="0.001",stage="encode"}' in metrics
+        assert 'overlapmamba_map_keyframes{map="town"} 2.0' in metrics
+        page = await c.get("/dashboard")
+        assert (
+            page.status_code == 200
+            and "/v1/stats" in page.text
+            and "http" not in page.text.split("<script")[0].lower().replace("http-equiv", "")
+        )
+
+        assert (await c.delete("/v1/maps/yard")).status_code == 204
+        assert (await c.get("/v1/maps/yard")).status_code == 404
+
+
+async def test_keyframe_batches_check_model_and_values(settings, encoder):
+    rng = np.random.default_rng(0)
+    vecs = rng.normal(size=(5, 256))
+    vecs /= np.linalg.norm(vecs, axis=1, keepdims=True)
+
+    def batch(model_id=encoder.model_id, **over):
+        kfs = [
+            {"keyframe_id": f"b{i}", "timestamp": float(i), "descriptor": v.tolist(), **over}
+            for i, v in enumerate(vecs)
+        ]
+        return {"model_id": model_id, "keyframes": kfs}
+
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/m")
+        r = await c.post("/v1/maps/m/keyframes:batch", json=batch())
+        assert r.status_code == 200 and r.json()["inserted"] == 5
+        r = await c.post("/v1/maps/m/keyframes:batch", json=batch())
+        assert r.json() | {"keyframes": None} == {"inserted": 0, "existing": 5, "keyframes": None}
+        r = await c.post("/v1/maps/m/keyframes:batch", json=batch(model_id="om-other"))
+        assert r.status_code == 409 and err(r)["code"] == "model_mismatch"
+        bad = batch()
+        bad["keyframes"][0]["descriptor"] = [0.1] * 255
+        r = await c.post("/v1/maps/m/keyframes:batch", json=bad)
+        assert r.status_code == 422 and "exactly 256" in err(r)["message"]
+        bad["keyframes"][0]["descriptor"] = [float("nan")] * 256
+        r = await c.post(
+            "/v1/maps/m/keyframes:batch",
+            content=json.dumps(bad).encode(),
+            headers={"content-type": "application/json"},
+        )
+        assert r.status_code == 422
+        r = await c.post("/v1/maps/m/keyframes:batch", json=batch(pose=[0, 0, 0, 0, 0, 0, 0]))
+        assert r.status_code == 400 and err(r)["code"] == "bad_pose"
+        r = await c.post("/v1/maps/m/query", params={"k": 1}, json={"descriptor": vecs[3].tolist()})
+        assert r.json()["matches"][0]["keyframe_id"] == "b3"
+        r = await c.post("/v1/maps/m/query", json={"descriptor": [1.0] * 12})
+        assert r.status_code == 422 and "exactly 256" in err(r)["message"]
+        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 5  # nothing partial
+
+
+async def test_observe_inserts_when_due_and_excludes_own_recent_frames(settings, encoder):
+    settings.observe.insert_min_distance_m = 5.0
+    settings.observe.insert_min_interval_s = 30.0
+    settings.observe.exclude_recent_s = 20.0
+    s0 = scan(0).tobytes()
+
+    async def observe(ts, pose, insert="auto", body=s0, robot="r1"):
+        r = await c.post(
+            "/v1/maps/w/observe",
+            params={
+                "robot_id": robot,
+                "session_id": "s",
+                "timestamp": ts,
+                "pose": pose,
+                "insert": insert,
+            },
+            content=body,
+            headers=OCTET,
+        )
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/w")
+        o = await observe(0.0, "0,0,0,0,0,0,1")
+        assert o["inserted"] and o["insert_reason"] == "first" and o["matches"] == []
+        o = await observe(1.0, "1,0,0,0,0,0,1")  # moved 1 m, 1 s: not due; own frame excluded
+        assert not o["inserted"] and o["insert_reason"] == "not_due" and o["matches"] == []
+        o = await observe(2.0, "6,0,0,0,0,0,1")
+        assert o["inserted"] and o["insert_reason"] == "distance"
+        o = await observe(40.0, "6,0,0,0,0,0,1")  # 38 s later: due by time; sees older frames
+        assert o["insert_reason"] == "time"
+        assert {m["keyframe_id"] for m in o["matches"]} == {"r1:s:0.0", "r1:s:2.0"}
+        o = await observe(40.0, "6,0,0,0,0,0,1", insert="always")  # a retry: not inserted twice
+        assert not o["inserted"] and o["insert_reason"] == "existing"
+        o = await observe(41.0, "6,0,0,0,0,0,1", insert="never", robot="r2")
+        assert not o["inserted"] and o["insert_reason"] == "never"
+        assert (await c.get("/v1/maps/w")).json()["keyframes"] == 3
+
+
+async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):
+    settings = Settings(data_dir=tmp_path / "d")
+    settings.limits.max_points = 50_000
+    settings.limits.max_body_bytes = 4 << 20
+    settings.limits.max_decoded_bytes = 2 << 20
+    good = scan(0)
+    nan = good.copy()
+    nan[5, 1] = np.nan
+    cases = [
+        ("nan", nan.tobytes(), OCTET, {}, 422, "NaN"),
+        ("empty", b"", OCTET, {}, 422, "allowed: 100 to"),
+        ("few", good[:10].tobytes(), OCTET, {}, 422, "allowed: 100 to"),
+        ("many", np.zeros((60_000, 4), np.float32).tobytes(), OCTET, {}, 413, "50000"),
+        ("length", good.tobytes()[:-3], OCTET, {}, 400, "truncated"),
+        ("fields", good.tobytes(), {**OCTET, "x-point-fields": "xyzrgb"}, {}, 400, "allowed: xyz"),
+        ("type", good.tobytes(), {"content-type": "text/csv"}, {}, 415, "allowed"),
+        ("json scan", b"[[1,2,3]]", {"content-type": "application/json"}, {}, 415, "never a JSON"),
+        ("pose", good.tobytes(), OCTET, {"pose": "1,2,3"}, 400, "x,y,z,qx,qy,qz,qw"),
+        ("pose nan", good.tobytes(), OCTET, {"pose": "nan,0,0,0,0,0,1"}, 400, "not valid"),
+        ("timestamp", good.tobytes(), OCTET, {"timestamp": "inf"}, 422, "timestamp"),
+        ("keyframe id", good.tobytes(), OCTET, {"keyframe_id": "a b"}, 422, "keyframe_id"),
+        (
+            "bomb",
+            gzip.compress(bytes(40 << 20)),
+            {**OCTET, "content-encoding": "gzip"},
+            {},
+            413,
+            "decompresses",
+        ),
+        ("encoding", good.tobytes(), {**OCTET, "content-encoding": "br"}, {}, 415, "gzip, zstd"),
+        ("too big", bytes(5 << 20), OCTET, {}, 413, "allowed: at most"),
+    ]
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/m")
+        for name, body, headers, params, status, text in cases:
+            p = {"keyframe_id": f"x-{name.replace(' ', '-')}", "timestamp": 1.0, **params}
+            r = await c.post("/v1/maps/m/keyframes", params=p, content=body, headers=headers)
+            assert r.status_code == status, (name, r.text)
+            assert text in err(r)["message"], (name, r.text)
+        r = await c.post("/v1/maps/nope/query", content=good.tobytes(), headers=OCTET)
+        assert r.status_code == 404 and err(r)["code"] == "map_not_found"
+        r = await c.post("/v1/maps/m/query", params={"k": 0}, content=good.tobytes(), headers=OCTET)
+        assert r.status_code == 422
+        r = await c.post(
+            "/v1/maps/m/query", params={"exclude_recent_s": 5}, json={"descriptor": [1.0] * 256}
+        )
+        assert r.status_code == 400 and "session_id" in err(r)["message"]
+        assert (await c.get("/v1/nothing")).status_code == 404
+        assert err(await c.get("/v1/nothing"))["code"] == "route_not_found"
+        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 0
+        assert (await c.get("/readyz")).status_code == 200  # still serving
+
+
+async def test_overload_answers_503_with_retry_after(tmp_path, encoder):
+    settings = Settings(data_dir=tmp_path / "d", batching={"max_batch": 1, "queue_size": 1})
+    body = scan(0).tobytes()
+    async with running(settings, encoder) as c:
+        rs = await asyncio.gather(
+            *(c.post("/v1/descriptors", content=body, headers=OCTET) for _ in range(6))
+        )
+    codes = sorted(r.status_code for r in rs)
+    assert 200 in codes and 503 in codes and set(codes) <= {200, 503}, codes
+    r503 = next(r for r in rs if r.status_code == 503)
+    assert r503.headers["retry-after"] == "1" and err(r503)["code"] == "overloaded"
+
+
+async def test_timeout_answers_504(tmp_path, encoder):
+    settings = Settings(data_dir=tmp_path / "d", limits={"request_timeout_s": 0.01})
+    async with running(settings, encoder) as c:
+        r = await c.post("/v1/descriptors", content=scan(0).tobytes(), headers=OCTET)
+        assert r.status_code == 504 and err(r)["code"] == "timeout"
+        assert (await c.get("/healthz")).status_code == 200
+
+
+async def test_concurrent_queries_and_inserts(settings, encoder):
+    rng = np.random.default_rng(1)
+    errors: list[str] = []
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/busy")
+        loop = asyncio.get_running_loop()
+        stop = loop.time() + 3.0
+        inserted = 0
+
+        async def writer(w: int):
+            nonlocal inserted
+            i = 0
+            while loop.time() < stop:
+                v = rng.normal(size=(4, 256))
+                v /= np.linalg.norm(v, axis=1, keepdims=True)
+                kfs = [
+                    {
+                        "keyframe_id": f"w{w}-{i}-{j}",
+                        "timestamp": float(i),
+                        "descriptor": x.tolist(),
+                    }
+                    for j, x in enumerate(v)
+                ]
+                r = await c.post(
+                    "/v1/maps/busy/keyframes:batch",
+                    json={"model_id": encoder.model_id, "keyframes": kfs},
+                )
+                if r.status_code != 200:
+                    errors.append(r.text)
+                inserted += 4
+                i += 1
+
+        async def reader():
+            while loop.time() < stop:
+                v = rng.normal(size=256)
+                r = await c.post(
+                    "/v1/maps/busy/query",
+                    params={"k": 5, "exclude_robot": "x"},
+                    json={"descriptor": (v / np.linalg.norm(v)).tolist()},
+                )
+                if r.status_code != 200:
+                    errors.append(r.text)
+
+        async def deleter():
+            while loop.time() < stop:
+                await asyncio.sleep(0.05)
+                r = await c.delete("/v1/maps/busy/keyframes/w0-1-0")
+                if r.status_code not in (204, 404):
+                    errors.append(r.text)
+
+        await asyncio.gather(writer(0), writer(1), reader(), reader(), reader(), deleter())
+        info = (await c.get("/v1/maps/busy")).json()
+    assert not errors, errors[:3]
+    assert inserted > 20
+    assert info["index"]["vectors"] == info["keyframes"] >= inserted - 1
+
+
+async def test_model_mismatch_is_refused(settings, encoder):
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/old")
+        c.app.state.service.registry.get("old").store.set_meta(model_id="om-previous")  # type: ignore[attr-defined]
+    async with running(settings, encoder) as c:
+        r = await c.post("/v1/maps/old/query", json={"descriptor": [1.0] * 256})
+        assert r.status_code == 409 and err(r)["code"] == "model_mismatch"
+        assert "om-previous" in err(r)["message"]
+
+
+ROUTES = [  # method, path, the roles allowed
+    ("GET", "/v1/stats", {"viewer", "admin"}),
+    ("GET", "/metrics", {"viewer", "admin"}),
+    ("GET", "/dashboard", {"viewer", "admin"}),
+    ("GET", "/v1/maps/m/stats", {"viewer", "admin"}),
+    ("POST", "/v1/descriptors", {"robot", "mapper", "admin"}),
+    ("POST", "/v1/descriptors:batch", {"robot", "mapper", "admin"}),
+    ("POST", "/v1/maps/m/query", {"robot", "mapper", "admin"}),
+    (
+        "POST",
+        "/v1/maps/m/observe?robot_id=r&timestamp=1&insert=never",
+        {"robot", "mapper", "admin"},
+    ),
+    ("POST", "/v1/maps/m/observe?robot_id=r&timestamp=1", {"robot", "mapper", "admin"}),
+    ("POST", "/v1/maps/m/keyframes?keyframe_id=a&timestamp=1", {"robot", "mapper", "admin"}),
+    ("POST", "/v1/maps/other/keyframes?keyframe_id=a&timestamp=1", {"mapper", "admin"}),
+    ("POST", "/v1/maps/m/keyframes:batch", {"mapper", "admin"}),
+    ("GET", "/v1/maps/m/keyframes/a", {"mapper", "admin"}),
+    ("DELETE", "/v1/maps/m/keyframes/a", {"mapper", "admin"}),
+    ("GET", "/v1/maps", {"mapper", "admin"}),
+    ("GET", "/v1/maps/m", {"mapper", "admin"}),
+    ("PUT", "/v1/maps/m", {"mapper", "admin"}),
+    ("POST", "/v1/maps/m/snapshot", {"mapper", "admin"}),
+    ("DELETE", "/v1/maps/m", {"mapper", "admin"}),
+]
+
+
+async def test_every_route_refuses_missing_and_wrong_keys(tmp_path, encoder):
+    roles = ("robot", "mapper", "viewer", "admin")
+    keys = [{"name": r, "role": r, "sha256": hash_key(f"secret-{r}")} for r in roles]
+    keys[0]["maps"] = ["m"]
+    settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
+    async with running(settings, encoder) as c:
+        for method, path, allowed in ROUTES:
+            r = await c.request(method, path)
+            assert r.status_code == 401, (method, path, r.status_code)
+            if path == "/dashboard":
+                assert r.headers["www-authenticate"].startswith("Basic")
+            r = await c.request(method, path, headers={"x-api-key": "wrong"})
+            assert r.status_code == 401 and err(r)["code"] == "invalid_api_key"
+            for role in roles:
+                headers = {"authorization": f"Bearer secret-{role}"}
+                r = await c.request(method, path, headers=headers)
+                if role in allowed:
+                    assert r.status_code not in (401, 403), (method, path, role, r.text)
+                else:
+                    assert r.status_code == 403, (method, path, role, r.status_code)
+        # the open probes and the docs need no key
+        assert (await c.get("/healthz")).status_code == 200
+        assert (await c.get("/readyz")).status_code == 200
+        assert (await c.get("/openapi.json")).status_code == 200
+
+
+async def test_not_ready_before_the_lifespan(settings, encoder):
+    import httpx
+
+    from service.app import create_app
+
+    app = create_app(settings, encoder=encoder)
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        r = await c.get("/readyz")
+        assert r.status_code == 503 and r.headers["retry-after"] == "1"
+        r = await c.post("/v1/descriptors", content=b"", headers=OCTET)
+        assert r.status_code == 503 and err(r)["code"] == "not_ready"
+
+
+async def test_openapi_documents_every_route_with_examples(settings, encoder):
+    async with running(settings, encoder) as c:
+        spec = (await c.get("/openapi.json")).json()
+    paths = spec["paths"]
+    for p in [
+        "/v1/descriptors",
+        "/v1/descriptors:batch",
+        "/v1/maps",
+        "/v1/maps/{map_id}",
+        "/v1/maps/{map_id}/keyframes",
+        "/v1/maps/{map_id}/keyframes:batch",
+        "/v1/maps/{map_id}/keyframes/{keyframe_id}",
+        "/v1/maps/{map_id}/query",
+        "/v1/maps/{map_id}/observe",
+        "/v1/maps/{map_id}/snapshot",
+        "/v1/maps/{map_id}/stats",
+        "/v1/stats",
+        "/healthz",
+        "/readyz",
+        "/metrics",
+        "/dashboard",
+    ]:
+        assert p in paths, p
+    body = paths["/v1/maps/{map_id}/query"]["post"]["requestBody"]["content"]
+    assert {
+        "application/octet-stream",
+        "application/x-npy",
+        "application/x-pcd",
+        "application/json",
+    } <= set(body)
+    assert "examples" in spec["components"]["schemas"]["QueryOut"]
+    assert "examples" in spec["components"]["schemas"]["KeyframeBatchIn"]
+    assert "404" in paths["/v1/maps/{map_id}/query"]["post"]["responses"]

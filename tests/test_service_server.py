@@ -1,0 +1,190 @@
+"""Against a real `overlapmamba serve` process: the WebSocket stream, SIGKILL durability,
+backup and restore, and the refusal to listen openly without keys."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+from service_kit import MODEL, OCTET, ROOT, scan, server
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+pytestmark = pytest.mark.slow
+
+
+def _meta(ts: float, **extra: object) -> str:
+    return json.dumps({"seq": ts, "timestamp": ts, "pose": f"{ts},0,0,0,0,0,1", **extra})
+
+
+def test_stream_sigkill_durability_and_backup(tmp_path):
+    data = tmp_path / "data"
+    env = {"OVERLAPMAMBA_OBSERVE__STREAM_QUEUE": "3", "OVERLAPMAMBA_INDEX__SNAPSHOT_EVERY": "25"}
+    rng = np.random.default_rng(0)
+    acked: dict[str, list[float]] = {}
+    with server(data, env) as (url, proc):
+        c = httpx.Client(base_url=url, timeout=30)
+        assert c.put("/v1/maps/town").status_code == 201
+        model_id = c.get("/readyz").json()["detail"]["model_id"]
+        ws_url = url.replace("http", "ws") + "/v1/maps/town/stream?robot_id=r1&session_id=s1&k=3"
+
+        # ---- the stream: results in order, a bad frame answered, then backpressure ----------
+        with connect(ws_url) as ws:
+            ws.send(_meta(0.0, insert="always"))
+            ws.send(scan(0).tobytes())
+            got = [json.loads(ws.recv(timeout=30))]
+            ws.send(_meta(1.0))  # the next three fit in the queue of 3 even if none is done
+            ws.send(b"\x00\x01\x02")  # not a whole record
+            ws.send(b"orphan")  # binary without metadata
+            ws.send(_meta(60.0))
+            ws.send(scan(1).tobytes())
+            got += [json.loads(ws.recv(timeout=30)) for _ in range(3)]
+        assert [g["seq"] for g in got] == [0.0, 1.0, None, 60.0]
+        assert got[0]["ok"] and got[0]["inserted"] and got[0]["insert_reason"] == "always"
+        assert not got[1]["ok"] and got[1]["error"]["code"] == "undecodable_point_cloud"
+        assert not got[2]["ok"] and "without a metadata frame" in got[2]["error"]["message"]
+        assert got[3]["ok"] and got[3]["insert_reason"] == "time"
+        assert got[3]["matches"][0]["keyframe_id"] == "r1:s1:0.0"
+        acked |= {g["keyframe_id"]: [] for g in got if g.get("inserted")}
+
+        body = scan(2).tobytes()
+        with pytest.raises(ConnectionClosed) as closed, connect(ws_url) as ws:
+            for i in range(12):  # far more than 3 pending, without reading
+                ws.send(_meta(100.0 + i, insert="never"))
+                ws.send(body)
+            for _ in range(12):
+                ws.recv(timeout=30)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1013
+        assert "outran" in closed.value.rcvd.reason
+
+        nope = url.replace("http", "ws") + "/v1/maps/nope/stream?robot_id=r1"
+        with pytest.raises(Exception, match="1008|403|rejected"), connect(nope):
+            pass
+
+        # ---- keyframes acknowledged one by one, then SIGKILL mid-stream --------------------
+        stop = threading.Event()
+
+        def insert_forever():
+            i = 0
+            while not stop.is_set():
+                v = rng.normal(size=256)
+                v /= np.linalg.norm(v)
+                kf = {"keyframe_id": f"b{i}", "timestamp": float(i), "descriptor": v.tolist()}
+                try:
+                    r = c.post(
+                        "/v1/maps/town/keyframes:batch",
+                        json={"model_id": model_id, "keyframes": [kf]},
+                    )
+                except httpx.TransportError:
+                    return
+                if r.status_code == 200:
+                    acked[f"b{i}"] = v.tolist()
+                i += 1
+
+        t = threading.Thread(target=insert_forever)
+        t.start()
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        stop.set()
+        t.join(30)
+        c.close()
+    assert len(acked) > 40, len(acked)
+    assert (data / "maps" / "town" / "index.snap").exists()  # snapshots were taken mid-stream
+
+    # ---- restart: every acknowledged keyframe is there and searchable -----------------------
+    with server(data) as (url, _):
+        c = httpx.Client(base_url=url, timeout=30)
+        info = c.get("/v1/maps/town").json()
+        assert info["index"]["vectors"] == info["keyframes"] >= len(acked)
+        for kid in acked:
+            assert c.get(f"/v1/maps/town/keyframes/{kid}").status_code == 200, kid
+        for kid in [k for k in acked if k.startswith("b")][-5:]:
+            r = c.post("/v1/maps/town/query", params={"k": 1}, json={"descriptor": acked[kid]})
+            assert r.json()["matches"][0]["keyframe_id"] == kid
+        # backup while running; restore needs the service stopped
+        backup = tmp_path / "town.sqlite"
+        cli = [sys.executable, "-m", "overlapmamba"]
+        res = subprocess.run(
+            [*cli, "export-map", "town", str(backup), "--data-dir", str(data)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        assert res.returncode == 0, res.stderr
+        res = subprocess.run(
+            [*cli, "import-map", "copy", str(backup), "--data-dir", str(data)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        assert res.returncode == 2 and "running service" in res.stderr
+        c.close()
+    fresh = tmp_path / "restored"
+    res = subprocess.run(
+        [*cli, "import-map", "town2", str(backup), "--data-dir", str(fresh)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stderr
+    con = sqlite3.connect(fresh / "maps" / "town2" / "store.sqlite")
+    n = con.execute("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL").fetchone()[0]
+    con.close()
+    assert n == info["keyframes"]
+
+
+def test_serve_refuses_an_open_host_without_keys(tmp_path):
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "overlapmamba",
+            "serve",
+            "--host",
+            "0.0.0.0",
+            "--port",
+            "1",
+            "--data-dir",
+            str(tmp_path),
+            "--model",
+            str(MODEL),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert res.returncode == 2 and "without API keys" in res.stderr and "--insecure" in res.stderr
+
+
+def test_dump_config_and_hash_key(tmp_path):
+    cfg = tmp_path / "s.toml"
+    cfg.write_text("[batching]\nmax_batch = 5\n")
+    res = subprocess.run(
+        [sys.executable, "-m", "overlapmamba", "dump-config", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={"PATH": "/usr/bin:/bin", "OVERLAPMAMBA_PORT": "8123"},
+    )
+    assert res.returncode == 0, res.stderr
+    dumped = json.loads(res.stdout)
+    assert dumped["batching"]["max_batch"] == 5 and dumped["port"] == 8123
+    res = subprocess.run(
+        [sys.executable, "-m", "overlapmamba", "hash-key", "--role", "viewer", "--key", "abc"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert 'role = "viewer"' in res.stdout
+    assert "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad" in res.stdout
+    _ = OCTET

@@ -1,0 +1,384 @@
+"""Service building blocks without HTTP: bodies, index vs brute force, store, maps, auth,
+settings, micro-batcher."""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zstandard
+
+from service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
+from service.batcher import MicroBatcher
+from service.bodies import decompress, scan_format
+from service.errors import (
+    BadRequest,
+    Conflict,
+    Forbidden,
+    Overloaded,
+    PayloadTooLarge,
+    Unauthorized,
+    UnsupportedMediaType,
+)
+from service.index import VectorIndex, search_reference
+from service.maps import Filters, MapRegistry, RWLock
+from service.settings import AuthSettings, IndexSettings, Settings, load_settings
+from service.store import NewKeyframe, Store
+
+D = 32
+
+
+def unit(rng: np.random.Generator, n: int, d: int = D) -> np.ndarray:
+    x = rng.normal(size=(n, d)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def places(rng: np.random.Generator, n: int, d: int = D, per_place: int = 5) -> np.ndarray:
+    centres = unit(rng, max(1, n // per_place), d)
+    x = centres[rng.integers(0, len(centres), n)] + 0.08 * rng.normal(size=(n, d))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def row(i: int, vec: np.ndarray, robot: str = "r1", session: str = "s1", ts: float | None = None):
+    return NewKeyframe(
+        keyframe_id=f"kf{i}",
+        robot_id=robot,
+        session_id=session,
+        timestamp=float(i if ts is None else ts),
+        pose=None,
+        descriptor=vec,
+        yaw=None,
+        content_hash=hashlib.sha256(vec.tobytes()).hexdigest(),
+    )
+
+
+# ---- bodies ---------------------------------------------------------------------------------
+
+
+def test_decompress_gzip_and_zstd_round_trip():
+    data = np.arange(5000, dtype="<f4").tobytes()
+    assert decompress(gzip.compress(data), "gzip", 1 << 20) == data
+    assert decompress(zstandard.ZstdCompressor().compress(data), "zstd", 1 << 20) == data
+    assert decompress(data, None, 1 << 20) == data
+
+
+@pytest.mark.parametrize("enc", ["gzip", "zstd"])
+def test_decompression_bomb_is_stopped_at_the_limit(enc):
+    bomb_src = bytes(50 << 20)  # 50 MB of zeros → a few kB compressed
+    body = (
+        gzip.compress(bomb_src) if enc == "gzip" else zstandard.ZstdCompressor().compress(bomb_src)
+    )
+    assert len(body) < 1 << 20
+    with pytest.raises(PayloadTooLarge, match="decompresses to more than"):
+        decompress(body, enc, 1 << 20)
+
+
+def test_bad_encodings_and_types_are_named():
+    with pytest.raises(BadRequest, match="truncated"):
+        decompress(gzip.compress(b"x" * 1000)[:-8], "gzip", 1 << 20)
+    with pytest.raises(BadRequest, match="does not decompress"):
+        decompress(b"not gzip", "gzip", 1 << 20)
+    with pytest.raises(UnsupportedMediaType, match="allowed: identity, gzip, zstd"):
+        decompress(b"x", "br", 1 << 20)
+    with pytest.raises(UnsupportedMediaType, match="never a JSON list"):
+        scan_format("application/json")
+    assert scan_format("application/x-pcd; charset=binary") == "pcd"
+
+
+# ---- index against brute force ------------------------------------------------------------------
+
+
+def _recall(index: VectorIndex, vecs, ids, queries, k=10):
+    hits = 0
+    for q in queries:
+        _, got = index.search(q, k)
+        _, want = search_reference(vecs, ids, q, k)
+        hits += len(set(got) & set(want))
+    return hits / (k * len(queries))
+
+
+def test_flat_index_is_exact_and_removes():
+    rng = np.random.default_rng(0)
+    vecs = places(rng, 2000)
+    ids = rng.permutation(10_000)[:2000].astype(np.int64)
+    index = VectorIndex.flat(D)
+    index.add(ids, vecs)
+    queries = places(rng, 20)
+    for q in queries:
+        sims, got = index.search(q, 10)
+        ref_sims, want = search_reference(vecs, ids, q, 10)
+        np.testing.assert_allclose(sims, ref_sims, rtol=1e-5, atol=1e-6)
+        assert list(got) == list(want)
+    gone = ids[:500]
+    assert index.remove(gone) == 500
+    for q in queries:
+        _, got = index.search(q, 10)
+        _, want = search_reference(vecs[500:], ids[500:], q, 10)
+        assert list(got) == list(want)
+
+
+def test_ivf_index_recall_and_deletes():
+    rng = np.random.default_rng(1)
+    vecs = places(rng, 5000)
+    ids = np.arange(5000, dtype=np.int64)
+    index = VectorIndex.ivf(vecs, nprobe=16)
+    index.add(ids, vecs)
+    # revisits: noisy views of stored places; their nearest keyframe is found
+    queries = vecs[rng.integers(0, 5000, 50)] + 0.03 * rng.normal(size=(50, D)).astype(np.float32)
+    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
+    for q in queries:
+        assert index.search(q, 1)[1][0] == search_reference(vecs, ids, q, 1)[1][0]
+    # probing every list is exhaustive, hence exact (recall/latency trade-off: benchmarks/)
+    assert _recall(index, vecs, ids, queries) < 1.0 or index.nprobe >= index.nlist
+    index.nprobe = index.nlist
+    assert _recall(index, vecs, ids, queries) == 1.0
+    index.nprobe = 16
+    assert index.remove(ids[:1000]) == 1000
+    assert index.ntotal == 4000
+    for q in queries[:10]:
+        _, got = index.search(q, 10)
+        assert not set(got) & set(ids[:1000].tolist())
+    copy = VectorIndex.deserialize(index.serialize(), "ivf", nprobe=16)
+    for q in queries[:5]:
+        assert list(copy.search(q, 10)[1]) == list(index.search(q, 10)[1])
+
+
+@pytest.mark.parametrize("kind", ["flat", "ivf"])
+def test_filtered_search_returns_k_whenever_k_are_eligible(kind):
+    rng = np.random.default_rng(2)
+    vecs = places(rng, 3000)
+    ids = np.arange(3000, dtype=np.int64)
+    index = VectorIndex.flat(D) if kind == "flat" else VectorIndex.ivf(vecs, nprobe=1)
+    index.add(ids, vecs)
+    q = vecs[0]
+    allowed = np.zeros(3000, bool)
+    far = np.argsort(vecs @ q)[:12]  # the 12 least similar: surely outside the probed list
+    allowed[far] = True
+    _sims, got = index.search(q, 10, allowed)
+    _ref_sims, want = search_reference(vecs[far], ids[far], q, 10)
+    assert len(got) == 10
+    assert list(got) == list(want)
+    _, got = index.search(q, 50, allowed)
+    assert sorted(got) == sorted(far.tolist())  # k > eligible: every eligible one
+    assert len(index.search(q, 5, np.zeros(3000, bool))[1]) == 0
+
+
+# ---- store and maps ------------------------------------------------------------------------
+
+
+def test_store_sequences_tombstones_and_replay_queries(tmp_path):
+    rng = np.random.default_rng(3)
+    store = Store(tmp_path / "s.sqlite")
+    vecs = unit(rng, 6)
+    ids, seq = store.insert([row(i, vecs[i]) for i in range(4)])
+    assert seq == 1 and len(set(ids)) == 4
+    ids2, seq = store.insert([row(i, vecs[i]) for i in (4, 5)])
+    assert seq == 2
+    assert store.delete("kf1") == ids[1]
+    assert store.delete("kf1") is None
+    assert store.last_seq == 3 and store.count() == 5
+    after1 = np.concatenate([i for i, _, _ in store.live_rows(1)])
+    assert list(after1) == ids2
+    assert list(store.deleted_after(1)) == [ids[1]]
+    # a re-insert after delete gets a new row id: FAISS ids are never reused
+    new_ids, _ = store.insert([row(1, vecs[0])])
+    assert new_ids[0] not in ids + ids2
+    assert store.purge_tombstones(3) == 1
+    v = store.descriptor("kf0")
+    np.testing.assert_allclose(v, vecs[0], atol=2e-3)
+    store.close()
+
+
+def _registry(root: Path, **index: object) -> MapRegistry:
+    r = MapRegistry(root, IndexSettings(**index), model_id="m1", dim=D)
+    r.load_all()
+    return r
+
+
+def test_map_snapshot_and_replay_after_unsnapshotted_writes(tmp_path):
+    rng = np.random.default_rng(4)
+    vecs = unit(rng, 300)
+    reg = _registry(tmp_path)
+    m, created = reg.create("town", "flat")
+    assert created and reg.create("town", "flat")[1] is False
+    with pytest.raises(Conflict):
+        reg.create("town", "ivf")
+    m.insert([row(i, vecs[i]) for i in range(200)])
+    assert m.snapshot()["seq"] == 1
+    m.insert([row(i, vecs[i]) for i in range(200, 300)])  # after the snapshot
+    m.delete("kf5")  # in the snapshot, deleted after it
+    m.delete("kf250")  # inserted and deleted after it
+    reg.close(snapshot=False)  # a crash: no final snapshot
+
+    reg = _registry(tmp_path)
+    m = reg.get("town")
+    assert m.index.ntotal == m.store.count() == 298
+    for i in (0, 199, 200, 299):
+        (best,) = m.search(vecs[i], 1, Filters())
+        assert best.keyframe.keyframe_id == f"kf{i}"
+    for i in (5, 250):
+        assert all(x.keyframe.keyframe_id != f"kf{i}" for x in m.search(vecs[i], 5, Filters()))
+    # a damaged snapshot costs a rebuild, never data
+    (m.folder / "index.snap").write_bytes(b"garbage")
+    reg.close(snapshot=False)
+    reg = _registry(tmp_path)
+    assert reg.get("town").index.ntotal == 298
+    reg.delete("town")
+    assert not (tmp_path / "maps" / "town").exists()
+    with pytest.raises(BadRequest, match="allowed"):
+        reg.get("Bad Id")
+
+
+def test_auto_map_switches_to_ivf_and_keeps_deletes(tmp_path):
+    rng = np.random.default_rng(5)
+    vecs = places(rng, 600)
+    reg = _registry(tmp_path, approximate_above=400, snapshot_every=10_000)
+    m, _ = reg.create("big", "auto")
+    m.insert([row(i, vecs[i]) for i in range(300)])
+    assert not m.wants_rebuild()
+    m.insert([row(i, vecs[i]) for i in range(300, 600)])
+    assert m.wants_rebuild()
+    m.rebuild()
+    assert m.index.kind == "ivf" and m.index.ntotal == 600
+    m.delete("kf7")
+    assert m.index.ntotal == 599
+    (best,) = m.search(vecs[8], 1, Filters())
+    assert best.keyframe.keyframe_id == "kf8"
+    m.snapshot()
+    reg.close(snapshot=False)
+    m = _registry(tmp_path, approximate_above=400).get("big")
+    assert m.index.kind == "ivf" and m.index.ntotal == 599
+
+
+def test_map_filters_and_idempotent_inserts(tmp_path):
+    rng = np.random.default_rng(6)
+    vecs = unit(rng, 40)
+    m, _ = _registry(tmp_path).create("f", "flat")
+    rows = [row(i, vecs[i], robot=f"r{i % 2}", session=f"s{i % 4}", ts=i) for i in range(40)]
+    assert all(r.created for r in m.insert(rows))
+    assert not any(r.created for r in m.insert(rows[:3]))  # same content: the original
+    changed = row(0, vecs[1])
+    with pytest.raises(Conflict, match="different content"):
+        m.insert([row(99, vecs[0]), changed])
+    assert m.store.get("kf99") is None  # nothing partial
+    q = vecs[0]
+    got = m.search(q, 40, Filters(exclude_robot="r0"))
+    assert len(got) == 20 and {x.keyframe.robot_id for x in got} == {"r1"}
+    got = m.search(q, 40, Filters(exclude_session="s1", time_from=10, time_to=29))
+    assert len(got) == 15 and all(10 <= x.keyframe.timestamp <= 29 for x in got)
+    got = m.search(q, 40, Filters(exclude_recent_s=10, session_id="s0", timestamp=39))
+    assert not [x for x in got if x.keyframe.session_id == "s0" and x.keyframe.timestamp > 29]
+    assert len(got) == 40 - 2  # s0 holds 0, 4, …, 36: only 32 and 36 are within 10 s of 39
+    with pytest.raises(BadRequest, match="needs the query's session_id"):
+        m.search(q, 5, Filters(exclude_recent_s=10))
+    assert all(x.distance <= 1.0 for x in m.search(q, 40, Filters(max_distance=1.0)))
+
+
+def test_rwlock_lets_readers_share_and_writers_exclude():
+    lock = RWLock()
+    with lock.read(), lock.read():
+        pass
+    with lock.write():
+        pass
+
+
+# ---- auth and settings -----------------------------------------------------------------------
+
+
+def test_roles_and_keys():
+    keys = [
+        {"name": n, "role": n, "sha256": hash_key(f"key-{n}")}
+        for n in ("mapper", "viewer", "admin")
+    ]
+    keys.append({"name": "robot", "role": "robot", "sha256": hash_key("key-robot"), "maps": ["a"]})
+    auth = Authenticator(AuthSettings.model_validate({"keys": keys}))
+    with pytest.raises(Unauthorized):
+        auth.identify(None)
+    with pytest.raises(Unauthorized):
+        auth.identify("nope")
+    for role, actions in ROLE_ACTIONS.items():
+        who = auth.identify(f"key-{role}")
+        assert who.role == role
+        for action in Action:
+            if action in actions:
+                auth.authorize(who, action, "a")
+            else:
+                with pytest.raises(Forbidden, match="allowed roles"):
+                    auth.authorize(who, action, "a")
+    with pytest.raises(Forbidden, match="may insert into maps"):
+        auth.authorize(auth.identify("key-robot"), Action.INSERT, "b")
+    assert Authenticator(AuthSettings()).identify(None).role == "admin"
+
+
+def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
+    cfg = tmp_path / "s.toml"
+    cfg.write_text("port = 9001\n[batching]\nmax_batch = 3\n[limits]\nmax_points = 5000\n")
+    monkeypatch.setenv("OVERLAPMAMBA_BATCHING__MAX_WAIT_MS", "7")
+    s = load_settings(cfg, host="127.0.0.1")
+    assert (s.port, s.batching.max_batch, s.batching.max_wait_ms) == (9001, 3, 7.0)
+    assert s.limits.max_points == 5000
+    with pytest.raises(ValueError, match="does not exist"):
+        load_settings(tmp_path / "missing.toml")
+    with pytest.raises(ValueError, match="without API keys"):
+        Settings(host="0.0.0.0").check_binding()
+    Settings(host="0.0.0.0", insecure=True).check_binding()
+    Settings(host="::1").check_binding()
+    with pytest.raises(ValueError):
+        Settings(batching={"max_batch": 0})
+
+
+# ---- micro-batcher ---------------------------------------------------------------------------
+
+
+def _encode(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    time.sleep(0.02)  # a real encoder takes time; batches fill meanwhile
+    b = images.shape[0]
+    return images.reshape(b, -1)[:, :4].copy(), images[:, 0, :2].copy()
+
+
+def test_batcher_batches_concurrent_requests_in_order():
+    async def main():
+        mb = MicroBatcher(_encode, max_batch=4, max_wait_ms=5, queue_size=64)
+        await mb.start()
+        images = [np.full((1, 2, 3), i, np.float32) for i in range(12)]
+        out = await asyncio.gather(*(mb.encode(x) for x in images))
+        await mb.stop()
+        return out, mb.stats.sizes
+
+    out, sizes = asyncio.run(main())
+    for i, (desc, _) in enumerate(out):
+        assert desc[0] == i  # every caller gets its own row back
+    assert sum(k * v for k, v in sizes.items()) == 12
+    assert max(sizes) > 1 and max(sizes) <= 4
+
+
+def test_batcher_refuses_beyond_its_queue_and_reports_errors():
+    async def main():
+        mb = MicroBatcher(_encode, max_batch=1, max_wait_ms=0, queue_size=2)
+        await mb.start()
+        res = await asyncio.gather(
+            *(mb.encode(np.zeros((1, 2, 3), np.float32)) for _ in range(8)),
+            return_exceptions=True,
+        )
+        await mb.stop()
+
+        def broken(_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            raise RuntimeError("boom")
+
+        mb2 = MicroBatcher(broken)
+        await mb2.start()
+        with pytest.raises(RuntimeError, match="boom"):
+            await mb2.encode(np.zeros((1, 2, 3), np.float32))
+        assert await asyncio.gather(mb2.encode(np.zeros((1, 2, 3))), return_exceptions=True)
+        await mb2.stop()
+        return res
+
+    res = asyncio.run(main())
+    overloaded = [r for r in res if isinstance(r, Overloaded)]
+    assert overloaded and overloaded[0].headers["Retry-After"]
+    assert any(isinstance(r, tuple) for r in res)
