@@ -4,6 +4,7 @@ and one ASGI middleware for body limits, request timeouts and request metrics.""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -113,55 +114,70 @@ class GuardMiddleware:
                 svc.stats.request(getattr(route, "path", "unmatched"), status)
 
 
+async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
+    app.state.stage = "loading maps"
+    registry = svc.registry
+    try:
+        await run_in_threadpool(registry.load_all)
+    except Exception as err:
+        log.exception("loading the maps failed")
+        app.state.stage = f"failed: {type(err).__name__}: {err}"
+        return
+    for m in registry.maps.values():
+        svc.stats.p_keyframes.labels(m.map_id).set(m.index.ntotal)
+        if m.model_id != svc.model_id:
+            log.warning(
+                "map %s was built with model %s, not %s: its queries and inserts will be "
+                "refused (409)",
+                m.map_id,
+                m.model_id,
+                svc.model_id,
+            )
+    app.state.ready = True
+    app.state.stage = "ready"
+    log.info("ready: %d maps under %s", len(registry.maps), svc.settings.data_dir)
+
+
 def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI:
     """The app. The model loads in the lifespan unless an ``encoder`` is handed in (tests)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        lock = data_dir_lock(settings.data_dir)
-        lock.__enter__()  # one service per data folder; released at shutdown
-        app.state.stage = "loading model"
-        enc = encoder
-        if enc is None:
-            enc = await run_in_threadpool(
-                lambda: Encoder(settings.model, intra_op_threads=settings.batching.intra_op_threads)
-            )
-        log.info(
-            "model %s (%s, %s weights) loaded in %.2f s from %s",
-            enc.model_id,
-            enc.meta.profile.name,
-            enc.meta.weights,
-            enc.load_s,
-            enc.path,
-        )
-        app.state.stage = "loading maps"
-        registry = MapRegistry(
-            settings.data_dir, settings.index, model_id=enc.model_id, dim=enc.dim
-        )
-        await run_in_threadpool(registry.load_all)
-        svc = PlaceService(settings, enc, registry)
-        for m in registry.maps.values():
-            svc.stats.p_keyframes.labels(m.map_id).set(m.index.ntotal)
-            if m.model_id != enc.model_id:
-                log.warning(
-                    "map %s was built with model %s, not %s: its queries and inserts will be "
-                    "refused (409)",
-                    m.map_id,
-                    m.model_id,
-                    enc.model_id,
+        with data_dir_lock(settings.data_dir):  # one service per data folder
+            app.state.stage = "loading model"
+            enc = encoder
+            if enc is None:
+                threads = settings.batching.intra_op_threads
+                enc = await run_in_threadpool(
+                    lambda: Encoder(settings.model, intra_op_threads=threads)
                 )
-        await svc.batcher.start()
-        app.state.service = svc
-        app.state.ready = True
-        app.state.stage = "ready"
-        log.info("ready: %d maps under %s", len(registry.maps), settings.data_dir)
-        try:
-            yield
-        finally:
-            app.state.ready = False
-            await svc.batcher.stop()
-            await run_in_threadpool(registry.close)
-            lock.__exit__(None, None, None)
+            log.info(
+                "model %s (%s, %s weights) loaded in %.2f s from %s",
+                enc.model_id,
+                enc.meta.profile.name,
+                enc.meta.weights,
+                enc.load_s,
+                enc.path,
+            )
+            registry = MapRegistry(
+                settings.data_dir, settings.index, model_id=enc.model_id, dim=enc.dim
+            )
+            svc = PlaceService(settings, enc, registry)
+            await svc.batcher.start()
+            app.state.service = svc
+            # Maps load after start-up: /healthz answers meanwhile (a liveness probe must
+            # not kill a process replaying a large map); /readyz says 503 until done.
+            loader = asyncio.create_task(_load_maps(app, svc))
+            try:
+                yield
+            finally:
+                app.state.ready = False
+                if not loader.done():
+                    loader.cancel()
+                with contextlib.suppress(BaseException):
+                    await loader
+                await svc.batcher.stop()
+                await run_in_threadpool(registry.close)
 
     app = FastAPI(
         title="OverlapMamba place recognition",

@@ -107,6 +107,11 @@ class PlaceService:
     def model_id(self) -> str:
         return self.encoder.model_id
 
+    def forget_map(self, map_id: str) -> None:
+        self.stats.forget_map(map_id)
+        for key in [k for k in self._last_kf if k[0] == map_id]:
+            del self._last_kf[key]
+
     # ---- scan → descriptor ------------------------------------------------------------------
 
     def _decode_project(

@@ -11,6 +11,7 @@
      ├── Unprocessable                   422  well-formed input with invalid values
      ├── Overloaded                      503  the encode queue is full (with Retry-After)
      ├── NotReady                        503  the model or the map indexes are still loading
+     ├── Unavailable                     503  a map whose files could not be opened
      └── Timeout                         504  the request ran past its deadline
 
 Shared-core errors (:mod:`lidar_core.errors`) are mapped in :mod:`service.app`: undecodable
@@ -92,6 +93,11 @@ class NotReady(ServiceError):
     def __init__(self, message: str, **detail: Any) -> None:
         super().__init__(message, **detail)
         self.headers["Retry-After"] = "1"
+
+
+class Unavailable(ServiceError):
+    status = 503
+    code = "unavailable"
 
 
 class Timeout(ServiceError):

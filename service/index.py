@@ -1,11 +1,15 @@
 """The FAISS index of one map — derived from the store, never the source of truth.
 
-Vectors are unit descriptors; similarity is the inner product (= cosine) and the reported
-distance is the L2 distance between unit vectors, √(2 − 2·cos), the metric the model is
-evaluated with.
+Vectors are unit descriptors and the metric is the L2 distance between them (the metric the
+model is evaluated with; cosine = 1 − d²/2). The index is an L2 index, not an inner-product
+one, on purpose: FAISS computes a single query's L2 distances as sums of squared
+differences, which stay accurate for near-identical vectors, while 2 − 2·(x·y) loses them
+to float32 cancellation. The shipped model's descriptors of different places differ by
+distances of order 1e-3 (benchmarks/loop_threshold.py), where that cancellation alone is
+an error of ≈3e-4.
 
-    flat   IndexIDMap2(IndexFlatIP)       exact; the default
-    ivf    IndexIVFFlat (inner product)   approximate, for large maps: nlist ≈ √N lists,
+    flat   IndexIDMap2(IndexFlatL2)       exact; the default
+    ivf    IndexIVFFlat (L2)              approximate, for large maps: nlist ≈ √N lists,
                                           ``nprobe`` of them searched per query
 
 Both take our row ids as FAISS ids and support ``remove_ids``. Filters become an
@@ -42,14 +46,14 @@ class VectorIndex:
 
     @classmethod
     def flat(cls, dim: int) -> VectorIndex:
-        return cls(faiss.IndexIDMap2(faiss.IndexFlatIP(dim)), "flat")
+        return cls(faiss.IndexIDMap2(faiss.IndexFlatL2(dim)), "flat")
 
     @classmethod
     def ivf(cls, train: np.ndarray, *, nprobe: int = 32, seed: int = 0) -> VectorIndex:
         """An empty IVF index whose coarse quantiser is trained on ``train`` (n, D)."""
         n, dim = train.shape
         nlist = ivf_lists(n)
-        index = faiss.IndexIVFFlat(faiss.IndexFlatIP(dim), dim, nlist, faiss.METRIC_INNER_PRODUCT)
+        index = faiss.IndexIVFFlat(faiss.IndexFlatL2(dim), dim, nlist, faiss.METRIC_L2)
         index.cp.seed = seed
         index.cp.max_points_per_centroid = 64  # 64·nlist samples train as well, much faster
         index.train(np.ascontiguousarray(train, dtype=np.float32))
@@ -81,29 +85,29 @@ class VectorIndex:
     def search(
         self, query: np.ndarray, k: int, allowed: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """query (D,) → similarities (≤k,), ids (≤k,), best first. ``allowed`` is a bool mask
-        over row ids (index = id); ids beyond it are not allowed."""
+        """query (D,) → L2 distances (≤k,), ids (≤k,), nearest first. ``allowed`` is a bool
+        mask over row ids (index = id); ids beyond it are not allowed."""
         q = np.ascontiguousarray(query, dtype=np.float32).reshape(1, -1)
         k = min(k, self.ntotal)
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
         if allowed is None:
             params = self._params(None, self.nprobe)
-            sims, ids = self.index.search(q, k, params=params)
-            return _trim(sims[0], ids[0])
+            d2, ids = self.index.search(q, k, params=params)
+            return _trim(d2[0], ids[0])
         eligible = int(allowed.sum())
         k = min(k, eligible)
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
         bitmap = np.packbits(allowed, bitorder="little")
         selector = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(bitmap))
-        sims, ids = self.index.search(q, k, params=self._params(selector, self.nprobe))
-        sims, ids = _trim(sims[0], ids[0])
+        d2, ids = self.index.search(q, k, params=self._params(selector, self.nprobe))
+        dist, ids = _trim(d2[0], ids[0])
         if len(ids) < k and self.kind == "ivf":  # eligible rows outside the probed lists
-            sims, ids = self.index.search(q, k, params=self._params(selector, self.nlist))
-            sims, ids = _trim(sims[0], ids[0])
+            d2, ids = self.index.search(q, k, params=self._params(selector, self.nlist))
+            dist, ids = _trim(d2[0], ids[0])
         del bitmap  # the selector points into it until here
-        return sims, ids
+        return dist, ids
 
     def _params(self, selector: faiss.IDSelector | None, nprobe: int) -> Any:
         p: Any
@@ -125,15 +129,17 @@ class VectorIndex:
         return cls(index, kind, nprobe=nprobe)
 
 
-def _trim(sims: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _trim(d2: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """FAISS's padded squared distances → distances of the real hits."""
     keep = ids >= 0
-    return sims[keep], ids[keep]
+    return np.sqrt(np.maximum(d2[keep], 0.0)), ids[keep]
 
 
 def search_reference(
     vectors: np.ndarray, ids: np.ndarray, query: np.ndarray, k: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Exact top-k by inner product with numpy: the ground truth for tests and recall."""
-    sims = vectors @ np.asarray(query, dtype=np.float32)
-    order = np.argsort(-sims, kind="stable")[:k]
-    return sims[order], ids[order]
+    """Exact top-k by L2 distance, in float64: the ground truth for tests and recall."""
+    diff = np.asarray(vectors, dtype=np.float64) - np.asarray(query, dtype=np.float64)
+    dist = np.sqrt((diff * diff).sum(axis=1))
+    order = np.argsort(dist, kind="stable")[:k]
+    return dist[order], ids[order]

@@ -31,11 +31,11 @@ from typing import Any
 import numpy as np
 
 from lidar_core.yaw import estimate_yaw
-from service.errors import BadRequest, Conflict, NotFound
+from service.errors import BadRequest, Conflict, NotFound, Unavailable
 from service.index import VectorIndex
 from service.schemas import MAP_ID, check_map_id
 from service.settings import IndexSettings
-from service.store import Keyframe, NewKeyframe, Store, index_vector, to_f16
+from service.store import Keyframe, NewKeyframe, Store, unit_vector
 
 log = logging.getLogger("overlapmamba.service")
 _MAGIC = b"OMSNAP01"
@@ -222,6 +222,7 @@ class Map:
         store.set_meta(
             map_id=map_id, model_id=model_id, dim=dim, index_kind=kind, created_at=time.time()
         )
+        store.close()  # a lingering connection would checkpoint into the file later
         return cls.open(map_id, folder, settings)
 
     @classmethod
@@ -377,7 +378,7 @@ class Map:
             if new:
                 ids, seq = self.store.insert(new)
                 id_arr = np.array(ids, dtype=np.int64)
-                vecs = np.stack([index_vector(to_f16(r.descriptor).tobytes()) for r in new])
+                vecs = np.stack([unit_vector(r.descriptor) for r in new])
                 self.index.add(id_arr, vecs)
                 self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
                 self.applied_seq = seq
@@ -443,10 +444,10 @@ class Map:
         q = q / max(float(np.linalg.norm(q)), 1e-12)
         with self.lock.read():
             mask = self.allowed(filters)
-            sims, ids = self.index.search(q, k, mask)
+            dists, ids = self.index.search(q, k, mask)
             rows = self.store.by_ids([int(i) for i in ids])
         matches = []
-        found = [(float(s), int(i)) for s, i in zip(sims, ids, strict=True) if int(i) in rows]
+        found = [(float(d), int(i)) for d, i in zip(dists, ids, strict=True) if int(i) in rows]
         yaws: dict[int, tuple[float, float]] = {}
         stored = {i: rows[i][1] for _, i in found}
         with_yaw = [i for i, f in stored.items() if f is not None]
@@ -457,8 +458,8 @@ class Map:
                 yaws = {
                     i: (float(d), float(c)) for i, d, c in zip(with_yaw, deg, conf, strict=True)
                 }
-        for sim, i in found:
-            dist = float(np.sqrt(max(0.0, 2.0 - 2.0 * sim)))
+        for dist, i in found:
+            sim = 1.0 - dist * dist / 2.0
             if filters.max_distance is not None and dist > filters.max_distance:
                 continue
             y = yaws.get(i)
@@ -519,20 +520,33 @@ class MapRegistry:
         self.model_id = model_id
         self.dim = dim
         self.maps: dict[str, Map] = {}
+        self.failed: dict[str, str] = {}  # map id -> why it could not be opened
         self._lock = threading.Lock()
 
     def load_all(self) -> None:
+        """Open every map. One that cannot be opened (a damaged store) is logged and listed
+        in ``failed`` — the other maps still serve; its files are left untouched."""
         self.root.mkdir(parents=True, exist_ok=True)
         for folder in sorted(self.root.iterdir()):
             if folder.is_dir() and MAP_ID.fullmatch(folder.name):
-                if (folder / "store.sqlite").exists():
+                if not (folder / "store.sqlite").exists():
+                    continue
+                try:
                     self.maps[folder.name] = Map.open(folder.name, folder, self.settings)
+                except Exception as err:
+                    log.exception("map %s cannot be opened; it is not served", folder.name)
+                    self.failed[folder.name] = f"{type(err).__name__}: {err}"
             elif folder.name.startswith((".trash-", ".import-")):
                 shutil.rmtree(folder, ignore_errors=True)
 
     def get(self, map_id: str) -> Map:
         check_map_id(map_id)
         m = self.maps.get(map_id)
+        if m is None and map_id in self.failed:
+            raise Unavailable(
+                f"map {map_id!r} exists but could not be opened: {self.failed[map_id]}",
+                code="map_unavailable",
+            )
         if m is None:
             raise NotFound(
                 f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",

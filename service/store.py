@@ -8,8 +8,11 @@ indexed range scans. Tombstones older than the newest snapshot are purged.
 
 Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the FAISS ids.
 
-    descriptor  (D,) float16 blob — compact, and the exact values the index holds
-    yaw         (C, W) float16 blob, or NULL when a batch insert sent none
+    descriptor  (D,) float32 blob, unit norm — exactly what the index holds. Not float16:
+                the shipped model's places lie ~1e-3 apart, and float16 rounding moves a
+                descriptor by ~3e-4 (benchmarks/loop_threshold.py measures the loss)
+    yaw         (C, W) float16 blob, or NULL when a batch insert sent none (the yaw comes
+                from a correlation peak; float16 does not move it)
 """
 
 from __future__ import annotations
@@ -106,14 +109,18 @@ def _keyframe(row: tuple[Any, ...]) -> Keyframe:
     )
 
 
-def to_f16(descriptor: np.ndarray) -> np.ndarray:
-    return np.asarray(descriptor, dtype=np.float16)
+def to_f16(features: np.ndarray) -> np.ndarray:
+    return np.asarray(features, dtype=np.float16)
+
+
+def unit_vector(descriptor: np.ndarray) -> np.ndarray:
+    """(D,) float32 with unit norm: what the store keeps and the index holds."""
+    v = np.asarray(descriptor, dtype=np.float32)
+    return (v / max(float(np.linalg.norm(v)), 1e-12)).astype(np.float32)
 
 
 def index_vector(blob: bytes) -> np.ndarray:
-    """The float32 unit vector the index holds for a stored float16 descriptor."""
-    v = np.frombuffer(blob, dtype=np.float16).astype(np.float32)
-    return v / max(float(np.linalg.norm(v)), 1e-12)
+    return np.frombuffer(blob, dtype=np.float32).copy()
 
 
 class Store:
@@ -122,6 +129,7 @@ class Store:
         self._write = self._connect()
         self._write_lock = threading.Lock()
         self._local = threading.local()
+        self._readers: list[sqlite3.Connection] = []  # one per thread; closed with the store
         with self._write:
             self._write.executescript(_SCHEMA)
         version = self.get_meta("schema_version")
@@ -142,10 +150,16 @@ class Store:
         if con is None:
             con = self._connect()
             self._local.con = con
+            with self._write_lock:
+                self._readers.append(con)
         return con
 
     def close(self) -> None:
-        self._write.close()
+        with self._write_lock:
+            for con in self._readers:
+                con.close()
+            self._readers.clear()
+            self._write.close()
 
     # ---- meta -----------------------------------------------------------------------------
 
@@ -193,7 +207,7 @@ class Store:
                             r.session_id,
                             r.timestamp,
                             None if r.pose is None else json.dumps(r.pose),
-                            to_f16(r.descriptor).tobytes(),
+                            unit_vector(r.descriptor).tobytes(),
                             None if yaw is None else yaw.tobytes(),
                             None if yaw is None else json.dumps(list(yaw.shape)),
                             r.content_hash,

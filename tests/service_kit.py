@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import socket
@@ -41,6 +42,10 @@ def scan(seed: int, yaw_deg: float = 0.0) -> np.ndarray:
 async def running(settings: Settings, encoder: Encoder) -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(settings, encoder=encoder)
     async with app.router.lifespan_context(app):
+        while not app.state.ready:  # maps load in the background after start-up
+            if app.state.stage.startswith("failed"):
+                raise RuntimeError(app.state.stage)
+            await asyncio.sleep(0.01)
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
             client.app = app  # type: ignore[attr-defined]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import io
 import json
@@ -38,6 +39,12 @@ def settings(tmp_path) -> Settings:
 
 def kf_params(kid: str, ts: float, **extra: object) -> dict[str, object]:
     return {"keyframe_id": kid, "timestamp": ts, "robot_id": "r1", "session_id": "s1", **extra}
+
+
+def _npy(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
 
 
 def err(r) -> dict:
@@ -203,11 +210,8 @@ async def test_maps_keyframes_queries_and_stats(settings, encoder):
         assert 'overlapmamba_stage_seconds_bucket{le="0.001",stage="encode"}' in metrics
         assert 'overlapmamba_map_keyframes{map="town"} 2.0' in metrics
         page = await c.get("/dashboard")
-        assert (
-            page.status_code == 200
-            and "/v1/stats" in page.text
-            and "http" not in page.text.split("<script")[0].lower().replace("http-equiv", "")
-        )
+        assert page.status_code == 200 and "/v1/stats" in page.text
+        assert "http://" not in page.text and "https://" not in page.text  # no CDN: offline
 
         assert (await c.delete("/v1/maps/yard")).status_code == 204
         assert (await c.get("/v1/maps/yard")).status_code == 404
@@ -309,6 +313,14 @@ async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):
         ("length", good.tobytes()[:-3], OCTET, {}, 400, "truncated"),
         ("fields", good.tobytes(), {**OCTET, "x-point-fields": "xyzrgb"}, {}, 400, "allowed: xyz"),
         ("type", good.tobytes(), {"content-type": "text/csv"}, {}, 415, "allowed"),
+        (
+            "dtype",
+            _npy(good.astype(np.int32)),
+            {"content-type": "application/x-npy"},
+            {},
+            400,
+            "float32",
+        ),
         ("json scan", b"[[1,2,3]]", {"content-type": "application/json"}, {}, 415, "never a JSON"),
         ("pose", good.tobytes(), OCTET, {"pose": "1,2,3"}, 400, "x,y,z,qx,qy,qz,qw"),
         ("pose nan", good.tobytes(), OCTET, {"pose": "nan,0,0,0,0,0,1"}, 400, "not valid"),
@@ -424,6 +436,19 @@ async def test_concurrent_queries_and_inserts(settings, encoder):
     assert info["index"]["vectors"] == info["keyframes"] >= inserted - 1
 
 
+async def test_a_damaged_map_is_reported_and_the_others_serve(settings, encoder):
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/good")
+        await c.put("/v1/maps/bad")
+    (settings.data_dir / "maps" / "bad" / "store.sqlite").write_bytes(b"not a database" * 100)
+    async with running(settings, encoder) as c:
+        ready = (await c.get("/readyz")).json()
+        assert "bad" in ready["detail"]["failed_maps"]
+        r = await c.get("/v1/maps/bad")
+        assert r.status_code == 503 and err(r)["code"] == "map_unavailable"
+        assert (await c.get("/v1/maps/good")).status_code == 200
+
+
 async def test_model_mismatch_is_refused(settings, encoder):
     async with running(settings, encoder) as c:
         await c.put("/v1/maps/old")
@@ -485,6 +510,60 @@ async def test_every_route_refuses_missing_and_wrong_keys(tmp_path, encoder):
         assert (await c.get("/healthz")).status_code == 200
         assert (await c.get("/readyz")).status_code == 200
         assert (await c.get("/openapi.json")).status_code == 200
+
+
+async def _ws_handshake(app, path: str, query: str, headers: dict[str, str]) -> dict:
+    """Open a WebSocket on the ASGI app directly → the server's first message."""
+    sent: list[dict] = []
+    inbox = [{"type": "websocket.connect"}]
+
+    async def receive():
+        if inbox:
+            return inbox.pop(0)
+        await asyncio.sleep(3600)
+
+    async def send(message):
+        sent.append(message)
+
+    scope = {
+        "type": "websocket",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": query.encode(),
+        "headers": [(k.lower().encode(), v.encode()) for k, v in headers.items()],
+        "scheme": "ws",
+        "server": ("test", 80),
+        "client": ("127.0.0.1", 1),
+        "root_path": "",
+        "subprotocols": [],
+        "asgi": {"version": "3.0"},
+        "state": {},
+    }
+    task = asyncio.create_task(app(scope, receive, send))
+    for _ in range(200):
+        if sent:
+            break
+        await asyncio.sleep(0.01)
+    task.cancel()
+    with contextlib.suppress(BaseException):
+        await task
+    return sent[0]
+
+
+async def test_stream_refuses_missing_and_wrong_keys(tmp_path, encoder):
+    roles = ("robot", "mapper", "viewer", "admin")
+    keys = [{"name": r, "role": r, "sha256": hash_key(f"secret-{r}")} for r in roles]
+    settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
+    async with running(settings, encoder) as c:
+        await c.put("/v1/maps/m", headers={"x-api-key": "secret-admin"})
+        app = c.app  # type: ignore[attr-defined]
+        path, query = "/v1/maps/m/stream", "robot_id=r1"
+        for headers in ({}, {"x-api-key": "wrong"}, {"x-api-key": "secret-viewer"}):
+            msg = await _ws_handshake(app, path, query, headers)
+            assert msg["type"] == "websocket.close" and msg["code"] == 1008, (headers, msg)
+        for role in ("robot", "mapper", "admin"):
+            msg = await _ws_handshake(app, path, query, {"x-api-key": f"secret-{role}"})
+            assert msg["type"] == "websocket.accept", (role, msg)
 
 
 async def test_not_ready_before_the_lifespan(settings, encoder):

@@ -123,7 +123,7 @@ async def insert_batch(
                 )
         meta = {"robot": k.robot_id, "session": k.session_id, "timestamp": k.timestamp}
         meta["pose"] = k.pose
-        payload = desc.astype(np.float16).tobytes() + (
+        payload = desc.astype(np.float32).tobytes() + (
             b"" if yaw is None else yaw.astype(np.float16).tobytes()
         )
         rows.append(

@@ -61,7 +61,7 @@ async def get_map(map_id: str, svc: ServiceDep, _: CanReadMaps) -> MapOut:
 )
 async def delete_map(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> Response:
     await run_in_threadpool(svc.registry.delete, map_id)
-    svc.stats.forget_map(map_id)
+    svc.forget_map(map_id)
     return Response(status_code=204)
 
 

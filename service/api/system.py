@@ -39,7 +39,11 @@ async def readyz(request: Request) -> Response:
     return JSONResponse(
         Health(
             status="ready",
-            detail={"model_id": svc.model_id, "maps": len(svc.registry.maps)},
+            detail={
+                "model_id": svc.model_id,
+                "maps": len(svc.registry.maps),
+                "failed_maps": svc.registry.failed,
+            },
         ).model_dump()
     )
 
