@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from starlette.concurrency import run_in_threadpool
 
+from lidar_core.points import PointCloud
 from service.batcher import MicroBatcher
 from service.bodies import decode_scan
 from service.encoder import Encoder
@@ -74,7 +75,7 @@ def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
 class Described:
     descriptor: np.ndarray  # (D,)
     yaw: np.ndarray  # (C, W)
-    points_hash: str
+    points: PointCloud  # kept for the content hash, computed only when it is inserted
     timings: dict[str, float]
 
 
@@ -116,19 +117,18 @@ class PlaceService:
 
     def _decode_project(
         self, body: bytes, content_type: str | None, fields: str | None, source: str
-    ) -> tuple[np.ndarray, str, float, float]:
+    ) -> tuple[np.ndarray, PointCloud, float, float]:
         t0 = time.perf_counter()
         points = decode_scan(body, content_type, fields, self.settings.limits, source=source)
-        digest = hashlib.sha256(points.as_xyzi().tobytes()).hexdigest()
         t1 = time.perf_counter()
         image = self.encoder.project(points)
         t2 = time.perf_counter()
-        return image, digest, (t1 - t0) * 1e3, (t2 - t1) * 1e3
+        return image, points, (t1 - t0) * 1e3, (t2 - t1) * 1e3
 
     async def describe(
         self, body: bytes, content_type: str | None, fields: str | None, *, source: str = "scan"
     ) -> Described:
-        image, digest, t_dec, t_proj = await run_in_threadpool(
+        image, points, t_dec, t_proj = await run_in_threadpool(
             self._decode_project, body, content_type, fields, source
         )
         t0 = time.perf_counter()
@@ -137,7 +137,7 @@ class PlaceService:
         )
         t_enc = (time.perf_counter() - t0) * 1e3
         timings = {"decode": t_dec, "project": t_proj, "encode": t_enc}
-        return Described(np.asarray(desc), np.asarray(yaw), digest, timings)
+        return Described(np.asarray(desc), np.asarray(yaw), points, timings)
 
     # ---- maps ---------------------------------------------------------------------------------
 
@@ -166,7 +166,7 @@ class PlaceService:
         m.maintain()
         return results
 
-    def scan_keyframe(
+    async def scan_keyframe(
         self,
         described: Described,
         *,
@@ -177,6 +177,8 @@ class PlaceService:
         pose: list[float] | None,
     ) -> NewKeyframe:
         meta = {"robot": robot_id, "session": session_id, "timestamp": timestamp, "pose": pose}
+        xyzi = described.points.as_xyzi()
+        digest = await run_in_threadpool(lambda: hashlib.sha256(xyzi.tobytes()).digest())
         return NewKeyframe(
             keyframe_id=keyframe_id,
             robot_id=robot_id,
@@ -185,7 +187,7 @@ class PlaceService:
             pose=pose,
             descriptor=described.descriptor,
             yaw=described.yaw,
-            content_hash=content_hash("scan", described.points_hash.encode(), meta),
+            content_hash=content_hash("scan", digest, meta),
         )
 
     async def query(
@@ -292,7 +294,7 @@ class PlaceService:
         inserted = False
         if reason is not None:
             keyframe_id = f"{robot_id}:{session_id}:{timestamp!r}"
-            row = self.scan_keyframe(
+            row = await self.scan_keyframe(
                 described,
                 keyframe_id=keyframe_id,
                 robot_id=robot_id,

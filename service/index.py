@@ -35,11 +35,14 @@ KINDS = ("flat", "ivf")
 
 
 def ivf_lists(n: int) -> int:
-    return int(min(4096, max(16, round(math.sqrt(max(n, 1))))))
+    """4·√N lists (≈250 vectors each at 1M): short lists keep a probe cheap
+    (benchmarks/service.py measures recall and latency against nprobe). At most N/39, the
+    fewest training points per centroid FAISS's k-means accepts."""
+    return int(max(1, min(16384, round(4 * math.sqrt(max(n, 1))), n // 39)))
 
 
 class VectorIndex:
-    def __init__(self, index: faiss.Index, kind: str, *, nprobe: int = 32) -> None:
+    def __init__(self, index: faiss.Index, kind: str, *, nprobe: int = 24) -> None:
         self.index: Any = index  # FAISS's SWIG stubs do not match its Python API
         self.kind = kind
         self.nprobe = nprobe
@@ -49,7 +52,7 @@ class VectorIndex:
         return cls(faiss.IndexIDMap2(faiss.IndexFlatL2(dim)), "flat")
 
     @classmethod
-    def ivf(cls, train: np.ndarray, *, nprobe: int = 32, seed: int = 0) -> VectorIndex:
+    def ivf(cls, train: np.ndarray, *, nprobe: int = 24, seed: int = 0) -> VectorIndex:
         """An empty IVF index whose coarse quantiser is trained on ``train`` (n, D)."""
         n, dim = train.shape
         nlist = ivf_lists(n)
@@ -124,7 +127,7 @@ class VectorIndex:
         return faiss.serialize_index(self.index).tobytes()
 
     @classmethod
-    def deserialize(cls, data: bytes, kind: str, *, nprobe: int = 32) -> VectorIndex:
+    def deserialize(cls, data: bytes, kind: str, *, nprobe: int = 24) -> VectorIndex:
         index = faiss.deserialize_index(np.frombuffer(data, dtype=np.uint8))
         return cls(index, kind, nprobe=nprobe)
 

@@ -63,9 +63,10 @@ class IndexSettings(_Section):
     approximate_above: int = Field(
         100_000, ge=1, description="'auto' maps switch from exact to IVF above this size"
     )
-    ivf_nprobe: int = Field(32, ge=1, description="IVF lists searched per query")
+    ivf_nprobe: int = Field(
+        24, ge=1, description="IVF lists searched per query (recall@10 0.99 at 1M, measured)"
+    )
     snapshot_every: int = Field(5_000, ge=1, description="writes between automatic snapshots")
-    search_threads: int = Field(1, ge=1, description="FAISS threads per search")
 
 
 class ObserveSettings(_Section):
@@ -84,8 +85,11 @@ class ObserveSettings(_Section):
 
 
 class LoopClosureSettings(_Section):
+    # Calibrated for the shipped model on the validation town (benchmarks/loop_threshold.py):
+    # the distance at F1max, where precision is 0.36 and recall 0.62. Recalibrate for another
+    # model; verify accepted closures geometrically before they enter a pose graph.
     max_distance: float = Field(
-        0.5,
+        0.0023,
         gt=0,
         le=2,
         description="accept a loop closure when the top-1 descriptor L2 distance is below",

@@ -64,7 +64,7 @@ async def insert_keyframe(
     pose_values = parse_pose(pose)
     body = await read_body(request, svc.settings.limits)
     d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
-    row = svc.scan_keyframe(
+    row = await svc.scan_keyframe(
         d,
         keyframe_id=keyframe_id,
         robot_id=robot_id,

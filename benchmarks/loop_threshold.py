@@ -1,0 +1,128 @@
+"""Calibrate the service's loop-closure threshold on the validation town (never on test).
+
+Runs the shipped ONNX encoder exactly as the service does (``service.encoder.Encoder``:
+the model's own projection, onnxruntime), scores the loop-closure protocol of
+``lidar_core.metrics`` on ``data/synth/val`` and prints the operating points: the top-1
+descriptor distance at F1max, and the largest distance whose precision is at least 0.9,
+0.95 and 0.99 (a false loop closure corrupts a SLAM map, so robots want high precision).
+The service's ``loop_closure.max_distance`` default is chosen from this table.
+Writes JSON (default bench-results/loop_threshold.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+from tqdm import tqdm
+
+# benchmarks/service.py would shadow the service package: take this folder off the path.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+from lidar_core.datasets import open_sequence  # noqa: E402
+from lidar_core.metrics import evaluate_loop_closure  # noqa: E402
+from lidar_core.overlap import LoopGroundTruth  # noqa: E402
+from service.encoder import Encoder  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "loop_threshold.json")
+    args = ap.parse_args()
+
+    enc = Encoder(args.model)
+    seq = open_sequence(args.sequence)
+    gt = LoopGroundTruth.load(args.sequence / "ground_truth" / "loops.npz")
+    t0 = time.perf_counter()
+    descs = []
+    for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
+        images = np.stack(
+            [enc.project(seq.points(i)) for i in range(start, min(len(seq), start + args.batch))]
+        )
+        descs.append(enc.encode(images)[0])
+    desc = np.concatenate(descs)
+    recent = int(gt.params.get("exclude_recent", 100))
+    # What a float16 store would hold: does the rounding cost accuracy?
+    d16 = desc.astype(np.float16).astype(np.float32)
+    d16 /= np.linalg.norm(d16, axis=1, keepdims=True)
+    res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent=recent)
+    res = evaluate_loop_closure(desc, gt.positives(), exclude_recent=recent)
+    spread = np.linalg.norm(desc - desc.mean(0), axis=1)
+    p, r, t = res.precision, res.recall, res.thresholds
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+    best = int(np.argmax(f1))
+    points = {
+        "f1max": {
+            "threshold": float(t[best]),
+            "precision": float(p[best]),
+            "recall": float(r[best]),
+        }
+    }
+    for target in (0.9, 0.95, 0.99):
+        ok = np.flatnonzero((p >= target) & np.isfinite(t))
+        if len(ok):
+            i = int(ok[np.argmax(r[ok])])
+            points[f"precision>={target}"] = {
+                "threshold": float(t[i]),
+                "precision": float(p[i]),
+                "recall": float(r[i]),
+            }
+        else:
+            points[f"precision>={target}"] = None
+    table = Table(title=f"loop-closure operating points on {seq.name} ({enc.model_id})")
+    for col in ("point", "max distance", "precision", "recall"):
+        table.add_column(col, justify="right")
+    for name, v in points.items():
+        if v is None:
+            table.add_row(name, "not reached", "", "")
+        else:
+            table.add_row(
+                name, f"{v['threshold']:.4f}", f"{v['precision']:.3f}", f"{v['recall']:.3f}"
+            )
+    console = Console()
+    console.print(table)
+    console.print(
+        f"F1max {res.f1max:.3f}, Recall@1 {res.recall_at_1:.3f}, {res.n_queries} queries, "
+        f"{res.n_with_loop} with a loop; {time.perf_counter() - t0:.0f} s"
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps(
+            {
+                "model_id": enc.model_id,
+                "sequence": str(args.sequence),
+                "summary": res.summary(),
+                "operating_points": points,
+                "float16": res16.summary(),
+                "distance_to_mean": {
+                    "median": float(np.median(spread)),
+                    "p99": float(np.percentile(spread, 99)),
+                },
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    console.print(
+        f"float16-rounded descriptors: F1max {res16.f1max:.3f}, Recall@1 "
+        f"{res16.recall_at_1:.3f}; distance to the mean descriptor: median "
+        f"{np.median(spread):.4f}, p99 {np.percentile(spread, 99):.4f}"
+    )
+    console.print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
