@@ -370,10 +370,10 @@ class Map:
                         keyframe_id=r.keyframe_id,
                     )
             new: list[NewKeyframe] = []
+            queued: set[str] = set()
             for r in rows:
-                if r.keyframe_id not in existing and all(
-                    n.keyframe_id != r.keyframe_id for n in new
-                ):
+                if r.keyframe_id not in existing and r.keyframe_id not in queued:
+                    queued.add(r.keyframe_id)
                     new.append(r)
             if new:
                 ids, seq = self.store.insert(new)
