@@ -12,6 +12,7 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -25,6 +26,7 @@ from service.core import PlaceService
 from service.encoder import Encoder
 from service.errors import PayloadTooLarge, ServiceError, error_body
 from service.maps import MapRegistry
+from service.schemas import DescriptorQueryIn, KeyframeBatchIn
 from service.settings import Settings
 
 log = logging.getLogger("overlapmamba.service")
@@ -222,6 +224,24 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
 
     for r in (system.router, descriptors.router, maps.router, keyframes.router, queries.router):
         app.include_router(r)
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's schema, plus the request models of routes that parse their own bodies
+        (scan-or-JSON queries; batches read after the key check)."""
+        if app.openapi_schema is None:
+            schema = get_openapi(
+                title=app.title, version=app.version, description=app.description, routes=app.routes
+            )
+            comps = schema.setdefault("components", {}).setdefault("schemas", {})
+            for model in (DescriptorQueryIn, KeyframeBatchIn):
+                js = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                for name, sub in js.pop("$defs", {}).items():
+                    comps.setdefault(name, sub)
+                comps.setdefault(model.__name__, js)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     app.add_middleware(
         GuardMiddleware,
         max_body_bytes=settings.limits.max_body_bytes,

@@ -16,7 +16,6 @@ one nearly matched. With no keys configured, everyone is admin — and
 from __future__ import annotations
 
 import base64
-import binascii
 import hashlib
 import hmac
 import secrets
@@ -70,9 +69,10 @@ def presented_key(request: Request) -> str | None:
         return value.strip()
     if scheme.lower() == "basic" and value.strip():
         try:
-            _, _, password = base64.b64decode(value.strip()).decode().partition(":")
-        except (binascii.Error, UnicodeDecodeError):
+            decoded = base64.b64decode(value.strip(), validate=True).decode()
+        except ValueError:  # binascii.Error, UnicodeDecodeError and non-ASCII input
             return None
+        _, _, password = decoded.partition(":")
         return password or None
     return request.headers.get("x-api-key") or None
 

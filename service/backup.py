@@ -12,12 +12,13 @@ import fcntl
 import os
 import shutil
 import sqlite3
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from service.schemas import check_map_id
-from service.store import SCHEMA_VERSION, Store
+from service.store import SCHEMA_VERSION, Store, fsync_dir
 
 LOCK_NAME = "service.lock"
 
@@ -86,10 +87,10 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
             f"{src} has store schema {meta.get('schema_version')}; this code reads {SCHEMA_VERSION}"
         )
     with data_dir_lock(data_dir):
-        if folder.exists():
-            if not replace:
-                raise BackupError(f"map {map_id!r} exists under {data_dir}; pass --replace")
-            shutil.rmtree(folder)
+        if folder.exists() and not replace:
+            raise BackupError(f"map {map_id!r} exists under {data_dir}; pass --replace")
+        # The new map is complete before the old one moves: a failure or a crash at any
+        # point leaves one of the two whole (load_all clears the .import/.trash debris).
         tmp = folder.with_name(f".import-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -97,5 +98,10 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         store = Store(tmp / "store.sqlite")
         store.set_meta(map_id=map_id)
         store.close()
+        trash = folder.with_name(f".trash-{map_id}-{time.time_ns()}")
+        if folder.exists():
+            os.replace(folder, trash)
         os.replace(tmp, folder)
+        fsync_dir(folder.parent)
+        shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}

@@ -111,23 +111,26 @@ class MicroBatcher:
                     batch.append(await asyncio.wait_for(self._queue.get(), left))
                 except TimeoutError:
                     break
-            live = [item for item in batch if not item.future.done()]  # drop timed-out ones
-            if not live:
-                continue
-            images = np.stack([item.image for item in live])  # (B, 1, H, W)
-            t0 = loop.time()
             try:
-                desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
-            except Exception as err:  # the encoder failing fails this batch, not the server
-                for item in live:
+                await self._encode_batch(batch)
+            except Exception as err:  # a failing batch fails its callers, not the worker
+                for item in batch:
                     if not item.future.done():
                         item.future.set_exception(err)
-                continue
-            elapsed = loop.time() - t0
-            self.stats.sizes[len(live)] += 1
-            self.stats.encode_s += elapsed
-            if self._on_batch is not None:
-                self._on_batch(len(live), elapsed)
-            for i, item in enumerate(live):
-                if not item.future.done():
-                    item.future.set_result((desc[i], yaw[i]))
+
+    async def _encode_batch(self, batch: list[_Item]) -> None:
+        loop = asyncio.get_running_loop()
+        live = [item for item in batch if not item.future.done()]  # drop timed-out ones
+        if not live:
+            return
+        images = np.stack([item.image for item in live])  # (B, 1, H, W)
+        t0 = loop.time()
+        desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
+        elapsed = loop.time() - t0
+        self.stats.sizes[len(live)] += 1
+        self.stats.encode_s += elapsed
+        for i, item in enumerate(live):
+            if not item.future.done():
+                item.future.set_result((desc[i], yaw[i]))
+        if self._on_batch is not None:
+            self._on_batch(len(live), elapsed)

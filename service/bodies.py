@@ -13,11 +13,11 @@ asked for at most that much, never for "everything".
 
 from __future__ import annotations
 
-import io
 import zlib
 
 import zstandard
 from fastapi import Request
+from starlette.concurrency import run_in_threadpool
 
 from lidar_core.io import FIELD_LAYOUTS, decode
 from lidar_core.points import PointCloud, PointLimits
@@ -56,7 +56,10 @@ async def read_body(request: Request, limits: LimitSettings) -> bytes:
             )
         chunks.append(chunk)
     body = b"".join(chunks)
-    return decompress(body, request.headers.get("content-encoding"), limits.max_decoded_bytes)
+    encoding = request.headers.get("content-encoding")
+    if encoding is None or encoding.strip().lower() == "identity":
+        return body
+    return await run_in_threadpool(decompress, body, encoding, limits.max_decoded_bytes)
 
 
 def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
@@ -73,16 +76,28 @@ def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
             raise _bomb(max_bytes)
         if not d.eof:
             raise BadRequest("gzip body is truncated")
+        if d.unused_data:
+            raise BadRequest("gzip body has data after its end; allowed: one gzip member")
         return out
     if enc == "zstd":
         try:
-            with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(body)) as reader:
-                out = reader.read(max_bytes + 1)
+            declared = zstandard.frame_content_size(body)
         except zstandard.ZstdError as err:
             raise BadRequest(f"zstd body does not decompress: {err}") from None
-        if len(out) > max_bytes:
+        if declared > max_bytes:  # the header says so: refuse before allocating anything
             raise _bomb(max_bytes)
-        return out
+        try:
+            # One frame, nothing after it; an unknown size is capped at max_bytes.
+            return zstandard.ZstdDecompressor().decompress(
+                body, max_output_size=max_bytes, allow_extra_data=False
+            )
+        except zstandard.ZstdError as err:
+            why = "truncated, or larger than the limit" if "full frame" in str(err) else err
+            raise BadRequest(
+                f"zstd body does not decompress ({why}); allowed: one zstd frame of at most "
+                f"{max_bytes} bytes",
+                max_decoded_bytes=max_bytes,
+            ) from None
     raise UnsupportedMediaType(
         f"Content-Encoding {encoding!r} is not supported; allowed: {', '.join(ENCODINGS)}",
         allowed=list(ENCODINGS),

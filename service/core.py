@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,17 +45,18 @@ def check_pose(values: list[float], text: object = None) -> list[float]:
     shown = values if text is None else text
     if len(values) != 7 or not all(math.isfinite(v) for v in values):
         raise BadRequest(f"pose {shown!r} is not valid; allowed: {POSE_FORMAT}", code="bad_pose")
-    q = np.array(values[3:])
+    q = np.array(values[3:], dtype=np.float64)
     norm = float(np.linalg.norm(q))
-    if norm < 1e-6:
+    if not 1e-6 < norm < 1e6:
         raise BadRequest(
-            f"pose {shown!r} has a zero quaternion; allowed: {POSE_FORMAT}", code="bad_pose"
+            f"pose {shown!r} has a quaternion of norm {norm:.3g}; allowed: {POSE_FORMAT}",
+            code="bad_pose",
         )
     return [float(v) for v in values[:3]] + [float(v) for v in q / norm]
 
 
 def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
-    d = np.asarray(values, dtype=np.float32)
+    d = np.asarray(values, dtype=np.float64)
     if d.shape != (dim,):
         raise Unprocessable(
             f"descriptor has {d.size} values; allowed: exactly {dim}",
@@ -64,11 +66,12 @@ def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
     if not np.isfinite(d).all():
         raise Unprocessable("descriptor has NaN or infinite values", code="bad_descriptor")
     norm = float(np.linalg.norm(d))
-    if norm < 1e-6:
+    if not 1e-6 < norm < 1e6:
         raise Unprocessable(
-            "descriptor is all zeros; allowed: a unit vector", code="bad_descriptor"
+            f"descriptor has norm {norm:.3g}; allowed: a unit vector (norm near 1)",
+            code="bad_descriptor",
         )
-    return d / norm
+    return (d / norm).astype(np.float32)
 
 
 @dataclass
@@ -86,6 +89,14 @@ class Observed:
     keyframe_id: str | None
     reason: str
 
+    def public(self) -> dict[str, Any]:
+        return {
+            **self.answer,
+            "inserted": self.inserted,
+            "keyframe_id": self.keyframe_id,
+            "insert_reason": self.reason,
+        }
+
 
 class PlaceService:
     def __init__(self, settings: Settings, encoder: Encoder, registry: MapRegistry) -> None:
@@ -101,8 +112,9 @@ class PlaceService:
             queue_size=b.queue_size,
             on_batch=self.stats.batch,
         )
-        # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto
-        self._last_kf: dict[tuple[str, str], tuple[float, np.ndarray | None]] = {}
+        # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
+        # (robot ids come from clients), a dropped entry is read back from the store
+        self._last_kf: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()
 
     @property
     def model_id(self) -> str:
@@ -232,20 +244,21 @@ class PlaceService:
         self, map_id: str, robot: str, timestamp: float, pose: list[float] | None
     ) -> None:
         pos = None if pose is None else np.array(pose[:3])
-        old = self._last_kf.get((map_id, robot))
-        if old is None or timestamp >= old[0]:
-            self._last_kf[(map_id, robot)] = (timestamp, pos)
+        old = self._last_kf.pop((map_id, robot), None)
+        self._last_kf[(map_id, robot)] = old if old and old[0] > timestamp else (timestamp, pos)
+        while len(self._last_kf) > 10_000:
+            self._last_kf.popitem(last=False)
 
-    def _last(self, m: Map, robot: str) -> tuple[float, np.ndarray | None] | None:
+    async def _last(self, m: Map, robot: str) -> tuple[float, np.ndarray | None] | None:
         key = (m.map_id, robot)
         if key not in self._last_kf:
-            kf = m.store.last_keyframe(robot)
+            kf = await run_in_threadpool(m.store.last_keyframe, robot)
             if kf is None:
                 return None
             self._remember(m.map_id, robot, kf.timestamp, kf.pose)
         return self._last_kf.get(key)
 
-    def insert_due(
+    async def insert_due(
         self, m: Map, robot: str, timestamp: float, pose: list[float] | None, mode: str
     ) -> str | None:
         """Why this observation becomes a keyframe, or None if it does not."""
@@ -253,7 +266,7 @@ class PlaceService:
             return "always"
         if mode == "never":
             return None
-        last = self._last(m, robot)
+        last = await self._last(m, robot)
         if last is None:
             return "first"
         o = self.settings.observe
@@ -289,7 +302,7 @@ class PlaceService:
         answer = await self.query(
             m, described.descriptor, described.yaw, k, filters, timings, robot=robot_id
         )
-        reason = self.insert_due(m, robot_id, timestamp, pose, insert)
+        reason = await self.insert_due(m, robot_id, timestamp, pose, insert)
         keyframe_id = None
         inserted = False
         if reason is not None:

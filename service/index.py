@@ -103,7 +103,7 @@ class VectorIndex:
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
         bitmap = np.packbits(allowed, bitorder="little")
-        selector = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(bitmap))
+        selector = faiss.IDSelectorBitmap(len(bitmap), faiss.swig_ptr(bitmap))  # n: bytes
         d2, ids = self.index.search(q, k, params=self._params(selector, self.nprobe))
         dist, ids = _trim(d2[0], ids[0])
         if len(ids) < k and self.kind == "ivf":  # eligible rows outside the probed lists

@@ -32,10 +32,10 @@ import numpy as np
 
 from lidar_core.yaw import estimate_yaw
 from service.errors import BadRequest, Conflict, NotFound, Unavailable
-from service.index import VectorIndex
+from service.index import VectorIndex, ivf_lists
 from service.schemas import MAP_ID, check_map_id
 from service.settings import IndexSettings
-from service.store import Keyframe, NewKeyframe, Store, unit_vector
+from service.store import Keyframe, NewKeyframe, Store, fsync_dir, unit_vector
 
 log = logging.getLogger("overlapmamba.service")
 _MAGIC = b"OMSNAP01"
@@ -199,6 +199,7 @@ class Map:
         self.columns = FilterColumns()
         self._snapshot_lock = threading.Lock()
         self._maintenance = threading.Lock()
+        self.closed = False
         self.kind: str = store.get_meta("index_kind") or "flat"
         self.model_id: str = store.get_meta("model_id") or ""
         self.created_at = float(store.get_meta("created_at") or 0.0)
@@ -217,12 +218,18 @@ class Map:
         kind: str,
         settings: IndexSettings,
     ) -> Map:
-        folder.mkdir(parents=True, exist_ok=False)
-        store = Store(folder / "store.sqlite")
+        # Built in a temporary folder and renamed into place: a crash leaves either no map
+        # or a whole one (load_all removes the debris), never a store without its metadata.
+        tmp = folder.with_name(f".create-{map_id}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        store = Store(tmp / "store.sqlite")
         store.set_meta(
             map_id=map_id, model_id=model_id, dim=dim, index_kind=kind, created_at=time.time()
         )
         store.close()  # a lingering connection would checkpoint into the file later
+        os.replace(tmp, folder)
+        fsync_dir(folder.parent)
         return cls.open(map_id, folder, settings)
 
     @classmethod
@@ -262,7 +269,7 @@ class Map:
             return self.index.kind != "flat"  # e.g. an IVF snapshot of a map now flat
         if self.index.kind != "ivf":
             return True
-        return n > 4 * self.index.nlist**2  # grown well past what its lists were sized for
+        return ivf_lists(n) >= 2 * self.index.nlist  # grown well past what it was sized for
 
     def maintain(self) -> None:
         """After writes: rebuild or snapshot in a background thread when due (one at a time)."""
@@ -291,6 +298,8 @@ class Map:
             self._rebuild()
 
     def _rebuild(self) -> None:
+        if self.closed:
+            return
         with self.lock.read():
             seq = self.applied_seq
         ids, vecs = [], []
@@ -305,6 +314,8 @@ class Map:
             new = VectorIndex.flat(self.dim)
         new.add(all_ids, all_vecs)
         with self.lock.write():
+            if self.closed:
+                return
             for rows, v, _ in self.store.live_rows(seq):
                 new.add(rows, v)
             new.remove(self.store.deleted_after(seq))
@@ -315,6 +326,7 @@ class Map:
         """Write the index and its seq atomically; then purge tombstones it reflects."""
         with self._snapshot_lock:
             with self.lock.read():
+                self.check_open()
                 seq = self.applied_seq
                 payload = self.index.serialize()
                 kind = self.index.kind
@@ -326,17 +338,19 @@ class Map:
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)
-            dir_fd = os.open(self.folder, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
+            fsync_dir(self.folder)
             self.snapshot_seq = seq
             purged = self.store.purge_tombstones(seq)
         return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
 
     def close(self) -> None:
+        """Under the write lock: requests that still hold this map then see it gone."""
+        self.closed = True
         self.store.close()
+
+    def check_open(self) -> None:
+        if self.closed:
+            raise NotFound(f"map {self.map_id!r} was deleted", code="map_not_found")
 
     # ---- writes -----------------------------------------------------------------------------
 
@@ -359,6 +373,7 @@ class Map:
                     keyframe_id=r.keyframe_id,
                 )
         with self.lock.write():
+            self.check_open()
             existing = self.store.get_many(list(seen))
             for r in rows:
                 old = existing.get(r.keyframe_id)
@@ -397,6 +412,7 @@ class Map:
 
     def delete(self, keyframe_id: str) -> None:
         with self.lock.write():
+            self.check_open()
             row_id = self.store.delete(keyframe_id)
             if row_id is None:
                 raise NotFound(
@@ -443,6 +459,7 @@ class Map:
         q = np.asarray(descriptor, dtype=np.float32)
         q = q / max(float(np.linalg.norm(q)), 1e-12)
         with self.lock.read():
+            self.check_open()
             mask = self.allowed(filters)
             dists, ids = self.index.search(q, k, mask)
             rows = self.store.by_ids([int(i) for i in ids])
@@ -475,6 +492,9 @@ class Map:
         return matches
 
     def info(self) -> dict[str, Any]:
+        with self.lock.read():
+            self.check_open()
+            keyframes = self.store.count()
         return {
             "map_id": self.map_id,
             "model_id": self.model_id,
@@ -484,7 +504,7 @@ class Map:
                 "nlist": self.index.nlist,
                 "vectors": self.index.ntotal,
             },
-            "keyframes": self.store.count(),
+            "keyframes": keyframes,
             "seq": self.applied_seq,
             "snapshot_seq": self.snapshot_seq,
             "created_at": self.created_at,
@@ -536,7 +556,7 @@ class MapRegistry:
                 except Exception as err:
                     log.exception("map %s cannot be opened; it is not served", folder.name)
                     self.failed[folder.name] = f"{type(err).__name__}: {err}"
-            elif folder.name.startswith((".trash-", ".import-")):
+            elif folder.name.startswith((".trash-", ".import-", ".create-")):
                 shutil.rmtree(folder, ignore_errors=True)
 
     def get(self, map_id: str) -> Map:
@@ -556,24 +576,29 @@ class MapRegistry:
         return m
 
     def create(self, map_id: str, kind: str | None) -> tuple[Map, bool]:
+        """Create a map, or return the existing one when ``kind`` is None or the same."""
         check_map_id(map_id)
-        kind = kind or self.settings.kind
         with self._lock:
+            if map_id in self.failed:
+                self.get(map_id)  # raises: its files exist but cannot be opened
             m = self.maps.get(map_id)
             if m is not None:
-                if m.kind != kind:
+                if kind is not None and m.kind != kind:
                     raise Conflict(
                         f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
                         code="map_conflict",
                         index=m.kind,
                     )
                 return m, False
+            folder = self.root / map_id
+            if folder.exists():  # debris without a store (load_all skipped it): not a map
+                shutil.rmtree(folder)
             m = Map.create(
                 map_id,
-                self.root / map_id,
+                folder,
                 model_id=self.model_id,
                 dim=self.dim,
-                kind=kind,
+                kind=kind or self.settings.kind,
                 settings=self.settings,
             )
             self.maps[map_id] = m
@@ -587,10 +612,19 @@ class MapRegistry:
             m.close()
             trash = self.root / f".trash-{map_id}-{time.time_ns()}"
             os.replace(m.folder, trash)
+            fsync_dir(self.root)
         shutil.rmtree(trash, ignore_errors=True)
 
+    def snapshot_list(self) -> list[Map]:
+        with self._lock:
+            return list(self.maps.values())
+
     def close(self, *, snapshot: bool = True) -> None:
-        for m in list(self.maps.values()):
-            if snapshot and m.writes_since_snapshot:
-                m.snapshot()
-            m.close()
+        for m in self.snapshot_list():
+            try:
+                if snapshot and m.writes_since_snapshot:
+                    m.snapshot()
+            except Exception:  # the store is durable; a missing snapshot costs a replay
+                log.exception("map %s: final snapshot failed", m.map_id)
+            finally:
+                m.close()

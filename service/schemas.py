@@ -11,7 +11,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from service.errors import BadRequest
 from service.settings import MAP_ID_PATTERN, IndexKind
 
-NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$"
+# No ":" in names: observe keyframes are named robot:session:timestamp, which stays unique
+# and within the 256 characters of a keyframe id.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}$"
 KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
 MAP_ID = re.compile(MAP_ID_PATTERN)
 POSE_FORMAT = "x,y,z,qx,qy,qz,qw (7 finite numbers, metres and a non-zero quaternion)"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections import Counter, defaultdict, deque
+from collections import Counter, OrderedDict, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +19,7 @@ from prometheus_client import CollectorRegistry, Gauge, Histogram
 from prometheus_client import Counter as PCounter
 
 WINDOW = 2048
+MAX_ROBOTS = 1000  # per-robot rows kept (least recently seen dropped): ids come from clients
 STAGES = ("decode", "project", "encode", "search", "total")
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
@@ -36,7 +37,7 @@ class _Counts:
     inserts: int = 0
     queries: int = 0
     loop_closures: int = 0
-    robots: dict[str, _Robot] = field(default_factory=lambda: defaultdict(_Robot))
+    robots: OrderedDict[str, _Robot] = field(default_factory=OrderedDict)
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
 
     def public(self) -> dict[str, Any]:
@@ -86,8 +87,9 @@ class Stats:
         )
         self.p_queries = PCounter("overlapmamba_queries", "Place queries", ["map"], registry=r)
         self.p_inserts = PCounter("overlapmamba_inserts", "Keyframes inserted", ["map"], registry=r)
+        # No robot label: robot ids come from clients, and every label value is a series.
         self.p_loops = PCounter(
-            "overlapmamba_loop_closures", "Accepted loop closures", ["map", "robot"], registry=r
+            "overlapmamba_loop_closures", "Accepted loop closures", ["map"], registry=r
         )
         self.p_batch = Histogram(
             "overlapmamba_encoder_batch_size",
@@ -118,14 +120,17 @@ class Stats:
     def _robot(self, counts: _Counts, robot: str | None) -> _Robot | None:
         if robot is None:
             return None
-        rec = counts.robots[robot]
+        rec = counts.robots.pop(robot, None) or _Robot()
+        counts.robots[robot] = rec  # most recent last
+        while len(counts.robots) > MAX_ROBOTS:
+            counts.robots.popitem(last=False)
         rec.last_seen = time.time()
         return rec
 
     def query(self, map_id: str, robot: str | None, accepted: bool) -> None:
         self.p_queries.labels(map_id).inc()
         if accepted:
-            self.p_loops.labels(map_id, robot or "").inc()
+            self.p_loops.labels(map_id).inc()
         with self._lock:
             for c in (self.total, self.by_map[map_id]):
                 c.queries += 1

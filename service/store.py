@@ -19,11 +19,14 @@ Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the F
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import queue
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +54,8 @@ CREATE TABLE IF NOT EXISTS keyframes (
 );
 CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
 CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
+CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp)
+    WHERE keyframe_id IS NOT NULL;
 """
 
 
@@ -111,6 +116,15 @@ def _keyframe(row: tuple[Any, ...]) -> Keyframe:
     )
 
 
+def fsync_dir(path: Path) -> None:
+    """Make a rename or a new entry in ``path`` durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def to_f16(features: np.ndarray) -> np.ndarray:
     return np.asarray(features, dtype=np.float16)
 
@@ -130,8 +144,10 @@ class Store:
         self.path = Path(path)
         self._write = self._connect()
         self._write_lock = threading.Lock()
-        self._local = threading.local()
-        self._readers: list[sqlite3.Connection] = []  # one per thread; closed with the store
+        # Reader connections are pooled, not per thread: worker threads come and go, and a
+        # connection per thread that ever read would leak file descriptors.
+        self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
+        self._closed = False
         with self._write:
             self._write.executescript(_SCHEMA)
         version = self.get_meta("schema_version")
@@ -147,27 +163,39 @@ class Store:
         con.execute("PRAGMA busy_timeout=10000")
         return con
 
-    def _reader(self) -> sqlite3.Connection:
-        con = getattr(self._local, "con", None)
-        if con is None:
+    @contextlib.contextmanager
+    def _reading(self) -> Iterator[sqlite3.Connection]:
+        try:
+            con = self._pool.get_nowait()
+        except queue.Empty:
             con = self._connect()
-            self._local.con = con
-            with self._write_lock:
-                self._readers.append(con)
-        return con
+        try:
+            yield con
+        finally:
+            if self._closed:
+                con.close()
+            else:
+                self._pool.put(con)
+
+    def _rows(self, sql: str, args: Sequence[Any] = ()) -> list[Any]:
+        with self._reading() as con:
+            return con.execute(sql, args).fetchall()
 
     def close(self) -> None:
         with self._write_lock:
-            for con in self._readers:
-                con.close()
-            self._readers.clear()
+            self._closed = True
+            while True:
+                try:
+                    self._pool.get_nowait().close()
+                except queue.Empty:
+                    break
             self._write.close()
 
     # ---- meta -----------------------------------------------------------------------------
 
     def get_meta(self, key: str) -> str | None:
-        row = self._reader().execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
-        return None if row is None else row[0]
+        rows = self._rows("SELECT value FROM meta WHERE key = ?", (key,))
+        return rows[0][0] if rows else None
 
     def set_meta(self, **values: Any) -> None:
         with self._write_lock:
@@ -262,23 +290,20 @@ class Store:
     # ---- reads ----------------------------------------------------------------------------
 
     def count(self) -> int:
-        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
-        return int(self._reader().execute(sql).fetchone()[0])
+        return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
 
     def get(self, keyframe_id: str) -> Keyframe | None:
-        row = (
-            self._reader()
-            .execute(f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
-            .fetchone()
+        rows = self._rows(
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
         )
-        return None if row is None else _keyframe(row)
+        return _keyframe(rows[0]) if rows else None
 
     def get_many(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
         out: dict[str, Keyframe] = {}
         for start in range(0, len(keyframe_ids), 500):
             chunk = keyframe_ids[start : start + 500]
             marks = ",".join("?" * len(chunk))
-            for row in self._reader().execute(
+            for row in self._rows(
                 f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id IN ({marks})", chunk
             ):
                 kf = _keyframe(row)
@@ -291,7 +316,7 @@ class Store:
             return {}
         marks = ",".join("?" * len(ids))
         out = {}
-        for row in self._reader().execute(
+        for row in self._rows(
             f"SELECT {_KF_COLUMNS}, yaw, yaw_shape FROM keyframes "
             f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
             ids,
@@ -305,12 +330,8 @@ class Store:
         return out
 
     def descriptor(self, keyframe_id: str) -> np.ndarray | None:
-        row = (
-            self._reader()
-            .execute("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
-            .fetchone()
-        )
-        return None if row is None else index_vector(row[0])
+        rows = self._rows("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
+        return index_vector(rows[0][0]) if rows else None
 
     def live_rows(
         self, after_seq: int = 0, chunk: int = 20_000, *, upto_seq: int | None = None
@@ -324,44 +345,36 @@ class Store:
         else:
             where = "seq > ? AND seq <= ? AND (deleted_seq IS NULL OR deleted_seq > ?)"
             args = (after_seq, upto_seq, upto_seq)
-        cur = self._reader().execute(
-            "SELECT id, descriptor, robot_id, session_id, timestamp FROM keyframes "
-            f"WHERE {where} ORDER BY id",
-            args,
-        )
-        while rows := cur.fetchmany(chunk):
-            ids = np.array([r[0] for r in rows], dtype=np.int64)
-            vecs = np.stack([index_vector(r[1]) for r in rows])
-            yield ids, vecs, [(r[2], r[3], r[4]) for r in rows]
+        with self._reading() as con:
+            cur = con.execute(
+                "SELECT id, descriptor, robot_id, session_id, timestamp FROM keyframes "
+                f"WHERE {where} ORDER BY id",
+                args,
+            )
+            while rows := cur.fetchmany(chunk):
+                ids = np.array([r[0] for r in rows], dtype=np.int64)
+                vecs = np.stack([index_vector(r[1]) for r in rows])
+                yield ids, vecs, [(r[2], r[3], r[4]) for r in rows]
 
     def deleted_after(self, after_seq: int) -> np.ndarray:
-        rows = self._reader().execute(
+        rows = self._rows(
             "SELECT id FROM keyframes WHERE deleted_seq > ? AND seq <= ?", (after_seq, after_seq)
         )
         return np.array([r[0] for r in rows], dtype=np.int64)
 
-    def filter_columns(self) -> Iterator[tuple[int, str, str, float]]:
-        yield from self._reader().execute(
-            "SELECT id, robot_id, session_id, timestamp FROM keyframes "
-            "WHERE keyframe_id IS NOT NULL ORDER BY id"
-        )
-
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
-        row = (
-            self._reader()
-            .execute(
-                f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND "
-                "keyframe_id IS NOT NULL ORDER BY timestamp DESC LIMIT 1",
-                (robot_id,),
-            )
-            .fetchone()
+        rows = self._rows(
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND "
+            "keyframe_id IS NOT NULL ORDER BY timestamp DESC LIMIT 1",
+            (robot_id,),
         )
-        return None if row is None else _keyframe(row)
+        return _keyframe(rows[0]) if rows else None
 
     def backup(self, dest: Path) -> None:
         """A consistent copy, safe while the service writes (SQLite's online backup)."""
         target = sqlite3.connect(dest)
         try:
-            self._reader().backup(target)
+            with self._reading() as con:
+                con.backup(target)
         finally:
             target.close()

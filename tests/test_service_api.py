@@ -254,6 +254,14 @@ async def test_keyframe_batches_check_model_and_values(settings, encoder):
         assert r.json()["matches"][0]["keyframe_id"] == "b3"
         r = await c.post("/v1/maps/m/query", json={"descriptor": [1.0] * 12})
         assert r.status_code == 422 and "exactly 256" in err(r)["message"]
+        r = await c.post("/v1/maps/m/query", json={"descriptor": [3e38] * 256})
+        assert r.status_code == 422 and "norm" in err(r)["message"]
+        ragged = batch()
+        ragged["keyframes"][0]["yaw_features"] = [[1.0, 2.0], [1.0]]
+        r = await c.post("/v1/maps/m/keyframes:batch", json=ragged)
+        assert r.status_code == 422 and err(r)["code"] == "bad_yaw_features"
+        r = await c.post("/v1/maps/m/keyframes:batch", content=b"{not json")
+        assert r.status_code == 422 and err(r)["code"] == "invalid_request"
         assert (await c.get("/v1/maps/m")).json()["keyframes"] == 5  # nothing partial
 
 
@@ -443,9 +451,13 @@ async def test_a_damaged_map_is_reported_and_the_others_serve(settings, encoder)
     (settings.data_dir / "maps" / "bad" / "store.sqlite").write_bytes(b"not a database" * 100)
     async with running(settings, encoder) as c:
         ready = (await c.get("/readyz")).json()
-        assert "bad" in ready["detail"]["failed_maps"]
+        assert ready["detail"]["failed_maps"] == ["bad"]
         r = await c.get("/v1/maps/bad")
         assert r.status_code == 503 and err(r)["code"] == "map_unavailable"
+        r = await c.put("/v1/maps/bad")
+        assert r.status_code == 503 and err(r)["code"] == "map_unavailable"
+        # a PUT without settings is idempotent whatever the map's index
+        assert (await c.put("/v1/maps/good")).status_code == 200
         assert (await c.get("/v1/maps/good")).status_code == 200
 
 
@@ -499,6 +511,8 @@ async def test_every_route_refuses_missing_and_wrong_keys(tmp_path, encoder):
                 assert r.headers["www-authenticate"].startswith("Basic")
             r = await c.request(method, path, headers={"x-api-key": "wrong"})
             assert r.status_code == 401 and err(r)["code"] == "invalid_api_key"
+            r = await c.request(method, path, headers={"authorization": b"Basic \xe9-not-base64"})
+            assert r.status_code == 401, (method, path, r.text)
             for role in roles:
                 headers = {"authorization": f"Bearer secret-{role}"}
                 r = await c.request(method, path, headers=headers)
@@ -612,3 +626,18 @@ async def test_openapi_documents_every_route_with_examples(settings, encoder):
     assert "examples" in spec["components"]["schemas"]["QueryOut"]
     assert "examples" in spec["components"]["schemas"]["KeyframeBatchIn"]
     assert "404" in paths["/v1/maps/{map_id}/query"]["post"]["responses"]
+
+    def refs(node):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if k == "$ref":
+                    yield v
+                else:
+                    yield from refs(v)
+        elif isinstance(node, list):
+            for v in node:
+                yield from refs(v)
+
+    schemas = spec["components"]["schemas"]
+    for ref in refs(spec):  # every reference in /docs resolves
+        assert ref.startswith("#/components/schemas/") and ref.rsplit("/", 1)[1] in schemas, ref

@@ -20,6 +20,7 @@ from service.errors import (
     BadRequest,
     Conflict,
     Forbidden,
+    NotFound,
     Overloaded,
     PayloadTooLarge,
     Unauthorized,
@@ -81,6 +82,16 @@ def test_decompression_bomb_is_stopped_at_the_limit(enc):
 def test_bad_encodings_and_types_are_named():
     with pytest.raises(BadRequest, match="truncated"):
         decompress(gzip.compress(b"x" * 1000)[:-8], "gzip", 1 << 20)
+    with pytest.raises(BadRequest, match="one gzip member"):
+        decompress(gzip.compress(b"ab") + gzip.compress(b"cd"), "gzip", 1 << 20)
+    frame = zstandard.ZstdCompressor().compress(bytes(range(256)) * 100)
+    with pytest.raises(BadRequest, match="truncated"):  # a cut frame is not a shorter scan
+        decompress(frame[: len(frame) // 2], "zstd", 1 << 20)
+    with pytest.raises(BadRequest, match="one zstd frame"):
+        decompress(frame + frame, "zstd", 1 << 20)
+    unsized = zstandard.ZstdCompressor(write_content_size=False).compress(bytes(4 << 20))
+    with pytest.raises(BadRequest, match="larger than the limit"):
+        decompress(unsized, "zstd", 1 << 20)
     with pytest.raises(BadRequest, match="does not decompress"):
         decompress(b"not gzip", "gzip", 1 << 20)
     with pytest.raises(UnsupportedMediaType, match="allowed: identity, gzip, zstd"):
@@ -294,6 +305,45 @@ def test_map_filters_and_idempotent_inserts(tmp_path):
     with pytest.raises(BadRequest, match="needs the query's session_id"):
         m.search(q, 5, Filters(exclude_recent_s=10))
     assert all(x.distance <= 1.0 for x in m.search(q, 40, Filters(max_distance=1.0)))
+
+
+def test_small_ivf_maps_do_not_rebuild_after_every_write(tmp_path):
+    rng = np.random.default_rng(8)
+    vecs = places(rng, 500)
+    m, _ = _registry(tmp_path).create("small", "ivf")
+    rebuilds = 0
+    for i in range(0, 500, 10):
+        m.insert([row(j, vecs[j]) for j in range(i, i + 10)])
+        if m.wants_rebuild():
+            m.rebuild()
+            rebuilds += 1
+            assert not m.wants_rebuild()
+    assert m.index.kind == "ivf" and rebuilds <= 6  # on doubling, not on every write
+
+
+def test_a_deleted_map_refuses_requests_that_still_hold_it(tmp_path):
+    rng = np.random.default_rng(9)
+    reg = _registry(tmp_path)
+    m, _ = reg.create("gone", "flat")
+    m.insert([row(0, unit(rng, 1)[0])])
+    reg.delete("gone")
+    with pytest.raises(NotFound):
+        m.search(unit(rng, 1)[0], 1, Filters())
+    with pytest.raises(NotFound):
+        m.insert([row(1, unit(rng, 1)[0])])
+    m.rebuild()  # background maintenance on a deleted map does nothing
+
+
+def test_store_reader_connections_are_pooled_not_per_thread(tmp_path):
+    import threading
+
+    store = Store(tmp_path / "s.sqlite")
+    for _ in range(30):  # short-lived threads, as a thread pool makes them
+        t = threading.Thread(target=store.count)
+        t.start()
+        t.join()
+    assert store._pool.qsize() == 1
+    store.close()
 
 
 def test_rwlock_lets_readers_share_and_writers_exclude():

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
+from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action
 from service.bodies import read_body
-from service.core import check_descriptor, check_pose, parse_pose
+from service.core import PlaceService, check_descriptor, check_pose, parse_pose
 from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
 from service.errors import Conflict, NotFound, PayloadTooLarge, Unprocessable
-from service.maps import content_hash
+from service.maps import Map, content_hash
 from service.schemas import (
     KEYFRAME_ID_PATTERN,
     NAME_PATTERN,
@@ -83,18 +85,47 @@ async def insert_keyframe(
     response_model=KeyframeBatchOut,
     responses=error_responses(400, 401, 403, 404, 409, 413, 422),
     summary="Insert precomputed descriptors (offline map building)",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/json": {"schema": {"$ref": "#/components/schemas/KeyframeBatchIn"}}
+            },
+        }
+    },
 )
 async def insert_batch(
-    map_id: str, batch: KeyframeBatchIn, svc: ServiceDep, _: CanWriteMaps
+    map_id: str, request: Request, svc: ServiceDep, _: CanWriteMaps
 ) -> KeyframeBatchOut:
     """All or nothing: one transaction. The batch's `model_id` must be the map's model;
     known keyframe ids with identical content are reported as existing, with other
-    content the whole batch is refused (409)."""
+    content the whole batch is refused (409). The body is read only after the key is
+    checked, and parsed off the event loop."""
     m = svc.registry.get(map_id)
     svc.check_model(m)
+    body = await read_body(request, svc.settings.limits)
+    rows = await run_in_threadpool(_batch_rows, body, m, svc)
+    results = await svc.insert(m, rows, None)
+    inserted = sum(r.created for r in results)
+    return KeyframeBatchOut(
+        inserted=inserted,
+        existing=len(results) - inserted,
+        keyframes=[_out(r.keyframe, r.created) for r in results],
+    )
+
+
+def _batch_rows(body: bytes, m: Map, svc: PlaceService) -> list[NewKeyframe]:
+    try:
+        batch = KeyframeBatchIn.model_validate_json(body)
+    except ValidationError as err:
+        errors = json.loads(err.json(include_url=False, include_input=False))
+        where = "; ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
+        raise Unprocessable(
+            f"invalid keyframe batch: {where}", code="invalid_request", errors=errors
+        ) from None
     if batch.model_id != m.model_id:
         raise Conflict(
-            f"descriptors of model {batch.model_id!r} cannot go into map {map_id!r} of model "
+            f"descriptors of model {batch.model_id!r} cannot go into map {m.map_id!r} of model "
             f"{m.model_id!r}",
             code="model_mismatch",
             map_model_id=m.model_id,
@@ -105,6 +136,7 @@ async def insert_batch(
             f"batch has {len(batch.keyframes)} keyframes; allowed: at most {limit}",
             max_batch_keyframes=limit,
         )
+    expect = (svc.encoder.meta.yaw_channels, svc.encoder.meta.profile.width)
     rows = []
     for i, k in enumerate(batch.keyframes):
         try:
@@ -114,18 +146,22 @@ async def insert_batch(
             raise
         yaw = None
         if k.yaw_features is not None:
-            yaw = np.asarray(k.yaw_features, dtype=np.float32)
-            expect = (svc.encoder.meta.yaw_channels, svc.encoder.meta.profile.width)
+            try:
+                yaw = np.asarray(k.yaw_features, dtype=np.float32)
+            except ValueError:  # ragged rows
+                yaw = np.zeros(0, np.float32)
             if yaw.shape != expect or not np.isfinite(yaw).all():
                 raise Unprocessable(
                     f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {expect}, finite",
                     code="bad_yaw_features",
                 )
-        meta = {"robot": k.robot_id, "session": k.session_id, "timestamp": k.timestamp}
-        meta["pose"] = k.pose
-        payload = desc.astype(np.float32).tobytes() + (
-            b"" if yaw is None else yaw.astype(np.float16).tobytes()
-        )
+        meta = {
+            "robot": k.robot_id,
+            "session": k.session_id,
+            "timestamp": k.timestamp,
+            "pose": k.pose,
+        }
+        payload = desc.tobytes() + (b"" if yaw is None else yaw.astype(np.float16).tobytes())
         rows.append(
             NewKeyframe(
                 keyframe_id=k.keyframe_id,
@@ -138,13 +174,7 @@ async def insert_batch(
                 content_hash=content_hash("descriptor", payload, meta),
             )
         )
-    results = await svc.insert(m, rows, None)
-    inserted = sum(r.created for r in results)
-    return KeyframeBatchOut(
-        inserted=inserted,
-        existing=len(results) - inserted,
-        keyframes=[_out(r.keyframe, r.created) for r in results],
-    )
+    return rows
 
 
 @router.get(

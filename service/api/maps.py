@@ -38,7 +38,7 @@ async def create_map(
 
 @router.get("", response_model=MapList, responses=error_responses(401, 403), summary="List maps")
 async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
-    infos = await run_in_threadpool(lambda: [m.info() for m in svc.registry.maps.values()])
+    infos = await run_in_threadpool(lambda: [m.info() for m in svc.registry.snapshot_list()])
     return MapList(maps=[MapOut(**i) for i in infos])
 
 

@@ -27,6 +27,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.concurrency import run_in_threadpool
 
 from lidar_core.errors import LidarCoreError
 from service.api.openapi import SCAN_BODY, error_responses
@@ -177,12 +178,7 @@ async def observe(
     )
     o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     svc.stats.timings(o.answer["timings_ms"])
-    return {
-        **o.answer,
-        "inserted": o.inserted,
-        "keyframe_id": o.keyframe_id,
-        "insert_reason": o.reason,
-    }
+    return o.public()
 
 
 class StreamMeta(BaseModel):
@@ -235,7 +231,9 @@ async def stream(
                     check_pose(meta.pose) if isinstance(meta.pose, list) else parse_pose(meta.pose)
                 )
                 t0 = time.perf_counter()
-                body = decompress(scan, meta.encoding, svc.settings.limits.max_decoded_bytes)
+                body = await run_in_threadpool(
+                    decompress, scan, meta.encoding, svc.settings.limits.max_decoded_bytes
+                )
                 d = await svc.describe(body, meta.content_type, meta.fields)
                 o = await svc.observe(
                     m,
@@ -249,14 +247,7 @@ async def stream(
                 )
                 o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
                 svc.stats.timings(o.answer["timings_ms"])
-                msg = {
-                    "seq": seq,
-                    "ok": True,
-                    **o.answer,
-                    "inserted": o.inserted,
-                    "keyframe_id": o.keyframe_id,
-                    "insert_reason": o.reason,
-                }
+                msg = {"seq": seq, "ok": True, **o.public()}
             except (ServiceError, LidarCoreError) as err:
                 msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
             await websocket.send_text(json.dumps(msg))

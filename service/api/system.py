@@ -42,7 +42,7 @@ async def readyz(request: Request) -> Response:
             detail={
                 "model_id": svc.model_id,
                 "maps": len(svc.registry.maps),
-                "failed_maps": svc.registry.failed,
+                "failed_maps": sorted(svc.registry.failed),  # why: in the log
             },
         ).model_dump()
     )
@@ -52,7 +52,7 @@ async def readyz(request: Request) -> Response:
 async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
-    maps = {m.map_id: {"keyframes": m.index.ntotal} for m in list(svc.registry.maps.values())}
+    maps = {m.map_id: {"keyframes": m.index.ntotal} for m in svc.registry.snapshot_list()}
     return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
 
 
