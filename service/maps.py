@@ -274,7 +274,10 @@ class Map:
     def maintain(self) -> None:
         """After writes: rebuild or snapshot in a background thread when due (one at a time)."""
         due_rebuild = self.wants_rebuild()
-        due_snapshot = self.writes_since_snapshot >= self.settings.snapshot_every
+        # A snapshot rewrites the whole index (1 GB at 1M keyframes): for big maps, wait for
+        # 5 % of their size in writes; a restart replays at most that much from the store.
+        every = max(self.settings.snapshot_every, self.index.ntotal // 20)
+        due_snapshot = self.writes_since_snapshot >= every
         if not (due_rebuild or due_snapshot) or not self._maintenance.acquire(blocking=False):
             return
 
