@@ -53,6 +53,8 @@ def test_shared_core_imports_no_heavy_or_sibling_package():
         ("service.app", {"torch", "model_export", "client"}),
         ("service.backup", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
         ("client", {"torch", "onnxruntime", "faiss", "service", "model_export"}),
+        ("client.cli", {"torch", "onnxruntime", "faiss", "service", "model_export", "matplotlib"}),
+        ("client.fleet", {"torch", "onnxruntime", "faiss", "service", "model_export"}),
         ("overlapmamba.cli", set(HEAVY) | {"service", "model_export", "client"}),
         # The simulator needs trimesh/embreex, never torch: data can be made without it.
         ("model_export.synth.generate", {"torch", "onnxruntime", "faiss", "service", "client"}),

@@ -1,0 +1,145 @@
+"""Typed results. Built from the service's JSON; numbers stay plain Python or numpy."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    vector: np.ndarray  # (D,) float32, unit norm
+    model_id: str
+    timings_ms: dict[str, float | None] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    map_id: str
+    model_id: str
+    keyframes: int
+    index: dict[str, Any]
+    seq: int
+    created: bool | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> MapInfo:
+        return cls(
+            map_id=d["map_id"],
+            model_id=d["model_id"],
+            keyframes=int(d["keyframes"]),
+            index=d["index"],
+            seq=int(d["seq"]),
+            created=d.get("created"),
+        )
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    keyframe_id: str
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    created: bool | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Keyframe:
+        return cls(
+            keyframe_id=d["keyframe_id"],
+            robot_id=d["robot_id"],
+            session_id=d["session_id"],
+            timestamp=float(d["timestamp"]),
+            pose=d.get("pose"),
+            created=d.get("created"),
+        )
+
+
+@dataclass(frozen=True)
+class Match:
+    keyframe_id: str
+    distance: float
+    similarity: float
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None
+    yaw_deg: float | None
+    yaw_confidence: float | None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Match:
+        return cls(
+            keyframe_id=d["keyframe_id"],
+            distance=float(d["distance"]),
+            similarity=float(d["similarity"]),
+            robot_id=d["robot_id"],
+            session_id=d["session_id"],
+            timestamp=float(d["timestamp"]),
+            pose=d.get("pose"),
+            yaw_deg=d.get("yaw_deg"),
+            yaw_confidence=d.get("yaw_confidence"),
+        )
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    accepted: bool
+    threshold: float
+    margin_top1_top2: float | None
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    matches: list[Match]
+    loop_closure: LoopClosure
+    timings_ms: dict[str, float | None]
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> QueryResult:
+        return cls(
+            matches=[Match.from_json(m) for m in d["matches"]],
+            loop_closure=LoopClosure(**d["loop_closure"]),
+            timings_ms=d.get("timings_ms", {}),
+        )
+
+
+@dataclass(frozen=True)
+class ObserveResult(QueryResult):
+    inserted: bool = False
+    keyframe_id: str | None = None
+    insert_reason: str = ""
+    seq: Any = None  # the stream's correlation value
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> ObserveResult:
+        q = QueryResult.from_json(d)
+        return cls(
+            matches=q.matches,
+            loop_closure=q.loop_closure,
+            timings_ms=q.timings_ms,
+            inserted=bool(d["inserted"]),
+            keyframe_id=d.get("keyframe_id"),
+            insert_reason=d.get("insert_reason", ""),
+            seq=d.get("seq"),
+        )
+
+
+@dataclass(frozen=True)
+class BatchInsertResult:
+    inserted: int
+    existing: int
+    keyframes: list[Keyframe]
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One scan for ``stream()``: the robot's scan at ``timestamp`` (s), optional pose
+    (x, y, z, qx, qy, qz, qw) and insert mode ("auto", "always", "never")."""
+
+    scan: Any
+    timestamp: float
+    pose: Any = None
+    insert: str = "auto"

@@ -1,0 +1,73 @@
+"""Recorded drives for the CLI and the fleet simulator: scans, times, poses, ground truth.
+
+A drive is a KITTI-layout sequence (``lidar_core.datasets``). Times come from ``times.txt``
+when present (else 10 Hz); poses become x,y,z,qx,qy,qz,qw; the loop radius comes from the
+sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lidar_core.datasets import open_sequence
+from lidar_core.datasets.base import Sequence
+from lidar_core.overlap import LoopGroundTruth
+
+
+def quaternion(rot: np.ndarray) -> np.ndarray:
+    """3×3 rotation → (qx, qy, qz, qw), unit, qw ≥ 0 (Shepperd's method)."""
+    m = np.asarray(rot, dtype=np.float64)
+    t = np.trace(m)
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    out = np.asarray(q, dtype=np.float64)
+    out /= np.linalg.norm(out)
+    return out if out[3] >= 0 else -out
+
+
+@dataclass
+class Drive:
+    seq: Sequence
+    times: np.ndarray  # (N,) seconds
+    poses: np.ndarray  # (N, 7) x, y, z, qx, qy, qz, qw
+    loop_radius: float | None  # metres, from the shipped ground truth; None: no ground truth
+
+    @property
+    def name(self) -> str:
+        return self.seq.name
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.seq.points(i).as_xyzi()
+
+
+def open_drive(root: str | Path) -> Drive:
+    root = Path(root)
+    seq = open_sequence(root)
+    n = len(seq)
+    times_file = root / "times.txt"
+    times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1
+    if len(times) != n:
+        raise ValueError(f"{times_file}: {len(times)} times for {n} scans")
+    poses = np.array([[*T[:3, 3], *quaternion(T[:3, :3])] for T in seq.poses])
+    radius = None
+    gt = root / "ground_truth" / "loops.npz"
+    if gt.is_file():
+        radius = float(LoopGroundTruth.load(gt).params.get("radius", 30.0))
+    return Drive(
+        seq=seq, times=np.asarray(times, dtype=np.float64), poses=poses, loop_radius=radius
+    )

@@ -1,0 +1,355 @@
+"""``overlapmamba-client``: operate the service from a shell.
+
+Every command takes ``--url`` (env ``OVERLAPMAMBA_URL``) and ``--api-key``
+(env ``OVERLAPMAMBA_API_KEY``). Errors print the server's message and exit with 1 (the
+service refused) or 2 (it could not be reached, or bad arguments).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.live import Live
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from client._base import Timeouts
+from client._exceptions import APIError, ClientError
+from client._replay import open_drive
+from client._sync import PlaceRecognitionClient
+
+app = typer.Typer(
+    name="overlapmamba-client",
+    help="Client of the OverlapMamba place-recognition service.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+maps_app = typer.Typer(help="Create, list and delete maps.", no_args_is_help=True)
+app.add_typer(maps_app, name="maps")
+console = Console(stderr=True, soft_wrap=True)
+out = Console()
+F = TypeVar("F", bound=Callable[..., Any])
+
+UrlOpt = Annotated[
+    str, typer.Option("--url", envvar="OVERLAPMAMBA_URL", help="the service's base URL")
+]
+KeyOpt = Annotated[
+    str | None, typer.Option("--api-key", envvar="OVERLAPMAMBA_API_KEY", help="API key")
+]
+MapOpt = Annotated[str, typer.Option("--map", "-m", help="map id")]
+DEFAULT_URL = "http://127.0.0.1:8000"
+
+
+def _errors(func: F) -> F:
+    @wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except APIError as err:
+            console.print(f"[bold red]error:[/] {err.status} {err.code}: {err.message}")
+            raise typer.Exit(1) from None
+        except ClientError as err:
+            console.print(f"[bold red]error:[/] {err}")
+            raise typer.Exit(2) from None
+        except (ValueError, OSError) as err:
+            console.print(f"[bold red]error:[/] {err}")
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _client(url: str, api_key: str | None) -> PlaceRecognitionClient:
+    return PlaceRecognitionClient(url, api_key=api_key, timeout=Timeouts(read=120))
+
+
+@maps_app.command("list")
+@_errors
+def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
+    """List the maps and their sizes."""
+    with _client(url, api_key) as pr:
+        maps = pr.list_maps()
+    table = Table("map", "keyframes", "index", "model")
+    for m in maps:
+        table.add_row(m.map_id, str(m.keyframes), m.index.get("active", ""), m.model_id)
+    out.print(table)
+
+
+@maps_app.command("create")
+@_errors
+def maps_create(
+    map_id: Annotated[str, typer.Argument(help="[a-z0-9][a-z0-9_-]{0,63}")],
+    index: Annotated[str | None, typer.Option(help="flat, ivf or auto")] = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Create a map (idempotent)."""
+    with _client(url, api_key) as pr:
+        m = pr.create_map(map_id, index=index)
+    out.print(f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes")
+
+
+@maps_app.command("delete")
+@_errors
+def maps_delete(
+    map_id: str,
+    yes: Annotated[bool, typer.Option("--yes", help="do not ask")] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Delete a map and all its keyframes."""
+    if not yes:
+        typer.confirm(f"delete map {map_id!r} and all its keyframes?", abort=True)
+    with _client(url, api_key) as pr:
+        pr.delete_map(map_id)
+    out.print(f"map {map_id}: deleted")
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]:.1f} scans/s · {task.fields[latency]:.0f} ms"),
+        TimeElapsedColumn(),
+        console=console,
+    )
+
+
+@app.command(
+    "ingest",
+    epilog="Example:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5",
+)
+@_errors
+def ingest(
+    seq_dir: Annotated[Path, typer.Argument(help="KITTI-layout sequence folder")],
+    map_id: MapOpt,
+    robot: Annotated[str, typer.Option(help="robot id")] = "mapper",
+    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
+    compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
+    drive = open_drive(seq_dir)
+    session = session or drive.name
+    frames = range(0, len(drive), every)
+    t0 = time.monotonic()
+    created = 0
+    with PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr, _progress() as bar:
+        pr.create_map(map_id)
+        task = bar.add_task(f"ingest {drive.name}", total=len(frames), rate=0.0, latency=0.0)
+        for n, i in enumerate(frames, start=1):
+            t = time.monotonic()
+            kf = pr.insert_keyframe(
+                map_id,
+                drive.scan(i),
+                keyframe_id=f"{session}-{i:06d}",
+                timestamp=float(drive.times[i]),
+                robot_id=robot,
+                session_id=session,
+                pose=drive.poses[i],
+            )
+            created += bool(kf.created)
+            now = time.monotonic()
+            bar.update(task, advance=1, rate=n / (now - t0), latency=(now - t) * 1e3)
+    out.print(
+        f"{len(frames)} scans → map {map_id}: {created} new keyframes, "
+        f"{len(frames) - created} already there; {time.monotonic() - t0:.1f} s"
+    )
+
+
+@app.command("query", epilog="Example:\n\n  overlapmamba-client query scan.bin --map town -k 5")
+@_errors
+def query(
+    scan: Annotated[Path, typer.Argument(help=".bin, .npy or .pcd scan")],
+    map_id: MapOpt,
+    k: Annotated[int, typer.Option("-k", min=1, help="matches to show")] = 5,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """The top-k places for one scan, with yaw and the loop-closure verdict."""
+    with _client(url, api_key) as pr:
+        r = pr.query(map_id, scan, k=k)
+    table = Table("rank", "keyframe", "distance", "yaw °", "robot", "session", "timestamp")
+    for rank, m in enumerate(r.matches, start=1):
+        yaw = "" if m.yaw_deg is None else f"{m.yaw_deg:.1f}"
+        table.add_row(
+            str(rank),
+            m.keyframe_id,
+            f"{m.distance:.5f}",
+            yaw,
+            m.robot_id,
+            m.session_id,
+            f"{m.timestamp:.2f}",
+        )
+    out.print(table)
+    lc = r.loop_closure
+    out.print(
+        f"loop closure: {'ACCEPTED' if lc.accepted else 'not accepted'} "
+        f"(threshold {lc.threshold:g}, margin {lc.margin_top1_top2})"
+    )
+
+
+@app.command(
+    "observe",
+    epilog="Example:\n\n  overlapmamba-client observe data/synth/val --map town --robot r1",
+)
+@_errors
+def observe(
+    seq_dir: Annotated[Path, typer.Argument(help="KITTI-layout sequence folder")],
+    map_id: MapOpt,
+    robot: Annotated[str, typer.Option(help="robot id")] = "robot-1",
+    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
+    k: Annotated[int, typer.Option("-k", min=1)] = 5,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Replay a drive as a robot (observe: query, then insert when due); print each loop
+    closure as it is detected."""
+    drive = open_drive(seq_dir)
+    session = session or drive.name
+    closures = inserted = 0
+    frames = range(0, len(drive), every)
+    with _client(url, api_key) as pr:
+        pr.create_map(map_id)
+        for i in frames:
+            o = pr.observe(
+                map_id,
+                drive.scan(i),
+                robot_id=robot,
+                session_id=session,
+                timestamp=float(drive.times[i]),
+                pose=drive.poses[i],
+                k=k,
+            )
+            inserted += o.inserted
+            if o.loop_closure.accepted and o.matches:
+                closures += 1
+                m = o.matches[0]
+                yaw = "" if m.yaw_deg is None else f", yaw {m.yaw_deg:.1f}°"
+                out.print(
+                    f"frame {i}: loop closure with {m.keyframe_id} (distance {m.distance:.5f}{yaw})"
+                )
+    out.print(f"{len(frames)} scans observed: {inserted} inserted, {closures} loop closures")
+
+
+def _stats_table(s: dict[str, Any]) -> Table:
+    table = Table(title=f"model {s.get('model_id')} · up {s.get('uptime_s', 0):.0f} s")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key in ("keyframes", "inserts", "queries", "loop_closures"):
+        if key in s:
+            table.add_row(key, str(s[key]))
+    table.add_row("loop-closure rate", f"{s.get('loop_closure_rate', 0):.3f}")
+    table.add_row("queries/s (1 min)", f"{s.get('queries_per_s_1m', 0):.2f}")
+    for stage, p in s.get("latency_ms", {}).items():
+        table.add_row(f"{stage} p50 / p99 ms", f"{p['p50']:.1f} / {p['p99']:.1f}")
+    for name, r in s.get("robots", {}).items():
+        table.add_row(f"robot {name}", f"{r['observations']} obs, {r['loop_closures']} loops")
+    if "map" in s:
+        table.add_row("map keyframes", str(s["map"].get("keyframes")))
+    return table
+
+
+@app.command("stats")
+@_errors
+def stats(
+    map_id: Annotated[str | None, typer.Option("--map", "-m", help="one map's stats")] = None,
+    watch: Annotated[bool, typer.Option("--watch", help="refresh until Ctrl-C")] = False,
+    interval: Annotated[float, typer.Option(min=0.2, help="seconds between refreshes")] = 2.0,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Recognition statistics (counts, latency percentiles, robots)."""
+    with _client(url, api_key) as pr:
+        if not watch:
+            out.print(_stats_table(pr.stats(map_id)))
+            return
+        with Live(_stats_table(pr.stats(map_id)), console=out, auto_refresh=False) as live:
+            try:
+                while True:
+                    time.sleep(interval)
+                    live.update(_stats_table(pr.stats(map_id)), refresh=True)
+            except KeyboardInterrupt:
+                pass
+
+
+@app.command(
+    "simulate-fleet",
+    epilog="Example:\n\n  overlapmamba-client simulate-fleet --robots 8 --map fleet "
+    "--sequence data/synth/val --duration 60 --rate 10",
+)
+@_errors
+def simulate_fleet(
+    map_id: MapOpt,
+    sequence: Annotated[
+        list[Path], typer.Option("--sequence", "-s", help="drive(s) to replay; repeatable")
+    ],
+    robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
+    duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
+    rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
+    k: Annotated[int, typer.Option("-k", min=1)] = 5,
+    out_json: Annotated[Path, typer.Option("--out", help="report JSON")] = Path(
+        "fleet-report.json"
+    ),
+    plot: Annotated[Path | None, typer.Option(help="latency plot PNG")] = Path("fleet-latency.png"),
+    seed: Annotated[int, typer.Option(help="offsets and session names")] = 0,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """N robots replay drives concurrently through observe; report throughput, latency,
+    errors and loop closures against ground truth."""
+    from client.fleet import simulate, write_outputs
+
+    drives = [open_drive(p) for p in sequence]
+    report, samples = asyncio.run(
+        simulate(
+            url,
+            map_id,
+            drives,
+            robots=robots,
+            duration_s=duration,
+            rate_hz=rate,
+            api_key=api_key,
+            k=k,
+            seed=seed,
+        )
+    )
+    write_outputs(report, samples, out_json, plot)
+    table = Table(title=f"fleet: {robots} robots × {rate:g} Hz for {report.duration_s:.1f} s")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    lat = report.latency_ms
+    rows = [
+        ("observations", str(report.observations)),
+        ("throughput (obs/s)", f"{report.throughput_per_s:.2f}"),
+        ("latency p50 / p95 / p99 ms", f"{lat['p50']:.0f} / {lat['p95']:.0f} / {lat['p99']:.0f}"),
+        ("errors", ", ".join(f"{k}: {v}" for k, v in report.errors.items()) or "none"),
+        ("keyframes inserted", str(report.inserted)),
+        ("loop closures accepted", str(report.loop_closures)),
+    ]
+    if report.correct is not None:
+        rows += [
+            ("correct (ground truth)", str(report.correct)),
+            ("queries with a loop available", str(report.queries_with_loop)),
+            ("precision", "n/a" if report.precision is None else f"{report.precision:.3f}"),
+            ("recall", "n/a" if report.recall is None else f"{report.recall:.3f}"),
+        ]
+    for name, value in rows:
+        table.add_row(name, value)
+    out.print(table)
+    out.print(f"wrote {out_json}" + (f" and {plot}" if plot else ""))
+
+
+def main() -> None:
+    app()

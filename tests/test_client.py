@@ -1,0 +1,283 @@
+"""The Python clients and `overlapmamba-client`: in-process (ASGITransport), against a real
+server, retries against a transport that fails on purpose, sync/async congruence, the CLI,
+the README example and the public names."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import time
+
+import httpx
+import numpy as np
+import pytest
+from service_kit import MODEL, ROOT, running, scan, server
+from typer.testing import CliRunner
+
+import client
+from client import (
+    NO_RETRY,
+    AsyncPlaceRecognitionClient,
+    ConflictError,
+    ConnectError,
+    NotFoundError,
+    Observation,
+    OverloadedError,
+    PlaceRecognitionClient,
+    Retry,
+)
+from client.cli import app as cli_app
+from service.encoder import Encoder
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def anyio_backend():
+    return "asyncio"
+
+
+@pytest.fixture(scope="module")
+def encoder() -> Encoder:
+    return Encoder(MODEL, intra_op_threads=2)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    """One real `overlapmamba serve` for the module."""
+    with server(tmp_path_factory.mktemp("client-data")) as (url, _):
+        yield url
+
+
+def test_public_names():
+    assert sorted(client.__all__) == sorted(
+        [
+            "NO_RETRY", "APIError", "AsyncPlaceRecognitionClient", "AuthError",
+            "BadRequestError", "BatchInsertResult", "ClientError", "ConflictError",
+            "ConnectError", "Descriptor", "Keyframe", "LoopClosure", "MapInfo", "Match",
+            "NotFoundError", "Observation", "ObserveResult", "OverloadedError",
+            "PayloadTooLargeError", "PlaceRecognitionClient", "QueryResult", "Retry",
+            "ServerError", "Timeout", "Timeouts", "TransportError",
+        ]
+    )  # fmt: skip
+    for name in client.__all__:
+        assert getattr(client, name) is not None
+    sync = {m for m in dir(PlaceRecognitionClient) if not m.startswith("_")}
+    both = {m for m in dir(AsyncPlaceRecognitionClient) if not m.startswith("_")}
+    assert sync == both  # the same methods
+
+
+async def test_async_client_in_process(tmp_path, encoder):
+    s0, s1 = scan(0), scan(1)
+    np.save(tmp_path / "s1.npy", s1)
+    s0.tofile(tmp_path / "s0.bin")
+    async with running(Settings(data_dir=tmp_path / "d"), encoder) as c:
+        transport = httpx.ASGITransport(app=c.app)  # type: ignore[attr-defined]
+        async with AsyncPlaceRecognitionClient("http://test", transport=transport) as pr:
+            assert (await pr.health())["status"] == "ready"
+            d = await pr.describe(tmp_path / "s0.bin")
+            assert d.vector.shape == (256,) and d.model_id == encoder.model_id
+            batch = await pr.describe_batch([s0, s1])
+            assert np.dot(batch[0].vector, d.vector) > 0.9999
+            m = await pr.create_map("town")
+            assert m.created and m.keyframes == 0
+            meta = {"keyframe_id": "k0", "timestamp": 1.0, "robot_id": "r"}
+            kf = await pr.insert_keyframe("town", s0, **meta, pose=[0, 0, 0, 0, 0, 0, 1])
+            assert kf.created and kf.pose == [0, 0, 0, 0, 0, 0, 1]
+            again = await pr.insert_keyframe("town", s0, **meta, pose=[0, 0, 0, 0, 0, 0, 1])
+            assert again.created is False
+            with pytest.raises(ConflictError, match="different content") as e:
+                await pr.insert_keyframe("town", s1, keyframe_id="k0", timestamp=1.0)
+            assert e.value.status == 409 and e.value.code == "keyframe_conflict"
+            res = await pr.insert_descriptors(
+                "town",
+                [{"keyframe_id": "b1", "timestamp": 2.0, "descriptor": batch[1].vector}],
+                model_id=d.model_id,
+            )
+            assert res.inserted == 1
+            q = await pr.query("town", tmp_path / "s1.npy", k=2)
+            assert q.matches[0].keyframe_id == "b1"
+            q = await pr.query("town", descriptor=d.vector, k=1, exclude_robot="nobody")
+            assert q.matches[0].keyframe_id == "k0" and q.matches[0].distance < 1e-3
+            o = await pr.observe("town", s1, robot_id="r2", timestamp=10.0, insert="never")
+            assert not o.inserted and o.insert_reason == "never"
+            assert (await pr.get_keyframe("town", "b1")).timestamp == 2.0
+            await pr.delete_keyframe("town", "b1")
+            with pytest.raises(NotFoundError):
+                await pr.get_keyframe("town", "b1")
+            assert [m.map_id for m in await pr.list_maps()] == ["town"]
+            assert (await pr.stats())["inserts"] == 2
+            assert (await pr.stats("town"))["map"]["keyframes"] == 1
+            await pr.delete_map("town")
+            with pytest.raises(NotFoundError, match="does not exist"):
+                await pr.get_map("town")
+            with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
+                await pr.describe(np.zeros((5, 7), np.float32))
+
+
+def _failing(plan: list[object], calls: list[float]):
+    """A transport answering from ``plan``: an exception to raise or (status, headers)."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(time.monotonic())
+        step = plan.pop(0) if plan else (200, {})
+        if isinstance(step, Exception):
+            raise step
+        status, headers = step  # type: ignore[misc]
+        if status == 200:
+            return httpx.Response(200, json={"status": "ready", "detail": {}})
+        body = {"error": {"code": "overloaded", "message": "busy", "detail": {}}}
+        return httpx.Response(status, json=body, headers=headers)
+
+    return httpx.MockTransport(handler)
+
+
+def test_retries_back_off_and_honour_retry_after():
+    calls: list[float] = []
+    plan = [httpx.ConnectError("refused"), httpx.ReadTimeout("slow"), (503, {"Retry-After": "0.3"})]
+    retry = Retry(attempts=4, backoff_s=0.01, jitter=0.0)
+    with PlaceRecognitionClient(transport=_failing(plan, calls), retry=retry) as pr:
+        assert pr.health()["status"] == "ready"
+    assert len(calls) == 4
+    assert calls[3] - calls[2] >= 0.3  # Retry-After, longer than the backoff, was honoured
+    calls.clear()
+    plan = [(409, {}), (200, {})]
+    with (
+        PlaceRecognitionClient(transport=_failing(plan, calls), retry=retry) as pr,
+        pytest.raises(ConflictError),
+    ):
+        pr.health()
+    assert len(calls) == 1  # a 409 is an answer, not a failure: no retry
+    calls.clear()
+    plan = [(503, {"Retry-After": "0"})] * 5
+    with PlaceRecognitionClient(transport=_failing(plan, calls), retry=retry) as pr:
+        with pytest.raises(OverloadedError) as e:
+            pr.health()
+        assert e.value.retry_after == 0.0
+    assert len(calls) == 4  # attempts exhausted
+    calls.clear()
+    with (
+        PlaceRecognitionClient(
+            transport=_failing([httpx.ConnectError("x")], calls), retry=NO_RETRY
+        ) as pr,  # fmt: skip
+        pytest.raises(ConnectError),
+    ):
+        pr.health()
+    assert len(calls) == 1
+
+
+async def test_async_retries_too():
+    calls: list[float] = []
+    plan = [httpx.ConnectError("refused"), (429, {"Retry-After": "0.05"})]
+    retry = Retry(attempts=3, backoff_s=0.01)
+    async with AsyncPlaceRecognitionClient(transport=_failing(plan, calls), retry=retry) as pr:
+        assert (await pr.health())["status"] == "ready"
+    assert len(calls) == 3
+
+
+async def test_sync_and_async_agree_against_a_real_server(live):
+    scans = [scan(i) for i in range(3)]
+    with PlaceRecognitionClient(live) as pr:
+        pr.create_map("congruent")
+        for i, s in enumerate(scans):
+            pr.insert_keyframe("congruent", s, keyframe_id=f"k{i}", timestamp=float(i))
+        sync_q = pr.query("congruent", scan(1, 30.0), k=3)
+        sync_d = pr.describe(scans[2])
+        sync_maps = pr.list_maps()
+        results = list(
+            pr.stream(
+                "congruent",
+                [Observation(s, 100.0 + i, insert="never") for i, s in enumerate(scans)],
+                robot_id="sr",
+            )
+        )
+    async with AsyncPlaceRecognitionClient(live) as apr:
+        async_q = await apr.query("congruent", scan(1, 30.0), k=3)
+        async_d = await apr.describe(scans[2])
+        async_maps = await apr.list_maps()
+        aresults = [
+            r
+            async for r in apr.stream(
+                "congruent",
+                [Observation(s, 100.0 + i, insert="never") for i, s in enumerate(scans)],
+                robot_id="ar",
+            )
+        ]
+    assert [m.keyframe_id for m in sync_q.matches] == [m.keyframe_id for m in async_q.matches]
+    assert sync_q.matches[0].keyframe_id == "k1"
+    assert abs(sync_q.matches[0].yaw_deg - 30.0) < 1.5
+    np.testing.assert_allclose(
+        [m.distance for m in sync_q.matches], [m.distance for m in async_q.matches], atol=1e-6
+    )
+    np.testing.assert_allclose(sync_d.vector, async_d.vector, atol=1e-6)
+    assert [m.map_id for m in sync_maps] == [m.map_id for m in async_maps]
+    assert [r.seq for r in results] == [0, 1, 2] == [r.seq for r in aresults]
+    assert [r.matches[0].keyframe_id for r in results] == ["k0", "k1", "k2"]
+    assert [r.matches[0].keyframe_id for r in aresults] == ["k0", "k1", "k2"]
+
+
+def test_readme_example_runs(live, monkeypatch, capsys):
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"<!-- client-example -->\s*```python\n(.*?)```", text, re.S)
+    assert block, "the README lost its client example"
+    code = block.group(1)
+    assert len([ln for ln in code.splitlines() if ln.strip()]) <= 10
+    monkeypatch.setenv("OVERLAPMAMBA_URL", live)
+    exec(compile(code, "README.md", "exec"), {})
+    printed = capsys.readouterr().out.split()
+    assert printed[0] == "f0" and float(printed[1]) < 1e-3
+
+
+def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_path):
+    runner = CliRunner()
+    env = {"OVERLAPMAMBA_URL": live}
+
+    def run(*args: str) -> str:
+        res = runner.invoke(cli_app, list(args), env=env)
+        assert res.exit_code == 0, res.output
+        return res.output
+
+    assert "created" in run("maps", "create", "cli-town")
+    out = run("ingest", str(synthetic_seq_dir), "--map", "cli-town", "--every", "6")
+    assert "8 scans → map cli-town: 8 new keyframes" in out
+    out = run("ingest", str(synthetic_seq_dir), "--map", "cli-town", "--every", "6")
+    assert "0 new keyframes, 8 already there" in out  # re-running is harmless
+    out = run("query", str(synthetic_seq_dir / "velodyne" / "000012.bin"), "--map", "cli-town")
+    assert "loop-000012" in out and "loop closure:" in out
+    out = run(
+        "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r9"
+    )
+    assert "12 scans observed" in out
+    assert "cli-town" in run("maps", "list")
+    assert "queries" in run("stats") and "map keyframes" in run("stats", "--map", "cli-obs")
+    report, plot = tmp_path / "fleet.json", tmp_path / "fleet.png"
+    out = run(
+        "simulate-fleet", "--map", "cli-fleet", "--sequence", str(synthetic_seq_dir),
+        "--robots", "2", "--duration", "3", "--rate", "4",
+        "--out", str(report), "--plot", str(plot),
+    )  # fmt: skip
+    data = json.loads(report.read_text())
+    assert data["robots"] == 2 and data["observations"] >= 4 and data["errors"] == {}
+    assert data["precision"] is None  # this sequence ships no ground truth
+    assert plot.stat().st_size > 1000
+    assert "deleted" in run("maps", "delete", "cli-fleet", "--yes")
+    res = runner.invoke(cli_app, ["maps", "delete", "cli-fleet", "--yes"], env=env)
+    assert res.exit_code == 1 and "map_not_found" in res.output
+    res = runner.invoke(cli_app, ["maps", "list"], env={"OVERLAPMAMBA_URL": "http://127.0.0.1:9"})
+    assert res.exit_code == 2 and "cannot connect" in res.output
+
+
+def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
+    from client._replay import open_drive
+    from client.fleet import simulate
+
+    drive = open_drive(tiny_seq)
+    assert drive.loop_radius is not None
+    report, samples = asyncio.run(
+        simulate(live, "fleet-gt", [drive], robots=2, duration_s=4.0, rate_hz=3.0)
+    )
+    assert report.errors == {} and report.observations == len(samples) >= 6
+    assert report.correct is not None and report.queries_with_loop is not None
+    assert 0 <= report.correct <= report.loop_closures
