@@ -64,33 +64,33 @@ def main() -> None:
     with np.errstate(invalid="ignore", divide="ignore"):
         f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
     best = int(np.argmax(f1))
-    points = {
-        "f1max": {
-            "threshold": float(t[best]),
-            "precision": float(p[best]),
-            "recall": float(r[best]),
+
+    # The protocol's PR thresholds are squared L2 distances (lidar_core.metrics.nearest);
+    # the service compares L2 distances: max_distance = √threshold.
+    def point(i: int) -> dict[str, float]:
+        return {
+            "max_distance": float(np.sqrt(t[i])),
+            "squared_threshold": float(t[i]),
+            "precision": float(p[i]),
+            "recall": float(r[i]),
         }
-    }
+
+    points: dict[str, dict[str, float] | None] = {"f1max": point(best)}
     for target in (0.9, 0.95, 0.99):
         ok = np.flatnonzero((p >= target) & np.isfinite(t))
         if len(ok):
-            i = int(ok[np.argmax(r[ok])])
-            points[f"precision>={target}"] = {
-                "threshold": float(t[i]),
-                "precision": float(p[i]),
-                "recall": float(r[i]),
-            }
+            points[f"precision>={target}"] = point(int(ok[np.argmax(r[ok])]))
         else:
             points[f"precision>={target}"] = None
     table = Table(title=f"loop-closure operating points on {seq.name} ({enc.model_id})")
-    for col in ("point", "max distance", "precision", "recall"):
+    for col in ("point", "max L2 distance", "precision", "recall"):
         table.add_column(col, justify="right")
     for name, v in points.items():
         if v is None:
             table.add_row(name, "not reached", "", "")
         else:
             table.add_row(
-                name, f"{v['threshold']:.4f}", f"{v['precision']:.3f}", f"{v['recall']:.3f}"
+                name, f"{v['max_distance']:.4f}", f"{v['precision']:.3f}", f"{v['recall']:.3f}"
             )
     console = Console()
     console.print(table)

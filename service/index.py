@@ -1,12 +1,11 @@
 """The FAISS index of one map — derived from the store, never the source of truth.
 
 Vectors are unit descriptors and the metric is the L2 distance between them (the metric the
-model is evaluated with; cosine = 1 − d²/2). The index is an L2 index, not an inner-product
-one, on purpose: FAISS computes a single query's L2 distances as sums of squared
-differences, which stay accurate for near-identical vectors, while 2 − 2·(x·y) loses them
-to float32 cancellation. The shipped model's descriptors of different places differ by
-distances of order 1e-3 (benchmarks/loop_threshold.py), where that cancellation alone is
-an error of ≈3e-4.
+model is evaluated with; cosine = 1 − d²/2). The index is an L2 index rather than an
+inner-product one: FAISS computes a single query's L2 distances as sums of squared
+differences, which stay accurate for near-identical vectors, while √(2 − 2·x·y) loses up to
+≈3e-4 to float32 cancellation. Against the shipped model's loop threshold (0.048) that is
+small, but it costs nothing to avoid, and a re-visit of the very same place lies far closer.
 
     flat   IndexIDMap2(IndexFlatL2)       exact; the default
     ivf    IndexIVFFlat (L2)              approximate, for large maps: nlist ≈ √N lists,

@@ -86,10 +86,10 @@ class ObserveSettings(_Section):
 
 class LoopClosureSettings(_Section):
     # Calibrated for the shipped model on the validation town (benchmarks/loop_threshold.py):
-    # the distance at F1max, where precision is 0.36 and recall 0.62. Recalibrate for another
-    # model; verify accepted closures geometrically before they enter a pose graph.
+    # the L2 distance at F1max, where precision is 0.36 and recall 0.62. Recalibrate for
+    # another model; verify accepted closures geometrically before they enter a pose graph.
     max_distance: float = Field(
-        0.0023,
+        0.048,
         gt=0,
         le=2,
         description="accept a loop closure when the top-1 descriptor L2 distance is below",

@@ -9,10 +9,9 @@ indexed range scans. Tombstones older than the newest snapshot are purged.
 Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the FAISS ids.
 
     descriptor  (D,) float32 blob, unit norm — exactly what the encoder gave and the index
-                holds. float16 would halve 1 KB per keyframe, but it moves a descriptor by
-                ~3e-4 while the shipped model's loop threshold is 2.3e-3; the validation
-                metrics did not change with it (benchmarks/loop_threshold.py), the decision
-                margin would
+                holds. float16 would save 512 B per keyframe and move a descriptor by ~3e-4
+                (the validation metrics do not change: benchmarks/loop_threshold.py); the
+                store keeps the exact value, the index and the answers never differ
     yaw         (C, W) float16 blob, or NULL when a batch insert sent none (the yaw comes
                 from a correlation peak; float16 does not move it)
 """
