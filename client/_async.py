@@ -223,16 +223,9 @@ class AsyncPlaceRecognitionClient:
                 i += 1
                 while len(pending) >= window:
                     text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-                    yield self._result(text, errors)
+                    yield stream_result(text, errors)
                     pending.popleft()
             while pending:
                 text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-                yield self._result(text, errors)
+                yield stream_result(text, errors)
                 pending.popleft()
-
-    @staticmethod
-    def _result(text: str | bytes, errors: str) -> ObserveResult | APIError:
-        r = stream_result(text)
-        if isinstance(r, APIError) and errors == "raise":
-            raise r
-        return r

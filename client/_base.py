@@ -324,13 +324,17 @@ def stream_frames(
     return json.dumps(meta), body
 
 
-def stream_result(text: str | bytes) -> ObserveResult | APIError:
+def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
+    """One result frame of the stream → its result; a refused observation's APIError is
+    raised, or returned with ``errors="return"``."""
     d = json.loads(text)
     if d.get("ok"):
         return ObserveResult.from_json(d)
     e = d.get("error", {})
     err = error_for(400)(400, e.get("code", "stream_error"), e.get("message", ""), e.get("detail"))
     err.detail.setdefault("seq", d.get("seq"))
+    if errors == "raise":
+        raise err
     return err
 
 

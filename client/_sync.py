@@ -208,15 +208,8 @@ class PlaceRecognitionClient:
                 ws.send(body)
                 pending.append(i)
                 while len(pending) >= window:
-                    yield self._result(ws.recv(timeout=self.timeout.read), errors)
+                    yield stream_result(ws.recv(timeout=self.timeout.read), errors)
                     pending.popleft()
             while pending:
-                yield self._result(ws.recv(timeout=self.timeout.read), errors)
+                yield stream_result(ws.recv(timeout=self.timeout.read), errors)
                 pending.popleft()
-
-    @staticmethod
-    def _result(text: str | bytes, errors: str) -> ObserveResult | APIError:
-        r = stream_result(text)
-        if isinstance(r, APIError) and errors == "raise":
-            raise r
-        return r

@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -29,12 +28,6 @@ EncodeFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 class _Item:
     image: np.ndarray  # (1, H, W)
     future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
-
-
-@dataclass
-class BatchStats:
-    sizes: Counter[int] = field(default_factory=Counter)  # batch size -> count
-    encode_s: float = 0.0
 
 
 class MicroBatcher:
@@ -55,7 +48,6 @@ class MicroBatcher:
         self._queue: asyncio.Queue[_Item] | None = None
         self._worker: asyncio.Task[None] | None = None
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="encoder")
-        self.stats = BatchStats()
 
     async def start(self) -> None:
         self._queue = asyncio.Queue(maxsize=self.queue_size)
@@ -127,8 +119,6 @@ class MicroBatcher:
         t0 = loop.time()
         desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
         elapsed = loop.time() - t0
-        self.stats.sizes[len(live)] += 1
-        self.stats.encode_s += elapsed
         for i, item in enumerate(live):
             if not item.future.done():
                 item.future.set_result((desc[i], yaw[i]))

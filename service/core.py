@@ -22,7 +22,7 @@ from service.batcher import MicroBatcher
 from service.bodies import decode_scan
 from service.encoder import Encoder
 from service.errors import BadRequest, Conflict, Unprocessable
-from service.maps import Filters, Map, MapRegistry, content_hash
+from service.maps import Filters, InsertResult, Map, MapRegistry, content_hash
 from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
@@ -163,7 +163,9 @@ class PlaceService:
                 model_id=self.model_id,
             )
 
-    async def insert(self, m: Map, rows: list[NewKeyframe], robot: str | None) -> list[Any]:
+    async def insert(
+        self, m: Map, rows: list[NewKeyframe], robot: str | None
+    ) -> list[InsertResult]:
         self.check_model(m)
         results = await run_in_threadpool(m.insert, rows)
         created = sum(r.created for r in results)
@@ -272,14 +274,10 @@ class PlaceService:
         o = self.settings.observe
         if abs(timestamp - last[0]) >= o.insert_min_interval_s:
             return "time"
-        moved = (
-            None
-            if pose is None or last[1] is None
-            else np.linalg.norm(np.array(pose[:3]) - last[1])
-        )
-        if moved is not None and float(moved) >= o.insert_min_distance_m:
-            return "distance"
-        return None
+        if pose is None or last[1] is None:
+            return None
+        moved = float(np.linalg.norm(np.array(pose[:3]) - last[1]))
+        return "distance" if moved >= o.insert_min_distance_m else None
 
     async def observe(
         self,

@@ -131,6 +131,15 @@ class Filters:
     time_to: float | None = None
     max_distance: float | None = None
 
+    def __post_init__(self) -> None:
+        if self.exclude_recent_s is not None and (
+            self.session_id is None or self.timestamp is None
+        ):
+            raise BadRequest(
+                "exclude_recent_s needs the query's session_id and timestamp",
+                code="missing_parameter",
+            )
+
     @property
     def restricts_rows(self) -> bool:
         return any(
@@ -237,15 +246,13 @@ class Map:
         """Load the snapshot (if any, and sound) and replay the store's newer changes."""
         store = Store(folder / "store.sqlite")
         dim = int(store.get_meta("dim") or 0)
-        kind = store.get_meta("index_kind") or "flat"
         index, seq = _read_snapshot(folder / "index.snap", dim, settings)
         replay_from = seq
         if index is None:
             index, replay_from = VectorIndex.flat(dim), 0
         m = cls(map_id, folder, store, index, settings, applied_seq=seq, snapshot_seq=seq)
-        m.kind = kind
         with m.lock.write():
-            for ids, _, meta in store.live_rows(0):  # filter columns for every live row
+            for ids, meta in store.live_meta():  # filter columns for every live row
                 m.columns.add(ids, meta)
             added = 0
             for ids, vecs, _ in store.live_rows(replay_from):
@@ -357,9 +364,6 @@ class Map:
 
     # ---- writes -----------------------------------------------------------------------------
 
-    def lookup(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
-        return self.store.get_many(keyframe_ids)
-
     def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
         """Insert rows, idempotent on keyframe_id: a known id with the same content returns
         the stored keyframe; with other content the whole request is refused (409)."""
@@ -443,11 +447,7 @@ class Map:
         if f.exclude_robot is not None:
             mask &= c.robot != c.lookup(f.exclude_robot)
         if f.exclude_recent_s is not None:
-            if f.session_id is None or f.timestamp is None:
-                raise BadRequest(
-                    "exclude_recent_s needs the query's session_id and timestamp",
-                    code="missing_parameter",
-                )
+            assert f.session_id is not None and f.timestamp is not None  # Filters checked it
             own = c.session == c.lookup(f.session_id)
             mask &= ~(own & (c.ts > f.timestamp - f.exclude_recent_s))
         if f.time_from is not None:

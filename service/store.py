@@ -355,6 +355,18 @@ class Store:
                 vecs = np.stack([index_vector(r[1]) for r in rows])
                 yield ids, vecs, [(r[2], r[3], r[4]) for r in rows]
 
+    def live_meta(
+        self, chunk: int = 50_000
+    ) -> Iterator[tuple[np.ndarray, list[tuple[str, str, float]]]]:
+        """Every live row's id and (robot, session, timestamp), without the descriptors."""
+        with self._reading() as con:
+            cur = con.execute(
+                "SELECT id, robot_id, session_id, timestamp FROM keyframes "
+                "WHERE keyframe_id IS NOT NULL ORDER BY id"
+            )
+            while rows := cur.fetchmany(chunk):
+                yield np.array([r[0] for r in rows], np.int64), [(r[1], r[2], r[3]) for r in rows]
+
     def deleted_after(self, after_seq: int) -> np.ndarray:
         rows = self._rows(
             "SELECT id FROM keyframes WHERE deleted_seq > ? AND seq <= ?", (after_seq, after_seq)

@@ -7,6 +7,7 @@ import asyncio
 import gzip
 import hashlib
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -410,12 +411,19 @@ def _encode(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def test_batcher_batches_concurrent_requests_in_order():
     async def main():
-        mb = MicroBatcher(_encode, max_batch=4, max_wait_ms=5, queue_size=64)
+        sizes: Counter[int] = Counter()
+        mb = MicroBatcher(
+            _encode,
+            max_batch=4,
+            max_wait_ms=5,
+            queue_size=64,
+            on_batch=lambda n, _s: sizes.update([n]),
+        )
         await mb.start()
         images = [np.full((1, 2, 3), i, np.float32) for i in range(12)]
         out = await asyncio.gather(*(mb.encode(x) for x in images))
         await mb.stop()
-        return out, mb.stats.sizes
+        return out, sizes
 
     out, sizes = asyncio.run(main())
     for i, (desc, _) in enumerate(out):

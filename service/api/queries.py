@@ -106,11 +106,6 @@ async def query(
         time_to=time_to,
         max_distance=max_distance,
     )
-    filters_ok = exclude_recent_s is None or (session_id is not None and timestamp is not None)
-    if not filters_ok:
-        raise BadRequest(
-            "exclude_recent_s needs the query's session_id and timestamp", code="missing_parameter"
-        )
     body = await read_body(request, svc.settings.limits)
     ctype = (request.headers.get("content-type") or "").split(";")[0].strip().lower()
     t0 = time.perf_counter()
