@@ -739,16 +739,47 @@ def serve_cmd(
     insecure: Annotated[
         bool, typer.Option("--insecure", help="allow a non-loopback host without API keys")
     ] = False,
+    index_backend: Annotated[
+        str | None,
+        typer.Option(
+            "--index-backend", help="faiss (embedded, in --data-dir) or qdrant [default: faiss]"
+        ),
+    ] = None,
+    qdrant_url: Annotated[
+        str | None, typer.Option("--qdrant-url", help="the Qdrant server, e.g. http://qdrant:6333")
+    ] = None,
+    qdrant_api_key: Annotated[
+        str | None,
+        typer.Option(
+            "--qdrant-api-key",
+            envvar="OVERLAPMAMBA_QDRANT__API_KEY",
+            show_envvar=True,
+            help="Qdrant's API key (prefer the environment variable: argv is visible)",
+        ),
+    ] = None,
+    qdrant_path: Annotated[
+        Path | None,
+        typer.Option("--qdrant-path", help="Qdrant's embedded local mode in this folder (trials)"),
+    ] = None,
+    log_format: Annotated[
+        str | None, typer.Option("--log-format", help="json (one object per line) or text")
+    ] = None,
 ) -> None:
-    """Run the place-recognition HTTP service (uvicorn)."""
-    import logging
+    """Run the place-recognition HTTP service (uvicorn). SIGTERM drains requests in flight
+    and snapshots the maps before it exits."""
+    from service.app import run
 
-    import uvicorn
-
-    from service.app import create_app
-
+    qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
     settings = _service_settings(
-        config, host=host, port=port, data_dir=data_dir, model=model, insecure=insecure or None
+        config,
+        host=host,
+        port=port,
+        data_dir=data_dir,
+        model=model,
+        insecure=insecure or None,
+        log_format=log_format,
+        index={"backend": index_backend} if index_backend else None,
+        qdrant={k: v for k, v in qdrant.items() if v is not None} or None,
     )
     try:
         settings.check_binding()
@@ -758,22 +789,7 @@ def serve_cmd(
     if not settings.model.is_file():
         console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
         raise typer.Exit(2)
-    logging.basicConfig(
-        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
-    if not settings.auth.keys and not settings.loopback:
-        logging.getLogger("overlapmamba.service").warning(
-            "INSECURE: listening on %s with NO API KEYS — anyone who can reach this port can "
-            "read and change every map",
-            settings.host,
-        )
-    uvicorn.run(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=10,
-    )
+    run(settings)
 
 
 @app.command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")
@@ -846,6 +862,69 @@ def import_map_cmd(
         console.print(f"[bold red]error:[/] {err}")
         raise typer.Exit(2) from None
     out.print(f"imported map {r['map_id']}: {r['keyframes']} keyframes (model {r['model_id']})")
+
+
+@app.command(
+    "doctor",
+    epilog="Examples:\n\n  overlapmamba doctor --data-dir /data\n\n"
+    "  overlapmamba doctor --data-dir /data --json > doctor.json",
+)
+def doctor_cmd(
+    data_dir: DataDirOpt = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(help="the model the service serves [default: the configured one]"),
+    ] = None,
+    config: ConfigOpt = None,
+    max_snapshot_age_h: Annotated[
+        float, typer.Option(min=0, help="warn when a snapshot with writes since is older")
+    ] = 24.0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the findings as JSON")] = False,
+) -> None:
+    """Check a data folder: store vs index counts, snapshots (readable, complete, age), model
+    id consistency, leftovers of interrupted operations. Exit code 1 if anything is broken."""
+    from rich.table import Table
+
+    from service.doctor import diagnose, diagnose_backend
+
+    settings = _service_settings(config, data_dir=data_dir, model=model)
+    model_id = dim = None
+    if settings.model.is_file():
+        from service.encoder import Encoder
+
+        enc = Encoder(settings.model, intra_op_threads=1)
+        model_id, dim = enc.model_id, enc.dim
+    if settings.index.backend == "qdrant":
+        from service.backend import open_backend
+
+        backend = open_backend(settings, model_id=model_id or "", dim=dim or 0)
+        try:
+            report = diagnose_backend(backend, model_id=model_id, dim=dim)
+        finally:
+            backend.close()
+    else:
+        report = diagnose(
+            settings.data_dir,
+            model_id=model_id,
+            dim=dim,
+            max_snapshot_age_s=max_snapshot_age_h * 3600,
+            settings=settings.index,
+        )
+    if model_id is None:
+        report.add(None, "model", "warn", f"model {settings.model} not found: ids not checked")
+    if as_json:
+        out.print_json(report.to_json())
+    else:
+        table = Table(title=f"overlapmamba doctor: {report.data_dir}")
+        for col in ("map", "check", "status", "finding"):
+            table.add_column(col)
+        colour = {"ok": "green", "warn": "yellow", "error": "bold red"}
+        for f in report.findings:
+            table.add_row(f.map_id or "-", f.check, f"[{colour[f.status]}]{f.status}[/]", f.message)
+        out.print(table)
+        out.print("healthy" if report.healthy else "[bold red]problems found[/]")
+    if not report.healthy:
+        raise typer.Exit(1)
 
 
 # Commands that train or run the network on whole sequences: they restart once with glibc's

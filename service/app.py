@@ -6,10 +6,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from types import FrameType
 from typing import Any
 
+import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
@@ -21,15 +25,18 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from lidar_core.errors import LidarCoreError, PointCountError
 from service.api import descriptors, keyframes, maps, queries, system
 from service.auth import Authenticator
+from service.backend import open_backend
 from service.backup import data_dir_lock
 from service.core import PlaceService
 from service.encoder import Encoder
-from service.errors import PayloadTooLarge, ServiceError, error_body
-from service.maps import MapRegistry
+from service.errors import PayloadTooLarge, ServiceError, Unavailable, error_body
+from service.logs import configure as configure_logs
+from service.logs import new_request_id, request_id
 from service.schemas import DescriptorQueryIn, KeyframeBatchIn
 from service.settings import Settings
 
 log = logging.getLogger("overlapmamba.service")
+access = logging.getLogger("overlapmamba.access")
 
 DESCRIPTION = """
 LiDAR place recognition with OverlapMamba. Send a scan, get a 256-d descriptor; keep maps of
@@ -57,8 +64,9 @@ def _lidar_status(err: LidarCoreError) -> int:
 
 
 class GuardMiddleware:
-    """Per HTTP request: refuse bodies over the limit while they stream in (413), cancel a
-    request that runs past its timeout (504), and count requests by route and status."""
+    """Per HTTP request: give it a request id (logs, ``X-Request-ID``), refuse bodies over the
+    limit while they stream in (413), cancel a request that runs past its timeout (504),
+    count requests by route and status, and write one access log line."""
 
     def __init__(self, app: ASGIApp, max_body_bytes: int, timeout_s: float) -> None:
         self.app = app
@@ -66,9 +74,40 @@ class GuardMiddleware:
         self.timeout_s = timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
+        if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
+        headers = dict(scope.get("headers", []))
+        given = headers.get(b"x-request-id", b"").decode("latin-1")
+        rid = new_request_id(given)
+        token = request_id.set(rid)
+        t0 = time.perf_counter()
+        status = 500
+        try:
+            if scope["type"] == "websocket":
+                status = 101
+                await self.app(scope, receive, send)
+            else:
+                status = await self._http(scope, receive, send, rid)
+        finally:
+            client = scope.get("client")
+            access.log(
+                logging.DEBUG if scope.get("path") in _PROBES else logging.INFO,
+                "%s %s %s",
+                scope.get("method", "WS"),
+                scope.get("path"),
+                status,
+                extra={
+                    "method": scope.get("method", "WEBSOCKET"),
+                    "path": scope.get("path"),
+                    "status": status,
+                    "duration_ms": round((time.perf_counter() - t0) * 1e3, 2),
+                    "client": client[0] if client else None,
+                },
+            )
+            request_id.reset(token)
+
+    async def _http(self, scope: Scope, receive: Receive, send: Send, rid: str) -> int:
         received = 0
         started = False
         status = 500
@@ -79,9 +118,10 @@ class GuardMiddleware:
                     "payload_too_large",
                     f"body is {int(value)} bytes; allowed: at most {self.max_body}",
                     {"max_body_bytes": self.max_body},
+                    headers={"x-request-id": rid},
                 )
                 await resp(scope, receive, send)
-                return
+                return 413
 
         async def limited_receive() -> Message:
             nonlocal received
@@ -99,6 +139,7 @@ class GuardMiddleware:
             if message["type"] == "http.response.start":
                 started = True
                 status = message["status"]
+                message = {**message, "headers": [*message.get("headers", []), _rid(rid)]}
             await send(message)
 
         try:
@@ -107,37 +148,65 @@ class GuardMiddleware:
         except TimeoutError:
             if not started:
                 status = 504
-                resp = _error(504, "timeout", f"request ran past its {self.timeout_s} s timeout")
+                resp = _error(
+                    504,
+                    "timeout",
+                    f"request ran past its {self.timeout_s} s timeout",
+                    headers={"x-request-id": rid},
+                )
                 await resp(scope, receive, send)
         finally:
             svc = getattr(scope["app"].state, "service", None) if "app" in scope else None
             route = scope.get("route")
             if svc is not None:
                 svc.stats.request(getattr(route, "path", "unmatched"), status)
+        return status
+
+
+_PROBES = {"/healthz", "/readyz", "/metrics"}  # polled every few seconds: debug level
+
+
+def _rid(rid: str) -> tuple[bytes, bytes]:
+    return (b"x-request-id", rid.encode())
 
 
 async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
     app.state.stage = "loading maps"
     registry = svc.registry
+    delay = 0.5
+    while True:
+        try:
+            await run_in_threadpool(registry.load_all)
+            break
+        except Unavailable as err:  # Qdrant not up yet: a replica may start before it
+            app.state.stage = f"waiting for the index: {err.message}"
+            log.warning("%s; retrying in %.1f s", err.message, delay)
+            await asyncio.sleep(delay)
+            delay = min(10.0, 2 * delay)
+        except Exception as err:
+            log.exception("loading the maps failed")
+            app.state.stage = f"failed: {type(err).__name__}: {err}"
+            return
     try:
-        await run_in_threadpool(registry.load_all)
-    except Exception as err:
-        log.exception("loading the maps failed")
-        app.state.stage = f"failed: {type(err).__name__}: {err}"
-        return
-    for m in registry.maps.values():
-        svc.stats.p_keyframes.labels(m.map_id).set(m.index.ntotal)
-        if m.model_id != svc.model_id:
+        loaded = await run_in_threadpool(
+            lambda: [(m.map_id, m.model_id, m.count) for m in registry.snapshot_list()]
+        )
+    except Exception as err:  # e.g. Qdrant went away meanwhile: /readyz reports it
+        log.warning("listing the maps failed: %s", err)
+        loaded = []
+    for map_id, model_id, count in loaded:
+        svc.stats.p_keyframes.labels(map_id).set(count)
+        if model_id != svc.model_id:
             log.warning(
                 "map %s was built with model %s, not %s: its queries and inserts will be "
                 "refused (409)",
-                m.map_id,
-                m.model_id,
+                map_id,
+                model_id,
                 svc.model_id,
             )
     app.state.ready = True
     app.state.stage = "ready"
-    log.info("ready: %d maps under %s", len(registry.maps), svc.settings.data_dir)
+    log.info("ready: %d maps (%s)", len(loaded), registry.name)
 
 
 def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI:
@@ -145,7 +214,9 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        with data_dir_lock(settings.data_dir):  # one service per data folder
+        # One service per data folder; with Qdrant the process keeps no state of its own.
+        owns_data = settings.index.backend == "faiss"
+        with data_dir_lock(settings.data_dir) if owns_data else contextlib.nullcontext():
             app.state.stage = "loading model"
             enc = encoder
             if enc is None:
@@ -161,9 +232,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 enc.load_s,
                 enc.path,
             )
-            registry = MapRegistry(
-                settings.data_dir, settings.index, model_id=enc.model_id, dim=enc.dim
-            )
+            registry = open_backend(settings, model_id=enc.model_id, dim=enc.dim)
             svc = PlaceService(settings, enc, registry)
             await svc.batcher.start()
             app.state.service = svc
@@ -179,7 +248,13 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 with contextlib.suppress(BaseException):
                     await loader
                 await svc.batcher.stop()
+                t0 = time.perf_counter()
                 await run_in_threadpool(registry.close)
+                log.info(
+                    "stopped: %s maps closed in %.2f s",
+                    registry.name,
+                    time.perf_counter() - t0,
+                )
 
     app = FastAPI(
         title="OverlapMamba place recognition",
@@ -188,6 +263,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         lifespan=lifespan,
     )
     app.state.ready = False
+    app.state.draining = False
     app.state.stage = "starting"
     app.state.service = None
     app.state.settings = settings
@@ -248,3 +324,45 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         timeout_s=settings.limits.request_timeout_s,
     )
     return app
+
+
+class _DrainingServer(uvicorn.Server):
+    """uvicorn, plus: on SIGTERM/SIGINT, /readyz turns 503 at once, so a load balancer stops
+    sending while the requests in flight finish."""
+
+    def __init__(self, config: uvicorn.Config, app: FastAPI) -> None:
+        super().__init__(config)
+        self.app = app
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        if not self.should_exit:
+            self.app.state.draining = True
+            log.info(
+                "signal %d: draining requests in flight (up to %s s), then snapshotting maps",
+                sig,
+                self.config.timeout_graceful_shutdown,
+            )
+        super().handle_exit(sig, frame)
+
+
+def run(settings: Settings) -> None:
+    """Serve until SIGTERM or SIGINT. Then: stop accepting, let requests in flight finish (up
+    to the request timeout), stop the encoder, snapshot every map, exit 0."""
+    configure_logs(settings.log_level, settings.log_format)
+    if not settings.auth.keys and not settings.loopback:
+        log.warning(
+            "INSECURE: listening on %s with NO API KEYS — anyone who can reach this port can "
+            "read and change every map",
+            settings.host,
+        )
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_config=None,  # our handler (service.logs), not uvicorn's
+        access_log=False,  # GuardMiddleware writes the access lines, with request ids
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=math.ceil(settings.limits.request_timeout_s),
+    )
+    _DrainingServer(config, app).run()

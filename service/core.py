@@ -18,11 +18,11 @@ import numpy as np
 from starlette.concurrency import run_in_threadpool
 
 from lidar_core.points import PointCloud
+from service.backend import Filters, InsertResult, MapBackend, PlaceMap, content_hash
 from service.batcher import MicroBatcher
 from service.bodies import decode_scan
 from service.encoder import Encoder
 from service.errors import BadRequest, Conflict, Unprocessable
-from service.maps import Filters, InsertResult, Map, MapRegistry, content_hash
 from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
@@ -99,7 +99,7 @@ class Observed:
 
 
 class PlaceService:
-    def __init__(self, settings: Settings, encoder: Encoder, registry: MapRegistry) -> None:
+    def __init__(self, settings: Settings, encoder: Encoder, registry: MapBackend) -> None:
         self.settings = settings
         self.encoder = encoder
         self.registry = registry
@@ -153,7 +153,7 @@ class PlaceService:
 
     # ---- maps ---------------------------------------------------------------------------------
 
-    def check_model(self, m: Map) -> None:
+    def check_model(self, m: PlaceMap) -> None:
         if m.model_id != self.model_id:
             raise Conflict(
                 f"map {m.map_id!r} holds descriptors of model {m.model_id!r}; this service "
@@ -164,14 +164,15 @@ class PlaceService:
             )
 
     async def insert(
-        self, m: Map, rows: list[NewKeyframe], robot: str | None
+        self, m: PlaceMap, rows: list[NewKeyframe], robot: str | None
     ) -> list[InsertResult]:
         self.check_model(m)
         results = await run_in_threadpool(m.insert, rows)
         created = sum(r.created for r in results)
         if created:
             self.stats.insert(m.map_id, robot, created)
-            self.stats.p_keyframes.labels(m.map_id).set(m.index.ntotal)
+            count = await run_in_threadpool(lambda: m.count)
+            self.stats.p_keyframes.labels(m.map_id).set(count)
             for r in results:
                 if r.created:
                     self._remember(
@@ -206,7 +207,7 @@ class PlaceService:
 
     async def query(
         self,
-        m: Map,
+        m: PlaceMap,
         descriptor: np.ndarray,
         yaw: np.ndarray | None,
         k: int,
@@ -251,17 +252,17 @@ class PlaceService:
         while len(self._last_kf) > 10_000:
             self._last_kf.popitem(last=False)
 
-    async def _last(self, m: Map, robot: str) -> tuple[float, np.ndarray | None] | None:
+    async def _last(self, m: PlaceMap, robot: str) -> tuple[float, np.ndarray | None] | None:
         key = (m.map_id, robot)
         if key not in self._last_kf:
-            kf = await run_in_threadpool(m.store.last_keyframe, robot)
+            kf = await run_in_threadpool(m.last_keyframe, robot)
             if kf is None:
                 return None
             self._remember(m.map_id, robot, kf.timestamp, kf.pose)
         return self._last_kf.get(key)
 
     async def insert_due(
-        self, m: Map, robot: str, timestamp: float, pose: list[float] | None, mode: str
+        self, m: PlaceMap, robot: str, timestamp: float, pose: list[float] | None, mode: str
     ) -> str | None:
         """Why this observation becomes a keyframe, or None if it does not."""
         if mode == "always":
@@ -281,7 +282,7 @@ class PlaceService:
 
     async def observe(
         self,
-        m: Map,
+        m: PlaceMap,
         described: Described,
         *,
         robot_id: str,

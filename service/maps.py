@@ -15,7 +15,6 @@ Snapshots are written atomically (temporary file, fsync, rename, fsync of the fo
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import os
@@ -24,21 +23,29 @@ import struct
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lidar_core.yaw import estimate_yaw
-from service.errors import BadRequest, Conflict, NotFound, Unavailable
+from service.backend import (
+    Filters,
+    InsertResult,
+    Match,
+    build_matches,
+    check_existing,
+    check_rows,
+    insert_results,
+    unit_query,
+)
+from service.errors import Conflict, NotFound, Unavailable
 from service.index import VectorIndex, ivf_lists
 from service.schemas import MAP_ID, check_map_id
 from service.settings import IndexSettings
 from service.store import Keyframe, NewKeyframe, Store, fsync_dir, unit_vector
 
 log = logging.getLogger("overlapmamba.service")
-_MAGIC = b"OMSNAP01"
+SNAPSHOT_MAGIC = b"OMSNAP01"
 
 
 class RWLock:
@@ -120,71 +127,6 @@ class FilterColumns:
         self.alive[ids] = False
 
 
-@dataclass(frozen=True)
-class Filters:
-    exclude_session: str | None = None
-    exclude_robot: str | None = None
-    exclude_recent_s: float | None = None
-    session_id: str | None = None  # the querying session, for exclude_recent_s
-    timestamp: float | None = None  # the query's time, for exclude_recent_s
-    time_from: float | None = None
-    time_to: float | None = None
-    max_distance: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.exclude_recent_s is not None and (
-            self.session_id is None or self.timestamp is None
-        ):
-            raise BadRequest(
-                "exclude_recent_s needs the query's session_id and timestamp",
-                code="missing_parameter",
-            )
-
-    @property
-    def restricts_rows(self) -> bool:
-        return any(
-            v is not None
-            for v in (
-                self.exclude_session,
-                self.exclude_robot,
-                self.exclude_recent_s,
-                self.time_from,
-                self.time_to,
-            )
-        )
-
-
-@dataclass(frozen=True)
-class Match:
-    keyframe: Keyframe
-    similarity: float
-    distance: float
-    yaw_deg: float | None
-    yaw_confidence: float | None
-
-    def public(self) -> dict[str, Any]:
-        return {
-            **self.keyframe.public(),
-            "distance": self.distance,
-            "similarity": self.similarity,
-            "yaw_deg": self.yaw_deg,
-            "yaw_confidence": self.yaw_confidence,
-        }
-
-
-@dataclass(frozen=True)
-class InsertResult:
-    keyframe: Keyframe
-    created: bool
-
-
-def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
-    h = hashlib.sha256(kind.encode())
-    h.update(payload)
-    h.update(json.dumps(meta, sort_keys=True).encode())
-    return h.hexdigest()
-
-
 class Map:
     def __init__(
         self,
@@ -246,7 +188,7 @@ class Map:
         """Load the snapshot (if any, and sound) and replay the store's newer changes."""
         store = Store(folder / "store.sqlite")
         dim = int(store.get_meta("dim") or 0)
-        index, seq = _read_snapshot(folder / "index.snap", dim, settings)
+        index, seq = read_snapshot(folder / "index.snap", dim, settings)
         replay_from = seq
         if index is None:
             index, replay_from = VectorIndex.flat(dim), 0
@@ -344,7 +286,7 @@ class Map:
             path = self.folder / "index.snap"
             tmp = path.with_suffix(".snap.tmp")
             with open(tmp, "wb") as f:
-                f.write(_MAGIC + struct.pack("<I", len(header)) + header + payload)
+                f.write(SNAPSHOT_MAGIC + struct.pack("<I", len(header)) + header + payload)
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)
@@ -367,36 +309,12 @@ class Map:
     def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
         """Insert rows, idempotent on keyframe_id: a known id with the same content returns
         the stored keyframe; with other content the whole request is refused (409)."""
-        for r in rows:
-            if r.descriptor.shape != (self.dim,):
-                raise BadRequest(f"descriptor has shape {r.descriptor.shape}; need ({self.dim},)")
-        seen: dict[str, str] = {}
-        for r in rows:
-            if seen.setdefault(r.keyframe_id, r.content_hash) != r.content_hash:
-                raise Conflict(
-                    f"keyframe {r.keyframe_id!r} appears twice in the request with different "
-                    "content",
-                    code="keyframe_conflict",
-                    keyframe_id=r.keyframe_id,
-                )
+        ids_wanted = check_rows(rows, self.dim)
         with self.lock.write():
             self.check_open()
-            existing = self.store.get_many(list(seen))
-            for r in rows:
-                old = existing.get(r.keyframe_id)
-                if old is not None and old.content_hash != r.content_hash:
-                    raise Conflict(
-                        f"keyframe {r.keyframe_id!r} already exists with different content; "
-                        "keyframe ids are write-once (DELETE it first to replace it)",
-                        code="keyframe_conflict",
-                        keyframe_id=r.keyframe_id,
-                    )
-            new: list[NewKeyframe] = []
-            queued: set[str] = set()
-            for r in rows:
-                if r.keyframe_id not in existing and r.keyframe_id not in queued:
-                    queued.add(r.keyframe_id)
-                    new.append(r)
+            existing = self.store.get_many(ids_wanted)
+            new = check_existing(rows, existing)
+            created: dict[str, Keyframe] = {}
             if new:
                 ids, seq = self.store.insert(new)
                 id_arr = np.array(ids, dtype=np.int64)
@@ -405,17 +323,7 @@ class Map:
                 self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
                 self.applied_seq = seq
                 created = self.store.get_many([r.keyframe_id for r in new])
-            else:
-                created = {}
-        out = []
-        for r in rows:
-            if r.keyframe_id in existing:
-                out.append(InsertResult(existing[r.keyframe_id], created=False))
-            else:
-                out.append(InsertResult(created[r.keyframe_id], created=True))
-                created.pop(r.keyframe_id)  # a repeated id in one request is created once
-                existing[r.keyframe_id] = out[-1].keyframe
-        return out
+        return insert_results(rows, existing, created)
 
     def delete(self, keyframe_id: str) -> None:
         with self.lock.write():
@@ -459,40 +367,29 @@ class Map:
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:
-        q = np.asarray(descriptor, dtype=np.float32)
-        q = q / max(float(np.linalg.norm(q)), 1e-12)
+        q = unit_query(descriptor)
         with self.lock.read():
             self.check_open()
             mask = self.allowed(filters)
             dists, ids = self.index.search(q, k, mask)
             rows = self.store.by_ids([int(i) for i in ids])
-        matches = []
-        found = [(float(d), int(i)) for d, i in zip(dists, ids, strict=True) if int(i) in rows]
-        yaws: dict[int, tuple[float, float]] = {}
-        stored = {i: rows[i][1] for _, i in found}
-        with_yaw = [i for i, f in stored.items() if f is not None]
-        if yaw is not None and with_yaw:
-            refs = np.stack([stored[i] for i in with_yaw])  # type: ignore[misc]  # (K, C, W)
-            if refs.shape[1:] == yaw.shape:
-                deg, conf = estimate_yaw(yaw, refs)
-                yaws = {
-                    i: (float(d), float(c)) for i, d, c in zip(with_yaw, deg, conf, strict=True)
-                }
-        for dist, i in found:
-            sim = 1.0 - dist * dist / 2.0
-            if filters.max_distance is not None and dist > filters.max_distance:
-                continue
-            y = yaws.get(i)
-            matches.append(
-                Match(
-                    keyframe=rows[i][0],
-                    similarity=sim,
-                    distance=dist,
-                    yaw_deg=None if y is None else y[0],
-                    yaw_confidence=None if y is None else y[1],
-                )
-            )
-        return matches
+        found = [
+            (float(d), *rows[int(i)]) for d, i in zip(dists, ids, strict=True) if int(i) in rows
+        ]
+        return build_matches(found, yaw, filters.max_distance)
+
+    @property
+    def count(self) -> int:
+        self.check_open()
+        return self.index.ntotal
+
+    def get(self, keyframe_id: str) -> Keyframe | None:
+        self.check_open()
+        return self.store.get(keyframe_id)
+
+    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+        self.check_open()
+        return self.store.last_keyframe(robot_id)
 
     def info(self) -> dict[str, Any]:
         with self.lock.read():
@@ -501,6 +398,7 @@ class Map:
         return {
             "map_id": self.map_id,
             "model_id": self.model_id,
+            "backend": "faiss",
             "index": {
                 "kind": self.kind,
                 "active": self.index.kind,
@@ -514,14 +412,14 @@ class Map:
         }
 
 
-def _read_snapshot(path: Path, dim: int, settings: IndexSettings) -> tuple[VectorIndex | None, int]:
+def read_snapshot(path: Path, dim: int, settings: IndexSettings) -> tuple[VectorIndex | None, int]:
     """(index, seq), or (None, 0) when there is no usable snapshot — the index is derived,
     so a missing or damaged snapshot costs a rebuild, never data."""
     if not path.exists():
         return None, 0
     try:
         data = path.read_bytes()
-        if data[:8] != _MAGIC:
+        if data[:8] != SNAPSHOT_MAGIC:
             raise ValueError("bad magic")
         (n,) = struct.unpack("<I", data[8:12])
         header = json.loads(data[12 : 12 + n])
@@ -535,7 +433,9 @@ def _read_snapshot(path: Path, dim: int, settings: IndexSettings) -> tuple[Vecto
 
 
 class MapRegistry:
-    """Every map under ``data_dir/maps``, opened at start-up."""
+    """Every map under ``data_dir/maps``, opened at start-up (the ``faiss`` backend)."""
+
+    name = "faiss"
 
     def __init__(self, root: Path, settings: IndexSettings, *, model_id: str, dim: int) -> None:
         self.root = Path(root) / "maps"
@@ -561,6 +461,9 @@ class MapRegistry:
                     self.failed[folder.name] = f"{type(err).__name__}: {err}"
             elif folder.name.startswith((".trash-", ".import-", ".create-")):
                 shutil.rmtree(folder, ignore_errors=True)
+
+    def describe(self) -> dict[str, Any]:
+        return {"backend": self.name, "data_dir": str(self.root.parent), "maps": len(self.maps)}
 
     def get(self, map_id: str) -> Map:
         check_map_id(map_id)

@@ -69,10 +69,11 @@ class MapOut(BaseModel):
     model_config = ConfigDict(protected_namespaces=())
     map_id: str
     model_id: str
+    backend: str = Field("faiss", description="faiss (embedded) or qdrant")
     index: dict[str, Any]
     keyframes: int
-    seq: int
-    snapshot_seq: int
+    seq: int | None = Field(None, description="faiss: the store's last write sequence number")
+    snapshot_seq: int | None = Field(None, description="faiss: the seq the snapshot holds")
     created_at: float
     created: bool | None = None
 
@@ -219,9 +220,11 @@ class ObserveOut(QueryOut):
 
 
 class SnapshotOut(BaseModel):
-    seq: int
-    bytes: int
-    purged_tombstones: int
+    backend: str = "faiss"
+    bytes: int | None = Field(None, description="the snapshot's size")
+    seq: int | None = Field(None, description="faiss: the store seq the snapshot holds")
+    purged_tombstones: int | None = Field(None, description="faiss: deletes now compacted")
+    name: str | None = Field(None, description="qdrant: the collection snapshot's name")
 
 
 class Health(BaseModel):

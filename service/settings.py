@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -59,6 +59,9 @@ class BatchSettings(_Section):
 
 
 class IndexSettings(_Section):
+    backend: Literal["faiss", "qdrant"] = Field(
+        "faiss", description="faiss: embedded, in data_dir; qdrant: a Qdrant server (qdrant.*)"
+    )
     kind: IndexKind = Field("auto", description="default index for new maps")
     approximate_above: int = Field(
         100_000, ge=1, description="'auto' maps switch from exact to IVF above this size"
@@ -67,6 +70,34 @@ class IndexSettings(_Section):
         24, ge=1, description="IVF lists searched per query (recall@10 0.99 at 1M, measured)"
     )
     snapshot_every: int = Field(5_000, ge=1, description="writes between automatic snapshots")
+
+
+class QdrantSettings(_Section):
+    """The ``qdrant`` backend: each map is the collection ``<collection_prefix><map_id>``."""
+
+    url: str | None = Field(
+        None, pattern=r"^https?://", description="the Qdrant server, e.g. http://qdrant:6333"
+    )
+    api_key: SecretStr | None = Field(None, description="Qdrant's API key (env or file, please)")
+    path: Path | None = Field(
+        None, description="Qdrant's embedded local mode in this folder (tests, trials; no HNSW)"
+    )
+    collection_prefix: str = Field("overlapmamba-", pattern=r"^[A-Za-z0-9_-]{0,64}$")
+    timeout_s: float = Field(10.0, gt=0, description="per Qdrant call")
+    shards: int = Field(1, ge=1, description="new collections: shard_number")
+    replication_factor: int = Field(1, ge=1, description="new collections: copies of each shard")
+    write_consistency_factor: int = Field(
+        1, ge=1, description="new collections: copies that must confirm a write"
+    )
+    hnsw_ef: int = Field(128, ge=1, description="approximate maps: HNSW candidates per query")
+
+    @model_validator(mode="after")
+    def _one_place(self) -> QdrantSettings:
+        if self.url is not None and self.path is not None:
+            raise ValueError("qdrant: give url or path, not both")
+        if self.write_consistency_factor > self.replication_factor:
+            raise ValueError("qdrant.write_consistency_factor exceeds qdrant.replication_factor")
+        return self
 
 
 class ObserveSettings(_Section):
@@ -132,12 +163,22 @@ class Settings(BaseSettings):
     model: Path = Path("models/overlapmamba-hdl64.onnx")
     insecure: bool = Field(False, description="allow a non-loopback host without API keys")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    log_format: Literal["json", "text"] = Field(
+        "json", description="json: one object per line with request ids; text: for a terminal"
+    )
     limits: LimitSettings = Field(default_factory=LimitSettings)  # type: ignore[arg-type]
     batching: BatchSettings = Field(default_factory=BatchSettings)  # type: ignore[arg-type]
     index: IndexSettings = Field(default_factory=IndexSettings)  # type: ignore[arg-type]
     observe: ObserveSettings = Field(default_factory=ObserveSettings)  # type: ignore[arg-type]
     loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
     auth: AuthSettings = Field(default_factory=AuthSettings)
+    qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
+
+    @model_validator(mode="after")
+    def _backend_configured(self) -> Settings:
+        if self.index.backend == "qdrant" and self.qdrant.url is None and self.qdrant.path is None:
+            raise ValueError("index.backend = 'qdrant' needs qdrant.url (or qdrant.path)")
+        return self
 
     @classmethod
     def settings_customise_sources(

@@ -291,6 +291,17 @@ class Store:
     def count(self) -> int:
         return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
 
+    def live_count_at(self, seq: int) -> int:
+        """Keyframes alive just after write ``seq`` (what a snapshot at ``seq`` must hold).
+        Tombstones at or before a snapshot are purged, and those rows were dead at it anyway."""
+        return int(
+            self._rows(
+                "SELECT COUNT(*) FROM keyframes WHERE seq <= ? "
+                "AND (deleted_seq IS NULL OR deleted_seq > ?)",
+                (seq, seq),
+            )[0][0]
+        )
+
     def get(self, keyframe_id: str) -> Keyframe | None:
         rows = self._rows(
             f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)

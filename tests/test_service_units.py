@@ -15,6 +15,7 @@ import pytest
 import zstandard
 
 from service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
+from service.backend import Filters
 from service.batcher import MicroBatcher
 from service.bodies import decompress, scan_format
 from service.errors import (
@@ -28,7 +29,7 @@ from service.errors import (
     UnsupportedMediaType,
 )
 from service.index import VectorIndex, search_reference
-from service.maps import Filters, MapRegistry, RWLock
+from service.maps import MapRegistry, RWLock
 from service.settings import AuthSettings, IndexSettings, Settings, load_settings
 from service.store import NewKeyframe, Store
 

@@ -12,11 +12,11 @@ from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action
+from service.backend import PlaceMap, content_hash
 from service.bodies import read_body
 from service.core import PlaceService, check_descriptor, check_pose, parse_pose
 from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
 from service.errors import Conflict, NotFound, PayloadTooLarge, Unprocessable
-from service.maps import Map, content_hash
 from service.schemas import (
     KEYFRAME_ID_PATTERN,
     NAME_PATTERN,
@@ -114,7 +114,7 @@ async def insert_batch(
     )
 
 
-def _batch_rows(body: bytes, m: Map, svc: PlaceService) -> list[NewKeyframe]:
+def _batch_rows(body: bytes, m: PlaceMap, svc: PlaceService) -> list[NewKeyframe]:
     try:
         batch = KeyframeBatchIn.model_validate_json(body)
     except ValidationError as err:
@@ -187,7 +187,7 @@ async def get_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanReadMaps
 ) -> KeyframeOut:
     m = svc.registry.get(map_id)
-    kf = await run_in_threadpool(m.store.get, keyframe_id)
+    kf = await run_in_threadpool(m.get, keyframe_id)
     if kf is None:
         raise NotFound(f"map {map_id!r} has no keyframe {keyframe_id!r}", code="keyframe_not_found")
     return _out(kf)
@@ -204,6 +204,6 @@ async def delete_keyframe(
 ) -> Response:
     m = svc.registry.get(map_id)
     await run_in_threadpool(m.delete, keyframe_id)
-    svc.stats.p_keyframes.labels(map_id).set(m.index.ntotal)
+    svc.stats.p_keyframes.labels(map_id).set(await run_in_threadpool(lambda: m.count))
     m.maintain()
     return Response(status_code=204)

@@ -32,11 +32,11 @@ from starlette.concurrency import run_in_threadpool
 from lidar_core.errors import LidarCoreError
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action, presented_key
+from service.backend import Filters
 from service.bodies import decompress, read_body
 from service.core import check_descriptor, check_pose, parse_pose
 from service.deps import CanEncode, ServiceDep
 from service.errors import BadRequest, ServiceError, error_body
-from service.maps import Filters
 from service.schemas import NAME_PATTERN, POSE_FORMAT, DescriptorQueryIn, ObserveOut, QueryOut
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])

@@ -8,9 +8,11 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
 from service.deps import CanView, ServiceDep
+from service.errors import ServiceError
 from service.schemas import Health
 
 router = APIRouter(tags=["system"])
@@ -29,6 +31,11 @@ async def healthz() -> Health:
 )
 async def readyz(request: Request) -> Response:
     state = request.app.state
+    if getattr(state, "draining", False):
+        return JSONResponse(
+            Health(status="draining", detail={"stage": "shutting down"}).model_dump(),
+            status_code=503,
+        )
     if not getattr(state, "ready", False):
         return JSONResponse(
             Health(status="loading", detail={"stage": state.stage}).model_dump(),
@@ -36,12 +43,20 @@ async def readyz(request: Request) -> Response:
             headers={"Retry-After": "1"},
         )
     svc = state.service
+    try:  # the Qdrant backend asks its server: unreachable means not ready
+        where = await run_in_threadpool(svc.registry.describe)
+    except ServiceError as err:
+        return JSONResponse(
+            Health(status="unavailable", detail={"stage": err.message}).model_dump(),
+            status_code=503,
+            headers={"Retry-After": "1"},
+        )
     return JSONResponse(
         Health(
             status="ready",
             detail={
                 "model_id": svc.model_id,
-                "maps": len(svc.registry.maps),
+                **where,
                 "failed_maps": sorted(svc.registry.failed),  # why: in the log
             },
         ).model_dump()
@@ -52,7 +67,9 @@ async def readyz(request: Request) -> Response:
 async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
-    maps = {m.map_id: {"keyframes": m.index.ntotal} for m in svc.registry.snapshot_list()}
+    maps = await run_in_threadpool(
+        lambda: {m.map_id: {"keyframes": m.count} for m in svc.registry.snapshot_list()}
+    )
     return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
 
 

@@ -1,0 +1,236 @@
+"""The two map backends — FAISS (embedded) and Qdrant (qdrant-client's local mode) — given
+the same inserts, deletes, filtered queries and restarts, give the same answers, and both
+agree with a numpy brute force over the live keyframes."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.backend import Filters, MapBackend, content_hash, open_backend
+from service.errors import BadRequest, Conflict, NotFound
+from service.index import search_reference
+from service.settings import Settings
+from service.store import NewKeyframe
+
+DIM = 32
+MODEL_ID = "test-model"
+
+
+def settings_for(kind: str, root: Path) -> Settings:
+    if kind == "faiss":
+        return Settings(data_dir=root / "data")
+    return Settings(data_dir=root / "data", index={"backend": "qdrant"}, qdrant={"path": root})
+
+
+@contextlib.contextmanager
+def opened(kind: str, root: Path) -> Iterator[MapBackend]:
+    b = open_backend(settings_for(kind, root), model_id=MODEL_ID, dim=DIM)
+    b.load_all()
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+def row(i: int, rng: np.random.Generator, *, yaw: bool = False) -> NewKeyframe:
+    desc = rng.normal(size=DIM).astype(np.float32)
+    robot, session = f"r{i % 3}", f"s{i % 5}"
+    ts = float(i)
+    return NewKeyframe(
+        keyframe_id=f"kf-{i}",
+        robot_id=robot,
+        session_id=session,
+        timestamp=ts,
+        pose=[float(i), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0] if i % 2 else None,
+        descriptor=desc,
+        yaw=rng.normal(size=(4, 36)).astype(np.float32) if yaw else None,
+        content_hash=content_hash("descriptor", desc.tobytes(), {"i": i}),
+    )
+
+
+FILTERS = [
+    Filters(),
+    Filters(exclude_session="s1"),
+    Filters(exclude_robot="r2"),
+    Filters(exclude_recent_s=40.0, session_id="s3", timestamp=150.0),
+    Filters(time_from=20.0, time_to=90.5),
+    Filters(exclude_robot="r0", time_from=50.0),
+    Filters(max_distance=7.0),
+    Filters(exclude_session="nobody-has-this"),
+]
+
+
+def allowed(rows: dict[str, NewKeyframe], f: Filters) -> list[NewKeyframe]:
+    """The filter semantics, spelled out once more in plain Python."""
+    out = []
+    for r in rows.values():
+        if f.exclude_session is not None and r.session_id == f.exclude_session:
+            continue
+        if f.exclude_robot is not None and r.robot_id == f.exclude_robot:
+            continue
+        if f.exclude_recent_s is not None:
+            assert f.timestamp is not None
+            if r.session_id == f.session_id and r.timestamp > f.timestamp - f.exclude_recent_s:
+                continue
+        if f.time_from is not None and r.timestamp < f.time_from:
+            continue
+        if f.time_to is not None and r.timestamp > f.time_to:
+            continue
+        out.append(r)
+    return out
+
+
+def answers(b: MapBackend, queries: np.ndarray, k: int) -> list[list[tuple[str, float]]]:
+    m = b.get("town")
+    return [
+        [(x.keyframe.keyframe_id, x.distance) for x in m.search(q, k, f)]
+        for q in queries
+        for f in FILTERS
+    ]
+
+
+def expected(rows: dict[str, NewKeyframe], queries: np.ndarray, k: int) -> list[list[str]]:
+    out = []
+    for q in queries:
+        for f in FILTERS:
+            live = allowed(rows, f)
+            if not live:
+                out.append([])
+                continue
+            vecs = np.stack([r.descriptor / np.linalg.norm(r.descriptor) for r in live])
+            ids = np.array([r.keyframe_id for r in live])
+            dist, top = search_reference(vecs, ids, q / np.linalg.norm(q), k)
+            keep = [
+                i
+                for d, i in zip(dist, top, strict=True)
+                if f.max_distance is None or d <= f.max_distance
+            ]
+            out.append(keep)
+    return out
+
+
+def same(a: list[list[tuple[str, float]]], b: list[list[tuple[str, float]]]) -> None:
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        assert [i for i, _ in x] == [i for i, _ in y]
+        np.testing.assert_allclose([d for _, d in x], [d for _, d in y], atol=2e-5)
+
+
+def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
+    rng = np.random.default_rng(7)
+    rows = {r.keyframe_id: r for r in (row(i, rng, yaw=i < 10) for i in range(160))}
+    queries = rng.normal(size=(6, DIM)).astype(np.float32)
+    k = 12
+    results: dict[str, list] = {}
+    for kind in ("faiss", "qdrant"):
+        root = tmp_path / kind
+        live = dict(rows)
+        with opened(kind, root) as b:
+            m, created = b.create("town", "flat")
+            assert created and m.model_id == MODEL_ID and m.dim == DIM
+            assert b.create("town", None)[1] is False
+            with pytest.raises(Conflict):
+                b.create("town", "ivf")
+            batch = list(rows.values())
+            first = m.insert(batch[:100])
+            assert all(r.created for r in first)
+            # a retry is idempotent; a repeated id in one request is created once
+            again = m.insert([*batch[90:160], batch[150]])
+            assert [r.created for r in again] == [False] * 10 + [True] * 60 + [False]
+            assert m.count == 160
+            other = row(3, rng)
+            with pytest.raises(Conflict):  # same id, other content: refused whole
+                m.insert([batch[0], other])
+            with pytest.raises(BadRequest):
+                m.insert([dataclasses.replace(row(999, rng), descriptor=np.ones(DIM + 1))])
+            for kid in ("kf-5", "kf-6", "kf-77", "kf-140"):
+                m.delete(kid)
+                live.pop(kid)
+            with pytest.raises(NotFound):
+                m.delete("kf-5")
+            assert m.get("kf-5") is None
+            got = m.get("kf-7")
+            assert got is not None and got.public() == {
+                "keyframe_id": "kf-7",
+                "robot_id": "r1",
+                "session_id": "s2",
+                "timestamp": 7.0,
+                "pose": [7.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            }
+            last = m.last_keyframe("r2")
+            assert last is not None and last.keyframe_id == "kf-158"
+            assert m.last_keyframe("nobody") is None
+            before = answers(b, queries, k)
+            # the yaw features travel with the keyframe and come back for the top-k
+            yq = np.asarray(rows["kf-1"].yaw)
+            hit = m.search(rows["kf-1"].descriptor, 1, Filters(), yaw=yq)[0]
+            assert hit.keyframe.keyframe_id == "kf-1" and hit.distance < 1e-3
+            assert hit.yaw_deg is not None and abs(hit.yaw_deg) < 0.1  # float16 features
+            info = m.info()
+            assert info["backend"] == kind and info["keyframes"] == 156
+        with opened(kind, root) as b:  # a restart: everything acknowledged is there
+            assert [x.map_id for x in b.snapshot_list()] == ["town"]
+            m = b.get("town")
+            assert m.count == 156 and m.model_id == MODEL_ID
+            after = answers(b, queries, k)
+            same(before, after)
+            assert [[i for i, _ in a] for a in after] == expected(live, queries, k)
+            m.insert([row(500, rng)])
+            assert m.count == 157
+            b.delete("town")
+            with pytest.raises(NotFound):
+                b.get("town")
+            with pytest.raises(NotFound):
+                m.count  # noqa: B018  # a handle held across the delete
+            assert b.snapshot_list() == []
+        results[kind] = after
+    same(results["faiss"], results["qdrant"])
+
+
+def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(tmp_path):
+    """Two backends on one Qdrant see each other's maps at once (local mode allows one
+    client per folder, so the second "replica" shares the first one's client)."""
+    from qdrant_client import models
+
+    from service.qdrant import QdrantBackend
+
+    s = settings_for("qdrant", tmp_path)
+    with opened("qdrant", tmp_path) as a:
+        m, _ = a.create("yard", None)
+        assert m.kind == "auto"
+        assert isinstance(a, QdrantBackend)
+        b = QdrantBackend(s.qdrant, s.index, model_id=MODEL_ID, dim=DIM, client=a.client)
+        rng = np.random.default_rng(1)
+        m.insert([row(1, rng)])
+        assert b.get("yard").count == 1
+        a.client.create_collection(
+            "overlapmamba-alien",
+            vectors_config=models.VectorParams(size=DIM, distance=models.Distance.COSINE),
+        )
+        from service.errors import Unavailable
+
+        with pytest.raises(Unavailable, match="not an overlapmamba map"):
+            b.get("alien")
+        assert [x.map_id for x in b.snapshot_list()] == ["yard"]
+        with pytest.raises(Conflict, match="local mode has no snapshots"):
+            m.snapshot()
+        held = b.get("yard")
+        a.delete("yard")  # the other replica still holds a fresh handle
+        with pytest.raises(NotFound):
+            held.count  # noqa: B018
+        with pytest.raises(NotFound):
+            b.get("yard")
+
+
+def test_faiss_snapshot_still_reports_its_seq(tmp_path):
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+        snap = m.snapshot()
+        assert snap["seq"] == 1 and snap["bytes"] > 0
