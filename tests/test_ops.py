@@ -1,0 +1,273 @@
+"""Operations: JSON logs with request ids, graceful shutdown (drain, then snapshot), the
+doctor, and the Qdrant backend behind a real server across a SIGKILL."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from service_kit import MODEL, OCTET, running, scan, server
+
+from service.doctor import diagnose
+from service.encoder import Encoder
+from service.logs import JsonFormatter, new_request_id, request_id
+from service.maps import Map
+from service.settings import IndexSettings, Settings
+from service.store import NewKeyframe
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _unit(rng: np.random.Generator) -> list[float]:
+    v = rng.normal(size=256)
+    return (v / np.linalg.norm(v)).tolist()
+
+
+# ---- logs ---------------------------------------------------------------------------------
+
+
+def test_json_lines_carry_the_request_id_and_extra_fields():
+    record = logging.LogRecord("overlapmamba.x", logging.WARNING, "f", 1, "hi %s", ("there",), None)
+    record.status = 201
+    token = request_id.set("abc-1")
+    try:
+        line = json.loads(JsonFormatter().format(record))
+    finally:
+        request_id.reset(token)
+    assert line["msg"] == "hi there" and line["level"] == "warning"
+    assert line["request_id"] == "abc-1" and line["status"] == 201
+    assert line["ts"].endswith("Z") and line["logger"] == "overlapmamba.x"
+    assert new_request_id("robot-7:frame.12") == "robot-7:frame.12"
+    for hostile in ("a\nb", "x" * 200, "", "sp ace", '"}{'):
+        assert new_request_id(hostile) != hostile and len(new_request_id(hostile)) == 32
+
+
+@pytest.fixture
+def anyio_backend():
+    return "asyncio"
+
+
+@pytest.mark.anyio
+async def test_every_response_has_a_request_id_and_an_access_line(tmp_path):
+    lines: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            record.request_id = request_id.get()
+            lines.append(record)
+
+    access = logging.getLogger("overlapmamba.access")
+    keep = Keep(level=logging.DEBUG)
+    access.addHandler(keep)
+    old = access.level
+    access.setLevel(logging.DEBUG)
+    try:
+        enc = Encoder(MODEL, intra_op_threads=2)
+        async with running(Settings(data_dir=tmp_path / "d"), enc) as c:
+            r = await c.put("/v1/maps/town", headers={"x-request-id": "mapper-42"})
+            assert r.status_code == 201 and r.headers["x-request-id"] == "mapper-42"
+            r = await c.get("/v1/maps/nope", headers={"x-request-id": "bad\tid"})
+            assert r.status_code == 404 and len(r.headers["x-request-id"]) == 32
+            big = await c.post(
+                "/v1/descriptors", content=b"x", headers={**OCTET, "content-length": str(1 << 40)}
+            )
+            assert big.status_code == 413 and big.headers["x-request-id"]
+    finally:
+        access.removeHandler(keep)
+        access.setLevel(old)
+    got = [(x.request_id, x.status, x.path) for x in lines]  # type: ignore[attr-defined]
+    assert ("mapper-42", 201, "/v1/maps/town") in got
+    assert (r.headers["x-request-id"], 404, "/v1/maps/nope") in got
+    assert all(isinstance(x.duration_ms, float) for x in lines)  # type: ignore[attr-defined]
+
+
+# ---- graceful shutdown ----------------------------------------------------------------------
+
+
+def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
+    data = tmp_path / "data"
+    rng = np.random.default_rng(3)
+    # a 12-scan batch: about a second of encoding, in flight when the signal arrives
+    scans = [scan(i).tobytes() for i in range(12)]
+    batch = b"".join(struct.pack("<I", len(s)) + s for s in scans)
+    result: dict[str, object] = {}
+    with server(data) as (url, proc):
+        c = httpx.Client(base_url=url, timeout=60)
+        assert c.put("/v1/maps/town").status_code == 201
+        model_id = c.get("/readyz").json()["detail"]["model_id"]
+        for i in range(20):
+            kf = {"keyframe_id": f"k{i}", "timestamp": float(i), "descriptor": _unit(rng)}
+            body = {"model_id": model_id, "keyframes": [kf]}
+            r = c.post("/v1/maps/town/keyframes:batch", json=body)
+            assert r.status_code == 200, r.text
+
+        def slow() -> None:
+            r = httpx.post(
+                f"{url}/v1/descriptors:batch",
+                content=batch,
+                headers={"content-type": "application/x-scan-batch"},
+                timeout=60,
+            )
+            result["status"] = r.status_code
+            result["n"] = len(r.json().get("descriptors", []))
+
+        t = threading.Thread(target=slow)
+        t.start()
+        time.sleep(0.4)
+        proc.send_signal(signal.SIGTERM)
+        t.join(60)
+        out, _ = proc.communicate(timeout=60)
+    assert result == {"status": 200, "n": 12}, out.decode()[-3000:]
+    log = [json.loads(line) for line in out.decode().splitlines() if line.startswith("{")]
+    msgs = [x["msg"] for x in log]
+    drain = next(i for i, m in enumerate(msgs) if m.startswith("signal 15: draining"))
+    served = next(i for i, m in enumerate(msgs) if m == "POST /v1/descriptors:batch 200")
+    stopped = next(i for i, m in enumerate(msgs) if m.startswith("stopped: faiss maps closed"))
+    assert drain < served < stopped  # the request finished during the drain
+    # the final snapshot holds every write: nothing to replay on the next start
+    report = diagnose(data, model_id=Encoder(MODEL).model_id)
+    snap = next(f for f in report.findings if f.check == "snapshot")
+    assert report.healthy and snap.status == "ok" and snap.data["writes_since"] == 0, report
+
+
+# ---- the doctor -----------------------------------------------------------------------------
+
+
+def _map_with_rows(root: Path, n: int, *, model_id: str = "m1") -> Map:
+    s = IndexSettings(kind="flat", snapshot_every=10_000)
+    folder = root / "maps" / "town"
+    m = Map.create("town", folder, model_id=model_id, dim=8, kind="flat", settings=s)
+    rng = np.random.default_rng(0)
+    vecs = rng.normal(size=(n, 8)).astype(np.float32)
+    rows = [
+        NewKeyframe(f"k{i}", "r", "s", float(i), None, vecs[i], None, f"h{i}") for i in range(n)
+    ]
+    m.insert(rows)
+    return m
+
+
+def _by_check(report, check: str):
+    return [f for f in report.findings if f.check == check]
+
+
+def test_doctor_finds_what_is_wrong_with_a_data_folder(tmp_path):
+    root = tmp_path / "data"
+    m = _map_with_rows(root, 12)
+    m.snapshot()
+    m.delete("k0")
+    m.insert([NewKeyframe("k99", "r", "s", 99.0, None, np.ones(8, np.float32), None, "h99")])
+    m.close()
+    report = diagnose(root, model_id="m1", dim=8)
+    assert report.healthy, report.to_json()
+    (snap,) = _by_check(report, "snapshot")
+    assert snap.status == "ok" and snap.data["writes_since"] == 2
+    (index,) = _by_check(report, "index")
+    assert index.status == "ok" and index.data["vectors"] == 12
+    assert _by_check(report, "store")[0].data["keyframes"] == 12
+
+    # another model's service must not serve this folder
+    wrong = diagnose(root, model_id="m2", dim=8)
+    assert not wrong.healthy and _by_check(wrong, "model")[0].status == "error"
+
+    # an old snapshot with writes since, a torn temporary file, debris: warnings
+    folder = root / "maps" / "town"
+    (folder / "index.snap.tmp").write_bytes(b"half a snapsh")
+    (root / "maps" / ".trash-old-1").mkdir()
+    report = diagnose(root, model_id="m1", dim=8, max_snapshot_age_s=0)
+    assert report.healthy
+    statuses = {(f.check, f.status) for f in report.findings}
+    assert ("snapshot", "warn") in statuses and ("debris", "warn") in statuses
+    assert sum(f.check == "snapshot" and "torn" in f.message for f in report.findings) == 1
+
+    # a snapshot that does not match the store is an error (here: another map's snapshot)
+    other = _map_with_rows(tmp_path / "other", 3)
+    other.snapshot()
+    other.close()
+    shutil.copy(tmp_path / "other" / "maps" / "town" / "index.snap", folder / "index.snap")
+    bad = diagnose(root, model_id="m1", dim=8)
+    (snap,) = [f for f in _by_check(bad, "snapshot") if "torn" not in f.message]
+    assert snap.status == "error" and "holds 3 vectors" in snap.message
+    assert not bad.healthy
+
+    # an unreadable snapshot costs a rebuild, and the rebuilt index matches the store
+    (folder / "index.snap").write_bytes(b"garbage" * 10)
+    report = diagnose(root, model_id="m1", dim=8)
+    assert report.healthy
+    assert any("unreadable" in f.message for f in _by_check(report, "snapshot"))
+    assert _by_check(report, "index")[0].data["vectors"] == 12
+
+    # a store that is not a database is an error
+    (root / "maps" / "broken").mkdir()
+    (root / "maps" / "broken" / "store.sqlite").write_bytes(b"not sqlite" * 100)
+    report = diagnose(root, model_id="m1", dim=8)
+    assert not report.healthy
+    assert any(f.map_id == "broken" and f.status == "error" for f in report.findings)
+
+
+def test_doctor_cli_exit_code_and_json(tmp_path):
+    root = tmp_path / "data"
+    _map_with_rows(root, 4).close()
+    cmd = [sys.executable, "-m", "overlapmamba", "doctor", "--data-dir", str(root)]
+    res = subprocess.run([*cmd, "--json"], cwd=ROOT, capture_output=True, text=True)
+    # the map was built by "model" m1; the configured (shipped) model is another one
+    assert res.returncode == 1, res.stdout + res.stderr
+    body = json.loads(res.stdout)
+    assert body["healthy"] is False
+    assert any(f["check"] == "model" and f["status"] == "error" for f in body["findings"])
+    res = subprocess.run(
+        [*cmd, "--model", str(tmp_path / "none.onnx")], cwd=ROOT, capture_output=True, text=True
+    )
+    assert res.returncode == 0 and "ids not checked" in res.stdout, res.stdout + res.stderr
+
+
+# ---- Qdrant behind a real server --------------------------------------------------------------
+
+
+def test_qdrant_backend_serves_and_survives_sigkill(tmp_path):
+    env = {
+        "OVERLAPMAMBA_INDEX__BACKEND": "qdrant",
+        "OVERLAPMAMBA_QDRANT__PATH": str(tmp_path / "qdrant"),
+    }
+    rng = np.random.default_rng(5)
+    acked: dict[str, list[float]] = {}
+    with server(tmp_path / "data", env) as (url, proc):
+        c = httpx.Client(base_url=url, timeout=30)
+        ready = c.get("/readyz").json()["detail"]
+        assert ready["backend"] == "qdrant"
+        assert c.put("/v1/maps/town").status_code == 201
+        r = c.post(
+            "/v1/maps/town/keyframes",
+            content=scan(0).tobytes(),
+            params={"keyframe_id": "scan0", "timestamp": 0.0, "robot_id": "r1", "session_id": "s"},
+            headers=OCTET,
+        )
+        assert r.status_code == 201, r.text
+        for i in range(30):
+            d = _unit(rng)
+            kf = {"keyframe_id": f"k{i}", "timestamp": float(i + 1), "descriptor": d}
+            body = {"model_id": ready["model_id"], "keyframes": [kf]}
+            if c.post("/v1/maps/town/keyframes:batch", json=body).status_code == 200:
+                acked[f"k{i}"] = d
+        proc.kill()
+        proc.wait()
+    with server(tmp_path / "data", env) as (url, _):
+        c = httpx.Client(base_url=url, timeout=30)
+        assert c.get("/v1/maps/town").json()["keyframes"] == len(acked) + 1
+        for kid, d in list(acked.items())[::7]:
+            top = c.post("/v1/maps/town/query", params={"k": 1}, json={"descriptor": d}).json()
+            assert top["matches"][0]["keyframe_id"] == kid
+        # the turned scan finds its keyframe, with the turn, from the yaw features in Qdrant
+        r = c.post("/v1/maps/town/query", content=scan(0, 40.0).tobytes(), headers=OCTET).json()
+        best = r["matches"][0]
+        assert best["keyframe_id"] == "scan0" and abs(best["yaw_deg"] - 40.0) < 3.0
