@@ -49,6 +49,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/encoder.py
 	$(BIN)/python benchmarks/place_recognition.py
 	$(BIN)/python benchmarks/service.py
+	$(BIN)/python benchmarks/sizing.py
 
 # The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
 data: $(VENV)/.installed-all

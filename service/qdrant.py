@@ -446,6 +446,8 @@ class QdrantBackend:
                     replication_factor=q.replication_factor,
                     write_consistency_factor=q.write_consistency_factor,
                     hnsw_config=hnsw,
+                    # the yaw features (≈38 KB a point) are read only for the top-k: on disk
+                    on_disk_payload=True,
                     metadata=meta,
                 )
             )
@@ -478,12 +480,9 @@ class QdrantBackend:
 
     def snapshot_list(self) -> list[QdrantMap]:
         prefix = self.settings.collection_prefix
-        names = [c.name for c in self.call(lambda c: c.get_collections()).collections]
         out = []
-        for name in sorted(names):
+        for name in self._names():
             map_id = name[len(prefix) :]
-            if not name.startswith(prefix) or not map_id:
-                continue
             with contextlib.suppress(ServiceError, ValueError):  # gone, or not ours
                 check_map_id(map_id)
                 m = self._open(map_id)
@@ -492,8 +491,14 @@ class QdrantBackend:
                     out.append(m)
         return out
 
+    def _names(self) -> list[str]:
+        prefix = self.settings.collection_prefix
+        names = [c.name for c in self.call(lambda c: c.get_collections()).collections]
+        return sorted(n for n in names if n.startswith(prefix) and len(n) > len(prefix))
+
     def describe(self) -> dict[str, Any]:
-        return {"backend": self.name, "qdrant": self.where, "maps": len(self.snapshot_list())}
+        """One cheap call (readiness probes ask every few seconds)."""
+        return {"backend": self.name, "qdrant": self.where, "maps": len(self._names())}
 
     def close(self, *, snapshot: bool = True) -> None:
         """Nothing of ours to flush: every acknowledged write is already in Qdrant."""

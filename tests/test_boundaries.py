@@ -8,7 +8,16 @@ import sys
 
 import pytest
 
-HEAVY = ["torch", "onnxruntime", "faiss", "onnx", "trimesh", "sklearn", "matplotlib"]
+HEAVY = [
+    "torch",
+    "onnxruntime",
+    "faiss",
+    "qdrant_client",
+    "onnx",
+    "trimesh",
+    "sklearn",
+    "matplotlib",
+]
 LIDAR_CORE_MODULES = [
     "lidar_core",
     "lidar_core.errors",
@@ -50,7 +59,11 @@ def test_shared_core_imports_no_heavy_or_sibling_package():
 @pytest.mark.parametrize(
     ("package", "forbidden"),
     [
-        ("service.app", {"torch", "model_export", "client"}),
+        # Each map backend loads only its own engine; the app loads the configured one.
+        ("service.app", {"torch", "model_export", "client", "qdrant_client"}),
+        ("service.maps", {"torch", "model_export", "client", "onnxruntime", "qdrant_client"}),
+        ("service.qdrant", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
+        ("service.logs", set(HEAVY) | {"model_export", "client"}),
         ("service.backup", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
         ("client", {"torch", "onnxruntime", "faiss", "service", "model_export"}),
         ("client.cli", {"torch", "onnxruntime", "faiss", "service", "model_export", "matplotlib"}),

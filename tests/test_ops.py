@@ -102,8 +102,10 @@ def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
     scans = [scan(i).tobytes() for i in range(12)]
     batch = b"".join(struct.pack("<I", len(s)) + s for s in scans)
     result: dict[str, object] = {}
-    with server(data) as (url, proc):
-        c = httpx.Client(base_url=url, timeout=60)
+    with (
+        server(data) as (url, proc),
+        httpx.Client(base_url=url, timeout=60) as c,
+    ):
         assert c.put("/v1/maps/town").status_code == 201
         model_id = c.get("/readyz").json()["detail"]["model_id"]
         for i in range(20):
@@ -241,8 +243,10 @@ def test_qdrant_backend_serves_and_survives_sigkill(tmp_path):
     }
     rng = np.random.default_rng(5)
     acked: dict[str, list[float]] = {}
-    with server(tmp_path / "data", env) as (url, proc):
-        c = httpx.Client(base_url=url, timeout=30)
+    with (
+        server(tmp_path / "data", env) as (url, proc),
+        httpx.Client(base_url=url, timeout=30) as c,
+    ):
         ready = c.get("/readyz").json()["detail"]
         assert ready["backend"] == "qdrant"
         assert c.put("/v1/maps/town").status_code == 201
@@ -261,8 +265,10 @@ def test_qdrant_backend_serves_and_survives_sigkill(tmp_path):
                 acked[f"k{i}"] = d
         proc.kill()
         proc.wait()
-    with server(tmp_path / "data", env) as (url, _):
-        c = httpx.Client(base_url=url, timeout=30)
+    with (
+        server(tmp_path / "data", env) as (url, _),
+        httpx.Client(base_url=url, timeout=30) as c,
+    ):
         assert c.get("/v1/maps/town").json()["keyframes"] == len(acked) + 1
         for kid, d in list(acked.items())[::7]:
             top = c.post("/v1/maps/town/query", params={"k": 1}, json={"descriptor": d}).json()

@@ -1,0 +1,224 @@
+"""Sizing figures for docs/deploy.md: scans/s per core, bytes per keyframe, and the cost of
+each map backend's operations, measured on this machine.
+
+    encoder     the shipped model as the service runs it (project + encode, one scan per
+                call) with 1 and with 2 onnxruntime threads, on real KITTI scans when
+                ../shared/data is there (else synthetic ones)
+    storage     per keyframe with the model's real yaw-feature shape: the FAISS backend's
+                store (SQLite + WAL), its snapshot and the process's resident memory; the
+                Qdrant backend's point payload
+    backends    insert and query (k = 10) latency through the one map interface, for FAISS
+                and for Qdrant's *local mode* (exact numpy search, no server: it shows the
+                payload and filter path, not a Qdrant server's speed)
+
+Writes JSON (default bench-results/sizing.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+# benchmarks/service.py would shadow the service package: take this folder off the path.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+from lidar_core.io import read_points  # noqa: E402
+from service.backend import Filters, content_hash, open_backend  # noqa: E402
+from service.encoder import Encoder  # noqa: E402
+from service.qdrant import _payload  # noqa: E402
+from service.settings import Settings  # noqa: E402
+from service.store import NewKeyframe  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
+
+
+def rss_bytes() -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def scans(n: int) -> tuple[list, str]:
+    if KITTI.is_dir():
+        files = sorted(KITTI.glob("*.bin"))[:n]
+        return [read_points(p) for p in files], f"KITTI 00 frames 0–{len(files) - 1}"
+    import tempfile
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from service_kit import scan
+
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(n):
+            path = Path(tmp) / f"{i:06d}.bin"
+            path.write_bytes(scan(i).tobytes())
+            out.append(read_points(path))
+    return out, "synthetic scans (tests/service_kit.py)"
+
+
+def encoder_rate(model: Path, clouds: list, threads: int, reps: int) -> dict[str, float]:
+    enc = Encoder(model, intra_op_threads=threads)
+    enc.encode(enc.project(clouds[0])[None])  # warm-up
+    times = []
+    for i in range(reps):
+        t0 = time.perf_counter()
+        enc.encode(enc.project(clouds[i % len(clouds)])[None])
+        times.append(time.perf_counter() - t0)
+    med = float(np.median(times))
+    return {"threads": threads, "median_ms": med * 1e3, "scans_per_s": 1.0 / med}
+
+
+def rows(n: int, dim: int, yaw_shape: tuple[int, ...], seed: int = 0) -> list[NewKeyframe]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        d = rng.normal(size=dim).astype(np.float32)
+        out.append(
+            NewKeyframe(
+                keyframe_id=f"kf-{i}",
+                robot_id=f"r{i % 8}",
+                session_id=f"s{i % 3}",
+                timestamp=float(i),
+                pose=[float(i), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+                descriptor=d,
+                yaw=rng.normal(size=yaw_shape).astype(np.float32),
+                content_hash=content_hash("descriptor", d.tobytes(), {"i": i}),
+            )
+        )
+    return out
+
+
+def folder_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def backend_costs(kind: str, root: Path, data: list[NewKeyframe], dim: int) -> dict:
+    if kind == "faiss":
+        s = Settings(data_dir=root)
+    else:
+        s = Settings(data_dir=root, index={"backend": "qdrant"}, qdrant={"path": root / "q"})
+    b = open_backend(s, model_id="bench", dim=dim)
+    b.load_all()
+    m, _ = b.create("town", "flat")
+    rss0 = rss_bytes()
+    t_insert = []
+    for r in data:
+        t0 = time.perf_counter()
+        m.insert([r])
+        t_insert.append(time.perf_counter() - t0)
+    rss1 = rss_bytes()
+    rng = np.random.default_rng(1)
+    t_query, t_filtered = [], []
+    for _ in range(100):
+        q = rng.normal(size=dim).astype(np.float32)
+        t0 = time.perf_counter()
+        m.search(q, 10, Filters())
+        t_query.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        m.search(q, 10, Filters(exclude_recent_s=500.0, session_id="s1", timestamp=len(data)))
+        t_filtered.append(time.perf_counter() - t0)
+    out: dict = {
+        "n": len(data),
+        "insert_p50_ms": float(np.median(t_insert)) * 1e3,
+        "query_p50_ms": float(np.median(t_query)) * 1e3,
+        "filtered_query_p50_ms": float(np.median(t_filtered)) * 1e3,
+    }
+    if kind == "faiss":
+        snap = m.snapshot()
+        folder = root / "maps" / "town"
+        store = sum(f.stat().st_size for f in folder.glob("store.sqlite*"))
+        out |= {
+            "store_bytes_per_keyframe": store / len(data),
+            "snapshot_bytes_per_keyframe": snap["bytes"] / len(data),
+            "rss_bytes_per_keyframe": (rss1 - rss0) / len(data),
+        }
+    else:
+        out |= {
+            "payload_json_bytes_per_point": float(
+                np.mean([len(json.dumps(_payload(r, 0.0))) for r in data[:50]])
+            ),
+            "vector_bytes_per_point": dim * 4,
+            "local_storage_bytes_per_point": folder_bytes(root / "q") / len(data),
+        }
+    b.close()
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--keyframes", type=int, default=2000)
+    ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--work", type=Path, default=ROOT / "bench-results" / "sizing-work")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "sizing.json")
+    args = ap.parse_args()
+    console = Console()
+
+    clouds, source = scans(16)
+    enc_rates = [encoder_rate(args.model, clouds, t, args.reps) for t in (1, 2)]
+    enc = Encoder(args.model, intra_op_threads=1)
+    desc, yaw = enc.encode(enc.project(clouds[0])[None])
+    dim, yaw_shape = desc.shape[1], tuple(yaw.shape[1:])
+
+    import shutil
+
+    shutil.rmtree(args.work, ignore_errors=True)
+    data = rows(args.keyframes, dim, yaw_shape)
+    backends = {k: backend_costs(k, args.work / k, data, dim) for k in ("faiss", "qdrant")}
+    shutil.rmtree(args.work, ignore_errors=True)
+
+    result = {
+        "machine": {
+            "platform": platform.platform(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+        },
+        "scans": source,
+        "encoder": enc_rates,
+        "descriptor_dim": dim,
+        "yaw_shape": list(yaw_shape),
+        "backends": backends,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2))
+
+    t = Table(title=f"encoder, one scan per call ({source})")
+    for col in ("onnxruntime threads", "median ms / scan", "scans/s"):
+        t.add_column(col, justify="right")
+    for r in enc_rates:
+        t.add_row(str(r["threads"]), f"{r['median_ms']:.1f}", f"{r['scans_per_s']:.1f}")
+    console.print(t)
+    t = Table(title=f"map backends, {args.keyframes} keyframes (dim {dim}, yaw {yaw_shape})")
+    t.add_column("figure")
+    for k in backends:
+        t.add_column(k, justify="right")
+    keys = sorted({k for v in backends.values() for k in v})
+    for key in keys:
+        t.add_row(key, *[_fmt(backends[b].get(key)) for b in backends])
+    console.print(t)
+    console.print(f"wrote {args.out}")
+
+
+def _fmt(v: object) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:,.3f}" if v < 100 else f"{v:,.0f}"
+    return str(v)
+
+
+if __name__ == "__main__":
+    main()
