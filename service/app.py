@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -91,15 +92,16 @@ class GuardMiddleware:
                 status = await self._http(scope, receive, send, rid)
         finally:
             client = scope.get("client")
+            path = _printable(scope.get("path"))
             access.log(
                 logging.DEBUG if scope.get("path") in _PROBES else logging.INFO,
                 "%s %s %s",
                 scope.get("method", "WS"),
-                scope.get("path"),
+                path,
                 status,
                 extra={
                     "method": scope.get("method", "WEBSOCKET"),
-                    "path": scope.get("path"),
+                    "path": path,
                     "status": status,
                     "duration_ms": round((time.perf_counter() - t0) * 1e3, 2),
                     "client": client[0] if client else None,
@@ -164,6 +166,13 @@ class GuardMiddleware:
 
 
 _PROBES = {"/healthz", "/readyz", "/metrics"}  # polled every few seconds: debug level
+
+
+def _printable(path: str | None) -> str:
+    """A decoded path may hold control characters (%0A): escape them for text logs."""
+    if not path:
+        return ""
+    return path if path.isprintable() else path.encode("unicode_escape").decode("ascii")
 
 
 def _rid(rid: str) -> tuple[bytes, bytes]:
@@ -327,21 +336,39 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
 
 
 class _DrainingServer(uvicorn.Server):
-    """uvicorn, plus: on SIGTERM/SIGINT, /readyz turns 503 at once, so a load balancer stops
-    sending while the requests in flight finish."""
+    """uvicorn, plus: on SIGTERM/SIGINT, /readyz turns 503 at once; the service goes on
+    serving for ``delay_s`` (a load balancer's probes notice and stop sending), then uvicorn
+    stops accepting and drains the requests in flight. A second signal skips the delay."""
 
-    def __init__(self, config: uvicorn.Config, app: FastAPI) -> None:
+    def __init__(self, config: uvicorn.Config, app: FastAPI, delay_s: float) -> None:
         super().__init__(config)
         self.app = app
+        self.delay_s = delay_s
+        self._delayed: threading.Timer | None = None
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
-        if not self.should_exit:
+        if not self.app.state.draining:
             self.app.state.draining = True
             log.info(
-                "signal %d: draining requests in flight (up to %s s), then snapshotting maps",
+                "signal %d: /readyz is 503; serving %.1f s more, then draining requests in "
+                "flight (up to %s s) and snapshotting maps",
                 sig,
+                self.delay_s,
                 self.config.timeout_graceful_shutdown,
             )
+            if self.delay_s > 0:
+                # uvicorn checks should_exit every 0.1 s; setting it later is thread-safe.
+                self._delayed = threading.Timer(self.delay_s, self._drain, (sig, frame))
+                self._delayed.daemon = True
+                self._delayed.start()
+                return
+        elif self._delayed is not None:
+            self._delayed.cancel()
+        self._drain(sig, frame)
+
+    def _drain(self, sig: int, frame: FrameType | None) -> None:
+        if not self.should_exit:
+            log.info("draining requests in flight")
         super().handle_exit(sig, frame)
 
 
@@ -365,4 +392,4 @@ def run(settings: Settings) -> None:
         log_level=settings.log_level,
         timeout_graceful_shutdown=math.ceil(settings.limits.request_timeout_s),
     )
-    _DrainingServer(config, app).run()
+    _DrainingServer(config, app, settings.shutdown_delay_s).run()

@@ -17,18 +17,19 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
 from lidar_core.yaw import estimate_yaw
-from service.errors import BadRequest, Conflict
+from service.errors import BadRequest, Conflict, NotFound
 from service.settings import Settings
 from service.store import Keyframe, NewKeyframe
 
 BACKENDS = ("faiss", "qdrant")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -233,6 +234,17 @@ class MapBackend(Protocol):
     def describe(self) -> dict[str, Any]: ...  # where the maps live, for logs and readyz
 
     def close(self, *, snapshot: bool = True) -> None: ...
+
+
+def each_map(backend: MapBackend, fn: Callable[[PlaceMap], T]) -> dict[str, T]:
+    """``fn`` of every map, by id, skipping maps deleted between the listing and the call."""
+    out: dict[str, T] = {}
+    for m in backend.snapshot_list():
+        try:
+            out[m.map_id] = fn(m)
+        except NotFound:
+            continue
+    return out
 
 
 def open_backend(settings: Settings, *, model_id: str, dim: int) -> MapBackend:

@@ -153,6 +153,10 @@ class PlaceService:
 
     # ---- maps ---------------------------------------------------------------------------------
 
+    async def map(self, map_id: str) -> PlaceMap:
+        """The map, looked up off the event loop (the Qdrant backend may ask its server)."""
+        return await run_in_threadpool(self.registry.get, map_id)
+
     def check_model(self, m: PlaceMap) -> None:
         if m.model_id != self.model_id:
             raise Conflict(

@@ -1,21 +1,21 @@
 """``overlapmamba doctor``: is a data folder (the ``faiss`` backend's) sound? (For the
 ``qdrant`` backend, :func:`diagnose_backend` checks the server and the maps' models.)
 
-Per map, read-only:
+Per map, read-only (SQLite opened ``mode=ro``; nothing is rebuilt or written):
 
     store      opens; its schema and metadata (model id, dimension) are there
-    snapshot   readable; holds exactly the keyframes the store had alive at the snapshot's seq;
-               its age and the writes since (what the next start replays)
-    index      the snapshot plus the replay holds exactly the store's live keyframes
+    index      the snapshot holds exactly the keyframes the store had alive at the
+               snapshot's seq (so snapshot + replay = the store); read in one transaction
+    snapshot   readable; its age and the writes since (what the next start replays)
     model      the map's model id is the served model's, and the dimensions agree
                (descriptors of two models are not comparable and never share a map)
 
 and for the folder: leftovers of interrupted operations (``.trash-*``, ``.import-*``,
 ``.create-*`` folders; a torn ``index.snap.tmp``), and whether a service holds it now.
 
-Safe while the service runs (SQLite readers do not block its writer); the numbers are then
-a moment's view. Each finding is ``ok``, ``warn`` (works, but look) or ``error`` (broken:
-the exit code is 1).
+Safe while the service runs: SQLite readers do not block its writer, and the counts are
+one transaction's consistent view. Each finding is ``ok``, ``warn`` (works, but look) or
+``error`` (broken: the exit code is 1).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any, Literal
 from service.backend import MapBackend
 from service.backup import LOCK_NAME
 from service.errors import ServiceError
-from service.maps import SNAPSHOT_MAGIC, Map, read_snapshot
+from service.maps import SNAPSHOT_MAGIC, read_snapshot
 from service.schemas import MAP_ID
 from service.settings import IndexSettings
 from service.store import Store
@@ -145,15 +145,14 @@ def _check_map(
         report.add(map_id, "store", "warn", "a folder without store.sqlite: not a map (debris)")
         return None
     try:
-        store = Store(folder / "store.sqlite")
-    except Exception as err:
-        report.add(map_id, "store", "error", f"the store cannot be opened: {err}")
-        return None
-    try:
+        store = Store(folder / "store.sqlite", readonly=True)
         meta_model = store.get_meta("model_id")
         meta_dim = int(store.get_meta("dim") or 0)
-        live = store.count()
-        last = store.last_seq
+    except Exception as err:
+        report.add(map_id, "store", "error", f"the store cannot be read: {err}")
+        return None
+    try:
+        last, live, _ = store.census(0)
         report.add(map_id, "store", "ok", f"{live} keyframes, seq {last}", keyframes=live, seq=last)
         if not meta_model or not meta_dim:
             report.add(map_id, "model", "error", "the store has no model id or dimension")
@@ -171,44 +170,21 @@ def _check_map(
             report.add(map_id, "model", "error", f"dimension {meta_dim}, the model's is {dim}")
         else:
             report.add(map_id, "model", "ok", f"model {meta_model}", map_model_id=meta_model)
-        _check_snapshot(report, folder, store, meta_dim, max_age_s, settings)
+        _check_index(report, folder, store, meta_dim, max_age_s, settings)
+    except Exception as err:
+        report.add(map_id, "store", "error", f"the store cannot be read: {err}")
     finally:
         store.close()
-    try:  # what the service would build on start: snapshot + replay
-        m = Map.open(map_id, folder, settings)
-    except Exception as err:
-        report.add(map_id, "index", "error", f"the map cannot be opened: {err}")
-        return meta_model
-    try:
-        vectors, rows = m.index.ntotal, m.store.count()
-        if vectors == rows:
-            report.add(
-                map_id,
-                "index",
-                "ok",
-                f"index ({m.index.kind}) holds {vectors} vectors = store",
-                vectors=vectors,
-            )
-        else:
-            report.add(
-                map_id,
-                "index",
-                "error",
-                f"index holds {vectors} vectors, the store {rows} keyframes",
-                vectors=vectors,
-                keyframes=rows,
-            )
-    finally:
-        m.close()
     return meta_model
 
 
-def _check_snapshot(
+def _check_index(
     report: Report, folder: Path, store: Store, dim: int, max_age_s: float, s: IndexSettings
 ) -> None:
+    """The snapshot must hold exactly the keyframes the store had alive at its seq; a start
+    then replays the writes after it. Read in one transaction: exact while a service runs."""
     map_id = folder.name
-    tmp = folder / "index.snap.tmp"
-    if tmp.exists():
+    if (folder / "index.snap.tmp").exists():
         report.add(
             map_id,
             "snapshot",
@@ -218,12 +194,12 @@ def _check_snapshot(
         )
     path = folder / "index.snap"
     if not path.exists():
-        status: Status = "warn" if store.last_seq else "ok"
+        last, live, _ = store.census(0)
         report.add(
             map_id,
             "snapshot",
-            status,
-            f"no snapshot: the next start indexes all {store.last_seq} writes from the store",
+            "warn" if last else "ok",
+            f"no snapshot: the next start indexes all {live} keyframes from the store",
         )
         return
     index, seq = read_snapshot(path, dim, s)
@@ -237,19 +213,29 @@ def _check_snapshot(
         )
         return
     age = time.time() - path.stat().st_mtime
-    behind = store.last_seq - seq
-    expected = store.live_count_at(seq)
+    last, live, expected = store.census(seq)
+    behind = last - seq
     data = {"seq": seq, "age_s": round(age, 1), "writes_since": behind}
     if index.ntotal != expected:
         report.add(
             map_id,
-            "snapshot",
+            "index",
             "error",
             f"the snapshot at seq {seq} holds {index.ntotal} vectors; the store had "
-            f"{expected} keyframes then",
-            **data,
+            f"{expected} keyframes then. Delete index.snap: the next start rebuilds it",
+            vectors=index.ntotal,
+            keyframes_at_seq=expected,
         )
-    elif behind and age > max_age_s:
+        return
+    report.add(
+        map_id,
+        "index",
+        "ok",
+        f"snapshot ({index.kind}) holds {index.ntotal} vectors = the store at seq {seq}; a "
+        f"start replays {behind} writes to reach {live}",
+        vectors=index.ntotal,
+    )
+    if behind and age > max_age_s:
         report.add(
             map_id,
             "snapshot",
@@ -260,11 +246,7 @@ def _check_snapshot(
         )
     else:
         report.add(
-            map_id,
-            "snapshot",
-            "ok",
-            f"seq {seq}, {age:.0f} s old, {behind} writes since",
-            **data,
+            map_id, "snapshot", "ok", f"seq {seq}, {age:.0f} s old, {behind} writes since", **data
         )
 
 

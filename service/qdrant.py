@@ -9,10 +9,14 @@
                  base64; not indexed)
 
 Writes are acknowledged after Qdrant has applied them (``wait=True``) with strong ordering,
-so a replica that answers next sees them. Inserts are ``insert_only``: keyframe ids stay
-write-once even when two replicas race — whichever lands second finds the first's content
-on re-reading and answers 409 if it differs. Durability (WAL, snapshots, replication) is
-Qdrant's; ``POST /v1/maps/{id}/snapshot`` asks Qdrant for a collection snapshot.
+and reads ask a majority of a shard's replicas, so a replica that answers next sees them.
+Inserts are ``insert_only``: keyframe ids stay write-once even when two replicas race —
+whichever lands second finds the first's content on re-reading and answers 409 if it
+differs. A batch is checked whole before anything is written, but it is written in chunks:
+unlike the FAISS backend's single transaction, such a race can refuse a batch after some of
+its points landed (a retry of the same batch then completes it). Durability (WAL,
+snapshots, replication) is Qdrant's; ``POST /v1/maps/{id}/snapshot`` asks Qdrant for a
+collection snapshot.
 
 Map kinds: ``flat`` searches exactly (and builds no HNSW graph); ``auto`` and ``ivf`` use
 Qdrant's HNSW with ``qdrant.hnsw_ef`` candidates, filtered through the payload indexes.
@@ -35,6 +39,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from qdrant_client import QdrantClient, models
+from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
 from qdrant_client.http.exceptions import ResponseHandlingException, UnexpectedResponse
 
 from service.backend import (
@@ -47,7 +52,7 @@ from service.backend import (
     insert_results,
     unit_query,
 )
-from service.errors import Conflict, NotFound, ServiceError, Unavailable
+from service.errors import BadRequest, Conflict, NotFound, Overloaded, ServiceError, Unavailable
 from service.schemas import check_map_id
 from service.settings import IndexSettings, QdrantSettings
 from service.store import Keyframe, NewKeyframe, unit_vector
@@ -59,6 +64,12 @@ _NAMESPACE = uuid.UUID("6f0d1c2e-3a4b-5c6d-8e9f-0a1b2c3d4e5f")  # keyframe ids �
 _MARK = "overlapmamba_map"  # collection metadata key: this collection is one of our maps
 _NO_YAW = models.PayloadSelectorExclude(exclude=["yaw"])
 _FRESH_S = 5.0  # how long a replica trusts what it read about a map (others may delete it)
+_CHUNK = 128  # points per upsert: ≈5 MB of JSON, well below Qdrant's 32 MB request limit
+_INDEXES = {
+    "robot_id": models.PayloadSchemaType.KEYWORD,
+    "session_id": models.PayloadSchemaType.KEYWORD,
+    "timestamp": models.PayloadSchemaType.FLOAT,  # range filters and order_by need it
+}
 
 
 def point_id(keyframe_id: str) -> str:
@@ -143,7 +154,7 @@ class QdrantMap:
         self.kind: str = str(meta["index_kind"])
         self.created_at = float(meta.get("created_at") or 0.0)
         self.checked = time.monotonic()
-        self._write = threading.Lock()  # read-check-write atomic within this replica
+        self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
 
     def _call(self, fn: Callable[[QdrantClient], T]) -> T:
         return self.backend.call(fn, self.map_id)
@@ -158,21 +169,8 @@ class QdrantMap:
             created: dict[str, Keyframe] = {}
             if new:
                 now = time.time()
-                payloads = [_payload(r, now) for r in new]
-                batch = models.Batch(
-                    ids=[point_id(r.keyframe_id) for r in new],
-                    vectors=[unit_vector(r.descriptor).tolist() for r in new],
-                    payloads=payloads,
-                )
-                self._call(
-                    lambda c: c.upsert(
-                        self.collection,
-                        batch,
-                        wait=True,
-                        ordering=self.backend.ordering,
-                        update_mode=models.UpdateMode.INSERT_ONLY,
-                    )
-                )
+                for start in range(0, len(new), _CHUNK):
+                    self._upsert(new[start : start + _CHUNK], now)
                 # insert_only never overwrites: read back what is stored now. Another
                 # replica's concurrent insert of the same id may have landed first.
                 stored = self._get_many([r.keyframe_id for r in new])
@@ -183,6 +181,22 @@ class QdrantMap:
                     check_existing([r], {r.keyframe_id: kf})
                     created[r.keyframe_id] = kf
         return insert_results(rows, existing, created)
+
+    def _upsert(self, rows: list[NewKeyframe], now: float) -> None:
+        batch = models.Batch(
+            ids=[point_id(r.keyframe_id) for r in rows],
+            vectors=[unit_vector(r.descriptor).tolist() for r in rows],
+            payloads=[_payload(r, now) for r in rows],
+        )
+        self._call(
+            lambda c: c.upsert(
+                self.collection,
+                batch,
+                wait=True,
+                ordering=self.backend.ordering,
+                update_mode=models.UpdateMode.INSERT_ONLY,
+            )
+        )
 
     def delete(self, keyframe_id: str) -> None:
         with self._write:
@@ -208,9 +222,10 @@ class QdrantMap:
                 "Qdrant server takes them",
                 code="not_supported",
             )
-        snap = self._call(lambda c: c.create_snapshot(self.collection, wait=True))
-        assert snap is not None  # wait=True returns the description
-        return {"backend": "qdrant", "name": snap.name, "bytes": snap.size}
+        # Not waited for: a large collection's snapshot outlasts the request timeout, and
+        # a retried request would start another. Qdrant lists it when done.
+        self._call(lambda c: c.create_snapshot(self.collection, wait=False))
+        return {"backend": "qdrant", "name": None, "bytes": None, "started": True}
 
     # ---- reads ------------------------------------------------------------------------------
 
@@ -228,7 +243,11 @@ class QdrantMap:
         return out
 
     def _retrieve(self, ids: list[str]) -> list[models.Record]:
-        return self._call(lambda c: c.retrieve(self.collection, ids, with_payload=_NO_YAW))
+        return self._call(
+            lambda c: c.retrieve(
+                self.collection, ids, with_payload=_NO_YAW, consistency=self.backend.consistency
+            )
+        )
 
     def get(self, keyframe_id: str) -> Keyframe | None:
         return self._get_many([keyframe_id]).get(keyframe_id)
@@ -241,6 +260,7 @@ class QdrantMap:
                 limit=1,
                 order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
                 with_payload=_NO_YAW,
+                consistency=self.backend.consistency,
             )
         )
         return _keyframe(records[0].payload or {}) if records else None
@@ -261,6 +281,7 @@ class QdrantMap:
                 query_filter=_filter(filters),
                 search_params=params,
                 with_payload=True if yaw is not None else _NO_YAW,
+                consistency=self.backend.consistency,
             )
         )
         found = [
@@ -313,6 +334,7 @@ class QdrantBackend:
         self.local = qs.path is not None
         self.ef = qs.hnsw_ef
         self.ordering = None if self.local else models.WriteOrdering.STRONG
+        self.consistency = None if self.local else models.ReadConsistencyType.MAJORITY
         self.where = str(qs.path) if self.local else str(qs.url)
         if client is not None:
             self.client = client
@@ -330,26 +352,47 @@ class QdrantBackend:
         self._serial = threading.RLock() if self.local else None
         self._maps: dict[str, QdrantMap] = {}
         self._create = threading.Lock()
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_lock = threading.Lock()  # not _create: create() holds that while opening
+
+    def write_lock(self, map_id: str) -> threading.Lock:
+        with self._locks_lock:
+            return self._locks.setdefault(map_id, threading.Lock())
 
     def collection(self, map_id: str) -> str:
         return f"{self.settings.collection_prefix}{map_id}"
 
     @contextlib.contextmanager
     def _guard(self, map_id: str | None) -> Iterator[None]:
-        """Qdrant's errors → the service's: a missing collection is a missing map (404),
-        an unreachable or failing Qdrant is 503, so clients retry."""
+        """Qdrant's errors → the service's. A missing collection is a missing map (404).
+        Qdrant overloaded (429) or failing (5xx), unreachable, or refusing our key is 503, so
+        clients retry. Qdrant refusing a request as malformed (400, 422) is a bug of ours:
+        500, not a retry loop."""
         lock = self._serial if self._serial is not None else contextlib.nullcontext()
         try:
             with lock:
                 yield
         except ServiceError:
             raise
+        except ResourceExhaustedResponse as err:
+            raise Overloaded(
+                f"Qdrant at {self.where} is overloaded: {err}", retry_after_s=err.retry_after_s
+            ) from err
         except UnexpectedResponse as err:
-            if err.status_code == 404 and map_id is not None:
+            status = err.status_code or 0
+            if status == 404 and map_id is not None:
                 self._forget(map_id)
                 raise NotFound(f"map {map_id!r} does not exist", code="map_not_found") from err
+            if status == 429:
+                raise Overloaded(f"Qdrant at {self.where} is overloaded") from err
+            detail = err.content.decode(errors="replace")[:300] if err.content else ""
+            if status in (400, 422):
+                raise ServiceError(
+                    f"Qdrant at {self.where} refused the request ({status}): {detail}",
+                    code="index_rejected",
+                ) from err
             raise Unavailable(
-                f"Qdrant at {self.where} answered {err.status_code}: {err.reason_phrase}",
+                f"Qdrant at {self.where} answered {status} {err.reason_phrase}: {detail}",
                 code="index_unavailable",
             ) from err
         except ValueError as err:  # local mode's "Collection ... not found"
@@ -382,12 +425,19 @@ class QdrantBackend:
             return None
         info = self.call(lambda c: c.get_collection(name), map_id)
         meta = info.config.metadata or {}
-        if meta.get(_MARK) != 1:
-            raise Unavailable(
-                f"Qdrant collection {name!r} exists but is not an overlapmamba map; use "
-                "another map id or qdrant.collection_prefix",
-                code="map_unavailable",
+        if meta.get(_MARK) != 1 or meta.get("map_id") != map_id:
+            # Not ours, or the map of a service with a longer prefix ("overlapmamba-v2-town"
+            # is not this service's "v2-town").
+            raise Conflict(
+                f"Qdrant collection {name!r} exists but is not this service's map {map_id!r}; "
+                "use another map id, or prefixes that are not prefixes of each other",
+                code="map_conflict",
             )
+        if not self.local:  # a creator that died before indexing leaves them missing
+            schema = info.payload_schema or {}
+            for field, kind in _INDEXES.items():
+                if field not in schema:
+                    self._payload_index(name, field, kind)
         return QdrantMap(self, map_id, meta)
 
     def get(self, map_id: str) -> QdrantMap:
@@ -460,11 +510,7 @@ class QdrantBackend:
                 return
             raise
         if not self.local:  # local mode keeps no payload indexes (and warns)
-            for field, schema in (
-                ("robot_id", models.PayloadSchemaType.KEYWORD),
-                ("session_id", models.PayloadSchemaType.KEYWORD),
-                ("timestamp", models.PayloadSchemaType.FLOAT),
-            ):
+            for field, schema in _INDEXES.items():
                 self._payload_index(name, field, schema)
         log.info("map %s: created as Qdrant collection %s (%s)", map_id, name, kind)
 
@@ -483,7 +529,7 @@ class QdrantBackend:
         out = []
         for name in self._names():
             map_id = name[len(prefix) :]
-            with contextlib.suppress(ServiceError, ValueError):  # gone, or not ours
+            with contextlib.suppress(NotFound, Conflict, BadRequest):  # gone, or not ours
                 check_map_id(map_id)
                 m = self._open(map_id)
                 if m is not None:

@@ -82,7 +82,12 @@ class QdrantSettings(_Section):
     path: Path | None = Field(
         None, description="Qdrant's embedded local mode in this folder (tests, trials; no HNSW)"
     )
-    collection_prefix: str = Field("overlapmamba-", pattern=r"^[A-Za-z0-9_-]{0,64}$")
+    collection_prefix: str = Field(
+        "overlapmamba-",
+        pattern=r"^[A-Za-z0-9_-]{0,64}$",
+        description="collections of this service; two services sharing a Qdrant use two "
+        "prefixes (each map records its id, so overlapping prefixes do not mix maps)",
+    )
     timeout_s: float = Field(10.0, gt=0, description="per Qdrant call")
     shards: int = Field(1, ge=1, description="new collections: shard_number")
     replication_factor: int = Field(1, ge=1, description="new collections: copies of each shard")
@@ -163,6 +168,13 @@ class Settings(BaseSettings):
     model: Path = Path("models/overlapmamba-hdl64.onnx")
     insecure: bool = Field(False, description="allow a non-loopback host without API keys")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    shutdown_delay_s: float = Field(
+        0.0,
+        ge=0,
+        le=300,
+        description="after SIGTERM, keep serving this long with /readyz 503 before draining, "
+        "so a load balancer stops sending first (≥ its probe interval × failures)",
+    )
     log_format: Literal["json", "text"] = Field(
         "json", description="json: one object per line with request ids; text: for a terminal"
     )

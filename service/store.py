@@ -139,14 +139,26 @@ def index_vector(blob: bytes) -> np.ndarray:
 
 
 class Store:
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, readonly: bool = False) -> None:
+        """``readonly``: only read (no schema script, no writes; `overlapmamba doctor`)."""
         self.path = Path(path)
-        self._write = self._connect()
-        self._write_lock = threading.Lock()
-        # Reader connections are pooled, not per thread: worker threads come and go, and a
-        # connection per thread that ever read would leak file descriptors.
+        self.readonly = readonly
         self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
         self._closed = False
+        self._write_lock = threading.Lock()
+        if readonly:
+            if not self.path.is_file():
+                raise StoreError(f"{path} does not exist")
+            self._write = self._connect()
+            version = self.get_meta("schema_version")
+            if version is None or int(version) != SCHEMA_VERSION:
+                raise StoreError(
+                    f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}"
+                )
+            return
+        self._write = self._connect()
+        # Reader connections are pooled, not per thread: worker threads come and go, and a
+        # connection per thread that ever read would leak file descriptors.
         with self._write:
             self._write.executescript(_SCHEMA)
         version = self.get_meta("schema_version")
@@ -156,6 +168,11 @@ class Store:
             raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
 
     def _connect(self) -> sqlite3.Connection:
+        if self.readonly:
+            uri = f"file:{self.path}?mode=ro"
+            con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+            con.execute("PRAGMA busy_timeout=10000")
+            return con
         con = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         con.execute("PRAGMA journal_mode=WAL")
         con.execute("PRAGMA synchronous=FULL")
@@ -291,16 +308,24 @@ class Store:
     def count(self) -> int:
         return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
 
-    def live_count_at(self, seq: int) -> int:
-        """Keyframes alive just after write ``seq`` (what a snapshot at ``seq`` must hold).
-        Tombstones at or before a snapshot are purged, and those rows were dead at it anyway."""
-        return int(
-            self._rows(
-                "SELECT COUNT(*) FROM keyframes WHERE seq <= ? "
-                "AND (deleted_seq IS NULL OR deleted_seq > ?)",
-                (seq, seq),
-            )[0][0]
-        )
+    def census(self, at_seq: int) -> tuple[int, int, int]:
+        """(last seq, live keyframes, keyframes alive at ``at_seq``), read in one
+        transaction: one consistent view even while a service writes."""
+        with self._reading() as con:
+            con.execute("BEGIN")
+            try:
+                row = con.execute("SELECT value FROM meta WHERE key = 'seq'").fetchone()
+                live = con.execute(
+                    "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+                ).fetchone()[0]
+                at = con.execute(
+                    "SELECT COUNT(*) FROM keyframes WHERE seq <= ? "
+                    "AND (deleted_seq IS NULL OR deleted_seq > ?)",
+                    (at_seq, at_seq),
+                ).fetchone()[0]
+            finally:
+                con.execute("COMMIT")
+        return int(row[0]) if row else 0, int(live), int(at)
 
     def get(self, keyframe_id: str) -> Keyframe | None:
         rows = self._rows(

@@ -62,23 +62,29 @@ def free_port() -> int:
 def server(
     data_dir: Path, env: dict[str, str] | None = None
 ) -> Iterator[tuple[str, subprocess.Popen]]:
-    """A real `overlapmamba serve` process on a free loopback port, ready when yielded."""
+    """A real `overlapmamba serve` process on a free loopback port, ready when yielded.
+    Its log goes to a file (``server_log(proc)``), not a pipe: a pipe nobody drains fills
+    up after a few hundred access lines and blocks the server."""
     port = free_port()
     cmd = [sys.executable, "-m", "overlapmamba", "serve", "--port", str(port)]
     cmd += ["--data-dir", str(data_dir), "--model", str(MODEL)]
-    proc = subprocess.Popen(
-        cmd,
-        cwd=ROOT,
-        env={**os.environ, "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    log_path = Path(data_dir).parent / f"server-{port}.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "wb") as log_file:
+        proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            env={**os.environ, "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})},
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+        )
+    proc.log_path = log_path  # type: ignore[attr-defined]
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
         while True:
             if proc.poll() is not None:
-                raise RuntimeError(f"server exited: {proc.stdout.read().decode()[-2000:]}")  # type: ignore[union-attr]
+                raise RuntimeError(f"server exited: {server_log(proc)[-2000:]}")
             try:
                 if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
                     break
@@ -96,5 +102,7 @@ def server(
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
+
+
+def server_log(proc: subprocess.Popen) -> str:
+    return Path(proc.log_path).read_text(errors="replace")  # type: ignore[attr-defined]

@@ -213,11 +213,22 @@ def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(
             "overlapmamba-alien",
             vectors_config=models.VectorParams(size=DIM, distance=models.Distance.COSINE),
         )
-        from service.errors import Unavailable
-
-        with pytest.raises(Unavailable, match="not an overlapmamba map"):
+        with pytest.raises(Conflict, match="not this service's map"):
             b.get("alien")
         assert [x.map_id for x in b.snapshot_list()] == ["yard"]
+        # a second service with a longer prefix: neither sees the other's maps
+        v2 = QdrantBackend(
+            s.qdrant.model_copy(update={"collection_prefix": "overlapmamba-v2-"}),
+            s.index,
+            model_id="model-2",
+            dim=DIM,
+            client=a.client,
+        )
+        v2.create("town", "flat")
+        assert [x.map_id for x in v2.snapshot_list()] == ["town"]
+        assert [x.map_id for x in b.snapshot_list()] == ["yard"]
+        with pytest.raises(Conflict):
+            b.get("v2-town")  # the collection overlapmamba-v2-town is v2's "town"
         with pytest.raises(Conflict, match="local mode has no snapshots"):
             m.snapshot()
         held = b.get("yard")

@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from service_kit import MODEL, OCTET, running, scan, server
+from service_kit import MODEL, OCTET, running, scan, server, server_log
 
 from service.doctor import diagnose
 from service.encoder import Encoder
@@ -103,7 +103,7 @@ def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
     batch = b"".join(struct.pack("<I", len(s)) + s for s in scans)
     result: dict[str, object] = {}
     with (
-        server(data) as (url, proc),
+        server(data, {"OVERLAPMAMBA_SHUTDOWN_DELAY_S": "1.5"}) as (url, proc),
         httpx.Client(base_url=url, timeout=60) as c,
     ):
         assert c.put("/v1/maps/town").status_code == 201
@@ -128,12 +128,18 @@ def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
         t.start()
         time.sleep(0.4)
         proc.send_signal(signal.SIGTERM)
+        time.sleep(0.2)
+        # the shutdown delay: not ready any more (load balancers stop sending), still serving
+        ready = c.get("/readyz")
+        assert ready.status_code == 503 and ready.json()["status"] == "draining"
+        assert c.get("/v1/maps/town").status_code == 200
         t.join(60)
-        out, _ = proc.communicate(timeout=60)
+        proc.wait(60)
+        out = server_log(proc).encode()
     assert result == {"status": 200, "n": 12}, out.decode()[-3000:]
     log = [json.loads(line) for line in out.decode().splitlines() if line.startswith("{")]
     msgs = [x["msg"] for x in log]
-    drain = next(i for i, m in enumerate(msgs) if m.startswith("signal 15: draining"))
+    drain = next(i for i, m in enumerate(msgs) if m.startswith("signal 15: /readyz is 503"))
     served = next(i for i, m in enumerate(msgs) if m == "POST /v1/descriptors:batch 200")
     stopped = next(i for i, m in enumerate(msgs) if m.startswith("stopped: faiss maps closed"))
     assert drain < served < stopped  # the request finished during the drain
@@ -198,16 +204,17 @@ def test_doctor_finds_what_is_wrong_with_a_data_folder(tmp_path):
     other.close()
     shutil.copy(tmp_path / "other" / "maps" / "town" / "index.snap", folder / "index.snap")
     bad = diagnose(root, model_id="m1", dim=8)
-    (snap,) = [f for f in _by_check(bad, "snapshot") if "torn" not in f.message]
-    assert snap.status == "error" and "holds 3 vectors" in snap.message
+    (idx,) = _by_check(bad, "index")
+    assert idx.status == "error" and "holds 3 vectors" in idx.message
     assert not bad.healthy
 
-    # an unreadable snapshot costs a rebuild, and the rebuilt index matches the store
+    # an unreadable snapshot costs a rebuild on the next start, not data
     (folder / "index.snap").write_bytes(b"garbage" * 10)
     report = diagnose(root, model_id="m1", dim=8)
-    assert report.healthy
+    assert report.healthy and not _by_check(report, "index")
     assert any("unreadable" in f.message for f in _by_check(report, "snapshot"))
-    assert _by_check(report, "index")[0].data["vectors"] == 12
+    # and the doctor wrote nothing: the folder is as it was
+    assert (folder / "index.snap").read_bytes() == b"garbage" * 10
 
     # a store that is not a database is an error
     (root / "maps" / "broken").mkdir()

@@ -61,7 +61,7 @@ async def insert_keyframe(
     Idempotent on `keyframe_id`: the same id with the same scan and metadata returns the
     stored keyframe (200, `created: false`); with anything different, 409."""
     request.app.state.auth.authorize(who, Action.INSERT, map_id)
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     svc.check_model(m)
     pose_values = parse_pose(pose)
     body = await read_body(request, svc.settings.limits)
@@ -97,11 +97,13 @@ async def insert_keyframe(
 async def insert_batch(
     map_id: str, request: Request, svc: ServiceDep, _: CanWriteMaps
 ) -> KeyframeBatchOut:
-    """All or nothing: one transaction. The batch's `model_id` must be the map's model;
-    known keyframe ids with identical content are reported as existing, with other
-    content the whole batch is refused (409). The body is read only after the key is
-    checked, and parsed off the event loop."""
-    m = svc.registry.get(map_id)
+    """All or nothing (faiss backend: one transaction; qdrant: checked whole first, then
+    written in chunks, so a concurrent conflicting insert from another replica can refuse
+    the batch after part of it landed; retrying the batch completes it). The batch's
+    `model_id` must be the map's model; known keyframe ids with identical content are
+    reported as existing, with other content the whole batch is refused (409). The body is
+    read only after the key is checked, and parsed off the event loop."""
+    m = await svc.map(map_id)
     svc.check_model(m)
     body = await read_body(request, svc.settings.limits)
     rows = await run_in_threadpool(_batch_rows, body, m, svc)
@@ -186,7 +188,7 @@ def _batch_rows(body: bytes, m: PlaceMap, svc: PlaceService) -> list[NewKeyframe
 async def get_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanReadMaps
 ) -> KeyframeOut:
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     kf = await run_in_threadpool(m.get, keyframe_id)
     if kf is None:
         raise NotFound(f"map {map_id!r} has no keyframe {keyframe_id!r}", code="keyframe_not_found")
@@ -202,7 +204,7 @@ async def get_keyframe(
 async def delete_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanWriteMaps
 ) -> Response:
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     await run_in_threadpool(m.delete, keyframe_id)
     svc.stats.p_keyframes.labels(map_id).set(await run_in_threadpool(lambda: m.count))
     m.maintain()

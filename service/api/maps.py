@@ -8,6 +8,7 @@ from fastapi import APIRouter, Body, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
+from service.backend import each_map
 from service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
 from service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
 
@@ -33,13 +34,13 @@ async def create_map(
         svc.registry.create, map_id, settings.index if settings else None
     )
     response.status_code = 201 if created else 200
-    return MapOut(**m.info(), created=created)
+    return MapOut(**await run_in_threadpool(m.info), created=created)
 
 
 @router.get("", response_model=MapList, responses=error_responses(401, 403), summary="List maps")
 async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
-    infos = await run_in_threadpool(lambda: [m.info() for m in svc.registry.snapshot_list()])
-    return MapList(maps=[MapOut(**i) for i in infos])
+    infos = await run_in_threadpool(lambda: each_map(svc.registry, lambda m: m.info()))
+    return MapList(maps=[MapOut(**i) for i in infos.values()])
 
 
 @router.get(
@@ -49,7 +50,7 @@ async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
     summary="A map's info and counts",
 )
 async def get_map(map_id: str, svc: ServiceDep, _: CanReadMaps) -> MapOut:
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     return MapOut(**await run_in_threadpool(m.info))
 
 
@@ -74,7 +75,7 @@ async def delete_map(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> Response:
 async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut:
     """Atomically writes the FAISS index and the store sequence number it reflects; a
     restart then replays only later writes. The store itself is always durable."""
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     return SnapshotOut(**await run_in_threadpool(m.snapshot))
 
 
@@ -84,5 +85,5 @@ async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut
     summary="Recognition statistics of one map",
 )
 async def map_stats(map_id: str, svc: ServiceDep, _: CanView) -> dict[str, Any]:
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     return {**svc.stats.public(map_id), "map": await run_in_threadpool(m.info)}

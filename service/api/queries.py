@@ -94,7 +94,7 @@ async def query(
     query each match carries the relative yaw from the stored yaw features. The loop closure
     is accepted when the best distance is under the configured threshold (and the margin to
     the runner-up is large enough). k results come back whenever k eligible keyframes exist."""
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     svc.check_model(m)
     filters = Filters(
         exclude_session=exclude_session,
@@ -155,7 +155,7 @@ async def observe(
     `robot:session:timestamp`, so a retried observation is not inserted twice."""
     if insert != "never":
         request.app.state.auth.authorize(who, Action.INSERT, map_id)
-    m = svc.registry.get(map_id)
+    m = await svc.map(map_id)
     svc.check_model(m)
     pose_values = parse_pose(pose)
     t0 = time.perf_counter()
@@ -203,7 +203,7 @@ async def stream(
             raise ServiceError("the service is starting", code="not_ready")
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
-        m = svc.registry.get(map_id)
+        m = await svc.map(map_id)
         svc.check_model(m)
     except ServiceError as err:
         await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])

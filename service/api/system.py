@@ -11,6 +11,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
+from service.backend import each_map
 from service.deps import CanView, ServiceDep
 from service.errors import ServiceError
 from service.schemas import Health
@@ -67,9 +68,7 @@ async def readyz(request: Request) -> Response:
 async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
-    maps = await run_in_threadpool(
-        lambda: {m.map_id: {"keyframes": m.count} for m in svc.registry.snapshot_list()}
-    )
+    maps = await run_in_threadpool(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
     return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
 
 
