@@ -86,6 +86,8 @@ def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
             raise BadRequest(f"zstd body does not decompress: {err}") from None
         if declared > max_bytes:  # the header says so: refuse before allocating anything
             raise _bomb(max_bytes)
+        if declared < 0 and _zstd_exceeds(body, max_bytes):  # a streamed frame: no size
+            raise _bomb(max_bytes)
         try:
             # One frame, nothing after it; an unknown size is capped at max_bytes.
             return zstandard.ZstdDecompressor().decompress(
@@ -102,6 +104,21 @@ def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
         f"Content-Encoding {encoding!r} is not supported; allowed: {', '.join(ENCODINGS)}",
         allowed=list(ENCODINGS),
     )
+
+
+def _zstd_exceeds(body: bytes, max_bytes: int) -> bool:
+    """Whether a frame of undeclared size decompresses to more than max_bytes: counted in
+    1 MB pieces, never held whole. (Truncation and garbage are left to the strict pass.)"""
+    total = 0
+    try:
+        with zstandard.ZstdDecompressor().stream_reader(body, read_across_frames=False) as r:
+            while piece := r.read(1 << 20):
+                total += len(piece)
+                if total > max_bytes:
+                    return True
+    except zstandard.ZstdError:
+        return False
+    return False
 
 
 def _bomb(max_bytes: int) -> PayloadTooLarge:

@@ -6,7 +6,7 @@ from importlib import resources
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.concurrency import run_in_threadpool
 
@@ -72,7 +72,18 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
 
 
-@router.get("/metrics", summary="Prometheus metrics", responses=error_responses(401, 403))
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=PlainTextResponse,
+    responses={
+        200: {
+            "description": "Prometheus text exposition format",
+            "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
+        },
+        **error_responses(401, 403),
+    },
+)
 async def metrics(svc: ServiceDep, _: CanView) -> Response:
     svc.stats.p_queue.set(svc.batcher.pending)
     return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)

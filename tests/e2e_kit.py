@@ -1,0 +1,167 @@
+"""Shared by the end-to-end tests (``tests/test_e2e_*.py``): the size switch, the report
+writer, and the background clients that make the load "mixed".
+
+Sizes. ``make test`` runs each end-to-end test small (seconds). ``make e2e`` sets
+``OVERLAPMAMBA_E2E=full``, which runs the sizes the issue asks for (8 robots for 60 s, 10
+crashes, every fuzz case at full strength) and writes the figures to ``reports/e2e/``.
+Small runs write to ``bench-results/e2e/``, so a quick run never overwrites the published
+numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FULL = os.environ.get("OVERLAPMAMBA_E2E") == "full"
+OUT = ROOT / ("reports" if FULL else "bench-results") / "e2e"
+KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
+SYNTH_VAL = ROOT / "data" / "synth" / "val"
+
+
+def size(small: Any, full: Any) -> Any:
+    return full if FULL else small
+
+
+def write_report(name: str, body: dict[str, Any]) -> Path:
+    OUT.mkdir(parents=True, exist_ok=True)
+    body = {
+        "mode": "full" if FULL else "quick",
+        "machine": {"platform": platform.platform(), "cores": os.cpu_count()},
+        "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **body,
+    }
+    path = OUT / f"{name}.json"
+    path.write_text(json.dumps(body, indent=2, default=float))
+    return path
+
+
+def drive_dir() -> Path:
+    """A recorded drive for the robots: the synthetic validation town when it was
+    generated (`make data`), else the real KITTI 00 frames from ../shared/data."""
+    if FULL and (SYNTH_VAL / "manifest.json").is_file():
+        return SYNTH_VAL
+    if KITTI.is_dir():
+        return KITTI
+    if (SYNTH_VAL / "manifest.json").is_file():
+        return SYNTH_VAL
+    pytest.skip("no drive: ../shared/data (KITTI 00) is absent and data/synth/val not made")
+
+
+def unit(rng: np.random.Generator, dim: int = 256) -> list[float]:
+    v = rng.normal(size=dim)
+    return (v / np.linalg.norm(v)).tolist()
+
+
+@dataclass
+class Worker:
+    """A background client loop; counts requests and errors, keeps what was acknowledged."""
+
+    url: str
+    headers: dict[str, str] = field(default_factory=dict)
+    requests: int = 0
+    errors: list[str] = field(default_factory=list)
+    acked: dict[str, list[float]] = field(default_factory=dict)
+    latencies_ms: list[float] = field(default_factory=list)
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _thread: threading.Thread | None = None
+
+    def start(self) -> Worker:
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(60)
+
+    def _run(self) -> None:
+        with httpx.Client(base_url=self.url, headers=self.headers, timeout=60) as c:
+            while not self._stop.is_set():
+                t0 = time.perf_counter()
+                try:
+                    self.step(c)
+                except httpx.TransportError as err:
+                    if self._stop.is_set():
+                        return
+                    self.errors.append(f"{type(err).__name__}: {err}")
+                self.requests += 1
+                self.latencies_ms.append((time.perf_counter() - t0) * 1e3)
+                self._stop.wait(self.pause_s)
+
+    pause_s: float = 0.2
+
+    def step(self, c: httpx.Client) -> None:
+        raise NotImplementedError
+
+
+@dataclass
+class Mapper(Worker):
+    """A map-building job: batches of descriptors into ``map_id``, each batch acknowledged
+    before the next (the acknowledged ids are what must survive anything)."""
+
+    map_id: str = "built"
+    model_id: str = ""
+    batch: int = 5
+    seed: int = 0
+    _n: int = 0
+
+    def step(self, c: httpx.Client) -> None:
+        rng = np.random.default_rng(self.seed + self._n)
+        rows = []
+        for _ in range(self.batch):
+            rows.append(
+                {
+                    "keyframe_id": f"m{self.seed}-{self._n}",
+                    "timestamp": float(self._n),
+                    "robot_id": "mapper",
+                    "session_id": "build",
+                    "descriptor": unit(rng),
+                }
+            )
+            self._n += 1
+        r = c.post(
+            f"/v1/maps/{self.map_id}/keyframes:batch",
+            json={"model_id": self.model_id, "keyframes": rows},
+        )
+        if r.status_code == 200:
+            for row in rows:
+                self.acked[row["keyframe_id"]] = row["descriptor"]
+        else:
+            self.errors.append(f"{r.status_code}: {r.text[:200]}")
+
+
+@dataclass
+class Poller(Worker):
+    """An ops dashboard: statistics and metrics once a second."""
+
+    pause_s: float = 1.0
+
+    def step(self, c: httpx.Client) -> None:
+        for path in ("/v1/stats", "/metrics"):
+            r = c.get(path)
+            if r.status_code != 200:
+                self.errors.append(f"{path} {r.status_code}: {r.text[:200]}")
+
+
+def missing_keyframes(c: httpx.Client, map_id: str, ids: list[str]) -> list[str]:
+    return [k for k in ids if c.get(f"/v1/maps/{map_id}/keyframes/{k}").status_code != 200]
+
+
+def percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"p50": 0.0, "p95": 0.0, "p99": 0.0}
+    a = np.asarray(values)
+    return {f"p{q}": float(np.percentile(a, q)) for q in (50, 95, 99)}

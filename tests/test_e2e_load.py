@@ -1,0 +1,83 @@
+"""End to end, load: a real server on loopback; a fleet of robots streaming ``observe``, a
+map-building job inserting descriptors and a dashboard polling statistics, all at once.
+Zero errors, and afterwards every acknowledged write is there.
+
+Quick (``make test``): 2 robots for 8 s. Full (``make e2e``): 8 robots at 10 Hz for 60 s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import httpx
+import pytest
+from e2e_kit import Mapper, Poller, drive_dir, missing_keyframes, percentiles, size, write_report
+from service_kit import server
+
+from client._replay import open_drive
+from client.fleet import simulate
+
+pytestmark = pytest.mark.e2e
+
+
+@pytest.mark.timeout(900)
+def test_fleet_mapper_and_dashboard_together(tmp_path):
+    robots, duration = size(2, 8), size(8.0, 60.0)
+    drive = open_drive(drive_dir())
+    env = {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}  # the setting the guide gives for CPU
+    with server(tmp_path / "data", env) as (url, _), httpx.Client(base_url=url, timeout=60) as c:
+        model_id = c.get("/readyz").json()["detail"]["model_id"]
+        assert c.put("/v1/maps/built").status_code == 201
+        mapper = Mapper(url, model_id=model_id).start()
+        poller = Poller(url).start()
+        t0 = time.monotonic()
+        report, samples = asyncio.run(
+            simulate(url, "fleet", [drive], robots=robots, duration_s=duration, rate_hz=10.0)
+        )
+        elapsed = time.monotonic() - t0
+        mapper.stop()
+        poller.stop()
+
+        # every acknowledged write is there, and the index agrees with the store
+        fleet_ids = [s.inserted for s in samples if s.inserted]
+        missing = missing_keyframes(c, "fleet", fleet_ids)
+        missing += missing_keyframes(c, "built", list(mapper.acked))
+        maps = {m["map_id"]: m for m in c.get("/v1/maps").json()["maps"]}
+        stats = c.get("/v1/stats").json()
+
+    errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
+    body = {
+        "command": "make e2e (tests/test_e2e_load.py)",
+        "drive": drive.name,
+        "robots": robots,
+        "duration_s": elapsed,
+        "fleet": {
+            "observations": report.observations,
+            "throughput_per_s": report.throughput_per_s,
+            "latency_ms": report.latency_ms,
+            "errors": report.errors,
+            "keyframes_inserted": len(fleet_ids),
+            "loop_closures": report.loop_closures,
+        },
+        "mapper": {
+            "batches": mapper.requests,
+            "keyframes_acknowledged": len(mapper.acked),
+            "latency_ms": percentiles(mapper.latencies_ms),
+            "errors": mapper.errors[:5],
+        },
+        "dashboard": {
+            "polls": poller.requests,
+            "latency_ms": percentiles(poller.latencies_ms),
+            "errors": poller.errors[:5],
+        },
+        "errors_total": errors,
+        "acknowledged_missing": len(missing),
+        "index_equals_store": {k: m["index"]["vectors"] == m["keyframes"] for k, m in maps.items()},
+        "server_encode_ms": stats["latency_ms"].get("encode"),
+    }
+    path = write_report("load", body)
+    assert errors == 0, (report.errors, mapper.errors[:3], poller.errors[:3], path)
+    assert not missing, missing[:10]
+    assert all(body["index_equals_store"].values()), maps
+    assert report.observations > 0 and mapper.acked and poller.requests > 0
