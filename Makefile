@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test lint format typecheck serve bench data clean
+.PHONY: test e2e lint format typecheck serve bench data clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,15 @@ $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 
 test: $(VENV)/.installed-all lint
 	$(BIN)/python -m pytest
+
+# End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
+# `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.
+# The browser test needs Debian's chromium: installed here when this runs as root with apt.
+e2e: $(VENV)/.installed-all
+	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
+	  && apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } \
+	  || echo "no chromium: the browser test will be skipped"
+	OVERLAPMAMBA_E2E=full $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
 
 lint: $(VENV)/.installed-all
 	$(BIN)/ruff check .

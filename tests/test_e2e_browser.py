@@ -1,0 +1,102 @@
+"""End to end, browser: the dashboard in headless Chromium while a fleet streams. The charts
+must draw (non-blank canvases), update (the pixels and the counters change between two
+looks), and the page must report no script error. A screenshot is saved.
+
+Needs Debian's ``chromium`` (``make e2e`` installs it where it can); skipped without it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import threading
+import time
+
+import pytest
+from e2e_kit import OUT, drive_dir, size, write_report
+from service_kit import server
+
+from client._replay import open_drive
+from client.fleet import simulate
+
+pytestmark = pytest.mark.e2e
+
+CANVASES = ("c-qps", "c-lat", "c-robots", "c-maps", "c-batch")
+# Per canvas: how many pixels are drawn, and a digest of them (to see a chart change).
+PIXELS = """(ids) => ids.map((id) => {
+  const c = document.getElementById(id);
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let drawn = 0, h = 0;
+  for (let i = 3; i < d.length; i += 4) {
+    if (d[i] !== 0) { drawn++; h = (h * 31 + d[i-3] + d[i-2] * 7 + d[i-1] * 13) >>> 0; }
+  }
+  return {id, width: c.width, height: c.height, drawn, digest: h};
+})"""
+
+
+def _browser() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.skip("no chromium here (Debian: apt-get install chromium; `make e2e` does)")
+    pytest.importorskip("playwright.sync_api")
+    return exe
+
+
+@pytest.mark.timeout(600)
+def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
+    exe = _browser()
+    from playwright.sync_api import sync_playwright
+
+    drive = open_drive(drive_dir())
+    duration = size(14.0, 40.0)
+    errors: list[str] = []
+    with server(tmp_path / "data") as (url, _):
+        fleet = threading.Thread(
+            target=lambda: asyncio.run(
+                simulate(url, "fleet", [drive], robots=2, duration_s=duration, rate_hz=5.0)
+            ),
+            daemon=True,
+        )
+        fleet.start()
+        time.sleep(2.0)  # a first few observations, so every chart has data
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 1000})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"{url}/dashboard", wait_until="load")
+            page.wait_for_function(
+                "() => document.getElementById('m-queries').textContent.trim() !== '–'",
+                timeout=20_000,
+            )
+            first = page.evaluate(PIXELS, list(CANVASES))
+            q1 = page.inner_text("#m-queries")
+            time.sleep(size(5.0, 10.0))
+            second = page.evaluate(PIXELS, list(CANVASES))
+            q2 = page.inner_text("#m-queries")
+            status = page.inner_text("#status")
+            shot = OUT / "dashboard.png"
+            shot.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(shot), full_page=True)
+            browser.close()
+        fleet.join(duration + 30)
+    drawn = {c["id"]: c["drawn"] for c in second}
+    changed = [a["id"] for a, b in zip(first, second, strict=True) if a["digest"] != b["digest"]]
+    write_report(
+        "browser",
+        {
+            "command": "make e2e (tests/test_e2e_browser.py)",
+            "chromium": exe,
+            "screenshot": str(shot.relative_to(OUT.parents[1])),
+            "canvases": second,
+            "charts_changed": changed,
+            "queries_counter": [q1, q2],
+            "status_line": status,
+            "page_errors": errors,
+        },
+    )
+    assert not errors, errors
+    assert all(c["drawn"] > 500 for c in second), drawn  # every chart drew something
+    assert "c-qps" in changed and "c-lat" in changed, changed  # the time series moved
+    assert int(q2.replace(",", "")) > int(q1.replace(",", "")), (q1, q2)
+    assert shot.stat().st_size > 10_000
