@@ -80,6 +80,7 @@ def test_every_route_every_role_no_key_and_wrong_key(tmp_path):
             for who, headers in [
                 ("no key", {}),
                 ("wrong key", {"x-api-key": "not-a-key"}),
+                ("wrong bearer", {"authorization": "Bearer not-a-key"}),
                 *[(r, {"x-api-key": f"secret-{r}"}) for r in ROLES],
             ]:
                 # every cell meets the same state: map m exists (a DELETE may have removed it)
@@ -89,7 +90,7 @@ def test_every_route_every_role_no_key_and_wrong_key(tmp_path):
                 assert r.status_code < 500, (name, who, r.text[:300])
                 if name in OPEN:
                     assert r.status_code == 200, (name, who, r.status_code)
-                elif who in ("no key", "wrong key"):
+                elif who in ("no key", "wrong key", "wrong bearer"):
                     assert r.status_code == 401, (name, who, r.status_code)
                     assert r.json()["error"]["code"] in ("missing_api_key", "invalid_api_key")
                 elif who in ALLOWED[name]:
@@ -97,19 +98,25 @@ def test_every_route_every_role_no_key_and_wrong_key(tmp_path):
                 else:
                     assert r.status_code == 403, (name, who, r.status_code)
             cells.append(row)
-        # The robot key's map list: inserting into another map is refused.
-        r = c.post(
-            "/v1/maps/other/keyframes",
-            params={"keyframe_id": "a", "timestamp": 1},
-            headers={"x-api-key": "secret-robot"},
-        )
-        assert r.status_code == 403
+        # The robot key's map list: inserting into another map is refused, also through
+        # observe when it would insert.
+        robot = {"x-api-key": "secret-robot"}
+        kf = {"keyframe_id": "a", "timestamp": 1}
+        r = c.post("/v1/maps/other/keyframes", params=kf, headers=robot)
+        assert r.status_code == 403 and r.json()["error"]["code"] == "map_not_allowed"
+        obs = {"robot_id": "r", "timestamp": 1, "insert": "always"}
+        r = c.post("/v1/maps/other/observe", params=obs, headers=robot)
+        assert r.status_code == 403 and r.json()["error"]["code"] == "map_not_allowed", r.text
+        # The schema and its docs page are public.
+        for path in ("/openapi.json", "/docs"):
+            assert c.get(path).status_code == 200, path
         # The WebSocket stream: refused at the handshake without a key or with a viewer key.
         ws = url.replace("http", "ws") + "/v1/maps/m/stream?robot_id=r"
         stream_row: dict = {"route": "WS /v1/maps/{map_id}/stream"}
         for who, headers in [
             ("no key", {}),
             ("wrong key", {"x-api-key": "not-a-key"}),
+            ("wrong bearer", {"authorization": "Bearer not-a-key"}),
             *[(r, {"x-api-key": f"secret-{r}"}) for r in ROLES],
         ]:
             try:
@@ -122,7 +129,7 @@ def test_every_route_every_role_no_key_and_wrong_key(tmp_path):
                 code = getattr(getattr(err, "rcvd", None), "code", None)
                 stream_row[who] = f"close {code}" if code else type(err).__name__
         cells.append(stream_row)
-    for who in ("no key", "wrong key", "viewer"):
+    for who in ("no key", "wrong key", "wrong bearer", "viewer"):
         assert stream_row[who] != 101, stream_row
     for who in ("robot", "mapper", "admin"):
         assert stream_row[who] == 101, stream_row

@@ -15,6 +15,7 @@ import pytest
 from e2e_kit import Mapper, Poller, drive_dir, missing_keyframes, percentiles, size, write_report
 from service_kit import server
 
+from client import NO_RETRY
 from client._replay import open_drive
 from client.fleet import simulate
 
@@ -32,10 +33,20 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         mapper = Mapper(url, model_id=model_id).start()
         poller = Poller(url).start()
         t0 = time.monotonic()
+        # No retries: an overload (503) or a timeout counts as an error, not a slow success.
         report, samples = asyncio.run(
-            simulate(url, "fleet", [drive], robots=robots, duration_s=duration, rate_hz=10.0)
+            simulate(
+                url,
+                "fleet",
+                [drive],
+                robots=robots,
+                duration_s=duration,
+                rate_hz=10.0,
+                retry=NO_RETRY,
+            )
         )
         elapsed = time.monotonic() - t0
+        assert mapper.alive and poller.alive, (mapper.errors[-3:], poller.errors[-3:])
         mapper.stop()
         poller.stop()
 
@@ -51,6 +62,9 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "command": "make e2e (tests/test_e2e_load.py)",
         "drive": drive.name,
         "robots": robots,
+        "rate_hz_asked": 10.0,
+        "rate_hz_achieved_per_robot": report.throughput_per_s / robots,
+        "retries": "none (NO_RETRY): every 429/503/timeout would count as an error",
         "duration_s": elapsed,
         "fleet": {
             "observations": report.observations,
