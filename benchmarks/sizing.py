@@ -35,7 +35,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 from lidar_core.io import read_points  # noqa: E402
 from service.backend import Filters, content_hash, open_backend  # noqa: E402
 from service.encoder import Encoder  # noqa: E402
-from service.qdrant import _payload  # noqa: E402
+from service.qdrant import point_payload  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.store import NewKeyframe  # noqa: E402
 
@@ -148,7 +148,7 @@ def backend_costs(kind: str, root: Path, data: list[NewKeyframe], dim: int) -> d
     else:
         out |= {
             "payload_json_bytes_per_point": float(
-                np.mean([len(json.dumps(_payload(r, 0.0))) for r in data[:50]])
+                np.mean([len(json.dumps(point_payload(r, 0.0))) for r in data[:50]])
             ),
             "vector_bytes_per_point": dim * 4,
             "local_storage_bytes_per_point": folder_bytes(root / "q") / len(data),

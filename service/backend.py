@@ -28,7 +28,6 @@ from service.errors import BadRequest, Conflict, NotFound
 from service.settings import Settings
 from service.store import Keyframe, NewKeyframe
 
-BACKENDS = ("faiss", "qdrant")
 T = TypeVar("T")
 
 
@@ -95,11 +94,6 @@ def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
     h.update(payload)
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
-
-
-def unit_query(descriptor: np.ndarray) -> np.ndarray:
-    q = np.asarray(descriptor, dtype=np.float32)
-    return q / max(float(np.linalg.norm(q)), 1e-12)
 
 
 def check_rows(rows: list[NewKeyframe], dim: int) -> list[str]:

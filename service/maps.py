@@ -36,7 +36,6 @@ from service.backend import (
     check_existing,
     check_rows,
     insert_results,
-    unit_query,
 )
 from service.errors import Conflict, NotFound, Unavailable
 from service.index import VectorIndex, ivf_lists
@@ -367,7 +366,7 @@ class Map:
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:
-        q = unit_query(descriptor)
+        q = unit_vector(descriptor)
         with self.lock.read():
             self.check_open()
             mask = self.allowed(filters)

@@ -50,7 +50,6 @@ from service.backend import (
     check_existing,
     check_rows,
     insert_results,
-    unit_query,
 )
 from service.errors import BadRequest, Conflict, NotFound, Overloaded, ServiceError, Unavailable
 from service.schemas import check_map_id
@@ -76,7 +75,7 @@ def point_id(keyframe_id: str) -> str:
     return str(uuid.uuid5(_NAMESPACE, keyframe_id))
 
 
-def _payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
+def point_payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
     yaw = None if r.yaw is None else np.asarray(r.yaw, dtype=np.float16)
     return {
         "keyframe_id": r.keyframe_id,
@@ -177,7 +176,7 @@ class QdrantMap:
                 for r in new:
                     kf = stored.get(r.keyframe_id)
                     if kf is None:  # deleted by someone else in between: report ours
-                        kf = _keyframe(_payload(r, now))
+                        kf = _keyframe(point_payload(r, now))
                     check_existing([r], {r.keyframe_id: kf})
                     created[r.keyframe_id] = kf
         return insert_results(rows, existing, created)
@@ -186,7 +185,7 @@ class QdrantMap:
         batch = models.Batch(
             ids=[point_id(r.keyframe_id) for r in rows],
             vectors=[unit_vector(r.descriptor).tolist() for r in rows],
-            payloads=[_payload(r, now) for r in rows],
+            payloads=[point_payload(r, now) for r in rows],
         )
         self._call(
             lambda c: c.upsert(
@@ -268,7 +267,7 @@ class QdrantMap:
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:
-        q = unit_query(descriptor).tolist()
+        q = unit_vector(descriptor).tolist()
         params = None
         if not self.backend.local:  # local mode is exact and warns about any parameter
             exact = self.kind == "flat"
