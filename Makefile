@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e lint format typecheck serve bench data clean
+.PHONY: test e2e chromium lint format typecheck serve bench data clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -26,17 +26,20 @@ $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q -e '.[serve]'
 	@touch $@
 
-test: $(VENV)/.installed-all lint
-	$(BIN)/python -m pytest
+# The browser test drives Debian's chromium: installed first where this runs as root with apt.
+test: $(VENV)/.installed-all lint chromium
+	$(BIN)/python -m pytest --durations=15
 
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
 # `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.
-# The browser test needs Debian's chromium: installed here when this runs as root with apt.
-e2e: $(VENV)/.installed-all
+e2e: $(VENV)/.installed-all chromium
+	OVERLAPMAMBA_E2E=full $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
+
+# Debian's chromium for the browser tests (playwright drives it; it downloads no browser).
+chromium:
 	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
 	  && apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } \
 	  || echo "no chromium: the browser test will be skipped"
-	OVERLAPMAMBA_E2E=full $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
 
 lint: $(VENV)/.installed-all
 	$(BIN)/ruff check .

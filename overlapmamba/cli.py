@@ -225,11 +225,18 @@ def gen_data(
         bool, typer.Option("--no-ground-truth", help="skip the overlap tables")
     ] = False,
     workers: Annotated[int, typer.Option(min=1, max=64, help="processes (one per core)")] = 2,
+    stall_timeout: Annotated[
+        float,
+        typer.Option(
+            min=1.0, help="seconds without a finished scan or chunk before a worker counts as stuck"
+        ),
+    ] = 600.0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Simulate a synthetic town and a drive with revisits; write a KITTI-layout sequence."""
     from model_export.synth.generate import GenConfig, generate
     from model_export.synth.presets import preset as get_preset
+    from model_export.synth.workers import WorkerError
 
     if preset is not None:
         if seed is not None or frames is not None or nodes is not None:
@@ -261,10 +268,18 @@ def gen_data(
             raise typer.BadParameter(err.errors()[0]["msg"].removeprefix("Value error, ")) from None
     try:
         manifest = generate(
-            out_dir, cfg, workers=workers, ground_truth=not no_ground_truth, progress=not quiet
+            out_dir,
+            cfg,
+            workers=workers,
+            ground_truth=not no_ground_truth,
+            progress=not quiet,
+            stall_timeout_s=stall_timeout,
         )
     except FileExistsError as err:
         raise typer.BadParameter(str(err)) from None
+    except WorkerError as err:
+        console.print(f"[bold red]error:[/] {err} ({out_dir} is incomplete: delete it)")
+        raise typer.Exit(1) from None
     c, t = manifest["counts"], manifest["timing_s"]
     table = Table(title=f"Synthetic sequence: {out_dir}", show_header=False)
     rows = [

@@ -108,7 +108,9 @@ def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Pat
     from model_export.synth.presets import PRESETS
 
     out = tmp_path_factory.mktemp("synth") / name
-    generate(out, PRESETS[name], workers=2, progress=False)
+    # Its own limit: a stuck or dead worker fails this fixture in a minute, with the chunk named
+    # (a tiny scan takes < 1 s, a ground-truth chunk a few seconds).
+    generate(out, PRESETS[name], workers=2, progress=False, stall_timeout_s=60)
     return out
 
 

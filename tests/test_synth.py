@@ -338,6 +338,7 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
         (["--frames", "10"], "give --seed and --frames"),
         (["--seed", "1", "--frames", "10", "--sensor", "vlp16"], "allowed: kitti-hdl64, hdl32"),
         (["--seed", "1", "--frames", "1"], "greater than or equal to 2"),
+        (["--seed", "1", "--frames", "4", "--stall-timeout", "0"], "greater than or equal to 1"),
     ],
 )
 def test_gen_data_refuses_bad_options(tmp_path, args, message):
@@ -349,3 +350,23 @@ def test_gen_data_refuses_bad_options(tmp_path, args, message):
     assert res.exit_code == 2
     assert message in _plain(res.output), res.output
     assert not (tmp_path / "x").exists()
+
+
+def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import model_export.synth.generate as gen
+    from model_export.synth.workers import WorkerError
+    from overlapmamba.cli import app
+
+    def dies(*args, **kwargs):
+        raise WorkerError("a worker process died while running scan 2")
+        yield  # a generator, like run_jobs
+
+    monkeypatch.setattr(gen, "run_jobs", dies)
+    out = tmp_path / "seq"
+    args = ["gen-data", str(out), "--seed", "3", "--frames", "4", "--sensor", "hdl32", "-q"]
+    res = CliRunner().invoke(app, [*args, "--nodes", "2", "--workers", "2"])
+    assert res.exit_code == 1
+    assert "died while running scan 2" in _plain(res.output)
+    assert "is incomplete: delete it" in _plain(res.output)

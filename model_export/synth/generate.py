@@ -20,10 +20,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import multiprocessing as mp
 import os
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +41,7 @@ from lidar_core.sensors import get_profile
 from model_export.synth.dynamics import Dynamics, DynamicsParams
 from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
 from model_export.synth.trajectory import Drive, DriveParams, plan_drive
+from model_export.synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
 from model_export.synth.world import World, WorldParams, build_world
 
 GENERATOR_VERSION = "1.3.1"  # 1.3.1: manifest lists only parameters in use
@@ -130,21 +129,6 @@ def _simulate(k: int) -> tuple[int, int]:
     return k, len(pts)
 
 
-def _single_threaded(initializer=None, *initargs) -> None:
-    # One process per core: a BLAS thread pool per worker on top oversubscribes the cores
-    # (measured: 2 workers ran 2.1× *slower* than one until this was set).
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-    if initializer is not None:
-        initializer(*initargs)
-
-
-def _pool(workers: int, initializer=None, initargs=()):
-    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-    return ctx.Pool(workers, initializer=_single_threaded, initargs=(initializer, *initargs))
-
-
 def simulate_scans(
     out: Path,
     world: World,
@@ -153,6 +137,7 @@ def simulate_scans(
     cfg: GenConfig,
     workers: int,
     progress: bool,
+    stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
 ) -> np.ndarray:
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = np.zeros(cfg.frames, np.int64)
@@ -160,15 +145,23 @@ def simulate_scans(
     bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
     if workers <= 1:
         _init_worker(*args)
-        it: Iterator[tuple[int, int]] = map(_simulate, range(cfg.frames))
-        for k, n in it:
-            counts[k] = n
-            bar.update()
+        done = map(_simulate, range(cfg.frames))
     else:
-        with _pool(workers, _init_worker, args) as pool:
-            for k, n in pool.imap_unordered(_simulate, range(cfg.frames), chunksize=4):
-                counts[k] = n
-                bar.update()
+        done = (
+            res
+            for _, res in run_jobs(
+                _simulate,
+                range(cfg.frames),
+                workers=workers,
+                initializer=_init_worker,
+                initargs=args,
+                stall_timeout_s=stall_timeout_s,
+                what="scan",
+            )
+        )
+    for k, n in done:
+        counts[k] = n
+        bar.update()
     bar.close()
     return counts
 
@@ -181,7 +174,11 @@ def _overlap_chunk(args) -> tuple[np.ndarray, np.ndarray]:
 
 
 def compute_ground_truth(
-    out: Path, cfg: GenConfig, workers: int, progress: bool
+    out: Path,
+    cfg: GenConfig,
+    workers: int,
+    progress: bool,
+    stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
 ) -> tuple[dict, LoopGroundTruth]:
     """Overlap/yaw of every pair closer than ``gt_radius`` (query later than reference), with
     lidar_core's overlap code; the loop table is the subset the loop protocol asks for."""
@@ -195,16 +192,16 @@ def compute_ground_truth(
     chunks = np.split(pairs, np.searchsorted(pairs[:, 0], firsts[1:]))
     jobs = [(str(out), cfg.sensor, c) for c in chunks]
     bar = tqdm(total=len(pairs), desc="overlap ground truth", unit="pair", disable=not progress)
-    results = []
+    results: list = [None] * len(jobs)
     if workers <= 1:
-        for j in jobs:
-            results.append(_overlap_chunk(j))
-            bar.update(len(j[2]))
+        done = enumerate(map(_overlap_chunk, jobs))
     else:
-        with _pool(workers) as pool:
-            for j, res in zip(jobs, pool.imap(_overlap_chunk, jobs), strict=True):
-                results.append(res)
-                bar.update(len(j[2]))
+        done = run_jobs(
+            _overlap_chunk, jobs, workers=workers, stall_timeout_s=stall_timeout_s, what="chunk"
+        )
+    for i, res in done:
+        results[i] = res
+        bar.update(len(jobs[i][2]))
     bar.close()
     overlap = np.concatenate([r[0] for r in results]).astype(np.float32)
     yaw = np.concatenate([r[1] for r in results]).astype(np.float32)
@@ -344,8 +341,12 @@ def generate(
     workers: int = 2,
     ground_truth: bool = True,
     progress: bool = True,
+    stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
 ) -> dict:
-    """Generate one sequence into ``out`` (must be empty or absent); return the manifest."""
+    """Generate one sequence into ``out`` (must be empty or absent); return the manifest.
+
+    Scans and ground truth are computed in ``workers`` processes (see ``synth.workers``); a
+    worker that dies, or no progress for ``stall_timeout_s``, raises ``WorkerError``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} is not empty; choose a new folder for the sequence")
@@ -354,14 +355,14 @@ def generate(
     world, drive, dynamics = build_scene(cfg)
     t_world = time.perf_counter() - t0
 
-    counts = simulate_scans(out, world, drive, dynamics, cfg, workers, progress)
+    counts = simulate_scans(out, world, drive, dynamics, cfg, workers, progress, stall_timeout_s)
     t_sim = time.perf_counter() - t0 - t_world
 
     write_layout(out, drive)
 
     table = loops = None
     if ground_truth:
-        table, loops = compute_ground_truth(out, cfg, workers, progress)
+        table, loops = compute_ground_truth(out, cfg, workers, progress, stall_timeout_s)
     t_gt = time.perf_counter() - t0 - t_world - t_sim
 
     same = rev = None
