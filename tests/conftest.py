@@ -37,9 +37,14 @@ def nuscenes_dir() -> Path:
     return _need("nuscenes_scene0061")
 
 
-@pytest.fixture(autouse=True)
-def _isolated_cache(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path_factory.mktemp("cache")))
+@pytest.fixture(scope="session", autouse=True)
+def _session_cache(tmp_path_factory: pytest.TempPathFactory):
+    """One cache folder for the run, never the user's. Range images, compiled kernels and
+    ground truth are keyed by what they were made from, so tests share them safely: each tiny
+    town is projected once per run instead of once per training call."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OVERLAPMAMBA_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
 
 
 def make_world(rng: np.random.Generator, extent: float = 60.0) -> np.ndarray:
@@ -124,6 +129,26 @@ def tiny_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def tiny_val_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The ``tiny-val`` preset: another small town, for validating tiny training runs."""
     return _generate_preset(tmp_path_factory, "tiny-val")
+
+
+# A small OverlapMamba for training tests: the reference backbone, a narrow mixer and head.
+SMALL_MODEL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPathFactory):
+    """A finished 2-epoch run (32 scans an epoch, batches of 16) of ``SMALL_MODEL`` on the
+    tiny towns, trained once per session: ``(run folder, history)``. Tests that read a run
+    share it and never write into it (copy it first)."""
+    pytest.importorskip("torch")
+    from model_export.model import OverlapMambaConfig
+    from model_export.train import TrainConfig, train
+
+    out = tmp_path_factory.mktemp("runs") / "tiny"
+    cfg = TrainConfig(epochs=2, epoch_scans=32, batch_size=16)
+    model = OverlapMambaConfig(**SMALL_MODEL)
+    history = train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
+    return out, history
 
 
 def save_random_checkpoint(path: Path, **config) -> Path:

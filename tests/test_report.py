@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import make_world, save_random_checkpoint
+from conftest import SMALL_MODEL, make_world, save_random_checkpoint
 
 from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
 from lidar_core.poses import rotation_z, transform_points
@@ -104,7 +104,7 @@ from model_export.presets import PRESETS, get_preset  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
-SMALL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+SMALL = SMALL_MODEL
 runner = CliRunner()
 
 
@@ -174,13 +174,12 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tmp_path):
+def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     from model_export.report import build_report
 
     runs = tmp_path / "runs"
-    small = TrainConfig(epochs=2, epoch_scans=32, batch_size=16)
-    full = OverlapMambaConfig(**SMALL)
-    train([tiny_seq], tiny_val_seq, runs / "abl-full", full, small, progress=False)
+    # abl-full: SMALL for 2 epochs of 32 scans in batches of 16 (the session's tiny run)
+    shutil.copytree(tiny_run[0], runs / "abl-full")
     ot = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
     one = TrainConfig(epochs=1, epoch_scans=32, batch_size=16)
     train([tiny_seq], tiny_val_seq, runs / "abl-ot", ot, one, progress=False)

@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("embreex")
 
-from conftest import save_random_checkpoint  # noqa: E402
+from conftest import SMALL_MODEL, save_random_checkpoint  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from lidar_core.datasets import open_sequence  # noqa: E402
@@ -22,7 +22,7 @@ from model_export.model import OverlapMambaConfig  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
-SMALL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+SMALL = SMALL_MODEL
 runner = CliRunner()
 
 
@@ -51,10 +51,9 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # its set-up generates the tiny-val town (≈2 min on 2 busy cores)
-def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tmp_path):
+def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     cfg = OverlapMambaConfig(**SMALL)
-    straight = tmp_path / "straight"
-    history = train([tiny_seq], tiny_val_seq, straight, cfg, small_run(), progress=False)
+    straight, history = tiny_run  # train([tiny_seq], tiny_val_seq, …, cfg, small_run())
     assert [h["epoch"] for h in history] == [1, 2]
     for h in history:
         assert np.isfinite(h["loss"]) and h["scans_per_s"] > 0

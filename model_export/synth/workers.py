@@ -35,7 +35,9 @@ def start_method() -> str:
 
 def _single_threaded(initializer: Callable[..., None] | None, *initargs: Any) -> None:
     # One process per core: a BLAS thread pool per worker on top oversubscribes the cores
-    # (measured: 2 workers ran 2.1× *slower* than one until this was set).
+    # (measured: 2 workers ran 2.1× *slower* than one until this was set). threadpoolctl only
+    # limits libraries already loaded, and a fresh worker has not loaded numpy's BLAS yet.
+    import numpy  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
