@@ -14,16 +14,20 @@ TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/whe
 
 .PHONY: test e2e chromium lint format typecheck serve bench data clean
 
+# uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
+# measured 10 s against ≈100 s for the full set on 2 cores.
+UV := $(BIN)/uv pip install -q --python $(BIN)/python
+
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q uv
 
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
+	$(UV) $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
 	@touch $@
 
 $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e '.[serve]'
+	$(UV) -e '.[serve]'
 	@touch $@
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.
