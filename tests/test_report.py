@@ -174,8 +174,18 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
+def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path, monkeypatch):
+    import model_export.report as report_mod
     from model_export.report import build_report
+
+    described: list[int] = []
+    real_describe = report_mod.describe
+
+    def counted(model, images, **kw):
+        described.append(len(images))
+        return real_describe(model, images, **kw)
+
+    monkeypatch.setattr(report_mod, "describe", counted)
 
     runs = tmp_path / "runs"
     # abl-full: SMALL for 2 epochs of 32 scans in batches of 16 (the session's tiny run)
@@ -194,6 +204,9 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
         "OverlapMamba, ablation budget",
         "OverlapMamba, default recipe (shipped)",
     ]
+    # default is a copy of abl-full: that network is described once, for both rows
+    assert len(described) == 3
+    assert t1["OverlapMamba, ablation budget"] == t1["OverlapMamba, default recipe (shipped)"]
     untrained = t1["OverlapMamba, untrained (default run's initial weights)"]["all"]
     assert untrained != t1["OverlapMamba, default recipe (shipped)"]["all"]
     for subs in t1.values():
