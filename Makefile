@@ -67,9 +67,12 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/service.py
 	$(BIN)/python benchmarks/sizing.py
 
-# The synthetic presets (≈14 GB, ≈20 min on 2 cores): train, val and test towns.
+# The synthetic presets (≈36 GB, ≈100 min on 2 cores): four training towns, the validation
+# town, three test towns and a second drive through the first test town. Each is skipped
+# when its manifest exists, so an interrupted `make data` resumes where it stopped.
+DATA_PRESETS := train train-b train-c train-d val test test-b test-c test-s1
 data: $(VENV)/.installed-all
-	for p in train val test; do \
+	for p in $(DATA_PRESETS); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \
 	done
 

@@ -7,6 +7,9 @@ in the same run so their ratio is fair. Prints a table and writes JSON
 (default bench-results/training.json).
 
 Goal (issue 4): one epoch of 2,000 scans in ≤ 600 s on 2 CPU cores, i.e. ≥ 3.33 scans/s.
+Goal (issue 20): the data side (the full augmentation set, ROBUST, on a batch) under 10 % of a
+step;
+the table's last row times it on the same batch, in the same run.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 import torch
 
 from lidar_core.sensors import get_profile
+from model_export.augment import ROBUST, AugmentConfig, Augmenter
 from model_export.losses import batch_hard_imtrihard
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.runtime import reexec_with_hugepages
@@ -54,7 +58,7 @@ def step_times(backend: str, x: torch.Tensor, steps: int) -> np.ndarray:
     for i in range(steps + 1):  # the first step warms up (allocations, kernel build)
         t = time.perf_counter()
         desc, _ = model(x)
-        loss = batch_hard_imtrihard(desc, overlap)
+        loss = batch_hard_imtrihard(desc, overlap).value
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -88,6 +92,19 @@ def main() -> None:
             }
         )
     base = rows[0]["scans_per_s"]
+    augment = Augmenter(AugmentConfig(**ROBUST), get_profile("kitti-hdl64"), circular=True)
+    rng = np.random.default_rng(0)
+    batch = x[:, 0].numpy()
+    aug = []
+    for _ in range(args.steps + 1):
+        t0 = time.perf_counter()
+        augment(batch, rng)
+        aug.append(time.perf_counter() - t0)
+    aug_s = float(np.median(aug[1:]))
+    augment_row = {
+        "augment_median_s": aug_s,
+        "share_of_first_backend_step": aug_s / rows[0]["step_median_s"],
+    }
     print(
         f"Training step, reference config, batch {args.batch}, {args.threads} threads, {source}, "
         f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '') or 'unset'}"
@@ -102,6 +119,10 @@ def main() -> None:
             f"{r['scans_per_s']:>10.2f}{r['epoch_2000_scans_s']:>16.0f} s"
             f"{r['scans_per_s'] / base:>9.2f}×"
         )
+    print(
+        f"{'augmentation':<14}{aug_s * 1000:>12.1f} ms   (the ROBUST set, on the batch above: "
+        f"{augment_row['share_of_first_backend_step']:.1%} of a {rows[0]['backend']} step)"
+    )
     args.json.parent.mkdir(parents=True, exist_ok=True)
     record = {
         "benchmark": "training-step",
@@ -114,6 +135,7 @@ def main() -> None:
         "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),
         "goal_scans_per_s": 2000 / 600,
         "rows": rows,
+        "augmentation": augment_row,
     }
     args.json.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {args.json}")

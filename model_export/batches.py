@@ -2,20 +2,24 @@
 
 The pair table (``<sequence>/ground_truth/overlaps.npz``, written by ``gen-data``) holds the
 overlap of every pair of scans closer than its radius. A batch is made of groups of
-``GROUP`` = 4 scans:
+1 + ``positives`` + ``negatives`` scans (by default 1 + 2 + 1 = ``GROUP`` = 4):
 
     anchor, positive, positive, near miss
 
+(OverlapTransformer's tuples are 1 + 6 + 6: ``BatchPlan(positives=6, negatives=6)``.)
+
 - positives have overlap > ``positive_threshold`` (0.3) with the anchor;
-- the near miss lies within the table's radius but overlaps ≤ 0.3: the hardest kind of
-  negative, a place close by that looks different;
+- the near miss lies within the table's radius but overlaps at most
+  ``negative_threshold``: the hardest kind of negative, a place close by that looks
+  different (when the anchor has none, any scan that does not overlap it);
 - for half of the anchors (``revisit_fraction``), the first positive is an *old* pass of
   the same place (more than ``min_revisit_gap`` scans earlier or later) when the anchor has
   one, so loop closures, not only neighbouring frames, drive the loss.
 
 Every other scan of the batch is a negative of the anchor unless the table says they
-overlap: the loss reads the batch's full (B, B) overlap matrix (batch-hard mining), so
-positives and negatives across groups count too.
+overlap more than ``negative_threshold``: the loss reads the batch's full (B, B) overlap
+matrix (batch-hard mining), so positives and negatives across groups count too. Pairs between
+the two thresholds (neighbouring places that share a little) are neither.
 
 The table stores overlap(query, reference) for query > reference only; it is used for both
 orders (overlap is nearly symmetric between scans of similar density).
@@ -86,20 +90,33 @@ class PairIndex:
 
 @dataclass(frozen=True)
 class BatchPlan:
-    batch_size: int = 16  # a multiple of GROUP
+    batch_size: int = 16  # a multiple of the group size 1 + positives + negatives
     positive_threshold: float = 0.3
     revisit_fraction: float = 0.5
     min_revisit_gap: int = 100
+    negative_threshold: float = 0.3  # near misses overlap at most this
+    positives: int = 2  # per anchor
+    negatives: int = 1  # near misses per anchor
+
+    @property
+    def group(self) -> int:
+        return 1 + self.positives + self.negatives
 
 
 class BatchSampler:
     """Draws an epoch of batches (global scan indices) from a :class:`PairIndex`."""
 
     def __init__(self, pairs: PairIndex, plan: BatchPlan) -> None:
-        if plan.batch_size < GROUP or plan.batch_size % GROUP:
+        if plan.positives < 1 or plan.negatives < 0:
             raise ValueError(
-                f"batch size {plan.batch_size} is not allowed: use a multiple of {GROUP} "
-                "(anchor, two positives, near miss)"
+                f"groups need at least one positive and no negative count below 0; got "
+                f"positives={plan.positives}, negatives={plan.negatives}"
+            )
+        g = plan.group
+        if plan.batch_size < g or plan.batch_size % g:
+            raise ValueError(
+                f"batch size {plan.batch_size} is not allowed: use a multiple of {g} (anchor, "
+                f"{plan.positives} positives, {plan.negatives} near misses)"
             )
         self.plan = plan
         self.pairs = pairs
@@ -108,7 +125,11 @@ class BatchSampler:
         pos.data = (pos.data > plan.positive_threshold).astype(np.float32)
         pos.eliminate_zeros()
         self.positives = [pos.indices[pos.indptr[i] : pos.indptr[i + 1]] for i in range(len(pairs))]
-        near = pairs.near.astype(np.float32) - pos  # within the radius, not a positive
+        above = ov > plan.negative_threshold  # within the radius and not clearly different
+        self.related = [
+            above.indices[above.indptr[i] : above.indptr[i + 1]] for i in range(len(pairs))
+        ]
+        near = pairs.near.astype(np.float32) - above.astype(np.float32)
         near.eliminate_zeros()
         self.near_misses = [
             near.indices[near.indptr[i] : near.indptr[i + 1]] for i in range(len(pairs))
@@ -116,18 +137,20 @@ class BatchSampler:
         self.revisits = [
             p[np.abs(p - i) > plan.min_revisit_gap] for i, p in enumerate(self.positives)
         ]
-        self.anchors = np.array([i for i, p in enumerate(self.positives) if len(p) >= 2], np.int64)
+        self.anchors = np.array(
+            [i for i, p in enumerate(self.positives) if len(p) >= plan.positives], np.int64
+        )
         self.revisit_anchors = np.array(
             [i for i in self.anchors if len(self.revisits[i])], np.int64
         )
         if len(self.anchors) == 0:
             raise DatasetError(
-                "no scan has two positives (overlap > "
+                f"no scan has {plan.positives} positives (overlap > "
                 f"{plan.positive_threshold}) in the training data: nothing to learn from"
             )
 
     def batch(self, rng: np.random.Generator) -> np.ndarray:
-        """One batch: (batch_size,) global scan indices in groups of GROUP, no repeats."""
+        """One batch: (batch_size,) global scan indices in groups, no repeats."""
         p = self.plan
         chosen: list[int] = []
         taken: set[int] = set()
@@ -148,22 +171,25 @@ class BatchSampler:
             anchor = pick(anchors)
             positives = free(self.positives[anchor])
             firsts = free(self.revisits[anchor]) if revisit else positives
-            if len(positives) < 2 or not firsts:
+            if len(positives) < p.positives or not firsts:
                 continue  # its partners are in the batch already: draw another anchor
             first = pick(firsts)
-            second = pick([c for c in positives if c != first])
-            taken.update((anchor, first, second))
-            misses = free(self.near_misses[anchor])
-            if not misses:  # none close by: any scan that does not overlap the anchor
-                misses = free(
-                    np.setdiff1d(
-                        rng.integers(len(self.pairs), size=8 * GROUP), self.positives[anchor]
+            rest = [c for c in positives if c != first]
+            group = [anchor, first]
+            for _ in range(p.positives - 1):
+                group.append(rest.pop(int(rng.integers(len(rest)))))
+            taken.update(group)
+            for _ in range(p.negatives):
+                misses = free(self.near_misses[anchor])
+                if not misses:  # none close by: any scan that does not overlap the anchor
+                    misses = free(
+                        np.setdiff1d(
+                            rng.integers(len(self.pairs), size=8 * GROUP), self.related[anchor]
+                        )
                     )
-                )
-            group = [anchor, first, second]
-            if misses:
-                group.append(pick(misses))
-                taken.add(group[-1])
+                if misses:
+                    group.append(pick(misses))
+                    taken.add(group[-1])
             chosen += group
         if len(chosen) < p.batch_size:
             raise DatasetError(
@@ -172,5 +198,9 @@ class BatchSampler:
             )
         return np.array(chosen[: p.batch_size], np.int64)
 
+    def steps(self, scans: int) -> int:
+        """Batches in an epoch of ``scans`` scans."""
+        return max(1, scans // self.plan.batch_size)
+
     def epoch(self, rng: np.random.Generator, scans: int) -> list[np.ndarray]:
-        return [self.batch(rng) for _ in range(max(1, scans // self.plan.batch_size))]
+        return [self.batch(rng) for _ in range(self.steps(scans))]

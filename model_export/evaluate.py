@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -136,6 +137,72 @@ def plot_pr(results: dict[str, LoopClosureResult], path: Path, title: str) -> No
     plt.close(fig)
 
 
+@dataclass(frozen=True)
+class RealTurns:
+    """Range images of real scans and of the same scans turned about z by ``theta`` (degrees,
+    uniform in ±180°: continuous, not whole columns), projected once."""
+
+    plain: np.ndarray  # (N, H, W) float32
+    turned: np.ndarray  # (N, H, W) float32
+    theta: np.ndarray  # (N,) degrees
+    positions: np.ndarray  # (N, 3) from the poses
+    repeat: int  # rows repeated to reach the model's height (1: none)
+
+
+def real_turns(seq: Sequence, profile: SensorProfile, rows: int, seed: int = 0) -> RealTurns:
+    """``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into
+    an HDL-64 model's 64) has each row repeated."""
+    from lidar_core.poses import rotation_z, transform_points
+    from lidar_core.projection import project
+
+    if rows % profile.height:
+        raise ValueError(
+            f"profile {profile.name} makes {profile.height}-row images; the model takes {rows} "
+            "rows, which is not a whole multiple"
+        )
+    repeat = rows // profile.height
+    theta = np.random.default_rng(seed).uniform(-180.0, 180.0, len(seq))
+
+    def image(xyz: np.ndarray) -> np.ndarray:
+        img = project(xyz, profile)
+        return np.repeat(img, repeat, axis=0) if repeat > 1 else img
+
+    plain, turned = [], []
+    for i in range(len(seq)):
+        xyz = seq.points(i).xyz
+        plain.append(image(xyz))
+        turned.append(image(transform_points(xyz, rotation_z(-theta[i]))))
+    return RealTurns(np.stack(plain), np.stack(turned), theta, seq.positions(), repeat)
+
+
+def invariance(desc: np.ndarray, desc_t: np.ndarray, positions: np.ndarray) -> dict[str, Any]:
+    """How far a turned copy moves, against how far scans 1 m apart (0.8–1.2 m) and any two
+    different scans are: squared distances between descriptors, medians."""
+    from lidar_core.metrics import squared_distances
+
+    n = len(desc)
+    cos = (desc * desc_t).sum(1)
+    d_turn = float(np.median(((desc - desc_t) ** 2).sum(1)))
+    d_all = squared_distances(desc, desc)
+    d_other = float(np.median(d_all[~np.eye(n, dtype=bool)]))
+    apart = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    step = np.triu((apart >= 0.8) & (apart <= 1.2), 1)
+    d_step = float(np.median(d_all[step])) if step.any() else math.nan
+
+    def ratio(a: float, b: float) -> float:  # a collapsed model has zero distances
+        return a / b if b > 0 else math.nan
+
+    return {
+        "cosine_min": float(cos.min()),
+        "cosine_mean": float(cos.mean()),
+        "turned_over_other_distance": ratio(d_turn, d_other),
+        "turned_distance_median": d_turn,
+        "one_metre_step_distance_median": d_step,
+        "one_metre_step_pairs": int(step.sum()),
+        "turned_over_one_metre_step": ratio(d_turn, d_step),
+    }
+
+
 def eval_real(
     model: OverlapMamba,
     profile: SensorProfile,
@@ -149,55 +216,35 @@ def eval_real(
 
     - **yaw invariance**: every scan turned about z by a random, continuous angle (not a
       multiple of a column): descriptor cosine to the original, and the turned copy's
-      distance as a fraction of the median distance between *different* scans;
+      distance as a fraction of the median distance between *different* scans and of the
+      median distance between scans 1 m apart (0.8–1.2 m: a one-metre step);
     - **odd → even retrieval**: queries are the odd frames, each turned by its random yaw;
       the database is the even frames; a hit is a top-N frame within ``hit_radius`` metres;
+      Scan Context answers the same turned queries against the same database;
     - **yaw estimate**: from the yaw features by circular cross-correlation, against the
       turned copy (truth: the turn) and against the retrieved frame (truth: the poses).
 
     ``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into the
-    HDL-64 model's 64) has each row repeated: the sensor-transfer check.
+    HDL-64 model's 64) has each row repeated: the sensor-transfer check (:func:`real_turns`).
     """
-    from lidar_core.metrics import nearest, squared_distances
-    from lidar_core.poses import rotation_z, transform_points, yaw_deg
-    from lidar_core.projection import project
+    from lidar_core.metrics import nearest
+    from lidar_core.poses import rotation_z, yaw_deg
     from lidar_core.yaw import estimate_yaw
 
-    rng = np.random.default_rng(seed)
-    n = len(seq)
-    theta = rng.uniform(-180.0, 180.0, n)
-    rows = model.cfg.height
-    if rows % profile.height:
-        raise ValueError(
-            f"profile {profile.name} makes {profile.height}-row images; the model takes {rows} "
-            "rows, which is not a whole multiple"
-        )
-    repeat = rows // profile.height
-
-    def image(xyz: np.ndarray) -> np.ndarray:
-        # A sensor with fewer beams (e.g. HDL-32E into an HDL-64 model): each row is repeated.
-        img = project(xyz, profile)
-        return np.repeat(img, repeat, axis=0) if repeat > 1 else img
-
-    plain, turned = [], []
-    for i in range(n):
-        xyz = seq.points(i).xyz
-        plain.append(image(xyz))
-        turned.append(image(transform_points(xyz, rotation_z(-theta[i]))))
-    desc, feats = describe(model, np.stack(plain))
-    desc_t, feats_t = describe(model, np.stack(turned))
-
-    cos = (desc * desc_t).sum(1)
-    d_turn = ((desc - desc_t) ** 2).sum(1)
-    d_other = squared_distances(desc, desc)[~np.eye(n, dtype=bool)]
+    turns = real_turns(seq, profile, model.cfg.height, seed)
+    theta, pos, n = turns.theta, turns.positions, len(seq)
+    desc, feats = describe(model, turns.plain)
+    desc_t, feats_t = describe(model, turns.turned)
+    inv = invariance(desc, desc_t, pos)
     yaw_copy = np.array([estimate_yaw(feats[i], feats_t[i])[0][0] for i in range(n)])
     err_copy = np.abs((yaw_copy - theta + 180.0) % 360.0 - 180.0)
 
     odd, even = np.arange(1, n, 2), np.arange(0, n, 2)
-    pos = seq.positions()
-    ranked, _ = nearest(desc_t[odd], desc[even], k=min(5, len(even)))
+    k = min(5, len(even))
+    ranked, _ = nearest(desc_t[odd], desc[even], k=k)
     found = even[ranked]  # (Q, 5) frame numbers
     close = np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < hit_radius
+    sc = _scan_context_odd_to_even(seq, theta, odd, even, k, hit_radius)
     # The turned query's pose: its sensor frame is turned by +θ about z.
     q_poses = seq.poses[odd] @ np.stack([rotation_z(t) for t in theta[odd]])
     top1 = found[:, 0]
@@ -219,21 +266,70 @@ def eval_real(
     return {
         "scans": n,
         "profile": profile.name,
-        "rows_repeated": repeat,
-        "yaw_invariance": {
-            "cosine_min": float(cos.min()),
-            "cosine_mean": float(cos.mean()),
-            "turned_over_other_distance": float(np.median(d_turn) / np.median(d_other)),
-        },
+        "rows_repeated": turns.repeat,
+        "yaw_invariance": inv,
         "retrieval_odd_to_even": {
             "queries": len(odd),
             "database": len(even),
             "hit_radius_m": hit_radius,
             "recall@1": float(close[:, 0].mean()),
             "recall@5": float(close.any(1).mean()),
+            "scan_context": sc,
         },
         "yaw_error_deg": {
             "vs_turned_copy": stats(err_copy),
             "vs_retrieved_frame": stats(err_ret),
         },
+    }
+
+
+def _scan_context_odd_to_even(
+    seq: Sequence, theta: np.ndarray, odd: np.ndarray, even: np.ndarray, k: int, radius: float
+) -> dict[str, float]:
+    """Scan Context on :func:`eval_real`'s odd → even protocol: the same turned queries
+    (odd frames turned by ``theta``), the same database, the same hit radius."""
+    from lidar_core.poses import rotation_z, transform_points
+
+    p = ScanContextParams()
+    db = [scan_context(seq.points(int(i)).xyz, p) for i in even]
+    qs = [
+        scan_context(transform_points(seq.points(int(i)).xyz, rotation_z(-theta[i])), p)
+        for i in odd
+    ]
+    contexts = np.stack(db + qs)
+    queries = len(even) + np.arange(len(odd))
+    ranked, _ = sc_retrieve(contexts, queries, np.full(len(odd), len(even)), k, p.candidates)
+    pos = seq.positions()
+    found = np.where(ranked >= 0, even[np.clip(ranked, 0, None)], -1)
+    close = (np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < radius) & (found >= 0)
+    return {"recall@1": float(close[:, 0].mean()), "recall@5": float(close.any(1).mean())}
+
+
+def cross_session(
+    model: OverlapMamba,
+    profile: SensorProfile,
+    database: Sequence,
+    queries: Sequence,
+    *,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """AR@1/5/20 of a second session's scans against the first's (:mod:`.sessions`), for the
+    model and for Scan Context on the same queries."""
+    from model_export.rangecache import range_images
+    from model_export.sessions import (
+        check_sessions,
+        descriptor_recall,
+        scan_context_recall,
+        town_positions,
+    )
+
+    check_sessions(database, queries)
+    pos_db, pos_q = town_positions(database), town_positions(queries)
+    d_db, _ = describe(model, range_images(database, profile, progress=progress))
+    d_q, _ = describe(model, range_images(queries, profile, progress=progress))
+    sc_db = scan_contexts(database, progress=progress)
+    sc_q = scan_contexts(queries, progress=progress)
+    return {
+        "model": descriptor_recall(d_db, pos_db, d_q, pos_q),
+        "scan_context": scan_context_recall(sc_db, pos_db, sc_q, pos_q),
     }

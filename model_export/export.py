@@ -279,7 +279,8 @@ def export_onnx(
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,
         yaw_channels=cfg.yaw_channels,
-        weights="trained" if train.get("history") else "random",
+        # epoch 0 is the initial weights (batch norm recalibrated): not trained
+        weights="trained" if any(h["epoch"] > 0 for h in train.get("history", [])) else "random",
         weight_format=weight_format,
         training_data=train.get("data") or {},
         metrics={"val": ckpt.get("metrics") or {}, "best": train.get("best")},

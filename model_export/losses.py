@@ -12,11 +12,29 @@ Shapes:
 
 A query without any positive contributes nothing (the reference code crashes on it), and a
 batch without any usable query gives a zero loss that still back-propagates.
+
+**Margins and the descriptors' scale.** At initialisation the mean squared distance between
+any two scans is ≈ 0.02, far below OverlapTransformer's margin of 0.5. With that margin every
+hinge is active at every step, the loss is linear in the distances, and shrinking every
+descriptor towards one point lowers it whenever the hardest positive is about as far as the
+hardest negative: the loss sits at α while the descriptors collapse. Two remedies, both
+options of the batch losses:
+
+- an absolute margin at the descriptors' scale (``alpha``/``margin`` of a few hundredths);
+- ``scale="relative"``: the margin is α times the batch's spread (mean squared distance
+  between its scans, not back-propagated), so it follows the scale as training changes it.
+  Measured: this alone does not stop a collapse (a margin that shrinks with the spread
+  still lets shrinking lower the loss);
+- ``scale="normalised"``: every distance is divided by the spread, gradient included, so the
+  loss is invariant to the descriptors' scale and shrinking cannot lower it.
+
+The batch losses also report how many hinge terms were active (:class:`BatchLoss`), the
+number that shows a collapse: 100 % active with a falling spread.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -33,17 +51,28 @@ def _mean_over_queries(per_query: Tensor, valid: Tensor) -> Tensor:
     return total / n.clamp_min(1)  # zero (with a graph) when no query is valid
 
 
+def _active(pre_hinge: Tensor, mask: Tensor) -> float:
+    """Share of the hinge terms selected by ``mask`` that are > 0 (NaN when there are none)."""
+    n = int(mask.sum())
+    return float(((pre_hinge > 0) & mask).sum()) / n if n else float("nan")
+
+
+def _triplet(q, pos, pos_mask, neg, neg_mask, margin: float) -> tuple[Tensor, float]:
+    dp = _sqdist(q, pos).masked_fill(~pos_mask, float("-inf")).amax(1)  # hardest positive
+    dn = _sqdist(q, neg)
+    pre = margin + dp[:, None] - dn
+    valid = pos_mask.any(1) & neg_mask.any(1)
+    hinge = pre.clamp_min(0) * neg_mask
+    per_query = torch.where(valid, hinge.sum(1), torch.zeros_like(dp))
+    return _mean_over_queries(per_query, valid), _active(pre.detach(), neg_mask & valid[:, None])
+
+
 def triplet_loss(
     q: Tensor, pos: Tensor, pos_mask: Tensor, neg: Tensor, neg_mask: Tensor, margin: float = 0.5
 ) -> Tensor:
     """OT's lazy triplet: Σ_n [m + max_p d(q, p) − d(q, n)]₊, averaged over queries that have
     at least one positive and one negative. m = 0.5 as in OverlapTransformer."""
-    dp = _sqdist(q, pos).masked_fill(~pos_mask, float("-inf")).amax(1)  # hardest positive
-    dn = _sqdist(q, neg)
-    hinge = (margin + dp[:, None] - dn).clamp_min(0) * neg_mask
-    valid = pos_mask.any(1) & neg_mask.any(1)
-    per_query = torch.where(valid, hinge.sum(1), torch.zeros_like(dp))
-    return _mean_over_queries(per_query, valid)
+    return _triplet(q, pos, pos_mask, neg, neg_mask, margin)[0]
 
 
 @dataclass(frozen=True)
@@ -51,12 +80,10 @@ class ImTrihardParams:
     """Constants of eq. 13; the paper gives none.
 
     - ``alpha`` (margin) = 0.5: OT's triplet margin, so the two losses ask for the same gap
-      between the hardest positive and the hardest negative and Table IV compares like with
-      like.
-    - ``lam`` (compression) = 0.1: the absolute pull on positives. It is small against the
-      margin term (whose gradient is 1 per hard pair) so it tightens clusters without
-      collapsing descriptors; at 1.0 it would rival the margin term and favour a constant
-      descriptor for every place.
+      between the hardest positive and the hardest negative. Measured: far above the
+      descriptors' scale (see the module notes); the training recipe sets its own.
+    - ``lam`` (compression) = 0.1: the absolute pull on positives. With every hinge active it
+      adds to the collapse; the training recipe sets its own.
     - ``k_p`` = ``k_n`` = 1: with one hardest positive and one hardest negative per query the
       "normalisation by the number of samples" is 1 each; queries are averaged.
     - ``hinge`` = True: clamp k_p(α + max d_p) − k_n min d_n at 0 (batch-hard triplet,
@@ -72,6 +99,19 @@ class ImTrihardParams:
     hinge: bool = True
 
 
+def _imtrihard(q, pos, pos_mask, neg, neg_mask, params: ImTrihardParams) -> tuple[Tensor, float]:
+    dp_all = _sqdist(q, pos)
+    n_pos = pos_mask.sum(1)
+    mean_p = (dp_all * pos_mask).sum(1) / n_pos.clamp_min(1)
+    max_p = dp_all.masked_fill(~pos_mask, float("-inf")).amax(1)
+    min_n = _sqdist(q, neg).masked_fill(~neg_mask, float("inf")).amin(1)
+    valid = pos_mask.any(1) & neg_mask.any(1)
+    pre = params.k_p * (params.alpha + max_p) - params.k_n * min_n
+    hard = pre.clamp_min(0) if params.hinge else pre
+    per_query = torch.where(valid, params.lam * mean_p + hard, torch.zeros_like(mean_p))
+    return _mean_over_queries(per_query, valid), _active(pre.detach(), valid)
+
+
 def imtrihard_loss(
     q: Tensor,
     pos: Tensor,
@@ -81,27 +121,67 @@ def imtrihard_loss(
     params: ImTrihardParams = ImTrihardParams(),
 ) -> Tensor:
     """λ·mean_p d(q,p) + [k_p(α + max_p d(q,p)) − k_n min_n d(q,n)]₊, averaged over queries."""
-    dp_all = _sqdist(q, pos)
-    n_pos = pos_mask.sum(1)
-    mean_p = (dp_all * pos_mask).sum(1) / n_pos.clamp_min(1)
-    max_p = dp_all.masked_fill(~pos_mask, float("-inf")).amax(1)
-    min_n = _sqdist(q, neg).masked_fill(~neg_mask, float("inf")).amin(1)
-    valid = pos_mask.any(1) & neg_mask.any(1)
-    hard = params.k_p * (params.alpha + max_p) - params.k_n * min_n
-    if params.hinge:
-        hard = hard.clamp_min(0)
-    per_query = torch.where(valid, params.lam * mean_p + hard, torch.zeros_like(mean_p))
-    return _mean_over_queries(per_query, valid)
+    return _imtrihard(q, pos, pos_mask, neg, neg_mask, params)[0]
 
 
-def _batch_candidates(desc: Tensor, overlap: Tensor, threshold: float):
-    """Every scan of the batch is a query; the others are its positives (overlap above the
-    threshold) and negatives. desc: (B, D), overlap: (B, B) → (B, B, D), (B, B), (B, B)."""
+@dataclass(frozen=True)
+class BatchLoss:
+    """A batch loss and what it did.
+
+    - ``value``: the scalar to back-propagate;
+    - ``active``: share of the hinge terms that were > 0 (ImTrihard: one per query; triplet:
+      one per query and negative); NaN when the batch had no usable query;
+    - ``margin``: the margin actually used, in squared-distance units (α, or α × spread).
+    """
+
+    value: Tensor
+    active: float
+    margin: float
+
+
+def pair_masks(
+    overlap: Tensor, positive: float = 0.3, negative: float = 0.3
+) -> tuple[Tensor, Tensor]:
+    """(B, B) overlap → positive and negative masks over ordered pairs of distinct scans.
+
+    Positives overlap more than ``positive``; negatives at most ``negative``. With
+    ``negative`` < ``positive`` the pairs in between (an ambiguous band: neighbouring places
+    that share a little) are neither."""
+    if not negative <= positive:
+        raise ValueError(f"negative threshold {negative} must not exceed positive {positive}")
+    B = overlap.shape[0]
+    other = ~torch.eye(B, dtype=torch.bool, device=overlap.device)
+    return (overlap > positive) & other, (overlap <= negative) & other
+
+
+def batch_spread(desc: Tensor) -> Tensor:
+    """Mean squared distance between the distinct scans of a batch (B ≥ 2), a scalar:
+    Σ_{i≠j} |x_i − x_j|² = 2B Σ|x_i|² − 2|Σ x_i|², with no square root to differentiate."""
     B = desc.shape[0]
-    other = ~torch.eye(B, dtype=torch.bool, device=desc.device)
-    pos_mask = (overlap > threshold) & other
-    neg_mask = (overlap <= threshold) & other
-    return desc[None].expand(B, B, -1), pos_mask, neg_mask
+    total = 2 * B * desc.pow(2).sum() - 2 * desc.sum(0).pow(2).sum()
+    return total.clamp_min(0) / max(1, B * (B - 1))
+
+
+SCALES = ("absolute", "relative", "normalised")
+
+
+def _scaled(desc: Tensor, base: float, scale: str) -> tuple[Tensor, float, float]:
+    """→ (descriptors the loss sees, its margin, that margin in squared-distance units).
+
+    - ``absolute``: the descriptors and the margin as given;
+    - ``relative``: the margin is ``base`` × the batch's spread (not back-propagated);
+    - ``normalised``: distances are divided by the batch's spread, *with* its gradient, so
+      the loss is unchanged when every distance is scaled: shrinking the descriptors towards
+      one point can no longer lower it; the margin is ``base`` in units of the spread."""
+    if scale not in SCALES:
+        raise ValueError(f"margin scale {scale!r} is unknown; allowed: {', '.join(SCALES)}")
+    if scale == "absolute":
+        return desc, base, base
+    spread = batch_spread(desc)
+    if scale == "relative":
+        m = base * float(spread.detach())
+        return desc, m, m
+    return desc / spread.clamp_min(1e-12).sqrt(), base, base * float(spread.detach())
 
 
 def batch_hard_imtrihard(
@@ -109,22 +189,40 @@ def batch_hard_imtrihard(
     overlap: Tensor,
     threshold: float = 0.3,
     params: ImTrihardParams = ImTrihardParams(),
-) -> Tensor:
+    *,
+    negative: float | None = None,
+    scale: str = "absolute",
+) -> BatchLoss:
     """ImTrihard with batch-hard mining from the batch's overlap matrix.
 
-    desc: (B, D); overlap: (B, B) ground-truth overlap between the batch's scans.
-    """
-    everyone, pos_mask, neg_mask = _batch_candidates(desc, overlap, threshold)
-    return imtrihard_loss(desc, everyone, pos_mask, everyone, neg_mask, params)
+    desc: (B, D); overlap: (B, B) ground-truth overlap between the batch's scans. Every scan
+    is a query; its positives and negatives are the other scans (:func:`pair_masks`,
+    ``negative`` defaults to ``threshold``)."""
+    pos_mask, neg_mask = pair_masks(overlap, threshold, threshold if negative is None else negative)
+    x, alpha, used = _scaled(desc, params.alpha, scale)
+    everyone = x[None].expand(x.shape[0], -1, -1)
+    value, active = _imtrihard(
+        x, everyone, pos_mask, everyone, neg_mask, replace(params, alpha=alpha)
+    )
+    return BatchLoss(value, active, used)
 
 
 def batch_triplet(
-    desc: Tensor, overlap: Tensor, threshold: float = 0.3, margin: float = 0.5
-) -> Tensor:
+    desc: Tensor,
+    overlap: Tensor,
+    threshold: float = 0.3,
+    margin: float = 0.5,
+    *,
+    negative: float | None = None,
+    scale: str = "absolute",
+) -> BatchLoss:
     """OT's lazy triplet over the batch: each scan's positives and negatives are the other
     scans of the batch, by overlap. desc: (B, D); overlap: (B, B)."""
-    everyone, pos_mask, neg_mask = _batch_candidates(desc, overlap, threshold)
-    return triplet_loss(desc, everyone, pos_mask, everyone, neg_mask, margin)
+    pos_mask, neg_mask = pair_masks(overlap, threshold, threshold if negative is None else negative)
+    x, m, used = _scaled(desc, margin, scale)
+    everyone = x[None].expand(x.shape[0], -1, -1)
+    value, active = _triplet(x, everyone, pos_mask, everyone, neg_mask, m)
+    return BatchLoss(value, active, used)
 
 
 BATCH_LOSSES = {"imtrihard": batch_hard_imtrihard, "triplet": batch_triplet}

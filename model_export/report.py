@@ -43,17 +43,27 @@ from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import range_images
 
 UNTRAINED = "untrained"
+UNTRAINED_LABEL = (
+    "OverlapMamba, untrained (default run's epoch 0: initial weights, BN recalibrated)"
+)
 # Table I rows: label → run folder (its best.pt), in display order. Scan Context comes first.
 NETWORKS = {
-    # The default run's starting point: its seed-0 initialisation, before any step.
-    "OverlapMamba, untrained (default run's initial weights)": UNTRAINED,
+    # The default run's starting point (its epoch-000.pt): the seed's initial weights with
+    # batch-norm statistics recalibrated on training scans, before any gradient step.
+    UNTRAINED_LABEL: UNTRAINED,
     "OT-style, ablation budget": "abl-ot",
     "OverlapMamba, ablation budget": "abl-full",
     "OT-style, default recipe": "ot",
+    "OverlapMamba, default recipe on one training town": "one-town",
+    "OverlapMamba, default recipe with augmentation": "robust",
+    "OverlapMamba narrow, default recipe's wall time": "narrow",
     "OverlapMamba, default recipe (shipped)": "default",
 }
 ABLATIONS = {
     "full": "abl-full",
+    "full (seed 1)": "abl-full-s1",
+    "recipe before issue 20 (absolute margin 0.5, λ 0.1)": "abl-oldloss",
+    "recipe before issue 20 (seed 1)": "abl-oldloss-s1",
     "without shift": "abl-noshift",
     "without SPP": "abl-nospp",
     "non-circular scan": "abl-open",
@@ -68,20 +78,22 @@ REAL = {
 }
 
 
+def _networks(runs: Path):
+    """(label, model, profile) of every Table I network found among the runs, in order."""
+    for label, run in NETWORKS.items():
+        ckpt = runs / "default" / "epoch-000.pt" if run == UNTRAINED else runs / run / "best.pt"
+        if ckpt.is_file():
+            model, profile, _ = load_model(ckpt)
+            yield label, model, profile
+
+
 def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict]:
-    """→ (metrics per method and subset, raw results for the PR plot)."""
+    """One test town → (metrics per method and subset, raw results for the PR plot)."""
     seq = open_sequence(test)
     results: dict[str, dict[str, LoopClosureResult]] = {}
     by_weights: dict[str, dict[str, LoopClosureResult]] = {}  # one network, described once
     gt = None
-    for label, run in NETWORKS.items():
-        ckpt = runs / ("default" if run == UNTRAINED else run) / "best.pt"
-        if not ckpt.is_file():
-            continue
-        model, profile, state = load_model(ckpt)
-        if run == UNTRAINED:  # the same construction as train(): seed, then the network
-            torch.manual_seed(state["train"]["config"]["seed"])
-            model = OverlapMamba(OverlapMambaConfig.from_dict(state["model_config"])).eval()
+    for label, model, profile in _networks(runs):
         gt = gt or sequence_loops(seq, profile, progress=progress)
         key = _network_digest(model)
         if key not in by_weights:
@@ -93,6 +105,51 @@ def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict
     sc = scan_contexts(seq, progress=progress)
     results = {"Scan Context": scancontext_loop_closure(sc, gt), **results}
     return {k: summary(v) for k, v in results.items()}, results
+
+
+def mean_over_towns(towns: dict[str, dict]) -> dict[str, dict]:
+    """Per method and subset: every rate averaged over the towns (NaN-aware), counts summed."""
+    first = next(iter(towns.values()))
+    out: dict[str, dict] = {}
+    for method in first:
+        out[method] = {}
+        for sub in first[method]:
+            rows = [t[method][sub] for t in towns.values() if method in t]
+            out[method][sub] = {
+                k: int(sum(r[k] for r in rows))
+                if isinstance(rows[0][k], int)
+                else float(np.nanmean([r[k] for r in rows]))
+                for k in rows[0]
+            }
+    return out
+
+
+def cross_sessions(runs: Path, database: Path, queries: Path, progress: bool = True) -> dict:
+    """AR@1/5/20 of a second session's scans against the first (:mod:`.sessions`), for
+    Scan Context and every Table I network."""
+    from model_export.sessions import (
+        check_sessions,
+        descriptor_recall,
+        scan_context_recall,
+        town_positions,
+    )
+
+    db, q = open_sequence(database), open_sequence(queries)
+    check_sessions(db, q)
+    pos_db, pos_q = town_positions(db), town_positions(q)
+    sc = scan_context_recall(
+        scan_contexts(db, progress=progress), pos_db, scan_contexts(q, progress=progress), pos_q
+    )
+    out: dict[str, Any] = {"Scan Context": sc}
+    done: dict[str, dict] = {}
+    for label, model, profile in _networks(runs):
+        key = _network_digest(model)
+        if key not in done:
+            d_db, _ = describe(model, range_images(db, profile, progress=progress))
+            d_q, _ = describe(model, range_images(q, profile, progress=progress))
+            done[key] = descriptor_recall(d_db, pos_db, d_q, pos_q)
+        out[label] = done[key]
+    return out
 
 
 def _network_digest(model: OverlapMamba) -> str:
@@ -157,7 +214,9 @@ def run_rows(runs: Path, names: dict[str, str], timing: bool = True) -> dict[str
             "loss": rec["train_config"]["loss"],
             "params": sum(p.numel() for p in model.parameters()),
             "forward_ms": forward_ms(model) if timing else None,  # random weights
-            "train_scans_per_s": float(np.mean([h["scans_per_s"] for h in rec["history"]])),
+            "train_scans_per_s": float(
+                np.mean([h["scans_per_s"] for h in rec["history"] if h["epoch"] > 0])
+            ),
             "val": last["val"],
             "history": [
                 {
@@ -181,10 +240,16 @@ def plot_epochs(rows: dict[str, dict], path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
     for label, row in rows.items():
         ep = [h["epoch"] for h in row["history"]]
-        a.plot(ep, [h["loss"] for h in row["history"]], "o-", label=label)
+        trained = [h for h in row["history"] if h["loss"] is not None]  # epoch 0 has no loss
+        a.plot([h["epoch"] for h in trained], [h["loss"] for h in trained], "o-", label=label)
         b.plot(ep, [h["f1max"] for h in row["history"]], "o-", label=label)
     a.set(xlabel="epoch", ylabel="training loss (own scale per loss)", title="loss")
-    b.set(xlabel="epoch", ylabel="val F1max", ylim=(0, 1), title="validation F1max")
+    b.set(
+        xlabel="epoch (0: initial weights)",
+        ylabel="val F1max",
+        ylim=(0, 1),
+        title="validation F1max",
+    )
     for ax in (a, b):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -215,19 +280,46 @@ def _fmt(x: Any, digits: int = 3) -> str:
 
 
 def markdown(report: dict[str, Any]) -> str:
-    lines = ["### Table I: loop closure on the synthetic test preset", ""]
+    notes = [f"> Note: {n}" for n in report.get("notes", [])]
+    towns = report.get("table1_towns") or {"test": report["table1"]}
+    names = list(towns)
+    lines = [*notes, *([""] if notes else [])]
     lines += [
-        "| method | subset | AUC | F1max | Recall@1 | Recall@1% | queries (with loop) |",
-        "|---|---|---|---|---|---|---|",
+        f"### Table I: loop closure on the synthetic test towns (mean over {len(names)}: "
+        f"{', '.join(names)})",
+        "",
+    ]
+    lines += [
+        "| method | subset | AUC | F1max | Recall@1 | Recall@1% | queries (with loop) "
+        "| F1max per town | Recall@1 per town |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for label, subs in report["table1"].items():
         for sub in SUBSETS:
             m = subs[sub]
+            per_f1 = " / ".join(_fmt(towns[t][label][sub]["f1max"]) for t in names)
+            per_r1 = " / ".join(_fmt(towns[t][label][sub]["recall@1"]) for t in names)
             lines.append(
                 f"| {label} | {sub} | {_fmt(m['auc'])} | {_fmt(m['f1max'])} | "
                 f"{_fmt(m['recall@1'])} | {_fmt(m['recall@1%'])} | "
-                f"{m['queries']} ({m['queries_with_loop']}) |"
+                f"{m['queries']} ({m['queries_with_loop']}) | {per_f1} | {per_r1} |"
             )
+    cross = report.get("cross_session")
+    if cross:
+        lines += [
+            "",
+            f"### Place recognition across sessions: `{cross['queries']}` against "
+            f"`{cross['database']}`",
+            "",
+            "| method | queries | AR@1 | AR@5 | AR@20 |",
+            "|---|---|---|---|---|",
+        ]
+        for label, r in cross.items():
+            if isinstance(r, dict):
+                lines.append(
+                    f"| {label} | {r['queries']} | {_fmt(r['ar@1'])} | {_fmt(r['ar@5'])} | "
+                    f"{_fmt(r['ar@20'])} |"
+                )
     lines += ["", "### Tables II and III: ablations (validation preset, equal budget)", ""]
     lines += [
         "| variant | run | scans seen | params | forward ms (B=1) | F1max all | same | reverse "
@@ -248,44 +340,82 @@ def markdown(report: dict[str, Any]) -> str:
     for label, r in report["epochs"].items():
         for h in r["history"]:
             lines.append(
-                f"| {label} | {r['loss']} | {h['epoch']} | {h['loss']:.4f} | "
+                f"| {label} | {r['loss']} | {h['epoch']} | {_fmt(h['loss'], 4)} | "
                 f"{_fmt(h['f1max'])} | {_fmt(h['recall@1'])} |"
             )
     if report.get("real"):
         lines += ["", "### Real scans (shipped model's checkpoint)", ""]
         lines += [
-            "| scans | profile | cosine under random yaw (min) | odd→even Recall@1 (radius) "
-            "| Recall@5 | yaw error vs turned copy (median) | vs retrieved frame (median) |",
-            "|---|---|---|---|---|---|---|",
+            "| scans | profile | cosine under random yaw (min) | turned copy ÷ 1 m step "
+            "(squared distances) | odd→even Recall@1 (radius) | Scan Context's | Recall@5 "
+            "| yaw error vs turned copy (median) | vs retrieved frame (median) |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for name, r in report["real"].items():
             if "skipped" in r:
-                lines.append(f"| {name} | skipped: {r['skipped']} ||||||")
+                lines.append(f"| {name} | skipped: {r['skipped']} ||||||||")
                 continue
-            ret, yaw = r["retrieval_odd_to_even"], r["yaw_error_deg"]
+            ret, yaw, inv = r["retrieval_odd_to_even"], r["yaw_error_deg"], r["yaw_invariance"]
             lines.append(
                 f"| {name} ({r['scans']}) | {r['profile']} (rows ×{r['rows_repeated']}) | "
-                f"{r['yaw_invariance']['cosine_min']:.5f} | "
-                f"{ret['recall@1']:.3f} ({ret['hit_radius_m']:g} m) | {ret['recall@5']:.3f} | "
+                f"{inv['cosine_min']:.5f} | {inv['turned_distance_median']:.2e} ÷ "
+                f"{inv['one_metre_step_distance_median']:.2e} = "
+                f"{inv['turned_over_one_metre_step']:.2f} | "
+                f"{ret['recall@1']:.3f} ({ret['hit_radius_m']:g} m) | "
+                f"{ret['scan_context']['recall@1']:.3f} | {ret['recall@5']:.3f} | "
                 f"{yaw['vs_turned_copy']['median']:.2f}° | "
                 f"{yaw['vs_retrieved_frame']['median']:.2f}° |"
             )
     return "\n".join(lines) + "\n"
 
 
-def build_report(runs: Path, test: Path, out: Path, progress: bool = True) -> dict[str, Any]:
+def build_report(
+    runs: Path,
+    test: Path | list[Path],
+    out: Path,
+    progress: bool = True,
+    *,
+    sessions: tuple[Path, Path] | None = None,
+) -> dict[str, Any]:
+    """Tables I–IV (Table I on every test town, and their mean), the cross-session table
+    when ``sessions`` = (first session, second session) is given, and the real-scan checks."""
     out.mkdir(parents=True, exist_ok=True)
-    t1, results = table_one(runs, test, progress)
-    plot_pr_methods(results, out / "pr_test.png")
+    tests = [test] if isinstance(test, Path) else list(test)
+    if len({t.name for t in tests}) < len(tests):
+        raise ValueError(
+            f"test towns must have distinct folder names (they label the rows): {tests}"
+        )
+    towns: dict[str, dict] = {}
+    for i, town in enumerate(tests):
+        towns[town.name], results = table_one(runs, town, progress)
+        if i == 0:
+            plot_pr_methods(results, out / "pr_test.png")
+    t1 = mean_over_towns(towns)
     ablation = run_rows(runs, ABLATIONS)
     epoch_runs = {"ImTrihard (abl-full)": "abl-full", "triplet (abl-triplet)": "abl-triplet"}
     epoch_runs["ImTrihard (default)"] = "default"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:
         plot_epochs(epochs, out / "epochs.png")
+    notes = []
+    if (runs / "default" / "best.pt").is_file() and not (
+        runs / "default" / "epoch-000.pt"
+    ).is_file():
+        notes.append(
+            f"{runs}/default has no epoch-000.pt (trained before epoch 0 existed, or with "
+            "recalibrate_batches = 0): Table I has no untrained row"
+        )
     report = {
-        "test": str(test),
+        "notes": notes,
+        "test": [str(t) for t in tests],
         "table1": t1,
+        "table1_towns": towns,
+        "cross_session": (
+            {"database": str(sessions[0]), "queries": str(sessions[1])}
+            | cross_sessions(runs, *sessions, progress=progress)
+            if sessions
+            else None
+        ),
         "ablation": ablation,
         "epochs": epochs,
         "real": real_checks(runs),

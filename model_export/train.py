@@ -2,19 +2,34 @@
 
     overlapmamba train --data data/synth/train --val data/synth/val --out runs/NAME
 
-Each epoch draws ``epoch_scans`` scans in batches (:mod:`model_export.batches`), rolls every
-range image by a random yaw, and steps Adam; the learning rate follows StepLR. After each
-epoch it validates on the loop-closure protocol (F1max and Recall@1 over all, same- and
-reverse-direction revisits) and writes, atomically:
+The recipe is a :class:`~model_export.train_config.TrainConfig`.
+
+**Epoch 0** is the initial network with its batch-norm statistics recalibrated on training
+scans (:mod:`model_export.calibrate`), validated like every epoch: every curve starts from a
+fair untrained model, and selection may keep it.
+
+**Epochs 1…** draw ``epoch_scans`` scans in batches (:mod:`model_export.batches`), augment
+them (:mod:`model_export.augment`) and step Adam; the learning rate warms up linearly over
+``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. Every step records the
+training health (:mod:`model_export.health`: d(q,p), d(q,n), spread, active hinges), shown in
+the progress bar and kept every ``log_every`` steps; a spread that falls below a quarter of
+where the run started prints a warning.
+
+After each epoch (0 included) it validates on the loop-closure protocol (F1max and Recall@1
+over all, same- and reverse-direction revisits), checks turned copies of real scans
+(``real``: how far a continuous turn moves a descriptor against a 1 m step), and writes,
+atomically:
 
     runs/NAME/last.pt          everything to resume (optimiser and scheduler included)
     runs/NAME/best.pt          the epoch with the best validation F1max (weights, no optimiser)
-    runs/NAME/epoch-NNN.pt     every epoch (weights, no optimiser)
-    runs/NAME/metrics.json     per-epoch history; runs/NAME/curves.png: loss and F1 per epoch
+    runs/NAME/epoch-NNN.pt     every epoch (weights, no optimiser); epoch-000.pt: the start
+    runs/NAME/metrics.json     per-epoch history with the health records
+    runs/NAME/curves.png       loss, health per step, validation per epoch
 
 **Reproducible and resumable.** The weights start from ``seed``; epoch k draws its batches,
-rolls and shifts from generators seeded by (seed, k) alone. So ``--resume`` after any epoch
-continues exactly as an uninterrupted run would (tested).
+augmentation and shifts from generators seeded by (seed, k) alone, and the learning rate is a
+function of the global step. So ``--resume`` after any epoch continues exactly as an
+uninterrupted run would (tested).
 """
 
 from __future__ import annotations
@@ -22,7 +37,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -34,76 +49,27 @@ from lidar_core.datasets import open_sequence
 from lidar_core.datasets.base import Sequence
 from lidar_core.errors import DatasetError
 from lidar_core.sensors import SensorProfile, get_profile
+from model_export.augment import Augmenter
 from model_export.batches import BatchPlan, BatchSampler, PairIndex
+from model_export.calibrate import recalibrate_batchnorm
 from model_export.checkpoint import read_checkpoint, save_checkpoint
-from model_export.errors import ConfigError, dataclass_from_dict
-from model_export.evaluate import describe, loop_closure, sequence_loops, summary
-from model_export.losses import BATCH_LOSSES, ImTrihardParams
+from model_export.errors import ConfigError
+from model_export.evaluate import (
+    RealTurns,
+    describe,
+    invariance,
+    loop_closure,
+    real_turns,
+    sequence_loops,
+    summary,
+)
+from model_export.health import HealthLog, batch_distances, json_safe
+from model_export.losses import pair_masks
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import cache_key, range_images
+from model_export.train_config import SCHEDULE, TrainConfig, load_config_file
 
-
-@dataclass
-class TrainConfig:
-    epochs: int = 10
-    epoch_scans: int = 2000  # scans drawn per epoch
-    batch_size: int = 16  # groups of 4: anchor, 2 positives, near miss
-    lr: float = 1e-4  # Adam; the reference's 5e-6 barely moves a freshly initialised head
-    step_size: int = 5  # StepLR: × gamma every step_size epochs (reference: 5, 0.9)
-    gamma: float = 0.9
-    loss: str = "imtrihard"  # imtrihard (paper eq. 13) or triplet (OverlapTransformer)
-    alpha: float = 0.5  # ImTrihard margin α (see losses.ImTrihardParams for the reasons)
-    lam: float = 0.1  # ImTrihard compression weight λ
-    k_p: float = 1.0
-    k_n: float = 1.0
-    hinge: bool = True
-    margin: float = 0.5  # triplet margin m
-    positive_threshold: float = 0.3  # overlap above this: positive
-    revisit_fraction: float = 0.5  # anchors whose first positive is an old pass
-    seed: int = 0
-    device: str = "cpu"  # cpu or cuda
-
-    def __post_init__(self) -> None:
-        if self.loss not in BATCH_LOSSES:
-            raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
-        for name in ("epochs", "epoch_scans", "batch_size", "step_size"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be ≥ 1, got {getattr(self, name)}")
-        if not (self.lr > 0 and 0 < self.gamma <= 1 and 0 <= self.positive_threshold < 1):
-            raise ConfigError("need lr > 0, 0 < gamma ≤ 1 and 0 ≤ positive_threshold < 1")
-        if self.device not in ("cpu", "cuda"):
-            raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainConfig:
-        cfg: TrainConfig = dataclass_from_dict(cls, d, "training")
-        return cfg
-
-    def loss_fn(self):
-        fn = BATCH_LOSSES[self.loss]
-        if self.loss == "imtrihard":
-            p = ImTrihardParams(self.alpha, self.lam, self.k_p, self.k_n, self.hinge)
-            return lambda d, ov: fn(d, ov, self.positive_threshold, p)
-        return lambda d, ov: fn(d, ov, self.positive_threshold, self.margin)
-
-
-def load_config_file(path: Path) -> tuple[dict, dict]:
-    """``{"model": {...}, "train": {...}}`` from .json or .toml → (model dict, train dict)."""
-    if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist")
-    text = path.read_text()
-    if path.suffix == ".json":
-        raw = json.loads(text)
-    elif path.suffix == ".toml":
-        import tomllib
-
-        raw = tomllib.loads(text)
-    else:
-        raise ConfigError(f"{path.name}: allowed config suffixes are .json and .toml")
-    extra = sorted(set(raw) - {"model", "train"})
-    if extra:
-        raise ConfigError(f"{path}: unknown sections {extra}; allowed: model, train")
-    return dict(raw.get("model", {})), dict(raw.get("train", {}))
+__all__ = ["TrainConfig", "load_config_file", "train"]
 
 
 class _Images:
@@ -142,30 +108,38 @@ def _profile(cfg: OverlapMambaConfig) -> SensorProfile:
     return profile
 
 
-def _random_yaw(images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """(B, H, W) → float32, each image rolled by its own random number of columns: the sensor
-    turned about z. (With the circular model this changes the descriptor by rounding only; it
-    keeps mattering for the non-circular ablations.)"""
-    shifts = rng.integers(images.shape[-1], size=len(images))
-    return np.stack([np.roll(img, int(k), axis=-1) for img, k in zip(images, shifts, strict=True)])
-
-
 def _plot_curves(history: list[dict], path: Path) -> None:
+    """Loss per epoch; health per logged step (distances, spread, active hinges); validation
+    per epoch (epoch 0: the initial weights with recalibrated batch norm)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ep = [h["epoch"] for h in history]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
-    a.plot(ep, [h["loss"] for h in history], "o-")
+    trained = [h for h in history if h["epoch"] > 0]
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(13, 3.6), dpi=110)
+    a.plot([h["epoch"] for h in trained], [h["loss"] for h in trained], "o-")
     a.set(xlabel="epoch", ylabel="training loss", title="loss")
+    log = [r for h in trained for r in h.get("health_log", [])]
+    steps = [r["step"] for r in log]
+    for key, style in (("d_pos", "g-"), ("d_neg", "r-"), ("spread", "k--"), ("margin", "b:")):
+        b.plot(steps, [r[key] for r in log], style, label=key)
+    b.set(xlabel="step", ylabel="squared distance", title="health", yscale="log")
+    b.legend(fontsize=7, loc="upper left")
+    twin = b.twinx()
+    twin.plot(steps, [r["active"] for r in log], color="tab:orange", alpha=0.6, label="active")
+    sep = [r["separation"] for r in log]
+    twin.plot(steps, sep, color="tab:purple", label="separation (gap ÷ spread)")
+    top = max([1.05, *[x * 1.05 for x in sep if x is not None and math.isfinite(x)]])
+    twin.set(ylim=(0, top), ylabel="active share · separation")
+    twin.legend(fontsize=7, loc="upper right")
+    ep = [h["epoch"] for h in history]
     for sub in ("all", "same", "reverse"):
-        b.plot(ep, [h["val"][sub]["f1max"] for h in history], "o-", label=f"F1max {sub}")
-    b.plot(ep, [h["val"]["all"]["recall@1"] for h in history], "ks--", label="R@1 all")
-    b.set(xlabel="epoch", ylim=(0, 1), title="validation")
-    b.legend(fontsize=7)
-    for ax in (a, b):
+        c.plot(ep, [h["val"][sub]["f1max"] for h in history], "o-", label=f"F1max {sub}")
+    c.plot(ep, [h["val"]["all"]["recall@1"] for h in history], "ks--", label="R@1 all")
+    c.set(xlabel="epoch (0: initial weights)", ylim=(0, 1), title="validation")
+    c.legend(fontsize=7)
+    for ax in (a, b, c):
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
@@ -194,6 +168,11 @@ def train(
         if not last.is_file():
             raise ConfigError(f"nothing to resume: {last} does not exist")
         state = read_checkpoint(last)
+        if state["train"].get("schedule") != SCHEDULE:
+            raise ConfigError(
+                f"{last} was written by an older trainer (learning rate stepped per epoch, no "
+                "warm-up); it cannot resume exactly here: start a new run"
+            )
         recorded = state["train"]["data"]
         data = data or [Path(d["path"]) for d in recorded["train"]]
         val = val or Path(recorded["val"]["path"])
@@ -233,15 +212,26 @@ def train(
     pairs = PairIndex.from_sequences(seqs)
     sampler = BatchSampler(
         pairs,
-        BatchPlan(train_cfg.batch_size, train_cfg.positive_threshold, train_cfg.revisit_fraction),
+        BatchPlan(
+            train_cfg.batch_size,
+            train_cfg.positive_threshold,
+            train_cfg.revisit_fraction,
+            negative_threshold=train_cfg.negative_threshold,
+            positives=train_cfg.group_positives,
+            negatives=train_cfg.group_negatives,
+        ),
     )
+    augment = Augmenter(train_cfg.augment_config(), profile, model_cfg.circular)
+    steps_per_epoch = sampler.steps(train_cfg.epoch_scans)
 
     torch.manual_seed(train_cfg.seed)
     model = OverlapMamba(model_cfg).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
-    sched = torch.optim.lr_scheduler.StepLR(opt, train_cfg.step_size, train_cfg.gamma)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda step: train_cfg.lr_factor(step, steps_per_epoch)
+    )
     history: list[dict[str, Any]] = []
-    best = {"epoch": 0, "f1max": -1.0}
+    best = {"epoch": -1, "f1max": -1.0}
     if state is not None:
         model.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["train"]["optimizer"])
@@ -252,7 +242,8 @@ def train(
     def payload(with_optimizer: bool, metrics: dict) -> dict[str, Any]:
         train_state: dict[str, Any] = {
             "config": asdict(train_cfg),
-            "epochs_done": len(history),
+            "schedule": SCHEDULE,
+            "epochs_done": history[-1]["epoch"] if history else 0,
             "history": history,
             "best": best,
             "data": fingerprints,
@@ -268,44 +259,25 @@ def train(
             "metrics": metrics,
         }
 
-    for epoch in range(len(history) + 1, train_cfg.epochs + 1):
-        rng = np.random.default_rng([train_cfg.seed, epoch])
-        torch.manual_seed(int(rng.integers(2**31)))  # the shifted branch's draws
-        batches = sampler.epoch(rng, train_cfg.epoch_scans)
-        model.train()
-        losses: list[float] = []
-        t0 = time.perf_counter()
-        bar = tqdm(batches, desc=f"epoch {epoch}/{train_cfg.epochs}", disable=not progress)
-        for idx in bar:
-            x = _random_yaw(images[idx].astype(np.float32), rng)
-            desc, _ = model(torch.from_numpy(x)[:, None].to(device))
-            overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
-            loss = loss_fn(desc, overlap)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(loss.item())
-            done = len(losses) * train_cfg.batch_size
-            bar.set_postfix(
-                loss=f"{np.mean(losses[-20:]):.4f}",
-                scans_s=f"{done / (time.perf_counter() - t0):.2f}",
-            )
-        train_s = time.perf_counter() - t0
-        sched.step()
-        t1 = time.perf_counter()
+    turns = _real_turns(train_cfg.real_path(), profile, model_cfg.height, progress)
+
+    def validate() -> tuple[dict, float]:
+        t = time.perf_counter()
         desc_val, _ = describe(model, val_images, device=str(device))
-        val_metrics = summary(loop_closure(desc_val, val_gt))
-        entry = {
-            "epoch": epoch,
-            "loss": float(np.mean(losses)),
-            "step_losses": losses,
-            "lr": opt.param_groups[0]["lr"],
-            "train_s": train_s,
-            "scans_per_s": len(losses) * train_cfg.batch_size / train_s,
-            "val_s": time.perf_counter() - t1,
-            "val": val_metrics,
-        }
+        return summary(loop_closure(desc_val, val_gt)), time.perf_counter() - t
+
+    def real_check() -> dict[str, Any] | None:
+        if turns is None:
+            return None
+        desc, _ = describe(model, turns.plain, device=str(device))
+        desc_t, _ = describe(model, turns.turned, device=str(device))
+        return invariance(desc, desc_t, turns.positions)
+
+    def finish_epoch(entry: dict[str, Any]) -> None:
+        """Record an epoch; write its checkpoint, best.pt, last.pt, metrics and curves."""
+        nonlocal best
         history.append(entry)
+        epoch, val_metrics = entry["epoch"], entry["val"]
         f1 = val_metrics["all"]["f1max"]
         is_best = not math.isnan(f1) and f1 > best["f1max"]
         if is_best:
@@ -322,14 +294,143 @@ def train(
             "history": history,
         }
         tmp = out / ".metrics.json.tmp"
-        tmp.write_text(json.dumps(record, indent=1) + "\n")
+        tmp.write_text(json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
         tmp.replace(out / "metrics.json")
         _plot_curves(history, out / "curves.png")
         if progress:
-            v = val_metrics
-            tqdm.write(
-                f"epoch {epoch}: loss {entry['loss']:.4f}, {entry['scans_per_s']:.2f} scans/s; "
-                f"val F1max {v['all']['f1max']:.3f} (same {v['same']['f1max']:.3f}, reverse "
-                f"{v['reverse']['f1max']:.3f}), R@1 {v['all']['recall@1']:.3f}"
+            v, h = val_metrics, entry.get("health")
+            trained = (
+                f"loss {entry['loss']:.4f}, {entry['scans_per_s']:.2f} scans/s, d(q,p) "
+                f"{h['d_pos']:.4f} d(q,n) {h['d_neg']:.4f} spread {h['spread']:.4f} "
+                f"separation {h['separation']:.2f} active {h['active']:.0%}; "
+                if h
+                else "initial weights, batch norm recalibrated; "
             )
+            real = entry.get("real")
+            turn = (
+                f"; real scans: turned copy {real['turned_over_one_metre_step']:.2f}× a 1 m step, "
+                f"min cosine {real['cosine_min']:.5f}"
+                if real
+                else ""
+            )
+            tqdm.write(
+                f"epoch {epoch}: {trained}val F1max {v['all']['f1max']:.3f} (same "
+                f"{v['same']['f1max']:.3f}, reverse {v['reverse']['f1max']:.3f}), "
+                f"R@1 {v['all']['recall@1']:.3f}{turn}"
+            )
+
+    if not history and train_cfg.recalibrate_batches:
+        # Epoch 0: the initial weights, with batch-norm statistics from training scans (they
+        # start as 0/1 and eval mode would use them as such), validated like every epoch.
+        rng = np.random.default_rng([train_cfg.seed, 0])
+        t0 = time.perf_counter()
+        batches = [sampler.batch(rng) for _ in range(train_cfg.recalibrate_batches)]
+        recalibrate_batchnorm(
+            model,
+            (torch.from_numpy(images[i].astype(np.float32))[:, None].to(device) for i in batches),
+        )
+        calib_s = time.perf_counter() - t0
+        val_metrics, val_s = validate()
+        finish_epoch(
+            {
+                "epoch": 0,
+                "loss": None,
+                "lr": 0.0,
+                "calibrate_s": calib_s,
+                "val_s": val_s,
+                "val": val_metrics,
+                "real": real_check(),
+            }
+        )
+
+    reference_spread = next(
+        (h["health_log"][0]["spread"] for h in history if h.get("health_log")), math.nan
+    )
+    first = history[-1]["epoch"] + 1 if history else 1
+    for epoch in range(first, train_cfg.epochs + 1):
+        rng = np.random.default_rng([train_cfg.seed, epoch])
+        torch.manual_seed(int(rng.integers(2**31)))  # the shifted branch's draws
+        batches = sampler.epoch(rng, train_cfg.epoch_scans)
+        model.train()
+        health = HealthLog(
+            every=train_cfg.log_every,
+            step0=(epoch - 1) * steps_per_epoch,
+            reference_spread=reference_spread,
+        )
+        warned = False
+        t0 = time.perf_counter()
+        data_s = 0.0
+        bar = tqdm(batches, desc=f"epoch {epoch}/{train_cfg.epochs}", disable=not progress)
+        for idx in bar:
+            td = time.perf_counter()
+            x = augment(images[idx], rng)
+            data_s += time.perf_counter() - td
+            desc, _ = model(torch.from_numpy(x)[:, None].to(device))
+            overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
+            out_loss = loss_fn(desc, overlap)
+            opt.zero_grad(set_to_none=True)
+            out_loss.value.backward()
+            opt.step()
+            sched.step()
+            masks = pair_masks(overlap, train_cfg.positive_threshold, train_cfg.negative_threshold)
+            health.add(
+                {
+                    "loss": out_loss.value.item(),
+                    "active": out_loss.active,
+                    "margin": out_loss.margin,
+                    **batch_distances(desc, *masks),
+                }
+            )
+            reference_spread = health.reference_spread
+            if health.collapsing() and not warned and progress:
+                warned = True
+                tqdm.write(
+                    f"warning: epoch {epoch}: the descriptors' spread fell below a quarter of "
+                    f"where the run started ({health.logged[-1]['spread']:.4g} against "
+                    f"{reference_spread:.4g}): the run is collapsing"
+                )
+            r = health.recent()
+            done = len(health.steps) * train_cfg.batch_size
+            bar.set_postfix(
+                loss=f"{r['loss']:.4f}",
+                sep=f"{r['separation']:.2f}",
+                spread=f"{r['spread']:.4f}",
+                active=f"{r['active']:.0%}",
+                scans_s=f"{done / (time.perf_counter() - t0):.2f}",
+            )
+        health.flush()  # the steps after the last full window
+        train_s = time.perf_counter() - t0
+        val_metrics, val_s = validate()
+        steps = health.steps
+        finish_epoch(
+            {
+                "epoch": epoch,
+                "loss": float(np.mean([s["loss"] for s in steps])),
+                "step_losses": [s["loss"] for s in steps],
+                "health": health.summary(),
+                "health_log": health.logged,
+                "collapsing": health.collapsing(),
+                "lr": opt.param_groups[0]["lr"],
+                "train_s": train_s,
+                "data_s": data_s,
+                "scans_per_s": len(steps) * train_cfg.batch_size / train_s,
+                "val_s": val_s,
+                "val": val_metrics,
+                "real": real_check(),
+            }
+        )
     return history
+
+
+def _real_turns(
+    path: Path | None, profile: SensorProfile, rows: int, progress: bool
+) -> RealTurns | None:
+    """The real scans of the per-epoch turn check, projected once; None (with a note) when
+    the check is off or the folder is missing."""
+    if path is None:
+        return None
+    if not (path / "velodyne").is_dir():
+        if progress:
+            tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
+        return None
+    return real_turns(open_sequence(path), profile, rows)

@@ -192,7 +192,9 @@ def ground_truth(
 @app.command(
     "gen-data",
     epilog="Examples:\n\n  overlapmamba gen-data data/synth/train --preset train\n\n"
-    "  overlapmamba gen-data data/synth/s42 --seed 42 --frames 1200 --sensor hdl32",
+    "  overlapmamba gen-data data/synth/s42 --seed 42 --frames 1200 --sensor hdl32\n\n"
+    "  overlapmamba gen-data data/synth/test-s1 --preset test --session 1   "
+    "(a second drive through the test town)",
 )
 @_friendly_errors
 def gen_data(
@@ -200,6 +202,15 @@ def gen_data(
         Path, typer.Argument(file_okay=False, help="new, empty folder for the sequence")
     ],
     seed: Annotated[int | None, typer.Option(min=0, help="world and drive seed")] = None,
+    session: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            max=1000,
+            help="0: the town's first drive; k > 0: another drive through the same town "
+            "(own route, parked cars, traffic, people, noise)",
+        ),
+    ] = 0,
     frames: Annotated[
         int | None, typer.Option(min=2, max=100_000, help="scans to simulate")
     ] = None,
@@ -250,6 +261,8 @@ def gen_data(
             raise typer.BadParameter(str(err)) from None
         if gt_radius is not None:
             cfg = cfg.model_copy(update={"gt_radius": gt_radius})
+        if session:
+            cfg = cfg.model_copy(update={"session": session})
     else:
         if seed is None or frames is None:
             raise typer.BadParameter("give --seed and --frames, or a --preset")
@@ -258,6 +271,7 @@ def gen_data(
         try:
             cfg = GenConfig(
                 seed=seed,
+                session=session,
                 frames=frames,
                 sensor=sensor,
                 split=split,
@@ -283,7 +297,10 @@ def gen_data(
     c, t = manifest["counts"], manifest["timing_s"]
     table = Table(title=f"Synthetic sequence: {out_dir}", show_header=False)
     rows = [
-        ("seed / sensor / split", f"{cfg.seed} / {cfg.sensor} / {cfg.split}"),
+        (
+            "seed / session / sensor / split",
+            f"{cfg.seed} / {cfg.session} / {cfg.sensor} / {cfg.split}",
+        ),
         ("scans", c["frames"]),
         ("points per scan (mean)", f"{c['points_per_scan']['mean']:.0f}"),
         (
@@ -461,7 +478,13 @@ def train_cmd(
         int | None, typer.Option(min=1, help="total epochs (extends on --resume)")
     ] = None,
     epoch_scans: Annotated[int | None, typer.Option(min=1, help="scans per epoch")] = None,
-    batch_size: Annotated[int | None, typer.Option(min=4, help="a multiple of 4")] = None,
+    batch_size: Annotated[
+        int | None,
+        typer.Option(
+            min=2,
+            help="a multiple of the group size (4 by default: anchor, 2 positives, 1 near miss)",
+        ),
+    ] = None,
     lr: Annotated[float | None, typer.Option(min=0.0)] = None,
     loss: Annotated[str | None, typer.Option(help="imtrihard or triplet")] = None,
     seed: Annotated[int | None, typer.Option(min=0)] = None,
@@ -541,13 +564,22 @@ def train_cmd(
 
 @app.command(
     "eval",
-    epilog="Example:\n\n  overlapmamba eval --checkpoint runs/om/best.pt "
-    "--sequence data/synth/test --json test.json --plot pr.png",
+    epilog="Examples:\n\n  overlapmamba eval --checkpoint runs/om/best.pt "
+    "--sequence data/synth/test --json test.json --plot pr.png\n\n"
+    "  overlapmamba eval --checkpoint runs/om/best.pt --sequence data/synth/test-s1 "
+    "--database data/synth/test   (second session against the first: AR@1/5/20)",
 )
 @_friendly_errors
 def eval_cmd(
     checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
     sequence: Annotated[Path, typer.Option(help="sequence with loops (e.g. the test preset)")],
+    database: Annotated[
+        Path | None,
+        typer.Option(
+            help="first session of the same town: also query --sequence's scans against it "
+            "(place recognition across sessions, AR@1/5/20, with Scan Context beside)"
+        ),
+    ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
     plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
@@ -563,14 +595,33 @@ def eval_cmd(
 
     model, profile, _ = load_model(checkpoint)
     seq = open_sequence(sequence)
+    if database is not None:  # refuse a wrong pair before the long part
+        from model_export.sessions import check_sessions
+
+        check_sessions(open_sequence(database), seq)
     gt = sequence_loops(seq, profile, progress=not quiet)
     desc, _ = describe(model, range_images(seq, profile, progress=not quiet))
     results = loop_closure(desc, gt)
     metrics = summary(results)
     out.print(_metrics_table(f"{checkpoint.name} on {seq.name} ({len(seq)} scans)", metrics))
+    record: dict = {"checkpoint": str(checkpoint), "sequence": str(sequence), "metrics": metrics}
+    if database is not None:
+        from model_export.evaluate import cross_session
+
+        db = open_sequence(database)
+        cross = cross_session(model, profile, db, seq, progress=not quiet)
+        record["database"], record["cross_session"] = str(database), cross
+        table = Table(
+            title=f"Across sessions: {seq.name} against {db.name} ({len(db)} scans); queries "
+            f"with a database scan within {cross['model']['radius_m']:g} m count"
+        )
+        for col in ("method", "queries", "AR@1", "AR@5", "AR@20"):
+            table.add_column(col, justify="left" if col == "method" else "right")
+        for name, r in (("OverlapMamba", cross["model"]), ("Scan Context", cross["scan_context"])):
+            table.add_row(name, str(r["queries"]), *(f"{r[f'ar@{n}']:.3f}" for n in (1, 5, 20)))
+        out.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        record = {"checkpoint": str(checkpoint), "sequence": str(sequence), "metrics": metrics}
         json_out.write_text(json.dumps(record, indent=2) + "\n")
     if plot is not None:
         plot_pr(results, plot, f"{seq.name}: loop closure")
@@ -670,8 +721,19 @@ def eval_real_cmd(
             "turned-copy distance / distance between different scans",
             f"{inv['turned_over_other_distance']:.2e}",
         ),
-        (f"odd→even Recall@1 (hit within {ret['hit_radius_m']:g} m)", f"{ret['recall@1']:.3f}"),
-        ("odd→even Recall@5", f"{ret['recall@5']:.3f}"),
+        (
+            "turned-copy distance / 1 m step distance (squared, medians)",
+            f"{inv['turned_distance_median']:.2e} / {inv['one_metre_step_distance_median']:.2e}"
+            f" = {inv['turned_over_one_metre_step']:.3f}",
+        ),
+        (
+            f"odd→even Recall@1 (hit within {ret['hit_radius_m']:g} m), Scan Context's",
+            f"{ret['recall@1']:.3f}, {ret['scan_context']['recall@1']:.3f}",
+        ),
+        (
+            "odd→even Recall@5, Scan Context's",
+            f"{ret['recall@5']:.3f}, {ret['scan_context']['recall@5']:.3f}",
+        ),
     ]
     for name, key in (("turned copy", "vs_turned_copy"), ("retrieved frame", "vs_retrieved_frame")):
         e = yaw[key]
@@ -693,24 +755,51 @@ def eval_real_cmd(
 @app.command(
     "report",
     epilog="Example (after `make data` and the training presets):\n\n"
-    "  overlapmamba report --runs runs --test data/synth/test --out reports/model",
+    "  overlapmamba report --runs runs --test data/synth/test --test data/synth/test-b "
+    "--test data/synth/test-c --second-session data/synth/test-s1 --out reports/model",
 )
 @_friendly_errors
 def report_cmd(
     runs: Annotated[Path, typer.Option(help="folder holding the preset runs")] = Path("runs"),
-    test: Annotated[Path, typer.Option(help="test sequence with loops")] = Path("data/synth/test"),
+    test: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="test town with loops (repeat for several; default: the test, test-b and "
+            "test-c presets that exist, with test-s1 as the second session)"
+        ),
+    ] = None,
+    second_session: Annotated[
+        Path | None,
+        typer.Option(
+            help="a second drive through the first --test town: queried against it "
+            "(AR@1/5/20 across sessions)"
+        ),
+    ] = None,
     out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
-    """Model-card tables I–IV and real-scan checks: JSON, Markdown and PNG plots."""
+    """Model-card tables I–IV, cross-session recall and real-scan checks: JSON, Markdown, PNG."""
     _check_torch()
+    from model_export.presets import SECOND_SESSION, TEST_DATA
     from model_export.report import build_report
 
-    if not (test / "manifest.json").is_file():
-        raise typer.BadParameter(f"{test} is not a generated sequence: run `make data` first")
-    report = build_report(runs, test, out_dir, progress=not quiet)
+    tests = test or [Path(t) for t in TEST_DATA if (Path(t) / "manifest.json").is_file()]
+    tests = tests or [Path(TEST_DATA[0])]  # none yet: the message below says what to run
+    if (
+        second_session is None
+        and test is None
+        and (Path(SECOND_SESSION) / "manifest.json").is_file()
+    ):
+        second_session = Path(SECOND_SESSION)
+    for t in [*tests, *([second_session] if second_session else [])]:
+        if not (t / "manifest.json").is_file():
+            raise typer.BadParameter(f"{t} is not a generated sequence: run `make data` first")
+    sessions = (tests[0], second_session) if second_session else None
+    report = build_report(runs, tests, out_dir, progress=not quiet, sessions=sessions)
+    for note in report["notes"]:
+        out.print(f"[yellow]note:[/] {note}")
     for label, subs in report["table1"].items():
-        out.print(_metrics_table(f"test preset: {label}", subs))
+        out.print(_metrics_table(f"test towns (mean of {len(tests)}): {label}", subs))
     out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")
 
 

@@ -133,19 +133,25 @@ def tiny_val_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 # A small OverlapMamba for training tests: the reference backbone, a narrow mixer and head.
 SMALL_MODEL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
+# The tiny run's recipe: 2 epochs of 2 steps, a health record every step, epoch 0 calibrated
+# on 2 batches, a 2-step warm-up (so a resumed schedule matters). Tests that resume or repeat
+# the run use the same dict.
+TINY_TRAIN = dict(
+    epochs=2, epoch_scans=32, batch_size=16, recalibrate_batches=2, log_every=1, warmup_steps=2
+)
 
 
 @pytest.fixture(scope="session")
 def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPathFactory):
-    """A finished 2-epoch run (32 scans an epoch, batches of 16) of ``SMALL_MODEL`` on the
-    tiny towns, trained once per session: ``(run folder, history)``. Tests that read a run
-    share it and never write into it (copy it first)."""
+    """A finished run (``TINY_TRAIN``: epoch 0, then 2 epochs of 32 scans in batches of 16)
+    of ``SMALL_MODEL`` on the tiny towns, trained once per session: ``(run folder,
+    history)``. Tests that read a run share it and never write into it (copy it first)."""
     pytest.importorskip("torch")
     from model_export.model import OverlapMambaConfig
     from model_export.train import TrainConfig, train
 
     out = tmp_path_factory.mktemp("runs") / "tiny"
-    cfg = TrainConfig(epochs=2, epoch_scans=32, batch_size=16)
+    cfg = TrainConfig(**TINY_TRAIN)
     model = OverlapMambaConfig(**SMALL_MODEL)
     history = train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
     return out, history

@@ -9,7 +9,10 @@ torch = pytest.importorskip("torch")
 from model_export.losses import (  # noqa: E402
     ImTrihardParams,
     batch_hard_imtrihard,
+    batch_spread,
+    batch_triplet,
     imtrihard_loss,
+    pair_masks,
     triplet_loss,
 )
 
@@ -67,7 +70,7 @@ def test_batch_hard_mining_matches_explicit_tuples():
     )
     overlap = torch.rand(5, 5, generator=g, dtype=torch.float64)
     overlap = (overlap + overlap.T) / 2
-    got = batch_hard_imtrihard(desc, overlap)
+    got = batch_hard_imtrihard(desc, overlap).value
     per_query = []
     for i in range(5):
         others = [j for j in range(5) if j != i]
@@ -85,3 +88,78 @@ def test_batch_hard_mining_matches_explicit_tuples():
             )
         )
     torch.testing.assert_close(got, torch.stack(per_query).mean())
+
+
+def test_ambiguous_band_is_neither_positive_nor_negative():
+    overlap = torch.tensor([[1.0, 0.8, 0.2, 0.05], [0.8, 1.0, 0.0, 0.3], [0.2, 0.0, 1.0, 0.1]])
+    overlap = torch.cat([overlap, torch.tensor([[0.05, 0.3, 0.1, 1.0]])])
+    pos, neg = pair_masks(overlap, 0.3, 0.1)
+    assert pos[0].tolist() == [False, True, False, False]
+    assert neg[0].tolist() == [False, False, False, True]  # 0.2 is in the band: neither
+    assert neg[1].tolist() == [False, False, True, False]  # 0.3 is not above 0.3: neither
+    old_pos, old_neg = pair_masks(overlap, 0.3, 0.3)  # the old split: everything else negative
+    assert (old_pos | old_neg | torch.eye(4, dtype=torch.bool)).all()
+    with pytest.raises(ValueError, match="must not exceed"):
+        pair_masks(overlap, 0.3, 0.4)
+
+
+def two_places(scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two places of two scans each; every distance scales with ``scale``."""
+    base = torch.tensor([[0.0, 0.0], [0.1, 0.0], [1.0, 0.0], [1.0, 0.12]], dtype=torch.float64)
+    desc = torch.nn.functional.normalize(
+        torch.cat([torch.ones(4, 1, dtype=torch.float64), base * scale], 1), dim=-1
+    )
+    overlap = torch.tensor(
+        [[1, 0.9, 0, 0], [0.9, 1, 0, 0], [0, 0, 1, 0.9], [0, 0, 0.9, 1]], dtype=torch.float64
+    )
+    return desc, overlap
+
+
+def test_relative_margin_follows_the_scale_and_active_counts_hinges():
+    for scale in (0.05, 0.5):
+        desc, overlap = two_places(scale)
+        out = batch_hard_imtrihard(desc, overlap, params=ImTrihardParams(alpha=0.5, lam=0.0))
+        assert out.active == 1.0 and out.margin == 0.5  # 0.5 dwarfs every distance here
+        rel = batch_hard_imtrihard(
+            desc, overlap, params=ImTrihardParams(alpha=0.5, lam=0.0), scale="relative"
+        )
+        spread = batch_spread(desc).item()
+        assert rel.margin == pytest.approx(0.5 * spread)
+        assert rel.active == 0.0 and rel.value.item() == 0.0  # every query solved at its scale
+    # the same geometry at two scales: the relative margin gives the same verdict
+    small = batch_triplet(*two_places(0.05), margin=3.0, scale="relative")
+    large = batch_triplet(*two_places(0.5), margin=3.0, scale="relative")
+    assert small.active == large.active == 1.0
+    assert small.value.item() < large.value.item()
+
+
+def test_batch_loss_with_no_usable_query_reports_nan_active():
+    desc = torch.nn.functional.normalize(torch.randn(3, 4, dtype=torch.float64), dim=-1)
+    out = batch_hard_imtrihard(desc.requires_grad_(), torch.eye(3, dtype=torch.float64))
+    assert out.value.item() == 0.0 and out.value.requires_grad and out.active != out.active
+
+
+def test_normalised_scale_makes_the_loss_blind_to_shrinking():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(8, 6, generator=g, dtype=torch.float64)
+    overlap = (torch.rand(8, 8, generator=g, dtype=torch.float64) > 0.6).double()
+    overlap = torch.maximum(overlap, overlap.T)
+    params = ImTrihardParams(alpha=0.5, lam=0.1)
+    big = batch_hard_imtrihard(x, overlap, params=params, scale="normalised")
+    small = batch_hard_imtrihard(0.01 * x, overlap, params=params, scale="normalised")
+    torch.testing.assert_close(big.value, small.value)  # the same loss at any scale
+    assert small.margin == pytest.approx(1e-4 * big.margin)  # reported in distance units
+    # the gradient has no component along "shrink everything": it is orthogonal to x
+    x.requires_grad_(True)
+    batch_hard_imtrihard(x, overlap, params=params, scale="normalised").value.backward()
+    assert abs(float((x.grad * x.detach()).sum())) < 1e-9
+    absolute = batch_hard_imtrihard(x.detach().requires_grad_(), overlap, params=params)
+    assert absolute.value.item() > 0
+    with pytest.raises(ValueError, match="allowed: absolute, relative, normalised"):
+        batch_hard_imtrihard(x, overlap, scale="cosine")
+
+
+def test_batch_spread_matches_pairwise_distances():
+    x = torch.randn(5, 3, dtype=torch.float64)
+    d = torch.cdist(x, x).pow(2)
+    torch.testing.assert_close(batch_spread(x), d.sum() / 20)

@@ -100,7 +100,7 @@ from typer.testing import CliRunner  # noqa: E402
 from model_export.errors import ConfigError  # noqa: E402
 from model_export.export import ExportError, export_onnx  # noqa: E402
 from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
-from model_export.presets import PRESETS, get_preset  # noqa: E402
+from model_export.presets import PRESETS, TEST_DATA, get_preset  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
@@ -133,10 +133,15 @@ def test_every_preset_builds_its_configs():
     for p in PRESETS.values():
         cfg = OverlapMambaConfig.from_dict(p.model)
         tc = TrainConfig.from_dict(p.train)
-        assert "data/synth/test" not in p.data and p.val == "data/synth/val"
+        assert not set(TEST_DATA) & set(p.data) and p.val == "data/synth/val"
         if p.name.startswith("abl-"):
             assert tc.epochs * tc.epoch_scans == 600  # one equal budget
         assert (cfg.mixer == "transformer") == p.name.endswith("ot")
+    # the shipped recipe: four towns, the scale-free loss, the ambiguous band left out
+    d = TrainConfig.from_dict(get_preset("default").train)
+    assert len(get_preset("default").data) == 4 and d.margin_scale == "normalised"
+    assert d.negative_threshold < d.positive_threshold
+    assert TrainConfig.from_dict(get_preset("robust").train).augment_config().dropout > 0
     d = get_preset("default")
     assert d.model == {} and TrainConfig.from_dict(d.train).loss == "imtrihard"
     with pytest.raises(ConfigError, match="unknown training preset 'x'; allowed: default"):
@@ -176,7 +181,7 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 @pytest.mark.timeout(900)
 def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path, monkeypatch):
     import model_export.report as report_mod
-    from model_export.report import build_report
+    from model_export.report import UNTRAINED_LABEL, build_report
 
     described: list[int] = []
     real_describe = report_mod.describe
@@ -191,15 +196,18 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     # abl-full: SMALL for 2 epochs of 32 scans in batches of 16 (the session's tiny run)
     shutil.copytree(tiny_run[0], runs / "abl-full")
     ot = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
-    one = TrainConfig(epochs=1, epoch_scans=32, batch_size=16)
+    one = TrainConfig(epochs=1, epoch_scans=32, batch_size=16, recalibrate_batches=0)
     train([tiny_seq], tiny_val_seq, runs / "abl-ot", ot, one, progress=False)
     shutil.copytree(runs / "abl-full", runs / "default")
+    # the shipped row is the last epoch (a tiny run's best may be its epoch 0)
+    shutil.copy(runs / "default" / "epoch-002.pt", runs / "default" / "best.pt")
+    shutil.copy(runs / "default" / "epoch-002.pt", runs / "abl-full" / "best.pt")
 
     report = build_report(runs, tiny_val_seq, tmp_path / "report", progress=False)
     t1 = report["table1"]
     assert list(t1) == [
         "Scan Context",
-        "OverlapMamba, untrained (default run's initial weights)",
+        UNTRAINED_LABEL,
         "OT-style, ablation budget",
         "OverlapMamba, ablation budget",
         "OverlapMamba, default recipe (shipped)",
@@ -207,7 +215,7 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     # default is a copy of abl-full: that network is described once, for both rows
     assert len(described) == 3
     assert t1["OverlapMamba, ablation budget"] == t1["OverlapMamba, default recipe (shipped)"]
-    untrained = t1["OverlapMamba, untrained (default run's initial weights)"]["all"]
+    untrained = t1[UNTRAINED_LABEL]["all"]
     assert untrained != t1["OverlapMamba, default recipe (shipped)"]["all"]
     for subs in t1.values():
         assert set(subs) == {"all", "same", "reverse"}
@@ -215,10 +223,26 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     assert set(report["ablation"]) == {"full", "OT-style (transformer mixer, no SPP)"}
     assert report["ablation"]["full"]["scans_seen"] == 64
     assert report["ablation"]["full"]["forward_ms"] > 0
-    assert [h["epoch"] for h in report["epochs"]["ImTrihard (abl-full)"]["history"]] == [1, 2]
+    # Table IV starts from epoch 0: the initial weights, batch norm recalibrated, no loss
+    table_four = report["epochs"]["ImTrihard (abl-full)"]["history"]
+    assert [h["epoch"] for h in table_four] == [0, 1, 2] and table_four[0]["loss"] is None
     md = (tmp_path / "report" / "tables.md").read_text()
     assert "| Scan Context | reverse |" in md and "Table IV" in md
     for png in ("pr_test.png", "epochs.png"):
         assert (tmp_path / "report" / png).stat().st_size > 10_000
     on_disk = json.loads((tmp_path / "report" / "report.json").read_text())
     assert on_disk["table1"]["Scan Context"]["all"]["f1max"] == t1["Scan Context"]["all"]["f1max"]
+
+
+def test_table_one_mean_over_towns_averages_rates_and_sums_counts():
+    from model_export.report import mean_over_towns
+
+    def town(f1, n):
+        row = {"auc": f1, "f1max": f1, "recall@1": f1, "recall@1%": 1.0}
+        return {"Scan Context": {"all": {**row, "queries": n, "queries_with_loop": n // 2}}}
+
+    nan = float("nan")
+    mean = mean_over_towns({"a": town(0.5, 10), "b": town(0.7, 20), "c": town(nan, 4)})
+    m = mean["Scan Context"]["all"]
+    assert m["f1max"] == pytest.approx(0.6)  # a town without loops of a kind does not count
+    assert m["queries"] == 34 and m["queries_with_loop"] == 17

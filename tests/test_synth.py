@@ -261,8 +261,11 @@ def test_generate_refuses_a_non_empty_folder_and_bad_config(tmp_path):
 
 
 def test_presets_are_fixed_distinct_towns_that_plan():
-    seeds = {c.seed for c in PRESETS.values()}
-    assert len(seeds) == len(PRESETS) and PRESETS["test"].split == "test"
+    drives = {(c.seed, c.session) for c in PRESETS.values()}
+    assert len(drives) == len(PRESETS) and PRESETS["test"].split == "test"
+    tests = [c for c in PRESETS.values() if c.split == "test"]
+    trains = [c for c in PRESETS.values() if c.split == "train"]
+    assert not {c.seed for c in tests} & {c.seed for c in trains}  # no test town is trained on
     for cfg in PRESETS.values():
         _, d, _ = build_scene(cfg)
         assert len(d.poses) == cfg.frames
@@ -334,7 +337,7 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
     ("args", "message"),
     [
         (["--preset", "test", "--seed", "1"], "--preset fixes seed"),
-        (["--preset", "nope"], "allowed: train, val, test"),
+        (["--preset", "nope"], "allowed: train, train-b"),
         (["--frames", "10"], "give --seed and --frames"),
         (["--seed", "1", "--frames", "10", "--sensor", "vlp16"], "allowed: kitti-hdl64, hdl32"),
         (["--seed", "1", "--frames", "1"], "greater than or equal to 2"),
@@ -370,3 +373,33 @@ def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
     assert res.exit_code == 1
     assert "died while running scan 2" in _plain(res.output)
     assert "is incomplete: delete it" in _plain(res.output)
+
+
+def test_a_second_session_drives_the_same_town_with_other_cars_and_route():
+    from model_export.synth.generate import build_scene
+
+    cfg = GenConfig(seed=9, frames=40, sensor="hdl32", world={"nx": 2, "ny": 2})
+    w0, d0, dyn0 = build_scene(cfg)
+    w1, d1, dyn1 = build_scene(cfg.model_copy(update={"session": 1}))
+    np.testing.assert_array_equal(w0.static.tris, w1.static.tris)  # the same static town
+    assert not np.allclose(d0.poses[:, :3, 3], d1.poses[:, :3, 3])  # another route
+    assert not np.array_equal(dyn0.park_on, dyn1.park_on)  # other parked cars
+    again = build_scene(cfg.model_copy(update={"session": 1}))[1]
+    np.testing.assert_array_equal(again.poses, d1.poses)  # a session is reproducible
+    assert cfg.session_seed() == [9]  # session 0: the seed alone, as before sessions existed
+    with pytest.raises(ValueError, match="less than or equal to 1000"):
+        GenConfig(seed=9, frames=4, session=1001)
+
+
+def test_gen_data_session_option_is_recorded(tmp_path):
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    out = tmp_path / "s1"
+    args = ["gen-data", str(out), "--seed", "3", "--session", "2", "--frames", "3"]
+    res = CliRunner().invoke(
+        app, [*args, "--sensor", "hdl32", "--nodes", "2", "--no-ground-truth", "-q"]
+    )
+    assert res.exit_code == 0, res.output
+    assert read_manifest(out)["config"]["session"] == 2 and "3 / 2 / hdl32" in res.output

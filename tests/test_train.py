@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("embreex")
 
-from conftest import SMALL_MODEL, save_random_checkpoint  # noqa: E402
+from conftest import SMALL_MODEL, TINY_TRAIN, save_random_checkpoint  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from lidar_core.datasets import open_sequence  # noqa: E402
@@ -18,7 +18,7 @@ from lidar_core.errors import DatasetError  # noqa: E402
 from model_export.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
 from model_export.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
 from model_export.errors import CheckpointError, ConfigError  # noqa: E402
-from model_export.model import OverlapMambaConfig  # noqa: E402
+from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
@@ -27,12 +27,13 @@ runner = CliRunner()
 
 
 def small_run(**kw) -> TrainConfig:
-    return TrainConfig(**{"epochs": 2, "epoch_scans": 32, "batch_size": 16, **kw})
+    return TrainConfig(**{**TINY_TRAIN, **kw})
 
 
-def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
+@pytest.mark.parametrize("negative", [0.3, 0.1])
+def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq, negative):
     pairs = PairIndex.from_sequences([open_sequence(tiny_seq)])
-    sampler = BatchSampler(pairs, BatchPlan(batch_size=16))
+    sampler = BatchSampler(pairs, BatchPlan(batch_size=16, negative_threshold=negative))
     rng = np.random.default_rng(0)
     revisit_pairs = 0
     for idx in sampler.epoch(rng, 160):
@@ -42,7 +43,7 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
         for g in range(0, 16, GROUP):
             a, p1 = idx[g], idx[g + 1]
             assert ov[g, g + 1] > 0.3 and ov[g, g + 2] > 0.3  # two positives
-            assert ov[g, g + 3] <= 0.3  # the near miss is a negative
+            assert ov[g, g + 3] <= negative  # the near miss is a clear negative
             revisit_pairs += abs(int(a) - int(p1)) > 100
     assert revisit_pairs >= 10  # about half the anchors meet an old pass of their place
     with pytest.raises(ValueError, match="multiple of 4"):
@@ -54,25 +55,52 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq):
 def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     cfg = OverlapMambaConfig(**SMALL)
     straight, history = tiny_run  # train([tiny_seq], tiny_val_seq, …, cfg, small_run())
-    assert [h["epoch"] for h in history] == [1, 2]
+    assert [h["epoch"] for h in history] == [0, 1, 2]
     for h in history:
-        assert np.isfinite(h["loss"]) and h["scans_per_s"] > 0
         assert h["val"]["all"]["queries_with_loop"] > 0
         assert set(h["val"]) == {"all", "same", "reverse"}
-    for name in ("last.pt", "best.pt", "epoch-001.pt", "epoch-002.pt", "curves.png"):
+    assert history[0]["loss"] is None and history[0]["calibrate_s"] > 0  # epoch 0: no step
+    for h in history[1:]:
+        assert np.isfinite(h["loss"]) and h["scans_per_s"] > 0 and h["data_s"] > 0
+        # health: one record per step (log_every 1), with every number the curves plot
+        assert [r["step"] for r in h["health_log"]] == [2 * h["epoch"] - 1, 2 * h["epoch"]]
+        for r in h["health_log"]:
+            assert r["d_neg"] > 0 and r["d_pos"] >= 0 and r["spread"] > 0
+            assert 0 <= r["active"] <= 1 and r["margin"] > 0
+        assert h["health"]["loss"] == pytest.approx(h["loss"])
+    for name in ("last.pt", "best.pt", "epoch-000.pt", "epoch-001.pt", "epoch-002.pt"):
         assert (straight / name).is_file(), name
+    assert (straight / "curves.png").stat().st_size > 20_000  # three panels
     metrics = json.loads((straight / "metrics.json").read_text())
-    assert len(metrics["history"]) == 2 and metrics["model_config"]["d_model"] == 32
+    assert len(metrics["history"]) == 3 and metrics["model_config"]["d_model"] == 32
+    # epoch 0 is the initial network with batch norm recalibrated: not the as-built one
+    init = read_checkpoint(straight / "epoch-000.pt")["state_dict"]
+    torch.manual_seed(0)
+    built = OverlapMamba(cfg).state_dict()
+    assert not torch.equal(init["spp.cv1.1.running_mean"], built["spp.cv1.1.running_mean"])
+    torch.testing.assert_close(init["spp.cv1.0.weight"], built["spp.cv1.0.weight"])
 
     # One epoch, then --resume to two: the same weights as the uninterrupted run.
     resumed = tmp_path / "resumed"
     train([tiny_seq], tiny_val_seq, resumed, cfg, small_run(epochs=1), progress=False)
     result = runner.invoke(app, ["train", "--out", str(resumed), "--resume", "--epochs", "2", "-q"])
     assert result.exit_code == 0, result.output
-    a = read_checkpoint(straight / "last.pt")["state_dict"]
-    b = read_checkpoint(resumed / "last.pt")["state_dict"]
-    for k in a:
-        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-5, msg=k)
+    a, b = read_checkpoint(straight / "last.pt"), read_checkpoint(resumed / "last.pt")
+    for k in a["state_dict"]:
+        torch.testing.assert_close(a["state_dict"][k], b["state_dict"][k], rtol=1e-5, atol=1e-5)
+    # the learning rate went on where it stopped (warm-up of 2 steps, then full)
+    assert [h["lr"] for h in b["train"]["history"]] == [h["lr"] for h in history]
+    assert a["train"]["scheduler"] == b["train"]["scheduler"]
+    for x, y in zip(history[1:], b["train"]["history"][1:], strict=True):
+        assert [r["spread"] for r in x["health_log"]] == pytest.approx(
+            [r["spread"] for r in y["health_log"]], rel=1e-4
+        )
+    # a run written by the older trainer (no warm-up schedule) is refused before any work
+    old = read_checkpoint(resumed / "last.pt")
+    del old["train"]["schedule"]
+    save_checkpoint(tmp_path / "old" / "last.pt", {k: v for k, v in old.items() if k != "format"})
+    with pytest.raises(ConfigError, match="older trainer"):
+        train([], None, tmp_path / "old", resume=True, progress=False)
 
     # The checkpoint describes itself: the model rebuilds from it alone.
     model, profile, ckpt = load_model(straight / "best.pt")
@@ -107,6 +135,23 @@ def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
         train([tiny_seq], tiny_val_seq, straight, cfg, small_run(), progress=False)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # when run alone, its set-up generates both tiny towns
+def test_the_recipe_keeps_the_spread_and_widens_the_gap(tiny_seq, tiny_val_seq, tmp_path):
+    """The shipped recipe on a short run: the descriptors must not shrink towards one point
+    (the collapse that the old margin caused) while negatives move away from positives."""
+    cfg = TrainConfig(
+        epochs=1, epoch_scans=16 * 24, recalibrate_batches=0, log_every=6, warmup_steps=6, real=""
+    )
+    (h,) = train(
+        [tiny_seq], tiny_val_seq, tmp_path / "run", OverlapMambaConfig(**SMALL), cfg, progress=False
+    )
+    spreads = [r["spread"] for r in h["health_log"]]
+    assert len(spreads) == 4 and min(spreads) > 0.5 * spreads[0], spreads
+    assert not h["collapsing"]
+    assert h["health_log"][-1]["gap"] > h["health_log"][0]["gap"] > 0
+
+
 @pytest.mark.timeout(900)  # when run alone, its set-up generates both tiny towns
 def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, kitti_seq_dir):
     cfg = OverlapMambaConfig(**SMALL)
@@ -131,6 +176,22 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
         TrainConfig(loss="contrastive")
     with pytest.raises(ConfigError, match="unknown training fields"):
         TrainConfig.from_dict({"epoch": 3})
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"negative_threshold": 0.4}, "negative_threshold 0.4 is not allowed"),
+        ({"batch_size": 18}, "use a multiple of 4"),
+        ({"group_positives": 6, "group_negatives": 6, "batch_size": 16}, "multiple of 13"),
+        ({"augment": {"tilt": 3}}, "unknown augmentation fields"),
+        ({"augment": {"dropout": 1.5}}, "dropout=1.5 is out of range"),
+        ({"warmup_steps": -1}, "warmup_steps must be ≥ 0"),
+    ],
+)
+def test_recipe_settings_are_checked_with_the_allowed_values(fields, message):
+    with pytest.raises(ConfigError, match=message):
+        TrainConfig.from_dict(fields)
 
 
 @pytest.mark.parametrize(
@@ -181,6 +242,15 @@ def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
     assert "odd→even Recall@1" in result.output and "yaw error" in result.output
     r = json.loads(out.read_text())
     assert r["scans"] == 101 and r["retrieval_odd_to_even"]["queries"] == 50
+    inv = r["yaw_invariance"]
+    assert inv["one_metre_step_pairs"] > 10 and inv["one_metre_step_distance_median"] > 0
+    assert inv["turned_over_one_metre_step"] == pytest.approx(
+        inv["turned_distance_median"] / inv["one_metre_step_distance_median"]
+    )
+    # Scan Context is rotation-invariant by its shift search: it finds the neighbours of
+    # these turned real scans (the issue measured 100 %)
+    assert r["retrieval_odd_to_even"]["scan_context"]["recall@1"] > 0.9
+    assert "1 m step" in result.output and "Scan Context" in result.output
     # Exact equivariance holds for column rolls; a continuous turn also re-samples the scan.
     assert r["yaw_invariance"]["cosine_min"] > 0.999
     assert r["yaw_error_deg"]["vs_turned_copy"]["median"] < 1.0

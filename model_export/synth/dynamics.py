@@ -12,6 +12,7 @@ Everything is precomputed from the seed, so ``mesh_at(t, …)`` is a pure functi
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,11 +43,16 @@ class DynamicsParams:
 
 class Dynamics:
     def __init__(
-        self, world: World, seed: int, duration: float, params: DynamicsParams | None = None
+        self,
+        world: World,
+        seed: int | Sequence[int],
+        duration: float,
+        params: DynamicsParams | None = None,
     ):
+        """``seed``: an int or a list of ints (a session's entropy, ``GenConfig.session_seed``)."""
         self.p = p = params or DynamicsParams()
         self.world = world
-        rng = np.random.default_rng([seed, 0xD1A])
+        rng = np.random.default_rng([*np.atleast_1d(seed).tolist(), 0xD1A])
         S = len(world.parking)
         windows = int(duration / p.park_window) + 3
         self.park_phase = rng.uniform(0, p.park_window, S)

@@ -44,7 +44,7 @@ from model_export.synth.trajectory import Drive, DriveParams, plan_drive
 from model_export.synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
 from model_export.synth.world import World, WorldParams, build_world
 
-GENERATOR_VERSION = "1.3.1"  # 1.3.1: manifest lists only parameters in use
+GENERATOR_VERSION = "1.4.0"  # 1.4.0: sessions (session 0 is byte-identical to 1.3.1)
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -55,6 +55,13 @@ class GenConfig(BaseModel):
 
     seed: int = Field(ge=0, le=2**31 - 1)
     frames: int = Field(ge=2, le=100_000)
+    session: int = Field(
+        default=0,
+        ge=0,
+        le=1000,
+        description="0: the town's first drive; k > 0: another drive through the same static "
+        "town (same seed), with its own route, parked cars, traffic, people and scan noise",
+    )
     sensor: str = "kitti-hdl64"
     preset: str | None = None
     split: str = Field(default="train", description="train, val or test; test is never trained on")
@@ -78,6 +85,11 @@ class GenConfig(BaseModel):
         if v not in ("train", "val", "test"):
             raise ValueError(f"unknown split {v!r}; allowed: train, val, test")
         return v
+
+    def session_seed(self) -> list[int]:
+        """Entropy of everything that changes between sessions (session 0: the seed alone,
+        so first sessions stay byte-identical to those of earlier generator versions)."""
+        return [self.seed] if self.session == 0 else [self.seed, 0x5E55, self.session]
 
     def world_params(self) -> WorldParams:
         return _build(WorldParams, self.world)
@@ -106,7 +118,9 @@ def _build(cls, overrides: dict):
 _W: dict = {}
 
 
-def _init_worker(world: World, drive: Drive, dynamics: Dynamics, sensor: str, seed: int, out: str):
+def _init_worker(
+    world: World, drive: Drive, dynamics: Dynamics, sensor: str, seed: list[int], out: str
+):
     _W.update(
         scanner=Scanner(world.static, get_lidar(sensor)),
         drive=drive,
@@ -121,7 +135,7 @@ def _simulate(k: int) -> tuple[int, int]:
     t = float(drive.times[k])
     heading = float(np.arctan2(drive.poses[k, 1, 0], drive.poses[k, 0, 0]))
     mesh = _W["dyn"].mesh_at(t, drive.poses[k, :2, 3], DYNAMIC_RADIUS, heading)
-    pts = _W["scanner"].scan(drive.pose_at, t, mesh, np.random.default_rng([_W["seed"], 1, k]))
+    pts = _W["scanner"].scan(drive.pose_at, t, mesh, np.random.default_rng([*_W["seed"], 1, k]))
     path = _W["out"] / "velodyne" / f"{k:06d}.bin"
     tmp = path.with_suffix(".tmp")
     pts.tofile(tmp)
@@ -141,7 +155,7 @@ def simulate_scans(
 ) -> np.ndarray:
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = np.zeros(cfg.frames, np.int64)
-    args = (world, drive, dynamics, cfg.sensor, cfg.seed, str(out))
+    args = (world, drive, dynamics, cfg.sensor, cfg.session_seed(), str(out))
     bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
     if workers <= 1:
         _init_worker(*args)
@@ -327,10 +341,11 @@ def write_layout(out: Path, drive: Drive) -> None:
 
 def build_scene(cfg: GenConfig) -> tuple[World, Drive, Dynamics]:
     """The town, the drive through it and its moving parts: everything but the scans."""
-    world = build_world(cfg.seed, cfg.world_params())
-    rng = np.random.default_rng([cfg.seed, 0xD21])
+    world = build_world(cfg.seed, cfg.world_params())  # the same for every session
+    session = cfg.session_seed()
+    rng = np.random.default_rng([*session, 0xD21])
     drive = plan_drive(world.network, world.terrain, rng, cfg.frames, cfg.drive_params())
-    dynamics = Dynamics(world, cfg.seed, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
+    dynamics = Dynamics(world, session, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
     return world, drive, dynamics
 
 
@@ -377,7 +392,9 @@ def generate(
         pos_world,
         same,
         rev,
-        title=f"seed {cfg.seed} · {cfg.frames} scans · {cfg.sensor}"
+        title=f"seed {cfg.seed}"
+        + (f" session {cfg.session}" if cfg.session else "")
+        + f" · {cfg.frames} scans · {cfg.sensor}"
         + (f" · preset {cfg.preset}" if cfg.preset else ""),
     )
 

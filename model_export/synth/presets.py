@@ -2,11 +2,17 @@
 test towns are never seen in training; ``split`` travels in every manifest so a trainer
 can refuse test data.
 
-| preset | seed | scans | sensor      | town           | use                      |
-|--------|------|-------|-------------|----------------|--------------------------|
-| train  | 1001 | 4000  | kitti-hdl64 | 6 × 6 nodes    | training                 |
-| val    | 2002 | 1500  | kitti-hdl64 | 5 × 5 nodes    | model selection          |
-| test   | 3003 | 2500  | kitti-hdl64 | 6 × 6 nodes    | reported numbers only    |
+| preset  | seed | scans | sensor      | town                   | use                      |
+|---------|------|-------|-------------|------------------------|--------------------------|
+| train   | 1001 | 4000  | kitti-hdl64 | 6 × 6 nodes            | training                 |
+| train-b | 1101 | 2000  | kitti-hdl64 | 5 × 5, blocks 60–120 m | training                 |
+| train-c | 1201 | 2000  | kitti-hdl64 | 7 × 4, blocks 50–100 m | training                 |
+| train-d | 1302 | 2000  | kitti-hdl64 | 6 × 6, blocks 80–160 m | training                 |
+| val     | 2002 | 1500  | kitti-hdl64 | 5 × 5 nodes            | model selection          |
+| test    | 3003 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
+| test-b  | 3103 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
+| test-c  | 3203 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
+| test-s1 | 3003 | 1500  | kitti-hdl64 | the test town, session 1 | queries across sessions |
 | tiny   | 5    | 600   | kitti-hdl64 | 4 × 3, small   | tests: fast, both-direction loops |
 | tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | tests: validation of tiny runs |
 
@@ -17,9 +23,11 @@ Their seeds follow the same kind of rule: the first seed counting up from 5 (tin
 within 6 m of a scan more than 100 frames older (tiny: 88 and 82; tiny-val: 11 and 90).
 
 How the seeds were chosen: for each split, the first seed counting up from 1001, 2002 and
-3003 whose planned drive has at least 40 % opposite-direction revisits among the scans that
-pass within 6 m of a scan more than 100 frames older, at least 100 same-direction ones, and
-(train, test) some revisits more than 1,000 scans later. Chance decides how often a drive
+3003 (train-b/c/d: 1101, 1201, 1301; test-b/c: 3103, 3203) whose planned drive has at least
+40 % opposite-direction revisits among the scans that pass within 6 m of a scan more than 100
+frames older, at least 100 same-direction ones, and (train, test) some revisits more than
+1,000 scans later (:func:`planned_revisits`). train-d's 1301 failed (no same-direction
+revisit); 1302 passed. Chance decides how often a drive
 crosses its own path, so a fixed seed is checked once here rather than hoped for.
 """
 
@@ -33,10 +41,28 @@ _TINY: dict = {
     "gt_radius": 12.0,
 }
 
+# More training places: three more towns of other shapes (block sizes, grid), whose drives
+# plan a revisit every 120–300 m of exploring instead of 200–450 m.
+_DENSE_REVISITS = {"revisit_every": [120, 300], "revisit_min_age": 200}
+
+
+def _train(name: str, seed: int, world: dict) -> GenConfig:
+    return GenConfig(
+        seed=seed, frames=2000, preset=name, split="train", world=world, drive=_DENSE_REVISITS
+    )
+
+
 PRESETS: dict[str, GenConfig] = {
     "train": GenConfig(seed=1001, frames=4000, preset="train", split="train"),
+    "train-b": _train("train-b", 1101, {"nx": 5, "ny": 5, "block_min": 60.0, "block_max": 120.0}),
+    "train-c": _train("train-c", 1201, {"nx": 7, "ny": 4, "block_min": 50.0, "block_max": 100.0}),
+    "train-d": _train("train-d", 1302, {"nx": 6, "ny": 6, "block_min": 80.0, "block_max": 160.0}),
     "val": GenConfig(seed=2002, frames=1500, preset="val", split="val", world={"nx": 5, "ny": 5}),
     "test": GenConfig(seed=3003, frames=2500, preset="test", split="test"),
+    "test-b": GenConfig(seed=3103, frames=2500, preset="test-b", split="test"),
+    "test-c": GenConfig(seed=3203, frames=2500, preset="test-c", split="test"),
+    # A second drive through the test town: the place-recognition protocol across sessions.
+    "test-s1": GenConfig(seed=3003, session=1, frames=1500, preset="test-s1", split="test"),
     "tiny": GenConfig(seed=5, frames=600, preset="tiny", split="train", **_TINY),
     "tiny-val": GenConfig(seed=24, frames=600, preset="tiny-val", split="val", **_TINY),
 }
@@ -46,3 +72,32 @@ def preset(name: str) -> GenConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; allowed: {', '.join(PRESETS)}")
     return PRESETS[name]
+
+
+def planned_revisits(cfg: GenConfig, radius: float = 6.0, gap: int = 100) -> dict[str, int]:
+    """How a config's planned drive revisits its town, from the poses alone (no scans):
+    frames within ``radius`` m of a frame more than ``gap`` frames older, split by direction
+    (heading difference to the nearest such frame over 90°: opposite), and how many of them
+    revisit a place more than 1,000 frames later. The rule the preset seeds were chosen by."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from model_export.synth.generate import build_scene
+
+    _, drive, _ = build_scene(cfg)
+    xy = drive.poses[:, :2, 3]
+    heading = np.arctan2(drive.poses[:, 1, 0], drive.poses[:, 0, 0])
+    tree = cKDTree(xy)
+    same = opposite = late = 0
+    for i, near in enumerate(tree.query_ball_point(xy, radius)):
+        old = [j for j in near if j < i - gap]
+        if not old:
+            continue
+        j = min(old, key=lambda j: float(np.sum((xy[j] - xy[i]) ** 2)))
+        turn = abs((heading[i] - heading[j] + np.pi) % (2 * np.pi) - np.pi)
+        if turn > np.pi / 2:
+            opposite += 1
+        else:
+            same += 1
+        late += i - j > 1000
+    return {"same": same, "opposite": opposite, "late": late, "frames": cfg.frames}

@@ -1,0 +1,113 @@
+"""Training health: the numbers that show whether a metric-learning run learns or collapses.
+
+Per step, from the batch's descriptors and its positive/negative pair masks:
+
+    d_pos    mean squared distance over positive pairs     d(q, p)
+    d_neg    mean squared distance over negative pairs     d(q, n)
+    gap      d_neg − d_pos: what the loss is meant to grow
+    spread   mean squared distance over all distinct pairs: the descriptors' scale
+    separation  gap ÷ spread: the gap at the descriptors' own scale (what a loss with
+             normalised distances grows; unit vectors may spread or gather freely)
+    active   share of the loss's hinge terms that were > 0 (from :class:`~losses.BatchLoss`)
+    margin   the margin the loss used (α, or α × spread with a relative margin)
+
+A collapse reads as: ``active`` near 1, ``spread`` falling towards 0 and the loss sitting at
+its margin. :class:`HealthLog` keeps a record every ``every`` steps (means over those steps)
+and an epoch mean; :meth:`HealthLog.collapsing` says when the spread has fallen below a
+quarter of where the epoch, or the run, started.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+KEYS = ("loss", "d_pos", "d_neg", "gap", "separation", "spread", "active", "margin")
+
+
+@torch.no_grad()
+def batch_distances(desc: Tensor, pos_mask: Tensor, neg_mask: Tensor) -> dict[str, float]:
+    """desc (B, D); masks (B, B) over ordered pairs → d_pos, d_neg, gap, separation, spread (NaN
+    where a batch has no pair of that kind)."""
+    d = torch.cdist(desc.detach().float(), desc.detach().float()).pow(2)
+    B = d.shape[0]
+    other = ~torch.eye(B, dtype=torch.bool, device=d.device)
+
+    def mean(mask: Tensor) -> float:
+        n = int(mask.sum())
+        return float(d[mask].sum()) / n if n else math.nan
+
+    d_pos, d_neg, spread = mean(pos_mask & other), mean(neg_mask & other), mean(other)
+    gap = d_neg - d_pos
+    separation = gap / spread if spread > 0 else math.nan
+    return {"d_pos": d_pos, "d_neg": d_neg, "gap": gap, "separation": separation, "spread": spread}
+
+
+def _nanmean(values: list[float]) -> float:
+    a = np.asarray(values, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if len(a) else math.nan
+
+
+@dataclass
+class HealthLog:
+    """Step records → one logged record every ``every`` steps and an epoch summary."""
+
+    every: int = 10
+    step0: int = 0  # global index of this epoch's first step
+    steps: list[dict[str, float]] = field(default_factory=list)
+    logged: list[dict[str, float]] = field(default_factory=list)
+    reference_spread: float = math.nan  # the run's first logged spread (carried across epochs)
+
+    def add(self, record: dict[str, float]) -> dict[str, float] | None:
+        """Add one step; returns the new logged record when one is due."""
+        self.steps.append({k: float(record[k]) for k in KEYS})
+        if len(self.steps) % self.every:
+            return None
+        return self._log(self.steps[-self.every :])
+
+    def _log(self, window: list[dict[str, float]]) -> dict[str, float]:
+        entry = {"step": self.step0 + len(self.steps)} | {
+            k: _nanmean([s[k] for s in window]) for k in KEYS
+        }
+        self.logged.append(entry)
+        if math.isnan(self.reference_spread):
+            self.reference_spread = entry["spread"]
+        return entry
+
+    def flush(self) -> dict[str, float] | None:
+        """Log the steps after the last full window (the end of an epoch)."""
+        done = len(self.logged) * self.every
+        if len(self.steps) <= done:
+            return None
+        return self._log(self.steps[done:])
+
+    def recent(self, n: int = 20) -> dict[str, float]:
+        return {k: _nanmean([s[k] for s in self.steps[-n:]]) for k in KEYS}
+
+    def summary(self) -> dict[str, float]:
+        """Means over the epoch's steps."""
+        return {k: _nanmean([s[k] for s in self.steps]) for k in KEYS}
+
+    def collapsing(self) -> bool:
+        """The latest logged spread is below a quarter of the run's first."""
+        if not self.logged or not math.isfinite(self.reference_spread):
+            return False
+        return self.logged[-1]["spread"] < 0.25 * self.reference_spread
+
+
+def json_safe(obj: Any) -> Any:
+    """A copy with every NaN or infinite float as None: strict JSON readers (browsers, jq)
+    refuse Python's NaN. Used for ``metrics.json``."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -1,0 +1,138 @@
+"""The training recipe: every setting of ``overlapmamba train`` as one dataclass that travels
+in checkpoints (``TrainConfig``), and ``.json``/``.toml`` config files.
+
+A config file has a ``[model]`` table (``OverlapMambaConfig`` fields), a ``[train]`` table
+(these fields) and, inside it, ``[train.augment]`` (``AugmentConfig`` fields).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torch import Tensor
+
+from model_export.augment import AugmentConfig
+from model_export.errors import ConfigError, dataclass_from_dict
+from model_export.losses import BATCH_LOSSES, SCALES, BatchLoss, ImTrihardParams
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL_SCANS = "../shared/data/kitti00_0000-0100"  # relative to the repository root
+SCHEDULE = "warmup-step/1"  # the learning-rate schedule's name in checkpoints (resume checks it)
+
+
+@dataclass
+class TrainConfig:
+    epochs: int = 10
+    epoch_scans: int = 2000  # scans drawn per epoch
+    batch_size: int = 16  # groups of 1 + group_positives + group_negatives (default 4)
+    lr: float = 1e-4  # Adam; the reference's 5e-6 barely moves a freshly initialised head
+    warmup_steps: int = 50  # linear learning-rate warm-up over the first steps of the run
+    step_size: int = 5  # × gamma every step_size epochs (reference: 5, 0.9)
+    gamma: float = 0.9
+    loss: str = "imtrihard"  # imtrihard (paper eq. 13) or triplet (OverlapTransformer)
+    # ImTrihard margin α, in units of the batch's spread with the normalised scale (measured
+    # on the tiny towns, README "Training: measured"); the paper-era constants 0.5 / 0.1 on
+    # absolute distances are the ablation row abl-oldloss
+    alpha: float = 0.5
+    lam: float = 0.0  # ImTrihard compression weight λ
+    k_p: float = 1.0
+    k_n: float = 1.0
+    hinge: bool = True
+    margin: float = 0.5  # triplet margin m
+    margin_scale: str = "normalised"  # absolute, relative or normalised (losses.SCALES)
+    positive_threshold: float = 0.3  # overlap above this: positive
+    negative_threshold: float = 0.1  # overlap at most this: negative; in between: neither
+    revisit_fraction: float = 0.5  # anchors whose first positive is an old pass
+    group_positives: int = 2  # a batch is groups of anchor + positives + near misses
+    group_negatives: int = 1
+    augment: dict = field(default_factory=dict)  # AugmentConfig overrides
+    recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
+    log_every: int = 10  # steps per health record
+    real: str = REAL_SCANS  # real scans whose turned copies are checked every epoch ("": off)
+    seed: int = 0
+    device: str = "cpu"  # cpu or cuda
+
+    def __post_init__(self) -> None:
+        if self.loss not in BATCH_LOSSES:
+            raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
+        names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")
+        for name in (*names, "group_positives"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be ≥ 1, got {getattr(self, name)}")
+        for name in ("warmup_steps", "recalibrate_batches", "group_negatives"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be ≥ 0, got {getattr(self, name)}")
+        if not (self.lr > 0 and 0 < self.gamma <= 1 and 0 <= self.positive_threshold < 1):
+            raise ConfigError("need lr > 0, 0 < gamma ≤ 1 and 0 ≤ positive_threshold < 1")
+        if not 0 <= self.negative_threshold <= self.positive_threshold:
+            raise ConfigError(
+                f"negative_threshold {self.negative_threshold} is not allowed: use 0 ≤ "
+                f"negative_threshold ≤ positive_threshold ({self.positive_threshold})"
+            )
+        group = 1 + self.group_positives + self.group_negatives
+        if self.batch_size % group:
+            raise ConfigError(
+                f"batch_size {self.batch_size} is not allowed: use a multiple of {group} (an "
+                f"anchor, {self.group_positives} positives and {self.group_negatives} near "
+                "misses per group)"
+            )
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")
+        if self.margin_scale not in SCALES:
+            raise ConfigError(
+                f"margin_scale {self.margin_scale!r} is unknown; allowed: {', '.join(SCALES)}"
+            )
+        self.augment_config()  # refuses unknown or out-of-range augmentation settings
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        cfg: TrainConfig = dataclass_from_dict(cls, d, "training")
+        return cfg
+
+    def real_path(self) -> Path | None:
+        """The real scans of the per-epoch turn check: as given when it exists from here,
+        else relative to the repository root; None when the check is off."""
+        if not self.real:
+            return None
+        path = Path(self.real)
+        return path if path.is_absolute() or path.exists() else ROOT / path
+
+    def augment_config(self) -> AugmentConfig:
+        cfg: AugmentConfig = dataclass_from_dict(AugmentConfig, self.augment, "augmentation")
+        return cfg
+
+    def loss_fn(self) -> Callable[[Tensor, Tensor], BatchLoss]:
+        fn = BATCH_LOSSES[self.loss]
+        kw = {"negative": self.negative_threshold, "scale": self.margin_scale}
+        if self.loss == "imtrihard":
+            p = ImTrihardParams(self.alpha, self.lam, self.k_p, self.k_n, self.hinge)
+            return lambda d, ov: fn(d, ov, self.positive_threshold, p, **kw)
+        return lambda d, ov: fn(d, ov, self.positive_threshold, self.margin, **kw)
+
+    def lr_factor(self, step: int, steps_per_epoch: int) -> float:
+        """Learning-rate multiplier at a global step: linear warm-up, then × gamma every
+        ``step_size`` epochs."""
+        warm = min(1.0, (step + 1) / self.warmup_steps) if self.warmup_steps else 1.0
+        return warm * self.gamma ** ((step // steps_per_epoch) // self.step_size)
+
+
+def load_config_file(path: Path) -> tuple[dict, dict]:
+    """``{"model": {...}, "train": {...}}`` from .json or .toml → (model dict, train dict)."""
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    text = path.read_text()
+    if path.suffix == ".json":
+        raw = json.loads(text)
+    elif path.suffix == ".toml":
+        import tomllib
+
+        raw = tomllib.loads(text)
+    else:
+        raise ConfigError(f"{path.name}: allowed config suffixes are .json and .toml")
+    extra = sorted(set(raw) - {"model", "train"})
+    if extra:
+        raise ConfigError(f"{path}: unknown sections {extra}; allowed: model, train")
+    return dict(raw.get("model", {})), dict(raw.get("train", {}))

@@ -1,0 +1,121 @@
+"""Training augmentation: each transform does what it says, per scan, reproducibly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_core.sensors import get_profile
+from model_export.augment import ROBUST, AugmentConfig, Augmenter
+from model_export.errors import ConfigError
+
+PROFILE = get_profile("kitti-hdl64")
+EMPTY = np.float32(PROFILE.empty_value)
+OFF = AugmentConfig.none()
+
+
+def images(n: int = 3, seed: int = 0) -> np.ndarray:
+    """Range images with structure in both directions and a few empty pixels."""
+    rng = np.random.default_rng(seed)
+    rows = np.linspace(5, 60, PROFILE.height)[:, None]
+    cols = 10 * np.sin(np.linspace(0, 6 * np.pi, PROFILE.width))[None, :]
+    x = np.repeat((rows + cols + 20)[None], n, axis=0).astype(np.float32)
+    x[rng.random(x.shape) < 0.05] = EMPTY
+    return x
+
+
+def only(**kw) -> Augmenter:
+    fields = {
+        "tilt_deg": 0.0,
+        "yaw_jitter": False,
+        "yaw_roll": False,
+        "dropout": 0.0,
+        "range_noise": 0.0,
+        "fov_crop": 0.0,
+    }
+    return Augmenter(AugmentConfig(**{**fields, **kw}), PROFILE, circular=True)
+
+
+def test_nothing_on_is_the_identity_and_input_is_not_modified():
+    x = images()
+    before = x.copy()
+    out = Augmenter(OFF, PROFILE, circular=True)(x, np.random.default_rng(0))
+    np.testing.assert_array_equal(out, before)
+    np.testing.assert_array_equal(x, before)
+    assert out.dtype == np.float32 and out is not x
+
+
+def test_same_seed_same_batch_and_strength_varies_per_scan():
+    x = images(8)
+    aug = Augmenter(AugmentConfig(**ROBUST), PROFILE, circular=True)
+    a = aug(x, np.random.default_rng(7))
+    b = aug(x, np.random.default_rng(7))
+    np.testing.assert_array_equal(a, b)
+    lost = [(a[i] == EMPTY).mean() - (x[i] == EMPTY).mean() for i in range(8)]
+    assert np.ptp(lost) > 0.02  # some scans lose more returns than others
+
+
+def test_tilt_shifts_columns_vertically_by_a_cosine():
+    x = images(1)
+    out = only(tilt_deg=3.0)(x, np.random.default_rng(1))[0]
+    shifts = []
+    for j in range(0, PROFILE.width, 50):
+        col, src = out[:, j], x[0, :, j]
+        best = min(range(-8, 9), key=lambda s: np.abs(np.roll(src, s) - col)[10:-10].sum())
+        shifts.append(best)
+    shifts = np.array(shifts)
+    assert shifts.max() >= 1 and shifts.min() <= -1  # up on one side, down on the other
+    assert np.abs(shifts).max() <= 3.0 * PROFILE.height / PROFILE.fov_deg + 1
+
+
+def test_yaw_roll_only_for_non_circular_models_by_default():
+    x = images(4)
+    default = AugmentConfig()  # off, but for the rolls of a non-circular model
+    circular = Augmenter(default, PROFILE, circular=True)(x, np.random.default_rng(0))
+    np.testing.assert_array_equal(circular, x)
+    open_ = Augmenter(default, PROFILE, circular=False)(x, np.random.default_rng(0))
+    for a, b in zip(open_, x, strict=True):
+        assert any(np.array_equal(a, np.roll(b, k, axis=-1)) for k in range(PROFILE.width))
+    assert not np.array_equal(open_, x)
+
+
+def test_yaw_jitter_mixes_a_column_with_its_neighbour():
+    x = images(1)
+    out = only(yaw_jitter=True)(x, np.random.default_rng(3))[0]
+    prev = np.roll(x[0], 1, axis=-1)
+    assert np.all((out == x[0]) | (out == prev))
+    assert 0 < (out != x[0]).mean() < 1
+
+
+def test_dropout_noise_and_crop_touch_only_what_they_should():
+    x = images(6)
+    valid = x != EMPTY
+    out = only(dropout=0.5)(x, np.random.default_rng(0))
+    assert np.all(out[~valid] == EMPTY)
+    kept = (out != EMPTY) & valid
+    np.testing.assert_array_equal(out[kept], x[kept])
+    assert (out == EMPTY).mean() > (x == EMPTY).mean() + 0.05
+
+    noisy = only(range_noise=0.05)(x, np.random.default_rng(0))
+    assert np.all(noisy[~valid] == EMPTY) and np.all(noisy[valid] > 0)
+    assert 0 < np.abs(noisy[valid] - x[valid]).max() < 0.5
+
+    cropped = only(fov_crop=1.0, fov_min_deg=180.0)(x, np.random.default_rng(0))
+    for img in cropped:
+        empty_cols = np.all(img == EMPTY, axis=0)
+        assert 0 < empty_cols.sum() <= PROFILE.width // 2 + 1
+        # one contiguous sector (on the ring): the empty columns change state twice
+        assert np.count_nonzero(empty_cols != np.roll(empty_cols, 1)) == 2
+
+
+@pytest.mark.parametrize(
+    "kw", [{"dropout": 1.0}, {"tilt_deg": -1.0}, {"fov_crop": 2.0}, {"fov_min_deg": 0.0}]
+)
+def test_out_of_range_settings_are_refused(kw):
+    with pytest.raises(ConfigError, match="out of range; allowed"):
+        AugmentConfig(**kw)
+
+
+def test_wrong_image_shape_is_refused():
+    with pytest.raises(ValueError, match=r"expected range images \(B, 64, 900\)"):
+        only()(np.zeros((2, 32, 900), np.float32), np.random.default_rng(0))

@@ -1,0 +1,103 @@
+"""Place recognition across sessions: AR@N by hand, the town frame, refused pairs, and the
+``eval --database`` command on two drives through one generated town."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lidar_core.datasets import open_sequence
+from lidar_core.errors import DatasetError
+from model_export.sessions import (
+    HIT_RADIUS,
+    check_sessions,
+    descriptor_recall,
+    town_positions,
+)
+
+
+def test_average_recall_by_hand():
+    pos_db = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0], [30, 0, 0]])
+    desc_db = np.eye(4)
+    # queries: near db 0, near db 2 (but looks like db 3), far from everything
+    pos_q = np.array([[1.0, 0, 0], [21, 0, 0], [100, 0, 0]])
+    desc_q = np.array([[1.0, 0, 0, 0], [0, 0, 0.6, 0.8], [0, 1.0, 0, 0]])
+    r = descriptor_recall(desc_db, pos_db, desc_q, pos_q)
+    assert r["queries"] == 2 and r["queries_total"] == 3 and r["radius_m"] == HIT_RADIUS
+    assert r["ar@1"] == 0.5  # the second query's top-1 is db 3, 9 m away
+    assert r["ar@5"] == r["ar@20"] == 1.0  # there are only 4 database scans
+
+
+def _fake_session(root, seed, session, world_from=None):
+    from conftest import write_synthetic_kitti
+
+    write_synthetic_kitti(root, seed=seed, n_per_lap=4, laps=1)
+    m = {"config": {"seed": seed, "session": session, "world": {"nx": 2}}}
+    if world_from is not None:
+        m["world_from_sequence"] = world_from.tolist()
+    (root / "manifest.json").write_text(json.dumps(m))
+    return open_sequence(root)
+
+
+def test_positions_in_the_town_frame_and_pairs_that_are_refused(tmp_path):
+    shift = np.eye(4)
+    shift[:3, 3] = [100.0, -50.0, 2.0]
+    a = _fake_session(tmp_path / "a", 1, 0)
+    b = _fake_session(tmp_path / "b", 1, 1, world_from=shift)
+    np.testing.assert_allclose(town_positions(b), b.poses[:, :3, 3] + [100.0, -50.0, 2.0])
+    check_sessions(a, b)  # two sessions of town 1: fine
+    with pytest.raises(DatasetError, match="are different towns"):
+        check_sessions(a, _fake_session(tmp_path / "c", 2, 1))
+    with pytest.raises(DatasetError, match="same session"):
+        check_sessions(a, _fake_session(tmp_path / "d", 1, 0))
+
+
+@pytest.mark.timeout(600)
+def test_eval_across_sessions_of_a_generated_town(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("embreex")
+    from conftest import SMALL_MODEL, save_random_checkpoint
+    from typer.testing import CliRunner
+
+    from model_export.synth.generate import generate
+    from model_export.synth.presets import PRESETS
+    from overlapmamba.cli import app
+
+    # two short drives through the tiny town (its world, not its 600 scans)
+    base = PRESETS["tiny"].model_copy(update={"frames": 40, "preset": None})
+    generate(tmp_path / "s0", base, workers=2, progress=False, stall_timeout_s=60)
+    generate(
+        tmp_path / "s1",
+        base.model_copy(update={"session": 1}),
+        workers=2,
+        progress=False,
+        stall_timeout_s=60,
+    )
+    ckpt = save_random_checkpoint(tmp_path / "random.pt", **SMALL_MODEL)
+    out = tmp_path / "cross.json"
+    args = ["eval", "--checkpoint", str(ckpt), "--sequence", str(tmp_path / "s1")]
+    res = CliRunner().invoke(
+        app, [*args, "--database", str(tmp_path / "s0"), "--json", str(out), "-q"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "Across sessions" in res.output and "Scan Context" in res.output
+    cross = json.loads(out.read_text())["cross_session"]
+    for method in ("model", "scan_context"):
+        r = cross[method]
+        assert r["queries"] > 0, "the two drives never came within 5 m: pick longer drives"
+        assert r["queries_total"] == 40 and 0 <= r["ar@1"] <= r["ar@5"] <= r["ar@20"] <= 1
+    # the report's cross-session table: the same numbers for the same network
+    import shutil
+
+    from model_export.report import cross_sessions
+
+    (tmp_path / "runs" / "default").mkdir(parents=True)
+    shutil.copy(ckpt, tmp_path / "runs" / "default" / "best.pt")
+    table = cross_sessions(tmp_path / "runs", tmp_path / "s0", tmp_path / "s1", progress=False)
+    assert table["Scan Context"] == cross["scan_context"]
+    assert table["OverlapMamba, default recipe (shipped)"] == cross["model"]
+    # the same session twice is refused with the reason
+    res = CliRunner().invoke(app, [*args, "--database", str(tmp_path / "s1"), "-q"])
+    assert res.exit_code != 0 and "same session" in res.output
