@@ -137,7 +137,13 @@ SMALL_MODEL = dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, 
 # on 2 batches, a 2-step warm-up (so a resumed schedule matters). Tests that resume or repeat
 # the run use the same dict.
 TINY_TRAIN = dict(
-    epochs=2, epoch_scans=32, batch_size=16, recalibrate_batches=2, log_every=1, warmup_steps=2
+    epochs=2,
+    epoch_scans=32,
+    batch_size=16,
+    recalibrate_batches=2,
+    log_every=1,
+    warmup_steps=2,
+    real="",  # the shared tiny run turns the real-scan check on; copies need not repeat it
 )
 
 
@@ -151,7 +157,9 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
     from model_export.train import TrainConfig, train
 
     out = tmp_path_factory.mktemp("runs") / "tiny"
-    cfg = TrainConfig(**TINY_TRAIN)
+    from model_export.train_config import REAL_SCANS
+
+    cfg = TrainConfig(**{**TINY_TRAIN, "real": REAL_SCANS})
     model = OverlapMambaConfig(**SMALL_MODEL)
     history = train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
     return out, history
