@@ -191,6 +191,9 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
         return real_describe(model, images, **kw)
 
     monkeypatch.setattr(report_mod, "describe", counted)
+    # the real-scan rows: the smaller real set only (KITTI's eval-real has its own test)
+    real = {k: v for k, v in report_mod.REAL.items() if k == "nuscenes-hdl32"}
+    monkeypatch.setattr(report_mod, "REAL", real)
 
     runs = tmp_path / "runs"
     # abl-full: SMALL for 2 epochs of 32 scans in batches of 16 (the session's tiny run)
@@ -226,7 +229,10 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     # Table IV starts from epoch 0: the initial weights, batch norm recalibrated, no loss
     table_four = report["epochs"]["ImTrihard (abl-full)"]["history"]
     assert [h["epoch"] for h in table_four] == [0, 1, 2] and table_four[0]["loss"] is None
+    nus = report["real"]["nuscenes-hdl32"]
+    assert "skipped" in nus or nus["yaw_invariance"]["cosine_min"] > 0.9
     md = (tmp_path / "report" / "tables.md").read_text()
+    assert "| nuscenes-hdl32" in md
     assert "| Scan Context | reverse |" in md and "Table IV" in md
     for png in ("pr_test.png", "epochs.png"):
         assert (tmp_path / "report" / png).stat().st_size > 10_000
