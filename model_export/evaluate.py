@@ -9,6 +9,8 @@ best-overlap loop: same direction (|yaw| ≤ 90°) or reverse.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -305,16 +307,26 @@ def _scan_context_odd_to_even(
     return {"recall@1": float(close[:, 0].mean()), "recall@5": float(close.any(1).mean())}
 
 
+def network_digest(model: OverlapMamba) -> str:
+    """sha256 of the architecture and every weight: the same network reached under two names
+    (a run reported in two rows) is described once."""
+    h = hashlib.sha256(json.dumps(model.cfg.to_dict(), sort_keys=True).encode())
+    for name, tensor in model.state_dict().items():
+        h.update(name.encode())
+        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 def cross_session(
-    model: OverlapMamba,
-    profile: SensorProfile,
+    networks: list[tuple[str, OverlapMamba, SensorProfile]],
     database: Sequence,
     queries: Sequence,
     *,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """AR@1/5/20 of a second session's scans against the first's (:mod:`.sessions`), for the
-    model and for Scan Context on the same queries."""
+    """AR@1/5/20 of a second session's scans against the first's (:mod:`.sessions`):
+    ``{"scan_context": …, "networks": {label: …}}`` for Scan Context and every (label,
+    model, profile), on the same queries. A network listed twice is described once."""
     from model_export.rangecache import range_images
     from model_export.sessions import (
         check_sessions,
@@ -325,11 +337,18 @@ def cross_session(
 
     check_sessions(database, queries)
     pos_db, pos_q = town_positions(database), town_positions(queries)
-    d_db, _ = describe(model, range_images(database, profile, progress=progress))
-    d_q, _ = describe(model, range_images(queries, profile, progress=progress))
+    done: dict[str, dict[str, Any]] = {}
+    by_label: dict[str, dict[str, Any]] = {}
+    for label, model, profile in networks:
+        key = network_digest(model)
+        if key not in done:
+            d_db, _ = describe(model, range_images(database, profile, progress=progress))
+            d_q, _ = describe(model, range_images(queries, profile, progress=progress))
+            done[key] = descriptor_recall(d_db, pos_db, d_q, pos_q)
+        by_label[label] = done[key]
     sc_db = scan_contexts(database, progress=progress)
     sc_q = scan_contexts(queries, progress=progress)
     return {
-        "model": descriptor_recall(d_db, pos_db, d_q, pos_q),
         "scan_context": scan_context_recall(sc_db, pos_db, sc_q, pos_q),
+        "networks": by_label,
     }

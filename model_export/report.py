@@ -17,7 +17,6 @@ and extraction times (Table V) are a benchmark: ``benchmarks/place_recognition.p
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -31,9 +30,11 @@ from lidar_core.metrics import LoopClosureResult
 from model_export.checkpoint import load_model
 from model_export.evaluate import (
     SUBSETS,
+    cross_session,
     describe,
     eval_real,
     loop_closure,
+    network_digest,
     scan_contexts,
     scancontext_loop_closure,
     sequence_loops,
@@ -95,7 +96,7 @@ def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict
     gt = None
     for label, model, profile in _networks(runs):
         gt = gt or sequence_loops(seq, profile, progress=progress)
-        key = _network_digest(model)
+        key = network_digest(model)
         if key not in by_weights:
             desc, _ = describe(model, range_images(seq, profile, progress=progress))
             by_weights[key] = loop_closure(desc, gt)
@@ -127,39 +128,10 @@ def mean_over_towns(towns: dict[str, dict]) -> dict[str, dict]:
 def cross_sessions(runs: Path, database: Path, queries: Path, progress: bool = True) -> dict:
     """AR@1/5/20 of a second session's scans against the first (:mod:`.sessions`), for
     Scan Context and every Table I network."""
-    from model_export.sessions import (
-        check_sessions,
-        descriptor_recall,
-        scan_context_recall,
-        town_positions,
+    cross = cross_session(
+        list(_networks(runs)), open_sequence(database), open_sequence(queries), progress=progress
     )
-
-    db, q = open_sequence(database), open_sequence(queries)
-    check_sessions(db, q)
-    pos_db, pos_q = town_positions(db), town_positions(q)
-    sc = scan_context_recall(
-        scan_contexts(db, progress=progress), pos_db, scan_contexts(q, progress=progress), pos_q
-    )
-    out: dict[str, Any] = {"Scan Context": sc}
-    done: dict[str, dict] = {}
-    for label, model, profile in _networks(runs):
-        key = _network_digest(model)
-        if key not in done:
-            d_db, _ = describe(model, range_images(db, profile, progress=progress))
-            d_q, _ = describe(model, range_images(q, profile, progress=progress))
-            done[key] = descriptor_recall(d_db, pos_db, d_q, pos_q)
-        out[label] = done[key]
-    return out
-
-
-def _network_digest(model: OverlapMamba) -> str:
-    """sha256 of the architecture and every weight: two rows that are the same network (a
-    run reported under two names) are described once."""
-    h = hashlib.sha256(json.dumps(model.cfg.to_dict(), sort_keys=True).encode())
-    for name, tensor in model.state_dict().items():
-        h.update(name.encode())
-        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
+    return {"Scan Context": cross["scan_context"], **cross["networks"]}
 
 
 def plot_pr_methods(results: dict[str, dict[str, LoopClosureResult]], path: Path) -> None:

@@ -609,7 +609,8 @@ def eval_cmd(
         from model_export.evaluate import cross_session
 
         db = open_sequence(database)
-        cross = cross_session(model, profile, db, seq, progress=not quiet)
+        both = cross_session([("model", model, profile)], db, seq, progress=not quiet)
+        cross = {"model": both["networks"]["model"], "scan_context": both["scan_context"]}
         record["database"], record["cross_session"] = str(database), cross
         table = Table(
             title=f"Across sessions: {seq.name} against {db.name} ({len(db)} scans); queries "
