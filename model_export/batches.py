@@ -48,6 +48,15 @@ def read_pair_table(root: Path) -> dict[str, np.ndarray]:
             missing=str(path),
         )
     with np.load(path, allow_pickle=False) as z:
+        kind = str(z["pair_table"]) if "pair_table" in z.files else "all"
+        if kind != "all":
+            raise DatasetError(
+                f"{root}: its pair table holds only loop candidates (pair_table={kind!r}, as "
+                "validation and test towns are generated); training samples positives and near "
+                "misses from neighbouring frames and needs pair_table='all' (gen-data for a "
+                "training split)",
+                pair_table=kind,
+            )
         return {k: z[k] for k in ("query", "reference", "overlap")}
 
 

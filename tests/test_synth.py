@@ -238,6 +238,34 @@ def test_loops_exist_in_both_directions_and_are_reused(tiny_seq, monkeypatch):
     assert (yaws > 150).any() and (yaws < 30).any()
 
 
+def test_loop_only_pair_table_gives_the_same_loop_table_and_cannot_be_trained_on(
+    tiny_seq, tmp_path
+):
+    """Held-out towns compute only the loop candidates (pairs more than loop_exclude frames
+    apart): the loop table must be the very one that the full pair table gives."""
+    import shutil
+
+    from lidar_core.errors import DatasetError
+    from lidar_core.overlap import LoopGroundTruth
+    from model_export.batches import read_pair_table
+    from model_export.synth.generate import compute_ground_truth
+
+    copy = tmp_path / "tiny"
+    shutil.copytree(tiny_seq, copy)
+    cfg = TINY.model_copy(update={"pair_table": "loops"})
+    table, loops = compute_ground_truth(copy, cfg, workers=2, progress=False)
+    full = read_overlaps(tiny_seq)
+    assert (table["query"] - table["reference"] > TINY.loop_exclude).all()
+    assert 0 < len(table["query"]) < len(full["query"]) / 2
+    shipped = LoopGroundTruth.load(tiny_seq / "ground_truth" / "loops.npz")
+    for name in ("query", "reference", "overlap", "yaw_deg", "distance"):
+        np.testing.assert_array_equal(getattr(loops, name), getattr(shipped, name))
+    assert loops.params == shipped.params and loops.is_loop.sum() > 0
+    with pytest.raises(DatasetError, match="pair_table='loops'.*needs pair_table='all'"):
+        read_pair_table(copy)
+    read_pair_table(tiny_seq)  # a training town's table is accepted
+
+
 def test_same_seed_gives_byte_identical_output(tmp_path):
     cfg = GenConfig(seed=9, frames=6, sensor="hdl32", world={"nx": 2, "ny": 2}, gt_radius=10.0)
     generate(tmp_path / "a", cfg, workers=1, progress=False)

@@ -7,6 +7,7 @@
       times.txt               scan timestamps (s)
       ground_truth/
         overlaps.npz          overlap and yaw of every pair (i > j) closer than gt_radius
+                              (pair_table "loops": only pairs more than loop_exclude apart)
         loops.npz             the loop table (lidar_core.overlap.LoopGroundTruth)
       manifest.json           seed, generator version, parameters, counts, loop statistics
       map.png                 top-down world with the coloured drive and its revisits
@@ -23,6 +24,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -71,6 +73,12 @@ class GenConfig(BaseModel):
     gt_radius: float = Field(default=30.0, gt=0, le=200)
     loop_exclude: int = Field(default=100, ge=0)
     loop_min_overlap: float = Field(default=0.3, ge=0, le=1)
+    pair_table: Literal["all", "loops"] = Field(
+        default="all",
+        description="all: every pair within gt_radius (what training samples positives and "
+        "near misses from); loops: only pairs more than loop_exclude frames apart, the loop "
+        "table's candidates, enough for validation and test towns at a fraction of the work",
+    )
 
     @field_validator("sensor")
     @classmethod
@@ -195,10 +203,15 @@ def compute_ground_truth(
     stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
 ) -> tuple[dict, LoopGroundTruth]:
     """Overlap/yaw of every pair closer than ``gt_radius`` (query later than reference), with
-    lidar_core's overlap code; the loop table is the subset the loop protocol asks for."""
+    lidar_core's overlap code; the loop table is the subset the loop protocol asks for.
+
+    With ``pair_table="loops"`` only the loop table's candidates are computed (pairs more than
+    ``loop_exclude`` frames apart): the same loop table, without the neighbouring frames that
+    only training samples from."""
     seq = open_sequence(out, kind="kitti", sensor=cfg.sensor)
     profile = get_profile(cfg.sensor)
-    pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=1)
+    min_gap = 1 if cfg.pair_table == "all" else cfg.loop_exclude + 1
+    pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=min_gap)
     pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     # Chunks of ≈25 whole queries, so each chunk projects its queries once.
     queries = np.unique(pairs[:, 0])
@@ -232,7 +245,11 @@ def compute_ground_truth(
     }
     tmp = gt_dir / "overlaps.tmp.npz"
     np.savez_compressed(
-        tmp, **table, radius=cfg.gt_radius, profile=json.dumps(profile.model_dump())
+        tmp,
+        **table,
+        radius=cfg.gt_radius,
+        pair_table=cfg.pair_table,
+        profile=json.dumps(profile.model_dump()),
     )
     os.replace(tmp, gt_dir / "overlaps.npz")
     params = loop_params(
@@ -304,6 +321,7 @@ def _stats(world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: Ge
         same, rev, gaps = revisit_frames(loops)
         n = len(same) + len(rev)
         stats["ground_truth"] = {
+            "pair_table": cfg.pair_table,
             "pairs_within_radius": len(table["query"]),
             "adjacent_overlap_mean": float(
                 table["overlap"][table["query"] - table["reference"] == 1].mean()

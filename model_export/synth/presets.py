@@ -16,6 +16,11 @@ can refuse test data.
 | tiny   | 5    | 600   | kitti-hdl64 | 4 × 3, small   | tests: fast, both-direction loops |
 | tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | tests: validation of tiny runs |
 
+Validation and test towns (val, test*, tiny-val) compute only the loop table's candidate pairs
+(``pair_table="loops"``: pairs more than ``loop_exclude`` frames apart), which is all that
+selection and evaluation read; training towns keep every pair within ``gt_radius``, because
+the sampler draws positives and near misses from neighbouring frames.
+
 The tiny presets revisit after every 30–60 m of exploring in a small town (blocks of
 50–65 m), so 600 scans can hold loops in both directions; their pair tables stop at 12 m.
 Their seeds follow the same kind of rule: the first seed counting up from 5 (tiny) and from
@@ -46,6 +51,10 @@ _TINY: dict = {
 _DENSE_REVISITS = {"revisit_every": [120, 300], "revisit_min_age": 200}
 
 
+# Held-out towns need only their loop table (see the module notes).
+_EVAL = {"pair_table": "loops"}
+
+
 def _train(name: str, seed: int, world: dict) -> GenConfig:
     return GenConfig(
         seed=seed, frames=2000, preset=name, split="train", world=world, drive=_DENSE_REVISITS
@@ -57,14 +66,18 @@ PRESETS: dict[str, GenConfig] = {
     "train-b": _train("train-b", 1101, {"nx": 5, "ny": 5, "block_min": 60.0, "block_max": 120.0}),
     "train-c": _train("train-c", 1201, {"nx": 7, "ny": 4, "block_min": 50.0, "block_max": 100.0}),
     "train-d": _train("train-d", 1302, {"nx": 6, "ny": 6, "block_min": 80.0, "block_max": 160.0}),
-    "val": GenConfig(seed=2002, frames=1500, preset="val", split="val", world={"nx": 5, "ny": 5}),
-    "test": GenConfig(seed=3003, frames=2500, preset="test", split="test"),
-    "test-b": GenConfig(seed=3103, frames=2500, preset="test-b", split="test"),
-    "test-c": GenConfig(seed=3203, frames=2500, preset="test-c", split="test"),
+    "val": GenConfig(
+        seed=2002, frames=1500, preset="val", split="val", world={"nx": 5, "ny": 5}, **_EVAL
+    ),
+    "test": GenConfig(seed=3003, frames=2500, preset="test", split="test", **_EVAL),
+    "test-b": GenConfig(seed=3103, frames=2500, preset="test-b", split="test", **_EVAL),
+    "test-c": GenConfig(seed=3203, frames=2500, preset="test-c", split="test", **_EVAL),
     # A second drive through the test town: the place-recognition protocol across sessions.
-    "test-s1": GenConfig(seed=3003, session=1, frames=1500, preset="test-s1", split="test"),
+    "test-s1": GenConfig(
+        seed=3003, session=1, frames=1500, preset="test-s1", split="test", **_EVAL
+    ),
     "tiny": GenConfig(seed=5, frames=600, preset="tiny", split="train", **_TINY),
-    "tiny-val": GenConfig(seed=24, frames=600, preset="tiny-val", split="val", **_TINY),
+    "tiny-val": GenConfig(seed=24, frames=600, preset="tiny-val", split="val", **_TINY, **_EVAL),
 }
 
 
