@@ -24,6 +24,11 @@ VERSION = 1
 PREFIX = "overlapmamba."
 INPUT = "range_image"  # (B, 1, H, W) float32
 OUTPUTS = ("descriptor", "yaw_features")  # (B, D) unit norm; (B, C, W)
+# The selective scan is one node per block in this domain, defined by a model-local function
+# inside the file (portable: runtimes inline it); a runtime with its own kernel may bind the
+# node instead. circular → op name. Contract: model_export.scan_onnx.
+SCAN_DOMAIN = "overlapmamba"
+SCAN_OPS = {False: "SelectiveScan", True: "SelectiveScanRing"}
 
 
 class ModelMetadataError(LidarCoreError, ValueError):

@@ -1,14 +1,17 @@
 """Export OverlapMamba to a self-describing ONNX encoder, verified against PyTorch.
 
-    checkpoint → model (scan backend "loop") → torch.onnx.export(dynamo=True)
+    checkpoint → model (scan backend "onnx") → torch.onnx.export(dynamo=True)
+      → each block's scan is one overlapmamba.SelectiveScan[Ring] node; its body (Scan
+        loops) is attached as a model-local function (model_export.scan_onnx)
       → checks: batch axis symbolic, the scan present as ONNX Scan loops (not unrolled)
       → large matrices stored int8 (optional) → metadata_props → onnx.checker (full)
       → onnxruntime vs PyTorch on the verification images → atomic rename into place
 
 The graph: ``range_image`` (B, 1, H, W) float32 → ``descriptor`` (B, D) unit norm and
 ``yaw_features`` (B, C, W). The selective scan is :func:`model_export.scan.selective_scan_loop`:
-three ``Scan`` operators per block (chunks, carry, correction), circular mode included, no
-custom operator, so any ONNX runtime runs it.
+three ``Scan`` operators per block (chunks, carry, correction), circular mode included, inside
+one model-local function per block's node, so any ONNX runtime runs it (it inlines the
+function) and a runtime with a kernel for the node can bind it instead.
 
 **int8 storage.** NetVLAD's reduction matrix (clusters · conv_last2 × out_dim, 16.8M values
 in the reference head) is 93% of the weights. It is stored as int8 with one float scale per
@@ -19,15 +22,11 @@ at float32 speed. Everything else stays float32.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
-import io
-import logging
 import os
 import subprocess
 import time
-import warnings
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from lidar_core.sensors import SensorProfile
 from model_export.errors import ModelError
 from model_export.model import OverlapMamba
+from model_export.scan_onnx import TRANSLATIONS, attach_functions, quiet_export
 
 WEIGHT_FORMATS = ("int8", "float32")
 INT8_MIN_SIZE = 1 << 20  # matrices with at least this many values are stored int8
@@ -78,9 +78,14 @@ def source_commit() -> str:
     return res.stdout.strip() if res.returncode == 0 and res.stdout.strip() else "unknown"
 
 
-def count_nodes(graph: onnx.GraphProto) -> tuple[int, int]:
-    """(all nodes including those inside loop bodies, Scan/Loop nodes)."""
+def count_nodes(graph: onnx.GraphProto | onnx.ModelProto) -> tuple[int, int]:
+    """(all nodes including those inside loop bodies and local functions, Scan/Loop nodes)."""
     total = loops = 0
+    if isinstance(graph, onnx.ModelProto):
+        for fn in graph.functions:
+            t, lp = count_nodes(helper.make_graph(fn.node, fn.name, [], []))
+            total, loops = total + t, loops + lp
+        graph = graph.graph
     for node in graph.node:
         total += 1
         loops += node.op_type in ("Scan", "Loop")
@@ -92,43 +97,28 @@ def count_nodes(graph: onnx.GraphProto) -> tuple[int, int]:
 
 
 def _trace(model: OverlapMamba) -> onnx.ModelProto:
-    cfg = dataclasses.replace(model.cfg, scan_backend="loop")
+    cfg = dataclasses.replace(model.cfg, scan_backend="onnx")
     export_model = OverlapMamba(cfg)
     export_model.load_state_dict(model.state_dict())
     export_model.eval()
     # Batch 2, not 1: the exporter specialises a size-1 example axis to a constant.
     example = torch.rand(2, 1, cfg.height, cfg.width)
     batch = torch.export.Dim("batch", min=1, max=4096)
-    quiet = io.StringIO()
-    logger = logging.getLogger("torch.onnx")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
     try:
-        with (
-            warnings.catch_warnings(),
-            contextlib.redirect_stdout(quiet),
-            contextlib.redirect_stderr(quiet),
-        ):
-            warnings.simplefilter("ignore")
-            program = torch.onnx.export(
-                export_model,
-                (example,),
-                dynamo=True,
-                input_names=[INPUT],
-                output_names=list(OUTPUTS),
-                dynamic_shapes={"image": {0: batch}},
-                optimize=True,
-            )
+        proto = quiet_export(
+            export_model,
+            (example,),
+            input_names=[INPUT],
+            output_names=list(OUTPUTS),
+            dynamic_shapes={"image": {0: batch}},
+            custom_translation_table=TRANSLATIONS,
+        )
+        attach_functions(proto, cfg.width, cfg.d_inner, cfg.d_state, cfg.scan_chunk)
     except Exception as err:  # the exporter raises many kinds; say which step failed
+        notes = "\n".join(getattr(err, "__notes__", []))
         raise ExportError(
-            f"torch.onnx.export failed: {type(err).__name__}: {str(err)[:2000]}\n"
-            f"{quiet.getvalue()[-2000:]}"
+            f"torch.onnx.export failed: {type(err).__name__}: {str(err)[:2000]}\n{notes}"
         ) from None
-    finally:
-        logger.setLevel(level)
-    if program is None:
-        raise ExportError("torch.onnx.export returned no program")
-    proto: onnx.ModelProto = program.model_proto
     return proto
 
 
@@ -150,7 +140,7 @@ def _check_interface(proto: onnx.ModelProto, height: int, width: int) -> None:
     for out in proto.graph.output:
         d0 = out.type.tensor_type.shape.dim[0]
         d0.dim_param = "batch"
-    total, loops = count_nodes(proto.graph)
+    total, loops = count_nodes(proto)
     if loops == 0:
         raise ExportError("the exported graph has no Scan/Loop node: the scan was unrolled")
     if total > 2000:
@@ -272,7 +262,7 @@ def export_onnx(
         quantize_int8(proto, int8_min_size)
     ckpt = checkpoint or {}
     train = ckpt.get("train") or {}
-    total, loops = count_nodes(proto.graph)
+    total, loops = count_nodes(proto)
     meta = EncoderMetadata(
         model_id=_model_id(proto),
         profile=profile,

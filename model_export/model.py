@@ -61,7 +61,7 @@ class OverlapMambaConfig:
     out_dim: int = 256  # descriptor size
     gating: bool = True  # context gating on the descriptor
     yaw_channels: int = 16  # per-column features for yaw estimation
-    scan_backend: str = "auto"  # auto, fused, chunked, loop or ref (model_export.scan.scan)
+    scan_backend: str = "auto"  # auto, fused, chunked, loop, onnx or ref (model_export.scan.scan)
     scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
     extra: dict = field(default_factory=dict)  # free-form notes carried in checkpoints
 

@@ -211,7 +211,7 @@ def _loop(fn, init, xs):  # type: ignore[no-untyped-def]
     return scan_op(fn, init, xs)
 
 
-BACKENDS = ("auto", "fused", "chunked", "loop", "ref")
+BACKENDS = ("auto", "fused", "chunked", "loop", "onnx", "ref")
 
 
 def scan(
@@ -230,7 +230,9 @@ def scan(
 
     - ``fused``: the C kernel of :mod:`model_export.scan_fused` (CPU, fastest there);
     - ``chunked``: :func:`selective_scan` (any device, autograd through PyTorch ops);
-    - ``loop``: :func:`selective_scan_loop` (the form the ONNX export uses; no autograd);
+    - ``loop``: :func:`selective_scan_loop` (the algorithm of the exported graph; no autograd);
+    - ``onnx``: the same as one ``overlapmamba::selective_scan`` operator, which the ONNX
+      export turns into one node with the loop as its function (:mod:`.scan_onnx`);
     - ``ref``: :func:`selective_scan_ref` (slow, obvious);
     - ``auto``: fused on CPU when the kernel builds, chunked otherwise (GPU, no compiler).
     """
@@ -249,4 +251,8 @@ def scan(
         return selective_scan(u, delta, A, Bm, Cm, D, circular, chunk)
     if backend == "loop":
         return selective_scan_loop(u, delta, A, Bm, Cm, D, circular, chunk)
+    if backend == "onnx":
+        from model_export.scan_onnx import selective_scan_op
+
+        return selective_scan_op(u, delta, A, Bm, Cm, D, circular, chunk)
     return selective_scan_ref(u, delta, A, Bm, Cm, D, circular)

@@ -15,7 +15,12 @@ ort = pytest.importorskip("onnxruntime")
 from typer.testing import CliRunner  # noqa: E402
 
 from lidar_core.datasets import open_sequence  # noqa: E402
-from lidar_core.modelmeta import EncoderMetadata, ModelMetadataError  # noqa: E402
+from lidar_core.modelmeta import (  # noqa: E402
+    SCAN_DOMAIN,
+    SCAN_OPS,
+    EncoderMetadata,
+    ModelMetadataError,
+)
 from lidar_core.projection import project  # noqa: E402
 from lidar_core.sensors import get_profile  # noqa: E402
 from model_export.checkpoint import save_checkpoint  # noqa: E402
@@ -65,12 +70,19 @@ def test_interface_batch_axis_and_scan_loops(exported):
     assert [d.dim_value for d in dims[1:]] == [1, 64, 900]
     assert inp.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
     assert [o.name for o in proto.graph.output] == ["descriptor", "yaw_features"]
-    total, loops = count_nodes(proto.graph)
-    ops = {n.op_type for n in proto.graph.node}
-    # The scan is ONNX Scan loops over an (M, N, E) state: not unrolled, no custom domain.
+    total, loops = count_nodes(proto)
+    # The scan is ONNX Scan loops over an (M, N, E) state (not unrolled), inside one
+    # overlapmamba node per block whose body ships in the file as a local function: no
+    # runtime needs anything but the standard operators.
     assert loops >= 3 and total < 400, (loops, total)
-    assert "Scan" in ops
-    assert {o.domain for o in proto.opset_import} <= {"", "ai.onnx"}
+    scans = [n for n in proto.graph.node if n.domain == SCAN_DOMAIN]
+    assert [n.op_type for n in scans] == [SCAN_OPS[exported["model"].cfg.circular]]
+    assert {n.domain for n in proto.graph.node} <= {"", SCAN_DOMAIN}
+    (fn,) = proto.functions
+    assert (fn.domain, fn.name) == (SCAN_DOMAIN, scans[0].op_type)
+    assert "Scan" in {n.op_type for n in fn.node}
+    assert {n.domain for n in fn.node} <= {"", "ai.onnx"}
+    assert {o.domain for o in proto.opset_import} <= {"", "ai.onnx", SCAN_DOMAIN}
 
 
 def test_metadata_describes_the_model(exported):
