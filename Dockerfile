@@ -12,7 +12,14 @@ ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
 FROM ${PYTHON_IMAGE} AS build
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    PYTHONDONTWRITEBYTECODE=1
+    PYTHONDONTWRITEBYTECODE=1 \
+    OVERLAPMAMBA_CACHE=/opt/overlapmamba \
+    OVERLAPMAMBA_KERNEL_MARCH=x86-64-v2
+# A C compiler for the selective-scan kernel (this stage only: the runtime has none). Not
+# pinned: bookworm's gcc moves with point releases, and a pin would break the build then.
+# hadolint ignore=DL3008
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
 RUN python -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
@@ -26,7 +33,8 @@ COPY lidar_core ./lidar_core
 COPY overlapmamba ./overlapmamba
 COPY service ./service
 RUN pip install --no-cache-dir --no-deps . \
-    && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)"
+    && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
+    && python -m lidar_core.scan_kernel
 
 FROM ${PYTHON_IMAGE} AS runtime
 LABEL org.opencontainers.image.title="overlapmamba" \
@@ -38,6 +46,7 @@ RUN groupadd --system --gid 10001 overlapmamba \
     && mkdir /data \
     && chown overlapmamba:overlapmamba /data
 COPY --from=build /opt/venv /opt/venv
+COPY --from=build /opt/overlapmamba /opt/overlapmamba
 COPY models/overlapmamba-hdl64.onnx /app/models/overlapmamba-hdl64.onnx
 COPY deploy/healthcheck.py /app/healthcheck.py
 ENV PATH=/opt/venv/bin:$PATH \
@@ -45,7 +54,9 @@ ENV PATH=/opt/venv/bin:$PATH \
     OVERLAPMAMBA_HOST=0.0.0.0 \
     OVERLAPMAMBA_PORT=8000 \
     OVERLAPMAMBA_DATA_DIR=/data \
-    OVERLAPMAMBA_MODEL=/app/models/overlapmamba-hdl64.onnx
+    OVERLAPMAMBA_MODEL=/app/models/overlapmamba-hdl64.onnx \
+    OVERLAPMAMBA_CACHE=/opt/overlapmamba \
+    OVERLAPMAMBA_KERNEL_MARCH=x86-64-v2
 WORKDIR /app
 VOLUME ["/data"]
 USER 10001:10001

@@ -55,7 +55,10 @@ format: $(VENV)/.installed-all
 	$(BIN)/ruff check --fix .
 
 # Maps live under ./data/maps; settings: `overlapmamba dump-config`, OVERLAPMAMBA_* variables.
+# The selective-scan kernel is compiled here, at install, never at a request; without a
+# compiler the service says so at start and serves the model's portable graph.
 serve: $(VENV)/.installed-serve
+	-$(BIN)/python -m lidar_core.scan_kernel
 	$(BIN)/overlapmamba serve --host $(HOST) --port $(PORT) --model $(MODEL)
 
 bench: $(VENV)/.installed-all

@@ -230,16 +230,18 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             enc = encoder
             if enc is None:
                 threads = settings.batching.intra_op_threads
+                kernel = settings.scan_kernel
                 enc = await run_in_threadpool(
-                    lambda: Encoder(settings.model, intra_op_threads=threads)
+                    lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
                 )
             log.info(
-                "model %s (%s, %s weights) loaded in %.2f s from %s",
+                "model %s (%s, %s weights) loaded in %.2f s from %s; scan: %s",
                 enc.model_id,
                 enc.meta.profile.name,
                 enc.meta.weights,
                 enc.load_s,
                 enc.path,
+                enc.scan_path,
             )
             registry = open_backend(settings, model_id=enc.model_id, dim=enc.dim)
             svc = PlaceService(settings, enc, registry)

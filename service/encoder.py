@@ -6,6 +6,15 @@
 
 Nothing about the projection is configured here: :class:`EncoderMetadata` in the file says
 which sensor profile the network was trained on, and :meth:`Encoder.project` uses exactly it.
+
+**Two ways to run the same file.** The *portable* graph is the file as it is: onnxruntime
+inlines each scan node's body (ONNX ``Scan`` loops). The *C-kernel* path
+(:mod:`service.fastscan`) cuts the graph at its scan nodes and runs each scan with the
+kernel the model was trained with. It is built at load, then checked against the portable
+graph on a fixed input (max abs difference ≤ :data:`PARITY_TOL` in both outputs); only then
+does it serve. Anything that fails (no kernel, a file exported before scans were marked, a
+parity miss) is logged as a warning and the portable graph serves: :attr:`Encoder.scan_path`
+says which one runs, and ``/readyz`` shows it.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from lidar_core.points import PointCloud
 from lidar_core.projection import project
 
 log = logging.getLogger("overlapmamba.service")
+PARITY_TOL = 1e-4  # max abs difference, C-kernel path vs portable graph, at load
 
 
 class ModelLoadError(RuntimeError):
@@ -37,11 +47,12 @@ class Encoded:
 
 
 class Encoder:
-    def __init__(self, path: Path, *, intra_op_threads: int = 0) -> None:
+    def __init__(self, path: Path, *, intra_op_threads: int = 0, scan_kernel: bool = True) -> None:
         if not Path(path).is_file():
             raise ModelLoadError(f"model file {path} does not exist")
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = intra_op_threads or (os.cpu_count() or 1)
+        threads = intra_op_threads or (os.cpu_count() or 1)
+        opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         t0 = time.perf_counter()
         try:
@@ -62,6 +73,10 @@ class Encoder:
                 f"{list(OUTPUTS)}"
             )
         self.path = Path(path)
+        self._run = self._run_portable
+        self.scan_path = "portable (scan_kernel = false)"
+        if scan_kernel:
+            self.scan_path = self._try_scan_kernel(opts, threads)
         self.load_s = time.perf_counter() - t0
         if self.meta.weights != "trained":
             log.warning(
@@ -69,6 +84,40 @@ class Encoder:
                 self.meta.model_id,
                 self.meta.weights,
             )
+
+    def _run_portable(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        desc, yaw = self.session.run(list(OUTPUTS), {INPUT: images})
+        return desc, yaw
+
+    def _try_scan_kernel(self, opts: ort.SessionOptions, threads: int) -> str:
+        """Build the C-kernel path and serve with it if it agrees with the portable graph;
+        otherwise say why (a warning) and keep the portable graph. Returns :attr:`scan_path`."""
+        try:
+            import onnx
+
+            from lidar_core.scan_kernel import KernelBuildError, load
+            from service.fastscan import FastPathError, StagedGraph
+
+            load()
+            staged = StagedGraph(onnx.load(str(self.path)), opts, threads)
+            x = parity_image(self.meta)
+            want = self._run_portable(x)
+            got = staged.run(x)
+            err = max(float(np.abs(a - b).max()) for a, b in zip(got, want, strict=True))
+            if not err <= PARITY_TOL:  # NaN fails too
+                raise FastPathError(
+                    f"it disagrees with the portable graph by {err:.3g} (allowed ≤ {PARITY_TOL})"
+                )
+        except (ImportError, KernelBuildError, FastPathError, OSError, ValueError) as err:
+            log.warning(
+                "model %s: the C scan kernel is not used, the portable graph serves (slower): %s",
+                self.meta.model_id,
+                err,
+            )
+            return f"portable ({err})"
+        self._run = staged.run
+        n, k = staged.scan_count, len(staged.stages)
+        return f"c-kernel ({n} scans, {k} sessions; max abs {err:.1e} vs the portable graph)"
 
     @property
     def model_id(self) -> str:
@@ -84,7 +133,14 @@ class Encoder:
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """images (B, 1, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
-        desc, yaw = self.session.run(
-            list(OUTPUTS), {INPUT: np.ascontiguousarray(images, dtype=np.float32)}
-        )
-        return desc, yaw
+        return self._run(np.ascontiguousarray(images, dtype=np.float32))
+
+
+def parity_image(meta: EncoderMetadata) -> np.ndarray:
+    """A fixed (1, 1, H, W) range image for the load-time check: ranges across the profile's
+    span with a fifth of the pixels empty, as real scans have."""
+    p = meta.profile
+    rng = np.random.default_rng(0)
+    img = rng.uniform(p.min_range, p.max_range, (1, 1, p.height, p.width)).astype(np.float32)
+    img[rng.random(img.shape) < 0.2] = p.empty_value
+    return img

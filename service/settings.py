@@ -166,6 +166,12 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     data_dir: Path = Path("data")
     model: Path = Path("models/overlapmamba-hdl64.onnx")
+    scan_kernel: bool = Field(
+        True,
+        description="run each selective scan with the C kernel (lidar_core.scan_kernel), "
+        "checked against the model's portable graph at load; false, or a failed check: "
+        "onnxruntime runs the portable graph alone",
+    )
     insecure: bool = Field(False, description="allow a non-loopback host without API keys")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     shutdown_delay_s: float = Field(

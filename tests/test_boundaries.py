@@ -33,6 +33,7 @@ LIDAR_CORE_MODULES = [
     "lidar_core.metrics",
     "lidar_core.visualize",
     "lidar_core.yaw",
+    "lidar_core.scan_kernel",
 ]
 
 

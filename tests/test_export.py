@@ -163,14 +163,76 @@ def test_int8_weights_match_their_dequantised_model_and_keep_the_cosine(exported
     assert (d * f32_d).sum(1).min() >= 0.999
 
 
-def test_open_scan_one_direction_exports_too(tmp_path):
-    model = tiny_model(seed=1, circular=False, bidirectional=False, shift=False, spp=False)
+def test_open_scan_one_direction_two_blocks_exports_too(tmp_path):
+    model = tiny_model(
+        seed=1, circular=False, bidirectional=False, shift=False, spp=False, n_blocks=2
+    )
     res = export_onnx(model, PROFILE, tmp_path / "open.onnx", weight_format="float32")
     images = verification_images(PROFILE, count=2, seed=5)
     ref_d, ref_y = torch_out(model, images)
     d, y = run_onnx(res.path, images)
     np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
     np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
+    # The served C-kernel path cuts two scans into three sessions and agrees.
+    from service.encoder import Encoder
+
+    fast = Encoder(res.path, intra_op_threads=2)
+    assert fast.scan_path.startswith("c-kernel (2 scans, 3 sessions"), fast.scan_path
+    d2, y2 = fast.encode(images)
+    np.testing.assert_allclose(d2, d, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(y2, y, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("fmt", ["f32", "i8"])
+def test_served_c_kernel_path_matches_the_portable_graph_on_real_scans(exported, kitti_images, fmt):
+    from service.encoder import Encoder
+
+    fast = Encoder(exported[fmt].path, intra_op_threads=2)
+    portable = Encoder(exported[fmt].path, intra_op_threads=2, scan_kernel=False)
+    assert fast.scan_path.startswith("c-kernel (1 scans, 2 sessions"), fast.scan_path
+    assert portable.scan_path == "portable (scan_kernel = false)"
+    for batch in (1, 8):
+        d0, y0 = portable.encode(kitti_images[:batch])
+        d1, y1 = fast.encode(kitti_images[:batch])
+        assert d1.shape == d0.shape and y1.shape == y0.shape
+        np.testing.assert_allclose(d1, d0, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(y1, y0, rtol=0, atol=1e-4)
+
+
+def test_the_c_kernel_path_falls_back_to_the_portable_graph_and_says_why(
+    exported, kitti_images, tmp_path, monkeypatch, caplog
+):
+    import onnx.inliner
+
+    import lidar_core.scan_kernel as scan_kernel
+    import service.fastscan as fastscan
+    from service.encoder import Encoder
+
+    path = exported["f32"].path
+    want, _ = Encoder(path, scan_kernel=False).encode(kitti_images[:2])
+
+    def served(p: Path, reason: str) -> None:
+        caplog.clear()
+        enc = Encoder(p, intra_op_threads=2)
+        assert enc.scan_path.startswith(f"portable ({reason}"), enc.scan_path
+        assert any(reason in r.getMessage() and r.levelname == "WARNING" for r in caplog.records)
+        np.testing.assert_allclose(enc.encode(kitti_images[:2])[0], want, rtol=0, atol=1e-5)
+
+    # A file whose scans are not marked (its functions inlined, as files exported before).
+    flat = tmp_path / "flat.onnx"
+    onnx.save(onnx.inliner.inline_local_functions(onnx.load(str(path))), flat)
+    served(flat, "the graph has no overlapmamba scan node")
+    # A kernel that computes something else is caught by the load-time check.
+    monkeypatch.setattr(fastscan, "scan_forward", lambda u, *a, **k: np.zeros_like(u))
+    served(path, "it disagrees with the portable graph by")
+    monkeypatch.undo()
+
+    # No kernel (no compiler on the machine).
+    def no_kernel():
+        raise scan_kernel.KernelBuildError("no C compiler found (set $CC or install gcc) …")
+
+    monkeypatch.setattr(scan_kernel, "load", no_kernel)
+    served(path, "no C compiler found")
 
 
 def test_export_refuses_a_profile_of_another_size_and_unknown_formats(tmp_path):

@@ -150,7 +150,29 @@ def test_loading_the_kernel_keeps_subnormal_floats():
 
 def test_scan_rejects_unknown_backends_and_dtypes():
     args = inputs(1, 2, 5, 3)
-    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, ref"):
+    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, onnx, ref"):
         scan(*args, backend="cuda")
     with pytest.raises(TypeError, match="float32 or float64"):
         scan(*(x.half() for x in args), backend="fused")
+
+
+@pytest.mark.parametrize("circular", [False, True])
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_numpy_forward_of_the_served_kernel_matches_the_reference(circular, threads):
+    """lidar_core.scan_kernel.scan_forward (the service's fast path: token-major float32
+    arrays, rows split across threads, uneven splits included) against the plain loop."""
+    from lidar_core.scan_kernel import scan_forward
+
+    args = inputs(3, 7, 45, 4, seed=threads, dtype=torch.float32)
+    ref = selective_scan_ref(*args, circular=circular).numpy()
+    y = scan_forward(*(x.numpy() for x in args), circular=circular, threads=threads)
+    assert y.shape == ref.shape and y.dtype == ref.dtype and y.flags.c_contiguous
+    torch.testing.assert_close(torch.from_numpy(y), torch.from_numpy(ref), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="scan shapes disagree"):
+        scan_forward(
+            *(x.numpy() for x in args[:3]),
+            args[3].numpy()[:, :5],
+            args[4].numpy(),
+            args[5].numpy(),
+            circular,
+        )

@@ -10,6 +10,8 @@
  *   dA: (B, E, N)  per-batch partial sums (summed over the batch by the caller)
  * Each call handles batch rows [b0, b1), so the caller can split a batch across threads:
  * rows never share an output element (dB/dC are per batch row, accumulated over channels).
+ * The forward also comes over flat (batch, channel) rows [r0, r1) (scan_fwd_rows), which
+ * inference uses: at B = 1 the batch alone cannot be split across threads.
  *
  * Recurrence, for t = 0 … L−1, with a_t = exp(Δ_t A) and b_t = Δ_t u_t B_t:
  *   h_t = a_t ⊙ h_{t−1} + b_t,   h_{−1} = s,   y_t = C_t · h_t + D u_t
@@ -67,36 +69,46 @@ static void decays_and_start(const REAL *restrict u, const REAL *restrict delta,
     }
 }
 
-void FN(scan_fwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm, const REAL *Cm,
-                  const REAL *D, REAL *y, int B, int E, int L, int N, int circular, int b0,
-                  int b1) {
+/* Forward over flat rows r = b·E + e in [r0, r1): any split of the B·E rows across threads,
+ * so one scan at B = 1 (a few batch rows, hundreds of channels) still uses every thread. */
+void FN(scan_fwd_rows)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm,
+                       const REAL *Cm, const REAL *D, REAL *y, int B, int E, int L, int N,
+                       int circular, long r0, long r1) {
+    (void)B;
     REAL *a = malloc(sizeof(REAL) * (size_t)L * N);
     REAL *v = malloc(sizeof(REAL) * 2 * (size_t)N);
     REAL *restrict h = v, *restrict logp = v + N;
-    for (int b = b0; b < b1; b++) {
+    for (long r = r0; r < r1; r++) {
+        const long b = r / E, e = r % E;
         const REAL *Bb = Bm + (size_t)b * L * N, *Cb = Cm + (size_t)b * L * N;
-        for (int e = 0; e < E; e++) {
-            const size_t row = ((size_t)b * E + e) * L;
-            const REAL *ur = u + row, *dr = delta + row, *Ae = A + (size_t)e * N;
-            REAL *yr = y + row;
-            decays_and_start(ur, dr, Bb, Ae, a, h, logp, L, N, circular);
-            const REAL De = D[e];
-            for (int t = 0; t < L; t++) {
-                const REAL du = dr[t] * ur[t];
-                const REAL *restrict at = a + (size_t)t * N;
-                const REAL *restrict bt = Bb + (size_t)t * N;
-                const REAL *restrict ct = Cb + (size_t)t * N;
-                REAL acc = 0;
-                for (int n = 0; n < N; n++) {
-                    h[n] = at[n] * h[n] + du * bt[n];
-                    acc += ct[n] * h[n];
-                }
-                yr[t] = acc + De * ur[t];
+        const size_t row = (size_t)r * L;
+        const REAL *ur = u + row, *dr = delta + row, *Ae = A + (size_t)e * N;
+        REAL *yr = y + row;
+        decays_and_start(ur, dr, Bb, Ae, a, h, logp, L, N, circular);
+        const REAL De = D[e];
+        for (int t = 0; t < L; t++) {
+            const REAL du = dr[t] * ur[t];
+            const REAL *restrict at = a + (size_t)t * N;
+            const REAL *restrict bt = Bb + (size_t)t * N;
+            const REAL *restrict ct = Cb + (size_t)t * N;
+            REAL acc = 0;
+            for (int n = 0; n < N; n++) {
+                h[n] = at[n] * h[n] + du * bt[n];
+                acc += ct[n] * h[n];
             }
+            yr[t] = acc + De * ur[t];
         }
     }
     free(a);
     free(v);
+}
+
+/* Forward over batch rows [b0, b1) (the training path splits a batch by rows). */
+void FN(scan_fwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm, const REAL *Cm,
+                  const REAL *D, REAL *y, int B, int E, int L, int N, int circular, int b0,
+                  int b1) {
+    FN(scan_fwd_rows)(u, delta, A, Bm, Cm, D, y, B, E, L, N, circular, (long)b0 * E,
+                      (long)b1 * E);
 }
 
 void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm, const REAL *Cm,
