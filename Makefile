@@ -67,7 +67,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/encoder.py
 	$(BIN)/python benchmarks/place_recognition.py
-	$(BIN)/python benchmarks/service.py
+	$(BIN)/python benchmarks/serving.py
 	$(BIN)/python benchmarks/sizing.py
 
 # The synthetic presets (≈36 GB, ≈100 min on 2 cores): four training towns, the validation

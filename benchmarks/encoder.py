@@ -1,9 +1,12 @@
 """ONNX encoder speed: the exported graph against the same graph with the scan taken out.
 
-Variants, all the reference configuration (18.1 M parameters, three scan directions) with
-the same random weights, exported by ``model_export.export`` and run by onnxruntime on CPU:
+Variants, all the reference configuration (18.1 M parameters, three scan directions; or
+the narrow one with ``--narrow``) with the same random weights, exported by
+``model_export.export`` and run by onnxruntime on CPU:
 
-- ``scan-loop`` — the shipped form: the scan as ONNX Scan loops over L/T chunks side by
+- ``c-kernel (served)`` — the shipped file as the service runs it (``service.encoder``):
+  the graph cut at its scan nodes, each scan by the C kernel (``service.fastscan``);
+- ``scan-loop`` — the portable form: the scan as ONNX Scan loops over L/T chunks side by
   side (T = √L = 30), NetVLAD's reduction matrix stored int8;
 - ``scan-loop fp32`` — the same with every weight float32;
 - ``scan-seq`` — one chunk (T = L = 900): the same loops, step by step, as a plain
@@ -45,6 +48,7 @@ import model_export.model as model_module
 from lidar_core.sensors import get_profile
 from model_export.export import count_nodes, export_onnx
 from model_export.model import OverlapMamba, OverlapMambaConfig
+from model_export.presets import NARROW
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -123,7 +127,7 @@ def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
 
     res = measure(lambda: run(x1), lambda: run(x8), reps, lambda th: current.update(t=th))
     d, y = sessions[2].run(None, {"range_image": x8})
-    total, loops = count_nodes(onnx.load(str(path)).graph)
+    total, loops = count_nodes(onnx.load(str(path)))
     res |= {
         "descriptor_max_abs": float(np.abs(d - ref[0]).max()),
         "yaw_max_abs": float(np.abs(y - ref[1]).max()),
@@ -135,10 +139,35 @@ def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     return res
 
 
+def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
+    """The file as the service runs it: its Encoder (C-kernel path when it builds and agrees)."""
+    from service.encoder import Encoder
+
+    t = time.perf_counter()
+    encoders = {th: Encoder(path, intra_op_threads=th) for th in (1, 2)}
+    load_s = (time.perf_counter() - t) / 2
+    current = {"t": 1}
+
+    def run(x):
+        return encoders[current["t"]].encode(x)
+
+    res = measure(lambda: run(x1), lambda: run(x8), reps, lambda th: current.update(t=th))
+    d, y = encoders[2].encode(x8)
+    return res | {
+        "scan_path": encoders[2].scan_path,
+        "descriptor_max_abs": float(np.abs(d - ref[0]).max()),
+        "yaw_max_abs": float(np.abs(y - ref[1]).max()),
+        "load_s": load_s,
+    }
+
+
 def op_profile(path: Path, x1: np.ndarray, runs: int = 10) -> dict[str, dict[str, float]]:
     """ms per run by operator type: the top level (Scan includes its loop bodies; the
     entries partition the run) and, separately, the nodes inside the loop bodies."""
-    body_names = {n.name for n in _body_nodes(onnx.load(str(path)).graph)}
+    proto = onnx.load(str(path))
+    body_names = {n.name for n in _body_nodes(proto.graph.node)}
+    for fn in proto.functions:  # the scans' bodies, in the local function onnxruntime inlines
+        body_names |= {f"_inlfunc_{fn.name}_{n.name}" for n in _body_nodes(fn.node)}
     sess = session(path, 1, profile=True)
     for _ in range(runs):
         sess.run(None, {"range_image": x1})
@@ -153,12 +182,12 @@ def op_profile(path: Path, x1: np.ndarray, runs: int = 10) -> dict[str, dict[str
     return {"top_level": dict(top.most_common()), "inside_scan": dict(body.most_common())}
 
 
-def _body_nodes(graph: onnx.GraphProto) -> list[onnx.NodeProto]:
+def _body_nodes(nodes) -> list[onnx.NodeProto]:  # type: ignore[no-untyped-def]
     out = []
-    for node in graph.node:
+    for node in nodes:
         for attr in node.attribute:
             if attr.type == onnx.AttributeProto.GRAPH:
-                out += list(attr.g.node) + _body_nodes(attr.g)
+                out += list(attr.g.node) + _body_nodes(attr.g.node)
     return out
 
 
@@ -191,11 +220,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=30, help="timed runs per B = 1 setting")
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "encoder.json")
+    ap.add_argument("--narrow", action="store_true", help="the narrow configuration (presets)")
     args = ap.parse_args()
     console = Console()
     x8, source = images(8)
     x1 = x8[:1]
-    cfg = OverlapMambaConfig()
+    base_cfg = NARROW if args.narrow else {}
+    cfg = OverlapMambaConfig(**base_cfg)
     torch.manual_seed(0)
     model = OverlapMamba(cfg).eval()
     with torch.no_grad():
@@ -209,7 +240,7 @@ def main() -> None:
             ("scan-loop fp32", {}, "float32"),
             ("scan-seq (T=L)", {"scan_chunk": cfg.width}, "int8"),
         ):
-            m = OverlapMamba(OverlapMambaConfig(**over)).eval()
+            m = OverlapMamba(OverlapMambaConfig(**base_cfg, **over)).eval()
             m.load_state_dict(model.state_dict())
             out = Path(tmp) / f"{len(paths)}.onnx"
             paths[name] = export_onnx(m, PROFILE, out, weight_format=wf, images=x8[:2]).path
@@ -217,6 +248,8 @@ def main() -> None:
             # No verification against PyTorch here: without the scan the graphs differ.
             path = Path(tmp) / "noscan.onnx"
             paths["no-scan"] = _export_unverified(model, path)
+        console.print("timing c-kernel (served) …")
+        results["c-kernel (served)"] = served_variant(paths["scan-loop"], x1, x8, ref, args.reps)
         for name, path in paths.items():
             console.print(f"timing {name} …")
             results[name] = onnx_variant(path, x1, x8, ref, args.reps)
@@ -237,7 +270,12 @@ def main() -> None:
 
     base = results["no-scan"]
     ship = results["scan-loop"]
+    served = results["c-kernel (served)"]
     ratios = {
+        "served_over_noscan_b1_t1": served["b1_t1"]["median_ms"] / base["b1_t1"]["median_ms"],
+        "served_over_noscan_b1_t2": served["b1_t2"]["median_ms"] / base["b1_t2"]["median_ms"],
+        "served_b8_throughput_over_b1_t2": served["b1_t2"]["median_ms"]
+        / served["b8_t2_per_scan_ms"],
         "scan_over_noscan_b1_t1": ship["b1_t1"]["median_ms"] / base["b1_t1"]["median_ms"],
         "scan_over_noscan_b1_t2": ship["b1_t2"]["median_ms"] / base["b1_t2"]["median_ms"],
         "b8_throughput_over_b1_t2": ship["b1_t2"]["median_ms"] / ship["b8_t2_per_scan_ms"],
@@ -261,7 +299,9 @@ def main() -> None:
             f"{r['b1_t1']['median_ms']:.1f} / {r['b1_t1']['p90_ms']:.1f}",
             f"{r['b1_t2']['median_ms']:.1f} / {r['b1_t2']['p90_ms']:.1f}",
             f"{r['b8_t2_per_scan_ms']:.1f}",
-            f"{r['descriptor_max_abs']:.1e} / {r['yaw_max_abs']:.1e}" if "nodes" in r else "—",
+            f"{r['descriptor_max_abs']:.1e} / {r['yaw_max_abs']:.1e}"
+            if "descriptor_max_abs" in r
+            else "—",
             str(r.get("nodes", "—")),
             f"{r['file_mb']:.1f}" if "file_mb" in r else "—",
             f"{r['load_s']:.2f}" if "load_s" in r else "—",
@@ -291,6 +331,7 @@ def main() -> None:
 
     record = {
         "machine": {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version()},
+        "model_config": cfg.to_dict(),
         "onnxruntime": ort.__version__,
         "torch": torch.__version__,
         "inputs": source,

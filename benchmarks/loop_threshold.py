@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -22,14 +21,10 @@ from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
 
-# benchmarks/service.py would shadow the service package: take this folder off the path.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-from lidar_core.datasets import open_sequence  # noqa: E402
-from lidar_core.metrics import evaluate_loop_closure  # noqa: E402
-from lidar_core.overlap import LoopGroundTruth  # noqa: E402
-from service.encoder import Encoder  # noqa: E402
+from lidar_core.datasets import open_sequence
+from lidar_core.metrics import evaluate_loop_closure
+from lidar_core.overlap import LoopGroundTruth
+from service.encoder import Encoder
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -28,16 +28,12 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-# benchmarks/service.py would shadow the service package: take this folder off the path.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-from lidar_core.io import read_points  # noqa: E402
-from service.backend import Filters, content_hash, open_backend  # noqa: E402
-from service.encoder import Encoder  # noqa: E402
-from service.qdrant import point_payload  # noqa: E402
-from service.settings import Settings  # noqa: E402
-from service.store import NewKeyframe  # noqa: E402
+from lidar_core.io import read_points
+from service.backend import Filters, content_hash, open_backend
+from service.encoder import Encoder
+from service.qdrant import point_payload
+from service.settings import Settings
+from service.store import NewKeyframe
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"

@@ -41,25 +41,37 @@ from model_export.evaluate import (
     summary,
 )
 from model_export.model import OverlapMamba, OverlapMambaConfig
+from model_export.presets import SHIPPED
 from model_export.rangecache import range_images
 
-UNTRAINED = "untrained"
 UNTRAINED_LABEL = (
     "OverlapMamba, untrained (default run's epoch 0: initial weights, BN recalibrated)"
 )
-# Table I rows: label → run folder (its best.pt), in display order. Scan Context comes first.
+NARROW_UNTRAINED_LABEL = (
+    "OverlapMamba narrow, untrained (narrow run's epoch 0: initial weights, BN recalibrated)"
+)
+# Table I rows: label → (run folder, checkpoint), in display order; Scan Context comes first.
+# A run's epoch-000.pt is its starting point: the seed's initial weights with batch-norm
+# statistics recalibrated on training scans, before any gradient step. The row of the
+# shipped run's best.pt (presets.SHIPPED) gets " (shipped)" appended.
 NETWORKS = {
-    # The default run's starting point (its epoch-000.pt): the seed's initial weights with
-    # batch-norm statistics recalibrated on training scans, before any gradient step.
-    UNTRAINED_LABEL: UNTRAINED,
-    "OT-style, ablation budget": "abl-ot",
-    "OverlapMamba, ablation budget": "abl-full",
-    "OT-style, default recipe": "ot",
-    "OverlapMamba, default recipe on one training town": "one-town",
-    "OverlapMamba, default recipe with augmentation": "robust",
-    "OverlapMamba narrow, default recipe's wall time": "narrow",
-    "OverlapMamba, default recipe (shipped)": "default",
+    UNTRAINED_LABEL: ("default", "epoch-000.pt"),
+    NARROW_UNTRAINED_LABEL: ("narrow", "epoch-000.pt"),
+    "OT-style, ablation budget": ("abl-ot", "best.pt"),
+    "OverlapMamba, ablation budget": ("abl-full", "best.pt"),
+    "OT-style, default recipe": ("ot", "best.pt"),
+    "OverlapMamba, default recipe on one training town": ("one-town", "best.pt"),
+    "OverlapMamba, default recipe with augmentation": ("robust", "best.pt"),
+    "OverlapMamba narrow, default recipe's wall time": ("narrow", "best.pt"),
+    "OverlapMamba, default recipe": ("default", "best.pt"),
 }
+
+
+def row_label(label: str) -> str:
+    """The Table I label as printed: the shipped run's row says so."""
+    return f"{label} (shipped)" if NETWORKS[label] == (SHIPPED, "best.pt") else label
+
+
 ABLATIONS = {
     "full": "abl-full",
     "full (seed 1)": "abl-full-s1",
@@ -81,11 +93,11 @@ REAL = {
 
 def _networks(runs: Path):
     """(label, model, profile) of every Table I network found among the runs, in order."""
-    for label, run in NETWORKS.items():
-        ckpt = runs / "default" / "epoch-000.pt" if run == UNTRAINED else runs / run / "best.pt"
+    for label, (run, name) in NETWORKS.items():
+        ckpt = runs / run / name
         if ckpt.is_file():
             model, profile, _ = load_model(ckpt)
-            yield label, model, profile
+            yield row_label(label), model, profile
 
 
 def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict]:
@@ -233,7 +245,7 @@ def plot_epochs(rows: dict[str, dict], path: Path) -> None:
 def real_checks(runs: Path, progress: bool = False) -> dict[str, Any]:
     from lidar_core.sensors import get_profile
 
-    ckpt = runs / "default" / "best.pt"
+    ckpt = runs / SHIPPED / "best.pt"
     if not ckpt.is_file():
         return {}
     model, own, _ = load_model(ckpt)
@@ -366,16 +378,15 @@ def build_report(
     ablation = run_rows(runs, ABLATIONS)
     epoch_runs = {"ImTrihard (abl-full)": "abl-full", "triplet (abl-triplet)": "abl-triplet"}
     epoch_runs["ImTrihard (default)"] = "default"
+    epoch_runs["ImTrihard (narrow)"] = "narrow"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:
         plot_epochs(epochs, out / "epochs.png")
     notes = []
-    if (runs / "default" / "best.pt").is_file() and not (
-        runs / "default" / "epoch-000.pt"
-    ).is_file():
+    if (runs / SHIPPED / "best.pt").is_file() and not (runs / SHIPPED / "epoch-000.pt").is_file():
         notes.append(
-            f"{runs}/default has no epoch-000.pt (trained before epoch 0 existed, or with "
-            "recalibrate_batches = 0): Table I has no untrained row"
+            f"{runs}/{SHIPPED} has no epoch-000.pt (trained before epoch 0 existed, or with "
+            "recalibrate_batches = 0): Table I has no untrained row for the shipped network"
         )
     report = {
         "notes": notes,

@@ -35,7 +35,7 @@ KINDS = ("flat", "ivf")
 
 def ivf_lists(n: int) -> int:
     """4·√N lists (≈250 vectors each at 1M): short lists keep a probe cheap
-    (benchmarks/service.py measures recall and latency against nprobe). At most N/39, the
+    (benchmarks/serving.py measures recall and latency against nprobe). At most N/39, the
     fewest training points per centroid FAISS's k-means accepts."""
     return int(max(1, min(16384, round(4 * math.sqrt(max(n, 1))), n // 39)))
 

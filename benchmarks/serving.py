@@ -66,15 +66,10 @@ import onnxruntime as ort
 from rich.console import Console
 from rich.table import Table
 
-# Run as a script, this file's folder comes first on sys.path, where the name "service" is this
-# very file (benchmarks/service.py), not the service package: take the folder off the path.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-from lidar_core.io import decode  # noqa: E402
-from service.encoder import Encoder  # noqa: E402
-from service.index import VectorIndex  # noqa: E402
-from service.settings import BatchSettings, IndexSettings  # noqa: E402
+from lidar_core.io import decode
+from service.encoder import Encoder
+from service.index import VectorIndex
+from service.settings import BatchSettings, IndexSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
