@@ -15,6 +15,12 @@ the narrow one with ``--narrow``) with the same random weights, exported by
   the goal "encoder ÷ encoder without scan ≤ 1.25";
 - ``torch eager`` — PyTorch on the same inputs (fused C scan kernel).
 
+**Peer** (``--no-peer`` skips it): OverlapTransformer's network as our OT-style config
+(``mixer="transformer", spp=False``: OT's backbone, one transformer layer d 256 / 4 heads /
+feed-forward 1024, convLast2 1024, NetVLAD 64 clusters → 256, gating), exported to ONNX with
+the same int8 head and timed **interleaved** with the served encoder on the same image: each
+repetition runs one and then the other, so load on the shared machine hits both alike.
+
 Reports medians and p90 (B = 1 at 1 and 2 threads, B = 8 at 2 threads per scan), max
 error against PyTorch, node count (loop bodies included), file size, load time, the ratios,
 the FLOP count of the shipped graph with the fraction of this machine's peak, and
@@ -161,6 +167,34 @@ def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     }
 
 
+def peer_comparison(ours_path: Path, peer_path: Path, x1, x8, reps: int) -> dict[str, Any]:
+    """Served encoder vs the OT-style peer, 2 threads, alternating every repetition."""
+    from service.encoder import Encoder
+
+    ours = Encoder(ours_path, intra_op_threads=2)
+    peer = session(peer_path, 2)
+    out: dict[str, Any] = {"scan_path": ours.scan_path}
+    for name, x, n in (("b1", x1, reps), ("b8", x8, max(5, reps // 4))):
+        a, b = [], []
+        for _ in range(3):
+            ours.encode(x)
+            peer.run(None, {"range_image": x})
+        for _ in range(n):
+            t = time.perf_counter()
+            ours.encode(x)
+            a.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            peer.run(None, {"range_image": x})
+            b.append(time.perf_counter() - t)
+        per = len(x)
+        out[name] = {
+            "ours_ms_per_scan": float(np.median(a)) * 1e3 / per,
+            "peer_ms_per_scan": float(np.median(b)) * 1e3 / per,
+            "ours_over_peer": float(np.median(a) / np.median(b)),
+        }
+    return out
+
+
 def op_profile(path: Path, x1: np.ndarray, runs: int = 10) -> dict[str, dict[str, float]]:
     """ms per run by operator type: the top level (Scan includes its loop bodies; the
     entries partition the run) and, separately, the nodes inside the loop bodies."""
@@ -221,6 +255,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=30, help="timed runs per B = 1 setting")
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "encoder.json")
     ap.add_argument("--narrow", action="store_true", help="the narrow configuration (presets)")
+    ap.add_argument("--no-peer", action="store_true", help="skip the OT-style peer comparison")
     args = ap.parse_args()
     console = Console()
     x8, source = images(8)
@@ -254,6 +289,18 @@ def main() -> None:
             console.print(f"timing {name} …")
             results[name] = onnx_variant(path, x1, x8, ref, args.reps)
         profile = op_profile(paths["scan-loop"], x1)
+        peer: dict[str, Any] | None = None
+        if not args.no_peer:
+            console.print("timing the OT-style peer, interleaved with the served encoder …")
+            torch.manual_seed(1)
+            ot = OverlapMamba(OverlapMambaConfig(mixer="transformer", spp=False)).eval()
+            ot_path = export_onnx(ot, PROFILE, Path(tmp) / "ot.onnx", images=x8[:2]).path
+            peer = peer_comparison(paths["scan-loop"], ot_path, x1, x8, args.reps) | {
+                "peer_params": sum(p.numel() for p in ot.parameters()),
+                "ours_params": sum(p.numel() for p in model.parameters()),
+                "peer_file_mb": ot_path.stat().st_size / 1e6,
+                "ours_file_mb": paths["scan-loop"].stat().st_size / 1e6,
+            }
 
     console.print("timing torch eager …")
     before = torch.get_num_threads()
@@ -319,6 +366,24 @@ def main() -> None:
         f"{achieved:.1f} GFLOP/s at B=1, 2 threads = {100 * work['fraction_of_peak']:.1f}% "
         f"of the {peak:.0f} GFLOP/s peak of 2 cores ({cpu})"
     )
+    if peer is not None:
+        pt = Table(title="served encoder vs OT-style peer (ONNX, 2 threads, interleaved)")
+        for c in ("batch", "ours ms/scan", "OT-style ms/scan", "ours ÷ OT (goal ≤ 0.8)"):
+            pt.add_column(c, justify="right")
+        for b in ("b1", "b8"):
+            r = peer[b]
+            pt.add_row(
+                b.upper(),
+                f"{r['ours_ms_per_scan']:.1f}",
+                f"{r['peer_ms_per_scan']:.1f}",
+                f"{r['ours_over_peer']:.2f}",
+            )
+        console.print(pt)
+        console.print(
+            f"parameters: ours {peer['ours_params'] / 1e6:.2f} M, OT-style "
+            f"{peer['peer_params'] / 1e6:.2f} M; files {peer['ours_file_mb']:.1f} / "
+            f"{peer['peer_file_mb']:.1f} MB"
+        )
     for part, title in (("top_level", "top level"), ("inside_scan", "inside the Scan bodies")):
         rows = profile[part]
         total = sum(rows.values())
@@ -339,6 +404,7 @@ def main() -> None:
         "ratios": ratios,
         "flops": work,
         "op_profile_ms": profile,
+        "peer": peer,
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(record, indent=2) + "\n")

@@ -75,7 +75,9 @@ class Encoder:
         self.path = Path(path)
         self._run = self._run_portable
         self.scan_path = "portable (scan_kernel = false)"
-        if scan_kernel:
+        if self.meta.network.get("mixer", "mamba") != "mamba":
+            self.scan_path = f"no scan ({self.meta.network['mixer']} mixer)"
+        elif scan_kernel:
             self.scan_path = self._try_scan_kernel(opts, threads)
         self.load_s = time.perf_counter() - t0
         if self.meta.weights != "trained":

@@ -140,7 +140,7 @@ def test_config_round_trips_and_rejects_bad_values():
         OverlapMambaConfig.from_dict({"d_modle": 8})
     with pytest.raises(ValueError, match="d_state must be a positive integer"):
         OverlapMambaConfig(d_state=0)
-    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, ref"):
+    with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, onnx, ref"):
         OverlapMambaConfig(scan_backend="gpu")
 
 

@@ -98,7 +98,7 @@ torch = pytest.importorskip("torch")
 from typer.testing import CliRunner  # noqa: E402
 
 from model_export.errors import ConfigError  # noqa: E402
-from model_export.export import ExportError, export_onnx  # noqa: E402
+from model_export.export import export_onnx  # noqa: E402
 from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
 from model_export.presets import PRESETS, TEST_DATA, get_preset  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
@@ -108,7 +108,7 @@ SMALL = SMALL_MODEL
 runner = CliRunner()
 
 
-def test_transformer_mixer_is_yaw_invariant_and_not_exported(tmp_path):
+def test_transformer_mixer_is_yaw_invariant_and_exports(tmp_path):
     from lidar_core.sensors import get_profile
 
     torch.manual_seed(0)
@@ -120,8 +120,11 @@ def test_transformer_mixer_is_yaw_invariant_and_not_exported(tmp_path):
         d2, y2 = model(torch.roll(x, 321, -1))
     torch.testing.assert_close(d, d2, atol=1e-5, rtol=0)
     torch.testing.assert_close(torch.roll(y, 321, -1), y2, atol=1e-4, rtol=0)
-    with pytest.raises(ExportError, match="only OverlapMamba models"):
-        export_onnx(model, get_profile("kitti-hdl64"), tmp_path / "x.onnx")
+    # The OT-style peer exports (for the encoder benchmark), verified against PyTorch.
+    res = export_onnx(
+        model, get_profile("kitti-hdl64"), tmp_path / "x.onnx", weight_format="float32"
+    )
+    assert res.scan_nodes == 0 and res.verification["descriptor_max_abs"] <= 1e-4
     with pytest.raises(ValueError, match="mixer 'lstm' is unknown"):
         OverlapMambaConfig(mixer="lstm")
     with pytest.raises(ValueError, match="not divisible by heads"):
