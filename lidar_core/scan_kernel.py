@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -139,7 +140,7 @@ def available() -> bool:
     return True
 
 
-def run_split(fn, rows: int, threads: int, *args) -> None:  # type: ignore[no-untyped-def]
+def run_split(fn: Callable[..., object], rows: int, threads: int, *args: object) -> None:
     """Call fn(*args, r0, r1) over [0, rows), split evenly across ``threads`` threads
     (ctypes releases the GIL during each call)."""
     threads = max(1, min(threads, rows))

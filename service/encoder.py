@@ -105,10 +105,10 @@ class Encoder:
             x = parity_image(self.meta)
             want = self._run_portable(x)
             got = staged.run(x)
-            err = max(float(np.abs(a - b).max()) for a, b in zip(got, want, strict=True))
-            if not err <= PARITY_TOL:  # NaN fails too
+            gap = max(float(np.abs(a - b).max()) for a, b in zip(got, want, strict=True))
+            if not gap <= PARITY_TOL:  # NaN fails too
                 raise FastPathError(
-                    f"it disagrees with the portable graph by {err:.3g} (allowed ≤ {PARITY_TOL})"
+                    f"it disagrees with the portable graph by {gap:.3g} (allowed ≤ {PARITY_TOL})"
                 )
         except (ImportError, KernelBuildError, FastPathError, OSError, ValueError) as err:
             log.warning(
@@ -119,7 +119,7 @@ class Encoder:
             return f"portable ({err})"
         self._run = staged.run
         n, k = staged.scan_count, len(staged.stages)
-        return f"c-kernel ({n} scans, {k} sessions; max abs {err:.1e} vs the portable graph)"
+        return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
 
     @property
     def model_id(self) -> str:

@@ -176,9 +176,11 @@ class StagedGraph:
             values = stage.session.run(stage.outputs, {n: env[n] for n in stage.inputs})
             env.update(zip(stage.outputs, values, strict=True))
             for node in stage.scans:
-                args = [self.constants[n] if n in self.constants else env[n] for n in node.input]
+                u, delta, A, Bm, Cm, D = (
+                    self.constants[n] if n in self.constants else env[n] for n in node.input
+                )
                 env[node.output[0]] = scan_forward(
-                    *args, circular=_CIRCULAR[node.op_type], threads=self.threads
+                    u, delta, A, Bm, Cm, D, _CIRCULAR[node.op_type], self.threads
                 )
         desc, yaw = (env[name] for name in OUTPUTS)
         return desc, yaw
