@@ -14,7 +14,10 @@ overlap of every pair of scans closer than its radius. A batch is made of groups
   different (when the anchor has none, any scan that does not overlap it);
 - for half of the anchors (``revisit_fraction``), the first positive is an *old* pass of
   the same place (more than ``min_revisit_gap`` scans earlier or later) when the anchor has
-  one, so loop closures, not only neighbouring frames, drive the loss.
+  one, so loop closures, not only neighbouring frames, drive the loss;
+- with mined hard negatives (:mod:`model_export.mining`), a share of the groups take their
+  anchor from the mined pool and, instead of the near miss, a distant scan that the current
+  model finds alike.
 
 Every other scan of the batch is a negative of the anchor unless the table says they
 overlap more than ``negative_threshold``: the loss reads the batch's full (B, B) overlap
@@ -35,6 +38,7 @@ from scipy import sparse
 
 from lidar_core.datasets.base import Sequence
 from lidar_core.errors import DatasetError
+from model_export.mining import HardNegatives
 
 GROUP = 4
 
@@ -158,9 +162,18 @@ class BatchSampler:
                 f"{plan.positive_threshold}) in the training data: nothing to learn from"
             )
 
-    def batch(self, rng: np.random.Generator) -> np.ndarray:
-        """One batch: (batch_size,) global scan indices in groups, no repeats."""
+    def batch(
+        self, rng: np.random.Generator, hard: HardNegatives | None = None, share: float = 0.0
+    ) -> np.ndarray:
+        """One batch: (batch_size,) global scan indices in groups, no repeats. With ``hard``,
+        each group is a mined one with probability ``share``: its anchor comes from the
+        mined pool and its negatives from the anchor's mined candidates."""
         p = self.plan
+        hard_revisit = (
+            np.intersect1d(hard.anchors, self.revisit_anchors)
+            if hard is not None
+            else np.zeros(0, np.int64)
+        )
         chosen: list[int] = []
         taken: set[int] = set()
 
@@ -173,8 +186,14 @@ class BatchSampler:
         for _ in range(50 * p.batch_size):  # bounded: a tiny data set may run out of anchors
             if len(chosen) == p.batch_size:
                 break
+            mined = hard is not None and share > 0 and rng.random() < share
             revisit = len(self.revisit_anchors) > 0 and rng.random() < p.revisit_fraction
-            anchors = free(self.revisit_anchors if revisit else self.anchors)
+            if mined:
+                assert hard is not None
+                revisit = revisit and len(hard_revisit) > 0
+                anchors = free(hard_revisit if revisit else hard.anchors)
+            else:
+                anchors = free(self.revisit_anchors if revisit else self.anchors)
             if not anchors:
                 continue
             anchor = pick(anchors)
@@ -189,6 +208,13 @@ class BatchSampler:
                 group.append(rest.pop(int(rng.integers(len(rest)))))
             taken.update(group)
             for _ in range(p.negatives):
+                if mined:
+                    assert hard is not None
+                    alike = free(hard.candidates[anchor])
+                    if alike:
+                        group.append(pick(alike))
+                        taken.add(group[-1])
+                        continue
                 misses = free(self.near_misses[anchor])
                 if not misses:  # none close by: any scan that does not overlap the anchor
                     misses = free(
@@ -211,5 +237,11 @@ class BatchSampler:
         """Batches in an epoch of ``scans`` scans."""
         return max(1, scans // self.plan.batch_size)
 
-    def epoch(self, rng: np.random.Generator, scans: int) -> list[np.ndarray]:
-        return [self.batch(rng) for _ in range(self.steps(scans))]
+    def epoch(
+        self,
+        rng: np.random.Generator,
+        scans: int,
+        hard: HardNegatives | None = None,
+        share: float = 0.0,
+    ) -> list[np.ndarray]:
+        return [self.batch(rng, hard, share) for _ in range(self.steps(scans))]

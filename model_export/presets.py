@@ -11,6 +11,8 @@ otherwise.
   validation).
 - ``narrow`` is a narrower network (d_model 64, convLast2 256, 32 clusters: ≈ 2.9× the
   reference's training speed here) on the same wall time: 6 epochs of 10,000 scans.
+- ``narrow-hn`` is ``narrow`` with mined hard negatives (:mod:`model_export.mining`): half of
+  the groups take a distant scan the current weights find alike as their negative.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -82,6 +84,12 @@ PRESETS: dict[str, TrainPreset] = {
             "narrower OverlapMamba (d 64, head 256, 32 clusters), the default's wall time",
             model=NARROW,
             train={"epochs": 6, "epoch_scans": 10000},
+        ),
+        TrainPreset(
+            "narrow-hn",
+            "narrow with mined hard negatives: half the groups meet a distant look-alike",
+            model=NARROW,
+            train={"epochs": 6, "epoch_scans": 10000, "hard_negatives": 0.5},
         ),
         TrainPreset(
             "ot",

@@ -63,6 +63,7 @@ NETWORKS = {
     "OverlapMamba, default recipe on one training town": ("one-town", "best.pt"),
     "OverlapMamba, default recipe with augmentation": ("robust", "best.pt"),
     "OverlapMamba narrow, default recipe's wall time": ("narrow", "best.pt"),
+    "OverlapMamba narrow, mined hard negatives": ("narrow-hn", "best.pt"),
     "OverlapMamba, default recipe": ("default", "best.pt"),
 }
 

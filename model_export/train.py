@@ -8,8 +8,10 @@ The recipe is a :class:`~model_export.train_config.TrainConfig`.
 scans (:mod:`model_export.calibrate`), validated like every epoch: every curve starts from a
 fair untrained model, and selection may keep it.
 
-**Epochs 1…** draw ``epoch_scans`` scans in batches (:mod:`model_export.batches`), augment
-them (:mod:`model_export.augment`) and step Adam; the learning rate warms up linearly over
+**Epochs 1…** draw ``epoch_scans`` scans in batches (:mod:`model_export.batches`; with
+``hard_negatives`` > 0 a share of the groups get a negative mined by the epoch's starting
+weights, :mod:`model_export.mining`), augment them (:mod:`model_export.augment`) and step
+Adam; the learning rate warms up linearly over
 ``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. Every step records the
 training health (:mod:`model_export.health`: d(q,p), d(q,n), spread, active hinges), shown in
 the progress bar and kept every ``log_every`` steps; a spread that falls below a quarter of
@@ -65,6 +67,7 @@ from model_export.evaluate import (
 )
 from model_export.health import HealthLog, batch_distances, json_safe
 from model_export.losses import pair_masks
+from model_export.mining import HardNegatives, mine
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import cache_key, range_images
 from model_export.train_config import SCHEDULE, TrainConfig, load_config_file
@@ -350,7 +353,18 @@ def train(
     for epoch in range(first, train_cfg.epochs + 1):
         rng = np.random.default_rng([train_cfg.seed, epoch])
         torch.manual_seed(int(rng.integers(2**31)))  # the shifted branch's draws
-        batches = sampler.epoch(rng, train_cfg.epoch_scans)
+        hard: HardNegatives | None = None
+        mine_s = 0.0
+        if train_cfg.hard_negatives > 0:
+            tm = time.perf_counter()
+            size = min(train_cfg.mine_pool, len(pairs))
+            pool = np.sort(rng.choice(len(pairs), size=size, replace=False))
+            pool_desc, _ = describe(model, images[pool], device=str(device))
+            hard = mine(
+                pool, pool_desc, lambda a: sampler.related[a], sampler.anchors, train_cfg.mine_top
+            )
+            mine_s = time.perf_counter() - tm
+        batches = sampler.epoch(rng, train_cfg.epoch_scans, hard, train_cfg.hard_negatives)
         model.train()
         health = HealthLog(
             every=train_cfg.log_every,
@@ -413,6 +427,7 @@ def train(
                 "lr": opt.param_groups[0]["lr"],
                 "train_s": train_s,
                 "data_s": data_s,
+                "mining": None if hard is None else {**hard.stats, "mine_s": mine_s},
                 "scans_per_s": len(steps) * train_cfg.batch_size / train_s,
                 "val_s": val_s,
                 "val": val_metrics,

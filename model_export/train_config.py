@@ -48,6 +48,12 @@ class TrainConfig:
     revisit_fraction: float = 0.5  # anchors whose first positive is an old pass
     group_positives: int = 2  # a batch is groups of anchor + positives + near misses
     group_negatives: int = 1
+    # Hard negatives mined by the current model (model_export.mining): the share of groups
+    # whose negative is a distant look-alike instead of the near miss (0: off), from a pool
+    # of mine_pool training scans described at each epoch's start, mine_top per anchor.
+    hard_negatives: float = 0.0
+    mine_pool: int = 2000
+    mine_top: int = 10
     augment: dict = field(default_factory=dict)  # AugmentConfig overrides
     recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
     log_every: int = 10  # steps per health record
@@ -59,7 +65,7 @@ class TrainConfig:
         if self.loss not in BATCH_LOSSES:
             raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
         names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")
-        for name in (*names, "group_positives"):
+        for name in (*names, "group_positives", "mine_top"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be ≥ 1, got {getattr(self, name)}")
         for name in ("warmup_steps", "recalibrate_batches", "group_negatives"):
@@ -78,6 +84,11 @@ class TrainConfig:
                 f"batch_size {self.batch_size} is not allowed: use a multiple of {group} (an "
                 f"anchor, {self.group_positives} positives and {self.group_negatives} near "
                 "misses per group)"
+            )
+        if not 0 <= self.hard_negatives <= 1 or self.mine_pool < 2:
+            raise ConfigError(
+                f"hard_negatives {self.hard_negatives} / mine_pool {self.mine_pool} are not "
+                "allowed: use 0 ≤ hard_negatives ≤ 1 and mine_pool ≥ 2"
             )
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")

@@ -202,8 +202,21 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     # abl-full: SMALL for 2 epochs of 32 scans in batches of 16 (the session's tiny run)
     shutil.copytree(tiny_run[0], runs / "abl-full")
     ot = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
-    one = TrainConfig(epochs=1, epoch_scans=32, batch_size=16, recalibrate_batches=0)
-    train([tiny_seq], tiny_val_seq, runs / "abl-ot", ot, one, progress=False)
+    # (this run also goes through the training loop's mining: half its groups take a
+    # negative mined by the starting weights from a pool of 64 scans)
+    one = TrainConfig(
+        epochs=1,
+        epoch_scans=32,
+        batch_size=16,
+        recalibrate_batches=0,
+        real="",
+        hard_negatives=0.5,
+        mine_pool=64,
+    )
+    history = train([tiny_seq], tiny_val_seq, runs / "abl-ot", ot, one, progress=False)
+    mined = history[-1]["mining"]
+    assert mined["pool"] == 64 and mined["anchors"] > 0 and mined["mine_s"] > 0
+    assert mined["mined_d2"] < mined["pool_d2"]
     shutil.copytree(runs / "abl-full", runs / "default")
     # the shipped row is the last epoch (a tiny run's best may be its epoch 0)
     shutil.copy(runs / "default" / "epoch-002.pt", runs / "default" / "best.pt")

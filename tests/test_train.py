@@ -283,3 +283,34 @@ def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
     # Exact equivariance holds for column rolls; a continuous turn also re-samples the scan.
     assert r["yaw_invariance"]["cosine_min"] > 0.999
     assert r["yaw_error_deg"]["vs_turned_copy"]["median"] < 1.0
+
+
+def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):
+    """model_export.mining on the tiny town with stand-in descriptors: each anchor's
+    candidates are its nearest pool scans (squared L2) that do not overlap it, and a batch
+    of mined groups takes its negatives from them."""
+    from model_export.mining import mine
+
+    pairs = PairIndex.from_sequences([open_sequence(tiny_seq)])
+    sampler = BatchSampler(pairs, BatchPlan(batch_size=16, negative_threshold=0.1))
+    rng = np.random.default_rng(0)
+    pool = np.sort(rng.choice(len(pairs), 200, replace=False))
+    desc = rng.normal(size=(len(pool), 8)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    hard = mine(pool, desc, lambda a: sampler.related[a], sampler.anchors, top=5)
+    assert len(hard.anchors) > 20 and hard.stats["mined_d2"] < hard.stats["pool_d2"]
+    at = {int(g): i for i, g in enumerate(pool)}
+    for a, cands in hard.candidates.items():
+        allowed = [j for j in pool if j != a and j not in set(sampler.related[a].tolist())]
+        d2 = {int(j): float(((desc[at[a]] - desc[at[int(j)]]) ** 2).sum()) for j in allowed}
+        want = sorted(d2, key=lambda j: (d2[j], j))[: len(cands)]
+        assert sorted(d2[int(c)] for c in cands) == pytest.approx([d2[j] for j in want])
+        assert a in sampler.anchors and a not in cands
+    for idx in sampler.epoch(rng, 64, hard, share=1.0):
+        ov = pairs.submatrix(idx)
+        for g in range(0, 16, GROUP):
+            anchor, negative = int(idx[g]), int(idx[g + 3])
+            assert anchor in hard.candidates and negative in hard.candidates[anchor]
+            assert ov[g, g + 3] <= 0.1 and ov[g, g + 1] > 0.3
+    with pytest.raises(ConfigError, match="0 ≤ hard_negatives ≤ 1"):
+        TrainConfig(hard_negatives=1.5)
