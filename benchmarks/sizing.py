@@ -10,6 +10,10 @@ each map backend's operations, measured on this machine.
     backends    insert and query (k = 10) latency through the one map interface, for FAISS
                 and for Qdrant's *local mode* (exact numpy search, no server: it shows the
                 payload and filter path, not a Qdrant server's speed)
+    search      the query's "search" stage on a FAISS map of --search-keyframes (10,000):
+                index + rows + yaw for k = 5 (+ the runner-up), split into its parts, with
+                FAISS on 1 and on 2 OpenMP threads (index.threads), on an idle process and
+                with the encoder busy in another thread (as under load)
 
 Writes JSON (default bench-results/sizing.json).
 """
@@ -29,6 +33,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.io import read_points
+from lidar_core.yaw import estimate_yaw
 from service.backend import Filters, content_hash, open_backend
 from service.encoder import Encoder
 from service.qdrant import point_payload
@@ -153,11 +158,86 @@ def backend_costs(kind: str, root: Path, data: list[NewKeyframe], dim: int) -> d
     return out
 
 
+def _p(times: list[float]) -> dict[str, float]:
+    ms = np.asarray(times) * 1e3
+    return {"p50_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
+
+
+def search_stage(
+    root: Path, n: int, dim: int, yaw_shape: tuple[int, ...], enc: Encoder, cloud, reps: int
+) -> list[dict]:
+    """Map.search (what the query's ``timings_ms.search`` times, less the thread hop) and its
+    parts, per (FAISS threads, load)."""
+    import threading
+
+    from service.index import set_threads
+
+    b = open_backend(Settings(data_dir=root), model_id="bench", dim=dim)
+    b.load_all()
+    m, _ = b.create("town", "flat")
+    data = rows(n, dim, yaw_shape, seed=2)
+    for i in range(0, n, 500):
+        m.insert(data[i : i + 500])
+    rng = np.random.default_rng(3)
+    queries = [
+        (rng.normal(size=dim).astype(np.float32), rng.normal(size=yaw_shape).astype(np.float32))
+        for _ in range(reps)
+    ]
+    image = enc.project(cloud)[None]
+    out = []
+    for load in ("idle", "encoder busy"):
+        stop = threading.Event()
+
+        def busy(stop: threading.Event = stop) -> None:
+            while not stop.is_set():
+                enc.encode(image)
+
+        worker = threading.Thread(target=busy, daemon=True) if load != "idle" else None
+        if worker:
+            worker.start()
+        for threads in (1, 2):
+            set_threads(threads)
+            whole, index, rows_, yaw = [], [], [], []
+            for q, qy in queries:
+                t0 = time.perf_counter()
+                m.search(q, 6, Filters(), qy)
+                whole.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                _, ids = m.index.search(q / np.linalg.norm(q), 6, None)
+                index.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                got = m.store.by_ids([int(i) for i in ids])
+                rows_.append(time.perf_counter() - t0)
+                refs = np.stack([y for _, y in got.values() if y is not None])
+                t0 = time.perf_counter()
+                estimate_yaw(qy, refs)
+                yaw.append(time.perf_counter() - t0)
+            out.append(
+                {
+                    "load": load,
+                    "faiss_threads": threads,
+                    "keyframes": n,
+                    "search": _p(whole),
+                    "index": _p(index),
+                    "rows": _p(rows_),
+                    "yaw": _p(yaw),
+                }
+            )
+        if worker:
+            stop.set()
+            worker.join()
+    set_threads(1)
+    b.close()
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--keyframes", type=int, default=2000)
     ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--search-keyframes", type=int, default=10_000)
+    ap.add_argument("--search-reps", type=int, default=200)
     ap.add_argument("--work", type=Path, default=ROOT / "bench-results" / "sizing-work")
     ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "sizing.json")
     args = ap.parse_args()
@@ -175,6 +255,16 @@ def main() -> None:
     data = rows(args.keyframes, dim, yaw_shape)
     backends = {k: backend_costs(k, args.work / k, data, dim) for k in ("faiss", "qdrant")}
     shutil.rmtree(args.work, ignore_errors=True)
+    search = search_stage(
+        args.work / "search",
+        args.search_keyframes,
+        dim,
+        yaw_shape,
+        enc,
+        clouds[0],
+        args.search_reps,
+    )
+    shutil.rmtree(args.work, ignore_errors=True)
 
     result = {
         "machine": {
@@ -187,6 +277,7 @@ def main() -> None:
         "descriptor_dim": dim,
         "yaw_shape": list(yaw_shape),
         "backends": backends,
+        "search_stage": search,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
@@ -204,6 +295,19 @@ def main() -> None:
     keys = sorted({k for v in backends.values() for k in v})
     for key in keys:
         t.add_row(key, *[_fmt(backends[b].get(key)) for b in backends])
+    console.print(t)
+    t = Table(
+        title=f"search stage: k = 5 (+ runner-up) with yaw, FAISS map of "
+        f"{args.search_keyframes:,} keyframes, p50 (p90) ms"
+    )
+    for col in ("load", "FAISS threads", "search (whole)", "index", "rows", "yaw"):
+        t.add_column(col, justify="right")
+    for r in search:
+        cells = [
+            f"{r[k]['p50_ms']:.3f} ({r[k]['p90_ms']:.3f})"
+            for k in ("search", "index", "rows", "yaw")
+        ]
+        t.add_row(r["load"], str(r["faiss_threads"]), *cells)
     console.print(t)
     console.print(f"wrote {args.out}")
 

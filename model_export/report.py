@@ -380,6 +380,7 @@ def build_report(
     epoch_runs = {"ImTrihard (abl-full)": "abl-full", "triplet (abl-triplet)": "abl-triplet"}
     epoch_runs["ImTrihard (default)"] = "default"
     epoch_runs["ImTrihard (narrow)"] = "narrow"
+    epoch_runs["ImTrihard (narrow, mined negatives)"] = "narrow-hn"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:
         plot_epochs(epochs, out / "epochs.png")

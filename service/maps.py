@@ -38,7 +38,7 @@ from service.backend import (
     insert_results,
 )
 from service.errors import Conflict, NotFound, Unavailable
-from service.index import VectorIndex, ivf_lists
+from service.index import VectorIndex, ivf_lists, set_threads
 from service.schemas import MAP_ID, check_map_id
 from service.settings import IndexSettings
 from service.store import Keyframe, NewKeyframe, Store, fsync_dir, unit_vector
@@ -444,6 +444,7 @@ class MapRegistry:
         self.maps: dict[str, Map] = {}
         self.failed: dict[str, str] = {}  # map id -> why it could not be opened
         self._lock = threading.Lock()
+        set_threads(settings.threads)
 
     def load_all(self) -> None:
         """Open every map. One that cannot be opened (a damaged store) is logged and listed

@@ -70,6 +70,14 @@ class IndexSettings(_Section):
         24, ge=1, description="IVF lists searched per query (recall@10 0.99 at 1M, measured)"
     )
     snapshot_every: int = Field(5_000, ge=1, description="writes between automatic snapshots")
+    threads: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="FAISS (OpenMP) threads for the whole process. 1: one query's exact "
+        "search over 10k keyframes is a fraction of a millisecond on one thread, and more "
+        "threads spin against the encoder's on a small machine (docs/deploy.md, sizing)",
+    )
 
 
 class QdrantSettings(_Section):

@@ -233,6 +233,23 @@ def _registry(root: Path, **index: object) -> MapRegistry:
     return r
 
 
+def test_faiss_threads_follow_the_setting_and_bad_counts_are_refused(tmp_path):
+    import faiss
+    from pydantic import ValidationError
+
+    before = faiss.omp_get_max_threads()
+    try:
+        _registry(tmp_path / "a", threads=2).close()
+        assert faiss.omp_get_max_threads() == 2
+        _registry(tmp_path / "b").close()  # the default: one thread per query
+        assert faiss.omp_get_max_threads() == 1
+    finally:
+        faiss.omp_set_num_threads(before)
+    for bad in (0, -1, 1000):
+        with pytest.raises(ValidationError, match="threads"):
+            IndexSettings(threads=bad)
+
+
 def test_map_snapshot_and_replay_after_unsnapshotted_writes(tmp_path):
     rng = np.random.default_rng(4)
     vecs = unit(rng, 300)
