@@ -87,3 +87,24 @@ def test_shipped_model_descriptor_ignores_yaw_on_a_real_scan(session, meta, kitt
     other = project(seq.points(100).xyz, meta.profile)
     d_other = session.run(["descriptor"], {INPUT: other[None, None]})[0][0]
     assert d_other @ desc[0] < cos.min()
+
+
+def test_shipped_model_is_served_by_the_c_kernel(meta):
+    """Each scan of the shipped file is one marked node (forward, backward, shifted per
+    block), so the service's C-kernel path can bind it; where a C compiler is there, the
+    service builds that path and it agrees with the portable graph."""
+    import onnx
+
+    from lidar_core.modelmeta import SCAN_DOMAIN, SCAN_OPS
+    from lidar_core.scan_kernel import KernelBuildError, load
+    from service.encoder import Encoder
+
+    model = onnx.load(str(MODEL))
+    scans = [n.op_type for n in model.graph.node if n.domain == SCAN_DOMAIN]
+    assert scans == [SCAN_OPS[True]] * (3 * meta.network["n_blocks"])
+    try:
+        load()
+    except KernelBuildError as err:
+        pytest.skip(f"no C kernel here: {err}")
+    enc = Encoder(MODEL, intra_op_threads=2)
+    assert enc.scan_path.startswith("c-kernel ("), enc.scan_path
