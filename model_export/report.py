@@ -48,7 +48,8 @@ UNTRAINED_LABEL = (
     "OverlapMamba, untrained (default run's epoch 0: initial weights, BN recalibrated)"
 )
 NARROW_UNTRAINED_LABEL = (
-    "OverlapMamba narrow, untrained (narrow run's epoch 0: initial weights, BN recalibrated)"
+    "OverlapMamba narrow, untrained (narrow-hn run's epoch 0: initial weights, BN "
+    "recalibrated; narrow's is the same)"
 )
 # Table I rows: label → (run folder, checkpoint), in display order; Scan Context comes first.
 # A run's epoch-000.pt is its starting point: the seed's initial weights with batch-norm
@@ -56,7 +57,7 @@ NARROW_UNTRAINED_LABEL = (
 # shipped run's best.pt (presets.SHIPPED) gets " (shipped)" appended.
 NETWORKS = {
     UNTRAINED_LABEL: ("default", "epoch-000.pt"),
-    NARROW_UNTRAINED_LABEL: ("narrow", "epoch-000.pt"),
+    NARROW_UNTRAINED_LABEL: ("narrow-hn", "epoch-000.pt"),
     "OT-style, ablation budget": ("abl-ot", "best.pt"),
     "OverlapMamba, ablation budget": ("abl-full", "best.pt"),
     "OT-style, default recipe": ("ot", "best.pt"),

@@ -100,7 +100,7 @@ from typer.testing import CliRunner  # noqa: E402
 from model_export.errors import ConfigError  # noqa: E402
 from model_export.export import export_onnx  # noqa: E402
 from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
-from model_export.presets import PRESETS, TEST_DATA, get_preset  # noqa: E402
+from model_export.presets import PRESETS, SHIPPED, TEST_DATA, get_preset  # noqa: E402
 from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
@@ -184,7 +184,7 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 @pytest.mark.timeout(900)
 def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path, monkeypatch):
     import model_export.report as report_mod
-    from model_export.report import UNTRAINED_LABEL, build_report
+    from model_export.report import NETWORKS, build_report, row_label
 
     described: list[int] = []
     real_describe = report_mod.describe
@@ -217,25 +217,29 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     mined = history[-1]["mining"]
     assert mined["pool"] == 64 and mined["anchors"] > 0 and mined["mine_s"] > 0
     assert mined["mined_d2"] < mined["pool_d2"]
-    shutil.copytree(runs / "abl-full", runs / "default")
-    # the shipped row is the last epoch (a tiny run's best may be its epoch 0)
-    shutil.copy(runs / "default" / "epoch-002.pt", runs / "default" / "best.pt")
-    shutil.copy(runs / "default" / "epoch-002.pt", runs / "abl-full" / "best.pt")
+    # the shipped run (presets.SHIPPED) is a copy of abl-full, its row the last epoch (a
+    # tiny run's best may be its epoch 0); its epoch 0 is the untrained row
+    shutil.copytree(runs / "abl-full", runs / SHIPPED)
+    shutil.copy(runs / SHIPPED / "epoch-002.pt", runs / SHIPPED / "best.pt")
+    shutil.copy(runs / SHIPPED / "epoch-002.pt", runs / "abl-full" / "best.pt")
+    shipped = next(row_label(k) for k, v in NETWORKS.items() if v == (SHIPPED, "best.pt"))
+    untrained_label = next(k for k, v in NETWORKS.items() if v == (SHIPPED, "epoch-000.pt"))
 
     report = build_report(runs, tiny_val_seq, tmp_path / "report", progress=False)
     t1 = report["table1"]
+    assert shipped.endswith(" (shipped)")
     assert list(t1) == [
         "Scan Context",
-        UNTRAINED_LABEL,
+        untrained_label,
         "OT-style, ablation budget",
         "OverlapMamba, ablation budget",
-        "OverlapMamba, default recipe (shipped)",
+        shipped,
     ]
-    # default is a copy of abl-full: that network is described once, for both rows
+    # the shipped run is a copy of abl-full: that network is described once, for both rows
     assert len(described) == 3
-    assert t1["OverlapMamba, ablation budget"] == t1["OverlapMamba, default recipe (shipped)"]
-    untrained = t1[UNTRAINED_LABEL]["all"]
-    assert untrained != t1["OverlapMamba, default recipe (shipped)"]["all"]
+    assert t1["OverlapMamba, ablation budget"] == t1[shipped]
+    untrained = t1[untrained_label]["all"]
+    assert untrained != t1[shipped]["all"]
     for subs in t1.values():
         assert set(subs) == {"all", "same", "reverse"}
         assert 0 <= subs["all"]["f1max"] <= 1 and subs["all"]["queries_with_loop"] > 0
