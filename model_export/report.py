@@ -391,17 +391,25 @@ def build_report(
             f"{runs}/{SHIPPED} has no epoch-000.pt (trained before epoch 0 existed, or with "
             "recalibrate_batches = 0): Table I has no untrained row for the shipped network"
         )
+    cross = (
+        {"database": str(sessions[0]), "queries": str(sessions[1])}
+        | cross_sessions(runs, *sessions, progress=progress)
+        if sessions
+        else None
+    )
+    sc = (cross or {}).get("Scan Context")
+    if sc is not None and sc["queries"] == 0:
+        notes.append(
+            f"cross-session: none of the {sc['queries_total']} scans of {sessions[1]} "  # type: ignore[index]
+            f"lies within {sc['radius_m']:g} m of a scan of {sessions[0]}: the two drives do "  # type: ignore[index]
+            "not meet, so AR@N is undefined there"
+        )
     report = {
         "notes": notes,
         "test": [str(t) for t in tests],
         "table1": t1,
         "table1_towns": towns,
-        "cross_session": (
-            {"database": str(sessions[0]), "queries": str(sessions[1])}
-            | cross_sessions(runs, *sessions, progress=progress)
-            if sessions
-            else None
-        ),
+        "cross_session": cross,
         "ablation": ablation,
         "epochs": epochs,
         "real": real_checks(runs),
