@@ -98,8 +98,9 @@ async def test_every_response_has_a_request_id_and_an_access_line(tmp_path):
 def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
     data = tmp_path / "data"
     rng = np.random.default_rng(3)
-    # a 12-scan batch: about a second of encoding, in flight when the signal arrives
-    scans = [scan(i).tobytes() for i in range(12)]
+    # the largest batch (64 scans, limits.max_batch_scans): over a second of encoding even on
+    # the C-kernel path (≈ 25 ms a scan), so it is in flight when the signal arrives at 0.4 s
+    scans = [scan(i).tobytes() for i in range(64)]
     batch = b"".join(struct.pack("<I", len(s)) + s for s in scans)
     result: dict[str, object] = {}
     with (
@@ -136,7 +137,7 @@ def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
         t.join(60)
         proc.wait(60)
         out = server_log(proc).encode()
-    assert result == {"status": 200, "n": 12}, out.decode()[-3000:]
+    assert result == {"status": 200, "n": 64}, out.decode()[-3000:]
     log = [json.loads(line) for line in out.decode().splitlines() if line.startswith("{")]
     msgs = [x["msg"] for x in log]
     drain = next(i for i, m in enumerate(msgs) if m.startswith("signal 15: /readyz is 503"))

@@ -92,13 +92,15 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     # the report's cross-session table: the same numbers for the same network
     import shutil
 
-    from model_export.report import cross_sessions
+    from model_export.presets import SHIPPED
+    from model_export.report import NETWORKS, cross_sessions, row_label
 
-    (tmp_path / "runs" / "default").mkdir(parents=True)
-    shutil.copy(ckpt, tmp_path / "runs" / "default" / "best.pt")
+    (tmp_path / "runs" / SHIPPED).mkdir(parents=True)
+    shutil.copy(ckpt, tmp_path / "runs" / SHIPPED / "best.pt")
     table = cross_sessions(tmp_path / "runs", tmp_path / "s0", tmp_path / "s1", progress=False)
     assert table["Scan Context"] == cross["scan_context"]
-    assert table["OverlapMamba, default recipe (shipped)"] == cross["model"]
+    shipped = next(row_label(k) for k, v in NETWORKS.items() if v == (SHIPPED, "best.pt"))
+    assert table[shipped] == cross["model"]
     # the same session twice is refused with the reason
     res = CliRunner().invoke(app, [*args, "--database", str(tmp_path / "s1"), "-q"])
     assert res.exit_code != 0 and "same session" in res.output
