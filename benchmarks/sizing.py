@@ -38,7 +38,7 @@ from service.backend import Filters, content_hash, open_backend
 from service.encoder import Encoder
 from service.qdrant import point_payload
 from service.settings import Settings
-from service.store import NewKeyframe
+from service.store import NewKeyframe, unit_vector
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -203,7 +203,7 @@ def search_stage(
                 m.search(q, 6, Filters(), qy)
                 whole.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                _, ids = m.index.search(q / np.linalg.norm(q), 6, None)
+                _, ids = m.index.search(unit_vector(q), 6, None)
                 index.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 got = m.store.by_ids([int(i) for i in ids])

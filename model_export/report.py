@@ -391,19 +391,19 @@ def build_report(
             f"{runs}/{SHIPPED} has no epoch-000.pt (trained before epoch 0 existed, or with "
             "recalibrate_batches = 0): Table I has no untrained row for the shipped network"
         )
-    cross = (
-        {"database": str(sessions[0]), "queries": str(sessions[1])}
-        | cross_sessions(runs, *sessions, progress=progress)
-        if sessions
-        else None
-    )
-    sc = (cross or {}).get("Scan Context")
-    if sc is not None and sc["queries"] == 0:
-        notes.append(
-            f"cross-session: none of the {sc['queries_total']} scans of {sessions[1]} "  # type: ignore[index]
-            f"lies within {sc['radius_m']:g} m of a scan of {sessions[0]}: the two drives do "  # type: ignore[index]
-            "not meet, so AR@N is undefined there"
+    cross = None
+    if sessions:
+        first, second = sessions
+        cross = {"database": str(first), "queries": str(second)} | cross_sessions(
+            runs, first, second, progress=progress
         )
+        sc = cross["Scan Context"]
+        if sc["queries"] == 0:
+            notes.append(
+                f"cross-session: none of the {sc['queries_total']} scans of {second} lies "
+                f"within {sc['radius_m']:g} m of a scan of {first}: the two drives do not "
+                "meet, so AR@N is undefined there"
+            )
     report = {
         "notes": notes,
         "test": [str(t) for t in tests],
