@@ -57,10 +57,12 @@ def test_stream_sigkill_durability_and_backup(tmp_path):
 
         body = scan(2).tobytes()
         with pytest.raises(ConnectionClosed) as closed, connect(ws_url) as ws:
-            for i in range(12):  # far more than 3 pending, without reading
+            # far more than 3 pending, without reading: 60 scans arrive much faster than even the
+            # C-kernel encoder (≈ 25 ms a scan) describes them
+            for i in range(60):
                 ws.send(_meta(100.0 + i, insert="never"))
                 ws.send(body)
-            for _ in range(12):
+            for _ in range(60):
                 ws.recv(timeout=30)
         assert closed.value.rcvd is not None and closed.value.rcvd.code == 1013
         assert "outran" in closed.value.rcvd.reason
