@@ -415,13 +415,33 @@ def test_a_second_session_drives_the_same_town_with_other_cars_and_route():
     w0, d0, dyn0 = build_scene(cfg)
     w1, d1, dyn1 = build_scene(cfg.model_copy(update={"session": 1}))
     np.testing.assert_array_equal(w0.static.tris, w1.static.tris)  # the same static town
-    assert not np.allclose(d0.poses[:, :3, 3], d1.poses[:, :3, 3])  # another route
+    assert not np.allclose(d0.poses[:, :3, 3], d1.poses[:, :3, 3])  # another drive
     assert not np.array_equal(dyn0.park_on, dyn1.park_on)  # other parked cars
     again = build_scene(cfg.model_copy(update={"session": 1}))[1]
     np.testing.assert_array_equal(again.poses, d1.poses)  # a session is reproducible
     assert cfg.session_seed() == [9]  # session 0: the seed alone, as before sessions existed
     with pytest.raises(ValueError, match="less than or equal to 1000"):
         GenConfig(seed=9, frames=4, session=1001)
+
+
+def test_the_second_test_session_keeps_to_the_first_sessions_streets():
+    """The cross-session protocol needs every query of session 1 to have a place in session 0:
+    session 1 re-drives session 0's streets (in its own order, both directions)."""
+    from scipy.spatial import cKDTree
+
+    from model_export.synth.generate import build_scene
+    from model_export.synth.trajectory import driven_streets
+
+    w0, d0, _ = build_scene(PRESETS["test"])
+    d1 = build_scene(PRESETS["test-s1"])[1]
+    net = w0.network
+    assert set(driven_streets(net, d1)) <= set(driven_streets(net, d0))
+    tree = cKDTree(d0.poses[:, :2, 3])
+    gap, near = tree.query(d1.poses[:, :2, 3])
+    assert gap.max() < 5.0, gap.max()  # lanes are ≈3 m apart
+    h0, h1 = (np.arctan2(d.poses[:, 1, 0], d.poses[:, 0, 0]) for d in (d0, d1))
+    reverse = np.abs(np.angle(np.exp(1j * (h1 - h0[near])))) > np.pi / 2
+    assert 0.1 < reverse.mean() < 0.9  # places met in both directions
 
 
 def test_gen_data_session_option_is_recorded(tmp_path):

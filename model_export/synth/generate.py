@@ -42,11 +42,13 @@ from lidar_core.poses import write_poses
 from lidar_core.sensors import get_profile
 from model_export.synth.dynamics import Dynamics, DynamicsParams
 from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
-from model_export.synth.trajectory import Drive, DriveParams, plan_drive
+from model_export.synth.trajectory import Drive, DriveParams, driven_streets, plan_drive
 from model_export.synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
 from model_export.synth.world import World, WorldParams, build_world
 
-GENERATOR_VERSION = "1.4.0"  # 1.4.0: sessions (session 0 is byte-identical to 1.3.1)
+# 1.4.0: sessions (session 0 is byte-identical to 1.3.1); 1.5.0: a later session keeps to
+# the streets of the first (session 0 unchanged)
+GENERATOR_VERSION = "1.5.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -62,7 +64,8 @@ class GenConfig(BaseModel):
         ge=0,
         le=1000,
         description="0: the town's first drive; k > 0: another drive through the same static "
-        "town (same seed), with its own route, parked cars, traffic, people and scan noise",
+        "town (same seed) along the streets the first drive of as many frames took, in its own "
+        "order and directions, with its own parked cars, traffic, people and scan noise",
     )
     sensor: str = "kitti-hdl64"
     preset: str | None = None
@@ -361,8 +364,15 @@ def build_scene(cfg: GenConfig) -> tuple[World, Drive, Dynamics]:
     """The town, the drive through it and its moving parts: everything but the scans."""
     world = build_world(cfg.seed, cfg.world_params())  # the same for every session
     session = cfg.session_seed()
+    net, terrain, params = world.network, world.terrain, cfg.drive_params()
+    streets = None
+    if cfg.session:  # later sessions re-drive the first one's streets, in their own order
+        first = plan_drive(
+            net, terrain, np.random.default_rng([cfg.seed, 0xD21]), cfg.frames, params
+        )
+        streets = driven_streets(net, first)
     rng = np.random.default_rng([*session, 0xD21])
-    drive = plan_drive(world.network, world.terrain, rng, cfg.frames, cfg.drive_params())
+    drive = plan_drive(net, terrain, rng, cfg.frames, params, streets)
     dynamics = Dynamics(world, session, float(drive.times[-1]) + 1.0, cfg.dynamics_params())
     return world, drive, dynamics
 

@@ -70,6 +70,16 @@ class Drive:
         return vehicle_pose(np.column_stack([x, y]), yaw, self.terrain, self.mount_height)
 
 
+def driven_streets(net: StreetNetwork, drive: Drive) -> np.ndarray:
+    """Indices of the streets the drive's scans lie on: the route's legs up to the distance
+    driven by the last scan (the route is planned a little longer than it is driven)."""
+    xy = drive.pose_at(drive.times)[:, :2, 3]
+    driven = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
+    legs = [net.street_between(a, b) for a, b in pairwise(drive.route)]
+    start = np.concatenate([[0.0], np.cumsum([net.streets[k].length for k in legs])])[:-1]
+    return np.unique([k for k, s0 in zip(legs, start, strict=True) if s0 < driven])
+
+
 def vehicle_pose(xy: np.ndarray, yaw: np.ndarray, terrain: Terrain, mount: float) -> np.ndarray:
     """Sensor poses on the terrain: yaw from the path, pitch and roll from the slope."""
     g = terrain.gradient(xy)
@@ -100,9 +110,11 @@ def _shortest(
     goal: int,
     not_from: int,
     max_turn: float = 180.0,
+    detour: np.ndarray | None = None,
 ) -> list[int] | None:
     """Nodes after ``cur`` up to ``goal`` without U-turns, not arriving at goal from
-    ``not_from`` (so the stretch that follows does not start with a U-turn either)."""
+    ``not_from`` (so the stretch that follows does not start with a U-turn either).
+    ``detour``: per-street factors on the length (streets to avoid cost more)."""
     if cur == goal and prev != not_from and _can_turn(net, prev, cur, not_from, max_turn):
         return []
     start = (cur, prev)
@@ -129,7 +141,7 @@ def _shortest(
             if nbr == came or not _can_turn(net, None if came == -1 else came, node, nbr, max_turn):
                 continue
             nxt = (nbr, node)
-            nd = d + net.streets[k].length
+            nd = d + net.streets[k].length * (1.0 if detour is None else detour[k])
             if nd < dist.get(nxt, np.inf):
                 dist[nxt] = nd
                 back[nxt] = state
@@ -142,7 +154,12 @@ def _path_length(net: StreetNetwork, nodes: list[int]) -> float:
 
 
 def _toward_undriven(
-    net: StreetNetwork, visits: np.ndarray, cur: int, prev: int | None, max_turn: float
+    net: StreetNetwork,
+    visits: np.ndarray,
+    cur: int,
+    prev: int | None,
+    max_turn: float,
+    detour: np.ndarray | None = None,
 ) -> list[int]:
     """Nodes leading to and through the nearest street never driven (empty if none is)."""
     undriven = np.nonzero(visits == 0)[0]
@@ -157,20 +174,39 @@ def _toward_undriven(
             if np.linalg.norm(net.nodes[st.u] - here) <= np.linalg.norm(net.nodes[st.v] - here)
             else (st.v, st.u)
         )
-        path = _shortest(net, cur, prev, a, b, max_turn)
+        path = _shortest(net, cur, prev, a, b, max_turn, detour)
         if path is not None:
             return [*path, b]
     return []
 
 
-def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: DriveParams):
-    """Node sequence of about ``length`` metres, and the planned revisits."""
+def plan_route(
+    net: StreetNetwork,
+    rng: np.random.Generator,
+    length: float,
+    p: DriveParams,
+    streets: np.ndarray | None = None,
+):
+    """Node sequence of about ``length`` metres, and the planned revisits.
+
+    ``streets``: street indices to keep to (a later session re-driving the streets of the
+    first, in its own order and directions); the others count as driven from the start, so
+    exploring never picks them and takes them only where the network forces a detour."""
     degree = {n: len(v) for n, v in net.adjacency.items()}
-    starts = [n for n, d in degree.items() if d >= 3] or list(degree)
+    visits = np.zeros(len(net.streets))
+    detour = None
+    if streets is None:
+        nodes = list(degree)
+    else:
+        visits[:] = 100.0  # as if driven 100 times: the last choice of a random turn
+        visits[streets] = 0.0
+        detour = np.full(len(net.streets), 20.0)  # paths leave the streets only if they must
+        detour[streets] = 1.0
+        nodes = sorted({n for k in streets for n in (net.streets[k].u, net.streets[k].v)})
+    starts = [n for n in nodes if degree[n] >= 3] or nodes
     cur, prev = int(rng.choice(starts)), None
     route = [cur]
     legs: list[tuple[int, int, float]] = []  # (from, to, metres driven before this leg)
-    visits = np.zeros(len(net.streets))
     driven = 0.0
     next_revisit = rng.uniform(*p.revisit_every)
     revisits: list[dict] = []
@@ -186,6 +222,8 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
         route.append(nxt)
 
     while driven < length:
+        if streets is not None and visits[streets].min() > 0:
+            visits[streets] -= visits[streets].min()  # a lap done: the least driven are fresh
         if driven >= next_revisit:
             ages = np.array([driven - leg[2] for leg in legs[:-2]])
             old = np.nonzero(ages >= p.old_age)[0]
@@ -201,7 +239,7 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
                     stretch = [legs[i][0]] + [leg[1] for leg in legs[i : i + n_legs]]
                     if reverse:
                         stretch = stretch[::-1]
-                    path = _shortest(net, cur, prev, stretch[0], stretch[1], p.max_turn_deg)
+                    path = _shortest(net, cur, prev, stretch[0], stretch[1], p.max_turn_deg, detour)
                     if path is not None:
                         cost = _path_length(net, [cur, *path])
                         if best is None or cost < best[0]:
@@ -235,7 +273,7 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
         if fresh:
             drive_to(fresh[int(rng.integers(len(fresh)))][0])
             continue
-        frontier = _toward_undriven(net, visits, cur, prev, p.max_turn_deg)
+        frontier = _toward_undriven(net, visits, cur, prev, p.max_turn_deg, detour)
         if frontier:
             for nxt in frontier:
                 drive_to(nxt)
@@ -246,10 +284,16 @@ def plan_route(net: StreetNetwork, rng: np.random.Generator, length: float, p: D
 
 
 def plan_drive(
-    net: StreetNetwork, terrain: Terrain, rng: np.random.Generator, frames: int, p: DriveParams
+    net: StreetNetwork,
+    terrain: Terrain,
+    rng: np.random.Generator,
+    frames: int,
+    p: DriveParams,
+    streets: np.ndarray | None = None,
 ) -> Drive:
+    """``frames`` scans' drive; ``streets``: keep to these (see ``plan_route``)."""
     duration = (frames + 1) / p.rate_hz
-    route, revisits = plan_route(net, rng, duration * p.v_max * 1.05 + 50.0, p)
+    route, revisits = plan_route(net, rng, duration * p.v_max * 1.05 + 50.0, p, streets)
 
     # The route in the right-hand lane, leg by leg, with each sample's cruise speed. Legs are
     # offset *before* the corners are rounded: offsetting a rounded acute turn towards its
