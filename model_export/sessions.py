@@ -1,9 +1,10 @@
 """Place recognition across sessions: the paper's NCLT protocol (its Fig. 5) on our towns.
 
-One drive through a town is the database; a second drive through the same static town (a
-different route, different parked cars, traffic, pedestrians and scan noise: ``gen-data
---session 1``) gives the queries. Each query retrieves its top N database scans by
-descriptor distance; it is a hit at N when one of them lies within ``radius`` metres
+One drive through a town is the database; a second drive through the same static town
+(along the first drive's streets in its own order and directions, with different parked
+cars, traffic, pedestrians and scan noise: ``gen-data --session 1``) gives the queries.
+Each query retrieves its top N database scans by descriptor distance; it is a hit at N
+when one of them lies within ``radius`` metres
 (5 m, as OverlapTransformer-style NCLT evaluations count a hit). Queries with no database
 scan within the radius are left out. AR@N is the share of hits over the evaluated queries.
 
@@ -18,6 +19,7 @@ import json
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from lidar_core.datasets.base import Sequence
 from lidar_core.errors import DatasetError
@@ -44,8 +46,21 @@ def town_positions(seq: Sequence) -> np.ndarray:
     return poses[:, :3, 3]
 
 
-def check_sessions(database: Sequence, queries: Sequence) -> None:
-    """Refuse two sequences that are not two sessions of one town (when manifests say)."""
+def check_sessions(database: Sequence, queries: Sequence, radius: float = HIT_RADIUS) -> None:
+    """Refuse two sequences that are not two sessions of one town (when manifests say), or
+    whose drives never come within ``radius`` of each other (nothing to recall)."""
+    _check_town(database, queries)
+    near, _ = cKDTree(town_positions(database)[:, :2]).query(town_positions(queries)[:, :2])
+    if not (near <= radius).any():
+        raise DatasetError(
+            f"no scan of {queries.root} passes within {radius:g} m of a scan of "
+            f"{database.root} (closest {near.min():.0f} m): the drives share no place to "
+            "recall; generate the second session with generator 1.5.0 or later, which keeps "
+            "to the first session's streets"
+        )
+
+
+def _check_town(database: Sequence, queries: Sequence) -> None:
     a, b = _manifest(database), _manifest(queries)
     if (
         a is None

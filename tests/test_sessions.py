@@ -43,15 +43,19 @@ def _fake_session(root, seed, session, world_from=None):
 
 def test_positions_in_the_town_frame_and_pairs_that_are_refused(tmp_path):
     shift = np.eye(4)
-    shift[:3, 3] = [100.0, -50.0, 2.0]
+    shift[:3, 3] = [3.0, -2.0, 0.5]
     a = _fake_session(tmp_path / "a", 1, 0)
     b = _fake_session(tmp_path / "b", 1, 1, world_from=shift)
-    np.testing.assert_allclose(town_positions(b), b.poses[:, :3, 3] + [100.0, -50.0, 2.0])
+    np.testing.assert_allclose(town_positions(b), b.poses[:, :3, 3] + [3.0, -2.0, 0.5])
     check_sessions(a, b)  # two sessions of town 1: fine
     with pytest.raises(DatasetError, match="are different towns"):
         check_sessions(a, _fake_session(tmp_path / "c", 2, 1))
     with pytest.raises(DatasetError, match="same session"):
         check_sessions(a, _fake_session(tmp_path / "d", 1, 0))
+    far = np.eye(4)
+    far[:3, 3] = [500.0, 0.0, 0.0]  # the same town, but a drive 500 m away from the first
+    with pytest.raises(DatasetError, match="passes within 5 m.*share no place"):
+        check_sessions(a, _fake_session(tmp_path / "e", 1, 1, world_from=far))
 
 
 @pytest.mark.timeout(600)
@@ -65,8 +69,8 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     from model_export.synth.presets import PRESETS
     from overlapmamba.cli import app
 
-    # two 30-scan drives through a 2 × 2 town; with seed 1, 18 of the second drive's scans
-    # pass within 5 m of the first's (checked from the planned poses)
+    # two 30-scan drives through a 2 × 2 town: the second keeps to the first's streets, so
+    # all 30 of its scans pass within 5 m of the first's (checked from the planned poses)
     town = {"nx": 2, "ny": 2, "block_min": 40.0, "block_max": 50.0}
     base = PRESETS["tiny"].model_copy(
         update={"seed": 1, "frames": 30, "preset": None, "world": town}
@@ -86,8 +90,7 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     cross = json.loads(out.read_text())["cross_session"]
     for method in ("model", "scan_context"):
         r = cross[method]
-        assert r["queries"] > 0, "the two drives never came within 5 m: pick longer drives"
-        assert r["queries"] == 18 and r["queries_total"] == 30
+        assert r["queries"] == r["queries_total"] == 30
         assert 0 <= r["ar@1"] <= r["ar@5"] <= r["ar@20"] <= 1
     # the report's cross-session table: the same numbers for the same network
     import shutil
