@@ -1,4 +1,4 @@
-"""Assembles the FastAPI app: lifespan (model, maps, batcher), routers, error mapping,
+"""Assembles the FastAPI app: lifespan (model, maps, scan pipeline), routers, error mapping,
 and one ASGI middleware for body limits, request timeouts and request metrics."""
 
 from __future__ import annotations
@@ -245,7 +245,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             )
             registry = open_backend(settings, model_id=enc.model_id, dim=enc.dim)
             svc = PlaceService(settings, enc, registry)
-            await svc.batcher.start()
+            await svc.pipeline.start()
             app.state.service = svc
             # Maps load after start-up: /healthz answers meanwhile (a liveness probe must
             # not kill a process replaying a large map); /readyz says 503 until done.
@@ -258,7 +258,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                     loader.cancel()
                 with contextlib.suppress(BaseException):
                     await loader
-                await svc.batcher.stop()
+                await svc.pipeline.stop()
                 t0 = time.perf_counter()
                 await run_in_threadpool(registry.close)
                 log.info(

@@ -3,9 +3,12 @@
     read_body(request, limits)        Content-Length and the streamed size against
                                       max_body_bytes (413), then Content-Encoding
                                       (gzip | zstd | identity) bounded by max_decoded_bytes
-    decode_scan(body, content_type, fields, limits)
-                                      application/octet-stream (X-Point-Fields xyzi | xyz),
-                                      application/x-npy, application/x-pcd → PointCloud
+    read_scan(request, limits, fields)
+                                      the same size checks → a ScanBody, still encoded: its
+                                      decompression belongs to the scan's decode stage
+    decode_scan(scan, limits)         Content-Encoding undone, then application/octet-stream
+                                      (X-Point-Fields xyzi | xyz), application/x-npy,
+                                      application/x-pcd → PointCloud
 
 A decompression bomb is stopped at max_decoded_bytes + 1 bytes of output: the decoders are
 asked for at most that much, never for "everything".
@@ -14,6 +17,7 @@ asked for at most that much, never for "everything".
 from __future__ import annotations
 
 import zlib
+from dataclasses import dataclass
 
 import zstandard
 from fastapi import Request
@@ -32,8 +36,37 @@ SCAN_TYPES = {
 ENCODINGS = ("identity", "gzip", "zstd")
 
 
+@dataclass(frozen=True)
+class ScanBody:
+    """One scan as it came over the wire: bytes in a media type, maybe compressed."""
+
+    data: bytes
+    content_type: str | None
+    fields: str | None = None  # X-Point-Fields for raw float32 bodies
+    encoding: str | None = None  # Content-Encoding, undone by decode_scan
+    source: str = "scan"  # how errors name it ("scan 3" in a batch)
+
+
 async def read_body(request: Request, limits: LimitSettings) -> bytes:
     """The decoded request body. 413 as soon as a limit is crossed, before reading the rest."""
+    body = await _read_raw(request, limits)
+    encoding = request.headers.get("content-encoding")
+    if encoding is None or encoding.strip().lower() == "identity":
+        return body
+    return await run_in_threadpool(decompress, body, encoding, limits.max_decoded_bytes)
+
+
+async def read_scan(request: Request, limits: LimitSettings, fields: str | None) -> ScanBody:
+    """The scan body as sent (size-checked, not yet decompressed or decoded)."""
+    return ScanBody(
+        await _read_raw(request, limits),
+        request.headers.get("content-type"),
+        fields,
+        request.headers.get("content-encoding"),
+    )
+
+
+async def _read_raw(request: Request, limits: LimitSettings) -> bytes:
     length = request.headers.get("content-length")
     if length is not None:
         try:
@@ -55,11 +88,7 @@ async def read_body(request: Request, limits: LimitSettings) -> bytes:
                 f"body exceeds {limits.max_body_bytes} bytes", max_body_bytes=limits.max_body_bytes
             )
         chunks.append(chunk)
-    body = b"".join(chunks)
-    encoding = request.headers.get("content-encoding")
-    if encoding is None or encoding.strip().lower() == "identity":
-        return body
-    return await run_in_threadpool(decompress, body, encoding, limits.max_decoded_bytes)
+    return b"".join(chunks)
 
 
 def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:
@@ -138,20 +167,15 @@ def scan_format(content_type: str | None) -> str:
     return SCAN_TYPES[media]
 
 
-def decode_scan(
-    body: bytes,
-    content_type: str | None,
-    fields: str | None,
-    limits: LimitSettings,
-    *,
-    source: str = "scan",
-) -> PointCloud:
-    fmt = scan_format(content_type)
-    layout = (fields or "xyzi").strip().lower()
+def decode_scan(scan: ScanBody, limits: LimitSettings) -> PointCloud:
+    """Blocking: run it off the event loop."""
+    fmt = scan_format(scan.content_type)
+    layout = (scan.fields or "xyzi").strip().lower()
     if fmt == "raw" and layout not in FIELD_LAYOUTS:
         raise BadRequest(
-            f"X-Point-Fields {fields!r} is not supported; allowed: {', '.join(FIELD_LAYOUTS)}",
+            f"X-Point-Fields {scan.fields!r} is not supported; allowed: {', '.join(FIELD_LAYOUTS)}",
             allowed=list(FIELD_LAYOUTS),
         )
+    body = decompress(scan.data, scan.encoding, limits.max_decoded_bytes)
     point_limits = PointLimits(min_points=limits.min_points, max_points=limits.max_points)
-    return decode(body, fmt, fields=layout, limits=point_limits, source=source)
+    return decode(body, fmt, fields=layout, limits=point_limits, source=scan.source)

@@ -1,8 +1,10 @@
-"""The service's work, independent of HTTP: scan → descriptor → index → answer.
+"""The service's use cases, independent of HTTP: scan → descriptor → map → answer.
 
-Routes (``service.api``) and the WebSocket stream call these; they parse and authorise,
-this module decides. Blocking work (decoding, projection, FAISS, SQLite) runs in worker
-threads; encoding goes through the micro-batcher.
+Routes and the WebSocket stream (``service.api``) parse their transport, authorise, open
+the map (:meth:`PlaceService.open_map`, which refuses another model's map) and call one
+method here; it returns a dataclass, which the route turns into its HTTP shape. Scans go
+through :class:`~service.pipeline.ScanPipeline`; map work (FAISS, SQLite, Qdrant) runs in
+worker threads.
 """
 
 from __future__ import annotations
@@ -11,18 +13,18 @@ import hashlib
 import math
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Literal
 
 import numpy as np
 from starlette.concurrency import run_in_threadpool
 
-from lidar_core.points import PointCloud
-from service.backend import Filters, InsertResult, MapBackend, PlaceMap, content_hash
-from service.batcher import MicroBatcher
-from service.bodies import decode_scan
+from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, content_hash
+from service.bodies import ScanBody
 from service.encoder import Encoder
 from service.errors import BadRequest, Conflict, Unprocessable
+from service.pipeline import Description, ScanPipeline
 from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
@@ -55,7 +57,7 @@ def check_pose(values: list[float], text: object = None) -> list[float]:
     return [float(v) for v in values[:3]] + [float(v) for v in q / norm]
 
 
-def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
+def check_descriptor(values: Sequence[float] | np.ndarray, dim: int) -> np.ndarray:
     d = np.asarray(values, dtype=np.float64)
     if d.shape != (dim,):
         raise Unprocessable(
@@ -74,43 +76,63 @@ def check_descriptor(values: list[float] | np.ndarray, dim: int) -> np.ndarray:
     return (d / norm).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class LoopClosure:
+    accepted: bool
+    threshold: float
+    margin: float | None  # runner-up distance − best distance
+
+
 @dataclass
-class Described:
-    descriptor: np.ndarray  # (D,)
-    yaw: np.ndarray  # (C, W)
-    points: PointCloud  # kept for the content hash, computed only when it is inserted
+class Answer:
+    """A place query's answer: the top k matches, best first, and the loop-closure call."""
+
+    matches: list[Match]
+    loop_closure: LoopClosure
+    timings: dict[str, float]  # ms per stage, and "total"
+
+
+InsertReason = Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
+
+
+@dataclass
+class Observed(Answer):
+    inserted: bool
+    keyframe_id: str | None
+    reason: InsertReason  # why it was (or was not) inserted
+
+
+@dataclass(frozen=True)
+class Inserted:
+    result: InsertResult
     timings: dict[str, float]
 
 
-@dataclass
-class Observed:
-    answer: dict[str, Any]
-    inserted: bool
-    keyframe_id: str | None
-    reason: str
+@dataclass(frozen=True)
+class Observation:
+    """What a robot says about its scan besides the bytes."""
 
-    def public(self) -> dict[str, Any]:
-        return {
-            **self.answer,
-            "inserted": self.inserted,
-            "keyframe_id": self.keyframe_id,
-            "insert_reason": self.reason,
-        }
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None = None
+    insert: Literal["auto", "always", "never"] = "auto"
+    k: int = 10
 
 
 class PlaceService:
+    """The use cases, each one method from parsed input to a typed answer:
+    :meth:`describe`, :meth:`query`, :meth:`observe`, :meth:`insert_scan` (and
+    :meth:`insert` for precomputed rows). Each records its stage timings once, with one
+    definition of "total": from the request's bytes in hand to its answer."""
+
     def __init__(self, settings: Settings, encoder: Encoder, registry: MapBackend) -> None:
         self.settings = settings
         self.encoder = encoder
         self.registry = registry
         self.stats = Stats(encoder.model_id)
-        b = settings.batching
-        self.batcher = MicroBatcher(
-            encoder.encode,
-            max_batch=b.max_batch,
-            max_wait_ms=b.max_wait_ms,
-            queue_size=b.queue_size,
-            on_batch=self.stats.batch,
+        self.pipeline = ScanPipeline(
+            encoder, settings.batching, settings.limits, on_batch=self.stats.batch
         )
         # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
         # (robot ids come from clients), a dropped entry is read back from the store
@@ -125,31 +147,18 @@ class PlaceService:
         for key in [k for k in self._last_kf if k[0] == map_id]:
             del self._last_kf[key]
 
+    def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        self.stats.timings(timings)
+        return timings
+
     # ---- scan → descriptor ------------------------------------------------------------------
 
-    def _decode_project(
-        self, body: bytes, content_type: str | None, fields: str | None, source: str
-    ) -> tuple[np.ndarray, PointCloud, float, float]:
+    async def describe(self, scan: ScanBody) -> Description:
         t0 = time.perf_counter()
-        points = decode_scan(body, content_type, fields, self.settings.limits, source=source)
-        t1 = time.perf_counter()
-        image = self.encoder.project(points)
-        t2 = time.perf_counter()
-        return image, points, (t1 - t0) * 1e3, (t2 - t1) * 1e3
-
-    async def describe(
-        self, body: bytes, content_type: str | None, fields: str | None, *, source: str = "scan"
-    ) -> Described:
-        image, points, t_dec, t_proj = await run_in_threadpool(
-            self._decode_project, body, content_type, fields, source
-        )
-        t0 = time.perf_counter()
-        desc, yaw = await self.batcher.encode(
-            image, timeout_s=self.settings.limits.request_timeout_s
-        )
-        t_enc = (time.perf_counter() - t0) * 1e3
-        timings = {"decode": t_dec, "project": t_proj, "encode": t_enc}
-        return Described(np.asarray(desc), np.asarray(yaw), points, timings)
+        d = await self.pipeline.describe(scan)
+        self._done(d.timings, t0)
+        return d
 
     # ---- maps ---------------------------------------------------------------------------------
 
@@ -157,7 +166,10 @@ class PlaceService:
         """The map, looked up off the event loop (the Qdrant backend may ask its server)."""
         return await run_in_threadpool(self.registry.get, map_id)
 
-    def check_model(self, m: PlaceMap) -> None:
+    async def open_map(self, map_id: str) -> PlaceMap:
+        """The map for descriptor work: refused (409) when it holds another model's
+        descriptors. The use cases below take maps opened here."""
+        m = await self.map(map_id)
         if m.model_id != self.model_id:
             raise Conflict(
                 f"map {m.map_id!r} holds descriptors of model {m.model_id!r}; this service "
@@ -166,11 +178,14 @@ class PlaceService:
                 map_model_id=m.model_id,
                 model_id=self.model_id,
             )
+        return m
+
+    # ---- keyframes ----------------------------------------------------------------------------
 
     async def insert(
         self, m: PlaceMap, rows: list[NewKeyframe], robot: str | None
     ) -> list[InsertResult]:
-        self.check_model(m)
+        """Precomputed rows into an opened map (all or nothing)."""
         results = await run_in_threadpool(m.insert, rows)
         created = sum(r.created for r in results)
         if created:
@@ -185,31 +200,65 @@ class PlaceService:
         m.maintain()
         return results
 
-    async def scan_keyframe(
-        self,
-        described: Described,
-        *,
-        keyframe_id: str,
-        robot_id: str,
-        session_id: str,
-        timestamp: float,
-        pose: list[float] | None,
-    ) -> NewKeyframe:
-        meta = {"robot": robot_id, "session": session_id, "timestamp": timestamp, "pose": pose}
-        xyzi = described.points.as_xyzi()
+    async def insert_scan(
+        self, m: PlaceMap, scan: ScanBody, keyframe_id: str, obs: Observation
+    ) -> Inserted:
+        """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
+        t0 = time.perf_counter()
+        d = await self.pipeline.describe(scan)
+        (result,) = await self.insert(m, [await self._row(d, keyframe_id, obs)], obs.robot_id)
+        return Inserted(result, self._done(d.timings, t0))
+
+    async def _row(self, d: Description, keyframe_id: str, obs: Observation) -> NewKeyframe:
+        meta = {
+            "robot": obs.robot_id,
+            "session": obs.session_id,
+            "timestamp": obs.timestamp,
+            "pose": obs.pose,
+        }
+        xyzi = d.points.as_xyzi()
         digest = await run_in_threadpool(lambda: hashlib.sha256(xyzi.tobytes()).digest())
         return NewKeyframe(
             keyframe_id=keyframe_id,
-            robot_id=robot_id,
-            session_id=session_id,
-            timestamp=timestamp,
-            pose=pose,
-            descriptor=described.descriptor,
-            yaw=described.yaw,
+            robot_id=obs.robot_id,
+            session_id=obs.session_id,
+            timestamp=obs.timestamp,
+            pose=obs.pose,
+            descriptor=d.descriptor,
+            yaw=d.yaw,
             content_hash=content_hash("scan", digest, meta),
         )
 
+    # ---- queries ------------------------------------------------------------------------------
+
     async def query(
+        self,
+        m: PlaceMap,
+        probe: ScanBody | Sequence[float],
+        k: int,
+        filters: Filters,
+        *,
+        robot: str | None = None,
+    ) -> Answer:
+        """Top ``k`` keyframes of an opened map for a scan, or for a descriptor (checked and
+        normalised here; a descriptor has no yaw features, so its matches have no yaw)."""
+        t0 = time.perf_counter()
+        self._check_k(k)
+        if isinstance(probe, ScanBody):
+            d = await self.pipeline.describe(probe)
+            desc, yaw, timings = d.descriptor, d.yaw, d.timings
+        else:
+            desc, yaw = check_descriptor(probe, m.dim), None
+            timings = {"decode": (time.perf_counter() - t0) * 1e3}
+        answer = await self._search(m, desc, yaw, k, filters, timings, robot)
+        self._done(timings, t0)
+        return answer
+
+    def _check_k(self, k: int) -> None:
+        if not 1 <= k <= self.settings.limits.max_k:
+            raise BadRequest(f"k={k} is out of range; allowed: 1 to {self.settings.limits.max_k}")
+
+    async def _search(
         self,
         m: PlaceMap,
         descriptor: np.ndarray,
@@ -217,12 +266,8 @@ class PlaceService:
         k: int,
         filters: Filters,
         timings: dict[str, float],
-        *,
-        robot: str | None = None,
-    ) -> dict[str, Any]:
-        self.check_model(m)
-        if not 1 <= k <= self.settings.limits.max_k:
-            raise BadRequest(f"k={k} is out of range; allowed: 1 to {self.settings.limits.max_k}")
+        robot: str | None,
+    ) -> Answer:
         t0 = time.perf_counter()
         # One more than asked: the runner-up gives the loop-closure margin.
         matches = await run_in_threadpool(m.search, descriptor, k + 1, filters, yaw)
@@ -235,15 +280,7 @@ class PlaceService:
             and (margin is None or margin >= lc.min_margin)
         )
         self.stats.query(m.map_id, robot, accepted)
-        return {
-            "matches": [x.public() for x in matches[:k]],
-            "loop_closure": {
-                "accepted": accepted,
-                "threshold": lc.max_distance,
-                "margin_top1_top2": margin,
-            },
-            "timings_ms": timings,
-        }
+        return Answer(matches[:k], LoopClosure(accepted, lc.max_distance, margin), timings)
 
     # ---- the robot's round trip -------------------------------------------------------------
 
@@ -265,63 +302,51 @@ class PlaceService:
             self._remember(m.map_id, robot, kf.timestamp, kf.pose)
         return self._last_kf.get(key)
 
-    async def insert_due(
-        self, m: PlaceMap, robot: str, timestamp: float, pose: list[float] | None, mode: str
-    ) -> str | None:
+    async def _insert_due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
         """Why this observation becomes a keyframe, or None if it does not."""
-        if mode == "always":
+        if obs.insert == "always":
             return "always"
-        if mode == "never":
+        if obs.insert == "never":
             return None
-        last = await self._last(m, robot)
+        last = await self._last(m, obs.robot_id)
         if last is None:
             return "first"
         o = self.settings.observe
-        if abs(timestamp - last[0]) >= o.insert_min_interval_s:
+        if abs(obs.timestamp - last[0]) >= o.insert_min_interval_s:
             return "time"
-        if pose is None or last[1] is None:
+        if obs.pose is None or last[1] is None:
             return None
-        moved = float(np.linalg.norm(np.array(pose[:3]) - last[1]))
+        moved = float(np.linalg.norm(np.array(obs.pose[:3]) - last[1]))
         return "distance" if moved >= o.insert_min_distance_m else None
 
-    async def observe(
-        self,
-        m: PlaceMap,
-        described: Described,
-        *,
-        robot_id: str,
-        session_id: str,
-        timestamp: float,
-        pose: list[float] | None,
-        insert: str,
-        k: int,
-    ) -> Observed:
+    async def observe(self, m: PlaceMap, scan: ScanBody, obs: Observation) -> Observed:
+        """Query an opened map excluding this session's recent keyframes, then insert the
+        scan as keyframe ``robot:session:timestamp`` when due."""
+        t0 = time.perf_counter()
+        self._check_k(obs.k)
+        d = await self.pipeline.describe(scan)
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
-            session_id=session_id,
-            timestamp=timestamp,
+            session_id=obs.session_id,
+            timestamp=obs.timestamp,
         )
-        timings = dict(described.timings)
-        answer = await self.query(
-            m, described.descriptor, described.yaw, k, filters, timings, robot=robot_id
-        )
-        reason = await self.insert_due(m, robot_id, timestamp, pose, insert)
+        answer = await self._search(m, d.descriptor, d.yaw, obs.k, filters, d.timings, obs.robot_id)
+        reason = await self._insert_due(m, obs)
         keyframe_id = None
         inserted = False
         if reason is not None:
-            keyframe_id = f"{robot_id}:{session_id}:{timestamp!r}"
-            row = await self.scan_keyframe(
-                described,
-                keyframe_id=keyframe_id,
-                robot_id=robot_id,
-                session_id=session_id,
-                timestamp=timestamp,
-                pose=pose,
-            )
-            (result,) = await self.insert(m, [row], robot_id)
+            keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
+            row = await self._row(d, keyframe_id, obs)
+            (result,) = await self.insert(m, [row], obs.robot_id)
             inserted = result.created
             if not inserted:
                 reason = "existing"
+        self._done(answer.timings, t0)
         return Observed(
-            answer, inserted, keyframe_id, reason or ("never" if insert == "never" else "not_due")
+            answer.matches,
+            answer.loop_closure,
+            answer.timings,
+            inserted,
+            keyframe_id,
+            reason or ("never" if obs.insert == "never" else "not_due"),
         )

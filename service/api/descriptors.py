@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Request
 
 from service.api.openapi import SCAN_BODY, error_responses
-from service.bodies import SCAN_TYPES, read_body
+from service.bodies import SCAN_TYPES, ScanBody, read_body, read_scan
 from service.deps import CanEncode, ServiceDep
 from service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from service.schemas import DescriptorBatchOut, DescriptorOut, Timings
@@ -33,9 +33,7 @@ async def describe(
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> DescriptorOut:
     """The 256-d place descriptor of one scan, with per-stage timings."""
-    body = await read_body(request, svc.settings.limits)
-    d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
-    svc.stats.timings({**d.timings, "total": sum(d.timings.values())})
+    d = await svc.describe(await read_scan(request, svc.settings.limits, x_point_fields))
     return DescriptorOut(
         descriptor=d.descriptor.tolist(), model_id=svc.model_id, timings_ms=Timings(**d.timings)
     )
@@ -113,12 +111,10 @@ async def describe_batch(
     for start in range(0, len(scans), step):
         results += await asyncio.gather(
             *(
-                svc.describe(s, fmt, x_point_fields, source=f"scan {start + i}")
+                svc.describe(ScanBody(s, fmt, x_point_fields, source=f"scan {start + i}"))
                 for i, s in enumerate(scans[start : start + step])
             )
         )
-    for d in results:
-        svc.stats.timings({**d.timings, "total": sum(d.timings.values())})
     return DescriptorBatchOut(
         descriptors=[d.descriptor.tolist() for d in results],
         model_id=svc.model_id,

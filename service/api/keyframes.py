@@ -13,8 +13,8 @@ from starlette.concurrency import run_in_threadpool
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action
 from service.backend import PlaceMap, content_hash
-from service.bodies import read_body
-from service.core import PlaceService, check_descriptor, check_pose, parse_pose
+from service.bodies import read_body, read_scan
+from service.core import Observation, PlaceService, check_descriptor, check_pose, parse_pose
 from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
 from service.errors import Conflict, NotFound, PayloadTooLarge, Unprocessable
 from service.schemas import (
@@ -61,21 +61,10 @@ async def insert_keyframe(
     Idempotent on `keyframe_id`: the same id with the same scan and metadata returns the
     stored keyframe (200, `created: false`); with anything different, 409."""
     request.app.state.auth.authorize(who, Action.INSERT, map_id)
-    m = await svc.map(map_id)
-    svc.check_model(m)
-    pose_values = parse_pose(pose)
-    body = await read_body(request, svc.settings.limits)
-    d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
-    row = await svc.scan_keyframe(
-        d,
-        keyframe_id=keyframe_id,
-        robot_id=robot_id,
-        session_id=session_id,
-        timestamp=timestamp,
-        pose=pose_values,
-    )
-    (result,) = await svc.insert(m, [row], robot_id)
-    svc.stats.timings({**d.timings, "total": sum(d.timings.values())})
+    m = await svc.open_map(map_id)
+    obs = Observation(robot_id, session_id, timestamp, parse_pose(pose))
+    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    result = (await svc.insert_scan(m, scan, keyframe_id, obs)).result
     response.status_code = 201 if result.created else 200
     return _out(result.keyframe, result.created)
 
@@ -103,8 +92,7 @@ async def insert_batch(
     `model_id` must be the map's model; known keyframe ids with identical content are
     reported as existing, with other content the whole batch is refused (409). The body is
     read only after the key is checked, and parsed off the event loop."""
-    m = await svc.map(map_id)
-    svc.check_model(m)
+    m = await svc.open_map(map_id)
     body = await read_body(request, svc.settings.limits)
     rows = await run_in_threadpool(_batch_rows, body, m, svc)
     results = await svc.insert(m, rows, None)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import time
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
@@ -33,11 +32,20 @@ from lidar_core.errors import LidarCoreError
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action, presented_key
 from service.backend import Filters
-from service.bodies import decompress, read_body
-from service.core import check_descriptor, check_pose, parse_pose
+from service.bodies import ScanBody, decompress, read_scan
+from service.core import Answer, Observation, Observed, check_pose, parse_pose
 from service.deps import CanEncode, ServiceDep
 from service.errors import BadRequest, ServiceError, error_body
-from service.schemas import NAME_PATTERN, POSE_FORMAT, DescriptorQueryIn, ObserveOut, QueryOut
+from service.schemas import (
+    NAME_PATTERN,
+    POSE_FORMAT,
+    DescriptorQueryIn,
+    LoopClosureOut,
+    MatchOut,
+    ObserveOut,
+    QueryOut,
+    Timings,
+)
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
 ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
@@ -89,13 +97,12 @@ async def query(
     time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
-) -> dict[str, Any]:
+) -> QueryOut:
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
     query each match carries the relative yaw from the stored yaw features. The loop closure
     is accepted when the best distance is under the configured threshold (and the margin to
     the runner-up is large enough). k results come back whenever k eligible keyframes exist."""
-    m = await svc.map(map_id)
-    svc.check_model(m)
+    m = await svc.open_map(map_id)
     filters = Filters(
         exclude_session=exclude_session,
         exclude_robot=exclude_robot,
@@ -106,27 +113,21 @@ async def query(
         time_to=time_to,
         max_distance=max_distance,
     )
-    body = await read_body(request, svc.settings.limits)
-    ctype = (request.headers.get("content-type") or "").split(";")[0].strip().lower()
-    t0 = time.perf_counter()
-    if ctype == "application/json":
+    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    probe: ScanBody | list[float] = scan
+    if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
+        body = await run_in_threadpool(
+            decompress, scan.data, scan.encoding, svc.settings.limits.max_decoded_bytes
+        )
         try:
-            q = DescriptorQueryIn.model_validate_json(body)
+            probe = DescriptorQueryIn.model_validate_json(body).descriptor
         except ValidationError as err:
             raise BadRequest(
                 'body is not {"descriptor": [numbers]}',
                 code="bad_descriptor",
                 errors=json.loads(err.json(include_url=False, include_input=False)),
             ) from None
-        desc, yaw = check_descriptor(q.descriptor, m.dim), None
-        timings = {"decode": (time.perf_counter() - t0) * 1e3}
-    else:
-        d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
-        desc, yaw, timings = d.descriptor, d.yaw, dict(d.timings)
-    answer = await svc.query(m, desc, yaw, k, filters, timings, robot=None)
-    timings["total"] = (time.perf_counter() - t0) * 1e3
-    svc.stats.timings(timings)
-    return answer
+    return query_out(await svc.query(m, probe, k, filters))
 
 
 @router.post(
@@ -148,32 +149,37 @@ async def observe(
     insert: InsertMode = "auto",
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
-) -> dict[str, Any]:
+) -> ObserveOut:
     """Query the map excluding this session's own recent keyframes, then insert the scan as
     a keyframe when due (`auto`: the robot moved `observe.insert_min_distance_m` or
     `observe.insert_min_interval_s` passed since its last keyframe). The keyframe id is
     `robot:session:timestamp`, so a retried observation is not inserted twice."""
     if insert != "never":
         request.app.state.auth.authorize(who, Action.INSERT, map_id)
-    m = await svc.map(map_id)
-    svc.check_model(m)
-    pose_values = parse_pose(pose)
-    t0 = time.perf_counter()
-    body = await read_body(request, svc.settings.limits)
-    d = await svc.describe(body, request.headers.get("content-type"), x_point_fields)
-    o = await svc.observe(
-        m,
-        d,
-        robot_id=robot_id,
-        session_id=session_id,
-        timestamp=timestamp,
-        pose=pose_values,
-        insert=insert,
-        k=k,
+    m = await svc.open_map(map_id)
+    obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    return observe_out(await svc.observe(m, scan, obs))
+
+
+def query_out(a: Answer) -> QueryOut:
+    lc = a.loop_closure
+    return QueryOut(
+        matches=[MatchOut(**x.public()) for x in a.matches],
+        loop_closure=LoopClosureOut(
+            accepted=lc.accepted, threshold=lc.threshold, margin_top1_top2=lc.margin
+        ),
+        timings_ms=Timings(**a.timings),
     )
-    o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
-    svc.stats.timings(o.answer["timings_ms"])
-    return o.public()
+
+
+def observe_out(o: Observed) -> ObserveOut:
+    return ObserveOut(
+        **dict(query_out(o)),
+        inserted=o.inserted,
+        keyframe_id=o.keyframe_id,
+        insert_reason=o.reason,
+    )
 
 
 class StreamMeta(BaseModel):
@@ -203,8 +209,7 @@ async def stream(
             raise ServiceError("the service is starting", code="not_ready")
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
-        m = await svc.map(map_id)
-        svc.check_model(m)
+        m = await svc.open_map(map_id)
     except ServiceError as err:
         await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
         return
@@ -225,24 +230,10 @@ async def stream(
                 pose = (
                     check_pose(meta.pose) if isinstance(meta.pose, list) else parse_pose(meta.pose)
                 )
-                t0 = time.perf_counter()
-                body = await run_in_threadpool(
-                    decompress, scan, meta.encoding, svc.settings.limits.max_decoded_bytes
-                )
-                d = await svc.describe(body, meta.content_type, meta.fields)
-                o = await svc.observe(
-                    m,
-                    d,
-                    robot_id=robot_id,
-                    session_id=session_id,
-                    timestamp=meta.timestamp,
-                    pose=pose,
-                    insert=meta.insert,
-                    k=k,
-                )
-                o.answer["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
-                svc.stats.timings(o.answer["timings_ms"])
-                msg = {"seq": seq, "ok": True, **o.public()}
+                obs = Observation(robot_id, session_id, meta.timestamp, pose, meta.insert, k)
+                body = ScanBody(scan, meta.content_type, meta.fields, meta.encoding)
+                o = await svc.observe(m, body, obs)
+                msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
             except (ServiceError, LidarCoreError) as err:
                 msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
             await websocket.send_text(json.dumps(msg))

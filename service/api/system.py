@@ -70,7 +70,7 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
     maps = await run_in_threadpool(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
-    return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.batcher.pending}
+    return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.pipeline.pending}
 
 
 @router.get(
@@ -86,7 +86,7 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     },
 )
 async def metrics(svc: ServiceDep, _: CanView) -> Response:
-    svc.stats.p_queue.set(svc.batcher.pending)
+    svc.stats.p_queue.set(svc.pipeline.pending)
     return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
 
 

@@ -1,0 +1,81 @@
+"""Scan bytes → descriptor, in one direction and in one place.
+
+    ScanBody (bytes as received: media type, point fields, Content-Encoding)
+      ─ worker thread ─ decode: decompress, parse → PointCloud
+                        project: the model's own range projection → (1, H, W) image
+      ─ MicroBatcher ── waits at most batching.max_wait_ms for other scans
+      ─ encoder thread  encode: Encoder.encode on the stacked batch
+      → Description (unit descriptor, yaw features, the points, stage timings)
+
+Two thread hops per scan: one for decode + project, one (shared by a micro-batch) for the
+encoder. The encoder's graph ends in an L2 normalisation, so descriptors leave here unit
+norm; nothing downstream normalises them again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from starlette.concurrency import run_in_threadpool
+
+from lidar_core.points import PointCloud
+from service.batcher import MicroBatcher
+from service.bodies import ScanBody, decode_scan
+from service.encoder import Encoder
+from service.settings import BatchSettings, LimitSettings
+
+
+@dataclass(frozen=True)
+class Description:
+    descriptor: np.ndarray  # (D,) float32, unit norm
+    yaw: np.ndarray  # (C, W) float32 yaw features
+    points: PointCloud  # kept for the content hash of a keyframe made from this scan
+    timings: dict[str, float]  # ms: decode, project, encode
+
+
+class ScanPipeline:
+    def __init__(
+        self,
+        encoder: Encoder,
+        batching: BatchSettings,
+        limits: LimitSettings,
+        on_batch: Callable[[int, float], None] | None = None,
+    ) -> None:
+        self.encoder = encoder
+        self.limits = limits
+        self.batcher = MicroBatcher(
+            encoder.encode,
+            max_batch=batching.max_batch,
+            max_wait_ms=batching.max_wait_ms,
+            queue_size=batching.queue_size,
+            on_batch=on_batch,
+        )
+
+    async def start(self) -> None:
+        await self.batcher.start()
+
+    async def stop(self) -> None:
+        await self.batcher.stop()
+
+    @property
+    def pending(self) -> int:
+        """Scans waiting for the encoder."""
+        return self.batcher.pending
+
+    def _prepare(self, scan: ScanBody) -> tuple[np.ndarray, PointCloud, dict[str, float]]:
+        t0 = time.perf_counter()
+        points = decode_scan(scan, self.limits)
+        t1 = time.perf_counter()
+        image = self.encoder.project(points)
+        t2 = time.perf_counter()
+        return image, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
+
+    async def describe(self, scan: ScanBody) -> Description:
+        image, points, timings = await run_in_threadpool(self._prepare, scan)
+        t0 = time.perf_counter()
+        desc, yaw = await self.batcher.encode(image, timeout_s=self.limits.request_timeout_s)
+        timings["encode"] = (time.perf_counter() - t0) * 1e3
+        return Description(np.asarray(desc), np.asarray(yaw), points, timings)
