@@ -279,7 +279,7 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
         "server_stage_median_ms": server_med,
     }
     # what the server's own stage timings do not cover: HTTP, body transfer, routing, JSON on
-    # both ends (its "decode" includes the points' SHA-256; its "encode" the batcher's wait)
+    # both ends (its "encode" includes the micro-batcher's wait)
     res["http_minus_server_stages_ms"] = pct(h, 50) - sum(server_med.values())
     return res
 

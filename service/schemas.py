@@ -24,11 +24,15 @@ class _Model(BaseModel):
 
 
 class Timings(BaseModel):
-    decode: float | None = None
-    project: float | None = None
-    encode: float | None = None
-    search: float | None = None
-    total: float | None = None
+    """Milliseconds per stage of this request, as the server measured them."""
+
+    decode: float | None = Field(None, description="decompress and parse the scan (or JSON)")
+    project: float | None = Field(None, description="the model's range projection")
+    encode: float | None = Field(None, description="waiting for a micro-batch, then the encoder")
+    search: float | None = Field(None, description="the map search, filters and yaw")
+    total: float | None = Field(
+        None, description="from the request body in hand to the answer (not the network)"
+    )
 
 
 class DescriptorOut(BaseModel):
