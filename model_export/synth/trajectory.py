@@ -73,7 +73,7 @@ class Drive:
 def driven_streets(net: StreetNetwork, drive: Drive) -> np.ndarray:
     """Indices of the streets the drive's scans lie on: the route's legs up to the distance
     driven by the last scan (the route is planned a little longer than it is driven)."""
-    xy = drive.pose_at(drive.times)[:, :2, 3]
+    xy = drive.poses[:, :2, 3]
     driven = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
     legs = [net.street_between(a, b) for a, b in pairwise(drive.route)]
     start = np.concatenate([[0.0], np.cumsum([net.streets[k].length for k in legs])])[:-1]
