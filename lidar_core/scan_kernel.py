@@ -127,7 +127,8 @@ def load() -> ctypes.CDLL:
         for suffix in ("f", "d"):
             getattr(lib, f"scan_fwd_{suffix}").restype = None
             getattr(lib, f"scan_bwd_{suffix}").restype = None
-            getattr(lib, f"scan_fwd_rows_{suffix}").restype = None
+        lib.scan_fwd_tokens_f.restype = None
+        lib.scan_tokens_lanes.restype = ctypes.c_int
         _lib = lib
         return lib
 
@@ -174,8 +175,9 @@ def scan_forward(
     """The scan on float32 arrays in the exported node's token-major layout:
     u, delta (M, L, E); A (E, N); B, C (M, L, N); D (E,) → y (M, L, E).
 
-    The kernel walks channel-major rows, so u and Δ are transposed in and y out; the M·E
-    rows are split across ``threads`` threads."""
+    The kernel (``scan_fwd_tokens_f``) reads this layout as it is, a block of 8 (AVX) or 4
+    channels per vector; E is padded to a multiple of 8 where it is not one. The M · E/lanes
+    (row, block) units are split across ``threads`` threads."""
     M, L, E = u.shape
     N = A.shape[1]
     if delta.shape != u.shape or Bm.shape != (M, L, N) or Cm.shape != (M, L, N):
@@ -185,16 +187,27 @@ def scan_forward(
         )
     if A.shape != (E, N) or D.shape != (E,):
         raise ValueError(f"A {A.shape} and D {D.shape} must be ({E}, N) and ({E},)")
+    lib = load()
+    lanes = 8  # the kernel's blocks are 8 or 4 channels; pad E to a multiple of 8
+    pad = -E % lanes
     f32 = np.float32
-    uc = np.ascontiguousarray(u.transpose(0, 2, 1), dtype=f32)  # (M, E, L)
-    dc = np.ascontiguousarray(delta.transpose(0, 2, 1), dtype=f32)
-    args = [np.ascontiguousarray(x, dtype=f32) for x in (A, Bm, Cm, D)]
+
+    def prep(x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(x, dtype=f32)
+        return np.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, pad)]) if pad else x
+
+    uc, dc, Dc = prep(u), prep(delta), prep(D)
+    At = prep(np.ascontiguousarray(A.T))  # (N, E): a state's channels side by side
+    if pad:  # padded channels decay (A = −1, Δ = 0 there) and read u = 0: they stay 0
+        At[:, E:] = -1.0
+    Bc, Cc = (np.ascontiguousarray(x, dtype=f32) for x in (Bm, Cm))
     y = np.empty_like(uc)
-    ptrs = [_ptr(x) for x in (uc, dc, *args, y)]
-    fn = load().scan_fwd_rows_f
-    dims = [ctypes.c_int(v) for v in (M, E, L, N, int(circular))]
-    run_split(lambda r0, r1: fn(*ptrs, *dims, ctypes.c_long(r0), ctypes.c_long(r1)), M * E, threads)
-    return np.ascontiguousarray(y.transpose(0, 2, 1))
+    ptrs = [_ptr(x) for x in (uc, dc, At, Bc, Cc, Dc, y)]
+    units = M * (E + pad) // lib.scan_tokens_lanes()
+    dims = [ctypes.c_int(v) for v in (M, L, E + pad, N, int(circular))]
+    fn = lib.scan_fwd_tokens_f
+    run_split(lambda k0, k1: fn(*ptrs, *dims, ctypes.c_long(k0), ctypes.c_long(k1)), units, threads)
+    return np.ascontiguousarray(y[..., :E]) if pad else y
 
 
 def main() -> int:
