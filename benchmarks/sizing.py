@@ -38,7 +38,7 @@ from service.backend import Filters, content_hash, open_backend
 from service.encoder import Encoder
 from service.qdrant import point_payload
 from service.settings import Settings
-from service.store import NewKeyframe, unit_vector
+from service.store import NewKeyframe
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -82,11 +82,16 @@ def encoder_rate(model: Path, clouds: list, threads: int, reps: int) -> dict[str
     return {"threads": threads, "median_ms": med * 1e3, "scans_per_s": 1.0 / med}
 
 
+def unit(v: np.ndarray) -> np.ndarray:
+    """A descriptor as the service keeps them: float32, unit norm."""
+    return (v / np.linalg.norm(v)).astype(np.float32)
+
+
 def rows(n: int, dim: int, yaw_shape: tuple[int, ...], seed: int = 0) -> list[NewKeyframe]:
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
-        d = rng.normal(size=dim).astype(np.float32)
+        d = unit(rng.normal(size=dim))
         out.append(
             NewKeyframe(
                 keyframe_id=f"kf-{i}",
@@ -124,7 +129,7 @@ def backend_costs(kind: str, root: Path, data: list[NewKeyframe], dim: int) -> d
     rng = np.random.default_rng(1)
     t_query, t_filtered = [], []
     for _ in range(100):
-        q = rng.normal(size=dim).astype(np.float32)
+        q = unit(rng.normal(size=dim))
         t0 = time.perf_counter()
         m.search(q, 10, Filters())
         t_query.append(time.perf_counter() - t0)
@@ -180,7 +185,7 @@ def search_stage(
         m.insert(data[i : i + 500])
     rng = np.random.default_rng(3)
     queries = [
-        (rng.normal(size=dim).astype(np.float32), rng.normal(size=yaw_shape).astype(np.float32))
+        (unit(rng.normal(size=dim)), rng.normal(size=yaw_shape).astype(np.float32))
         for _ in range(reps)
     ]
     image = enc.project(cloud)[None]
@@ -203,7 +208,7 @@ def search_stage(
                 m.search(q, 6, Filters(), qy)
                 whole.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                _, ids = m.index.search(unit_vector(q), 6, None)
+                _, ids = m.index.search(q, 6, None)
                 index.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 got = m.store.by_ids([int(i) for i in ids])

@@ -16,26 +16,29 @@ from __future__ import annotations
 import numpy as np
 
 
-def _normalise(f: np.ndarray) -> np.ndarray:
-    """Zero-mean per channel, unit norm over the whole (C, W) map."""
-    f = np.asarray(f, dtype=np.float64)
-    f = f - f.mean(axis=-1, keepdims=True)
-    n = np.sqrt((f * f).sum(axis=(-2, -1), keepdims=True))
-    return f / np.maximum(n, 1e-12)
-
-
 def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
     """query (C, W), refs (K, C, W) → (K, W): cosine similarity of the query with each
-    reference rolled back by k columns, for every k."""
-    q = _normalise(query)
-    r = _normalise(refs)
+    reference rolled back by k columns, for every k, each map taken zero-mean per channel.
+
+    Computed from spectra, in float64 (refs may come as stored, float16): the query's
+    spectrum without its DC bins is the zero-mean query, which makes the reference's means
+    drop out of every product; the norms come from sums (‖r − r̄‖² = Σ r² − W Σ_c r̄_c²), so
+    no normalised copy of the maps is made."""
+    q = np.asarray(query, dtype=np.float64)
+    r = np.asarray(refs, dtype=np.float64)
     if r.ndim == 2:
         r = r[None]
-    if q.shape != r.shape[1:]:
+    if q.ndim != 2 or q.shape != r.shape[1:]:
         raise ValueError(f"feature shapes differ: query {q.shape}, references {r.shape[1:]}")
+    W = q.shape[-1]
+    qs = np.conj(np.fft.rfft(q, axis=-1))
+    qs[:, 0] = 0.0  # the query's channel means
     # corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k]
-    spec = np.conj(np.fft.rfft(q, axis=-1))[None] * np.fft.rfft(r, axis=-1)
-    return np.fft.irfft(spec.sum(axis=1), n=q.shape[-1], axis=-1)
+    num = np.fft.irfft((qs[None] * np.fft.rfft(r, axis=-1)).sum(axis=1), n=W, axis=-1)
+    q0 = q - q.mean(axis=-1, keepdims=True)
+    norm_q = np.sqrt((q0 * q0).sum())
+    norm_r = np.sqrt(np.maximum((r * r).sum(axis=(1, 2)) - W * (r.mean(axis=-1) ** 2).sum(-1), 0))
+    return num / np.maximum(norm_q * norm_r, 1e-12)[:, None]
 
 
 def estimate_yaw(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

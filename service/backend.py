@@ -96,11 +96,23 @@ def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
     return h.hexdigest()
 
 
+UNIT_TOLERANCE = 1e-3  # float32 descriptors from the encoder are unit to ~1e-7
+
+
 def check_rows(rows: list[NewKeyframe], dim: int) -> list[str]:
-    """Shapes right, and no keyframe id twice with different content → the distinct ids."""
+    """Shapes right, unit norm, and no keyframe id twice with different content → the distinct
+    ids. Descriptors arrive normalised (the encoder's graph ends in an L2 normalisation; a
+    client's descriptor is normalised once, by ``core.check_descriptor``): a backend stores
+    and compares them as they are, and refuses one that is not a unit vector."""
     for r in rows:
         if r.descriptor.shape != (dim,):
             raise BadRequest(f"descriptor has shape {r.descriptor.shape}; need ({dim},)")
+        norm = float(np.linalg.norm(r.descriptor))
+        if not abs(norm - 1.0) <= UNIT_TOLERANCE:
+            raise BadRequest(
+                f"descriptor of keyframe {r.keyframe_id!r} has norm {norm:.6g}; allowed: a unit "
+                f"vector (norm within {UNIT_TOLERANCE} of 1)"
+            )
     seen: dict[str, str] = {}
     for r in rows:
         if seen.setdefault(r.keyframe_id, r.content_hash) != r.content_hash:

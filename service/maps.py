@@ -41,7 +41,7 @@ from service.errors import Conflict, NotFound, Unavailable
 from service.index import VectorIndex, ivf_lists, set_threads
 from service.schemas import MAP_ID, check_map_id
 from service.settings import IndexSettings
-from service.store import Keyframe, NewKeyframe, Store, fsync_dir, unit_vector
+from service.store import Keyframe, NewKeyframe, Store, fsync_dir
 
 log = logging.getLogger("overlapmamba.service")
 SNAPSHOT_MAGIC = b"OMSNAP01"
@@ -317,7 +317,7 @@ class Map:
             if new:
                 ids, seq = self.store.insert(new)
                 id_arr = np.array(ids, dtype=np.int64)
-                vecs = np.stack([unit_vector(r.descriptor) for r in new])
+                vecs = np.stack([r.descriptor for r in new]).astype(np.float32)
                 self.index.add(id_arr, vecs)
                 self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
                 self.applied_seq = seq
@@ -366,7 +366,7 @@ class Map:
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:
-        q = unit_vector(descriptor)
+        q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
         with self.lock.read():
             self.check_open()
             mask = self.allowed(filters)

@@ -54,7 +54,7 @@ from service.backend import (
 from service.errors import BadRequest, Conflict, NotFound, Overloaded, ServiceError, Unavailable
 from service.schemas import check_map_id
 from service.settings import IndexSettings, QdrantSettings
-from service.store import Keyframe, NewKeyframe, unit_vector
+from service.store import Keyframe, NewKeyframe
 
 log = logging.getLogger("overlapmamba.service")
 T = TypeVar("T")
@@ -109,7 +109,7 @@ def _yaw(p: dict[str, Any]) -> np.ndarray | None:
     if not p.get("yaw") or not p.get("yaw_shape"):
         return None
     raw = np.frombuffer(base64.b64decode(p["yaw"]), dtype=np.float16)
-    return raw.reshape(p["yaw_shape"]).astype(np.float32)
+    return raw.reshape(p["yaw_shape"])
 
 
 def _filter(f: Filters) -> models.Filter | None:
@@ -184,7 +184,7 @@ class QdrantMap:
     def _upsert(self, rows: list[NewKeyframe], now: float) -> None:
         batch = models.Batch(
             ids=[point_id(r.keyframe_id) for r in rows],
-            vectors=[unit_vector(r.descriptor).tolist() for r in rows],
+            vectors=[np.asarray(r.descriptor, dtype=np.float32).tolist() for r in rows],
             payloads=[point_payload(r, now) for r in rows],
         )
         self._call(
@@ -267,7 +267,7 @@ class QdrantMap:
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:
-        q = unit_vector(descriptor).tolist()
+        q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
         params = None
         if not self.backend.local:  # local mode is exact and warns about any parameter
             exact = self.kind == "flat"

@@ -128,12 +128,6 @@ def to_f16(features: np.ndarray) -> np.ndarray:
     return np.asarray(features, dtype=np.float16)
 
 
-def unit_vector(descriptor: np.ndarray) -> np.ndarray:
-    """(D,) float32 with unit norm: what the store keeps and the index holds."""
-    v = np.asarray(descriptor, dtype=np.float32)
-    return (v / max(float(np.linalg.norm(v)), 1e-12)).astype(np.float32)
-
-
 def index_vector(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype=np.float32).copy()
 
@@ -253,7 +247,7 @@ class Store:
                             r.session_id,
                             r.timestamp,
                             None if r.pose is None else json.dumps(r.pose),
-                            unit_vector(r.descriptor).tobytes(),
+                            np.asarray(r.descriptor, dtype=np.float32).tobytes(),
                             None if yaw is None else yaw.tobytes(),
                             None if yaw is None else json.dumps(list(yaw.shape)),
                             r.content_hash,
@@ -346,7 +340,7 @@ class Store:
         return out
 
     def by_ids(self, ids: list[int]) -> dict[int, tuple[Keyframe, np.ndarray | None]]:
-        """Live keyframes and their yaw features (C, W) float32, by row id."""
+        """Live keyframes and their yaw features (C, W) as stored (float16), by row id."""
         if not ids:
             return {}
         marks = ",".join("?" * len(ids))
@@ -360,7 +354,7 @@ class Store:
             yaw = None
             if row[9] is not None:
                 shape = tuple(json.loads(row[10]))
-                yaw = np.frombuffer(row[9], dtype=np.float16).reshape(shape).astype(np.float32)
+                yaw = np.frombuffer(row[9], dtype=np.float16).reshape(shape)
             out[kf.id] = (kf, yaw)
         return out
 

@@ -39,7 +39,8 @@ def opened(kind: str, root: Path) -> Iterator[MapBackend]:
 
 
 def row(i: int, rng: np.random.Generator, *, yaw: bool = False) -> NewKeyframe:
-    desc = rng.normal(size=DIM).astype(np.float32)
+    desc = rng.normal(size=DIM)
+    desc = (desc / np.linalg.norm(desc)).astype(np.float32)  # the service's descriptors
     robot, session = f"r{i % 3}", f"s{i % 5}"
     ts = float(i)
     return NewKeyframe(
@@ -125,7 +126,8 @@ def same(a: list[list[tuple[str, float]]], b: list[list[tuple[str, float]]]) -> 
 def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
     rng = np.random.default_rng(7)
     rows = {r.keyframe_id: r for r in (row(i, rng, yaw=i < 10) for i in range(160))}
-    queries = rng.normal(size=(6, DIM)).astype(np.float32)
+    queries = rng.normal(size=(6, DIM))
+    queries = (queries / np.linalg.norm(queries, axis=1, keepdims=True)).astype(np.float32)
     k = 12
     results: dict[str, list] = {}
     for kind in ("faiss", "qdrant"):
@@ -149,6 +151,10 @@ def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
                 m.insert([batch[0], other])
             with pytest.raises(BadRequest):
                 m.insert([dataclasses.replace(row(999, rng), descriptor=np.ones(DIM + 1))])
+            # normalised once, before a backend: one that is not a unit vector is refused
+            long = dataclasses.replace(row(998, rng), descriptor=2 * row(998, rng).descriptor)
+            with pytest.raises(BadRequest, match="kf-998.*norm 2; allowed: a unit vector"):
+                m.insert([long])
             for kid in ("kf-5", "kf-6", "kf-77", "kf-140"):
                 m.delete(kid)
                 live.pop(kid)

@@ -158,7 +158,8 @@ def _map_with_rows(root: Path, n: int, *, model_id: str = "m1") -> Map:
     folder = root / "maps" / "town"
     m = Map.create("town", folder, model_id=model_id, dim=8, kind="flat", settings=s)
     rng = np.random.default_rng(0)
-    vecs = rng.normal(size=(n, 8)).astype(np.float32)
+    vecs = rng.normal(size=(n, 8))
+    vecs = (vecs / np.linalg.norm(vecs, axis=1, keepdims=True)).astype(np.float32)
     rows = [
         NewKeyframe(f"k{i}", "r", "s", float(i), None, vecs[i], None, f"h{i}") for i in range(n)
     ]
@@ -175,7 +176,8 @@ def test_doctor_finds_what_is_wrong_with_a_data_folder(tmp_path):
     m = _map_with_rows(root, 12)
     m.snapshot()
     m.delete("k0")
-    m.insert([NewKeyframe("k99", "r", "s", 99.0, None, np.ones(8, np.float32), None, "h99")])
+    unit = np.full(8, 8**-0.5, np.float32)
+    m.insert([NewKeyframe("k99", "r", "s", 99.0, None, unit, None, "h99")])
     m.close()
     report = diagnose(root, model_id="m1", dim=8)
     assert report.healthy, report.to_json()
