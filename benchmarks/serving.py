@@ -6,7 +6,9 @@
    HTTP = ``POST /v1/descriptors`` with the same body (``application/octet-stream``,
    ``X-Point-Fields: xyzi``) over one keep-alive httpx connection, sequentially, descriptor
    JSON parsed. The two are timed in alternating blocks so drift hits both alike. Ratio =
-   HTTP median ÷ bare median; goal ≤ 1.10. Servers: the defaults (micro-batching,
+   HTTP median ÷ bare median; goal ≤ 1.10. A third block times a 1024×512 @ 512×900 float32
+   matrix product (0.47 GMAC, numpy's BLAS): HTTP ÷ sgemm says how the whole path compares
+   with this machine's dense arithmetic (goal ≤ 9). Servers: the defaults (micro-batching,
    ``max_batch`` 8, ``max_wait_ms`` 2), ``max_wait_ms`` 0, and ``max_batch`` 1.
 2. **Throughput** — 1, 4 and 8 concurrent clients (tasks sharing one httpx AsyncClient)
    posting scans for a fixed time: scans/s, latency p50/p99 and the server's encoder batch
@@ -80,6 +82,10 @@ K = 10
 NPROBES = (1, 2, 4, 8, 16, 24, 32, 48, 64, 128)
 RECALL_GOAL = 0.99
 RATIO_GOAL = 1.10
+# A yardstick of this machine's speed, timed in the same run: a 0.47-GMAC float32 matrix
+# product (numpy's BLAS, all cores). Goal: HTTP scan → descriptor ≤ 9× its time.
+SGEMM = ((1024, 512), (512, 900))
+SGEMM_GOAL = 9.0
 P50_GOAL_MS = 1.0
 CORES = os.cpu_count() or 1
 DEFAULTS = BatchSettings()  # the service's own defaults, reported, not assumed
@@ -226,8 +232,14 @@ def pct(ms: list[float] | np.ndarray, q: float) -> float:
 
 
 def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> dict[str, Any]:
-    """Bare and HTTP scan → descriptor in alternating blocks of ``block`` calls."""
+    """Bare and HTTP scan → descriptor, and the sgemm yardstick, in alternating blocks of
+    ``block`` calls."""
     stages: dict[str, list[float]] = {"decode": [], "project": [], "encode": []}
+    rng = np.random.default_rng(0)
+    ma, mb = (rng.standard_normal(shape, dtype=np.float32) for shape in SGEMM)
+
+    def sgemm() -> None:
+        np.matmul(ma, mb)
 
     def bare() -> None:
         t0 = time.perf_counter()
@@ -261,9 +273,11 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
         server_t.clear()
         b: list[float] = []
         h: list[float] = []
+        g: list[float] = []
+        sgemm()
         while len(b) < reps:
             # a pause at each switch lets the other side's onnxruntime threads stop spinning
-            for fn, out in ((bare, b), (http, h)):
+            for fn, out in ((bare, b), (http, h), (sgemm, g)):
                 time.sleep(0.05)
                 for _ in range(min(block, reps - len(out))):
                     t = time.perf_counter()
@@ -275,6 +289,8 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
         "bare_ms": {"median": pct(b, 50), "p90": pct(b, 90)},
         "http_ms": {"median": pct(h, 50), "p90": pct(h, 90)},
         "ratio": pct(h, 50) / pct(b, 50),
+        "sgemm_ms": {"median": pct(g, 50), "p90": pct(g, 90), "shape": SGEMM},
+        "http_over_sgemm": pct(h, 50) / pct(g, 50),
         "bare_stage_median_ms": {k: float(np.median(v)) for k, v in stages.items()},
         "server_stage_median_ms": server_med,
     }
@@ -390,7 +406,7 @@ def print_http(res: dict[str, Any], console: Console) -> None:
         "median − the server's own stage medians (HTTP, transfer, routing, JSON).",
     )
     cols = ["server", "bare ms med/p90", "HTTP ms med/p90", f"ratio (≤ {RATIO_GOAL})"]
-    cols += ["bare dec/proj/enc", "server dec/proj/enc", "rest ms"]
+    cols += ["bare dec/proj/enc", "server dec/proj/enc", "rest ms", f"÷ sgemm (≤ {SGEMM_GOAL:g})"]
     for c in cols:
         t.add_column(c, justify="right")
     for name, rec in res["servers"].items():
@@ -404,6 +420,7 @@ def print_http(res: dict[str, Any], console: Console) -> None:
             "/".join(f"{bs[k]:.1f}" for k in ("decode", "project", "encode")),
             "/".join(f"{ss[k]:.1f}" for k in ("decode", "project", "encode")),
             f"{o['http_minus_server_stages_ms']:.1f}",
+            f"{o['http_over_sgemm']:.1f} ({o['sgemm_ms']['median']:.2f} ms)",
         )
     console.print(t)
     t = Table(
@@ -684,6 +701,17 @@ def summarise(record: dict[str, Any]) -> list[dict[str, Any]]:
                     "status": verdict(r <= RATIO_GOAL),
                 }
             )
+            o = rec["overhead"]
+            if "http_over_sgemm" in o:
+                q = o["http_over_sgemm"]
+                rows.append(
+                    {
+                        "goal": f"HTTP scan → descriptor ≤ {SGEMM_GOAL}× the sgemm ({name})",
+                        "measured": f"{o['http_ms']['median']:.1f} ÷ "
+                        f"{o['sgemm_ms']['median']:.2f} ms = {q:.1f}",
+                        "status": verdict(q <= SGEMM_GOAL),
+                    }
+                )
         with_b = servers.get("batching", {}).get("throughput", [])
         without = servers.get("no batching", {}).get("throughput", [])
         for a, b in zip(with_b, without, strict=False):

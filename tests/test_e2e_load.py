@@ -26,7 +26,7 @@ pytestmark = pytest.mark.e2e
 def test_fleet_mapper_and_dashboard_together(tmp_path):
     robots, duration = size(2, 8), size(8.0, 60.0)
     drive = open_drive(drive_dir())
-    env = {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}  # the setting the guide gives for CPU
+    env: dict[str, str] = {}  # the defaults: micro-batching on (docs/deploy.md, sizing)
     with server(tmp_path / "data", env) as (url, _), httpx.Client(base_url=url, timeout=60) as c:
         model_id = c.get("/readyz").json()["detail"]["model_id"]
         assert c.put("/v1/maps/built").status_code == 201
