@@ -142,20 +142,25 @@ def available() -> bool:
 
 
 def run_split(fn: Callable[..., object], rows: int, threads: int, *args: object) -> None:
-    """Call fn(*args, r0, r1) over [0, rows), split evenly across ``threads`` threads
-    (ctypes releases the GIL during each call)."""
+    """Call fn(*args, r0, r1) over [0, rows), split evenly across ``threads`` threads: the
+    first part on the calling thread, the others on a pool (ctypes releases the GIL during
+    each call), so the caller works instead of waiting."""
     threads = max(1, min(threads, rows))
     if threads == 1:
         fn(*args, 0, rows)
         return
     with _lock:
-        pool = _pools.get(threads)
+        pool = _pools.get(threads - 1)
         if pool is None:
-            pool = _pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="scan")
+            pool = _pools[threads - 1] = ThreadPoolExecutor(threads - 1, thread_name_prefix="scan")
     bounds = [round(rows * i / threads) for i in range(threads + 1)]
-    jobs = [pool.submit(fn, *args, lo, hi) for lo, hi in itertools.pairwise(bounds) if hi > lo]
-    for j in jobs:
-        j.result()
+    parts = [(lo, hi) for lo, hi in itertools.pairwise(bounds) if hi > lo]
+    jobs = [pool.submit(fn, *args, lo, hi) for lo, hi in parts[1:]]
+    try:
+        fn(*args, *parts[0])
+    finally:
+        for j in jobs:
+            j.result()
 
 
 def _ptr(a: np.ndarray) -> ctypes.c_void_p:
