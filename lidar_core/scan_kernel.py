@@ -203,8 +203,9 @@ def scan_forward(
 
     uc, dc, Dc = prep(u), prep(delta), prep(D)
     At = prep(np.ascontiguousarray(A.T))  # (N, E): a state's channels side by side
-    if pad:  # padded channels decay (A = −1, Δ = 0 there) and read u = 0: they stay 0
-        At[:, E:] = -1.0
+    if pad:  # padded channels read u = 0 and Δ = 0, so they stay 0; A = −(n + 1) there keeps
+        # their block on the kernel's powers path (see selective_scan.c)
+        At[:, E:] = -np.arange(1, N + 1, dtype=f32)[:, None]
     Bc, Cc = (np.ascontiguousarray(x, dtype=f32) for x in (Bm, Cm))
     y = np.empty_like(uc)
     ptrs = [_ptr(x) for x in (uc, dc, At, Bc, Cc, Dc, y)]
