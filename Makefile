@@ -69,6 +69,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/place_recognition.py
 	$(BIN)/python benchmarks/serving.py
 	$(BIN)/python benchmarks/sizing.py
+	$(BIN)/python benchmarks/registration.py
 
 # The synthetic presets (≈36 GB, ≈100 min on 2 cores): four training towns, the validation
 # town, three test towns and a second drive through the first test town. Each is skipped
