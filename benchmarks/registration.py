@@ -15,6 +15,7 @@ bench-results/registration.json).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -61,12 +62,12 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     n = len(poses)
     even = np.arange(0, n, 2)
-    clouds = [seq.points(i).xyz for i in range(n)]
+    clouds = [seq.points(i) for i in range(n)]  # each scan read once
     blobs = {
-        int(j): encode_geometry(clouds[j], voxel=args.voxel, max_points=args.max_points)
+        int(j): encode_geometry(clouds[j].xyz, voxel=args.voxel, max_points=args.max_points)
         for j in even
     }
-    yaw_feats = {int(j): enc.encode(enc.project(seq.points(j))[None])[1][0] for j in even}
+    yaw_feats = {int(j): enc.encode(enc.project(clouds[j])[None])[1][0] for j in even}
     rows: dict[str, list[float]] = {
         k: []
         for k in (
@@ -85,13 +86,12 @@ def main() -> None:
     for i in range(1, n, 2):
         turn = float(rng.uniform(-180, 180))
         R = rotation_z(turn)
-        query = clouds[i] @ R[:3, :3].T.astype(np.float32)
+        turned = dataclasses.replace(clouds[i], xyz=clouds[i].xyz @ R[:3, :3].T.astype(np.float32))
+        query = turned.xyz
         d = np.linalg.norm(xy[even] - xy[i], axis=1)
         j = int(even[np.argmin(d)])
         far = even[d >= 30.0]
         # the service's seed: the yaw of the keyframe relative to the query, from features
-        pc = seq.points(i)
-        turned = type(pc)(query, pc.intensity) if hasattr(pc, "intensity") else query
         qyaw = enc.encode(enc.project(turned)[None])[1][0]
         seed = float(estimate_yaw(qyaw, yaw_feats[j][None])[0][0])
         truth = np.linalg.inv(poses[j]) @ poses[i] @ np.linalg.inv(R)

@@ -35,10 +35,13 @@ def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
     qs[:, 0] = 0.0  # the query's channel means
     # corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k]
     num = np.fft.irfft((qs[None] * np.fft.rfft(r, axis=-1)).sum(axis=1), n=W, axis=-1)
-    q0 = q - q.mean(axis=-1, keepdims=True)
-    norm_q = np.sqrt((q0 * q0).sum())
-    norm_r = np.sqrt(np.maximum((r * r).sum(axis=(1, 2)) - W * (r.mean(axis=-1) ** 2).sum(-1), 0))
-    return num / np.maximum(norm_q * norm_r, 1e-12)[:, None]
+    return num / np.maximum(_centred_norm(q[None]) * _centred_norm(r), 1e-12)[:, None]
+
+
+def _centred_norm(f: np.ndarray) -> np.ndarray:
+    """(K, C, W) → (K,): ‖f − its channel means‖ over each (C, W) map, from sums."""
+    W = f.shape[-1]
+    return np.sqrt(np.maximum((f * f).sum(axis=(1, 2)) - W * (f.mean(axis=-1) ** 2).sum(-1), 0))
 
 
 def estimate_yaw(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,9 @@ Whether a result counts as verified (``min_fitness``, ``max_rmse``) is for the c
 calibrated thresholds.
 
 **Resolution.** Both sides register on a 2 m grid by default: on KITTI 00 (turned odd frames
-against even ones, ``benchmarks/registration.py``) that is ≈ 1,100 points a side, 3 ms to
-prepare a query and 3 ms per candidate on this 2-core machine, with errors of 4 cm / 0.02°
-(median); a 1 m grid halves the error and costs 3–4× as much per candidate. The query is
+against even ones, ``benchmarks/registration.py``) that is ≈ 1,100 points a side, 4.9 ms to
+prepare a query and 3.8 ms per candidate on this 2-core machine (medians), with errors of
+4.7 cm / 0.03° (median); a 1 m grid gave 1.6 cm / 0.02° at ≈ 10 ms per candidate. The query is
 thinned to every 4th point before its grid is made: the grid's cells are still filled, at a
 quarter of the work.
 """

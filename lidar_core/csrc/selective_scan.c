@@ -232,32 +232,27 @@ static inline void storev(float *p, vf v) { *(vfu *)p = v; }
 
 #if defined(__AVX__)
 #include <immintrin.h>
-static inline vf clampv(vf x) {
-    return (vf)_mm256_min_ps(_mm256_max_ps((__m256)x, _mm256_set1_ps(-126.0f)),
-                             _mm256_set1_ps(127.0f));
-}
+static inline vf maxv(vf a, vf b) { return (vf)_mm256_max_ps((__m256)a, (__m256)b); }
+static inline vf minv(vf a, vf b) { return (vf)_mm256_min_ps((__m256)a, (__m256)b); }
 static inline vi roundv(vf x) { return (vi)_mm256_cvtps_epi32((__m256)x); }
 #elif defined(__SSE2__)
 #include <emmintrin.h>
-static inline vf clampv(vf x) {
-    return (vf)_mm_min_ps(_mm_max_ps((__m128)x, _mm_set1_ps(-126.0f)), _mm_set1_ps(127.0f));
-}
+static inline vf maxv(vf a, vf b) { return (vf)_mm_max_ps((__m128)a, (__m128)b); }
+static inline vf minv(vf a, vf b) { return (vf)_mm_min_ps((__m128)a, (__m128)b); }
 static inline vi roundv(vf x) { return (vi)_mm_cvtps_epi32((__m128)x); }
 #else
-static inline vf clampv(vf x) {
-    const vf lo = (vf){0} - 126.0f, hi = (vf){0} + 127.0f;
-    vi m = x < lo;
-    x = (vf)(((vi)x & ~m) | ((vi)lo & m));
-    m = x > hi;
-    return (vf)(((vi)x & ~m) | ((vi)hi & m));
+static inline vf maxv(vf a, vf b) {
+    const vi m = a < b;
+    return (vf)(((vi)a & ~m) | ((vi)b & m));
 }
+static inline vf minv(vf a, vf b) { return -maxv(-a, -b); }
 static inline vi roundv(vf x) { /* half away from zero: truncate x ± ½ */
     return __builtin_convertvector(x + (0.5f + __builtin_convertvector(x < 0.0f, vf)), vi);
 }
 #endif
 
 static inline vf exp2v(vf x) {
-    x = clampv(x);
+    x = minv(maxv(x, (vf){0} - 126.0f), (vf){0} + 127.0f);
     const vi k = roundv(x);
     const vf r = x - __builtin_convertvector(k, vf);
     vf p = r * 1.32647273e-03f + 9.67151299e-03f;
@@ -267,17 +262,6 @@ static inline vf exp2v(vf x) {
     p = p * r + 1.0f;
     return p * (vf)((k + 127) << 23);
 }
-
-#if defined(__AVX__)
-static inline vf maxv(vf a, vf b) { return (vf)_mm256_max_ps((__m256)a, (__m256)b); }
-#elif defined(__SSE2__)
-static inline vf maxv(vf a, vf b) { return (vf)_mm_max_ps((__m128)a, (__m128)b); }
-#else
-static inline vf maxv(vf a, vf b) {
-    const vi m = a < b;
-    return (vf)(((vi)a & ~m) | ((vi)b & m));
-}
-#endif
 
 /* a[n] = exp(Δ A_n) for every state. With powers: A_n = −(n + 1) + d_n (Mamba's
  * initialisation, A_n = −(n + 1), plus what training moved), so exp(Δ A_n) =
