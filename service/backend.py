@@ -27,6 +27,7 @@ from lidar_core.yaw import estimate_yaw
 from service.errors import BadRequest, Conflict, NotFound
 from service.settings import Settings
 from service.store import Keyframe, NewKeyframe
+from service.verify import Verdict
 
 T = TypeVar("T")
 
@@ -72,14 +73,22 @@ class Match:
     distance: float
     yaw_deg: float | None
     yaw_confidence: float | None
+    verification: Verdict | None = None  # None: not verified (not asked, or beyond verify.k)
+
+    @property
+    def relative_pose(self) -> np.ndarray | None:
+        return None if self.verification is None else self.verification.relative_pose
 
     def public(self) -> dict[str, Any]:
+        pose = self.relative_pose
         return {
             **self.keyframe.public(),
             "distance": self.distance,
             "similarity": self.similarity,
             "yaw_deg": self.yaw_deg,
             "yaw_confidence": self.yaw_confidence,
+            "relative_pose": None if pose is None else [float(x) for x in pose.reshape(-1)],
+            "verification": None if self.verification is None else self.verification.public(),
         }
 
 
@@ -122,6 +131,17 @@ def check_rows(rows: list[NewKeyframe], dim: int) -> list[str]:
                 keyframe_id=r.keyframe_id,
             )
     return list(seen)
+
+
+def check_same_geometry(m: PlaceMap, keep_geometry: bool | None) -> None:
+    """Creating an existing map again: a geometry setting, when given, must match (409)."""
+    if keep_geometry is not None and m.keep_geometry != keep_geometry:
+        raise Conflict(
+            f"map {m.map_id!r} exists with keep_geometry={str(m.keep_geometry).lower()}; "
+            "the setting is fixed when a map is created",
+            code="map_conflict",
+            keep_geometry=m.keep_geometry,
+        )
 
 
 def check_existing(rows: list[NewKeyframe], existing: dict[str, Keyframe]) -> list[NewKeyframe]:
@@ -198,6 +218,7 @@ class PlaceMap(Protocol):
     model_id: str
     dim: int
     kind: str  # the index kind asked for: auto, flat (exact) or ivf (approximate)
+    keep_geometry: bool  # keyframes inserted from scans keep their compact geometry
 
     @property
     def count(self) -> int: ...  # live keyframes the index holds
@@ -207,6 +228,8 @@ class PlaceMap(Protocol):
     def delete(self, keyframe_id: str) -> None: ...
 
     def get(self, keyframe_id: str) -> Keyframe | None: ...
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]: ...  # those that have one
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None: ...
 
@@ -231,7 +254,9 @@ class MapBackend(Protocol):
 
     def get(self, map_id: str) -> PlaceMap: ...
 
-    def create(self, map_id: str, kind: str | None) -> tuple[PlaceMap, bool]: ...
+    def create(
+        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+    ) -> tuple[PlaceMap, bool]: ...
 
     def delete(self, map_id: str) -> None: ...
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from service.schemas import check_map_id
-from service.store import SCHEMA_VERSION, Store, fsync_dir
+from service.store import READABLE_VERSIONS, Store, fsync_dir
 
 LOCK_NAME = "service.lock"
 
@@ -82,9 +82,10 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
             con.close()
     except sqlite3.DatabaseError as err:
         raise BackupError(f"{src} is not a map export: {err}") from None
-    if int(meta.get("schema_version", -1)) != SCHEMA_VERSION:
+    if int(meta.get("schema_version", -1)) not in READABLE_VERSIONS:
         raise BackupError(
-            f"{src} has store schema {meta.get('schema_version')}; this code reads {SCHEMA_VERSION}"
+            f"{src} has store schema {meta.get('schema_version')}; this code reads "
+            f"{READABLE_VERSIONS} (an older one is upgraded on import)"
         )
     with data_dir_lock(data_dir):
         if folder.exists() and not replace:

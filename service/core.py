@@ -14,12 +14,14 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from starlette.concurrency import run_in_threadpool
 
+from lidar_core.geometry import encode_geometry
+from lidar_core.points import PointCloud
 from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, content_hash
 from service.bodies import ScanBody
 from service.encoder import Encoder
@@ -29,6 +31,7 @@ from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
 from service.store import NewKeyframe
+from service.verify import verify_candidates
 
 
 def parse_pose(text: str | None) -> list[float] | None:
@@ -78,9 +81,20 @@ def check_descriptor(values: Sequence[float] | np.ndarray, dim: int) -> np.ndarr
 
 @dataclass(frozen=True)
 class LoopClosure:
+    """The call on a query: is it a revisit of a keyframe, and which one.
+
+    With verification (a scan query, ``verify.k`` > 0, candidates with geometry): the
+    verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
+    query, ``verify=false``, keyframes without geometry): the top match when its descriptor
+    distance is under ``loop_closure.max_distance`` — ``verified`` is then None."""
+
     accepted: bool
-    threshold: float
+    threshold: float  # loop_closure.max_distance (the descriptor-only call)
     margin: float | None  # runner-up distance − best distance
+    keyframe_id: str | None = None
+    verified: bool | None = None
+    relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query
+    fitness: float | None = None
 
 
 @dataclass
@@ -118,6 +132,7 @@ class Observation:
     pose: list[float] | None = None
     insert: Literal["auto", "always", "never"] = "auto"
     k: int = 10
+    verify: bool = True
 
 
 class PlaceService:
@@ -206,18 +221,25 @@ class PlaceService:
         """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
         t0 = time.perf_counter()
         d = await self.pipeline.describe(scan)
-        (result,) = await self.insert(m, [await self._row(d, keyframe_id, obs)], obs.robot_id)
+        (result,) = await self.insert(m, [await self._row(m, d, keyframe_id, obs)], obs.robot_id)
         return Inserted(result, self._done(d.timings, t0))
 
-    async def _row(self, d: Description, keyframe_id: str, obs: Observation) -> NewKeyframe:
+    async def _row(
+        self, m: PlaceMap, d: Description, keyframe_id: str, obs: Observation
+    ) -> NewKeyframe:
         meta = {
             "robot": obs.robot_id,
             "session": obs.session_id,
             "timestamp": obs.timestamp,
             "pose": obs.pose,
         }
-        xyzi = d.points.as_xyzi()
-        digest = await run_in_threadpool(lambda: hashlib.sha256(xyzi.tobytes()).digest())
+        voxel = self.settings.verify.voxel_m
+
+        def digest_and_geometry() -> tuple[bytes, bytes | None]:
+            digest = hashlib.sha256(d.points.as_xyzi().tobytes()).digest()
+            return digest, encode_geometry(d.points.xyz, voxel=voxel) if m.keep_geometry else None
+
+        digest, geometry = await run_in_threadpool(digest_and_geometry)
         return NewKeyframe(
             keyframe_id=keyframe_id,
             robot_id=obs.robot_id,
@@ -227,6 +249,7 @@ class PlaceService:
             descriptor=d.descriptor,
             yaw=d.yaw,
             content_hash=content_hash("scan", digest, meta),
+            geometry=geometry,
         )
 
     # ---- queries ------------------------------------------------------------------------------
@@ -239,18 +262,23 @@ class PlaceService:
         filters: Filters,
         *,
         robot: str | None = None,
+        verify: bool = True,
     ) -> Answer:
         """Top ``k`` keyframes of an opened map for a scan, or for a descriptor (checked and
-        normalised here; a descriptor has no yaw features, so its matches have no yaw)."""
+        normalised here; a descriptor has no yaw features, so its matches have no yaw, and
+        no points, so they are not verified)."""
         t0 = time.perf_counter()
         self._check_k(k)
+        points = None
         if isinstance(probe, ScanBody):
             d = await self.pipeline.describe(probe)
-            desc, yaw, timings = d.descriptor, d.yaw, d.timings
+            desc, yaw, timings, points = d.descriptor, d.yaw, d.timings, d.points
         else:
             desc, yaw = check_descriptor(probe, m.dim), None
             timings = {"decode": (time.perf_counter() - t0) * 1e3}
-        answer = await self._search(m, desc, yaw, k, filters, timings, robot)
+        answer = await self._search(
+            m, desc, yaw, k, filters, timings, robot, points if verify else None
+        )
         self._done(timings, t0)
         return answer
 
@@ -267,20 +295,67 @@ class PlaceService:
         filters: Filters,
         timings: dict[str, float],
         robot: str | None,
+        points: PointCloud | None = None,
     ) -> Answer:
+        """Search, verify the top ``verify.k`` candidates when the query's points are given,
+        and make the loop-closure call (see :class:`LoopClosure`)."""
         t0 = time.perf_counter()
+        n_verify = self.settings.verify.k if points is not None else 0
         # One more than asked: the runner-up gives the loop-closure margin.
-        matches = await run_in_threadpool(m.search, descriptor, k + 1, filters, yaw)
+        matches = await run_in_threadpool(m.search, descriptor, max(k, n_verify) + 1, filters, yaw)
         timings["search"] = (time.perf_counter() - t0) * 1e3
         lc = self.settings.loop_closure
         margin = matches[1].distance - matches[0].distance if len(matches) > 1 else None
-        accepted = bool(
-            matches
-            and matches[0].distance <= lc.max_distance
-            and (margin is None or margin >= lc.min_margin)
+        closure = LoopClosure(
+            bool(
+                matches
+                and matches[0].distance <= lc.max_distance
+                and (margin is None or margin >= lc.min_margin)
+            ),
+            lc.max_distance,
+            margin,
         )
-        self.stats.query(m.map_id, robot, accepted)
-        return Answer(matches[:k], LoopClosure(accepted, lc.max_distance, margin), timings)
+        if closure.accepted:
+            closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
+        if n_verify and matches and points is not None:
+            t1 = time.perf_counter()
+            matches[:n_verify] = await run_in_threadpool(
+                self._verify, m, points, matches[:n_verify]
+            )
+            timings["verify"] = (time.perf_counter() - t1) * 1e3
+            closure = self._verified_closure(matches[:n_verify], closure)
+        self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
+        return Answer(matches[:k], closure, timings)
+
+    def _verify(self, m: PlaceMap, points: PointCloud, candidates: list[Match]) -> list[Match]:
+        blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
+        verdicts = verify_candidates(
+            points.xyz,
+            [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg) for c in candidates],
+            self.settings.verify,
+        )
+        return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]
+
+    @staticmethod
+    def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
+        """The verified candidate of highest fitness; the descriptor's call only when no
+        candidate could be registered (none has geometry)."""
+        judged = [c for c in candidates if c.verification and c.verification.verified is not None]
+        if not judged:
+            return descriptor_call
+        ok = [c for c in judged if c.verification and c.verification.verified]
+        if not ok:
+            return replace(descriptor_call, accepted=False, keyframe_id=None, verified=False)
+        best = max(ok, key=lambda c: c.verification.fitness or 0.0 if c.verification else 0.0)
+        assert best.verification is not None
+        return replace(
+            descriptor_call,
+            accepted=True,
+            keyframe_id=best.keyframe.keyframe_id,
+            verified=True,
+            relative_pose=best.verification.relative_pose,
+            fitness=best.verification.fitness,
+        )
 
     # ---- the robot's round trip -------------------------------------------------------------
 
@@ -330,13 +405,22 @@ class PlaceService:
             session_id=obs.session_id,
             timestamp=obs.timestamp,
         )
-        answer = await self._search(m, d.descriptor, d.yaw, obs.k, filters, d.timings, obs.robot_id)
+        answer = await self._search(
+            m,
+            d.descriptor,
+            d.yaw,
+            obs.k,
+            filters,
+            d.timings,
+            obs.robot_id,
+            d.points if obs.verify else None,
+        )
         reason = await self._insert_due(m, obs)
         keyframe_id = None
         inserted = False
         if reason is not None:
             keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
-            row = await self._row(d, keyframe_id, obs)
+            row = await self._row(m, d, keyframe_id, obs)
             (result,) = await self.insert(m, [row], obs.robot_id)
             inserted = result.created
             if not inserted:

@@ -35,6 +35,7 @@ from service.backend import (
     build_matches,
     check_existing,
     check_rows,
+    check_same_geometry,
     insert_results,
 )
 from service.errors import Conflict, NotFound, Unavailable
@@ -154,6 +155,8 @@ class Map:
         self.model_id: str = store.get_meta("model_id") or ""
         self.created_at = float(store.get_meta("created_at") or 0.0)
         self.dim = int(store.get_meta("dim") or index.dim)
+        # maps made before the setting existed keep geometry for their new keyframes
+        self.keep_geometry: bool = store.get_meta("keep_geometry") != "false"
 
     # ---- opening and snapshots --------------------------------------------------------------
 
@@ -166,6 +169,7 @@ class Map:
         model_id: str,
         dim: int,
         kind: str,
+        keep_geometry: bool,
         settings: IndexSettings,
     ) -> Map:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
@@ -175,7 +179,12 @@ class Map:
         tmp.mkdir(parents=True)
         store = Store(tmp / "store.sqlite")
         store.set_meta(
-            map_id=map_id, model_id=model_id, dim=dim, index_kind=kind, created_at=time.time()
+            map_id=map_id,
+            model_id=model_id,
+            dim=dim,
+            index_kind=kind,
+            keep_geometry="true" if keep_geometry else "false",
+            created_at=time.time(),
         )
         store.close()  # a lingering connection would checkpoint into the file later
         os.replace(tmp, folder)
@@ -386,6 +395,10 @@ class Map:
         self.check_open()
         return self.store.get(keyframe_id)
 
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        self.check_open()
+        return self.store.geometry(keyframe_ids)
+
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
         self.check_open()
         return self.store.last_keyframe(robot_id)
@@ -405,6 +418,7 @@ class Map:
                 "vectors": self.index.ntotal,
             },
             "keyframes": keyframes,
+            "keep_geometry": self.keep_geometry,
             "seq": self.applied_seq,
             "snapshot_seq": self.snapshot_seq,
             "created_at": self.created_at,
@@ -481,8 +495,10 @@ class MapRegistry:
             )
         return m
 
-    def create(self, map_id: str, kind: str | None) -> tuple[Map, bool]:
-        """Create a map, or return the existing one when ``kind`` is None or the same."""
+    def create(
+        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+    ) -> tuple[Map, bool]:
+        """Create a map, or return the existing one when each setting is None or the same."""
         check_map_id(map_id)
         with self._lock:
             if map_id in self.failed:
@@ -495,6 +511,7 @@ class MapRegistry:
                         code="map_conflict",
                         index=m.kind,
                     )
+                check_same_geometry(m, keep_geometry)
                 return m, False
             folder = self.root / map_id
             if folder.exists():  # debris without a store (load_all skipped it): not a map
@@ -505,6 +522,7 @@ class MapRegistry:
                 model_id=self.model_id,
                 dim=self.dim,
                 kind=kind or self.settings.kind,
+                keep_geometry=True if keep_geometry is None else keep_geometry,
                 settings=self.settings,
             )
             self.maps[map_id] = m

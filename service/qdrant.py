@@ -2,11 +2,13 @@
 
     collection   <qdrant.collection_prefix><map_id>, Euclidean distance over unit
                  descriptors (the same L2 the FAISS backend answers with); its metadata
-                 holds the map's model id, dimension, index kind and creation time
+                 holds the map's model id, dimension, index kind, whether it keeps
+                 geometry, and its creation time
     point id     uuid5(keyframe_id): a retried insert lands on the same point
     payload      keyframe_id, robot_id, session_id (keyword indexes), timestamp (float
-                 index), pose, content_hash, created_at, and the yaw features (float16,
-                 base64; not indexed)
+                 index), pose, content_hash, created_at, the yaw features (float16,
+                 base64; not indexed) and the compact geometry (lidar_core.geometry,
+                 base64; read only for the candidates a query verifies)
 
 Writes are acknowledged after Qdrant has applied them (``wait=True``) with strong ordering,
 and reads ask a majority of a shard's replicas, so a replica that answers next sees them.
@@ -49,6 +51,7 @@ from service.backend import (
     build_matches,
     check_existing,
     check_rows,
+    check_same_geometry,
     insert_results,
 )
 from service.errors import BadRequest, Conflict, NotFound, Overloaded, ServiceError, Unavailable
@@ -61,7 +64,8 @@ T = TypeVar("T")
 
 _NAMESPACE = uuid.UUID("6f0d1c2e-3a4b-5c6d-8e9f-0a1b2c3d4e5f")  # keyframe ids → point ids
 _MARK = "overlapmamba_map"  # collection metadata key: this collection is one of our maps
-_NO_YAW = models.PayloadSelectorExclude(exclude=["yaw"])
+_LEAN = models.PayloadSelectorExclude(exclude=["yaw", "geometry"])  # the keyframe only
+_NO_GEOMETRY = models.PayloadSelectorExclude(exclude=["geometry"])
 _FRESH_S = 5.0  # how long a replica trusts what it read about a map (others may delete it)
 _CHUNK = 128  # points per upsert: ≈5 MB of JSON, well below Qdrant's 32 MB request limit
 _INDEXES = {
@@ -87,6 +91,7 @@ def point_payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
         "created_at": created_at,
         "yaw": None if yaw is None else base64.b64encode(yaw.tobytes()).decode(),
         "yaw_shape": None if yaw is None else list(yaw.shape),
+        "geometry": None if r.geometry is None else base64.b64encode(r.geometry).decode(),
     }
 
 
@@ -151,6 +156,7 @@ class QdrantMap:
         self.model_id: str = str(meta["model_id"])
         self.dim = int(meta["dim"])
         self.kind: str = str(meta["index_kind"])
+        self.keep_geometry = bool(meta.get("keep_geometry", True))
         self.created_at = float(meta.get("created_at") or 0.0)
         self.checked = time.monotonic()
         self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
@@ -244,12 +250,28 @@ class QdrantMap:
     def _retrieve(self, ids: list[str]) -> list[models.Record]:
         return self._call(
             lambda c: c.retrieve(
-                self.collection, ids, with_payload=_NO_YAW, consistency=self.backend.consistency
+                self.collection, ids, with_payload=_LEAN, consistency=self.backend.consistency
             )
         )
 
     def get(self, keyframe_id: str) -> Keyframe | None:
         return self._get_many([keyframe_id]).get(keyframe_id)
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        records = self._call(
+            lambda c: c.retrieve(
+                self.collection,
+                [point_id(k) for k in keyframe_ids],
+                with_payload=["keyframe_id", "geometry"],
+                consistency=self.backend.consistency,
+            )
+        )
+        out = {}
+        for rec in records:
+            p = rec.payload or {}
+            if p.get("geometry"):
+                out[str(p["keyframe_id"])] = base64.b64decode(p["geometry"])
+        return out
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
         records, _ = self._call(
@@ -258,7 +280,7 @@ class QdrantMap:
                 scroll_filter=models.Filter(must=[_match("robot_id", robot_id)]),
                 limit=1,
                 order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
-                with_payload=_NO_YAW,
+                with_payload=_LEAN,
                 consistency=self.backend.consistency,
             )
         )
@@ -279,7 +301,7 @@ class QdrantMap:
                 limit=k,
                 query_filter=_filter(filters),
                 search_params=params,
-                with_payload=True if yaw is not None else _NO_YAW,
+                with_payload=_NO_GEOMETRY if yaw is not None else _LEAN,
                 consistency=self.backend.consistency,
             )
         )
@@ -303,6 +325,7 @@ class QdrantMap:
                 "collection": self.collection,
             },
             "keyframes": n,
+            "keep_geometry": self.keep_geometry,
             "seq": None,
             "snapshot_seq": None,
             "created_at": self.created_at,
@@ -454,13 +477,16 @@ class QdrantBackend:
             self._maps[map_id] = m
         return m
 
-    def create(self, map_id: str, kind: str | None) -> tuple[QdrantMap, bool]:
+    def create(
+        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+    ) -> tuple[QdrantMap, bool]:
         check_map_id(map_id)
         with self._create:
             m = self._open(map_id)
             created = m is None
             if m is None:
-                self._create_collection(map_id, kind or self.index.kind)
+                keep = True if keep_geometry is None else keep_geometry
+                self._create_collection(map_id, kind or self.index.kind, keep)
                 m = self._open(map_id)
                 assert m is not None
             if kind is not None and m.kind != kind:
@@ -469,10 +495,11 @@ class QdrantBackend:
                     code="map_conflict",
                     index=m.kind,
                 )
+            check_same_geometry(m, keep_geometry)
             self._maps[map_id] = m
             return m, created
 
-    def _create_collection(self, map_id: str, kind: str) -> None:
+    def _create_collection(self, map_id: str, kind: str, keep_geometry: bool) -> None:
         name = self.collection(map_id)
         q = self.settings
         meta = {
@@ -481,6 +508,7 @@ class QdrantBackend:
             "model_id": self.model_id,
             "dim": self.dim,
             "index_kind": kind,
+            "keep_geometry": keep_geometry,
             "created_at": time.time(),
         }
         hnsw = models.HnswConfigDiff(m=0) if kind == "flat" else None  # exact: no graph

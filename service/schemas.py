@@ -30,6 +30,9 @@ class Timings(BaseModel):
     project: float | None = Field(None, description="the model's range projection")
     encode: float | None = Field(None, description="waiting for a micro-batch, then the encoder")
     search: float | None = Field(None, description="the map search, filters and yaw")
+    verify: float | None = Field(
+        None, description="registering the top candidates against their keyframes' geometry"
+    )
     total: float | None = Field(
         None, description="from the request body in hand to the answer (not the network)"
     )
@@ -65,8 +68,17 @@ class MapSettingsIn(_Model):
     index: IndexKind | None = Field(
         None, description="'flat' (exact), 'ivf' (approximate) or 'auto' (flat until large)"
     )
+    keep_geometry: bool | None = Field(
+        None,
+        description="keyframes inserted from scans keep a compact copy of their geometry "
+        "(≈ 7 KB) so that queries can verify them and return a relative pose; default true. "
+        "false: a descriptor-only map (≈ 1 KB per keyframe), matches carry verified: null",
+    )
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"index": "auto"}]})
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"index": "auto", "keep_geometry": True}]},
+    )
 
 
 class MapOut(BaseModel):
@@ -76,6 +88,7 @@ class MapOut(BaseModel):
     backend: str = Field("faiss", description="faiss (embedded) or qdrant")
     index: dict[str, Any]
     keyframes: int
+    keep_geometry: bool = Field(True, description="keyframes from scans keep their geometry")
     seq: int | None = Field(None, description="faiss: the store's last write sequence number")
     snapshot_seq: int | None = Field(None, description="faiss: the seq the snapshot holds")
     created_at: float
@@ -179,12 +192,45 @@ class MatchOut(BaseModel):
         description="yaw of the match's sensor frame in the query's, degrees (−180, 180]"
     )
     yaw_confidence: float | None = Field(description="feature correlation at that yaw, [-1, 1]")
+    relative_pose: list[float] | None = Field(
+        None,
+        description="4×4 row-major T_keyframe←query from registration (maps points of the "
+        "query scan into the keyframe's sensor frame); null when not registered",
+    )
+    verification: VerificationOut | None = Field(
+        None,
+        description="null when not verified (verify=false, a descriptor query, or "
+        "beyond the top verify.k candidates)",
+    )
+
+
+class VerificationOut(BaseModel):
+    verified: bool | None = Field(
+        description="registration passed the calibrated thresholds; null: the keyframe keeps "
+        "no geometry (inserted as a descriptor, or its map keeps none)"
+    )
+    fitness: float | None = Field(
+        description="share of the query's grid points within verify.radius_m (1 m) of the "
+        "keyframe's geometry after alignment, [0, 1]"
+    )
+    rmse: float | None = Field(description="rmse of those points' distances, metres")
+    reason: str | None = Field(description="why it is not verified, when it is not")
 
 
 class LoopClosureOut(BaseModel):
     accepted: bool
-    threshold: float
+    threshold: float = Field(description="the descriptor distance for an unverified call")
     margin_top1_top2: float | None
+    keyframe_id: str | None = Field(None, description="the revisited keyframe, when accepted")
+    verified: bool | None = Field(
+        None,
+        description="true: accepted after registration; false: candidates were registered "
+        "and none passed; null: the call is the descriptor distance alone",
+    )
+    relative_pose: list[float] | None = Field(
+        None, description="4×4 row-major T_keyframe←query of the accepted, verified closure"
+    )
+    fitness: float | None = None
 
 
 class QueryOut(BaseModel):
@@ -207,10 +253,41 @@ class QueryOut(BaseModel):
                             "pose": [12.0, -3.5, 0.0, 0.0, 0.0, 0.0, 1.0],
                             "yaw_deg": 178.6,
                             "yaw_confidence": 0.83,
+                            "relative_pose": [
+                                *(-0.9996, -0.0244, 0.0011, 1.32),
+                                *(0.0244, -0.9996, 0.0006, -0.41),
+                                *(0.0011, 0.0006, 1.0, 0.02),
+                                *(0.0, 0.0, 0.0, 1.0),
+                            ],
+                            "verification": {
+                                "verified": True,
+                                "fitness": 0.87,
+                                "rmse": 0.31,
+                                "reason": None,
+                            },
                         }
                     ],
-                    "loop_closure": {"accepted": True, "threshold": 0.5, "margin_top1_top2": 0.12},
-                    "timings_ms": {"decode": 0.3, "project": 5.8, "encode": 91.0, "search": 0.4},
+                    "loop_closure": {
+                        "accepted": True,
+                        "threshold": 0.0835,
+                        "margin_top1_top2": 0.12,
+                        "keyframe_id": "drive1-000042",
+                        "verified": True,
+                        "relative_pose": [
+                            *(-0.9996, -0.0244, 0.0011, 1.32),
+                            *(0.0244, -0.9996, 0.0006, -0.41),
+                            *(0.0011, 0.0006, 1.0, 0.02),
+                            *(0.0, 0.0, 0.0, 1.0),
+                        ],
+                        "fitness": 0.87,
+                    },
+                    "timings_ms": {
+                        "decode": 0.3,
+                        "project": 1.9,
+                        "encode": 21.0,
+                        "search": 0.6,
+                        "verify": 19.5,
+                    },
                 }
             ]
         }

@@ -143,6 +143,33 @@ class LoopClosureSettings(_Section):
     )
 
 
+class VerifySettings(_Section):
+    # Calibrated for the shipped model on the validation town (benchmarks/verify_threshold.py).
+    k: int = Field(
+        5,
+        ge=0,
+        le=50,
+        description="scan queries: register the top k candidates against their keyframe's "
+        "geometry (0: never; a request's verify=false skips it too)",
+    )
+    min_fitness: float = Field(
+        0.7,
+        ge=0,
+        le=1,
+        description="verified: at least this share of the query's grid points lies within "
+        "radius_m of the keyframe's geometry after alignment",
+    )
+    max_rmse_m: float = Field(0.6, gt=0, description="verified: and their rmse is below")
+    radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
+    voxel_m: float = Field(
+        2.0,
+        ge=0.5,
+        le=5,
+        description="grid of the geometry kept per keyframe and of the query's registration",
+    )
+    max_iterations: int = Field(30, ge=1, le=200, description="GICP stops here (bounded time)")
+
+
 class ApiKey(_Section):
     name: str = Field(min_length=1)
     role: Role
@@ -197,6 +224,7 @@ class Settings(BaseSettings):
     index: IndexSettings = Field(default_factory=IndexSettings)  # type: ignore[arg-type]
     observe: ObserveSettings = Field(default_factory=ObserveSettings)  # type: ignore[arg-type]
     loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
+    verify: VerifySettings = Field(default_factory=VerifySettings)  # type: ignore[arg-type]
     auth: AuthSettings = Field(default_factory=AuthSettings)
     qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
 

@@ -11,6 +11,7 @@ import contextlib
 import threading
 import time
 from collections import Counter, OrderedDict, defaultdict, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,7 +21,7 @@ from prometheus_client import Counter as PCounter
 
 WINDOW = 2048
 MAX_ROBOTS = 1000  # per-robot rows kept (least recently seen dropped): ids come from clients
-STAGES = ("decode", "project", "encode", "search", "total")
+STAGES = ("decode", "project", "encode", "search", "verify", "total")
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
 
@@ -37,6 +38,8 @@ class _Counts:
     inserts: int = 0
     queries: int = 0
     loop_closures: int = 0
+    verified: int = 0  # candidates whose registration passed the thresholds
+    rejected: int = 0  # candidates registered (or tried) that did not
     robots: OrderedDict[str, _Robot] = field(default_factory=OrderedDict)
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
 
@@ -49,6 +52,7 @@ class _Counts:
             "queries_per_s_1m": last_min / 60.0,
             "loop_closures": self.loop_closures,
             "loop_closure_rate": self.loop_closures / self.queries if self.queries else 0.0,
+            "verification": {"verified": self.verified, "rejected": self.rejected},
             "robots": {
                 name: {
                     "last_seen": r.last_seen,
@@ -91,6 +95,12 @@ class Stats:
         self.p_loops = PCounter(
             "overlapmamba_loop_closures", "Accepted loop closures", ["map"], registry=r
         )
+        self.p_verify = PCounter(
+            "overlapmamba_verifications",
+            "Candidates geometrically verified, by outcome (verified, rejected)",
+            ["map", "outcome"],
+            registry=r,
+        )
         self.p_batch = Histogram(
             "overlapmamba_encoder_batch_size",
             "Scans per encoder call",
@@ -127,13 +137,26 @@ class Stats:
         rec.last_seen = time.time()
         return rec
 
-    def query(self, map_id: str, robot: str | None, accepted: bool) -> None:
+    def query(
+        self, map_id: str, robot: str | None, accepted: bool, candidates: Sequence[Any] = ()
+    ) -> None:
+        """One answered query; ``candidates``: its matches that went through verification
+        (those whose keyframe had no geometry count as neither verified nor rejected)."""
         self.p_queries.labels(map_id).inc()
         if accepted:
             self.p_loops.labels(map_id).inc()
+        outcomes = [c.verification.verified for c in candidates if c.verification is not None]
+        verified = sum(v is True for v in outcomes)
+        rejected = sum(v is False for v in outcomes)
+        if verified:
+            self.p_verify.labels(map_id, "verified").inc(verified)
+        if rejected:
+            self.p_verify.labels(map_id, "rejected").inc(rejected)
         with self._lock:
             for c in (self.total, self.by_map[map_id]):
                 c.queries += 1
+                c.verified += verified
+                c.rejected += rejected
                 c.recent.append(time.time())
                 c.loop_closures += accepted
                 rec = self._robot(c, robot)

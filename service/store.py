@@ -14,6 +14,11 @@ Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the F
                 store keeps the exact value, the index and the answers never differ
     yaw         (C, W) float16 blob, or NULL when a batch insert sent none (the yaw comes
                 from a correlation peak; float16 does not move it)
+    geometry    the keyframe's compact geometry (:mod:`lidar_core.geometry`, ≈ 7 KB), or NULL
+                for a keyframe inserted as a bare descriptor or into a map that keeps none.
+                Written in the same transaction as the descriptor: as durable as it.
+
+Schema 2 added ``geometry``; a schema-1 store gains the column when opened for writing.
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # a read-only open (doctor) reads either
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS keyframes (
@@ -49,7 +55,8 @@ CREATE TABLE IF NOT EXISTS keyframes (
     content_hash TEXT NOT NULL,
     seq INTEGER NOT NULL,
     deleted_seq INTEGER,
-    created_at REAL NOT NULL
+    created_at REAL NOT NULL,
+    geometry BLOB
 );
 CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
 CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
@@ -72,6 +79,7 @@ class NewKeyframe:
     descriptor: np.ndarray  # (D,) float32
     yaw: np.ndarray | None  # (C, W) float32
     content_hash: str
+    geometry: bytes | None = None  # lidar_core.geometry blob
 
 
 @dataclass(frozen=True)
@@ -145,9 +153,9 @@ class Store:
                 raise StoreError(f"{path} does not exist")
             self._write = self._connect()
             version = self.get_meta("schema_version")
-            if version is None or int(version) != SCHEMA_VERSION:
+            if version is None or int(version) not in READABLE_VERSIONS:
                 raise StoreError(
-                    f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}"
+                    f"{path}: schema version {version}; this code reads {READABLE_VERSIONS}"
                 )
             return
         self._write = self._connect()
@@ -158,8 +166,26 @@ class Store:
         version = self.get_meta("schema_version")
         if version is None:
             self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
+        elif int(version) == 1:
+            self._migrate_1_to_2()
         elif int(version) != SCHEMA_VERSION:
             raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
+
+    def _migrate_1_to_2(self) -> None:
+        """Add the geometry column (NULL for every existing keyframe), in one transaction."""
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                con.execute("ALTER TABLE keyframes ADD COLUMN geometry BLOB")
+                con.execute(
+                    "INSERT OR REPLACE INTO meta(key, value) VALUES ('schema_version', ?)",
+                    (str(SCHEMA_VERSION),),
+                )
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
 
     def _connect(self) -> sqlite3.Connection:
         if self.readonly:
@@ -239,8 +265,8 @@ class Store:
                     yaw = None if r.yaw is None else to_f16(r.yaw)
                     cur = con.execute(
                         "INSERT INTO keyframes(keyframe_id, robot_id, session_id, timestamp, "
-                        "pose, descriptor, yaw, yaw_shape, content_hash, seq, created_at) "
-                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        "pose, descriptor, yaw, yaw_shape, content_hash, seq, created_at, "
+                        "geometry) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                         (
                             r.keyframe_id,
                             r.robot_id,
@@ -253,6 +279,7 @@ class Store:
                             r.content_hash,
                             seq,
                             now,
+                            r.geometry,
                         ),
                     )
                     ids.append(int(cur.lastrowid or 0))
@@ -357,6 +384,18 @@ class Store:
                 yaw = np.frombuffer(row[9], dtype=np.float16).reshape(shape)
             out[kf.id] = (kf, yaw)
         return out
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        """The geometry blobs of those live keyframes that have one."""
+        if not keyframe_ids:
+            return {}
+        marks = ",".join("?" * len(keyframe_ids))
+        rows = self._rows(
+            f"SELECT keyframe_id, geometry FROM keyframes WHERE keyframe_id IN ({marks}) "
+            "AND geometry IS NOT NULL",
+            keyframe_ids,
+        )
+        return {r[0]: bytes(r[1]) for r in rows}
 
     def descriptor(self, keyframe_id: str) -> np.ndarray | None:
         rows = self._rows("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))

@@ -12,8 +12,9 @@ compact geometry (:mod:`lidar_core.geometry`) with small_gicp, seeded by the des
 
 A registration that does not converge within ``max_iterations`` stops there (bounded time);
 a query or keyframe too sparse to register is refused with the reason, never an exception.
-Whether a result counts as verified (``min_fitness``, ``max_rmse``) is for the caller's
-calibrated thresholds.
+:func:`verify_candidates` is the query's stage: it prepares the query once, registers each
+candidate that has geometry, and judges each result against the calibrated thresholds
+(``verify.min_fitness``, ``verify.max_rmse_m``: ``benchmarks/verify_threshold.py``).
 
 **Resolution.** Both sides register on a 2 m grid by default: on KITTI 00 (turned odd frames
 against even ones, ``benchmarks/registration.py``) that is ≈ 1,100 points a side, 4.9 ms to
@@ -33,6 +34,9 @@ import small_gicp
 
 from lidar_core.geometry import GeometryError, decode_geometry
 from lidar_core.poses import rotation_z
+from service.settings import VerifySettings
+
+NO_GEOMETRY = "the keyframe keeps no geometry (inserted as a descriptor, or its map keeps none)"
 
 
 @dataclass(frozen=True)
@@ -132,3 +136,57 @@ def register(
         None,
         (time.perf_counter() - t0) * 1e3,
     )
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One candidate's verification, as an answer carries it."""
+
+    verified: bool | None  # None: the keyframe has no geometry to register against
+    fitness: float | None
+    rmse: float | None
+    reason: str | None  # why it is not verified, when it is not
+    relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query, when registration ran
+    ms: float
+
+    def public(self) -> dict[str, object]:
+        return {
+            "verified": self.verified,
+            "fitness": self.fitness,
+            "rmse": self.rmse,
+            "reason": self.reason,
+        }
+
+
+def params_of(v: VerifySettings) -> RegistrationParams:
+    return RegistrationParams(voxel=v.voxel_m, radius=v.radius_m, max_iterations=v.max_iterations)
+
+
+def judge(reg: Registration, v: VerifySettings) -> Verdict:
+    if reg.relative_pose is None or reg.fitness is None:
+        return Verdict(False, None, None, reg.reason, None, reg.ms)
+    reason = None
+    if reg.fitness < v.min_fitness:
+        reason = f"fitness {reg.fitness:.3f} is below {v.min_fitness}"
+    elif reg.rmse is None or reg.rmse > v.max_rmse_m:
+        reason = f"rmse {reg.rmse} m is above {v.max_rmse_m}"
+    return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose, reg.ms)
+
+
+def verify_candidates(
+    xyz: np.ndarray, candidates: list[tuple[bytes | None, float | None]], v: VerifySettings
+) -> list[Verdict]:
+    """The query's points and its candidates (geometry blob or None, the descriptor's
+    relative yaw) → one verdict per candidate, in order. The query is prepared only when
+    some candidate has geometry."""
+    p = params_of(v)
+    if all(blob is None for blob, _ in candidates):
+        return [Verdict(None, None, None, NO_GEOMETRY, None, 0.0) for _ in candidates]
+    query = prepare(xyz, p)
+    out = []
+    for blob, yaw_deg in candidates:
+        if blob is None:
+            out.append(Verdict(None, None, None, NO_GEOMETRY, None, 0.0))
+        else:
+            out.append(judge(register(query, blob, yaw_deg, p), v))
+    return out

@@ -1,7 +1,8 @@
 """End to end, crash: SIGKILL the server at random moments under mixed load (descriptor
 batches, scan observations that insert, deletes), restart it each time, and check that it
-turns ready with every acknowledged keyframe present, every acknowledged delete gone, the
-index count equal to the store count, and the store's writes replayed. Then cut off a
+turns ready with every acknowledged keyframe present (observed ones still verify against
+their geometry), every acknowledged delete gone, the index count equal to the store count,
+and the store's writes replayed. Then cut off a
 snapshot mid-write (a torn temporary file) and start once more.
 
 Quick (``make test``): 2 crashes. Full (``make e2e``): 10.
@@ -86,7 +87,8 @@ def check(
     c: httpx.Client, alive: dict[str, list[float]], deleted: set[str], rnd: random.Random
 ) -> dict[str, int]:
     """Every acknowledged keyframe is stored, every acknowledged delete gone, index = store,
-    and the index holds the right vectors: acknowledged descriptors find themselves."""
+    and the index holds the right vectors: acknowledged descriptors find themselves, and
+    acknowledged observations still verify (their geometry is as durable as the vector)."""
     info = c.get(f"/v1/maps/{MAP}").json()
     missing = [k for k in alive if c.get(f"/v1/maps/{MAP}/keyframes/{k}").status_code != 200]
     resurrected = [k for k in deleted if c.get(f"/v1/maps/{MAP}/keyframes/{k}").status_code == 200]
@@ -99,6 +101,17 @@ def check(
         r = c.post(f"/v1/maps/{MAP}/query", params={"k": 1}, json={"descriptor": alive[kid]})
         top = r.json()["matches"][0]
         assert top["keyframe_id"] == kid and top["distance"] < 1e-3, (kid, top)
+    observed = sorted(k for k, d in alive.items() if not d)  # r1:session:timestamp
+    for kid in rnd.sample(observed, min(5, len(observed))):
+        ts = float(kid.split(":")[2])
+        r = c.post(
+            f"/v1/maps/{MAP}/query",
+            params={"k": 5, "time_from": ts, "time_to": ts},
+            content=SCANS[int(ts) % len(SCANS)],
+            headers=OCTET,
+        )
+        verdicts = {m["keyframe_id"]: m["verification"] for m in r.json()["matches"]}
+        assert (verdicts.get(kid) or {}).get("verified") is True, (kid, verdicts)
     return {"keyframes": info["keyframes"], "vectors": info["index"]["vectors"]}
 
 

@@ -658,3 +658,74 @@ async def test_openapi_documents_every_route_with_examples(settings, encoder):
     schemas = spec["components"]["schemas"]
     for ref in refs(spec):  # every reference in /docs resolves
         assert ref.startswith("#/components/schemas/") and ref.rsplit("/", 1)[1] in schemas, ref
+
+
+async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encoder):
+    """Keyframes from scans keep their geometry; a scan query registers the top candidates
+    against it: a turned copy of a keyframe comes back verified, with the turn as its pose.
+    A bare-descriptor keyframe says verified: null; verify=false skips the stage; a map
+    made with keep_geometry=false keeps none; a scan too sparse to register is a
+    verified: false with its reason, not an error."""
+    from lidar_core.poses import rotation_z
+
+    async with running(any_backend, encoder) as c:
+        assert (await c.put("/v1/maps/town")).json()["keep_geometry"] is True
+        r = await c.put("/v1/maps/bare", json={"keep_geometry": False})
+        assert r.status_code == 201 and r.json()["keep_geometry"] is False
+        r = await c.put("/v1/maps/bare", json={"keep_geometry": True})
+        assert r.status_code == 409 and err(r)["code"] == "map_conflict"
+        for map_id in ("town", "bare"):
+            for i in range(2):
+                r = await c.post(
+                    f"/v1/maps/{map_id}/keyframes",
+                    params=kf_params(f"k{i}", 100.0 + i),
+                    content=scan(i).tobytes(),
+                    headers=OCTET,
+                )
+                assert r.status_code == 201, r.text
+        d = (await c.post("/v1/descriptors", content=scan(5).tobytes(), headers=OCTET)).json()
+        kf = {"keyframe_id": "d5", "timestamp": 105.0, "descriptor": d["descriptor"]}
+        r = await c.post(
+            "/v1/maps/town/keyframes:batch",
+            json={"model_id": encoder.model_id, "keyframes": [kf]},
+        )
+        assert r.status_code == 200, r.text
+
+        turned = scan(1, 40.0).tobytes()
+        q = await c.post("/v1/maps/town/query", params={"k": 3}, content=turned, headers=OCTET)
+        q = q.json()
+        best, lc = q["matches"][0], q["loop_closure"]
+        assert best["keyframe_id"] == "k1" and best["verification"]["verified"] is True
+        assert best["verification"]["fitness"] > 0.9 and best["verification"]["rmse"] < 0.6
+        T = np.array(best["relative_pose"]).reshape(4, 4)
+        assert np.abs(T - rotation_z(-40.0)).max() < 0.02, T  # query points → keyframe frame
+        assert lc["accepted"] and lc["verified"] is True and lc["keyframe_id"] == "k1"
+        assert lc["relative_pose"] == best["relative_pose"]
+        bare = {m["keyframe_id"]: m for m in q["matches"]}["d5"]["verification"]
+        assert bare["verified"] is None and "no geometry" in bare["reason"]
+        assert q["timings_ms"]["verify"] > 0
+
+        q = await c.post(
+            "/v1/maps/town/query", params={"verify": "false"}, content=turned, headers=OCTET
+        )
+        assert all(m["verification"] is None for m in q.json()["matches"])
+        assert q.json()["loop_closure"]["verified"] is None
+
+        q = (await c.post("/v1/maps/bare/query", content=turned, headers=OCTET)).json()
+        assert q["matches"][0]["verification"]["verified"] is None
+        assert q["loop_closure"]["verified"] is None  # the descriptor's call
+
+        rng = np.random.default_rng(0)
+        blob = np.zeros((300, 4), np.float32)  # 300 points in one 1 m box: a voxel or two
+        blob[:, :3] = np.array([5.0, 0.0, 0.0]) + rng.uniform(0, 1, (300, 3))
+        sparse = blob.tobytes()
+        q = await c.post("/v1/maps/town/query", content=sparse, headers=OCTET)
+        assert q.status_code == 200, q.text
+        v = {m["keyframe_id"]: m["verification"] for m in q.json()["matches"]}
+        assert v["k1"]["verified"] is False and "voxels" in v["k1"]["reason"]
+        assert q.json()["loop_closure"]["accepted"] is False
+
+        stats = (await c.get("/v1/maps/town/stats")).json()["verification"]
+        assert stats["verified"] >= 1 and stats["rejected"] >= 2
+        metrics = (await c.get("/metrics")).text
+        assert 'overlapmamba_verifications_total{map="town",outcome="verified"}' in metrics

@@ -227,6 +227,50 @@ def test_store_sequences_tombstones_and_replay_queries(tmp_path):
     store.close()
 
 
+def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
+    """Geometry is written with its row; a store of schema 1 (no geometry column) opens,
+    gains the column in one step, keeps its rows, and reads as having no geometry."""
+    import dataclasses
+    import sqlite3
+
+    from service.store import SCHEMA_VERSION
+
+    rng = np.random.default_rng(4)
+    vecs = unit(rng, 3)
+    store = Store(tmp_path / "s.sqlite")
+    store.insert([dataclasses.replace(row(0, vecs[0]), geometry=b"OMG1-blob"), row(1, vecs[1])])
+    assert store.geometry(["kf0", "kf1", "nope"]) == {"kf0": b"OMG1-blob"}
+    store.close()
+
+    old = tmp_path / "old.sqlite"
+    con = sqlite3.connect(old)
+    con.executescript(
+        "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);"
+        "CREATE TABLE keyframes (id INTEGER PRIMARY KEY AUTOINCREMENT, keyframe_id TEXT UNIQUE,"
+        " deleted_keyframe_id TEXT, robot_id TEXT NOT NULL, session_id TEXT NOT NULL,"
+        " timestamp REAL NOT NULL, pose TEXT, descriptor BLOB NOT NULL, yaw BLOB,"
+        " yaw_shape TEXT, content_hash TEXT NOT NULL, seq INTEGER NOT NULL,"
+        " deleted_seq INTEGER, created_at REAL NOT NULL);"
+        "INSERT INTO meta VALUES ('schema_version', '1'), ('seq', '1');"
+    )
+    con.execute(
+        "INSERT INTO keyframes(keyframe_id, robot_id, session_id, timestamp, descriptor, "
+        "content_hash, seq, created_at) VALUES ('kf9', 'r1', 's1', 9.0, ?, 'h', 1, 0.0)",
+        (vecs[2].tobytes(),),
+    )
+    con.commit()
+    con.close()
+    ro = Store(old, readonly=True)
+    assert ro.count() == 1  # doctor reads schema 1 as it is
+    ro.close()
+    store = Store(old)
+    assert store.get_meta("schema_version") == str(SCHEMA_VERSION) and store.count() == 1
+    assert store.geometry(["kf9"]) == {}
+    store.insert([dataclasses.replace(row(0, vecs[0]), geometry=b"g")])
+    assert store.geometry(["kf0", "kf9"]) == {"kf0": b"g"}
+    store.close()
+
+
 def _registry(root: Path, **index: object) -> MapRegistry:
     r = MapRegistry(root, IndexSettings(**index), model_id="m1", dim=D)
     r.load_all()

@@ -31,7 +31,10 @@ async def create_map(
     """Create the map, or return it unchanged if it exists with the same settings (200).
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
     m, created = await run_in_threadpool(
-        svc.registry.create, map_id, settings.index if settings else None
+        svc.registry.create,
+        map_id,
+        settings.index if settings else None,
+        settings.keep_geometry if settings else None,
     )
     response.status_code = 201 if created else 200
     return MapOut(**await run_in_threadpool(m.info), created=created)

@@ -4,7 +4,7 @@ WebSocket protocol (``/v1/maps/{map_id}/stream?robot_id=&session_id=&k=``):
 each observation is two frames from the client —
 
 1. a text frame, JSON: ``{"seq": any, "timestamp": float, "pose": "x,y,z,qx,qy,qz,qw" |
-   [7 numbers] | null, "insert": "auto"|"always"|"never", "content_type":
+   [7 numbers] | null, "insert": "auto"|"always"|"never", "verify": bool, "content_type":
    "application/octet-stream"|"application/x-npy"|"application/x-pcd", "fields":
    "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd"}`` (all but ``timestamp`` optional);
 2. a binary frame: the scan bytes.
@@ -50,6 +50,10 @@ from service.schemas import (
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
 ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
 InsertMode = Literal["auto", "always", "never"]
+VERIFY_HELP = (
+    "register the top verify.k candidates against their keyframes' geometry (a relative pose "
+    "and a verified loop closure); false: the descriptor alone, faster"
+)
 
 QUERY_BODY = {
     **SCAN_BODY,
@@ -96,12 +100,16 @@ async def query(
     max_distance: Annotated[float | None, Query(ge=0, le=2)] = None,
     time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> QueryOut:
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
-    query each match carries the relative yaw from the stored yaw features. The loop closure
-    is accepted when the best distance is under the configured threshold (and the margin to
-    the runner-up is large enough). k results come back whenever k eligible keyframes exist."""
+    query each match carries the relative yaw from the stored yaw features, and the top
+    `verify.k` (5) are registered against their keyframe's geometry: `relative_pose` and
+    `verification`. The loop closure is the verified candidate of highest fitness; without
+    verification, the top match when its distance is under the configured threshold (and
+    the margin to the runner-up is large enough). k results come back whenever k eligible
+    keyframes exist."""
     m = await svc.open_map(map_id)
     filters = Filters(
         exclude_session=exclude_session,
@@ -127,7 +135,7 @@ async def query(
                 code="bad_descriptor",
                 errors=json.loads(err.json(include_url=False, include_input=False)),
             ) from None
-    return query_out(await svc.query(m, probe, k, filters))
+    return query_out(await svc.query(m, probe, k, filters, verify=verify))
 
 
 @router.post(
@@ -148,6 +156,7 @@ async def observe(
     pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
     insert: InsertMode = "auto",
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> ObserveOut:
     """Query the map excluding this session's own recent keyframes, then insert the scan as
@@ -157,7 +166,7 @@ async def observe(
     if insert != "never":
         request.app.state.auth.authorize(who, Action.INSERT, map_id)
     m = await svc.open_map(map_id)
-    obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k)
+    obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
     scan = await read_scan(request, svc.settings.limits, x_point_fields)
     return observe_out(await svc.observe(m, scan, obs))
 
@@ -167,7 +176,15 @@ def query_out(a: Answer) -> QueryOut:
     return QueryOut(
         matches=[MatchOut(**x.public()) for x in a.matches],
         loop_closure=LoopClosureOut(
-            accepted=lc.accepted, threshold=lc.threshold, margin_top1_top2=lc.margin
+            accepted=lc.accepted,
+            threshold=lc.threshold,
+            margin_top1_top2=lc.margin,
+            keyframe_id=lc.keyframe_id,
+            verified=lc.verified,
+            relative_pose=None
+            if lc.relative_pose is None
+            else [float(x) for x in lc.relative_pose.reshape(-1)],
+            fitness=lc.fitness,
         ),
         timings_ms=Timings(**a.timings),
     )
@@ -188,6 +205,7 @@ class StreamMeta(BaseModel):
     timestamp: float = Field(allow_inf_nan=False)
     pose: str | list[float] | None = None
     insert: InsertMode = "auto"
+    verify: bool = True
     content_type: str = "application/octet-stream"
     fields: str = "xyzi"
     encoding: str = "identity"
@@ -230,7 +248,9 @@ async def stream(
                 pose = (
                     check_pose(meta.pose) if isinstance(meta.pose, list) else parse_pose(meta.pose)
                 )
-                obs = Observation(robot_id, session_id, meta.timestamp, pose, meta.insert, k)
+                obs = Observation(
+                    robot_id, session_id, meta.timestamp, pose, meta.insert, k, meta.verify
+                )
                 body = ScanBody(scan, meta.content_type, meta.fields, meta.encoding)
                 o = await svc.observe(m, body, obs)
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
