@@ -159,7 +159,8 @@ class AsyncPlaceRecognitionClient:
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
-        timestamp), max_distance, time_from, time_to."""
+        timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
+        verification of a scan query's candidates."""
         return await self._run(self._calls.query(map_id, scan, descriptor, k, filters))
 
     async def observe(
@@ -173,8 +174,13 @@ class AsyncPlaceRecognitionClient:
         pose: Any = None,
         insert: str = "auto",
         k: int = 10,
+        verify: bool = True,
     ) -> ObserveResult:
-        call = self._calls.observe(map_id, scan, robot_id, session_id, timestamp, pose, insert, k)
+        """``verify``: the server registers the top candidates against their keyframes'
+        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        call = self._calls.observe(
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify
+        )
         return await self._run(call)
 
     async def stats(self, map_id: str | None = None) -> dict[str, Any]:
@@ -215,7 +221,7 @@ class AsyncPlaceRecognitionClient:
             i = 0
             async for obs in items():
                 meta, body = stream_frames(
-                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress
+                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress, obs.verify
                 )
                 await ws.send(meta)
                 await ws.send(body)

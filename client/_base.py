@@ -283,6 +283,7 @@ class Calls:
         pose: Any,
         insert: str,
         k: int,
+        verify: bool = True,
     ) -> Call:
         body, headers = encode(scan, compress=self.compress)
         params = _filters(
@@ -292,6 +293,7 @@ class Calls:
             pose=_pose(pose),
             insert=insert,
             k=k,
+            verify=verify,
         )
         return Call(
             "POST",
@@ -308,7 +310,13 @@ class Calls:
 
 
 def stream_frames(
-    scan: Scan, timestamp: float, pose: Any, insert: str, seq: Any, compress: bool
+    scan: Scan,
+    timestamp: float,
+    pose: Any,
+    insert: str,
+    seq: Any,
+    compress: bool,
+    verify: bool = True,
 ) -> tuple[str, bytes]:
     """The two WebSocket frames of one observation (see the service's stream protocol)."""
     body, headers = encode(scan, compress=compress)
@@ -317,6 +325,7 @@ def stream_frames(
         "timestamp": float(timestamp),
         "pose": _pose(pose),
         "insert": insert,
+        "verify": verify,
         "content_type": headers["content-type"],
         "fields": headers["x-point-fields"],
         "encoding": headers.get("content-encoding", "identity"),

@@ -68,9 +68,12 @@ class Match:
     pose: list[float] | None
     yaw_deg: float | None
     yaw_confidence: float | None
+    relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query, when registered
+    verification: Verification | None = None  # None: not verified (not asked, or beyond k)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Match:
+        v = d.get("verification")
         return cls(
             keyframe_id=d["keyframe_id"],
             distance=float(d["distance"]),
@@ -81,14 +84,55 @@ class Match:
             pose=d.get("pose"),
             yaw_deg=d.get("yaw_deg"),
             yaw_confidence=d.get("yaw_confidence"),
+            relative_pose=_matrix(d.get("relative_pose")),
+            verification=None if v is None else Verification.from_json(v),
         )
+
+
+def _matrix(values: list[float] | None) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, dtype=np.float64).reshape(4, 4)
+
+
+@dataclass(frozen=True)
+class Verification:
+    """A candidate's registration against its keyframe's geometry. ``verified`` None: the
+    keyframe keeps no geometry."""
+
+    verified: bool | None
+    fitness: float | None
+    rmse: float | None
+    reason: str | None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Verification:
+        return cls(d.get("verified"), d.get("fitness"), d.get("rmse"), d.get("reason"))
 
 
 @dataclass(frozen=True)
 class LoopClosure:
+    """The server's call. ``verified`` True: the keyframe ``keyframe_id`` was registered
+    and ``relative_pose`` (4×4, T_keyframe←query) is the edge to add to a pose graph; None:
+    the call is the descriptor distance alone (no geometry, or verify=False)."""
+
     accepted: bool
     threshold: float
     margin_top1_top2: float | None
+    keyframe_id: str | None = None
+    verified: bool | None = None
+    relative_pose: np.ndarray | None = None
+    fitness: float | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> LoopClosure:
+        return cls(
+            accepted=bool(d["accepted"]),
+            threshold=float(d["threshold"]),
+            margin_top1_top2=d.get("margin_top1_top2"),
+            keyframe_id=d.get("keyframe_id"),
+            verified=d.get("verified"),
+            relative_pose=_matrix(d.get("relative_pose")),
+            fitness=d.get("fitness"),
+        )
 
 
 @dataclass(frozen=True)
@@ -101,7 +145,7 @@ class QueryResult:
     def from_json(cls, d: dict[str, Any]) -> QueryResult:
         return cls(
             matches=[Match.from_json(m) for m in d["matches"]],
-            loop_closure=LoopClosure(**d["loop_closure"]),
+            loop_closure=LoopClosure.from_json(d["loop_closure"]),
             timings_ms=d.get("timings_ms", {}),
         )
 
@@ -137,9 +181,11 @@ class BatchInsertResult:
 @dataclass(frozen=True)
 class Observation:
     """One scan for ``stream()``: the robot's scan at ``timestamp`` (s), optional pose
-    (x, y, z, qx, qy, qz, qw) and insert mode ("auto", "always", "never")."""
+    (x, y, z, qx, qy, qz, qw), insert mode ("auto", "always", "never") and whether the
+    server verifies its candidates geometrically."""
 
     scan: Any
     timestamp: float
     pose: Any = None
     insert: str = "auto"
+    verify: bool = True

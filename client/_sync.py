@@ -158,7 +158,8 @@ class PlaceRecognitionClient:
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
-        timestamp), max_distance, time_from, time_to."""
+        timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
+        verification of a scan query's candidates."""
         return self._run(self._calls.query(map_id, scan, descriptor, k, filters))
 
     def observe(
@@ -172,8 +173,13 @@ class PlaceRecognitionClient:
         pose: Any = None,
         insert: str = "auto",
         k: int = 10,
+        verify: bool = True,
     ) -> ObserveResult:
-        call = self._calls.observe(map_id, scan, robot_id, session_id, timestamp, pose, insert, k)
+        """``verify``: the server registers the top candidates against their keyframes'
+        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        call = self._calls.observe(
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify
+        )
         return self._run(call)
 
     def stats(self, map_id: str | None = None) -> dict[str, Any]:
@@ -202,7 +208,7 @@ class PlaceRecognitionClient:
             pending: deque[int] = deque()
             for i, obs in enumerate(observations):
                 meta, body = stream_frames(
-                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress
+                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress, obs.verify
                 )
                 ws.send(meta)
                 ws.send(body)

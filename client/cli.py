@@ -14,6 +14,7 @@ from functools import wraps
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.live import Live
@@ -45,6 +46,13 @@ KeyOpt = Annotated[
     str | None, typer.Option("--api-key", envvar="OVERLAPMAMBA_API_KEY", help="API key")
 ]
 MapOpt = Annotated[str, typer.Option("--map", "-m", help="map id")]
+VerifyOpt = Annotated[
+    bool,
+    typer.Option(
+        "--verify/--no-verify",
+        help="the server registers the top candidates against their keyframes' geometry",
+    ),
+]
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 
@@ -173,30 +181,54 @@ def query(
     scan: Annotated[Path, typer.Argument(help=".bin, .npy or .pcd scan")],
     map_id: MapOpt,
     k: Annotated[int, typer.Option("-k", min=1, help="matches to show")] = 5,
+    verify: VerifyOpt = True,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
-    """The top-k places for one scan, with yaw and the loop-closure verdict."""
+    """The top-k places for one scan, with yaw, each verified candidate's relative pose and
+    fitness, and the loop-closure verdict with its pose."""
     with _client(url, api_key) as pr:
-        r = pr.query(map_id, scan, k=k)
-    table = Table("rank", "keyframe", "distance", "yaw °", "robot", "session", "timestamp")
+        r = pr.query(map_id, scan, k=k, verify=verify)
+    table = Table(
+        "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
+    )
     for rank, m in enumerate(r.matches, start=1):
         yaw = "" if m.yaw_deg is None else f"{m.yaw_deg:.1f}"
+        v = m.verification
         table.add_row(
             str(rank),
             m.keyframe_id,
             f"{m.distance:.5f}",
             yaw,
+            "" if v is None else {True: "yes", False: "no", None: "no geometry"}[v.verified],
+            "" if v is None or v.fitness is None else f"{v.fitness:.3f}",
+            _pose_text(m.relative_pose),
             m.robot_id,
-            m.session_id,
-            f"{m.timestamp:.2f}",
         )
     out.print(table)
     lc = r.loop_closure
-    out.print(
-        f"loop closure: {'ACCEPTED' if lc.accepted else 'not accepted'} "
-        f"(threshold {lc.threshold:g}, margin {lc.margin_top1_top2})"
-    )
+    if lc.accepted and lc.verified:
+        out.print(f"loop closure: ACCEPTED, verified: {lc.keyframe_id} (fitness {lc.fitness:.3f})")
+        out.print(f"relative pose T_keyframe←query:\n{_matrix_text(lc.relative_pose)}")
+    elif lc.verified is False:
+        out.print("loop closure: not accepted (no candidate passed verification)")
+    else:
+        out.print(
+            f"loop closure: {'ACCEPTED' if lc.accepted else 'not accepted'}, descriptor only "
+            f"(threshold {lc.threshold:g}, margin {lc.margin_top1_top2})"
+        )
+
+
+def _pose_text(T: np.ndarray | None) -> str:
+    if T is None:
+        return ""
+    return f"{T[0, 3]:.2f}, {T[1, 3]:.2f} / {np.degrees(np.arctan2(T[1, 0], T[0, 0])):.1f}"
+
+
+def _matrix_text(T: np.ndarray | None) -> str:
+    if T is None:
+        return "  (none)"
+    return "\n".join("  " + "  ".join(f"{x:9.4f}" for x in row) for row in T)
 
 
 @app.command(
@@ -211,11 +243,12 @@ def observe(
     session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
     every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
+    verify: VerifyOpt = True,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
-    closure as it is detected."""
+    closure as it is detected, with its relative pose when verified."""
     drive = open_drive(seq_dir)
     session = session or drive.name
     closures = inserted = 0
@@ -231,15 +264,24 @@ def observe(
                 timestamp=float(drive.times[i]),
                 pose=drive.poses[i],
                 k=k,
+                verify=verify,
             )
             inserted += o.inserted
-            if o.loop_closure.accepted and o.matches:
+            lc = o.loop_closure
+            if lc.accepted and o.matches:
                 closures += 1
-                m = o.matches[0]
-                yaw = "" if m.yaw_deg is None else f", yaw {m.yaw_deg:.1f}°"
-                out.print(
-                    f"frame {i}: loop closure with {m.keyframe_id} (distance {m.distance:.5f}{yaw})"
-                )
+                if lc.verified:
+                    out.print(
+                        f"frame {i}: verified loop closure with {lc.keyframe_id} (fitness "
+                        f"{lc.fitness:.3f}; x, y m / yaw °: {_pose_text(lc.relative_pose)})"
+                    )
+                else:
+                    m = o.matches[0]
+                    yaw = "" if m.yaw_deg is None else f", yaw {m.yaw_deg:.1f}°"
+                    out.print(
+                        f"frame {i}: loop closure with {m.keyframe_id} (descriptor only, "
+                        f"distance {m.distance:.5f}{yaw})"
+                    )
     out.print(f"{len(frames)} scans observed: {inserted} inserted, {closures} loop closures")
 
 
@@ -251,6 +293,9 @@ def _stats_table(s: dict[str, Any]) -> Table:
         if key in s:
             table.add_row(key, str(s[key]))
     table.add_row("loop-closure rate", f"{s.get('loop_closure_rate', 0):.3f}")
+    v = s.get("verification") or {}
+    if v:
+        table.add_row("candidates verified / rejected", f"{v['verified']} / {v['rejected']}")
     table.add_row("queries/s (1 min)", f"{s.get('queries_per_s_1m', 0):.2f}")
     for stage, p in s.get("latency_ms", {}).items():
         table.add_row(f"{stage} p50 / p99 ms", f"{p['p50']:.1f} / {p['p99']:.1f}")
@@ -337,6 +382,7 @@ def simulate_fleet(
         ("errors", ", ".join(f"{k}: {v}" for k, v in report.errors.items()) or "none"),
         ("keyframes inserted", str(report.inserted)),
         ("loop closures accepted", str(report.loop_closures)),
+        ("of which verified (with a relative pose)", str(report.verified_closures)),
     ]
     if report.correct is not None:
         rows += [
@@ -344,6 +390,12 @@ def simulate_fleet(
             ("queries with a loop available", str(report.queries_with_loop)),
             ("precision", "n/a" if report.precision is None else f"{report.precision:.3f}"),
             ("recall", "n/a" if report.recall is None else f"{report.recall:.3f}"),
+        ]
+    if report.pose_error:
+        t, y = report.pose_error["translation_m"], report.pose_error["yaw_deg"]
+        rows += [
+            ("pose error median / p90 (m)", f"{t['median']:.3f} / {t['p90']:.3f}"),
+            ("yaw error median / p90 (°)", f"{y['median']:.2f} / {y['p90']:.2f}"),
         ]
     for name, value in rows:
         table.add_row(name, value)

@@ -10,7 +10,8 @@ correct when its top match is a keyframe of the same drive whose pose lies withi
 drive's loop radius of the query's. A query *has* a loop when such a keyframe had been
 acknowledged before the query was sent and the service's own-session recency filter
 (``exclude_recent_s``, the server default) did not hide it. Precision = correct / accepted,
-recall = correct / queries that had a loop.
+recall = correct / queries that had a loop. A verified closure's relative pose is scored
+against the drive's poses (T = P_keyframe⁻¹ · P_query): translation and yaw errors.
 """
 
 from __future__ import annotations
@@ -39,9 +40,11 @@ class _Sample:
     sent: float  # monotonic seconds since start
     latency_ms: float
     accepted: bool
-    top: str | None
+    top: str | None  # the accepted closure's keyframe (else the top match)
     inserted: str | None
     error: str | None
+    verified: bool | None = None
+    relative_pose: np.ndarray | None = None
 
 
 @dataclass
@@ -59,6 +62,8 @@ class FleetReport:
     queries_with_loop: int | None
     precision: float | None
     recall: float | None
+    verified_closures: int = 0
+    pose_error: dict[str, dict[str, float]] | None = None  # correct verified closures
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -142,6 +147,7 @@ async def simulate(
                 done = time.monotonic()
                 if o.inserted and o.keyframe_id:
                     keyframes[o.keyframe_id] = (d, i, done)
+                lc = o.loop_closure
                 samples.append(
                     _Sample(
                         name,
@@ -149,10 +155,12 @@ async def simulate(
                         i,
                         sent - start,
                         (done - sent) * 1e3,
-                        o.loop_closure.accepted,
-                        o.matches[0].keyframe_id if o.matches else None,
+                        lc.accepted,
+                        lc.keyframe_id or (o.matches[0].keyframe_id if o.matches else None),
                         o.keyframe_id if o.inserted else None,
                         None,
+                        lc.verified,
+                        lc.relative_pose,
                     )
                 )
 
@@ -178,6 +186,8 @@ def _report(
     accepted = [s for s in ok if s.accepted]
     has_gt = all(d.loop_radius is not None for d in drives)
     correct = with_loop = None
+    t_err: list[float] = []
+    yaw_err: list[float] = []
     if has_gt:
         correct, with_loop = 0, 0
         kf_by_drive: dict[int, list[tuple[int, float, str]]] = {}
@@ -203,6 +213,12 @@ def _report(
                 d, j, _ = keyframes[s.top]
                 if d == s.drive and np.linalg.norm(drive.poses[j, :3] - p) < radius:
                     correct += 1
+                    if s.verified and s.relative_pose is not None:
+                        poses = drive.seq.poses
+                        truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
+                        err = np.linalg.inv(truth) @ s.relative_pose
+                        t_err.append(float(np.linalg.norm(err[:3, 3])))
+                        yaw_err.append(float(abs(np.degrees(np.arctan2(err[1, 0], err[0, 0])))))
     per_robot: dict[str, dict[str, Any]] = {}
     for s in samples:
         r = per_robot.setdefault(s.robot, {"observations": 0, "errors": 0, "loop_closures": 0})
@@ -228,6 +244,19 @@ def _report(
         queries_with_loop=with_loop,
         precision=(correct / len(accepted)) if correct is not None and accepted else None,
         recall=(correct / with_loop) if correct is not None and with_loop else None,
+        verified_closures=sum(bool(s.verified) for s in accepted),
+        pose_error=None
+        if not t_err
+        else {
+            "translation_m": {
+                "median": float(np.median(t_err)),
+                "p90": float(np.percentile(t_err, 90)),
+            },
+            "yaw_deg": {
+                "median": float(np.median(yaw_err)),
+                "p90": float(np.percentile(yaw_err, 90)),
+            },
+        },
         per_robot=per_robot,
     )
 

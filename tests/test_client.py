@@ -184,6 +184,7 @@ async def test_sync_and_async_agree_against_a_real_server(live):
         for i, s in enumerate(scans):
             pr.insert_keyframe("congruent", s, keyframe_id=f"k{i}", timestamp=float(i))
         sync_q = pr.query("congruent", scan(1, 30.0), k=3)
+        unverified = pr.query("congruent", scan(1, 30.0), k=3, verify=False)
         sync_d = pr.describe(scans[2])
         sync_maps = pr.list_maps()
         results = list(
@@ -201,13 +202,26 @@ async def test_sync_and_async_agree_against_a_real_server(live):
             r
             async for r in apr.stream(
                 "congruent",
-                [Observation(s, 100.0 + i, insert="never") for i, s in enumerate(scans)],
+                [
+                    Observation(s, 100.0 + i, insert="never", verify=i != 1)
+                    for i, s in enumerate(scans)
+                ],
                 robot_id="ar",
             )
         ]
     assert [m.keyframe_id for m in sync_q.matches] == [m.keyframe_id for m in async_q.matches]
     assert sync_q.matches[0].keyframe_id == "k1"
     assert abs(sync_q.matches[0].yaw_deg - 30.0) < 1.5
+    # verified: the relative pose comes back as a 4×4 matrix, the closure carries it
+    top, lc = sync_q.matches[0], sync_q.loop_closure
+    assert top.verification is not None and top.verification.verified is True
+    assert top.relative_pose is not None and top.relative_pose.shape == (4, 4)
+    assert abs(np.degrees(np.arctan2(top.relative_pose[1, 0], top.relative_pose[0, 0])) + 30) < 0.5
+    assert lc.verified is True and lc.keyframe_id == "k1"
+    np.testing.assert_allclose(lc.relative_pose, top.relative_pose)
+    assert async_q.matches[0].verification == top.verification
+    assert unverified.matches[0].verification is None and unverified.loop_closure.verified is None
+    assert [r.loop_closure.verified for r in aresults] == [True, None, True]
     np.testing.assert_allclose(
         [m.distance for m in sync_q.matches], [m.distance for m in async_q.matches], atol=1e-6
     )

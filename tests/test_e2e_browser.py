@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import shutil
 import threading
 import time
@@ -82,6 +83,7 @@ def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
             time.sleep(size(5.0, 10.0))
             second = page.evaluate(PIXELS, list(CANVASES))
             q2 = page.inner_text("#m-queries")
+            verify = page.inner_text("#m-verify")
             status = page.inner_text("#status")
             shot = OUT / "dashboard.png"
             shot.parent.mkdir(parents=True, exist_ok=True)
@@ -100,11 +102,13 @@ def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
             "charts_changed": changed,
             "chromium_version": version,
             "queries_counter": [q1, q2],
+            "verified_rejected": verify,
             "status_line": status,
             "page_errors": errors,
         },
     )
     assert not errors, errors
+    assert re.fullmatch(r"[\d,]+ / [\d,]+", verify), verify  # the server's verification counts
     points = {c["id"]: c["points"] for c in second}
     assert all(c["drawn"] > 500 for c in second), drawn  # every chart drew something
     assert all(n >= 1 for n in points.values()), points  # ...and it was data, not "no data"

@@ -1,0 +1,250 @@
+"""Calibrate and measure verified loop closures (issue 22) on synthetic towns.
+
+Per town, as the service does it: every scan is encoded by the shipped ONNX encoder
+(``service.encoder.Encoder``) and kept as a keyframe's compact geometry
+(``lidar_core.geometry``); each query (the loop-closure protocol of ``lidar_core.metrics``:
+the database is every frame more than ``exclude_recent`` frames earlier) takes its top
+``--k`` candidates by descriptor distance, seeds each with the yaw from the yaw features and
+registers it (``service.verify.verify_candidates``). The closure is the verified candidate of
+highest fitness; it is correct when that keyframe is a true loop of the query (overlap above
+the town's ``min_overlap``). Pose error: the registered T_keyframe←query against the poses'
+T = P_keyframe⁻¹ · P_query.
+
+``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
+the pair of highest recall whose precision is at least ``--target`` (0.99): the service's
+``verify.min_fitness`` and ``verify.max_rmse_m`` defaults come from it. Without it, the
+thresholds in force (``--min-fitness``, ``--max-rmse``, default the service's) are scored
+on each town given: precision, recall against the descriptor's Recall@1 and Recall@5 on the
+same queries, pose errors, and the time per query. Prints tables, writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+from tqdm import tqdm
+
+from lidar_core.datasets import open_sequence
+from lidar_core.geometry import encode_geometry
+from lidar_core.overlap import LoopGroundTruth
+from lidar_core.yaw import estimate_yaw
+from service.encoder import Encoder
+from service.settings import VerifySettings
+from service.verify import verify_candidates
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    """(translation m, yaw °) of T_gt⁻¹ · T_est."""
+    E = np.linalg.inv(T_gt) @ T_est
+    return float(np.linalg.norm(E[:3, 3])), float(abs(np.degrees(np.arctan2(E[1, 0], E[0, 0]))))
+
+
+def run_town(
+    enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
+) -> dict[str, Any]:
+    """Every query's candidates: rank, correctness, fitness, rmse, pose errors."""
+    seq = open_sequence(path)
+    gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
+    positives = gt.positives()
+    recent = int(gt.params.get("exclude_recent", 100))
+    n = len(seq)
+    descs, yaws, blobs = [], [], []
+    for start in tqdm(range(0, n, batch), desc=f"encode {path.name}", unit="batch"):
+        pts = [seq.points(i) for i in range(start, min(n, start + batch))]
+        d, y = enc.encode(np.stack([enc.project(p) for p in pts]))
+        descs.append(d)
+        yaws.append(np.asarray(y, dtype=np.float16))  # as the store keeps them
+        blobs += [encode_geometry(p.xyz, voxel=v.voxel_m) for p in pts]
+    desc = np.concatenate(descs)
+    yaw = np.concatenate(yaws)
+    d2 = np.maximum(2.0 - 2.0 * desc @ desc.T, 0.0)
+    queries = []
+    ms = []
+    for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
+        top = np.argsort(d2[i, : i - recent], kind="stable")[:k]
+        deg, _ = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
+        t0 = time.perf_counter()
+        verdicts = verify_candidates(
+            seq.points(i).xyz, [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
+        )
+        ms.append((time.perf_counter() - t0) * 1e3)
+        pos = set(positives[i].tolist())
+        cands = []
+        for j, verdict in zip(top, verdicts, strict=True):
+            c: dict[str, Any] = {
+                "keyframe": int(j),
+                "distance": float(np.sqrt(d2[i, j])),
+                "loop": int(j) in pos,
+                "fitness": verdict.fitness,
+                "rmse": verdict.rmse,
+            }
+            if verdict.relative_pose is not None:
+                T_gt = np.linalg.inv(seq.poses[j]) @ seq.poses[i]
+                c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, T_gt)
+            cands.append(c)
+        queries.append({"query": i, "has_loop": bool(len(pos)), "candidates": cands})
+    return {
+        "town": str(path),
+        "frames": n,
+        "exclude_recent": recent,
+        "queries": queries,
+        "verify_ms": ms,
+    }
+
+
+def score(queries: list[dict[str, Any]], min_fitness: float, max_rmse: float) -> dict[str, Any]:
+    """The service's call at these thresholds, over every query."""
+    accepted = correct = 0
+    t_err, yaw_err = [], []
+    for q in queries:
+        ok = [
+            c
+            for c in q["candidates"]
+            if c["fitness"] is not None
+            and c["fitness"] >= min_fitness
+            and c["rmse"] is not None
+            and c["rmse"] <= max_rmse
+        ]
+        if not ok:
+            continue
+        best = max(ok, key=lambda c: c["fitness"])
+        accepted += 1
+        if best["loop"]:
+            correct += 1
+            t_err.append(best["t_err"])
+            yaw_err.append(best["yaw_err"])
+    loops = sum(q["has_loop"] for q in queries)
+    out: dict[str, Any] = {
+        "min_fitness": min_fitness,
+        "max_rmse_m": max_rmse,
+        "accepted": accepted,
+        "correct": correct,
+        "precision": correct / accepted if accepted else 1.0,
+        "recall": correct / loops if loops else 0.0,
+    }
+    if t_err:
+        out["translation_error_m"] = {
+            "median": float(np.median(t_err)),
+            "p90": float(np.percentile(t_err, 90)),
+        }
+        out["yaw_error_deg"] = {
+            "median": float(np.median(yaw_err)),
+            "p90": float(np.percentile(yaw_err, 90)),
+        }
+    return out
+
+
+def descriptor_recall(queries: list[dict[str, Any]]) -> dict[str, float]:
+    loops = [q for q in queries if q["has_loop"]]
+    at = {}
+    for n in (1, 5):
+        hit = sum(any(c["loop"] for c in q["candidates"][:n]) for q in loops)
+        at[f"recall@{n}"] = hit / len(loops) if loops else 0.0
+    return at
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--town", type=Path, action="append", help="default: data/synth/val")
+    ap.add_argument("--calibrate", action="store_true", help="sweep the thresholds (val only)")
+    ap.add_argument("--target", type=float, default=0.99, help="precision to calibrate for")
+    ap.add_argument("--k", type=int, default=VerifySettings().k, help="candidates per query")
+    ap.add_argument("--min-fitness", type=float, default=VerifySettings().min_fitness)
+    ap.add_argument("--max-rmse", type=float, default=VerifySettings().max_rmse_m)
+    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "verify.json")
+    args = ap.parse_args()
+    towns = args.town or [ROOT / "data" / "synth" / "val"]
+    if args.calibrate and any(t.name.startswith("test") for t in towns):
+        ap.error("calibrate on the validation town, never on a test town")
+    console = Console()
+    enc = Encoder(args.model)
+    v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9)  # record everything
+    results = [run_town(enc, t, args.k, v) for t in towns]
+    report: dict[str, Any] = {"model_id": enc.model_id, "k": args.k, "towns": []}
+    if args.calibrate:
+        queries = [q for r in results for q in r["queries"]]
+        sweep = [
+            score(queries, f, r)
+            for f in np.round(np.arange(0.30, 0.99, 0.02), 2)
+            for r in (0.4, 0.5, 0.6, 0.7, 0.8, 1e9)
+        ]
+        ok = [s for s in sweep if s["precision"] >= args.target and s["accepted"]]
+        chosen = max(ok, key=lambda s: (s["recall"], -s["min_fitness"])) if ok else None
+        report["calibration"] = {"target_precision": args.target, "chosen": chosen}
+        report["sweep"] = sweep
+        table = Table(title=f"verified closures on {', '.join(t.name for t in towns)}")
+        for col in ("min fitness", "max rmse", "accepted", "precision", "recall"):
+            table.add_column(col, justify="right")
+        for s in sweep:
+            if s["max_rmse_m"] == 1e9 or s is chosen:
+                table.add_row(
+                    f"{s['min_fitness']:.2f}",
+                    "—" if s["max_rmse_m"] == 1e9 else f"{s['max_rmse_m']:.1f}",
+                    str(s["accepted"]),
+                    f"{s['precision']:.3f}",
+                    f"{s['recall']:.3f}",
+                )
+        console.print(table)
+        console.print(f"chosen for precision ≥ {args.target}: {chosen}")
+    table = Table(title=f"verified loop closures ({enc.model_id}, k={args.k})")
+    for col in (
+        "town",
+        "queries",
+        "with loop",
+        "desc R@1",
+        "desc R@5",
+        "accepted",
+        "precision",
+        "recall",
+        "t err m (med)",
+        "yaw err ° (med)",
+        "ms/query (med)",
+    ):
+        table.add_column(col, justify="right")
+    for r in results:
+        s = score(r["queries"], args.min_fitness, args.max_rmse)
+        rec = descriptor_recall(r["queries"])
+        row = {
+            "town": r["town"],
+            "queries": len(r["queries"]),
+            "with_loop": sum(q["has_loop"] for q in r["queries"]),
+            "descriptor": rec,
+            "verified": s,
+            "verify_ms": {
+                "median": float(np.median(r["verify_ms"])),
+                "p90": float(np.percentile(r["verify_ms"], 90)),
+            },
+        }
+        report["towns"].append(row)
+        table.add_row(
+            Path(r["town"]).name,
+            str(row["queries"]),
+            str(row["with_loop"]),
+            f"{rec['recall@1']:.3f}",
+            f"{rec['recall@5']:.3f}",
+            str(s["accepted"]),
+            f"{s['precision']:.3f}",
+            f"{s['recall']:.3f}",
+            f"{s.get('translation_error_m', {}).get('median', float('nan')):.3f}",
+            f"{s.get('yaw_error_deg', {}).get('median', float('nan')):.3f}",
+            f"{row['verify_ms']['median']:.1f}",
+        )
+    console.print(table)
+    report["thresholds"] = {"min_fitness": args.min_fitness, "max_rmse_m": args.max_rmse}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(report, indent=2) + "\n")
+    console.print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
