@@ -2,13 +2,22 @@
 compact geometry (:mod:`lidar_core.geometry`) with small_gicp, seeded by the descriptor's yaw.
 
     query points ─ prepare (once per query): every ``stride``-th point, voxel grid,
-                   covariances
+                   covariances, which grid points lie on steep surfaces
     keyframe blob ─ decode (its own voxel grid), k-d tree, covariances
-    GICP from T₀ = rotation by −yaw (the descriptor's relative yaw; the place is the same,
-                   so the translation starts at 0)
+    seed         ─ rotation by −yaw (the descriptor's relative yaw), then the (x, y) shift
+                   that best overlays the two bird's-eye grids of steep points (FFT
+                   cross-correlation, ``seed_translation``): a revisit passes the place
+                   metres away from where the keyframe was taken
+    GICP from the seed
     → relative_pose T_keyframe←query (4 × 4, maps query points into the keyframe's frame),
-      fitness (share of the query's grid points with a keyframe point within ``radius``
-      after alignment), rmse (of those distances), iterations, converged
+      fitness (share of the query's steep grid points — walls, poles, trunks; the ground
+      fits anywhere — with a keyframe point within ``radius`` after alignment; all grid
+      points when fewer than ``min_points / 2`` are steep), rmse (of those distances),
+      iterations, converged
+
+On the validation town, the translation seed cut the true loops that GICP failed to reach
+from 25 % to 8 % of the candidates, and scoring steep points instead of all separated right
+from wrong candidates better (``benchmarks/verify_threshold.py``).
 
 A registration that does not converge within ``max_iterations`` stops there (bounded time);
 a query or keyframe too sparse to register is refused with the reason, never an exception.
@@ -49,6 +58,8 @@ class RegistrationParams:
     radius: float = 1.0  # m: fitness counts query points with a neighbour this close
     min_points: int = 50  # grid points each side needs
     threads: int = 1
+    bev_cell: float = 2.0  # m: the bird's-eye grids that seed the translation
+    max_shift: float = 40.0  # m: the farthest translation the seed looks for
 
 
 @dataclass(frozen=True)
@@ -56,6 +67,7 @@ class Prepared:
     cloud: small_gicp.PointCloud | None
     size: int
     reason: str | None  # why the query cannot be registered, when it cannot
+    steep: np.ndarray | None = None  # (size,) bool: grid points on steep surfaces
 
 
 @dataclass(frozen=True)
@@ -83,7 +95,7 @@ def prepare(xyz: np.ndarray, p: RegistrationParams) -> Prepared:
         )
     tree = small_gicp.KdTree(cloud, num_threads=p.threads)
     small_gicp.estimate_covariances(cloud, tree, p.neighbours, p.threads)
-    return Prepared(cloud, cloud.size(), None)
+    return Prepared(cloud, cloud.size(), None, structure(cloud))
 
 
 def register(
@@ -109,6 +121,9 @@ def register(
     tree = small_gicp.KdTree(target, num_threads=p.threads)
     small_gicp.estimate_covariances(target, tree, p.neighbours, p.threads)
     init = rotation_z(-yaw_deg) if yaw_deg is not None else np.eye(4)
+    src = query.cloud.points()[:, :3]
+    steep = query.steep if query.steep is not None else structure(query.cloud)
+    init[:2, 3] = seed_translation((src @ init[:3, :3].T)[steep], pts[structure(target)], p)
     res = small_gicp.align(
         target,
         query.cloud,
@@ -120,10 +135,11 @@ def register(
         max_iterations=p.max_iterations,
     )
     T = np.asarray(res.T_target_source, dtype=np.float64)
-    src = query.cloud.points()[:, :3]
     moved = src @ T[:3, :3].T + T[:3, 3]
     _, sq = tree.batch_nearest_neighbor_search(moved, p.threads)
     d2 = np.asarray(sq, dtype=np.float64)
+    if steep.sum() >= p.min_points // 2:  # ground fits anywhere: score the structure
+        d2 = d2[steep]
     close = d2 <= p.radius**2
     fitness = float(close.mean())
     rmse = float(np.sqrt(d2[close].mean())) if close.any() else None
@@ -190,3 +206,46 @@ def verify_candidates(
         else:
             out.append(judge(register(query, blob, yaw_deg, p), v))
     return out
+
+
+def structure(cloud: small_gicp.PointCloud) -> np.ndarray:
+    """(N,) bool: grid points on steep surfaces (walls, poles, trunks: the normal, the
+    covariance's least direction, less than 45° from horizontal), not ground or roofs."""
+    covs = np.asarray(cloud.covs(), dtype=np.float64)[:, :3, :3]
+    _, vecs = np.linalg.eigh(covs)
+    return np.abs(vecs[:, 2, 0]) < np.sqrt(0.5)
+
+
+def _bev(xy: np.ndarray, n: int, cell: float) -> np.ndarray:
+    ij = np.floor(xy / cell).astype(np.int64) + n // 2
+    ij = ij[((ij >= 0) & (ij < n)).all(axis=1)]
+    grid = np.zeros((n, n))
+    grid[ij[:, 0], ij[:, 1]] = 1.0
+    # each cell also counts half in its 4 neighbours: grids of 2 m voxel means are sparse
+    out = grid.copy()
+    out[1:] += 0.5 * grid[:-1]
+    out[:-1] += 0.5 * grid[1:]
+    out[:, 1:] += 0.5 * grid[:, :-1]
+    out[:, :-1] += 0.5 * grid[:, 1:]
+    return out
+
+
+def seed_translation(src: np.ndarray, tgt: np.ndarray, p: RegistrationParams) -> np.ndarray:
+    """The (x, y) shift that best overlays the query's structure (already turned by the
+    seed yaw) on the keyframe's, by cross-correlating bird's-eye occupancy grids (FFT).
+    A revisit passes a place metres to the side or along the road from where the keyframe
+    was taken; GICP alone, with its 2 m correspondences, does not travel that far."""
+    if len(src) < 3 or len(tgt) < 3:
+        return np.zeros(2)
+    reach = float(max(np.abs(src[:, :2]).max(), np.abs(tgt[:, :2]).max()))
+    n = 2 * int(np.ceil(min(reach, 100.0) / p.bev_cell)) + 2
+    size = 2 * n  # zero padding: no wrap-around within the grid
+    a = np.fft.rfft2(_bev(tgt[:, :2], n, p.bev_cell), (size, size))
+    b = np.fft.rfft2(_bev(src[:, :2], n, p.bev_cell), (size, size))
+    corr = np.fft.irfft2(a * np.conj(b), (size, size))
+    steps = np.fft.fftfreq(size, 1.0 / size)  # signed shifts in cells
+    far = np.abs(steps) * p.bev_cell > p.max_shift
+    corr[far, :] = -np.inf
+    corr[:, far] = -np.inf
+    i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    return np.array([steps[i], steps[j]]) * p.bev_cell

@@ -103,6 +103,34 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
     assert wrong.fitness is not None and wrong.fitness < r.fitness - 0.3
 
 
+def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
+    """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
+    from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""
+    from service.verify import RegistrationParams, prepare, register, seed_translation
+
+    p = RegistrationParams()
+    truth = np.linalg.inv(kitti.poses[0]) @ kitti.poses[30]
+    assert np.linalg.norm(truth[:2, 3]) > 8.0
+    q = prepare(kitti.points(30).xyz, p)
+    r = register(q, encode_geometry(kitti.points(0).xyz), float(yaw_deg(truth)), p)
+    err = np.linalg.inv(truth) @ r.relative_pose
+    assert np.linalg.norm(err[:3, 3]) < 0.3 and abs(yaw_deg(err)) < 0.5, err
+    assert r.fitness is not None and r.fitness > 0.5
+    unseeded = RegistrationParams(max_shift=0.0)  # the seed may not move: GICP alone
+    r0 = register(
+        prepare(kitti.points(30).xyz, unseeded),
+        encode_geometry(kitti.points(0).xyz),
+        float(yaw_deg(truth)),
+        unseeded,
+    )
+    assert np.linalg.norm((np.linalg.inv(truth) @ r0.relative_pose)[:3, 3]) > 1.0
+    # the seed itself: a cloud shifted by (7, −11) m is found within a cell
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-40, 40, (600, 3))
+    shift = seed_translation(pts, pts + [7.0, -11.0, 0.0], p)
+    assert np.abs(shift - [7.0, -11.0]).max() <= p.bev_cell, shift
+
+
 def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     from service.verify import RegistrationParams, prepare, register
 
