@@ -40,7 +40,7 @@ from lidar_core.overlap import LoopGroundTruth
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
 from service.settings import VerifySettings
-from service.verify import verify_candidates
+from service.verify import params_of, prepare, verify_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -74,8 +74,9 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
         top = np.argsort(d2[i, : i - recent], kind="stable")[:k]
         deg, _ = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         t0 = time.perf_counter()
+        query = prepare(seq.points(i).xyz, params_of(v))
         verdicts = verify_candidates(
-            seq.points(i).xyz, [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
+            query, [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
         )
         ms.append((time.perf_counter() - t0) * 1e3)
         pos = set(positives[i].tolist())
@@ -99,6 +100,7 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
         "exclude_recent": recent,
         "queries": queries,
         "verify_ms": ms,
+        "geometry_bytes": [len(b) for b in blobs],
     }
 
 
@@ -243,6 +245,10 @@ def main() -> None:
             "verify_ms": {
                 "median": float(np.median(r["verify_ms"])),
                 "p90": float(np.percentile(r["verify_ms"], 90)),
+            },
+            "geometry_bytes": {
+                "median": float(np.median(r["geometry_bytes"])),
+                "max": int(np.max(r["geometry_bytes"])),
             },
         }
         report["towns"].append(row)

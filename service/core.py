@@ -21,7 +21,6 @@ import numpy as np
 from starlette.concurrency import run_in_threadpool
 
 from lidar_core.geometry import encode_geometry
-from lidar_core.points import PointCloud
 from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, content_hash
 from service.bodies import ScanBody
 from service.encoder import Encoder
@@ -31,7 +30,7 @@ from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
 from service.store import NewKeyframe
-from service.verify import verify_candidates
+from service.verify import Prepared, RegistrationParams, params_of, verify_candidates
 
 
 def parse_pose(text: str | None) -> list[float] | None:
@@ -269,18 +268,21 @@ class PlaceService:
         no points, so they are not verified)."""
         t0 = time.perf_counter()
         self._check_k(k)
-        points = None
+        prepared = None
         if isinstance(probe, ScanBody):
-            d = await self.pipeline.describe(probe)
-            desc, yaw, timings, points = d.descriptor, d.yaw, d.timings, d.points
+            d = await self.pipeline.describe(probe, self._registration(verify))
+            desc, yaw, timings, prepared = d.descriptor, d.yaw, d.timings, d.prepared
         else:
             desc, yaw = check_descriptor(probe, m.dim), None
             timings = {"decode": (time.perf_counter() - t0) * 1e3}
-        answer = await self._search(
-            m, desc, yaw, k, filters, timings, robot, points if verify else None
-        )
+        answer = await self._search(m, desc, yaw, k, filters, timings, robot, prepared)
         self._done(timings, t0)
         return answer
+
+    def _registration(self, verify: bool) -> RegistrationParams | None:
+        """What the pipeline prepares a scan with, when its answer will be verified."""
+        v = self.settings.verify
+        return params_of(v) if verify and v.k > 0 else None
 
     def _check_k(self, k: int) -> None:
         if not 1 <= k <= self.settings.limits.max_k:
@@ -295,12 +297,12 @@ class PlaceService:
         filters: Filters,
         timings: dict[str, float],
         robot: str | None,
-        points: PointCloud | None = None,
+        prepared: Prepared | None = None,
     ) -> Answer:
-        """Search, verify the top ``verify.k`` candidates when the query's points are given,
+        """Search, verify the top ``verify.k`` candidates when the query is prepared for it,
         and make the loop-closure call (see :class:`LoopClosure`)."""
         t0 = time.perf_counter()
-        n_verify = self.settings.verify.k if points is not None else 0
+        n_verify = self.settings.verify.k if prepared is not None else 0
         # One more than asked: the runner-up gives the loop-closure margin.
         matches = await run_in_threadpool(m.search, descriptor, max(k, n_verify) + 1, filters, yaw)
         timings["search"] = (time.perf_counter() - t0) * 1e3
@@ -317,20 +319,20 @@ class PlaceService:
         )
         if closure.accepted:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
-        if n_verify and matches and points is not None:
+        if n_verify and matches and prepared is not None:
             t1 = time.perf_counter()
             matches[:n_verify] = await run_in_threadpool(
-                self._verify, m, points, matches[:n_verify]
+                self._verify, m, prepared, matches[:n_verify]
             )
             timings["verify"] = (time.perf_counter() - t1) * 1e3
             closure = self._verified_closure(matches[:n_verify], closure)
         self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)
 
-    def _verify(self, m: PlaceMap, points: PointCloud, candidates: list[Match]) -> list[Match]:
+    def _verify(self, m: PlaceMap, prepared: Prepared, candidates: list[Match]) -> list[Match]:
         blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
         verdicts = verify_candidates(
-            points.xyz,
+            prepared,
             [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg) for c in candidates],
             self.settings.verify,
         )
@@ -399,7 +401,7 @@ class PlaceService:
         scan as keyframe ``robot:session:timestamp`` when due."""
         t0 = time.perf_counter()
         self._check_k(obs.k)
-        d = await self.pipeline.describe(scan)
+        d = await self.pipeline.describe(scan, self._registration(obs.verify))
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
             session_id=obs.session_id,
@@ -413,7 +415,7 @@ class PlaceService:
             filters,
             d.timings,
             obs.robot_id,
-            d.points if obs.verify else None,
+            d.prepared,
         )
         reason = await self._insert_due(m, obs)
         keyframe_id = None

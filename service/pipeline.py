@@ -5,15 +5,20 @@
                         project: the model's own range projection → (1, H, W) image
       ─ MicroBatcher ── waits at most batching.max_wait_ms for other scans
       ─ encoder thread  encode: Encoder.encode on the stacked batch
-      → Description (unit descriptor, yaw features, the points, stage timings)
+        (meanwhile, when the caller will verify: a worker thread prepares the points for
+        registration, service.verify.prepare — hidden behind the encoder's wait)
+      → Description (unit descriptor, yaw features, the points, the prepared query, stage
+        timings)
 
 Two thread hops per scan: one for decode + project, one (shared by a micro-batch) for the
-encoder. The encoder's graph ends in an L2 normalisation, so descriptors leave here unit
-norm; nothing downstream normalises them again.
+encoder; a third, in parallel with the encoder, when the answer will be verified. The
+encoder's graph ends in an L2 normalisation, so descriptors leave here unit norm; nothing
+downstream normalises them again.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,14 +31,16 @@ from service.batcher import MicroBatcher
 from service.bodies import ScanBody, decode_scan
 from service.encoder import Encoder
 from service.settings import BatchSettings, LimitSettings
+from service.verify import Prepared, RegistrationParams, prepare
 
 
 @dataclass(frozen=True)
 class Description:
     descriptor: np.ndarray  # (D,) float32, unit norm
     yaw: np.ndarray  # (C, W) float32 yaw features
-    points: PointCloud  # kept for the content hash of a keyframe made from this scan
+    points: PointCloud  # kept for the content hash and geometry of a keyframe
     timings: dict[str, float]  # ms: decode, project, encode
+    prepared: Prepared | None = None  # the query's side of registration, when asked for
 
 
 class ScanPipeline:
@@ -73,9 +80,21 @@ class ScanPipeline:
         t2 = time.perf_counter()
         return image, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
 
-    async def describe(self, scan: ScanBody) -> Description:
+    async def describe(
+        self, scan: ScanBody, registration: RegistrationParams | None = None
+    ) -> Description:
+        """``registration``: also prepare the points for verification, while the encoder
+        works (its wait, if any, is added to the encode stage)."""
         image, points, timings = await run_in_threadpool(self._prepare, scan)
         t0 = time.perf_counter()
-        desc, yaw = await self.batcher.encode(image, timeout_s=self.limits.request_timeout_s)
+        task = None
+        if registration is not None:
+            task = asyncio.ensure_future(run_in_threadpool(prepare, points.xyz, registration))
+        try:
+            desc, yaw = await self.batcher.encode(image, timeout_s=self.limits.request_timeout_s)
+            prepared = await task if task is not None else None
+        finally:
+            if task is not None and not task.done():
+                task.cancel()
         timings["encode"] = (time.perf_counter() - t0) * 1e3
-        return Description(np.asarray(desc), np.asarray(yaw), points, timings)
+        return Description(np.asarray(desc), np.asarray(yaw), points, timings, prepared)
