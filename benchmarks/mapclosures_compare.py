@@ -68,7 +68,7 @@ def main() -> None:
         args.results.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         subprocess.run(
-            [str(args.exe), str(args.town / "velodyne"), str(args.results)],
+            [str(args.exe), str((args.town / "velodyne").resolve()), str(args.results.resolve())],
             check=True,
             cwd=args.results,
         )

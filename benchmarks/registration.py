@@ -3,12 +3,12 @@
 
 Protocol (issue 22's): KITTI 00 frames 0–100 from ../shared/data. Each odd frame is turned
 in place by a random yaw and registered against the nearest even frame, as a keyframe
-stored by :func:`lidar_core.geometry.encode_geometry`. The seed is the relative yaw the
-shipped model's yaw features give (``estimate_yaw``), as the service would use it. Ground
-truth: T_even←odd from the poses file, times the turn. Reports the translation and yaw
-errors, fitness and rmse, and the same against a frame at least 30 m away (what a wrong
-candidate looks like), the time to prepare a query and to register one candidate, and the
-bytes of geometry per keyframe.
+stored by the service (``service.verify.keyframe_geometry``: the scan's registration
+grid). The seed is the relative yaw the shipped model's yaw features give
+(``estimate_yaw``), as the service would use it. Ground truth: T_even←odd from the poses
+file, times the turn. Reports the translation and yaw errors, fitness and rmse, and the
+same against a frame at least 30 m away (what a wrong candidate looks like), the time to
+prepare a query and to register one candidate, and the bytes of geometry per keyframe.
 
 Then the cost in the service (``--no-http`` skips it): a real ``overlapmamba serve`` (the
 defaults) holds the even frames as keyframes; each turned odd frame is queried (k = 5)
@@ -31,11 +31,10 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.datasets import open_sequence
-from lidar_core.geometry import encode_geometry
 from lidar_core.poses import rotation_z, translations, yaw_deg
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
-from service.verify import RegistrationParams, prepare, register
+from service.verify import RegistrationParams, keyframe_geometry, prepare, register
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -55,7 +54,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--voxel", type=float, default=2.0)
-    ap.add_argument("--max-points", type=int, default=8192)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--http", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--rounds", type=int, default=3, help="query rounds through the server")
@@ -71,10 +69,7 @@ def main() -> None:
     n = len(poses)
     even = np.arange(0, n, 2)
     clouds = [seq.points(i) for i in range(n)]  # each scan read once
-    blobs = {
-        int(j): encode_geometry(clouds[j].xyz, voxel=args.voxel, max_points=args.max_points)
-        for j in even
-    }
+    blobs = {int(j): keyframe_geometry(prepare(clouds[j].xyz, p), p) for j in even}
     yaw_feats = {int(j): enc.encode(enc.project(clouds[j])[None])[1][0] for j in even}
     rows: dict[str, list[float]] = {
         k: []
@@ -107,7 +102,9 @@ def main() -> None:
         t0 = time.perf_counter()
         q = prepare(query, p)
         rows["prepare_ms"].append((time.perf_counter() - t0) * 1e3)
-        r = register(q, blobs[j], seed, p)
+        blob = blobs[j]
+        assert blob is not None
+        r = register(q, blob, seed, p)
         assert r.relative_pose is not None, r.reason
         rows["register_ms"].append(r.ms)
         err = np.linalg.inv(truth) @ r.relative_pose
@@ -118,14 +115,16 @@ def main() -> None:
         rows["iterations"].append(r.iterations)
         if len(far):
             k = int(rng.choice(far))
-            w = register(q, blobs[k], float(estimate_yaw(qyaw, yaw_feats[k][None])[0][0]), p)
+            wrong = blobs[k]
+            assert wrong is not None
+            w = register(q, wrong, float(estimate_yaw(qyaw, yaw_feats[k][None])[0][0]), p)
             rows["wrong_fitness"].append(float(w.fitness or 0.0))
             rows["wrong_rmse"].append(float(w.rmse or np.nan))
-    sizes = [len(b) for b in blobs.values()]
+    sizes = [len(b) for b in blobs.values() if b is not None]
     record = {
         "scans": f"KITTI 00 frames 0–{n - 1}: {len(rows['t_err'])} odd frames turned in place, "
         "registered against the nearest even frame",
-        "params": p.__dict__ | {"max_points": args.max_points},
+        "params": p.__dict__,
         "geometry_bytes": _stats(sizes),
         **{k: _stats(v) for k, v in rows.items() if v},
     }

@@ -35,12 +35,11 @@ from rich.table import Table
 from tqdm import tqdm
 
 from lidar_core.datasets import open_sequence
-from lidar_core.geometry import encode_geometry
 from lidar_core.overlap import LoopGroundTruth
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
 from service.settings import VerifySettings
-from service.verify import params_of, prepare, verify_candidates
+from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,13 +57,16 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
     positives = gt.positives()
     recent = int(gt.params.get("exclude_recent", 100))
     n = len(seq)
-    descs, yaws, blobs = [], [], []
+    descs, yaws, blobs, prepared = [], [], [], []
+    params = params_of(v)
     for start in tqdm(range(0, n, batch), desc=f"encode {path.name}", unit="batch"):
         pts = [seq.points(i) for i in range(start, min(n, start + batch))]
         d, y = enc.encode(np.stack([enc.project(p) for p in pts]))
         descs.append(d)
         yaws.append(np.asarray(y, dtype=np.float16))  # as the store keeps them
-        blobs += [encode_geometry(p.xyz, voxel=v.voxel_m) for p in pts]
+        # as the service does: one registration grid per scan, the keyframe keeps it
+        prepared += [prepare(p.xyz, params) for p in pts]
+        blobs += [keyframe_geometry(q, params) for q in prepared[-len(pts) :]]
     desc = np.concatenate(descs)
     yaw = np.concatenate(yaws)
     d2 = np.maximum(2.0 - 2.0 * desc @ desc.T, 0.0)
@@ -74,9 +76,8 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
         top = np.argsort(d2[i, : i - recent], kind="stable")[:k]
         deg, _ = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         t0 = time.perf_counter()
-        query = prepare(seq.points(i).xyz, params_of(v))
         verdicts = verify_candidates(
-            query, [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
+            prepared[i], [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
         )
         ms.append((time.perf_counter() - t0) * 1e3)
         pos = set(positives[i].tolist())
@@ -100,7 +101,7 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
         "exclude_recent": recent,
         "queries": queries,
         "verify_ms": ms,
-        "geometry_bytes": [len(b) for b in blobs],
+        "geometry_bytes": [len(b) for b in blobs if b is not None],
     }
 
 

@@ -11,6 +11,10 @@ A scan of 120k points is ≈ 2 MB; a map keeps one small copy per keyframe inste
    a centimetre of error, well below what registration resolves). Points farther away are
    dropped.
 
+:func:`encode_geometry` makes the grid here (numpy: one sort of the points' voxel keys);
+:func:`pack_geometry` takes a grid already made — the service keeps the grid its
+registration prepared for the scan anyway (``service.verify.keyframe_geometry``).
+
 Format, little-endian: ``b"OMG1"``, the voxel size (float32), the point count (uint32), then
 count × 3 int16 (x, y, z in cm). At the cap that is 12 + 49,152 bytes: under the 64 KB a
 keyframe may spend on geometry.
@@ -56,10 +60,16 @@ def encode_geometry(xyz: np.ndarray, *, voxel: float = 2.0, max_points: int = 81
     """Points in the sensor frame → the compact blob (see the module notes)."""
     if not 0.05 <= voxel <= 10.0:
         raise ValueError(f"voxel {voxel} m is out of range; allowed: 0.05 to 10 m")
+    return pack_geometry(voxel_means(xyz, voxel), voxel=voxel, max_points=max_points)
+
+
+def pack_geometry(grid: np.ndarray, *, voxel: float, max_points: int = 8192) -> bytes:
+    """Grid points already made (one per voxel, e.g. a registration library's voxel grid)
+    → the blob: capped, quantised, with its header."""
     if max_points < 1:
         raise ValueError(f"max_points must be ≥ 1; got {max_points}")
-    means = voxel_means(xyz, voxel)
-    means = means[(np.abs(means) < LIMIT_M).all(axis=1)]
+    means = np.asarray(grid, dtype=np.float64)[:, :3]
+    means = means[np.isfinite(means).all(axis=1) & (np.abs(means) < LIMIT_M).all(axis=1)]
     if len(means) > max_points:
         order = np.random.default_rng(len(means)).permutation(len(means))
         means = means[np.sort(order[:max_points])]

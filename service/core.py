@@ -20,7 +20,6 @@ from typing import Literal
 import numpy as np
 from starlette.concurrency import run_in_threadpool
 
-from lidar_core.geometry import encode_geometry
 from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, content_hash
 from service.bodies import ScanBody
 from service.encoder import Encoder
@@ -30,7 +29,13 @@ from service.schemas import POSE_FORMAT
 from service.settings import Settings
 from service.stats import Stats
 from service.store import NewKeyframe
-from service.verify import Prepared, RegistrationParams, params_of, verify_candidates
+from service.verify import (
+    Prepared,
+    RegistrationParams,
+    keyframe_geometry,
+    params_of,
+    verify_candidates,
+)
 
 
 def parse_pose(text: str | None) -> list[float] | None:
@@ -219,7 +224,7 @@ class PlaceService:
     ) -> Inserted:
         """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
         t0 = time.perf_counter()
-        d = await self.pipeline.describe(scan)
+        d = await self.pipeline.describe(scan, self._registration(False, m))
         (result,) = await self.insert(m, [await self._row(m, d, keyframe_id, obs)], obs.robot_id)
         return Inserted(result, self._done(d.timings, t0))
 
@@ -232,11 +237,13 @@ class PlaceService:
             "timestamp": obs.timestamp,
             "pose": obs.pose,
         }
-        voxel = self.settings.verify.voxel_m
+        params = params_of(self.settings.verify)
 
         def digest_and_geometry() -> tuple[bytes, bytes | None]:
             digest = hashlib.sha256(d.points.as_xyzi().tobytes()).digest()
-            return digest, encode_geometry(d.points.xyz, voxel=voxel) if m.keep_geometry else None
+            if not m.keep_geometry or d.prepared is None:
+                return digest, None
+            return digest, keyframe_geometry(d.prepared, params)
 
         digest, geometry = await run_in_threadpool(digest_and_geometry)
         return NewKeyframe(
@@ -279,10 +286,13 @@ class PlaceService:
         self._done(timings, t0)
         return answer
 
-    def _registration(self, verify: bool) -> RegistrationParams | None:
-        """What the pipeline prepares a scan with, when its answer will be verified."""
+    def _registration(self, verify: bool, m: PlaceMap | None = None) -> RegistrationParams | None:
+        """What the pipeline prepares a scan with, when its answer will be verified or it
+        may become a keyframe of a map that keeps geometry (the prepared grid is what the
+        keyframe keeps)."""
         v = self.settings.verify
-        return params_of(v) if verify and v.k > 0 else None
+        wanted = (verify and v.k > 0) or (m is not None and m.keep_geometry)
+        return params_of(v) if wanted else None
 
     def _check_k(self, k: int) -> None:
         if not 1 <= k <= self.settings.limits.max_k:
@@ -401,7 +411,8 @@ class PlaceService:
         scan as keyframe ``robot:session:timestamp`` when due."""
         t0 = time.perf_counter()
         self._check_k(obs.k)
-        d = await self.pipeline.describe(scan, self._registration(obs.verify))
+        verify = obs.verify and self.settings.verify.k > 0
+        d = await self.pipeline.describe(scan, self._registration(verify, m))
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
             session_id=obs.session_id,
@@ -415,7 +426,7 @@ class PlaceService:
             filters,
             d.timings,
             obs.robot_id,
-            d.prepared,
+            d.prepared if verify else None,
         )
         reason = await self._insert_due(m, obs)
         keyframe_id = None

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
-from lidar_core.geometry import GeometryError, decode_geometry
+from lidar_core.geometry import GeometryError, decode_geometry, pack_geometry
 from lidar_core.poses import rotation_z
 from service.settings import VerifySettings
 
@@ -97,6 +97,14 @@ def prepare(xyz: np.ndarray, p: RegistrationParams) -> Prepared:
     tree = small_gicp.KdTree(cloud, num_threads=p.threads)
     small_gicp.estimate_covariances(cloud, tree, p.neighbours, p.threads)
     return Prepared(cloud, cloud.size(), None, structure(cloud))
+
+
+def keyframe_geometry(query: Prepared, p: RegistrationParams) -> bytes | None:
+    """What a keyframe keeps of a scan: the grid its registration side was prepared on
+    (``None`` when the scan was too sparse for one)."""
+    if query.cloud is None:
+        return None
+    return pack_geometry(query.cloud.points()[:, :3], voxel=p.voxel)
 
 
 def register(
