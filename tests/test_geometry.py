@@ -13,6 +13,7 @@ from lidar_core.geometry import (
     GeometryError,
     decode_geometry,
     encode_geometry,
+    pack_geometry,
     voxel_means,
 )
 from lidar_core.poses import rotation_z, yaw_deg
@@ -42,6 +43,10 @@ def test_geometry_round_trip_is_within_half_a_centimetre_and_capped():
     assert np.sort(d)[:1].max() <= 0.005 + 1e-9
     # the same scan gives the same bytes
     assert encode_geometry(pts, voxel=1.0, max_points=4096) == blob
+    # a grid made elsewhere (the service's registration grid) packs to the same format
+    grid = means[:300]
+    back, voxel = decode_geometry(pack_geometry(grid, voxel=1.0))
+    assert voxel == 1.0 and np.abs(back - grid).max() <= 0.005 + 1e-9
 
 
 def test_points_beyond_the_int16_range_are_dropped_not_wrapped():
