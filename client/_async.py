@@ -109,8 +109,12 @@ class AsyncPlaceRecognitionClient:
     async def describe_batch(self, scans: list[Scan]) -> list[Descriptor]:
         return await self._run(self._calls.describe_batch(scans))
 
-    async def create_map(self, map_id: str, *, index: str | None = None) -> MapInfo:
-        return await self._run(self._calls.create_map(map_id, index))
+    async def create_map(
+        self, map_id: str, *, index: str | None = None, keep_geometry: bool | None = None
+    ) -> MapInfo:
+        """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
+        answers are never verified (default: the server's, true)."""
+        return await self._run(self._calls.create_map(map_id, index, keep_geometry))
 
     async def list_maps(self) -> list[MapInfo]:
         return await self._run(self._calls.list_maps())

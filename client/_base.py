@@ -178,8 +178,9 @@ class Calls:
 
         return Call("POST", "/v1/descriptors:batch", parse, content=content, headers=headers)
 
-    def create_map(self, map_id: str, index: str | None) -> Call:
-        body = {"index": index} if index else None
+    def create_map(self, map_id: str, index: str | None, keep_geometry: bool | None) -> Call:
+        settings = {"index": index, "keep_geometry": keep_geometry}
+        body = {k: v for k, v in settings.items() if v is not None} or None
         return Call(
             "PUT", f"/v1/maps/{_m(map_id)}", lambda r: MapInfo.from_json(r.json()), json=body
         )

@@ -21,8 +21,9 @@ class MapInfo:
     model_id: str
     keyframes: int
     index: dict[str, Any]
-    seq: int
+    seq: int | None  # the FAISS backend's write sequence; None on Qdrant
     created: bool | None = None
+    keep_geometry: bool = True
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> MapInfo:
@@ -31,8 +32,9 @@ class MapInfo:
             model_id=d["model_id"],
             keyframes=int(d["keyframes"]),
             index=d["index"],
-            seq=int(d["seq"]),
+            seq=None if d.get("seq") is None else int(d["seq"]),
             created=d.get("created"),
+            keep_geometry=bool(d.get("keep_geometry", True)),
         )
 
 

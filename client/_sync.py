@@ -108,8 +108,12 @@ class PlaceRecognitionClient:
     def describe_batch(self, scans: list[Scan]) -> list[Descriptor]:
         return self._run(self._calls.describe_batch(scans))
 
-    def create_map(self, map_id: str, *, index: str | None = None) -> MapInfo:
-        return self._run(self._calls.create_map(map_id, index))
+    def create_map(
+        self, map_id: str, *, index: str | None = None, keep_geometry: bool | None = None
+    ) -> MapInfo:
+        """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
+        answers are never verified (default: the server's, true)."""
+        return self._run(self._calls.create_map(map_id, index, keep_geometry))
 
     def list_maps(self) -> list[MapInfo]:
         return self._run(self._calls.list_maps())

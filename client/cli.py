@@ -95,13 +95,23 @@ def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
 def maps_create(
     map_id: Annotated[str, typer.Argument(help="[a-z0-9][a-z0-9_-]{0,63}")],
     index: Annotated[str | None, typer.Option(help="flat, ivf or auto")] = None,
+    geometry: Annotated[
+        bool | None,
+        typer.Option(
+            "--geometry/--no-geometry",
+            help="keyframes keep their geometry for verified answers [default: yes]",
+        ),
+    ] = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Create a map (idempotent)."""
     with _client(url, api_key) as pr:
-        m = pr.create_map(map_id, index=index)
-    out.print(f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes")
+        m = pr.create_map(map_id, index=index, keep_geometry=geometry)
+    out.print(
+        f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes, "
+        f"geometry {'kept' if m.keep_geometry else 'not kept'}"
+    )
 
 
 @maps_app.command("delete")

@@ -259,7 +259,12 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     out = run("ingest", str(synthetic_seq_dir), "--map", "cli-town", "--every", "6")
     assert "0 new keyframes, 8 already there" in out  # re-running is harmless
     out = run("query", str(synthetic_seq_dir / "velodyne" / "000012.bin"), "--map", "cli-town")
-    assert "loop-000012" in out and "loop closure:" in out
+    assert "loop-000012" in out and "loop closure: ACCEPTED, verified: loop-000012" in out
+    assert "relative pose T_keyframe←query" in out  # the 4×4 a pose graph takes
+    out = run("query", str(synthetic_seq_dir / "velodyne" / "000012.bin"), "--map", "cli-town",
+              "--no-verify")  # fmt: skip
+    assert "descriptor only" in out
+    assert "geometry not kept" in run("maps", "create", "cli-bare", "--no-geometry")
     out = run(
         "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r9"
     )
