@@ -269,7 +269,7 @@ class QueryOut(BaseModel):
                     ],
                     "loop_closure": {
                         "accepted": True,
-                        "threshold": 0.0835,
+                        "threshold": 0.1795,
                         "margin_top1_top2": 0.12,
                         "keyframe_id": "drive1-000042",
                         "verified": True,

@@ -35,6 +35,7 @@ quarter of the work.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -119,22 +120,21 @@ def register(
     if query.cloud is None:
         return refused(query.reason or "the query could not be prepared")
     try:
-        pts, _ = decode_geometry(geometry)
+        target = _target(geometry, p)
     except GeometryError as err:
         return refused(f"the keyframe's geometry is unreadable: {err}")
-    if len(pts) < p.min_points:
+    if target.cloud is None:
         return refused(
-            f"the keyframe keeps {len(pts)} points; registration needs at least {p.min_points}"
+            f"the keyframe keeps {target.size} points; registration needs at least {p.min_points}"
         )
-    target = small_gicp.PointCloud(pts)
-    tree = small_gicp.KdTree(target, num_threads=p.threads)
-    small_gicp.estimate_covariances(target, tree, p.neighbours, p.threads)
     init = rotation_z(-yaw_deg) if yaw_deg is not None else np.eye(4)
     src = query.cloud.points()[:, :3]
     steep = query.steep if query.steep is not None else structure(query.cloud)
-    init[:2, 3] = seed_translation((src @ init[:3, :3].T)[steep], pts[structure(target)], p)
+    init[:2, 3] = seed_translation((src @ init[:3, :3].T)[steep], target.spectrum, p)
+    tree = target.tree
+    assert tree is not None  # a target with a cloud has its tree
     res = small_gicp.align(
-        target,
+        target.cloud,
         query.cloud,
         tree,
         init,
@@ -223,8 +223,16 @@ def structure(cloud: small_gicp.PointCloud) -> np.ndarray:
     return covs[:, 2, 2] >= 0.2 * np.maximum(trace, 1e-12)
 
 
-def _bev(xy: np.ndarray, n: int, cell: float) -> np.ndarray:
-    ij = np.floor(xy / cell).astype(np.int64) + n // 2
+def _grid_size(p: RegistrationParams) -> tuple[int, int]:
+    """(cells across the bird's-eye grid, FFT size: zero padded, so no wrap-around)."""
+    n = 2 * int(np.ceil(p.bev_reach / p.bev_cell)) + 2
+    return n, 2 * n
+
+
+def _bev(xy: np.ndarray, p: RegistrationParams) -> np.ndarray:
+    """The spectrum of a bird's-eye occupancy grid of ``xy`` (metres, centred)."""
+    n, size = _grid_size(p)
+    ij = np.floor(xy[:, :2] / p.bev_cell).astype(np.int64) + n // 2
     ij = ij[((ij >= 0) & (ij < n)).all(axis=1)]
     grid = np.zeros((n, n))
     grid[ij[:, 0], ij[:, 1]] = 1.0
@@ -234,25 +242,52 @@ def _bev(xy: np.ndarray, n: int, cell: float) -> np.ndarray:
     out[:-1] += 0.5 * grid[1:]
     out[:, 1:] += 0.5 * grid[:, :-1]
     out[:, :-1] += 0.5 * grid[:, 1:]
-    return out
+    return np.fft.rfft2(out, (size, size))
 
 
-def seed_translation(src: np.ndarray, tgt: np.ndarray, p: RegistrationParams) -> np.ndarray:
-    """The (x, y) shift that best overlays the query's structure (already turned by the
+def seed_translation(src: np.ndarray, target: np.ndarray, p: RegistrationParams) -> np.ndarray:
+    """The (x, y) shift that best overlays the query's steep points (already turned by the
     seed yaw) on the keyframe's, by cross-correlating bird's-eye occupancy grids (FFT).
+    ``target``: the keyframe's steep points (N, ≥2), or their grid's spectrum (``_bev``).
     A revisit passes a place metres to the side or along the road from where the keyframe
     was taken; GICP alone, with its 2 m correspondences, does not travel that far."""
-    if len(src) < 3 or len(tgt) < 3:
+    if np.iscomplexobj(target):
+        spectrum = target
+    elif len(target) < 3:
         return np.zeros(2)
-    reach = float(max(np.abs(src[:, :2]).max(), np.abs(tgt[:, :2]).max()))
-    n = 2 * int(np.ceil(min(reach, p.bev_reach) / p.bev_cell)) + 2
-    size = 2 * n  # zero padding: no wrap-around within the grid
-    a = np.fft.rfft2(_bev(tgt[:, :2], n, p.bev_cell), (size, size))
-    b = np.fft.rfft2(_bev(src[:, :2], n, p.bev_cell), (size, size))
-    corr = np.fft.irfft2(a * np.conj(b), (size, size))
+    else:
+        spectrum = _bev(target, p)
+    if len(src) < 3:
+        return np.zeros(2)
+    _, size = _grid_size(p)
+    corr = np.fft.irfft2(spectrum * np.conj(_bev(src, p)), (size, size))
     steps = np.fft.fftfreq(size, 1.0 / size)  # signed shifts in cells
     far = np.abs(steps) * p.bev_cell > p.max_shift
     corr[far, :] = -np.inf
     corr[:, far] = -np.inf
     i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
     return np.array([steps[i], steps[j]]) * p.bev_cell
+
+
+@dataclass(frozen=True)
+class _Target:
+    """A keyframe's side of registration, built once from its blob."""
+
+    size: int
+    cloud: small_gicp.PointCloud | None  # None: too few points
+    tree: small_gicp.KdTree | None
+    spectrum: np.ndarray  # its steep points' bird's-eye grid, as seed_translation takes it
+
+
+@functools.lru_cache(maxsize=64)
+def _target(geometry: bytes, p: RegistrationParams) -> _Target:
+    """Decode, k-d tree, covariances, bird's-eye spectrum — kept for the 64 keyframes
+    registered last (≈ 0.4 MB each): a robot's consecutive queries meet the same keyframes.
+    Raises GeometryError for a blob that cannot be read."""
+    pts, _ = decode_geometry(geometry)
+    if len(pts) < p.min_points:
+        return _Target(len(pts), None, None, np.zeros((0, 0), complex))
+    cloud = small_gicp.PointCloud(pts)
+    tree = small_gicp.KdTree(cloud, num_threads=p.threads)
+    small_gicp.estimate_covariances(cloud, tree, p.neighbours, p.threads)
+    return _Target(len(pts), cloud, tree, _bev(pts[structure(cloud)], p))
