@@ -14,9 +14,11 @@ that shares less. Recall: queries with a ground-truth loop whose closure is corr
 loop, over all queries with a loop (what the descriptor's Recall@5 bounds).
 
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
-the pair of highest recall whose precision is at least ``--target`` (0.99): the service's
-``verify.min_fitness`` and ``verify.max_rmse_m`` defaults come from it. Without it, the
-thresholds in force (``--min-fitness``, ``--max-rmse``, default the service's) are scored
+the pair of highest recall whose precision is at least ``--target`` (0.99), then the
+nearest descriptor gate that costs at most 0.005 of that recall: the service's
+``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.max_distance`` come from it.
+Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``, ``--max-distance``,
+default the service's) are scored
 on each town given: precision, recall against the descriptor's Recall@1 and Recall@5 on the
 same queries, pose errors, and the time per query. Prints tables, writes JSON.
 """
@@ -77,7 +79,9 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
         deg, _ = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         t0 = time.perf_counter()
         verdicts = verify_candidates(
-            prepared[i], [(blobs[j], float(a)) for j, a in zip(top, deg, strict=True)], v
+            prepared[i],
+            [(blobs[j], float(a), float(np.sqrt(d2[i, j]))) for j, a in zip(top, deg, strict=True)],
+            v,
         )
         ms.append((time.perf_counter() - t0) * 1e3)
         pos = set(positives[i].tolist())
@@ -108,8 +112,14 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
 POSE_OK = (1.0, 2.0)  # m, °: a closure whose pose is this close to the truth is correct
 
 
-def score(queries: list[dict[str, Any]], min_fitness: float, max_rmse: float) -> dict[str, Any]:
-    """The service's call at these thresholds, over every query."""
+def score(
+    queries: list[dict[str, Any]],
+    min_fitness: float,
+    max_rmse: float,
+    max_distance: float | None = None,
+) -> dict[str, Any]:
+    """The service's call at these thresholds, over every query (a candidate beyond
+    ``max_distance`` is not registered, as in the service)."""
     accepted = correct = on_loop = found = 0
     t_err, yaw_err = [], []
     for q in queries:
@@ -117,6 +127,7 @@ def score(queries: list[dict[str, Any]], min_fitness: float, max_rmse: float) ->
             c
             for c in q["candidates"]
             if c["fitness"] is not None
+            and (max_distance is None or c["distance"] <= max_distance)
             and c["fitness"] >= min_fitness
             and c["rmse"] is not None
             and c["rmse"] <= max_rmse
@@ -133,9 +144,16 @@ def score(queries: list[dict[str, Any]], min_fitness: float, max_rmse: float) ->
             t_err.append(best["t_err"])
             yaw_err.append(best["yaw_err"])
     loops = sum(q["has_loop"] for q in queries)
+    registered = sum(
+        max_distance is None or c["distance"] <= max_distance
+        for q in queries
+        for c in q["candidates"]
+    )
     out: dict[str, Any] = {
         "min_fitness": min_fitness,
         "max_rmse_m": max_rmse,
+        "max_distance": max_distance,
+        "registered_per_query": registered / len(queries) if queries else 0.0,
         "accepted": accepted,
         "correct": correct,
         "precision": correct / accepted if accepted else 1.0,
@@ -172,6 +190,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=VerifySettings().k, help="candidates per query")
     ap.add_argument("--min-fitness", type=float, default=VerifySettings().min_fitness)
     ap.add_argument("--max-rmse", type=float, default=VerifySettings().max_rmse_m)
+    ap.add_argument("--max-distance", type=float, default=VerifySettings().max_distance)
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "verify.json")
     args = ap.parse_args()
     towns = args.town or [ROOT / "data" / "synth" / "val"]
@@ -218,6 +237,21 @@ def main() -> None:
                 )
         console.print(table)
         console.print(f"chosen for precision ≥ {args.target}: {chosen}")
+        if chosen is not None:
+            # the descriptor gate: the nearest distance that costs at most 0.005 of recall
+            gates = [
+                score(queries, chosen["min_fitness"], chosen["max_rmse_m"], float(d))
+                for d in np.round(np.arange(0.10, 1.01, 0.01), 2)
+            ]
+            fine = [
+                g
+                for g in gates
+                if g["precision"] >= args.target and g["recall"] >= chosen["recall"] - 0.005
+            ]
+            gate = min(fine, key=lambda g: g["max_distance"]) if fine else None
+            report["calibration"]["gate"] = gate
+            report["gates"] = gates
+            console.print(f"descriptor gate: {gate}")
     table = Table(title=f"verified loop closures ({enc.model_id}, k={args.k})")
     for col in (
         "town",
@@ -232,10 +266,11 @@ def main() -> None:
         "t err m (med)",
         "yaw err ° (med)",
         "ms/query (med)",
+        "registered/query",
     ):
         table.add_column(col, justify="right")
     for r in results:
-        s = score(r["queries"], args.min_fitness, args.max_rmse)
+        s = score(r["queries"], args.min_fitness, args.max_rmse, args.max_distance)
         rec = descriptor_recall(r["queries"])
         row = {
             "town": r["town"],
@@ -266,9 +301,14 @@ def main() -> None:
             f"{s.get('translation_error_m', {}).get('median', float('nan')):.3f}",
             f"{s.get('yaw_error_deg', {}).get('median', float('nan')):.3f}",
             f"{row['verify_ms']['median']:.1f}",
+            f"{s['registered_per_query']:.2f}",
         )
     console.print(table)
-    report["thresholds"] = {"min_fitness": args.min_fitness, "max_rmse_m": args.max_rmse}
+    report["thresholds"] = {
+        "min_fitness": args.min_fitness,
+        "max_rmse_m": args.max_rmse,
+        "max_distance": args.max_distance,
+    }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
     console.print(f"wrote {args.json}")

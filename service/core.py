@@ -343,7 +343,7 @@ class PlaceService:
         blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
         verdicts = verify_candidates(
             prepared,
-            [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg) for c in candidates],
+            [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg, c.distance) for c in candidates],
             self.settings.verify,
         )
         return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]

@@ -199,15 +199,25 @@ def judge(reg: Registration, v: VerifySettings) -> Verdict:
 
 
 def verify_candidates(
-    query: Prepared, candidates: list[tuple[bytes | None, float | None]], v: VerifySettings
+    query: Prepared,
+    candidates: list[tuple[bytes | None, float | None, float]],
+    v: VerifySettings,
 ) -> list[Verdict]:
     """The prepared query and its candidates (geometry blob or None, the descriptor's
-    relative yaw) → one verdict per candidate, in order."""
+    relative yaw, the descriptor distance) → one verdict per candidate, in order. A
+    candidate farther than ``v.max_distance`` is not registered: on the validation town no
+    true loop lay that far, and a robot in new territory then spends nothing on it."""
     p = params_of(v)
     out = []
-    for blob, yaw_deg in candidates:
+    for blob, yaw_deg, distance in candidates:
         if blob is None:
             out.append(Verdict(None, None, None, NO_GEOMETRY, None, 0.0))
+        elif v.max_distance is not None and distance > v.max_distance:
+            reason = (
+                f"descriptor distance {distance:.3f} is above verify.max_distance "
+                f"{v.max_distance}: not registered"
+            )
+            out.append(Verdict(False, None, None, reason, None, 0.0))
         else:
             out.append(judge(register(query, blob, yaw_deg, p), v))
     return out
