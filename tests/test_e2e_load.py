@@ -73,6 +73,10 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
             "errors": report.errors,
             "keyframes_inserted": len(fleet_ids),
             "loop_closures": report.loop_closures,
+            "verified_closures": report.verified_closures,
+            "closure_precision": report.precision,
+            "closure_recall": report.recall,
+            "pose_error": report.pose_error,
         },
         "mapper": {
             "batches": mapper.requests,
