@@ -351,22 +351,23 @@ class PlaceService:
     @staticmethod
     def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
         """The verified candidate of highest fitness; the descriptor's call only when no
-        candidate could be registered (none has geometry)."""
-        judged = [c for c in candidates if c.verification and c.verification.verified is not None]
+        candidate could be judged (none has geometry). Candidates refused by the descriptor
+        gate count as judged: a query far from every keyframe closes no loop."""
+        verdicts = [(c, c.verification) for c in candidates if c.verification is not None]
+        judged = [(c, v) for c, v in verdicts if v.verified is not None]
         if not judged:
             return descriptor_call
-        ok = [c for c in judged if c.verification and c.verification.verified]
+        ok = [(c, v) for c, v in judged if v.verified]
         if not ok:
             return replace(descriptor_call, accepted=False, keyframe_id=None, verified=False)
-        best = max(ok, key=lambda c: c.verification.fitness or 0.0 if c.verification else 0.0)
-        assert best.verification is not None
+        best, v = max(ok, key=lambda cv: cv[1].fitness or 0.0)
         return replace(
             descriptor_call,
             accepted=True,
             keyframe_id=best.keyframe.keyframe_id,
             verified=True,
-            relative_pose=best.verification.relative_pose,
-            fitness=best.verification.fitness,
+            relative_pose=v.relative_pose,
+            fitness=v.fitness,
         )
 
     # ---- the robot's round trip -------------------------------------------------------------

@@ -169,8 +169,8 @@ class Map:
         model_id: str,
         dim: int,
         kind: str,
-        keep_geometry: bool,
         settings: IndexSettings,
+        keep_geometry: bool = True,
     ) -> Map:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
         # or a whole one (load_all removes the debris), never a store without its metadata.

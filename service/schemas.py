@@ -224,8 +224,9 @@ class LoopClosureOut(BaseModel):
     keyframe_id: str | None = Field(None, description="the revisited keyframe, when accepted")
     verified: bool | None = Field(
         None,
-        description="true: accepted after registration; false: candidates were registered "
-        "and none passed; null: the call is the descriptor distance alone",
+        description="true: accepted after registration; false: candidates were judged "
+        "(registered, or beyond the descriptor gate verify.max_distance) and none passed; "
+        "null: the call is the descriptor distance alone",
     )
     relative_pose: list[float] | None = Field(
         None, description="4×4 row-major T_keyframe←query of the accepted, verified closure"
