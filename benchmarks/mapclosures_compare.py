@@ -38,6 +38,7 @@ from rich.table import Table
 
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import LoopGroundTruth
+from lidar_core.poses import pose_error
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -98,9 +99,9 @@ def main() -> None:
         T = r[2:18].reshape(4, 4)
         (rs, re), (qs, qe) = maps[ref], maps[query]
         truth = np.linalg.inv(seq.poses[qs]) @ seq.poses[rs]
-        err = np.linalg.inv(truth) @ T
-        t_err.append(float(np.linalg.norm(err[:3, 3])))
-        yaw_err.append(float(abs(np.degrees(np.arctan2(err[1, 0], err[0, 0])))))
+        t, y = pose_error(T, truth)
+        t_err.append(t)
+        yaw_err.append(y)
         for i in range(qs, qe + 1):
             if i not in covered and any(rs <= j <= re for j in positives[i]):
                 covered.add(i)

@@ -31,7 +31,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.datasets import open_sequence
-from lidar_core.poses import rotation_z, translations, yaw_deg
+from lidar_core.poses import pose_error, rotation_z, translations, yaw_deg
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
 from service.verify import RegistrationParams, keyframe_geometry, prepare, register
@@ -107,9 +107,9 @@ def main() -> None:
         r = register(q, blob, seed, p)
         assert r.relative_pose is not None, r.reason
         rows["register_ms"].append(r.ms)
-        err = np.linalg.inv(truth) @ r.relative_pose
-        rows["t_err"].append(float(np.linalg.norm(err[:3, 3])))
-        rows["yaw_err"].append(float(abs(yaw_deg(err))))
+        t_err, y_err = pose_error(r.relative_pose, truth)
+        rows["t_err"].append(t_err)
+        rows["yaw_err"].append(y_err)
         rows["fitness"].append(float(r.fitness or 0.0))
         rows["rmse"].append(float(r.rmse or np.nan))
         rows["iterations"].append(r.iterations)

@@ -38,18 +38,13 @@ from tqdm import tqdm
 
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import LoopGroundTruth
+from lidar_core.poses import pose_error
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
 from service.settings import VerifySettings
 from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
-    """(translation m, yaw °) of T_gt⁻¹ · T_est."""
-    E = np.linalg.inv(T_gt) @ T_est
-    return float(np.linalg.norm(E[:3, 3])), float(abs(np.degrees(np.arctan2(E[1, 0], E[0, 0]))))
 
 
 def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8) -> dict[str, Any]:

@@ -30,6 +30,7 @@ from client._async import AsyncPlaceRecognitionClient
 from client._base import Retry
 from client._exceptions import APIError, ClientError
 from client._replay import Drive
+from lidar_core.poses import pose_error
 
 
 @dataclass
@@ -216,9 +217,9 @@ def _report(
                     if s.verified and s.relative_pose is not None:
                         poses = drive.seq.poses
                         truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
-                        err = np.linalg.inv(truth) @ s.relative_pose
-                        t_err.append(float(np.linalg.norm(err[:3, 3])))
-                        yaw_err.append(float(abs(np.degrees(np.arctan2(err[1, 0], err[0, 0])))))
+                        t, y = pose_error(s.relative_pose, truth)
+                        t_err.append(t)
+                        yaw_err.append(y)
     per_robot: dict[str, dict[str, Any]] = {}
     for s in samples:
         r = per_robot.setdefault(s.robot, {"observations": 0, "errors": 0, "loop_closures": 0})

@@ -95,6 +95,13 @@ def yaw_deg(transforms: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(t[..., 1, 0], t[..., 0, 0]))
 
 
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """How far a (4, 4) transform is from the true one: (translation in metres, |yaw| in
+    degrees) of truth⁻¹ · estimate."""
+    err = np.linalg.inv(truth) @ estimate
+    return float(np.linalg.norm(err[:3, 3])), float(abs(yaw_deg(err)))
+
+
 def translations(poses: np.ndarray) -> np.ndarray:
     """(N, 3) positions."""
     return np.asarray(poses)[:, :3, 3]

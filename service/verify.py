@@ -71,7 +71,7 @@ class Prepared:
     cloud: small_gicp.PointCloud | None
     size: int
     reason: str | None  # why the query cannot be registered, when it cannot
-    steep: np.ndarray | None = None  # (size,) bool: grid points on steep surfaces
+    steep: np.ndarray | None = None  # (size,) bool: grid points on steep surfaces (with cloud)
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def register(
     def refused(reason: str) -> Registration:
         return Registration(None, None, None, 0, False, reason, (time.perf_counter() - t0) * 1e3)
 
-    if query.cloud is None:
+    if query.cloud is None or query.steep is None:
         return refused(query.reason or "the query could not be prepared")
     try:
         target = _target(geometry, p)
@@ -131,7 +131,7 @@ def register(
         )
     init = rotation_z(-yaw_deg) if yaw_deg is not None else np.eye(4)
     src = query.cloud.points()[:, :3]
-    steep = query.steep if query.steep is not None else structure(query.cloud)
+    steep = query.steep
     init[:2, 3] = seed_translation((src @ init[:3, :3].T)[steep], target.spectrum, p)
     tree = target.tree
     assert tree is not None  # a target with a cloud has its tree
@@ -174,7 +174,6 @@ class Verdict:
     rmse: float | None
     reason: str | None  # why it is not verified, when it is not
     relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query, when registration ran
-    ms: float
 
     def public(self) -> dict[str, object]:
         return {
@@ -191,13 +190,13 @@ def params_of(v: VerifySettings) -> RegistrationParams:
 
 def judge(reg: Registration, v: VerifySettings) -> Verdict:
     if reg.relative_pose is None or reg.fitness is None:
-        return Verdict(False, None, None, reg.reason, None, reg.ms)
+        return Verdict(False, None, None, reg.reason, None)
     reason = None
     if reg.fitness < v.min_fitness:
         reason = f"fitness {reg.fitness:.3f} is below {v.min_fitness}"
     elif reg.rmse is None or reg.rmse > v.max_rmse_m:
         reason = f"rmse {reg.rmse} m is above {v.max_rmse_m}"
-    return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose, reg.ms)
+    return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose)
 
 
 def verify_candidates(
@@ -213,13 +212,13 @@ def verify_candidates(
     out = []
     for blob, yaw_deg, distance in candidates:
         if blob is None:
-            out.append(Verdict(None, None, None, NO_GEOMETRY, None, 0.0))
+            out.append(Verdict(None, None, None, NO_GEOMETRY, None))
         elif v.max_distance is not None and distance > v.max_distance:
             reason = (
                 f"descriptor distance {distance:.3f} is above verify.max_distance "
                 f"{v.max_distance}: not registered"
             )
-            out.append(Verdict(False, None, None, reason, None, 0.0))
+            out.append(Verdict(False, None, None, reason, None))
         else:
             out.append(judge(register(query, blob, yaw_deg, p), v))
     return out
@@ -241,7 +240,7 @@ def _grid_size(p: RegistrationParams) -> tuple[int, int]:
     return n, 2 * n
 
 
-def _bev(xy: np.ndarray, p: RegistrationParams) -> np.ndarray:
+def bev_spectrum(xy: np.ndarray, p: RegistrationParams) -> np.ndarray:
     """The spectrum of a bird's-eye occupancy grid of ``xy`` (metres, centred)."""
     n, size = _grid_size(p)
     ij = np.floor(xy[:, :2] / p.bev_cell).astype(np.int64) + n // 2
@@ -260,19 +259,13 @@ def _bev(xy: np.ndarray, p: RegistrationParams) -> np.ndarray:
 def seed_translation(src: np.ndarray, target: np.ndarray, p: RegistrationParams) -> np.ndarray:
     """The (x, y) shift that best overlays the query's steep points (already turned by the
     seed yaw) on the keyframe's, by cross-correlating bird's-eye occupancy grids (FFT).
-    ``target``: the keyframe's steep points (N, ≥2), or their grid's spectrum (``_bev``).
-    A revisit passes a place metres to the side or along the road from where the keyframe
-    was taken; GICP alone, with its 2 m correspondences, does not travel that far."""
-    if np.iscomplexobj(target):
-        spectrum = target
-    elif len(target) < 3:
-        return np.zeros(2)
-    else:
-        spectrum = _bev(target, p)
+    ``target``: the keyframe's grid, ``bev_spectrum`` of its steep points (made once per
+    keyframe). A revisit passes a place metres to the side or along the road from where the
+    keyframe was taken; GICP alone, with its 2 m correspondences, does not travel that far."""
     if len(src) < 3:
         return np.zeros(2)
     _, size = _grid_size(p)
-    corr = np.fft.irfft2(spectrum * np.conj(_bev(src, p)), (size, size))
+    corr = np.fft.irfft2(target * np.conj(bev_spectrum(src, p)), (size, size))
     steps = np.fft.fftfreq(size, 1.0 / size)  # signed shifts in cells
     far = np.abs(steps) * p.bev_cell > p.max_shift
     corr[far, :] = -np.inf
@@ -302,4 +295,4 @@ def _target(geometry: bytes, p: RegistrationParams) -> _Target:
     cloud = small_gicp.PointCloud(pts)
     tree = small_gicp.KdTree(cloud, num_threads=p.threads)
     small_gicp.estimate_covariances(cloud, tree, p.neighbours, p.threads)
-    return _Target(len(pts), cloud, tree, _bev(pts[structure(cloud)], p))
+    return _Target(len(pts), cloud, tree, bev_spectrum(pts[structure(cloud)], p))

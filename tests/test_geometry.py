@@ -111,7 +111,13 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
 def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
     from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""
-    from service.verify import RegistrationParams, prepare, register, seed_translation
+    from service.verify import (
+        RegistrationParams,
+        bev_spectrum,
+        prepare,
+        register,
+        seed_translation,
+    )
 
     p = RegistrationParams()
     truth = np.linalg.inv(kitti.poses[0]) @ kitti.poses[30]
@@ -132,7 +138,7 @@ def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     # the seed itself: a cloud shifted by (7, −11) m is found within a cell
     rng = np.random.default_rng(0)
     pts = rng.uniform(-40, 40, (600, 3))
-    shift = seed_translation(pts, pts + np.array([7.0, -11.0, 0.0]), p)
+    shift = seed_translation(pts, bev_spectrum(pts + np.array([7.0, -11.0, 0.0]), p), p)
     assert np.abs(shift - [7.0, -11.0]).max() <= p.bev_cell, shift
 
 
