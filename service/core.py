@@ -311,11 +311,20 @@ class PlaceService:
     ) -> Answer:
         """Search, verify the top ``verify.k`` candidates when the query is prepared for it,
         and make the loop-closure call (see :class:`LoopClosure`)."""
-        t0 = time.perf_counter()
         n_verify = self.settings.verify.k if prepared is not None else 0
-        # One more than asked: the runner-up gives the loop-closure margin.
-        matches = await run_in_threadpool(m.search, descriptor, max(k, n_verify) + 1, filters, yaw)
-        timings["search"] = (time.perf_counter() - t0) * 1e3
+
+        def search_and_verify() -> list[Match]:  # one thread hop for both stages
+            t0 = time.perf_counter()
+            # One more than asked: the runner-up gives the loop-closure margin.
+            found = m.search(descriptor, max(k, n_verify) + 1, filters, yaw)
+            t1 = time.perf_counter()
+            timings["search"] = (t1 - t0) * 1e3
+            if n_verify and found and prepared is not None:
+                found[:n_verify] = self._verify(m, prepared, found[:n_verify])
+                timings["verify"] = (time.perf_counter() - t1) * 1e3
+            return found
+
+        matches = await run_in_threadpool(search_and_verify)
         lc = self.settings.loop_closure
         margin = matches[1].distance - matches[0].distance if len(matches) > 1 else None
         closure = LoopClosure(
@@ -329,12 +338,7 @@ class PlaceService:
         )
         if closure.accepted:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
-        if n_verify and matches and prepared is not None:
-            t1 = time.perf_counter()
-            matches[:n_verify] = await run_in_threadpool(
-                self._verify, m, prepared, matches[:n_verify]
-            )
-            timings["verify"] = (time.perf_counter() - t1) * 1e3
+        if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
             closure = self._verified_closure(matches[:n_verify], closure)
         self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)

@@ -138,7 +138,9 @@ def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     # the seed itself: a cloud shifted by (7, −11) m is found within a cell
     rng = np.random.default_rng(0)
     pts = rng.uniform(-40, 40, (600, 3))
-    shift = seed_translation(pts, bev_spectrum(pts + np.array([7.0, -11.0, 0.0]), p), p)
+    shift = seed_translation(
+        bev_spectrum(pts, p), bev_spectrum(pts + np.array([7.0, -11.0, 0.0]), p), p
+    )
     assert np.abs(shift - [7.0, -11.0]).max() <= p.bev_cell, shift
 
 
