@@ -193,7 +193,9 @@ def main() -> None:
         ap.error("calibrate on the validation town, never on a test town")
     console = Console()
     enc = Encoder(args.model)
-    v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9)  # record everything
+    # record everything; calibrating, register every candidate too (the gate is swept after)
+    register_within = None if args.calibrate else args.max_distance
+    v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9, max_distance=register_within)
     results = [run_town(enc, t, args.k, v) for t in towns]
     report: dict[str, Any] = {"model_id": enc.model_id, "k": args.k, "towns": []}
     if args.calibrate:

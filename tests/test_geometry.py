@@ -138,10 +138,33 @@ def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     # the seed itself: a cloud shifted by (7, −11) m is found within a cell
     rng = np.random.default_rng(0)
     pts = rng.uniform(-40, 40, (600, 3))
-    shift = seed_translation(
-        bev_spectrum(pts, p), bev_spectrum(pts + np.array([7.0, -11.0, 0.0]), p), p
-    )
-    assert np.abs(shift - [7.0, -11.0]).max() <= p.bev_cell, shift
+    for true in ([7.0, -11.0], [-38.0, 37.0]):  # the second near max_shift: no wrap-around
+        moved = bev_spectrum(pts + np.array([*true, 0.0]), p)
+        shift = seed_translation(bev_spectrum(pts, p), moved, p)
+        assert np.abs(shift - true).max() <= p.bev_cell, (true, shift)
+
+
+def test_gicp_moves_a_thinned_query_and_steepness_comes_from_the_normals(kitti):
+    """GICP's source keeps every steep grid point and a third of the rest; the steep test
+    on the normals is the one on small_gicp's regularised covariances (z share ≥ 1/5)."""
+    import small_gicp
+
+    from service.verify import RegistrationParams, prepare, structure
+
+    p = RegistrationParams()
+    q = prepare(kitti.points(11).xyz, p)
+    assert q.cloud is not None and q.steep is not None and q.source is not None
+    steep, rest = int(q.steep.sum()), int((~q.steep).sum())
+    assert 0 < steep < q.size and q.source.size() == steep + -(-rest // p.ground_stride)
+    covs = np.asarray(q.cloud.covs())[:, :3, :3]
+    share = covs[:, 2, 2] / np.trace(covs, axis1=1, axis2=2)
+    assert np.array_equal(structure(q.cloud), share >= 0.2)
+    # the turned spectra are made once per whole degree of seed yaw
+    first = q.turned_spectrum(10.2, p)
+    assert first is not None and q.turned_spectrum(9.8, p) is first
+    assert q.turned_spectrum(11.0, p) is not first
+    whole = prepare(kitti.points(11).xyz, RegistrationParams(ground_stride=1))
+    assert whole.source is whole.cloud and isinstance(whole.source, small_gicp.PointCloud)
 
 
 def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
