@@ -44,7 +44,8 @@ LiDAR place recognition with OverlapMamba. Send a scan, get a 256-d descriptor; 
 keyframes; ask which places a scan matches and whether it closes a loop.
 
 * Scans are binary bodies (`application/octet-stream` float32 xyzi|xyz, `application/x-npy`,
-  `application/x-pcd`), optionally `Content-Encoding: gzip|zstd` — never JSON lists.
+  `application/x-pcd`, `application/x-ros2-pointcloud2`: a ROS 2 PointCloud2 message as
+  CDR bytes), optionally `Content-Encoding: gzip|zstd` — never JSON lists.
 * Errors are `{"error": {"code", "message", "detail"}}`.
 * With API keys configured, send `Authorization: Bearer <key>` or `X-API-Key: <key>`.
 """

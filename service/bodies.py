@@ -8,7 +8,8 @@
                                       decompression belongs to the scan's decode stage
     decode_scan(scan, limits)         Content-Encoding undone, then application/octet-stream
                                       (X-Point-Fields xyzi | xyz), application/x-npy,
-                                      application/x-pcd → PointCloud
+                                      application/x-pcd, application/x-ros2-pointcloud2
+                                      → PointCloud
 
 A decompression bomb is stopped at max_decoded_bytes + 1 bytes of output: the decoders are
 asked for at most that much, never for "everything".
@@ -32,6 +33,8 @@ SCAN_TYPES = {
     "application/octet-stream": "raw",
     "application/x-npy": "npy",
     "application/x-pcd": "pcd",
+    # a CDR-serialized sensor_msgs/msg/PointCloud2, the bytes a ROS 2 node receives
+    "application/x-ros2-pointcloud2": "pointcloud2",
 }
 ENCODINGS = ("identity", "gzip", "zstd")
 

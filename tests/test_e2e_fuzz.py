@@ -66,6 +66,12 @@ def _hostile_cases(marker: Path) -> list[tuple[str, bytes, dict[str, str]]]:
     pcd_bad += b"WIDTH 10\nHEIGHT 1\nPOINTS 10\nDATA binary\n" + bytes(40)
     pcd_huge = b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
     pcd_huge += b"WIDTH 50000000\nHEIGHT 1\nPOINTS 50000000\nDATA binary\n" + bytes(120)
+    from ros_messages import F32, MEDIA, U16, XYZ, XYZI, message, patch_u32
+
+    pc2 = {"content-type": MEDIA}
+    pc2_good = message(good, XYZI, 16)
+    pc2_int = message(good, XYZ, 12, declared=[("x", 0, U16), *XYZ[1:]])
+    pc2_nan = message(nan, XYZI, 16, dense=True)
     return [
         ("NaN coordinates", nan.tobytes(), OCTET),
         ("Inf coordinates", inf.tobytes(), OCTET),
@@ -124,6 +130,18 @@ def _hostile_cases(marker: Path) -> list[tuple[str, bytes, dict[str, str]]]:
             "JSON list of points",
             json.dumps(good[:200].tolist()).encode(),
             {"content-type": "application/json"},
+        ),
+        ("PointCloud2 cut short", pc2_good[:-100], pc2),
+        ("PointCloud2 declaring 50M points", patch_u32(pc2_good, "width", 50_000_000), pc2),
+        ("PointCloud2 declaring 4 billion fields", patch_u32(pc2_good, "fields", 2**32 - 1), pc2),
+        ("PointCloud2 with a 2 GB frame_id", patch_u32(pc2_good, "frame_id", 2**31), pc2),
+        ("PointCloud2 with an integer x", pc2_int, pc2),
+        ("PointCloud2 dense, holding NaN", pc2_nan, pc2),
+        ("PointCloud2 that is text garbage", b"hello\nworld\n" * 50, pc2),
+        (
+            "PointCloud2 z beyond point_step",
+            message(good, XYZ, 12, declared=[*XYZ[:2], ("z", 10, F32)]),
+            pc2,
         ),
         ("no content type", good.tobytes(), {}),
         ("image/png content type", good.tobytes(), {"content-type": "image/png"}),

@@ -93,6 +93,9 @@ async def test_health_descriptors_and_every_scan_encoding(settings, encoder):
             ),
         ]
         bodies.append((pcd_buf.getvalue(), {"content-type": "application/x-pcd"}))
+        from ros_messages import MEDIA, XYZI, message  # a ROS 2 PointCloud2, as CDR bytes
+
+        bodies.append((message(s, XYZI, 16), {"content-type": MEDIA}))
         for content, headers in bodies:
             r = await c.post("/v1/descriptors", content=content, headers=headers)
             assert r.status_code == 200, (headers, r.text)
@@ -329,6 +332,9 @@ async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):
     good = scan(0)
     nan = good.copy()
     nan[5, 1] = np.nan
+    from ros_messages import MEDIA, XYZ, XYZI, message
+
+    pc2, pc2_no_z = message(good, XYZI, 16), message(good, XYZ[:2], 8)
     cases = [
         ("nan", nan.tobytes(), OCTET, {}, 422, "NaN"),
         ("empty", b"", OCTET, {}, 422, "allowed: 100 to"),
@@ -360,6 +366,8 @@ async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):
         ),
         ("encoding", good.tobytes(), {**OCTET, "content-encoding": "br"}, {}, 415, "gzip, zstd"),
         ("too big", bytes(5 << 20), OCTET, {}, 413, "allowed: at most"),
+        ("pointcloud2", pc2[:-40], {"content-type": MEDIA}, {}, 400, "ends inside its data"),
+        ("pointcloud2 no z", pc2_no_z, {"content-type": MEDIA}, {}, 400, "missing ['z']"),
     ]
     async with running(settings, encoder) as c:
         await c.put("/v1/maps/m")

@@ -1,7 +1,8 @@
 """Point-cloud codecs: bytes or files in, validated :class:`~lidar_core.points.PointCloud` out.
 
 read_points(path)                   .bin (KITTI), .npy, .pcd — chosen by suffix
-decode(data, fmt, fields=...)       the same formats from bytes, for the HTTP service
+decode(data, fmt, fields=...)       the same formats from bytes, for the HTTP service, and
+                                    ``pointcloud2``: a CDR-serialized ROS 2 PointCloud2
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ from typing import Literal
 from lidar_core.errors import DecodeError
 from lidar_core.io.npy import decode_npy
 from lidar_core.io.pcd import decode_pcd
+from lidar_core.io.pointcloud2 import decode_pointcloud2
 from lidar_core.io.raw import FIELD_LAYOUTS, decode_raw
 from lidar_core.points import DEFAULT_LIMITS, PointCloud, PointLimits
 
-Format = Literal["raw", "npy", "pcd"]
-FORMATS: tuple[str, ...] = ("raw", "npy", "pcd")
+Format = Literal["raw", "npy", "pcd", "pointcloud2"]
+FORMATS: tuple[str, ...] = ("raw", "npy", "pcd", "pointcloud2")
 SUFFIX_FORMATS: dict[str, Format] = {".bin": "raw", ".npy": "npy", ".pcd": "pcd"}
 
 __all__ = [
@@ -26,6 +28,7 @@ __all__ = [
     "decode",
     "decode_npy",
     "decode_pcd",
+    "decode_pointcloud2",
     "decode_raw",
     "format_for_path",
     "read_points",
@@ -47,6 +50,8 @@ def decode(
         return decode_npy(data, limits=limits, source=source)
     if fmt == "pcd":
         return decode_pcd(data, limits=limits, source=source)
+    if fmt == "pointcloud2":
+        return decode_pointcloud2(data, limits=limits, source=source)
     raise DecodeError(
         f"unknown point-cloud format {fmt!r}; allowed: {', '.join(FORMATS)}", allowed=FORMATS
     )

@@ -74,7 +74,8 @@ def split_batch(body: bytes, max_scans: int) -> list[bytes]:
             "required": True,
             "description": (
                 f"Content-Type `{BATCH_TYPE}; format=<scan type>` where the scan type is one "
-                "of application/octet-stream (default), application/x-npy, application/x-pcd. "
+                "of application/octet-stream (default), application/x-npy, application/x-pcd, "
+                "application/x-ros2-pointcloud2. "
                 "The body is the scans back to back, each as a little-endian uint32 byte "
                 "length followed by that many bytes. X-Point-Fields and Content-Encoding "
                 "apply as for one scan (the encoding to the whole body)."

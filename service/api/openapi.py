@@ -11,7 +11,11 @@ SCAN_BODY: dict[str, Any] = {
             "One LiDAR scan in the sensor frame. `application/octet-stream`: little-endian "
             "float32 records, layout from `X-Point-Fields` (`xyzi`, the KITTI .bin layout and "
             "the default, or `xyz`); `application/x-npy`: an (N, 3|4) float array; "
-            "`application/x-pcd`: a PCD file (ascii, binary, binary_compressed). "
+            "`application/x-pcd`: a PCD file (ascii, binary, binary_compressed); "
+            "`application/x-ros2-pointcloud2`: a CDR-serialized ROS 2 "
+            "`sensor_msgs/msg/PointCloud2`, the message bytes a ROS 2 node received (x/y/z "
+            "float32 or float64, optional intensity, padding, organised or not, either byte "
+            "order; NaN points of a cloud that is not dense are dropped). "
             "`Content-Encoding: gzip` or `zstd` may compress any of them."
         ),
         "content": {
@@ -21,6 +25,7 @@ SCAN_BODY: dict[str, Any] = {
             },
             "application/x-npy": {"schema": {"type": "string", "format": "binary"}},
             "application/x-pcd": {"schema": {"type": "string", "format": "binary"}},
+            "application/x-ros2-pointcloud2": {"schema": {"type": "string", "format": "binary"}},
         },
     },
     "parameters": [

@@ -5,7 +5,8 @@ each observation is two frames from the client —
 
 1. a text frame, JSON: ``{"seq": any, "timestamp": float, "pose": "x,y,z,qx,qy,qz,qw" |
    [7 numbers] | null, "insert": "auto"|"always"|"never", "verify": bool, "content_type":
-   "application/octet-stream"|"application/x-npy"|"application/x-pcd", "fields":
+   "application/octet-stream"|"application/x-npy"|"application/x-pcd"|
+   "application/x-ros2-pointcloud2", "fields":
    "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd"}`` (all but ``timestamp`` optional);
 2. a binary frame: the scan bytes.
 

@@ -1,0 +1,101 @@
+"""ROS 2 PointCloud2 messages for tests, made by rosbags' own CDR serializer (an
+implementation independent of ``lidar_core.io.pointcloud2``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+STORE = get_typestore(Stores.ROS2_HUMBLE)
+PC2 = STORE.types["sensor_msgs/msg/PointCloud2"]
+FIELD = STORE.types["sensor_msgs/msg/PointField"]
+HEADER = STORE.types["std_msgs/msg/Header"]
+TIME = STORE.types["builtin_interfaces/msg/Time"]
+F32, F64, U16, U8 = 7, 8, 4, 2
+MEDIA = "application/x-ros2-pointcloud2"
+
+
+def message(
+    pts: np.ndarray,
+    layout: list[tuple[str, int, int]],  # (name, offset, datatype)
+    point_step: int,
+    *,
+    big: bool = False,
+    height: int = 1,
+    row_pad: int = 0,
+    dense: bool = True,
+    cdr_big: bool = False,
+    declared: list[tuple[str, int, int]] | None = None,  # fields the message claims
+) -> bytes:
+    kinds = {F32: "f4", F64: "f8", U16: "u2", U8: "u1"}
+    order = ">" if big else "<"
+    dt = np.dtype(
+        {
+            "names": [n for n, _, _ in layout],
+            "formats": [order + kinds[t] for _, _, t in layout],
+            "offsets": [o for _, o, _ in layout],
+            "itemsize": point_step,
+        }
+    )
+    rec = np.zeros(len(pts), dt)
+    for col, (name, _, _) in enumerate(layout):
+        rec[name] = pts[:, min(col, 3)]
+    width = len(pts) // height
+    rows = rec[: width * height].tobytes()
+    row_step = width * point_step + row_pad
+    data = b"".join(
+        rows[r * width * point_step : (r + 1) * width * point_step] + b"\xee" * row_pad
+        for r in range(height)
+    )
+    msg = PC2(
+        header=HEADER(stamp=TIME(sec=12, nanosec=5), frame_id="os_sensor"),
+        height=height,
+        width=width,
+        fields=[FIELD(name=n, offset=o, datatype=t, count=1) for n, o, t in declared or layout],
+        is_bigendian=big,
+        point_step=point_step,
+        row_step=row_step,
+        data=np.frombuffer(data, np.uint8),
+        is_dense=dense,
+    )
+    return bytes(STORE.serialize_cdr(msg, PC2.__msgtype__, little_endian=not cdr_big))
+
+
+XYZ = [("x", 0, F32), ("y", 4, F32), ("z", 8, F32)]
+XYZI = [*XYZ, ("intensity", 12, F32)]
+LAYOUTS = {
+    "xyz float32, packed": (XYZ, 12, {}),
+    "xyzi float32, padded to 32 (Velodyne driver)": (
+        [("x", 0, F32), ("y", 4, F32), ("z", 8, F32), ("intensity", 16, F32)],
+        32,
+        {},
+    ),
+    "xyz float64 + uint16 intensity": (
+        [("x", 0, F64), ("y", 8, F64), ("z", 16, F64), ("intensity", 24, U16)],
+        32,
+        {},
+    ),
+    "xyzi float32, big endian": (XYZI, 16, {"big": True}),
+    "organised 4 rows, row padding": (XYZI, 16, {"height": 4, "row_pad": 8}),
+    "xyzi, CDR big endian, uint8 intensity": (
+        [*XYZ, ("intensity", 12, U8)],
+        16,
+        {"cdr_big": True},
+    ),
+}
+
+
+def patch_u32(msg: bytes, which: str, value: int) -> bytes:
+    """A little-endian message of ``message`` (frame_id "os_sensor") with one uint32 set:
+    ``frame_id`` (its length), ``height`` (increased by value), ``width`` or ``fields``
+    (their count)."""
+    frame = len(b"os_sensor\0")
+    at = {"frame_id": 12}  # after encapsulation (4) and stamp (8)
+    at["height"] = 16 + frame + (-(frame) % 4)
+    at["width"] = at["height"] + 4
+    at["fields"] = at["height"] + 8
+    b = bytearray(msg)
+    old = int.from_bytes(b[at[which] : at[which] + 4], "little")
+    new = old + value if which == "height" else value
+    b[at[which] : at[which] + 4] = new.to_bytes(4, "little")
+    return bytes(b)
