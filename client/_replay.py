@@ -1,7 +1,10 @@
 """Recorded drives for the CLI and the fleet simulator: scans, times, poses, ground truth.
 
-A drive is a KITTI-layout sequence (``lidar_core.datasets``). Times come from ``times.txt``
-when present (else 10 Hz); poses become x,y,z,qx,qy,qz,qw; the loop radius comes from the
+A drive is a sequence folder (KITTI layout or PCD folder, ``lidar_core.datasets``) or a ROS
+recording (a ROS 1 bag, a rosbag2 folder, a bare MCAP file: ``lidar_core.datasets.bags``,
+its PointCloud2 ``topic``, poses from an ``odometry`` topic when named). A folder's times
+come from ``times.txt`` when present (else 10 Hz), a bag's from the bag; poses become
+x,y,z,qx,qy,qz,qw (none for a bag without odometry); the loop radius comes from the
 sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
 """
 
@@ -13,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_core.datasets import open_sequence
+from lidar_core.datasets.bags import Bag, is_bag, open_bag
 from lidar_core.datasets.base import Sequence
 from lidar_core.overlap import LoopGroundTruth
 
@@ -39,9 +43,9 @@ def quaternion(rot: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Drive:
-    seq: Sequence
+    seq: Sequence | Bag  # points(i), name, poses ((N, 4, 4) world poses, or None on a bag)
     times: np.ndarray  # (N,) seconds
-    poses: np.ndarray  # (N, 7) x, y, z, qx, qy, qz, qw
+    poses: np.ndarray | None  # (N, 7) x, y, z, qx, qy, qz, qw; None: the drive has none
     loop_radius: float | None  # metres, from the shipped ground truth; None: no ground truth
 
     @property
@@ -54,20 +58,37 @@ class Drive:
     def scan(self, i: int) -> np.ndarray:
         return self.seq.points(i).as_xyzi()
 
+    def pose(self, i: int) -> np.ndarray | None:
+        return None if self.poses is None else self.poses[i]
 
-def open_drive(root: str | Path) -> Drive:
+
+def _pose7(world: np.ndarray) -> np.ndarray:
+    return np.array([[*T[:3, 3], *quaternion(T[:3, :3])] for T in world])
+
+
+def open_drive(root: str | Path, *, topic: str | None = None, odometry: str | None = None) -> Drive:
+    """``topic`` and ``odometry``: for a ROS recording, which PointCloud2 topic (needed when
+    it holds several) and which nav_msgs/Odometry topic gives the poses."""
     root = Path(root)
+    if is_bag(root):
+        bag = open_bag(root, topic=topic, odometry=odometry)
+        poses = None if bag.poses is None else _pose7(bag.poses)
+        return Drive(seq=bag, times=bag.times, poses=poses, loop_radius=None)
+    if topic is not None or odometry is not None:
+        raise ValueError(f"{root} is a sequence folder: --topic and --odometry are for ROS bags")
     seq = open_sequence(root)
     n = len(seq)
     times_file = root / "times.txt"
     times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1
     if len(times) != n:
         raise ValueError(f"{times_file}: {len(times)} times for {n} scans")
-    poses = np.array([[*T[:3, 3], *quaternion(T[:3, :3])] for T in seq.poses])
     radius = None
     gt = root / "ground_truth" / "loops.npz"
     if gt.is_file():
         radius = float(LoopGroundTruth.load(gt).params.get("radius", 30.0))
     return Drive(
-        seq=seq, times=np.asarray(times, dtype=np.float64), poses=poses, loop_radius=radius
+        seq=seq,
+        times=np.asarray(times, dtype=np.float64),
+        poses=_pose7(seq.poses),
+        loop_radius=radius,
     )

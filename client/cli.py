@@ -53,6 +53,15 @@ VerifyOpt = Annotated[
         help="the server registers the top candidates against their keyframes' geometry",
     ),
 ]
+TopicOpt = Annotated[
+    str | None,
+    typer.Option(help="ROS recordings: the PointCloud2 topic (when it holds several)"),
+]
+OdometryOpt = Annotated[
+    str | None,
+    typer.Option(help="ROS recordings: a nav_msgs/Odometry topic giving each scan's pose"),
+]
+DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 
@@ -147,17 +156,19 @@ def _progress() -> Progress:
 )
 @_errors
 def ingest(
-    seq_dir: Annotated[Path, typer.Argument(help="KITTI-layout sequence folder")],
+    seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "mapper",
     session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
     every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
     compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
-    drive = open_drive(seq_dir)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry)
     session = session or drive.name
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
@@ -174,7 +185,7 @@ def ingest(
                 timestamp=float(drive.times[i]),
                 robot_id=robot,
                 session_id=session,
-                pose=drive.poses[i],
+                pose=drive.pose(i),
             )
             created += bool(kf.created)
             now = time.monotonic()
@@ -247,11 +258,13 @@ def _matrix_text(T: np.ndarray | None) -> str:
 )
 @_errors
 def observe(
-    seq_dir: Annotated[Path, typer.Argument(help="KITTI-layout sequence folder")],
+    seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "robot-1",
     session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
     every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     verify: VerifyOpt = True,
     url: UrlOpt = DEFAULT_URL,
@@ -259,7 +272,7 @@ def observe(
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
     closure as it is detected, with its relative pose when verified."""
-    drive = open_drive(seq_dir)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry)
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)
@@ -272,7 +285,7 @@ def observe(
                 robot_id=robot,
                 session_id=session,
                 timestamp=float(drive.times[i]),
-                pose=drive.poses[i],
+                pose=drive.pose(i),
                 k=k,
                 verify=verify,
             )
@@ -350,6 +363,8 @@ def simulate_fleet(
     sequence: Annotated[
         list[Path], typer.Option("--sequence", "-s", help="drive(s) to replay; repeatable")
     ],
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
     robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
     duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
     rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
@@ -366,7 +381,7 @@ def simulate_fleet(
     errors and loop closures against ground truth."""
     from client.fleet import simulate, write_outputs
 
-    drives = [open_drive(p) for p in sequence]
+    drives = [open_drive(p, topic=topic, odometry=odometry) for p in sequence]
     report, samples = asyncio.run(
         simulate(
             url,

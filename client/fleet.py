@@ -126,7 +126,7 @@ async def simulate(
                         robot_id=name,
                         session_id=session,
                         timestamp=float(drive.times[i]),
-                        pose=drive.poses[i],
+                        pose=drive.pose(i),
                         k=k,
                     )
                 except ClientError as err:
@@ -185,7 +185,7 @@ def _report(
     ok = [s for s in samples if s.error is None]
     lat = np.array([s.latency_ms for s in ok]) if ok else np.zeros(1)
     accepted = [s for s in ok if s.accepted]
-    has_gt = all(d.loop_radius is not None for d in drives)
+    has_gt = all(d.loop_radius is not None and d.poses is not None for d in drives)
     correct = with_loop = None
     t_err: list[float] = []
     yaw_err: list[float] = []
@@ -197,6 +197,7 @@ def _report(
         for s in ok:
             drive = drives[s.drive]
             radius = float(drive.loop_radius or 0.0)
+            assert drive.poses is not None and drive.seq.poses is not None  # has_gt
             p = drive.poses[s.frame, :3]
             own_session = s.robot
             ts = drive.times[s.frame]

@@ -3,6 +3,8 @@ implementation independent of ``lidar_core.io.pointcloud2``)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
@@ -99,3 +101,86 @@ def patch_u32(msg: bytes, which: str, value: int) -> bytes:
     new = old + value if which == "height" else value
     b[at[which] : at[which] + 4] = new.to_bytes(4, "little")
     return bytes(b)
+
+
+def write_recordings(
+    out: Path, clouds: list[np.ndarray], poses: np.ndarray, step_s: float = 0.1
+) -> dict[str, Path]:
+    """The same drive (x y z intensity scans on /points, their 4×4 poses as
+    nav_msgs/Odometry on /odom) as a rosbag2 with SQLite storage, a rosbag2 with MCAP
+    storage, a bare MCAP file and a ROS 1 bag, written by rosbags."""
+    import shutil
+
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    ros1 = get_typestore(Stores.ROS1_NOETIC)
+    paths = {}
+    for name, store, plugin in (
+        ("rosbag2-sqlite", STORE, StoragePlugin.SQLITE3),
+        ("rosbag2-mcap", STORE, StoragePlugin.MCAP),
+        ("ros1.bag", ros1, None),
+    ):
+        path = out / name
+        writer = (
+            Writer1(path) if plugin is None else Writer2(path, version=8, storage_plugin=plugin)
+        )
+        with writer as w:
+            kw = {"typestore": store}
+            pc = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", **kw)
+            od = w.add_connection("/odom", "nav_msgs/msg/Odometry", **kw)
+            for i, (pts, T) in enumerate(zip(clouds, poses, strict=True)):
+                t = int((1.0 + i * step_s) * 1e9)
+                ser = store.serialize_ros1 if plugin is None else store.serialize_cdr
+                w.write(pc, t, ser(_cloud(store, pts, t), "sensor_msgs/msg/PointCloud2"))
+                w.write(od, t + 1000, ser(_odometry(store, T, t), "nav_msgs/msg/Odometry"))
+        paths[name] = path
+    bare = out / "drive.mcap"
+    shutil.copy(next((out / "rosbag2-mcap").glob("*.mcap")), bare)
+    paths["mcap"] = bare
+    return paths
+
+
+def _header(store, t: int):
+    H, T = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    extra = {"seq": 0} if "seq" in H.__dataclass_fields__ else {}
+    return H(stamp=T(sec=t // 10**9, nanosec=t % 10**9), frame_id="velodyne", **extra)
+
+
+def _cloud(store, pts: np.ndarray, t: int):
+    F = store.types["sensor_msgs/msg/PointField"]
+    data = np.ascontiguousarray(pts, dtype="<f4")
+    return store.types["sensor_msgs/msg/PointCloud2"](
+        header=_header(store, t),
+        height=1,
+        width=len(data),
+        fields=[F(name=n, offset=4 * k, datatype=F32, count=1) for k, n in enumerate("xyz")]
+        + [F(name="intensity", offset=12, datatype=F32, count=1)],
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * len(data),
+        data=np.frombuffer(data.tobytes(), np.uint8),
+        is_dense=True,
+    )
+
+
+def _odometry(store, T: np.ndarray, t: int):
+    from client._replay import quaternion
+
+    ty = store.types
+    q = quaternion(T[:3, :3])
+    pose = ty["geometry_msgs/msg/Pose"](
+        position=ty["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+        orientation=ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+    twist = ty["geometry_msgs/msg/Twist"](
+        linear=ty["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        angular=ty["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+    )
+    return ty["nav_msgs/msg/Odometry"](
+        header=_header(store, t),
+        child_frame_id="velodyne",
+        pose=ty["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=ty["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )

@@ -2,6 +2,10 @@
 
 open_sequence("path/to/00")                    auto-detects the layout
 open_sequence("path/to/scene", kind="pcd-folder", sensor="hdl32")
+
+ROS recordings (a ROS 1 bag, a rosbag2 folder, a bare MCAP file) are drives for the client
+and the CLI rather than sequences: they carry no loop ground truth, and poses only when an
+odometry topic is named. ``lidar_core.datasets.bags.open_bag`` reads them.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ middleware writes it), and a hand parser can name what is wrong with a malformed
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 import numpy as np
 
@@ -124,6 +125,29 @@ def decode_pointcloud2(
         raise DecodeError(f"{source}: PointCloud2 booleans must be 0 or 1", field="is_bigendian")
     return _points(
         payload, fields, height, width, point_step, row_step, bool(big), bool(dense), limits, source
+    )
+
+
+def decode_message(
+    msg: Any, *, limits: PointLimits = DEFAULT_LIMITS, source: str = "scan"
+) -> PointCloud:
+    """A PointCloud2 already deserialized — any object with the message's attributes, as a
+    bag reader returns it (ROS 1 or ROS 2) — checked and decoded as above."""
+    fields: dict[str, tuple[int, int, int]] = {}
+    for f in list(msg.fields)[:MAX_FIELDS]:
+        fields.setdefault(str(f.name), (int(f.offset), int(f.datatype), int(f.count)))
+    data = np.ascontiguousarray(msg.data, dtype=np.uint8)
+    return _points(
+        memoryview(data.tobytes()),
+        fields,
+        int(msg.height),
+        int(msg.width),
+        int(msg.point_step),
+        int(msg.row_step),
+        bool(msg.is_bigendian),
+        bool(msg.is_dense),
+        limits,
+        source,
     )
 
 

@@ -1,0 +1,191 @@
+"""Recorded robot drives in ROS formats, read with rosbags (one library for all of them):
+
+    drive.bag                    ROS 1 bag
+    drive/ (metadata.yaml)       rosbag2, SQLite (.db3) or MCAP storage
+    drive.mcap                   a bare MCAP file of ROS 2 messages
+
+A topic of ``sensor_msgs/msg/PointCloud2`` becomes a drive's scans, in the order recorded,
+each decoded by :func:`lidar_core.io.pointcloud2.decode_message` (so every field layout a
+driver sends works, and a malformed message names what is wrong). Times are the bag's
+receive times. Poses come from a ``nav_msgs/msg/Odometry`` topic when one is named: the
+odometry message nearest in time to each scan (within ``max_pose_gap_s``), its pose taken
+as the scan's (the odometry's child frame taken as the LiDAR's).
+
+Not read here: ``/tf`` frame pairs (a transform tree needs buffering and interpolation;
+record odometry in the LiDAR's frame, or convert it first).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_core.errors import DatasetError
+from lidar_core.io.pointcloud2 import decode_message
+from lidar_core.points import PointCloud
+
+POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
+ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+
+
+def is_bag(path: str | Path) -> bool:
+    """A ROS 1 bag, a rosbag2 folder or a bare MCAP file."""
+    p = Path(path)
+    return (p.is_file() and p.suffix in (".bag", ".mcap")) or (
+        p.is_dir() and (p / "metadata.yaml").is_file()
+    )
+
+
+def _reader(path: Path) -> Any:
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as err:  # pragma: no cover - the client and serve extras install it
+        raise DatasetError(
+            f"{path}: reading ROS bags needs the rosbags package (pip install rosbags)"
+        ) from err
+    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+
+
+@dataclass
+class Bag:
+    """One PointCloud2 topic of a recording: ``len``, ``points(i)``, ``times``, ``poses``."""
+
+    path: Path
+    topic: str
+    times: np.ndarray  # (N,) seconds, the bag's receive times
+    stamps_ns: np.ndarray  # (N,) int64: the same, as the bag indexes them
+    poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
+    _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
+
+    @property
+    def name(self) -> str:
+        return self.path.stem if self.path.is_file() else self.path.name
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def points(self, i: int) -> PointCloud:
+        """Scan ``i`` (random access: the reader seeks by time; the last few are kept)."""
+        if i in self._cache:
+            return self._cache[i]
+        t = int(self.stamps_ns[i])
+        with _reader(self.path) as r:
+            cons = [c for c in r.connections if c.topic == self.topic]
+            for k, (con, stamp, raw) in enumerate(r.messages(connections=cons, start=t)):
+                if stamp != t:
+                    break
+                if k == self._nth(i):
+                    msg = r.deserialize(raw, con.msgtype)
+                    cloud = decode_message(msg, source=f"{self.topic} message {i}")
+                    if len(self._cache) >= 8:
+                        self._cache.pop(next(iter(self._cache)))
+                    self._cache[i] = cloud
+                    return cloud
+        raise DatasetError(f"{self.path}: message {i} of {self.topic} is gone")
+
+    def _nth(self, i: int) -> int:
+        """Which of the messages sharing scan i's time stamp it is."""
+        return int(i - np.searchsorted(self.stamps_ns, self.stamps_ns[i]))
+
+
+def open_bag(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    odometry: str | None = None,
+    max_pose_gap_s: float = 0.1,
+) -> Bag:
+    """Index a recording's PointCloud2 topic (``topic``: which, when it holds several) and,
+    when ``odometry`` names a topic, each scan's pose. Raises DatasetError naming what is
+    wrong and what the recording holds."""
+    path = Path(path)
+    if not is_bag(path):
+        raise DatasetError(
+            f"{path} is not a ROS recording; allowed: a .bag file, a rosbag2 folder "
+            "(metadata.yaml) or a .mcap file"
+        )
+    try:
+        with _reader(path) as r:
+            clouds = sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2})
+            if topic is None:
+                if len(clouds) != 1:
+                    raise DatasetError(
+                        f"{path}: {len(clouds)} PointCloud2 topics "
+                        f"({', '.join(clouds) or 'none'}); name one with --topic",
+                        topics=clouds,
+                    )
+                topic = clouds[0]
+            elif topic not in clouds:
+                raise DatasetError(
+                    f"{path}: no PointCloud2 topic {topic!r}; it has {', '.join(clouds) or 'none'}",
+                    topics=clouds,
+                )
+            cons = [c for c in r.connections if c.topic == topic]
+            stamps = np.array([t for _, t, _ in r.messages(connections=cons)], dtype=np.int64)
+            poses = None
+            if odometry is not None:
+                poses = _odometry_poses(r, path, odometry, stamps, max_pose_gap_s)
+    except DatasetError:
+        raise
+    except Exception as err:  # rosbags raises its own types for damaged files
+        raise DatasetError(f"{path}: the recording cannot be read: {err}") from err
+    if not len(stamps):
+        raise DatasetError(f"{path}: topic {topic} holds no messages")
+    order = np.argsort(stamps, kind="stable")
+    if not np.array_equal(order, np.arange(len(stamps))):
+        raise DatasetError(f"{path}: {topic} is not in time order")
+    return Bag(path, topic, stamps / 1e9, stamps, poses)
+
+
+def _odometry_poses(
+    r: Any, path: Path, topic: str, stamps: np.ndarray, max_gap_s: float
+) -> np.ndarray:
+    cons = [c for c in r.connections if c.topic == topic]
+    if not cons or cons[0].msgtype not in ODOMETRY:
+        have = sorted({c.topic for c in r.connections if c.msgtype in ODOMETRY})
+        raise DatasetError(
+            f"{path}: no nav_msgs/Odometry topic {topic!r}; it has {', '.join(have) or 'none'}",
+            topics=have,
+        )
+    times, poses = [], []
+    for con, t, raw in r.messages(connections=cons):
+        p = r.deserialize(raw, con.msgtype).pose.pose
+        times.append(t)
+        poses.append(_matrix(p.position, p.orientation))
+    if not times:
+        raise DatasetError(f"{path}: odometry topic {topic} holds no messages")
+    t = np.asarray(times, dtype=np.int64)
+    nearest = (
+        np.clip(np.searchsorted(t, stamps), 1, len(t) - 1)
+        if len(t) > 1
+        else np.zeros(len(stamps), dtype=np.int64)
+    )
+    if len(t) > 1:
+        left = nearest - 1
+        nearest = np.where(np.abs(t[left] - stamps) <= np.abs(t[nearest] - stamps), left, nearest)
+    gap = np.abs(t[nearest] - stamps) / 1e9
+    if gap.max() > max_gap_s:
+        i = int(gap.argmax())
+        raise DatasetError(
+            f"{path}: scan {i} is {gap[i]:.3f} s from the nearest odometry message; allowed: "
+            f"at most {max_gap_s} s"
+        )
+    return np.stack([poses[j] for j in nearest])
+
+
+def _matrix(position: Any, q: Any) -> np.ndarray:
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    n = np.sqrt(x * x + y * y + z * z + w * w) or 1.0
+    x, y, z, w = x / n, y / n, z / n, w / n
+    T = np.eye(4)
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    T[:3, 3] = [float(position.x), float(position.y), float(position.z)]
+    return T
