@@ -233,6 +233,9 @@ class PlaceMap(Protocol):
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None: ...
 
+    # (robot_id, x, y) of keyframes that have a pose: the latest ``limit`` by timestamp
+    def positions(self, limit: int) -> list[tuple[str, float, float]]: ...
+
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]: ...

@@ -24,6 +24,7 @@ from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, 
 from service.bodies import ScanBody
 from service.encoder import Encoder
 from service.errors import BadRequest, Conflict, Unprocessable
+from service.overview import Overview
 from service.pipeline import Description, ScanPipeline
 from service.schemas import POSE_FORMAT
 from service.settings import Settings
@@ -150,6 +151,7 @@ class PlaceService:
         self.encoder = encoder
         self.registry = registry
         self.stats = Stats(encoder.model_id)
+        self.overview = Overview()
         self.pipeline = ScanPipeline(
             encoder, settings.batching, settings.limits, on_batch=self.stats.batch
         )
@@ -163,6 +165,7 @@ class PlaceService:
 
     def forget_map(self, map_id: str) -> None:
         self.stats.forget_map(map_id)
+        self.overview.forget(map_id)
         for key in [k for k in self._last_kf if k[0] == map_id]:
             del self._last_kf[key]
 
@@ -432,6 +435,20 @@ class PlaceService:
             d.timings,
             obs.robot_id,
             d.prepared if verify else None,
+        )
+        lc = answer.loop_closure
+        to = next(
+            (x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id), None
+        )
+        if lc.accepted and to is None and lc.keyframe_id is not None:  # ranked below k
+            to = await run_in_threadpool(m.get, lc.keyframe_id)
+        self.overview.observed(
+            m.map_id,
+            obs.robot_id,
+            obs.pose,
+            to.pose if lc.accepted and to is not None else None,
+            lc.keyframe_id,
+            lc.verified,
         )
         reason = await self._insert_due(m, obs)
         keyframe_id = None

@@ -403,6 +403,10 @@ class Map:
         self.check_open()
         return self.store.last_keyframe(robot_id)
 
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        self.check_open()
+        return self.store.positions(limit)
+
     def info(self) -> dict[str, Any]:
         with self.lock.read():
             self.check_open()

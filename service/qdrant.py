@@ -286,6 +286,24 @@ class QdrantMap:
         )
         return _keyframe(records[0].payload or {}) if records else None
 
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        records, _ = self._call(
+            lambda c: c.scroll(
+                self.collection,
+                limit=int(limit),
+                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
+                with_payload=models.PayloadSelectorInclude(include=["robot_id", "pose"]),
+                consistency=self.backend.consistency,
+            )
+        )
+        out = []
+        for r in records:
+            payload = r.payload or {}
+            pose = payload.get("pose")
+            if pose:
+                out.append((str(payload.get("robot_id", "")), float(pose[0]), float(pose[1])))
+        return out
+
     def search(
         self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
     ) -> list[Match]:

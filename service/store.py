@@ -450,6 +450,19 @@ class Store:
         )
         return _keyframe(rows[0]) if rows else None
 
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        """(robot_id, x, y) of the latest ``limit`` keyframes with a pose."""
+        rows = self._rows(
+            "SELECT robot_id, pose FROM keyframes WHERE keyframe_id IS NOT NULL AND pose IS NOT "
+            "NULL ORDER BY timestamp DESC LIMIT ?",
+            (int(limit),),
+        )
+        out = []
+        for robot, pose in rows:
+            xyz = json.loads(pose)
+            out.append((str(robot), float(xyz[0]), float(xyz[1])))
+        return out
+
     def backup(self, dest: Path) -> None:
         """A consistent copy, safe while the service writes (SQLite's online backup)."""
         target = sqlite3.connect(dest)

@@ -30,6 +30,7 @@ ALLOWED = {
     "GET /metrics": READ,
     "GET /dashboard": READ,
     "GET /v1/maps/{map_id}/stats": READ,
+    "GET /v1/maps/{map_id}/overview": READ,
     "POST /v1/descriptors": USE,
     "POST /v1/descriptors:batch": USE,
     "POST /v1/maps/{map_id}/query": USE,

@@ -24,7 +24,7 @@ from client.fleet import simulate
 
 pytestmark = pytest.mark.e2e
 
-CANVASES = ("c-qps", "c-lat", "c-robots", "c-maps", "c-batch")
+CANVASES = ("c-qps", "c-lat", "c-robots", "c-maps", "c-batch", "c-map")
 # Per canvas: how many pixels are drawn, and a digest of them (to see a chart change).
 PIXELS = """(ids) => ids.map((id) => {
   const c = document.getElementById(id);
@@ -34,7 +34,7 @@ PIXELS = """(ids) => ids.map((id) => {
     if (d[i] !== 0) { drawn++; h = (h * 31 + d[i-3] + d[i-2] * 7 + d[i-1] * 13) >>> 0; }
   }
   return {id, width: c.width, height: c.height, drawn, digest: h,
-          points: Number(c.dataset.points || 0)};
+          points: Number(c.dataset.points || 0), closures: Number(c.dataset.closures || 0)};
 })"""
 
 
@@ -112,6 +112,9 @@ def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
     points = {c["id"]: c["points"] for c in second}
     assert all(c["drawn"] > 500 for c in second), drawn  # every chart drew something
     assert all(n >= 1 for n in points.values()), points  # ...and it was data, not "no data"
+    # the map panel: keyframes from the map's poses and the fleet's loop-closure edges
+    closures = {c["id"]: c["closures"] for c in second}["c-map"]
+    assert closures >= 1, second
     first_points = {c["id"]: c["points"] for c in first}
     assert points["c-qps"] > first_points["c-qps"], (first_points, points)  # new samples
     assert "c-qps" in changed and "c-lat" in changed, changed  # the time series moved

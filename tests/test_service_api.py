@@ -321,6 +321,16 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
         assert not o["inserted"] and o["insert_reason"] == "existing"
         o = await observe(41.0, "6,0,0,0,0,0,1", insert="never", robot="r2")
         assert not o["inserted"] and o["insert_reason"] == "never"
+        # the map's picture: keyframes from their poses, tracks and closures from the traffic
+        v = (await c.get("/v1/maps/w/overview")).json()
+        assert sorted(map(tuple, v["keyframes"]["r1"])) == [(0, 0), (6, 0), (6, 0)]
+        assert v["tracks"]["r1"][:2] == [[0, 0], [1, 0]] and v["tracks"]["r2"] == [[6, 0]]
+        assert v["closures"] and all(e["to"] in ([0, 0], [6, 0]) for e in v["closures"])
+        assert all(e["from"] == [6, 0] and e["verified"] is True for e in v["closures"])
+        latest = (await c.get("/v1/maps/w/overview", params={"limit": 1})).json()
+        assert latest["keyframes"] == {"r1": [[6, 0]]}
+        assert (await c.get("/v1/maps/w/overview", params={"limit": 0})).status_code == 422
+        assert (await c.get("/v1/maps/nope/overview")).status_code == 404
         assert (await c.get("/v1/maps/w")).json()["keyframes"] == 3
 
 

@@ -1,10 +1,10 @@
-"""``/v1/maps``: create, list, inspect, delete, snapshot; per-map stats."""
+"""``/v1/maps``: create, list, inspect, delete, snapshot; per-map stats and overview."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Body, Response
+from fastapi import APIRouter, Body, Query, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
@@ -90,3 +90,24 @@ async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut
 async def map_stats(map_id: str, svc: ServiceDep, _: CanView) -> dict[str, Any]:
     m = await svc.map(map_id)
     return {**svc.stats.public(map_id), "map": await run_in_threadpool(m.info)}
+
+
+@router.get(
+    "/{map_id}/overview",
+    responses=error_responses(400, 401, 403, 404),
+    summary="A bird's-eye picture of a map: keyframes, robot tracks, loop-closure edges",
+)
+async def map_overview(
+    map_id: str,
+    svc: ServiceDep,
+    _: CanView,
+    limit: int = Query(5000, ge=1, le=100_000, description="keyframes drawn, latest first"),
+) -> dict[str, Any]:
+    """`keyframes`: {robot: [[x, y], …]} of the latest `limit` keyframes with a pose;
+    `tracks`: {robot: [[x, y], …]}, the latest 300 observed positions of each robot;
+    `closures`: [{robot_id, from: [x, y], to: [x, y], keyframe_id, verified}], the latest
+    1,000 accepted loop closures whose two ends have poses (verified: null when decided by
+    the descriptor alone). Tracks and closures are this process's traffic since it started."""
+    m = await svc.map(map_id)
+    positions = await run_in_threadpool(m.positions, limit)
+    return svc.overview.public(map_id, positions)
