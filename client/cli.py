@@ -8,6 +8,7 @@ service refused) or 2 (it could not be reached, or bad arguments).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Callable
 from functools import wraps
@@ -267,6 +268,10 @@ def observe(
     odometry: OdometryOpt = None,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     verify: VerifyOpt = True,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="write an MCAP of robot poses, keyframes and loop closures (Foxglove)"),
+    ] = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
@@ -276,7 +281,13 @@ def observe(
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)
-    with _client(url, api_key) as pr:
+    with contextlib.ExitStack() as stack:
+        pr = stack.enter_context(_client(url, api_key))
+        rec = None
+        if record is not None:
+            from client.recording import MapRecording
+
+            rec = stack.enter_context(MapRecording(record))
         pr.create_map(map_id)
         for i in frames:
             o = pr.observe(
@@ -291,6 +302,14 @@ def observe(
             )
             inserted += o.inserted
             lc = o.loop_closure
+            if rec is not None:
+                rec.observation(
+                    robot,
+                    float(drive.times[i]),
+                    _listed(drive.pose(i)),
+                    o.keyframe_id if o.inserted else None,
+                    _closure_end(pr, map_id, o),
+                )
             if lc.accepted and o.matches:
                 closures += 1
                 if lc.verified:
@@ -306,6 +325,26 @@ def observe(
                         f"distance {m.distance:.5f}{yaw})"
                     )
     out.print(f"{len(frames)} scans observed: {inserted} inserted, {closures} loop closures")
+    if record is not None:
+        out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
+
+
+def _listed(pose: Any) -> list[float] | None:
+    return None if pose is None else [float(v) for v in pose]
+
+
+def _closure_end(
+    pr: PlaceRecognitionClient, map_id: str, o: Any
+) -> tuple[str, list[float], bool | None] | None:
+    """(keyframe id, its pose, verified) of an accepted loop closure whose keyframe has a
+    pose; the keyframe is fetched when it ranked below the answer's k."""
+    lc = o.loop_closure
+    if not lc.accepted or lc.keyframe_id is None:
+        return None
+    pose = next((m.pose for m in o.matches if m.keyframe_id == lc.keyframe_id), None)
+    if pose is None:
+        pose = pr.get_keyframe(map_id, lc.keyframe_id).pose
+    return None if pose is None else (lc.keyframe_id, list(pose), lc.verified)
 
 
 def _stats_table(s: dict[str, Any]) -> Table:

@@ -265,10 +265,27 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
               "--no-verify")  # fmt: skip
     assert "descriptor only" in out
     assert "geometry not kept" in run("maps", "create", "cli-bare", "--no-geometry")
+    rec = tmp_path / "drive.mcap"
     out = run(
-        "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r9"
-    )
-    assert "12 scans observed" in out
+        "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r9",
+        "--record", str(rec),
+    )  # fmt: skip
+    assert "12 scans observed" in out and "recorded" in out
+    from mcap.reader import make_reader  # the recording opens with MCAP's own reader
+
+    topics: dict[str, list[dict]] = {}
+    with open(rec, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            assert schema.name in ("foxglove.PoseInFrame", "foxglove.SceneUpdate")
+            topics.setdefault(channel.topic, []).append(json.loads(message.data))
+    assert len(topics["/overlapmamba/robots/r9"]) == 12
+    inserted = int(re.search(r"(\d+) inserted", out).group(1))
+    assert len(topics["/overlapmamba/keyframes"]) == inserted >= 1
+    closed = out.count("loop closure with")
+    assert len(topics.get("/overlapmamba/loop_closures", [])) == closed
+    for m in topics.get("/overlapmamba/loop_closures", []):
+        (line,) = m["entities"][0]["lines"]
+        assert len(line["points"]) == 2 and line["color"]["a"] == 1.0
     assert "cli-town" in run("maps", "list")
     assert "queries" in run("stats") and "map keyframes" in run("stats", "--map", "cli-obs")
     report, plot = tmp_path / "fleet.json", tmp_path / "fleet.png"
@@ -286,6 +303,29 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     assert res.exit_code == 1 and "map_not_found" in res.output
     res = runner.invoke(cli_app, ["maps", "list"], env={"OVERLAPMAMBA_URL": "http://127.0.0.1:9"})
     assert res.exit_code == 2 and "cannot connect" in res.output
+
+
+def test_a_recording_holds_poses_keyframes_and_closure_edges(tmp_path):
+    from mcap.reader import make_reader
+
+    from client.recording import DESCRIPTOR_ONLY, VERIFIED, MapRecording
+
+    with MapRecording(tmp_path / "r.mcap") as rec:
+        rec.observation("r1", 1.5, [0, 0, 0, 0, 0, 0, 1], keyframe_id="k0")
+        rec.observation("r1", 2.0, [5, 1, 0, 0, 0, 0, 1], closure=("k0", [0, 0, 0], True))
+        rec.observation("r2", 2.5, [9, 9, 0, 0, 0, 0, 1], closure=("k0", [0, 0, 0], None))
+        rec.observation("r2", 3.0, None, keyframe_id="k9")  # no pose: nothing to draw
+    got: dict[str, list[tuple[int, dict]]] = {}
+    with open(tmp_path / "r.mcap", "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            got.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+    assert [t for t, _ in got["/overlapmamba/robots/r1"]] == [1_500_000_000, 2_000_000_000]
+    assert got["/overlapmamba/robots/r1"][1][1]["pose"]["position"] == {"x": 5, "y": 1, "z": 0}
+    (kf,) = got["/overlapmamba/keyframes"]
+    assert kf[1]["entities"][0]["id"] == "k0" and kf[1]["entities"][0]["spheres"]
+    lines = [m["entities"][0]["lines"][0] for _, m in got["/overlapmamba/loop_closures"]]
+    assert [ln["color"] for ln in lines] == [VERIFIED, DESCRIPTOR_ONLY]
+    assert lines[0]["points"] == [{"x": 5, "y": 1, "z": 0}, {"x": 0, "y": 0, "z": 0}]
 
 
 def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):

@@ -1,0 +1,163 @@
+"""An offline picture of a replay: an MCAP file that Foxglove opens as a 3-D scene.
+
+``overlapmamba-client observe DRIVE --record out.mcap`` writes, per observation that had a
+pose, in the ``map`` frame:
+
+    /overlapmamba/robots/<robot>   foxglove.PoseInFrame    where the robot was
+    /overlapmamba/keyframes        foxglove.SceneUpdate    a sphere per inserted keyframe
+    /overlapmamba/loop_closures    foxglove.SceneUpdate    a line from the robot to the
+                                                           keyframe it closed a loop with:
+                                                           green verified, orange
+                                                           descriptor-only
+
+MCAP rather than a rerun recording: robotics teams already open ROS 2 data in Foxglove,
+the ``mcap`` writer is a small pure-Python package, and the file is read back by its own
+reader (``mcap.reader``) in the tests. Messages are JSON with a JSON schema named after
+Foxglove's message type; the schemas here list the fields written, not all of Foxglove's.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import Writer
+
+VERIFIED = {"r": 0.18, "g": 0.49, "b": 0.2, "a": 1.0}
+DESCRIPTOR_ONLY = {"r": 0.94, "g": 0.42, "b": 0.0, "a": 1.0}
+KEYFRAME = {"r": 0.12, "g": 0.47, "b": 0.71, "a": 0.8}
+_VEC = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
+_QUAT = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}
+_POSE = {"type": "object", "properties": {"position": _VEC, "orientation": _QUAT}}
+_TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
+_ENTITIES = {"type": "array", "items": {"type": "object"}}
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "foxglove.PoseInFrame": {
+        "title": "foxglove.PoseInFrame",
+        "type": "object",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"}, "pose": _POSE},
+    },
+    "foxglove.SceneUpdate": {
+        "title": "foxglove.SceneUpdate",
+        "type": "object",
+        "properties": {"deletions": {"type": "array"}, "entities": _ENTITIES},
+    },
+}
+
+
+def _time(t: float) -> dict[str, int]:
+    sec = int(t // 1)
+    return {"sec": sec, "nsec": round((t - sec) * 1e9) % 1_000_000_000}
+
+
+def _pose(p: list[float]) -> dict[str, Any]:
+    x, y, z, qx, qy, qz, qw = (float(v) for v in p[:7])
+    return {
+        "position": {"x": x, "y": y, "z": z},
+        "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+    }
+
+
+def _entity(entity_id: str, t: float, **shapes: list[dict[str, Any]]) -> dict[str, Any]:
+    kinds = ("arrows", "cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")
+    return {
+        "timestamp": _time(t),
+        "frame_id": "map",
+        "id": entity_id,
+        "lifetime": {"sec": 0, "nsec": 0},  # forever
+        "frame_locked": False,
+        "metadata": [],
+        **{k: shapes.get(k, []) for k in kinds},
+    }
+
+
+class MapRecording:
+    """Write observations into an MCAP file; use as a context manager."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file)
+        self._writer.start(profile="", library="overlapmamba-client")
+        self._schemas = {
+            name: self._writer.register_schema(
+                name=name, encoding="jsonschema", data=json.dumps(schema).encode()
+            )
+            for name, schema in SCHEMAS.items()
+        }
+        self._channels: dict[str, int] = {}
+        self.messages = 0
+
+    def _write(self, topic: str, schema: str, t: float, message: dict[str, Any]) -> None:
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=self._schemas[schema]
+            )
+        ns = round(t * 1e9)
+        self._writer.add_message(
+            self._channels[topic],
+            log_time=ns,
+            publish_time=ns,
+            data=json.dumps(message).encode(),
+        )
+        self.messages += 1
+
+    def observation(
+        self,
+        robot: str,
+        t: float,
+        pose: list[float] | None,
+        keyframe_id: str | None = None,
+        closure: tuple[str, list[float], bool | None] | None = None,
+    ) -> None:
+        """One observation: the robot's pose (x, y, z, qx, qy, qz, qw; nothing is written
+        without one), the keyframe it inserted (its id), the loop it closed (keyframe id,
+        the keyframe's pose, verified)."""
+        if pose is None:
+            return
+        here = {"x": float(pose[0]), "y": float(pose[1]), "z": float(pose[2])}
+        self._write(
+            f"/overlapmamba/robots/{robot}",
+            "foxglove.PoseInFrame",
+            t,
+            {"timestamp": _time(t), "frame_id": "map", "pose": _pose(pose)},
+        )
+        if keyframe_id is not None:
+            sphere = {"pose": _pose(pose), "size": {"x": 1.0, "y": 1.0, "z": 1.0}}
+            entity = _entity(keyframe_id, t, spheres=[{**sphere, "color": KEYFRAME}])
+            self._write(
+                "/overlapmamba/keyframes",
+                "foxglove.SceneUpdate",
+                t,
+                {"deletions": [], "entities": [entity]},
+            )
+        if closure is not None:
+            target, to, verified = closure
+            line = {
+                "type": 0,  # LINE_STRIP
+                "pose": _pose([0, 0, 0, 0, 0, 0, 1]),
+                "thickness": 0.4,
+                "scale_invariant": False,
+                "points": [here, {"x": float(to[0]), "y": float(to[1]), "z": float(to[2])}],
+                "color": VERIFIED if verified else DESCRIPTOR_ONLY,
+                "colors": [],
+                "indices": [],
+            }
+            entity = _entity(f"{robot}@{t:.3f}->{target}", t, lines=[line])
+            self._write(
+                "/overlapmamba/loop_closures",
+                "foxglove.SceneUpdate",
+                t,
+                {"deletions": [], "entities": [entity]},
+            )
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+    def __enter__(self) -> MapRecording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
