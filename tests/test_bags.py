@@ -90,7 +90,7 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
             session = open_drive(path).name
             for i in (0, 3):
                 top = pr.query("bags", clouds[i], k=1, verify=False).matches[0]
-                assert top.distance < 1e-3 and top.keyframe_id.endswith(f"-{i:06d}"), name
+                assert top.distance < 1e-5 and top.keyframe_id.endswith(f"-{i:06d}"), name
                 kf = pr.get_keyframe("bags", f"{session}-{i:06d}")
                 assert kf.pose is not None and kf.timestamp == pytest.approx(1.0 + 0.1 * i)
     res = runner.invoke(app, ["ingest", str(paths["mcap"]), "--map", "bags", "--topic", "/x"])
