@@ -414,6 +414,19 @@ class PlaceService:
         moved = float(np.linalg.norm(np.array(obs.pose[:3]) - last[1]))
         return "distance" if moved >= o.insert_min_distance_m else None
 
+    async def _draw(self, m: PlaceMap, obs: Observation, answer: Answer) -> None:
+        """The observation on the map's picture (:mod:`service.overview`): the robot's
+        position and, for a loop closure, the keyframe's."""
+        lc = answer.loop_closure
+        to = None
+        if lc.accepted and lc.keyframe_id is not None and obs.pose is not None:
+            hits = [x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id]
+            to = hits[0] if hits else await run_in_threadpool(m.get, lc.keyframe_id)  # below k
+        closure = to.pose if to is not None else None
+        self.overview.observed(
+            m.map_id, obs.robot_id, obs.pose, closure, lc.keyframe_id, lc.verified
+        )
+
     async def observe(self, m: PlaceMap, scan: ScanBody, obs: Observation) -> Observed:
         """Query an opened map excluding this session's recent keyframes, then insert the
         scan as keyframe ``robot:session:timestamp`` when due."""
@@ -436,20 +449,7 @@ class PlaceService:
             obs.robot_id,
             d.prepared if verify else None,
         )
-        lc = answer.loop_closure
-        to = next(
-            (x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id), None
-        )
-        if lc.accepted and to is None and lc.keyframe_id is not None:  # ranked below k
-            to = await run_in_threadpool(m.get, lc.keyframe_id)
-        self.overview.observed(
-            m.map_id,
-            obs.robot_id,
-            obs.pose,
-            to.pose if lc.accepted and to is not None else None,
-            lc.keyframe_id,
-            lc.verified,
-        )
+        await self._draw(m, obs, answer)
         reason = await self._insert_due(m, obs)
         keyframe_id = None
         inserted = False

@@ -121,8 +121,11 @@ def decode_pointcloud2(
     point_step, row_step = r.u32("point_step"), r.u32("row_step")
     payload = r.octets("data")
     dense = r.u8("is_dense")
-    if big > 1 or dense > 1:
-        raise DecodeError(f"{source}: PointCloud2 booleans must be 0 or 1", field="is_bigendian")
+    for name, value in (("is_bigendian", big), ("is_dense", dense)):
+        if value > 1:
+            raise DecodeError(
+                f"{source}: PointCloud2 {name} is {value}; allowed: 0 or 1", field=name
+            )
     return _points(
         payload, fields, height, width, point_step, row_step, bool(big), bool(dense), limits, source
     )
