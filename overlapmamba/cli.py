@@ -572,7 +572,13 @@ def train_cmd(
 @_friendly_errors
 def eval_cmd(
     checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
-    sequence: Annotated[Path, typer.Option(help="sequence with loops (e.g. the test preset)")],
+    sequence: Annotated[
+        Path,
+        typer.Option(
+            help="sequence with loops (e.g. the test preset), or a ROS recording (.bag, "
+            "rosbag2, .mcap) with --odometry"
+        ),
+    ],
     database: Annotated[
         Path | None,
         typer.Option(
@@ -582,13 +588,35 @@ def eval_cmd(
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
     plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
+    topic: Annotated[
+        str | None, typer.Option(help="ROS recordings: the PointCloud2 topic (if several)")
+    ] = None,
+    odometry: Annotated[
+        str | None,
+        typer.Option(help="ROS recordings: the nav_msgs/Odometry topic giving the poses"),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
-    """Loop-closure AUC, F1max, Recall@1 and Recall@1%: all, same- and reverse-direction."""
+    """Loop-closure AUC, F1max, Recall@1 and Recall@1%: all, same- and reverse-direction.
+    A ROS recording is evaluated like a sequence: its odometry gives the poses, and the
+    loop ground truth is computed from its scans and poses (the default protocol)."""
     _check_torch()
     import json
 
-    from lidar_core.datasets import open_sequence
+    from lidar_core.datasets.bags import is_bag, open_bag
+
+    def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
+        from lidar_core.datasets import open_sequence as open_folder
+
+        if not is_bag(path):
+            return open_folder(path)
+        if odometry is None:
+            raise typer.BadParameter(
+                f"{path} is a ROS recording: evaluating it needs poses; name its "
+                "nav_msgs/Odometry topic with --odometry"
+            )
+        return open_bag(path, topic=topic, odometry=odometry)
+
     from model_export.checkpoint import load_model
     from model_export.evaluate import describe, loop_closure, plot_pr, sequence_loops, summary
     from model_export.rangecache import range_images

@@ -95,3 +95,43 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
                 assert kf.pose is not None and kf.timestamp == pytest.approx(1.0 + 0.1 * i)
     res = runner.invoke(app, ["ingest", str(paths["mcap"]), "--map", "bags", "--topic", "/x"])
     assert res.exit_code == 2 and "no PointCloud2 topic '/x'" in res.output
+
+
+@pytest.mark.timeout(300)
+def test_eval_reads_a_recording_with_odometry_as_it_reads_the_folder(recordings, tmp_path):
+    """The same four scans and poses as a KITTI folder and as a ROS 1 bag: the same numbers."""
+    pytest.importorskip("torch")
+    import json
+
+    from conftest import SMALL_MODEL, save_random_checkpoint
+    from typer.testing import CliRunner
+
+    from lidar_core.poses import write_poses
+    from overlapmamba.cli import app
+
+    paths, clouds, poses = recordings
+    folder = tmp_path / "kitti4"
+    (folder / "velodyne").mkdir(parents=True)
+    for i, c in enumerate(clouds):
+        c.astype("<f4").tofile(folder / "velodyne" / f"{i:06d}.bin")
+    write_poses(folder / "poses.txt", poses)
+    ckpt = save_random_checkpoint(tmp_path / "random.pt", **SMALL_MODEL)
+    runner = CliRunner()
+    base = ["eval", "--checkpoint", str(ckpt), "-q", "--json"]
+    res = runner.invoke(app, [*base, str(tmp_path / "a.json"), "--sequence", str(folder)])
+    assert res.exit_code == 0, res.output
+    bag = ["--sequence", str(paths["ros1.bag"]), "--odometry", "/odom"]
+    res = runner.invoke(app, [*base, str(tmp_path / "b.json"), *bag])
+    assert res.exit_code == 0, res.output
+    a, b = (json.loads((tmp_path / f"{n}.json").read_text())["metrics"] for n in "ab")
+    assert a == b and a["all"]["queries"] == 0  # 4 scans hold no loop: the numbers are thin,
+    # so also what eval computed from each: the same range images, the same positions
+    from model_export.checkpoint import load_model
+    from model_export.rangecache import range_images
+
+    _, profile, _ = load_model(ckpt)
+    seq, bag = open_sequence(folder), open_bag(paths["ros1.bag"], odometry="/odom")
+    np.testing.assert_array_equal(range_images(seq, profile), range_images(bag, profile))
+    np.testing.assert_allclose(seq.positions(), bag.positions(), atol=1e-6)
+    res = runner.invoke(app, ["eval", "--checkpoint", str(ckpt), "--sequence", str(paths["mcap"])])
+    assert res.exit_code != 0 and "--odometry" in res.output

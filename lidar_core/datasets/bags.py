@@ -17,6 +17,7 @@ record odometry in the LiDAR's frame, or convert it first).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,9 +62,37 @@ class Bag:
     poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
     _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
 
+    sensor: str | None = None  # the sensor profile, as a Sequence has it (unknown here)
+
     @property
     def name(self) -> str:
         return self.path.stem if self.path.is_file() else self.path.name
+
+    @property
+    def root(self) -> Path:
+        return self.path
+
+    def __iter__(self) -> Iterator[PointCloud]:
+        for i in range(len(self)):
+            yield self.points(i)
+
+    def positions(self) -> np.ndarray:
+        """(N, 3) scan positions in the world frame (from the odometry)."""
+        if self.poses is None:
+            raise DatasetError(f"{self.path}: no poses; name an odometry topic")
+        return self.poses[:, :3, 3]
+
+    def update_digest(self, h: Any) -> None:
+        """What identifies the recording, cheaply (as ``Sequence.update_digest``): its
+        files' names and sizes, the topic, the message times and the poses."""
+        files = sorted(self.path.rglob("*")) if self.path.is_dir() else [self.path]
+        for f in files:
+            if f.is_file():
+                h.update(f"{f.name}:{f.stat().st_size}".encode())
+        h.update(self.topic.encode())
+        h.update(np.ascontiguousarray(self.stamps_ns).tobytes())
+        if self.poses is not None:
+            h.update(np.ascontiguousarray(self.poses).tobytes())
 
     def __len__(self) -> int:
         return len(self.times)
