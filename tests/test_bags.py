@@ -4,6 +4,8 @@ times and poses; through the CLI they give the same keyframes as the .bin files.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -47,6 +49,11 @@ def test_every_recording_reads_back_the_same_scans_times_and_poses(recordings):
         np.testing.assert_allclose(
             bag.poses, poses, atol=1e-5
         )  # KITTI R is not exactly orthonormal
+        fresh = open_bag(path)  # robots of a fleet read one drive from several threads
+        with ThreadPoolExecutor(4) as pool:
+            got = [c.as_xyzi() for c in pool.map(fresh.points, [3, 1, 2, 0] * 2)]
+        for i, g in zip([3, 1, 2, 0] * 2, got, strict=True):
+            np.testing.assert_array_equal(g, clouds[i])
         drive = open_drive(path, odometry="/odom")
         assert drive.pose(1) is not None and drive.loop_radius is None
 

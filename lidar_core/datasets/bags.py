@@ -17,6 +17,7 @@ record odometry in the LiDAR's frame, or convert it first).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,8 @@ from lidar_core.errors import DatasetError
 from lidar_core.io.pointcloud2 import decode_message
 from lidar_core.points import PointCloud
 
+PREFETCH = 8  # scans decoded per seek
+CACHED = 32  # scans kept (≈ 2 MB each for a 120k-point scan)
 POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
 ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
 
@@ -61,6 +64,7 @@ class Bag:
     stamps_ns: np.ndarray  # (N,) int64: the same, as the bag indexes them
     poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
     _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     sensor: str | None = None  # the sensor profile, as a Sequence has it (unknown here)
 
@@ -98,23 +102,33 @@ class Bag:
         return len(self.times)
 
     def points(self, i: int) -> PointCloud:
-        """Scan ``i`` (random access: the reader seeks by time; the last few are kept)."""
-        if i in self._cache:
-            return self._cache[i]
+        """Scan ``i``. Random access: the reader seeks to its time and decodes it and the
+        next ``PREFETCH`` - 1 (a replay reads on in order); the latest ``CACHED`` are kept.
+        Safe from several threads (the fleet simulator's robots share a drive)."""
+        with self._lock:
+            if i in self._cache:
+                return self._cache[i]
+        if not 0 <= i < len(self):
+            raise IndexError(f"scan {i} of {len(self)}")
         t = int(self.stamps_ns[i])
+        j = i - self._nth(i)  # the index of the first message at scan i's time
+        found: dict[int, PointCloud] = {}
         with _reader(self.path) as r:
             cons = [c for c in r.connections if c.topic == self.topic]
-            for k, (con, stamp, raw) in enumerate(r.messages(connections=cons, start=t)):
-                if stamp != t:
-                    break
-                if k == self._nth(i):
+            for con, _, raw in r.messages(connections=cons, start=t):
+                if j >= i:
                     msg = r.deserialize(raw, con.msgtype)
-                    cloud = decode_message(msg, source=f"{self.topic} message {i}")
-                    if len(self._cache) >= 8:
-                        self._cache.pop(next(iter(self._cache)))
-                    self._cache[i] = cloud
-                    return cloud
-        raise DatasetError(f"{self.path}: message {i} of {self.topic} is gone")
+                    found[j] = decode_message(msg, source=f"{self.topic} message {j}")
+                j += 1
+                if j >= min(i + PREFETCH, len(self)):
+                    break
+        if i not in found:
+            raise DatasetError(f"{self.path}: message {i} of {self.topic} is gone")
+        with self._lock:
+            self._cache.update(found)
+            while len(self._cache) > CACHED:
+                self._cache.pop(next(iter(self._cache)))
+        return found[i]
 
     def _nth(self, i: int) -> int:
         """Which of the messages sharing scan i's time stamp it is."""
