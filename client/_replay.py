@@ -15,30 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_core.datasets import open_sequence
-from lidar_core.datasets.bags import Bag, is_bag, open_bag
+from lidar_core.datasets import open_recording
+from lidar_core.datasets.bags import Bag
 from lidar_core.datasets.base import Sequence
 from lidar_core.overlap import LoopGroundTruth
-
-
-def quaternion(rot: np.ndarray) -> np.ndarray:
-    """3×3 rotation → (qx, qy, qz, qw), unit, qw ≥ 0 (Shepperd's method)."""
-    m = np.asarray(rot, dtype=np.float64)
-    t = np.trace(m)
-    if t > 0:
-        s = 2.0 * np.sqrt(t + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-    out = np.asarray(q, dtype=np.float64)
-    out /= np.linalg.norm(out)
-    return out if out[3] >= 0 else -out
+from lidar_core.poses import quaternion
 
 
 @dataclass
@@ -70,13 +51,10 @@ def open_drive(root: str | Path, *, topic: str | None = None, odometry: str | No
     """``topic`` and ``odometry``: for a ROS recording, which PointCloud2 topic (needed when
     it holds several) and which nav_msgs/Odometry topic gives the poses."""
     root = Path(root)
-    if is_bag(root):
-        bag = open_bag(root, topic=topic, odometry=odometry)
-        poses = None if bag.poses is None else _pose7(bag.poses)
-        return Drive(seq=bag, times=bag.times, poses=poses, loop_radius=None)
-    if topic is not None or odometry is not None:
-        raise ValueError(f"{root} is a sequence folder: --topic and --odometry are for ROS bags")
-    seq = open_sequence(root)
+    seq = open_recording(root, topic=topic, odometry=odometry)
+    if isinstance(seq, Bag):
+        poses = None if seq.poses is None else _pose7(seq.poses)
+        return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None)
     n = len(seq)
     times_file = root / "times.txt"
     times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1

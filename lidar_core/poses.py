@@ -102,6 +102,39 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(err[:3, 3])), float(abs(yaw_deg(err)))
 
 
+def quaternion(rot: np.ndarray) -> np.ndarray:
+    """3×3 rotation → (qx, qy, qz, qw), unit, qw ≥ 0 (Shepperd's method)."""
+    m = np.asarray(rot, dtype=np.float64)
+    t = np.trace(m)
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    out = np.asarray(q, dtype=np.float64)
+    out /= np.linalg.norm(out)
+    return out if out[3] >= 0 else -out
+
+
+def from_quaternion(xyz: np.ndarray | list[float], q: np.ndarray | list[float]) -> np.ndarray:
+    """(x, y, z) and a quaternion (qx, qy, qz, qw; normalised here) → a 4×4 pose."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / (np.linalg.norm(q) or 1.0)
+    T = np.eye(4)
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    T[:3, 3] = np.asarray(xyz, dtype=np.float64)
+    return T
+
+
 def translations(poses: np.ndarray) -> np.ndarray:
     """(N, 3) positions."""
     return np.asarray(poses)[:, :3, 3]

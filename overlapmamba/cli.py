@@ -603,19 +603,10 @@ def eval_cmd(
     _check_torch()
     import json
 
-    from lidar_core.datasets.bags import is_bag, open_bag
+    from lidar_core.datasets import open_recording
 
     def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
-        from lidar_core.datasets import open_sequence as open_folder
-
-        if not is_bag(path):
-            return open_folder(path)
-        if odometry is None:
-            raise typer.BadParameter(
-                f"{path} is a ROS recording: evaluating it needs poses; name its "
-                "nav_msgs/Odometry topic with --odometry"
-            )
-        return open_bag(path, topic=topic, odometry=odometry)
+        return open_recording(path, topic=topic, odometry=odometry, need_poses=True)
 
     from model_export.checkpoint import load_model
     from model_export.evaluate import describe, loop_closure, plot_pr, sequence_loops, summary

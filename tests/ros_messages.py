@@ -166,7 +166,7 @@ def _cloud(store, pts: np.ndarray, t: int):
 
 
 def _odometry(store, T: np.ndarray, t: int):
-    from client._replay import quaternion
+    from lidar_core.poses import quaternion
 
     ty = store.types
     q = quaternion(T[:3, :3])

@@ -3,9 +3,12 @@
 open_sequence("path/to/00")                    auto-detects the layout
 open_sequence("path/to/scene", kind="pcd-folder", sensor="hdl32")
 
-ROS recordings (a ROS 1 bag, a rosbag2 folder, a bare MCAP file) are drives for the client
-and the CLI rather than sequences: they carry no loop ground truth, and poses only when an
-odometry topic is named. ``lidar_core.datasets.bags.open_bag`` reads them.
+open_recording("drive.mcap", topic="/points", odometry="/odom")
+                                               a sequence folder or a ROS recording
+
+ROS recordings (a ROS 1 bag, a rosbag2 folder, a bare MCAP file; ``lidar_core.datasets.
+bags``) carry no loop ground truth, and poses only when an odometry topic is named; they
+offer what the client's drives and ``overlapmamba eval`` read of a sequence.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ REGISTRY: dict[str, tuple[str, str]] = {
     "pcd-folder": ("lidar_core.datasets.pcd_folder", "open_pcd_folder"),
 }
 
-__all__ = ["REGISTRY", "Sequence", "detect_kind", "open_sequence"]
+__all__ = ["REGISTRY", "Sequence", "detect_kind", "open_recording", "open_sequence"]
 
 
 def detect_kind(root: str | Path) -> str:
@@ -51,3 +54,29 @@ def open_sequence(root: str | Path, kind: str = "auto", **options: Any) -> Seque
     module, func = REGISTRY[kind]
     seq: Sequence = getattr(importlib.import_module(module), func)(root, **options)
     return seq
+
+
+def open_recording(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    odometry: str | None = None,
+    need_poses: bool = False,
+) -> Any:
+    """A sequence folder (``open_sequence``) or a ROS recording (``bags.open_bag``: its
+    PointCloud2 ``topic``, poses from its ``odometry`` topic): a ``Sequence`` or a ``Bag``.
+    ``need_poses``: a recording must then name its odometry. Raises DatasetError."""
+    from lidar_core.datasets.bags import is_bag, open_bag
+
+    if not is_bag(path):
+        if topic is not None or odometry is not None:
+            raise DatasetError(
+                f"{path} is a sequence folder: topics (--topic, --odometry) are for ROS recordings"
+            )
+        return open_sequence(path)
+    if need_poses and odometry is None:
+        raise DatasetError(
+            f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "
+            "(--odometry)"
+        )
+    return open_bag(path, topic=topic, odometry=odometry)

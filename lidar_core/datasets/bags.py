@@ -28,6 +28,7 @@ import numpy as np
 from lidar_core.errors import DatasetError
 from lidar_core.io.pointcloud2 import decode_message
 from lidar_core.points import PointCloud
+from lidar_core.poses import from_quaternion
 
 PREFETCH = 8  # scans decoded per seek
 CACHED = 32  # scans kept (≈ 2 MB each for a 120k-point scan)
@@ -60,8 +61,7 @@ class Bag:
 
     path: Path
     topic: str
-    times: np.ndarray  # (N,) seconds, the bag's receive times
-    stamps_ns: np.ndarray  # (N,) int64: the same, as the bag indexes them
+    stamps_ns: np.ndarray  # (N,) int64: the bag's receive times, as it indexes them
     poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
     _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -71,6 +71,11 @@ class Bag:
     @property
     def name(self) -> str:
         return self.path.stem if self.path.is_file() else self.path.name
+
+    @property
+    def times(self) -> np.ndarray:
+        """(N,) seconds."""
+        return self.stamps_ns / 1e9
 
     @property
     def root(self) -> Path:
@@ -99,7 +104,7 @@ class Bag:
             h.update(np.ascontiguousarray(self.poses).tobytes())
 
     def __len__(self) -> int:
-        return len(self.times)
+        return len(self.stamps_ns)
 
     def points(self, i: int) -> PointCloud:
         """Scan ``i``. Random access: the reader seeks to its time and decodes it and the
@@ -181,7 +186,7 @@ def open_bag(
     order = np.argsort(stamps, kind="stable")
     if not np.array_equal(order, np.arange(len(stamps))):
         raise DatasetError(f"{path}: {topic} is not in time order")
-    return Bag(path, topic, stamps / 1e9, stamps, poses)
+    return Bag(path, topic, stamps, poses)
 
 
 def _odometry_poses(
@@ -198,7 +203,10 @@ def _odometry_poses(
     for con, t, raw in r.messages(connections=cons):
         p = r.deserialize(raw, con.msgtype).pose.pose
         times.append(t)
-        poses.append(_matrix(p.position, p.orientation))
+        o = p.orientation
+        poses.append(
+            from_quaternion([p.position.x, p.position.y, p.position.z], [o.x, o.y, o.z, o.w])
+        )
     if not times:
         raise DatasetError(f"{path}: odometry topic {topic} holds no messages")
     t = np.asarray(times, dtype=np.int64)
@@ -218,17 +226,3 @@ def _odometry_poses(
             f"at most {max_gap_s} s"
         )
     return np.stack([poses[j] for j in nearest])
-
-
-def _matrix(position: Any, q: Any) -> np.ndarray:
-    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
-    n = np.sqrt(x * x + y * y + z * z + w * w) or 1.0
-    x, y, z, w = x / n, y / n, z / n, w / n
-    T = np.eye(4)
-    T[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    T[:3, 3] = [float(position.x), float(position.y), float(position.z)]
-    return T

@@ -139,9 +139,8 @@ def decode_message(
     fields: dict[str, tuple[int, int, int]] = {}
     for f in list(msg.fields)[:MAX_FIELDS]:
         fields.setdefault(str(f.name), (int(f.offset), int(f.datatype), int(f.count)))
-    data = np.ascontiguousarray(msg.data, dtype=np.uint8)
     return _points(
-        memoryview(data.tobytes()),
+        np.ascontiguousarray(msg.data, dtype=np.uint8).data,  # a view: no copy
         fields,
         int(msg.height),
         int(msg.width),
