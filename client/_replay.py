@@ -47,11 +47,18 @@ def _pose7(world: np.ndarray) -> np.ndarray:
     return np.array([[*T[:3, 3], *quaternion(T[:3, :3])] for T in world])
 
 
-def open_drive(root: str | Path, *, topic: str | None = None, odometry: str | None = None) -> Drive:
-    """``topic`` and ``odometry``: for a ROS recording, which PointCloud2 topic (needed when
-    it holds several) and which nav_msgs/Odometry topic gives the poses."""
+def open_drive(
+    root: str | Path,
+    *,
+    topic: str | None = None,
+    odometry: str | None = None,
+    tf: str | None = None,
+) -> Drive:
+    """``topic``, ``odometry`` and ``tf``: for a ROS recording, which PointCloud2 topic
+    (needed when it holds several), and which nav_msgs/Odometry topic or /tf fixed frame
+    ("map", or "map:velodyne" for another child frame than the scans') gives the poses."""
     root = Path(root)
-    seq = open_recording(root, topic=topic, odometry=odometry)
+    seq = open_recording(root, topic=topic, odometry=odometry, tf=tf)
     if isinstance(seq, Bag):
         poses = None if seq.poses is None else _pose7(seq.poses)
         return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None)

@@ -62,6 +62,14 @@ OdometryOpt = Annotated[
     str | None,
     typer.Option(help="ROS recordings: a nav_msgs/Odometry topic giving each scan's pose"),
 ]
+TfOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--tf",
+        help="ROS recordings: poses from /tf and /tf_static in this fixed frame (FIXED, or "
+        "FIXED:CHILD when the LiDAR's frame is not the scans' header frame)",
+    ),
+]
 DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -164,12 +172,13 @@ def ingest(
     every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
+    tf: TfOpt = None,
     compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf)
     session = session or drive.name
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
@@ -266,6 +275,7 @@ def observe(
     every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
+    tf: TfOpt = None,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     verify: VerifyOpt = True,
     record: Annotated[
@@ -277,7 +287,7 @@ def observe(
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
     closure as it is detected, with its relative pose when verified."""
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf)
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)
@@ -404,6 +414,7 @@ def simulate_fleet(
     ],
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
+    tf: TfOpt = None,
     robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
     duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
     rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
@@ -420,7 +431,7 @@ def simulate_fleet(
     errors and loop closures against ground truth."""
     from client.fleet import simulate, write_outputs
 
-    drives = [open_drive(p, topic=topic, odometry=odometry) for p in sequence]
+    drives = [open_drive(p, topic=topic, odometry=odometry, tf=tf) for p in sequence]
     report, samples = asyncio.run(
         simulate(
             url,

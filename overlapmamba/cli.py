@@ -576,7 +576,7 @@ def eval_cmd(
         Path,
         typer.Option(
             help="sequence with loops (e.g. the test preset), or a ROS recording (.bag, "
-            "rosbag2, .mcap) with --odometry"
+            "rosbag2, .mcap) with --odometry or --tf"
         ),
     ],
     database: Annotated[
@@ -595,10 +595,18 @@ def eval_cmd(
         str | None,
         typer.Option(help="ROS recordings: the nav_msgs/Odometry topic giving the poses"),
     ] = None,
+    tf: Annotated[
+        str | None,
+        typer.Option(
+            "--tf",
+            help="ROS recordings: poses from /tf in this fixed frame (FIXED or FIXED:CHILD; "
+            "CHILD defaults to the scans' frame)",
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Loop-closure AUC, F1max, Recall@1 and Recall@1%: all, same- and reverse-direction.
-    A ROS recording is evaluated like a sequence: its odometry gives the poses, and the
+    A ROS recording is evaluated like a sequence: its odometry or /tf gives the poses, and the
     loop ground truth is computed from its scans and poses (the default protocol)."""
     _check_torch()
     import json
@@ -606,7 +614,7 @@ def eval_cmd(
     from lidar_core.datasets import open_recording
 
     def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
-        return open_recording(path, topic=topic, odometry=odometry, need_poses=True)
+        return open_recording(path, topic=topic, odometry=odometry, tf=tf, need_poses=True)
 
     from model_export.checkpoint import load_model
     from model_export.evaluate import describe, loop_closure, plot_pr, sequence_loops, summary

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from lidar_core.poses import quaternion, rotation_z
+
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 PC2 = STORE.types["sensor_msgs/msg/PointCloud2"]
 FIELD = STORE.types["sensor_msgs/msg/PointField"]
@@ -15,6 +17,10 @@ HEADER = STORE.types["std_msgs/msg/Header"]
 TIME = STORE.types["builtin_interfaces/msg/Time"]
 F32, F64, U16, U8 = 7, 8, 4, 2
 MEDIA = "application/x-ros2-pointcloud2"
+MOUNT = rotation_z(1.5)  # base_link ← velodyne in the recordings' /tf_static
+MOUNT[:3, 3] = (0.8, 0.0, 1.73)
+ODOM_IN_MAP = rotation_z(30.0)  # map ← odom
+ODOM_IN_MAP[:3, 3] = (10.0, -5.0, 0.0)
 
 
 def message(
@@ -106,16 +112,29 @@ def patch_u32(msg: bytes, which: str, value: int) -> bytes:
 def write_recordings(
     out: Path, clouds: list[np.ndarray], poses: np.ndarray, step_s: float = 0.1
 ) -> dict[str, Path]:
-    """The same drive (x y z intensity scans on /points, their 4×4 poses as
-    nav_msgs/Odometry on /odom) as a rosbag2 with SQLite storage, a rosbag2 with MCAP
-    storage, a bare MCAP file and a ROS 1 bag, written by rosbags."""
+    """The same drive (x y z intensity scans on /points in frame "velodyne", their 4×4
+    poses as nav_msgs/Odometry on /odom and as the tf chain map → odom → base_link →
+    velodyne on /tf and /tf_static) as a rosbag2 with SQLite storage, a rosbag2 with MCAP
+    storage, a bare MCAP file and a ROS 1 bag, written by rosbags.
+
+    The tf chain makes the poses take every step of a lookup: map → odom is re-sent before
+    each scan, odom → base_link is sent 20 ms before and after each scan, moved ∓ 0.2 m and
+    ∓ 2° (so only interpolation gives the pose at the scan's stamp), and base_link →
+    velodyne (the LiDAR's mounting) is static."""
     import shutil
 
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import get_types_from_msg
 
     ros1 = get_typestore(Stores.ROS1_NOETIC)
+    if "tf2_msgs/msg/TFMessage" not in ros1.types:  # not among Noetic's built-in types
+        ros1.register(
+            get_types_from_msg(
+                "geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"
+            )
+        )
     paths = {}
     for name, store, plugin in (
         ("rosbag2-sqlite", STORE, StoragePlugin.SQLITE3),
@@ -130,9 +149,19 @@ def write_recordings(
             kw = {"typestore": store}
             pc = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", **kw)
             od = w.add_connection("/odom", "nav_msgs/msg/Odometry", **kw)
+            tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", **kw)
+            static = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", **kw)
+            ser = store.serialize_ros1 if plugin is None else store.serialize_cdr
+
+            _send(w, static, store, ser, 1, ("base_link", "velodyne", MOUNT))
             for i, (pts, T) in enumerate(zip(clouds, poses, strict=True)):
                 t = int((1.0 + i * step_s) * 1e9)
-                ser = store.serialize_ros1 if plugin is None else store.serialize_cdr
+                base = np.linalg.inv(ODOM_IN_MAP) @ T @ np.linalg.inv(MOUNT)
+                _send(w, tf, store, ser, t - 30_000_000, ("map", "odom", ODOM_IN_MAP))
+                for s, dt in ((-1, -20_000_000), (1, 20_000_000)):
+                    moved = rotation_z(2.0 * s)
+                    moved[0, 3] = 0.2 * s
+                    _send(w, tf, store, ser, t + dt, ("odom", "base_link", base @ moved))
                 w.write(pc, t, ser(_cloud(store, pts, t), "sensor_msgs/msg/PointCloud2"))
                 w.write(od, t + 1000, ser(_odometry(store, T, t), "nav_msgs/msg/Odometry"))
         paths[name] = path
@@ -142,10 +171,32 @@ def write_recordings(
     return paths
 
 
-def _header(store, t: int):
+def _header(store, t: int, frame: str = "velodyne"):
     H, T = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
     extra = {"seq": 0} if "seq" in H.__dataclass_fields__ else {}
-    return H(stamp=T(sec=t // 10**9, nanosec=t % 10**9), frame_id="velodyne", **extra)
+    return H(stamp=T(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame, **extra)
+
+
+def _send(w, con, store, ser, t: int, *links) -> None:
+    w.write(con, t, ser(_tf(store, t, links), "tf2_msgs/msg/TFMessage"))
+
+
+def _tf(store, t: int, links):
+    ty = store.types
+    out = []
+    for parent, child, T in links:
+        q = quaternion(T[:3, :3])
+        out.append(
+            ty["geometry_msgs/msg/TransformStamped"](
+                header=_header(store, t, parent),
+                child_frame_id=child,
+                transform=ty["geometry_msgs/msg/Transform"](
+                    translation=ty["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                    rotation=ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
+        )
+    return ty["tf2_msgs/msg/TFMessage"](transforms=out)
 
 
 def _cloud(store, pts: np.ndarray, t: int):
@@ -166,8 +217,6 @@ def _cloud(store, pts: np.ndarray, t: int):
 
 
 def _odometry(store, T: np.ndarray, t: int):
-    from lidar_core.poses import quaternion
-
     ty = store.types
     q = quaternion(T[:3, :3])
     pose = ty["geometry_msgs/msg/Pose"](

@@ -12,7 +12,7 @@ import pytest
 from lidar_core.errors import DatasetError
 
 pytest.importorskip("rosbags")
-from ros_messages import write_recordings
+from ros_messages import MOUNT, write_recordings
 
 from client._replay import open_drive
 from lidar_core.datasets import open_sequence
@@ -56,6 +56,10 @@ def test_every_recording_reads_back_the_same_scans_times_and_poses(recordings):
             np.testing.assert_array_equal(g, clouds[i])
         drive = open_drive(path, odometry="/odom")
         assert drive.pose(1) is not None and drive.loop_radius is None
+        # /tf: map → odom → base_link (interpolated at the scans' stamps) → velodyne (static)
+        np.testing.assert_allclose(open_bag(path, tf="map").poses, poses, atol=1e-5)
+        base = open_bag(path, tf="/map:base_link").poses  # a named child; ROS 1's "/" too
+        np.testing.assert_allclose(base, poses @ np.linalg.inv(MOUNT), atol=1e-5)
 
 
 def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
@@ -65,8 +69,12 @@ def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
         open_bag(bag, topic="/lidar")
     with pytest.raises(DatasetError, match="no nav_msgs/Odometry topic '/points'"):
         open_bag(bag, odometry="/points")
-    with pytest.raises(DatasetError, match="from the nearest odometry message"):
-        open_bag(bag, odometry="/odom", max_pose_gap_s=1e-7)
+    with pytest.raises(DatasetError, match=r"no transform 'odom' → 'base_link' within 0.01 s"):
+        open_bag(bag, tf="map", max_pose_gap_s=0.01)  # sent 20 ms either side of each scan
+    with pytest.raises(DatasetError, match="frame 'earth' is in no transform; frames: base_link"):
+        open_bag(bag, tf="earth")
+    with pytest.raises(DatasetError, match="odometry topic or from /tf, not both"):
+        open_bag(bag, odometry="/odom", tf="map")
     junk = tmp_path / "junk.bag"
     junk.write_bytes(b"#ROSBAG V2.0\n" + bytes(100))
     with pytest.raises(DatasetError, match="cannot be read"):
@@ -77,21 +85,20 @@ def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
 
 
 def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
-    """Each recording ingested through the CLI; each .bin scan then finds its own keyframe
-    at distance 0: the descriptors are the .bin files' descriptors."""
+    """Each recording ingested through the CLI (poses from /odom or /tf); each .bin scan then
+    finds its own keyframe at distance 0: the descriptors are the .bin files' descriptors."""
     from typer.testing import CliRunner
 
     from client import PlaceRecognitionClient
     from client.cli import app
 
-    paths, clouds, _ = recordings
+    paths, clouds, poses = recordings
     runner = CliRunner()
     env = {"OVERLAPMAMBA_URL": live_url}
     with PlaceRecognitionClient(live_url) as pr:
         for name, path in paths.items():
-            res = runner.invoke(
-                app, ["ingest", str(path), "--map", "bags", "--odometry", "/odom"], env=env
-            )
+            where = ["--tf", "map"] if name in ("mcap", "ros1.bag") else ["--odometry", "/odom"]
+            res = runner.invoke(app, ["ingest", str(path), "--map", "bags", *where], env=env)
             assert res.exit_code == 0, res.output
             assert f"{len(FRAMES)} new keyframes" in res.output
             session = open_drive(path).name
@@ -100,12 +107,13 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
                 assert top.distance < 1e-5 and top.keyframe_id.endswith(f"-{i:06d}"), name
                 kf = pr.get_keyframe("bags", f"{session}-{i:06d}")
                 assert kf.pose is not None and kf.timestamp == pytest.approx(1.0 + 0.1 * i)
+                np.testing.assert_allclose(kf.pose[:3], poses[i][:3, 3], atol=1e-4)
     res = runner.invoke(app, ["ingest", str(paths["mcap"]), "--map", "bags", "--topic", "/x"])
     assert res.exit_code == 2 and "no PointCloud2 topic '/x'" in res.output
 
 
 @pytest.mark.timeout(300)
-def test_eval_reads_a_recording_with_odometry_as_it_reads_the_folder(recordings, tmp_path):
+def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tmp_path):
     """The same four scans and poses as a KITTI folder and as a ROS 1 bag: the same numbers."""
     pytest.importorskip("torch")
     import json
@@ -127,7 +135,7 @@ def test_eval_reads_a_recording_with_odometry_as_it_reads_the_folder(recordings,
     base = ["eval", "--checkpoint", str(ckpt), "-q", "--json"]
     res = runner.invoke(app, [*base, str(tmp_path / "a.json"), "--sequence", str(folder)])
     assert res.exit_code == 0, res.output
-    bag = ["--sequence", str(paths["ros1.bag"]), "--odometry", "/odom"]
+    bag = ["--sequence", str(paths["ros1.bag"]), "--tf", "map"]  # poses from /tf
     res = runner.invoke(app, [*base, str(tmp_path / "b.json"), *bag])
     assert res.exit_code == 0, res.output
     a, b = (json.loads((tmp_path / f"{n}.json").read_text())["metrics"] for n in "ab")
@@ -137,8 +145,8 @@ def test_eval_reads_a_recording_with_odometry_as_it_reads_the_folder(recordings,
     from model_export.rangecache import range_images
 
     _, profile, _ = load_model(ckpt)
-    seq, bag = open_sequence(folder), open_bag(paths["ros1.bag"], odometry="/odom")
+    seq, bag = open_sequence(folder), open_bag(paths["ros1.bag"], tf="map")
     np.testing.assert_array_equal(range_images(seq, profile), range_images(bag, profile))
-    np.testing.assert_allclose(seq.positions(), bag.positions(), atol=1e-6)
+    np.testing.assert_allclose(seq.positions(), bag.positions(), atol=1e-5)
     res = runner.invoke(app, ["eval", "--checkpoint", str(ckpt), "--sequence", str(paths["mcap"])])
     assert res.exit_code != 0 and "--odometry" in res.output

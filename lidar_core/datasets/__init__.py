@@ -4,10 +4,11 @@ open_sequence("path/to/00")                    auto-detects the layout
 open_sequence("path/to/scene", kind="pcd-folder", sensor="hdl32")
 
 open_recording("drive.mcap", topic="/points", odometry="/odom")
-                                               a sequence folder or a ROS recording
+open_recording("drive.bag", tf="map")          a sequence folder or a ROS recording
 
 ROS recordings (a ROS 1 bag, a rosbag2 folder, a bare MCAP file; ``lidar_core.datasets.
-bags``) carry no loop ground truth, and poses only when an odometry topic is named; they
+bags``) carry no loop ground truth, and poses only when an odometry topic or a /tf frame
+is named; they
 offer what the client's drives and ``overlapmamba eval`` read of a sequence.
 """
 
@@ -61,22 +62,24 @@ def open_recording(
     *,
     topic: str | None = None,
     odometry: str | None = None,
+    tf: str | None = None,
     need_poses: bool = False,
 ) -> Any:
     """A sequence folder (``open_sequence``) or a ROS recording (``bags.open_bag``: its
-    PointCloud2 ``topic``, poses from its ``odometry`` topic): a ``Sequence`` or a ``Bag``.
-    ``need_poses``: a recording must then name its odometry. Raises DatasetError."""
+    PointCloud2 ``topic``, poses from its ``odometry`` topic or from /tf in the ``tf`` frame):
+    a ``Sequence`` or a ``Bag``. ``need_poses``: a recording must then say where its poses
+    are. Raises DatasetError."""
     from lidar_core.datasets.bags import is_bag, open_bag
 
     if not is_bag(path):
-        if topic is not None or odometry is not None:
+        if topic is not None or odometry is not None or tf is not None:
             raise DatasetError(
-                f"{path} is a sequence folder: topics (--topic, --odometry) are for ROS recordings"
+                f"{path} is a sequence folder: --topic, --odometry and --tf are for ROS recordings"
             )
         return open_sequence(path)
-    if need_poses and odometry is None:
+    if need_poses and odometry is None and tf is None:
         raise DatasetError(
             f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "
-            "(--odometry)"
+            "(--odometry) or the fixed frame of its /tf (--tf map)"
         )
-    return open_bag(path, topic=topic, odometry=odometry)
+    return open_bag(path, topic=topic, odometry=odometry, tf=tf)

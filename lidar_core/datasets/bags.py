@@ -7,18 +7,22 @@
 A topic of ``sensor_msgs/msg/PointCloud2`` becomes a drive's scans, in the order recorded,
 each decoded by :func:`lidar_core.io.pointcloud2.decode_message` (so every field layout a
 driver sends works, and a malformed message names what is wrong). Times are the bag's
-receive times. Poses come from a ``nav_msgs/msg/Odometry`` topic when one is named: the
-odometry message nearest in time to each scan (within ``max_pose_gap_s``), its pose taken
-as the scan's (the odometry's child frame taken as the LiDAR's).
+receive times. Poses, when asked for, are each scan's at its header stamp, from one of:
 
-Not read here: ``/tf`` frame pairs (a transform tree needs buffering and interpolation;
-record odometry in the LiDAR's frame, or convert it first).
+    odometry="/odom"           a nav_msgs/msg/Odometry topic: its pose (the child frame
+                               taken as the LiDAR's), interpolated between messages
+    tf="map"                   /tf and /tf_static: the scans' frame (their header frame_id)
+    tf="map:base_link"         or the named one, in the named fixed frame, through the chain
+                               of transforms between them (``lidar_core.tf_tree``)
+
+A scan whose nearest pose sample is more than ``max_pose_gap_s`` away is refused.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,11 +33,14 @@ from lidar_core.errors import DatasetError
 from lidar_core.io.pointcloud2 import decode_message
 from lidar_core.points import PointCloud
 from lidar_core.poses import from_quaternion
+from lidar_core.tf_tree import TransformTree
 
 PREFETCH = 8  # scans decoded per seek
 CACHED = 32  # scans kept (≈ 2 MB each for a 120k-point scan)
 POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
 ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+TF = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage", "tf/tfMessage")
+TF_TOPICS = {"/tf": False, "/tf_static": True}  # topic -> static
 
 
 def is_bag(path: str | Path) -> bool:
@@ -145,53 +152,122 @@ def open_bag(
     *,
     topic: str | None = None,
     odometry: str | None = None,
+    tf: str | None = None,
     max_pose_gap_s: float = 0.1,
 ) -> Bag:
     """Index a recording's PointCloud2 topic (``topic``: which, when it holds several) and,
-    when ``odometry`` names a topic, each scan's pose. Raises DatasetError naming what is
-    wrong and what the recording holds."""
+    when ``odometry`` names a topic or ``tf`` a frame ("FIXED" or "FIXED:CHILD"), each
+    scan's pose. Raises DatasetError naming what is wrong and what the recording holds."""
     path = Path(path)
     if not is_bag(path):
         raise DatasetError(
             f"{path} is not a ROS recording; allowed: a .bag file, a rosbag2 folder "
             "(metadata.yaml) or a .mcap file"
         )
+    if odometry is not None and tf is not None:
+        raise DatasetError("poses come from an odometry topic or from /tf, not both")
     try:
         with _reader(path) as r:
-            clouds = sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2})
-            if topic is None:
-                if len(clouds) != 1:
-                    raise DatasetError(
-                        f"{path}: {len(clouds)} PointCloud2 topics "
-                        f"({', '.join(clouds) or 'none'}); name one with --topic",
-                        topics=clouds,
-                    )
-                topic = clouds[0]
-            elif topic not in clouds:
-                raise DatasetError(
-                    f"{path}: no PointCloud2 topic {topic!r}; it has {', '.join(clouds) or 'none'}",
-                    topics=clouds,
-                )
+            topic = _cloud_topic(r, path, topic)
             cons = [c for c in r.connections if c.topic == topic]
-            stamps = np.array([t for _, t, _ in r.messages(connections=cons)], dtype=np.int64)
+            stamps, headers = [], []
+            for con, t, raw in r.messages(connections=cons):
+                stamps.append(t)
+                if odometry is not None or tf is not None:
+                    h = r.deserialize(raw, con.msgtype).header
+                    headers.append((h.stamp.sec * 10**9 + h.stamp.nanosec, h.frame_id))
+            if not stamps:
+                raise DatasetError(f"{path}: topic {topic} holds no messages")
             poses = None
             if odometry is not None:
-                poses = _odometry_poses(r, path, odometry, stamps, max_pose_gap_s)
+                with _named(path):
+                    tree = _odometry_tree(r, path, odometry)
+                    poses = tree.lookup(
+                        odometry, "scan", _stamps(path, headers), max_gap_s=max_pose_gap_s
+                    )
+            elif tf is not None:
+                fixed, _, child = tf.partition(":")
+                with _named(path):
+                    tree = _tf_tree(r, path)
+                    child = child or _frame(path, topic, headers)
+                    poses = tree.lookup(
+                        fixed.lstrip("/"),
+                        child.lstrip("/"),
+                        _stamps(path, headers),
+                        max_gap_s=max_pose_gap_s,
+                    )
     except DatasetError:
         raise
     except Exception as err:  # rosbags raises its own types for damaged files
         raise DatasetError(f"{path}: the recording cannot be read: {err}") from err
-    if not len(stamps):
-        raise DatasetError(f"{path}: topic {topic} holds no messages")
-    order = np.argsort(stamps, kind="stable")
-    if not np.array_equal(order, np.arange(len(stamps))):
+    ns = np.asarray(stamps, dtype=np.int64)
+    if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
         raise DatasetError(f"{path}: {topic} is not in time order")
-    return Bag(path, topic, stamps, poses)
+    return Bag(path, topic, ns, poses)
 
 
-def _odometry_poses(
-    r: Any, path: Path, topic: str, stamps: np.ndarray, max_gap_s: float
-) -> np.ndarray:
+@contextmanager
+def _named(path: Path) -> Iterator[None]:
+    """A transform tree's errors, prefixed with the recording they are about."""
+    try:
+        yield
+    except DatasetError as err:
+        if str(err).startswith(f"{path}:"):
+            raise
+        raise DatasetError(f"{path}: {err}", **err.detail) from err
+
+
+def _cloud_topic(r: Any, path: Path, topic: str | None) -> str:
+    clouds = sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2})
+    if topic is None:
+        if len(clouds) != 1:
+            raise DatasetError(
+                f"{path}: {len(clouds)} PointCloud2 topics ({', '.join(clouds) or 'none'}); "
+                "name one with --topic",
+                topics=clouds,
+            )
+        return clouds[0]
+    if topic not in clouds:
+        raise DatasetError(
+            f"{path}: no PointCloud2 topic {topic!r}; it has {', '.join(clouds) or 'none'}",
+            topics=clouds,
+        )
+    return topic
+
+
+def _stamps(path: Path, headers: list[tuple[int, str]]) -> np.ndarray:
+    """The scans' header stamps, the times their poses are looked up at."""
+    stamps = np.array([s for s, _ in headers], dtype=np.int64)
+    if not stamps.any():
+        raise DatasetError(f"{path}: the scans' header stamps are all zero; poses need them")
+    return stamps
+
+
+def _frame(path: Path, topic: str, headers: list[tuple[int, str]]) -> str:
+    """The scans' frame (their header frame_id), the child frame of their /tf poses."""
+    frames = sorted({f for _, f in headers})
+    if len(frames) != 1 or not frames[0]:
+        raise DatasetError(
+            f"{path}: the scans of {topic} are in frames {frames}; name the LiDAR's frame "
+            "with --tf FIXED:CHILD"
+        )
+    return frames[0]
+
+
+def _pose(p: Any) -> np.ndarray:
+    """geometry_msgs Pose or Transform → 4×4."""
+    xyz = p.position if hasattr(p, "position") else p.translation
+    o = p.orientation if hasattr(p, "orientation") else p.rotation
+    return from_quaternion([xyz.x, xyz.y, xyz.z], [o.x, o.y, o.z, o.w])
+
+
+def _stamp(header: Any) -> int:
+    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
+
+
+def _odometry_tree(r: Any, path: Path, topic: str) -> TransformTree:
+    """The odometry topic as one link, topic → "scan" (its frame names, often unset
+    by hand-written nodes, are not needed)."""
     cons = [c for c in r.connections if c.topic == topic]
     if not cons or cons[0].msgtype not in ODOMETRY:
         have = sorted({c.topic for c in r.connections if c.msgtype in ODOMETRY})
@@ -199,30 +275,28 @@ def _odometry_poses(
             f"{path}: no nav_msgs/Odometry topic {topic!r}; it has {', '.join(have) or 'none'}",
             topics=have,
         )
-    times, poses = [], []
-    for con, t, raw in r.messages(connections=cons):
-        p = r.deserialize(raw, con.msgtype).pose.pose
-        times.append(t)
-        o = p.orientation
-        poses.append(
-            from_quaternion([p.position.x, p.position.y, p.position.z], [o.x, o.y, o.z, o.w])
-        )
-    if not times:
+    tree = TransformTree()
+    for con, _, raw in r.messages(connections=cons):
+        msg = r.deserialize(raw, con.msgtype)
+        tree.add(topic, "scan", _stamp(msg.header), _pose(msg.pose.pose))
+    if not tree.frames:
         raise DatasetError(f"{path}: odometry topic {topic} holds no messages")
-    t = np.asarray(times, dtype=np.int64)
-    nearest = (
-        np.clip(np.searchsorted(t, stamps), 1, len(t) - 1)
-        if len(t) > 1
-        else np.zeros(len(stamps), dtype=np.int64)
-    )
-    if len(t) > 1:
-        left = nearest - 1
-        nearest = np.where(np.abs(t[left] - stamps) <= np.abs(t[nearest] - stamps), left, nearest)
-    gap = np.abs(t[nearest] - stamps) / 1e9
-    if gap.max() > max_gap_s:
-        i = int(gap.argmax())
+    return tree
+
+
+def _tf_tree(r: Any, path: Path) -> TransformTree:
+    """Every transform on /tf (timed) and /tf_static (static)."""
+    cons = [c for c in r.connections if c.topic in TF_TOPICS and c.msgtype in TF]
+    if not cons:
         raise DatasetError(
-            f"{path}: scan {i} is {gap[i]:.3f} s from the nearest odometry message; allowed: "
-            f"at most {max_gap_s} s"
+            f"{path}: no /tf or /tf_static topic of tf2_msgs/TFMessage; name an odometry "
+            "topic instead (--odometry)"
         )
-    return np.stack([poses[j] for j in nearest])
+    tree = TransformTree()
+    for con, _, raw in r.messages(connections=cons):
+        for tr in r.deserialize(raw, con.msgtype).transforms:
+            parent, child = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
+            tree.add(
+                parent, child, _stamp(tr.header), _pose(tr.transform), static=TF_TOPICS[con.topic]
+            )
+    return tree

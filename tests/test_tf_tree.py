@@ -1,0 +1,73 @@
+"""The transform tree behind poses from /tf: chains through a common ancestor, interpolation
+between samples, the gap rule at and past the ends, and the trees it refuses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_core.errors import DatasetError
+from lidar_core.poses import rotation_z, yaw_deg
+from lidar_core.tf_tree import TransformTree, interpolate
+
+S = 10**9
+
+
+def _T(yaw: float, x: float = 0.0, y: float = 0.0) -> np.ndarray:
+    T = rotation_z(yaw)
+    T[:2, 3] = (x, y)
+    return T
+
+
+def test_interpolation_is_linear_in_translation_and_along_the_arc_in_rotation():
+    T0, T1 = _T(170.0, 0.0, 0.0), _T(-150.0, 4.0, 2.0)  # 40° apart across ±180°
+    a = np.array([0.0, 0.25, 0.5, 1.0])
+    got = interpolate(np.stack([T0] * 4), np.stack([T1] * 4), a)
+    for g, yaw in zip(got, 170.0 + 40.0 * a, strict=True):  # nlerp: 0.08° off at 0.25
+        np.testing.assert_allclose(g[:3, :3], rotation_z(yaw)[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(got[:, :3, 3], a[:, None] * [4.0, 2.0, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(got[0], T0)  # a sample's own time: the sample itself
+
+
+def test_a_chain_is_composed_through_the_common_ancestor():
+    tree = TransformTree()
+    tree.add("map", "odom", 0, _T(90.0, 10.0), static=True)
+    for t, x in ((1 * S, 0.0), (S + S // 10, 2.0)):
+        tree.add("odom", "base", t, _T(0.0, x))
+    tree.add("base", "lidar", 0, _T(0.0, 0.5), static=True)
+    tree.add("base", "camera", 0, _T(-90.0, 0.2), static=True)
+    at = np.array([1 * S, S + S // 20, S + S // 5 - S // 20])  # a sample, between, 50 ms past
+    lidar = tree.lookup("map", "lidar", at)
+    np.testing.assert_allclose(
+        lidar[:, :3, 3], [[10, 0.5, 0], [10, 1.5, 0], [10, 2.5, 0]], atol=1e-12
+    )
+    np.testing.assert_allclose(yaw_deg(lidar), 90.0)
+    sibling = tree.lookup("camera", "lidar", at)  # up to "base" and down again
+    np.testing.assert_allclose(sibling[0], np.linalg.inv(_T(-90.0, 0.2)) @ _T(0.0, 0.5), atol=1e-12)
+    np.testing.assert_allclose(tree.lookup("lidar", "map", at), np.linalg.inv(lidar), atol=1e-12)
+
+
+def test_trees_and_times_that_cannot_give_a_pose_are_refused_by_name():
+    tree = TransformTree()
+    tree.add("odom", "base", 1 * S, np.eye(4))
+    tree.add("odom", "base", 2 * S, np.eye(4))
+    with pytest.raises(DatasetError, match=r"'odom' → 'base' within 0.1 s of time 2.200 s"):
+        tree.lookup("odom", "base", np.array([2 * S + S // 5]))
+    with pytest.raises(DatasetError, match=r"within 0.1 s of time 1.500 s \(nearest 0.500 s"):
+        tree.lookup("odom", "base", np.array([S + S // 2]))  # a dropout between samples
+    with pytest.raises(DatasetError, match="two parents, 'odom' and 'map'"):
+        tree.add("map", "base", 0, np.eye(4))
+    tree.add("gps", "antenna", 0, np.eye(4), static=True)
+    with pytest.raises(DatasetError, match="not connected .* roots are 'gps' and 'odom'"):
+        tree.lookup("antenna", "base", np.array([S]))
+    with pytest.raises(DatasetError, match="frame 'lidar' is in no transform; frames: antenna"):
+        tree.lookup("odom", "lidar", np.array([S]))
+    tree.add("base", "gps", 0, np.eye(4), static=True)
+    tree.add("antenna", "odom", 0, np.eye(4), static=True)
+    with pytest.raises(DatasetError, match="cycle"):
+        tree.lookup("odom", "base", np.array([S]))
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    for parent, child, T in (("a", "a", np.eye(4)), ("", "b", np.eye(4)), ("a", "b", bad)):
+        with pytest.raises(DatasetError, match="frames must be named and differ|finite 4×4"):
+            tree.add(parent, child, 0, T)
