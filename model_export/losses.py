@@ -34,6 +34,7 @@ number that shows a collapse: 100 % active with a falling spread.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import torch
@@ -225,4 +226,7 @@ def batch_triplet(
     return BatchLoss(value, active, used)
 
 
-BATCH_LOSSES = {"imtrihard": batch_hard_imtrihard, "triplet": batch_triplet}
+BATCH_LOSSES: dict[str, Callable[..., BatchLoss]] = {
+    "imtrihard": batch_hard_imtrihard,
+    "triplet": batch_triplet,
+}

@@ -66,7 +66,8 @@ class OverlapMambaConfig:
     extra: dict = field(default_factory=dict)  # free-form notes carried in checkpoints
 
     def __post_init__(self) -> None:
-        sizes = ("height", "width", "d_model", "d_state", "expand", "d_conv", "dt_rank")
+        sizes: tuple[str, ...] = ("height", "width", "d_model", "d_state", "expand", "d_conv")
+        sizes += ("dt_rank",)
         sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels", "heads")
         sizes += ("ff_dim",)
         for name in sizes:

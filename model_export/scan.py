@@ -204,7 +204,7 @@ def selective_scan_loop(
     return y[:, :L] + D * u[:, :L]
 
 
-def _loop(fn, init, xs):  # type: ignore[no-untyped-def]
+def _loop(fn, init, xs):
     """torch's scan operator: exported as an ONNX ``Scan`` node, run as a loop in eager."""
     from torch._higher_order_ops.scan import scan as scan_op
 

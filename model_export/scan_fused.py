@@ -28,7 +28,7 @@ def _ptr(t: Tensor) -> ctypes.c_void_p:
     return ctypes.c_void_p(t.data_ptr())
 
 
-def _run_split(fn, B: int, *args) -> None:  # type: ignore[no-untyped-def]
+def _run_split(fn, B: int, *args) -> None:
     """Call fn(*args, b0, b1) over the batch, split across torch's thread count."""
     run_split(fn, B, torch.get_num_threads(), *args)
 
@@ -43,7 +43,7 @@ def _suffix(dtype: torch.dtype) -> str:
 
 class _FusedScan(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, u, delta, A, Bt, Ct, D, circular):  # type: ignore[override]
+    def forward(ctx, u, delta, A, Bt, Ct, D, circular):
         # u, delta: (B, E, L); A: (E, N); Bt, Ct: (B, L, N); D: (E,)
         lib = load()
         u, delta, A, Bt, Ct, D = (x.contiguous() for x in (u, delta, A, Bt, Ct, D))
@@ -58,7 +58,7 @@ class _FusedScan(torch.autograd.Function):
         return y
 
     @staticmethod
-    def backward(ctx, dy):  # type: ignore[override]
+    def backward(ctx, dy):
         u, delta, A, Bt, Ct, D = ctx.saved_tensors
         dy = dy.contiguous()
         Bsz, E, L = u.shape

@@ -80,11 +80,11 @@ def selective_scan_op(
 
 
 @selective_scan_op.register_fake
-def _(u, delta, A, Bm, Cm, D, circular, chunk=None):  # type: ignore[no-untyped-def]
+def _(u, delta, A, Bm, Cm, D, circular, chunk=None):
     return torch.empty_like(u)
 
 
-def _translate(u, delta, A, Bm, Cm, D, circular: bool = False, chunk: int | None = None):  # type: ignore[no-untyped-def]
+def _translate(u, delta, A, Bm, Cm, D, circular: bool = False, chunk: int | None = None):
     op = getattr(_OPSET, SCAN_OPS[bool(circular)])
     return op(u, delta, A, Bm, Cm, D)
 
@@ -97,11 +97,11 @@ class _Body(torch.nn.Module):
         super().__init__()
         self.circular, self.chunk = circular, chunk
 
-    def forward(self, u, delta, A, Bm, Cm, D):  # type: ignore[no-untyped-def]
+    def forward(self, u, delta, A, Bm, Cm, D):
         return selective_scan_loop(u, delta, A, Bm, Cm, D, self.circular, self.chunk)
 
 
-def quiet_export(module: torch.nn.Module, args: tuple, **kwargs) -> onnx.ModelProto:  # type: ignore[no-untyped-def]
+def quiet_export(module: torch.nn.Module, args: tuple, **kwargs) -> onnx.ModelProto:
     """torch.onnx.export (dynamo) without its progress lines and warnings; raises what it
     raises, with the end of what it printed as a note (the caller names the step)."""
     sink = io.StringIO()

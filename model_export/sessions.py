@@ -97,11 +97,11 @@ def _ground_truth(pos_db: np.ndarray, pos_q: np.ndarray, radius: float) -> np.nd
 
 
 def _recalls(ranked: np.ndarray, near: np.ndarray) -> dict[str, Any]:
-    evaluated = near.any(1)
+    evaluated = np.asarray(near.any(1))
     hits = np.take_along_axis(near, np.clip(ranked, 0, None), 1) & (ranked >= 0)
     out: dict[str, Any] = {"queries": int(evaluated.sum()), "queries_total": len(near)}
     for n in RECALL_AT:
-        ok = hits[:, :n].any(1)[evaluated]
+        ok = np.asarray(hits[:, :n].any(1))[evaluated]
         out[f"ar@{n}"] = float(ok.mean()) if len(ok) else float("nan")
     return out
 

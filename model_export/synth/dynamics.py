@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -112,7 +113,11 @@ class Dynamics:
         """Every dynamic object near the ego car at ``center`` (x, y), facing ``heading``
         (radians), at time ``t``."""
         p, w = self.p, self.world
-        xy, yaw, size, alb, kind = [], [], [], [], []
+        xy: list[Any] = []
+        yaw: list[Any] = []
+        size: list[Any] = []
+        alb: list[Any] = []
+        kind: list[Any] = []
 
         # Parked cars.
         win = ((t + self.park_phase) // p.park_window).astype(int)

@@ -23,8 +23,9 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -170,7 +171,7 @@ def simulate_scans(
     bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
     if workers <= 1:
         _init_worker(*args)
-        done = map(_simulate, range(cfg.frames))
+        done: Iterable[tuple[int, int]] = map(_simulate, range(cfg.frames))
     else:
         done = (
             res
@@ -224,7 +225,7 @@ def compute_ground_truth(
     bar = tqdm(total=len(pairs), desc="overlap ground truth", unit="pair", disable=not progress)
     results: list = [None] * len(jobs)
     if workers <= 1:
-        done = enumerate(map(_overlap_chunk, jobs))
+        done: Iterable[tuple[int, Any]] = enumerate(map(_overlap_chunk, jobs))
     else:
         done = run_jobs(
             _overlap_chunk, jobs, workers=workers, stall_timeout_s=stall_timeout_s, what="chunk"

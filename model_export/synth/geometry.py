@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 # name → (id, base reflectivity, probability that a ray passes through a hit face)
 # Foliage and chain-link fences are porous to a LiDAR: some rays hit, some reach what is behind.
@@ -157,12 +158,12 @@ def template(name: str) -> Template:
 
 def instances(
     tpl: Template,
-    center: np.ndarray,
-    yaw: np.ndarray,
-    size: np.ndarray,
-    z0: np.ndarray,
+    center: ArrayLike,
+    yaw: ArrayLike,
+    size: ArrayLike,
+    z0: ArrayLike,
     materials: list[int] | np.ndarray,
-    albedo: np.ndarray,
+    albedo: ArrayLike,
 ) -> Mesh:
     """K placed copies of a template.
 

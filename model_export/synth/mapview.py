@@ -68,7 +68,7 @@ def draw_map(
             lw=0,
         )
         fig.colorbar(sc, ax=ax, fraction=0.035, pad=0.02, label="frame")
-        for idx, marker, colour, label in (
+        for idx, marker, edge, label in (
             (same_dir, "o", "#1565c0", "revisit, same direction"),
             (reverse_dir, "^", "#d81b60", "revisit, opposite direction"),
         ):
@@ -79,7 +79,7 @@ def draw_map(
                     s=9,
                     marker=marker,
                     facecolors="none",
-                    edgecolors=colour,
+                    edgecolors=edge,
                     lw=0.6,
                     label=f"{label} ({len(idx)})",
                 )

@@ -38,6 +38,8 @@ crosses its own path, so a fixed seed is checked once here rather than hoped for
 
 from __future__ import annotations
 
+from typing import Any
+
 from model_export.synth.generate import GenConfig
 
 _TINY: dict = {
@@ -52,7 +54,7 @@ _DENSE_REVISITS = {"revisit_every": [120, 300], "revisit_min_age": 200}
 
 
 # Held-out towns need only their loop table (see the module notes).
-_EVAL = {"pair_table": "loops"}
+_EVAL: dict[str, Any] = {"pair_table": "loops"}
 
 
 def _train(name: str, seed: int, world: dict) -> GenConfig:
