@@ -15,9 +15,9 @@
    sizes (the ``/v1/stats`` histogram, before/after difference), with micro-batching (the
    defaults) and without (``OVERLAPMAMBA_BATCHING__MAX_BATCH=1``). The clients share this
    machine's cores with the server.
-3. **Search** — ``service.index.VectorIndex`` in process, 256-d float32 unit vectors, flat
-   (exact) and IVF (nlist = ``ivf_lists(N)``) over an nprobe sweep: per-query p50/p99 at
-   nq = 1 with ``faiss.omp_set_num_threads(1)`` (FAISS parallelises over queries, so a
+3. **Search** — ``service.backends.faiss.index.VectorIndex`` in process, 256-d float32 unit
+   vectors, flat (exact) and IVF (nlist = ``ivf_lists(N)``) over an nprobe sweep: per-query
+   p50/p99 at nq = 1 with ``faiss.omp_set_num_threads(1)`` (FAISS parallelises over queries, so a
    single-query search runs on one thread in the service too; builds use every core),
    recall@10 against the flat
    index, build times, and the filtered path (an ``allowed`` mask excluding ~half the ids)
@@ -69,8 +69,8 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.io import decode
+from service.backends.faiss.index import VectorIndex
 from service.encoder import Encoder
-from service.index import VectorIndex
 from service.settings import BatchSettings, IndexSettings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -34,11 +34,11 @@ from rich.table import Table
 
 from lidar_core.io import read_points
 from lidar_core.yaw import estimate_yaw
-from service.backend import Filters, content_hash, open_backend
+from service.backends.factory import open_backend
+from service.backends.qdrant.codec import point_payload
+from service.domain import Filters, NewKeyframe, content_hash
 from service.encoder import Encoder
-from service.qdrant import point_payload
 from service.settings import Settings
-from service.store import NewKeyframe
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -175,7 +175,7 @@ def search_stage(
     parts, per (FAISS threads, load)."""
     import threading
 
-    from service.index import set_threads
+    from service.backends.faiss.index import set_threads
 
     b = open_backend(Settings(data_dir=root), model_id="bench", dim=dim)
     b.load_all()

@@ -1027,7 +1027,7 @@ def doctor_cmd(
         enc = Encoder(settings.model, intra_op_threads=1)
         model_id, dim = enc.model_id, enc.dim
     if settings.index.backend == "qdrant":
-        from service.backend import open_backend
+        from service.backends.factory import open_backend
 
         backend = open_backend(settings, model_id=model_id or "", dim=dim or 0)
         try:

@@ -19,22 +19,22 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
-from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from lidar_core.errors import LidarCoreError, PointCountError
 from service.api import descriptors, keyframes, maps, queries, system
 from service.auth import Authenticator
-from service.backend import open_backend
+from service.backends.factory import open_backend
 from service.backup import data_dir_lock
-from service.core import PlaceService
 from service.encoder import Encoder
 from service.errors import PayloadTooLarge, ServiceError, Unavailable, error_body
 from service.logs import configure as configure_logs
 from service.logs import new_request_id, request_id
+from service.places import PlaceService
 from service.schemas import DescriptorQueryIn, KeyframeBatchIn
 from service.settings import Settings
+from service.threads import in_thread
 
 log = logging.getLogger("overlapmamba.service")
 access = logging.getLogger("overlapmamba.access")
@@ -186,7 +186,7 @@ async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
     delay = 0.5
     while True:
         try:
-            await run_in_threadpool(registry.load_all)
+            await in_thread(registry.load_all)
             break
         except Unavailable as err:  # Qdrant not up yet: a replica may start before it
             app.state.stage = f"waiting for the index: {err.message}"
@@ -198,7 +198,7 @@ async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
             app.state.stage = f"failed: {type(err).__name__}: {err}"
             return
     try:
-        loaded = await run_in_threadpool(
+        loaded = await in_thread(
             lambda: [(m.map_id, m.model_id, m.count) for m in registry.snapshot_list()]
         )
     except Exception as err:  # e.g. Qdrant went away meanwhile: /readyz reports it
@@ -232,7 +232,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             if enc is None:
                 threads = settings.batching.intra_op_threads
                 kernel = settings.scan_kernel
-                enc = await run_in_threadpool(
+                enc = await in_thread(
                     lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
                 )
             log.info(
@@ -261,7 +261,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                     await loader
                 await svc.pipeline.stop()
                 t0 = time.perf_counter()
-                await run_in_threadpool(registry.close)
+                await in_thread(registry.close)
                 log.info(
                     "stopped: %s maps closed in %.2f s",
                     registry.name,

@@ -17,8 +17,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from service.schemas import check_map_id
-from service.store import READABLE_VERSIONS, Store, fsync_dir
+from service.backends.faiss.store import READABLE_VERSIONS, Store, fsync_dir
+from service.domain import check_map_id
 
 LOCK_NAME = "service.lock"
 

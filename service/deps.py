@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from service.auth import Action, Authenticator, Principal, presented_key
-from service.core import PlaceService
 from service.errors import NotReady
+from service.places import PlaceService
 
 
 def get_service(request: Request) -> PlaceService:

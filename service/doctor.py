@@ -29,13 +29,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from service.backend import MapBackend
+from service.backends.base import MapBackend
+from service.backends.faiss.snapshot import SNAPSHOT_MAGIC, read_snapshot
+from service.backends.faiss.store import Store
 from service.backup import LOCK_NAME
+from service.domain import MAP_ID
 from service.errors import ServiceError
-from service.maps import SNAPSHOT_MAGIC, read_snapshot
-from service.schemas import MAP_ID
 from service.settings import IndexSettings
-from service.store import Store
 
 Status = Literal["ok", "warn", "error"]
 

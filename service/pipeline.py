@@ -24,13 +24,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from starlette.concurrency import run_in_threadpool
 
 from lidar_core.points import PointCloud
 from service.batcher import MicroBatcher
-from service.bodies import ScanBody, decode_scan
 from service.encoder import Encoder
+from service.scans import ScanBody, decode_scan
 from service.settings import BatchSettings, LimitSettings
+from service.threads import in_thread
 from service.verify import Prepared, RegistrationParams, prepare
 
 
@@ -85,11 +85,11 @@ class ScanPipeline:
     ) -> Description:
         """``registration``: also prepare the points for verification, while the encoder
         works (its wait, if any, is added to the encode stage)."""
-        image, points, timings = await run_in_threadpool(self._prepare, scan)
+        image, points, timings = await in_thread(self._prepare, scan)
         t0 = time.perf_counter()
         task = None
         if registration is not None:
-            task = asyncio.ensure_future(run_in_threadpool(prepare, points.xyz, registration))
+            task = asyncio.ensure_future(in_thread(prepare, points.xyz, registration))
         try:
             desc, yaw = await self.batcher.encode(image, timeout_s=self.limits.request_timeout_s)
             prepared = await task if task is not None else None

@@ -3,20 +3,17 @@
 from __future__ import annotations
 
 import math
-import re
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.errors import BadRequest
-from service.settings import MAP_ID_PATTERN, IndexKind
+from service.domain import POSE_FORMAT
+from service.settings import IndexKind
 
 # No ":" in names: observe keyframes are named robot:session:timestamp, which stays unique
 # and within the 256 characters of a keyframe id.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}$"
 KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
-MAP_ID = re.compile(MAP_ID_PATTERN)
-POSE_FORMAT = "x,y,z,qx,qy,qz,qw (7 finite numbers, metres and a non-zero quaternion)"
 
 
 class _Model(BaseModel):
@@ -312,13 +309,3 @@ class SnapshotOut(BaseModel):
 class Health(BaseModel):
     status: str
     detail: dict[str, Any] = Field(default_factory=dict)
-
-
-def check_map_id(map_id: str) -> str:
-    if not MAP_ID.fullmatch(map_id):
-        raise BadRequest(
-            f"map id {map_id!r} is not allowed; allowed: {MAP_ID_PATTERN} "
-            "(lower-case letters, digits, '_' and '-', at most 64 characters)",
-            pattern=MAP_ID_PATTERN,
-        )
-    return map_id

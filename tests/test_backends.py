@@ -12,11 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.backend import Filters, MapBackend, content_hash, open_backend
+from service.backends.base import MapBackend
+from service.backends.factory import open_backend
+from service.backends.faiss.index import search_reference
+from service.domain import Filters, NewKeyframe, content_hash
 from service.errors import BadRequest, Conflict, NotFound
-from service.index import search_reference
 from service.settings import Settings
-from service.store import NewKeyframe
 
 DIM = 32
 MODEL_ID = "test-model"
@@ -204,7 +205,7 @@ def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(
     client per folder, so the second "replica" shares the first one's client)."""
     from qdrant_client import models
 
-    from service.qdrant import QdrantBackend
+    from service.backends.qdrant.backend import QdrantBackend
 
     s = settings_for("qdrant", tmp_path)
     with opened("qdrant", tmp_path) as a:

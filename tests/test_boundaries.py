@@ -62,8 +62,14 @@ def test_shared_core_imports_no_heavy_or_sibling_package():
     [
         # Each map backend loads only its own engine; the app loads the configured one.
         ("service.app", {"torch", "model_export", "client", "qdrant_client"}),
-        ("service.maps", {"torch", "model_export", "client", "onnxruntime", "qdrant_client"}),
-        ("service.qdrant", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
+        (
+            "service.backends.faiss.backend",
+            {"torch", "model_export", "client", "onnxruntime", "qdrant_client"},
+        ),
+        (
+            "service.backends.qdrant.backend",
+            {"torch", "model_export", "client", "onnxruntime", "faiss"},
+        ),
         ("service.logs", set(HEAVY) | {"model_export", "client"}),
         ("service.backup", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
         ("client", {"torch", "onnxruntime", "faiss", "service", "model_export"}),

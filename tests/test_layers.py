@@ -1,7 +1,10 @@
 """The service's data path only goes down: routes → use cases → scan pipeline → parts.
 
 Read from the source (no imports run): a module may import service modules of its own layer
-or below, never one above it. The order is the one README "One /observe" walks through."""
+or below, never one above it. The order is the one README "One /observe" walks through.
+Beside the scan path: no service module imports another that (through any chain) imports it
+back, and HTTP (FastAPI, Starlette, the HTTP schemas) stays at the edge — the app, the
+routes and what they alone use."""
 
 from __future__ import annotations
 
@@ -21,22 +24,55 @@ LAYERS = [
         "service.api.system",
     ],
     ["service.deps"],
-    ["service.core"],
+    ["service.places"],
     ["service.pipeline"],
-    ["service.batcher", "service.bodies", "service.encoder"],
+    ["service.batcher", "service.scans", "service.encoder"],
     ["service.fastscan"],
 ]
 
 
-def service_imports(module: str) -> set[str]:
-    tree = ast.parse((ROOT / (module.replace(".", "/") + ".py")).read_text())
+# the HTTP edge: what may import fastapi, starlette or service.schemas
+EDGE = {"service.app", "service.deps", "service.auth", "service.bodies", "service.schemas"}
+HTTP = ("fastapi", "starlette", "service.schemas")
+
+
+def _source(module: str) -> Path:
+    path = ROOT / module.replace(".", "/")
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+
+
+def imports(module: str) -> set[str]:
+    """Every module ``module`` imports, at any depth of its code, except under
+    ``if TYPE_CHECKING:`` (annotations only; nothing runs)."""
+    tree = ast.parse(_source(module).read_text())
+    skip = {
+        id(n)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and ast.unparse(node.test).endswith("TYPE_CHECKING")
+        for body in node.body
+        for n in ast.walk(body)
+    }
     found = set()
     for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             found.add(node.module)
         elif isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
-    return {m for m in found if m.startswith("service.")}
+    return found
+
+
+def service_imports(module: str) -> set[str]:
+    return {m for m in imports(module) if m.startswith("service.")}
+
+
+def service_modules() -> list[str]:
+    out = []
+    for path in sorted((ROOT / "service").rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        out.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return out
 
 
 def test_the_scan_path_only_imports_downward():
@@ -49,11 +85,43 @@ def test_the_scan_path_only_imports_downward():
     ]
     assert not upward, upward
     # and the path is really wired through these layers
-    assert "service.core" in service_imports("service.api.queries")
-    assert "service.pipeline" in service_imports("service.core")
-    assert {"service.batcher", "service.bodies"} <= service_imports("service.pipeline")
+    assert "service.places" in service_imports("service.api.queries")
+    assert "service.pipeline" in service_imports("service.places")
+    assert {"service.batcher", "service.scans"} <= service_imports("service.pipeline")
     # routes reach scans only through the use cases, never the pipeline or encoder itself
     for route in LAYERS[1]:
         assert not {"service.pipeline", "service.batcher", "service.encoder"} & service_imports(
             route
         ), route
+
+
+def test_nothing_below_the_routes_knows_http():
+    modules = service_modules()
+    assert "service.backends.faiss.map" in modules and "service.places" in modules
+    leaks = [
+        f"{m} imports {dep}"
+        for m in modules
+        if m not in EDGE and not m.startswith("service.api")
+        for dep in sorted(imports(m))
+        if dep.startswith(HTTP)
+    ]
+    assert not leaks, leaks
+
+
+def test_no_import_loop_in_the_service():
+    graph = {m: service_imports(m) & set(service_modules()) for m in service_modules()}
+    loops = []
+
+    def visit(m: str, path: list[str]) -> None:
+        for dep in sorted(graph[m]):
+            if dep in path:
+                loops.append(" → ".join([*path[path.index(dep) :], dep]))
+            elif dep not in done:
+                visit(dep, [*path, dep])
+        done.add(m)
+
+    done: set[str] = set()
+    for m in graph:
+        if m not in done:
+            visit(m, [m])
+    assert not loops, loops

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from service_kit import MODEL, OCTET, running, scan, server, server_log
 
+from service.backends.faiss.map import FaissMap
 from service.doctor import diagnose
+from service.domain import NewKeyframe
 from service.encoder import Encoder
 from service.logs import JsonFormatter, new_request_id, request_id
-from service.maps import Map
 from service.settings import IndexSettings, Settings
-from service.store import NewKeyframe
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -153,10 +153,10 @@ def test_sigterm_drains_requests_in_flight_then_snapshots(tmp_path):
 # ---- the doctor -----------------------------------------------------------------------------
 
 
-def _map_with_rows(root: Path, n: int, *, model_id: str = "m1") -> Map:
+def _map_with_rows(root: Path, n: int, *, model_id: str = "m1") -> FaissMap:
     s = IndexSettings(kind="flat", snapshot_every=10_000)
     folder = root / "maps" / "town"
-    m = Map.create("town", folder, model_id=model_id, dim=8, kind="flat", settings=s)
+    m = FaissMap.create("town", folder, model_id=model_id, dim=8, kind="flat", settings=s)
     rng = np.random.default_rng(0)
     vecs = rng.normal(size=(n, 8))
     vecs = (vecs / np.linalg.norm(vecs, axis=1, keepdims=True)).astype(np.float32)

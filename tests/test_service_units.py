@@ -15,9 +15,12 @@ import pytest
 import zstandard
 
 from service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
-from service.backend import Filters
+from service.backends.faiss.backend import FaissBackend
+from service.backends.faiss.index import VectorIndex, search_reference
+from service.backends.faiss.locks import RWLock
+from service.backends.faiss.store import Store
 from service.batcher import MicroBatcher
-from service.bodies import decompress, scan_format
+from service.domain import Filters, NewKeyframe
 from service.errors import (
     BadRequest,
     Conflict,
@@ -28,10 +31,8 @@ from service.errors import (
     Unauthorized,
     UnsupportedMediaType,
 )
-from service.index import VectorIndex, search_reference
-from service.maps import MapRegistry, RWLock
+from service.scans import decompress, scan_format
 from service.settings import AuthSettings, IndexSettings, Settings, load_settings
-from service.store import NewKeyframe, Store
 
 D = 32
 
@@ -233,7 +234,7 @@ def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
     import dataclasses
     import sqlite3
 
-    from service.store import SCHEMA_VERSION
+    from service.backends.faiss.store import SCHEMA_VERSION
 
     rng = np.random.default_rng(4)
     vecs = unit(rng, 3)
@@ -271,8 +272,8 @@ def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
     store.close()
 
 
-def _registry(root: Path, **index: object) -> MapRegistry:
-    r = MapRegistry(root, IndexSettings(**index), model_id="m1", dim=D)
+def _registry(root: Path, **index: object) -> FaissBackend:
+    r = FaissBackend(root, IndexSettings(**index), model_id="m1", dim=D)
     r.load_all()
     return r
 

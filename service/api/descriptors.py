@@ -9,9 +9,10 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Request
 
 from service.api.openapi import SCAN_BODY, error_responses
-from service.bodies import SCAN_TYPES, ScanBody, read_body, read_scan
+from service.bodies import read_body, read_scan
 from service.deps import CanEncode, ServiceDep
 from service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from service.scans import SCAN_TYPES, ScanBody
 from service.schemas import DescriptorBatchOut, DescriptorOut, Timings
 
 router = APIRouter(prefix="/v1", tags=["descriptors"])

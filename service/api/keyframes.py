@@ -5,27 +5,24 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import ValidationError
-from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action
-from service.backend import PlaceMap, content_hash
 from service.bodies import read_body, read_scan
-from service.core import Observation, PlaceService, check_descriptor, check_pose, parse_pose
 from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
-from service.errors import Conflict, NotFound, PayloadTooLarge, Unprocessable
+from service.domain import POSE_FORMAT, parse_pose
+from service.errors import NotFound, PayloadTooLarge, Unprocessable
+from service.places import Observation
 from service.schemas import (
     KEYFRAME_ID_PATTERN,
     NAME_PATTERN,
-    POSE_FORMAT,
     KeyframeBatchIn,
     KeyframeBatchOut,
     KeyframeOut,
 )
-from service.store import NewKeyframe
+from service.threads import in_thread
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["keyframes"])
 
@@ -94,8 +91,8 @@ async def insert_batch(
     read only after the key is checked, and parsed off the event loop."""
     m = await svc.open_map(map_id)
     body = await read_body(request, svc.settings.limits)
-    rows = await run_in_threadpool(_batch_rows, body, m, svc)
-    results = await svc.insert(m, rows, None)
+    batch = await in_thread(_parse_batch, body, svc.settings.limits.max_batch_keyframes)
+    results = await svc.insert_descriptors(m, batch.model_id, batch.keyframes)
     inserted = sum(r.created for r in results)
     return KeyframeBatchOut(
         inserted=inserted,
@@ -104,7 +101,7 @@ async def insert_batch(
     )
 
 
-def _batch_rows(body: bytes, m: PlaceMap, svc: PlaceService) -> list[NewKeyframe]:
+def _parse_batch(body: bytes, limit: int) -> KeyframeBatchIn:
     try:
         batch = KeyframeBatchIn.model_validate_json(body)
     except ValidationError as err:
@@ -113,58 +110,12 @@ def _batch_rows(body: bytes, m: PlaceMap, svc: PlaceService) -> list[NewKeyframe
         raise Unprocessable(
             f"invalid keyframe batch: {where}", code="invalid_request", errors=errors
         ) from None
-    if batch.model_id != m.model_id:
-        raise Conflict(
-            f"descriptors of model {batch.model_id!r} cannot go into map {m.map_id!r} of model "
-            f"{m.model_id!r}",
-            code="model_mismatch",
-            map_model_id=m.model_id,
-        )
-    limit = svc.settings.limits.max_batch_keyframes
     if len(batch.keyframes) > limit:
         raise PayloadTooLarge(
             f"batch has {len(batch.keyframes)} keyframes; allowed: at most {limit}",
             max_batch_keyframes=limit,
         )
-    expect = (svc.encoder.meta.yaw_channels, svc.encoder.meta.profile.width)
-    rows = []
-    for i, k in enumerate(batch.keyframes):
-        try:
-            desc = check_descriptor(k.descriptor, m.dim)
-        except Unprocessable as err:
-            err.message = f"keyframes[{i}]: {err.message}"
-            raise
-        yaw = None
-        if k.yaw_features is not None:
-            try:
-                yaw = np.asarray(k.yaw_features, dtype=np.float32)
-            except ValueError:  # ragged rows
-                yaw = np.zeros(0, np.float32)
-            if yaw.shape != expect or not np.isfinite(yaw).all():
-                raise Unprocessable(
-                    f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {expect}, finite",
-                    code="bad_yaw_features",
-                )
-        meta = {
-            "robot": k.robot_id,
-            "session": k.session_id,
-            "timestamp": k.timestamp,
-            "pose": k.pose,
-        }
-        payload = desc.tobytes() + (b"" if yaw is None else yaw.astype(np.float16).tobytes())
-        rows.append(
-            NewKeyframe(
-                keyframe_id=k.keyframe_id,
-                robot_id=k.robot_id,
-                session_id=k.session_id,
-                timestamp=k.timestamp,
-                pose=check_pose(k.pose) if k.pose else None,
-                descriptor=desc,
-                yaw=yaw,
-                content_hash=content_hash("descriptor", payload, meta),
-            )
-        )
-    return rows
+    return batch
 
 
 @router.get(
@@ -177,7 +128,7 @@ async def get_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanReadMaps
 ) -> KeyframeOut:
     m = await svc.map(map_id)
-    kf = await run_in_threadpool(m.get, keyframe_id)
+    kf = await in_thread(m.get, keyframe_id)
     if kf is None:
         raise NotFound(f"map {map_id!r} has no keyframe {keyframe_id!r}", code="keyframe_not_found")
     return _out(kf)
@@ -193,7 +144,7 @@ async def delete_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanWriteMaps
 ) -> Response:
     m = await svc.map(map_id)
-    await run_in_threadpool(m.delete, keyframe_id)
-    svc.stats.p_keyframes.labels(map_id).set(await run_in_threadpool(lambda: m.count))
+    await in_thread(m.delete, keyframe_id)
+    svc.stats.p_keyframes.labels(map_id).set(await in_thread(lambda: m.count))
     m.maintain()
     return Response(status_code=204)

@@ -5,12 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Body, Query, Response
-from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
-from service.backend import each_map
+from service.backends.base import each_map
 from service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
 from service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
+from service.threads import in_thread
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
@@ -30,19 +30,19 @@ async def create_map(
 ) -> MapOut:
     """Create the map, or return it unchanged if it exists with the same settings (200).
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
-    m, created = await run_in_threadpool(
+    m, created = await in_thread(
         svc.registry.create,
         map_id,
         settings.index if settings else None,
         settings.keep_geometry if settings else None,
     )
     response.status_code = 201 if created else 200
-    return MapOut(**await run_in_threadpool(m.info), created=created)
+    return MapOut(**await in_thread(m.info), created=created)
 
 
 @router.get("", response_model=MapList, responses=error_responses(401, 403), summary="List maps")
 async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
-    infos = await run_in_threadpool(lambda: each_map(svc.registry, lambda m: m.info()))
+    infos = await in_thread(lambda: each_map(svc.registry, lambda m: m.info()))
     return MapList(maps=[MapOut(**i) for i in infos.values()])
 
 
@@ -54,7 +54,7 @@ async def list_maps(svc: ServiceDep, _: CanReadMaps) -> MapList:
 )
 async def get_map(map_id: str, svc: ServiceDep, _: CanReadMaps) -> MapOut:
     m = await svc.map(map_id)
-    return MapOut(**await run_in_threadpool(m.info))
+    return MapOut(**await in_thread(m.info))
 
 
 @router.delete(
@@ -64,7 +64,7 @@ async def get_map(map_id: str, svc: ServiceDep, _: CanReadMaps) -> MapOut:
     summary="Delete a map and everything in it",
 )
 async def delete_map(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> Response:
-    await run_in_threadpool(svc.registry.delete, map_id)
+    await in_thread(svc.registry.delete, map_id)
     svc.forget_map(map_id)
     return Response(status_code=204)
 
@@ -79,7 +79,7 @@ async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut
     """Atomically writes the FAISS index and the store sequence number it reflects; a
     restart then replays only later writes. The store itself is always durable."""
     m = await svc.map(map_id)
-    return SnapshotOut(**await run_in_threadpool(m.snapshot))
+    return SnapshotOut(**await in_thread(m.snapshot))
 
 
 @router.get(
@@ -89,7 +89,7 @@ async def snapshot(map_id: str, svc: ServiceDep, _: CanWriteMaps) -> SnapshotOut
 )
 async def map_stats(map_id: str, svc: ServiceDep, _: CanView) -> dict[str, Any]:
     m = await svc.map(map_id)
-    return {**svc.stats.public(map_id), "map": await run_in_threadpool(m.info)}
+    return {**svc.stats.public(map_id), "map": await in_thread(m.info)}
 
 
 @router.get(
@@ -109,5 +109,5 @@ async def map_overview(
     1,000 accepted loop closures whose two ends have poses (verified: null when decided by
     the descriptor alone). Tracks and closures are this process's traffic since it started."""
     m = await svc.map(map_id)
-    positions = await run_in_threadpool(m.positions, limit)
+    positions = await in_thread(m.positions, limit)
     return svc.overview.public(map_id, positions)

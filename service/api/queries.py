@@ -27,19 +27,18 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from starlette.concurrency import run_in_threadpool
 
 from lidar_core.errors import LidarCoreError
 from service.api.openapi import SCAN_BODY, error_responses
 from service.auth import Action, presented_key
-from service.backend import Filters
-from service.bodies import ScanBody, decompress, read_scan
-from service.core import Answer, Observation, Observed, check_pose, parse_pose
+from service.bodies import read_scan
 from service.deps import CanEncode, ServiceDep
+from service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
 from service.errors import BadRequest, ServiceError, error_body
+from service.places import Answer, Observation, Observed
+from service.scans import ScanBody, decompress
 from service.schemas import (
     NAME_PATTERN,
-    POSE_FORMAT,
     DescriptorQueryIn,
     LoopClosureOut,
     MatchOut,
@@ -47,6 +46,7 @@ from service.schemas import (
     QueryOut,
     Timings,
 )
+from service.threads import in_thread
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
 ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
@@ -125,7 +125,7 @@ async def query(
     scan = await read_scan(request, svc.settings.limits, x_point_fields)
     probe: ScanBody | list[float] = scan
     if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
-        body = await run_in_threadpool(
+        body = await in_thread(
             decompress, scan.data, scan.encoding, svc.settings.limits.max_decoded_bytes
         )
         try:

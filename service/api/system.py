@@ -8,13 +8,13 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from starlette.concurrency import run_in_threadpool
 
 from service.api.openapi import error_responses
-from service.backend import each_map
+from service.backends.base import each_map
 from service.deps import CanView, ServiceDep
 from service.errors import ServiceError
 from service.schemas import Health
+from service.threads import in_thread
 
 router = APIRouter(tags=["system"])
 
@@ -45,7 +45,7 @@ async def readyz(request: Request) -> Response:
         )
     svc = state.service
     try:  # the Qdrant backend asks its server: unreachable means not ready
-        where = await run_in_threadpool(svc.registry.describe)
+        where = await in_thread(svc.registry.describe)
     except ServiceError as err:
         return JSONResponse(
             Health(status="unavailable", detail={"stage": err.message}).model_dump(),
@@ -69,7 +69,7 @@ async def readyz(request: Request) -> Response:
 async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
-    maps = await run_in_threadpool(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
+    maps = await in_thread(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
     return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.pipeline.pending}
 
 

@@ -30,324 +30,26 @@ serialised, since it is not made for threads.
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import logging
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
-import numpy as np
 from qdrant_client import QdrantClient, models
 from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
 from qdrant_client.http.exceptions import ResponseHandlingException, UnexpectedResponse
 
-from service.backend import (
-    Filters,
-    InsertResult,
-    Match,
-    build_matches,
-    check_existing,
-    check_rows,
-    check_same_geometry,
-    insert_results,
-)
+from service.backends.base import check_same_geometry
+from service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
+from service.backends.qdrant.map import QdrantMap
+from service.domain import check_map_id
 from service.errors import BadRequest, Conflict, NotFound, Overloaded, ServiceError, Unavailable
-from service.schemas import check_map_id
 from service.settings import IndexSettings, QdrantSettings
-from service.store import Keyframe, NewKeyframe
 
 log = logging.getLogger("overlapmamba.service")
 T = TypeVar("T")
-
-_NAMESPACE = uuid.UUID("6f0d1c2e-3a4b-5c6d-8e9f-0a1b2c3d4e5f")  # keyframe ids → point ids
-_MARK = "overlapmamba_map"  # collection metadata key: this collection is one of our maps
-_LEAN = models.PayloadSelectorExclude(exclude=["yaw", "geometry"])  # the keyframe only
-_NO_GEOMETRY = models.PayloadSelectorExclude(exclude=["geometry"])
-_FRESH_S = 5.0  # how long a replica trusts what it read about a map (others may delete it)
-_CHUNK = 128  # points per upsert: ≈5 MB of JSON, well below Qdrant's 32 MB request limit
-_INDEXES = {
-    "robot_id": models.PayloadSchemaType.KEYWORD,
-    "session_id": models.PayloadSchemaType.KEYWORD,
-    "timestamp": models.PayloadSchemaType.FLOAT,  # range filters and order_by need it
-}
-
-
-def point_id(keyframe_id: str) -> str:
-    return str(uuid.uuid5(_NAMESPACE, keyframe_id))
-
-
-def point_payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
-    yaw = None if r.yaw is None else np.asarray(r.yaw, dtype=np.float16)
-    return {
-        "keyframe_id": r.keyframe_id,
-        "robot_id": r.robot_id,
-        "session_id": r.session_id,
-        "timestamp": float(r.timestamp),
-        "pose": r.pose,
-        "content_hash": r.content_hash,
-        "created_at": created_at,
-        "yaw": None if yaw is None else base64.b64encode(yaw.tobytes()).decode(),
-        "yaw_shape": None if yaw is None else list(yaw.shape),
-        "geometry": None if r.geometry is None else base64.b64encode(r.geometry).decode(),
-    }
-
-
-def _keyframe(p: dict[str, Any]) -> Keyframe:
-    # Qdrant has no row ids or sequence numbers: both are the FAISS backend's bookkeeping.
-    return Keyframe(
-        id=0,
-        keyframe_id=p["keyframe_id"],
-        robot_id=p["robot_id"],
-        session_id=p["session_id"],
-        timestamp=float(p["timestamp"]),
-        pose=p.get("pose"),
-        content_hash=p["content_hash"],
-        seq=0,
-        created_at=float(p.get("created_at") or 0.0),
-    )
-
-
-def _yaw(p: dict[str, Any]) -> np.ndarray | None:
-    if not p.get("yaw") or not p.get("yaw_shape"):
-        return None
-    raw = np.frombuffer(base64.b64decode(p["yaw"]), dtype=np.float16)
-    return raw.reshape(p["yaw_shape"])
-
-
-def _filter(f: Filters) -> models.Filter | None:
-    """The query's exclusions as a Qdrant filter (the FAISS backend's masks, term by term)."""
-    if not f.restricts_rows:
-        return None
-    must: list[Any] = []
-    must_not: list[Any] = []
-    if f.exclude_session is not None:
-        must_not.append(_match("session_id", f.exclude_session))
-    if f.exclude_robot is not None:
-        must_not.append(_match("robot_id", f.exclude_robot))
-    if f.exclude_recent_s is not None:
-        assert f.session_id is not None and f.timestamp is not None  # Filters checked it
-        recent = models.Range(gt=f.timestamp - f.exclude_recent_s)
-        must_not.append(
-            models.Filter(
-                must=[
-                    _match("session_id", f.session_id),
-                    models.FieldCondition(key="timestamp", range=recent),
-                ]
-            )
-        )
-    if f.time_from is not None or f.time_to is not None:
-        span = models.Range(gte=f.time_from, lte=f.time_to)
-        must.append(models.FieldCondition(key="timestamp", range=span))
-    return models.Filter(must=must or None, must_not=must_not or None)
-
-
-def _match(key: str, value: str) -> models.FieldCondition:
-    return models.FieldCondition(key=key, match=models.MatchValue(value=value))
-
-
-class QdrantMap:
-    def __init__(self, backend: QdrantBackend, map_id: str, meta: dict[str, Any]) -> None:
-        self.backend = backend
-        self.map_id = map_id
-        self.collection = backend.collection(map_id)
-        self.model_id: str = str(meta["model_id"])
-        self.dim = int(meta["dim"])
-        self.kind: str = str(meta["index_kind"])
-        self.keep_geometry = bool(meta.get("keep_geometry", True))
-        self.created_at = float(meta.get("created_at") or 0.0)
-        self.checked = time.monotonic()
-        self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
-
-    def _call(self, fn: Callable[[QdrantClient], T]) -> T:
-        return self.backend.call(fn, self.map_id)
-
-    # ---- writes -----------------------------------------------------------------------------
-
-    def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
-        wanted = check_rows(rows, self.dim)
-        with self._write:
-            existing = self._get_many(wanted)
-            new = check_existing(rows, existing)
-            created: dict[str, Keyframe] = {}
-            if new:
-                now = time.time()
-                for start in range(0, len(new), _CHUNK):
-                    self._upsert(new[start : start + _CHUNK], now)
-                # insert_only never overwrites: read back what is stored now. Another
-                # replica's concurrent insert of the same id may have landed first.
-                stored = self._get_many([r.keyframe_id for r in new])
-                for r in new:
-                    kf = stored.get(r.keyframe_id)
-                    if kf is None:  # deleted by someone else in between: report ours
-                        kf = _keyframe(point_payload(r, now))
-                    check_existing([r], {r.keyframe_id: kf})
-                    created[r.keyframe_id] = kf
-        return insert_results(rows, existing, created)
-
-    def _upsert(self, rows: list[NewKeyframe], now: float) -> None:
-        batch = models.Batch(
-            ids=[point_id(r.keyframe_id) for r in rows],
-            vectors=[np.asarray(r.descriptor, dtype=np.float32).tolist() for r in rows],
-            payloads=[point_payload(r, now) for r in rows],
-        )
-        self._call(
-            lambda c: c.upsert(
-                self.collection,
-                batch,
-                wait=True,
-                ordering=self.backend.ordering,
-                update_mode=models.UpdateMode.INSERT_ONLY,
-            )
-        )
-
-    def delete(self, keyframe_id: str) -> None:
-        with self._write:
-            if self.get(keyframe_id) is None:
-                raise NotFound(
-                    f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
-                    code="keyframe_not_found",
-                )
-            selector = models.PointIdsList(points=[point_id(keyframe_id)])
-            self._call(
-                lambda c: c.delete(
-                    self.collection, selector, wait=True, ordering=self.backend.ordering
-                )
-            )
-
-    def maintain(self) -> None:
-        """Nothing to do here: Qdrant's optimizers index, vacuum and flush on their own."""
-
-    def snapshot(self) -> dict[str, Any]:
-        if self.backend.local:
-            raise Conflict(
-                "Qdrant's local mode has no snapshots (each write is already on disk); a "
-                "Qdrant server takes them",
-                code="not_supported",
-            )
-        # Not waited for: a large collection's snapshot outlasts the request timeout, and
-        # a retried request would start another. Qdrant lists it when done.
-        self._call(lambda c: c.create_snapshot(self.collection, wait=False))
-        return {"backend": "qdrant", "name": None, "bytes": None, "started": True}
-
-    # ---- reads ------------------------------------------------------------------------------
-
-    @property
-    def count(self) -> int:
-        return int(self._call(lambda c: c.count(self.collection, exact=True)).count)
-
-    def _get_many(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
-        out: dict[str, Keyframe] = {}
-        for start in range(0, len(keyframe_ids), 500):
-            ids = [point_id(k) for k in keyframe_ids[start : start + 500]]
-            for rec in self._retrieve(ids):
-                kf = _keyframe(rec.payload or {})
-                out[kf.keyframe_id] = kf
-        return out
-
-    def _retrieve(self, ids: list[str]) -> list[models.Record]:
-        return self._call(
-            lambda c: c.retrieve(
-                self.collection, ids, with_payload=_LEAN, consistency=self.backend.consistency
-            )
-        )
-
-    def get(self, keyframe_id: str) -> Keyframe | None:
-        return self._get_many([keyframe_id]).get(keyframe_id)
-
-    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
-        records = self._call(
-            lambda c: c.retrieve(
-                self.collection,
-                [point_id(k) for k in keyframe_ids],
-                with_payload=["keyframe_id", "geometry"],
-                consistency=self.backend.consistency,
-            )
-        )
-        out = {}
-        for rec in records:
-            p = rec.payload or {}
-            if p.get("geometry"):
-                out[str(p["keyframe_id"])] = base64.b64decode(p["geometry"])
-        return out
-
-    def last_keyframe(self, robot_id: str) -> Keyframe | None:
-        records, _ = self._call(
-            lambda c: c.scroll(
-                self.collection,
-                scroll_filter=models.Filter(must=[_match("robot_id", robot_id)]),
-                limit=1,
-                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
-                with_payload=_LEAN,
-                consistency=self.backend.consistency,
-            )
-        )
-        return _keyframe(records[0].payload or {}) if records else None
-
-    def positions(self, limit: int) -> list[tuple[str, float, float]]:
-        records, _ = self._call(
-            lambda c: c.scroll(
-                self.collection,
-                limit=int(limit),
-                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
-                with_payload=models.PayloadSelectorInclude(include=["robot_id", "pose"]),
-                consistency=self.backend.consistency,
-            )
-        )
-        out = []
-        for r in records:
-            payload = r.payload or {}
-            pose = payload.get("pose")
-            if pose:
-                out.append((str(payload.get("robot_id", "")), float(pose[0]), float(pose[1])))
-        return out
-
-    def search(
-        self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
-    ) -> list[Match]:
-        q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
-        params = None
-        if not self.backend.local:  # local mode is exact and warns about any parameter
-            exact = self.kind == "flat"
-            params = models.SearchParams(exact=exact, hnsw_ef=None if exact else self.backend.ef)
-        result = self._call(
-            lambda c: c.query_points(
-                self.collection,
-                query=q,
-                limit=k,
-                query_filter=_filter(filters),
-                search_params=params,
-                with_payload=_NO_GEOMETRY if yaw is not None else _LEAN,
-                consistency=self.backend.consistency,
-            )
-        )
-        found = [
-            (float(p.score), _keyframe(p.payload or {}), _yaw(p.payload or {}))
-            for p in result.points
-        ]
-        return build_matches(found, yaw, filters.max_distance)
-
-    def info(self) -> dict[str, Any]:
-        n = self.count
-        return {
-            "map_id": self.map_id,
-            "model_id": self.model_id,
-            "backend": "qdrant",
-            "index": {
-                "kind": self.kind,
-                "active": "exact" if self.kind == "flat" or self.backend.local else "hnsw",
-                "nlist": 0,
-                "vectors": n,
-                "collection": self.collection,
-            },
-            "keyframes": n,
-            "keep_geometry": self.keep_geometry,
-            "seq": None,
-            "snapshot_seq": None,
-            "created_at": self.created_at,
-        }
 
 
 class QdrantBackend:
@@ -465,7 +167,7 @@ class QdrantBackend:
             return None
         info = self.call(lambda c: c.get_collection(name), map_id)
         meta = info.config.metadata or {}
-        if meta.get(_MARK) != 1 or meta.get("map_id") != map_id:
+        if meta.get(MARK) != 1 or meta.get("map_id") != map_id:
             # Not ours, or the map of a service with a longer prefix ("overlapmamba-v2-town"
             # is not this service's "v2-town").
             raise Conflict(
@@ -475,7 +177,7 @@ class QdrantBackend:
             )
         if not self.local:  # a creator that died before indexing leaves them missing
             schema = info.payload_schema or {}
-            for field, kind in _INDEXES.items():
+            for field, kind in INDEXES.items():
                 if field not in schema:
                     self._payload_index(name, field, kind)
         return QdrantMap(self, map_id, meta)
@@ -483,7 +185,7 @@ class QdrantBackend:
     def get(self, map_id: str) -> QdrantMap:
         check_map_id(map_id)
         m = self._maps.get(map_id)
-        if m is None or time.monotonic() - m.checked > _FRESH_S:
+        if m is None or time.monotonic() - m.checked > FRESH_S:
             m = self._open(map_id)
             if m is None:
                 self._forget(map_id)
@@ -521,7 +223,7 @@ class QdrantBackend:
         name = self.collection(map_id)
         q = self.settings
         meta = {
-            _MARK: 1,
+            MARK: 1,
             "map_id": map_id,
             "model_id": self.model_id,
             "dim": self.dim,
@@ -555,7 +257,7 @@ class QdrantBackend:
                 return
             raise
         if not self.local:  # local mode keeps no payload indexes (and warns)
-            for field, schema in _INDEXES.items():
+            for field, schema in INDEXES.items():
                 self._payload_index(name, field, schema)
         log.info("map %s: created as Qdrant collection %s (%s)", map_id, name, kind)
 

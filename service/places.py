@@ -10,26 +10,33 @@ worker threads.
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import Literal
+from dataclasses import replace
 
 import numpy as np
-from starlette.concurrency import run_in_threadpool
 
-from service.backend import Filters, InsertResult, MapBackend, Match, PlaceMap, content_hash
-from service.bodies import ScanBody
+from service.answers import Answer, Inserted, InsertReason, LoopClosure, Observation, Observed
+from service.backends.base import MapBackend, PlaceMap
+from service.domain import (
+    DescriptorKeyframe,
+    Filters,
+    InsertResult,
+    Match,
+    NewKeyframe,
+    check_descriptor,
+    content_hash,
+    descriptor_keyframe,
+)
 from service.encoder import Encoder
-from service.errors import BadRequest, Conflict, Unprocessable
+from service.errors import BadRequest, Conflict
 from service.overview import Overview
 from service.pipeline import Description, ScanPipeline
-from service.schemas import POSE_FORMAT
+from service.scans import ScanBody
 from service.settings import Settings
 from service.stats import Stats
-from service.store import NewKeyframe
+from service.threads import in_thread
 from service.verify import (
     Prepared,
     RegistrationParams,
@@ -37,107 +44,6 @@ from service.verify import (
     params_of,
     verify_candidates,
 )
-
-
-def parse_pose(text: str | None) -> list[float] | None:
-    if text is None or text == "":
-        return None
-    parts = text.split(",")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    return check_pose(values, text)
-
-
-def check_pose(values: list[float], text: object = None) -> list[float]:
-    """7 finite numbers with a non-zero quaternion → the pose with a unit quaternion."""
-    shown = values if text is None else text
-    if len(values) != 7 or not all(math.isfinite(v) for v in values):
-        raise BadRequest(f"pose {shown!r} is not valid; allowed: {POSE_FORMAT}", code="bad_pose")
-    q = np.array(values[3:], dtype=np.float64)
-    norm = float(np.linalg.norm(q))
-    if not 1e-6 < norm < 1e6:
-        raise BadRequest(
-            f"pose {shown!r} has a quaternion of norm {norm:.3g}; allowed: {POSE_FORMAT}",
-            code="bad_pose",
-        )
-    return [float(v) for v in values[:3]] + [float(v) for v in q / norm]
-
-
-def check_descriptor(values: Sequence[float] | np.ndarray, dim: int) -> np.ndarray:
-    d = np.asarray(values, dtype=np.float64)
-    if d.shape != (dim,):
-        raise Unprocessable(
-            f"descriptor has {d.size} values; allowed: exactly {dim}",
-            code="bad_descriptor",
-            dim=dim,
-        )
-    if not np.isfinite(d).all():
-        raise Unprocessable("descriptor has NaN or infinite values", code="bad_descriptor")
-    norm = float(np.linalg.norm(d))
-    if not 1e-6 < norm < 1e6:
-        raise Unprocessable(
-            f"descriptor has norm {norm:.3g}; allowed: a unit vector (norm near 1)",
-            code="bad_descriptor",
-        )
-    return (d / norm).astype(np.float32)
-
-
-@dataclass(frozen=True)
-class LoopClosure:
-    """The call on a query: is it a revisit of a keyframe, and which one.
-
-    With verification (a scan query, ``verify.k`` > 0, candidates with geometry): the
-    verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
-    query, ``verify=false``, keyframes without geometry): the top match when its descriptor
-    distance is under ``loop_closure.max_distance`` — ``verified`` is then None."""
-
-    accepted: bool
-    threshold: float  # loop_closure.max_distance (the descriptor-only call)
-    margin: float | None  # runner-up distance − best distance
-    keyframe_id: str | None = None
-    verified: bool | None = None
-    relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query
-    fitness: float | None = None
-
-
-@dataclass
-class Answer:
-    """A place query's answer: the top k matches, best first, and the loop-closure call."""
-
-    matches: list[Match]
-    loop_closure: LoopClosure
-    timings: dict[str, float]  # ms per stage, and "total"
-
-
-InsertReason = Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
-
-
-@dataclass
-class Observed(Answer):
-    inserted: bool
-    keyframe_id: str | None
-    reason: InsertReason  # why it was (or was not) inserted
-
-
-@dataclass(frozen=True)
-class Inserted:
-    result: InsertResult
-    timings: dict[str, float]
-
-
-@dataclass(frozen=True)
-class Observation:
-    """What a robot says about its scan besides the bytes."""
-
-    robot_id: str
-    session_id: str
-    timestamp: float
-    pose: list[float] | None = None
-    insert: Literal["auto", "always", "never"] = "auto"
-    k: int = 10
-    verify: bool = True
 
 
 class PlaceService:
@@ -186,7 +92,7 @@ class PlaceService:
 
     async def map(self, map_id: str) -> PlaceMap:
         """The map, looked up off the event loop (the Qdrant backend may ask its server)."""
-        return await run_in_threadpool(self.registry.get, map_id)
+        return await in_thread(self.registry.get, map_id)
 
     async def open_map(self, map_id: str) -> PlaceMap:
         """The map for descriptor work: refused (409) when it holds another model's
@@ -208,11 +114,11 @@ class PlaceService:
         self, m: PlaceMap, rows: list[NewKeyframe], robot: str | None
     ) -> list[InsertResult]:
         """Precomputed rows into an opened map (all or nothing)."""
-        results = await run_in_threadpool(m.insert, rows)
+        results = await in_thread(m.insert, rows)
         created = sum(r.created for r in results)
         if created:
             self.stats.insert(m.map_id, robot, created)
-            count = await run_in_threadpool(lambda: m.count)
+            count = await in_thread(lambda: m.count)
             self.stats.p_keyframes.labels(m.map_id).set(count)
             for r in results:
                 if r.created:
@@ -221,6 +127,26 @@ class PlaceService:
                     )
         m.maintain()
         return results
+
+    async def insert_descriptors(
+        self, m: PlaceMap, model_id: str, keyframes: Sequence[DescriptorKeyframe]
+    ) -> list[InsertResult]:
+        """Precomputed descriptors of ``model_id`` into an opened map (offline map building):
+        each checked and hashed (:func:`~service.domain.descriptor_keyframe`), then all or
+        nothing."""
+        if model_id != m.model_id:
+            raise Conflict(
+                f"descriptors of model {model_id!r} cannot go into map {m.map_id!r} of model "
+                f"{m.model_id!r}",
+                code="model_mismatch",
+                map_model_id=m.model_id,
+            )
+        yaw_shape = (self.encoder.meta.yaw_channels, self.encoder.meta.profile.width)
+
+        def rows() -> list[NewKeyframe]:
+            return [descriptor_keyframe(k, i, m.dim, yaw_shape) for i, k in enumerate(keyframes)]
+
+        return await self.insert(m, await in_thread(rows), None)
 
     async def insert_scan(
         self, m: PlaceMap, scan: ScanBody, keyframe_id: str, obs: Observation
@@ -248,7 +174,7 @@ class PlaceService:
                 return digest, None
             return digest, keyframe_geometry(d.prepared, params)
 
-        digest, geometry = await run_in_threadpool(digest_and_geometry)
+        digest, geometry = await in_thread(digest_and_geometry)
         return NewKeyframe(
             keyframe_id=keyframe_id,
             robot_id=obs.robot_id,
@@ -327,7 +253,7 @@ class PlaceService:
                 timings["verify"] = (time.perf_counter() - t1) * 1e3
             return found
 
-        matches = await run_in_threadpool(search_and_verify)
+        matches = await in_thread(search_and_verify)
         lc = self.settings.loop_closure
         margin = matches[1].distance - matches[0].distance if len(matches) > 1 else None
         closure = LoopClosure(
@@ -391,7 +317,7 @@ class PlaceService:
     async def _last(self, m: PlaceMap, robot: str) -> tuple[float, np.ndarray | None] | None:
         key = (m.map_id, robot)
         if key not in self._last_kf:
-            kf = await run_in_threadpool(m.last_keyframe, robot)
+            kf = await in_thread(m.last_keyframe, robot)
             if kf is None:
                 return None
             self._remember(m.map_id, robot, kf.timestamp, kf.pose)
@@ -421,7 +347,7 @@ class PlaceService:
         to = None
         if lc.accepted and lc.keyframe_id is not None and obs.pose is not None:
             hits = [x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id]
-            to = hits[0] if hits else await run_in_threadpool(m.get, lc.keyframe_id)  # below k
+            to = hits[0] if hits else await in_thread(m.get, lc.keyframe_id)  # below k
         closure = to.pose if to is not None else None
         self.overview.observed(
             m.map_id, obs.robot_id, obs.pose, closure, lc.keyframe_id, lc.verified

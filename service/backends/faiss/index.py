@@ -19,7 +19,7 @@ query returns k results whenever k eligible keyframes exist.
 :func:`search_reference` is the slow, obvious numpy twin for tests.
 
 Thread safety (FAISS's rules): concurrent searches are fine, writes need exclusivity —
-:class:`service.maps.Map` holds a readers–writer lock around these calls.
+:class:`service.backends.faiss.map.FaissMap` holds a readers–writer lock around these calls.
 """
 
 from __future__ import annotations

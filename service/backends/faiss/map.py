@@ -1,7 +1,8 @@
-"""Maps: a durable store, the FAISS index derived from it, and the rules that join them.
+"""One map of the ``faiss`` backend: a durable store, the FAISS index derived from it, and
+the rules that join them.
 
-    data_dir/maps/<map_id>/store.sqlite   the source of truth (:mod:`service.store`)
-    data_dir/maps/<map_id>/index.snap     FAISS snapshot + the store seq it contains
+    data_dir/maps/<map_id>/store.sqlite   the source of truth (:mod:`.store`)
+    data_dir/maps/<map_id>/index.snap     FAISS index + the store seq it holds (:mod:`.snapshot`)
 
 A write takes the map's write lock, commits to the store, then updates the index, so the
 index never holds what the store does not, and ``applied_seq`` is exact. A crash between
@@ -14,120 +15,32 @@ Snapshots are written atomically (temporary file, fsync, rename, fsync of the fo
 
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
 import os
 import shutil
-import struct
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from service.backend import (
-    Filters,
-    InsertResult,
-    Match,
-    build_matches,
-    check_existing,
-    check_rows,
-    check_same_geometry,
-    insert_results,
-)
-from service.errors import Conflict, NotFound, Unavailable
-from service.index import VectorIndex, ivf_lists, set_threads
-from service.schemas import MAP_ID, check_map_id
+from service.backends.base import build_matches, check_existing, insert_results
+from service.backends.faiss.columns import FilterColumns
+from service.backends.faiss.index import VectorIndex, ivf_lists
+from service.backends.faiss.locks import RWLock
+from service.backends.faiss.snapshot import SNAPSHOT_NAME, read_snapshot, write_snapshot
+from service.backends.faiss.store import Store, fsync_dir
+from service.domain import Filters, InsertResult, Keyframe, Match, NewKeyframe, check_rows
+from service.errors import NotFound
 from service.settings import IndexSettings
-from service.store import Keyframe, NewKeyframe, Store, fsync_dir
 
 log = logging.getLogger("overlapmamba.service")
-SNAPSHOT_MAGIC = b"OMSNAP01"
 
 
-class RWLock:
-    """Many readers or one writer; a waiting writer blocks new readers (no starvation)."""
+class FaissMap:
+    """One map: its store, the FAISS index derived from it, and the rules that join them."""
 
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._readers = 0
-        self._writer = False
-        self._waiting_writers = 0
-
-    @contextlib.contextmanager
-    def read(self) -> Iterator[None]:
-        with self._cond:
-            while self._writer or self._waiting_writers:
-                self._cond.wait()
-            self._readers += 1
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._readers -= 1
-                if not self._readers:
-                    self._cond.notify_all()
-
-    @contextlib.contextmanager
-    def write(self) -> Iterator[None]:
-        with self._cond:
-            self._waiting_writers += 1
-            while self._writer or self._readers:
-                self._cond.wait()
-            self._waiting_writers -= 1
-            self._writer = True
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._writer = False
-                self._cond.notify_all()
-
-
-class FilterColumns:
-    """Per-row metadata by row id, for filter masks: robot, session, timestamp, alive."""
-
-    def __init__(self) -> None:
-        self.robot = np.zeros(0, np.int32)
-        self.session = np.zeros(0, np.int32)
-        self.ts = np.zeros(0, np.float64)
-        self.alive = np.zeros(0, bool)
-        self._codes: dict[str, int] = {}
-
-    def code(self, value: str) -> int:
-        return self._codes.setdefault(value, len(self._codes))
-
-    def lookup(self, value: str) -> int:
-        return self._codes.get(value, -1)
-
-    def _grow(self, size: int) -> None:
-        if size <= len(self.alive):
-            return
-        new = max(size, 2 * len(self.alive), 1024)
-        for name in ("robot", "session", "ts", "alive"):
-            old = getattr(self, name)
-            arr = np.zeros(new, old.dtype)
-            arr[: len(old)] = old
-            setattr(self, name, arr)
-
-    def add(self, ids: np.ndarray, meta: list[tuple[str, str, float]]) -> None:
-        if not len(ids):
-            return
-        self._grow(int(ids.max()) + 1)
-        self.robot[ids] = [self.code(m[0]) for m in meta]
-        self.session[ids] = [self.code(m[1]) for m in meta]
-        self.ts[ids] = [m[2] for m in meta]
-        self.alive[ids] = True
-
-    def remove(self, ids: np.ndarray) -> None:
-        ids = ids[ids < len(self.alive)]
-        self.alive[ids] = False
-
-
-class Map:
     def __init__(
         self,
         map_id: str,
@@ -171,7 +84,7 @@ class Map:
         kind: str,
         settings: IndexSettings,
         keep_geometry: bool = True,
-    ) -> Map:
+    ) -> FaissMap:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
         # or a whole one (load_all removes the debris), never a store without its metadata.
         tmp = folder.with_name(f".create-{map_id}")
@@ -192,11 +105,11 @@ class Map:
         return cls.open(map_id, folder, settings)
 
     @classmethod
-    def open(cls, map_id: str, folder: Path, settings: IndexSettings) -> Map:
+    def open(cls, map_id: str, folder: Path, settings: IndexSettings) -> FaissMap:
         """Load the snapshot (if any, and sound) and replay the store's newer changes."""
         store = Store(folder / "store.sqlite")
         dim = int(store.get_meta("dim") or 0)
-        index, seq = read_snapshot(folder / "index.snap", dim, settings)
+        index, seq = read_snapshot(folder / SNAPSHOT_NAME, dim, settings)
         replay_from = seq
         if index is None:
             index, replay_from = VectorIndex.flat(dim), 0
@@ -290,15 +203,7 @@ class Map:
                 seq = self.applied_seq
                 payload = self.index.serialize()
                 kind = self.index.kind
-            header = json.dumps({"seq": seq, "kind": kind, "dim": self.dim}).encode()
-            path = self.folder / "index.snap"
-            tmp = path.with_suffix(".snap.tmp")
-            with open(tmp, "wb") as f:
-                f.write(SNAPSHOT_MAGIC + struct.pack("<I", len(header)) + header + payload)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-            fsync_dir(self.folder)
+            path = write_snapshot(self.folder / SNAPSHOT_NAME, payload, seq, kind, self.dim)
             self.snapshot_seq = seq
             purged = self.store.purge_tombstones(seq)
         return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
@@ -427,132 +332,3 @@ class Map:
             "snapshot_seq": self.snapshot_seq,
             "created_at": self.created_at,
         }
-
-
-def read_snapshot(path: Path, dim: int, settings: IndexSettings) -> tuple[VectorIndex | None, int]:
-    """(index, seq), or (None, 0) when there is no usable snapshot — the index is derived,
-    so a missing or damaged snapshot costs a rebuild, never data."""
-    if not path.exists():
-        return None, 0
-    try:
-        data = path.read_bytes()
-        if data[:8] != SNAPSHOT_MAGIC:
-            raise ValueError("bad magic")
-        (n,) = struct.unpack("<I", data[8:12])
-        header = json.loads(data[12 : 12 + n])
-        index = VectorIndex.deserialize(data[12 + n :], header["kind"], nprobe=settings.ivf_nprobe)
-        if index.dim != dim:
-            raise ValueError(f"dimension {index.dim}, map has {dim}")
-        return index, int(header["seq"])
-    except Exception as err:  # anything wrong with a derived file means: rebuild it
-        log.warning("snapshot %s is unusable (%s); rebuilding the index from the store", path, err)
-        return None, 0
-
-
-class MapRegistry:
-    """Every map under ``data_dir/maps``, opened at start-up (the ``faiss`` backend)."""
-
-    name = "faiss"
-
-    def __init__(self, root: Path, settings: IndexSettings, *, model_id: str, dim: int) -> None:
-        self.root = Path(root) / "maps"
-        self.settings = settings
-        self.model_id = model_id
-        self.dim = dim
-        self.maps: dict[str, Map] = {}
-        self.failed: dict[str, str] = {}  # map id -> why it could not be opened
-        self._lock = threading.Lock()
-        set_threads(settings.threads)
-
-    def load_all(self) -> None:
-        """Open every map. One that cannot be opened (a damaged store) is logged and listed
-        in ``failed`` — the other maps still serve; its files are left untouched."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        for folder in sorted(self.root.iterdir()):
-            if folder.is_dir() and MAP_ID.fullmatch(folder.name):
-                if not (folder / "store.sqlite").exists():
-                    continue
-                try:
-                    self.maps[folder.name] = Map.open(folder.name, folder, self.settings)
-                except Exception as err:
-                    log.exception("map %s cannot be opened; it is not served", folder.name)
-                    self.failed[folder.name] = f"{type(err).__name__}: {err}"
-            elif folder.name.startswith((".trash-", ".import-", ".create-")):
-                shutil.rmtree(folder, ignore_errors=True)
-
-    def describe(self) -> dict[str, Any]:
-        return {"backend": self.name, "data_dir": str(self.root.parent), "maps": len(self.maps)}
-
-    def get(self, map_id: str) -> Map:
-        check_map_id(map_id)
-        m = self.maps.get(map_id)
-        if m is None and map_id in self.failed:
-            raise Unavailable(
-                f"map {map_id!r} exists but could not be opened: {self.failed[map_id]}",
-                code="map_unavailable",
-            )
-        if m is None:
-            raise NotFound(
-                f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",
-                code="map_not_found",
-                map_id=map_id,
-            )
-        return m
-
-    def create(
-        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
-    ) -> tuple[Map, bool]:
-        """Create a map, or return the existing one when each setting is None or the same."""
-        check_map_id(map_id)
-        with self._lock:
-            if map_id in self.failed:
-                self.get(map_id)  # raises: its files exist but cannot be opened
-            m = self.maps.get(map_id)
-            if m is not None:
-                if kind is not None and m.kind != kind:
-                    raise Conflict(
-                        f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
-                        code="map_conflict",
-                        index=m.kind,
-                    )
-                check_same_geometry(m, keep_geometry)
-                return m, False
-            folder = self.root / map_id
-            if folder.exists():  # debris without a store (load_all skipped it): not a map
-                shutil.rmtree(folder)
-            m = Map.create(
-                map_id,
-                folder,
-                model_id=self.model_id,
-                dim=self.dim,
-                kind=kind or self.settings.kind,
-                keep_geometry=True if keep_geometry is None else keep_geometry,
-                settings=self.settings,
-            )
-            self.maps[map_id] = m
-            return m, True
-
-    def delete(self, map_id: str) -> None:
-        with self._lock:
-            m = self.get(map_id)
-            del self.maps[map_id]
-        with m.lock.write():
-            m.close()
-            trash = self.root / f".trash-{map_id}-{time.time_ns()}"
-            os.replace(m.folder, trash)
-            fsync_dir(self.root)
-        shutil.rmtree(trash, ignore_errors=True)
-
-    def snapshot_list(self) -> list[Map]:
-        with self._lock:
-            return list(self.maps.values())
-
-    def close(self, *, snapshot: bool = True) -> None:
-        for m in self.snapshot_list():
-            try:
-                if snapshot and m.writes_since_snapshot:
-                    m.snapshot()
-            except Exception:  # the store is durable; a missing snapshot costs a replay
-                log.exception("map %s: final snapshot failed", m.map_id)
-            finally:
-                m.close()

@@ -1,136 +1,24 @@
-"""What a map is to the rest of the service, whichever engine holds its keyframes.
+"""What a map is to the rest of the service, whichever engine holds its keyframes: the
+:class:`PlaceMap` and :class:`MapBackend` protocols, and the rules every backend applies
+the same way (write-once ids, one result per requested row, matches with their yaw).
 
-Two implementations of one interface:
-
-    faiss   service.maps     SQLite store + FAISS index in the data folder; embedded, the
-                             default. The process owns its maps (one per data folder).
-    qdrant  service.qdrant   one Qdrant collection per map; durability, replication and
-                             sharding are Qdrant's. The process keeps no state, so any number
-                             of replicas can serve one Qdrant cluster.
-
-Routes and :mod:`service.core` see only :class:`PlaceMap` and :class:`MapBackend`; the query
-semantics (filters, distances, yaw, idempotent inserts) are defined here once and checked
-against both by ``tests/test_backends.py``.
+Routes and :mod:`service.places` see only these protocols; the query semantics (filters,
+distances, yaw, idempotent inserts) are defined here and in :mod:`service.domain` once and
+checked against both engines by ``tests/test_backends.py``.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
 from lidar_core.yaw import estimate_yaw
-from service.errors import BadRequest, Conflict, NotFound
-from service.settings import Settings
-from service.store import Keyframe, NewKeyframe
-from service.verify import Verdict
+from service.domain import Filters, InsertResult, Keyframe, Match, NewKeyframe
+from service.errors import Conflict, NotFound
 
 T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class Filters:
-    exclude_session: str | None = None
-    exclude_robot: str | None = None
-    exclude_recent_s: float | None = None
-    session_id: str | None = None  # the querying session, for exclude_recent_s
-    timestamp: float | None = None  # the query's time, for exclude_recent_s
-    time_from: float | None = None
-    time_to: float | None = None
-    max_distance: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.exclude_recent_s is not None and (
-            self.session_id is None or self.timestamp is None
-        ):
-            raise BadRequest(
-                "exclude_recent_s needs the query's session_id and timestamp",
-                code="missing_parameter",
-            )
-
-    @property
-    def restricts_rows(self) -> bool:
-        return any(
-            v is not None
-            for v in (
-                self.exclude_session,
-                self.exclude_robot,
-                self.exclude_recent_s,
-                self.time_from,
-                self.time_to,
-            )
-        )
-
-
-@dataclass(frozen=True)
-class Match:
-    keyframe: Keyframe
-    similarity: float
-    distance: float
-    yaw_deg: float | None
-    yaw_confidence: float | None
-    verification: Verdict | None = None  # None: not verified (not asked, or beyond verify.k)
-
-    @property
-    def relative_pose(self) -> np.ndarray | None:
-        return None if self.verification is None else self.verification.relative_pose
-
-    def public(self) -> dict[str, Any]:
-        pose = self.relative_pose
-        return {
-            **self.keyframe.public(),
-            "distance": self.distance,
-            "similarity": self.similarity,
-            "yaw_deg": self.yaw_deg,
-            "yaw_confidence": self.yaw_confidence,
-            "relative_pose": None if pose is None else [float(x) for x in pose.reshape(-1)],
-            "verification": None if self.verification is None else self.verification.public(),
-        }
-
-
-@dataclass(frozen=True)
-class InsertResult:
-    keyframe: Keyframe
-    created: bool
-
-
-def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
-    h = hashlib.sha256(kind.encode())
-    h.update(payload)
-    h.update(json.dumps(meta, sort_keys=True).encode())
-    return h.hexdigest()
-
-
-UNIT_TOLERANCE = 1e-3  # float32 descriptors from the encoder are unit to ~1e-7
-
-
-def check_rows(rows: list[NewKeyframe], dim: int) -> list[str]:
-    """Shapes right, unit norm, and no keyframe id twice with different content → the distinct
-    ids. Descriptors arrive normalised (the encoder's graph ends in an L2 normalisation; a
-    client's descriptor is normalised once, by ``core.check_descriptor``): a backend stores
-    and compares them as they are, and refuses one that is not a unit vector."""
-    for r in rows:
-        if r.descriptor.shape != (dim,):
-            raise BadRequest(f"descriptor has shape {r.descriptor.shape}; need ({dim},)")
-        norm = float(np.linalg.norm(r.descriptor))
-        if not abs(norm - 1.0) <= UNIT_TOLERANCE:
-            raise BadRequest(
-                f"descriptor of keyframe {r.keyframe_id!r} has norm {norm:.6g}; allowed: a unit "
-                f"vector (norm within {UNIT_TOLERANCE} of 1)"
-            )
-    seen: dict[str, str] = {}
-    for r in rows:
-        if seen.setdefault(r.keyframe_id, r.content_hash) != r.content_hash:
-            raise Conflict(
-                f"keyframe {r.keyframe_id!r} appears twice in the request with different content",
-                code="keyframe_conflict",
-                keyframe_id=r.keyframe_id,
-            )
-    return list(seen)
 
 
 def check_same_geometry(m: PlaceMap, keep_geometry: bool | None) -> None:
@@ -279,14 +167,3 @@ def each_map(backend: MapBackend, fn: Callable[[PlaceMap], T]) -> dict[str, T]:
         except NotFound:
             continue
     return out
-
-
-def open_backend(settings: Settings, *, model_id: str, dim: int) -> MapBackend:
-    """The configured engine's maps (not yet loaded: call ``load_all``)."""
-    if settings.index.backend == "qdrant":
-        from service.qdrant import QdrantBackend
-
-        return QdrantBackend(settings.qdrant, settings.index, model_id=model_id, dim=dim)
-    from service.maps import MapRegistry
-
-    return MapRegistry(settings.data_dir, settings.index, model_id=model_id, dim=dim)

@@ -31,11 +31,12 @@ import sqlite3
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from service.domain import Keyframe, NewKeyframe
 
 SCHEMA_VERSION = 2
 READABLE_VERSIONS = (1, 2)  # a read-only open (doctor) reads either
@@ -67,41 +68,6 @@ CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp
 
 class StoreError(RuntimeError):
     """The store file is missing, of another schema, or of another model."""
-
-
-@dataclass(frozen=True)
-class NewKeyframe:
-    keyframe_id: str
-    robot_id: str
-    session_id: str
-    timestamp: float
-    pose: list[float] | None
-    descriptor: np.ndarray  # (D,) float32
-    yaw: np.ndarray | None  # (C, W) float32
-    content_hash: str
-    geometry: bytes | None = None  # lidar_core.geometry blob
-
-
-@dataclass(frozen=True)
-class Keyframe:
-    id: int
-    keyframe_id: str
-    robot_id: str
-    session_id: str
-    timestamp: float
-    pose: list[float] | None
-    content_hash: str
-    seq: int
-    created_at: float
-
-    def public(self) -> dict[str, Any]:
-        return {
-            "keyframe_id": self.keyframe_id,
-            "robot_id": self.robot_id,
-            "session_id": self.session_id,
-            "timestamp": self.timestamp,
-            "pose": self.pose,
-        }
 
 
 _KF_COLUMNS = (

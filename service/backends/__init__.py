@@ -1,0 +1,2 @@
+"""Where maps live: the protocol every engine implements (``base``), the factory that opens
+the configured one (``factory``), and the engines (``faiss``, ``qdrant``)."""
