@@ -352,3 +352,54 @@ def cross_session(
         "scan_context": scan_context_recall(sc_db, pos_db, sc_q, pos_q),
         "networks": by_label,
     }
+
+
+@dataclass
+class SequenceEvaluation:
+    """What ``overlapmamba eval`` reports: ``record`` (checkpoint, sequence, metrics by
+    subset, and with a database the cross-session recall of the model and Scan Context),
+    the PR ``results`` by subset (for :func:`plot_pr`), and the sequences' names and sizes."""
+
+    record: dict[str, Any]
+    results: dict[str, LoopClosureResult]
+    sequence: tuple[str, int]
+    database: tuple[str, int] | None = None
+
+
+def evaluate_checkpoint(
+    checkpoint: Path,
+    sequence: Path,
+    open_sequence: Callable[[Path], Sequence],
+    *,
+    database: Path | None = None,
+    progress: bool = False,
+) -> SequenceEvaluation:
+    """Loop closure of ``checkpoint`` on ``sequence`` (all, same and reverse direction) and,
+    with a ``database`` (the first session of the same town), place recognition of the
+    sequence's scans against it. ``open_sequence`` opens a path (a folder or a recording)."""
+    from model_export.checkpoint import load_model
+    from model_export.rangecache import range_images
+    from model_export.sessions import check_sessions
+
+    model, profile, _ = load_model(checkpoint)
+    seq = open_sequence(sequence)
+    db = open_sequence(database) if database is not None else None
+    if db is not None:  # refuse a wrong pair before the long part
+        check_sessions(db, seq)
+    gt = sequence_loops(seq, profile, progress=progress)
+    desc, _ = describe(model, range_images(seq, profile, progress=progress))
+    results = loop_closure(desc, gt)
+    record: dict[str, Any] = {
+        "checkpoint": str(checkpoint),
+        "sequence": str(sequence),
+        "metrics": summary(results),
+    }
+    if db is None:
+        return SequenceEvaluation(record, results, (seq.name, len(seq)))
+    both = cross_session([("model", model, profile)], db, seq, progress=progress)
+    record["database"] = str(database)
+    record["cross_session"] = {
+        "model": both["networks"]["model"],
+        "scan_context": both["scan_context"],
+    }
+    return SequenceEvaluation(record, results, (seq.name, len(seq)), (db.name, len(db)))

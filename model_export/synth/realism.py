@@ -13,10 +13,14 @@ histograms (0 = identical, 1 = disjoint), or the relative difference for scalars
 
 from __future__ import annotations
 
+import json
+import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from lidar_core.errors import DatasetError
 from lidar_core.io import read_points
 from lidar_core.projection import project, valid_mask
 from lidar_core.sensors import get_profile
@@ -198,3 +202,45 @@ def plot(real: dict, synthetic: dict, real_intensity: dict | None, path: str | P
     fig.tight_layout()
     fig.savefig(path, metadata={"Software": None})
     plt.close(fig)
+
+
+def report(
+    real: Path, synthetic: Path | None, reference: Path, scans: int, output: Path
+) -> dict[str, Any]:
+    """Compare up to ``scans`` scans of a real KITTI sequence (``real``/velodyne) with as many
+    synthetic ones (``synthetic``, or a small town generated for the purpose) and the real
+    scans that carry intensity (``reference``), within the real data's range. Writes
+    ``output``/realism.json and realism.png; returns the JSON's content plus the scan counts
+    (``scans``). Raises DatasetError for a missing or empty side."""
+    real_dir = Path(real) / "velodyne"
+    if not real_dir.is_dir():
+        raise DatasetError(f"{real_dir} does not exist; point --real at a KITTI sequence")
+    real_paths = sorted(real_dir.glob("*.bin"))[:scans]
+    with tempfile.TemporaryDirectory() as tmp:
+        if synthetic is None:
+            from model_export.synth.generate import GenConfig, generate
+
+            synthetic = Path(tmp) / "synthetic"
+            generate(
+                synthetic, GenConfig(seed=4242, frames=scans), ground_truth=False, progress=False
+            )
+        syn_paths = sorted((Path(synthetic) / "velodyne").glob("*.bin"))[:scans]
+        if not syn_paths:
+            raise DatasetError(f"{synthetic} holds no velodyne/*.bin scans")
+        # Compare within the real data's range: its files may be clipped (KITTI here: 80 m).
+        cap = min(120.0, np.ceil(max_range_of(real_paths)))
+        r_stats = scan_stats(real_paths, max_range=cap)
+        s_stats = scan_stats(syn_paths, max_range=cap)
+    ref_paths = sorted(Path(reference).glob("*.bin")) if Path(reference).is_dir() else []
+    i_stats = scan_stats(ref_paths, max_range=cap) if ref_paths else None
+    record = {
+        "rows": compare(r_stats, s_stats, i_stats),
+        "compared_within_m": cap,
+        "real": r_stats,
+        "synthetic": s_stats,
+        "real_intensity": i_stats,
+    }
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "realism.json").write_text(json.dumps(record, indent=2) + "\n")
+    plot(r_stats, s_stats, i_stats, output / "realism.png")
+    return {**record, "scans": {"real": len(real_paths), "synthetic": len(syn_paths)}}

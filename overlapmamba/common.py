@@ -1,0 +1,81 @@
+"""What the ``overlapmamba`` command groups share: consoles, option types, the error wrapper
+that turns library errors into a red message and exit code 2, and small table helpers."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from lidar_core.errors import LidarCoreError
+
+console = Console(stderr=True, soft_wrap=True)
+out = Console()
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def friendly_errors(func: F) -> F:
+    @wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except LidarCoreError as err:
+            console.print(f"[bold red]error:[/] {err.message}")
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+SensorOpt = Annotated[
+    str,
+    typer.Option(
+        "--sensor", "-s", help="Built-in profile (kitti-hdl64, hdl32) or a .json/.toml profile."
+    ),
+]
+MaxRangeOpt = Annotated[
+    float | None,
+    typer.Option("--max-range", min=0.01, help="Override the profile's max range (m)."),
+]
+
+
+def sensor_profile(sensor: str, **overrides: Any) -> Any:
+    from lidar_core.sensors import get_profile
+
+    return get_profile(sensor).replace(**overrides)
+
+
+def check_out_suffix(path: Path) -> Path:
+    if path.suffix.lower() not in {".npy", ".png"}:
+        raise typer.BadParameter(f"{path.name}: allowed output suffixes are .npy and .png")
+    return path
+
+
+def metrics_table(title: str, results: dict[str, dict[str, Any]]) -> Table:
+    table = Table(title=title)
+    for col in ("revisits", "queries", "with loop", "AUC", "F1max", "Recall@1", "Recall@1%"):
+        table.add_column(col, justify="right" if col != "revisits" else "left")
+    for name, m in results.items():
+        table.add_row(
+            name,
+            str(m["queries"]),
+            str(m["queries_with_loop"]),
+            *(f"{m[k]:.3f}" for k in ("auc", "f1max", "recall@1", "recall@1%")),
+        )
+    return table
+
+
+def check_torch() -> None:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        console.print(
+            "[bold red]error:[/] training and evaluation need PyTorch: "
+            "pip install -e '.[train]' (make test installs it)"
+        )
+        raise typer.Exit(2) from None

@@ -1,0 +1,399 @@
+"""``overlapmamba`` model commands: train, evaluate (sequences, real scans), export to ONNX
+and the model report. Each needs PyTorch (the train extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from overlapmamba.common import (
+    check_torch,
+    friendly_errors,
+    metrics_table,
+    out,
+    sensor_profile,
+)
+
+app = typer.Typer()
+PANEL = "Model"  # the heading these commands are listed under in --help
+
+
+def command(*args: Any, **kwargs: Any) -> Any:
+    return app.command(*args, rich_help_panel=PANEL, **kwargs)
+
+
+@command(
+    "train",
+    epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
+    "--out runs/om\n\n  overlapmamba train --out runs/om --resume --epochs 20\n\n"
+    "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml\n\n"
+    "  overlapmamba train --preset default   (the shipped model; writes runs/default)",
+)
+@friendly_errors
+def train_cmd(
+    output: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="run folder (checkpoints, metrics); --preset: runs/NAME"),
+    ] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="named recipe with its data and configs, e.g. default (the shipped model); "
+            "the list is in model_export/presets.py, and an unknown name prints it"
+        ),
+    ] = None,
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--data",
+            help="training sequence (repeat for several); needs "
+            "ground_truth/overlaps.npz as gen-data writes it",
+        ),
+    ] = None,
+    val: Annotated[Path | None, typer.Option(help="validation sequence")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help=".json/.toml with [model] and [train] sections")
+    ] = None,
+    epochs: Annotated[
+        int | None, typer.Option(min=1, help="total epochs (extends on --resume)")
+    ] = None,
+    epoch_scans: Annotated[int | None, typer.Option(min=1, help="scans per epoch")] = None,
+    batch_size: Annotated[
+        int | None,
+        typer.Option(
+            min=2,
+            help="a multiple of the group size (4 by default: anchor, 2 positives, 1 near miss)",
+        ),
+    ] = None,
+    lr: Annotated[float | None, typer.Option(min=0.0)] = None,
+    loss: Annotated[str | None, typer.Option(help="imtrihard or triplet")] = None,
+    seed: Annotated[int | None, typer.Option(min=0)] = None,
+    device: Annotated[str | None, typer.Option(help="cpu or cuda")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Train OverlapMamba on synthetic sequences; validate, checkpoint and plot every epoch."""
+    check_torch()
+    from model_export.model import OverlapMambaConfig
+    from model_export.train import TrainConfig, load_config_file, train
+
+    overrides = {
+        k: v
+        for k, v in dict(
+            epoch_scans=epoch_scans,
+            batch_size=batch_size,
+            lr=lr,
+            loss=loss,
+            seed=seed,
+            device=device,
+        ).items()
+        if v is not None
+    }
+    model_cfg = train_cfg = None
+    if preset is not None:
+        from model_export.presets import get_preset
+
+        if resume or config is not None or data or val:
+            raise typer.BadParameter(
+                "--preset fixes the data and configs: drop --data/--val/--config/--resume "
+                "(resume a preset run with --out runs/NAME --resume)"
+            )
+        recipe = get_preset(preset)
+        data, val = [Path(d) for d in recipe.data], Path(recipe.val)
+        missing = [p for p in (*data, val) if not (p / "manifest.json").is_file()]
+        if missing:
+            raise typer.BadParameter(
+                f"preset {preset!r} needs {', '.join(map(str, missing))}: run `make data` "
+                "(or overlapmamba gen-data DIR --preset train|val) from the repository root"
+            )
+        model_cfg = OverlapMambaConfig.from_dict(recipe.model)
+        train_cfg = TrainConfig.from_dict({**recipe.train, **overrides})
+        output = output or Path("runs") / preset
+    elif resume:
+        if config is not None or overrides or data or val:
+            raise typer.BadParameter(
+                "--resume continues the run as configured: give only --out and --epochs"
+            )
+    else:
+        if not data or val is None:
+            raise typer.BadParameter("give --data (at least one) and --val, or --resume")
+        model_d, train_d = load_config_file(config) if config else ({}, {})
+        try:
+            model_cfg = OverlapMambaConfig.from_dict(model_d)
+        except (TypeError, ValueError) as err:
+            raise typer.BadParameter(f"[model] config: {err}") from None
+        train_cfg = TrainConfig.from_dict({**train_d, **overrides})
+    if output is None:
+        raise typer.BadParameter("give --out (the run folder), or a --preset")
+    history = train(
+        data or [],
+        val,
+        output,
+        model_cfg,
+        train_cfg,
+        resume=resume,
+        epochs=epochs,
+        progress=not quiet,
+    )
+    if history:
+        out.print(
+            metrics_table(f"Validation after epoch {history[-1]['epoch']}", history[-1]["val"])
+        )
+    out.print(f"checkpoints, metrics.json and curves.png in {output}")
+
+
+@command(
+    "eval",
+    epilog="Examples:\n\n  overlapmamba eval --checkpoint runs/om/best.pt "
+    "--sequence data/synth/test --json test.json --plot pr.png\n\n"
+    "  overlapmamba eval --checkpoint runs/om/best.pt --sequence data/synth/test-s1 "
+    "--database data/synth/test   (second session against the first: AR@1/5/20)",
+)
+@friendly_errors
+def eval_cmd(
+    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    sequence: Annotated[
+        Path,
+        typer.Option(
+            help="sequence with loops (e.g. the test preset), or a ROS recording (.bag, "
+            "rosbag2, .mcap) with --odometry or --tf"
+        ),
+    ],
+    database: Annotated[
+        Path | None,
+        typer.Option(
+            help="first session of the same town: also query --sequence's scans against it "
+            "(place recognition across sessions, AR@1/5/20, with Scan Context beside)"
+        ),
+    ] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
+    topic: Annotated[
+        str | None, typer.Option(help="ROS recordings: the PointCloud2 topic (if several)")
+    ] = None,
+    odometry: Annotated[
+        str | None,
+        typer.Option(help="ROS recordings: the nav_msgs/Odometry topic giving the poses"),
+    ] = None,
+    tf: Annotated[
+        str | None,
+        typer.Option(
+            "--tf",
+            help="ROS recordings: poses from /tf in this fixed frame (FIXED or FIXED:CHILD; "
+            "CHILD defaults to the scans' frame)",
+        ),
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Loop-closure AUC, F1max, Recall@1 and Recall@1%: all, same- and reverse-direction.
+    A ROS recording is evaluated like a sequence: its odometry or /tf gives the poses, and the
+    loop ground truth is computed from its scans and poses (the default protocol)."""
+    check_torch()
+    import json
+
+    from lidar_core.datasets import open_recording
+    from model_export.evaluate import evaluate_checkpoint, plot_pr
+
+    def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
+        return open_recording(path, topic=topic, odometry=odometry, tf=tf, need_poses=True)
+
+    ev = evaluate_checkpoint(
+        checkpoint, sequence, open_sequence, database=database, progress=not quiet
+    )
+    name, scans = ev.sequence
+    out.print(metrics_table(f"{checkpoint.name} on {name} ({scans} scans)", ev.record["metrics"]))
+    if ev.database is not None:
+        cross = ev.record["cross_session"]
+        table = Table(
+            title=f"Across sessions: {name} against {ev.database[0]} ({ev.database[1]} scans); "
+            f"queries with a database scan within {cross['model']['radius_m']:g} m count"
+        )
+        for col in ("method", "queries", "AR@1", "AR@5", "AR@20"):
+            table.add_column(col, justify="left" if col == "method" else "right")
+        for label, r in (("OverlapMamba", cross["model"]), ("Scan Context", cross["scan_context"])):
+            table.add_row(label, str(r["queries"]), *(f"{r[f'ar@{n}']:.3f}" for n in (1, 5, 20)))
+        out.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(ev.record, indent=2) + "\n")
+    if plot is not None:
+        plot_pr(ev.results, plot, f"{name}: loop closure")
+    if json_out or plot:
+        out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
+
+
+@command(
+    "export",
+    epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
+    "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32",
+)
+@friendly_errors
+def export_cmd(
+    checkpoint: Annotated[Path, typer.Argument(help="a .pt written by train")],
+    out_path: Annotated[Path, typer.Option("--out", help="the .onnx file to write")],
+    weights: Annotated[
+        str, typer.Option(help="storage of the large head matrix: int8 or float32")
+    ] = "int8",
+) -> None:
+    """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
+    check_torch()
+    from model_export.checkpoint import load_model
+    from model_export.export import export_onnx
+
+    if out_path.suffix != ".onnx":
+        raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    model, profile, ckpt = load_model(checkpoint)
+    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights)
+    meta, v = res.metadata, res.verification
+    table = Table(title=f"exported {res.path}", show_header=False)
+    for key, value in (
+        ("model id", meta.model_id),
+        ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
+        ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
+        ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
+        (
+            "descriptor vs PyTorch",
+            f"max abs {v['descriptor_max_abs']:.2e}, min cosine {v['descriptor_min_cosine']:.6f}",
+        ),
+        ("yaw features vs PyTorch", f"max abs {v['yaw_features_max_abs']:.2e}"),
+        ("source", meta.source_commit),
+        ("time", f"{res.seconds:.1f} s"),
+    ):
+        table.add_row(key, value)
+    out.print(table)
+
+
+@command(
+    "eval-real",
+    epilog="Example:\n\n  overlapmamba eval-real --checkpoint runs/om/best.pt --json real.json",
+)
+@friendly_errors
+def eval_real_cmd(
+    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    sequence: Annotated[Path, typer.Option(help="real KITTI-layout sequence")] = Path(
+        "../shared/data/kitti00_0000-0100"
+    ),
+    seed: Annotated[int, typer.Option(min=0, help="seed of the random yaw angles")] = 0,
+    hit_radius: Annotated[float, typer.Option(min=0.1, help="retrieval hit radius (m)")] = 3.0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    profile_name: Annotated[
+        str | None,
+        typer.Option(
+            "--profile",
+            help="project with this sensor profile instead of the model's (e.g. hdl32 for the "
+            "nuScenes scans; rows are repeated up to the model's height)",
+        ),
+    ] = None,
+) -> None:
+    """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error."""
+    check_torch()
+    import json
+
+    from lidar_core.datasets import open_sequence
+    from model_export.checkpoint import load_model
+    from model_export.evaluate import eval_real
+
+    model, profile, _ = load_model(checkpoint)
+    if profile_name is not None:
+        profile = sensor_profile(profile_name)
+    seq = open_sequence(sequence)
+    try:
+        r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    inv, ret, yaw = r["yaw_invariance"], r["retrieval_odd_to_even"], r["yaw_error_deg"]
+    table = Table(title=f"{checkpoint.name} on real scans: {seq.name} ({r['scans']} scans)")
+    table.add_column("check")
+    table.add_column("result", justify="right")
+    rows = [
+        (
+            "descriptor cosine under random yaw (min / mean)",
+            f"{inv['cosine_min']:.6f} / {inv['cosine_mean']:.6f}",
+        ),
+        (
+            "turned-copy distance / distance between different scans",
+            f"{inv['turned_over_other_distance']:.2e}",
+        ),
+        (
+            "turned-copy distance / 1 m step distance (squared, medians)",
+            f"{inv['turned_distance_median']:.2e} / {inv['one_metre_step_distance_median']:.2e}"
+            f" = {inv['turned_over_one_metre_step']:.3f}",
+        ),
+        (
+            f"odd→even Recall@1 (hit within {ret['hit_radius_m']:g} m), Scan Context's",
+            f"{ret['recall@1']:.3f}, {ret['scan_context']['recall@1']:.3f}",
+        ),
+        (
+            "odd→even Recall@5, Scan Context's",
+            f"{ret['recall@5']:.3f}, {ret['scan_context']['recall@5']:.3f}",
+        ),
+    ]
+    for name, key in (("turned copy", "vs_turned_copy"), ("retrieved frame", "vs_retrieved_frame")):
+        e = yaw[key]
+        rows.append(
+            (
+                f"yaw error vs {name} (median / p90 / max, °)",
+                f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f}",
+            )
+        )
+    for k, v in rows:
+        table.add_row(k, v)
+    out.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps({"checkpoint": str(checkpoint), **r}, indent=2) + "\n")
+        out.print(f"wrote {json_out}")
+
+
+@command(
+    "report",
+    epilog="Example (after `make data` and the training presets):\n\n"
+    "  overlapmamba report --runs runs --test data/synth/test --test data/synth/test-b "
+    "--test data/synth/test-c --second-session data/synth/test-s1 --out reports/model",
+)
+@friendly_errors
+def report_cmd(
+    runs: Annotated[Path, typer.Option(help="folder holding the preset runs")] = Path("runs"),
+    test: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="test town with loops (repeat for several; default: the test, test-b and "
+            "test-c presets that exist, with test-s1 as the second session)"
+        ),
+    ] = None,
+    second_session: Annotated[
+        Path | None,
+        typer.Option(
+            help="a second drive through the first --test town: queried against it "
+            "(AR@1/5/20 across sessions)"
+        ),
+    ] = None,
+    out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Model-card tables I–IV, cross-session recall and real-scan checks: JSON, Markdown, PNG."""
+    check_torch()
+    from model_export.presets import SECOND_SESSION, TEST_DATA
+    from model_export.report import build_report
+
+    tests = test or [Path(t) for t in TEST_DATA if (Path(t) / "manifest.json").is_file()]
+    tests = tests or [Path(TEST_DATA[0])]  # none yet: the message below says what to run
+    if (
+        second_session is None
+        and test is None
+        and (Path(SECOND_SESSION) / "manifest.json").is_file()
+    ):
+        second_session = Path(SECOND_SESSION)
+    for t in [*tests, *([second_session] if second_session else [])]:
+        if not (t / "manifest.json").is_file():
+            raise typer.BadParameter(f"{t} is not a generated sequence: run `make data` first")
+    sessions = (tests[0], second_session) if second_session else None
+    report = build_report(runs, tests, out_dir, progress=not quiet, sessions=sessions)
+    for note in report["notes"]:
+        out.print(f"[yellow]note:[/] {note}")
+    for label, subs in report["table1"].items():
+        out.print(metrics_table(f"test towns (mean of {len(tests)}): {label}", subs))
+    out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")
