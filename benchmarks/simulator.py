@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from model_export.synth.generate import (
+from lidar_synth.generate import (
     GenConfig,
     build_scene,
     compute_ground_truth,

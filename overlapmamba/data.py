@@ -206,9 +206,9 @@ def gen_data(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Simulate a synthetic town and a drive with revisits; write a KITTI-layout sequence."""
-    from model_export.synth.generate import GenConfig, generate
-    from model_export.synth.presets import preset as get_preset
-    from model_export.synth.workers import WorkerError
+    from lidar_synth.generate import GenConfig, generate
+    from lidar_synth.presets import preset as get_preset
+    from lidar_synth.workers import WorkerError
 
     if preset is not None:
         if seed is not None or frames is not None or nodes is not None:
@@ -313,7 +313,7 @@ def sim_report(
     ] = Path("reports/realism"),
 ) -> None:
     """Compare synthetic scans with real KITTI scans: beams, ranges, empties, ground, intensity."""
-    from model_export.synth import realism
+    from lidar_synth import realism
 
     rep = realism.report(real, synthetic, reference, scans, output)
     rows, cap = rep["rows"], rep["compared_within_m"]

@@ -109,8 +109,8 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
     pytest.importorskip("embreex")
-    from model_export.synth.generate import generate
-    from model_export.synth.presets import PRESETS
+    from lidar_synth.generate import generate
+    from lidar_synth.presets import PRESETS
 
     out = tmp_path_factory.mktemp("synth") / name
     # Its own limit: a stuck or dead worker fails this fixture in a minute, with the chunk named

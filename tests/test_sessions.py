@@ -65,8 +65,8 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     from conftest import SMALL_MODEL, save_random_checkpoint
     from typer.testing import CliRunner
 
-    from model_export.synth.generate import generate
-    from model_export.synth.presets import PRESETS
+    from lidar_synth.generate import generate
+    from lidar_synth.presets import PRESETS
     from overlapmamba.cli import app
 
     # two 30-scan drives through a 2 × 2 town: the second keeps to the first's streets, so

@@ -16,20 +16,20 @@ import itertools
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import loop_ground_truth, overlap_and_yaw
 from lidar_core.sensors import get_profile
-from model_export.synth.dynamics import Dynamics
-from model_export.synth.generate import (
+from lidar_synth.dynamics import Dynamics
+from lidar_synth.generate import (
     GenConfig,
     build_scene,
     generate,
     read_manifest,
     read_overlaps,
 )
-from model_export.synth.geometry import MAT, Mesh
-from model_export.synth.lidar import Scanner, get_lidar
-from model_export.synth.presets import PRESETS
-from model_export.synth.streets import DISTRICTS
-from model_export.synth.trajectory import DriveParams, plan_drive, plan_route
-from model_export.synth.world import WorldParams, build_world
+from lidar_synth.geometry import MAT, Mesh
+from lidar_synth.lidar import Scanner, get_lidar
+from lidar_synth.presets import PRESETS
+from lidar_synth.streets import DISTRICTS
+from lidar_synth.trajectory import DriveParams, plan_drive, plan_route
+from lidar_synth.world import WorldParams, build_world
 
 SMALL = {"nx": 3, "ny": 3, "block_min": 50.0, "block_max": 65.0}
 TINY = PRESETS["tiny"]  # the session-wide ``tiny_seq`` fixture (conftest) is this preset
@@ -248,8 +248,8 @@ def test_loop_only_pair_table_gives_the_same_loop_table_and_cannot_be_trained_on
 
     from lidar_core.errors import DatasetError
     from lidar_core.overlap import LoopGroundTruth
+    from lidar_synth.generate import compute_ground_truth
     from model_export.batches import read_pair_table
-    from model_export.synth.generate import compute_ground_truth
 
     copy = tmp_path / "tiny"
     shutil.copytree(tiny_seq, copy)
@@ -391,8 +391,8 @@ def test_gen_data_refuses_bad_options(tmp_path, args, message):
 def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
-    import model_export.synth.generate as gen
-    from model_export.synth.workers import WorkerError
+    import lidar_synth.generate as gen
+    from lidar_synth.workers import WorkerError
     from overlapmamba.cli import app
 
     def dies(*args, **kwargs):
@@ -409,7 +409,7 @@ def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
 
 
 def test_a_second_session_drives_the_same_town_with_other_cars_and_route():
-    from model_export.synth.generate import build_scene
+    from lidar_synth.generate import build_scene
 
     cfg = GenConfig(seed=9, frames=40, sensor="hdl32", world={"nx": 2, "ny": 2})
     w0, d0, dyn0 = build_scene(cfg)
@@ -429,8 +429,8 @@ def test_the_second_test_session_keeps_to_the_first_sessions_streets():
     session 1 re-drives session 0's streets (in its own order, both directions)."""
     from scipy.spatial import cKDTree
 
-    from model_export.synth.generate import build_scene
-    from model_export.synth.trajectory import driven_streets
+    from lidar_synth.generate import build_scene
+    from lidar_synth.trajectory import driven_streets
 
     w0, d0, _ = build_scene(PRESETS["test"])
     d1 = build_scene(PRESETS["test-s1"])[1]

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model_export.synth.generate import GenConfig, generate, read_manifest
-from model_export.synth.workers import WorkerError, run_jobs, start_method
+from lidar_synth.generate import GenConfig, generate, read_manifest
+from lidar_synth.workers import WorkerError, run_jobs, start_method
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("lidar_core", "model_export", "service", "client", "overlapmamba", "benchmarks")

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from model_export.synth.generate import GenConfig
+from lidar_synth.generate import GenConfig
 
 _TINY: dict = {
     "world": {"nx": 4, "ny": 3, "block_min": 50.0, "block_max": 65.0},
@@ -97,7 +97,7 @@ def planned_revisits(cfg: GenConfig, radius: float = 6.0, gap: int = 100) -> dic
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from model_export.synth.generate import build_scene
+    from lidar_synth.generate import build_scene
 
     _, drive, _ = build_scene(cfg)
     xy = drive.poses[:, :2, 3]

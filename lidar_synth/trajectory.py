@@ -21,8 +21,8 @@ from itertools import pairwise
 import numpy as np
 from scipy import ndimage
 
-from model_export.synth.streets import StreetNetwork
-from model_export.synth.terrain import Terrain
+from lidar_synth.streets import StreetNetwork
+from lidar_synth.terrain import Terrain
 
 
 @dataclass(frozen=True)

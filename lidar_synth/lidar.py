@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model_export.synth.geometry import TRANSMIT, Mesh
+from lidar_synth.geometry import TRANSMIT, Mesh
 
 
 def _hdl64_elevations() -> tuple[float, ...]:

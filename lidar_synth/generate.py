@@ -41,11 +41,11 @@ from lidar_core.overlap import (
 )
 from lidar_core.poses import write_poses
 from lidar_core.sensors import get_profile
-from model_export.synth.dynamics import Dynamics, DynamicsParams
-from model_export.synth.lidar import LIDAR_MODELS, Scanner, get_lidar
-from model_export.synth.trajectory import Drive, DriveParams, driven_streets, plan_drive
-from model_export.synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
-from model_export.synth.world import World, WorldParams, build_world
+from lidar_synth.dynamics import Dynamics, DynamicsParams
+from lidar_synth.lidar import LIDAR_MODELS, Scanner, get_lidar
+from lidar_synth.trajectory import Drive, DriveParams, driven_streets, plan_drive
+from lidar_synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
+from lidar_synth.world import World, WorldParams, build_world
 
 # 1.4.0: sessions (session 0 is byte-identical to 1.3.1); 1.5.0: a later session keeps to
 # the streets of the first (session 0 unchanged)
@@ -412,7 +412,7 @@ def generate(
     same = rev = None
     if loops is not None:
         same, rev, _ = revisit_frames(loops)
-    from model_export.synth.mapview import draw_map
+    from lidar_synth.mapview import draw_map
 
     pos_world = drive.poses[:, :2, 3]
     draw_map(

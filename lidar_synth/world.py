@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from model_export.synth.geometry import (
+from lidar_synth.geometry import (
     BOX,
     CYLINDER,
     MAT,
@@ -23,8 +23,8 @@ from model_export.synth.geometry import (
     ribbon,
     template,
 )
-from model_export.synth.streets import DISTRICTS, Street, StreetNetwork, build_streets
-from model_export.synth.terrain import Terrain
+from lidar_synth.streets import DISTRICTS, Street, StreetNetwork, build_streets
+from lidar_synth.terrain import Terrain
 
 
 @dataclass(frozen=True)

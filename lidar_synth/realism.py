@@ -218,7 +218,7 @@ def report(
     real_paths = sorted(real_dir.glob("*.bin"))[:scans]
     with tempfile.TemporaryDirectory() as tmp:
         if synthetic is None:
-            from model_export.synth.generate import GenConfig, generate
+            from lidar_synth.generate import GenConfig, generate
 
             synthetic = Path(tmp) / "synthetic"
             generate(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from model_export.synth.geometry import REFLECTIVITY, Mesh
+from lidar_synth.geometry import REFLECTIVITY, Mesh
 
 
 class Terrain:

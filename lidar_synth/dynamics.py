@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from model_export.synth.geometry import MAT, REFLECTIVITY, Mesh, instances, template
-from model_export.synth.streets import DISTRICTS
-from model_export.synth.world import World, _frame_at
+from lidar_synth.geometry import MAT, REFLECTIVITY, Mesh, instances, template
+from lidar_synth.streets import DISTRICTS
+from lidar_synth.world import World, _frame_at
 
 # length, width, height (m)
 _PARKED, _TRAFFIC, _PEDESTRIAN = 0, 1, 2  # kinds of dynamic object

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from model_export.synth.geometry import MAT
-from model_export.synth.world import World
+from lidar_synth.geometry import MAT
+from lidar_synth.world import World
 
 _SURFACE_RGB = {
     MAT["asphalt"]: (0.35, 0.35, 0.38),
