@@ -174,7 +174,7 @@ def main() -> None:
 
 def http_cost(clouds: list, even: np.ndarray, rng: np.random.Generator, rounds: int) -> dict:
     import httpx
-    from serving import server
+    from bench_kit import server
 
     headers = {"content-type": "application/octet-stream", "x-point-fields": "xyzi"}
     queries = []

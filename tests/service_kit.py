@@ -1,14 +1,11 @@
-"""Shared helpers for the service tests: scans, an app with its lifespan, a real server."""
+"""Shared helpers for the service tests: scans, an app with its lifespan, a real server
+(:mod:`service.process`, which the benchmarks use too)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import socket
 import subprocess
-import sys
-import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
@@ -17,6 +14,7 @@ import numpy as np
 
 from service.app import create_app
 from service.encoder import Encoder
+from service.process import serve_process
 from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,56 +50,16 @@ async def running(settings: Settings, encoder: Encoder) -> AsyncIterator[httpx.A
             yield client
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
 def server(
     data_dir: Path, env: dict[str, str] | None = None
 ) -> Iterator[tuple[str, subprocess.Popen]]:
-    """A real `overlapmamba serve` process on a free loopback port, ready when yielded.
-    Its log goes to a file (``server_log(proc)``), not a pipe: a pipe nobody drains fills
-    up after a few hundred access lines and blocks the server."""
-    port = free_port()
-    cmd = [sys.executable, "-m", "overlapmamba", "serve", "--port", str(port)]
-    cmd += ["--data-dir", str(data_dir), "--model", str(MODEL)]
-    log_path = Path(data_dir).parent / f"server-{port}.log"
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "wb") as log_file:
-        proc = subprocess.Popen(
-            cmd,
-            cwd=ROOT,
-            env={**os.environ, "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})},
-            stdout=log_file,
-            stderr=subprocess.STDOUT,
-        )
-    proc.log_path = log_path  # type: ignore[attr-defined]
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"server exited: {server_log(proc)[-2000:]}")
-            try:
-                if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("server did not become ready in 60 s")
-            time.sleep(0.2)
-        yield url, proc
-    finally:
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+    """A real `overlapmamba serve` process on a free loopback port, ready when yielded
+    (:func:`service.process.serve_process`); its log: ``server_log(proc)``."""
+    env = {"OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})}
+    with serve_process(data_dir, model=MODEL, env=env, cwd=ROOT) as srv:
+        srv.proc.log_path = srv.log_path  # type: ignore[attr-defined]
+        yield srv.url, srv.proc
 
 
 def server_log(proc: subprocess.Popen) -> str:

@@ -21,7 +21,9 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-from service_kit import MODEL, OCTET, free_port, scan
+from service_kit import MODEL, OCTET, scan
+
+from service.process import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "Dockerfile"

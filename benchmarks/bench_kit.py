@@ -1,0 +1,127 @@
+"""What the benchmarks share: paths, scans (KITTI 00 when present, else synthetic), a real
+server in a temporary data folder (:mod:`service.process`), and a watch on the CPU use of
+other processes, so a noisy run says so."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from service.process import serve_process
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
+MODEL = ROOT / "models" / "overlapmamba-hdl64.onnx"
+CORES = os.cpu_count() or 1
+
+# ---- scans ----------------------------------------------------------------------------------
+
+
+def synthetic_scan(seed: int, n: int = 120_000) -> np.ndarray:
+    """(n, 4) float32 xyzi: a ground plane and a wavy ring of walls around the sensor."""
+    rng = np.random.default_rng(seed)
+    ng = n // 3
+    r = 40 * np.sqrt(rng.uniform(0.01, 1, ng))
+    a = rng.uniform(-np.pi, np.pi, ng)
+    ground = np.column_stack([r * np.cos(a), r * np.sin(a), rng.normal(-1.73, 0.02, ng)])
+    nw = n - ng
+    a = rng.uniform(-np.pi, np.pi, nw)
+    radius = 15 + 5 * np.sin(3 * a + seed) + rng.normal(0, 0.05, nw)
+    walls = np.column_stack([radius * np.cos(a), radius * np.sin(a), rng.uniform(-1.7, 3, nw)])
+    xyz = np.concatenate([ground, walls])
+    return np.column_stack([xyz, rng.uniform(0, 1, n)]).astype(np.float32)
+
+
+def scan_bodies(n: int) -> tuple[list[bytes], str]:
+    paths = sorted((REAL / "velodyne").glob("*.bin"))[:n]
+    if paths:
+        pts = len(paths[0].read_bytes()) // 16
+        return [p.read_bytes() for p in paths], (
+            f"KITTI 00 frames 0–{len(paths) - 1} (frame 0: {pts} points)"
+        )
+    return [synthetic_scan(i).tobytes() for i in range(n)], "synthetic scans (120k points)"
+
+
+def _machine_jiffies() -> tuple[int, int]:
+    """(total, busy) CPU time of the whole machine from /proc/stat, in clock ticks."""
+    values = [int(v) for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:8]]
+    return sum(values), sum(values) - values[3] - values[4]  # minus idle and iowait
+
+
+def _pid_cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
+SERVER_CPU_S = [0.0]  # CPU seconds used by the benchmark's servers, added as each one stops
+
+
+class OtherLoad:
+    """The share of the machine's CPU used by *other* processes over a stretch of time:
+    machine busy time (/proc/stat) minus this process's and its servers' CPU time. Anything
+    above a few percent means the measurements competed with someone else's work. Linux
+    only; elsewhere ``fraction()`` is None."""
+
+    def __init__(self) -> None:
+        try:
+            self.start: tuple[int, int] | None = _machine_jiffies()
+        except (OSError, ValueError, IndexError):
+            self.start = None
+        self.t0 = time.perf_counter()
+        self.own0 = time.process_time() + SERVER_CPU_S[0]
+
+    def fraction(self) -> float | None:
+        if self.start is None:
+            return None
+        total, busy = _machine_jiffies()
+        hz = os.sysconf("SC_CLK_TCK")
+        own = time.process_time() + SERVER_CPU_S[0] - self.own0
+        other = (busy - self.start[1]) / hz - own
+        return max(0.0, other / max((total - self.start[0]) / hz, 1e-9))
+
+
+def other_load(console: Console, part: str, watch: OtherLoad, when: str) -> float | None:
+    busy = watch.fraction()
+    if busy is not None and busy > 0.1:
+        console.print(
+            f"[yellow]warning:[/] {when} the {part} part, other processes used {100 * busy:.0f}% "
+            "of the machine's CPU: these numbers are noisy; rerun when the machine is quiet"
+        )
+    return busy
+
+
+# ---- servers --------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def server(env_extra: dict[str, str], startup_s: float = 180.0) -> Iterator[str]:
+    """A real ``overlapmamba serve`` on a free port with a temporary data folder, configured
+    by ``env_extra`` only (not by this process's OVERLAPMAMBA_* variables); its base URL once
+    /readyz answers 200. Its CPU time is added to SERVER_CPU_S as it stops."""
+    with tempfile.TemporaryDirectory(prefix="om-bench-") as tmp:
+        data = Path(tmp) / "data"
+        with serve_process(
+            data,
+            model=MODEL,
+            env=env_extra,
+            inherit_settings=False,
+            log_path=Path(tmp) / "server.log",
+            startup_s=startup_s,
+            cwd=ROOT,
+        ) as srv:
+            try:
+                yield srv.url
+            finally:
+                with contextlib.suppress(OSError, ValueError, IndexError):
+                    SERVER_CPU_S[0] += _pid_cpu_s(srv.proc.pid)
+
+
+def pct(ms: list[float] | np.ndarray, q: float) -> float:
+    return float(np.percentile(np.asarray(ms, dtype=np.float64), q)) if len(ms) else float("nan")
