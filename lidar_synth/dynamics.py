@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from lidar_synth.geometry import MAT, REFLECTIVITY, Mesh, instances, template
-from lidar_synth.streets import DISTRICTS
-from lidar_synth.world import World, _frame_at
+from lidar_synth.streets import DISTRICTS, frame_at
+from lidar_synth.world import World
 
 # length, width, height (m)
 _PARKED, _TRAFFIC, _PEDESTRIAN = 0, 1, 2  # kinds of dynamic object
@@ -154,7 +154,7 @@ class Dynamics:
             L = st.length
             phase = (self.ped_s0[i] + self.ped_speed[i] * t / (2 * L)) % 1.0
             at = L * (2 * phase if phase < 0.5 else 2 - 2 * phase)
-            pos, tan = _frame_at(st.points, np.array([at]))
+            pos, tan = frame_at(st.points, np.array([at]))
             pos = pos + np.column_stack([-tan[:, 1], tan[:, 0]]) * self.ped_offset[i]
             if np.linalg.norm(pos[0] - center) < radius:
                 xy.append(pos)

@@ -216,3 +216,21 @@ def build_streets(
                 st = streets[k]
                 st.points = _bezier(nodes[st.u], nodes[st.v], 0.0)
     return StreetNetwork(nodes, streets, seeds, types)
+
+
+def resample(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``step`` metres along a polyline, and their arc lengths."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(0.0, s[-1] + 1e-9, step)
+    return np.column_stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])]), t
+
+
+def frame_at(points: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (M, 2) and unit tangent (M, 2) at arc lengths s along a polyline."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    pos = np.column_stack([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])])
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    tan = (points[k + 1] - points[k]) / np.maximum(seg[k], 1e-9)[:, None]
+    return pos, tan

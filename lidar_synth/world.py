@@ -15,15 +15,14 @@ from scipy import ndimage
 
 from lidar_synth.geometry import (
     BOX,
-    CYLINDER,
     MAT,
-    REFLECTIVITY,
     Mesh,
     instances,
     ribbon,
     template,
 )
-from lidar_synth.streets import DISTRICTS, Street, StreetNetwork, build_streets
+from lidar_synth.props import PropBuilder
+from lidar_synth.streets import DISTRICTS, Street, StreetNetwork, build_streets, frame_at, resample
 from lidar_synth.terrain import Terrain
 
 
@@ -104,33 +103,14 @@ class _Raster:
         self.occ[i, j] = True
 
 
-def _resample(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    t = np.arange(0.0, s[-1] + 1e-9, step)
-    return np.column_stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])]), t
-
-
-def _frame_at(points: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Position (M, 2) and unit tangent (M, 2) at arc lengths s along a polyline."""
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    pos = np.column_stack([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])])
-    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
-    tan = (points[k + 1] - points[k]) / np.maximum(seg[k], 1e-9)[:, None]
-    return pos, tan
-
-
-class _Builder:
+class _Builder(PropBuilder):
     def __init__(self, rng: np.random.Generator, params: WorldParams) -> None:
-        self.rng, self.p = rng, params
+        self.p = params
         self.net = build_streets(rng, params.nx, params.ny, (params.block_min, params.block_max))
-        self.terrain = Terrain(rng, params.terrain_amplitude)
+        super().__init__(rng, Terrain(rng, params.terrain_amplitude))
         self.lo, self.hi = self.net.bounds(margin=140.0)
         self.raster = _Raster(self.lo, self.hi)
-        self.parts: list[Mesh] = []
         self.footprints: list[tuple[np.ndarray, str]] = []
-        self.trees: list[np.ndarray] = []
         self.parking: list[tuple[float, float, float, int]] = []
         # Per-town catalogues: repeated types make look-alike places.
         r = rng
@@ -151,149 +131,6 @@ class _Builder:
             dict(l=r.uniform(25, 70), w=r.uniform(20, 45), h=r.uniform(7, 13)) for _ in range(5)
         ]
 
-    # ---- primitives -------------------------------------------------------------------
-    def z(self, xy: np.ndarray) -> np.ndarray:
-        return self.terrain.height(xy)
-
-    def _albedo(self, mat: str, n: int, spread: float = 0.25) -> np.ndarray:
-        base = REFLECTIVITY[MAT[mat]]
-        return np.clip(base * self.rng.uniform(1 - spread, 1 + spread, n), 0.02, 1.0)
-
-    def box(self, c, yaw, length, w, h, mat: str, z0: float | None = None) -> None:
-        c = np.asarray(c, float)
-        corners = self._corners(c, yaw, length, w)
-        base = float(self.z(corners).min()) - 0.3 if z0 is None else z0
-        self.parts.append(
-            instances(
-                BOX,
-                c[None],
-                [yaw],
-                [[length, w, h + (0.3 if z0 is None else 0)]],
-                [base],
-                [MAT[mat]],
-                self._albedo(mat, 1),
-            )
-        )
-
-    @staticmethod
-    def _corners(c, yaw, length, w) -> np.ndarray:
-        cs, sn = np.cos(yaw), np.sin(yaw)
-        loc = np.array([[-length, -w], [length, -w], [length, w], [-length, w]]) / 2
-        return c + loc @ np.array([[cs, sn], [-sn, cs]])
-
-    def tree(self, xy: np.ndarray, scale: float = 1.0) -> None:
-        n = len(xy)
-        if n == 0:
-            return
-        r = self.rng
-        trunk_h = r.uniform(1.8, 3.5, n) * scale
-        crown_d = r.uniform(3.0, 7.0, n) * scale
-        crown_h = crown_d * r.uniform(0.8, 1.3, n)
-        z0 = self.z(xy)
-        trunk_r = r.uniform(0.25, 0.5, n) * scale
-        self.parts.append(
-            instances(
-                CYLINDER,
-                xy,
-                r.uniform(0, 6.3, n),
-                np.column_stack([trunk_r, trunk_r, trunk_h + 0.5]),
-                z0 - 0.2,
-                [MAT["bark"]],
-                self._albedo("bark", n),
-            )
-        )
-        self.parts.append(
-            instances(
-                template("ellipsoid"),
-                xy,
-                r.uniform(0, 6.3, n),
-                np.column_stack([crown_d, crown_d * r.uniform(0.8, 1.2, n), crown_h]),
-                z0 + trunk_h * 0.75,
-                [MAT["foliage"]],
-                self._albedo("foliage", n),
-            )
-        )
-        self.trees.append(xy)
-
-    def bush(self, xy: np.ndarray) -> None:
-        n = len(xy)
-        if n == 0:
-            return
-        r = self.rng
-        d = r.uniform(1.0, 2.6, n)
-        self.parts.append(
-            instances(
-                template("ellipsoid"),
-                xy,
-                r.uniform(0, 6.3, n),
-                np.column_stack([d, d * r.uniform(0.7, 1.3, n), r.uniform(0.8, 1.7, n)]),
-                self.z(xy) - 0.2,
-                [MAT["foliage"]],
-                self._albedo("foliage", n),
-            )
-        )
-
-    def pole(self, xy: np.ndarray, yaw: np.ndarray) -> None:
-        """Street lights with an arm reaching over the road (``yaw`` points at the road)."""
-        n = len(xy)
-        if n == 0:
-            return
-        r = self.rng
-        h = r.uniform(6.0, 9.0, n)
-        rad = r.uniform(0.18, 0.3, n)
-        z0 = self.z(xy)
-        self.parts.append(
-            instances(
-                CYLINDER,
-                xy,
-                0.0,
-                np.column_stack([rad, rad, h]),
-                z0 - 0.2,
-                [MAT["pole"]],
-                self._albedo("pole", n),
-            )
-        )
-        arm = xy + np.column_stack([np.cos(yaw), np.sin(yaw)]) * 0.9
-        self.parts.append(
-            instances(
-                BOX,
-                arm,
-                yaw,
-                np.column_stack([np.full(n, 1.8), np.full(n, 0.25), np.full(n, 0.2)]),
-                z0 + h - 0.4,
-                [MAT["pole"]],
-                self._albedo("pole", n),
-            )
-        )
-
-    def sign(self, xy: np.ndarray, yaw: np.ndarray) -> None:
-        n = len(xy)
-        if n == 0:
-            return
-        z0 = self.z(xy)
-        self.parts.append(
-            instances(
-                CYLINDER,
-                xy,
-                0.0,
-                [[0.12, 0.12, 2.6]],
-                z0 - 0.2,
-                [MAT["pole"]],
-                self._albedo("pole", n),
-            )
-        )
-        self.parts.append(
-            instances(
-                BOX,
-                xy,
-                yaw,
-                [[0.08, 0.7, 0.7]],
-                z0 + 1.9,
-                [MAT["sign"]],
-                self._albedo("sign", n, 0.05),
-            )
-        )
-
     # ---- layout -----------------------------------------------------------------------
     def rasterise_roads(self) -> None:
         """Road mask: cells closer to a centreline than its half-width plus a kerb margin."""
@@ -301,7 +138,7 @@ class _Builder:
         centre = np.zeros(R.shape, bool)
         hw = np.zeros(R.shape, np.float32)
         for s in self.net.streets:
-            pts, _ = _resample(s.points, R.res / 2)
+            pts, _ = resample(s.points, R.res / 2)
             i, j = R.idx(pts)
             centre[i, j] = True
             hw[i, j] = np.maximum(hw[i, j], s.half_width)
@@ -318,7 +155,7 @@ class _Builder:
         junction = hw + 10.0  # keep lot frontages out of intersections
 
         def frame(at: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            pos, tan = _frame_at(s.points, at)
+            pos, tan = frame_at(s.points, at)
             nrm = np.column_stack([-tan[:, 1], tan[:, 0]]) * side
             return pos + nrm * offset, tan, nrm
 
@@ -544,7 +381,7 @@ class _Builder:
                 continue
             at = np.arange(s.half_width + 6, s.length - s.half_width - 6, 9.0)
             if len(at):
-                pos, tan = _frame_at(s.points, at)
+                pos, tan = frame_at(s.points, at)
                 self.parts.append(
                     instances(
                         BOX,
