@@ -20,13 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from lidar_synth.generate import (
-    GenConfig,
-    build_scene,
-    compute_ground_truth,
-    simulate_scans,
-    write_layout,
-)
+from lidar_synth.config import GenConfig
+from lidar_synth.generate import build_scene, simulate_scans, write_layout
+from lidar_synth.truth import compute_ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -6,7 +6,8 @@
      │    ├── NonFiniteError     NaN or ±Inf in coordinates or intensity
      │    └── PointCountError    too few or too many points
      ├── ProfileError           an unknown or invalid sensor profile   (ValueError)
-     └── DatasetError           a sequence folder that cannot be read  (ValueError)
+     ├── DatasetError           a sequence folder that cannot be read  (ValueError)
+     └── ConfigError            a configuration (dataclass) with fields not allowed (ValueError)
 
 Every error carries a stable machine-readable ``code`` and a ``detail`` dict that says what
 was wrong and what is allowed, so the HTTP service can map it to a 4xx without parsing text.
@@ -50,3 +51,7 @@ class ProfileError(LidarCoreError, ValueError):
 
 class DatasetError(LidarCoreError, ValueError):
     code = "invalid_dataset"
+
+
+class ConfigError(LidarCoreError, ValueError):
+    code = "invalid_config"

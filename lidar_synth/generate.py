@@ -25,105 +25,24 @@ import os
 import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 from tqdm.auto import tqdm
 
-from lidar_core.datasets import open_sequence
-from lidar_core.overlap import (
-    LoopGroundTruth,
-    candidate_pairs,
-    loop_params,
-    loop_table_from_pairs,
-    pair_overlaps,
-)
 from lidar_core.poses import write_poses
 from lidar_core.sensors import get_profile
-from lidar_synth.dynamics import Dynamics, DynamicsParams
-from lidar_synth.lidar import LIDAR_MODELS, Scanner, get_lidar
-from lidar_synth.trajectory import Drive, DriveParams, driven_streets, plan_drive
+from lidar_synth.config import GenConfig
+from lidar_synth.dynamics import Dynamics
+from lidar_synth.lidar import Scanner, get_lidar
+from lidar_synth.trajectory import Drive, driven_streets, plan_drive
+from lidar_synth.truth import compute_ground_truth, revisit_frames
 from lidar_synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
-from lidar_synth.world import World, WorldParams, build_world
+from lidar_synth.world import World, build_world
 
 # 1.4.0: sessions (session 0 is byte-identical to 1.3.1); 1.5.0: a later session keeps to
 # the streets of the first (session 0 unchanged)
 GENERATOR_VERSION = "1.5.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
-
-
-class GenConfig(BaseModel):
-    """Everything that determines a generated sequence."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    seed: int = Field(ge=0, le=2**31 - 1)
-    frames: int = Field(ge=2, le=100_000)
-    session: int = Field(
-        default=0,
-        ge=0,
-        le=1000,
-        description="0: the town's first drive; k > 0: another drive through the same static "
-        "town (same seed) along the streets the first drive of as many frames took, in its own "
-        "order and directions, with its own parked cars, traffic, people and scan noise",
-    )
-    sensor: str = "kitti-hdl64"
-    preset: str | None = None
-    split: str = Field(default="train", description="train, val or test; test is never trained on")
-    world: dict = Field(default_factory=dict, description="WorldParams overrides")
-    drive: dict = Field(default_factory=dict, description="DriveParams overrides")
-    dynamics: dict = Field(default_factory=dict, description="DynamicsParams overrides")
-    gt_radius: float = Field(default=30.0, gt=0, le=200)
-    loop_exclude: int = Field(default=100, ge=0)
-    loop_min_overlap: float = Field(default=0.3, ge=0, le=1)
-    pair_table: Literal["all", "loops"] = Field(
-        default="all",
-        description="all: every pair within gt_radius (what training samples positives and "
-        "near misses from); loops: only pairs more than loop_exclude frames apart, the loop "
-        "table's candidates, enough for validation and test towns at a fraction of the work",
-    )
-
-    @field_validator("sensor")
-    @classmethod
-    def _known_sensor(cls, v: str) -> str:
-        if v not in LIDAR_MODELS:
-            raise ValueError(f"unknown sensor {v!r}; allowed: {', '.join(LIDAR_MODELS)}")
-        return v
-
-    @field_validator("split")
-    @classmethod
-    def _known_split(cls, v: str) -> str:
-        if v not in ("train", "val", "test"):
-            raise ValueError(f"unknown split {v!r}; allowed: train, val, test")
-        return v
-
-    def session_seed(self) -> list[int]:
-        """Entropy of everything that changes between sessions (session 0: the seed alone,
-        so first sessions stay byte-identical to those of earlier generator versions)."""
-        return [self.seed] if self.session == 0 else [self.seed, 0x5E55, self.session]
-
-    def world_params(self) -> WorldParams:
-        return _build(WorldParams, self.world)
-
-    def drive_params(self) -> DriveParams:
-        lidar = get_lidar(self.sensor)
-        base = {"rate_hz": lidar.rate_hz, "mount_height": lidar.mount_height}
-        return _build(DriveParams, {**base, **self.drive})
-
-    def dynamics_params(self) -> DynamicsParams:
-        return _build(DynamicsParams, self.dynamics)
-
-
-def _build(cls, overrides: dict):
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(overrides) - names
-    if unknown:
-        raise ValueError(
-            f"unknown {cls.__name__} fields {sorted(unknown)}; allowed: {sorted(names)}"
-        )
-    fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
-    return cls(**fixed)
 
 
 # ---- scan simulation in worker processes ---------------------------------------------------
@@ -192,97 +111,7 @@ def simulate_scans(
     return counts
 
 
-# ---- ground truth -----------------------------------------------------------------------------
-def _overlap_chunk(args) -> tuple[np.ndarray, np.ndarray]:
-    root, sensor, pairs = args
-    seq = open_sequence(root, kind="kitti", sensor=sensor)
-    return pair_overlaps(seq, pairs, get_profile(sensor), progress=False)
-
-
-def compute_ground_truth(
-    out: Path,
-    cfg: GenConfig,
-    workers: int,
-    progress: bool,
-    stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
-) -> tuple[dict, LoopGroundTruth]:
-    """Overlap/yaw of every pair closer than ``gt_radius`` (query later than reference), with
-    lidar_core's overlap code; the loop table is the subset the loop protocol asks for.
-
-    With ``pair_table="loops"`` only the loop table's candidates are computed (pairs more than
-    ``loop_exclude`` frames apart): the same loop table, without the neighbouring frames that
-    only training samples from."""
-    seq = open_sequence(out, kind="kitti", sensor=cfg.sensor)
-    profile = get_profile(cfg.sensor)
-    min_gap = 1 if cfg.pair_table == "all" else cfg.loop_exclude + 1
-    pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=min_gap)
-    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
-    # Chunks of ≈25 whole queries, so each chunk projects its queries once.
-    queries = np.unique(pairs[:, 0])
-    firsts = [q[0] for q in np.array_split(queries, max(1, len(queries) // 25)) if len(q)]
-    chunks = np.split(pairs, np.searchsorted(pairs[:, 0], firsts[1:]))
-    jobs = [(str(out), cfg.sensor, c) for c in chunks]
-    bar = tqdm(total=len(pairs), desc="overlap ground truth", unit="pair", disable=not progress)
-    results: list = [None] * len(jobs)
-    if workers <= 1:
-        done: Iterable[tuple[int, Any]] = enumerate(map(_overlap_chunk, jobs))
-    else:
-        done = run_jobs(
-            _overlap_chunk, jobs, workers=workers, stall_timeout_s=stall_timeout_s, what="chunk"
-        )
-    for i, res in done:
-        results[i] = res
-        bar.update(len(jobs[i][2]))
-    bar.close()
-    overlap = np.concatenate([r[0] for r in results]).astype(np.float32)
-    yaw = np.concatenate([r[1] for r in results]).astype(np.float32)
-    pos = seq.positions()
-    dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1).astype(np.float32)
-    gt_dir = out / "ground_truth"
-    gt_dir.mkdir(exist_ok=True)
-    table = {
-        "query": pairs[:, 0],
-        "reference": pairs[:, 1],
-        "overlap": overlap,
-        "yaw_deg": yaw,
-        "distance": dist,
-    }
-    tmp = gt_dir / "overlaps.tmp.npz"
-    np.savez_compressed(
-        tmp,
-        **table,
-        radius=cfg.gt_radius,
-        pair_table=cfg.pair_table,
-        profile=json.dumps(profile.model_dump()),
-    )
-    os.replace(tmp, gt_dir / "overlaps.npz")
-    params = loop_params(
-        seq,
-        profile,
-        exclude_recent=cfg.loop_exclude,
-        radius=min(30.0, cfg.gt_radius),
-        min_overlap=cfg.loop_min_overlap,
-    )
-    loops = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlap, yaw)
-    loops.save(gt_dir / "loops.npz")
-    return table, loops
-
-
-def read_overlaps(root: str | Path) -> dict[str, np.ndarray]:
-    """The pair table written by :func:`compute_ground_truth`."""
-    with np.load(Path(root) / "ground_truth" / "overlaps.npz", allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
 # ---- statistics and manifest --------------------------------------------------------------------
-def revisit_frames(loops: LoopGroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frames that revisit a place, split by direction (best-overlap reference's |yaw| > 90°),
-    and each such frame's gap to that reference in frames."""
-    frames, refs, yaw = loops.best_loops()
-    rev = np.abs(yaw) > 90
-    return frames[~rev], frames[rev], frames - refs
-
-
 def _stats(world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: GenConfig) -> dict:
     kinds: dict[str, int] = {}
     for _, kind in world.footprints:

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from lidar_synth.generate import GenConfig
+from lidar_synth.config import GenConfig
 
 _TINY: dict = {
     "world": {"nx": 4, "ny": 3, "block_min": 50.0, "block_max": 65.0},

@@ -218,7 +218,8 @@ def report(
     real_paths = sorted(real_dir.glob("*.bin"))[:scans]
     with tempfile.TemporaryDirectory() as tmp:
         if synthetic is None:
-            from lidar_synth.generate import GenConfig, generate
+            from lidar_synth.config import GenConfig
+            from lidar_synth.generate import generate
 
             synthetic = Path(tmp) / "synthetic"
             generate(

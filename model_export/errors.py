@@ -4,6 +4,7 @@
      └── ModelError                 (ValueError)
           ├── CheckpointError        a file that is not a usable checkpoint
           └── ConfigError            a model or training configuration that is not allowed
+                                     (also a lidar_core.errors.ConfigError)
 
 Like lidar_core's errors each carries a stable ``code`` and a ``detail`` dict, and the CLI
 prints their message instead of a traceback.
@@ -11,9 +12,7 @@ prints their message instead of a traceback.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
-
+from lidar_core import errors
 from lidar_core.errors import LidarCoreError
 
 
@@ -25,14 +24,5 @@ class CheckpointError(ModelError):
     code = "invalid_checkpoint"
 
 
-class ConfigError(ModelError):
+class ConfigError(ModelError, errors.ConfigError):
     code = "invalid_config"
-
-
-def dataclass_from_dict(cls: Any, d: dict, what: str) -> Any:
-    """``cls(**d)`` for a config dataclass, refusing unknown keys with the allowed ones."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise ConfigError(f"unknown {what} fields {unknown}; allowed: {sorted(known)}")
-    return cls(**d)

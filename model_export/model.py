@@ -32,7 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from model_export.errors import dataclass_from_dict
+from lidar_core.configs import dataclass_from_dict
+from model_export.errors import ConfigError
 from model_export.scan import BACKENDS, scan
 
 MIXERS = ("mamba", "transformer")
@@ -85,7 +86,7 @@ class OverlapMambaConfig:
     @classmethod
     def from_dict(cls, d: dict) -> OverlapMambaConfig:
         """The inverse of :meth:`to_dict`; unknown keys are an error, missing ones default."""
-        cfg: OverlapMambaConfig = dataclass_from_dict(cls, d, "config")
+        cfg: OverlapMambaConfig = dataclass_from_dict(cls, d, "config", error=ConfigError)
         return cfg
 
     @property

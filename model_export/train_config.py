@@ -14,8 +14,9 @@ from pathlib import Path
 
 from torch import Tensor
 
+from lidar_core.configs import dataclass_from_dict
 from model_export.augment import AugmentConfig
-from model_export.errors import ConfigError, dataclass_from_dict
+from model_export.errors import ConfigError
 from model_export.losses import BATCH_LOSSES, SCALES, BatchLoss, ImTrihardParams
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -100,7 +101,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        cfg: TrainConfig = dataclass_from_dict(cls, d, "training")
+        cfg: TrainConfig = dataclass_from_dict(cls, d, "training", error=ConfigError)
         return cfg
 
     def real_path(self) -> Path | None:
@@ -112,7 +113,9 @@ class TrainConfig:
         return path if path.is_absolute() or path.exists() else ROOT / path
 
     def augment_config(self) -> AugmentConfig:
-        cfg: AugmentConfig = dataclass_from_dict(AugmentConfig, self.augment, "augmentation")
+        cfg: AugmentConfig = dataclass_from_dict(
+            AugmentConfig, self.augment, "augmentation", error=ConfigError
+        )
         return cfg
 
     def loss_fn(self) -> Callable[[Tensor, Tensor], BatchLoss]:

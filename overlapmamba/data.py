@@ -206,7 +206,8 @@ def gen_data(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Simulate a synthetic town and a drive with revisits; write a KITTI-layout sequence."""
-    from lidar_synth.generate import GenConfig, generate
+    from lidar_synth.config import GenConfig
+    from lidar_synth.generate import generate
     from lidar_synth.presets import preset as get_preset
     from lidar_synth.workers import WorkerError
 

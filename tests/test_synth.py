@@ -16,19 +16,15 @@ import itertools
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import loop_ground_truth, overlap_and_yaw
 from lidar_core.sensors import get_profile
+from lidar_synth.config import GenConfig
 from lidar_synth.dynamics import Dynamics
-from lidar_synth.generate import (
-    GenConfig,
-    build_scene,
-    generate,
-    read_manifest,
-    read_overlaps,
-)
+from lidar_synth.generate import build_scene, generate, read_manifest
 from lidar_synth.geometry import MAT, Mesh
 from lidar_synth.lidar import Scanner, get_lidar
 from lidar_synth.presets import PRESETS
 from lidar_synth.streets import DISTRICTS
 from lidar_synth.trajectory import DriveParams, plan_drive, plan_route
+from lidar_synth.truth import read_overlaps
 from lidar_synth.world import WorldParams, build_world
 
 SMALL = {"nx": 3, "ny": 3, "block_min": 50.0, "block_max": 65.0}
@@ -248,7 +244,7 @@ def test_loop_only_pair_table_gives_the_same_loop_table_and_cannot_be_trained_on
 
     from lidar_core.errors import DatasetError
     from lidar_core.overlap import LoopGroundTruth
-    from lidar_synth.generate import compute_ground_truth
+    from lidar_synth.truth import compute_ground_truth
     from model_export.batches import read_pair_table
 
     copy = tmp_path / "tiny"

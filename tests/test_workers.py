@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_synth.generate import GenConfig, generate, read_manifest
+from lidar_synth.config import GenConfig
+from lidar_synth.generate import generate, read_manifest
 from lidar_synth.workers import WorkerError, run_jobs, start_method
 
 ROOT = Path(__file__).resolve().parents[1]
