@@ -15,14 +15,13 @@ from functools import wraps
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.live import Live
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from client._base import Timeouts
+from client._display import matrix_text, pose_text, progress, stats_table
 from client._exceptions import APIError, ClientError
 from client._replay import open_drive
 from client._sync import PlaceRecognitionClient
@@ -148,17 +147,6 @@ def maps_delete(
     out.print(f"map {map_id}: deleted")
 
 
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]:.1f} scans/s · {task.fields[latency]:.0f} ms"),
-        TimeElapsedColumn(),
-        console=console,
-    )
-
-
 @app.command(
     "ingest",
     epilog="Example:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5",
@@ -183,7 +171,10 @@ def ingest(
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
     created = 0
-    with PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr, _progress() as bar:
+    with (
+        PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr,
+        progress(console) as bar,
+    ):
         pr.create_map(map_id)
         task = bar.add_task(f"ingest {drive.name}", total=len(frames), rate=0.0, latency=0.0)
         for n, i in enumerate(frames, start=1):
@@ -233,14 +224,14 @@ def query(
             yaw,
             "" if v is None else {True: "yes", False: "no", None: "no geometry"}[v.verified],
             "" if v is None or v.fitness is None else f"{v.fitness:.3f}",
-            _pose_text(m.relative_pose),
+            pose_text(m.relative_pose),
             m.robot_id,
         )
     out.print(table)
     lc = r.loop_closure
     if lc.accepted and lc.verified:
         out.print(f"loop closure: ACCEPTED, verified: {lc.keyframe_id} (fitness {lc.fitness:.3f})")
-        out.print(f"relative pose T_keyframe←query:\n{_matrix_text(lc.relative_pose)}")
+        out.print(f"relative pose T_keyframe←query:\n{matrix_text(lc.relative_pose)}")
     elif lc.verified is False:
         out.print("loop closure: not accepted (no candidate passed verification)")
     else:
@@ -248,18 +239,6 @@ def query(
             f"loop closure: {'ACCEPTED' if lc.accepted else 'not accepted'}, descriptor only "
             f"(threshold {lc.threshold:g}, margin {lc.margin_top1_top2})"
         )
-
-
-def _pose_text(T: np.ndarray | None) -> str:
-    if T is None:
-        return ""
-    return f"{T[0, 3]:.2f}, {T[1, 3]:.2f} / {np.degrees(np.arctan2(T[1, 0], T[0, 0])):.1f}"
-
-
-def _matrix_text(T: np.ndarray | None) -> str:
-    if T is None:
-        return "  (none)"
-    return "\n".join("  " + "  ".join(f"{x:9.4f}" for x in row) for row in T)
 
 
 @app.command(
@@ -325,7 +304,7 @@ def observe(
                 if lc.verified:
                     out.print(
                         f"frame {i}: verified loop closure with {lc.keyframe_id} (fitness "
-                        f"{lc.fitness:.3f}; x, y m / yaw °: {_pose_text(lc.relative_pose)})"
+                        f"{lc.fitness:.3f}; x, y m / yaw °: {pose_text(lc.relative_pose)})"
                     )
                 else:
                     m = o.matches[0]
@@ -357,27 +336,6 @@ def _closure_end(
     return None if pose is None else (lc.keyframe_id, list(pose), lc.verified)
 
 
-def _stats_table(s: dict[str, Any]) -> Table:
-    table = Table(title=f"model {s.get('model_id')} · up {s.get('uptime_s', 0):.0f} s")
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    for key in ("keyframes", "inserts", "queries", "loop_closures"):
-        if key in s:
-            table.add_row(key, str(s[key]))
-    table.add_row("loop-closure rate", f"{s.get('loop_closure_rate', 0):.3f}")
-    v = s.get("verification") or {}
-    if v:
-        table.add_row("candidates verified / rejected", f"{v['verified']} / {v['rejected']}")
-    table.add_row("queries/s (1 min)", f"{s.get('queries_per_s_1m', 0):.2f}")
-    for stage, p in s.get("latency_ms", {}).items():
-        table.add_row(f"{stage} p50 / p99 ms", f"{p['p50']:.1f} / {p['p99']:.1f}")
-    for name, r in s.get("robots", {}).items():
-        table.add_row(f"robot {name}", f"{r['observations']} obs, {r['loop_closures']} loops")
-    if "map" in s:
-        table.add_row("map keyframes", str(s["map"].get("keyframes")))
-    return table
-
-
 @app.command("stats")
 @_errors
 def stats(
@@ -390,13 +348,13 @@ def stats(
     """Recognition statistics (counts, latency percentiles, robots)."""
     with _client(url, api_key) as pr:
         if not watch:
-            out.print(_stats_table(pr.stats(map_id)))
+            out.print(stats_table(pr.stats(map_id)))
             return
-        with Live(_stats_table(pr.stats(map_id)), console=out, auto_refresh=False) as live:
+        with Live(stats_table(pr.stats(map_id)), console=out, auto_refresh=False) as live:
             try:
                 while True:
                     time.sleep(interval)
-                    live.update(_stats_table(pr.stats(map_id)), refresh=True)
+                    live.update(stats_table(pr.stats(map_id)), refresh=True)
             except KeyboardInterrupt:
                 pass
 

@@ -1,0 +1,55 @@
+"""How ``overlapmamba-client`` shows things: progress bars, poses and matrices, the stats
+table."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+
+def progress(console: Console) -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]:.1f} scans/s · {task.fields[latency]:.0f} ms"),
+        TimeElapsedColumn(),
+        console=console,
+    )
+
+
+def pose_text(T: np.ndarray | None) -> str:
+    if T is None:
+        return ""
+    return f"{T[0, 3]:.2f}, {T[1, 3]:.2f} / {np.degrees(np.arctan2(T[1, 0], T[0, 0])):.1f}"
+
+
+def matrix_text(T: np.ndarray | None) -> str:
+    if T is None:
+        return "  (none)"
+    return "\n".join("  " + "  ".join(f"{x:9.4f}" for x in row) for row in T)
+
+
+def stats_table(s: dict[str, Any]) -> Table:
+    table = Table(title=f"model {s.get('model_id')} · up {s.get('uptime_s', 0):.0f} s")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key in ("keyframes", "inserts", "queries", "loop_closures"):
+        if key in s:
+            table.add_row(key, str(s[key]))
+    table.add_row("loop-closure rate", f"{s.get('loop_closure_rate', 0):.3f}")
+    v = s.get("verification") or {}
+    if v:
+        table.add_row("candidates verified / rejected", f"{v['verified']} / {v['rejected']}")
+    table.add_row("queries/s (1 min)", f"{s.get('queries_per_s_1m', 0):.2f}")
+    for stage, p in s.get("latency_ms", {}).items():
+        table.add_row(f"{stage} p50 / p99 ms", f"{p['p50']:.1f} / {p['p99']:.1f}")
+    for name, r in s.get("robots", {}).items():
+        table.add_row(f"robot {name}", f"{r['observations']} obs, {r['loop_closures']} loops")
+    if "map" in s:
+        table.add_row("map keyframes", str(s["map"].get("keyframes")))
+    return table
