@@ -1,5 +1,5 @@
 """MapClosures (PRBonn, ``map-closures`` on the package index) on one of our towns, scored
-against our ground truth, beside our verified loop closures (issue 22).
+against our ground truth, beside our verified loop closures.
 
 MapClosures is not a dependency of this project: install it in its own environment
 (``python -m venv /tmp/mc && /tmp/mc/bin/pip install map-closures``) and pass its

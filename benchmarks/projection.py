@@ -2,7 +2,7 @@
 
 Uses a real KITTI scan when ../shared/data is present (padded to 125k points), else a seeded
 synthetic one. Prints a table and writes JSON (default bench-results/projection.json).
-Goal (issue 2): median ≤ 3 ms for 125k points with the kitti-hdl64 profile.
+Goal: median ≤ 3 ms for 125k points with the kitti-hdl64 profile.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ appended as a JSON line (default bench-results/recipe.jsonl).
     python benchmarks/recipe.py NAME '{"train": {...}, "model": {...}}' \
         --data DIR [--data DIR …] --val DIR
 
-Defaults: the narrow network of issue 20's measurements (d_model 64, convLast2 256, 32
+Defaults: the narrow network of the recipe measurements (d_model 64, convLast2 256, 32
 clusters), 3 epochs of 640 scans in batches of 16 (120 steps), epoch 0 with batch norm
 recalibrated, the per-epoch turn check on ../shared/data's KITTI 00 scans. The spec's
 ``train`` and ``model`` dicts override TrainConfig and OverlapMambaConfig fields. The tables

@@ -1,7 +1,7 @@
 """Geometric verification on real scans: pose accuracy, separation and cost of
 :mod:`service.verify` (small_gicp GICP against a keyframe's compact geometry).
 
-Protocol (issue 22's): KITTI 00 frames 0–100 from ../shared/data. Each odd frame is turned
+Protocol: KITTI 00 frames 0–100 from ../shared/data. Each odd frame is turned
 in place by a random yaw and registered against the nearest even frame, as a keyframe
 stored by the service (``service.verify.keyframe_geometry``: the scan's registration
 grid). The seed is the relative yaw the shipped model's yaw features give
@@ -13,7 +13,7 @@ prepare a query and to register one candidate, and the bytes of geometry per key
 Then the cost in the service (``--no-http`` skips it): a real ``overlapmamba serve`` (the
 defaults) holds the even frames as keyframes; each turned odd frame is queried (k = 5)
 with ``verify=true`` and ``verify=false`` alternately, over one keep-alive connection, in
-several rounds. Reported: the client's p50 of each, the share verification adds (issue 22's
+several rounds. Reported: the client's p50 of each, the share verification adds (the
 bar: ≤ 30 % for 5 candidates), and the server's ``verify`` stage. Prints tables and writes
 JSON (default bench-results/registration.json).
 """

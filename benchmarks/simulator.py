@@ -5,7 +5,7 @@ Builds the default 6×6-node town (the train preset's size), plans a drive, and 
 ``overlapmamba gen-data`` does. Then times the overlap ground truth for the same scans.
 Prints a table and writes JSON (default bench-results/simulator.json).
 
-Goal (issue 3): ≥ 10 scans/s on 2 cores at ≈120k points per scan, so that a 4,000-scan
+Goal: ≥ 10 scans/s on 2 cores at ≈120k points per scan, so that a 4,000-scan
 sequence simulates in about 7 minutes or less.
 """
 

@@ -6,8 +6,8 @@ The reference configuration (18.1 M parameters, three scan directions, convLast2
 in the same run so their ratio is fair. Prints a table and writes JSON
 (default bench-results/training.json).
 
-Goal (issue 4): one epoch of 2,000 scans in ≤ 600 s on 2 CPU cores, i.e. ≥ 3.33 scans/s.
-Goal (issue 20): the data side (the full augmentation set, ROBUST, on a batch) under 10 % of a
+Goal: one epoch of 2,000 scans in ≤ 600 s on 2 CPU cores, i.e. ≥ 3.33 scans/s.
+Goal: the data side (the full augmentation set, ROBUST, on a batch) under 10 % of a
 step;
 the table's last row times it on the same batch, in the same run.
 """

@@ -1,4 +1,4 @@
-"""Calibrate and measure verified loop closures (issue 22) on synthetic towns.
+"""Calibrate and measure verified loop closures on synthetic towns.
 
 Per town, as the service does it: every scan is encoded by the shipped ONNX encoder
 (``service.encoder.Encoder``) and kept as a keyframe's compact geometry

@@ -1,1 +1,1 @@
-"""Training and ONNX export of OverlapMamba (PyTorch). Built by issues 4–6."""
+"""Training, evaluation and ONNX export of OverlapMamba (PyTorch)."""

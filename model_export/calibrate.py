@@ -4,7 +4,7 @@ A freshly built network's batch-norm layers hold running statistics of 0 and 1. 
 mode they normalise with those, not with what the layer actually sees, so the "untrained"
 network is evaluated with a distorted SPP block. Measured on the tiny validation town
 (narrow network, 136 revisiting scans): F1max 0.620 as built, 0.729 after 20 forward passes
-in train mode (issue 20). Training's epoch 0, and Table I's "untrained" row, are that model.
+in train mode. Training's epoch 0, and Table I's "untrained" row, are that model.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Every recipe trains on the synthetic training towns and selects on ``val`` (``make data``
 writes them, and the ``test`` towns, which no recipe trains on). Paths are relative to the
 repository root, where the command is meant to run. The loss, sampling, augmentation and
-schedule are ``TrainConfig``'s defaults (the fixed recipe of issue 20) unless a preset says
+schedule are ``TrainConfig``'s defaults unless a preset says
 otherwise.
 
 - ``default`` is the reference architecture's recipe: 6 epochs of 3,500 scans from the four
@@ -20,7 +20,7 @@ otherwise.
   (at 120 steps on the tiny towns it did not).
 - ``abl-*`` are the ablations (paper Tables II–IV) on a small, equal budget of 600 scans
   each; ``abl-full`` and ``abl-triplet`` spend it as 2 epochs of 300 so that the loss and F1
-  are recorded twice (Table IV). ``abl-oldloss`` is the recipe before issue 20 (α 0.5 and λ
+  are recorded twice (Table IV). ``abl-oldloss`` is the former recipe (α 0.5 and λ
   0.1 on absolute distances, negatives up to overlap 0.3, whole-column rolls only, no
   warm-up). The rows that decide something (full, oldloss) also run with seed 1 (``-s1``).
 """

@@ -55,6 +55,7 @@ from model_export.augment import Augmenter
 from model_export.batches import BatchPlan, BatchSampler, PairIndex
 from model_export.calibrate import recalibrate_batchnorm
 from model_export.checkpoint import read_checkpoint, save_checkpoint
+from model_export.curves import plot_curves
 from model_export.errors import ConfigError
 from model_export.evaluate import (
     RealTurns,
@@ -109,44 +110,6 @@ def _profile(cfg: OverlapMambaConfig) -> SensorProfile:
             f"range images ({profile.height}×{profile.width})"
         )
     return profile
-
-
-def _plot_curves(history: list[dict], path: Path) -> None:
-    """Loss per epoch; health per logged step (distances, spread, active hinges); validation
-    per epoch (epoch 0: the initial weights with recalibrated batch norm)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    trained = [h for h in history if h["epoch"] > 0]
-    fig, (a, b, c) = plt.subplots(1, 3, figsize=(13, 3.6), dpi=110)
-    a.plot([h["epoch"] for h in trained], [h["loss"] for h in trained], "o-")
-    a.set(xlabel="epoch", ylabel="training loss", title="loss")
-    log = [r for h in trained for r in h.get("health_log", [])]
-    steps = [r["step"] for r in log]
-    for key, style in (("d_pos", "g-"), ("d_neg", "r-"), ("spread", "k--"), ("margin", "b:")):
-        b.plot(steps, [r[key] for r in log], style, label=key)
-    b.set(xlabel="step", ylabel="squared distance", title="health", yscale="log")
-    b.legend(fontsize=7, loc="upper left")
-    twin = b.twinx()
-    twin.plot(steps, [r["active"] for r in log], color="tab:orange", alpha=0.6, label="active")
-    sep = [r["separation"] for r in log]
-    twin.plot(steps, sep, color="tab:purple", label="separation (gap ÷ spread)")
-    top = max([1.05, *[x * 1.05 for x in sep if x is not None and math.isfinite(x)]])
-    twin.set(ylim=(0, top), ylabel="active share · separation")
-    twin.legend(fontsize=7, loc="upper right")
-    ep = [h["epoch"] for h in history]
-    for sub in ("all", "same", "reverse"):
-        c.plot(ep, [h["val"][sub]["f1max"] for h in history], "o-", label=f"F1max {sub}")
-    c.plot(ep, [h["val"]["all"]["recall@1"] for h in history], "ks--", label="R@1 all")
-    c.set(xlabel="epoch (0: initial weights)", ylim=(0, 1), title="validation")
-    c.legend(fontsize=7)
-    for ax in (a, b, c):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
 
 
 def train(
@@ -299,7 +262,7 @@ def train(
         tmp = out / ".metrics.json.tmp"
         tmp.write_text(json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
         tmp.replace(out / "metrics.json")
-        _plot_curves(history, out / "curves.png")
+        plot_curves(history, out / "curves.png")
         if progress:
             v, h = val_metrics, entry.get("health")
             trained = (

@@ -1,1 +1,1 @@
-"""The place-recognition HTTP service (FastAPI, onnxruntime, faiss). Built by issue 7."""
+"""The place-recognition HTTP service (FastAPI, onnxruntime, FAISS or Qdrant)."""

@@ -1,4 +1,5 @@
-"""Request and response models of the HTTP API (separate, as the template does)."""
+"""Request and response models of the HTTP API: the routes' shapes, used by nothing below
+the routes (the use cases answer in :mod:`service.answers` and :mod:`service.domain` types)."""
 
 from __future__ import annotations
 
