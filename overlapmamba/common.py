@@ -79,3 +79,15 @@ def check_torch() -> None:
             "pip install -e '.[train]' (make test installs it)"
         )
         raise typer.Exit(2) from None
+
+
+def command_group(panel: str) -> tuple[typer.Typer, Callable[..., Any]]:
+    """A command group's Typer app and its ``command`` decorator, which lists the group's
+    commands under ``panel`` in ``overlapmamba --help`` (the groups are merged into one
+    app by ``overlapmamba.cli``)."""
+    app = typer.Typer()
+
+    def command(*args: Any, **kwargs: Any) -> Any:
+        return app.command(*args, rich_help_panel=panel, **kwargs)
+
+    return app, command

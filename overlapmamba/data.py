@@ -13,18 +13,14 @@ from overlapmamba.common import (
     MaxRangeOpt,
     SensorOpt,
     check_out_suffix,
+    command_group,
     console,
     friendly_errors,
     out,
     sensor_profile,
 )
 
-app = typer.Typer()
-PANEL = "Data"  # the heading these commands are listed under in --help
-
-
-def command(*args: Any, **kwargs: Any) -> Any:
-    return app.command(*args, rich_help_panel=PANEL, **kwargs)
+app, command = command_group("Data")
 
 
 @command(

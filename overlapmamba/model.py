@@ -11,18 +11,14 @@ from rich.table import Table
 
 from overlapmamba.common import (
     check_torch,
+    command_group,
     friendly_errors,
     metrics_table,
     out,
     sensor_profile,
 )
 
-app = typer.Typer()
-PANEL = "Model"  # the heading these commands are listed under in --help
-
-
-def command(*args: Any, **kwargs: Any) -> Any:
-    return app.command(*args, rich_help_panel=PANEL, **kwargs)
+app, command = command_group("Model")
 
 
 @command(

@@ -10,16 +10,12 @@ import typer
 from rich.table import Table
 
 from overlapmamba.common import (
+    command_group,
     console,
     out,
 )
 
-app = typer.Typer()
-PANEL = "Service"  # the heading these commands are listed under in --help
-
-
-def command(*args: Any, **kwargs: Any) -> Any:
-    return app.command(*args, rich_help_panel=PANEL, **kwargs)
+app, command = command_group("Service")
 
 
 def _service_settings(config: Path | None, **overrides: Any) -> Any:
