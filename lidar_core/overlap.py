@@ -25,6 +25,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 from tqdm.auto import tqdm
 
 from lidar_core.cache import cache_root
@@ -244,22 +245,35 @@ def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
     return cache_root() / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
 
 
-def loop_params(
-    seq: Sequence,
-    profile: SensorProfile,
-    *,
-    exclude_recent: int = 100,
-    radius: float = 30.0,
-    min_overlap: float = 0.3,
-    threshold: float = 1.0,
-) -> dict:
+class LoopParams(BaseModel):
+    """What makes a pair of scans a loop, everywhere loops are counted (ground truth, the
+    generator's tables, evaluation, training's validation, the CLI): the query is more than
+    ``exclude_recent`` frames after the reference, closer than ``radius`` metres, and they
+    overlap by at least ``min_overlap`` (overlap of points within ``threshold`` metres of
+    range)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    exclude_recent: int = Field(default=100, ge=0)
+    radius: float = Field(default=30.0, gt=0)
+    min_overlap: float = Field(default=0.3, ge=0, le=1)
+    threshold: float = Field(default=1.0, gt=0)
+
+    @classmethod
+    def of(cls, table_params: dict) -> LoopParams:
+        """The parameters a saved loop table (``LoopGroundTruth.params``) was made with."""
+        return cls(**{k: table_params[k] for k in cls.model_fields if k in table_params})
+
+
+def loop_params(seq: Sequence, profile: SensorProfile, loops: LoopParams | None = None) -> dict:
     """The parameters that identify a loop table, with their fingerprint over the sequence."""
+    loops = loops or LoopParams()
     params = {
         "format": GT_FORMAT_VERSION,
-        "exclude_recent": exclude_recent,
-        "radius": radius,
-        "min_overlap": min_overlap,
-        "threshold": threshold,
+        "exclude_recent": loops.exclude_recent,
+        "radius": loops.radius,
+        "min_overlap": loops.min_overlap,
+        "threshold": loops.threshold,
         "profile": profile.model_dump(),
     }
     params["fingerprint"] = _fingerprint(seq, params)
@@ -304,11 +318,8 @@ def _load_matching(path: Path, fingerprint: str) -> LoopGroundTruth | None:
 def loop_ground_truth(
     seq: Sequence,
     profile: SensorProfile,
+    loops: LoopParams | None = None,
     *,
-    exclude_recent: int = 100,
-    radius: float = 30.0,
-    min_overlap: float = 0.3,
-    threshold: float = 1.0,
     cache: str | Path | bool = True,
     progress: bool = True,
 ) -> LoopGroundTruth:
@@ -319,14 +330,8 @@ def loop_ground_truth(
     a path uses that file; False disables. A table is reused only if sequence, profile and
     parameters are unchanged.
     """
-    params = loop_params(
-        seq,
-        profile,
-        exclude_recent=exclude_recent,
-        radius=radius,
-        min_overlap=min_overlap,
-        threshold=threshold,
-    )
+    loops = loops or LoopParams()
+    params = loop_params(seq, profile, loops)
     fp = params["fingerprint"]
     path = None
     if cache is not False:
@@ -339,9 +344,9 @@ def loop_ground_truth(
         if cached is not None:
             return cached
     pos = seq.positions()
-    pairs = candidate_pairs(pos, radius=radius, min_gap=exclude_recent + 1)
+    pairs = candidate_pairs(pos, radius=loops.radius, min_gap=loops.exclude_recent + 1)
     overlaps, yaws = pair_overlaps(
-        seq, pairs, profile, threshold=threshold, progress=progress, desc="loop ground truth"
+        seq, pairs, profile, threshold=loops.threshold, progress=progress, desc="loop ground truth"
     )
     gt = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlaps, yaws)
     if path is not None:

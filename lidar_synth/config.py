@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from lidar_core.configs import dataclass_from_dict
+from lidar_core.overlap import LoopParams
 from lidar_synth.dynamics import DynamicsParams
 from lidar_synth.lidar import LIDAR_MODELS, get_lidar
 from lidar_synth.trajectory import DriveParams
@@ -63,6 +64,15 @@ class GenConfig(BaseModel):
         """Entropy of everything that changes between sessions (session 0: the seed alone,
         so first sessions stay byte-identical to those of earlier generator versions)."""
         return [self.seed] if self.session == 0 else [self.seed, 0x5E55, self.session]
+
+    def loop_params(self) -> LoopParams:
+        """The loop table's rules: ``loop_exclude``, ``loop_min_overlap``, and the
+        protocol's 30 m radius (or ``gt_radius`` when the pair table is smaller)."""
+        return LoopParams(
+            exclude_recent=self.loop_exclude,
+            radius=min(30.0, self.gt_radius),
+            min_overlap=self.loop_min_overlap,
+        )
 
     def world_params(self) -> WorldParams:
         return dataclass_from_dict(WorldParams, self.world, "WorldParams")

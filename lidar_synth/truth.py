@@ -93,13 +93,7 @@ def compute_ground_truth(
         profile=json.dumps(profile.model_dump()),
     )
     os.replace(tmp, gt_dir / "overlaps.npz")
-    params = loop_params(
-        seq,
-        profile,
-        exclude_recent=cfg.loop_exclude,
-        radius=min(30.0, cfg.gt_radius),
-        min_overlap=cfg.loop_min_overlap,
-    )
+    params = loop_params(seq, profile, cfg.loop_params())
     loops = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlap, yaw)
     loops.save(gt_dir / "loops.npz")
     return table, loops

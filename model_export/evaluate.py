@@ -22,7 +22,7 @@ import torch
 
 from lidar_core.datasets.base import Sequence
 from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
-from lidar_core.overlap import LoopGroundTruth, loop_ground_truth, loop_params
+from lidar_core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
 from lidar_core.scancontext import ScanContextParams, scan_context
 from lidar_core.scancontext import retrieve as sc_retrieve
 from lidar_core.sensors import SensorProfile
@@ -61,8 +61,7 @@ def sequence_loops(
     shipped = seq.root / "ground_truth" / "loops.npz"
     if shipped.is_file():
         gt = LoopGroundTruth.load(shipped)
-        keys = ("exclude_recent", "radius", "min_overlap", "threshold")
-        params = loop_params(seq, profile, **{k: gt.params[k] for k in keys if k in gt.params})
+        params = loop_params(seq, profile, LoopParams.of(gt.params))
         if params["fingerprint"] == gt.params.get("fingerprint"):
             return gt
     return loop_ground_truth(seq, profile, progress=progress)

@@ -111,18 +111,18 @@ def ground_truth(
 ) -> None:
     """Compute (or load the cached) loop ground-truth table of a sequence."""
     from lidar_core.datasets import open_sequence
-    from lidar_core.overlap import default_cache_path, loop_ground_truth
+    from lidar_core.overlap import LoopParams, default_cache_path, loop_ground_truth
 
     seq = open_sequence(seq_dir, kind=kind)
     profile = sensor_profile(sensor or seq.sensor or "kitti-hdl64", max_range=max_range)
     target: Path | bool = False if no_cache else (cache if cache is not None else True)
+    loops = LoopParams(
+        exclude_recent=exclude_recent, radius=radius, min_overlap=min_overlap, threshold=threshold
+    )
     gt = loop_ground_truth(
         seq,
         profile,
-        exclude_recent=exclude_recent,
-        radius=radius,
-        min_overlap=min_overlap,
-        threshold=threshold,
+        loops,
         cache=target,
         progress=not quiet,
     )

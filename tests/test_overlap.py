@@ -8,6 +8,7 @@ import pytest
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import (
     LoopGroundTruth,
+    LoopParams,
     candidate_pairs,
     loop_ground_truth,
     overlap_and_yaw,
@@ -82,9 +83,9 @@ def test_candidate_pairs_respect_radius_and_gap():
 
 def test_loop_table_finds_the_revisit_and_is_cached(synthetic_seq_dir, tmp_path):
     seq = open_sequence(synthetic_seq_dir)  # 24 frames per lap, 2 laps
-    kw = dict(exclude_recent=12, radius=10.0, min_overlap=0.3, progress=False)
+    loops = LoopParams(exclude_recent=12, radius=10.0, min_overlap=0.3)
     cache = tmp_path / "gt.npz"
-    gt = loop_ground_truth(seq, KITTI, cache=cache, **kw)
+    gt = loop_ground_truth(seq, KITTI, loops, cache=cache, progress=False)
     assert cache.is_file()
     has = gt.has_loop()
     # Frame 23 ends the first lap 6.7 m before frame 0: a genuine loop closure.
@@ -96,10 +97,12 @@ def test_loop_table_finds_the_revisit_and_is_cached(synthetic_seq_dir, tmp_path)
             assert (i - 24) in pos[i] or ((i - 24) - 1) in pos[i] or ((i - 24) + 1) in pos[i]
     assert (gt.query - gt.reference > 12).all() and (gt.distance < 10).all()
     # Cached: the same object back, bit for bit; other parameters recompute.
-    again = loop_ground_truth(seq, KITTI, cache=cache, **kw)
+    again = loop_ground_truth(seq, KITTI, loops, cache=cache, progress=False)
     np.testing.assert_array_equal(again.overlap, gt.overlap)
     assert LoopGroundTruth.load(cache).params["fingerprint"] == gt.params["fingerprint"]
-    other = loop_ground_truth(seq, KITTI, cache=cache, **{**kw, "radius": 5.0})
+    other = loop_ground_truth(
+        seq, KITTI, loops.model_copy(update={"radius": 5.0}), cache=cache, progress=False
+    )
     assert len(other.query) < len(gt.query)
 
 
@@ -107,7 +110,8 @@ def test_corrupt_cache_is_recomputed(synthetic_seq_dir, tmp_path):
     seq = open_sequence(synthetic_seq_dir)
     cache = tmp_path / "gt.npz"
     cache.write_bytes(b"not a zip file")
-    gt = loop_ground_truth(seq, KITTI, exclude_recent=12, radius=10.0, cache=cache, progress=False)
+    loops = LoopParams(exclude_recent=12, radius=10.0)
+    gt = loop_ground_truth(seq, KITTI, loops, cache=cache, progress=False)
     assert len(gt.query) > 0 and LoopGroundTruth.load(cache).n_frames == len(seq)
 
 

@@ -14,7 +14,7 @@ pytest.importorskip("embreex")
 import itertools
 
 from lidar_core.datasets import open_sequence
-from lidar_core.overlap import loop_ground_truth, overlap_and_yaw
+from lidar_core.overlap import LoopParams, loop_ground_truth, overlap_and_yaw
 from lidar_core.sensors import get_profile
 from lidar_synth.config import GenConfig
 from lidar_synth.dynamics import Dynamics
@@ -228,7 +228,7 @@ def test_loops_exist_in_both_directions_and_are_reused(tiny_seq, monkeypatch):
     import lidar_core.overlap as overlap_mod
 
     monkeypatch.setattr(overlap_mod, "pair_overlaps", lambda *a, **k: pytest.fail("recomputed"))
-    gt = loop_ground_truth(seq, get_profile(TINY.sensor), radius=12.0, progress=False)
+    gt = loop_ground_truth(seq, get_profile(TINY.sensor), LoopParams(radius=12.0), progress=False)
     assert gt.is_loop.sum() == man["loop_pairs"]
     yaws = np.abs(gt.yaw_deg[gt.is_loop])
     assert (yaws > 150).any() and (yaws < 30).any()
