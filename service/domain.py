@@ -40,6 +40,8 @@ def check_map_id(map_id: str) -> str:
 
 @dataclass(frozen=True)
 class NewKeyframe:
+    """A keyframe as it is written: checked, content-hashed, its descriptor a unit vector."""
+
     keyframe_id: str
     robot_id: str
     session_id: str
@@ -53,6 +55,9 @@ class NewKeyframe:
 
 @dataclass(frozen=True)
 class Keyframe:
+    """A keyframe as a backend holds it (``id`` and ``seq``: the FAISS backend's row id and
+    write sequence; 0 in Qdrant)."""
+
     id: int
     keyframe_id: str
     robot_id: str
@@ -75,6 +80,9 @@ class Keyframe:
 
 @dataclass(frozen=True)
 class Filters:
+    """What a query leaves out (sessions, robots, its own recent past, a time window) and the
+    largest descriptor distance it accepts."""
+
     exclude_session: str | None = None
     exclude_robot: str | None = None
     exclude_recent_s: float | None = None
