@@ -27,19 +27,24 @@ Measured on 2 cores, batch 16 of 64 × 900 images: see ``benchmarks/training.py`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from pydantic import ConfigDict, model_validator
 
+from lidar_core.configs import Config
 from lidar_core.sensors import SensorProfile
 from model_export.errors import ConfigError
 
 
-@dataclass(frozen=True)
-class AugmentConfig:
+class AugmentConfig(Config):
     """Off by default but for whole-column rolls of non-circular models: measured on the
     tiny towns (README, Training: choosing the recipe), these transforms lowered validation
     F1max at 120 steps. :data:`ROBUST` is the full set, for the at-scale comparison."""
+
+    model_config = ConfigDict(frozen=True)
+    config_name: ClassVar[str] = "augmentation"
+    config_error: ClassVar[type[Exception]] = ConfigError
 
     tilt_deg: float = 0.0
     yaw_jitter: bool = False
@@ -49,7 +54,8 @@ class AugmentConfig:
     fov_crop: float = 0.0
     fov_min_deg: float = 180.0
 
-    def __post_init__(self) -> None:
+    @model_validator(mode="after")
+    def _check(self) -> AugmentConfig:
         checks = {
             "tilt_deg": 0 <= self.tilt_deg <= 15,
             "dropout": 0 <= self.dropout < 1,
@@ -64,6 +70,7 @@ class AugmentConfig:
                 "tilt_deg 0–15, dropout 0–<1, range_noise 0–1 m, fov_crop 0–1, "
                 "fov_min_deg 0–360"
             )
+        return self
 
     @classmethod
     def none(cls) -> AugmentConfig:

@@ -97,7 +97,7 @@ def count_nodes(graph: onnx.GraphProto | onnx.ModelProto) -> tuple[int, int]:
 
 
 def _trace(model: OverlapMamba) -> onnx.ModelProto:
-    cfg = dataclasses.replace(model.cfg, scan_backend="onnx")
+    cfg = model.cfg.model_copy(update={"scan_backend": "onnx"})
     export_model = OverlapMamba(cfg)
     export_model.load_state_dict(model.state_dict())
     export_model.eval()

@@ -26,21 +26,25 @@ the gate multiplies the tokens it was computed from (the reference gates misalig
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
+from pydantic import Field, model_validator
 from torch import Tensor, nn
 
-from lidar_core.configs import dataclass_from_dict
+from lidar_core.configs import Config
 from model_export.errors import ConfigError
 from model_export.scan import BACKENDS, scan
 
 MIXERS = ("mamba", "transformer")
 
 
-@dataclass
-class OverlapMambaConfig:
+class OverlapMambaConfig(Config):
+    """The network's shape (and how its scan runs): travels in checkpoints and config files."""
+
+    config_error: ClassVar[type[Exception]] = ConfigError
+
     sensor: str = "kitti-hdl64"  # lidar_core sensor profile the range images come from
     height: int = 64  # range-image rows (beams)
     width: int = 900  # range-image columns: the token count
@@ -64,9 +68,10 @@ class OverlapMambaConfig:
     yaw_channels: int = 16  # per-column features for yaw estimation
     scan_backend: str = "auto"  # auto, fused, chunked, loop, onnx or ref (model_export.scan.scan)
     scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
-    extra: dict = field(default_factory=dict)  # free-form notes carried in checkpoints
+    extra: dict = Field(default_factory=dict)  # free-form notes carried in checkpoints
 
-    def __post_init__(self) -> None:
+    @model_validator(mode="after")
+    def _check(self) -> OverlapMambaConfig:
         sizes: tuple[str, ...] = ("height", "width", "d_model", "d_state", "expand", "d_conv")
         sizes += ("dt_rank",)
         sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels", "heads")
@@ -82,19 +87,11 @@ class OverlapMambaConfig:
             raise ValueError(
                 f"scan_backend {self.scan_backend!r} is unknown; allowed: {', '.join(BACKENDS)}"
             )
-
-    @classmethod
-    def from_dict(cls, d: dict) -> OverlapMambaConfig:
-        """The inverse of :meth:`to_dict`; unknown keys are an error, missing ones default."""
-        cfg: OverlapMambaConfig = dataclass_from_dict(cls, d, "config", error=ConfigError)
-        return cfg
+        return self
 
     @property
     def d_inner(self) -> int:
         return self.expand * self.d_model
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def _backbone(height: int) -> nn.Sequential:

@@ -39,7 +39,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -207,7 +206,7 @@ def train(
 
     def payload(with_optimizer: bool, metrics: dict) -> dict[str, Any]:
         train_state: dict[str, Any] = {
-            "config": asdict(train_cfg),
+            "config": train_cfg.to_dict(),
             "schedule": SCHEDULE,
             "epochs_done": history[-1]["epoch"] if history else 0,
             "history": history,
@@ -255,7 +254,7 @@ def train(
         save_checkpoint(last, payload(True, val_metrics))
         record = {
             "model_config": model_cfg.to_dict(),
-            "train_config": asdict(train_cfg),
+            "train_config": train_cfg.to_dict(),
             "best": best,
             "history": history,
         }

@@ -1,4 +1,4 @@
-"""The training recipe: every setting of ``overlapmamba train`` as one dataclass that travels
+"""The training recipe: every setting of ``overlapmamba train`` as one config that travels
 in checkpoints (``TrainConfig``), and ``.json``/``.toml`` config files.
 
 A config file has a ``[model]`` table (``OverlapMambaConfig`` fields), a ``[train]`` table
@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
+from pydantic import Field, model_validator
 from torch import Tensor
 
-from lidar_core.configs import dataclass_from_dict
+from lidar_core.configs import Config
 from model_export.augment import AugmentConfig
 from model_export.errors import ConfigError
 from model_export.losses import BATCH_LOSSES, SCALES, BatchLoss, ImTrihardParams
@@ -24,8 +25,10 @@ REAL_SCANS = "../shared/data/kitti00_0000-0100"  # relative to the repository ro
 SCHEDULE = "warmup-step/1"  # the learning-rate schedule's name in checkpoints (resume checks it)
 
 
-@dataclass
-class TrainConfig:
+class TrainConfig(Config):
+    config_name: ClassVar[str] = "training"
+    config_error: ClassVar[type[Exception]] = ConfigError
+
     epochs: int = 10
     epoch_scans: int = 2000  # scans drawn per epoch
     batch_size: int = 16  # groups of 1 + group_positives + group_negatives (default 4)
@@ -55,14 +58,15 @@ class TrainConfig:
     hard_negatives: float = 0.0
     mine_pool: int = 2000
     mine_top: int = 10
-    augment: dict = field(default_factory=dict)  # AugmentConfig overrides
+    augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
     recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
     log_every: int = 10  # steps per health record
     real: str = REAL_SCANS  # real scans whose turned copies are checked every epoch ("": off)
     seed: int = 0
     device: str = "cpu"  # cpu or cuda
 
-    def __post_init__(self) -> None:
+    @model_validator(mode="after")
+    def _check(self) -> TrainConfig:
         if self.loss not in BATCH_LOSSES:
             raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
         names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")
@@ -98,11 +102,7 @@ class TrainConfig:
                 f"margin_scale {self.margin_scale!r} is unknown; allowed: {', '.join(SCALES)}"
             )
         self.augment_config()  # refuses unknown or out-of-range augmentation settings
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainConfig:
-        cfg: TrainConfig = dataclass_from_dict(cls, d, "training", error=ConfigError)
-        return cfg
+        return self
 
     def real_path(self) -> Path | None:
         """The real scans of the per-epoch turn check: as given when it exists from here,
@@ -113,10 +113,7 @@ class TrainConfig:
         return path if path.is_absolute() or path.exists() else ROOT / path
 
     def augment_config(self) -> AugmentConfig:
-        cfg: AugmentConfig = dataclass_from_dict(
-            AugmentConfig, self.augment, "augmentation", error=ConfigError
-        )
-        return cfg
+        return AugmentConfig.from_dict(self.augment)
 
     def loss_fn(self) -> Callable[[Tensor, Tensor], BatchLoss]:
         fn = BATCH_LOSSES[self.loss]
