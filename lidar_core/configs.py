@@ -1,27 +1,14 @@
 """Configurations from plain dicts (JSON, TOML, checkpoints, presets, the CLI): the
-:class:`Config` base that every configuration crossing a boundary derives from, and the
-builder of the simulator's internal parameter dataclasses."""
+:class:`Config` base that every configuration of the project derives from (the network,
+training, augmentation, and the simulator's world, drive and dynamics parameters)."""
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, ClassVar, Self
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from lidar_core.errors import ConfigError
-
-
-def dataclass_from_dict(
-    cls: Any, d: dict[str, Any], what: str, *, error: type[Exception] = ConfigError
-) -> Any:
-    """``cls(**d)`` for a config dataclass: unknown keys refused (``error``, naming them and
-    the allowed ones); lists become tuples (configs are frozen, their sequences tuples)."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise error(f"unknown {what} fields {unknown}; allowed: {sorted(known)}")
-    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
 class Config(BaseModel):

@@ -7,7 +7,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from lidar_core.configs import dataclass_from_dict
 from lidar_core.overlap import LoopParams
 from lidar_synth.dynamics import DynamicsParams
 from lidar_synth.lidar import LIDAR_MODELS, get_lidar
@@ -75,12 +74,12 @@ class GenConfig(BaseModel):
         )
 
     def world_params(self) -> WorldParams:
-        return dataclass_from_dict(WorldParams, self.world, "WorldParams")
+        return WorldParams.from_dict(self.world)
 
     def drive_params(self) -> DriveParams:
         lidar = get_lidar(self.sensor)
         base = {"rate_hz": lidar.rate_hz, "mount_height": lidar.mount_height}
-        return dataclass_from_dict(DriveParams, {**base, **self.drive}, "DriveParams")
+        return DriveParams.from_dict({**base, **self.drive})
 
     def dynamics_params(self) -> DynamicsParams:
-        return dataclass_from_dict(DynamicsParams, self.dynamics, "DynamicsParams")
+        return DynamicsParams.from_dict(self.dynamics)

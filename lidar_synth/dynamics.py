@@ -13,11 +13,12 @@ Everything is precomputed from the seed, so ``mesh_at(t, …)`` is a pure functi
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import ConfigDict
 
+from lidar_core.configs import Config
 from lidar_synth.geometry import MAT, REFLECTIVITY, Mesh, instances, template
 from lidar_synth.streets import DISTRICTS, frame_at
 from lidar_synth.world import World
@@ -29,8 +30,10 @@ CAR_TYPES = np.array(
 )
 
 
-@dataclass(frozen=True)
-class DynamicsParams:
+class DynamicsParams(Config):
+    model_config = ConfigDict(frozen=True)
+    config_name: ClassVar[str] = "DynamicsParams"
+
     park_window: float = 60.0  # s; a slot may change state once per window
     park_fill: float = 0.6  # probability a slot holds a car in a window
     traffic_per_km: float = 3.0

@@ -261,9 +261,9 @@ def generate(
         "generator_version": GENERATOR_VERSION,
         "config": cfg.model_dump(),
         "resolved": {
-            "world": dataclasses.asdict(cfg.world_params()),
-            "drive": dataclasses.asdict(cfg.drive_params()),
-            "dynamics": dataclasses.asdict(cfg.dynamics_params()),
+            "world": cfg.world_params().to_dict(),
+            "drive": cfg.drive_params().to_dict(),
+            "dynamics": cfg.dynamics_params().to_dict(),
             "lidar": dataclasses.asdict(get_lidar(cfg.sensor)),
             "profile": get_profile(cfg.sensor).model_dump(),
         },

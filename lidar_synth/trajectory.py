@@ -17,16 +17,21 @@ from __future__ import annotations
 import heapq
 from dataclasses import dataclass, field
 from itertools import pairwise
+from typing import ClassVar
 
 import numpy as np
+from pydantic import ConfigDict
 from scipy import ndimage
 
+from lidar_core.configs import Config
 from lidar_synth.streets import StreetNetwork
 from lidar_synth.terrain import Terrain
 
 
-@dataclass(frozen=True)
-class DriveParams:
+class DriveParams(Config):
+    model_config = ConfigDict(frozen=True)
+    config_name: ClassVar[str] = "DriveParams"
+
     rate_hz: float = 10.0  # scans per second
     mount_height: float = 1.73  # sensor above the road (KITTI)
     v_min: float = 5.0  # m/s

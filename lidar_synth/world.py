@@ -9,10 +9,13 @@ in real towns) while their arrangement keeps every place distinguishable.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
+from pydantic import ConfigDict
 from scipy import ndimage
 
+from lidar_core.configs import Config
 from lidar_synth.geometry import (
     BOX,
     MAT,
@@ -26,8 +29,10 @@ from lidar_synth.streets import DISTRICTS, Street, StreetNetwork, build_streets,
 from lidar_synth.terrain import Terrain
 
 
-@dataclass(frozen=True)
-class WorldParams:
+class WorldParams(Config):
+    model_config = ConfigDict(frozen=True)
+    config_name: ClassVar[str] = "WorldParams"
+
     """Size and shape of a town. Defaults give ≈6–7 km of street (the train preset: 6.7 km).
     Parked cars, traffic and pedestrians are set by DynamicsParams."""
 
