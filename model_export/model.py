@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from lidar_core.configs import Config
 from model_export.errors import ConfigError
-from model_export.scan import BACKENDS, scan
+from model_export.scan_backends import BACKENDS, scan
 
 MIXERS = ("mamba", "transformer")
 
@@ -66,7 +66,7 @@ class OverlapMambaConfig(Config):
     out_dim: int = 256  # descriptor size
     gating: bool = True  # context gating on the descriptor
     yaw_channels: int = 16  # per-column features for yaw estimation
-    scan_backend: str = "auto"  # auto, fused, chunked, loop, onnx or ref (model_export.scan.scan)
+    scan_backend: str = "auto"  # auto, fused, chunked, loop, onnx or ref (scan_backends.scan)
     scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
     extra: dict = Field(default_factory=dict)  # free-form notes carried in checkpoints
 

@@ -9,11 +9,11 @@ torch = pytest.importorskip("torch")
 
 from model_export import scan_fused  # noqa: E402
 from model_export.scan import (  # noqa: E402
-    scan,
     selective_scan,
     selective_scan_loop,
     selective_scan_ref,
 )
+from model_export.scan_backends import scan  # noqa: E402
 
 
 def inputs(B: int, E: int, L: int, N: int, seed: int = 0, dtype=torch.float64):
