@@ -21,6 +21,15 @@ from service.errors import Conflict, NotFound
 T = TypeVar("T")
 
 
+def map_not_found(map_id: str) -> NotFound:
+    """The one answer for a map that does not exist (404, ``map_not_found``)."""
+    return NotFound(
+        f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",
+        code="map_not_found",
+        map_id=map_id,
+    )
+
+
 def check_same_geometry(m: PlaceMap, keep_geometry: bool | None) -> None:
     """Creating an existing map again: a geometry setting, when given, must match (409)."""
     if keep_geometry is not None and m.keep_geometry != keep_geometry:

@@ -17,12 +17,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.backends.base import check_same_geometry
+from service.backends.base import check_same_geometry, map_not_found
 from service.backends.faiss.index import set_threads
 from service.backends.faiss.map import FaissMap
 from service.backends.faiss.store import fsync_dir
 from service.domain import MAP_ID, check_map_id
-from service.errors import Conflict, NotFound, Unavailable
+from service.errors import Conflict, Unavailable
 from service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")
@@ -71,11 +71,7 @@ class FaissBackend:
                 code="map_unavailable",
             )
         if m is None:
-            raise NotFound(
-                f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",
-                code="map_not_found",
-                map_id=map_id,
-            )
+            raise map_not_found(map_id)
         return m
 
     def create(

@@ -41,7 +41,7 @@ from qdrant_client import QdrantClient, models
 from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
 from qdrant_client.http.exceptions import ResponseHandlingException, UnexpectedResponse
 
-from service.backends.base import check_same_geometry
+from service.backends.base import check_same_geometry, map_not_found
 from service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
 from service.backends.qdrant.map import QdrantMap
 from service.domain import check_map_id
@@ -124,7 +124,7 @@ class QdrantBackend:
             status = err.status_code or 0
             if status == 404 and map_id is not None:
                 self._forget(map_id)
-                raise NotFound(f"map {map_id!r} does not exist", code="map_not_found") from err
+                raise map_not_found(map_id) from err
             if status == 429:
                 raise Overloaded(f"Qdrant at {self.where} is overloaded") from err
             detail = err.content.decode(errors="replace")[:300] if err.content else ""
@@ -140,7 +140,7 @@ class QdrantBackend:
         except ValueError as err:  # local mode's "Collection ... not found"
             if map_id is not None and "not found" in str(err):
                 self._forget(map_id)
-                raise NotFound(f"map {map_id!r} does not exist", code="map_not_found") from err
+                raise map_not_found(map_id) from err
             raise
         except (ResponseHandlingException, OSError) as err:
             raise Unavailable(
@@ -189,11 +189,7 @@ class QdrantBackend:
             m = self._open(map_id)
             if m is None:
                 self._forget(map_id)
-                raise NotFound(
-                    f"map {map_id!r} does not exist; create it with PUT /v1/maps/{map_id}",
-                    code="map_not_found",
-                    map_id=map_id,
-                )
+                raise map_not_found(map_id)
             self._maps[map_id] = m
         return m
 
