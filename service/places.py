@@ -244,8 +244,9 @@ class PlaceService:
 
         def search_and_verify() -> list[Match]:  # one thread hop for both stages
             t0 = time.perf_counter()
-            # One more than asked: the runner-up gives the loop-closure margin.
-            found = m.search(descriptor, max(k, n_verify) + 1, filters, yaw)
+            # One more than asked: the runner-up gives the loop-closure margin (no yaw).
+            n = max(k, n_verify)
+            found = m.search(descriptor, n + 1, filters, yaw, yaw_k=n)
             t1 = time.perf_counter()
             timings["search"] = (t1 - t0) * 1e3
             if n_verify and found and prepared is not None:

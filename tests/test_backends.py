@@ -179,6 +179,13 @@ def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
             hit = m.search(rows["kf-1"].descriptor, 1, Filters(), yaw=yq)[0]
             assert hit.keyframe.keyframe_id == "kf-1" and hit.distance < 1e-3
             assert hit.yaw_deg is not None and abs(hit.yaw_deg) < 0.1  # float16 features
+            # a runner-up fetched for its distance only gets no yaw
+            with_yaw = Filters(time_to=9.0)  # kf-0 … kf-9 carry yaw features
+            three = m.search(rows["kf-1"].descriptor, 3, with_yaw, yaw=yq)
+            assert [x.yaw_deg is not None for x in three] == [True, True, True]
+            three = m.search(rows["kf-1"].descriptor, 3, with_yaw, yaw=yq, yaw_k=2)
+            assert [x.yaw_deg is not None for x in three] == [True, True, False]
+            assert three[0].yaw_deg == hit.yaw_deg
             info = m.info()
             assert info["backend"] == kind and info["keyframes"] == 156
         with opened(kind, root) as b:  # a restart: everything acknowledged is there

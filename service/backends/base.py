@@ -81,12 +81,15 @@ def build_matches(
     found: Iterable[tuple[float, Keyframe, np.ndarray | None]],
     yaw: np.ndarray | None,
     max_distance: float | None,
+    yaw_k: int | None = None,
 ) -> list[Match]:
     """Hits (L2 distance, keyframe, its yaw features (C, W) or None), nearest first → matches,
-    with the relative yaw for those whose features the query's can be correlated with."""
+    with the relative yaw for those of the first ``yaw_k`` (all when None) whose features the
+    query's can be correlated with. (A caller that fetches a runner-up only for its distance
+    saves its correlation: a sixth of the search stage at k = 5.)"""
     hits = [h for h in found if max_distance is None or h[0] <= max_distance]
     yaws: dict[int, tuple[float, float]] = {}
-    with_yaw = [j for j, h in enumerate(hits) if h[2] is not None]
+    with_yaw = [j for j, h in enumerate(hits[:yaw_k]) if h[2] is not None]
     if yaw is not None and with_yaw:
         refs = np.stack([hits[j][2] for j in with_yaw])  # type: ignore[misc]  # (K, C, W)
         if refs.shape[1:] == yaw.shape:
@@ -134,8 +137,14 @@ class PlaceMap(Protocol):
     def positions(self, limit: int) -> list[tuple[str, float, float]]: ...
 
     def search(
-        self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
-    ) -> list[Match]: ...
+        self,
+        descriptor: np.ndarray,
+        k: int,
+        filters: Filters,
+        yaw: np.ndarray | None = None,
+        *,
+        yaw_k: int | None = None,
+    ) -> list[Match]: ...  # relative yaw for the first yaw_k matches (all when None)
 
     def info(self) -> dict[str, Any]: ...
 

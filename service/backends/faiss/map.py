@@ -278,7 +278,13 @@ class FaissMap:
         return mask
 
     def search(
-        self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
+        self,
+        descriptor: np.ndarray,
+        k: int,
+        filters: Filters,
+        yaw: np.ndarray | None = None,
+        *,
+        yaw_k: int | None = None,
     ) -> list[Match]:
         q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
         with self.lock.read():
@@ -289,7 +295,7 @@ class FaissMap:
         found = [
             (float(d), *rows[int(i)]) for d, i in zip(dists, ids, strict=True) if int(i) in rows
         ]
-        return build_matches(found, yaw, filters.max_distance)
+        return build_matches(found, yaw, filters.max_distance, yaw_k)
 
     @property
     def count(self) -> int:

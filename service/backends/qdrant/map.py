@@ -191,7 +191,13 @@ class QdrantMap:
         return out
 
     def search(
-        self, descriptor: np.ndarray, k: int, filters: Filters, yaw: np.ndarray | None = None
+        self,
+        descriptor: np.ndarray,
+        k: int,
+        filters: Filters,
+        yaw: np.ndarray | None = None,
+        *,
+        yaw_k: int | None = None,
     ) -> list[Match]:
         q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
         params = None
@@ -213,7 +219,7 @@ class QdrantMap:
             (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
             for p in result.points
         ]
-        return build_matches(found, yaw, filters.max_distance)
+        return build_matches(found, yaw, filters.max_distance, yaw_k)
 
     def info(self) -> dict[str, Any]:
         n = self.count
