@@ -1,9 +1,12 @@
 """Dynamic micro-batching of encoder calls, as Triton's dynamic batcher does.
 
 Requests put one range image each on a bounded queue and await a future. One worker takes
-the first waiting image, waits at most ``max_wait_ms`` for up to ``max_batch − 1`` more, and
-runs the encoder on the stacked batch in a worker thread, off the event loop. While a batch
-encodes, the next one fills, so under load batches grow without any added wait.
+the first waiting image and everything queued behind it, up to ``max_batch``; it waits (at
+most ``max_wait_ms``) for more only while scans are on their way — announced by the caller
+with :meth:`MicroBatcher.incoming` while it decodes and projects them — so a lone scan is
+encoded at once instead of waiting for company that is not coming. The batch runs in a
+worker thread, off the event loop; while it encodes, the next one fills, so under load
+batches grow without any added wait.
 
 A full queue answers at once with :class:`~service.errors.Overloaded` (503 + Retry-After):
 queueing more work than can finish within a request timeout only turns 503s into 504s.
@@ -13,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -46,6 +49,7 @@ class MicroBatcher:
         self.queue_size = queue_size
         self._on_batch = on_batch
         self._queue: asyncio.Queue[_Item] | None = None
+        self._coming = 0  # scans announced by incoming() and not yet queued
         self._worker: asyncio.Task[None] | None = None
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="encoder")
 
@@ -59,6 +63,16 @@ class MicroBatcher:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._worker
         self._pool.shutdown(wait=True)
+
+    @contextlib.contextmanager
+    def incoming(self) -> Iterator[None]:
+        """Around the work that makes a scan's image (on the event loop's side): while any
+        scan is announced, a started batch waits up to ``max_wait_ms`` for it."""
+        self._coming += 1
+        try:
+            yield
+        finally:
+            self._coming -= 1
 
     @property
     def pending(self) -> int:
@@ -97,7 +111,7 @@ class MicroBatcher:
                 except asyncio.QueueEmpty:
                     pass
                 left = deadline - loop.time()
-                if left <= 0:
+                if left <= 0 or not self._coming:  # nothing on its way: do not wait for it
                     break
                 try:
                     batch.append(await asyncio.wait_for(self._queue.get(), left))

@@ -3,7 +3,7 @@
     ScanBody (bytes as received: media type, point fields, Content-Encoding)
       ─ worker thread ─ decode: decompress, parse → PointCloud
                         project: the model's own range projection → (1, H, W) image
-      ─ MicroBatcher ── waits at most batching.max_wait_ms for other scans
+      ─ MicroBatcher ── waits at most batching.max_wait_ms for scans still being decoded
       ─ encoder thread  encode: Encoder.encode on the stacked batch
         (meanwhile, when the caller will verify: a worker thread prepares the points for
         registration, service.verify.prepare — hidden behind the encoder's wait)
@@ -85,7 +85,8 @@ class ScanPipeline:
     ) -> Description:
         """``registration``: also prepare the points for verification, while the encoder
         works (its wait, if any, is added to the encode stage)."""
-        image, points, timings = await in_thread(self._prepare, scan)
+        with self.batcher.incoming():
+            image, points, timings = await in_thread(self._prepare, scan)
         t0 = time.perf_counter()
         task = None
         if registration is not None:

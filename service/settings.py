@@ -53,7 +53,11 @@ class LimitSettings(_Section):
 
 class BatchSettings(_Section):
     max_batch: int = Field(8, ge=1, le=256, description="scans per encoder call")
-    max_wait_ms: float = Field(2.0, ge=0, description="how long a batch waits to fill")
+    max_wait_ms: float = Field(
+        2.0,
+        ge=0,
+        description="how long a batch waits to fill while other scans are still being decoded",
+    )
     queue_size: int = Field(64, ge=1, description="scans waiting to encode; beyond: 503")
     intra_op_threads: int = Field(0, ge=0, description="onnxruntime threads (0: all cores)")
 

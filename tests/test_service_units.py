@@ -498,6 +498,38 @@ def test_batcher_batches_concurrent_requests_in_order():
     assert max(sizes) > 1 and max(sizes) <= 4
 
 
+def test_batcher_waits_only_for_scans_on_their_way():
+    """A lone scan is encoded at once; a batch waits (up to max_wait_ms) for a scan that
+    another caller is still decoding, announced with incoming()."""
+
+    async def main() -> tuple[list[int], list[int]]:
+        sizes: list[int] = []
+        mb = MicroBatcher(
+            _encode, max_batch=4, max_wait_ms=2000, on_batch=lambda n, _s: sizes.append(n)
+        )
+        await mb.start()
+        image = np.zeros((1, 2, 3), np.float32)
+
+        async def late(announced: bool):  # a second scan that is ready 0.2 s later
+            if announced:
+                with mb.incoming():
+                    await asyncio.sleep(0.2)
+            else:
+                await asyncio.sleep(0.2)
+            return await mb.encode(image)
+
+        await asyncio.gather(mb.encode(image), late(announced=False))
+        alone = list(sizes)
+        sizes.clear()
+        await asyncio.gather(mb.encode(image), late(announced=True))
+        await mb.stop()
+        return alone, sizes
+
+    alone, together = asyncio.run(main())
+    assert alone == [1, 1]  # nobody announced: the first did not wait 2 s for the second
+    assert together == [2]  # announced: the first waited for it
+
+
 def test_batcher_refuses_beyond_its_queue_and_reports_errors():
     async def main():
         mb = MicroBatcher(_encode, max_batch=1, max_wait_ms=0, queue_size=2)
