@@ -16,13 +16,16 @@ graph's outputs need from it. The scans between stage j and j + 1 read their inp
 what has been computed so far. With one block that is two sessions and the block's scans
 between them.
 
-**Spinning, stopped at each session's end.** onnxruntime's intra-op workers spin between
-the operators of a run (waking a sleeping worker for each of a stage's many small operators
-costs more than the operators), and stop spinning when the run ends
-(``session.force_spinning_stop``), so the C kernel that runs next has both cores. Measured
-on the shipped model at 2 threads, interleaved in one process: 15.8–16.3 ms a scan,
-against 18.5–19.0 ms with spinning off (the previous choice) and 17.8–19.7 ms with
-workers that keep spinning into the kernel's time. With one thread there is no worker.
+**No spinning.** The stages' sessions are built with onnxruntime's intra-op spinning off:
+after a run, a spinning worker keeps its core busy waiting for more work, and here the next
+work is the C kernel's, which then runs on a shared core. On 2 threads that made the staged
+encoder slower than the portable graph (38–42 ms against 24–31 ms for the narrow model;
+21–23 ms with spinning off, measured in one run). With one thread there is no worker.
+Spinning within a stage and stopping at its end (``session.force_spinning_stop``) makes a
+lone encoder ≈ 10 % faster on 2 threads, but under a fleet's load (8 simulated robots,
+verification on) the spinning workers take the cores that decoding, the query's preparation
+and registration need: 28.5–29.4 observations/s against 30.7–32.1 with spinning off, in
+alternating runs on one machine. The service is sized by its load, so spinning stays off.
 """
 
 from __future__ import annotations
@@ -87,10 +90,9 @@ class StagedGraph:
     """An exported encoder cut at its scan nodes (see the module notes)."""
 
     def __init__(self, proto: onnx.ModelProto, opts: ort.SessionOptions, threads: int) -> None:
-        """``opts``: the sessions' options (threads); spinning is set in them (see above)."""
+        """``opts``: the sessions' options (threads); spinning is turned off in them."""
         self.threads = max(1, threads)
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "1")
-        opts.add_session_config_entry("session.force_spinning_stop", "1")
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         graph = proto.graph
         scans = scan_nodes(proto)
         if not scans:
