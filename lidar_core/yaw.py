@@ -22,8 +22,10 @@ def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
 
     Computed from spectra, in float64 (refs may come as stored, float16): the query's
     spectrum without its DC bins is the zero-mean query, which makes the reference's means
-    drop out of every product; the norms come from sums (‖r − r̄‖² = Σ r² − W Σ_c r̄_c²), so
-    no normalised copy of the maps is made."""
+    drop out of every product; the norms come from sums and the DC bins (‖r − r̄‖² =
+    Σ r² − Σ_c DC_c² / W), and the products are taken in place in the references' spectra,
+    so no centred or normalised copy of a map and no second spectrum-sized array (577 KB
+    for five references) is made."""
     q = np.asarray(query, dtype=np.float64)
     r = np.asarray(refs, dtype=np.float64)
     if r.ndim == 2:
@@ -31,17 +33,20 @@ def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
     if q.ndim != 2 or q.shape != r.shape[1:]:
         raise ValueError(f"feature shapes differ: query {q.shape}, references {r.shape[1:]}")
     W = q.shape[-1]
-    qs = np.conj(np.fft.rfft(q, axis=-1))
+    qs = np.fft.rfft(q, axis=-1)  # (C, F)
+    rs = np.fft.rfft(r, axis=-1)  # (K, C, F)
+    # einsum, not vdot: BLAS would wake its own thread pool on cores the encoder is using
+    q_norm = np.sqrt(
+        max(float(np.einsum("cw,cw->", q, q)) - float((qs[:, 0].real ** 2).sum()) / W, 0.0)
+    )
+    r_norm = np.sqrt(
+        np.maximum(np.einsum("kcw,kcw->k", r, r) - (rs[..., 0].real ** 2).sum(-1) / W, 0.0)
+    )
+    qs = qs.conj()
     qs[:, 0] = 0.0  # the query's channel means
-    # corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k]
-    num = np.fft.irfft((qs[None] * np.fft.rfft(r, axis=-1)).sum(axis=1), n=W, axis=-1)
-    return num / np.maximum(_centred_norm(q[None]) * _centred_norm(r), 1e-12)[:, None]
-
-
-def _centred_norm(f: np.ndarray) -> np.ndarray:
-    """(K, C, W) → (K,): ‖f − its channel means‖ over each (C, W) map, from sums."""
-    W = f.shape[-1]
-    return np.sqrt(np.maximum((f * f).sum(axis=(1, 2)) - W * (f.mean(axis=-1) ** 2).sum(-1), 0))
+    rs *= qs  # corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k]
+    num = np.fft.irfft(rs.sum(axis=1), n=W, axis=-1)
+    return num / np.maximum(q_norm * r_norm, 1e-12)[:, None]
 
 
 def estimate_yaw(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
