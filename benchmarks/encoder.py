@@ -33,7 +33,6 @@ present, else seeded random ones (speed does not depend on the content).
 from __future__ import annotations
 
 import argparse
-import collections
 import contextlib
 import json
 import os
@@ -47,6 +46,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from onnx_profile import op_profile
 from rich.console import Console
 from rich.table import Table
 from torch.utils.flop_counter import FlopCounterMode
@@ -85,16 +85,13 @@ def scan_taken_out():
         model_module.scan = real
 
 
-def session(path: Path, threads: int, profile: bool = False) -> ort.InferenceSession:
+def session(path: Path, threads: int) -> ort.InferenceSession:
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
-    # Workers stop spinning when a run ends, as the served encoder's do: a session timed in
-    # turn with another must not leave its workers spinning into the other's time.
+    # Workers stop spinning when a run ends: a session timed in turn with another must not
+    # leave its workers spinning into the other's time.
     so.add_session_config_entry("session.force_spinning_stop", "1")
-    if profile:
-        so.enable_profiling = True
-        so.profile_file_prefix = str(path.with_suffix(""))
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
@@ -217,36 +214,6 @@ def peer_comparison(ours_path: Path, peer_path: Path, x1, x8, reps: int) -> dict
             "peer_ms_per_scan": b * 1e3 / len(x),
             "ours_over_peer": a / b,
         }
-    return out
-
-
-def op_profile(path: Path, x1: np.ndarray, runs: int = 10) -> dict[str, dict[str, float]]:
-    """ms per run by operator type: the top level (Scan includes its loop bodies; the
-    entries partition the run) and, separately, the nodes inside the loop bodies."""
-    proto = onnx.load(str(path))
-    body_names = {n.name for n in _body_nodes(proto.graph.node)}
-    for fn in proto.functions:  # the scans' bodies, in the local function onnxruntime inlines
-        body_names |= {f"_inlfunc_{fn.name}_{n.name}" for n in _body_nodes(fn.node)}
-    sess = session(path, 1, profile=True)
-    for _ in range(runs):
-        sess.run(None, {"range_image": x1})
-    trace = Path(sess.end_profiling())
-    top: collections.Counter = collections.Counter()
-    body: collections.Counter = collections.Counter()
-    for ev in json.loads(trace.read_text()):
-        if ev.get("cat") == "Node" and ev["name"].endswith("_kernel_time"):
-            node = ev["name"][: -len("_kernel_time")]
-            (body if node in body_names else top)[ev["args"]["op_name"]] += ev["dur"] / 1e3 / runs
-    trace.unlink()
-    return {"top_level": dict(top.most_common()), "inside_scan": dict(body.most_common())}
-
-
-def _body_nodes(nodes) -> list[onnx.NodeProto]:  # type: ignore[no-untyped-def]
-    out = []
-    for node in nodes:
-        for attr in node.attribute:
-            if attr.type == onnx.AttributeProto.GRAPH:
-                out += list(attr.g.node) + _body_nodes(attr.g.node)
     return out
 
 
