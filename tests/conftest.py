@@ -182,3 +182,19 @@ def save_random_checkpoint(path: Path, **config) -> Path:
     }
     save_checkpoint(path, payload)
     return path
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    """The async tests (``pytest.mark.anyio``) run on asyncio."""
+    return "asyncio"
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    """The shipped encoder as the service loads it (2 onnxruntime threads), once a module."""
+    from service_kit import MODEL
+
+    from service.encoder import Encoder
+
+    return Encoder(MODEL, intra_op_threads=2)

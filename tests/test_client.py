@@ -12,7 +12,7 @@ import time
 import httpx
 import numpy as np
 import pytest
-from service_kit import MODEL, ROOT, running, scan, server
+from service_kit import ROOT, running, scan, server
 from typer.testing import CliRunner
 
 import client
@@ -28,20 +28,9 @@ from client import (
     Retry,
 )
 from client.cli import app as cli_app
-from service.encoder import Encoder
 from service.settings import Settings
 
 pytestmark = pytest.mark.anyio
-
-
-@pytest.fixture
-def anyio_backend():
-    return "asyncio"
-
-
-@pytest.fixture(scope="module")
-def encoder() -> Encoder:
-    return Encoder(MODEL, intra_op_threads=2)
 
 
 @pytest.fixture(scope="module")

@@ -53,11 +53,6 @@ def test_json_lines_carry_the_request_id_and_extra_fields():
         assert new_request_id(hostile) != hostile and len(new_request_id(hostile)) == 32
 
 
-@pytest.fixture
-def anyio_backend():
-    return "asyncio"
-
-
 @pytest.mark.anyio
 async def test_every_response_has_a_request_id_and_an_access_line(tmp_path):
     lines: list[logging.LogRecord] = []

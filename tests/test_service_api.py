@@ -13,23 +13,12 @@ import struct
 import numpy as np
 import pytest
 import zstandard
-from service_kit import MODEL, OCTET, running, scan
+from service_kit import OCTET, running, scan
 
 from service.auth import hash_key
-from service.encoder import Encoder
 from service.settings import Settings
 
 pytestmark = pytest.mark.anyio
-
-
-@pytest.fixture
-def anyio_backend():
-    return "asyncio"
-
-
-@pytest.fixture(scope="module")
-def encoder() -> Encoder:
-    return Encoder(MODEL, intra_op_threads=2)
 
 
 @pytest.fixture
