@@ -203,11 +203,12 @@ void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
  * Dropping them also keeps the decayed values out of float32's subnormal range, where every
  * multiply is many times slower (no flush-to-zero here: see scan_kernel.py on -ffast-math).
  * Fast decays leave early; slow ones (small Δ Σ A) run the whole ring. The first pass keeps
- * its decays, (L, N) vectors a unit (460 KB at L = 900, N = 16, 8 lanes: a unit runs out of
- * one core's L2), and the correction reads them back instead of computing its exponentials
- * again: on the shipped model's ring (3 × 900 × 128, N = 16) that took the kernel from 3.7
- * to 2.3 ms (the correction from 2.3 to 0.9), measured interleaved on one core. Where that
- * buffer cannot be had, the correction recomputes them.
+ * its decays, (L, N) vectors a unit (460 KB at L = 900, N = 16, 8 lanes: they fit in one
+ * core's L2 on this project's machine, 1 MB), and the correction reads them back instead of
+ * computing its exponentials again: on the shipped model's ring (3 × 900 × 128, N = 16)
+ * that took the kernel from 3.7 to 2.3 ms (the correction from 2.3 to 0.9), measured
+ * interleaved on one core. Where that buffer cannot be had, the correction recomputes them
+ * (the path before the buffer; no test reaches it, since allocation does not fail here).
  *
  * exp(Δ A) = 2^(Δ · A log2 e): with x = Δ · A', k = round(x), r = x − k ∈ [−½, ½] (exact),
  * 2^r by a degree-5 polynomial (coefficients fitted here for relative error ≤ 1.1e−7 on
