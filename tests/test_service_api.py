@@ -617,6 +617,36 @@ async def test_not_ready_before_the_lifespan(settings, encoder):
         assert r.status_code == 503 and err(r)["code"] == "not_ready"
 
 
+def test_no_route_dependency_runs_in_the_thread_pool(settings, encoder):
+    """FastAPI runs a plain ``def`` dependency in its thread pool: a hop there and back per
+    dependency, per request, on the cores that decode and encode. Ours do not block."""
+    import inspect
+
+    from fastapi.routing import APIRoute
+
+    from service.app import create_app
+
+    def calls(dependant):
+        for dep in dependant.dependencies:
+            yield dep.call
+            yield from calls(dep)
+
+    def api_routes(routes):  # included routers nest (FastAPI's _IncludedRouter)
+        for r in routes:
+            if isinstance(r, APIRoute):
+                yield r
+            elif hasattr(r, "original_router"):
+                yield from api_routes(r.original_router.routes)
+
+    app = create_app(settings, encoder=encoder)
+    seen = 0
+    for route in api_routes(app.routes):
+        for call in calls(route.dependant):
+            seen += 1
+            assert inspect.iscoroutinefunction(call), (route.path, call)
+    assert seen >= 20  # the service and the caller's rights on most routes
+
+
 async def test_openapi_documents_every_route_with_examples(settings, encoder):
     async with running(settings, encoder) as c:
         spec = (await c.get("/openapi.json")).json()
