@@ -91,8 +91,10 @@ class PlaceService:
     # ---- maps ---------------------------------------------------------------------------------
 
     async def map(self, map_id: str) -> PlaceMap:
-        """The map, looked up off the event loop (the Qdrant backend may ask its server)."""
-        return await in_thread(self.registry.get, map_id)
+        """The map: at once where the backend knows it without I/O (FAISS; Qdrant while its
+        last look is fresh), else looked up off the event loop (Qdrant asks its server)."""
+        m = self.registry.get_nowait(map_id)
+        return m if m is not None else await in_thread(self.registry.get, map_id)
 
     async def open_map(self, map_id: str) -> PlaceMap:
         """The map for descriptor work: refused (409) when it holds another model's

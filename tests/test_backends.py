@@ -253,6 +253,34 @@ def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(
             b.get("yard")
 
 
+def test_get_nowait_answers_only_without_io(tmp_path):
+    """The event loop's map lookup: FAISS holds every map in memory and answers like get
+    (the map, or the same error); Qdrant answers only while its last look at the server is
+    fresh, else None (the caller then asks get, in a worker thread)."""
+    from service.backends.qdrant.backend import FRESH_S, QdrantBackend
+
+    with opened("faiss", tmp_path / "f") as f:
+        m, _ = f.create("yard", None)
+        assert f.get_nowait("yard") is m is f.get("yard")
+        with pytest.raises(NotFound):
+            f.get_nowait("nowhere")
+        with pytest.raises(BadRequest):
+            f.get_nowait("no spaces")
+    s = settings_for("qdrant", tmp_path / "q")
+    with opened("qdrant", tmp_path / "q") as a:
+        a.create("yard", None)
+        assert isinstance(a, QdrantBackend)
+        b = QdrantBackend(s.qdrant, s.index, model_id=MODEL_ID, dim=DIM, client=a.client)
+        assert b.get_nowait("yard") is None  # never looked at: only the server knows
+        assert b.get_nowait("nowhere") is None
+        m = b.get("yard")
+        assert b.get_nowait("yard") is m
+        m.checked -= FRESH_S + 1  # the look has gone stale: another replica may delete it
+        assert b.get_nowait("yard") is None
+        with pytest.raises(BadRequest):
+            b.get_nowait("no spaces")
+
+
 def test_faiss_snapshot_still_reports_its_seq(tmp_path):
     with opened("faiss", tmp_path) as b:
         m, _ = b.create("town", "flat")

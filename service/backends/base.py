@@ -163,6 +163,10 @@ class MapBackend(Protocol):
 
     def get(self, map_id: str) -> PlaceMap: ...
 
+    # The map, or get's error, when the answer needs no disk or network (an event loop may
+    # call it); None when only get can tell.
+    def get_nowait(self, map_id: str) -> PlaceMap | None: ...
+
     def create(
         self, map_id: str, kind: str | None, keep_geometry: bool | None = None
     ) -> tuple[PlaceMap, bool]: ...

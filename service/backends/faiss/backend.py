@@ -74,6 +74,10 @@ class FaissBackend:
             raise map_not_found(map_id)
         return m
 
+    def get_nowait(self, map_id: str) -> FaissMap:
+        """Every map is open in memory from start-up: :meth:`get` never blocks here."""
+        return self.get(map_id)
+
     def create(
         self, map_id: str, kind: str | None, keep_geometry: bool | None = None
     ) -> tuple[FaissMap, bool]:

@@ -193,6 +193,13 @@ class QdrantBackend:
             self._maps[map_id] = m
         return m
 
+    def get_nowait(self, map_id: str) -> QdrantMap | None:
+        """The map while its last look at the server is fresh; otherwise only :meth:`get`
+        (which asks the server) can tell."""
+        check_map_id(map_id)
+        m = self._maps.get(map_id)
+        return m if m is not None and time.monotonic() - m.checked <= FRESH_S else None
+
     def create(
         self, map_id: str, kind: str | None, keep_geometry: bool | None = None
     ) -> tuple[QdrantMap, bool]:
