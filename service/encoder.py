@@ -24,6 +24,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import onnxruntime as ort
@@ -31,6 +32,9 @@ import onnxruntime as ort
 from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from lidar_core.points import PointCloud
 from lidar_core.projection import project
+
+if TYPE_CHECKING:
+    from service.fastscan import StagedGraph
 
 log = logging.getLogger("overlapmamba.service")
 PARITY_TOL = 1e-4  # max abs difference, C-kernel path vs portable graph, at load
@@ -74,6 +78,7 @@ class Encoder:
             )
         self.path = Path(path)
         self._run = self._run_portable
+        self.staged: StagedGraph | None = None  # the C-kernel path, when it serves
         self.scan_path = "portable (scan_kernel = false)"
         if self.meta.network.get("mixer", "mamba") != "mamba":
             self.scan_path = f"no scan ({self.meta.network['mixer']} mixer)"
@@ -118,6 +123,7 @@ class Encoder:
             )
             return f"portable ({err})"
         self._run = staged.run
+        self.staged = staged
         n, k = staged.scan_count, len(staged.stages)
         return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
 

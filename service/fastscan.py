@@ -30,6 +30,7 @@ alternating runs on one machine. The service is sized by its load, so spinning s
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -183,11 +184,19 @@ class StagedGraph:
         except Exception as err:  # onnxruntime raises its own unrelated classes
             raise FastPathError(f"stage {j} does not load in onnxruntime: {err}") from None
 
-    def run(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """images (B, 1, H, W) float32 → descriptor (B, D), yaw_features (B, C, W)."""
+    def run(
+        self, images: np.ndarray, parts: dict[str, float] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """images (B, 1, H, W) float32 → descriptor (B, D), yaw_features (B, C, W).
+        ``parts``: seconds spent in the onnxruntime stages ("sessions") and in the kernel
+        ("scan") are added to it (benchmarks/encoder.py splits the served time so)."""
         env: dict[str, np.ndarray] = {INPUT: images}
+        clock = time.perf_counter
+        t_sessions = t_scan = 0.0
         for stage in self.stages:
+            t0 = clock()
             values = stage.session.run(stage.outputs, {n: env[n] for n in stage.inputs})
+            t1 = clock()
             env.update(zip(stage.outputs, values, strict=True))
             for node in stage.scans:
                 u, delta, A, Bm, Cm, D = (
@@ -196,6 +205,11 @@ class StagedGraph:
                 env[node.output[0]] = scan_forward(
                     u, delta, A, Bm, Cm, D, _CIRCULAR[node.op_type], self.threads
                 )
+            t_sessions += t1 - t0
+            t_scan += clock() - t1
+        if parts is not None:
+            parts["sessions"] = parts.get("sessions", 0.0) + t_sessions
+            parts["scan"] = parts.get("scan", 0.0) + t_scan
         desc, yaw = (env[name] for name in OUTPUTS)
         return desc, yaw
 
