@@ -15,6 +15,7 @@ import numpy as np
 from bench_kit import MODEL, pct, scan_bodies, server
 from rich.console import Console
 from rich.table import Table
+from transport_floor import floor_server
 
 from lidar_core.io import decode
 from service.encoder import Encoder
@@ -32,9 +33,12 @@ DEFAULTS = BatchSettings()  # the service's own defaults, reported, not assumed
 # ---- part 1: HTTP overhead ------------------------------------------------------------------
 
 
-def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> dict[str, Any]:
-    """Bare and HTTP scan → descriptor, and the sgemm yardstick, in alternating blocks of
-    ``block`` calls."""
+def overhead(
+    enc: Encoder, body: bytes, url: str, floor_url: str, reps: int, block: int = 4
+) -> dict[str, Any]:
+    """Bare and HTTP scan → descriptor, the transport floor (``transport_floor``: the same
+    body to a server that only waits as long as the bare path) and the sgemm yardstick, in
+    alternating blocks of ``block`` calls."""
     stages: dict[str, list[float]] = {"decode": [], "project": [], "encode": []}
     rng = np.random.default_rng(0)
     ma, mb = (rng.standard_normal(shape, dtype=np.float32) for shape in SGEMM)
@@ -55,7 +59,21 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
             stages[k].append(v * 1e3)
 
     server_t: list[dict[str, float]] = []
-    with httpx.Client(base_url=url, timeout=60) as client:
+    floor_gap: list[float] = []
+    b: list[float] = []
+    with (
+        httpx.Client(base_url=url, timeout=60) as client,
+        httpx.Client(base_url=floor_url, timeout=60) as floor_client,
+    ):
+
+        def floor() -> None:
+            wait_ms = float(np.median(b)) if b else 16.0  # as long as the bare path takes
+            t = time.perf_counter()
+            r = floor_client.post(f"/floor?wait_ms={wait_ms:.3f}", content=body, headers=HEADERS)
+            r.raise_for_status()
+            out = r.json()
+            floor_gap.append((time.perf_counter() - t) * 1e3 - out["waited_ms"])
+            assert out["bytes"] == len(body) and len(out["descriptor"]) == enc.dim
 
         def http() -> None:
             r = client.post("/v1/descriptors", content=body, headers=HEADERS)
@@ -69,16 +87,18 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
         time.sleep(0.05)
         for _ in range(3):
             http()
+            floor()
         for v in stages.values():
             v.clear()
         server_t.clear()
-        b: list[float] = []
+        floor_gap.clear()
         h: list[float] = []
+        f: list[float] = []
         g: list[float] = []
         sgemm()
         while len(b) < reps:
             # a pause at each switch lets the other side's onnxruntime threads stop spinning
-            for fn, out in ((bare, b), (http, h), (sgemm, g)):
+            for fn, out in ((bare, b), (http, h), (floor, f), (sgemm, g)):
                 time.sleep(0.05)
                 for _ in range(min(block, reps - len(out))):
                     t = time.perf_counter()
@@ -98,6 +118,9 @@ def overhead(enc: Encoder, body: bytes, url: str, reps: int, block: int = 4) -> 
     # what the server's own stage timings do not cover: HTTP, body transfer, routing, JSON on
     # both ends (its "encode" includes the micro-batcher's wait)
     res["http_minus_server_stages_ms"] = pct(h, 50) - sum(server_med.values())
+    # the same for a server doing nothing: client, transfer, uvicorn, waking after the wait
+    res["floor_gap_ms"] = {"median": pct(floor_gap, 50), "p90": pct(floor_gap, 90)}
+    res["floor_ratio"] = (pct(b, 50) + pct(floor_gap, 50)) / pct(b, 50)
     return res
 
 
@@ -182,11 +205,11 @@ def http_part(args: argparse.Namespace, console: Console) -> dict[str, Any]:
     for name, env, load in configs:
         console.print(f"starting server: {name} {env or ''} …")
         t = time.perf_counter()
-        with server(env) as url:
+        with server(env) as url, floor_server() as floor_url:
             ready_s = time.perf_counter() - t
             console.print(f"  ready in {ready_s:.1f} s; sequential overhead ({args.reps} reps) …")
             rec: dict[str, Any] = {"env": env, "ready_s": ready_s, "loadavg": os.getloadavg()}
-            rec["overhead"] = overhead(enc, body, url, args.reps)
+            rec["overhead"] = overhead(enc, body, url, floor_url, args.reps)
             if load:
                 console.print(f"  throughput, 1/4/8 clients × {args.duration:.0f} s …")
                 rec["throughput"] = throughput(url, bodies, args.duration)
@@ -204,10 +227,13 @@ def print_http(res: dict[str, Any], console: Console) -> None:
         f"batching = the defaults (max_batch {d['max_batch']}, max_wait_ms "
         f"{d['max_wait_ms']:g}); wait 0 = OVERLAPMAMBA_BATCHING__MAX_WAIT_MS=0; no batching "
         "= OVERLAPMAMBA_BATCHING__MAX_BATCH=1. Stages dec/proj/enc are medians; rest = HTTP "
-        "median − the server's own stage medians (HTTP, transfer, routing, JSON).",
+        "median − the server's own stage medians (HTTP, transfer, routing, JSON); floor = the "
+        "same for a server that only reads the body and waits as long as bare (no work), "
+        "floor ratio = (bare + floor) ÷ bare: the lowest ratio this client and uvicorn allow.",
     )
     cols = ["server", "bare ms med/p90", "HTTP ms med/p90", f"ratio (≤ {RATIO_GOAL})"]
-    cols += ["bare dec/proj/enc", "server dec/proj/enc", "rest ms", f"÷ sgemm (≤ {SGEMM_GOAL:g})"]
+    cols += ["bare dec/proj/enc", "server dec/proj/enc", "rest ms", "floor ms", "floor ratio"]
+    cols += [f"÷ sgemm (≤ {SGEMM_GOAL:g})"]
     for c in cols:
         t.add_column(c, justify="right")
     for name, rec in res["servers"].items():
@@ -221,6 +247,8 @@ def print_http(res: dict[str, Any], console: Console) -> None:
             "/".join(f"{bs[k]:.1f}" for k in ("decode", "project", "encode")),
             "/".join(f"{ss[k]:.1f}" for k in ("decode", "project", "encode")),
             f"{o['http_minus_server_stages_ms']:.1f}",
+            f"{o['floor_gap_ms']['median']:.1f}",
+            f"{o['floor_ratio']:.3f}",
             f"{o['http_over_sgemm']:.1f} ({o['sgemm_ms']['median']:.2f} ms)",
         )
     console.print(t)
