@@ -29,6 +29,25 @@ def test_correlation_of_unrelated_features_is_low():
         circular_correlation(np.zeros((8, 900)), np.zeros((2, 4, 900)))
 
 
+def test_correlation_is_the_cosine_of_centred_maps_at_every_roll():
+    """Against the definition, roll by roll: stored float16 references with channel means
+    far from zero, a float32 query, one reference given as (C, W)."""
+    rng = np.random.default_rng(2)
+    q = (rng.normal(size=(4, 60)) + 3.0).astype(np.float32)
+    refs = (rng.normal(size=(3, 4, 60)) * 2 - 5.0).astype(np.float16)
+
+    def cosine(a, b):
+        a = a - a.mean(axis=-1, keepdims=True)
+        b = b - b.mean(axis=-1, keepdims=True)
+        return float((a * b).sum() / np.linalg.norm(a) / np.linalg.norm(b))
+
+    r64 = refs.astype(np.float64)
+    q64 = q.astype(np.float64)
+    want = [[cosine(q64, np.roll(r, -k, axis=-1)) for k in range(60)] for r in r64]
+    np.testing.assert_allclose(circular_correlation(q, refs), want, atol=1e-12)
+    np.testing.assert_allclose(circular_correlation(q, refs[1]), want[1:2], atol=1e-12)
+
+
 @pytest.mark.real_data
 def test_range_images_of_a_turned_real_scan_give_its_yaw(kitti_seq_dir):
     """The range image itself is an equivariant feature map: a sanity check of the sign and
