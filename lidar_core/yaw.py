@@ -25,8 +25,9 @@ def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
     the zero-mean query, which makes the references' means drop out of every product; the
     norms come from sums and the DC bins (‖r − r̄‖² = Σ r² − Σ_c DC_c² / W), and the products
     are taken in place in the references' spectra, so no centred or normalised copy of a map
-    is made. (One array instead of a cast and an FFT per side: 0.69 → 0.49 ms p50 for five
-    16 × 900 references, timed in turn.)"""
+    is made. (One array and one FFT call instead of a cast and an FFT per side: estimate_yaw
+    on five 16 × 900 references, old and new timed in turn, 0.39 → 0.37 ms p50 in one run
+    and 0.73 → 0.54 ms in another, at the machine's slower speed.)"""
     q = np.asarray(query)
     r = np.asarray(refs)
     if r.ndim == 2:
