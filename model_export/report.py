@@ -66,6 +66,7 @@ NETWORKS = {
     "OverlapMamba, default recipe with augmentation": ("robust", "best.pt"),
     "OverlapMamba narrow, default recipe's wall time": ("narrow", "best.pt"),
     "OverlapMamba narrow, mined hard negatives": ("narrow-hn", "best.pt"),
+    "OverlapMamba narrow, mined hard negatives, augmented": ("narrow-hn-aug", "best.pt"),
     "OverlapMamba, default recipe": ("default", "best.pt"),
 }
 
@@ -385,6 +386,7 @@ def build_report(
     epoch_runs["ImTrihard (default)"] = "default"
     epoch_runs["ImTrihard (narrow)"] = "narrow"
     epoch_runs["ImTrihard (narrow, mined negatives)"] = "narrow-hn"
+    epoch_runs["ImTrihard (narrow, mined negatives, augmented)"] = "narrow-hn-aug"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:
         plot_epochs(epochs, out / "epochs.png")
