@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -30,6 +29,8 @@ from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import Response
 from starlette.routing import Route
+
+from service.process import free_port
 
 ANSWER = [0.0625] * 256  # a descriptor's worth of JSON
 
@@ -51,16 +52,10 @@ async def floor(request: Request) -> Response:
 app = Starlette(routes=[Route("/floor", floor, methods=["POST"])])
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
 def floor_server(startup_s: float = 30.0) -> Iterator[str]:
     """This module's app in uvicorn in a subprocess; its base URL once it answers."""
-    port = _free_port()
+    port = free_port()
     cmd = [sys.executable, "-m", "uvicorn", "transport_floor:app", "--port", str(port)]
     proc = subprocess.Popen(
         [*cmd, "--log-level", "warning"],

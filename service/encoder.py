@@ -77,7 +77,6 @@ class Encoder:
                 f"{list(OUTPUTS)}"
             )
         self.path = Path(path)
-        self._run = self._run_portable
         self.staged: StagedGraph | None = None  # the C-kernel path, when it serves
         self.scan_path = "portable (scan_kernel = false)"
         if self.meta.network.get("mixer", "mamba") != "mamba":
@@ -122,7 +121,6 @@ class Encoder:
                 err,
             )
             return f"portable ({err})"
-        self._run = staged.run
         self.staged = staged
         n, k = staged.scan_count, len(staged.stages)
         return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
@@ -141,7 +139,8 @@ class Encoder:
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """images (B, 1, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
-        return self._run(np.ascontiguousarray(images, dtype=np.float32))
+        x = np.ascontiguousarray(images, dtype=np.float32)
+        return self.staged.run(x) if self.staged is not None else self._run_portable(x)
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:

@@ -183,9 +183,8 @@ class QdrantBackend:
         return QdrantMap(self, map_id, meta)
 
     def get(self, map_id: str) -> QdrantMap:
-        check_map_id(map_id)
-        m = self._maps.get(map_id)
-        if m is None or time.monotonic() - m.checked > FRESH_S:
+        m = self.get_nowait(map_id)
+        if m is None:
             m = self._open(map_id)
             if m is None:
                 self._forget(map_id)
