@@ -17,7 +17,10 @@ overlap of every pair of scans closer than its radius. A batch is made of groups
   one, so loop closures, not only neighbouring frames, drive the loss;
 - with mined hard negatives (:mod:`model_export.mining`), a share of the groups take their
   anchor from the mined pool and, instead of the near miss, a distant scan that the current
-  model finds alike.
+  model finds alike;
+- with a band share (``band``, for :class:`~model_export.losses.BandRanking`), that share of
+  the other groups take, instead of the near miss, a scan of the anchor's ambiguous band
+  (overlap above ``negative_threshold`` but not above ``positive_threshold``).
 
 Every other scan of the batch is a negative of the anchor unless the table says they
 overlap more than ``negative_threshold``: the loss reads the batch's full (B, B) overlap
@@ -147,6 +150,10 @@ class BatchSampler:
         self.near_misses = [
             near.indices[near.indptr[i] : near.indptr[i + 1]] for i in range(len(pairs))
         ]
+        band = ov.multiply(above)
+        band.data = (band.data <= plan.positive_threshold).astype(np.float32)
+        band.eliminate_zeros()
+        self.band = [band.indices[band.indptr[i] : band.indptr[i + 1]] for i in range(len(pairs))]
         self.revisits = [
             p[np.abs(p - i) > plan.min_revisit_gap] for i, p in enumerate(self.positives)
         ]
@@ -163,11 +170,18 @@ class BatchSampler:
             )
 
     def batch(
-        self, rng: np.random.Generator, hard: HardNegatives | None = None, share: float = 0.0
+        self,
+        rng: np.random.Generator,
+        hard: HardNegatives | None = None,
+        share: float = 0.0,
+        band: float = 0.0,
     ) -> np.ndarray:
         """One batch: (batch_size,) global scan indices in groups, no repeats. With ``hard``,
         each group is a mined one with probability ``share``: its anchor comes from the
-        mined pool and its negatives from the anchor's mined candidates."""
+        mined pool and its negatives from the anchor's mined candidates. Each negative of
+        the other groups is, with probability ``band``, a scan of the anchor's ambiguous
+        band (when it has one free). With ``band`` = 0 no random number is drawn for it, so
+        the batches are those drawn before the option existed."""
         p = self.plan
         hard_revisit = (
             np.intersect1d(hard.anchors, self.revisit_anchors)
@@ -215,6 +229,12 @@ class BatchSampler:
                         group.append(pick(alike))
                         taken.add(group[-1])
                         continue
+                elif band > 0 and rng.random() < band:
+                    between = free(self.band[anchor])
+                    if between:
+                        group.append(pick(between))
+                        taken.add(group[-1])
+                        continue
                 misses = free(self.near_misses[anchor])
                 if not misses:  # none close by: any scan that does not overlap the anchor
                     misses = free(
@@ -243,5 +263,6 @@ class BatchSampler:
         scans: int,
         hard: HardNegatives | None = None,
         share: float = 0.0,
+        band: float = 0.0,
     ) -> list[np.ndarray]:
-        return [self.batch(rng, hard, share) for _ in range(self.steps(scans))]
+        return [self.batch(rng, hard, share, band) for _ in range(self.steps(scans))]

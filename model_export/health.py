@@ -4,12 +4,16 @@ Per step, from the batch's descriptors and its positive/negative pair masks:
 
     d_pos    mean squared distance over positive pairs     d(q, p)
     d_neg    mean squared distance over negative pairs     d(q, n)
+    d_band   mean squared distance over the pairs that are neither (the ambiguous band:
+             neighbouring places); where it sits between d_pos and d_neg is what the band
+             term of the loss orders
     gap      d_neg − d_pos: what the loss is meant to grow
     spread   mean squared distance over all distinct pairs: the descriptors' scale
     separation  gap ÷ spread: the gap at the descriptors' own scale (what a loss with
              normalised distances grows; unit vectors may spread or gather freely)
     active   share of the loss's hinge terms that were > 0 (from :class:`~losses.BatchLoss`)
     margin   the margin the loss used (α, or α × spread with a relative margin)
+    band_active  share of the band term's hinges that were > 0 (NaN when it is off)
 
 A collapse reads as: ``active`` near 1, ``spread`` falling towards 0 and the loss sitting at
 its margin. :class:`HealthLog` keeps a record every ``every`` steps (means over those steps)
@@ -27,13 +31,24 @@ import numpy as np
 import torch
 from torch import Tensor
 
-KEYS = ("loss", "d_pos", "d_neg", "gap", "separation", "spread", "active", "margin")
+KEYS = (
+    "loss",
+    "d_pos",
+    "d_neg",
+    "d_band",
+    "gap",
+    "separation",
+    "spread",
+    "active",
+    "margin",
+    "band_active",
+)
 
 
 @torch.no_grad()
 def batch_distances(desc: Tensor, pos_mask: Tensor, neg_mask: Tensor) -> dict[str, float]:
-    """desc (B, D); masks (B, B) over ordered pairs → d_pos, d_neg, gap, separation, spread (NaN
-    where a batch has no pair of that kind)."""
+    """desc (B, D); masks (B, B) over ordered pairs → d_pos, d_neg, d_band (pairs in neither
+    mask), gap, separation, spread (NaN where a batch has no pair of that kind)."""
     d = torch.cdist(desc.detach().float(), desc.detach().float()).pow(2)
     B = d.shape[0]
     other = ~torch.eye(B, dtype=torch.bool, device=d.device)
@@ -43,9 +58,17 @@ def batch_distances(desc: Tensor, pos_mask: Tensor, neg_mask: Tensor) -> dict[st
         return float(d[mask].sum()) / n if n else math.nan
 
     d_pos, d_neg, spread = mean(pos_mask & other), mean(neg_mask & other), mean(other)
+    d_band = mean(other & ~pos_mask & ~neg_mask)
     gap = d_neg - d_pos
     separation = gap / spread if spread > 0 else math.nan
-    return {"d_pos": d_pos, "d_neg": d_neg, "gap": gap, "separation": separation, "spread": spread}
+    return {
+        "d_pos": d_pos,
+        "d_neg": d_neg,
+        "d_band": d_band,
+        "gap": gap,
+        "separation": separation,
+        "spread": spread,
+    }
 
 
 def _nanmean(values: list[float]) -> float:
@@ -66,7 +89,7 @@ class HealthLog:
 
     def add(self, record: dict[str, float]) -> dict[str, float] | None:
         """Add one step; returns the new logged record when one is due."""
-        self.steps.append({k: float(record[k]) for k in KEYS})
+        self.steps.append({k: float(record.get(k, math.nan)) for k in KEYS})
         if len(self.steps) % self.every:
             return None
         return self._log(self.steps[-self.every :])

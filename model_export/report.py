@@ -49,9 +49,11 @@ UNTRAINED_LABEL = (
     "OverlapMamba, untrained (default run's epoch 0: initial weights, BN recalibrated)"
 )
 NARROW_UNTRAINED_LABEL = (
-    "OverlapMamba narrow, untrained (narrow-hn run's epoch 0: initial weights, BN "
-    "recalibrated; narrow's is the same)"
+    "OverlapMamba narrow, untrained (the narrow runs' common epoch 0: initial weights, BN "
+    "recalibrated)"
 )
+# The narrow runs share seed, data and epoch 0; the row reads the first of them present.
+NARROW_RUNS = ("narrow-hn", "narrow-hn-aug", "narrow-hn-band", "narrow")
 # Table I rows: label → (run folder, checkpoint), in display order; Scan Context comes first.
 # A run's epoch-000.pt is its starting point: the seed's initial weights with batch-norm
 # statistics recalibrated on training scans, before any gradient step. The row of the
@@ -67,6 +69,7 @@ NETWORKS = {
     "OverlapMamba narrow, default recipe's wall time": ("narrow", "best.pt"),
     "OverlapMamba narrow, mined hard negatives": ("narrow-hn", "best.pt"),
     "OverlapMamba narrow, mined hard negatives, augmented": ("narrow-hn-aug", "best.pt"),
+    "OverlapMamba narrow, augmented, neighbours ranked from epoch 7": ("narrow-hn-band", "best.pt"),
     "OverlapMamba, default recipe": ("default", "best.pt"),
 }
 
@@ -98,6 +101,8 @@ REAL = {
 def _networks(runs: Path):
     """(label, model, profile) of every Table I network found among the runs, in order."""
     for label, (run, name) in NETWORKS.items():
+        if label == NARROW_UNTRAINED_LABEL:
+            run = next((r for r in NARROW_RUNS if (runs / r / name).is_file()), run)
         ckpt = runs / run / name
         if ckpt.is_file():
             model, profile, _ = load_model(ckpt)
@@ -387,6 +392,7 @@ def build_report(
     epoch_runs["ImTrihard (narrow)"] = "narrow"
     epoch_runs["ImTrihard (narrow, mined negatives)"] = "narrow-hn"
     epoch_runs["ImTrihard (narrow, mined negatives, augmented)"] = "narrow-hn-aug"
+    epoch_runs["ImTrihard (narrow, augmented, neighbours ranked from epoch 7)"] = "narrow-hn-band"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:
         plot_epochs(epochs, out / "epochs.png")

@@ -12,7 +12,10 @@ fair untrained model, and selection may keep it.
 ``hard_negatives`` > 0 a share of the groups get a negative mined by the epoch's starting
 weights, :mod:`model_export.mining`), augment them (:mod:`model_export.augment`) and step
 Adam; the learning rate warms up linearly over
-``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. Every step records the
+``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. From
+``band_from_epoch`` on, with ``band_weight`` / ``band_share`` > 0, the loss also ranks each
+anchor's ambiguous band below its positives and a share of the groups bring a band scan
+(:class:`~model_export.losses.BandRanking`). Every step records the
 training health (:mod:`model_export.health`: d(q,p), d(q,n), spread, active hinges), shown in
 the progress bar and kept every ``log_every`` steps; a spread that falls below a quarter of
 where the run started prints a warning.
@@ -202,7 +205,6 @@ def train(
         opt.load_state_dict(state["train"]["optimizer"])
         sched.load_state_dict(state["train"]["scheduler"])
         history, best = list(state["train"]["history"]), dict(state["train"]["best"])
-    loss_fn = train_cfg.loss_fn()
 
     def payload(with_optimizer: bool, metrics: dict) -> dict[str, Any]:
         train_state: dict[str, Any] = {
@@ -326,7 +328,9 @@ def train(
                 pool, pool_desc, lambda a: sampler.related[a], sampler.anchors, train_cfg.mine_top
             )
             mine_s = time.perf_counter() - tm
-        batches = sampler.epoch(rng, train_cfg.epoch_scans, hard, train_cfg.hard_negatives)
+        band = train_cfg.band_share if train_cfg.band_on(epoch) else 0.0
+        batches = sampler.epoch(rng, train_cfg.epoch_scans, hard, train_cfg.hard_negatives, band)
+        loss_fn = train_cfg.loss_fn(epoch)
         model.train()
         health = HealthLog(
             every=train_cfg.log_every,
@@ -354,6 +358,7 @@ def train(
                     "loss": out_loss.value.item(),
                     "active": out_loss.active,
                     "margin": out_loss.margin,
+                    "band_active": out_loss.band_active,
                     **batch_distances(desc, *masks),
                 }
             )

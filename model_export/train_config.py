@@ -18,7 +18,7 @@ from torch import Tensor
 from lidar_core.configs import Config
 from model_export.augment import AugmentConfig
 from model_export.errors import ConfigError
-from model_export.losses import BATCH_LOSSES, SCALES, BatchLoss, ImTrihardParams
+from model_export.losses import BATCH_LOSSES, SCALES, BandRanking, BatchLoss, ImTrihardParams
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_SCANS = "../shared/data/kitti00_0000-0100"  # relative to the repository root
@@ -58,6 +58,14 @@ class TrainConfig(Config):
     hard_negatives: float = 0.0
     mine_pool: int = 2000
     mine_top: int = 10
+    # The ambiguous band ranked below the positives (losses.BandRanking), from epoch
+    # band_from_epoch on: band_weight (0: off) and band_alpha (in the margin's units) set the
+    # term, band_share the share of the non-mined groups whose near miss is a band scan.
+    # Epochs before band_from_epoch draw and train exactly as without it.
+    band_weight: float = 0.0
+    band_alpha: float = 0.2
+    band_share: float = 0.0
+    band_from_epoch: int = 1
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
     recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
     log_every: int = 10  # steps per health record
@@ -95,6 +103,19 @@ class TrainConfig(Config):
                 f"hard_negatives {self.hard_negatives} / mine_pool {self.mine_pool} are not "
                 "allowed: use 0 ≤ hard_negatives ≤ 1 and mine_pool ≥ 2"
             )
+        if not (self.band_weight >= 0 and self.band_alpha >= 0 and 0 <= self.band_share <= 1):
+            raise ConfigError(
+                f"band_weight {self.band_weight}, band_alpha {self.band_alpha} and band_share "
+                f"{self.band_share} are not allowed: use band_weight ≥ 0, band_alpha ≥ 0 and "
+                "0 ≤ band_share ≤ 1"
+            )
+        if self.band_from_epoch < 1:
+            raise ConfigError(f"band_from_epoch must be ≥ 1, got {self.band_from_epoch}")
+        if self.band_weight > 0 and self.loss != "imtrihard":
+            raise ConfigError(
+                f"band_weight > 0 needs loss 'imtrihard' (the band term is ImTrihard's); got "
+                f"{self.loss!r}"
+            )
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")
         if self.margin_scale not in SCALES:
@@ -115,11 +136,18 @@ class TrainConfig(Config):
     def augment_config(self) -> AugmentConfig:
         return AugmentConfig.from_dict(self.augment)
 
-    def loss_fn(self) -> Callable[[Tensor, Tensor], BatchLoss]:
+    def band_on(self, epoch: int) -> bool:
+        """Whether epoch ``epoch`` trains with the band term and draws band scans."""
+        return epoch >= self.band_from_epoch and (self.band_weight > 0 or self.band_share > 0)
+
+    def loss_fn(self, epoch: int = 1) -> Callable[[Tensor, Tensor], BatchLoss]:
+        """The batch loss of epoch ``epoch`` (the band term from ``band_from_epoch`` on)."""
         fn = BATCH_LOSSES[self.loss]
-        kw = {"negative": self.negative_threshold, "scale": self.margin_scale}
+        kw: dict = {"negative": self.negative_threshold, "scale": self.margin_scale}
         if self.loss == "imtrihard":
             p = ImTrihardParams(self.alpha, self.lam, self.k_p, self.k_n, self.hinge)
+            if self.band_on(epoch) and self.band_weight > 0:
+                kw["band"] = BandRanking(self.band_weight, self.band_alpha)
             return lambda d, ov: fn(d, ov, self.positive_threshold, p, **kw)
         return lambda d, ov: fn(d, ov, self.positive_threshold, self.margin, **kw)
 

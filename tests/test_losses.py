@@ -7,6 +7,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from model_export.losses import (  # noqa: E402
+    BandRanking,
     ImTrihardParams,
     batch_hard_imtrihard,
     batch_spread,
@@ -163,3 +164,37 @@ def test_batch_spread_matches_pairwise_distances():
     x = torch.randn(5, 3, dtype=torch.float64)
     d = torch.cdist(x, x).pow(2)
     torch.testing.assert_close(batch_spread(x), d.sum() / 20)
+
+
+def test_band_ranking_orders_neighbours_below_positives_and_nothing_else():
+    """Scan 0 has a positive (1, overlap 0.8), a band neighbour (2, overlap 0.2) and a clear
+    negative (3). The band term is weight · [α_b + d(0,1) − d(0,2)]₊ for each query with a
+    positive and a band scan, averaged over those queries; the main term is unchanged."""
+    desc = unit([1.0, 0.0], [0.6, 0.8], [0.8, 0.6], [-1.0, 0.0])  # d(0,1) 0.8, d(0,2) 0.4
+    overlap = torch.tensor(
+        [[1, 0.8, 0.2, 0], [0.8, 1, 0, 0], [0.2, 0, 1, 0], [0, 0, 0, 1]], dtype=torch.float64
+    )
+    params = ImTrihardParams(alpha=0.1, lam=0.0)
+    plain = batch_hard_imtrihard(desc, overlap, params=params, negative=0.1)
+    band = BandRanking(weight=0.5, alpha=0.1)
+    both = batch_hard_imtrihard(desc, overlap, params=params, negative=0.1, band=band)
+    # queries 0 and 2 have a band scan; only 0 also has a positive: 0.5·[0.1 + 0.8 − 0.4]₊
+    assert both.value.item() == pytest.approx(plain.value.item() + 0.5 * 0.5)
+    assert both.band_active == 1.0 and plain.band_active != plain.band_active  # NaN: off
+    assert both.active == plain.active and both.margin == plain.margin
+    # solved: the neighbour farther than the positive by more than α_b → no band loss
+    far = unit([1.0, 0.0], [0.95, 0.3122], [0.0, 1.0], [-1.0, 0.0])
+    solved = batch_hard_imtrihard(far, overlap, params=params, negative=0.1, band=band)
+    unbanded = batch_hard_imtrihard(far, overlap, params=params, negative=0.1)
+    assert solved.value.item() == pytest.approx(unbanded.value.item())
+    assert solved.band_active == 0.0
+    # the band term pushes the band scan away from the query (never pulls it) and pulls the
+    # positive in: its own gradient (with band minus without) on each
+    grads = []
+    for b in (band, None):
+        x = desc.clone().requires_grad_(True)
+        batch_hard_imtrihard(x, overlap, params=params, negative=0.1, band=b).value.backward()
+        grads.append(x.grad)
+    g = grads[0] - grads[1]
+    away = desc[2] - desc[0]
+    assert float((-g[2] * away).sum()) > 0 and float((-g[1] * (desc[1] - desc[0])).sum()) < 0

@@ -51,6 +51,60 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq, negative):
         BatchSampler(pairs, BatchPlan(batch_size=10))
 
 
+def test_band_groups_bring_a_neighbour_and_cost_no_draw_when_off(tiny_seq):
+    """With a band share of 1 every group's negative is a scan of the anchor's ambiguous band
+    (overlap in (0.1, 0.3]) where the anchor has one; with 0 the batches are those drawn
+    without the option (the same generator state gives the same batches)."""
+    pairs = PairIndex.from_sequences([open_sequence(tiny_seq)])
+    sampler = BatchSampler(pairs, BatchPlan(batch_size=16, negative_threshold=0.1))
+    banded = 0
+    for idx in sampler.epoch(np.random.default_rng(0), 160, band=1.0):
+        ov = pairs.submatrix(idx)
+        for g in range(0, 16, GROUP):
+            assert ov[g, g + 1] > 0.3 and ov[g, g + 2] > 0.3
+            if len(sampler.band[int(idx[g])]) > 3:  # free ones left even in a full batch
+                assert 0.1 < ov[g, g + 3] <= 0.3
+                banded += 1
+    assert banded >= 5
+    plain = sampler.epoch(np.random.default_rng(1), 64)
+    off = sampler.epoch(np.random.default_rng(1), 64, band=0.0)
+    assert all(np.array_equal(a, b) for a, b in zip(plain, off, strict=True))
+    with pytest.raises(ConfigError, match="needs loss 'imtrihard'"):
+        TrainConfig(band_weight=0.5, loss="triplet")
+    with pytest.raises(ConfigError, match="0 ≤ band_share ≤ 1"):
+        TrainConfig(band_share=2.0)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_band_term_starts_at_its_epoch_and_changes_nothing_before(
+    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+):
+    """A run with the band ranking from epoch 2 is the plain run, weight for weight, through
+    epoch 1 (so a recipe that switches it on late may continue a plain run's checkpoint), and
+    then trains with it: its hinges are counted in epoch 2's health only."""
+    straight, _ = tiny_run
+    band = dict(band_weight=0.5, band_alpha=0.2, band_share=1.0, band_from_epoch=2)
+    out = tmp_path / "band"
+    history = train(
+        [tiny_seq],
+        tiny_val_seq,
+        out,
+        OverlapMambaConfig(**SMALL),
+        small_run(**band),
+        progress=False,
+    )
+    a, b = read_checkpoint(straight / "epoch-001.pt"), read_checkpoint(out / "epoch-001.pt")
+    for k in a["state_dict"]:
+        torch.testing.assert_close(a["state_dict"][k], b["state_dict"][k], rtol=1e-6, atol=1e-7)
+    assert all(r["band_active"] != r["band_active"] for r in history[1]["health_log"])  # NaN
+    assert all(0 <= r["band_active"] <= 1 for r in history[2]["health_log"])
+    assert all(r["d_band"] > 0 for r in history[2]["health_log"])  # every batch has some
+    c = read_checkpoint(straight / "epoch-002.pt")["state_dict"]
+    d = read_checkpoint(out / "epoch-002.pt")["state_dict"]
+    assert any(not torch.equal(c[k], d[k]) for k in c if k.endswith("weight"))
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # its set-up generates the tiny-val town (≈2 min on 2 busy cores)
 def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
