@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -173,6 +173,22 @@ class LoopClosureResult:
     thresholds: np.ndarray
     n_queries: int
     n_with_loop: int
+    # Per scored query (ascending frame index): the frame, its top-1 candidate and distance,
+    # whether that candidate is a positive, whether the query has any — what
+    # :func:`errors_at_f1max` reads.
+    queries: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    top1: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    top1_distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    top1_correct: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    has_loop: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    @property
+    def f1max_threshold(self) -> float:
+        """The acceptance threshold where F1 peaks (the first, i.e. strictest, on ties)."""
+        p, r = self.precision, self.recall
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+        return float(self.thresholds[int(np.argmax(f1))]) if len(f1) else -math.inf
 
     def summary(self) -> dict[str, float | int]:
         return {
@@ -268,4 +284,9 @@ def evaluate_retrieval(
         thresholds=thresholds,
         n_queries=len(queries),
         n_with_loop=int(has.sum()),
+        queries=queries,
+        top1=ranked[:, 0] if ranked.shape[1] else np.full(len(queries), -1),
+        top1_distance=dist[:, 0] if dist.shape[1] else np.full(len(queries), np.inf),
+        top1_correct=correct,
+        has_loop=has,
     )

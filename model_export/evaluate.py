@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from lidar_core.anatomy import errors_at_f1max
 from lidar_core.datasets.base import Sequence
 from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
 from lidar_core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
@@ -118,6 +119,15 @@ def scancontext_loop_closure(
 
 def summary(results: dict[str, LoopClosureResult]) -> dict[str, dict[str, Any]]:
     return {k: r.summary() for k, r in results.items()}
+
+
+def loop_errors(
+    results: dict[str, LoopClosureResult], gt: LoopGroundTruth, seq: Sequence
+) -> dict[str, dict[str, Any]]:
+    """Per subset, where the result goes wrong at its F1max threshold
+    (:func:`lidar_core.anatomy.errors_at_f1max`, positions from the sequence's poses)."""
+    positions = np.asarray(seq.poses)[:, :3, 3]
+    return {k: errors_at_f1max(r, gt, positions) for k, r in results.items()}
 
 
 def plot_pr(results: dict[str, LoopClosureResult], path: Path, title: str) -> None:
@@ -392,6 +402,7 @@ def evaluate_checkpoint(
         "checkpoint": str(checkpoint),
         "sequence": str(sequence),
         "metrics": summary(results),
+        "errors": loop_errors(results, gt, seq),
     }
     if db is None:
         return SequenceEvaluation(record, results, (seq.name, len(seq)))

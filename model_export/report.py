@@ -34,6 +34,7 @@ from model_export.evaluate import (
     describe,
     eval_real,
     loop_closure,
+    loop_errors,
     network_digest,
     scan_contexts,
     scancontext_loop_closure,
@@ -109,8 +110,9 @@ def _networks(runs: Path):
             yield row_label(label), model, profile
 
 
-def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict]:
-    """One test town → (metrics per method and subset, raw results for the PR plot)."""
+def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict, dict]:
+    """One test town → (metrics per method and subset, raw results for the PR plot, where
+    each method goes wrong at its F1max threshold per subset: :func:`loop_errors`)."""
     seq = open_sequence(test)
     results: dict[str, dict[str, LoopClosureResult]] = {}
     by_weights: dict[str, dict[str, LoopClosureResult]] = {}  # one network, described once
@@ -126,7 +128,8 @@ def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict
         raise FileNotFoundError(f"no trained run under {runs} (expected e.g. {runs}/default)")
     sc = scan_contexts(seq, progress=progress)
     results = {"Scan Context": scancontext_loop_closure(sc, gt), **results}
-    return {k: summary(v) for k, v in results.items()}, results
+    errors = {k: loop_errors(v, gt, seq) for k, v in results.items()}
+    return {k: summary(v) for k, v in results.items()}, results, errors
 
 
 def mean_over_towns(towns: dict[str, dict]) -> dict[str, dict]:
@@ -297,6 +300,31 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{_fmt(m['recall@1'])} | {_fmt(m['recall@1%'])} | "
                 f"{m['queries']} ({m['queries_with_loop']}) | {per_f1} | {per_r1} |"
             )
+    errors = report.get("errors")
+    if errors:
+        lines += [
+            "",
+            "### Where F1max is lost: each method at its own F1max threshold, per town",
+            "",
+            "False alarms by the wrong candidate's distance from the query (neighbours: "
+            f"within {next(iter(next(iter(errors.values())).values()))['all']['far_m']:g} m; "
+            "look-alikes: beyond); missed loops by a wrong top-1 or a right one rejected "
+            "(`lidar_core.anatomy`).",
+            "",
+            "| town | method | subset | accepted | true | false alarms (neighbours / "
+            "look-alikes) | missed loops (wrong top-1 / rejected) |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for town, methods in errors.items():
+            for label, subs in methods.items():
+                for sub in ("same", "reverse"):
+                    e = subs[sub]
+                    fa, miss = e["false_alarms"], e["missed_loops"]
+                    lines.append(
+                        f"| {town} | {label} | {sub} | {e['accepted']} | {e['true_closures']} | "
+                        f"{fa['total']} ({fa['neighbours']} / {fa['look_alikes']}) | "
+                        f"{miss['total']} ({miss['wrong_top1']} / {miss['rejected']}) |"
+                    )
     cross = report.get("cross_session")
     if cross:
         lines += [
@@ -381,8 +409,9 @@ def build_report(
     if sessions:  # refuse a pair with nothing to recall before the long part
         check_sessions(open_sequence(sessions[0]), open_sequence(sessions[1]))
     towns: dict[str, dict] = {}
+    errors: dict[str, dict] = {}
     for i, town in enumerate(tests):
-        towns[town.name], results = table_one(runs, town, progress)
+        towns[town.name], results, errors[town.name] = table_one(runs, town, progress)
         if i == 0:
             plot_pr_methods(results, out / "pr_test.png")
     t1 = mean_over_towns(towns)
@@ -413,6 +442,7 @@ def build_report(
         "test": [str(t) for t in tests],
         "table1": t1,
         "table1_towns": towns,
+        "errors": errors,
         "cross_session": cross,
         "ablation": ablation,
         "epochs": epochs,

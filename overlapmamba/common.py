@@ -70,6 +70,28 @@ def metrics_table(title: str, results: dict[str, dict[str, Any]]) -> Table:
     return table
 
 
+def errors_table(title: str, errors: dict[str, dict[str, Any]]) -> Table:
+    """:func:`lidar_core.anatomy.errors_at_f1max` per subset, one row each."""
+    table = Table(title=title)
+    cols = ("revisits", "accepted", "true", "false alarms", "neighbours", "look-alikes")
+    for col in (*cols, "missed loops", "wrong top-1", "right, rejected"):
+        table.add_column(col, justify="right" if col != "revisits" else "left")
+    for name, e in errors.items():
+        fa, miss = e["false_alarms"], e["missed_loops"]
+        table.add_row(
+            name,
+            str(e["accepted"]),
+            str(e["true_closures"]),
+            str(fa["total"]),
+            str(fa["neighbours"]),
+            str(fa["look_alikes"]),
+            str(miss["total"]),
+            str(miss["wrong_top1"]),
+            str(miss["rejected"]),
+        )
+    return table
+
+
 def check_torch() -> None:
     try:
         import torch  # noqa: F401

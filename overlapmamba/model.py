@@ -12,6 +12,7 @@ from rich.table import Table
 from overlapmamba.common import (
     check_torch,
     command_group,
+    errors_table,
     friendly_errors,
     metrics_table,
     out,
@@ -201,6 +202,14 @@ def eval_cmd(
     )
     name, scans = ev.sequence
     out.print(metrics_table(f"{checkpoint.name} on {name} ({scans} scans)", ev.record["metrics"]))
+    far = ev.record["errors"]["all"]["far_m"]
+    out.print(
+        errors_table(
+            f"At each subset's F1max threshold: false alarms within {far:g} m (neighbours) or "
+            "beyond (look-alikes); missed loops with a wrong top-1 or a right one rejected",
+            ev.record["errors"],
+        )
+    )
     if ev.database is not None:
         cross = ev.record["cross_session"]
         table = Table(

@@ -132,3 +132,53 @@ def test_query_mask_scores_a_subset():
     res = evaluate_loop_closure(desc, pos, query_mask=mask)
     assert res.n_queries == 50 and res.n_with_loop == 50
     assert res.summary()["recall@1"] == 1.0
+
+
+def test_errors_at_an_operating_point_sort_every_query_by_hand():
+    """lidar_core.anatomy on a hand-made retrieval: which accepted answers are true, which false
+    alarms are neighbours (and overlap a little) or look-alikes, which loops are missed."""
+    from lidar_core.anatomy import errors_at_f1max
+    from lidar_core.metrics import evaluate_retrieval
+    from lidar_core.overlap import LoopGroundTruth
+
+    n = 8
+    # query → (top-1 candidate, distance); positives per frame; positions in metres
+    answers = {2: (0, 0.1), 3: (0, 0.2), 4: (1, 0.25), 5: (1, 0.9), 6: (0, 0.15), 7: (3, 0.95)}
+    positives = [np.array([], np.int64)] * n
+    positives[2], positives[5], positives[6] = np.array([0]), np.array([1]), np.array([2])
+    x = np.array([0.0, 500.0, 2.0, 20.0, 700.0, 501.0, 30.0, 900.0])
+    positions = np.column_stack([x, np.zeros(n), np.zeros(n)])
+    gt = LoopGroundTruth(  # the table: loops (> 0.3) and one neighbour below it (3, 0)
+        n_frames=n,
+        query=np.array([2, 5, 6, 3]),
+        reference=np.array([0, 1, 2, 0]),
+        overlap=np.array([0.8, 0.6, 0.7, 0.2], np.float32),
+        yaw_deg=np.zeros(4, np.float32),
+        distance=np.array([2.0, 1.0, 28.0, 20.0], np.float32),
+        params={"min_overlap": 0.3},
+    )
+
+    def retrieve(queries, db_size, k):
+        ranked = np.full((len(queries), k), -1)
+        dist = np.full((len(queries), k), np.inf)
+        for i, q in enumerate(queries):
+            ranked[i, 0], dist[i, 0] = answers[int(q)]
+        return ranked, dist
+
+    r = evaluate_retrieval(retrieve, n, positives, exclude_recent=1, max_n=1)
+    assert r.queries.tolist() == [2, 3, 4, 5, 6, 7] and r.has_loop.sum() == 3
+    e = errors_at_f1max(r, gt, positions, far=50.0, threshold=0.3)
+    assert e["accepted"] == 4 and e["true_closures"] == 1  # 2 → 0 only
+    fa = e["false_alarms"]
+    # 3 → 0 (20 m, overlap 0.2), 6 → 0 (30 m, not in the table, has a loop), 4 → 1 (200 m)
+    assert (fa["total"], fa["neighbours"], fa["look_alikes"]) == (3, 2, 1)
+    assert fa["overlapping"] == 1 and fa["with_a_loop"] == 1 and fa["median_m"] == 30.0
+    # loops of 5 (right top-1, 0.9 > 0.3: rejected) and 6 (wrong top-1)
+    assert e["missed_loops"] == {"total": 2, "wrong_top1": 1, "rejected": 1}
+    # by default, the threshold where F1 peaks: there F1 is F1max (the protocol counts a
+    # loop accepted with a wrong candidate as a false positive, not as a false negative)
+    best = errors_at_f1max(r, gt, positions)
+    tp = best["true_closures"]
+    fn = best["missed_loops"]["total"] - best["false_alarms"]["with_a_loop"]
+    f1 = 2 * tp / (2 * tp + (best["accepted"] - tp) + fn)
+    assert best["threshold"] == r.f1max_threshold and f1 == pytest.approx(r.f1max)

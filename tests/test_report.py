@@ -184,7 +184,13 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 @pytest.mark.timeout(900)
 def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path, monkeypatch):
     import model_export.report as report_mod
-    from model_export.report import NETWORKS, build_report, row_label
+    from model_export.report import (
+        NARROW_RUNS,
+        NARROW_UNTRAINED_LABEL,
+        NETWORKS,
+        build_report,
+        row_label,
+    )
 
     described: list[int] = []
     real_describe = report_mod.describe
@@ -223,7 +229,12 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     shutil.copy(runs / SHIPPED / "epoch-002.pt", runs / SHIPPED / "best.pt")
     shutil.copy(runs / SHIPPED / "epoch-002.pt", runs / "abl-full" / "best.pt")
     shipped = next(row_label(k) for k, v in NETWORKS.items() if v == (SHIPPED, "best.pt"))
-    untrained_label = next(k for k, v in NETWORKS.items() if v == (SHIPPED, "epoch-000.pt"))
+    untrained_label = next(
+        k
+        for k, v in NETWORKS.items()
+        if v == (SHIPPED, "epoch-000.pt")
+        or (k == NARROW_UNTRAINED_LABEL and SHIPPED in NARROW_RUNS)
+    )
 
     report = build_report(runs, tiny_val_seq, tmp_path / "report", progress=False)
     t1 = report["table1"]
@@ -251,9 +262,21 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     assert [h["epoch"] for h in table_four] == [0, 1, 2] and table_four[0]["loss"] is None
     nus = report["real"]["nuscenes-hdl32"]
     assert "skipped" in nus or nus["yaw_invariance"]["cosine_min"] > 0.9
+    # where each method loses F1max, per town: every query of the subset is sorted once
+    errors = report["errors"][tiny_val_seq.name]
+    assert set(errors) == set(t1)
+    for label, subs in errors.items():
+        for sub in ("all", "same", "reverse"):
+            e, m = subs[sub], t1[label][sub]
+            fa, miss = e["false_alarms"], e["missed_loops"]
+            assert e["accepted"] == e["true_closures"] + fa["total"]
+            assert fa["total"] == fa["neighbours"] + fa["look_alikes"]
+            assert miss["total"] == miss["wrong_top1"] + miss["rejected"]
+            assert e["true_closures"] + miss["total"] == m["queries_with_loop"]
     md = (tmp_path / "report" / "tables.md").read_text()
     assert "| nuscenes-hdl32" in md
     assert "| Scan Context | reverse |" in md and "Table IV" in md
+    assert "Where F1max is lost" in md
     for png in ("pr_test.png", "epochs.png"):
         assert (tmp_path / "report" / png).stat().st_size > 10_000
     on_disk = json.loads((tmp_path / "report" / "report.json").read_text())
