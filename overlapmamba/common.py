@@ -71,23 +71,23 @@ def metrics_table(title: str, results: dict[str, dict[str, Any]]) -> Table:
 
 
 def errors_table(title: str, errors: dict[str, dict[str, Any]]) -> Table:
-    """:func:`lidar_core.anatomy.errors_at_f1max` per subset, one row each."""
+    """:func:`lidar_core.anatomy.errors_at_f1max` per subset, one row each (four columns, so
+    that it fits an 80-column terminal)."""
     table = Table(title=title)
-    cols = ("revisits", "accepted", "true", "false alarms", "neighbours", "look-alikes")
-    for col in (*cols, "missed loops", "wrong top-1", "right, rejected"):
+    for col in (
+        "revisits",
+        "accepted (true)",
+        "false alarms: near / far",
+        "missed: wrong / rejected",
+    ):
         table.add_column(col, justify="right" if col != "revisits" else "left")
     for name, e in errors.items():
         fa, miss = e["false_alarms"], e["missed_loops"]
         table.add_row(
             name,
-            str(e["accepted"]),
-            str(e["true_closures"]),
-            str(fa["total"]),
-            str(fa["neighbours"]),
-            str(fa["look_alikes"]),
-            str(miss["total"]),
-            str(miss["wrong_top1"]),
-            str(miss["rejected"]),
+            f"{e['accepted']} ({e['true_closures']})",
+            f"{fa['total']}: {fa['neighbours']} / {fa['look_alikes']}",
+            f"{miss['total']}: {miss['wrong_top1']} / {miss['rejected']}",
         )
     return table
 

@@ -205,8 +205,9 @@ def eval_cmd(
     far = ev.record["errors"]["all"]["far_m"]
     out.print(
         errors_table(
-            f"At each subset's F1max threshold: false alarms within {far:g} m (neighbours) or "
-            "beyond (look-alikes); missed loops with a wrong top-1 or a right one rejected",
+            f"Where F1max is lost, at each subset's threshold: false alarms near (a neighbour "
+            f"within {far:g} m) or far (a look-alike); missed loops with a wrong top-1, or a "
+            "right one rejected",
             ev.record["errors"],
         )
     )

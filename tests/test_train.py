@@ -182,8 +182,10 @@ def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
         ],
     )
     assert result.exit_code == 0, result.output
-    for word in ("AUC", "F1max", "Recall@1", "reverse", "same"):
+    for word in ("AUC", "F1max", "Recall@1", "reverse", "same", "false alarms", "rejected"):
         assert word in result.output
+    errors = json.loads(out_json.read_text())["errors"]
+    assert set(errors) == {"all", "same", "reverse"} and errors["all"]["far_m"] == 50.0
     record = json.loads(out_json.read_text())["metrics"]
     assert record["all"]["queries_with_loop"] > 0 and 0 <= record["all"]["f1max"] <= 1
     assert out_png.stat().st_size > 10_000
