@@ -23,6 +23,9 @@ def plot_curves(history: list[dict], path: Path) -> None:
     steps = [r["step"] for r in log]
     for key, style in (("d_pos", "g-"), ("d_neg", "r-"), ("spread", "k--"), ("margin", "b:")):
         b.plot(steps, [r[key] for r in log], style, label=key)
+    band = [math.nan if r.get("d_band") is None else r["d_band"] for r in log]
+    if any(math.isfinite(x) for x in band):  # runs from before the band was logged lack it
+        b.plot(steps, band, "c-", label="d_band (neighbours)")
     b.set(xlabel="step", ylabel="squared distance", title="health", yscale="log")
     b.legend(fontsize=7, loc="upper left")
     twin = b.twinx()
