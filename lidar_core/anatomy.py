@@ -27,6 +27,8 @@ import numpy as np
 from lidar_core.metrics import LoopClosureResult
 from lidar_core.overlap import LoopGroundTruth
 
+FAR_M = 50.0  # a wrong candidate at least this far from the query is a look-alike
+
 
 def _pair_overlap(gt: LoopGroundTruth, query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Overlap of each (query, reference) pair from the loop table; NaN where it is absent."""
@@ -48,7 +50,7 @@ def errors_at_f1max(
     gt: LoopGroundTruth,
     positions: np.ndarray,
     *,
-    far: float = 50.0,
+    far: float = FAR_M,
     threshold: float | None = None,
 ) -> dict[str, Any]:
     """The anatomy of ``result`` at its F1max threshold, or at ``threshold`` (an operating

@@ -154,10 +154,15 @@ def pr_auc(precision: np.ndarray, recall: np.ndarray) -> float:
     return float(np.trapezoid(precision, recall))
 
 
-def f1_max(precision: np.ndarray, recall: np.ndarray) -> float:
+def f1_scores(precision: np.ndarray, recall: np.ndarray) -> np.ndarray:
+    """F1 at each point of a PR curve (0 where precision and recall are both 0)."""
     p, r = np.asarray(precision), np.asarray(recall)
     with np.errstate(invalid="ignore", divide="ignore"):
-        f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+        return np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+
+
+def f1_max(precision: np.ndarray, recall: np.ndarray) -> float:
+    f1 = f1_scores(precision, recall)
     return float(f1.max()) if len(f1) else 0.0
 
 
@@ -185,9 +190,7 @@ class LoopClosureResult:
     @property
     def f1max_threshold(self) -> float:
         """The acceptance threshold where F1 peaks (the first, i.e. strictest, on ties)."""
-        p, r = self.precision, self.recall
-        with np.errstate(invalid="ignore", divide="ignore"):
-            f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+        f1 = f1_scores(self.precision, self.recall)
         return float(self.thresholds[int(np.argmax(f1))]) if len(f1) else -math.inf
 
     def summary(self) -> dict[str, float | int]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from lidar_core.anatomy import FAR_M
 from lidar_core.datasets import open_sequence
 from lidar_core.metrics import LoopClosureResult
 from model_export.checkpoint import load_model
@@ -307,7 +308,7 @@ def markdown(report: dict[str, Any]) -> str:
             "### Where F1max is lost: each method at its own F1max threshold, per town",
             "",
             "False alarms by the wrong candidate's distance from the query (neighbours: "
-            f"within {next(iter(next(iter(errors.values())).values()))['all']['far_m']:g} m; "
+            f"within {FAR_M:g} m; "
             "look-alikes: beyond); missed loops by a wrong top-1 or a right one rejected "
             "(`lidar_core.anatomy`).",
             "",
