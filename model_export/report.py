@@ -55,7 +55,14 @@ NARROW_UNTRAINED_LABEL = (
     "recalibrated)"
 )
 # The narrow runs share seed, data and epoch 0; the row reads the first of them present.
-NARROW_RUNS = ("narrow-hn", "narrow-hn-aug", "narrow-hn-band", "narrow")
+NARROW_RUNS = (
+    "narrow-hn",
+    "narrow-hn-long",
+    "narrow-hn-b64-long",
+    "narrow-hn-aug",
+    "narrow-hn-band",
+    "narrow",
+)
 # Table I rows: label → (run folder, checkpoint), in display order; Scan Context comes first.
 # A run's epoch-000.pt is its starting point: the seed's initial weights with batch-norm
 # statistics recalibrated on training scans, before any gradient step. The row of the
@@ -63,14 +70,19 @@ NARROW_RUNS = ("narrow-hn", "narrow-hn-aug", "narrow-hn-band", "narrow")
 NETWORKS = {
     UNTRAINED_LABEL: ("default", "epoch-000.pt"),
     NARROW_UNTRAINED_LABEL: ("narrow-hn", "epoch-000.pt"),
-    "OT-style, ablation budget": ("abl-ot", "best.pt"),
-    "OverlapMamba, ablation budget": ("abl-full", "best.pt"),
+    "OT-style narrow, ablation budget": ("abl-ot", "best.pt"),
+    "OverlapMamba narrow, ablation budget": ("abl-full", "best.pt"),
     "OT-style, default recipe": ("ot", "best.pt"),
     "OverlapMamba, default recipe on one training town": ("one-town", "best.pt"),
     "OverlapMamba, default recipe with augmentation": ("robust", "best.pt"),
     "OverlapMamba narrow, default recipe's wall time": ("narrow", "best.pt"),
     "OverlapMamba narrow, mined hard negatives": ("narrow-hn", "best.pt"),
     "OverlapMamba narrow, mined hard negatives, augmented": ("narrow-hn-aug", "best.pt"),
+    "OverlapMamba narrow, mined hard negatives, trained longer": ("narrow-hn-long", "best.pt"),
+    "OverlapMamba narrow, mined hard negatives, batch 64, trained longer": (
+        "narrow-hn-b64-long",
+        "best.pt",
+    ),
     "OverlapMamba narrow, augmented, neighbours ranked from epoch 7": ("narrow-hn-band", "best.pt"),
     "OverlapMamba, default recipe": ("default", "best.pt"),
 }
@@ -82,16 +94,18 @@ def row_label(label: str) -> str:
 
 
 ABLATIONS = {
-    "full": "abl-full",
-    "full (seed 1)": "abl-full-s1",
-    "recipe before issue 20 (absolute margin 0.5, λ 0.1)": "abl-oldloss",
-    "recipe before issue 20 (seed 1)": "abl-oldloss-s1",
-    "without shift": "abl-noshift",
-    "without SPP": "abl-nospp",
-    "non-circular scan": "abl-open",
-    "triplet instead of ImTrihard": "abl-triplet",
-    "2 blocks": "abl-2blocks",
-    "OT-style (transformer mixer, no SPP)": "abl-ot",
+    label + seed: run + suffix
+    for label, run in (
+        ("full", "abl-full"),
+        ("recipe before issue 20 (absolute margin 0.5, λ 0.1)", "abl-oldloss"),
+        ("triplet instead of ImTrihard", "abl-triplet"),
+        ("without shift", "abl-noshift"),
+        ("without SPP", "abl-nospp"),
+        ("non-circular scan", "abl-open"),
+        ("2 blocks", "abl-2blocks"),
+        ("OT-style (transformer mixer, no SPP)", "abl-ot"),
+    )
+    for seed, suffix in (("", ""), (" (seed 1)", "-s1"))
 }
 REAL = {
     "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),
@@ -422,6 +436,8 @@ def build_report(
     epoch_runs["ImTrihard (narrow)"] = "narrow"
     epoch_runs["ImTrihard (narrow, mined negatives)"] = "narrow-hn"
     epoch_runs["ImTrihard (narrow, mined negatives, augmented)"] = "narrow-hn-aug"
+    epoch_runs["ImTrihard (narrow, mined negatives, longer)"] = "narrow-hn-long"
+    epoch_runs["ImTrihard (narrow, mined negatives, batch 64, longer)"] = "narrow-hn-b64-long"
     epoch_runs["ImTrihard (narrow, augmented, neighbours ranked from epoch 7)"] = "narrow-hn-band"
     epochs = run_rows(runs, epoch_runs, timing=False)
     if epochs:

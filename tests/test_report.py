@@ -138,7 +138,8 @@ def test_every_preset_builds_its_configs():
         tc = TrainConfig.from_dict(p.train)
         assert not set(TEST_DATA) & set(p.data) and p.val == "data/synth/val"
         if p.name.startswith("abl-"):
-            assert tc.epochs * tc.epoch_scans == 600  # one equal budget
+            assert tc.epochs * tc.epoch_scans == 10000  # one equal budget
+            assert cfg.d_model == 64  # the shipped width
         assert (cfg.mixer == "transformer") == p.name.endswith("ot")
     # the shipped recipe: four towns, the scale-free loss, the ambiguous band left out
     d = TrainConfig.from_dict(get_preset("default").train)
@@ -242,13 +243,13 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     assert list(t1) == [
         "Scan Context",
         untrained_label,
-        "OT-style, ablation budget",
-        "OverlapMamba, ablation budget",
+        "OT-style narrow, ablation budget",
+        "OverlapMamba narrow, ablation budget",
         shipped,
     ]
     # the shipped run is a copy of abl-full: that network is described once, for both rows
     assert len(described) == 3
-    assert t1["OverlapMamba, ablation budget"] == t1[shipped]
+    assert t1["OverlapMamba narrow, ablation budget"] == t1[shipped]
     untrained = t1[untrained_label]["all"]
     assert untrained != t1[shipped]["all"]
     for subs in t1.values():
