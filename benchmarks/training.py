@@ -6,6 +6,10 @@ The reference configuration (18.1 M parameters, three scan directions, convLast2
 in the same run so their ratio is fair. Prints a table and writes JSON
 (default bench-results/training.json).
 
+``--width narrow`` times the shipped width instead (``model_export.presets.NARROW``), and
+``--device cuda`` a GPU (the ``chunked`` backend: the C kernel is the CPU's), synchronising
+before each step's clock stops.
+
 Goal: one epoch of 2,000 scans in ≤ 600 s on 2 CPU cores, i.e. ≥ 3.33 scans/s.
 Goal: the data side (the full augmentation set, ROBUST, on a batch) under 10 % of a
 step;
@@ -28,6 +32,7 @@ from lidar_core.sensors import get_profile
 from model_export.augment import ROBUST, AugmentConfig, Augmenter
 from model_export.losses import batch_hard_imtrihard
 from model_export.model import OverlapMamba, OverlapMambaConfig
+from model_export.presets import NARROW
 from model_export.runtime import reexec_with_hugepages
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,13 +52,21 @@ def images(n: int) -> tuple[torch.Tensor, str]:
     return torch.rand(n, 1, profile.height, profile.width, generator=g) * 50, "random images"
 
 
-def step_times(backend: str, x: torch.Tensor, steps: int) -> np.ndarray:
+WIDTHS = {"reference": {}, "narrow": NARROW}
+
+
+def step_times(
+    backend: str, x: torch.Tensor, steps: int, width: str = "reference", device: str = "cpu"
+) -> np.ndarray:
     torch.manual_seed(0)
-    model = OverlapMamba(OverlapMambaConfig(scan_backend=backend)).train()
+    cfg = OverlapMambaConfig(**WIDTHS[width], scan_backend=backend)
+    model = OverlapMamba(cfg).to(device).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     B = len(x)
+    x = x.to(device)
     # Four groups of four: each group overlaps within itself.
-    overlap = torch.block_diag(*[torch.full((4, 4), 0.8)] * (B // 4))
+    overlap = torch.block_diag(*[torch.full((4, 4), 0.8)] * (B // 4)).to(device)
+    sync = torch.cuda.synchronize if x.device.type == "cuda" else lambda: None
     out = []
     for i in range(steps + 1):  # the first step warms up (allocations, kernel build)
         t = time.perf_counter()
@@ -62,6 +75,7 @@ def step_times(backend: str, x: torch.Tensor, steps: int) -> np.ndarray:
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        sync()
         if i:
             out.append(time.perf_counter() - t)
     return np.array(out)
@@ -73,14 +87,22 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--backends", nargs="+", default=["fused", "chunked"])
+    ap.add_argument("--backends", nargs="+", default=None, help="default: fused chunked (CPU)")
+    ap.add_argument("--width", choices=sorted(WIDTHS), default="reference")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "training.json")
     args = ap.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device is visible to PyTorch here")
+    if args.backends is None:
+        args.backends = ["chunked"] if args.device == "cuda" else ["fused", "chunked"]
+    if args.device == "cuda" and "fused" in args.backends:
+        ap.error("--device cuda: the fused backend is a CPU kernel; use chunked")
     torch.set_num_threads(args.threads)
     x, source = images(args.batch)
     rows = []
     for backend in args.backends:
-        t = step_times(backend, x, args.steps)
+        t = step_times(backend, x, args.steps, args.width, args.device)
         med = float(np.median(t))
         rows.append(
             {
@@ -106,7 +128,8 @@ def main() -> None:
         "share_of_first_backend_step": aug_s / rows[0]["step_median_s"],
     }
     print(
-        f"Training step, reference config, batch {args.batch}, {args.threads} threads, {source}, "
+        f"Training step, {args.width} config, batch {args.batch}, {args.device}, "
+        f"{args.threads} threads, {source}, "
         f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '') or 'unset'}"
     )
     print(
@@ -128,6 +151,8 @@ def main() -> None:
         "benchmark": "training-step",
         "source": source,
         "batch": args.batch,
+        "width": args.width,
+        "device": torch.cuda.get_device_name(0) if args.device == "cuda" else "cpu",
         "threads": args.threads,
         "steps": args.steps,
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
