@@ -347,14 +347,15 @@ def markdown(report: dict[str, Any]) -> str:
             f"### Place recognition across sessions: `{cross['queries']}` against "
             f"`{cross['database']}`",
             "",
-            "| method | queries | AR@1 | AR@5 | AR@20 |",
-            "|---|---|---|---|---|",
+            "| method | queries | AR@1 | AR@5 | AR@20 | wrong top-1: distance to the query |",
+            "|---|---|---|---|---|---|",
         ]
         for label, r in cross.items():
             if isinstance(r, dict):
+                wrong = ", ".join(f"{k}: {v}" for k, v in r.get("wrong_top1", {}).items())
                 lines.append(
                     f"| {label} | {r['queries']} | {_fmt(r['ar@1'])} | {_fmt(r['ar@5'])} | "
-                    f"{_fmt(r['ar@20'])} |"
+                    f"{_fmt(r['ar@20'])} | {wrong or '–'} |"
                 )
     lines += ["", "### Tables II and III: ablations (validation preset, equal budget)", ""]
     lines += [

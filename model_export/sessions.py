@@ -7,6 +7,9 @@ Each query retrieves its top N database scans by descriptor distance; it is a hi
 when one of them lies within ``radius`` metres
 (5 m, as OverlapTransformer-style NCLT evaluations count a hit). Queries with no database
 scan within the radius are left out. AR@N is the share of hits over the evaluated queries.
+Each result also says how far the wrong first answers lie from their query
+(``wrong_top1``, in the bands of :data:`MISS_BANDS_M`): a top-1 a few metres beyond the
+radius is the right stretch of street found too coarsely, one beyond 50 m another place.
 
 Positions are compared in the town's frame: each synthetic sequence's manifest records
 ``world_from_sequence`` (its poses are relative to its first scan, as KITTI's are). For
@@ -15,6 +18,7 @@ other data the two sequences' poses must already share a frame.
 
 from __future__ import annotations
 
+import itertools
 import json
 from typing import Any
 
@@ -29,6 +33,7 @@ from lidar_core.scancontext import retrieve as sc_retrieve
 
 HIT_RADIUS = 5.0
 RECALL_AT = (1, 5, 20)
+MISS_BANDS_M = (10.0, 20.0, 50.0)  # upper bounds of the wrong top-1's distance bands
 
 
 def _manifest(seq: Sequence) -> dict[str, Any] | None:
@@ -96,13 +101,30 @@ def _ground_truth(pos_db: np.ndarray, pos_q: np.ndarray, radius: float) -> np.nd
     return d2 <= radius * radius
 
 
-def _recalls(ranked: np.ndarray, near: np.ndarray) -> dict[str, Any]:
+def _wrong_top1(top1_m: np.ndarray, radius: float) -> dict[str, int]:
+    """How many wrong first answers lie within each band of :data:`MISS_BANDS_M` of their
+    query (horizontal distance in metres), and how many farther."""
+    edges = [radius, *(b for b in MISS_BANDS_M if b > radius)]
+    out = {
+        f"{lo:g}-{hi:g} m": int(((top1_m > lo) & (top1_m <= hi)).sum())
+        for lo, hi in itertools.pairwise(edges)
+    }
+    out[f"> {edges[-1]:g} m"] = int((top1_m > edges[-1]).sum())
+    return out
+
+
+def _recalls(
+    ranked: np.ndarray, near: np.ndarray, pos_db: np.ndarray, pos_q: np.ndarray, radius: float
+) -> dict[str, Any]:
     evaluated = np.asarray(near.any(1))
     hits = np.take_along_axis(near, np.clip(ranked, 0, None), 1) & (ranked >= 0)
     out: dict[str, Any] = {"queries": int(evaluated.sum()), "queries_total": len(near)}
     for n in RECALL_AT:
         ok = np.asarray(hits[:, :n].any(1))[evaluated]
         out[f"ar@{n}"] = float(ok.mean()) if len(ok) else float("nan")
+    wrong = evaluated & ~np.asarray(hits[:, 0]) & (ranked[:, 0] >= 0)
+    top1 = pos_db[ranked[wrong, 0], :2]
+    out["wrong_top1"] = _wrong_top1(np.linalg.norm(top1 - pos_q[wrong, :2], axis=1), radius)
     return out
 
 
@@ -116,7 +138,8 @@ def descriptor_recall(
     """AR@1/5/20 of queries (descriptors, positions) against a database, by squared L2."""
     k = min(max(RECALL_AT), len(desc_db))
     ranked, _ = nearest(desc_q, desc_db, k)
-    return {"radius_m": radius, **_recalls(ranked, _ground_truth(pos_db, pos_q, radius))}
+    near = _ground_truth(pos_db, pos_q, radius)
+    return {"radius_m": radius, **_recalls(ranked, near, pos_db, pos_q, radius)}
 
 
 def scan_context_recall(
@@ -133,4 +156,5 @@ def scan_context_recall(
     contexts = np.concatenate([sc_db, sc_q])
     queries = len(sc_db) + np.arange(len(sc_q))
     ranked, _ = sc_retrieve(contexts, queries, np.full(len(sc_q), len(sc_db)), k, p.candidates)
-    return {"radius_m": radius, **_recalls(ranked, _ground_truth(pos_db, pos_q, radius))}
+    near = _ground_truth(pos_db, pos_q, radius)
+    return {"radius_m": radius, **_recalls(ranked, near, pos_db, pos_q, radius)}

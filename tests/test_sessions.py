@@ -28,6 +28,12 @@ def test_average_recall_by_hand():
     assert r["queries"] == 2 and r["queries_total"] == 3 and r["radius_m"] == HIT_RADIUS
     assert r["ar@1"] == 0.5  # the second query's top-1 is db 3, 9 m away
     assert r["ar@5"] == r["ar@20"] == 1.0  # there are only 4 database scans
+    # the one wrong first answer is 9 m from its query: the right street, too coarse
+    assert r["wrong_top1"] == {"5-10 m": 1, "10-20 m": 0, "20-50 m": 0, "> 50 m": 0}
+    far_db = pos_db.copy()
+    far_db[3] = [131.0, 0, 0]  # the look-alike is now 110 m away: another place
+    r = descriptor_recall(desc_db, far_db, desc_q[:2], pos_q[:2])
+    assert r["ar@1"] == 0.5 and r["wrong_top1"]["> 50 m"] == 1
 
 
 def _fake_session(root, seed, session, world_from=None):
@@ -92,6 +98,9 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
         r = cross[method]
         assert r["queries"] == r["queries_total"] == 30
         assert 0 <= r["ar@1"] <= r["ar@5"] <= r["ar@20"] <= 1
+        # every wrong first answer lands in one distance band
+        assert sum(r["wrong_top1"].values()) == round((1 - r["ar@1"]) * r["queries"])
+    assert "wrong" in res.output  # the bands' column (rich wraps its header)
     # the report's cross-session table: the same numbers for the same network
     import shutil
 
