@@ -10,6 +10,10 @@ A checkpoint is one ``torch.save`` dict of plain values and tensors (so it loads
     train                  training config, optimiser and scheduler states, completed epochs,
                            per-epoch history, best epoch, training-data fingerprints
     metrics                the latest validation metrics
+
+:func:`load_model` also opens an exported encoder (``.onnx``, as ``overlapmamba export``
+writes it and the service loads it) as an :class:`ExportedNetwork`, so the shipped model
+can be evaluated without the checkpoint it came from.
 """
 
 from __future__ import annotations
@@ -18,8 +22,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from lidar_core.sensors import SensorProfile
 from model_export.errors import CheckpointError
 from model_export.model import OverlapMamba, OverlapMambaConfig
@@ -61,8 +67,50 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return ckpt
 
 
-def load_model(path: str | Path) -> tuple[OverlapMamba, SensorProfile, dict[str, Any]]:
-    """The model (eval mode, CPU), its sensor profile and the whole checkpoint dict."""
+class ExportedNetwork(torch.nn.Module):
+    """An exported encoder behind the network's interface, for evaluation: ``forward(x)``
+    gives (descriptors, yaw features) from onnxruntime on the CPU, through the graph's own
+    scan. ``cfg`` is the exported network's config, ``digest`` the file's model id, ``meta``
+    its whole metadata. It has no weights to train."""
+
+    def __init__(self, path: str | Path, threads: int = 0) -> None:
+        super().__init__()
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        try:
+            self.session = ort.InferenceSession(
+                str(path), sess_options=opts, providers=["CPUExecutionProvider"]
+            )
+        except Exception as err:  # onnxruntime raises its own unrelated classes
+            message = f"onnxruntime cannot load {path}: {err}"
+            raise CheckpointError(message, path=str(path)) from None
+        try:
+            self.meta = EncoderMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+            self.cfg = OverlapMambaConfig.from_dict(self.meta.network)
+        except ValueError as err:
+            raise CheckpointError(f"{path}: {err}", path=str(path)) from None
+        self.digest = self.meta.model_id
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        images = x.detach().cpu().numpy().astype(np.float32, copy=False)
+        desc, yaw = self.session.run(list(OUTPUTS), {INPUT: images})
+        return torch.from_numpy(desc), torch.from_numpy(yaw)
+
+
+def load_model(
+    path: str | Path,
+) -> tuple[OverlapMamba | ExportedNetwork, SensorProfile, dict[str, Any]]:
+    """The model (eval mode, CPU), its sensor profile and the whole checkpoint dict; for an
+    exported ``.onnx``, an :class:`ExportedNetwork` and ``{"model_config", "metrics",
+    "encoder"}`` from its metadata."""
+    if Path(path).suffix == ".onnx":
+        if not Path(path).is_file():
+            raise CheckpointError(f"model {path} does not exist", path=str(path))
+        net = ExportedNetwork(path)
+        info = {"model_config": net.meta.network, "metrics": net.meta.metrics}
+        return net.eval(), net.meta.profile, {**info, "encoder": net.meta.model_dump(mode="json")}
     ckpt = read_checkpoint(path)
     try:
         cfg = OverlapMambaConfig.from_dict(ckpt["model_config"])

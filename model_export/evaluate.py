@@ -319,6 +319,8 @@ def _scan_context_odd_to_even(
 def network_digest(model: OverlapMamba) -> str:
     """sha256 of the architecture and every weight: the same network reached under two names
     (a run reported in two rows) is described once."""
+    if isinstance(getattr(model, "digest", None), str):  # an exported encoder: its model id
+        return model.digest
     h = hashlib.sha256(json.dumps(model.cfg.to_dict(), sort_keys=True).encode())
     for name, tensor in model.state_dict().items():
         h.update(name.encode())

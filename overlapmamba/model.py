@@ -151,7 +151,9 @@ def train_cmd(
 )
 @friendly_errors
 def eval_cmd(
-    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    checkpoint: Annotated[
+        Path, typer.Option(help="a .pt written by train, or an exported .onnx (the shipped model)")
+    ],
     sequence: Annotated[
         Path,
         typer.Option(
@@ -217,10 +219,16 @@ def eval_cmd(
             title=f"Across sessions: {name} against {ev.database[0]} ({ev.database[1]} scans); "
             f"queries with a database scan within {cross['model']['radius_m']:g} m count"
         )
-        for col in ("method", "queries", "AR@1", "AR@5", "AR@20"):
+        bands = " / ".join(cross["model"]["wrong_top1"])
+        for col in ("method", "queries", "AR@1", "AR@5", "AR@20", f"wrong top-1 at {bands}"):
             table.add_column(col, justify="left" if col == "method" else "right")
         for label, r in (("OverlapMamba", cross["model"]), ("Scan Context", cross["scan_context"])):
-            table.add_row(label, str(r["queries"]), *(f"{r[f'ar@{n}']:.3f}" for n in (1, 5, 20)))
+            table.add_row(
+                label,
+                str(r["queries"]),
+                *(f"{r[f'ar@{n}']:.3f}" for n in (1, 5, 20)),
+                " / ".join(str(v) for v in r["wrong_top1"].values()),
+            )
         out.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
@@ -251,6 +259,10 @@ def export_cmd(
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    if checkpoint.suffix == ".onnx":
+        raise typer.BadParameter(
+            f"{checkpoint.name} is already an exported encoder; export takes a .pt written by train"
+        )
     model, profile, ckpt = load_model(checkpoint)
     res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights)
     meta, v = res.metadata, res.verification
@@ -278,7 +290,9 @@ def export_cmd(
 )
 @friendly_errors
 def eval_real_cmd(
-    checkpoint: Annotated[Path, typer.Option(help="a .pt written by train")],
+    checkpoint: Annotated[
+        Path, typer.Option(help="a .pt written by train, or an exported .onnx (the shipped model)")
+    ],
     sequence: Annotated[Path, typer.Option(help="real KITTI-layout sequence")] = Path(
         "../shared/data/kitti00_0000-0100"
     ),

@@ -25,6 +25,7 @@ from lidar_core.modelmeta import (  # noqa: E402
 from lidar_core.projection import project  # noqa: E402
 from lidar_core.sensors import get_profile  # noqa: E402
 from model_export.checkpoint import save_checkpoint  # noqa: E402
+from model_export.errors import CheckpointError  # noqa: E402
 from model_export.export import (  # noqa: E402
     ExportError,
     count_nodes,
@@ -289,3 +290,32 @@ def test_cli_exports_a_checkpoint(tmp_path):
         app, ["export", str(ckpt), "--out", str(tmp_path / "n.onnx"), "--weights", "fp8"]
     )
     assert res.exit_code == 2 and "allowed: int8, float32" in res.output
+    # an exported encoder is not exported again
+    res = runner.invoke(
+        app, ["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "o.onnx")]
+    )
+    assert res.exit_code != 0 and "already an exported encoder" in res.output
+
+
+def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, tmp_path):
+    """load_model opens the .onnx (the shipped model has no checkpoint beside it): the same
+    descriptors as its network through describe, its profile and config from the metadata,
+    its model id as the digest; a foreign or missing file is refused with the reason."""
+    from model_export.checkpoint import ExportedNetwork, load_model
+    from model_export.evaluate import describe, network_digest
+
+    net, profile, info = load_model(exported["f32"].path)
+    assert isinstance(net, ExportedNetwork) and not net.training
+    assert profile == PROFILE and net.cfg == exported["model"].cfg
+    assert info["encoder"]["model_id"] == exported["f32"].metadata.model_id
+    assert network_digest(net) == exported["f32"].metadata.model_id
+    d, y = describe(net, kitti_images[:5, 0])
+    d_ref, y_ref = describe(exported["model"], kitti_images[:5, 0])
+    np.testing.assert_allclose(d, d_ref, atol=1e-4)
+    np.testing.assert_allclose(y, y_ref, atol=1e-3)
+    foreign = tmp_path / "foreign.onnx"
+    foreign.write_bytes(b"not a graph")
+    with pytest.raises(CheckpointError, match="onnxruntime cannot load"):
+        load_model(foreign)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_model(tmp_path / "missing.onnx")
