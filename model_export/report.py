@@ -107,6 +107,9 @@ ABLATIONS = {
     )
     for seed, suffix in (("", ""), (" (seed 1)", "-s1"))
 }
+# The shipped encoder: Table I's shipped row and the real-scan checks read it when the run's
+# best.pt is not under runs/ (a fresh machine has the .onnx, not the checkpoint).
+SHIPPED_ONNX = Path(__file__).resolve().parents[1] / "models" / "overlapmamba-hdl64.onnx"
 REAL = {
     "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),
     # nuScenes keyframes are ≈ 4.5 m apart at 2 Hz: a hit is the adjacent keyframe.
@@ -114,25 +117,39 @@ REAL = {
 }
 
 
-def _networks(runs: Path):
-    """(label, model, profile) of every Table I network found among the runs, in order."""
+def shipped_model(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> Path | None:
+    """The shipped run's best.pt when it is under ``runs``, else the exported ``onnx`` when it
+    exists, else None."""
+    ckpt = runs / SHIPPED / "best.pt"
+    if ckpt.is_file():
+        return ckpt
+    return onnx if onnx is not None and onnx.is_file() else None
+
+
+def _networks(runs: Path, onnx: Path | None = SHIPPED_ONNX):
+    """(label, model, profile) of every Table I network found among the runs, in order; the
+    shipped row from ``onnx`` when its run's best.pt is absent (:func:`shipped_model`)."""
     for label, (run, name) in NETWORKS.items():
         if label == NARROW_UNTRAINED_LABEL:
             run = next((r for r in NARROW_RUNS if (runs / r / name).is_file()), run)
-        ckpt = runs / run / name
-        if ckpt.is_file():
+        ckpt: Path | None = runs / run / name
+        if (run, name) == (SHIPPED, "best.pt"):
+            ckpt = shipped_model(runs, onnx)
+        if ckpt is not None and ckpt.is_file():
             model, profile, _ = load_model(ckpt)
             yield row_label(label), model, profile
 
 
-def table_one(runs: Path, test: Path, progress: bool = True) -> tuple[dict, dict, dict]:
+def table_one(
+    runs: Path, test: Path, progress: bool = True, onnx: Path | None = SHIPPED_ONNX
+) -> tuple[dict, dict, dict]:
     """One test town → (metrics per method and subset, raw results for the PR plot, where
     each method goes wrong at its F1max threshold per subset: :func:`loop_errors`)."""
     seq = open_sequence(test)
     results: dict[str, dict[str, LoopClosureResult]] = {}
     by_weights: dict[str, dict[str, LoopClosureResult]] = {}  # one network, described once
     gt = None
-    for label, model, profile in _networks(runs):
+    for label, model, profile in _networks(runs, onnx):
         gt = gt or sequence_loops(seq, profile, progress=progress)
         key = network_digest(model)
         if key not in by_weights:
@@ -164,12 +181,17 @@ def mean_over_towns(towns: dict[str, dict]) -> dict[str, dict]:
     return out
 
 
-def cross_sessions(runs: Path, database: Path, queries: Path, progress: bool = True) -> dict:
+def cross_sessions(
+    runs: Path,
+    database: Path,
+    queries: Path,
+    progress: bool = True,
+    onnx: Path | None = SHIPPED_ONNX,
+) -> dict:
     """AR@1/5/20 of a second session's scans against the first (:mod:`.sessions`), for
     Scan Context and every Table I network."""
-    cross = cross_session(
-        list(_networks(runs)), open_sequence(database), open_sequence(queries), progress=progress
-    )
+    nets = list(_networks(runs, onnx))
+    cross = cross_session(nets, open_sequence(database), open_sequence(queries), progress=progress)
     return {"Scan Context": cross["scan_context"], **cross["networks"]}
 
 
@@ -269,11 +291,11 @@ def plot_epochs(rows: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
-def real_checks(runs: Path, progress: bool = False) -> dict[str, Any]:
+def real_checks(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> dict[str, Any]:
     from lidar_core.sensors import get_profile
 
-    ckpt = runs / SHIPPED / "best.pt"
-    if not ckpt.is_file():
+    ckpt = shipped_model(runs, onnx)
+    if ckpt is None:
         return {}
     model, own, _ = load_model(ckpt)
     out: dict[str, Any] = {}
@@ -413,9 +435,11 @@ def build_report(
     progress: bool = True,
     *,
     sessions: tuple[Path, Path] | None = None,
+    shipped_onnx: Path | None = SHIPPED_ONNX,
 ) -> dict[str, Any]:
     """Tables I–IV (Table I on every test town, and their mean), the cross-session table
-    when ``sessions`` = (first session, second session) is given, and the real-scan checks."""
+    when ``sessions`` = (first session, second session) is given, and the real-scan checks.
+    The shipped row is the shipped run's best.pt, or ``shipped_onnx`` without it (noted)."""
     out.mkdir(parents=True, exist_ok=True)
     tests = [test] if isinstance(test, Path) else list(test)
     if len({t.name for t in tests}) < len(tests):
@@ -427,7 +451,7 @@ def build_report(
     towns: dict[str, dict] = {}
     errors: dict[str, dict] = {}
     for i, town in enumerate(tests):
-        towns[town.name], results, errors[town.name] = table_one(runs, town, progress)
+        towns[town.name], results, errors[town.name] = table_one(runs, town, progress, shipped_onnx)
         if i == 0:
             plot_pr_methods(results, out / "pr_test.png")
     t1 = mean_over_towns(towns)
@@ -449,11 +473,17 @@ def build_report(
             f"{runs}/{SHIPPED} has no epoch-000.pt (trained before epoch 0 existed, or with "
             "recalibrate_batches = 0): Table I has no untrained row for the shipped network"
         )
+    shipped = shipped_model(runs, shipped_onnx)
+    if shipped is not None and shipped.suffix == ".onnx":
+        notes.append(
+            f"{runs}/{SHIPPED}/best.pt is absent: the shipped row and the real-scan checks are "
+            f"the exported encoder {shipped.name} (onnxruntime, its own scan and weight storage)"
+        )
     cross = None
     if sessions:
         first, second = sessions
         cross = {"database": str(first), "queries": str(second)} | cross_sessions(
-            runs, first, second, progress=progress
+            runs, first, second, progress=progress, onnx=shipped_onnx
         )
     report = {
         "notes": notes,
@@ -464,7 +494,7 @@ def build_report(
         "cross_session": cross,
         "ablation": ablation,
         "epochs": epochs,
-        "real": real_checks(runs),
+        "real": real_checks(runs, shipped_onnx),
         "torch_threads": torch.get_num_threads(),
     }
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")

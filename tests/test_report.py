@@ -296,3 +296,29 @@ def test_table_one_mean_over_towns_averages_rates_and_sums_counts():
     m = mean["Scan Context"]["all"]
     assert m["f1max"] == pytest.approx(0.6)  # a town without loops of a kind does not count
     assert m["queries"] == 34 and m["queries_with_loop"] == 17
+
+
+def test_the_shipped_row_falls_back_to_the_exported_encoder(tmp_path):
+    """Without the shipped run's best.pt (a fresh machine), Table I's shipped row and the
+    real-scan checks read the exported .onnx; with it, the checkpoint; with neither, none."""
+    from model_export.checkpoint import ExportedNetwork, load_model
+    from model_export.export import export_onnx
+    from model_export.presets import SHIPPED
+    from model_export.report import NETWORKS, _networks, row_label, shipped_model
+
+    ckpt = save_random_checkpoint(tmp_path / "random.pt", **SMALL_MODEL)
+    model, profile, _ = load_model(ckpt)
+    onnx = tmp_path / "shipped.onnx"
+    export_onnx(model, profile, onnx, weight_format="float32")
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    shipped = next(row_label(k) for k, v in NETWORKS.items() if v == (SHIPPED, "best.pt"))
+    assert shipped_model(runs, onnx) == onnx
+    rows = {label: net for label, net, _ in _networks(runs, onnx)}
+    assert list(rows) == [shipped] and isinstance(rows[shipped], ExportedNetwork)
+    assert shipped_model(runs, None) is None and not list(_networks(runs, None))
+    (runs / SHIPPED).mkdir()
+    shutil.copy(ckpt, runs / SHIPPED / "best.pt")
+    assert shipped_model(runs, onnx) == runs / SHIPPED / "best.pt"
+    rows = {label: net for label, net, _ in _networks(runs, onnx)}
+    assert not isinstance(rows[shipped], ExportedNetwork)
