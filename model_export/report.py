@@ -55,14 +55,8 @@ NARROW_UNTRAINED_LABEL = (
     "recalibrated)"
 )
 # The narrow runs share seed, data and epoch 0; the row reads the first of them present.
-NARROW_RUNS = (
-    "narrow-hn",
-    "narrow-hn-long",
-    "narrow-hn-b64-long",
-    "narrow-hn-aug",
-    "narrow-hn-band",
-    "narrow",
-)
+# (narrow-hn-b64-long is not among them: its epoch 0 recalibrates on batches of 64.)
+NARROW_RUNS = ("narrow-hn", "narrow-hn-long", "narrow-hn-aug", "narrow-hn-band", "narrow")
 # Table I rows: label → (run folder, checkpoint), in display order; Scan Context comes first.
 # A run's epoch-000.pt is its starting point: the seed's initial weights with batch-norm
 # statistics recalibrated on training scans, before any gradient step. The row of the
