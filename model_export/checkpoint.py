@@ -99,9 +99,11 @@ class ExportedNetwork(torch.nn.Module):
         return torch.from_numpy(desc), torch.from_numpy(yaw)
 
 
-def load_model(
-    path: str | Path,
-) -> tuple[OverlapMamba | ExportedNetwork, SensorProfile, dict[str, Any]]:
+# What evaluation runs: a trained network, or an exported encoder behind the same interface.
+Network = OverlapMamba | ExportedNetwork
+
+
+def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]]:
     """The model (eval mode, CPU), its sensor profile and the whole checkpoint dict; for an
     exported ``.onnx``, an :class:`ExportedNetwork` and ``{"model_config", "metrics",
     "encoder"}`` from its metadata."""

@@ -27,14 +27,14 @@ from lidar_core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, l
 from lidar_core.scancontext import ScanContextParams, scan_context
 from lidar_core.scancontext import retrieve as sc_retrieve
 from lidar_core.sensors import SensorProfile
-from model_export.model import OverlapMamba
+from model_export.checkpoint import ExportedNetwork, Network
 
 SUBSETS = ("all", "same", "reverse")
 
 
 @torch.no_grad()
 def describe(
-    model: OverlapMamba, images: np.ndarray, *, batch: int = 8, device: str = "cpu"
+    model: Network, images: np.ndarray, *, batch: int = 8, device: str = "cpu"
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, H, W) range images → descriptors (N, D) float32, yaw features (N, C, W) float32.
 
@@ -215,7 +215,7 @@ def invariance(desc: np.ndarray, desc_t: np.ndarray, positions: np.ndarray) -> d
 
 
 def eval_real(
-    model: OverlapMamba,
+    model: Network,
     profile: SensorProfile,
     seq: Sequence,
     *,
@@ -316,10 +316,10 @@ def _scan_context_odd_to_even(
     return {"recall@1": float(close[:, 0].mean()), "recall@5": float(close.any(1).mean())}
 
 
-def network_digest(model: OverlapMamba) -> str:
+def network_digest(model: Network) -> str:
     """sha256 of the architecture and every weight: the same network reached under two names
     (a run reported in two rows) is described once."""
-    if isinstance(getattr(model, "digest", None), str):  # an exported encoder: its model id
+    if isinstance(model, ExportedNetwork):  # its model id hashes its graph and weights
         return model.digest
     h = hashlib.sha256(json.dumps(model.cfg.to_dict(), sort_keys=True).encode())
     for name, tensor in model.state_dict().items():
@@ -329,7 +329,7 @@ def network_digest(model: OverlapMamba) -> str:
 
 
 def cross_session(
-    networks: list[tuple[str, OverlapMamba, SensorProfile]],
+    networks: list[tuple[str, Network, SensorProfile]],
     database: Sequence,
     queries: Sequence,
     *,

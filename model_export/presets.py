@@ -165,7 +165,7 @@ PRESETS: dict[str, TrainPreset] = {
 }
 
 # The ablations (Tables II–IV): the shipped width, one budget, two seeds each.
-_ABLATIONS = (
+_ABLATIONS: tuple[tuple[str, str, dict[str, Any], dict[str, Any]], ...] = (
     ("abl-full", "full OverlapMamba", {}, {}),
     ("abl-oldloss", "the recipe before issue 20 (absolute margin 0.5, λ 0.1, …)", {}, OLD_LOSS),
     ("abl-triplet", "triplet loss instead of ImTrihard", {}, {"loss": "triplet"}),

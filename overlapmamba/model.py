@@ -256,14 +256,15 @@ def export_cmd(
     check_torch()
     from model_export.checkpoint import load_model
     from model_export.export import export_onnx
+    from model_export.model import OverlapMamba
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
-    if checkpoint.suffix == ".onnx":
+    model, profile, ckpt = load_model(checkpoint)
+    if not isinstance(model, OverlapMamba):
         raise typer.BadParameter(
             f"{checkpoint.name} is already an exported encoder; export takes a .pt written by train"
         )
-    model, profile, ckpt = load_model(checkpoint)
     res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights)
     meta, v = res.metadata, res.verification
     table = Table(title=f"exported {res.path}", show_header=False)
