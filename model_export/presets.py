@@ -29,11 +29,11 @@ otherwise.
 - ``narrow-hn-long`` is ``narrow-hn`` unchanged but for its length (40 epochs), and
   ``narrow-hn-b64-long`` the same at batch 64 with 5,000 scans in the mining pool:
   whether the shipped recipe was stopped too early. Both were run on a GPU lent for one
-  session (``--device cuda``), for as many epochs as its window allowed; an epoch is
-  ≈ 12 min on 2 CPU cores.
+  session (``--device cuda``), for as many epochs as its window allowed; an epoch of
+  ``narrow-hn`` takes ≈ 12–14 min on 2 CPU cores.
 - ``abl-*`` are the ablations (paper Tables II–IV) on the shipped width (``NARROW``) and an
   equal budget of 10,000 scans each (one epoch of the shipped recipe), spent as 2 epochs of
-  5,000 so that the loss and F1 are recorded twice (Table IV): ≈ 12 min a row on 2 CPU
+  5,000 so that the loss and F1 are recorded twice (Table IV): 6–13 min a row on 2 CPU
   cores. ``abl-oldloss`` is the former recipe (α 0.5 and λ 0.1 on absolute distances,
   negatives up to overlap 0.3, whole-column rolls only, no warm-up). Every row also runs
   with seed 1 (``-s1``).
