@@ -6,6 +6,11 @@ the model's own projection, onnxruntime), scores the loop-closure protocol of
 descriptor distance at F1max, and the largest distance whose precision is at least 0.9,
 0.95 and 0.99 (a false loop closure corrupts a SLAM map, so robots want high precision).
 The service's ``loop_closure.max_distance`` default is chosen from this table.
+
+The service answers scan queries in two stages (``lidar_core.rerank``: the ``rerank.k``
+nearest descriptors re-ranked by d² − weight · aligned yaw-feature correlation) and calls an
+unverified loop closure on the top-1's *score*; the same table for that score (the keyframes'
+yaw features rounded to float16, as the map stores them) gives ``loop_closure.max_score``.
 Writes JSON (default bench-results/loop_threshold.json).
 """
 
@@ -14,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +28,9 @@ from rich.table import Table
 from tqdm import tqdm
 
 from lidar_core.datasets import open_sequence
-from lidar_core.metrics import evaluate_loop_closure
+from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
 from lidar_core.overlap import LoopGroundTruth
+from lidar_core.rerank import Rerank, two_stage
 from service.encoder import Encoder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +41,9 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
     ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument(
+        "--rerank", default="20,0.2", help="the second stage, K,WEIGHT (the service's default)"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "loop_threshold.json")
     args = ap.parse_args()
 
@@ -41,13 +51,16 @@ def main() -> None:
     seq = open_sequence(args.sequence)
     gt = LoopGroundTruth.load(args.sequence / "ground_truth" / "loops.npz")
     t0 = time.perf_counter()
-    descs = []
+    descs, yaws = [], []
     for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
         images = np.stack(
             [enc.project(seq.points(i)) for i in range(start, min(len(seq), start + args.batch))]
         )
-        descs.append(enc.encode(images)[0])
+        d, y = enc.encode(images)
+        descs.append(d)
+        yaws.append(y)
     desc = np.concatenate(descs)
+    yaw16 = np.concatenate(yaws).astype(np.float16)  # what a map stores
     recent = int(gt.params.get("exclude_recent", 100))
     # What a float16 store would hold: does the rounding cost accuracy?
     d16 = desc.astype(np.float16).astype(np.float32)
@@ -55,43 +68,36 @@ def main() -> None:
     res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent=recent)
     res = evaluate_loop_closure(desc, gt.positives(), exclude_recent=recent)
     spread = np.linalg.norm(desc - desc.mean(0), axis=1)
-    p, r, t = res.precision, res.recall, res.thresholds
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
-    best = int(np.argmax(f1))
-
+    rerank = Rerank.parse(args.rerank)
+    staged = evaluate_retrieval(
+        two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent=recent
+    )
     # The protocol's PR thresholds are squared L2 distances (lidar_core.metrics.nearest);
-    # the service compares L2 distances: max_distance = √threshold.
-    def point(i: int) -> dict[str, float]:
-        return {
-            "max_distance": float(np.sqrt(t[i])),
-            "squared_threshold": float(t[i]),
-            "precision": float(p[i]),
-            "recall": float(r[i]),
-        }
-
-    points: dict[str, dict[str, float] | None] = {"f1max": point(best)}
-    for target in (0.9, 0.95, 0.99):
-        ok = np.flatnonzero((p >= target) & np.isfinite(t))
-        if len(ok):
-            points[f"precision>={target}"] = point(int(ok[np.argmax(r[ok])]))
-        else:
-            points[f"precision>={target}"] = None
+    # the service compares L2 distances: max_distance = √threshold. A score is thresholded
+    # as it is (max_score).
+    points = operating_points(res, "max_distance", np.sqrt)
+    points_staged = operating_points(staged, "max_score", lambda t: t)
     table = Table(title=f"loop-closure operating points on {seq.name} ({enc.model_id})")
     for col in ("point", "max L2 distance", "precision", "recall"):
         table.add_column(col, justify="right")
+    for col in (f"max score ({rerank.k}, {rerank.weight:g})", "precision", "recall"):
+        table.add_column(col, justify="right")
     for name, v in points.items():
-        if v is None:
-            table.add_row(name, "not reached", "", "")
-        else:
-            table.add_row(
-                name, f"{v['max_distance']:.4f}", f"{v['precision']:.3f}", f"{v['recall']:.3f}"
+        w = points_staged[name]
+        cells = []
+        for x, key in ((v, "max_distance"), (w, "max_score")):
+            cells += (
+                ["not reached", "", ""]
+                if x is None
+                else [f"{x[key]:.4f}", f"{x['precision']:.3f}", f"{x['recall']:.3f}"]
             )
-    console = Console()
+        table.add_row(name, *cells)
+    console = Console(width=120)
     console.print(table)
     console.print(
         f"F1max {res.f1max:.3f}, Recall@1 {res.recall_at_1:.3f}, {res.n_queries} queries, "
-        f"{res.n_with_loop} with a loop; {time.perf_counter() - t0:.0f} s"
+        f"{res.n_with_loop} with a loop; two stages: F1max {staged.f1max:.3f}, Recall@1 "
+        f"{staged.recall_at_1:.3f}; {time.perf_counter() - t0:.0f} s"
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
@@ -101,6 +107,9 @@ def main() -> None:
                 "sequence": str(args.sequence),
                 "summary": res.summary(),
                 "operating_points": points,
+                "rerank": {"k": rerank.k, "weight": rerank.weight},
+                "summary_reranked": staged.summary(),
+                "operating_points_reranked": points_staged,
                 "float16": res16.summary(),
                 "distance_to_mean": {
                     "median": float(np.median(spread)),
@@ -117,6 +126,31 @@ def main() -> None:
         f"{np.median(spread):.4f}, p99 {np.percentile(spread, 99):.4f}"
     )
     console.print(f"wrote {args.out}")
+
+
+def operating_points(
+    res: LoopClosureResult, key: str, to_service: Callable[[float], float]
+) -> dict[str, dict[str, float] | None]:
+    """The top-1 threshold at F1max and the loosest one whose precision is at least 0.9,
+    0.95 and 0.99 (a false loop closure corrupts a SLAM map: robots want high precision),
+    in the service's units (``to_service`` of the protocol's threshold) under ``key``."""
+    p, r, t = res.precision, res.recall, res.thresholds
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f1 = np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+
+    def point(i: int) -> dict[str, float]:
+        return {
+            key: float(to_service(t[i])),
+            "protocol_threshold": float(t[i]),
+            "precision": float(p[i]),
+            "recall": float(r[i]),
+        }
+
+    points: dict[str, dict[str, float] | None] = {"f1max": point(int(np.argmax(f1)))}
+    for target in (0.9, 0.95, 0.99):
+        ok = np.flatnonzero((p >= target) & np.isfinite(t))
+        points[f"precision>={target}"] = point(int(ok[np.argmax(r[ok])])) if len(ok) else None
+    return points
 
 
 if __name__ == "__main__":

@@ -72,6 +72,7 @@ class Match:
     yaw_confidence: float | None
     relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query, when registered
     verification: Verification | None = None  # None: not verified (not asked, or beyond k)
+    score: float | None = None  # the re-ranking score (lower is better); None: not re-ranked
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Match:
@@ -86,6 +87,7 @@ class Match:
             pose=d.get("pose"),
             yaw_deg=d.get("yaw_deg"),
             yaw_confidence=d.get("yaw_confidence"),
+            score=d.get("score"),
             relative_pose=_matrix(d.get("relative_pose")),
             verification=None if v is None else Verification.from_json(v),
         )
@@ -114,7 +116,8 @@ class Verification:
 class LoopClosure:
     """The server's call. ``verified`` True: the keyframe ``keyframe_id`` was registered
     and ``relative_pose`` (4×4, T_keyframe←query) is the edge to add to a pose graph; None:
-    the call is the descriptor distance alone (no geometry, or verify=False)."""
+    the call is the re-ranking score or the descriptor distance alone (``rule``; no geometry,
+    or verify=False)."""
 
     accepted: bool
     threshold: float
@@ -123,6 +126,7 @@ class LoopClosure:
     verified: bool | None = None
     relative_pose: np.ndarray | None = None
     fitness: float | None = None
+    rule: str = "distance"  # what threshold and the margin compare: "score" or "distance"
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> LoopClosure:
@@ -134,6 +138,7 @@ class LoopClosure:
             verified=d.get("verified"),
             relative_pose=_matrix(d.get("relative_pose")),
             fitness=d.get("fitness"),
+            rule=d.get("rule", "distance"),
         )
 
 

@@ -9,6 +9,7 @@ can refuse test data.
 | train-c | 1201 | 2000  | kitti-hdl64 | 7 × 4, blocks 50–100 m | training                 |
 | train-d | 1302 | 2000  | kitti-hdl64 | 6 × 6, blocks 80–160 m | training                 |
 | val     | 2002 | 1500  | kitti-hdl64 | 5 × 5 nodes            | model selection          |
+| val-s1  | 2002 | 1000  | kitti-hdl64 | the val town, session 1 | selection across sessions |
 | test    | 3003 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-b  | 3103 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-c  | 3203 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
@@ -70,6 +71,17 @@ PRESETS: dict[str, GenConfig] = {
     "train-d": _train("train-d", 1302, {"nx": 6, "ny": 6, "block_min": 80.0, "block_max": 160.0}),
     "val": GenConfig(
         seed=2002, frames=1500, preset="val", split="val", world={"nx": 5, "ny": 5}, **_EVAL
+    ),
+    # A second drive through the val town: choices about the cross-session protocol are
+    # made here, never on test-s1.
+    "val-s1": GenConfig(
+        seed=2002,
+        session=1,
+        frames=1000,
+        preset="val-s1",
+        split="val",
+        world={"nx": 5, "ny": 5},
+        **_EVAL,
     ),
     "test": GenConfig(seed=3003, frames=2500, preset="test", split="test", **_EVAL),
     "test-b": GenConfig(seed=3103, frames=2500, preset="test-b", split="test", **_EVAL),

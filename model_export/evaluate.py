@@ -13,7 +13,7 @@ import hashlib
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +24,15 @@ from lidar_core.anatomy import errors_at_f1max
 from lidar_core.datasets.base import Sequence
 from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
 from lidar_core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
+from lidar_core.rerank import OFF, Rerank, rerank_ranked, two_stage
 from lidar_core.scancontext import ScanContextParams, scan_context
 from lidar_core.scancontext import retrieve as sc_retrieve
 from lidar_core.sensors import SensorProfile
 from model_export.checkpoint import ExportedNetwork, Network
 
 SUBSETS = ("all", "same", "reverse")
+# The label suffix of a network's two-stage rows (descriptor shortlist, yaw re-rank).
+RERANKED = " + yaw re-rank"
 
 
 @torch.no_grad()
@@ -68,13 +71,28 @@ def sequence_loops(
     return loop_ground_truth(seq, profile, progress=progress)
 
 
-def loop_closure(desc: np.ndarray, gt: LoopGroundTruth) -> dict[str, LoopClosureResult]:
+def loop_closure(
+    desc: np.ndarray,
+    gt: LoopGroundTruth,
+    yaw: np.ndarray | None = None,
+    rerank: Rerank = OFF,
+) -> dict[str, LoopClosureResult]:
     """Loop-closure results over all queries and over same-/reverse-direction revisits.
 
     A subset keeps every query that is *not* a revisit of the other direction, so its
     precision still pays for false alarms on non-revisiting scans.
+
+    With ``rerank`` on, retrieval has two stages (:mod:`lidar_core.rerank`): each query's
+    ``rerank.k`` nearest descriptors are re-ordered by the score d² − weight · aligned
+    yaw-feature correlation (``yaw``: (N, C, W)), and the top-1's score is what the PR curve
+    thresholds.
     """
-    return _by_direction(gt, lambda pos, **kw: evaluate_loop_closure(desc, pos, **kw))
+    if not rerank.on:
+        return _by_direction(gt, lambda pos, **kw: evaluate_loop_closure(desc, pos, **kw))
+    if yaw is None or len(yaw) != len(desc):
+        raise ValueError("re-ranking needs the yaw features of every scan")
+    retrieve = two_stage(desc, yaw, rerank)
+    return _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(desc), pos, **kw))
 
 
 def _by_direction(
@@ -221,6 +239,7 @@ def eval_real(
     *,
     seed: int = 0,
     hit_radius: float = 3.0,
+    rerank: Rerank = OFF,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Checks on real scans that have no loops (``../shared/data``'s KITTI 00, 0–100).
@@ -231,7 +250,8 @@ def eval_real(
       median distance between scans 1 m apart (0.8–1.2 m: a one-metre step);
     - **odd → even retrieval**: queries are the odd frames, each turned by its random yaw;
       the database is the even frames; a hit is a top-N frame within ``hit_radius`` metres;
-      Scan Context answers the same turned queries against the same database;
+      Scan Context answers the same turned queries against the same database; with
+      ``rerank`` on, also the two-stage answers (``reranked``: :mod:`lidar_core.rerank`);
     - **yaw estimate**: from the yaw features by circular cross-correlation, against the
       turned copy (truth: the turn) and against the retrieved frame (truth: the poses).
 
@@ -256,6 +276,18 @@ def eval_real(
     found = even[ranked]  # (Q, 5) frame numbers
     close = np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < hit_radius
     sc = _scan_context_odd_to_even(seq, theta, odd, even, k, hit_radius)
+    staged: dict[str, Any] = {}
+    if rerank.on:  # the service's two stages: the nearest re-ranked by their yaw features
+        r2, d2 = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.k), len(even)))
+        r2, _ = rerank_ranked(feats_t[odd], feats[even], r2, d2, rerank)
+        near2 = np.linalg.norm(pos[even[r2[:, :k]]] - pos[odd][:, None], axis=-1) < hit_radius
+        staged = {
+            "reranked": {
+                **asdict(rerank),
+                "recall@1": float(near2[:, 0].mean()),
+                "recall@5": float(near2.any(1).mean()),
+            }
+        }
     # The turned query's pose: its sensor frame is turned by +θ about z.
     q_poses = seq.poses[odd] @ np.stack([rotation_z(t) for t in theta[odd]])
     top1 = found[:, 0]
@@ -285,6 +317,7 @@ def eval_real(
             "hit_radius_m": hit_radius,
             "recall@1": float(close[:, 0].mean()),
             "recall@5": float(close.any(1).mean()),
+            **staged,
             "scan_context": sc,
         },
         "yaw_error_deg": {
@@ -333,11 +366,14 @@ def cross_session(
     database: Sequence,
     queries: Sequence,
     *,
+    rerank: Rerank = OFF,
     progress: bool = False,
 ) -> dict[str, Any]:
     """AR@1/5/20 of a second session's scans against the first's (:mod:`.sessions`):
     ``{"scan_context": …, "networks": {label: …}}`` for Scan Context and every (label,
-    model, profile), on the same queries. A network listed twice is described once."""
+    model, profile), on the same queries. A network listed twice is described once. With
+    ``rerank`` on, every network also gets a row ``label + RERANKED`` for its two-stage
+    answers (:mod:`lidar_core.rerank`)."""
     from model_export.rangecache import range_images
     from model_export.sessions import (
         check_sessions,
@@ -353,10 +389,16 @@ def cross_session(
     for label, model, profile in networks:
         key = network_digest(model)
         if key not in done:
-            d_db, _ = describe(model, range_images(database, profile, progress=progress))
-            d_q, _ = describe(model, range_images(queries, profile, progress=progress))
+            d_db, y_db = describe(model, range_images(database, profile, progress=progress))
+            d_q, y_q = describe(model, range_images(queries, profile, progress=progress))
             done[key] = descriptor_recall(d_db, pos_db, d_q, pos_q)
+            if rerank.on:
+                done[key + RERANKED] = descriptor_recall(
+                    d_db, pos_db, d_q, pos_q, yaw=(y_db, y_q), rerank=rerank
+                )
         by_label[label] = done[key]
+        if rerank.on:
+            by_label[label + RERANKED] = done[key + RERANKED]
     sc_db = scan_contexts(database, progress=progress)
     sc_q = scan_contexts(queries, progress=progress)
     return {
@@ -383,11 +425,15 @@ def evaluate_checkpoint(
     open_sequence: Callable[[Path], Sequence],
     *,
     database: Path | None = None,
+    rerank: Rerank = OFF,
     progress: bool = False,
 ) -> SequenceEvaluation:
     """Loop closure of ``checkpoint`` on ``sequence`` (all, same and reverse direction) and,
     with a ``database`` (the first session of the same town), place recognition of the
-    sequence's scans against it. ``open_sequence`` opens a path (a folder or a recording)."""
+    sequence's scans against it. ``open_sequence`` opens a path (a folder or a recording).
+
+    With ``rerank`` on, the record also holds the two-stage answers (``metrics_reranked``,
+    ``errors_reranked``, the cross-session ``model_reranked``) and ``results`` are those."""
     from model_export.checkpoint import load_model
     from model_export.rangecache import range_images
     from model_export.sessions import check_sessions
@@ -398,7 +444,7 @@ def evaluate_checkpoint(
     if db is not None:  # refuse a wrong pair before the long part
         check_sessions(db, seq)
     gt = sequence_loops(seq, profile, progress=progress)
-    desc, _ = describe(model, range_images(seq, profile, progress=progress))
+    desc, yaw = describe(model, range_images(seq, profile, progress=progress))
     results = loop_closure(desc, gt)
     record: dict[str, Any] = {
         "checkpoint": str(checkpoint),
@@ -406,12 +452,18 @@ def evaluate_checkpoint(
         "metrics": summary(results),
         "errors": loop_errors(results, gt, seq),
     }
+    if rerank.on:
+        results = loop_closure(desc, gt, yaw, rerank)
+        record["rerank"] = asdict(rerank)
+        record["metrics_reranked"] = summary(results)
+        record["errors_reranked"] = loop_errors(results, gt, seq)
     if db is None:
         return SequenceEvaluation(record, results, (seq.name, len(seq)))
-    both = cross_session([("model", model, profile)], db, seq, progress=progress)
+    both = cross_session([("model", model, profile)], db, seq, rerank=rerank, progress=progress)
     record["database"] = str(database)
     record["cross_session"] = {
         "model": both["networks"]["model"],
+        **({"model_reranked": both["networks"]["model" + RERANKED]} if rerank.on else {}),
         "scan_context": both["scan_context"],
     }
     return SequenceEvaluation(record, results, (seq.name, len(seq)), (db.name, len(db)))

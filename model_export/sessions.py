@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,7 @@ from scipy.spatial import cKDTree
 from lidar_core.datasets.base import Sequence
 from lidar_core.errors import DatasetError
 from lidar_core.metrics import nearest
+from lidar_core.rerank import OFF, Rerank, rerank_ranked
 from lidar_core.scancontext import ScanContextParams
 from lidar_core.scancontext import retrieve as sc_retrieve
 
@@ -134,12 +136,22 @@ def descriptor_recall(
     desc_q: np.ndarray,
     pos_q: np.ndarray,
     radius: float = HIT_RADIUS,
+    *,
+    yaw: tuple[np.ndarray, np.ndarray] | None = None,
+    rerank: Rerank = OFF,
 ) -> dict[str, Any]:
-    """AR@1/5/20 of queries (descriptors, positions) against a database, by squared L2."""
-    k = min(max(RECALL_AT), len(desc_db))
-    ranked, _ = nearest(desc_q, desc_db, k)
+    """AR@1/5/20 of queries (descriptors, positions) against a database, by squared L2; with
+    ``rerank`` on, each query's ``rerank.k`` nearest re-ranked by the yaw features ``yaw``
+    = (database's (M, C, W), queries' (Q, C, W)): :mod:`lidar_core.rerank`."""
+    k = min(max(max(RECALL_AT), rerank.k), len(desc_db))
+    ranked, dist = nearest(desc_q, desc_db, k)
+    if rerank.on:
+        if yaw is None:
+            raise ValueError("re-ranking needs the yaw features of both sessions")
+        ranked, _ = rerank_ranked(yaw[1], yaw[0], ranked, dist, rerank)
     near = _ground_truth(pos_db, pos_q, radius)
-    return {"radius_m": radius, **_recalls(ranked, near, pos_db, pos_q, radius)}
+    out = _recalls(ranked[:, : max(RECALL_AT)], near, pos_db, pos_q, radius)
+    return {"radius_m": radius, **out, **({"rerank": asdict(rerank)} if rerank.on else {})}
 
 
 def scan_context_recall(

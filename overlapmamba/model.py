@@ -9,6 +9,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
+from lidar_core.rerank import Rerank
 from overlapmamba.common import (
     check_torch,
     command_group,
@@ -20,6 +21,9 @@ from overlapmamba.common import (
 )
 
 app, command = command_group("Model")
+
+# eval's second stage by default: the service's (lidar_core.rerank.Rerank's defaults).
+RERANK_DEFAULT = f"{Rerank().k},{Rerank().weight:g}"
 
 
 @command(
@@ -170,6 +174,14 @@ def eval_cmd(
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
     plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
+    rerank: Annotated[
+        str,
+        typer.Option(
+            help="second stage, as the service answers: re-rank the K nearest descriptors by "
+            "d² − WEIGHT · aligned yaw-feature correlation ('K,WEIGHT' or 'off'); reported "
+            "beside the descriptor-only numbers"
+        ),
+    ] = RERANK_DEFAULT,
     topic: Annotated[
         str | None, typer.Option(help="ROS recordings: the PointCloud2 topic (if several)")
     ] = None,
@@ -199,20 +211,32 @@ def eval_cmd(
     def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
         return open_recording(path, topic=topic, odometry=odometry, tf=tf, need_poses=True)
 
+    try:
+        second = Rerank.parse(rerank)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--rerank") from None
     ev = evaluate_checkpoint(
-        checkpoint, sequence, open_sequence, database=database, progress=not quiet
+        checkpoint, sequence, open_sequence, database=database, rerank=second, progress=not quiet
     )
     name, scans = ev.sequence
-    out.print(metrics_table(f"{checkpoint.name} on {name} ({scans} scans)", ev.record["metrics"]))
-    far = ev.record["errors"]["all"]["far_m"]
-    out.print(
-        errors_table(
-            f"Where F1max is lost, at each subset's threshold: false alarms near (a neighbour "
-            f"within {far:g} m) or far (a look-alike); missed loops with a wrong top-1, or a "
-            "right one rejected",
-            ev.record["errors"],
+    staged = f" + yaw re-rank (top {second.k}, weight {second.weight:g})"
+    runs = [("", "")] + ([(staged, "_reranked")] if second.on else [])
+    for title, key in runs:
+        out.print(
+            metrics_table(
+                f"{checkpoint.name}{title} on {name} ({scans} scans)", ev.record["metrics" + key]
+            )
         )
-    )
+    for title, key in runs:
+        far = ev.record["errors" + key]["all"]["far_m"]
+        out.print(
+            errors_table(
+                f"Where F1max is lost{title}, at each subset's threshold: false alarms near (a "
+                f"neighbour within {far:g} m) or far (a look-alike); missed loops with a wrong "
+                "top-1, or a right one rejected",
+                ev.record["errors" + key],
+            )
+        )
     if ev.database is not None:
         cross = ev.record["cross_session"]
         table = Table(
@@ -222,7 +246,10 @@ def eval_cmd(
         bands = " / ".join(cross["model"]["wrong_top1"])
         for col in ("method", "queries", "AR@1", "AR@5", "AR@20", f"wrong top-1 at {bands}"):
             table.add_column(col, justify="left" if col == "method" else "right")
-        for label, r in (("OverlapMamba", cross["model"]), ("Scan Context", cross["scan_context"])):
+        rows = [("OverlapMamba", cross["model"])]
+        if "model_reranked" in cross:
+            rows.append((f"OverlapMamba{staged}", cross["model_reranked"]))
+        for label, r in (*rows, ("Scan Context", cross["scan_context"])):
             table.add_row(
                 label,
                 str(r["queries"]),
@@ -300,6 +327,13 @@ def eval_real_cmd(
     seed: Annotated[int, typer.Option(min=0, help="seed of the random yaw angles")] = 0,
     hit_radius: Annotated[float, typer.Option(min=0.1, help="retrieval hit radius (m)")] = 3.0,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    rerank: Annotated[
+        str,
+        typer.Option(
+            help="odd→even retrieval's second stage, as the service answers ('K,WEIGHT' or "
+            "'off'); reported beside the descriptor-only numbers"
+        ),
+    ] = RERANK_DEFAULT,
     profile_name: Annotated[
         str | None,
         typer.Option(
@@ -322,7 +356,11 @@ def eval_real_cmd(
         profile = sensor_profile(profile_name)
     seq = open_sequence(sequence)
     try:
-        r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius)
+        second = Rerank.parse(rerank)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--rerank") from None
+    try:
+        r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius, rerank=second)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
     inv, ret, yaw = r["yaw_invariance"], r["retrieval_odd_to_even"], r["yaw_error_deg"]
@@ -352,6 +390,14 @@ def eval_real_cmd(
             f"{ret['recall@5']:.3f}, {ret['scan_context']['recall@5']:.3f}",
         ),
     ]
+    if "reranked" in ret:
+        rr = ret["reranked"]
+        rows.append(
+            (
+                f"odd→even Recall@1 / @5 + yaw re-rank (top {rr['k']}, weight {rr['weight']:g})",
+                f"{rr['recall@1']:.3f} / {rr['recall@5']:.3f}",
+            )
+        )
     for name, key in (("turned copy", "vs_turned_copy"), ("retrieved frame", "vs_retrieved_frame")):
         e = yaw[key]
         rows.append(

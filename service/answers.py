@@ -17,12 +17,14 @@ class LoopClosure:
 
     With verification (a scan query, ``verify.k`` > 0, candidates with geometry): the
     verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
-    query, ``verify=false``, keyframes without geometry): the top match when its descriptor
-    distance is under ``loop_closure.max_distance`` — ``verified`` is then None."""
+    query, ``verify=false``, keyframes without geometry): the top match when its re-ranking
+    score is under ``loop_closure.max_score`` (a re-ranked answer, :mod:`.ranking`), or its
+    descriptor distance under ``loop_closure.max_distance`` — ``verified`` is then None."""
 
     accepted: bool
-    threshold: float  # loop_closure.max_distance (the descriptor-only call)
-    margin: float | None  # runner-up distance − best distance
+    threshold: float  # loop_closure.max_score or max_distance (the unverified call)
+    margin: float | None  # runner-up − best, in the rule's units
+    rule: Literal["score", "distance"] = "distance"  # what threshold and margin compare
     keyframe_id: str | None = None
     verified: bool | None = None
     relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query

@@ -123,6 +123,7 @@ class Match:
     yaw_deg: float | None
     yaw_confidence: float | None
     verification: Verdict | None = None  # None: not verified (not asked, or beyond verify.k)
+    score: float | None = None  # the re-ranking score (service.ranking); None: not re-ranked
 
     @property
     def relative_pose(self) -> np.ndarray | None:
@@ -136,6 +137,7 @@ class Match:
             "similarity": self.similarity,
             "yaw_deg": self.yaw_deg,
             "yaw_confidence": self.yaw_confidence,
+            "score": self.score,
             "relative_pose": None if pose is None else [float(x) for x in pose.reshape(-1)],
             "verification": None if self.verification is None else self.verification.public(),
         }

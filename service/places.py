@@ -14,9 +14,11 @@ import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Literal
 
 import numpy as np
 
+from lidar_core.rerank import OFF
 from service.answers import Answer, Inserted, InsertReason, LoopClosure, Observation, Observed
 from service.backends.base import MapBackend, PlaceMap
 from service.domain import (
@@ -33,6 +35,7 @@ from service.encoder import Encoder
 from service.errors import BadRequest, Conflict
 from service.overview import Overview
 from service.pipeline import Description, ScanPipeline
+from service.ranking import rerank_matches, rerank_params, shortlist
 from service.scans import ScanBody
 from service.settings import Settings
 from service.stats import Stats
@@ -243,12 +246,13 @@ class PlaceService:
         """Search, verify the top ``verify.k`` candidates when the query is prepared for it,
         and make the loop-closure call (see :class:`LoopClosure`)."""
         n_verify = self.settings.verify.k if prepared is not None else 0
+        rerank = rerank_params(self.settings.rerank) if yaw is not None else OFF
 
-        def search_and_verify() -> list[Match]:  # one thread hop for both stages
+        def search_and_verify() -> list[Match]:  # one thread hop for all stages
             t0 = time.perf_counter()
             # One more than asked: the runner-up gives the loop-closure margin (no yaw).
-            n = max(k, n_verify)
-            found = m.search(descriptor, n + 1, filters, yaw, yaw_k=n)
+            n = max(shortlist(k, rerank), n_verify)
+            found = rerank_matches(m.search(descriptor, n + 1, filters, yaw, yaw_k=n), rerank)
             t1 = time.perf_counter()
             timings["search"] = (t1 - t0) * 1e3
             if n_verify and found and prepared is not None:
@@ -257,23 +261,32 @@ class PlaceService:
             return found
 
         matches = await in_thread(search_and_verify)
-        lc = self.settings.loop_closure
-        margin = matches[1].distance - matches[0].distance if len(matches) > 1 else None
-        closure = LoopClosure(
-            bool(
-                matches
-                and matches[0].distance <= lc.max_distance
-                and (margin is None or margin >= lc.min_margin)
-            ),
-            lc.max_distance,
-            margin,
-        )
+        closure = self._unverified_call(matches)
         if closure.accepted:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
         if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
             closure = self._verified_closure(matches[:n_verify], closure)
         self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)
+
+    def _unverified_call(self, matches: list[Match]) -> LoopClosure:
+        """The loop-closure call from the order alone: the top-1's score under
+        ``loop_closure.max_score`` when the answer was re-ranked (:mod:`service.ranking`),
+        else its distance under ``max_distance``; and the runner-up at least ``min_margin``
+        behind, in the same units."""
+        lc = self.settings.loop_closure
+        rule: Literal["score", "distance"]
+        if matches and matches[0].score is not None:
+            rule, threshold = "score", lc.max_score
+            values = [x.score for x in matches[:2] if x.score is not None]
+        else:
+            rule, threshold = "distance", lc.max_distance
+            values = [x.distance for x in matches[:2]]
+        margin = values[1] - values[0] if len(values) > 1 else None
+        accepted = bool(
+            values and values[0] <= threshold and (margin is None or margin >= lc.min_margin)
+        )
+        return LoopClosure(accepted, threshold, margin, rule=rule)
 
     def _verify(self, m: PlaceMap, prepared: Prepared, candidates: list[Match]) -> list[Match]:
         blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])

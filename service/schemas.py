@@ -190,6 +190,13 @@ class MatchOut(BaseModel):
         description="yaw of the match's sensor frame in the query's, degrees (−180, 180]"
     )
     yaw_confidence: float | None = Field(description="feature correlation at that yaw, [-1, 1]")
+    score: float | None = Field(
+        None,
+        description="the re-ranking score distance² − rerank.weight · yaw_confidence (lower "
+        "is better) by which the first rerank.k matches are ordered; null when the answer "
+        "is in descriptor order (a descriptor query, a keyframe without yaw features, "
+        "rerank off, or beyond the first rerank.k)",
+    )
     relative_pose: list[float] | None = Field(
         None,
         description="4×4 row-major T_keyframe←query from registration (maps points of the "
@@ -217,7 +224,13 @@ class VerificationOut(BaseModel):
 
 class LoopClosureOut(BaseModel):
     accepted: bool
-    threshold: float = Field(description="the descriptor distance for an unverified call")
+    threshold: float = Field(
+        description="an unverified call's threshold: loop_closure.max_score on the top-1's "
+        "score (a re-ranked answer) or loop_closure.max_distance on its distance (see rule)"
+    )
+    rule: Literal["score", "distance"] = Field(
+        "distance", description="what threshold and margin_top1_top2 compare"
+    )
     margin_top1_top2: float | None
     keyframe_id: str | None = Field(None, description="the revisited keyframe, when accepted")
     verified: bool | None = Field(
@@ -252,6 +265,7 @@ class QueryOut(BaseModel):
                             "pose": [12.0, -3.5, 0.0, 0.0, 0.0, 0.0, 1.0],
                             "yaw_deg": 178.6,
                             "yaw_confidence": 0.83,
+                            "score": -0.1219,
                             "relative_pose": [
                                 *(-0.9996, -0.0244, 0.0011, 1.32),
                                 *(0.0244, -0.9996, 0.0006, -0.41),
@@ -268,7 +282,8 @@ class QueryOut(BaseModel):
                     ],
                     "loop_closure": {
                         "accepted": True,
-                        "threshold": 0.1795,
+                        "threshold": -0.0456,
+                        "rule": "score",
                         "margin_top1_top2": 0.12,
                         "keyframe_id": "drive1-000042",
                         "verified": True,

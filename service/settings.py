@@ -143,8 +143,36 @@ class LoopClosureSettings(_Section):
         le=2,
         description="accept a loop closure when the top-1 descriptor L2 distance is below",
     )
+    # The same point for a re-ranked answer (RerankSettings): the top-1's score at F1max on
+    # the validation town (benchmarks/loop_threshold.py, the keyframes' yaw features in
+    # float16 as maps store them), where precision is 0.93 and recall 0.86.
+    max_score: float = Field(
+        -0.0456,
+        ge=-1,
+        le=5,
+        description="accept a loop closure when the re-ranked top-1's score is below (when "
+        "the answer was re-ranked; else max_distance decides)",
+    )
     min_margin: float = Field(
-        0.0, ge=0, description="and the top-2 distance exceeds the top-1 by at least this"
+        0.0,
+        ge=0,
+        description="and the top-2 distance (score, when re-ranked) exceeds the top-1's by at "
+        "least this",
+    )
+
+
+class RerankSettings(_Section):
+    # Chosen on the validation town and its second session (benchmarks/rerank.py): the
+    # mean of F1max and Recall@1 on the three subsets and AR@1 across sessions.
+    k: int = Field(
+        20,
+        ge=1,
+        le=50,
+        description="scan queries: re-rank the k nearest descriptors by d² − weight · "
+        "aligned yaw-feature correlation (1: descriptor order only)",
+    )
+    weight: float = Field(
+        0.2, ge=0, le=10, description="the correlation's weight in the score (0: off)"
     )
 
 
@@ -242,6 +270,7 @@ class Settings(BaseSettings):
     observe: ObserveSettings = Field(default_factory=ObserveSettings)  # type: ignore[arg-type]
     loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
     verify: VerifySettings = Field(default_factory=VerifySettings)  # type: ignore[arg-type]
+    rerank: RerankSettings = Field(default_factory=RerankSettings)  # type: ignore[arg-type]
     auth: AuthSettings = Field(default_factory=AuthSettings)
     qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
 

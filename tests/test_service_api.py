@@ -166,6 +166,17 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         assert len(q["matches"]) == 2
         assert q["loop_closure"]["accepted"] is True
         assert q["loop_closure"]["margin_top1_top2"] > 0
+        # a scan query is re-ranked (service.ranking): every match scored, in score order,
+        # and the call is on the top-1's score
+        w = settings.rerank.weight
+        for m in q["matches"]:
+            assert math.isclose(m["score"], m["distance"] ** 2 - w * m["yaw_confidence"])
+        assert q["matches"][0]["score"] <= q["matches"][1]["score"]
+        lc = q["loop_closure"]
+        assert lc["rule"] == "score" and lc["threshold"] == settings.loop_closure.max_score
+        assert math.isclose(
+            lc["margin_top1_top2"], q["matches"][1]["score"] - q["matches"][0]["score"]
+        )
         assert set(q["timings_ms"]) >= {"decode", "project", "encode", "search", "total"}
 
         # by descriptor (JSON), with filters
@@ -175,6 +186,10 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         )
         assert next(m["keyframe_id"] for m in r.json()["matches"]) == "k1"
         assert r.json()["matches"][0]["yaw_deg"] is None  # no scan, no yaw
+        # …so no re-ranking: descriptor order, no score, the call on the distance
+        assert [m["score"] for m in r.json()["matches"]] == [None] * 3
+        lc = r.json()["loop_closure"]
+        assert lc["rule"] == "distance" and lc["threshold"] == settings.loop_closure.max_distance
         r = await c.post(
             "/v1/maps/town/query",
             params={"k": 3, "time_from": 100.5, "time_to": 101.5},

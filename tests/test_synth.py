@@ -420,7 +420,8 @@ def test_a_second_session_drives_the_same_town_with_other_cars_and_route():
         GenConfig(seed=9, frames=4, session=1001)
 
 
-def test_the_second_test_session_keeps_to_the_first_sessions_streets():
+@pytest.mark.parametrize("first,second", [("test", "test-s1"), ("val", "val-s1")])
+def test_a_second_session_keeps_to_the_first_sessions_streets(first, second):
     """The cross-session protocol needs every query of session 1 to have a place in session 0:
     session 1 re-drives session 0's streets (in its own order, both directions)."""
     from scipy.spatial import cKDTree
@@ -428,8 +429,9 @@ def test_the_second_test_session_keeps_to_the_first_sessions_streets():
     from lidar_synth.generate import build_scene
     from lidar_synth.trajectory import driven_streets
 
-    w0, d0, _ = build_scene(PRESETS["test"])
-    d1 = build_scene(PRESETS["test-s1"])[1]
+    assert PRESETS[second].split == PRESETS[first].split  # a val session is selection data
+    w0, d0, _ = build_scene(PRESETS[first])
+    d1 = build_scene(PRESETS[second])[1]
     net = w0.network
     assert set(driven_streets(net, d1)) <= set(driven_streets(net, d0))
     tree = cKDTree(d0.poses[:, :2, 3])

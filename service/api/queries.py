@@ -179,6 +179,7 @@ def query_out(a: Answer) -> QueryOut:
         loop_closure=LoopClosureOut(
             accepted=lc.accepted,
             threshold=lc.threshold,
+            rule=lc.rule,
             margin_top1_top2=lc.margin,
             keyframe_id=lc.keyframe_id,
             verified=lc.verified,

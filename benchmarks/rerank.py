@@ -1,0 +1,101 @@
+"""Choose the second stage's shortlist size and weight on the validation town (never on test).
+
+The service re-ranks the K nearest descriptors of a scan query by d² − WEIGHT · aligned
+yaw-feature correlation (``lidar_core.rerank``). This grid scores every (K, WEIGHT) with the
+shipped encoder on ``data/synth/val`` (loop closure: F1max and Recall@1, all / same / reverse
+direction) and ``data/synth/val-s1`` queried against ``val`` (AR@1 across sessions), and
+ranks them by the mean of those seven numbers. ``lidar_core.rerank.Rerank``'s defaults (the
+service's ``rerank`` settings and ``overlapmamba eval --rerank``) are the winner.
+
+    python benchmarks/rerank.py [--model models/overlapmamba-hdl64.onnx]
+
+Writes JSON (default bench-results/rerank.json). ≈ 2 min on 2 cores once the range images
+are cached (``make data`` makes val; ``overlapmamba gen-data data/synth/val-s1 --preset
+val-s1`` the second session).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from lidar_core.datasets import open_sequence
+from lidar_core.rerank import OFF, Rerank
+from model_export.checkpoint import load_model
+from model_export.evaluate import SUBSETS, describe, loop_closure, sequence_loops
+from model_export.rangecache import range_images
+from model_export.sessions import check_sessions, descriptor_recall, town_positions
+
+ROOT = Path(__file__).resolve().parents[1]
+KS = (5, 10, 20)
+WEIGHTS = (0.02, 0.05, 0.1, 0.2, 0.5)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--val", type=Path, default=ROOT / "data" / "synth" / "val")
+    ap.add_argument("--second-session", type=Path, default=ROOT / "data" / "synth" / "val-s1")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "rerank.json")
+    args = ap.parse_args()
+
+    t0 = time.perf_counter()
+    model, profile, _ = load_model(args.model)
+    val, second = open_sequence(args.val), open_sequence(args.second_session)
+    check_sessions(val, second)
+    gt = sequence_loops(val, profile)
+    desc, yaw = describe(model, range_images(val, profile))
+    desc_q, yaw_q = describe(model, range_images(second, profile))
+    pos, pos_q = town_positions(val), town_positions(second)
+
+    rows = []
+    for p in [OFF] + [Rerank(k, w) for k in KS for w in WEIGHTS]:
+        res = loop_closure(desc, gt, yaw, p)
+        xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p)
+        row: dict = {"k": p.k, "weight": p.weight}
+        for sub in SUBSETS:
+            row[f"{sub}_f1max"] = res[sub].f1max
+            row[f"{sub}_recall@1"] = res[sub].recall_at_1
+        row["cross_session_ar@1"] = xs["ar@1"]
+        row["mean"] = float(np.mean([v for key, v in row.items() if key not in ("k", "weight")]))
+        rows.append(row)
+    best = max(rows[1:], key=lambda r: r["mean"])
+
+    table = Table(title=f"second stage on {val.name} and {second.name} ({args.model.name})")
+    cols = ["K", "weight", *(f"{s} F1 / R@1" for s in SUBSETS), "AR@1 across", "mean"]
+    for col in cols:
+        table.add_column(col, justify="right")
+    for r in rows:
+        mark = " ←" if r is best else ""
+        table.add_row(
+            "off" if r["k"] == 1 else str(r["k"]),
+            f"{r['weight']:g}",
+            *(f"{r[f'{s}_f1max']:.3f} / {r[f'{s}_recall@1']:.3f}" for s in SUBSETS),
+            f"{r['cross_session_ar@1']:.3f}",
+            f"{r['mean']:.4f}{mark}",
+        )
+    console = Console(width=140)
+    console.print(table)
+    console.print(
+        f"best: K {best['k']}, weight {best['weight']:g}; {time.perf_counter() - t0:.0f} s"
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    record = {
+        "model": str(args.model),
+        "val": str(args.val),
+        "second_session": str(args.second_session),
+        "grid": rows,
+        "best": {"k": best["k"], "weight": best["weight"]},
+    }
+    args.out.write_text(json.dumps(record, indent=2) + "\n")
+    console.print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
