@@ -9,7 +9,7 @@ can refuse test data.
 | train-c | 1201 | 2000  | kitti-hdl64 | 7 × 4, blocks 50–100 m | training                 |
 | train-d | 1302 | 2000  | kitti-hdl64 | 6 × 6, blocks 80–160 m | training                 |
 | val     | 2002 | 1500  | kitti-hdl64 | 5 × 5 nodes            | model selection          |
-| val-s1  | 2002 | 1000  | kitti-hdl64 | the val town, session 1 | selection across sessions |
+| val-s1  | 2002 | 1500  | kitti-hdl64 | the val town, session 1 | selection across sessions |
 | test    | 3003 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-b  | 3103 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-c  | 3203 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
@@ -77,7 +77,7 @@ PRESETS: dict[str, GenConfig] = {
     "val-s1": GenConfig(
         seed=2002,
         session=1,
-        frames=1000,
+        frames=1500,
         preset="val-s1",
         split="val",
         world={"nx": 5, "ny": 5},

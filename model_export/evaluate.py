@@ -367,13 +367,14 @@ def cross_session(
     queries: Sequence,
     *,
     rerank: Rerank = OFF,
+    rerank_labels: set[str] | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """AR@1/5/20 of a second session's scans against the first's (:mod:`.sessions`):
     ``{"scan_context": …, "networks": {label: …}}`` for Scan Context and every (label,
     model, profile), on the same queries. A network listed twice is described once. With
-    ``rerank`` on, every network also gets a row ``label + RERANKED`` for its two-stage
-    answers (:mod:`lidar_core.rerank`)."""
+    ``rerank`` on, every network in ``rerank_labels`` (None: all) also gets a row
+    ``label + RERANKED`` for its two-stage answers (:mod:`lidar_core.rerank`)."""
     from model_export.rangecache import range_images
     from model_export.sessions import (
         check_sessions,
@@ -397,7 +398,7 @@ def cross_session(
                     d_db, pos_db, d_q, pos_q, yaw=(y_db, y_q), rerank=rerank
                 )
         by_label[label] = done[key]
-        if rerank.on:
+        if rerank.on and (rerank_labels is None or label in rerank_labels):
             by_label[label + RERANKED] = done[key + RERANKED]
     sc_db = scan_contexts(database, progress=progress)
     sc_q = scan_contexts(queries, progress=progress)

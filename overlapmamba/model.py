@@ -213,8 +213,8 @@ def eval_cmd(
 
     try:
         second = Rerank.parse(rerank)
-    except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--rerank") from None
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad), param_hint="--rerank") from None
     ev = evaluate_checkpoint(
         checkpoint, sequence, open_sequence, database=database, rerank=second, progress=not quiet
     )
@@ -357,8 +357,8 @@ def eval_real_cmd(
     seq = open_sequence(sequence)
     try:
         second = Rerank.parse(rerank)
-    except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--rerank") from None
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad), param_hint="--rerank") from None
     try:
         r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius, rerank=second)
     except ValueError as err:

@@ -11,6 +11,7 @@ from conftest import SMALL_MODEL, make_world, save_random_checkpoint
 
 from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
 from lidar_core.poses import rotation_z, transform_points
+from lidar_core.rerank import Rerank
 from lidar_core.scancontext import (
     ScanContextParams,
     brute_force_shift_distance,
@@ -98,6 +99,7 @@ torch = pytest.importorskip("torch")
 from typer.testing import CliRunner  # noqa: E402
 
 from model_export.errors import ConfigError  # noqa: E402
+from model_export.evaluate import RERANKED  # noqa: E402
 from model_export.export import export_onnx  # noqa: E402
 from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
 from model_export.presets import PRESETS, SHIPPED, TEST_DATA, get_preset  # noqa: E402
@@ -246,6 +248,7 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
         "OT-style narrow, ablation budget",
         "OverlapMamba narrow, ablation budget",
         shipped,
+        shipped + RERANKED,  # the service's answer: the yaw features re-rank the shortlist
     ]
     # the shipped run is a copy of abl-full: that network is described once, for both rows
     assert len(described) == 3
@@ -261,8 +264,10 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
     # Table IV starts from epoch 0: the initial weights, batch norm recalibrated, no loss
     table_four = report["epochs"]["ImTrihard (abl-full)"]["history"]
     assert [h["epoch"] for h in table_four] == [0, 1, 2] and table_four[0]["loss"] is None
+    assert t1[shipped + RERANKED] != t1[shipped]
     nus = report["real"]["nuscenes-hdl32"]
     assert "skipped" in nus or nus["yaw_invariance"]["cosine_min"] > 0.9
+    assert "skipped" in nus or nus["retrieval_odd_to_even"]["reranked"]["k"] == Rerank().k
     # where each method loses F1max, per town: every query of the subset is sorted once
     errors = report["errors"][tiny_val_seq.name]
     assert set(errors) == set(t1)
