@@ -71,10 +71,11 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/sizing.py
 	$(BIN)/python benchmarks/registration.py
 
-# The synthetic presets (≈36 GB, ≈100 min on 2 cores): four training towns, the validation
-# town, three test towns and a second drive through the first test town. Each is skipped
+# The synthetic presets (≈38 GB, ≈105 min on 2 cores): four training towns, the validation
+# town and a second drive through it, three test towns and a second drive through the first
+# test town. Each is skipped
 # when its manifest exists, so an interrupted `make data` resumes where it stopped.
-DATA_PRESETS := train train-b train-c train-d val test test-b test-c test-s1
+DATA_PRESETS := train train-b train-c train-d val val-s1 test test-b test-c test-s1
 data: $(VENV)/.installed-all
 	for p in $(DATA_PRESETS); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \

@@ -13,7 +13,9 @@ each map backend's operations, measured on this machine.
     search      the query's "search" stage on a FAISS map of --search-keyframes (10,000):
                 index + rows (k = 5 and the runner-up) + yaw (k = 5), split into its parts, with
                 FAISS on 1 and on 2 OpenMP threads (index.threads), on an idle process and
-                with the encoder busy in another thread (as under load)
+                with the encoder busy in another thread (as under load); and the stage as a
+                scan query runs it by default, two-stage: the rerank.k (20) nearest and the
+                runner-up, their yaw, re-ranked (service.ranking)
 
 Writes JSON (default bench-results/sizing.json).
 """
@@ -38,7 +40,8 @@ from service.backends.factory import open_backend
 from service.backends.qdrant.codec import point_payload
 from service.domain import Filters, NewKeyframe, content_hash
 from service.encoder import Encoder
-from service.settings import Settings
+from service.ranking import rerank_matches, rerank_params, shortlist
+from service.settings import RerankSettings, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -189,6 +192,8 @@ def search_stage(
         for _ in range(reps)
     ]
     image = enc.project(cloud)[None]
+    p = rerank_params(RerankSettings())
+    n_short = shortlist(5, p)
     out = []
     for load in ("idle", "encoder busy"):
         stop = threading.Event()
@@ -202,11 +207,14 @@ def search_stage(
             worker.start()
         for threads in (1, 2):
             set_threads(threads)
-            whole, index, rows_, yaw = [], [], [], []
+            whole, index, rows_, yaw, staged = [], [], [], [], []
             for q, qy in queries:
                 t0 = time.perf_counter()
-                m.search(q, 6, Filters(), qy, yaw_k=5)  # as a query with k = 5 asks
+                m.search(q, 6, Filters(), qy, yaw_k=5)  # a query with k = 5, one stage
                 whole.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()  # the same query as served: two stages
+                rerank_matches(m.search(q, n_short + 1, Filters(), qy, yaw_k=n_short), p)
+                staged.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 _, ids = m.index.search(q, 6, None)
                 index.append(time.perf_counter() - t0)
@@ -223,6 +231,7 @@ def search_stage(
                     "faiss_threads": threads,
                     "keyframes": n,
                     "search": _p(whole),
+                    "search_two_stage": _p(staged) | {"shortlist": n_short},
                     "index": _p(index),
                     "rows": _p(rows_),
                     "yaw": _p(yaw),
@@ -305,12 +314,13 @@ def main() -> None:
         title=f"search stage: k = 5 with yaw (+ the runner-up, without), FAISS map of "
         f"{args.search_keyframes:,} keyframes, p50 (p90) ms"
     )
-    for col in ("load", "FAISS threads", "search (whole)", "index", "rows", "yaw"):
+    cols = ("search (whole)", "index", "rows", "yaw", "two stages (whole)")
+    for col in ("load", "FAISS threads", *cols):
         t.add_column(col, justify="right")
     for r in search:
         cells = [
             f"{r[k]['p50_ms']:.3f} ({r[k]['p90_ms']:.3f})"
-            for k in ("search", "index", "rows", "yaw")
+            for k in ("search", "index", "rows", "yaw", "search_two_stage")
         ]
         t.add_row(r["load"], str(r["faiss_threads"]), *cells)
     console.print(t)

@@ -4,8 +4,10 @@ Per town, as the service does it: every scan is encoded by the shipped ONNX enco
 (``service.encoder.Encoder``) and kept as a keyframe's compact geometry
 (``lidar_core.geometry``); each query (the loop-closure protocol of ``lidar_core.metrics``:
 the database is every frame more than ``exclude_recent`` frames earlier) takes its top
-``--k`` candidates by descriptor distance, seeds each with the yaw from the yaw features and
-registers it (``service.verify.verify_candidates``). The closure is the verified candidate of
+``--k`` candidates in the service's order (the ``rerank.k`` nearest descriptors re-ranked by
+d² − weight · aligned yaw-feature correlation: ``service.ranking``; ``--rerank off`` for the
+descriptor order), seeds each with the yaw from the yaw features and registers it
+(``service.verify.verify_candidates``). The closure is the verified candidate of
 highest fitness. It is **correct** when its relative pose is right: within 1 m and 2° of the
 poses' T = P_keyframe⁻¹ · P_query (an edge a pose graph can take). Also reported: the
 precision counting only pairs the town's ground truth calls loops (overlap above its
@@ -18,9 +20,9 @@ the pair of highest recall whose precision is at least ``--target`` (0.99), then
 nearest descriptor gate that costs at most 0.005 of that recall: the service's
 ``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.max_distance`` come from it.
 Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``, ``--max-distance``,
-default the service's) are scored
-on each town given: precision, recall against the descriptor's Recall@1 and Recall@5 on the
-same queries, pose errors, and the time per query. Prints tables, writes JSON.
+default the service's) are scored on each town given: precision, recall against the
+answer's Recall@1 and Recall@5 on the same queries (the candidates in the service's order),
+pose errors, and the time per query. Prints tables, writes JSON.
 """
 
 from __future__ import annotations
@@ -39,15 +41,18 @@ from tqdm import tqdm
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import LoopGroundTruth
 from lidar_core.poses import pose_error
+from lidar_core.rerank import Rerank, scores
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
-from service.settings import VerifySettings
+from service.settings import RerankSettings, VerifySettings
 from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8) -> dict[str, Any]:
+def run_town(
+    enc: Encoder, path: Path, k: int, v: VerifySettings, rerank: Rerank, batch: int = 8
+) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors."""
     seq = open_sequence(path)
     gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
@@ -70,8 +75,12 @@ def run_town(enc: Encoder, path: Path, k: int, v: VerifySettings, batch: int = 8
     queries = []
     ms = []
     for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
-        top = np.argsort(d2[i, : i - recent], kind="stable")[:k]
-        deg, _ = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
+        top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.k)]
+        deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
+        if rerank.on:  # as service.ranking orders the answer
+            order = np.argsort(scores(d2[i, top], conf, rerank.weight), kind="stable")
+            top, deg = top[order], deg[order]
+        top, deg = top[:k], deg[:k]
         t0 = time.perf_counter()
         verdicts = verify_candidates(
             prepared[i],
@@ -187,6 +196,10 @@ def main() -> None:
     ap.add_argument("--max-rmse", type=float, default=VerifySettings().max_rmse_m)
     ap.add_argument("--max-distance", type=float, default=VerifySettings().max_distance)
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "verify.json")
+    default_rerank = f"{RerankSettings().k},{RerankSettings().weight:g}"
+    ap.add_argument(
+        "--rerank", default=default_rerank, help="K,WEIGHT or off (default: the service's)"
+    )
     args = ap.parse_args()
     towns = args.town or [ROOT / "data" / "synth" / "val"]
     if args.calibrate and any(t.name.startswith("test") for t in towns):
@@ -196,8 +209,14 @@ def main() -> None:
     # record everything; calibrating, register every candidate too (the gate is swept after)
     register_within = None if args.calibrate else args.max_distance
     v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9, max_distance=register_within)
-    results = [run_town(enc, t, args.k, v) for t in towns]
-    report: dict[str, Any] = {"model_id": enc.model_id, "k": args.k, "towns": []}
+    rerank = Rerank.parse(args.rerank)
+    results = [run_town(enc, t, args.k, v, rerank) for t in towns]
+    report: dict[str, Any] = {
+        "model_id": enc.model_id,
+        "k": args.k,
+        "rerank": {"k": rerank.k, "weight": rerank.weight},
+        "towns": [],
+    }
     if args.calibrate:
         queries = [q for r in results for q in r["queries"]]
         sweep = [
@@ -254,8 +273,8 @@ def main() -> None:
         "town",
         "queries",
         "with loop",
-        "desc R@1",
-        "desc R@5",
+        "answer R@1",
+        "answer R@5",
         "accepted",
         "precision",
         "prec. (gt loops)",

@@ -16,6 +16,9 @@ Distances are squared L2 between descriptors (equivalent to cosine ranking for u
   query with a positive was accepted with a wrong candidate.
 * **AUC** is the area under that precision–recall curve (trapezoids over recall, the
   t = −∞ point being recall 0, precision 1). **F1max** = max over t of 2PR / (P + R).
+  When no scored query has a positive (a subset without loops) both are NaN: there is
+  nothing to find, which is neither perfect nor zero (the curve's convention above would
+  give F1max 1 and AUC 0).
 * **Recall@N** is over queries that have a positive: a hit if any of the N nearest database
   frames is a positive. **Recall@1%** uses, per query, N_i = max(1, ⌈0.01 · |database_i|⌉)
   (the reference code is ambiguous; this is what we use).
@@ -276,9 +279,10 @@ def evaluate_retrieval(
         for r, p, kk in zip(ranked, pos, k_pct, strict=True)
         if len(p)
     ]
+    defined = bool(has.any())  # a subset without loops has no AUC or F1max
     return LoopClosureResult(
-        auc=pr_auc(precision, recall),
-        f1max=f1_max(precision, recall),
+        auc=pr_auc(precision, recall) if defined else math.nan,
+        f1max=f1_max(precision, recall) if defined else math.nan,
         recall_at_1=float(curve[0]) if len(curve) else math.nan,
         recall_at_1pct=float(np.mean(pct_hits)) if pct_hits else math.nan,
         recall_curve=curve,

@@ -393,12 +393,13 @@ def markdown(report: dict[str, Any]) -> str:
                     f"| {label} | {r['queries']} | {_fmt(r['ar@1'])} | {_fmt(r['ar@5'])} | "
                     f"{_fmt(r['ar@20'])} | {wrong or '–'} |"
                 )
-    lines += ["", "### Tables II and III: ablations (validation preset, equal budget)", ""]
-    lines += [
-        "| variant | run | scans seen | params | forward ms (B=1) | F1max all | same | reverse "
-        "| Recall@1 all | reverse |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    if report["ablation"]:
+        lines += ["", "### Tables II and III: ablations (validation preset, equal budget)", ""]
+        lines += [
+            "| variant | run | scans seen | params | forward ms (B=1) | F1max all | same | "
+            "reverse | Recall@1 all | reverse |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
     for label, r in report["ablation"].items():
         v = r["val"]
         lines.append(
@@ -407,9 +408,10 @@ def markdown(report: dict[str, Any]) -> str:
             f"{_fmt(v['same']['f1max'])} | {_fmt(v['reverse']['f1max'])} | "
             f"{_fmt(v['all']['recall@1'])} | {_fmt(v['reverse']['recall@1'])} |"
         )
-    lines += ["", "### Table IV: loss and validation F1max per epoch", ""]
-    lines += ["| run | loss | epoch | training loss | val F1max | val Recall@1 |"]
-    lines += ["|---|---|---|---|---|---|"]
+    if report["epochs"]:
+        lines += ["", "### Table IV: loss and validation F1max per epoch", ""]
+        lines += ["| run | loss | epoch | training loss | val F1max | val Recall@1 |"]
+        lines += ["|---|---|---|---|---|---|"]
     for label, r in report["epochs"].items():
         for h in r["history"]:
             lines.append(
@@ -417,7 +419,7 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{_fmt(h['f1max'])} | {_fmt(h['recall@1'])} |"
             )
     if report.get("real"):
-        lines += ["", "### Real scans (shipped model's checkpoint)", ""]
+        lines += ["", "### Real scans (the shipped model)", ""]
         lines += [
             "| scans | profile | cosine under random yaw (min) | turned copy ÷ 1 m step "
             "(squared distances) | odd→even Recall@1 (radius) | with the yaw re-rank "

@@ -119,6 +119,8 @@ def test_loop_closure_database_excludes_recent_frames():
     res = evaluate_loop_closure(desc[:151], pos[:151])
     # Frame 120 is outside query 150's database, so it does not count as a positive.
     assert res.n_with_loop == 0 and math.isnan(res.recall_at_1)
+    # nothing to find: F1max and AUC are undefined, not a perfect 1 (or 0)
+    assert math.isnan(res.f1max) and math.isnan(res.auc)
     assert res.n_queries == 50
     pos[150] = np.array([3, 120])  # one reachable positive, one not
     res = evaluate_loop_closure(desc[:151], pos[:151])
