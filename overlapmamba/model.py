@@ -261,7 +261,7 @@ def eval_cmd(
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(ev.record, indent=2) + "\n")
     if plot is not None:
-        plot_pr(ev.results, plot, f"{name}: loop closure")
+        plot_pr(ev.results, plot, f"{name}: loop closure" + (staged if second.on else ""))
     if json_out or plot:
         out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
 

@@ -23,6 +23,8 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from lidar_core.rerank import Rerank
+
 Role = Literal["robot", "mapper", "viewer", "admin"]
 IndexKind = Literal["auto", "flat", "ivf"]
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
@@ -163,16 +165,17 @@ class LoopClosureSettings(_Section):
 
 class RerankSettings(_Section):
     # Chosen on the validation town and its second session (benchmarks/rerank.py): the
-    # mean of F1max and Recall@1 on the three subsets and AR@1 across sessions.
+    # mean of F1max and Recall@1 on the three subsets and AR@1 across sessions. The
+    # defaults are lidar_core.rerank.Rerank's, which evaluation uses too.
     k: int = Field(
-        20,
+        Rerank().k,
         ge=1,
         le=50,
         description="scan queries: re-rank the k nearest descriptors by d² − weight · "
         "aligned yaw-feature correlation (1: descriptor order only)",
     )
     weight: float = Field(
-        0.2, ge=0, le=10, description="the correlation's weight in the score (0: off)"
+        Rerank().weight, ge=0, le=10, description="the correlation's weight in the score (0: off)"
     )
 
 
