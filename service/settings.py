@@ -150,10 +150,10 @@ class LoopClosureSettings(_Section):
     # float16 as maps store them), where precision is 0.93 and recall 0.86.
     max_score: float = Field(
         -0.0456,
-        ge=-1,
-        le=5,
-        description="accept a loop closure when the re-ranked top-1's score is below (when "
-        "the answer was re-ranked; else max_distance decides)",
+        ge=-10,  # a score is d² − weight · c: d² in [0, 4], weight ≤ 10, c in [−1, 1]
+        le=14,
+        description="accept a loop closure when the re-ranked top-1's score is at most this "
+        "(when the answer was re-ranked; else max_distance decides)",
     )
     min_margin: float = Field(
         0.0,
