@@ -73,8 +73,8 @@ bench: $(VENV)/.installed-all
 
 # The synthetic presets (≈38 GB, ≈105 min on 2 cores): four training towns, the validation
 # town and a second drive through it, three test towns and a second drive through the first
-# test town. Each is skipped
-# when its manifest exists, so an interrupted `make data` resumes where it stopped.
+# test town. Each is skipped when its manifest exists, so an interrupted `make data`
+# resumes where it stopped.
 DATA_PRESETS := train train-b train-c train-d val val-s1 test test-b test-c test-s1
 data: $(VENV)/.installed-all
 	for p in $(DATA_PRESETS); do \
