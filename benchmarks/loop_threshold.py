@@ -42,7 +42,9 @@ def main() -> None:
     ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument(
-        "--rerank", default="20,0.2", help="the second stage, K,WEIGHT (the service's default)"
+        "--rerank",
+        default=f"{Rerank().k},{Rerank().weight:g}",
+        help="the second stage, K,WEIGHT or off (default: the service's)",
     )
     ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "loop_threshold.json")
     args = ap.parse_args()

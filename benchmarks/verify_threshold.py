@@ -41,7 +41,7 @@ from tqdm import tqdm
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import LoopGroundTruth
 from lidar_core.poses import pose_error
-from lidar_core.rerank import Rerank, scores
+from lidar_core.rerank import Rerank, by_score
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
 from service.settings import RerankSettings, VerifySettings
@@ -78,7 +78,7 @@ def run_town(
         top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.k)]
         deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         if rerank.on:  # as service.ranking orders the answer
-            order = np.argsort(scores(d2[i, top], conf, rerank.weight), kind="stable")
+            order, _ = by_score(d2[i, top], conf, rerank.weight)
             top, deg = top[order], deg[order]
         top, deg = top[:k], deg[:k]
         t0 = time.perf_counter()

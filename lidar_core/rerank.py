@@ -81,6 +81,17 @@ def scores(dist_sq: np.ndarray, correlation: np.ndarray, weight: float) -> np.nd
     return np.asarray(dist_sq, dtype=np.float64) - weight * np.asarray(correlation, np.float64)
 
 
+def by_score(
+    dist_sq: np.ndarray, correlation: np.ndarray, weight: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One shortlist (nearest descriptor first) in the second stage's order: (order into
+    the shortlist, the scores in that order); ties keep the descriptor order. Evaluation,
+    the service and the calibration benchmarks all order through here."""
+    s = scores(dist_sq, correlation, weight)
+    order = np.argsort(s, kind="stable")
+    return order, s[order]
+
+
 def rerank(
     query_yaw: np.ndarray, cand_yaw: np.ndarray, dist_sq: np.ndarray, p: Rerank
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,9 +107,8 @@ def rerank(
         empty = np.zeros(0)
         return np.zeros(0, dtype=np.int64), empty, empty
     c = aligned_correlation(query_yaw, cand_yaw)
-    s = scores(d, c, p.weight)
-    order = np.argsort(s, kind="stable")
-    return order, s[order], c[order]
+    order, s = by_score(d, c, p.weight)
+    return order, s, c[order]
 
 
 def rerank_ranked(

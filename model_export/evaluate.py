@@ -272,14 +272,14 @@ def eval_real(
 
     odd, even = np.arange(1, n, 2), np.arange(0, n, 2)
     k = min(5, len(even))
-    ranked, _ = nearest(desc_t[odd], desc[even], k=k)
-    found = even[ranked]  # (Q, 5) frame numbers
+    # one search for both stages: the second re-ranks the first rerank.k of it
+    ranked, dist = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.k), len(even)))
+    found = even[ranked[:, :k]]  # (Q, 5) frame numbers
     close = np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < hit_radius
     sc = _scan_context_odd_to_even(seq, theta, odd, even, k, hit_radius)
     staged: dict[str, Any] = {}
     if rerank.on:  # the service's two stages: the nearest re-ranked by their yaw features
-        r2, d2 = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.k), len(even)))
-        r2, _ = rerank_ranked(feats_t[odd], feats[even], r2, d2, rerank)
+        r2, _ = rerank_ranked(feats_t[odd], feats[even], ranked, dist, rerank)
         near2 = np.linalg.norm(pos[even[r2[:, :k]]] - pos[odd][:, None], axis=-1) < hit_radius
         staged = {
             "reranked": {
@@ -386,19 +386,22 @@ def cross_session(
     check_sessions(database, queries)
     pos_db, pos_q = town_positions(database), town_positions(queries)
     done: dict[str, dict[str, Any]] = {}
+    described: dict[str, tuple[np.ndarray, ...]] = {}  # (desc db, yaw db, desc q, yaw q)
     by_label: dict[str, dict[str, Any]] = {}
     for label, model, profile in networks:
         key = network_digest(model)
-        if key not in done:
-            d_db, y_db = describe(model, range_images(database, profile, progress=progress))
-            d_q, y_q = describe(model, range_images(queries, profile, progress=progress))
-            done[key] = descriptor_recall(d_db, pos_db, d_q, pos_q)
-            if rerank.on:
+        if key not in described:
+            db = describe(model, range_images(database, profile, progress=progress))
+            q = describe(model, range_images(queries, profile, progress=progress))
+            described[key] = (*db, *q)
+            done[key] = descriptor_recall(db[0], pos_db, q[0], pos_q)
+        by_label[label] = done[key]
+        if rerank.on and (rerank_labels is None or label in rerank_labels):
+            if key + RERANKED not in done:
+                d_db, y_db, d_q, y_q = described[key]
                 done[key + RERANKED] = descriptor_recall(
                     d_db, pos_db, d_q, pos_q, yaw=(y_db, y_q), rerank=rerank
                 )
-        by_label[label] = done[key]
-        if rerank.on and (rerank_labels is None or label in rerank_labels):
             by_label[label + RERANKED] = done[key + RERANKED]
     sc_db = scan_contexts(database, progress=progress)
     sc_q = scan_contexts(queries, progress=progress)

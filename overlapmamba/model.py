@@ -26,6 +26,14 @@ app, command = command_group("Model")
 RERANK_DEFAULT = f"{Rerank().k},{Rerank().weight:g}"
 
 
+def _second_stage(text: str) -> Rerank:
+    """--rerank's value, or a usage error naming what is allowed."""
+    try:
+        return Rerank.parse(text)
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad), param_hint="--rerank") from None
+
+
 @command(
     "train",
     epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
@@ -211,10 +219,7 @@ def eval_cmd(
     def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
         return open_recording(path, topic=topic, odometry=odometry, tf=tf, need_poses=True)
 
-    try:
-        second = Rerank.parse(rerank)
-    except ValueError as bad:
-        raise typer.BadParameter(str(bad), param_hint="--rerank") from None
+    second = _second_stage(rerank)
     ev = evaluate_checkpoint(
         checkpoint, sequence, open_sequence, database=database, rerank=second, progress=not quiet
     )
@@ -355,10 +360,7 @@ def eval_real_cmd(
     if profile_name is not None:
         profile = sensor_profile(profile_name)
     seq = open_sequence(sequence)
-    try:
-        second = Rerank.parse(rerank)
-    except ValueError as bad:
-        raise typer.BadParameter(str(bad), param_hint="--rerank") from None
+    second = _second_stage(rerank)
     try:
         r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius, rerank=second)
     except ValueError as err:

@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from lidar_core.rerank import Rerank, scores
+from lidar_core.rerank import Rerank, by_score
 from service.domain import Match
 from service.settings import RerankSettings
 
@@ -36,10 +36,10 @@ def rerank_matches(matches: list[Match], p: Rerank) -> list[Match]:
     head = matches[: p.k]
     if not p.on or not head or any(m.yaw_confidence is None for m in head):
         return matches
-    s = scores(
+    order, s = by_score(
         np.array([m.distance for m in head]) ** 2,
         np.array([m.yaw_confidence for m in head], dtype=np.float64),
         p.weight,
     )
-    order = np.argsort(s, kind="stable")
-    return [replace(head[i], score=float(s[i])) for i in order] + matches[p.k :]
+    ranked = [replace(head[i], score=float(x)) for i, x in zip(order, s, strict=True)]
+    return ranked + matches[p.k :]
