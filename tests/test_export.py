@@ -319,3 +319,40 @@ def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, 
         load_model(foreign)
     with pytest.raises(CheckpointError, match="does not exist"):
         load_model(tmp_path / "missing.onnx")
+
+
+def test_weights_come_back_from_an_exported_encoder(tmp_path, kitti_images):
+    """model_export.recover undoes the exporter's rewrites (transposed linear weights, A
+    folded from A_log, SPP's batch norm folded into its convolution, int8 storage): the
+    recovered network gives onnxruntime's descriptors, its unfolded weights are the
+    original's, and a graph that does not give every parameter back is refused."""
+    from model_export.recover import TOLERANCE, recover
+
+    model = tiny_model(seed=3)
+    with torch.no_grad():  # batch norm with statistics and affine terms worth folding
+        for bn in (model.spp.cv1[1], model.spp.cv2[1]):
+            bn.running_mean.uniform_(-0.5, 0.5)
+            bn.running_var.uniform_(0.5, 2.0)
+            bn.weight.uniform_(0.5, 1.5)
+            bn.bias.uniform_(-0.2, 0.2)
+        model.blocks[0].A_log.add_(0.1 * torch.randn_like(model.blocks[0].A_log))
+    res = export_onnx(model, PROFILE, tmp_path / "m.onnx", weight_format="int8", int8_min_size=2000)
+    back, profile, check = recover(res.path, kitti_images[:4])
+    assert profile == PROFILE and back.cfg == model.cfg and not back.training
+    assert check["descriptor_max_abs"] <= TOLERANCE and check["scans"] == 4
+    d, _ = run_onnx(res.path, kitti_images[:4])
+    ref, _ = torch_out(back, kitti_images[:4])
+    np.testing.assert_allclose(ref, d, rtol=0, atol=TOLERANCE)
+    ours, theirs = back.state_dict(), model.state_dict()
+    for key in ("blocks.0.in_proj.weight", "blocks.0.main.x_proj.weight", "vlad.assign.weight"):
+        torch.testing.assert_close(ours[key], theirs[key], rtol=0, atol=0)
+    torch.testing.assert_close(ours["blocks.0.A_log"], theirs["blocks.0.A_log"])
+    assert not torch.equal(ours["spp.cv1.0.weight"], theirs["spp.cv1.0.weight"])  # folded
+
+    proto = onnx.load(str(res.path))  # without the nodes' module records: nothing to map
+    for node in proto.graph.node:
+        del node.metadata_props[:]
+    stripped = tmp_path / "stripped.onnx"
+    onnx.save(proto, str(stripped))
+    with pytest.raises(CheckpointError, match=r"does not give back \d+ parameter"):
+        recover(stripped)
