@@ -178,10 +178,18 @@ class RealTurns:
     repeat: int  # rows repeated to reach the model's height (1: none)
 
 
+def turned_image(xyz: np.ndarray, theta: float, profile: SensorProfile) -> np.ndarray:
+    """The range image of points ``xyz`` (N, 3) after the sensor turned by ``theta`` degrees
+    about z (the points turn by −θ): every point re-binned, as a real turn does."""
+    from lidar_core.poses import rotation_z, transform_points
+    from lidar_core.projection import project
+
+    return project(transform_points(xyz, rotation_z(-theta)), profile)
+
+
 def real_turns(seq: Sequence, profile: SensorProfile, rows: int, seed: int = 0) -> RealTurns:
     """``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into
     an HDL-64 model's 64) has each row repeated."""
-    from lidar_core.poses import rotation_z, transform_points
     from lidar_core.projection import project
 
     if rows % profile.height:
@@ -192,15 +200,14 @@ def real_turns(seq: Sequence, profile: SensorProfile, rows: int, seed: int = 0) 
     repeat = rows // profile.height
     theta = np.random.default_rng(seed).uniform(-180.0, 180.0, len(seq))
 
-    def image(xyz: np.ndarray) -> np.ndarray:
-        img = project(xyz, profile)
+    def rows_fit(img: np.ndarray) -> np.ndarray:
         return np.repeat(img, repeat, axis=0) if repeat > 1 else img
 
     plain, turned = [], []
     for i in range(len(seq)):
         xyz = seq.points(i).xyz
-        plain.append(image(xyz))
-        turned.append(image(transform_points(xyz, rotation_z(-theta[i]))))
+        plain.append(rows_fit(project(xyz, profile)))
+        turned.append(rows_fit(turned_image(xyz, theta[i], profile)))
     return RealTurns(np.stack(plain), np.stack(turned), theta, seq.positions(), repeat)
 
 

@@ -14,6 +14,8 @@ Per step, from the batch's descriptors and its positive/negative pair masks:
     active   share of the loss's hinge terms that were > 0 (from :class:`~losses.BatchLoss`)
     margin   the margin the loss used (α, or α × spread with a relative margin)
     band_active  share of the band term's hinges that were > 0 (NaN when it is off)
+    d_turn   mean squared distance between a scan and its turned copy (the turn term's;
+             NaN when it is off)
 
 A collapse reads as: ``active`` near 1, ``spread`` falling towards 0 and the loss sitting at
 its margin. :class:`HealthLog` keeps a record every ``every`` steps (means over those steps)
@@ -42,6 +44,7 @@ KEYS = (
     "active",
     "margin",
     "band_active",
+    "d_turn",
 )
 
 

@@ -67,9 +67,10 @@ from model_export.evaluate import (
     real_turns,
     sequence_loops,
     summary,
+    turned_image,
 )
 from model_export.health import HealthLog, batch_distances, json_safe
-from model_export.losses import pair_masks
+from model_export.losses import batch_spread, pair_masks, turn_consistency
 from model_export.mining import HardNegatives, mine
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import cache_key, range_images
@@ -82,12 +83,25 @@ class _Images:
     """Range images of several sequences behind global scan indices."""
 
     def __init__(self, seqs: list[Sequence], profile: SensorProfile, progress: bool) -> None:
+        self.seqs, self.profile = seqs, profile
         self.parts = [range_images(s, profile, progress=progress) for s in seqs]
         self.offsets = np.cumsum([0, *[len(p) for p in self.parts]])
 
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+    def _locate(self, idx: np.ndarray) -> list[tuple[int, int]]:
         k = np.searchsorted(self.offsets, idx, side="right") - 1
-        return np.stack([self.parts[s][i - self.offsets[s]] for s, i in zip(k, idx, strict=True)])
+        return [(int(s), int(i - self.offsets[s])) for s, i in zip(k, idx, strict=True)]
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        return np.stack([self.parts[s][i] for s, i in self._locate(idx)])
+
+    def turned(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """The scans ``idx`` re-projected after a turn by ``theta`` degrees (the turn term)."""
+        return np.stack(
+            [
+                turned_image(self.seqs[s].points(i).xyz, t, self.profile)
+                for (s, i), t in zip(self._locate(idx), theta, strict=True)
+            ]
+        )
 
 
 def _open(path: Path, cfg: OverlapMambaConfig, role: str) -> Sequence:
@@ -148,8 +162,10 @@ def train(
         train_cfg = TrainConfig.from_dict(state["train"]["config"])
     elif last.is_file():
         raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
-    model_cfg = model_cfg or OverlapMambaConfig()
     train_cfg = train_cfg or TrainConfig()
+    if state is None and train_cfg.init:
+        model_cfg = _start_config(train_cfg, model_cfg)
+    model_cfg = model_cfg or OverlapMambaConfig()
     if epochs is not None:
         train_cfg.epochs = epochs
     if train_cfg.device == "cuda" and not torch.cuda.is_available():
@@ -193,7 +209,10 @@ def train(
     steps_per_epoch = sampler.steps(train_cfg.epoch_scans)
 
     torch.manual_seed(train_cfg.seed)
-    model = OverlapMamba(model_cfg).to(device)
+    model = OverlapMamba(model_cfg)
+    if state is None and train_cfg.init:
+        model.load_state_dict(_start_weights(train_cfg, model_cfg, progress))
+    model = model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda step: train_cfg.lr_factor(step, steps_per_epoch)
@@ -240,6 +259,13 @@ def train(
         desc_t, _ = describe(model, turns.turned, device=str(device))
         return invariance(desc, desc_t, turns.positions)
 
+    start = (
+        f"{train_cfg.init}'s weights"
+        if train_cfg.init
+        else "initial weights"
+        + (", batch norm recalibrated" if train_cfg.recalibrate_batches else "")
+    )
+
     def finish_epoch(entry: dict[str, Any]) -> None:
         """Record an epoch; write its checkpoint, best.pt, last.pt, metrics and curves."""
         nonlocal best
@@ -271,8 +297,10 @@ def train(
                 f"{h['d_pos']:.4f} d(q,n) {h['d_neg']:.4f} spread {h['spread']:.4f} "
                 f"separation {h['separation']:.2f} active {h['active']:.0%}; "
                 if h
-                else "initial weights, batch norm recalibrated; "
+                else f"start: {start}; "
             )
+            if h and not math.isnan(h.get("d_turn", math.nan)):
+                trained += f"turned copy {h['d_turn']:.5f}; "
             real = entry.get("real")
             turn = (
                 f"; real scans: turned copy {real['turned_over_one_metre_step']:.2f}× a 1 m step, "
@@ -286,16 +314,21 @@ def train(
                 f"R@1 {v['all']['recall@1']:.3f}{turn}"
             )
 
-    if not history and train_cfg.recalibrate_batches:
-        # Epoch 0: the initial weights, with batch-norm statistics from training scans (they
-        # start as 0/1 and eval mode would use them as such), validated like every epoch.
+    if not history and (train_cfg.recalibrate_batches or train_cfg.init):
+        # Epoch 0: the initial weights, validated like every epoch; fresh ones with
+        # batch-norm statistics from training scans (they start as 0/1 and eval mode would
+        # use them as such), unless batch norm is frozen.
         rng = np.random.default_rng([train_cfg.seed, 0])
         t0 = time.perf_counter()
-        batches = [sampler.batch(rng) for _ in range(train_cfg.recalibrate_batches)]
-        recalibrate_batchnorm(
-            model,
-            (torch.from_numpy(images[i].astype(np.float32))[:, None].to(device) for i in batches),
-        )
+        if train_cfg.recalibrate_batches and not train_cfg.freeze_bn:
+            batches = [sampler.batch(rng) for _ in range(train_cfg.recalibrate_batches)]
+            recalibrate_batchnorm(
+                model,
+                (
+                    torch.from_numpy(images[i].astype(np.float32))[:, None].to(device)
+                    for i in batches
+                ),
+            )
         calib_s = time.perf_counter() - t0
         val_metrics, val_s = validate()
         finish_epoch(
@@ -332,6 +365,10 @@ def train(
         batches = sampler.epoch(rng, train_cfg.epoch_scans, hard, train_cfg.hard_negatives, band)
         loss_fn = train_cfg.loss_fn(epoch)
         model.train()
+        if train_cfg.freeze_bn:
+            for m in model.modules():
+                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                    m.eval()
         health = HealthLog(
             every=train_cfg.log_every,
             step0=(epoch - 1) * steps_per_epoch,
@@ -344,18 +381,33 @@ def train(
         for idx in bar:
             td = time.perf_counter()
             x = augment(images[idx], rng)
+            with_turns = train_cfg.turn_weight > 0
+            if with_turns:  # drawn only when on: runs without the term keep their streams
+                k = train_cfg.turn_scans
+                theta = rng.uniform(-180.0, 180.0, k)
+                x = np.concatenate([x, augment(images.turned(idx[:k], theta), rng)])
             data_s += time.perf_counter() - td
             desc, _ = model(torch.from_numpy(x)[:, None].to(device))
+            B = len(idx)
+            desc, turned = desc[:B], desc[B:]
             overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
             out_loss = loss_fn(desc, overlap)
+            value = out_loss.value
+            d_turn = math.nan
+            if with_turns:
+                value = value + train_cfg.turn_weight * turn_consistency(
+                    desc[: len(turned)], turned, batch_spread(desc)
+                )
+                d_turn = float((desc[: len(turned)] - turned).detach().pow(2).sum(1).mean())
             opt.zero_grad(set_to_none=True)
-            out_loss.value.backward()
+            value.backward()
             opt.step()
             sched.step()
             masks = pair_masks(overlap, train_cfg.positive_threshold, train_cfg.negative_threshold)
             health.add(
                 {
-                    "loss": out_loss.value.item(),
+                    "loss": value.item(),
+                    "d_turn": d_turn,
                     "active": out_loss.active,
                     "margin": out_loss.margin,
                     "band_active": out_loss.band_active,
@@ -402,6 +454,57 @@ def train(
             }
         )
     return history
+
+
+def _start_config(
+    train_cfg: TrainConfig, model_cfg: OverlapMambaConfig | None
+) -> OverlapMambaConfig:
+    """The network config of ``init``'s file; a different one given alongside is refused
+    (the runtime-only scan settings aside)."""
+    path = train_cfg.init_path()
+    assert path is not None
+    if not path.is_file():
+        raise ConfigError(f"init {train_cfg.init!r}: {path} does not exist")
+    if path.suffix == ".onnx":
+        from model_export.export import read_metadata
+
+        try:
+            cfg = OverlapMambaConfig.from_dict(read_metadata(path).network)
+        except ValueError as err:
+            raise ConfigError(f"init {train_cfg.init!r}: {err}") from None
+    else:
+        cfg = OverlapMambaConfig.from_dict(read_checkpoint(path)["model_config"])
+    if model_cfg is not None:
+        runtime = ("scan_backend", "scan_chunk")
+        a, b = cfg.to_dict(), model_cfg.to_dict()
+        differ = sorted(k for k in a if k not in runtime and a[k] != b.get(k))
+        if differ:
+            raise ConfigError(
+                f"init {train_cfg.init!r} is a network with other "
+                + ", ".join(f"{k} ({a[k]!r}, not {b.get(k)!r})" for k in differ)
+                + ": drop the model settings or start from a matching network"
+            )
+    return cfg
+
+
+def _start_weights(
+    train_cfg: TrainConfig, cfg: OverlapMambaConfig, progress: bool
+) -> dict[str, torch.Tensor]:
+    """``init``'s weights: a checkpoint's state dict, or an exported encoder's recovered
+    (and checked against onnxruntime: :func:`model_export.recover.recover`)."""
+    path = train_cfg.init_path()
+    assert path is not None
+    if path.suffix == ".onnx":
+        from model_export.recover import recover
+
+        model, _, check = recover(path)
+        if progress:
+            tqdm.write(
+                f"start: {path}'s weights recovered (descriptors within "
+                f"{check['descriptor_max_abs']:.1e} of onnxruntime's)"
+            )
+        return model.state_dict()
+    return read_checkpoint(path)["state_dict"]
 
 
 def _real_turns(

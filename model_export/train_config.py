@@ -67,6 +67,19 @@ class TrainConfig(Config):
     band_share: float = 0.0
     band_from_epoch: int = 1
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
+    # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
+    # also fed turned about z by a random continuous angle (re-projected from their points),
+    # and turn_weight × their squared distance to the unturned scan, in units of the batch's
+    # spread, joins the loss (0: off, and nothing is drawn for it).
+    turn_weight: float = 0.0
+    turn_scans: int = 4
+    # Start from a trained network instead of the seed's weights: a checkpoint (.pt) or an
+    # exported encoder (.onnx, weights recovered exactly: model_export.recover), relative to
+    # the repository root unless it exists from here. freeze_bn keeps every batch norm in
+    # eval mode (statistics and all), which a recovered network needs: its norms were folded
+    # into the convolutions and have no statistics to continue.
+    init: str = ""
+    freeze_bn: bool = False
     recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
     log_every: int = 10  # steps per health record
     real: str = REAL_SCANS  # real scans whose turned copies are checked every epoch ("": off)
@@ -116,6 +129,25 @@ class TrainConfig(Config):
                 f"band_weight > 0 needs loss 'imtrihard' (the band term is ImTrihard's); got "
                 f"{self.loss!r}"
             )
+        if self.turn_weight < 0 or self.turn_scans < 1:
+            raise ConfigError(
+                f"turn_weight {self.turn_weight} / turn_scans {self.turn_scans} are not "
+                "allowed: use turn_weight ≥ 0 and turn_scans ≥ 1"
+            )
+        if self.turn_scans > self.batch_size:
+            raise ConfigError(
+                f"turn_scans {self.turn_scans} is more than the batch ({self.batch_size}): "
+                "turned copies are taken from the batch's own scans"
+            )
+        if self.init.endswith(".onnx") and not self.freeze_bn:
+            raise ConfigError(
+                f"init {self.init!r} is an exported encoder: its batch norms were folded and "
+                "have no statistics to train with; set freeze_bn = true"
+            )
+        if self.init and not self.init.endswith((".onnx", ".pt")):
+            raise ConfigError(
+                f"init {self.init!r}: allowed are a checkpoint (.pt) or an exported encoder (.onnx)"
+            )
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")
         if self.margin_scale not in SCALES:
@@ -131,6 +163,14 @@ class TrainConfig(Config):
         if not self.real:
             return None
         path = Path(self.real)
+        return path if path.is_absolute() or path.exists() else ROOT / path
+
+    def init_path(self) -> Path | None:
+        """The network the run starts from (as given when it exists from here, else relative
+        to the repository root); None: the seed's fresh weights."""
+        if not self.init:
+            return None
+        path = Path(self.init)
         return path if path.is_absolute() or path.exists() else ROOT / path
 
     def augment_config(self) -> AugmentConfig:

@@ -81,6 +81,13 @@ def train_cmd(
     loss: Annotated[str | None, typer.Option(help="imtrihard or triplet")] = None,
     seed: Annotated[int | None, typer.Option(min=0)] = None,
     device: Annotated[str | None, typer.Option(help="cpu or cuda")] = None,
+    init: Annotated[
+        Path | None,
+        typer.Option(
+            help="start from this network: a checkpoint (.pt) or an exported encoder (.onnx, "
+            "weights recovered exactly; needs freeze_bn, which it sets)"
+        ),
+    ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
@@ -98,6 +105,8 @@ def train_cmd(
             loss=loss,
             seed=seed,
             device=device,
+            init=None if init is None else str(init),
+            freeze_bn=True if init is not None and init.suffix == ".onnx" else None,
         ).items()
         if v is not None
     }

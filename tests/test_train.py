@@ -105,6 +105,53 @@ def test_band_term_starts_at_its_epoch_and_changes_nothing_before(
     assert any(not torch.equal(c[k], d[k]) for k in c if k.endswith("weight"))
 
 
+def test_a_run_continues_an_exported_encoder_with_the_turn_term(
+    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+):
+    """--init MODEL.onnx: the run starts from the encoder's recovered weights (epoch 0 is
+    that network, validated, its batch norm neither recalibrated nor updated after), and
+    the turn term feeds turned copies and records how far they moved; a start that does not
+    fit the run is refused with the reason."""
+    from model_export.export import export_onnx
+
+    straight, history = tiny_run
+    model, profile, _ = load_model(straight / "epoch-002.pt")
+    onnx_path = export_onnx(model, profile, tmp_path / "start.onnx", weight_format="float32").path
+    turn = dict(turn_weight=1.0, turn_scans=2, epochs=1, freeze_bn=True, init=str(onnx_path))
+    out = tmp_path / "continued"
+    got = train([tiny_seq], tiny_val_seq, out, None, small_run(**turn), progress=False)
+    f1 = history[2]["val"]["all"]["f1max"]
+    assert got[0]["val"]["all"]["f1max"] == pytest.approx(f1, abs=1e-3)
+    start, after = (read_checkpoint(out / f"epoch-00{e}.pt")["state_dict"] for e in (0, 1))
+    assert read_checkpoint(out / "epoch-000.pt")["model_config"] == model.cfg.to_dict()
+    for key in ("spp.cv1.1.running_mean", "spp.cv1.1.running_var", "spp.cv2.1.running_mean"):
+        torch.testing.assert_close(start[key], after[key], rtol=0, atol=0)  # frozen
+    assert not torch.equal(start["blocks.0.in_proj.weight"], after["blocks.0.in_proj.weight"])
+    assert all(r["d_turn"] > 0 for r in got[1]["health_log"])
+    assert all(r["d_turn"] != r["d_turn"] for r in history[1]["health_log"])  # off: NaN
+
+    with pytest.raises(ConfigError, match="set freeze_bn = true"):
+        small_run(init=str(onnx_path))
+    with pytest.raises(ConfigError, match="a network with other d_model"):
+        train(
+            [tiny_seq],
+            tiny_val_seq,
+            tmp_path / "other",
+            OverlapMambaConfig(**{**SMALL, "d_model": 16}),
+            small_run(**turn),
+            progress=False,
+        )
+    with pytest.raises(ConfigError, match="does not exist"):
+        train(
+            [tiny_seq],
+            tiny_val_seq,
+            tmp_path / "gone",
+            None,
+            small_run(**{**turn, "init": str(tmp_path / "gone.onnx")}),
+            progress=False,
+        )
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # its set-up generates the tiny-val town (≈2 min on 2 busy cores)
 def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
@@ -272,6 +319,9 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
         ({"augment": {"tilt": 3}}, "unknown augmentation fields"),
         ({"augment": {"dropout": 1.5}}, "dropout=1.5 is out of range"),
         ({"warmup_steps": -1}, "warmup_steps must be ≥ 0"),
+        ({"turn_weight": -1}, "use turn_weight ≥ 0"),
+        ({"turn_scans": 17}, "more than the batch"),
+        ({"init": "model.bin"}, "allowed are a checkpoint"),
     ],
 )
 def test_recipe_settings_are_checked_with_the_allowed_values(fields, message):
