@@ -26,6 +26,9 @@ def plot_curves(history: list[dict], path: Path) -> None:
     band = [math.nan if r.get("d_band") is None else r["d_band"] for r in log]
     if any(math.isfinite(x) for x in band):  # runs from before the band was logged lack it
         b.plot(steps, band, "c-", label="d_band (neighbours)")
+    turn = [math.nan if r.get("d_turn") is None else r["d_turn"] for r in log]
+    if any(math.isfinite(x) for x in turn):  # the turn term's runs
+        b.plot(steps, turn, "m-", label="d_turn (turned copy)")
     b.set(xlabel="step", ylabel="squared distance", title="health", yscale="log")
     b.legend(fontsize=7, loc="upper left")
     twin = b.twinx()

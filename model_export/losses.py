@@ -196,14 +196,19 @@ def batch_spread(desc: Tensor) -> Tensor:
     return total.clamp_min(0) / max(1, B * (B - 1))
 
 
-def turn_consistency(desc: Tensor, turned: Tensor, spread: Tensor) -> Tensor:
-    """Mean squared distance between scans' descriptors ``desc`` (T, D) and those of the same
-    scans turned about z by a continuous angle ``turned`` (T, D), in units of the batch's
-    ``spread``, with its gradient (as the normalised margin scale: gathering every
-    descriptor towards one point cannot lower it). The circular network ignores whole-column
-    turns exactly, but a fraction of a column re-bins every point, and training alone let
-    that move grow (README, Training: the turn term)."""
-    return (desc - turned).pow(2).sum(1).mean() / spread.clamp_min(1e-12)
+def turn_consistency(
+    desc: Tensor, turned: Tensor, spread: Tensor, allowance: float = 0.0
+) -> Tensor:
+    """How far scans' descriptors ``desc`` (T, D) moved from those of the same scans turned
+    about z by a continuous angle ``turned`` (T, D): the mean of (squared distance ÷ the
+    batch's ``spread`` − ``allowance``)⁺, the spread with its gradient. So a turned copy
+    nearer than ``allowance`` spreads costs nothing, and gathering every descriptor towards
+    one point lowers nothing: measured with an allowance in absolute units, the run shrank
+    its spread 13× within 200 steps and met a cosine bar that way (README, Training: the
+    turn term). The circular network ignores whole-column turns exactly, but a fraction of a
+    column re-bins every point, and training alone let that move grow."""
+    moved = (desc - turned).pow(2).sum(1) / spread.clamp_min(1e-12)
+    return torch.relu(moved - allowance).mean()
 
 
 SCALES = ("absolute", "relative", "normalised")

@@ -396,7 +396,7 @@ def train(
             d_turn = math.nan
             if with_turns:
                 value = value + train_cfg.turn_weight * turn_consistency(
-                    desc[: len(turned)], turned, batch_spread(desc)
+                    desc[: len(turned)], turned, batch_spread(desc), train_cfg.turn_allowance
                 )
                 d_turn = float((desc[: len(turned)] - turned).detach().pow(2).sum(1).mean())
             opt.zero_grad(set_to_none=True)

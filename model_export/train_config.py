@@ -70,9 +70,11 @@ class TrainConfig(Config):
     # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
     # also fed turned about z by a random continuous angle (re-projected from their points),
     # and turn_weight × their squared distance to the unturned scan, in units of the batch's
-    # spread, joins the loss (0: off, and nothing is drawn for it).
+    # spread, joins the loss (0: off, and nothing is drawn for it); a turned copy nearer
+    # than turn_allowance (in units of the spread too) costs nothing.
     turn_weight: float = 0.0
     turn_scans: int = 4
+    turn_allowance: float = 0.0
     # Start from a trained network instead of the seed's weights: a checkpoint (.pt) or an
     # exported encoder (.onnx, weights recovered exactly: model_export.recover), relative to
     # the repository root unless it exists from here. freeze_bn keeps every batch norm in
@@ -129,10 +131,12 @@ class TrainConfig(Config):
                 f"band_weight > 0 needs loss 'imtrihard' (the band term is ImTrihard's); got "
                 f"{self.loss!r}"
             )
-        if self.turn_weight < 0 or self.turn_scans < 1:
+        if self.turn_weight < 0 or self.turn_scans < 1 or not 0 <= self.turn_allowance < 1:
             raise ConfigError(
-                f"turn_weight {self.turn_weight} / turn_scans {self.turn_scans} are not "
-                "allowed: use turn_weight ≥ 0 and turn_scans ≥ 1"
+                f"turn_weight {self.turn_weight} / turn_scans {self.turn_scans} / "
+                f"turn_allowance {self.turn_allowance} are not allowed: use turn_weight ≥ 0, "
+                "turn_scans ≥ 1 and 0 ≤ turn_allowance < 1 (a turned copy one spread away is "
+                "as far as any other scan)"
             )
         if self.turn_scans > self.batch_size:
             raise ConfigError(

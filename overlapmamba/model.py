@@ -139,11 +139,13 @@ def train_cmd(
         if not data or val is None:
             raise typer.BadParameter("give --data (at least one) and --val, or --resume")
         model_d, train_d = load_config_file(config) if config else ({}, {})
-        try:
-            model_cfg = OverlapMambaConfig.from_dict(model_d)
+        train_cfg = TrainConfig.from_dict({**train_d, **overrides})
+        try:  # a run from --init takes its network's config unless [model] says otherwise
+            model_cfg = (
+                OverlapMambaConfig.from_dict(model_d) if model_d or not train_cfg.init else None
+            )
         except (TypeError, ValueError) as err:
             raise typer.BadParameter(f"[model] config: {err}") from None
-        train_cfg = TrainConfig.from_dict({**train_d, **overrides})
     if output is None:
         raise typer.BadParameter("give --out (the run folder), or a --preset")
     history = train(
