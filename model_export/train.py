@@ -31,6 +31,13 @@ atomically:
     runs/NAME/metrics.json     per-epoch history with the health records
     runs/NAME/curves.png       loss, health per step, validation per epoch
 
+**A trained start** (``init``): a checkpoint or an exported encoder
+(:mod:`model_export.recover`) replaces the seed's weights, and its network config is the
+run's; with ``freeze_bn`` every batch norm stays in eval mode (no recalibration at epoch 0,
+no statistics updated after). With ``turn_weight`` > 0 each batch's first ``turn_scans``
+scans are also re-projected after a random continuous turn (and augmented like the batch),
+and :func:`~model_export.losses.turn_consistency` joins the loss.
+
 **Reproducible and resumable.** The weights start from ``seed``; epoch k draws its batches,
 augmentation and shifts from generators seeded by (seed, k) alone, and the learning rate is a
 function of the global step. So ``--resume`` after any epoch continues exactly as an
@@ -211,7 +218,7 @@ def train(
     torch.manual_seed(train_cfg.seed)
     model = OverlapMamba(model_cfg)
     if state is None and train_cfg.init:
-        model.load_state_dict(_start_weights(train_cfg, model_cfg, progress))
+        model.load_state_dict(_start_weights(train_cfg, progress))
     model = model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -263,7 +270,11 @@ def train(
         f"{train_cfg.init}'s weights"
         if train_cfg.init
         else "initial weights"
-        + (", batch norm recalibrated" if train_cfg.recalibrate_batches else "")
+        + (
+            ", batch norm recalibrated"
+            if train_cfg.recalibrate_batches and not train_cfg.freeze_bn
+            else ""
+        )
     )
 
     def finish_epoch(entry: dict[str, Any]) -> None:
@@ -487,9 +498,7 @@ def _start_config(
     return cfg
 
 
-def _start_weights(
-    train_cfg: TrainConfig, cfg: OverlapMambaConfig, progress: bool
-) -> dict[str, torch.Tensor]:
+def _start_weights(train_cfg: TrainConfig, progress: bool) -> dict[str, torch.Tensor]:
     """``init``'s weights: a checkpoint's state dict, or an exported encoder's recovered
     (and checked against onnxruntime: :func:`model_export.recover.recover`)."""
     path = train_cfg.init_path()

@@ -68,7 +68,8 @@ class TrainConfig(Config):
     band_from_epoch: int = 1
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
     # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
-    # also fed turned about z by a random continuous angle (re-projected from their points),
+    # also fed turned about z by a random continuous angle (re-projected from their points,
+    # then augmented like the batch),
     # and turn_weight × their squared distance to the unturned scan, in units of the batch's
     # spread, joins the loss (0: off, and nothing is drawn for it); a turned copy nearer
     # than turn_allowance (in units of the spread too) costs nothing.
