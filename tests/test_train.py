@@ -336,6 +336,7 @@ def test_recipe_settings_are_checked_with_the_allowed_values(fields, message):
         (["train", "--out", "x"], "give --data"),
         (["train", "--out", "x", "--resume", "--lr", "0.1"], "--resume continues"),
         (["eval", "--checkpoint", "nope.pt", "--sequence", "."], "does not exist"),
+        (["train", "--data", ".", "--val", ".", "--out", "x", "--init", "gone.onnx"], "gone.onnx"),
     ],
 )
 def test_cli_errors_are_one_line(args, message, tmp_path, monkeypatch):
