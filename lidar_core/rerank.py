@@ -76,18 +76,14 @@ def aligned_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
     return circular_correlation(query, refs).max(axis=1)
 
 
-def scores(dist_sq: np.ndarray, correlation: np.ndarray, weight: float) -> np.ndarray:
-    """The re-ranking score d² − weight · c (lower is better), elementwise."""
-    return np.asarray(dist_sq, dtype=np.float64) - weight * np.asarray(correlation, np.float64)
-
-
 def by_score(
     dist_sq: np.ndarray, correlation: np.ndarray, weight: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """One shortlist (nearest descriptor first) in the second stage's order: (order into
-    the shortlist, the scores in that order); ties keep the descriptor order. Evaluation,
-    the service and the calibration benchmarks all order through here."""
-    s = scores(dist_sq, correlation, weight)
+    the shortlist, the scores d² − weight · c in that order; lower is better); ties keep the
+    descriptor order. Evaluation, the service and the calibration benchmarks all order
+    through here."""
+    s = np.asarray(dist_sq, dtype=np.float64) - weight * np.asarray(correlation, np.float64)
     order = np.argsort(s, kind="stable")
     return order, s[order]
 

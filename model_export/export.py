@@ -317,5 +317,9 @@ def export_onnx(
 
 def read_metadata(path: Path | str) -> EncoderMetadata:
     """The metadata of an exported model, read without building an inference session."""
-    proto = onnx.load(str(path), load_external_data=False)
+    return metadata_of(onnx.load(str(path), load_external_data=False))
+
+
+def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:
+    """The metadata of a loaded exported model."""
     return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})

@@ -31,9 +31,8 @@ import numpy as np
 import torch
 
 from lidar_core.sensors import SensorProfile
-from model_export.checkpoint import ExportedNetwork
 from model_export.errors import CheckpointError
-from model_export.model import OverlapMamba
+from model_export.model import OverlapMamba, OverlapMambaConfig
 
 TOLERANCE = 1e-5  # max abs descriptor difference to onnxruntime (measured: 8e-8)
 _SCOPES = "pkg.torch.onnx.name_scopes"
@@ -103,28 +102,28 @@ def recover(
     path: str | Path, images: np.ndarray | None = None
 ) -> tuple[OverlapMamba, SensorProfile, dict[str, Any]]:
     """The network of an exported encoder with its weights (eval mode), its sensor profile
-    and a check: ``{"descriptor_max_abs", "yaw_features_max_abs", "scans"}`` against
-    onnxruntime on ``images`` ((N, 1, H, W); default: the exporter's verification images)."""
+    and the check against onnxruntime on ``images`` ((N, 1, H, W); default: the exporter's
+    verification images): :func:`model_export.export.compare`'s numbers and ``scans``."""
     import onnx
 
-    from model_export.export import verification_images
+    from model_export.export import compare, metadata_of, verification_images
 
     path = Path(path)
-    exported = ExportedNetwork(path, threads=1)  # refuses a file that is not an encoder
-    model = OverlapMamba(exported.cfg).eval()
-    model.load_state_dict(state_dict_from_onnx(onnx.load(str(path)), model))
-    profile = exported.meta.profile
+    if not path.is_file():
+        raise CheckpointError(f"model {path} does not exist", path=str(path))
+    try:
+        proto = onnx.load(str(path))
+        meta = metadata_of(proto)
+        model = OverlapMamba(OverlapMambaConfig.from_dict(meta.network)).eval()
+    except Exception as err:  # protobuf and the metadata parser raise their own classes
+        raise CheckpointError(
+            f"{path} is not an exported encoder ({type(err).__name__}: {err})", path=str(path)
+        ) from None
+    model.load_state_dict(state_dict_from_onnx(proto, model))
     if images is None:
-        images = verification_images(profile)
-    x = torch.from_numpy(np.asarray(images, np.float32))
-    with torch.no_grad():
-        desc, yaw = model(x)
-        ref_desc, ref_yaw = exported(x)
-    check = {
-        "descriptor_max_abs": float((desc - ref_desc).abs().max()),
-        "yaw_features_max_abs": float((yaw - ref_yaw).abs().max()),
-        "scans": len(x),
-    }
+        images = verification_images(meta.profile)
+    images = np.asarray(images, np.float32)
+    check = {**compare(path, model, images), "scans": len(images)}
     if not check["descriptor_max_abs"] <= TOLERANCE:
         raise CheckpointError(
             f"{path}: the recovered weights give descriptors {check['descriptor_max_abs']:.2e} "
@@ -132,4 +131,4 @@ def recover(
             "exporter or the network changed since",
             **check,
         )
-    return model, profile, check
+    return model, meta.profile, check

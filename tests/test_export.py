@@ -356,3 +356,9 @@ def test_weights_come_back_from_an_exported_encoder(tmp_path, kitti_images):
     onnx.save(proto, str(stripped))
     with pytest.raises(CheckpointError, match=r"does not give back \d+ parameter"):
         recover(stripped)
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a graph")
+    with pytest.raises(CheckpointError, match="is not an exported encoder"):
+        recover(junk)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        recover(tmp_path / "gone.onnx")
