@@ -28,8 +28,7 @@ from rich.table import Table
 from lidar_core.datasets import open_sequence
 from lidar_core.rerank import OFF, Rerank
 from model_export.checkpoint import load_model
-from model_export.evaluate import SUBSETS, describe, loop_closure, sequence_loops
-from model_export.rangecache import range_images
+from model_export.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
 from model_export.sessions import check_sessions, descriptor_recall, town_positions
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,8 +49,8 @@ def main() -> None:
     val, second = open_sequence(args.val), open_sequence(args.second_session)
     check_sessions(val, second)
     gt = sequence_loops(val, profile)
-    desc, yaw = describe(model, range_images(val, profile))
-    desc_q, yaw_q = describe(model, range_images(second, profile))
+    desc, yaw = describe_sequence(model, val, profile)
+    desc_q, yaw_q = describe_sequence(model, second, profile)
     pos, pos_q = town_positions(val), town_positions(second)
 
     rows = []

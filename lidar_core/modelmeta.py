@@ -2,7 +2,8 @@
 
 The export (``model_export.export``) writes these fields into the ONNX file's
 ``metadata_props``; the service reads them back (onnxruntime's ``custom_metadata_map``) and
-needs nothing else: the sensor profile gives the projection, ``descriptor_dim`` sizes the
+needs nothing else: the sensor profile gives the projection, ``views`` how many sub-column
+views of it make one descriptor (:mod:`lidar_core.views`), ``descriptor_dim`` sizes the
 index, ``model_id`` keeps descriptors of different models out of one map.
 
 Every value in ``metadata_props`` is a string; structured fields are JSON. The keys are
@@ -11,6 +12,7 @@ namespaced ``overlapmamba.*`` so they never collide with a tool's own.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from typing import Any
 
@@ -18,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from lidar_core.errors import LidarCoreError
 from lidar_core.sensors import SensorProfile
+from lidar_core.views import MAX_VIEWS
 
 FORMAT = "overlapmamba-encoder"
 VERSION = 1
@@ -42,11 +45,25 @@ class EncoderMetadata(BaseModel):
 
     format: str = FORMAT
     version: int = VERSION
-    model_id: str = Field(min_length=1, description="content hash of the graph and weights")
+    model_id: str = Field(
+        min_length=1, description="content hash of the graph and weights (and of views > 1)"
+    )
     profile: SensorProfile = Field(description="sensor profile: every projection parameter")
     network: dict[str, Any] = Field(alias="model_config", description="the network config")
     descriptor_dim: int = Field(gt=0)
     yaw_channels: int = Field(gt=0)
+    views: int = Field(
+        default=1,
+        ge=1,
+        le=MAX_VIEWS,
+        description="sub-column views a scan is described by (lidar_core.views); part of the "
+        "model id",
+    )
+    graph_id: str = Field(
+        default="",
+        description="with views > 1, the content hash of the graph and weights alone (the "
+        "model id the same file has with one view); empty otherwise",
+    )
     weights: str = Field(description="'trained' or 'random' (an untrained network)")
     weight_format: str = Field(description="storage of the large matrices: float32 or int8")
     training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
@@ -55,6 +72,11 @@ class EncoderMetadata(BaseModel):
     exported_at: str = Field(description="UTC time, ISO 8601")
     torch_version: str = ""
     opset: int = Field(gt=0)
+
+    @property
+    def graph(self) -> str:
+        """The content hash of the graph and weights, whatever the views."""
+        return self.graph_id or self.model_id
 
     def to_props(self) -> dict[str, str]:
         """String → string pairs for ``metadata_props``."""
@@ -73,7 +95,7 @@ class EncoderMetadata(BaseModel):
                 "`overlapmamba export CHECKPOINT --out model.onnx`",
                 found=sorted(props),
             )
-        strings = {"format", "model_id", "weights", "weight_format", "source_commit"}
+        strings = {"format", "model_id", "graph_id", "weights", "weight_format", "source_commit"}
         strings |= {"exported_at", "torch_version"}
         try:
             values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
@@ -90,3 +112,12 @@ class EncoderMetadata(BaseModel):
             return cls.model_validate(values)
         except ValidationError as err:
             raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None
+
+
+def model_id_of(graph_id: str, views: int) -> str:
+    """The model id of a graph (its content hash, ``om-…``) described by ``views`` views: the
+    graph's own with one view (as every file before views had), else a hash of both, since
+    other views give other descriptors, which must not share a map."""
+    if views == 1:
+        return graph_id
+    return "om-" + hashlib.sha256(f"{graph_id}+views={views}".encode()).hexdigest()[:16]

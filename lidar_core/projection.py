@@ -33,12 +33,15 @@ class PixelCoordinates:
     row:   (K,) int32  v of each kept point, K = keep.sum()
     col:   (K,) int32  u of each kept point
     depth: (K,) float32 range r in metres
+    azimuth_column: (K,) float32 u before the floor (sub-column views shift it:
+                    :mod:`lidar_core.views`)
     """
 
     keep: np.ndarray
     row: np.ndarray
     col: np.ndarray
     depth: np.ndarray
+    azimuth_column: np.ndarray
 
 
 def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
@@ -66,7 +69,7 @@ def pixel_coordinates(points: PointCloud | np.ndarray, profile: SensorProfile) -
     v = (np.float32(1.0) - (np.arcsin(z / depth) - fov_down) / fov) * np.float32(H)
     col = np.clip(np.floor(u), 0, W - 1).astype(np.int32)
     row = np.clip(np.floor(v), 0, H - 1).astype(np.int32)
-    return PixelCoordinates(keep=keep, row=row, col=col, depth=depth)
+    return PixelCoordinates(keep=keep, row=row, col=col, depth=depth, azimuth_column=u)
 
 
 def project(points: PointCloud | np.ndarray, profile: SensorProfile) -> np.ndarray:
@@ -88,23 +91,38 @@ def project_with_index(
 def _project(
     points: PointCloud | np.ndarray, profile: SensorProfile, *, with_index: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    H, W = profile.height, profile.width
     pc = pixel_coordinates(points, profile)
+    if not with_index:
+        return rasterize(pc.row, pc.col, pc.depth, profile), None
+    H, W = profile.height, profile.width
     pix = pc.row.astype(np.int64) * W + pc.col
-    # Nearest-wins without a sort: ufunc.at applies min unbuffered, so duplicates are safe.
-    best = np.full(H * W, np.inf, dtype=np.float32)
-    np.minimum.at(best, pix, pc.depth)
-    empty = np.isinf(best)
-    index = None
-    if with_index:
-        winners = np.flatnonzero(pc.depth == best[pix])  # may include equal-depth ties
-        kept_idx = np.flatnonzero(pc.keep)[winners]
-        flat_index = np.full(H * W, -1, dtype=np.int64)
-        # Reversed so that, on exact ties, the lowest input index is written last and wins.
-        flat_index[pix[winners][::-1]] = kept_idx[::-1]
-        index = flat_index.reshape(H, W)
-    best[empty] = np.float32(profile.empty_value)
-    return best.reshape(H, W), index
+    best = _nearest(pix, pc.depth, H * W)
+    winners = np.flatnonzero(pc.depth == best[pix])  # may include equal-depth ties
+    kept_idx = np.flatnonzero(pc.keep)[winners]
+    flat_index = np.full(H * W, -1, dtype=np.int64)
+    # Reversed so that, on exact ties, the lowest input index is written last and wins.
+    flat_index[pix[winners][::-1]] = kept_idx[::-1]
+    best[np.isinf(best)] = np.float32(profile.empty_value)
+    return best.reshape(H, W), flat_index.reshape(H, W)
+
+
+def _nearest(pix: np.ndarray, depth: np.ndarray, size: int) -> np.ndarray:
+    """Per flat pixel the smallest depth, +inf where none. Nearest-wins without a sort:
+    ufunc.at applies min unbuffered, so duplicates are safe."""
+    best = np.full(size, np.inf, dtype=np.float32)
+    np.minimum.at(best, pix, depth)
+    return best
+
+
+def rasterize(
+    row: np.ndarray, col: np.ndarray, depth: np.ndarray, profile: SensorProfile
+) -> np.ndarray:
+    """Range image (H, W) float32 of points already placed at (row, col): the nearest wins
+    each pixel, empty pixels hold ``profile.empty_value``."""
+    H, W = profile.height, profile.width
+    best = _nearest(row.astype(np.int64) * W + col, depth, H * W)
+    best[np.isinf(best)] = np.float32(profile.empty_value)
+    return best.reshape(H, W)
 
 
 def project_reference(points: PointCloud | np.ndarray, profile: SensorProfile) -> np.ndarray:

@@ -103,6 +103,12 @@ class ExportedNetwork(torch.nn.Module):
 Network = OverlapMamba | ExportedNetwork
 
 
+def views_of(model: Network) -> int:
+    """How many sub-column views describe a scan (:mod:`lidar_core.views`): an exported
+    encoder's metadata says; a network in training is described by one."""
+    return model.meta.views if isinstance(model, ExportedNetwork) else 1
+
+
 def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]]:
     """The model (eval mode, CPU), its sensor profile and the whole checkpoint dict; for an
     exported ``.onnx``, an :class:`ExportedNetwork` and ``{"model_config", "metrics",

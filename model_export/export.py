@@ -36,8 +36,9 @@ import onnx
 import torch
 from onnx import helper, numpy_helper
 
-from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, model_id_of
 from lidar_core.sensors import SensorProfile
+from lidar_core.views import check_views
 from model_export.errors import ModelError
 from model_export.model import OverlapMamba
 from model_export.scan_onnx import TRANSLATIONS, attach_functions, quiet_export
@@ -188,7 +189,8 @@ def quantize_int8(proto: onnx.ModelProto, min_size: int = INT8_MIN_SIZE) -> list
     return done
 
 
-def _model_id(proto: onnx.ModelProto) -> str:
+def _graph_id(proto: onnx.ModelProto) -> str:
+    """The graph and weights' content hash, as traced (before the metadata is attached)."""
     return "om-" + hashlib.sha256(proto.SerializeToString(deterministic=True)).hexdigest()[:16]
 
 
@@ -236,14 +238,20 @@ def export_onnx(
     weight_format: str = "int8",
     images: np.ndarray | None = None,
     int8_min_size: int = INT8_MIN_SIZE,
+    views: int = 1,
 ) -> ExportResult:
-    """Export, check and verify; the file appears at ``out`` only when all of it passed."""
+    """Export, check and verify; the file appears at ``out`` only when all of it passed.
+    ``views``: how many sub-column views describe a scan (:mod:`lidar_core.views`)."""
     t0 = time.perf_counter()
     out = Path(out)
     if weight_format not in WEIGHT_FORMATS:
         raise ExportError(
             f"weight format {weight_format!r} is unknown; allowed: {', '.join(WEIGHT_FORMATS)}"
         )
+    try:
+        views = check_views(views)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
     cfg = model.cfg
     if (profile.height, profile.width) != (cfg.height, cfg.width):
         raise ExportError(
@@ -259,12 +267,15 @@ def export_onnx(
     ckpt = checkpoint or {}
     train = ckpt.get("train") or {}
     total, loops = count_nodes(proto)
+    graph = _graph_id(proto)
     meta = EncoderMetadata(
-        model_id=_model_id(proto),
+        model_id=model_id_of(graph, views),
+        graph_id=graph if views > 1 else "",
         profile=profile,
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,
         yaw_channels=cfg.yaw_channels,
+        views=views,
         # epoch 0 is the initial weights (batch norm recalibrated): not trained
         weights="trained" if any(h["epoch"] > 0 for h in train.get("history", [])) else "random",
         weight_format=weight_format,
@@ -323,3 +334,44 @@ def read_metadata(path: Path | str) -> EncoderMetadata:
 def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:
     """The metadata of a loaded exported model."""
     return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})
+
+
+def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
+    """Write ``src``'s encoder to ``out`` described by ``views`` sub-column views
+    (:mod:`lidar_core.views`): the graph and weights byte for byte, the metadata with the new
+    count and the model id that goes with it; every other field as it was. Atomic like
+    :func:`export_onnx`. Returns the new metadata."""
+    src, out = Path(src), Path(out)
+    if not src.is_file():
+        raise ExportError(f"model {src} does not exist")
+    try:
+        views = check_views(views)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    try:
+        proto = onnx.load(str(src))
+    except Exception as err:  # protobuf raises its own classes
+        raise ExportError(f"{src} is not an ONNX file ({type(err).__name__}: {err})") from None
+    try:
+        meta = metadata_of(proto)
+    except ValueError as err:
+        raise ExportError(f"{src}: {err}") from None
+    graph = meta.graph
+    new = meta.model_copy(
+        update={
+            "views": views,
+            "model_id": model_id_of(graph, views),
+            "graph_id": graph if views > 1 else "",
+        }
+    )
+    del proto.metadata_props[:]
+    for key, value in new.to_props().items():
+        proto.metadata_props.add(key=key, value=value)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    try:
+        onnx.save(proto, tmp)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return new

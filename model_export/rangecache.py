@@ -21,35 +21,44 @@ from tqdm.auto import tqdm
 
 from lidar_core.cache import cache_root
 from lidar_core.datasets.base import Sequence
-from lidar_core.projection import project
 from lidar_core.sensors import SensorProfile
+from lidar_core.views import check_views, project_views
 
 FORMAT = 1
 
 
-def cache_key(seq: Sequence, profile: SensorProfile) -> str:
-    h = hashlib.sha256(json.dumps([FORMAT, profile.model_dump()], sort_keys=True).encode())
+def cache_key(seq: Sequence, profile: SensorProfile, views: int = 1) -> str:
+    key: list[object] = [FORMAT, profile.model_dump()]
+    if views != 1:  # one view keeps the keys (and caches) made before views existed
+        key.append({"views": views})
+    h = hashlib.sha256(json.dumps(key, sort_keys=True).encode())
     seq.update_digest(h)
     return h.hexdigest()[:16]
 
 
-def range_images(seq: Sequence, profile: SensorProfile, *, progress: bool = True) -> np.ndarray:
-    """(N, H, W) float16 range images of every scan, memory-mapped read-only."""
-    path = cache_root() / "range_images" / f"{seq.name}-{cache_key(seq, profile)}.npy"
+def range_images(
+    seq: Sequence, profile: SensorProfile, *, views: int = 1, progress: bool = True
+) -> np.ndarray:
+    """(N, H, W) float16 range images of every scan, memory-mapped read-only; with
+    ``views`` > 1, (N, views, H, W): each scan's sub-column views (:mod:`lidar_core.views`)."""
+    views = check_views(views)
+    shape: tuple[int, ...] = (len(seq), profile.height, profile.width)
+    if views > 1:
+        shape = (shape[0], views, *shape[1:])
+    path = cache_root() / "range_images" / f"{seq.name}-{cache_key(seq, profile, views)}.npy"
     if path.is_file():
         try:
             images = np.load(path, mmap_mode="r")
-            if images.shape == (len(seq), profile.height, profile.width):
+            if images.shape == shape:
                 return images
         except (OSError, ValueError):
             pass  # torn or foreign file: rebuild it
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npy")
-    out = np.lib.format.open_memmap(
-        tmp, mode="w+", dtype=np.float16, shape=(len(seq), profile.height, profile.width)
-    )
+    out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=shape)
     for i in tqdm(range(len(seq)), desc=f"range images {seq.name}", disable=not progress):
-        out[i] = project(seq.points(i), profile)
+        images = project_views(seq.points(i), profile, views)
+        out[i] = images if views > 1 else images[0]
     out.flush()
     del out
     os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind

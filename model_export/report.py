@@ -34,7 +34,7 @@ from model_export.evaluate import (
     RERANKED,
     SUBSETS,
     cross_session,
-    describe,
+    describe_sequence,
     eval_real,
     loop_closure,
     loop_errors,
@@ -46,7 +46,6 @@ from model_export.evaluate import (
 )
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.presets import SHIPPED
-from model_export.rangecache import range_images
 from model_export.sessions import check_sessions
 
 UNTRAINED_LABEL = (
@@ -156,7 +155,7 @@ def table_one(
         gt = gt or sequence_loops(seq, profile, progress=progress)
         key = network_digest(model)
         if key not in described:
-            described[key] = describe(model, range_images(seq, profile, progress=progress))
+            described[key] = describe_sequence(model, seq, profile, progress=progress)
             by_weights[key] = loop_closure(described[key][0], gt)
         results[label] = by_weights[key]
         if label.endswith(SHIPPED_SUFFIX):  # the service's answer: two stages

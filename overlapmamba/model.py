@@ -10,6 +10,7 @@ import typer
 from rich.table import Table
 
 from lidar_core.rerank import Rerank
+from lidar_core.views import MAX_VIEWS
 from overlapmamba.common import (
     check_torch,
     command_group,
@@ -285,36 +286,63 @@ def eval_cmd(
 @command(
     "export",
     epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
-    "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32",
+    "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32"
+    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx",
 )
 @friendly_errors
 def export_cmd(
-    checkpoint: Annotated[Path, typer.Argument(help="a .pt written by train")],
+    checkpoint: Annotated[
+        Path,
+        typer.Argument(
+            help="a .pt written by train; or an exported .onnx, to write the same graph with "
+            "another --views"
+        ),
+    ],
     out_path: Annotated[Path, typer.Option("--out", help="the .onnx file to write")],
     weights: Annotated[
         str, typer.Option(help="storage of the large head matrix: int8 or float32")
     ] = "int8",
+    views: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=MAX_VIEWS,
+            help="sub-column views that describe a scan: its descriptor is the mean of this "
+            "many projections, each turned by a further 1/views of a column (a continuous "
+            "turn then barely moves it; the encoder runs this many times per scan)",
+        ),
+    ] = 1,
 ) -> None:
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
     from model_export.checkpoint import load_model
-    from model_export.export import export_onnx
+    from model_export.export import export_onnx, with_views
     from model_export.model import OverlapMamba
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
-    model, profile, ckpt = load_model(checkpoint)
-    if not isinstance(model, OverlapMamba):
-        raise typer.BadParameter(
-            f"{checkpoint.name} is already an exported encoder; export takes a .pt written by train"
+    if checkpoint.suffix == ".onnx":
+        if weights != "int8":
+            raise typer.BadParameter(
+                "an exported encoder keeps its weights as they are; --weights applies to a .pt",
+                param_hint="--weights",
+            )
+        meta = with_views(checkpoint, out_path, views)
+        out.print(
+            f"wrote {out_path}: the graph of {checkpoint} with {meta.views} view(s) per scan, "
+            f"model id {meta.model_id}"
         )
-    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights)
+        return
+    model, profile, ckpt = load_model(checkpoint)
+    assert isinstance(model, OverlapMamba)  # load_model gives an encoder only for .onnx
+    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
     meta, v = res.metadata, res.verification
     table = Table(title=f"exported {res.path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
+        ("views per scan", str(meta.views)),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
         (
             "descriptor vs PyTorch",

@@ -29,7 +29,7 @@ EncodeFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 @dataclass
 class _Item:
-    image: np.ndarray  # (1, H, W)
+    image: np.ndarray  # (V, H, W): one scan's views (Encoder.project)
     future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
 
 
@@ -81,7 +81,7 @@ class MicroBatcher:
     async def encode(
         self, image: np.ndarray, *, timeout_s: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One (1, H, W) image → descriptor (D,), yaw features (C, W)."""
+        """One scan's (V, H, W) images → descriptor (D,), yaw features (C, W)."""
         assert self._queue is not None, "MicroBatcher.start() was not awaited"
         fut: asyncio.Future[tuple[np.ndarray, np.ndarray]] = (
             asyncio.get_running_loop().create_future()
@@ -129,7 +129,7 @@ class MicroBatcher:
         live = [item for item in batch if not item.future.done()]  # drop timed-out ones
         if not live:
             return
-        images = np.stack([item.image for item in live])  # (B, 1, H, W)
+        images = np.stack([item.image for item in live])  # (B, V, H, W)
         t0 = loop.time()
         desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
         elapsed = loop.time() - t0

@@ -1,11 +1,14 @@
 """The exported encoder, as onnxruntime runs it: range images in, descriptors out.
 
-    images       (B, 1, H, W) float32, the model's own projection (from its metadata)
+    images       (B, V, H, W) float32, the model's own projection (from its metadata):
+                 V sub-column views of each scan (V = 1 for most models)
     descriptor   (B, D) float32, unit norm
     yaw_features (B, C, W) float32, rolled by the sensor's yaw
 
 Nothing about the projection is configured here: :class:`EncoderMetadata` in the file says
-which sensor profile the network was trained on, and :meth:`Encoder.project` uses exactly it.
+which sensor profile the network was trained on and how many views make a descriptor
+(:mod:`lidar_core.views`), and :meth:`Encoder.project` uses exactly them. The graph itself
+takes one image a row (B·V, 1, H, W); :meth:`Encoder.encode` combines the views.
 
 **Two ways to run the same file.** The *portable* graph is the file as it is: onnxruntime
 inlines each scan node's body (ONNX ``Scan`` loops). The *C-kernel* path
@@ -31,7 +34,7 @@ import onnxruntime as ort
 
 from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from lidar_core.points import PointCloud
-from lidar_core.projection import project
+from lidar_core.views import combine_views, project_views
 
 if TYPE_CHECKING:
     from service.fastscan import StagedGraph
@@ -133,14 +136,26 @@ class Encoder:
     def dim(self) -> int:
         return self.meta.descriptor_dim
 
+    @property
+    def views(self) -> int:
+        return self.meta.views
+
     def project(self, points: PointCloud) -> np.ndarray:
-        """(1, H, W) float32 range image in the model's sensor profile."""
-        return project(points, self.meta.profile)[None]
+        """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`."""
+        return project_views(points, self.meta.profile, self.meta.views)
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """images (B, 1, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
-        x = np.ascontiguousarray(images, dtype=np.float32)
-        return self.staged.run(x) if self.staged is not None else self._run_portable(x)
+        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
+        p = self.meta.profile
+        want = (self.meta.views, p.height, p.width)
+        if images.ndim != 4 or images.shape[1:] != want:
+            raise ValueError(
+                f"images must have shape (B, {', '.join(map(str, want))}) (B scans, "
+                f"{self.meta.views} views each, from Encoder.project); got {images.shape}"
+            )
+        x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
+        out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
+        return combine_views(*out, self.meta.views)
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:

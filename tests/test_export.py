@@ -290,11 +290,29 @@ def test_cli_exports_a_checkpoint(tmp_path):
         app, ["export", str(ckpt), "--out", str(tmp_path / "n.onnx"), "--weights", "fp8"]
     )
     assert res.exit_code == 2 and "allowed: int8, float32" in res.output
-    # an exported encoder is not exported again
-    res = runner.invoke(
-        app, ["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "o.onnx")]
-    )
-    assert res.exit_code != 0 and "already an exported encoder" in res.output
+    # an exported encoder is written again with other views: the same graph, another id
+    two = tmp_path / "two.onnx"
+    args = ["export", str(tmp_path / "m.onnx"), "--views", "2", "--out", str(two)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    one, meta = read_metadata(tmp_path / "m.onnx"), read_metadata(two)
+    assert (one.views, meta.views, meta.graph_id) == (1, 2, one.model_id)
+    assert meta.model_id != one.model_id and meta.model_id in res.output
+    assert meta.model_copy(update={"views": 1, "model_id": one.model_id, "graph_id": ""}) == one
+    graphs = [onnx.load(str(p)) for p in (tmp_path / "m.onnx", two)]
+    for g in graphs:
+        del g.metadata_props[:]
+    assert graphs[0].SerializeToString() == graphs[1].SerializeToString()
+    # and back to one view: the first file's id again
+    res = runner.invoke(app, ["export", str(two), "--out", str(tmp_path / "back.onnx")])
+    assert res.exit_code == 0 and read_metadata(tmp_path / "back.onnx") == one
+    for bad, says in (
+        (["--weights", "float32"], "keeps its weights as"),
+        (["--views", "9"], "--views"),
+    ):
+        res = runner.invoke(app, ["export", str(two), "--out", str(tmp_path / "x.onnx"), *bad])
+        assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
+    assert not (tmp_path / "x.onnx").exists()
 
 
 def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, tmp_path):
