@@ -236,10 +236,11 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                     lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
                 )
             log.info(
-                "model %s (%s, %s weights) loaded in %.2f s from %s; scan: %s",
+                "model %s (%s, %s weights, %d view(s) a scan) loaded in %.2f s from %s; scan: %s",
                 enc.model_id,
                 enc.meta.profile.name,
                 enc.meta.weights,
+                enc.views,
                 enc.load_s,
                 enc.path,
                 enc.scan_path,

@@ -210,6 +210,36 @@ def test_served_c_kernel_path_matches_the_portable_graph_on_real_scans(exported,
         np.testing.assert_allclose(y1, y0, rtol=0, atol=1e-4)
 
 
+def test_an_encoder_with_views_describes_a_scan_by_the_mean_of_its_views(
+    exported, kitti_seq_dir, tmp_path
+):
+    from lidar_core.views import project_views
+    from model_export.checkpoint import load_model
+    from model_export.evaluate import describe
+    from model_export.export import with_views
+    from service.encoder import Encoder
+
+    two = with_views(exported["i8"].path, tmp_path / "two.onnx", 2)
+    enc = Encoder(tmp_path / "two.onnx", intra_op_threads=2)
+    assert enc.views == 2 and enc.model_id == two.model_id
+    seq = open_sequence(kitti_seq_dir)
+    images = np.stack([enc.project(seq.points(i)) for i in (0, 50)])
+    assert images.shape == (2, 2, PROFILE.height, PROFILE.width)
+    np.testing.assert_array_equal(images[1], project_views(seq.points(50), PROFILE, 2))
+    desc, yaw = enc.encode(images)
+    # the graph on each view alone, one image a row
+    each, each_yaw = run_onnx(exported["i8"].path, images.reshape(4, 1, *images.shape[2:]))
+    mean = each.reshape(2, 2, -1).mean(1)
+    np.testing.assert_allclose(desc, mean / np.linalg.norm(mean, axis=1)[:, None], atol=1e-5)
+    np.testing.assert_allclose(yaw, each_yaw[[0, 2]], atol=1e-5)  # view 0's
+    # evaluation describes a scan the same way (an .onnx's count comes from its metadata)
+    model, _, _ = load_model(tmp_path / "two.onnx")
+    np.testing.assert_allclose(describe(model, images)[0], desc, atol=1e-5)
+    # images that are not the model's views are refused, naming the shape it takes
+    with pytest.raises(ValueError, match=r"\(B, 2, 64, 900\)"):
+        enc.encode(images[:, :1])
+
+
 def test_the_c_kernel_path_falls_back_to_the_portable_graph_and_says_why(
     exported, kitti_images, tmp_path, monkeypatch, caplog
 ):

@@ -25,7 +25,7 @@ def _meta(ts: float, **extra: object) -> str:
     return json.dumps({"seq": ts, "timestamp": ts, "pose": f"{ts},0,0,0,0,0,1", **extra})
 
 
-def test_stream_sigkill_durability_and_backup(tmp_path):
+def test_stream_sigkill_durability_and_backup(tmp_path, encoder):
     data = tmp_path / "data"
     env = {"OVERLAPMAMBA_OBSERVE__STREAM_QUEUE": "3", "OVERLAPMAMBA_INDEX__SNAPSHOT_EVERY": "25"}
     rng = np.random.default_rng(0)
@@ -33,7 +33,9 @@ def test_stream_sigkill_durability_and_backup(tmp_path):
     with server(data, env) as (url, proc):
         c = httpx.Client(base_url=url, timeout=30)
         assert c.put("/v1/maps/town").status_code == 201
-        model_id = c.get("/readyz").json()["detail"]["model_id"]
+        ready = c.get("/readyz").json()["detail"]
+        model_id = ready["model_id"]
+        assert (ready["model_id"], ready["views"]) == (encoder.model_id, encoder.views)
         ws_url = url.replace("http", "ws") + "/v1/maps/town/stream?robot_id=r1&session_id=s1&k=3"
 
         # ---- the stream: results in order, a bad frame answered, then backpressure ----------

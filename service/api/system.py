@@ -57,6 +57,7 @@ async def readyz(request: Request) -> Response:
             status="ready",
             detail={
                 "model_id": svc.model_id,
+                "views": svc.encoder.views,
                 "scan": svc.encoder.scan_path,
                 **where,
                 "failed_maps": sorted(svc.registry.failed),  # why: in the log
