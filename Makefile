@@ -66,6 +66,7 @@ bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/simulator.py
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/encoder.py
+	$(BIN)/python benchmarks/views.py
 	$(BIN)/python benchmarks/place_recognition.py
 	$(BIN)/python benchmarks/serving.py
 	$(BIN)/python benchmarks/sizing.py

@@ -2,7 +2,7 @@
 
     ScanBody (bytes as received: media type, point fields, Content-Encoding)
       ─ worker thread ─ decode: decompress, parse → PointCloud
-                        project: the model's own range projection → (1, H, W) image
+                        project: the model's own range projection → (V, H, W) views
       ─ MicroBatcher ── waits at most batching.max_wait_ms for scans still being decoded
       ─ encoder thread  encode: Encoder.encode on the stacked batch
         (meanwhile, when the caller will verify: a worker thread prepares the points for
