@@ -66,3 +66,20 @@ def test_outputs_that_are_not_whole_scans_are_refused():
         combine_views(np.zeros((3, 4), np.float32), np.zeros((3, 1, 2), np.float32), 2)
     with pytest.raises(ValueError, match="not whole scans"):
         combine_views(np.zeros((4, 4), np.float32), np.zeros((2, 1, 2), np.float32), 2)
+
+
+def test_the_range_cache_keeps_each_count_apart(kitti_seq_dir, tmp_path, monkeypatch):
+    pytest.importorskip("torch")
+    from lidar_core.datasets import open_sequence
+    from model_export.rangecache import cache_key, range_images
+
+    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path))
+    seq = open_sequence(kitti_seq_dir)
+    one, two = range_images(seq, KITTI, progress=False), range_images(seq, KITTI, views=2)
+    assert one.shape == (len(seq), 64, 900) and two.shape == (len(seq), 2, 64, 900)
+    assert cache_key(seq, KITTI) != cache_key(seq, KITTI, 2)
+    np.testing.assert_array_equal(two[:, 0], one)  # view 0 is the plain projection
+    i = 37
+    want = project_views(seq.points(i), KITTI, 2).astype(np.float16)
+    np.testing.assert_array_equal(two[i], want)
+    assert len(list((tmp_path / "range_images").glob("*.npy"))) == 2
