@@ -35,7 +35,8 @@ MAX_VIEWS = 8
 
 
 def check_views(views: int) -> int:
-    if not (isinstance(views, int | np.integer) and 1 <= views <= MAX_VIEWS):
+    whole = isinstance(views, int | np.integer) and not isinstance(views, bool)
+    if not (whole and 1 <= views <= MAX_VIEWS):
         raise ValueError(f"views must be a whole number from 1 to {MAX_VIEWS}; got {views!r}")
     return int(views)
 

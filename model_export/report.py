@@ -495,9 +495,13 @@ def build_report(
         )
     shipped = shipped_model(runs, shipped_onnx)
     if shipped is not None and shipped.suffix == ".onnx":
+        from model_export.export import read_metadata
+
+        views = read_metadata(shipped).views
         notes.append(
             f"{runs}/{SHIPPED}/best.pt is absent: the shipped row and the real-scan checks are "
-            f"the exported encoder {shipped.name} (onnxruntime, its own scan and weight storage)"
+            f"the exported encoder {shipped.name} (onnxruntime, its own scan and weight "
+            f"storage; {views} sub-column view{'s' if views > 1 else ''} a scan)"
         )
     cross = None
     if sessions:

@@ -55,7 +55,7 @@ def test_views_combine_into_the_unit_mean_and_view_zeros_yaw():
     assert same[0] is desc and same[1] is yaw
 
 
-@pytest.mark.parametrize("views", [0, -1, MAX_VIEWS + 1, 1.5, "2"])
+@pytest.mark.parametrize("views", [0, -1, MAX_VIEWS + 1, 1.5, "2", True])
 def test_a_count_outside_the_allowed_is_refused(views):
     with pytest.raises(ValueError, match=f"from 1 to {MAX_VIEWS}"):
         project_views(np.zeros((3, 3), np.float32), SMALL, views)
