@@ -343,6 +343,17 @@ def test_cli_exports_a_checkpoint(tmp_path):
         res = runner.invoke(app, ["export", str(two), "--out", str(tmp_path / "x.onnx"), *bad])
         assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
     assert not (tmp_path / "x.onnx").exists()
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    foreign = tmp_path / "foreign.onnx"
+    onnx.save(onnx.helper.make_model(onnx.helper.make_graph([], "g", [], [])), foreign)
+    for src, says in (
+        (tmp_path / "gone.onnx", "does not exist"),
+        (tmp_path / "junk.onnx", "is not an ONNX file"),
+        (foreign, "overlapmamba.format"),
+    ):
+        res = runner.invoke(app, ["export", str(src), "--views", "2", "--out", str(two)])
+        assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
+    assert read_metadata(two) == meta  # a refused rewrite leaves the target as it was
 
 
 def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, tmp_path):
