@@ -282,7 +282,7 @@ class QueryOut(BaseModel):
                     ],
                     "loop_closure": {
                         "accepted": True,
-                        "threshold": -0.0451,
+                        "threshold": -0.0461,
                         "rule": "score",
                         "margin_top1_top2": 0.12,
                         "keyframe_id": "drive1-000042",

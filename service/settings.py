@@ -136,11 +136,11 @@ class ObserveSettings(_Section):
 
 class LoopClosureSettings(_Section):
     # Calibrated for the shipped model on the validation town (benchmarks/loop_threshold.py):
-    # the L2 distance at F1max, where precision is 0.84 and recall 0.88. Recalibrate for
+    # the L2 distance at F1max, where precision is 0.83 and recall 0.88. Recalibrate for
     # another model. It decides only unverified answers (verify=false, descriptor queries,
     # keyframes without geometry); verification decides the others (VerifySettings).
     max_distance: float = Field(
-        0.1782,
+        0.1794,
         gt=0,
         le=2,
         description="accept a loop closure when the top-1 descriptor L2 distance is below",
@@ -149,7 +149,7 @@ class LoopClosureSettings(_Section):
     # the validation town (benchmarks/loop_threshold.py, the keyframes' yaw features in
     # float16 as maps store them), where precision is 0.93 and recall 0.87.
     max_score: float = Field(
-        -0.0451,
+        -0.0461,
         ge=-10,  # a score is d² − weight · c: d² in [0, 4], weight ≤ 10, c in [−1, 1]
         le=14,
         description="accept a loop closure when the re-ranked top-1's score is at most this "
@@ -183,10 +183,10 @@ class VerifySettings(_Section):
     # Calibrated for the shipped model on the validation town (benchmarks/verify_threshold.py
     # --calibrate), registering the first k of the two-stage order (RerankSettings): the
     # strictest thresholds at the highest recall with every accepted closure's pose right
-    # (≤ 1 m, 2°): fitness 0.56, rmse 0.7 m (recall 0.887; any fitness from 0.32 to 0.56,
+    # (≤ 1 m, 2°): fitness 0.56, rmse 0.7 m (recall 0.883; any fitness from 0.32 to 0.56,
     # with or without the rmse bound, gives the same). The descriptor gate: the nearest that
-    # costs at most 0.005 of recall, 0.30 (3.7 registrations a query, not 5). Recalibrated
-    # for the model's two sub-column views (one view: fitness 0.54, the same rmse and gate).
+    # costs at most 0.005 of recall, 0.29 (3.6 registrations a query, not 5). Recalibrated
+    # for the model's three sub-column views (one view: fitness 0.54, gate 0.30).
     # In descriptor order, with one view, the same procedure gave 0.46, no rmse bound and
     # 0.29 (recall 0.876).
     k: int = Field(
@@ -205,7 +205,7 @@ class VerifySettings(_Section):
     )
     max_rmse_m: float = Field(0.7, gt=0, description="verified: and their rmse is at most")
     max_distance: float | None = Field(
-        0.30,
+        0.29,
         gt=0,
         le=2,
         description="candidates with a descriptor L2 distance above this are not registered "

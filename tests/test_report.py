@@ -186,7 +186,7 @@ def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
 
 @pytest.mark.real_data
 def test_eval_real_of_the_shipped_model_describes_each_scan_by_its_views(nuscenes_dir, tmp_path):
-    """The shipped .onnx (two sub-column views) through eval-real with another sensor's
+    """The shipped .onnx (sub-column views) through eval-real with another sensor's
     profile: every scan's views projected, rows repeated, the views combined."""
     from lidar_core.modelmeta import EncoderMetadata
 
@@ -200,7 +200,7 @@ def test_eval_real_of_the_shipped_model_describes_each_scan_by_its_views(nuscene
     assert r["rows_repeated"] == 2 and r["scans"] == 39
     onnx = pytest.importorskip("onnx")
     props = {p.key: p.value for p in onnx.load(str(model)).metadata_props}
-    assert EncoderMetadata.from_props(props).views == 2
+    assert EncoderMetadata.from_props(props).views > 1
     # one view of this network gave 0.99827 here (README, Real scans)
     assert r["yaw_invariance"]["cosine_min"] > 0.999
     assert r["retrieval_odd_to_even"]["reranked"]["recall@1"] == 1.0

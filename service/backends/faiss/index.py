@@ -4,7 +4,7 @@ Vectors are unit descriptors and the metric is the L2 distance between them (the
 model is evaluated with; cosine = 1 − d²/2). The index is an L2 index rather than an
 inner-product one: FAISS computes a single query's L2 distances as sums of squared
 differences, which stay accurate for near-identical vectors, while √(2 − 2·x·y) loses up to
-≈3e-4 to float32 cancellation. Against the shipped model's loop threshold (0.1782) that is
+≈3e-4 to float32 cancellation. Against the shipped model's loop threshold (0.1794) that is
 small, but it costs nothing to avoid, and a re-visit of the very same place lies far closer.
 
     flat   IndexIDMap2(IndexFlatL2)       exact; the default
