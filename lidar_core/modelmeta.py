@@ -114,10 +114,12 @@ class EncoderMetadata(BaseModel):
             raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None
 
 
-def model_id_of(graph_id: str, views: int) -> str:
-    """The model id of a graph (its content hash, ``om-…``) described by ``views`` views: the
-    graph's own with one view (as every file before views had), else a hash of both, since
-    other views give other descriptors, which must not share a map."""
+def identity(graph_id: str, views: int) -> dict[str, Any]:
+    """The metadata fields that name a graph (its content hash, ``om-…``) described by
+    ``views`` views: ``views``, ``model_id`` (the graph's own with one view, as every file
+    before views had; else a hash of both, since other views give other descriptors, which
+    must not share a map) and ``graph_id`` (kept only when it differs from the model id)."""
     if views == 1:
-        return graph_id
-    return "om-" + hashlib.sha256(f"{graph_id}+views={views}".encode()).hexdigest()[:16]
+        return {"views": 1, "model_id": graph_id, "graph_id": ""}
+    model_id = "om-" + hashlib.sha256(f"{graph_id}+views={views}".encode()).hexdigest()[:16]
+    return {"views": views, "model_id": model_id, "graph_id": graph_id}

@@ -36,7 +36,7 @@ import onnx
 import torch
 from onnx import helper, numpy_helper
 
-from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, model_id_of
+from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, identity
 from lidar_core.sensors import SensorProfile
 from lidar_core.views import check_views
 from model_export.errors import ModelError
@@ -267,15 +267,12 @@ def export_onnx(
     ckpt = checkpoint or {}
     train = ckpt.get("train") or {}
     total, loops = count_nodes(proto)
-    graph = _graph_id(proto)
     meta = EncoderMetadata(
-        model_id=model_id_of(graph, views),
-        graph_id=graph if views > 1 else "",
+        **identity(_graph_id(proto), views),
         profile=profile,
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,
         yaw_channels=cfg.yaw_channels,
-        views=views,
         # epoch 0 is the initial weights (batch norm recalibrated): not trained
         weights="trained" if any(h["epoch"] > 0 for h in train.get("history", [])) else "random",
         weight_format=weight_format,
@@ -356,14 +353,7 @@ def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
         meta = metadata_of(proto)
     except ValueError as err:
         raise ExportError(f"{src}: {err}") from None
-    graph = meta.graph
-    new = meta.model_copy(
-        update={
-            "views": views,
-            "model_id": model_id_of(graph, views),
-            "graph_id": graph if views > 1 else "",
-        }
-    )
+    new = meta.model_copy(update=identity(meta.graph, views))
     del proto.metadata_props[:]
     for key, value in new.to_props().items():
         proto.metadata_props.add(key=key, value=value)

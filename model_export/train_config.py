@@ -21,6 +21,17 @@ from model_export.errors import ConfigError
 from model_export.losses import BATCH_LOSSES, SCALES, BandRanking, BatchLoss, ImTrihardParams
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _located(text: str) -> Path | None:
+    """A path setting: as given when it exists from here, else relative to the repository
+    root; None when empty (off)."""
+    if not text:
+        return None
+    path = Path(text)
+    return path if path.is_absolute() or path.exists() else ROOT / path
+
+
 REAL_SCANS = "../shared/data/kitti00_0000-0100"  # relative to the repository root
 SCHEDULE = "warmup-step/1"  # the learning-rate schedule's name in checkpoints (resume checks it)
 
@@ -165,18 +176,12 @@ class TrainConfig(Config):
     def real_path(self) -> Path | None:
         """The real scans of the per-epoch turn check: as given when it exists from here,
         else relative to the repository root; None when the check is off."""
-        if not self.real:
-            return None
-        path = Path(self.real)
-        return path if path.is_absolute() or path.exists() else ROOT / path
+        return _located(self.real)
 
     def init_path(self) -> Path | None:
         """The network the run starts from (as given when it exists from here, else relative
         to the repository root); None: the seed's fresh weights."""
-        if not self.init:
-            return None
-        path = Path(self.init)
-        return path if path.is_absolute() or path.exists() else ROOT / path
+        return _located(self.init)
 
     def augment_config(self) -> AugmentConfig:
         return AugmentConfig.from_dict(self.augment)
