@@ -1,5 +1,6 @@
 """Everything that determines a generated sequence: :class:`GenConfig` (seed, frames,
-session, sensor, world/drive/dynamics overrides, the ground-truth table's extent)."""
+session, sensor and its mounting, world/drive/dynamics overrides, the ground-truth table's
+extent)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from lidar_core.overlap import LoopParams
+from lidar_core.sensors.catalogue import CATALOGUE, sensor_names
 from lidar_synth.dynamics import DynamicsParams
-from lidar_synth.lidar import LIDAR_MODELS, get_lidar
+from lidar_synth.mounting import MOUNTINGS, Mounting
 from lidar_synth.trajectory import DriveParams
 from lidar_synth.world import WorldParams
 
@@ -29,7 +31,23 @@ class GenConfig(BaseModel):
         "town (same seed) along the streets the first drive of as many frames took, in its own "
         "order and directions, with its own parked cars, traffic, people and scan noise",
     )
-    sensor: str = "kitti-hdl64"
+    sensor: str = Field(
+        default="kitti-hdl64",
+        description="a catalogue sensor (lidar_core.sensors.catalogue); a later session may "
+        "carry another one than the first",
+    )
+    mount: str = Field(
+        default="car", description="car, robot, amr or backpack (lidar_synth.mounting)"
+    )
+    mount_height: float | None = Field(
+        default=None, gt=0.05, le=5.0, description="m above the road; None: the mounting's"
+    )
+    mount_pitch_deg: float | None = Field(
+        default=None, ge=-30.0, le=30.0, description="positive: looks down ahead"
+    )
+    mount_roll_deg: float | None = Field(
+        default=None, ge=-30.0, le=30.0, description="positive: left side raised"
+    )
     preset: str | None = None
     split: str = Field(default="train", description="train, val or test; test is never trained on")
     world: dict = Field(default_factory=dict, description="WorldParams overrides")
@@ -38,18 +56,27 @@ class GenConfig(BaseModel):
     gt_radius: float = Field(default=30.0, gt=0, le=200)
     loop_exclude: int = Field(default=100, ge=0)
     loop_min_overlap: float = Field(default=0.3, ge=0, le=1)
-    pair_table: Literal["all", "loops"] = Field(
+    pair_table: Literal["all", "loops", "none"] = Field(
         default="all",
         description="all: every pair within gt_radius (what training samples positives and "
         "near misses from); loops: only pairs more than loop_exclude frames apart, the loop "
-        "table's candidates, enough for validation and test towns at a fraction of the work",
+        "table's candidates, enough for validation and test towns at a fraction of the work; "
+        "none: no table (a later session only queried against another: positions are its "
+        "ground truth)",
     )
 
     @field_validator("sensor")
     @classmethod
     def _known_sensor(cls, v: str) -> str:
-        if v not in LIDAR_MODELS:
-            raise ValueError(f"unknown sensor {v!r}; allowed: {', '.join(LIDAR_MODELS)}")
+        if v not in CATALOGUE:
+            raise ValueError(f"unknown sensor {v!r}; allowed: {', '.join(sensor_names())}")
+        return v
+
+    @field_validator("mount")
+    @classmethod
+    def _known_mount(cls, v: str) -> str:
+        if v not in MOUNTINGS:
+            raise ValueError(f"unknown mounting {v!r}; allowed: {', '.join(MOUNTINGS)}")
         return v
 
     @field_validator("split")
@@ -76,9 +103,20 @@ class GenConfig(BaseModel):
     def world_params(self) -> WorldParams:
         return WorldParams.from_dict(self.world)
 
+    def mounting(self) -> Mounting:
+        """The mounting with this drive's height and tilt."""
+        return MOUNTINGS[self.mount].with_pose(
+            self.mount_height, self.mount_pitch_deg, self.mount_roll_deg
+        )
+
     def drive_params(self) -> DriveParams:
-        lidar = get_lidar(self.sensor)
-        base = {"rate_hz": lidar.rate_hz, "mount_height": lidar.mount_height}
+        m = self.mounting()
+        base = {
+            "rate_hz": CATALOGUE[self.sensor].rate_hz,
+            "mount_height": m.height,
+            "mount_pitch_deg": m.pitch_deg,
+            "mount_roll_deg": m.roll_deg,
+        }
         return DriveParams.from_dict({**base, **self.drive})
 
     def dynamics_params(self) -> DynamicsParams:

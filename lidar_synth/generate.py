@@ -34,14 +34,16 @@ from lidar_core.sensors import get_profile
 from lidar_synth.config import GenConfig
 from lidar_synth.dynamics import Dynamics
 from lidar_synth.lidar import Scanner, get_lidar
+from lidar_synth.mounting import Mounting
 from lidar_synth.trajectory import Drive, driven_streets, plan_drive
 from lidar_synth.truth import compute_ground_truth, revisit_frames
 from lidar_synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
 from lidar_synth.world import World, build_world
 
 # 1.4.0: sessions (session 0 is byte-identical to 1.3.1); 1.5.0: a later session keeps to
-# the streets of the first (session 0 unchanged)
-GENERATOR_VERSION = "1.5.0"
+# the streets of the first (session 0 unchanged); 1.6.0: the sensor catalogue and mountings
+# (kitti-hdl64 on the car byte-identical to 1.5.0; hdl32 now as its manual gives it)
+GENERATOR_VERSION = "1.6.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -50,10 +52,16 @@ _W: dict = {}
 
 
 def _init_worker(
-    world: World, drive: Drive, dynamics: Dynamics, sensor: str, seed: list[int], out: str
+    world: World,
+    drive: Drive,
+    dynamics: Dynamics,
+    sensor: str,
+    mounting: Mounting,
+    seed: list[int],
+    out: str,
 ):
     _W.update(
-        scanner=Scanner(world.static, get_lidar(sensor)),
+        scanner=Scanner(world.static, get_lidar(sensor), mounting),
         drive=drive,
         dyn=dynamics,
         seed=seed,
@@ -86,7 +94,7 @@ def simulate_scans(
 ) -> np.ndarray:
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = np.zeros(cfg.frames, np.int64)
-    args = (world, drive, dynamics, cfg.sensor, cfg.session_seed(), str(out))
+    args = (world, drive, dynamics, cfg.sensor, cfg.mounting(), cfg.session_seed(), str(out))
     bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
     if workers <= 1:
         _init_worker(*args)
@@ -234,7 +242,7 @@ def generate(
     write_layout(out, drive)
 
     table = loops = None
-    if ground_truth:
+    if ground_truth and cfg.pair_table != "none":
         table, loops = compute_ground_truth(out, cfg, workers, progress, stall_timeout_s)
     t_gt = time.perf_counter() - t0 - t_world - t_sim
 
@@ -252,7 +260,7 @@ def generate(
         rev,
         title=f"seed {cfg.seed}"
         + (f" session {cfg.session}" if cfg.session else "")
-        + f" · {cfg.frames} scans · {cfg.sensor}"
+        + f" · {cfg.frames} scans · {cfg.sensor} on a {cfg.mount}"
         + (f" · preset {cfg.preset}" if cfg.preset else ""),
     )
 
@@ -265,6 +273,7 @@ def generate(
             "drive": cfg.drive_params().to_dict(),
             "dynamics": cfg.dynamics_params().to_dict(),
             "lidar": dataclasses.asdict(get_lidar(cfg.sensor)),
+            "mounting": dataclasses.asdict(cfg.mounting()),
             "profile": get_profile(cfg.sensor).model_dump(),
         },
         "world_from_sequence": drive.poses[0].tolist(),

@@ -1,4 +1,5 @@
-"""A spinning multi-beam LiDAR, ray-cast with Embree (through embreex).
+"""A spinning multi-beam LiDAR of the catalogue (:mod:`lidar_core.sensors.catalogue`) on a
+mounting (:mod:`lidar_synth.mounting`), ray-cast with Embree (through embreex).
 
 Per scan:
   1. each column fires at its own instant of the 0.1 s sweep, from the pose of that instant
@@ -22,38 +23,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidar_core.sensors.catalogue import CATALOGUE
 from lidar_synth.geometry import TRANSMIT, Mesh
-
-
-def _hdl64_elevations() -> tuple[float, ...]:
-    # HDL-64E S2 as mounted on KITTI: an upper block of 32 lasers ≈1/3° apart and a lower
-    # block of 32 ≈1/2° apart. The datasheet says +2°…−24.8°; real KITTI 00 scans span
-    # ≈+2.8°…−24.9° (0.1–99.9 % quantiles of asin(z/r)), the mount being slightly tilted.
-    upper = np.linspace(2.7, -7.9, 32)
-    lower = np.linspace(-8.4, -24.9, 32)
-    return tuple(float(x) for x in np.concatenate([upper, lower]))
+from lidar_synth.mounting import MOUNTINGS, Mounting
 
 
 @dataclass(frozen=True)
 class LidarModel:
-    name: str  # also the lidar_core sensor profile used to project its scans
+    """A catalogue sensor (:mod:`lidar_core.sensors.catalogue`) as the simulator fires it."""
+
+    name: str  # the catalogue name, also the profile its drives' ground truth uses
     elevations_deg: tuple[float, ...]
     columns: int  # firings per revolution
     rate_hz: float = 10.0
-    mount_height: float = 1.73
     max_range: float = 120.0
     min_range: float = 0.9
     range_sigma: float = 0.02  # m
     dropout: float = 0.02  # returns lost at random
     energy_scale: float = 0.006  # detection probability = 1 − exp(−energy / energy_scale)
-    # The ego car in the sensor frame, as boxes (x min, x max, y half-width, top z): roof,
-    # hood, boot. Rays that enter it return nothing — as in KITTI, whose lowest beams reach
-    # the road only to the sides (checked against the real scans by `sim-report`).
-    ego_boxes: tuple[tuple[float, float, float, float], ...] = (
-        (-1.3, 0.5, 0.8, -0.42),
-        (0.5, 2.3, 0.9, -0.95),
-        (-2.6, -1.3, 0.9, -0.85),
-    )
 
     @property
     def beams(self) -> int:
@@ -74,36 +61,21 @@ class LidarModel:
         )
         return d, (frac - 0.5) / self.rate_hz
 
-    def ego_blocked(self, d: np.ndarray) -> np.ndarray:
-        """(…, 3) sensor-frame directions → (…,) bool: the ray enters the ego car."""
-        blocked = np.zeros(d.shape[:-1], bool)
-        down = d[..., 2] < -1e-6
-        for x0, x1, hw, top in self.ego_boxes:
-            # Where a downward ray crosses the box's top face (boxes reach the ground).
-            t = top / np.where(down, d[..., 2], -1.0)
-            x, y = d[..., 0] * t, d[..., 1] * t
-            blocked |= down & (x > x0) & (x < x1) & (np.abs(y) < hw)
-        return blocked
-
-
-LIDAR_MODELS: dict[str, LidarModel] = {
-    # ≈0.17° azimuth steps: 64 × 2083 ≈ 133k rays, ≈120k returns in a town.
-    "kitti-hdl64": LidarModel("kitti-hdl64", _hdl64_elevations(), columns=2083),
-    # HDL-32E: 32 lasers +10.67°…−30.67° (1.33° apart). 0.33° azimuth steps give the point
-    # density of the nuScenes scans we evaluate on (≈35k points).
-    "hdl32": LidarModel(
-        "hdl32",
-        tuple(float(x) for x in np.linspace(10.67, -30.67, 32)),
-        columns=1085,
-        mount_height=1.84,
-    ),
-}
-
 
 def get_lidar(name: str) -> LidarModel:
-    if name not in LIDAR_MODELS:
-        raise ValueError(f"unknown simulated sensor {name!r}; allowed: {', '.join(LIDAR_MODELS)}")
-    return LIDAR_MODELS[name]
+    """The catalogue sensor ``name`` as the simulator fires it."""
+    if name not in CATALOGUE:
+        raise ValueError(f"unknown simulated sensor {name!r}; allowed: {', '.join(CATALOGUE)}")
+    s = CATALOGUE[name]
+    return LidarModel(
+        name=s.name,
+        elevations_deg=s.elevations_deg,
+        columns=s.columns,
+        rate_hz=s.rate_hz,
+        max_range=s.max_range,
+        min_range=s.min_range,
+        range_sigma=s.range_sigma,
+    )
 
 
 class _Scene:
@@ -126,14 +98,18 @@ class _Scene:
 
 
 class Scanner:
-    """Casts scans of one LiDAR model in one static world (build once per process)."""
+    """Casts scans of one LiDAR model on one mounting in one static world (build once per
+    process). ``pose_at`` gives the sensor's poses (the mounting's tilt included)."""
 
-    def __init__(self, static: Mesh, model: LidarModel) -> None:
+    def __init__(self, static: Mesh, model: LidarModel, mounting: Mounting | None = None) -> None:
         self.model = model
+        self.mounting = mounting or MOUNTINGS["car"]
         self.static = _Scene(static)
         self.dirs, self.col_time = model.sweep()
+        tilt = self.mounting.tilt()
+        platform = self.dirs if tilt is None else self.dirs @ tilt.T
         # Firing order (column-major), like the ray arrays below.
-        self.blocked = model.ego_blocked(self.dirs).T.reshape(-1)
+        self.blocked = self.mounting.blocked(platform).T.reshape(-1)
 
     def _cast(self, dyn: _Scene | None, o: np.ndarray, d: np.ndarray):
         t, face, ng = self.static.cast(o, d)
@@ -199,4 +175,4 @@ class Scanner:
         return np.column_stack([local, intensity]).astype("<f4")
 
 
-__all__ = ["LIDAR_MODELS", "LidarModel", "Scanner", "get_lidar"]
+__all__ = ["LidarModel", "Scanner", "get_lidar"]

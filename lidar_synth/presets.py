@@ -14,6 +14,10 @@ can refuse test data.
 | test-b  | 3103 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-c  | 3203 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-s1 | 3003 | 1500  | kitti-hdl64 | the test town, session 1 | queries across sessions |
+| val-SENSOR | 2103 | 2000 | every sensor, car | 5 × 5 nodes | selection across sensors |
+| test-SENSOR | 3304 | 2000 | every sensor, car | 5 × 5 nodes | reported numbers only |
+| test-S-MOUNT | 3304 | 2000 | vlp16, os0-128, xt32 | the same town | reported numbers only |
+| test-s1-SENSOR | 3304 | 1000 | five sensors | that town, session 1 | queries across sensors |
 | tiny   | 5    | 600   | kitti-hdl64 | 4 × 3, small   | tests: fast, both-direction loops |
 | tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | tests: validation of tiny runs |
 
@@ -27,6 +31,15 @@ The tiny presets revisit after every 30–60 m of exploring in a small town (blo
 Their seeds follow the same kind of rule: the first seed counting up from 5 (tiny) and from
 6 (tiny-val) whose 600-scan drive has at least 10 same- and 10 opposite-direction scans
 within 6 m of a scan more than 100 frames older (tiny: 88 and 82; tiny-val: 11 and 90).
+
+The sensor towns (``make data-sensors``) are one validation town and one test town, each
+driven once (session 0) and rendered by every catalogue sensor on a car's roof: the drives
+are the same, scan for scan, so their rows differ by the sensor alone. The test town is also
+rendered from a delivery robot's VLP-16 (0.7 m), a warehouse AMR's OS0-128 (0.35 m) and a
+backpack's XT32 (1.8 m, pitched 5°), and driven a second time (session 1) by five sensors
+whose scans are queried against the first drive's map of another sensor: those drives need
+no pair table (``pair_table="none"``), their positions are the ground truth. Their seeds
+follow the rule below from 2102 and 3303 (2102: 11 same-direction revisits; 3303: none).
 
 How the seeds were chosen: for each split, the first seed counting up from 1001, 2002 and
 3003 (train-b/c/d: 1101, 1201, 1301; test-b/c: 3103, 3203) whose planned drive has at least
@@ -93,6 +106,48 @@ PRESETS: dict[str, GenConfig] = {
     "tiny": GenConfig(seed=5, frames=600, preset="tiny", split="train", **_TINY),
     "tiny-val": GenConfig(seed=24, frames=600, preset="tiny-val", split="val", **_TINY, **_EVAL),
 }
+
+
+def _sensor_towns() -> dict[str, GenConfig]:
+    from lidar_core.sensors.catalogue import CATALOGUE
+
+    town = {"nx": 5, "ny": 5}
+    out: dict[str, GenConfig] = {}
+
+    def add(key: str, seed: int, split: str, sensor: str, mount: str = "car") -> None:
+        out[key] = GenConfig(
+            seed=seed,
+            frames=2000,
+            world=town,
+            preset=key,
+            split=split,
+            sensor=sensor,
+            mount=mount,
+            pair_table="loops",
+        )
+
+    for split, seed in (("val", 2103), ("test", 3304)):
+        for name in CATALOGUE:
+            add(f"{split}-{name}", seed, split, sensor=name)
+    for name, mount in {"vlp16": "robot", "os0-128": "amr", "xt32": "backpack"}.items():
+        add(f"test-{name}-{mount}", 3304, "test", sensor=name, mount=mount)
+    for name in ("kitti-hdl64", "os1-128", "vlp16", "os0-128", "xt32"):
+        key = f"test-s1-{name}"
+        out[key] = GenConfig(
+            seed=3304,
+            session=1,
+            frames=1000,
+            world=town,
+            preset=key,
+            split="test",
+            sensor=name,
+            pair_table="none",
+        )
+    return out
+
+
+PRESETS.update(_sensor_towns())
+SENSOR_PRESETS = tuple(k for k in PRESETS if PRESETS[k].seed in (2103, 3304))
 
 
 def preset(name: str) -> GenConfig:

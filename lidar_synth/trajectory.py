@@ -24,6 +24,7 @@ from pydantic import ConfigDict
 from scipy import ndimage
 
 from lidar_core.configs import Config
+from lidar_synth.mounting import tilt_matrix
 from lidar_synth.streets import StreetNetwork
 from lidar_synth.terrain import Terrain
 
@@ -34,6 +35,8 @@ class DriveParams(Config):
 
     rate_hz: float = 10.0  # scans per second
     mount_height: float = 1.73  # sensor above the road (KITTI)
+    mount_pitch_deg: float = 0.0  # the sensor's tilt (lidar_synth.mounting)
+    mount_roll_deg: float = 0.0
     v_min: float = 5.0  # m/s
     v_max: float = 15.0
     a_lat: float = 2.5  # m/s², limits speed in turns
@@ -65,14 +68,18 @@ class Drive:
     mount_height: float
     route: list[int] = field(default_factory=list)
     revisits: list[dict] = field(default_factory=list)
+    mount_tilt: np.ndarray | None = None  # (3, 3) platform ← sensor; None: level
 
     def pose_at(self, t: np.ndarray) -> np.ndarray:
-        """(M,) times → (M, 4, 4) sensor→world poses."""
+        """(M,) times → (M, 4, 4) sensor→world poses (the mounting's tilt included)."""
         t = np.asarray(t, np.float64)
         x = np.interp(t, self.dense_t, self.dense_xy[:, 0])
         y = np.interp(t, self.dense_t, self.dense_xy[:, 1])
         yaw = np.interp(t, self.dense_t, self.dense_yaw)
-        return vehicle_pose(np.column_stack([x, y]), yaw, self.terrain, self.mount_height)
+        poses = vehicle_pose(np.column_stack([x, y]), yaw, self.terrain, self.mount_height)
+        if self.mount_tilt is not None:
+            poses[:, :3, :3] = poses[:, :3, :3] @ self.mount_tilt
+        return poses
 
 
 def driven_streets(net: StreetNetwork, drive: Drive) -> np.ndarray:
@@ -360,6 +367,7 @@ def plan_drive(
         mount_height=p.mount_height,
         route=route,
         revisits=revisits,
+        mount_tilt=tilt_matrix(p.mount_pitch_deg, p.mount_roll_deg),
     )
     drive.poses = drive.pose_at(times)
     return drive

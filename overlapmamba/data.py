@@ -147,11 +147,48 @@ def ground_truth(
 
 
 @command(
+    "sensors",
+    epilog="Examples:\n\n  overlapmamba sensors\n\n  overlapmamba sensors --json > sensors.json",
+)
+def sensors(
+    as_json: Annotated[bool, typer.Option("--json", help="every field, as JSON")] = False,
+) -> None:
+    """The sensor catalogue: the LiDARs scans may come from (the service's `sensor`, the
+    simulator's --sensor), with the manual each one's figures come from."""
+    import json
+
+    from lidar_core.sensors import CATALOGUE
+
+    if as_json:
+        out.print_json(json.dumps({k: s.model_dump(mode="json") for k, s in CATALOGUE.items()}))
+        return
+    table = Table(title="Sensor catalogue (lidar_core.sensors.catalogue)")
+    for col in ("name", "sensor", "beams", "elevations", "columns", "range", "σ"):
+        table.add_column(col)
+    for s in CATALOGUE.values():
+        el = s.elevations_deg
+        table.add_row(
+            s.name,
+            s.title,
+            str(s.beams),
+            f"{el[0]:+.2f}° … {el[-1]:+.2f}°",
+            str(s.columns),
+            f"{s.min_range:g}–{s.max_range:g} m",
+            f"{s.range_sigma * 100:g} cm",
+        )
+    out.print(table)
+
+
+@command(
     "gen-data",
     epilog="Examples:\n\n  overlapmamba gen-data data/synth/train --preset train\n\n"
     "  overlapmamba gen-data data/synth/s42 --seed 42 --frames 1200 --sensor hdl32\n\n"
     "  overlapmamba gen-data data/synth/test-s1 --preset test --session 1   "
-    "(a second drive through the test town)",
+    "(a second drive through the test town)\n\n"
+    "  overlapmamba gen-data data/synth/test-vlp16-robot --preset test --session 2 "
+    "--sensor vlp16 --mount robot --no-ground-truth   (the test town driven again by a "
+    "delivery robot's VLP-16)\n\n"
+    "Sensors: overlapmamba sensors",
 )
 @friendly_errors
 def gen_data(
@@ -171,9 +208,31 @@ def gen_data(
     frames: Annotated[
         int | None, typer.Option(min=2, max=100_000, help="scans to simulate")
     ] = None,
-    sensor: Annotated[str, typer.Option(help="kitti-hdl64 or hdl32")] = "kitti-hdl64",
+    sensor: Annotated[
+        str | None,
+        typer.Option(
+            help="a catalogue sensor (`overlapmamba sensors`; default kitti-hdl64, or the preset's)"
+        ),
+    ] = None,
+    mount: Annotated[
+        str | None,
+        typer.Option(help="car, robot, amr or backpack (default car, or the preset's)"),
+    ] = None,
+    mount_height: Annotated[
+        float | None,
+        typer.Option(min=0.1, max=5.0, help="sensor above the road, m (default: the mount's)"),
+    ] = None,
+    mount_pitch: Annotated[
+        float | None,
+        typer.Option(min=-30.0, max=30.0, help="degrees, positive looks down ahead"),
+    ] = None,
+    mount_roll: Annotated[
+        float | None,
+        typer.Option(min=-30.0, max=30.0, help="degrees, positive raises the left side"),
+    ] = None,
     preset: Annotated[
-        str | None, typer.Option(help="train, val or test: fixed seed, size and sensor")
+        str | None,
+        typer.Option(help="a preset (train, val, test, …): fixed seed, size and sensor"),
     ] = None,
     split: Annotated[
         str, typer.Option(help="train, val or test (recorded in the manifest)")
@@ -202,11 +261,24 @@ def gen_data(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Simulate a synthetic town and a drive with revisits; write a KITTI-layout sequence."""
+    from pydantic import ValidationError
+
     from lidar_synth.config import GenConfig
     from lidar_synth.generate import generate
     from lidar_synth.presets import preset as get_preset
     from lidar_synth.workers import WorkerError
 
+    rig: dict[str, Any] = {
+        k: v
+        for k, v in (
+            ("sensor", sensor),
+            ("mount", mount),
+            ("mount_height", mount_height),
+            ("mount_pitch_deg", mount_pitch),
+            ("mount_roll_deg", mount_roll),
+        )
+        if v is not None
+    }
     if preset is not None:
         if seed is not None or frames is not None or nodes is not None:
             raise typer.BadParameter(
@@ -217,24 +289,27 @@ def gen_data(
             cfg = get_preset(preset)
         except ValueError as err:
             raise typer.BadParameter(str(err)) from None
+        changes: dict = dict(rig)
         if gt_radius is not None:
-            cfg = cfg.model_copy(update={"gt_radius": gt_radius})
+            changes["gt_radius"] = gt_radius
         if session:
-            cfg = cfg.model_copy(update={"session": session})
+            changes["session"] = session
+        try:  # validated, unlike model_copy
+            cfg = GenConfig.model_validate({**cfg.model_dump(), **changes})
+        except ValidationError as err:
+            raise typer.BadParameter(err.errors()[0]["msg"].removeprefix("Value error, ")) from None
     else:
         if seed is None or frames is None:
             raise typer.BadParameter("give --seed and --frames, or a --preset")
-        from pydantic import ValidationError
-
         try:
             cfg = GenConfig(
                 seed=seed,
                 session=session,
                 frames=frames,
-                sensor=sensor,
                 split=split,
                 world={"nx": nodes, "ny": nodes} if nodes else {},
                 gt_radius=30.0 if gt_radius is None else gt_radius,
+                **rig,
             )
         except ValidationError as err:
             raise typer.BadParameter(err.errors()[0]["msg"].removeprefix("Value error, ")) from None
@@ -253,11 +328,16 @@ def gen_data(
         console.print(f"[bold red]error:[/] {err} ({out_dir} is incomplete: delete it)")
         raise typer.Exit(1) from None
     c, t = manifest["counts"], manifest["timing_s"]
+    m = cfg.mounting()
     table = Table(title=f"Synthetic sequence: {out_dir}", show_header=False)
     rows = [
         (
             "seed / session / sensor / split",
             f"{cfg.seed} / {cfg.session} / {cfg.sensor} / {cfg.split}",
+        ),
+        (
+            "mounting",
+            f"{cfg.mount}, {m.height:.2f} m, pitch {m.pitch_deg:g}°, roll {m.roll_deg:g}°",
         ),
         ("scans", c["frames"]),
         ("points per scan (mean)", f"{c['points_per_scan']['mean']:.0f}"),

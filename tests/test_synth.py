@@ -15,12 +15,13 @@ import itertools
 
 from lidar_core.datasets import open_sequence
 from lidar_core.overlap import LoopParams, loop_ground_truth, overlap_and_yaw
-from lidar_core.sensors import get_profile
+from lidar_core.sensors import CATALOGUE, get_profile
 from lidar_synth.config import GenConfig
 from lidar_synth.dynamics import Dynamics
 from lidar_synth.generate import build_scene, generate, read_manifest
 from lidar_synth.geometry import MAT, Mesh
 from lidar_synth.lidar import Scanner, get_lidar
+from lidar_synth.mounting import MOUNTINGS, Mounting, get_mounting
 from lidar_synth.presets import PRESETS
 from lidar_synth.streets import DISTRICTS
 from lidar_synth.trajectory import DriveParams, plan_drive, plan_route
@@ -146,13 +147,14 @@ def _still(pose: np.ndarray):
 
 def test_scanner_sees_flat_ground_at_the_right_ranges():
     lidar = get_lidar("kitti-hdl64")
+    height = MOUNTINGS["car"].height
     pose = np.eye(4)
-    pose[2, 3] = lidar.mount_height
+    pose[2, 3] = height
     pts = Scanner(_plane(0.0), lidar).scan(
         _still(pose), 0.0, Mesh.empty(), np.random.default_rng(0)
     )
     assert pts.dtype == np.float32 and pts.shape[1] == 4
-    assert np.abs(pts[:, 2] + lidar.mount_height).max() < 0.2  # 2 cm noise along the ray
+    assert np.abs(pts[:, 2] + height).max() < 0.2  # 2 cm noise along the ray
     horiz = np.linalg.norm(pts[:, :2], axis=1)
     # The ego car hides the nearest ground ahead and behind, not to the sides.
     ahead = np.abs(pts[:, 1]) < 0.5
@@ -161,10 +163,89 @@ def test_scanner_sees_flat_ground_at_the_right_ranges():
     assert pts[:, 3].min() > 0 and pts[:, 3].max() <= 0.99
 
 
+def _room(half: float = 15.0, height: float = 40.0) -> Mesh:
+    """A closed box around the sensor: every ray hits something within ≈ 50 m."""
+    tris = []
+    for x0, y0, x1, y1 in [(-1, -1, 1, -1), (1, -1, 1, 1), (1, 1, -1, 1), (-1, 1, -1, -1)]:
+        a, b = (x0 * half, y0 * half, 0.0), (x1 * half, y1 * half, 0.0)
+        c, d = (x1 * half, y1 * half, height), (x0 * half, y0 * half, height)
+        tris += [[a, b, c], [a, c, d]]
+    floor_ = _plane(0.0, half).tris.tolist()
+    roof = _plane(height, half).tris.tolist()
+    tris = np.array(tris + floor_ + roof, np.float32)
+    return Mesh(
+        tris, np.full(len(tris), MAT["facade"], np.uint8), np.full(len(tris), 0.8, np.float32)
+    )
+
+
+@pytest.mark.parametrize("name", sorted(CATALOGUE))
+def test_every_catalogue_sensor_renders_its_own_beams(name):
+    """Each ring of a rendered scan lies on its sensor's elevation table, every beam returns,
+    and a turn holds at most beams × columns points: nearly all of them in a closed room."""
+    sensor = CATALOGUE[name]
+    scanner = Scanner(_room(), get_lidar(name), Mounting("pole", 5.0))  # nothing below it
+    pose = np.eye(4)
+    pose[2, 3] = 5.0  # high enough that the room's floor lies within every sensor's range
+    pts = scanner.scan(_still(pose), 0.0, Mesh.empty(), np.random.default_rng(0))
+    r = np.linalg.norm(pts[:, :3], axis=1)
+    el = np.degrees(np.arcsin(pts[:, 2] / r))
+    table = np.asarray(sensor.elevations_deg)
+    off = np.abs(el[:, None] - table[None]).min(1)
+    assert off.max() < 0.01, f"{name}: a point {off.max():.3f}° off its table"
+    assert set(np.abs(el[:, None] - table[None]).argmin(1)) == set(range(sensor.beams))
+    assert (r > sensor.min_range).all() and (r < sensor.max_range).all()
+    rays = sensor.returns_per_turn - int(scanner.blocked.sum())
+    assert len(pts) <= sensor.returns_per_turn and len(pts) > 0.9 * rays
+
+
+def test_a_tilted_low_mount_keeps_the_table_and_its_poses_carry_the_tilt():
+    cfg = GenConfig(seed=9, frames=6, sensor="xt32", mount="backpack", world={"nx": 2, "ny": 2})
+    m = cfg.mounting()
+    assert (m.height, m.pitch_deg) == (1.80, 5.0)
+    _, drive, _ = build_scene(cfg)
+    level = build_scene(cfg.model_copy(update={"mount_pitch_deg": 0.0}))[1]
+    # the sensor's forward axis points 5° below the platform's
+    fwd, flat = drive.poses[:, :3, 0], level.poses[:, :3, 0]
+    angle = np.degrees(np.arccos(np.clip((fwd * flat).sum(1), -1, 1)))
+    np.testing.assert_allclose(angle, 5.0, atol=1e-6)
+    assert (fwd[:, 2] < flat[:, 2]).all()
+    np.testing.assert_allclose(drive.poses[:, :3, 3], level.poses[:, :3, 3])
+    # rendered in the tilted frame, the rings still lie on the table; the ground is tilted
+    pose = np.eye(4)
+    pose[:3, :3] = m.tilt()
+    pose[2, 3] = m.height
+    pts = Scanner(_plane(0.0), get_lidar("xt32"), m).scan(
+        _still(pose), 0.0, Mesh.empty(), np.random.default_rng(0)
+    )
+    el = np.degrees(np.arcsin(pts[:, 2] / np.linalg.norm(pts[:, :3], axis=1)))
+    assert np.abs(el[:, None] - np.asarray(CATALOGUE["xt32"].elevations_deg)).min(1).max() < 0.01
+    ahead, behind = pts[pts[:, 0] > 5], pts[pts[:, 0] < -5]
+    assert np.median(ahead[:, 2]) > np.median(behind[:, 2]) + 0.5  # ground rises ahead
+
+
+def test_the_mountings_bodies_hide_the_ground_they_shadow():
+    nearest: dict[str, float] = {}
+    for name in ("car", "robot", "amr"):
+        m = MOUNTINGS[name]
+        pose = np.eye(4)
+        pose[2, 3] = m.height
+        pts = Scanner(_plane(0.0), get_lidar("os0-128"), m).scan(
+            _still(pose), 0.0, Mesh.empty(), np.random.default_rng(0)
+        )
+        ahead = pts[(np.abs(pts[:, 1]) < 0.2) & (pts[:, 0] > 0)]
+        nearest[name] = float(ahead[:, 0].min())
+        # the front box's edge casts the shadow: the ground nearer than its line of sight
+        _, x1, _, top = max(m.body, key=lambda box: box[1])
+        shadow = m.height * x1 / -top
+        assert shadow * 0.97 <= nearest[name] < shadow * 1.5, name
+    with pytest.raises(ValueError, match="allowed: car, robot, amr, backpack"):
+        get_mounting("drone")
+
+
 def test_porous_surfaces_let_some_rays_through():
     lidar = get_lidar("hdl32")
     pose = np.eye(4)
-    pose[2, 3] = lidar.mount_height
+    pose[2, 3] = MOUNTINGS["car"].height
 
     # A foliage wall 10 m ahead of a backstop wall at 20 m.
     def wall(x: float, mat: str) -> Mesh:
@@ -283,21 +364,32 @@ def test_generate_refuses_a_non_empty_folder_and_bad_config(tmp_path):
     with pytest.raises(FileExistsError, match="not empty"):
         generate(tmp_path / "x", GenConfig(seed=1, frames=2), progress=False)
     assert (tmp_path / "x" / "keep.txt").read_text() == "mine"
-    with pytest.raises(ValueError, match="allowed: kitti-hdl64, hdl32"):
+    with pytest.raises(ValueError, match="allowed: hdl32, hdl64e, kitti-hdl64, os0-128"):
         GenConfig(seed=1, frames=2, sensor="ouster")
+    with pytest.raises(ValueError, match="allowed: car, robot"):
+        GenConfig(seed=1, frames=2, mount="drone")
     with pytest.raises(ValueError, match="allowed"):
         GenConfig(seed=1, frames=2, world={"towers": 3}).world_params()
 
 
 def test_presets_are_fixed_distinct_towns_that_plan():
-    drives = {(c.seed, c.session) for c in PRESETS.values()}
-    assert len(drives) == len(PRESETS) and PRESETS["test"].split == "test"
+    rigs = {(c.seed, c.session, c.sensor, c.mount) for c in PRESETS.values()}
+    assert len(rigs) == len(PRESETS) and PRESETS["test"].split == "test"
     tests = [c for c in PRESETS.values() if c.split == "test"]
+    evals = [c for c in PRESETS.values() if c.split != "train"]
     trains = [c for c in PRESETS.values() if c.split == "train"]
-    assert not {c.seed for c in tests} & {c.seed for c in trains}  # no test town is trained on
-    for cfg in PRESETS.values():
-        _, d, _ = build_scene(cfg)
-        assert len(d.poses) == cfg.frames
+    assert not {c.seed for c in evals} & {c.seed for c in trains}  # no held-out town trained on
+    assert {c.seed for c in tests}.isdisjoint({c.seed for c in evals if c.split == "val"})
+    # every catalogue sensor has a validation and a test town: one drive, rendered by each
+    for split in ("val", "test"):
+        towns = [PRESETS[f"{split}-{name}"] for name in CATALOGUE]
+        assert len({(c.seed, c.session, c.frames) for c in towns}) == 1
+    planned = {}
+    for cfg in PRESETS.values():  # a drive depends on the town, the session and its length
+        key = (cfg.seed, cfg.session, cfg.frames, json.dumps(cfg.world), json.dumps(cfg.drive))
+        if key not in planned:
+            planned[key] = len(build_scene(cfg)[1].poses)
+        assert planned[key] == cfg.frames
 
 
 @pytest.mark.real_data
@@ -368,7 +460,8 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
         (["--preset", "test", "--seed", "1"], "--preset fixes seed"),
         (["--preset", "nope"], "allowed: train, train-b"),
         (["--frames", "10"], "give --seed and --frames"),
-        (["--seed", "1", "--frames", "10", "--sensor", "vlp16"], "allowed: kitti-hdl64, hdl32"),
+        (["--seed", "1", "--frames", "10", "--sensor", "mid360"], "allowed: hdl32, hdl64e"),
+        (["--preset", "test", "--mount", "drone"], "allowed: car, robot"),
         (["--seed", "1", "--frames", "1"], "greater than or equal to 2"),
         (["--seed", "1", "--frames", "4", "--stall-timeout", "0"], "greater than or equal to 1"),
     ],

@@ -1,8 +1,13 @@
-"""Sensor profiles: everything the range projection needs to know about a spinning LiDAR.
+"""Projection profiles: everything the range projection needs to know about a range image.
 
 A profile is the single source of projection parameters. Training caches range images with
 it, the exported ONNX model stores it in its metadata, and the service reads it back from
 there, so scans are never projected differently in training and in serving.
+
+A profile describes an image (rows, columns, a linear vertical field of view); the physical
+sensors a fleet carries, with their beam tables, are :mod:`lidar_core.sensors.catalogue`, and
+each has a profile of its own (:meth:`~lidar_core.sensors.catalogue.Sensor.profile`), which
+:func:`get_profile` also answers by the sensor's name.
 """
 
 from __future__ import annotations
@@ -67,7 +72,7 @@ class SensorProfile(BaseModel):
         try:
             return SensorProfile.model_validate({**self.model_dump(), **changes})
         except ValidationError as err:
-            raise ProfileError(f"invalid sensor profile override: {_first_error(err)}") from err
+            raise ProfileError(f"invalid sensor profile override: {first_error(err)}") from err
 
 
 BUILTIN_PROFILES: dict[str, SensorProfile] = {
@@ -96,19 +101,25 @@ BUILTIN_PROFILES: dict[str, SensorProfile] = {
 
 
 def get_profile(name_or_path: str | Path | SensorProfile) -> SensorProfile:
-    """A built-in profile by name, or a custom one from a ``.json``/``.toml`` file."""
+    """A built-in profile by name, a catalogue sensor's own profile by the sensor's name, or
+    a custom one from a ``.json``/``.toml`` file."""
+    from lidar_core.sensors.catalogue import CATALOGUE
+
     if isinstance(name_or_path, SensorProfile):
         return name_or_path
     key = str(name_or_path)
     if key in BUILTIN_PROFILES:
         return BUILTIN_PROFILES[key]
+    if key in CATALOGUE:
+        return CATALOGUE[key].profile()
     path = Path(key)
     if path.suffix.lower() in {".json", ".toml"}:
         return load_profile(path)
+    allowed = sorted(set(BUILTIN_PROFILES) | set(CATALOGUE))
     raise ProfileError(
-        f"unknown sensor profile {key!r}; allowed: {', '.join(sorted(BUILTIN_PROFILES))}, "
+        f"unknown sensor profile {key!r}; allowed: {', '.join(allowed)}, "
         "or a path to a .json/.toml profile file",
-        allowed=sorted(BUILTIN_PROFILES),
+        allowed=allowed,
     )
 
 
@@ -131,10 +142,10 @@ def load_profile(path: str | Path) -> SensorProfile:
     try:
         return SensorProfile.model_validate(data)
     except ValidationError as err:
-        raise ProfileError(f"sensor profile file {path}: {_first_error(err)}") from err
+        raise ProfileError(f"sensor profile file {path}: {first_error(err)}") from err
 
 
-def _first_error(err: ValidationError) -> str:
+def first_error(err: ValidationError) -> str:
     e = err.errors()[0]
     where = ".".join(str(x) for x in e["loc"]) or "profile"
     return f"{where}: {e['msg']}"
