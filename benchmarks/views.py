@@ -3,7 +3,7 @@ service describes it (``Encoder.project`` + ``Encoder.encode``), with the model'
 with one, on real KITTI 00 scans.
 
 The one-view model is the same graph written with ``views = 1``
-(``model_export.export.with_views``: the file the model id ``om-ef2469f958d5098b`` names), so
+(``model_export.modelfile.with_views``: the file the model id ``om-ef2469f958d5098b`` names), so
 the two differ only in how many projections a scan makes and how many graph rows the encoder
 runs. Timed interleaved (one view, then the model's, rep after rep) in one process, with 1
 and 2 onnxruntime threads, one scan per call and 8 scans per call (per scan), so that the
@@ -29,7 +29,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar_core.io import read_points
-from model_export.export import with_views
+from model_export.modelfile import with_views
 from service.encoder import Encoder
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,9 +2,11 @@
 
 The export (``model_export.export``) writes these fields into the ONNX file's
 ``metadata_props``; the service reads them back (onnxruntime's ``custom_metadata_map``) and
-needs nothing else: the sensor profile gives the projection, ``views`` how many sub-column
+needs nothing else: the sensor profile gives the projection, ``sensor_input`` how scans of
+other sensors enter it (:mod:`lidar_core.sensors.input`), ``views`` how many sub-column
 views of it make one descriptor (:mod:`lidar_core.views`), ``descriptor_dim`` sizes the
-index, ``model_id`` keeps descriptors of different models out of one map.
+index, ``model_id`` keeps descriptors of different models out of one map, ``calibration``
+holds the thresholds the benchmarks chose for it (:mod:`lidar_core.calibration`).
 
 Every value in ``metadata_props`` is a string; structured fields are JSON. The keys are
 namespaced ``overlapmamba.*`` so they never collide with a tool's own.
@@ -16,10 +18,12 @@ import hashlib
 import json
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from lidar_core.calibration import Calibrated, check_calibration
 from lidar_core.errors import LidarCoreError
 from lidar_core.sensors import SensorProfile
+from lidar_core.sensors.input import Mode
 from lidar_core.views import MAX_VIEWS
 
 FORMAT = "overlapmamba-encoder"
@@ -64,6 +68,16 @@ class EncoderMetadata(BaseModel):
         description="with views > 1, the content hash of the graph and weights alone (the "
         "model id the same file has with one view); empty otherwise",
     )
+    sensor_input: Mode = Field(
+        default="elevation",
+        description="how a scan of another sensor than the profile's becomes this model's "
+        "input (lidar_core.sensors.input): elevation or rows",
+    )
+    calibration: dict[str, Calibrated] = Field(
+        default_factory=dict,
+        description="thresholds calibrated for this model by the benchmarks "
+        "(lidar_core.calibration); the service takes them unless a setting overrides",
+    )
     weights: str = Field(description="'trained' or 'random' (an untrained network)")
     weight_format: str = Field(description="storage of the large matrices: float32 or int8")
     training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
@@ -72,6 +86,11 @@ class EncoderMetadata(BaseModel):
     exported_at: str = Field(description="UTC time, ISO 8601")
     torch_version: str = ""
     opset: int = Field(gt=0)
+
+    @field_validator("calibration")
+    @classmethod
+    def _known_calibration(cls, v: dict[str, Calibrated]) -> dict[str, Calibrated]:
+        return check_calibration(v)
 
     @property
     def graph(self) -> str:
@@ -96,7 +115,7 @@ class EncoderMetadata(BaseModel):
                 found=sorted(props),
             )
         strings = {"format", "model_id", "graph_id", "weights", "weight_format", "source_commit"}
-        strings |= {"exported_at", "torch_version"}
+        strings |= {"exported_at", "torch_version", "sensor_input"}
         try:
             values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
         except json.JSONDecodeError as err:

@@ -3,6 +3,7 @@
     LidarCoreError (lidar_core.errors)
      └── ModelError                 (ValueError)
           ├── CheckpointError        a file that is not a usable checkpoint
+          ├── ExportError            an export, or a model file's metadata, that failed
           └── ConfigError            a model or training configuration that is not allowed
                                      (also a lidar_core.errors.ConfigError)
 
@@ -22,6 +23,10 @@ class ModelError(LidarCoreError, ValueError):
 
 class CheckpointError(ModelError):
     code = "invalid_checkpoint"
+
+
+class ExportError(ModelError):
+    code = "export_failed"
 
 
 class ConfigError(ModelError, errors.ConfigError):

@@ -39,7 +39,7 @@ from onnx import helper, numpy_helper
 from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, identity
 from lidar_core.sensors import SensorProfile
 from lidar_core.views import check_views
-from model_export.errors import ModelError
+from model_export.errors import ExportError
 from model_export.model import OverlapMamba
 from model_export.scan_onnx import TRANSLATIONS, attach_functions, quiet_export
 
@@ -47,10 +47,6 @@ WEIGHT_FORMATS = ("int8", "float32")
 INT8_MIN_SIZE = 1 << 20  # matrices with at least this many values are stored int8
 FLOAT_TOL = 1e-4  # max abs difference, onnxruntime vs PyTorch, float32 weights
 COSINE_TOL = 0.999  # min descriptor cosine to PyTorch float32 with int8 weights
-
-
-class ExportError(ModelError):
-    code = "export_failed"
 
 
 @dataclasses.dataclass
@@ -321,47 +317,3 @@ def export_onnx(
         verification=report,
         seconds=time.perf_counter() - t0,
     )
-
-
-def read_metadata(path: Path | str) -> EncoderMetadata:
-    """The metadata of an exported model, read without building an inference session."""
-    return metadata_of(onnx.load(str(path), load_external_data=False))
-
-
-def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:
-    """The metadata of a loaded exported model."""
-    return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})
-
-
-def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
-    """Write ``src``'s encoder to ``out`` described by ``views`` sub-column views
-    (:mod:`lidar_core.views`): the graph and weights byte for byte, the metadata with the new
-    count and the model id that goes with it; every other field as it was. Atomic like
-    :func:`export_onnx`. Returns the new metadata."""
-    src, out = Path(src), Path(out)
-    if not src.is_file():
-        raise ExportError(f"model {src} does not exist")
-    try:
-        views = check_views(views)
-    except ValueError as err:
-        raise ExportError(str(err)) from None
-    try:
-        proto = onnx.load(str(src))
-    except Exception as err:  # protobuf raises its own classes
-        raise ExportError(f"{src} is not an ONNX file ({type(err).__name__}: {err})") from None
-    try:
-        meta = metadata_of(proto)
-    except ValueError as err:
-        raise ExportError(f"{src}: {err}") from None
-    new = meta.model_copy(update=identity(meta.graph, views))
-    del proto.metadata_props[:]
-    for key, value in new.to_props().items():
-        proto.metadata_props.add(key=key, value=value)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    try:
-        onnx.save(proto, tmp)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return new

@@ -106,7 +106,8 @@ def recover(
     verification images): :func:`model_export.export.compare`'s numbers and ``scans``."""
     import onnx
 
-    from model_export.export import compare, metadata_of, verification_images
+    from model_export.export import compare, verification_images
+    from model_export.modelfile import metadata_of
 
     path = Path(path)
     if not path.is_file():

@@ -495,7 +495,7 @@ def build_report(
         )
     shipped = shipped_model(runs, shipped_onnx)
     if shipped is not None and shipped.suffix == ".onnx":
-        from model_export.export import read_metadata
+        from model_export.modelfile import read_metadata
 
         views = read_metadata(shipped).views
         notes.append(

@@ -477,7 +477,7 @@ def _start_config(
     if not path.is_file():
         raise ConfigError(f"init {train_cfg.init!r}: {path} does not exist")
     if path.suffix == ".onnx":
-        from model_export.export import read_metadata
+        from model_export.modelfile import read_metadata
 
         try:
             cfg = OverlapMambaConfig.from_dict(read_metadata(path).network)

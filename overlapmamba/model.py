@@ -316,8 +316,9 @@ def export_cmd(
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
     from model_export.checkpoint import load_model
-    from model_export.export import export_onnx, with_views
+    from model_export.export import export_onnx
     from model_export.model import OverlapMamba
+    from model_export.modelfile import with_views
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")

@@ -27,6 +27,7 @@ from service.api import descriptors, keyframes, maps, queries, system
 from service.auth import Authenticator
 from service.backends.factory import open_backend
 from service.backup import data_dir_lock
+from service.calibration import log_thresholds, resolve
 from service.encoder import Encoder
 from service.errors import PayloadTooLarge, ServiceError, Unavailable, error_body
 from service.logs import configure as configure_logs
@@ -245,8 +246,12 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 enc.path,
                 enc.scan_path,
             )
-            registry = open_backend(settings, model_id=enc.model_id, dim=enc.dim)
-            svc = PlaceService(settings, enc, registry)
+            # The model's own calibration, unless a setting overrides (service.calibration).
+            serving, thresholds = resolve(settings, enc.meta)
+            log_thresholds(enc.model_id, thresholds)
+            app.state.settings = serving
+            registry = open_backend(serving, model_id=enc.model_id, dim=enc.dim)
+            svc = PlaceService(serving, enc, registry, thresholds)
             await svc.pipeline.start()
             app.state.service = svc
             # Maps load after start-up: /healthz answers meanwhile (a liveness probe must

@@ -28,13 +28,17 @@ async def read_body(request: Request, limits: LimitSettings) -> bytes:
     return await in_thread(decompress, body, encoding, limits.max_decoded_bytes)
 
 
-async def read_scan(request: Request, limits: LimitSettings, fields: str | None) -> ScanBody:
-    """The scan body as sent (size-checked, not yet decompressed or decoded)."""
+async def read_scan(
+    request: Request, limits: LimitSettings, fields: str | None, sensor: str | None = None
+) -> ScanBody:
+    """The scan body as sent (size-checked, not yet decompressed or decoded), with the sensor
+    the request names."""
     return ScanBody(
         await _read_raw(request, limits),
         request.headers.get("content-type"),
         fields,
         request.headers.get("content-encoding"),
+        sensor=sensor,
     )
 
 

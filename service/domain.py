@@ -51,6 +51,7 @@ class NewKeyframe:
     yaw: np.ndarray | None  # (C, W) float32
     content_hash: str
     geometry: bytes | None = None  # lidar_core.geometry blob
+    sensor: str | None = None  # the sensor of the scan it came from (None: not said)
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,7 @@ class Keyframe:
     content_hash: str
     seq: int
     created_at: float
+    sensor: str | None = None  # the scan's sensor; None: not recorded (a descriptor, or older)
 
     def public(self) -> dict[str, Any]:
         return {
@@ -75,6 +77,7 @@ class Keyframe:
             "session_id": self.session_id,
             "timestamp": self.timestamp,
             "pose": self.pose,
+            "sensor": self.sensor,
         }
 
 
@@ -239,6 +242,7 @@ class DescriptorKeyframe(Protocol):
     pose: list[float] | None
     descriptor: list[float]
     yaw_features: list[list[float]] | None
+    sensor: str | None
 
 
 def descriptor_keyframe(
@@ -262,7 +266,14 @@ def descriptor_keyframe(
                 f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {yaw_shape}, finite",
                 code="bad_yaw_features",
             )
-    meta = {"robot": k.robot_id, "session": k.session_id, "timestamp": k.timestamp, "pose": k.pose}
+    meta: dict[str, Any] = {
+        "robot": k.robot_id,
+        "session": k.session_id,
+        "timestamp": k.timestamp,
+        "pose": k.pose,
+    }
+    if k.sensor is not None:  # a keyframe that names none keeps the hash it always had
+        meta["sensor"] = k.sensor
     payload = desc.tobytes() + (b"" if yaw is None else yaw.astype(np.float16).tobytes())
     return NewKeyframe(
         keyframe_id=k.keyframe_id,
@@ -273,4 +284,5 @@ def descriptor_keyframe(
         descriptor=desc,
         yaw=yaw,
         content_hash=content_hash("descriptor", payload, meta),
+        sensor=k.sensor,
     )

@@ -6,8 +6,9 @@
     yaw_features (B, C, W) float32, rolled by the sensor's yaw
 
 Nothing about the projection is configured here: :class:`EncoderMetadata` in the file says
-which sensor profile the network was trained on and how many views make a descriptor
-(:mod:`lidar_core.views`), and :meth:`Encoder.project` uses exactly them. The graph itself
+which sensor profile the network was trained on, how other sensors' scans enter it and how
+many views make a descriptor (:mod:`lidar_core.views`), and :meth:`Encoder.project` uses
+exactly them with the scan's sensor (:mod:`service.sensors`). The graph itself
 takes one image a row (B·V, 1, H, W); :meth:`Encoder.encode` combines the views.
 
 **Two ways to run the same file.** The *portable* graph is the file as it is: onnxruntime
@@ -34,6 +35,7 @@ import onnxruntime as ort
 
 from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from lidar_core.points import PointCloud
+from lidar_core.sensors.input import SensorInput
 from lidar_core.views import combine_views, project_views
 
 if TYPE_CHECKING:
@@ -140,9 +142,13 @@ class Encoder:
     def views(self) -> int:
         return self.meta.views
 
-    def project(self, points: PointCloud) -> np.ndarray:
-        """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`."""
-        return project_views(points, self.meta.profile, self.meta.views)
+    def project(self, points: PointCloud, sensor: SensorInput | None = None) -> np.ndarray:
+        """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`;
+        ``sensor``: the scan's sensor, projected as the model takes it (None: the model's
+        own sensor)."""
+        if sensor is None:
+            return project_views(points, self.meta.profile, self.meta.views)
+        return sensor.project(points, self.meta.views)
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""

@@ -2,7 +2,8 @@
 
     ScanBody (bytes as received: media type, point fields, Content-Encoding)
       ─ worker thread ─ decode: decompress, parse → PointCloud
-                        project: the model's own range projection → (V, H, W) views
+                        project: the scan's sensor into the model's input (its range
+                        projection, service.sensors) → (V, H, W) views
       ─ MicroBatcher ── waits at most batching.max_wait_ms for scans still being decoded
       ─ encoder thread  encode: Encoder.encode on the stacked batch
         (meanwhile, when the caller will verify: a worker thread prepares the points for
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_core.points import PointCloud
+from lidar_core.sensors.input import SensorInput
 from service.batcher import MicroBatcher
 from service.encoder import Encoder
 from service.scans import ScanBody, decode_scan
@@ -72,21 +74,27 @@ class ScanPipeline:
         """Scans waiting for the encoder."""
         return self.batcher.pending
 
-    def _prepare(self, scan: ScanBody) -> tuple[np.ndarray, PointCloud, dict[str, float]]:
+    def _prepare(
+        self, scan: ScanBody, sensor: SensorInput | None
+    ) -> tuple[np.ndarray, PointCloud, dict[str, float]]:
         t0 = time.perf_counter()
         points = decode_scan(scan, self.limits)
         t1 = time.perf_counter()
-        image = self.encoder.project(points)
+        image = self.encoder.project(points, sensor)
         t2 = time.perf_counter()
         return image, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
 
     async def describe(
-        self, scan: ScanBody, registration: RegistrationParams | None = None
+        self,
+        scan: ScanBody,
+        registration: RegistrationParams | None = None,
+        sensor: SensorInput | None = None,
     ) -> Description:
         """``registration``: also prepare the points for verification, while the encoder
-        works (its wait, if any, is added to the encode stage)."""
+        works (its wait, if any, is added to the encode stage). ``sensor``: the scan's
+        sensor as the model takes it (None: the model's own)."""
         with self.batcher.incoming():
-            image, points, timings = await in_thread(self._prepare, scan)
+            image, points, timings = await in_thread(self._prepare, scan, sensor)
         t0 = time.perf_counter()
         task = None
         if registration is not None:

@@ -19,8 +19,10 @@ from typing import Literal
 import numpy as np
 
 from lidar_core.rerank import OFF
+from lidar_core.sensors.input import SensorInput
 from service.answers import Answer, Inserted, InsertReason, LoopClosure, Observation, Observed
 from service.backends.base import MapBackend, PlaceMap
+from service.calibration import Threshold
 from service.domain import (
     DescriptorKeyframe,
     Filters,
@@ -37,6 +39,7 @@ from service.overview import Overview
 from service.pipeline import Description, ScanPipeline
 from service.ranking import rerank_matches, rerank_params, shortlist
 from service.scans import ScanBody
+from service.sensors import Sensors
 from service.settings import Settings
 from service.stats import Stats
 from service.threads import in_thread
@@ -55,10 +58,18 @@ class PlaceService:
     :meth:`insert` for precomputed rows). Each records its stage timings once, with one
     definition of "total": from the request's bytes in hand to its answer."""
 
-    def __init__(self, settings: Settings, encoder: Encoder, registry: MapBackend) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        encoder: Encoder,
+        registry: MapBackend,
+        thresholds: dict[str, Threshold] | None = None,
+    ) -> None:
         self.settings = settings
         self.encoder = encoder
         self.registry = registry
+        self.sensors = Sensors(encoder.meta, settings.sensors.files)
+        self.thresholds = thresholds or {}  # where each calibrated threshold came from
         self.stats = Stats(encoder.model_id)
         self.overview = Overview()
         self.pipeline = ScanPipeline(
@@ -87,9 +98,16 @@ class PlaceService:
 
     async def describe(self, scan: ScanBody) -> Description:
         t0 = time.perf_counter()
-        d = await self.pipeline.describe(scan)
+        d = await self.pipeline.describe(scan, sensor=self._input(scan))
         self._done(d.timings, t0)
         return d
+
+    def _sensor(self, scan: ScanBody, m: PlaceMap | None = None) -> str:
+        """The scan's sensor: its own, else its map's, else the model's (service.sensors)."""
+        return self.sensors.resolve(scan.sensor, None if m is None else m.sensor)
+
+    def _input(self, scan: ScanBody, m: PlaceMap | None = None) -> SensorInput:
+        return self.sensors.input(self._sensor(scan, m))
 
     # ---- maps ---------------------------------------------------------------------------------
 
@@ -147,6 +165,8 @@ class PlaceService:
                 map_model_id=m.model_id,
             )
         yaw_shape = (self.encoder.meta.yaw_channels, self.encoder.meta.profile.width)
+        for k in keyframes:
+            self.sensors.check(k.sensor)
 
         def rows() -> list[NewKeyframe]:
             return [descriptor_keyframe(k, i, m.dim, yaw_shape) for i, k in enumerate(keyframes)]
@@ -158,19 +178,25 @@ class PlaceService:
     ) -> Inserted:
         """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
         t0 = time.perf_counter()
-        d = await self.pipeline.describe(scan, self._registration(False, m))
-        (result,) = await self.insert(m, [await self._row(m, d, keyframe_id, obs)], obs.robot_id)
+        sensor = self._sensor(scan, m)
+        d = await self.pipeline.describe(
+            scan, self._registration(False, m), self.sensors.input(sensor)
+        )
+        row = await self._row(m, d, keyframe_id, obs, sensor)
+        (result,) = await self.insert(m, [row], obs.robot_id)
         return Inserted(result, self._done(d.timings, t0))
 
     async def _row(
-        self, m: PlaceMap, d: Description, keyframe_id: str, obs: Observation
+        self, m: PlaceMap, d: Description, keyframe_id: str, obs: Observation, sensor: str
     ) -> NewKeyframe:
-        meta = {
+        meta: dict[str, object] = {
             "robot": obs.robot_id,
             "session": obs.session_id,
             "timestamp": obs.timestamp,
             "pose": obs.pose,
         }
+        if not self.sensors.is_model_sensor(sensor):  # the model's own keeps older hashes
+            meta["sensor"] = sensor
         params = params_of(self.settings.verify)
 
         def digest_and_geometry() -> tuple[bytes, bytes | None]:
@@ -190,6 +216,7 @@ class PlaceService:
             yaw=d.yaw,
             content_hash=content_hash("scan", digest, meta),
             geometry=geometry,
+            sensor=sensor,
         )
 
     # ---- queries ------------------------------------------------------------------------------
@@ -211,7 +238,9 @@ class PlaceService:
         self._check_k(k)
         prepared = None
         if isinstance(probe, ScanBody):
-            d = await self.pipeline.describe(probe, self._registration(verify))
+            d = await self.pipeline.describe(
+                probe, self._registration(verify), self._input(probe, m)
+            )
             desc, yaw, timings, prepared = d.descriptor, d.yaw, d.timings, d.prepared
         else:
             desc, yaw = check_descriptor(probe, m.dim), None
@@ -375,7 +404,10 @@ class PlaceService:
         t0 = time.perf_counter()
         self._check_k(obs.k)
         verify = obs.verify and self.settings.verify.k > 0
-        d = await self.pipeline.describe(scan, self._registration(verify, m))
+        sensor = self._sensor(scan, m)
+        d = await self.pipeline.describe(
+            scan, self._registration(verify, m), self.sensors.input(sensor)
+        )
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
             session_id=obs.session_id,
@@ -397,7 +429,7 @@ class PlaceService:
         inserted = False
         if reason is not None:
             keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
-            row = await self._row(m, d, keyframe_id, obs)
+            row = await self._row(m, d, keyframe_id, obs, sensor)
             (result,) = await self.insert(m, [row], obs.robot_id)
             inserted = result.created
             if not inserted:

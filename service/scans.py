@@ -44,6 +44,7 @@ class ScanBody:
     fields: str | None = None  # X-Point-Fields for raw float32 bodies
     encoding: str | None = None  # Content-Encoding, undone by decode_scan
     source: str = "scan"  # how errors name it ("scan 3" in a batch)
+    sensor: str | None = None  # the sensor it names (service.sensors); None: its map's
 
 
 def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:

@@ -15,6 +15,7 @@ from service.settings import IndexKind
 # and within the 256 characters of a keyframe id.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}$"
 KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
+SENSOR_PATTERN = NAME_PATTERN  # a sensor's name (service.sensors checks that it is known)
 
 
 class _Model(BaseModel):
@@ -72,10 +73,19 @@ class MapSettingsIn(_Model):
         "(≈ 7 KB) so that queries can verify them and return a relative pose; default true. "
         "false: a descriptor-only map (≈ 1 KB per keyframe), matches carry verified: null",
     )
+    sensor: str | None = Field(
+        None,
+        pattern=SENSOR_PATTERN,
+        description="the sensor of the scans sent to this map that name none (GET "
+        "/v1/sensors lists them); default: the model's own. Scans of other sensors say so "
+        "with their `sensor` parameter: a map holds keyframes of any sensor",
+    )
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={"examples": [{"index": "auto", "keep_geometry": True}]},
+        json_schema_extra={
+            "examples": [{"index": "auto", "keep_geometry": True, "sensor": "os1-64"}]
+        },
     )
 
 
@@ -87,6 +97,9 @@ class MapOut(BaseModel):
     index: dict[str, Any]
     keyframes: int
     keep_geometry: bool = Field(True, description="keyframes from scans keep their geometry")
+    sensor: str | None = Field(
+        None, description="the sensor of scans that name none; null: the model's own"
+    )
     seq: int | None = Field(None, description="faiss: the store's last write sequence number")
     snapshot_seq: int | None = Field(None, description="faiss: the seq the snapshot holds")
     created_at: float
@@ -103,6 +116,12 @@ class KeyframeOut(BaseModel):
     session_id: str
     timestamp: float
     pose: list[float] | None
+    sensor: str | None = Field(
+        None,
+        description="the sensor of the scan it came from (a catalogue name: GET /v1/sensors); "
+        "null: not recorded (a precomputed descriptor that named none, or a keyframe older "
+        "than sensors)",
+    )
     created: bool | None = Field(
         None, description="false when this keyframe id was already stored with this content"
     )
@@ -123,6 +142,12 @@ class KeyframeIn(_Model):
     descriptor: list[float] = Field(description="the model's descriptor (unit norm)")
     yaw_features: list[list[float]] | None = Field(
         None, description="(C, W) yaw features; without them matches carry no yaw"
+    )
+    sensor: str | None = Field(
+        None,
+        pattern=SENSOR_PATTERN,
+        description="the sensor of the scan the descriptor came from, recorded with it "
+        "(a known name: GET /v1/sensors)",
     )
 
     @field_validator("descriptor")
@@ -186,6 +211,12 @@ class MatchOut(BaseModel):
     session_id: str
     timestamp: float
     pose: list[float] | None
+    sensor: str | None = Field(
+        None,
+        description="the sensor of the scan it came from (a catalogue name: GET /v1/sensors); "
+        "null: not recorded (a precomputed descriptor that named none, or a keyframe older "
+        "than sensors)",
+    )
     yaw_deg: float | None = Field(
         description="yaw of the match's sensor frame in the query's, degrees (−180, 180]"
     )
@@ -312,6 +343,27 @@ class ObserveOut(QueryOut):
     inserted: bool
     keyframe_id: str | None = Field(description="the keyframe this scan became, if inserted")
     insert_reason: Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
+
+
+class SensorOut(BaseModel):
+    name: str
+    title: str
+    beams: int
+    elevations_deg: list[float] = Field(description="one per beam, highest first")
+    columns: int = Field(description="firings per turn")
+    min_range: float
+    max_range: float
+    source: str = Field(description="the manual its figures come from")
+    projection: str = Field(
+        description="how its scans enter this model: native (the model's own sensor), "
+        "elevation (each row the beam nearest its elevation; rows it has no beam for stay "
+        "empty) or rows (its beams stretched over the rows)"
+    )
+
+
+class SensorList(BaseModel):
+    model_sensor: str = Field(description="the sensor of scans and maps that name none")
+    sensors: list[SensorOut]
 
 
 class SnapshotOut(BaseModel):

@@ -5,7 +5,10 @@ variables ``OVERLAPMAMBA_*`` (nested fields with ``__``: ``OVERLAPMAMBA_BATCHING
 an optional TOML file (``--config`` or ``OVERLAPMAMBA_CONFIG``), then these defaults.
 ``overlapmamba dump-config`` prints the merged result as TOML-ready JSON.
 
-The projection is deliberately absent: it comes from the model's own metadata.
+The projection is deliberately absent: it comes from the model's own metadata and the scan's
+sensor (service.sensors). The calibrated thresholds (rerank, loop_closure, verify) come
+from the model file when it carries them; a value set here overrides it
+(service.calibration).
 """
 
 from __future__ import annotations
@@ -221,6 +224,15 @@ class VerifySettings(_Section):
     max_iterations: int = Field(30, ge=1, le=200, description="GICP stops here (bounded time)")
 
 
+class SensorSettings(_Section):
+    files: list[Path] = Field(
+        default_factory=list,
+        description="the operator's own sensors (lidar_core.sensors.catalogue: a .toml or "
+        ".json per sensor, or base = a catalogue name and the fields that differ), accepted "
+        "by name beside the catalogue's",
+    )
+
+
 class ApiKey(_Section):
     name: str = Field(min_length=1)
     role: Role
@@ -279,6 +291,7 @@ class Settings(BaseSettings):
     rerank: RerankSettings = Field(default_factory=RerankSettings)  # type: ignore[arg-type]
     auth: AuthSettings = Field(default_factory=AuthSettings)
     qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
+    sensors: SensorSettings = Field(default_factory=SensorSettings)
 
     @model_validator(mode="after")
     def _backend_configured(self) -> Settings:

@@ -53,6 +53,7 @@ def row(i: int, rng: np.random.Generator, *, yaw: bool = False) -> NewKeyframe:
         descriptor=desc,
         yaw=rng.normal(size=(4, 36)).astype(np.float32) if yaw else None,
         content_hash=content_hash("descriptor", desc.tobytes(), {"i": i}),
+        sensor="vlp16" if i % 4 == 3 else None,  # a map holds keyframes of several sensors
     )
 
 
@@ -169,6 +170,7 @@ def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
                 "session_id": "s2",
                 "timestamp": 7.0,
                 "pose": [7.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+                "sensor": "vlp16",
             }
             last = m.last_keyframe("r2")
             assert last is not None and last.keyframe_id == "kf-158"

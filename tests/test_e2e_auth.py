@@ -33,6 +33,7 @@ ALLOWED = {
     "GET /v1/maps/{map_id}/overview": READ,
     "POST /v1/descriptors": USE,
     "POST /v1/descriptors:batch": USE,
+    "GET /v1/sensors": USE,
     "POST /v1/maps/{map_id}/query": USE,
     "POST /v1/maps/{map_id}/observe": USE,
     "POST /v1/maps/{map_id}/keyframes": USE,

@@ -30,11 +30,11 @@ from model_export.export import (  # noqa: E402
     ExportError,
     count_nodes,
     export_onnx,
-    read_metadata,
     run_onnx,
     verification_images,
 )
 from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from model_export.modelfile import read_metadata  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
 
 PROFILE = get_profile("kitti-hdl64")
@@ -216,7 +216,7 @@ def test_an_encoder_with_views_describes_a_scan_by_the_mean_of_its_views(
     from lidar_core.views import project_views
     from model_export.checkpoint import load_model
     from model_export.evaluate import describe
-    from model_export.export import with_views
+    from model_export.modelfile import with_views
     from service.encoder import Encoder
 
     two = with_views(exported["i8"].path, tmp_path / "two.onnx", 2)

@@ -73,6 +73,21 @@ def test_stream_sigkill_durability_and_backup(tmp_path, encoder):
         with pytest.raises(Exception, match="1008|403|rejected"), connect(nope):
             pass
 
+        # ---- the stream names its sensor: per connection, per frame; unknown ones refused ---
+        with connect(ws_url.replace("session_id=s1", "session_id=s2") + "&sensor=vlp16") as ws:
+            for i, extra in enumerate([{}, {"sensor": "os1-64"}, {"sensor": "mid360"}]):
+                ws.send(_meta(200.0 + i, insert="always", **extra))
+                ws.send(scan(i).tobytes())
+            named = [json.loads(ws.recv(timeout=30)) for _ in range(3)]
+        assert named[0]["ok"] and named[1]["ok"], named
+        assert named[2]["error"]["code"] == "unknown_sensor"
+        kfs = [c.get(f"/v1/maps/town/keyframes/{g['keyframe_id']}").json() for g in named[:2]]
+        assert [k["sensor"] for k in kfs] == ["vlp16", "os1-64"]
+        acked |= {g["keyframe_id"]: [] for g in named[:2]}
+        bad = url.replace("http", "ws") + "/v1/maps/town/stream?robot_id=r1&sensor=mid360"
+        with pytest.raises(Exception, match="1008|unknown_sensor|rejected"), connect(bad):
+            pass
+
         # ---- keyframes acknowledged one by one, then SIGKILL mid-stream --------------------
         stop = threading.Event()
 

@@ -1,4 +1,5 @@
-"""``/v1/descriptors``: scan → descriptor, one scan or a length-prefixed batch."""
+"""``/v1/descriptors``: scan → descriptor, one scan or a length-prefixed batch; ``/v1/sensors``:
+the sensors scans may come from."""
 
 from __future__ import annotations
 
@@ -8,12 +9,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Request
 
-from service.api.openapi import SCAN_BODY, error_responses
+from service.api.openapi import SCAN_BODY, SensorQuery, error_responses
 from service.bodies import read_body, read_scan
 from service.deps import CanEncode, ServiceDep
 from service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from service.scans import SCAN_TYPES, ScanBody
-from service.schemas import DescriptorBatchOut, DescriptorOut, Timings
+from service.schemas import DescriptorBatchOut, DescriptorOut, SensorList, SensorOut, Timings
 
 router = APIRouter(prefix="/v1", tags=["descriptors"])
 BATCH_TYPE = "application/x-scan-batch"
@@ -31,12 +32,44 @@ async def describe(
     request: Request,
     svc: ServiceDep,
     _: CanEncode,
+    sensor: SensorQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> DescriptorOut:
     """The 256-d place descriptor of one scan, with per-stage timings."""
-    d = await svc.describe(await read_scan(request, svc.settings.limits, x_point_fields))
+    svc.sensors.check(sensor)
+    d = await svc.describe(await read_scan(request, svc.settings.limits, x_point_fields, sensor))
     return DescriptorOut(
         descriptor=d.descriptor.tolist(), model_id=svc.model_id, timings_ms=Timings(**d.timings)
+    )
+
+
+@router.get(
+    "/sensors",
+    response_model=SensorList,
+    responses=error_responses(401, 403),
+    summary="The sensors scans may come from",
+)
+async def sensors(svc: ServiceDep, _: CanEncode) -> SensorList:
+    """Every sensor a scan's `sensor` parameter (or a map's) may name: the catalogue and the
+    operator's own, each with its beam table, the manual its figures come from, and how its
+    scans enter this model."""
+    s = svc.sensors
+    return SensorList(
+        model_sensor=s.model_sensor.name,
+        sensors=[
+            SensorOut(
+                name=name,
+                title=s.known[name].title,
+                beams=s.known[name].beams,
+                elevations_deg=list(s.known[name].elevations_deg),
+                columns=s.known[name].columns,
+                min_range=s.known[name].min_range,
+                max_range=s.known[name].max_range,
+                source=s.known[name].source,
+                projection=s.input(name).kind,
+            )
+            for name in s.names()
+        ],
     )
 
 
@@ -89,9 +122,12 @@ async def describe_batch(
     request: Request,
     svc: ServiceDep,
     _: CanEncode,
+    sensor: SensorQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> DescriptorBatchOut:
-    """Descriptors of several scans, in order. The scans share the encoder's micro-batches."""
+    """Descriptors of several scans of one sensor, in order. The scans share the encoder's
+    micro-batches."""
+    svc.sensors.check(sensor)
     ctype = request.headers.get("content-type", "")
     media, _sep, params = ctype.partition(";")
     if media.strip().lower() != BATCH_TYPE:
@@ -113,7 +149,9 @@ async def describe_batch(
     for start in range(0, len(scans), step):
         results += await asyncio.gather(
             *(
-                svc.describe(ScanBody(s, fmt, x_point_fields, source=f"scan {start + i}"))
+                svc.describe(
+                    ScanBody(s, fmt, x_point_fields, source=f"scan {start + i}", sensor=sensor)
+                )
                 for i, s in enumerate(scans[start : start + step])
             )
         )

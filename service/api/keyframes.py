@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import ValidationError
 
-from service.api.openapi import SCAN_BODY, error_responses
+from service.api.openapi import SCAN_BODY, SensorQuery, error_responses
 from service.auth import Action
 from service.bodies import read_body, read_scan
 from service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
@@ -52,15 +52,17 @@ async def insert_keyframe(
     robot_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "unknown",
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
     pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
+    sensor: SensorQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> KeyframeOut:
     """Encode the scan and store it as a keyframe: descriptor, yaw features, metadata.
     Idempotent on `keyframe_id`: the same id with the same scan and metadata returns the
     stored keyframe (200, `created: false`); with anything different, 409."""
     request.app.state.auth.authorize(who, Action.INSERT, map_id)
+    svc.sensors.check(sensor)
     m = await svc.open_map(map_id)
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose))
-    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
     result = (await svc.insert_scan(m, scan, keyframe_id, obs)).result
     response.status_code = 201 if result.created else 200
     return _out(result.keyframe, result.created)

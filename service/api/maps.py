@@ -30,11 +30,13 @@ async def create_map(
 ) -> MapOut:
     """Create the map, or return it unchanged if it exists with the same settings (200).
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
+    sensor = svc.sensors.check(settings.sensor if settings else None)
     m, created = await in_thread(
         svc.registry.create,
         map_id,
         settings.index if settings else None,
         settings.keep_geometry if settings else None,
+        sensor,
     )
     response.status_code = 201 if created else 200
     return MapOut(**await in_thread(m.info), created=created)

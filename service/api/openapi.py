@@ -2,7 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
+
+from fastapi import Query
+
+from service.schemas import SENSOR_PATTERN
+
+SENSOR_HELP = (
+    "the sensor the scan came from (GET /v1/sensors lists the known ones: vlp16, os1-64, "
+    "hdl32, …); it decides how the scan is projected into the model's input. Default: the "
+    "map's sensor, else the model's own. An unknown name is a 400 that lists the known ones"
+)
+# The `sensor` query parameter of every route that takes a scan.
+SensorQuery = Annotated[str | None, Query(pattern=SENSOR_PATTERN, description=SENSOR_HELP)]
 
 SCAN_BODY: dict[str, Any] = {
     "requestBody": {

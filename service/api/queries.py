@@ -1,13 +1,15 @@
 """Place queries and the robot's round trip: ``query``, ``observe``, and the ``stream`` socket.
 
-WebSocket protocol (``/v1/maps/{map_id}/stream?robot_id=&session_id=&k=``):
+WebSocket protocol (``/v1/maps/{map_id}/stream?robot_id=&session_id=&k=&sensor=``):
 each observation is two frames from the client —
 
 1. a text frame, JSON: ``{"seq": any, "timestamp": float, "pose": "x,y,z,qx,qy,qz,qw" |
    [7 numbers] | null, "insert": "auto"|"always"|"never", "verify": bool, "content_type":
    "application/octet-stream"|"application/x-npy"|"application/x-pcd"|
    "application/x-ros2-pointcloud2", "fields":
-   "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd"}`` (all but ``timestamp`` optional);
+   "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd", "sensor": a known sensor}`` (all but
+   ``timestamp`` optional; ``sensor`` defaults to the stream's ``sensor`` parameter, else the
+   map's);
 2. a binary frame: the scan bytes.
 
 For each observation the server sends one text frame, in the order received:
@@ -29,7 +31,7 @@ from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisco
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from lidar_core.errors import LidarCoreError
-from service.api.openapi import SCAN_BODY, error_responses
+from service.api.openapi import SCAN_BODY, SensorQuery, error_responses
 from service.auth import Action, presented_key
 from service.bodies import read_scan
 from service.deps import CanEncode, ServiceDep
@@ -39,6 +41,7 @@ from service.places import Answer, Observation, Observed
 from service.scans import ScanBody, decompress
 from service.schemas import (
     NAME_PATTERN,
+    SENSOR_PATTERN,
     DescriptorQueryIn,
     LoopClosureOut,
     MatchOut,
@@ -102,6 +105,7 @@ async def query(
     time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
+    sensor: SensorQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> QueryOut:
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
@@ -111,6 +115,7 @@ async def query(
     verification, the top match when its distance is under the configured threshold (and
     the margin to the runner-up is large enough). k results come back whenever k eligible
     keyframes exist."""
+    svc.sensors.check(sensor)
     m = await svc.open_map(map_id)
     filters = Filters(
         exclude_session=exclude_session,
@@ -122,7 +127,7 @@ async def query(
         time_to=time_to,
         max_distance=max_distance,
     )
-    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
     probe: ScanBody | list[float] = scan
     if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
         body = await in_thread(
@@ -158,6 +163,7 @@ async def observe(
     insert: InsertMode = "auto",
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
+    sensor: SensorQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> ObserveOut:
     """Query the map excluding this session's own recent keyframes, then insert the scan as
@@ -166,9 +172,10 @@ async def observe(
     `robot:session:timestamp`, so a retried observation is not inserted twice."""
     if insert != "never":
         request.app.state.auth.authorize(who, Action.INSERT, map_id)
+    svc.sensors.check(sensor)
     m = await svc.open_map(map_id)
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
-    scan = await read_scan(request, svc.settings.limits, x_point_fields)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
     return observe_out(await svc.observe(m, scan, obs))
 
 
@@ -211,6 +218,7 @@ class StreamMeta(BaseModel):
     content_type: str = "application/octet-stream"
     fields: str = "xyzi"
     encoding: str = "identity"
+    sensor: str | None = Field(None, pattern=SENSOR_PATTERN)
 
 
 @router.websocket("/stream")
@@ -220,6 +228,7 @@ async def stream(
     robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    sensor: SensorQuery = None,
 ) -> None:
     """Observations over one WebSocket; see the module docstring for the frame format."""
     app = websocket.app
@@ -229,6 +238,7 @@ async def stream(
             raise ServiceError("the service is starting", code="not_ready")
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
+        svc.sensors.check(sensor)
         m = await svc.open_map(map_id)
     except ServiceError as err:
         await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
@@ -253,7 +263,13 @@ async def stream(
                 obs = Observation(
                     robot_id, session_id, meta.timestamp, pose, meta.insert, k, meta.verify
                 )
-                body = ScanBody(scan, meta.content_type, meta.fields, meta.encoding)
+                body = ScanBody(
+                    scan,
+                    meta.content_type,
+                    meta.fields,
+                    meta.encoding,
+                    sensor=svc.sensors.check(meta.sensor) or sensor,
+                )
                 o = await svc.observe(m, body, obs)
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
             except (ServiceError, LidarCoreError) as err:

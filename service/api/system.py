@@ -59,6 +59,8 @@ async def readyz(request: Request) -> Response:
                 "model_id": svc.model_id,
                 "views": svc.encoder.views,
                 "scan": svc.encoder.scan_path,
+                "sensor": svc.sensors.model_sensor.name,
+                "thresholds": {k: t.public() for k, t in svc.thresholds.items()},
                 **where,
                 "failed_maps": sorted(svc.registry.failed),  # why: in the log
             },

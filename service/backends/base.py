@@ -30,14 +30,22 @@ def map_not_found(map_id: str) -> NotFound:
     )
 
 
-def check_same_geometry(m: PlaceMap, keep_geometry: bool | None) -> None:
-    """Creating an existing map again: a geometry setting, when given, must match (409)."""
+def check_same_settings(m: PlaceMap, keep_geometry: bool | None, sensor: str | None) -> None:
+    """Creating an existing map again: a geometry or sensor setting, when given, must match
+    (409)."""
     if keep_geometry is not None and m.keep_geometry != keep_geometry:
         raise Conflict(
             f"map {m.map_id!r} exists with keep_geometry={str(m.keep_geometry).lower()}; "
             "the setting is fixed when a map is created",
             code="map_conflict",
             keep_geometry=m.keep_geometry,
+        )
+    if sensor is not None and m.sensor != sensor:
+        raise Conflict(
+            f"map {m.map_id!r} exists with sensor {m.sensor!r}, not {sensor!r}; a map's "
+            "sensor is fixed when it is created (scans of other sensors name theirs)",
+            code="map_conflict",
+            sensor=m.sensor,
         )
 
 
@@ -119,6 +127,7 @@ class PlaceMap(Protocol):
     dim: int
     kind: str  # the index kind asked for: auto, flat (exact) or ivf (approximate)
     keep_geometry: bool  # keyframes inserted from scans keep their compact geometry
+    sensor: str | None  # the sensor of scans that name none; None: the model's own
 
     @property
     def count(self) -> int: ...  # live keyframes the index holds
@@ -168,7 +177,11 @@ class MapBackend(Protocol):
     def get_nowait(self, map_id: str) -> PlaceMap | None: ...
 
     def create(
-        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+        self,
+        map_id: str,
+        kind: str | None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
     ) -> tuple[PlaceMap, bool]: ...
 
     def delete(self, map_id: str) -> None: ...

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.backends.base import check_same_geometry, map_not_found
+from service.backends.base import check_same_settings, map_not_found
 from service.backends.faiss.index import set_threads
 from service.backends.faiss.map import FaissMap
 from service.backends.faiss.store import fsync_dir
@@ -79,7 +79,11 @@ class FaissBackend:
         return self.get(map_id)
 
     def create(
-        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+        self,
+        map_id: str,
+        kind: str | None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
     ) -> tuple[FaissMap, bool]:
         """Create a map, or return the existing one when each setting is None or the same."""
         check_map_id(map_id)
@@ -94,7 +98,7 @@ class FaissBackend:
                         code="map_conflict",
                         index=m.kind,
                     )
-                check_same_geometry(m, keep_geometry)
+                check_same_settings(m, keep_geometry, sensor)
                 return m, False
             folder = self.root / map_id
             if folder.exists():  # debris without a store (load_all skipped it): not a map
@@ -106,6 +110,7 @@ class FaissBackend:
                 dim=self.dim,
                 kind=kind or self.settings.kind,
                 keep_geometry=True if keep_geometry is None else keep_geometry,
+                sensor=sensor,
                 settings=self.settings,
             )
             self.maps[map_id] = m

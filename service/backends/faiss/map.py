@@ -70,6 +70,8 @@ class FaissMap:
         self.dim = int(store.get_meta("dim") or index.dim)
         # maps made before the setting existed keep geometry for their new keyframes
         self.keep_geometry: bool = store.get_meta("keep_geometry") != "false"
+        # maps made before sensors were named hold the model's own sensor's scans
+        self.sensor: str | None = store.get_meta("sensor")
 
     # ---- opening and snapshots --------------------------------------------------------------
 
@@ -84,6 +86,7 @@ class FaissMap:
         kind: str,
         settings: IndexSettings,
         keep_geometry: bool = True,
+        sensor: str | None = None,
     ) -> FaissMap:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
         # or a whole one (load_all removes the debris), never a store without its metadata.
@@ -98,6 +101,7 @@ class FaissMap:
             index_kind=kind,
             keep_geometry="true" if keep_geometry else "false",
             created_at=time.time(),
+            **({} if sensor is None else {"sensor": sensor}),
         )
         store.close()  # a lingering connection would checkpoint into the file later
         os.replace(tmp, folder)
@@ -334,6 +338,7 @@ class FaissMap:
             },
             "keyframes": keyframes,
             "keep_geometry": self.keep_geometry,
+            "sensor": self.sensor,
             "seq": self.applied_seq,
             "snapshot_seq": self.snapshot_seq,
             "created_at": self.created_at,

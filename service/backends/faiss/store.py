@@ -18,7 +18,10 @@ Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the F
                 for a keyframe inserted as a bare descriptor or into a map that keeps none.
                 Written in the same transaction as the descriptor: as durable as it.
 
-Schema 2 added ``geometry``; a schema-1 store gains the column when opened for writing.
+    sensor      the sensor of the scan a keyframe came from (a name; NULL: not recorded).
+
+Schema 2 added ``geometry``, schema 3 ``sensor``; an older store gains the columns when
+opened for writing.
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ import numpy as np
 
 from service.domain import Keyframe, NewKeyframe
 
-SCHEMA_VERSION = 2
-READABLE_VERSIONS = (1, 2)  # a read-only open (doctor) reads either
+SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)  # a read-only open (doctor) reads any
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS keyframes (
@@ -57,7 +60,8 @@ CREATE TABLE IF NOT EXISTS keyframes (
     seq INTEGER NOT NULL,
     deleted_seq INTEGER,
     created_at REAL NOT NULL,
-    geometry BLOB
+    geometry BLOB,
+    sensor TEXT
 );
 CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
 CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
@@ -71,8 +75,9 @@ class StoreError(RuntimeError):
 
 
 _KF_COLUMNS = (
-    "id, keyframe_id, robot_id, session_id, timestamp, pose, content_hash, seq, created_at"
+    "id, keyframe_id, robot_id, session_id, timestamp, pose, content_hash, seq, created_at, sensor"
 )
+_KF_WIDTH = 10
 
 
 def _keyframe(row: tuple[Any, ...]) -> Keyframe:
@@ -86,6 +91,7 @@ def _keyframe(row: tuple[Any, ...]) -> Keyframe:
         content_hash=row[6],
         seq=row[7],
         created_at=row[8],
+        sensor=row[9],
     )
 
 
@@ -132,18 +138,21 @@ class Store:
         version = self.get_meta("schema_version")
         if version is None:
             self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
-        elif int(version) == 1:
-            self._migrate_1_to_2()
+        elif int(version) in (1, 2):
+            self._migrate(int(version))
         elif int(version) != SCHEMA_VERSION:
             raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
 
-    def _migrate_1_to_2(self) -> None:
-        """Add the geometry column (NULL for every existing keyframe), in one transaction."""
+    def _migrate(self, version: int) -> None:
+        """Add the columns later schemas have (NULL for every existing keyframe), in one
+        transaction."""
+        added = {2: "geometry BLOB", 3: "sensor TEXT"}
         with self._write_lock:
             con = self._write
             con.execute("BEGIN IMMEDIATE")
             try:
-                con.execute("ALTER TABLE keyframes ADD COLUMN geometry BLOB")
+                for step in range(version + 1, SCHEMA_VERSION + 1):
+                    con.execute(f"ALTER TABLE keyframes ADD COLUMN {added[step]}")
                 con.execute(
                     "INSERT OR REPLACE INTO meta(key, value) VALUES ('schema_version', ?)",
                     (str(SCHEMA_VERSION),),
@@ -232,7 +241,7 @@ class Store:
                     cur = con.execute(
                         "INSERT INTO keyframes(keyframe_id, robot_id, session_id, timestamp, "
                         "pose, descriptor, yaw, yaw_shape, content_hash, seq, created_at, "
-                        "geometry) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        "geometry, sensor) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                         (
                             r.keyframe_id,
                             r.robot_id,
@@ -246,6 +255,7 @@ class Store:
                             seq,
                             now,
                             r.geometry,
+                            r.sensor,
                         ),
                     )
                     ids.append(int(cur.lastrowid or 0))
@@ -343,11 +353,12 @@ class Store:
             f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
             ids,
         ):
-            kf = _keyframe(row[:9])
+            kf = _keyframe(row[:_KF_WIDTH])
             yaw = None
-            if row[9] is not None:
-                shape = tuple(json.loads(row[10]))
-                yaw = np.frombuffer(row[9], dtype=np.float16).reshape(shape)
+            blob, shape_text = row[_KF_WIDTH], row[_KF_WIDTH + 1]
+            if blob is not None:
+                shape = tuple(json.loads(shape_text))
+                yaw = np.frombuffer(blob, dtype=np.float16).reshape(shape)
             out[kf.id] = (kf, yaw)
         return out
 

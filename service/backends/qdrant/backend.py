@@ -41,7 +41,7 @@ from qdrant_client import QdrantClient, models
 from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
 from qdrant_client.http.exceptions import ResponseHandlingException, UnexpectedResponse
 
-from service.backends.base import check_same_geometry, map_not_found
+from service.backends.base import check_same_settings, map_not_found
 from service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
 from service.backends.qdrant.map import QdrantMap
 from service.domain import check_map_id
@@ -200,7 +200,11 @@ class QdrantBackend:
         return m if m is not None and time.monotonic() - m.checked <= FRESH_S else None
 
     def create(
-        self, map_id: str, kind: str | None, keep_geometry: bool | None = None
+        self,
+        map_id: str,
+        kind: str | None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
     ) -> tuple[QdrantMap, bool]:
         check_map_id(map_id)
         with self._create:
@@ -208,7 +212,7 @@ class QdrantBackend:
             created = m is None
             if m is None:
                 keep = True if keep_geometry is None else keep_geometry
-                self._create_collection(map_id, kind or self.index.kind, keep)
+                self._create_collection(map_id, kind or self.index.kind, keep, sensor)
                 m = self._open(map_id)
                 assert m is not None
             if kind is not None and m.kind != kind:
@@ -217,11 +221,13 @@ class QdrantBackend:
                     code="map_conflict",
                     index=m.kind,
                 )
-            check_same_geometry(m, keep_geometry)
+            check_same_settings(m, keep_geometry, sensor)
             self._maps[map_id] = m
             return m, created
 
-    def _create_collection(self, map_id: str, kind: str, keep_geometry: bool) -> None:
+    def _create_collection(
+        self, map_id: str, kind: str, keep_geometry: bool, sensor: str | None
+    ) -> None:
         name = self.collection(map_id)
         q = self.settings
         meta = {
@@ -231,6 +237,7 @@ class QdrantBackend:
             "dim": self.dim,
             "index_kind": kind,
             "keep_geometry": keep_geometry,
+            "sensor": sensor,
             "created_at": time.time(),
         }
         hnsw = models.HnswConfigDiff(m=0) if kind == "flat" else None  # exact: no graph

@@ -42,6 +42,7 @@ def point_payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
         "yaw": None if yaw is None else base64.b64encode(yaw.tobytes()).decode(),
         "yaw_shape": None if yaw is None else list(yaw.shape),
         "geometry": None if r.geometry is None else base64.b64encode(r.geometry).decode(),
+        "sensor": r.sensor,
     }
 
 
@@ -57,6 +58,7 @@ def keyframe_of(p: dict[str, Any]) -> Keyframe:
         content_hash=p["content_hash"],
         seq=0,
         created_at=float(p.get("created_at") or 0.0),
+        sensor=p.get("sensor"),
     )
 
 

@@ -43,6 +43,7 @@ class QdrantMap:
         self.dim = int(meta["dim"])
         self.kind: str = str(meta["index_kind"])
         self.keep_geometry = bool(meta.get("keep_geometry", True))
+        self.sensor: str | None = meta.get("sensor")
         self.created_at = float(meta.get("created_at") or 0.0)
         self.checked = time.monotonic()
         self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
@@ -236,6 +237,7 @@ class QdrantMap:
             },
             "keyframes": n,
             "keep_geometry": self.keep_geometry,
+            "sensor": self.sensor,
             "seq": None,
             "snapshot_seq": None,
             "created_at": self.created_at,

@@ -1,0 +1,70 @@
+"""The thresholds calibrated for one model, carried in its file.
+
+Three benchmarks choose them on the validation town, for the model they ran
+(``benchmarks/rerank.py``, ``benchmarks/loop_threshold.py``, ``benchmarks/verify_threshold.py
+--calibrate``), and with ``--write-calibration`` write them into the model file's metadata
+(``EncoderMetadata.calibration``; the graph and the model id stay as they are). The service
+takes them from the model it loads: a threshold calibrated for one model never silently
+serves another.
+
+    section        values                               chosen by
+    rerank         k, weight                            benchmarks/rerank.py
+    loop_closure   max_distance, max_score              benchmarks/loop_threshold.py
+    verify         min_fitness, max_rmse_m, max_distance  benchmarks/verify_threshold.py
+
+Each section records what chose it (the command, the data, the date), so ``/readyz`` and
+the start-up log can say where every threshold came from.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+CALIBRATED: dict[str, tuple[str, ...]] = {
+    "rerank": ("k", "weight"),
+    "loop_closure": ("max_distance", "max_score"),
+    "verify": ("min_fitness", "max_rmse_m", "max_distance"),
+}
+
+
+class Calibrated(BaseModel):
+    """One section's thresholds, as a benchmark chose them."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    values: dict[str, float | int | None] = Field(min_length=1)
+    chosen_by: str = Field(min_length=1, description="the command that chose them")
+    data: str = Field(min_length=1, description="what they were chosen on")
+    at: str = Field(description="UTC time, ISO 8601")
+
+
+def check_calibration(calibration: dict[str, Any]) -> dict[str, Calibrated]:
+    """Sections and fields known to :data:`CALIBRATED`, else a ValueError naming them."""
+    out = {}
+    for section, entry in calibration.items():
+        if section not in CALIBRATED:
+            raise ValueError(
+                f"calibration section {section!r} is not known; allowed: {', '.join(CALIBRATED)}"
+            )
+        c = entry if isinstance(entry, Calibrated) else Calibrated.model_validate(entry)
+        unknown = sorted(set(c.values) - set(CALIBRATED[section]))
+        if unknown:
+            raise ValueError(
+                f"calibration {section}: {', '.join(unknown)} not calibrated here; allowed: "
+                f"{', '.join(CALIBRATED[section])}"
+            )
+        out[section] = c
+    return out
+
+
+def calibrated(
+    section: str, values: dict[str, float | int | None], chosen_by: str, data: str
+) -> Calibrated:
+    """A section's entry, stamped now (checked as :func:`check_calibration` does)."""
+    entry = Calibrated(
+        values=values, chosen_by=chosen_by, data=data, at=datetime.now(UTC).isoformat()
+    )
+    return check_calibration({section: entry})[section]

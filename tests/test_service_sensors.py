@@ -1,0 +1,191 @@
+"""The wire says which sensor sent a scan, and the model says which thresholds it answers
+with: sensors on every scan route, maps that declare one, calibration from the model file."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from service_kit import MODEL, OCTET, running, scan
+
+from lidar_core.calibration import calibrated
+from lidar_core.points import PointCloud
+from lidar_core.sensors import CATALOGUE
+from lidar_core.sensors.input import SensorInput
+from service.encoder import Encoder
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    return Settings(data_dir=tmp_path / "data")
+
+
+def _expected(encoder: Encoder, points: np.ndarray, sensor: str) -> np.ndarray:
+    inp = SensorInput(encoder.meta.profile, CATALOGUE[sensor], encoder.meta.sensor_input)
+    images = encoder.project(PointCloud(points[:, :3].copy()), inp)[None]
+    return encoder.encode(images)[0][0]
+
+
+async def test_a_scan_is_projected_as_the_sensor_it_names(settings, encoder):
+    s = scan(3)
+    async with running(settings, encoder) as c:
+        default = np.array(
+            (await c.post("/v1/descriptors", content=s.tobytes(), headers=OCTET)).json()[
+                "descriptor"
+            ]
+        )
+        own = await c.post("/v1/descriptors?sensor=kitti-hdl64", content=s.tobytes(), headers=OCTET)
+        np.testing.assert_allclose(own.json()["descriptor"], default, atol=1e-6)
+        r = await c.post("/v1/descriptors?sensor=vlp16", content=s.tobytes(), headers=OCTET)
+        assert r.status_code == 200, r.text
+        vlp = np.array(r.json()["descriptor"])
+        np.testing.assert_allclose(vlp, _expected(encoder, s, "vlp16"), atol=1e-5)
+        assert float(vlp @ default) < 0.9999  # another projection, another descriptor
+        # a batch names one sensor for all its scans
+        body = b"".join(struct.pack("<I", len(x)) + x for x in (s.tobytes(), s.tobytes()))
+        b = await c.post(
+            "/v1/descriptors:batch?sensor=vlp16",
+            content=body,
+            headers={"content-type": "application/x-scan-batch"},
+        )
+        assert b.status_code == 200, b.text
+        np.testing.assert_allclose(b.json()["descriptors"][1], vlp, atol=1e-6)
+        listed = (await c.get("/v1/sensors")).json()
+        assert listed["model_sensor"] == "kitti-hdl64"
+        kinds = {x["name"]: x["projection"] for x in listed["sensors"]}
+        assert kinds["kitti-hdl64"] == "native" and kinds["vlp16"] == encoder.meta.sensor_input
+        assert {"vlp16", "vlp32c", "os1-128", "os0-128", "xt32", "hdl32"} <= set(kinds)
+        assert (await c.get("/readyz")).json()["detail"]["sensor"] == "kitti-hdl64"
+
+
+async def test_an_unknown_sensor_is_a_400_that_lists_the_known_ones(settings, encoder):
+    s = scan(0).tobytes()
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        kf = "keyframe_id=a&timestamp=1"
+        for method, url in [
+            ("post", "/v1/descriptors?sensor=mid360"),
+            ("post", "/v1/maps/m/query?sensor=mid360"),
+            ("post", "/v1/maps/m/observe?robot_id=r&timestamp=1&sensor=mid360"),
+            ("post", f"/v1/maps/m/keyframes?{kf}&sensor=mid360"),
+        ]:
+            r = await getattr(c, method)(url, content=s, headers=OCTET)
+            assert r.status_code == 400, (url, r.text)
+            e = r.json()["error"]
+            assert e["code"] == "unknown_sensor" and "allowed: hdl32, hdl64e" in e["message"]
+            assert "vlp16" in e["detail"]["allowed"]
+        bad = await c.put("/v1/maps/n", json={"sensor": "mid360"})
+        assert bad.status_code == 400 and bad.json()["error"]["code"] == "unknown_sensor"
+        assert (await c.get("/v1/maps/n")).status_code == 404  # nothing was created
+        weird = await c.post("/v1/descriptors?sensor=../etc", content=s, headers=OCTET)
+        assert weird.status_code == 422  # not even a name
+
+
+async def test_a_map_of_one_sensor_holds_and_answers_others(settings, encoder):
+    async with running(settings, encoder) as c:
+        r = await c.put("/v1/maps/robots", json={"sensor": "vlp16"})
+        assert r.status_code == 201 and r.json()["sensor"] == "vlp16"
+        again = await c.put("/v1/maps/robots", json={"sensor": "os1-64"})
+        assert again.status_code == 409 and again.json()["error"]["detail"]["sensor"] == "vlp16"
+        assert (await c.put("/v1/maps/robots", json={"sensor": "vlp16"})).status_code == 200
+        for i in range(3):  # scans that name no sensor are the map's
+            ins = await c.post(
+                f"/v1/maps/robots/keyframes?keyframe_id=k{i}&timestamp={i}",
+                content=scan(i).tobytes(),
+                headers=OCTET,
+            )
+            assert ins.status_code == 201 and ins.json()["sensor"] == "vlp16"
+        car = await c.post(  # a car's HDL-64E scan of the same place, into the robots' map
+            "/v1/maps/robots/keyframes?keyframe_id=car1&timestamp=9&sensor=kitti-hdl64",
+            content=scan(1).tobytes(),
+            headers=OCTET,
+        )
+        assert car.status_code == 201 and car.json()["sensor"] == "kitti-hdl64"
+        q = await c.post(
+            "/v1/maps/robots/query?k=4&verify=false&sensor=kitti-hdl64",
+            content=scan(1).tobytes(),
+            headers=OCTET,
+        )
+        assert q.status_code == 200, q.text
+        matches = q.json()["matches"]
+        assert matches[0]["keyframe_id"] == "car1" and matches[0]["distance"] < 1e-3
+        assert {m["sensor"] for m in matches} == {"kitti-hdl64", "vlp16"}
+        # the map's own sensor answers the same scan as its VLP-16 keyframe
+        own = await c.post(
+            "/v1/maps/robots/query?k=1&verify=false", content=scan(1).tobytes(), headers=OCTET
+        )
+        assert own.json()["matches"][0]["keyframe_id"] == "k1"
+        # retrying an insert with another sensor is other content: refused, not overwritten
+        retry = await c.post(
+            "/v1/maps/robots/keyframes?keyframe_id=k1&timestamp=1&sensor=os1-64",
+            content=scan(1).tobytes(),
+            headers=OCTET,
+        )
+        assert retry.status_code == 409
+        got = (await c.get("/v1/maps/robots/keyframes/k1")).json()
+        assert got["sensor"] == "vlp16"
+
+
+# ---- calibration travels with the model ----------------------------------------------------
+def _calibrated_copy(tmp_path, name: str, max_score: float, max_distance: float):
+    from model_export.modelfile import with_calibration
+
+    path = tmp_path / name
+    path.write_bytes(MODEL.read_bytes())
+    entry = calibrated(
+        "loop_closure",
+        {"max_score": max_score, "max_distance": max_distance},
+        chosen_by="tests/test_service_sensors.py",
+        data="a test",
+    )
+    meta = with_calibration(path, "loop_closure", entry)
+    assert meta.model_id == Encoder(MODEL).model_id  # the model is the same model
+    return path
+
+
+async def test_each_model_answers_with_its_own_calibration(tmp_path):
+    strict = _calibrated_copy(tmp_path, "strict.onnx", -5.0, 0.01)
+    loose = _calibrated_copy(tmp_path, "loose.onnx", 5.0, 1.9)
+    seen = {}
+    for path in (strict, loose):
+        enc = Encoder(path, intra_op_threads=2)
+        settings = Settings(data_dir=tmp_path / path.stem)
+        async with running(settings, enc) as c:
+            await c.put("/v1/maps/m")
+            await c.post(
+                "/v1/maps/m/keyframes?keyframe_id=a&timestamp=1",
+                content=scan(0).tobytes(),
+                headers=OCTET,
+            )
+            q = (
+                await c.post(
+                    "/v1/maps/m/query?verify=false", content=scan(0).tobytes(), headers=OCTET
+                )
+            ).json()
+            ready = (await c.get("/readyz")).json()["detail"]["thresholds"]
+            seen[path.stem] = (q["loop_closure"], ready)
+    (lc_strict, t_strict), (lc_loose, t_loose) = seen["strict"], seen["loose"]
+    assert lc_strict["threshold"] == -5.0 and not lc_strict["accepted"]
+    assert lc_loose["threshold"] == 5.0 and lc_loose["accepted"]
+    assert t_strict["loop_closure.max_score"] == {
+        "value": -5.0,
+        "source": "model",
+        "chosen_by": "tests/test_service_sensors.py on a test",
+    }
+    assert t_loose["loop_closure.max_distance"]["value"] == 1.9
+
+
+async def test_an_explicit_setting_overrides_the_models_calibration(tmp_path, caplog):
+    loose = _calibrated_copy(tmp_path, "loose.onnx", 5.0, 1.9)
+    settings = Settings(data_dir=tmp_path / "d", loop_closure={"max_score": -1.0})
+    with caplog.at_level("INFO", logger="overlapmamba.service"):
+        async with running(settings, Encoder(loose, intra_op_threads=2)) as c:
+            t = (await c.get("/readyz")).json()["detail"]["thresholds"]
+    assert t["loop_closure.max_score"] == {"value": -1.0, "source": "setting"}
+    assert t["loop_closure.max_distance"]["source"] == "model"
+    assert "loop_closure.max_score=-1.0 (setting)" in caplog.text
+    assert "loop_closure.max_distance=1.9 (model)" in caplog.text
