@@ -25,8 +25,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from lidar_core.datasets.base import Sequence
 from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
-from lidar_core.sensors import SensorProfile
+from lidar_core.sensors import SensorProfile, get_sensor, sensor_of_profile
+from lidar_core.sensors.input import Mode, SensorInput
 from model_export.errors import CheckpointError
 from model_export.model import OverlapMamba, OverlapMambaConfig
 
@@ -107,6 +109,23 @@ def views_of(model: Network) -> int:
     """How many sub-column views describe a scan (:mod:`lidar_core.views`): an exported
     encoder's metadata says; a network in training is described by one."""
     return model.meta.views if isinstance(model, ExportedNetwork) else 1
+
+
+def sensor_input_of(model: Network) -> Mode:
+    """How scans of other sensors enter the model (:mod:`lidar_core.sensors.input`): an
+    exported encoder's metadata says; a network in training takes the metadata's default,
+    which its export will write."""
+    if isinstance(model, ExportedNetwork):
+        return model.meta.sensor_input
+    default: Mode = EncoderMetadata.model_fields["sensor_input"].default
+    return default
+
+
+def input_of(model: Network, profile: SensorProfile, seq: Sequence) -> SensorInput:
+    """How ``seq``'s scans become ``model``'s input: its sensor (a sequence that names none
+    is the model's own) into the model's profile, as the model takes other sensors."""
+    sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
+    return SensorInput(profile, sensor, sensor_input_of(model))
 
 
 def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]]:

@@ -1,5 +1,6 @@
 """Evaluation: descriptors of a sequence, loop-closure metrics split by revisit direction,
-and the real-scan checks of ``eval-real``.
+and place recognition across sessions (the real-scan checks of ``eval-real`` are
+:mod:`model_export.realscans`).
 
 Loop closure follows lidar_core.metrics' protocol (OverlapTransformer's): query i searches
 frames 0 … i − 101, top-1 by squared L2, PR over the top-1 distance; Recall@1% uses
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,12 +24,12 @@ from lidar_core.anatomy import errors_at_f1max
 from lidar_core.datasets.base import Sequence
 from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
 from lidar_core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
-from lidar_core.rerank import OFF, Rerank, rerank_ranked, two_stage
+from lidar_core.rerank import OFF, Rerank, two_stage
 from lidar_core.scancontext import ScanContextParams, scan_context
 from lidar_core.scancontext import retrieve as sc_retrieve
-from lidar_core.sensors import SensorProfile
+from lidar_core.sensors import SensorProfile, get_profile
 from lidar_core.views import combine_views
-from model_export.checkpoint import ExportedNetwork, Network, views_of
+from model_export.checkpoint import ExportedNetwork, Network, input_of, views_of
 
 SUBSETS = ("all", "same", "reverse")
 # The label suffix of a network's two-stage rows (descriptor shortlist, yaw re-rank).
@@ -65,19 +65,30 @@ def describe_sequence(
     model: Network, seq: Sequence, profile: SensorProfile, *, progress: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every scan of ``seq`` described as the model describes a scan: its cached range
-    images, with as many sub-column views as the model takes (:func:`views_of`)."""
+    images, from the sequence's sensor (:func:`~model_export.checkpoint.input_of`), with as
+    many sub-column views as the model takes (:func:`views_of`)."""
     from model_export.rangecache import range_images
 
-    images = range_images(seq, profile, views=views_of(model), progress=progress)
+    images = range_images(
+        seq,
+        profile,
+        views=views_of(model),
+        sensor=input_of(model, profile, seq),
+        progress=progress,
+    )
     return describe(model, images)
 
 
 def sequence_loops(
-    seq: Sequence, profile: SensorProfile, progress: bool = False
+    seq: Sequence, profile: SensorProfile | None = None, progress: bool = False
 ) -> LoopGroundTruth:
     """The loop table of a sequence: the one its writer shipped (``ground_truth/loops.npz``,
     with that table's own radius and thresholds) when it matches the sequence, else the
-    default protocol's table (computed once, then cached)."""
+    default protocol's table (computed once, then cached). Overlap is measured in
+    ``profile``; by default the sequence's own sensor's (the one its table was written
+    with), whatever model is evaluated."""
+    if profile is None:
+        profile = get_profile(seq.sensor or "kitti-hdl64")
     shipped = seq.root / "ground_truth" / "loops.npz"
     if shipped.is_file():
         gt = LoopGroundTruth.load(shipped)
@@ -182,209 +193,6 @@ def plot_pr(results: dict[str, LoopClosureResult], path: Path, title: str) -> No
     plt.close(fig)
 
 
-@dataclass(frozen=True)
-class RealTurns:
-    """Range images of real scans and of the same scans turned about z by ``theta`` (degrees,
-    uniform in ±180°: continuous, not whole columns), projected once; with sub-column views,
-    each scan's views (:mod:`lidar_core.views`)."""
-
-    plain: np.ndarray  # (N, H, W) float32, or (N, V, H, W)
-    turned: np.ndarray  # the same shape
-    theta: np.ndarray  # (N,) degrees
-    positions: np.ndarray  # (N, 3) from the poses
-    repeat: int  # rows repeated to reach the model's height (1: none)
-
-
-def turned_points(xyz: np.ndarray, theta: float) -> np.ndarray:
-    """Points ``xyz`` (N, 3) as the sensor sees them after it turned by ``theta`` degrees
-    about z: they turn by −θ, and every one is re-binned when projected, as a real turn."""
-    from lidar_core.poses import rotation_z, transform_points
-
-    return transform_points(xyz, rotation_z(-theta))
-
-
-def turned_image(xyz: np.ndarray, theta: float, profile: SensorProfile) -> np.ndarray:
-    """The range image of points ``xyz`` (N, 3) after the sensor turned by ``theta`` degrees
-    about z (:func:`turned_points`)."""
-    from lidar_core.projection import project
-
-    return project(turned_points(xyz, theta), profile)
-
-
-def real_turns(
-    seq: Sequence, profile: SensorProfile, rows: int, seed: int = 0, views: int = 1
-) -> RealTurns:
-    """``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into
-    an HDL-64 model's 64) has each row repeated. ``views`` > 1: each scan's sub-column
-    views, (N, views, H, W)."""
-    from lidar_core.views import project_views
-
-    if rows % profile.height:
-        raise ValueError(
-            f"profile {profile.name} makes {profile.height}-row images; the model takes {rows} "
-            "rows, which is not a whole multiple"
-        )
-    repeat = rows // profile.height
-    theta = np.random.default_rng(seed).uniform(-180.0, 180.0, len(seq))
-
-    def images(xyz: np.ndarray) -> np.ndarray:
-        img = project_views(xyz, profile, views)
-        img = np.repeat(img, repeat, axis=1) if repeat > 1 else img
-        return img if views > 1 else img[0]
-
-    plain, turned = [], []
-    for i in range(len(seq)):
-        xyz = seq.points(i).xyz
-        plain.append(images(xyz))
-        turned.append(images(turned_points(xyz, theta[i])))
-    return RealTurns(np.stack(plain), np.stack(turned), theta, seq.positions(), repeat)
-
-
-def invariance(desc: np.ndarray, desc_t: np.ndarray, positions: np.ndarray) -> dict[str, Any]:
-    """How far a turned copy moves, against how far scans 1 m apart (0.8–1.2 m) and any two
-    different scans are: squared distances between descriptors, medians."""
-    from lidar_core.metrics import squared_distances
-
-    n = len(desc)
-    cos = (desc * desc_t).sum(1)
-    d_turn = float(np.median(((desc - desc_t) ** 2).sum(1)))
-    d_all = squared_distances(desc, desc)
-    d_other = float(np.median(d_all[~np.eye(n, dtype=bool)]))
-    apart = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-    step = np.triu((apart >= 0.8) & (apart <= 1.2), 1)
-    d_step = float(np.median(d_all[step])) if step.any() else math.nan
-
-    def ratio(a: float, b: float) -> float:  # a collapsed model has zero distances
-        return a / b if b > 0 else math.nan
-
-    return {
-        "cosine_min": float(cos.min()),
-        "cosine_mean": float(cos.mean()),
-        "turned_over_other_distance": ratio(d_turn, d_other),
-        "turned_distance_median": d_turn,
-        "one_metre_step_distance_median": d_step,
-        "one_metre_step_pairs": int(step.sum()),
-        "turned_over_one_metre_step": ratio(d_turn, d_step),
-    }
-
-
-def eval_real(
-    model: Network,
-    profile: SensorProfile,
-    seq: Sequence,
-    *,
-    seed: int = 0,
-    hit_radius: float = 3.0,
-    rerank: Rerank = OFF,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Checks on real scans that have no loops (``../shared/data``'s KITTI 00, 0–100).
-
-    - **yaw invariance**: every scan turned about z by a random, continuous angle (not a
-      multiple of a column): descriptor cosine to the original, and the turned copy's
-      distance as a fraction of the median distance between *different* scans and of the
-      median distance between scans 1 m apart (0.8–1.2 m: a one-metre step);
-    - **odd → even retrieval**: queries are the odd frames, each turned by its random yaw;
-      the database is the even frames; a hit is a top-N frame within ``hit_radius`` metres;
-      Scan Context answers the same turned queries against the same database; with
-      ``rerank`` on, also the two-stage answers (``reranked``: :mod:`lidar_core.rerank`);
-    - **yaw estimate**: from the yaw features by circular cross-correlation, against the
-      turned copy (truth: the turn) and against the retrieved frame (truth: the poses).
-
-    ``profile`` projects the scans; one with fewer rows than the model (HDL-32E's 32 into the
-    HDL-64 model's 64) has each row repeated: the sensor-transfer check (:func:`real_turns`).
-    """
-    from lidar_core.metrics import nearest
-    from lidar_core.poses import rotation_z, yaw_deg
-    from lidar_core.yaw import estimate_yaw
-
-    turns = real_turns(seq, profile, model.cfg.height, seed, views_of(model))
-    theta, pos, n = turns.theta, turns.positions, len(seq)
-    desc, feats = describe(model, turns.plain)
-    desc_t, feats_t = describe(model, turns.turned)
-    inv = invariance(desc, desc_t, pos)
-    yaw_copy = np.array([estimate_yaw(feats[i], feats_t[i])[0][0] for i in range(n)])
-    err_copy = np.abs((yaw_copy - theta + 180.0) % 360.0 - 180.0)
-
-    odd, even = np.arange(1, n, 2), np.arange(0, n, 2)
-    k = min(5, len(even))
-    # one search for both stages: the second re-ranks the first rerank.k of it
-    ranked, dist = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.k), len(even)))
-    found = even[ranked[:, :k]]  # (Q, 5) frame numbers
-    close = np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < hit_radius
-    sc = _scan_context_odd_to_even(seq, theta, odd, even, k, hit_radius)
-    staged: dict[str, Any] = {}
-    if rerank.on:  # the service's two stages: the nearest re-ranked by their yaw features
-        r2, _ = rerank_ranked(feats_t[odd], feats[even], ranked, dist, rerank)
-        near2 = np.linalg.norm(pos[even[r2[:, :k]]] - pos[odd][:, None], axis=-1) < hit_radius
-        staged = {
-            "reranked": {
-                **asdict(rerank),
-                "recall@1": float(near2[:, 0].mean()),
-                "recall@5": float(near2.any(1).mean()),
-            }
-        }
-    # The turned query's pose: its sensor frame is turned by +θ about z.
-    q_poses = seq.poses[odd] @ np.stack([rotation_z(t) for t in theta[odd]])
-    top1 = found[:, 0]
-    truth = yaw_deg(np.linalg.inv(q_poses) @ seq.poses[top1])  # T_query←retrieved
-    est = np.array(
-        [estimate_yaw(feats_t[i], feats[j])[0][0] for i, j in zip(odd, top1, strict=True)]
-    )
-    err_ret = np.abs((est - truth + 180.0) % 360.0 - 180.0)[close[:, 0]]
-
-    def stats(x: np.ndarray) -> dict[str, float]:
-        if len(x) == 0:
-            return {"median": math.nan, "p90": math.nan, "max": math.nan}
-        return {
-            "median": float(np.median(x)),
-            "p90": float(np.percentile(x, 90)),
-            "max": float(x.max()),
-        }
-
-    return {
-        "scans": n,
-        "profile": profile.name,
-        "rows_repeated": turns.repeat,
-        "yaw_invariance": inv,
-        "retrieval_odd_to_even": {
-            "queries": len(odd),
-            "database": len(even),
-            "hit_radius_m": hit_radius,
-            "recall@1": float(close[:, 0].mean()),
-            "recall@5": float(close.any(1).mean()),
-            **staged,
-            "scan_context": sc,
-        },
-        "yaw_error_deg": {
-            "vs_turned_copy": stats(err_copy),
-            "vs_retrieved_frame": stats(err_ret),
-        },
-    }
-
-
-def _scan_context_odd_to_even(
-    seq: Sequence, theta: np.ndarray, odd: np.ndarray, even: np.ndarray, k: int, radius: float
-) -> dict[str, float]:
-    """Scan Context on :func:`eval_real`'s odd → even protocol: the same turned queries
-    (odd frames turned by ``theta``), the same database, the same hit radius."""
-    from lidar_core.poses import rotation_z, transform_points
-
-    p = ScanContextParams()
-    db = [scan_context(seq.points(int(i)).xyz, p) for i in even]
-    qs = [
-        scan_context(transform_points(seq.points(int(i)).xyz, rotation_z(-theta[i])), p)
-        for i in odd
-    ]
-    contexts = np.stack(db + qs)
-    queries = len(even) + np.arange(len(odd))
-    ranked, _ = sc_retrieve(contexts, queries, np.full(len(odd), len(even)), k, p.candidates)
-    pos = seq.positions()
-    found = np.where(ranked >= 0, even[np.clip(ranked, 0, None)], -1)
-    close = (np.linalg.norm(pos[found] - pos[odd][:, None], axis=-1) < radius) & (found >= 0)
-    return {"recall@1": float(close[:, 0].mean()), "recall@5": float(close.any(1).mean())}
-
-
 def network_digest(model: Network) -> str:
     """sha256 of the architecture and every weight: the same network reached under two names
     (a run reported in two rows) is described once."""
@@ -465,14 +273,21 @@ def evaluate_checkpoint(
     *,
     database: Path | None = None,
     rerank: Rerank = OFF,
+    scan_context: bool = False,
     progress: bool = False,
 ) -> SequenceEvaluation:
     """Loop closure of ``checkpoint`` on ``sequence`` (all, same and reverse direction) and,
-    with a ``database`` (the first session of the same town), place recognition of the
-    sequence's scans against it. ``open_sequence`` opens a path (a folder or a recording).
+    with a ``database`` (another session of the same town, of any sensor), place
+    recognition of the sequence's scans against it. ``open_sequence`` opens a path (a folder
+    or a recording). Each sequence is described as its own sensor's scans
+    (:func:`~model_export.checkpoint.input_of`). A query drive without a loop table (a
+    session made only to be queried: ``pair_table="none"``) is evaluated across sessions
+    only.
 
     With ``rerank`` on, the record also holds the two-stage answers (``metrics_reranked``,
-    ``errors_reranked``, the cross-session ``model_reranked``) and ``results`` are those."""
+    ``errors_reranked``, the cross-session ``model_reranked``) and ``results`` are those.
+    With ``scan_context``, Scan Context's loop closure on the same protocol too
+    (``metrics_scan_context``)."""
     from model_export.checkpoint import load_model
     from model_export.sessions import check_sessions
 
@@ -481,27 +296,39 @@ def evaluate_checkpoint(
     db = open_sequence(database) if database is not None else None
     if db is not None:  # refuse a wrong pair before the long part
         check_sessions(db, seq)
-    gt = sequence_loops(seq, profile, progress=progress)
-    desc, yaw = describe_sequence(model, seq, profile, progress=progress)
-    results = loop_closure(desc, gt)
     record: dict[str, Any] = {
         "checkpoint": str(checkpoint),
         "sequence": str(sequence),
-        "metrics": summary(results),
-        "errors": loop_errors(results, gt, seq),
+        "sensor": _input_record(model, profile, seq),
     }
-    if rerank.on:
-        results = loop_closure(desc, gt, yaw, rerank)
-        record["rerank"] = asdict(rerank)
-        record["metrics_reranked"] = summary(results)
-        record["errors_reranked"] = loop_errors(results, gt, seq)
+    results: dict[str, LoopClosureResult] = {}
+    if db is None or (seq.root / "ground_truth" / "loops.npz").is_file():
+        gt = sequence_loops(seq, progress=progress)
+        desc, yaw = describe_sequence(model, seq, profile, progress=progress)
+        results = loop_closure(desc, gt)
+        record["metrics"] = summary(results)
+        record["errors"] = loop_errors(results, gt, seq)
+        if rerank.on:
+            results = loop_closure(desc, gt, yaw, rerank)
+            record["rerank"] = asdict(rerank)
+            record["metrics_reranked"] = summary(results)
+            record["errors_reranked"] = loop_errors(results, gt, seq)
+        if scan_context:
+            contexts = scan_contexts(seq, progress=progress)
+            record["metrics_scan_context"] = summary(scancontext_loop_closure(contexts, gt))
     if db is None:
         return SequenceEvaluation(record, results, (seq.name, len(seq)))
     both = cross_session([("model", model, profile)], db, seq, rerank=rerank, progress=progress)
     record["database"] = str(database)
+    record["database_sensor"] = _input_record(model, profile, db)
     record["cross_session"] = {
         "model": both["networks"]["model"],
         **({"model_reranked": both["networks"]["model" + RERANKED]} if rerank.on else {}),
         "scan_context": both["scan_context"],
     }
     return SequenceEvaluation(record, results, (seq.name, len(seq)), (db.name, len(db)))
+
+
+def _input_record(model: Network, profile: SensorProfile, seq: Sequence) -> dict[str, str]:
+    inp = input_of(model, profile, seq)
+    return {"sensor": inp.sensor.name, "input": inp.kind}

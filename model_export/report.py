@@ -35,7 +35,6 @@ from model_export.evaluate import (
     SUBSETS,
     cross_session,
     describe_sequence,
-    eval_real,
     loop_closure,
     loop_errors,
     network_digest,
@@ -114,7 +113,7 @@ SERVICE_RERANK = Rerank()
 REAL = {
     "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),
     # nuScenes keyframes are ≈ 4.5 m apart at 2 Hz: a hit is the adjacent keyframe.
-    "nuscenes-hdl32": ("../shared/data/nuscenes_scene0061", "hdl32", 6.0),
+    "nuscenes-hdl32": ("../shared/data/nuscenes_scene0061", "hdl32", 6.0),  # its sensor
 }
 
 
@@ -152,7 +151,7 @@ def table_one(
     gt = None
     described: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for label, model, profile in _networks(runs, onnx):
-        gt = gt or sequence_loops(seq, profile, progress=progress)
+        gt = gt or sequence_loops(seq, progress=progress)
         key = network_digest(model)
         if key not in described:
             described[key] = describe_sequence(model, seq, profile, progress=progress)
@@ -307,20 +306,19 @@ def plot_epochs(rows: dict[str, dict], path: Path) -> None:
 
 
 def real_checks(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> dict[str, Any]:
-    from lidar_core.sensors import get_profile
+    from model_export.realscans import eval_real
 
     ckpt = shipped_model(runs, onnx)
     if ckpt is None:
         return {}
-    model, own, _ = load_model(ckpt)
+    model, profile, _ = load_model(ckpt)
     out: dict[str, Any] = {}
-    for name, (folder, profile, radius) in REAL.items():
+    for name, (folder, sensor, radius) in REAL.items():
         if not Path(folder).is_dir():
             out[name] = {"skipped": f"{folder} is absent"}
             continue
-        prof = get_profile(profile) if profile else own
-        seq = open_sequence(folder)
-        out[name] = eval_real(model, prof, seq, hit_radius=radius, rerank=SERVICE_RERANK)
+        seq = open_sequence(folder, **({"sensor": sensor} if sensor else {}))
+        out[name] = eval_real(model, profile, seq, hit_radius=radius, rerank=SERVICE_RERANK)
     return out
 
 
@@ -423,7 +421,7 @@ def markdown(report: dict[str, Any]) -> str:
     if report.get("real"):
         lines += ["", "### Real scans (the shipped model)", ""]
         lines += [
-            "| scans | profile | cosine under random yaw (min) | turned copy ÷ 1 m step "
+            "| scans | sensor (input) | cosine under random yaw (min) | turned copy ÷ 1 m step "
             "(squared distances) | odd→even Recall@1 (radius) | with the yaw re-rank "
             "| Scan Context's | Recall@5 | yaw error vs turned copy (median) "
             "| vs retrieved frame (median) |",
@@ -435,7 +433,7 @@ def markdown(report: dict[str, Any]) -> str:
                 continue
             ret, yaw, inv = r["retrieval_odd_to_even"], r["yaw_error_deg"], r["yaw_invariance"]
             lines.append(
-                f"| {name} ({r['scans']}) | {r['profile']} (rows ×{r['rows_repeated']}) | "
+                f"| {name} ({r['scans']}) | {r['sensor']} ({r['input']}) | "
                 f"{inv['cosine_min']:.5f} | {inv['turned_distance_median']:.2e} ÷ "
                 f"{inv['one_metre_step_distance_median']:.2e} = "
                 f"{inv['turned_over_one_metre_step']:.2f} | "

@@ -66,21 +66,19 @@ from model_export.calibrate import recalibrate_batchnorm
 from model_export.checkpoint import read_checkpoint, save_checkpoint
 from model_export.curves import plot_curves
 from model_export.errors import ConfigError
-from model_export.evaluate import (
-    RealTurns,
-    describe,
-    invariance,
-    loop_closure,
-    real_turns,
-    sequence_loops,
-    summary,
-    turned_image,
-)
+from model_export.evaluate import describe, loop_closure, sequence_loops, summary
 from model_export.health import HealthLog, batch_distances, json_safe
 from model_export.losses import batch_spread, pair_masks, turn_consistency
 from model_export.mining import HardNegatives, mine
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import cache_key, range_images
+from model_export.realscans import (
+    RealTurns,
+    invariance,
+    native_input,
+    real_turns,
+    turned_image,
+)
 from model_export.train_config import SCHEDULE, TrainConfig, load_config_file
 
 __all__ = ["TrainConfig", "load_config_file", "train"]
@@ -194,7 +192,7 @@ def train(
         raise ConfigError("--resume with other data than the run was started on")
     images = _Images(seqs, profile, progress)
     val_images = range_images(val_seq, profile, progress=progress)
-    val_gt = sequence_loops(val_seq, profile, progress=progress)
+    val_gt = sequence_loops(val_seq, progress=progress)
     if not val_gt.has_loop().any():
         raise DatasetError(
             f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "
@@ -252,7 +250,7 @@ def train(
             "metrics": metrics,
         }
 
-    turns = _real_turns(train_cfg.real_path(), profile, model_cfg.height, progress)
+    turns = _real_turns(train_cfg.real_path(), profile, progress)
 
     def validate() -> tuple[dict, float]:
         t = time.perf_counter()
@@ -516,9 +514,7 @@ def _start_weights(train_cfg: TrainConfig, progress: bool) -> dict[str, torch.Te
     return read_checkpoint(path)["state_dict"]
 
 
-def _real_turns(
-    path: Path | None, profile: SensorProfile, rows: int, progress: bool
-) -> RealTurns | None:
+def _real_turns(path: Path | None, profile: SensorProfile, progress: bool) -> RealTurns | None:
     """The real scans of the per-epoch turn check, projected once; None (with a note) when
     the check is off or the folder is missing."""
     if path is None:
@@ -527,4 +523,4 @@ def _real_turns(
         if progress:
             tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
         return None
-    return real_turns(open_sequence(path), profile, rows)
+    return real_turns(open_sequence(path), native_input(profile))

@@ -44,6 +44,14 @@ MaxRangeOpt = Annotated[
 ]
 
 
+def command_line() -> str:
+    """The command as typed, for the JSON it writes (``overlapmamba eval …``)."""
+    import shlex
+    import sys
+
+    return "overlapmamba " + shlex.join(sys.argv[1:])
+
+
 def sensor_profile(sensor: str, **overrides: Any) -> Any:
     from lidar_core.sensors import get_profile
 

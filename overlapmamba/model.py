@@ -14,11 +14,11 @@ from lidar_core.views import MAX_VIEWS
 from overlapmamba.common import (
     check_torch,
     command_group,
+    command_line,
     errors_table,
     friendly_errors,
     metrics_table,
     out,
-    sensor_profile,
 )
 
 app, command = command_group("Model")
@@ -171,7 +171,12 @@ def train_cmd(
     epilog="Examples:\n\n  overlapmamba eval --checkpoint runs/om/best.pt "
     "--sequence data/synth/test --json test.json --plot pr.png\n\n"
     "  overlapmamba eval --checkpoint runs/om/best.pt --sequence data/synth/test-s1 "
-    "--database data/synth/test   (second session against the first: AR@1/5/20)",
+    "--database data/synth/test   (second session against the first: AR@1/5/20)\n\n"
+    "  overlapmamba eval --checkpoint models/overlapmamba-hdl64.onnx --sequence "
+    "data/synth/test-s1-vlp16 --database data/synth/test-os1-128   (a VLP-16's drive "
+    "against an OS1-128's map: across sensors)\n\n"
+    "  overlapmamba eval --checkpoint models/overlapmamba-hdl64.onnx --sequence "
+    "data/synth/test-vlp16 --scan-context   (a VLP-16 town, Scan Context beside)",
 )
 @friendly_errors
 def eval_cmd(
@@ -188,10 +193,23 @@ def eval_cmd(
     database: Annotated[
         Path | None,
         typer.Option(
-            help="first session of the same town: also query --sequence's scans against it "
-            "(place recognition across sessions, AR@1/5/20, with Scan Context beside)"
+            help="another session of the same town, of any sensor: also query --sequence's "
+            "scans against it (place recognition across sessions, AR@1/5/20, with Scan "
+            "Context beside); a --sequence without a loop table is evaluated this way only"
         ),
     ] = None,
+    sensor: Annotated[
+        str | None,
+        typer.Option(
+            help="the catalogue sensor --sequence was recorded with (`overlapmamba sensors`); "
+            "default: what its manifest says, else the model's own"
+        ),
+    ] = None,
+    database_sensor: Annotated[str | None, typer.Option(help="the same for --database")] = None,
+    scan_context: Annotated[
+        bool,
+        typer.Option("--scan-context", help="also Scan Context's loop closure on --sequence"),
+    ] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
     plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
     rerank: Annotated[
@@ -229,16 +247,32 @@ def eval_cmd(
     from model_export.evaluate import evaluate_checkpoint, plot_pr
 
     def open_sequence(path: Path) -> Any:  # a sequence folder, or a ROS recording with poses
-        return open_recording(path, topic=topic, odometry=odometry, tf=tf, need_poses=True)
+        named = database_sensor if path == database else sensor
+        return open_recording(
+            path, topic=topic, odometry=odometry, tf=tf, need_poses=True, sensor=named
+        )
 
     second = _second_stage(rerank)
     ev = evaluate_checkpoint(
-        checkpoint, sequence, open_sequence, database=database, rerank=second, progress=not quiet
+        checkpoint,
+        sequence,
+        open_sequence,
+        database=database,
+        rerank=second,
+        scan_context=scan_context,
+        progress=not quiet,
     )
     name, scans = ev.sequence
     staged = f" + yaw re-rank (top {second.k}, weight {second.weight:g})"
     runs = [("", "")] + ([(staged, "_reranked")] if second.on else [])
-    for title, key in runs:
+    if "metrics" not in ev.record:
+        runs = []
+        out.print(f"{name} has no loop table: evaluated against {database} only")
+    s = ev.record["sensor"]
+    out.print(f"{name}: {s['sensor']} scans, {s['input']} into the model's input")
+    has_sc = "metrics_scan_context" in ev.record
+    runs_sc = [(" — Scan Context", "_scan_context")] if has_sc else []
+    for title, key in runs + runs_sc:
         out.print(
             metrics_table(
                 f"{checkpoint.name}{title} on {name} ({scans} scans)", ev.record["metrics" + key]
@@ -275,9 +309,10 @@ def eval_cmd(
             )
         out.print(table)
     if json_out is not None:
+        ev.record["command"] = command_line()
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(ev.record, indent=2) + "\n")
-    if plot is not None:
+    if plot is not None and ev.results:
         plot_pr(ev.results, plot, f"{name}: loop closure" + (staged if second.on else ""))
     if json_out or plot:
         out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
@@ -359,7 +394,11 @@ def export_cmd(
 
 @command(
     "eval-real",
-    epilog="Example:\n\n  overlapmamba eval-real --checkpoint runs/om/best.pt --json real.json",
+    epilog="Examples:\n\n  overlapmamba eval-real --checkpoint runs/om/best.pt --json real.json"
+    "\n\n  overlapmamba eval-real --checkpoint models/overlapmamba-hdl64.onnx --beams 32,16   "
+    "(KITTI queries thinned to 32 and 16 rings against whole scans)\n\n"
+    "  overlapmamba eval-real --checkpoint models/overlapmamba-hdl64.onnx --sequence "
+    "../shared/data/nuscenes_scene0061 --sensor hdl32 --hit-radius 6",
 )
 @friendly_errors
 def eval_real_cmd(
@@ -379,30 +418,44 @@ def eval_real_cmd(
             "'off'); reported beside the descriptor-only numbers"
         ),
     ] = RERANK_DEFAULT,
-    profile_name: Annotated[
+    sensor: Annotated[
         str | None,
         typer.Option(
+            "--sensor",
             "--profile",
-            help="project with this sensor profile instead of the model's (e.g. hdl32 for the "
-            "nuScenes scans; rows are repeated up to the model's height)",
+            help="the catalogue sensor the scans come from (e.g. hdl32 for the nuScenes scans; "
+            "default: KITTI's HDL-64E); they enter the model as that sensor's scans",
+        ),
+    ] = None,
+    beams: Annotated[
+        str | None,
+        typer.Option(
+            help="also retrieval with the queries thinned to these ring counts ('32,16': every "
+            "second and fourth ring, found by elevation) against whole scans, and each thinned "
+            "scan's cosine to its whole self"
         ),
     ] = None,
 ) -> None:
-    """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error."""
+    """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error;
+    with --beams, the same queries with fewer rings."""
     check_torch()
     import json
 
     from lidar_core.datasets import open_sequence
     from model_export.checkpoint import load_model
-    from model_export.evaluate import eval_real
+    from model_export.realscans import eval_real
 
+    try:
+        counts = tuple(int(b) for b in beams.split(",")) if beams else ()
+    except ValueError:
+        raise typer.BadParameter(f"--beams {beams!r}: whole numbers, e.g. 32,16") from None
     model, profile, _ = load_model(checkpoint)
-    if profile_name is not None:
-        profile = sensor_profile(profile_name)
-    seq = open_sequence(sequence)
+    seq = open_sequence(sequence, **({"sensor": _known_sensor(sensor)} if sensor else {}))
     second = _second_stage(rerank)
     try:
-        r = eval_real(model, profile, seq, seed=seed, hit_radius=hit_radius, rerank=second)
+        r = eval_real(
+            model, profile, seq, seed=seed, hit_radius=hit_radius, rerank=second, beams=counts
+        )
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
     inv, ret, yaw = r["yaw_invariance"], r["retrieval_odd_to_even"], r["yaw_error_deg"]
@@ -448,13 +501,32 @@ def eval_real_cmd(
                 f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f}",
             )
         )
+    rows.insert(0, ("sensor (into the model's input)", f"{r['sensor']} ({r['input']})"))
+    for b, t in r.get("thinned", {}).items():
+        for how in ("declared", "undeclared"):
+            x = t[how]
+            rows.append(
+                (
+                    f"{b} rings, {how} ({x['input']}): Recall@1 / @5, cosine to whole "
+                    "(median / min)",
+                    f"{x['recall@1']:.3f} / {x['recall@5']:.3f}, "
+                    f"{x['cosine_to_full']['median']:.3f} / {x['cosine_to_full']['min']:.3f}",
+                )
+            )
     for k, v in rows:
         table.add_row(k, v)
     out.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps({"checkpoint": str(checkpoint), **r}, indent=2) + "\n")
+        record = {"command": command_line(), "checkpoint": str(checkpoint), **r}
+        json_out.write_text(json.dumps(record, indent=2) + "\n")
         out.print(f"wrote {json_out}")
+
+
+def _known_sensor(name: str) -> str:
+    from lidar_core.sensors import get_sensor
+
+    return get_sensor(name).name
 
 
 @command(

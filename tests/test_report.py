@@ -172,32 +172,37 @@ def test_train_preset_cli_errors(args, message, tmp_path, monkeypatch):
 
 
 @pytest.mark.real_data
-def test_eval_real_transfers_to_hdl32_by_repeating_rows(nuscenes_dir, tmp_path):
+def test_eval_real_transfers_to_hdl32_as_that_sensors_scans(nuscenes_dir, tmp_path):
+    from lidar_core.modelmeta import EncoderMetadata
+
     save_random_checkpoint(tmp_path / "random.pt", **SMALL)
     out = tmp_path / "real.json"
     args = ["eval-real", "--checkpoint", str(tmp_path / "random.pt"), "--sequence"]
-    args += [str(nuscenes_dir), "--profile", "hdl32", "--hit-radius", "6", "--json", str(out)]
+    args += [str(nuscenes_dir), "--sensor", "hdl32", "--hit-radius", "6", "--json", str(out)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     r = json.loads(out.read_text())
-    assert r["profile"] == "hdl32" and r["rows_repeated"] == 2 and r["scans"] == 39
+    mode = EncoderMetadata.model_fields["sensor_input"].default  # what its export will say
+    assert (r["sensor"], r["input"], r["scans"]) == ("hdl32", mode, 39)
     assert r["yaw_invariance"]["cosine_min"] > 0.999
+    bad = runner.invoke(app, [*args[:-2], "--sensor", "mid360"])
+    assert bad.exit_code == 2 and "unknown sensor 'mid360'" in bad.output
 
 
 @pytest.mark.real_data
 def test_eval_real_of_the_shipped_model_describes_each_scan_by_its_views(nuscenes_dir, tmp_path):
-    """The shipped .onnx (sub-column views) through eval-real with another sensor's
-    profile: every scan's views projected, rows repeated, the views combined."""
+    """The shipped .onnx (sub-column views) through eval-real with another sensor's scans:
+    every scan's views projected as an HDL-32E's, the views combined."""
     from lidar_core.modelmeta import EncoderMetadata
 
     model = Path(__file__).resolve().parents[1] / "models" / "overlapmamba-hdl64.onnx"
     out = tmp_path / "real.json"
     args = ["eval-real", "--checkpoint", str(model), "--sequence", str(nuscenes_dir)]
-    args += ["--profile", "hdl32", "--hit-radius", "6", "--json", str(out)]
+    args += ["--profile", "hdl32", "--hit-radius", "6", "--json", str(out)]  # --sensor's alias
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     r = json.loads(out.read_text())
-    assert r["rows_repeated"] == 2 and r["scans"] == 39
+    assert r["sensor"] == "hdl32" and r["input"] != "native" and r["scans"] == 39
     onnx = pytest.importorskip("onnx")
     props = {p.key: p.value for p in onnx.load(str(model)).metadata_props}
     assert EncoderMetadata.from_props(props).views > 1

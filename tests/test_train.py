@@ -391,6 +391,40 @@ def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
     # Exact equivariance holds for column rolls; a continuous turn also re-samples the scan.
     assert r["yaw_invariance"]["cosine_min"] > 0.999
     assert r["yaw_error_deg"]["vs_turned_copy"]["median"] < 1.0
+    assert (r["sensor"], r["input"]) == ("kitti-hdl64", "native")
+
+
+@pytest.mark.real_data
+def test_eval_real_thins_the_queries_to_fewer_rings(kitti_seq_dir, tmp_path):
+    """--beams 32,16: queries of every 2nd / 4th ring of the real HDL-64E (found by
+    elevation) against whole scans, declared as the sensor they now are and not."""
+    from lidar_core.sensors import CATALOGUE
+    from model_export.realscans import thin_points, thinned_sensor
+
+    kitti = CATALOGUE["kitti-hdl64"]
+    half = thinned_sensor(kitti, 32)
+    assert half.beams == 32 and half.elevations_deg == kitti.elevations_deg[::2]
+    with pytest.raises(ValueError, match="whole divisor"):
+        thinned_sensor(kitti, 48)
+    from lidar_core.datasets import open_sequence
+
+    xyz = open_sequence(kitti_seq_dir).points(0).xyz
+    kept = thin_points(xyz, kitti, 16)
+    assert 0.15 < len(kept) / len(xyz) < 0.35  # about a quarter of the rings
+    save_random_checkpoint(tmp_path / "random.pt", **SMALL)
+    out = tmp_path / "real.json"
+    args = ["eval-real", "--checkpoint", str(tmp_path / "random.pt"), "--sequence"]
+    result = runner.invoke(app, [*args, str(kitti_seq_dir), "--beams", "32,16", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "16 rings, declared" in result.output
+    thin = json.loads(out.read_text())["thinned"]
+    assert set(thin) == {"32", "16"} and thin["16"]["points_kept"] < thin["32"]["points_kept"]
+    for t in thin.values():
+        assert t["undeclared"]["input"] == "native" and t["declared"]["input"] != "native"
+        for how in ("declared", "undeclared"):
+            assert 0 <= t[how]["recall@1"] <= 1 and t[how]["cosine_to_full"]["min"] <= 1.0
+    bad = runner.invoke(app, [*args, str(kitti_seq_dir), "--beams", "48"])
+    assert bad.exit_code == 2 and "whole divisor" in bad.output
 
 
 def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):

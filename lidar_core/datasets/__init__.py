@@ -64,6 +64,7 @@ def open_recording(
     odometry: str | None = None,
     tf: str | None = None,
     need_poses: bool = False,
+    sensor: str | None = None,
 ) -> Any:
     """A sequence folder (``open_sequence``) or a ROS recording (``bags.open_bag``: its
     PointCloud2 ``topic``, poses from its ``odometry`` topic or from /tf in the ``tf`` frame):
@@ -76,10 +77,14 @@ def open_recording(
             raise DatasetError(
                 f"{path} is a sequence folder: --topic, --odometry and --tf are for ROS recordings"
             )
-        return open_sequence(path)
+        if sensor is None:
+            return open_sequence(path)
+        from lidar_core.sensors import get_sensor
+
+        return open_sequence(path, sensor=get_sensor(sensor).name)
     if need_poses and odometry is None and tf is None:
         raise DatasetError(
             f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "
             "(--odometry) or the fixed frame of its /tf (--tf map)"
         )
-    return open_bag(path, topic=topic, odometry=odometry, tf=tf)
+    return open_bag(path, topic=topic, odometry=odometry, tf=tf, sensor=sensor)

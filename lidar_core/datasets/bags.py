@@ -73,7 +73,7 @@ class Bag:
     _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    sensor: str | None = None  # the sensor profile, as a Sequence has it (unknown here)
+    sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
 
     @property
     def name(self) -> str:
@@ -154,10 +154,17 @@ def open_bag(
     odometry: str | None = None,
     tf: str | None = None,
     max_pose_gap_s: float = 0.1,
+    sensor: str | None = None,
 ) -> Bag:
     """Index a recording's PointCloud2 topic (``topic``: which, when it holds several) and,
     when ``odometry`` names a topic or ``tf`` a frame ("FIXED" or "FIXED:CHILD"), each
-    scan's pose. Raises DatasetError naming what is wrong and what the recording holds."""
+    scan's pose. ``sensor``: the catalogue sensor that recorded it (a recording does not
+    say; nothing is guessed). Raises DatasetError naming what is wrong and what the
+    recording holds, ProfileError for an unknown sensor."""
+    if sensor is not None:
+        from lidar_core.sensors import get_sensor
+
+        sensor = get_sensor(sensor).name
     path = Path(path)
     if not is_bag(path):
         raise DatasetError(
@@ -203,7 +210,7 @@ def open_bag(
     ns = np.asarray(stamps, dtype=np.int64)
     if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
         raise DatasetError(f"{path}: {topic} is not in time order")
-    return Bag(path, topic, ns, poses)
+    return Bag(path, topic, ns, poses, sensor=sensor)
 
 
 @contextmanager

@@ -7,6 +7,7 @@ LiDAR-frame already (our synthetic generator writes an identity ``Tr`` for clari
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,23 @@ def looks_like(root: Path) -> bool:
     return (root / "velodyne").is_dir()
 
 
-def open_kitti(root: str | Path, *, sensor: str | None = "kitti-hdl64") -> Sequence:
+def _manifest_sensor(root: Path) -> str | None:
+    path = root / "manifest.json"
+    if not path.is_file():
+        return None
+    try:
+        sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
+    except (json.JSONDecodeError, AttributeError, OSError):
+        raise DatasetError(f"{path} is not a readable manifest") from None
+    return sensor if isinstance(sensor, str) else None
+
+
+def open_kitti(root: str | Path, *, sensor: str | None = None) -> Sequence:
+    """``sensor``: the catalogue sensor the scans come from; None: what the folder's
+    ``manifest.json`` says (a synthetic drive records its sensor), else KITTI's HDL-64E."""
     root = Path(root)
+    if sensor is None:
+        sensor = _manifest_sensor(root) or "kitti-hdl64"
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
         raise DatasetError(f"{root} is not a KITTI sequence: no velodyne/ folder")
