@@ -53,12 +53,13 @@ class AsyncPlaceRecognitionClient:
         compress: bool = False,
         transport: httpx.AsyncBaseTransport | None = None,
         seed: int | None = None,
+        sensor: str | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
         self.timeout = timeout
         self.retry = retry
-        self._calls = Calls(compress)
+        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
         self._rng = random.Random(seed)
         headers = {"x-api-key": api_key} if api_key else {}
         self._http = httpx.AsyncClient(
@@ -103,18 +104,31 @@ class AsyncPlaceRecognitionClient:
     async def health(self) -> dict[str, Any]:
         return await self._run(self._calls.health())
 
-    async def describe(self, scan: Scan) -> Descriptor:
-        return await self._run(self._calls.describe(scan))
+    async def sensors(self) -> dict[str, Any]:
+        """The sensors scans may name (``/v1/sensors``): the catalogue, with each one's beam
+        table and how its scans enter the model."""
+        return await self._run(self._calls.sensors())
 
-    async def describe_batch(self, scans: list[Scan]) -> list[Descriptor]:
-        return await self._run(self._calls.describe_batch(scans))
+    async def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
+        return await self._run(self._calls.describe(scan, sensor))
+
+    async def describe_batch(
+        self, scans: list[Scan], *, sensor: str | None = None
+    ) -> list[Descriptor]:
+        return await self._run(self._calls.describe_batch(scans, sensor))
 
     async def create_map(
-        self, map_id: str, *, index: str | None = None, keep_geometry: bool | None = None
+        self,
+        map_id: str,
+        *,
+        index: str | None = None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
     ) -> MapInfo:
         """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
-        answers are never verified (default: the server's, true)."""
-        return await self._run(self._calls.create_map(map_id, index, keep_geometry))
+        answers are never verified (default: the server's, true). ``sensor``: the sensor of
+        scans sent to it that name none (default: the model's own)."""
+        return await self._run(self._calls.create_map(map_id, index, keep_geometry, sensor))
 
     async def list_maps(self) -> list[MapInfo]:
         return await self._run(self._calls.list_maps())
@@ -135,9 +149,10 @@ class AsyncPlaceRecognitionClient:
         robot_id: str = "unknown",
         session_id: str = "default",
         pose: Any = None,
+        sensor: str | None = None,
     ) -> Keyframe:
         call = self._calls.insert_keyframe(
-            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose
+            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
         )
         return await self._run(call)
 
@@ -160,12 +175,13 @@ class AsyncPlaceRecognitionClient:
         *,
         descriptor: Any = None,
         k: int = 10,
+        sensor: str | None = None,
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
         timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
-        verification of a scan query's candidates."""
-        return await self._run(self._calls.query(map_id, scan, descriptor, k, filters))
+        verification of a scan query's candidates; ``sensor``: the scan's."""
+        return await self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
 
     async def observe(
         self,
@@ -179,11 +195,12 @@ class AsyncPlaceRecognitionClient:
         insert: str = "auto",
         k: int = 10,
         verify: bool = True,
+        sensor: str | None = None,
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
         geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
         call = self._calls.observe(
-            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
         )
         return await self._run(call)
 
@@ -200,13 +217,22 @@ class AsyncPlaceRecognitionClient:
         k: int = 10,
         window: int = 2,
         errors: str = "raise",
+        sensor: str | None = None,
     ) -> AsyncIterator[ObserveResult | APIError]:
         """Observe over one WebSocket, results in order. At most ``window`` observations are
         in flight (the server closes a client that outruns it). ``errors="return"`` yields a
-        refused observation's APIError instead of raising it."""
+        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
+        (an observation may name its own)."""
         from websockets.asyncio.client import connect
 
-        url = ws_url(self.base_url, map_id, robot_id=robot_id, session_id=session_id, k=k)
+        url = ws_url(
+            self.base_url,
+            map_id,
+            robot_id=robot_id,
+            session_id=session_id,
+            k=k,
+            sensor=sensor or self._calls.sensor,
+        )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
         compress = self._calls.compress
 
@@ -225,7 +251,14 @@ class AsyncPlaceRecognitionClient:
             i = 0
             async for obs in items():
                 meta, body = stream_frames(
-                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress, obs.verify
+                    obs.scan,
+                    obs.timestamp,
+                    obs.pose,
+                    obs.insert,
+                    i,
+                    compress,
+                    obs.verify,
+                    obs.sensor,
                 )
                 await ws.send(meta)
                 await ws.send(body)

@@ -132,13 +132,21 @@ def _json(resp: httpx.Response) -> Any:
 class Calls:
     """Builds every call of the API; the clients run them."""
 
-    def __init__(self, compress: bool) -> None:
+    def __init__(self, compress: bool, sensor: str | None = None) -> None:
         self.compress = compress
+        self.sensor = sensor  # the client's sensor: every scan call names it unless told
+
+    def _sensor(self, sensor: str | None) -> dict[str, str]:
+        chosen = sensor or self.sensor
+        return {} if chosen is None else {"sensor": chosen}
 
     def health(self) -> Call:
         return Call("GET", "/readyz", _json)
 
-    def describe(self, scan: Scan) -> Call:
+    def sensors(self) -> Call:
+        return Call("GET", "/v1/sensors", _json)
+
+    def describe(self, scan: Scan, sensor: str | None = None) -> Call:
         body, headers = encode(scan, compress=self.compress)
 
         def parse(r: httpx.Response) -> Descriptor:
@@ -147,9 +155,10 @@ class Calls:
                 np.asarray(d["descriptor"], np.float32), d["model_id"], d["timings_ms"]
             )
 
-        return Call("POST", "/v1/descriptors", parse, content=body, headers=headers)
+        params: dict[str, Any] = self._sensor(sensor)
+        return Call("POST", "/v1/descriptors", parse, params=params, content=body, headers=headers)
 
-    def describe_batch(self, scans: list[Scan]) -> Call:
+    def describe_batch(self, scans: list[Scan], sensor: str | None = None) -> Call:
         parts = []
         fields = None
         for s in scans:
@@ -176,10 +185,19 @@ class Calls:
                 for v, t in zip(d["descriptors"], d["timings_ms"], strict=True)
             ]
 
-        return Call("POST", "/v1/descriptors:batch", parse, content=content, headers=headers)
+        params: dict[str, Any] = self._sensor(sensor)
+        return Call(
+            "POST", "/v1/descriptors:batch", parse, params=params, content=content, headers=headers
+        )
 
-    def create_map(self, map_id: str, index: str | None, keep_geometry: bool | None) -> Call:
-        settings = {"index": index, "keep_geometry": keep_geometry}
+    def create_map(
+        self,
+        map_id: str,
+        index: str | None,
+        keep_geometry: bool | None,
+        sensor: str | None = None,
+    ) -> Call:
+        settings = {"index": index, "keep_geometry": keep_geometry, "sensor": sensor}
         body = {k: v for k, v in settings.items() if v is not None} or None
         return Call(
             "PUT", f"/v1/maps/{_m(map_id)}", lambda r: MapInfo.from_json(r.json()), json=body
@@ -203,6 +221,7 @@ class Calls:
         robot_id: str,
         session_id: str,
         pose: Any,
+        sensor: str | None = None,
     ) -> Call:
         body, headers = encode(scan, compress=self.compress)
         params = _filters(
@@ -211,6 +230,7 @@ class Calls:
             robot_id=robot_id,
             session_id=session_id,
             pose=_pose(pose),
+            **self._sensor(sensor),
         )
         return Call(
             "POST",
@@ -261,11 +281,17 @@ class Calls:
         return Call("DELETE", path, lambda r: None)
 
     def query(
-        self, map_id: str, scan: Scan | None, descriptor: Any, k: int, filters: dict[str, Any]
+        self,
+        map_id: str,
+        scan: Scan | None,
+        descriptor: Any,
+        k: int,
+        filters: dict[str, Any],
+        sensor: str | None = None,
     ) -> Call:
         if (scan is None) == (descriptor is None):
             raise ValueError("query needs exactly one of scan= or descriptor=")
-        params = _filters(k=k, **filters)
+        params = _filters(k=k, **filters, **(self._sensor(sensor) if scan is not None else {}))
         path = f"/v1/maps/{_m(map_id)}/query"
         parse = lambda r: QueryResult.from_json(r.json())  # noqa: E731
         if descriptor is not None:
@@ -285,6 +311,7 @@ class Calls:
         insert: str,
         k: int,
         verify: bool = True,
+        sensor: str | None = None,
     ) -> Call:
         body, headers = encode(scan, compress=self.compress)
         params = _filters(
@@ -295,6 +322,7 @@ class Calls:
             insert=insert,
             k=k,
             verify=verify,
+            **self._sensor(sensor),
         )
         return Call(
             "POST",
@@ -318,8 +346,10 @@ def stream_frames(
     seq: Any,
     compress: bool,
     verify: bool = True,
+    sensor: str | None = None,
 ) -> tuple[str, bytes]:
-    """The two WebSocket frames of one observation (see the service's stream protocol)."""
+    """The two WebSocket frames of one observation (see the service's stream protocol);
+    ``sensor``: this scan's, when it is not the stream's."""
     body, headers = encode(scan, compress=compress)
     meta = {
         "seq": seq,
@@ -331,6 +361,8 @@ def stream_frames(
         "fields": headers["x-point-fields"],
         "encoding": headers.get("content-encoding", "identity"),
     }
+    if sensor is not None:
+        meta["sensor"] = sensor
     return json.dumps(meta), body
 
 

@@ -24,6 +24,7 @@ class MapInfo:
     seq: int | None  # the FAISS backend's write sequence; None on Qdrant
     created: bool | None = None
     keep_geometry: bool = True
+    sensor: str | None = None  # the sensor of scans that name none; None: the model's own
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> MapInfo:
@@ -35,6 +36,7 @@ class MapInfo:
             seq=None if d.get("seq") is None else int(d["seq"]),
             created=d.get("created"),
             keep_geometry=bool(d.get("keep_geometry", True)),
+            sensor=d.get("sensor"),
         )
 
 
@@ -46,6 +48,7 @@ class Keyframe:
     timestamp: float
     pose: list[float] | None
     created: bool | None = None
+    sensor: str | None = None  # the sensor of the scan it came from; None: not recorded
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Keyframe:
@@ -56,6 +59,7 @@ class Keyframe:
             timestamp=float(d["timestamp"]),
             pose=d.get("pose"),
             created=d.get("created"),
+            sensor=d.get("sensor"),
         )
 
 
@@ -73,6 +77,7 @@ class Match:
     relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query, when registered
     verification: Verification | None = None  # None: not verified (not asked, or beyond k)
     score: float | None = None  # the re-ranking score (lower is better); None: not re-ranked
+    sensor: str | None = None  # the keyframe's sensor; None: not recorded
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Match:
@@ -88,6 +93,7 @@ class Match:
             yaw_deg=d.get("yaw_deg"),
             yaw_confidence=d.get("yaw_confidence"),
             score=d.get("score"),
+            sensor=d.get("sensor"),
             relative_pose=_matrix(d.get("relative_pose")),
             verification=None if v is None else Verification.from_json(v),
         )
@@ -189,10 +195,12 @@ class BatchInsertResult:
 class Observation:
     """One scan for ``stream()``: the robot's scan at ``timestamp`` (s), optional pose
     (x, y, z, qx, qy, qz, qw), insert mode ("auto", "always", "never") and whether the
-    server verifies its candidates geometrically."""
+    server verifies its candidates geometrically; ``sensor``: this scan's, when it is not the
+    stream's."""
 
     scan: Any
     timestamp: float
     pose: Any = None
     insert: str = "auto"
     verify: bool = True
+    sensor: str | None = None

@@ -6,10 +6,13 @@ its PointCloud2 ``topic``, poses from an ``odometry`` topic when named). A folde
 come from ``times.txt`` when present (else 10 Hz), a bag's from the bag; poses become
 x,y,z,qx,qy,qz,qw (none for a bag without odometry); the loop radius comes from the
 sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
+A drive's sensor is the one its user names, else the one its ``manifest.json`` records (a
+synthetic drive's); otherwise none is sent, and the server takes the map's or the model's.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +31,7 @@ class Drive:
     times: np.ndarray  # (N,) seconds
     poses: np.ndarray | None  # (N, 7) x, y, z, qx, qy, qz, qw; None: the drive has none
     loop_radius: float | None  # metres, from the shipped ground truth; None: no ground truth
+    sensor: str | None = None  # what the scans' requests name; None: the map's, or the model's
 
     @property
     def name(self) -> str:
@@ -53,15 +57,17 @@ def open_drive(
     topic: str | None = None,
     odometry: str | None = None,
     tf: str | None = None,
+    sensor: str | None = None,
 ) -> Drive:
     """``topic``, ``odometry`` and ``tf``: for a ROS recording, which PointCloud2 topic
     (needed when it holds several), and which nav_msgs/Odometry topic or /tf fixed frame
-    ("map", or "map:velodyne" for another child frame than the scans') gives the poses."""
+    ("map", or "map:velodyne" for another child frame than the scans') gives the poses.
+    ``sensor``: the sensor that recorded it (default: its manifest's, if any)."""
     root = Path(root)
     seq = open_recording(root, topic=topic, odometry=odometry, tf=tf)
     if isinstance(seq, Bag):
         poses = None if seq.poses is None else _pose7(seq.poses)
-        return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None)
+        return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor)
     n = len(seq)
     times_file = root / "times.txt"
     times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1
@@ -76,4 +82,16 @@ def open_drive(
         times=np.asarray(times, dtype=np.float64),
         poses=_pose7(seq.poses),
         loop_radius=radius,
+        sensor=sensor or _manifest_sensor(root),
     )
+
+
+def _manifest_sensor(root: Path) -> str | None:
+    path = root / "manifest.json"
+    if not path.is_file():
+        return None
+    try:
+        sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
+    except (json.JSONDecodeError, AttributeError):
+        raise ValueError(f"{path} is not a readable manifest") from None
+    return sensor if isinstance(sensor, str) else None

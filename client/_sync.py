@@ -52,12 +52,13 @@ class PlaceRecognitionClient:
         compress: bool = False,
         transport: httpx.BaseTransport | None = None,
         seed: int | None = None,
+        sensor: str | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
         self.timeout = timeout
         self.retry = retry
-        self._calls = Calls(compress)
+        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
         self._rng = random.Random(seed)
         headers = {"x-api-key": api_key} if api_key else {}
         self._http = httpx.Client(
@@ -102,18 +103,29 @@ class PlaceRecognitionClient:
     def health(self) -> dict[str, Any]:
         return self._run(self._calls.health())
 
-    def describe(self, scan: Scan) -> Descriptor:
-        return self._run(self._calls.describe(scan))
+    def sensors(self) -> dict[str, Any]:
+        """The sensors scans may name (``/v1/sensors``): the catalogue, with each one's beam
+        table and how its scans enter the model."""
+        return self._run(self._calls.sensors())
 
-    def describe_batch(self, scans: list[Scan]) -> list[Descriptor]:
-        return self._run(self._calls.describe_batch(scans))
+    def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
+        return self._run(self._calls.describe(scan, sensor))
+
+    def describe_batch(self, scans: list[Scan], *, sensor: str | None = None) -> list[Descriptor]:
+        return self._run(self._calls.describe_batch(scans, sensor))
 
     def create_map(
-        self, map_id: str, *, index: str | None = None, keep_geometry: bool | None = None
+        self,
+        map_id: str,
+        *,
+        index: str | None = None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
     ) -> MapInfo:
         """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
-        answers are never verified (default: the server's, true)."""
-        return self._run(self._calls.create_map(map_id, index, keep_geometry))
+        answers are never verified (default: the server's, true). ``sensor``: the sensor of
+        scans sent to it that name none (default: the model's own)."""
+        return self._run(self._calls.create_map(map_id, index, keep_geometry, sensor))
 
     def list_maps(self) -> list[MapInfo]:
         return self._run(self._calls.list_maps())
@@ -134,9 +146,10 @@ class PlaceRecognitionClient:
         robot_id: str = "unknown",
         session_id: str = "default",
         pose: Any = None,
+        sensor: str | None = None,
     ) -> Keyframe:
         call = self._calls.insert_keyframe(
-            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose
+            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
         )
         return self._run(call)
 
@@ -159,12 +172,13 @@ class PlaceRecognitionClient:
         *,
         descriptor: Any = None,
         k: int = 10,
+        sensor: str | None = None,
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
         timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
-        verification of a scan query's candidates."""
-        return self._run(self._calls.query(map_id, scan, descriptor, k, filters))
+        verification of a scan query's candidates; ``sensor``: the scan's."""
+        return self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
 
     def observe(
         self,
@@ -178,11 +192,12 @@ class PlaceRecognitionClient:
         insert: str = "auto",
         k: int = 10,
         verify: bool = True,
+        sensor: str | None = None,
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
         geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
         call = self._calls.observe(
-            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
         )
         return self._run(call)
 
@@ -199,20 +214,36 @@ class PlaceRecognitionClient:
         k: int = 10,
         window: int = 2,
         errors: str = "raise",
+        sensor: str | None = None,
     ) -> Iterator[ObserveResult | APIError]:
         """Observe over one WebSocket, results in order. At most ``window`` observations are
         in flight (the server closes a client that outruns it). ``errors="return"`` yields a
-        refused observation's APIError instead of raising it."""
+        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
+        (an observation may name its own)."""
         from websockets.sync.client import connect
 
-        url = ws_url(self.base_url, map_id, robot_id=robot_id, session_id=session_id, k=k)
+        url = ws_url(
+            self.base_url,
+            map_id,
+            robot_id=robot_id,
+            session_id=session_id,
+            k=k,
+            sensor=sensor or self._calls.sensor,
+        )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
         compress = self._calls.compress
         with connect(url, additional_headers=headers, open_timeout=self.timeout.connect) as ws:
             pending: deque[int] = deque()
             for i, obs in enumerate(observations):
                 meta, body = stream_frames(
-                    obs.scan, obs.timestamp, obs.pose, obs.insert, i, compress, obs.verify
+                    obs.scan,
+                    obs.timestamp,
+                    obs.pose,
+                    obs.insert,
+                    i,
+                    compress,
+                    obs.verify,
+                    obs.sensor,
                 )
                 ws.send(meta)
                 ws.send(body)

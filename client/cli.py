@@ -69,6 +69,13 @@ TfOpt = Annotated[
         "FIXED:CHILD when the LiDAR's frame is not the scans' header frame)",
     ),
 ]
+SensorOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="the sensor the scans come from (`overlapmamba sensors`, GET /v1/sensors): "
+        "vlp16, os1-64, …; default: the drive's manifest's, else the map's"
+    ),
+]
 DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -119,15 +126,20 @@ def maps_create(
             help="keyframes keep their geometry for verified answers [default: yes]",
         ),
     ] = None,
+    sensor: Annotated[
+        str | None,
+        typer.Option(help="the sensor of scans that name none [default: the model's own]"),
+    ] = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Create a map (idempotent)."""
     with _client(url, api_key) as pr:
-        m = pr.create_map(map_id, index=index, keep_geometry=geometry)
+        m = pr.create_map(map_id, index=index, keep_geometry=geometry, sensor=sensor)
     out.print(
         f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes, "
-        f"geometry {'kept' if m.keep_geometry else 'not kept'}"
+        f"geometry {'kept' if m.keep_geometry else 'not kept'}, sensor "
+        f"{m.sensor or 'the model’s own'}"
     )
 
 
@@ -149,7 +161,8 @@ def maps_delete(
 
 @app.command(
     "ingest",
-    epilog="Example:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5",
+    epilog="Examples:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5\n\n"
+    "  overlapmamba-client ingest drive.mcap --map town --odometry /odom --sensor os1-64",
 )
 @_errors
 def ingest(
@@ -161,12 +174,13 @@ def ingest(
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
     tf: TfOpt = None,
+    sensor: SensorOpt = None,
     compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
     session = session or drive.name
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
@@ -187,6 +201,7 @@ def ingest(
                 robot_id=robot,
                 session_id=session,
                 pose=drive.pose(i),
+                sensor=drive.sensor,
             )
             created += bool(kf.created)
             now = time.monotonic()
@@ -204,13 +219,14 @@ def query(
     map_id: MapOpt,
     k: Annotated[int, typer.Option("-k", min=1, help="matches to show")] = 5,
     verify: VerifyOpt = True,
+    sensor: SensorOpt = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """The top-k places for one scan, with yaw, each verified candidate's relative pose and
     fitness, and the loop-closure verdict with its pose."""
     with _client(url, api_key) as pr:
-        r = pr.query(map_id, scan, k=k, verify=verify)
+        r = pr.query(map_id, scan, k=k, verify=verify, sensor=sensor)
     table = Table(
         "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
     )
@@ -257,6 +273,7 @@ def observe(
     tf: TfOpt = None,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     verify: VerifyOpt = True,
+    sensor: SensorOpt = None,
     record: Annotated[
         Path | None,
         typer.Option(help="write an MCAP of robot poses, keyframes and loop closures (Foxglove)"),
@@ -266,7 +283,7 @@ def observe(
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
     closure as it is detected, with its relative pose when verified."""
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)
@@ -288,6 +305,7 @@ def observe(
                 pose=drive.pose(i),
                 k=k,
                 verify=verify,
+                sensor=drive.sensor,
             )
             inserted += o.inserted
             lc = o.loop_closure
@@ -373,6 +391,7 @@ def simulate_fleet(
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
     tf: TfOpt = None,
+    sensor: SensorOpt = None,
     robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
     duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
     rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
@@ -389,7 +408,7 @@ def simulate_fleet(
     errors and loop closures against ground truth."""
     from client.fleet import simulate, write_outputs
 
-    drives = [open_drive(p, topic=topic, odometry=odometry, tf=tf) for p in sequence]
+    drives = [open_drive(p, topic=topic, odometry=odometry, tf=tf, sensor=sensor) for p in sequence]
     report, samples = asyncio.run(
         simulate(
             url,

@@ -128,6 +128,7 @@ async def simulate(
                         timestamp=float(drive.times[i]),
                         pose=drive.pose(i),
                         k=k,
+                        sensor=drive.sensor,
                     )
                 except ClientError as err:
                     kind = err.code if isinstance(err, APIError) else type(err).__name__

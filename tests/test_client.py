@@ -19,6 +19,7 @@ import client
 from client import (
     NO_RETRY,
     AsyncPlaceRecognitionClient,
+    BadRequestError,
     ConflictError,
     ConnectError,
     NotFoundError,
@@ -104,6 +105,24 @@ async def test_async_client_in_process(tmp_path, encoder):
                 await pr.get_map("town")
             with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 4\)"):
                 await pr.describe(np.zeros((5, 7), np.float32))
+            # sensors: per call, per map, per client
+            assert "vlp16" in {x["name"] for x in (await pr.sensors())["sensors"]}
+            v = await pr.describe(s0, sensor="vlp16")
+            assert float(np.dot(v.vector, d.vector)) < 0.9999  # another projection
+            robots = await pr.create_map("robots", sensor="vlp16")
+            assert robots.sensor == "vlp16"
+            kf = await pr.insert_keyframe("robots", s0, keyframe_id="v0", timestamp=1.0)
+            assert kf.sensor == "vlp16"
+            q = await pr.query("robots", s0, k=1, verify=False, sensor="os1-64")
+            assert q.matches[0].sensor == "vlp16"
+            with pytest.raises(BadRequestError, match="unknown sensor 'mid360'") as bad:
+                await pr.describe(s0, sensor="mid360")
+            assert "xt32" in bad.value.detail["allowed"]
+        async with AsyncPlaceRecognitionClient(
+            "http://test", transport=transport, sensor="os1-64"
+        ) as pr:
+            kf = await pr.insert_keyframe("robots", s1, keyframe_id="o1", timestamp=2.0)
+            assert kf.sensor == "os1-64"  # the client's sensor, on every scan it sends
 
 
 def _failing(plan: list[object], calls: list[float]):
@@ -243,6 +262,10 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
         return res.output
 
     assert "created" in run("maps", "create", "cli-town")
+    assert "sensor vlp16" in run("maps", "create", "cli-robots", "--sensor", "vlp16")
+    out = run("ingest", str(synthetic_seq_dir), "--map", "cli-robots", "--every", "12",
+              "--sensor", "xt32")  # fmt: skip
+    assert "4 new keyframes" in out
     out = run("ingest", str(synthetic_seq_dir), "--map", "cli-town", "--every", "6")
     assert "8 scans → map cli-town: 8 new keyframes" in out
     out = run("ingest", str(synthetic_seq_dir), "--map", "cli-town", "--every", "6")
@@ -323,6 +346,8 @@ def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
 
     drive = open_drive(tiny_seq)
     assert drive.loop_radius is not None
+    assert drive.sensor == "kitti-hdl64"  # its manifest says; a user's --sensor would win
+    assert open_drive(tiny_seq, sensor="vlp16").sensor == "vlp16"
     report, samples = asyncio.run(
         simulate(live, "fleet-gt", [drive], robots=2, duration_s=4.0, rate_hz=3.0)
     )
