@@ -10,6 +10,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rich.console import Console
@@ -121,6 +122,67 @@ def server(env_extra: dict[str, str], startup_s: float = 180.0) -> Iterator[str]
             finally:
                 with contextlib.suppress(OSError, ValueError, IndexError):
                     SERVER_CPU_S[0] += _pid_cpu_s(srv.proc.pid)
+
+
+def provenance() -> dict[str, object]:
+    """Where a figure came from: the command, the commit (``-dirty`` with local changes), the
+    machine (CPU model, cores) and the time, for the JSON a benchmark writes."""
+    import platform
+    import shlex
+    import subprocess
+    import sys
+    from datetime import UTC, datetime
+
+    def git(*args: str) -> str:
+        try:
+            done = subprocess.run(
+                ["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10
+            )
+        except OSError:
+            return ""
+        return done.stdout.strip()
+
+    commit = git("rev-parse", "HEAD") or "unknown"
+    if git("status", "--porcelain", "--untracked-files=no"):
+        commit += "-dirty"
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    script = Path(sys.argv[0]).resolve()
+    shown = str(script.relative_to(ROOT)) if script.is_relative_to(ROOT) else sys.argv[0]
+    return {
+        "command": "python " + shlex.join([shown, *sys.argv[1:]]),
+        "commit": commit,
+        "machine": {"cpu": cpu, "cores": CORES},
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+
+
+# ---- a model's calibration ------------------------------------------------------------------
+
+
+def served_settings(meta: Any) -> Any:
+    """The settings the service answers with for a model of metadata ``meta``: its file's
+    calibration where it has one, else the defaults (or OVERLAPMAMBA_* variables), as
+    ``service.calibration.resolve`` decides at start-up."""
+    from service.calibration import resolve
+    from service.settings import Settings
+
+    return resolve(Settings(), meta)[0]
+
+
+def write_calibration(model: Path, section: str, values: dict[str, Any], data: str) -> None:
+    """Record thresholds this benchmark chose in the model file itself
+    (``lidar_core.calibration``): the service takes them from there."""
+    from lidar_core.calibration import calibrated
+    from model_export.modelfile import with_calibration
+
+    entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)
+    with_calibration(model, section, entry)
+    print(f"{model}: calibration {section} = {values}")
 
 
 def pct(ms: list[float] | np.ndarray, q: float) -> float:

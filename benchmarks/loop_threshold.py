@@ -11,6 +11,8 @@ The service answers scan queries in two stages (``lidar_core.rerank``: the ``rer
 nearest descriptors re-ranked by d² − weight · aligned yaw-feature correlation) and calls an
 unverified loop closure on the top-1's *score*; the same table for that score (the keyframes'
 yaw features rounded to float16, as the map stores them) gives ``loop_closure.max_score``.
+``--write-calibration`` records both F1max points in the model file, which the service takes
+them from. Each scan enters the model as its town's sensor's (its manifest's).
 Writes JSON (default bench-results/loop_threshold.json).
 """
 
@@ -23,6 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from bench_kit import ROOT, provenance, served_settings, write_calibration
 from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
@@ -32,31 +35,44 @@ from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluat
 from lidar_core.overlap import LoopGroundTruth
 from lidar_core.rerank import Rerank, two_stage
 from service.encoder import Encoder
-
-ROOT = Path(__file__).resolve().parents[1]
+from service.sensors import Sensors
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    pre, _ = ap.parse_known_args()
+    enc = Encoder(pre.model)
+    served = served_settings(enc.meta).rerank  # the model file's calibration, else defaults
     ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument(
         "--rerank",
-        default=f"{Rerank().k},{Rerank().weight:g}",
-        help="the second stage, K,WEIGHT or off (default: the service's)",
+        default=f"{served.k},{served.weight:g}",
+        help="the second stage, K,WEIGHT or off (default: the service's for --model)",
     )
     ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "loop_threshold.json")
+    ap.add_argument(
+        "--write-calibration",
+        action="store_true",
+        help="record the F1max points as the model's loop_closure.max_distance / max_score",
+    )
     args = ap.parse_args()
+    if args.write_calibration and args.sequence.name.startswith("test"):
+        ap.error("calibrate on the validation town, never on a test town")
 
-    enc = Encoder(args.model)
     seq = open_sequence(args.sequence)
+    sensors = Sensors(enc.meta)
+    sensor = sensors.input(sensors.resolve(seq.sensor))
     gt = LoopGroundTruth.load(args.sequence / "ground_truth" / "loops.npz")
     t0 = time.perf_counter()
     descs, yaws = [], []
     for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
         images = np.stack(
-            [enc.project(seq.points(i)) for i in range(start, min(len(seq), start + args.batch))]
+            [
+                enc.project(seq.points(i), sensor)
+                for i in range(start, min(len(seq), start + args.batch))
+            ]
         )
         d, y = enc.encode(images)
         descs.append(d)
@@ -105,6 +121,7 @@ def main() -> None:
     args.out.write_text(
         json.dumps(
             {
+                **provenance(),
                 "model_id": enc.model_id,
                 "sequence": str(args.sequence),
                 "summary": res.summary(),
@@ -128,6 +145,11 @@ def main() -> None:
         f"{np.median(spread):.4f}, p99 {np.percentile(spread, 99):.4f}"
     )
     console.print(f"wrote {args.out}")
+    if args.write_calibration:
+        f1, f1_staged = points["f1max"], points_staged["f1max"]
+        assert f1 is not None and f1_staged is not None  # the F1max point always exists
+        values = {"max_distance": f1["max_distance"], "max_score": f1_staged["max_score"]}
+        write_calibration(args.model, "loop_closure", values, str(args.sequence))
 
 
 def operating_points(

@@ -5,7 +5,9 @@ yaw-feature correlation (``lidar_core.rerank``). This grid scores every (K, WEIG
 shipped encoder on ``data/synth/val`` (loop closure: F1max and Recall@1, all / same / reverse
 direction) and ``data/synth/val-s1`` queried against ``val`` (AR@1 across sessions), and
 ranks them by the mean of those seven numbers. ``lidar_core.rerank.Rerank``'s defaults (the
-service's ``rerank`` settings and ``overlapmamba eval --rerank``) are the winner.
+service's ``rerank`` settings and ``overlapmamba eval --rerank``) are the winner for the
+shipped model; ``--write-calibration`` records the winner in the model file, which the
+service takes it from.
 
     python benchmarks/rerank.py [--model models/overlapmamba-hdl64.onnx]
 
@@ -22,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_kit import ROOT, provenance, write_calibration
 from rich.console import Console
 from rich.table import Table
 
@@ -31,7 +34,6 @@ from model_export.checkpoint import load_model
 from model_export.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
 from model_export.sessions import check_sessions, descriptor_recall, town_positions
 
-ROOT = Path(__file__).resolve().parents[1]
 KS = (5, 10, 20)
 WEIGHTS = (0.02, 0.05, 0.1, 0.2, 0.5)
 
@@ -42,7 +44,14 @@ def main() -> None:
     ap.add_argument("--val", type=Path, default=ROOT / "data" / "synth" / "val")
     ap.add_argument("--second-session", type=Path, default=ROOT / "data" / "synth" / "val-s1")
     ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "rerank.json")
+    ap.add_argument(
+        "--write-calibration",
+        action="store_true",
+        help="record the winner as the model's rerank.k / rerank.weight",
+    )
     args = ap.parse_args()
+    if args.write_calibration and args.val.name.startswith("test"):
+        ap.error("calibrate on the validation town, never on a test town")
 
     t0 = time.perf_counter()
     model, profile, _ = load_model(args.model)
@@ -86,6 +95,7 @@ def main() -> None:
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {
+        **provenance(),
         "model": str(args.model),
         "val": str(args.val),
         "second_session": str(args.second_session),
@@ -94,6 +104,9 @@ def main() -> None:
     }
     args.out.write_text(json.dumps(record, indent=2) + "\n")
     console.print(f"wrote {args.out}")
+    if args.write_calibration:
+        values = {"k": best["k"], "weight": best["weight"]}
+        write_calibration(args.model, "rerank", values, f"{args.val} and {args.second_session}")
 
 
 if __name__ == "__main__":

@@ -18,11 +18,14 @@ loop, over all queries with a loop (what the descriptor's Recall@5 bounds).
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
 the pair of highest recall whose precision is at least ``--target`` (0.99), then the
 nearest descriptor gate that costs at most 0.005 of that recall: the service's
-``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.max_distance`` come from it.
-Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``, ``--max-distance``,
-default the service's) are scored on each town given: precision, recall against the
-answer's Recall@1 and Recall@5 on the same queries (the candidates in the service's order),
-pose errors, and the time per query. Prints tables, writes JSON.
+``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.max_distance``; with
+``--write-calibration`` they are recorded in the model file, which the service takes them
+from. Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``,
+``--max-distance``, default the ones the service answers with for ``--model``: its file's
+calibration) are scored on each town given: precision, recall against the answer's Recall@1
+and Recall@5 on the same queries (the candidates in the service's order), pose errors, and
+the time per query. Each town's scans enter the model as its sensor's (its manifest's), as
+the service projects a scan that names its sensor. Prints tables, writes JSON.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_kit import ROOT, provenance, served_settings, write_calibration
 from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
@@ -44,10 +48,9 @@ from lidar_core.poses import pose_error
 from lidar_core.rerank import Rerank, by_score
 from lidar_core.yaw import estimate_yaw
 from service.encoder import Encoder
-from service.settings import RerankSettings, VerifySettings
+from service.sensors import Sensors
+from service.settings import VerifySettings
 from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_town(
@@ -55,6 +58,8 @@ def run_town(
 ) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors."""
     seq = open_sequence(path)
+    sensors = Sensors(enc.meta)
+    sensor = sensors.input(sensors.resolve(seq.sensor))
     gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
     positives = gt.positives()
     recent = int(gt.params.get("exclude_recent", 100))
@@ -63,7 +68,7 @@ def run_town(
     params = params_of(v)
     for start in tqdm(range(0, n, batch), desc=f"encode {path.name}", unit="batch"):
         pts = [seq.points(i) for i in range(start, min(n, start + batch))]
-        d, y = enc.encode(np.stack([enc.project(p) for p in pts]))
+        d, y = enc.encode(np.stack([enc.project(p, sensor) for p in pts]))
         descs.append(d)
         yaws.append(np.asarray(y, dtype=np.float16))  # as the store keeps them
         # as the service does: one registration grid per scan, the keyframe keeps it
@@ -105,6 +110,10 @@ def run_town(
         queries.append({"query": i, "has_loop": bool(len(pos)), "candidates": cands})
     return {
         "town": str(path),
+        "descriptors": desc,  # (N, D): the loop-closure metrics of the same answers
+        "yaw_features": yaw,  # (N, C, W) float16, as the store keeps them
+        "sensor": sensor.sensor.name,
+        "input": sensor.kind,
         "frames": n,
         "exclude_recent": recent,
         "queries": queries,
@@ -188,15 +197,23 @@ def descriptor_recall(queries: list[dict[str, Any]]) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    pre, _ = ap.parse_known_args()
+    enc = Encoder(pre.model)
+    served = served_settings(enc.meta)  # the model file's calibration, else the defaults
     ap.add_argument("--town", type=Path, action="append", help="default: data/synth/val")
     ap.add_argument("--calibrate", action="store_true", help="sweep the thresholds (val only)")
+    ap.add_argument(
+        "--write-calibration",
+        action="store_true",
+        help="with --calibrate: record the chosen thresholds in the model file",
+    )
     ap.add_argument("--target", type=float, default=0.99, help="precision to calibrate for")
-    ap.add_argument("--k", type=int, default=VerifySettings().k, help="candidates per query")
-    ap.add_argument("--min-fitness", type=float, default=VerifySettings().min_fitness)
-    ap.add_argument("--max-rmse", type=float, default=VerifySettings().max_rmse_m)
-    ap.add_argument("--max-distance", type=float, default=VerifySettings().max_distance)
+    ap.add_argument("--k", type=int, default=served.verify.k, help="candidates per query")
+    ap.add_argument("--min-fitness", type=float, default=served.verify.min_fitness)
+    ap.add_argument("--max-rmse", type=float, default=served.verify.max_rmse_m)
+    ap.add_argument("--max-distance", type=float, default=served.verify.max_distance)
     ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "verify.json")
-    default_rerank = f"{RerankSettings().k},{RerankSettings().weight:g}"
+    default_rerank = f"{served.rerank.k},{served.rerank.weight:g}"
     ap.add_argument(
         "--rerank", default=default_rerank, help="K,WEIGHT or off (default: the service's)"
     )
@@ -204,14 +221,16 @@ def main() -> None:
     towns = args.town or [ROOT / "data" / "synth" / "val"]
     if args.calibrate and any(t.name.startswith("test") for t in towns):
         ap.error("calibrate on the validation town, never on a test town")
+    if args.write_calibration and not args.calibrate:
+        ap.error("--write-calibration records what --calibrate chose: give both")
     console = Console()
-    enc = Encoder(args.model)
     # record everything; calibrating, register every candidate too (the gate is swept after)
     register_within = None if args.calibrate else args.max_distance
     v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9, max_distance=register_within)
     rerank = Rerank.parse(args.rerank)
     results = [run_town(enc, t, args.k, v, rerank) for t in towns]
     report: dict[str, Any] = {
+        **provenance(),
         "model_id": enc.model_id,
         "k": args.k,
         "rerank": {"k": rerank.k, "weight": rerank.weight},
@@ -268,6 +287,13 @@ def main() -> None:
             report["calibration"]["gate"] = gate
             report["gates"] = gates
             console.print(f"descriptor gate: {gate}")
+            if args.write_calibration and gate is not None:
+                values = {
+                    "min_fitness": chosen["min_fitness"],
+                    "max_rmse_m": chosen["max_rmse_m"],
+                    "max_distance": gate["max_distance"],
+                }
+                write_calibration(args.model, "verify", values, ", ".join(map(str, towns)))
     table = Table(title=f"verified loop closures ({enc.model_id}, k={args.k})")
     for col in (
         "town",

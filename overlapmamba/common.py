@@ -44,12 +44,18 @@ MaxRangeOpt = Annotated[
 ]
 
 
-def command_line() -> str:
-    """The command as typed, for the JSON it writes (``overlapmamba eval …``)."""
+def command_line(command: str, **options: Any) -> str:
+    """``overlapmamba COMMAND --option value …`` for the options given (None and False
+    left out, True as a bare flag; underscores become dashes): what a JSON was written by."""
     import shlex
-    import sys
 
-    return "overlapmamba " + shlex.join(sys.argv[1:])
+    words = ["overlapmamba", command]
+    for name, value in options.items():
+        flag = "--" + name.replace("_", "-")
+        if value is None or value is False:
+            continue
+        words += [flag] if value is True else [flag, str(value)]
+    return shlex.join(words)
 
 
 def sensor_profile(sensor: str, **overrides: Any) -> Any:

@@ -309,7 +309,20 @@ def eval_cmd(
             )
         out.print(table)
     if json_out is not None:
-        ev.record["command"] = command_line()
+        ev.record["command"] = command_line(
+            "eval",
+            checkpoint=checkpoint,
+            sequence=sequence,
+            database=database,
+            sensor=sensor,
+            database_sensor=database_sensor,
+            scan_context=scan_context,
+            rerank=None if rerank == RERANK_DEFAULT else rerank,
+            topic=topic,
+            odometry=odometry,
+            tf=tf,
+            json=json_out,
+        )
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(ev.record, indent=2) + "\n")
     if plot is not None and ev.results:
@@ -518,7 +531,18 @@ def eval_real_cmd(
     out.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        record = {"command": command_line(), "checkpoint": str(checkpoint), **r}
+        cmd = command_line(
+            "eval-real",
+            checkpoint=checkpoint,
+            sequence=sequence,
+            sensor=sensor,
+            seed=seed or None,
+            hit_radius=None if hit_radius == 3.0 else hit_radius,
+            rerank=None if rerank == RERANK_DEFAULT else rerank,
+            beams=beams,
+            json=json_out,
+        )
+        record = {"command": cmd, "checkpoint": str(checkpoint), **r}
         json_out.write_text(json.dumps(record, indent=2) + "\n")
         out.print(f"wrote {json_out}")
 

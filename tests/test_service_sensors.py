@@ -189,3 +189,30 @@ async def test_an_explicit_setting_overrides_the_models_calibration(tmp_path, ca
     assert t["loop_closure.max_distance"]["source"] == "model"
     assert "loop_closure.max_score=-1.0 (setting)" in caplog.text
     assert "loop_closure.max_distance=1.9 (model)" in caplog.text
+
+
+def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_path):
+    """benchmarks/*.py --write-calibration: bench_kit.write_calibration stamps the section
+    with the command that chose it; served_settings (what the service would answer with)
+    reads it back; the other sections stay the defaults, the model id stays the same."""
+    import sys
+
+    from lidar_core.modelmeta import EncoderMetadata
+    from model_export.modelfile import read_metadata
+
+    sys.path.insert(0, str(MODEL.parents[1] / "benchmarks"))
+    from bench_kit import served_settings, write_calibration
+
+    path = tmp_path / "m.onnx"
+    path.write_bytes(MODEL.read_bytes())
+    before = read_metadata(path)
+    write_calibration(path, "rerank", {"k": 7, "weight": 0.3}, "data/synth/val")
+    meta = read_metadata(path)
+    assert meta.model_id == before.model_id and meta.calibration["rerank"].data == "data/synth/val"
+    assert "pytest" in meta.calibration["rerank"].chosen_by  # the running command
+    served = served_settings(meta)
+    assert (served.rerank.k, served.rerank.weight) == (7, 0.3)
+    assert served.verify.min_fitness == Settings().verify.min_fitness
+    with pytest.raises(ValueError, match="not calibrated here; allowed: k, weight"):
+        write_calibration(path, "rerank", {"gate": 1.0}, "x")
+    assert isinstance(EncoderMetadata.from_props(meta.to_props()), EncoderMetadata)

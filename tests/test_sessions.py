@@ -116,3 +116,22 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     # the same session twice is refused with the reason
     res = CliRunner().invoke(app, [*args, "--database", str(tmp_path / "s1"), "-q"])
     assert res.exit_code != 0 and "same session" in res.output
+    # across sensors: a third drive by a VLP-16 on a delivery robot against the HDL-64E map
+    robot = base.model_copy(update={"session": 2, "sensor": "vlp16", "mount": "robot"})
+    generate(tmp_path / "s2", robot, ground_truth=False, progress=False, stall_timeout_s=60)
+    out2 = tmp_path / "across.json"
+    args2 = ["eval", "--checkpoint", str(ckpt), "--sequence", str(tmp_path / "s2")]
+    res = CliRunner().invoke(
+        app, [*args2, "--database", str(tmp_path / "s0"), "--json", str(out2), "-q"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "vlp16 scans" in res.output and "no loop table" in res.output
+    rec = json.loads(out2.read_text())
+    assert rec["sensor"]["sensor"] == "vlp16" and rec["sensor"]["input"] != "native"
+    assert rec["database_sensor"] == {"sensor": "kitti-hdl64", "input": "native"}
+    assert "metrics" not in rec and rec["command"].startswith("overlapmamba eval")
+    assert 0 <= rec["cross_session"]["model"]["ar@1"] <= 1
+    # the sensor a drive was recorded with can be named; an unknown one is refused by name
+    res = CliRunner().invoke(app, [*args2, "--database", str(tmp_path / "s0"), "--sensor",
+                                   "mid360", "-q"])  # fmt: skip
+    assert res.exit_code == 2 and "unknown sensor 'mid360'" in res.output

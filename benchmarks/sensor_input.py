@@ -1,0 +1,116 @@
+"""Choose how a model takes scans of other sensors, on the validation towns (never on test).
+
+A scan of a sensor other than the model's own enters the model's input in one of two ways
+(:mod:`lidar_core.sensors.input`): ``elevation`` (each row shows the beam nearest its own
+elevation; rows the sensor has no beam for stay empty) or ``rows`` (the sensor's beams
+stretched over the rows). This scores both with the model on every ``val-SENSOR`` town that
+exists (``make data-sensors``; the model's own sensor is left out: it is projected natively
+either way): loop closure F1max and Recall@1 over all revisits, the descriptor alone and in
+two stages (the service's re-rank), and picks the mode with the higher mean of those four
+numbers over the towns. ``--write`` records the pick in the model file
+(``EncoderMetadata.sensor_input``; the graph and the model id stay as they are).
+
+    python benchmarks/sensor_input.py [--model models/overlapmamba-hdl64.onnx] [--write]
+
+Writes JSON (default reports/model/sensor-input.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_kit import ROOT, provenance
+from rich.console import Console
+from rich.table import Table
+
+from lidar_core.datasets import open_sequence
+from lidar_core.rerank import Rerank
+from lidar_core.sensors import CATALOGUE
+from lidar_core.sensors.input import MODES
+from model_export.checkpoint import ExportedNetwork, load_model
+from model_export.evaluate import describe_sequence, loop_closure, sequence_loops
+
+KEYS = ("f1max", "recall@1")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth", help="val-SENSOR towns")
+    ap.add_argument("--write", action="store_true", help="record the pick in the model file")
+    ap.add_argument("--out", type=Path, default=ROOT / "reports" / "model" / "sensor-input.json")
+    args = ap.parse_args()
+    console = Console(width=120)
+    t0 = time.perf_counter()
+    model, profile, _ = load_model(args.model)
+    if not isinstance(model, ExportedNetwork):
+        raise SystemExit("--model must be an exported .onnx: the mode is its metadata's")
+    own = model.meta.sensor_input
+    towns = [
+        args.data / f"val-{name}"
+        for name in CATALOGUE
+        if (args.data / f"val-{name}" / "manifest.json").is_file()
+        and CATALOGUE[name].profile() != profile
+    ]
+    if not towns:
+        raise SystemExit(f"no val-SENSOR towns under {args.data}: run `make data-sensors`")
+    rows: dict[str, dict[str, dict[str, float]]] = {}
+    rerank = Rerank()
+    for mode in MODES:
+        model.meta = model.meta.model_copy(update={"sensor_input": mode})
+        for town in towns:
+            seq = open_sequence(town)
+            gt = sequence_loops(seq)
+            desc, yaw = describe_sequence(model, seq, profile, progress=True)
+            alone = loop_closure(desc, gt)["all"].summary()
+            staged = loop_closure(desc, gt, yaw, rerank)["all"].summary()
+            rows.setdefault(seq.sensor or town.name, {})[mode] = {
+                **{f"alone_{k}": float(alone[k]) for k in KEYS},
+                **{f"two_stage_{k}": float(staged[k]) for k in KEYS},
+            }
+    model.meta = model.meta.model_copy(update={"sensor_input": own})
+    means = {m: float(np.mean([list(r[m].values()) for r in rows.values()])) for m in MODES}
+    pick = max(MODES, key=lambda m: means[m])
+    table = Table(title=f"{args.model.name} on the validation towns: F1max / Recall@1 (all)")
+    table.add_column("sensor")
+    for mode in MODES:
+        table.add_column(f"{mode}: alone", justify="right")
+        table.add_column(f"{mode}: two stages", justify="right")
+    for sensor, r in rows.items():
+        cells = []
+        for mode in MODES:
+            x = r[mode]
+            cells += [
+                f"{x['alone_f1max']:.3f} / {x['alone_recall@1']:.3f}",
+                f"{x['two_stage_f1max']:.3f} / {x['two_stage_recall@1']:.3f}",
+            ]
+        table.add_row(sensor, *cells)
+    table.add_row("mean of the four", *[f"{means[m]:.3f}" for m in MODES for _ in (0, 1)])
+    console.print(table)
+    console.print(f"pick: {pick} (the model file says {own})")
+    report = {
+        **provenance(),
+        "model_id": model.meta.model_id,
+        "towns": [str(t) for t in towns],
+        "rerank": {"k": rerank.k, "weight": rerank.weight},
+        "by_sensor": rows,
+        "mean": means,
+        "pick": pick,
+        "seconds": time.perf_counter() - t0,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    console.print(f"wrote {args.out}")
+    if args.write:
+        from model_export.modelfile import rewrite_metadata
+
+        rewrite_metadata(args.model, args.model, lambda meta: {"sensor_input": pick})
+        console.print(f"{args.model}: sensor_input = {pick}")
+
+
+if __name__ == "__main__":
+    main()
