@@ -186,3 +186,20 @@ def test_modes_are_checked():
     assert check_mode("rows") == "rows"
     with pytest.raises(ValueError, match="allowed: elevation, rows"):
         check_mode("stretch")
+
+
+def test_the_sensors_command_lists_the_catalogue():
+    import json
+
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    res = CliRunner().invoke(app, ["sensors"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert "vlp32c" in res.output and "+15.00° … -25.00°" in res.output
+    res = CliRunner().invoke(app, ["sensors", "--json"])
+    listed = json.loads(res.output)
+    assert (
+        listed["os0-128"]["elevations_deg"][0] == 45.0 and "Ouster" in listed["os0-128"]["source"]
+    )
