@@ -113,8 +113,20 @@ def serve_cmd(
 
 @command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")
 def dump_config_cmd(config: ConfigOpt = None) -> None:
-    """Print the merged service settings (defaults, file, environment) as JSON."""
+    """Print the merged service settings (defaults, file, environment) as JSON, with the
+    thresholds the service answers with for its model: the model file's calibration unless
+    a setting overrides (where each came from goes to stderr)."""
+    from service.calibration import read_model_metadata, resolve
+
     settings = _service_settings(config)
+    try:
+        meta = read_model_metadata(settings.model)
+    except Exception as err:
+        console.print(f"[yellow]note:[/] {settings.model}: {err}; its calibration is not shown")
+    else:
+        settings, used = resolve(settings, meta)
+        for key, t in used.items():
+            console.print(f"{key} = {t.value} ({t.source})", markup=False)
     out.print_json(settings.model_dump_json())
 
 

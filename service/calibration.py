@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from lidar_core.calibration import CALIBRATED
@@ -62,6 +63,14 @@ def resolve(settings: Settings, meta: EncoderMetadata) -> tuple[Settings, dict[s
         for section, values in updates.items()
     }
     return settings.model_copy(update=sections), used
+
+
+def read_model_metadata(path: Path) -> EncoderMetadata:
+    """A model file's metadata, read without building an inference session (onnx only)."""
+    import onnx
+
+    proto = onnx.load(str(path), load_external_data=False)
+    return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})
 
 
 def log_thresholds(model_id: str, used: dict[str, Threshold]) -> None:

@@ -198,6 +198,8 @@ def test_dump_config_and_hash_key(tmp_path):
     assert res.returncode == 0, res.stderr
     dumped = json.loads(res.stdout)
     assert dumped["batching"]["max_batch"] == 5 and dumped["port"] == 8123
+    # the thresholds as the service answers for its model, each with where it came from
+    assert "loop_closure.max_score = " in res.stderr and "verify.min_fitness" in res.stderr
     res = subprocess.run(
         [sys.executable, "-m", "overlapmamba", "hash-key", "--role", "viewer", "--key", "abc"],
         capture_output=True,
