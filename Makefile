@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e chromium lint format typecheck serve bench data data-sensors clean
+.PHONY: test e2e chromium lint format typecheck serve bench data data-sensors docs clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
 # measured 10 s against ≈100 s for the full set on 2 cores.
@@ -89,6 +89,11 @@ data-sensors: $(VENV)/.installed-all
 	for p in $$($(BIN)/python -c "from lidar_synth.presets import SENSOR_PRESETS; print(*SENSOR_PRESETS)"); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p -q; \
 	done
+
+# The tables commands write under reports/ pasted into README.md and the model card where
+# they include them (docs/render.py; tests/test_docs_figures.py fails on a stale copy).
+docs: $(BIN)/python
+	$(BIN)/python docs/render.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis bench-results

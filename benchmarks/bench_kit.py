@@ -181,7 +181,7 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
     from model_export.modelfile import with_calibration
 
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)
-    with_calibration(model, section, entry)
+    served_settings(with_calibration(model, section, entry))  # as the service will read it
     print(f"{model}: calibration {section} = {values}")
 
 

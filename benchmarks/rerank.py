@@ -57,7 +57,7 @@ def main() -> None:
     model, profile, _ = load_model(args.model)
     val, second = open_sequence(args.val), open_sequence(args.second_session)
     check_sessions(val, second)
-    gt = sequence_loops(val)
+    gt = sequence_loops(val, profile)
     desc, yaw = describe_sequence(model, val, profile)
     desc_q, yaw_q = describe_sequence(model, second, profile)
     pos, pos_q = town_positions(val), town_positions(second)

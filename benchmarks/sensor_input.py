@@ -10,7 +10,8 @@ HDL-64E: the fewest beams (VLP-16), a non-uniform table (VLP-32C), the widest fi
 F1max and Recall@1 over all revisits, the descriptor alone and in two stages (the service's
 re-rank); the mode with the higher mean of those four numbers over the towns wins.
 ``--write`` records the pick in the model file (``EncoderMetadata.sensor_input``; the graph
-and the model id stay as they are).
+stays byte for byte, the model id changes when the pick is not the default, ``elevation``:
+other descriptors of other sensors' scans must not share a map).
 
     python benchmarks/sensor_input.py [--model models/overlapmamba-hdl64.onnx] [--write]
 
@@ -57,6 +58,8 @@ def main() -> None:
     t0 = time.perf_counter()
     enc = Encoder(args.model)  # as the service runs it (the C-kernel path when it builds)
     profile, own = enc.meta.profile, enc.meta.sensor_input
+    for name in args.sensor or ():
+        get_sensor(name)  # an unknown name is refused with the allowed ones
     towns = [
         args.data / f"val-{name}"
         for name in args.sensor or PICKED
@@ -112,10 +115,10 @@ def main() -> None:
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     console.print(f"wrote {args.out}")
     if args.write:
-        from model_export.modelfile import rewrite_metadata
+        from model_export.modelfile import with_sensor_input
 
-        rewrite_metadata(args.model, args.model, lambda meta: {"sensor_input": pick})
-        console.print(f"{args.model}: sensor_input = {pick}")
+        meta = with_sensor_input(args.model, pick)  # type: ignore[arg-type]
+        console.print(f"{args.model}: sensor_input = {pick}, model id {meta.model_id}")
 
 
 def describe(enc: Encoder, seq: Sequence, inp: SensorInput) -> tuple[np.ndarray, np.ndarray]:

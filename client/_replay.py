@@ -92,6 +92,6 @@ def _manifest_sensor(root: Path) -> str | None:
         return None
     try:
         sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
-    except (json.JSONDecodeError, AttributeError):
+    except (json.JSONDecodeError, AttributeError, OSError):
         raise ValueError(f"{path} is not a readable manifest") from None
     return sensor if isinstance(sensor, str) else None

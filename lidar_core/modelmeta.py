@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from lidar_core.calibration import Calibrated, check_calibration
+from lidar_core.calibration import CALIBRATED, Calibrated, check_calibration
 from lidar_core.errors import LidarCoreError
 from lidar_core.sensors import SensorProfile
 from lidar_core.sensors.input import Mode
@@ -71,7 +72,7 @@ class EncoderMetadata(BaseModel):
     sensor_input: Mode = Field(
         default="elevation",
         description="how a scan of another sensor than the profile's becomes this model's "
-        "input (lidar_core.sensors.input): elevation or rows",
+        "input (lidar_core.sensors.input): elevation or rows; part of the model id",
     )
     calibration: dict[str, Calibrated] = Field(
         default_factory=dict,
@@ -87,10 +88,19 @@ class EncoderMetadata(BaseModel):
     torch_version: str = ""
     opset: int = Field(gt=0)
 
-    @field_validator("calibration")
+    @field_validator("calibration", mode="before")
     @classmethod
-    def _known_calibration(cls, v: dict[str, Calibrated]) -> dict[str, Calibrated]:
-        return check_calibration(v)
+    def _known_calibration(cls, v: Any) -> Any:
+        """Sections this code does not know (a newer writer's) are left out with a warning,
+        so the model still loads; a known section with unknown fields is refused."""
+        if not isinstance(v, dict):
+            return v
+        unknown = sorted(set(v) - set(CALIBRATED))
+        if unknown:
+            logging.getLogger("overlapmamba").warning(
+                "model calibration: sections %s are not known here and are ignored", unknown
+            )
+        return check_calibration({k: x for k, x in v.items() if k in CALIBRATED})
 
     @property
     def graph(self) -> str:
@@ -133,12 +143,27 @@ class EncoderMetadata(BaseModel):
             raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None
 
 
-def identity(graph_id: str, views: int) -> dict[str, Any]:
+DEFAULT_SENSOR_INPUT: Mode = "elevation"
+
+
+def identity(
+    graph_id: str, views: int, sensor_input: Mode = DEFAULT_SENSOR_INPUT
+) -> dict[str, Any]:
     """The metadata fields that name a graph (its content hash, ``om-…``) described by
-    ``views`` views: ``views``, ``model_id`` (the graph's own with one view, as every file
-    before views had; else a hash of both, since other views give other descriptors, which
-    must not share a map) and ``graph_id`` (kept only when it differs from the model id)."""
-    if views == 1:
-        return {"views": 1, "model_id": graph_id, "graph_id": ""}
-    model_id = "om-" + hashlib.sha256(f"{graph_id}+views={views}".encode()).hexdigest()[:16]
-    return {"views": views, "model_id": model_id, "graph_id": graph_id}
+    ``views`` views and taking other sensors' scans by ``sensor_input``: ``views``,
+    ``sensor_input``, ``model_id`` (the graph's own with one view and the default input, as
+    every file before views had; else a hash of all three, since other views, or another
+    sensor input, give other descriptors, which must not share a map) and ``graph_id`` (kept
+    only when it differs from the model id)."""
+    if views == 1 and sensor_input == DEFAULT_SENSOR_INPUT:
+        return {"views": 1, "sensor_input": sensor_input, "model_id": graph_id, "graph_id": ""}
+    key = f"{graph_id}+views={views}"
+    if sensor_input != DEFAULT_SENSOR_INPUT:  # the default keeps the ids made before it
+        key += f"+sensor_input={sensor_input}"
+    model_id = "om-" + hashlib.sha256(key.encode()).hexdigest()[:16]
+    return {
+        "views": views,
+        "sensor_input": sensor_input,
+        "model_id": model_id,
+        "graph_id": graph_id,
+    }

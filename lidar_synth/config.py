@@ -72,6 +72,17 @@ class GenConfig(BaseModel):
             raise ValueError(f"unknown sensor {v!r}; allowed: {', '.join(sensor_names())}")
         return v
 
+    @field_validator("drive")
+    @classmethod
+    def _no_mount_in_drive(cls, v: dict) -> dict:
+        mount = sorted(k for k in v if k.startswith("mount_"))
+        if mount:
+            raise ValueError(
+                f"drive {mount}: the mounting is the config's own (mount, mount_height, "
+                "mount_pitch_deg, mount_roll_deg), so the body, the poses and the manifest agree"
+            )
+        return v
+
     @field_validator("mount")
     @classmethod
     def _known_mount(cls, v: str) -> str:

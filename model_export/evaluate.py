@@ -80,15 +80,15 @@ def describe_sequence(
 
 
 def sequence_loops(
-    seq: Sequence, profile: SensorProfile | None = None, progress: bool = False
+    seq: Sequence, fallback: SensorProfile | None = None, progress: bool = False
 ) -> LoopGroundTruth:
     """The loop table of a sequence: the one its writer shipped (``ground_truth/loops.npz``,
     with that table's own radius and thresholds) when it matches the sequence, else the
-    default protocol's table (computed once, then cached). Overlap is measured in
-    ``profile``; by default the sequence's own sensor's (the one its table was written
-    with), whatever model is evaluated."""
-    if profile is None:
-        profile = get_profile(seq.sensor or "kitti-hdl64")
+    default protocol's table (computed once, then cached). Overlap is measured in the
+    sequence's own sensor's profile (the one its table was written with), whatever model is
+    evaluated; a sequence that names no sensor in ``fallback`` (the model's profile, as its
+    scans are then projected), else KITTI's."""
+    profile = get_profile(seq.sensor) if seq.sensor else fallback or get_profile("kitti-hdl64")
     shipped = seq.root / "ground_truth" / "loops.npz"
     if shipped.is_file():
         gt = LoopGroundTruth.load(shipped)
@@ -303,7 +303,7 @@ def evaluate_checkpoint(
     }
     results: dict[str, LoopClosureResult] = {}
     if db is None or (seq.root / "ground_truth" / "loops.npz").is_file():
-        gt = sequence_loops(seq, progress=progress)
+        gt = sequence_loops(seq, profile, progress=progress)
         desc, yaw = describe_sequence(model, seq, profile, progress=progress)
         results = loop_closure(desc, gt)
         record["metrics"] = summary(results)

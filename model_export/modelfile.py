@@ -13,6 +13,7 @@ import onnx
 
 from lidar_core.calibration import Calibrated, check_calibration
 from lidar_core.modelmeta import EncoderMetadata, identity
+from lidar_core.sensors.input import Mode, check_mode
 from lidar_core.views import check_views
 from model_export.errors import ExportError
 
@@ -36,7 +37,18 @@ def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
         views = check_views(views)
     except ValueError as err:
         raise ExportError(str(err)) from None
-    return rewrite_metadata(src, out, lambda meta: identity(meta.graph, views))
+    return rewrite_metadata(src, out, lambda meta: identity(meta.graph, views, meta.sensor_input))
+
+
+def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
+    """The model takes other sensors' scans by ``mode`` (:mod:`lidar_core.sensors.input`):
+    the graph stays byte for byte; the model id changes with the mode (other descriptors for
+    those sensors' scans must not share a map), as it does with the views."""
+    try:
+        mode = check_mode(mode)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    return rewrite_metadata(path, path, lambda meta: identity(meta.graph, meta.views, mode))
 
 
 def with_calibration(path: Path | str, section: str, entry: Calibrated) -> EncoderMetadata:

@@ -151,7 +151,7 @@ def table_one(
     gt = None
     described: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for label, model, profile in _networks(runs, onnx):
-        gt = gt or sequence_loops(seq, progress=progress)
+        gt = gt or sequence_loops(seq, profile, progress=progress)
         key = network_digest(model)
         if key not in described:
             described[key] = describe_sequence(model, seq, profile, progress=progress)

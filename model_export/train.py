@@ -192,7 +192,7 @@ def train(
         raise ConfigError("--resume with other data than the run was started on")
     images = _Images(seqs, profile, progress)
     val_images = range_images(val_seq, profile, progress=progress)
-    val_gt = sequence_loops(val_seq, progress=progress)
+    val_gt = sequence_loops(val_seq, profile, progress=progress)
     if not val_gt.has_loop().any():
         raise DatasetError(
             f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "

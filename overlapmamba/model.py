@@ -202,7 +202,8 @@ def eval_cmd(
         str | None,
         typer.Option(
             help="the catalogue sensor --sequence was recorded with (`overlapmamba sensors`); "
-            "default: what its manifest says, else the model's own"
+            "default: what its manifest says; a KITTI folder without one is KITTI's HDL-64E, "
+            "any other recording the model's own sensor"
         ),
     ] = None,
     database_sensor: Annotated[str | None, typer.Option(help="the same for --database")] = None,
@@ -548,9 +549,9 @@ def eval_real_cmd(
 
 
 def _known_sensor(name: str) -> str:
-    from lidar_core.sensors import get_sensor
+    from lidar_core.sensors.catalogue import catalogue_name
 
-    return get_sensor(name).name
+    return catalogue_name(name)
 
 
 @command(

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from lidar_core.calibration import CALIBRATED
 from lidar_core.modelmeta import EncoderMetadata
 from service.settings import Settings
@@ -58,10 +60,19 @@ def resolve(settings: Settings, meta: EncoderMetadata) -> tuple[Settings, dict[s
                 used[key] = Threshold(value, "model", f"{entry.chosen_by} on {entry.data}")
             else:
                 used[key] = Threshold(getattr(current, name), "default")
-    sections = {
-        section: getattr(settings, section).model_copy(update=values)
-        for section, values in updates.items()
-    }
+    sections = {}
+    for section, values in updates.items():
+        current = getattr(settings, section)
+        try:  # validated like a setting: a model file's bad value stops the service here
+            sections[section] = type(current).model_validate(
+                {**current.model_dump(exclude_unset=True), **values}
+            )
+        except ValidationError as err:
+            raise ValueError(
+                f"model {meta.model_id}: its calibration of {section} is not valid "
+                f"({err.errors()[0]['loc']}: {err.errors()[0]['msg']}); recalibrate it, or set "
+                f"[{section}] explicitly"
+            ) from None
     return settings.model_copy(update=sections), used
 
 

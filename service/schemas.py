@@ -15,7 +15,7 @@ from service.settings import IndexKind
 # and within the 256 characters of a keyframe id.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}$"
 KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
-SENSOR_PATTERN = NAME_PATTERN  # a sensor's name (service.sensors checks that it is known)
+SENSOR_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"  # lidar_core.sensors.catalogue.NAME_PATTERN
 
 
 class _Model(BaseModel):

@@ -19,7 +19,7 @@ from lidar_core.errors import ProfileError
 from lidar_core.modelmeta import EncoderMetadata
 from lidar_core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_profile
 from lidar_core.sensors.input import SensorInput
-from service.errors import BadRequest
+from service.errors import BadRequest, Conflict
 
 
 class Sensors:
@@ -27,9 +27,9 @@ class Sensors:
 
     def __init__(self, meta: EncoderMetadata, files: list[Path] | None = None) -> None:
         self.meta = meta
-        self.model_sensor = sensor_of_profile(meta.profile)
+        self.model_sensor = sensor_of_profile(meta.profile)  # never shadows a catalogue name
         known: dict[str, Sensor] = dict(CATALOGUE)
-        known.setdefault(self.model_sensor.name, self.model_sensor)
+        known[self.model_sensor.name] = self.model_sensor
         for path in files or []:
             s = load_sensor(path)  # ProfileError names the file: the service does not start
             if s.name in known:
@@ -55,8 +55,27 @@ class Sensors:
         return name
 
     def resolve(self, scan: str | None, map_sensor: str | None = None) -> str:
-        """The sensor a scan is projected as: its own, else its map's, else the model's."""
-        return self.check(scan) or self.check(map_sensor) or self.model_sensor.name
+        """The sensor a scan is projected as: its own, else its map's, else the model's. A
+        map whose sensor this service does not know (a sensor file since removed, a map
+        imported from another service) is a 409 naming the map, not the client's fault."""
+        if scan is not None:
+            return self.check(scan) or scan
+        if map_sensor is not None and map_sensor not in self.known:
+            raise Conflict(
+                f"this map declares sensor {map_sensor!r}, which this service does not know "
+                f"(allowed: {', '.join(self.names())}); name the scan's sensor, or add the "
+                "sensor's file to [sensors] files",
+                code="unknown_map_sensor",
+                sensor=map_sensor,
+                allowed=self.names(),
+            )
+        return map_sensor or self.model_sensor.name
+
+    def declared(self, name: str | None) -> str | None:
+        """A map's sensor as stored: the model's own is None (so a map made before sensors
+        existed and one made naming the model's own sensor are the same map)."""
+        self.check(name)
+        return None if name is None or self.is_model_sensor(name) else name
 
     def input(self, name: str) -> SensorInput:
         """The projection of ``name``'s scans into this model's input (cached)."""

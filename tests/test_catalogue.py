@@ -203,3 +203,18 @@ def test_the_sensors_command_lists_the_catalogue():
     assert (
         listed["os0-128"]["elevations_deg"][0] == 45.0 and "Ouster" in listed["os0-128"]["source"]
     )
+
+
+def test_the_input_mode_is_part_of_the_model_id():
+    from lidar_core.modelmeta import identity
+
+    plain = identity("om-abc", 1)
+    assert plain == {"views": 1, "sensor_input": "elevation", "model_id": "om-abc", "graph_id": ""}
+    rows = identity("om-abc", 1, "rows")
+    assert rows["model_id"] != "om-abc" and rows["graph_id"] == "om-abc"
+    assert identity("om-abc", 3)["model_id"] != identity("om-abc", 3, "rows")["model_id"]
+    from lidar_core.sensors.catalogue import catalogue_name
+
+    assert catalogue_name("vlp16") == "vlp16"
+    with pytest.raises(ProfileError, match="allowed: hdl32"):
+        catalogue_name("sensors/mine.toml")  # files are for the service's [sensors] files

@@ -79,9 +79,9 @@ def open_recording(
             )
         if sensor is None:
             return open_sequence(path)
-        from lidar_core.sensors import get_sensor
+        from lidar_core.sensors.catalogue import catalogue_name
 
-        return open_sequence(path, sensor=get_sensor(sensor).name)
+        return open_sequence(path, sensor=catalogue_name(sensor))
     if need_poses and odometry is None and tf is None:
         raise DatasetError(
             f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "

@@ -162,9 +162,9 @@ def open_bag(
     say; nothing is guessed). Raises DatasetError naming what is wrong and what the
     recording holds, ProfileError for an unknown sensor."""
     if sensor is not None:
-        from lidar_core.sensors import get_sensor
+        from lidar_core.sensors.catalogue import catalogue_name
 
-        sensor = get_sensor(sensor).name
+        sensor = catalogue_name(sensor)
     path = Path(path)
     if not is_bag(path):
         raise DatasetError(

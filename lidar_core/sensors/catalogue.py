@@ -290,6 +290,17 @@ def get_sensor(name_or_path: str | Path | Sensor) -> Sensor:
     )
 
 
+def catalogue_name(name: str) -> str:
+    """``name`` when the catalogue has it, else a ProfileError listing the names (a sensor
+    file is for the service's ``[sensors] files``, which carry their own tables)."""
+    if name not in CATALOGUE:
+        raise ProfileError(
+            f"unknown sensor {name!r}; allowed: {', '.join(sensor_names())}",
+            allowed=sensor_names(),
+        )
+    return name
+
+
 def load_sensor(path: str | Path) -> Sensor:
     """A user-defined sensor: the fields of :class:`Sensor` at top level or under
     ``[sensor]``; with ``base = "<catalogue name>"`` only the fields that differ."""
@@ -330,8 +341,11 @@ def sensor_of_profile(profile: SensorProfile) -> Sensor:
             return s
     pitch = (profile.fov_up_deg - profile.fov_down_deg) / profile.height
     top = profile.fov_up_deg - pitch / 2
+    name = re.sub(r"[^a-z0-9._-]", "-", profile.name.lower()).strip("-._")[:58] or "model"
+    if name in CATALOGUE:  # another table under a catalogue name: keep both addressable
+        name += "-model"
     return Sensor(
-        name=re.sub(r"[^a-z0-9._-]", "-", profile.name.lower()).strip("-._")[:64] or "model",
+        name=name,
         title=f"the sensor of profile {profile.name}",
         source="a uniform beam per row of the model's own profile",
         elevations_deg=_uniform(top, top - pitch * (profile.height - 1), profile.height),

@@ -45,7 +45,8 @@ def check_mode(mode: str) -> Mode:
 
 
 def beam_of(elevation_deg: np.ndarray, sensor: Sensor) -> np.ndarray:
-    """(N,) elevations in degrees → (N,) int32 index of the nearest beam (0: the highest)."""
+    """(N,) elevations in degrees → (N,) int32 index of the nearest beam (0: the highest;
+    exactly halfway between two: the lower)."""
     asc = np.asarray(sensor.elevations_deg, np.float64)[::-1]
     mids = (asc[1:] + asc[:-1]) / 2
     nearest_asc = np.searchsorted(mids, np.asarray(elevation_deg, np.float64))
@@ -150,7 +151,8 @@ def project_input_reference(
         if not (np.float32(model.min_range) < r < np.float32(model.max_range)):
             continue
         el = float(np.degrees(np.arcsin(z / r)))
-        beam = int(np.argmin(np.abs(el_table - el)))
+        gap = np.abs(el_table - el)
+        beam = int(np.flatnonzero(gap == gap.min())[-1])  # halfway: the lower beam
         u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
         col = min(max(int(np.floor(u)), 0), W - 1)
         for row in np.flatnonzero(rows == beam):

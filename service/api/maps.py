@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Body, Query, Response
 
 from service.api.openapi import error_responses
-from service.backends.base import each_map
+from service.backends.base import check_same_settings, each_map
 from service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
 from service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
 from service.threads import in_thread
@@ -30,7 +30,8 @@ async def create_map(
 ) -> MapOut:
     """Create the map, or return it unchanged if it exists with the same settings (200).
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
-    sensor = svc.sensors.check(settings.sensor if settings else None)
+    wanted = settings.sensor if settings else None
+    sensor = svc.sensors.declared(wanted)  # the model's own is stored as None
     m, created = await in_thread(
         svc.registry.create,
         map_id,
@@ -38,6 +39,8 @@ async def create_map(
         settings.keep_geometry if settings else None,
         sensor,
     )
+    if wanted is not None and sensor is None and m.sensor is not None:  # the backend saw None
+        check_same_settings(m, None, wanted)
     response.status_code = 201 if created else 200
     return MapOut(**await in_thread(m.info), created=created)
 
