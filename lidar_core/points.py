@@ -52,10 +52,14 @@ class PointCloud:
 
     xyz:       (N, 3) float32, C-contiguous, metres
     intensity: (N,) float32, or None when the source carried none
+    ring:      (N,) int64 beam index as the driver numbered it (a PointCloud2's ``ring``
+               field), or None: only ever checked against a named sensor, never used to
+               guess one
     """
 
     xyz: np.ndarray
     intensity: np.ndarray | None = None
+    ring: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])

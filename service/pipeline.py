@@ -27,9 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_core.points import PointCloud
+from lidar_core.sensors import Sensor
 from lidar_core.sensors.input import SensorInput
 from service.batcher import MicroBatcher
 from service.encoder import Encoder
+from service.errors import BadRequest
 from service.scans import ScanBody, decode_scan
 from service.settings import BatchSettings, LimitSettings
 from service.threads import in_thread
@@ -43,6 +45,25 @@ class Description:
     points: PointCloud  # kept for the content hash and geometry of a keyframe
     timings: dict[str, float]  # ms: decode, project, encode
     prepared: Prepared | None = None  # the query's side of registration, when asked for
+
+
+def check_rings(points: PointCloud, sensor: Sensor | None) -> None:
+    """A cloud whose ``ring`` field (a PointCloud2's) numbers more rings than its sensor has
+    beams is not that sensor's scan: refused (400) with both counts, so the robot names its
+    sensor instead of being projected as another's. Nothing is inferred from the rings."""
+    if points.ring is None or sensor is None or not len(points.ring):
+        return
+    low, high = int(points.ring.min()), int(points.ring.max())
+    if low < 0 or high >= sensor.beams:
+        raise BadRequest(
+            f"the cloud's ring field runs {low}–{high}, but it is projected as sensor "
+            f"{sensor.name!r}, which has {sensor.beams} beams (rings 0–{sensor.beams - 1}): "
+            "name the scan's sensor with ?sensor= (GET /v1/sensors lists them)",
+            code="sensor_mismatch",
+            sensor=sensor.name,
+            beams=sensor.beams,
+            rings=[low, high],
+        )
 
 
 class ScanPipeline:
@@ -79,6 +100,7 @@ class ScanPipeline:
     ) -> tuple[np.ndarray, PointCloud, dict[str, float]]:
         t0 = time.perf_counter()
         points = decode_scan(scan, self.limits)
+        check_rings(points, sensor.sensor if sensor is not None else None)
         t1 = time.perf_counter()
         image = self.encoder.project(points, sensor)
         t2 = time.perf_counter()

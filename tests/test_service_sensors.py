@@ -275,3 +275,33 @@ def sensor_input_kind(enc: Encoder, name: str) -> str:
     from service.sensors import Sensors
 
     return Sensors(enc.meta).input(name).kind
+
+
+async def test_a_clouds_ring_field_must_fit_the_sensor_it_is_projected_as(settings, encoder):
+    """A PointCloud2 with a `ring` field numbering 32 rings is not a VLP-16's scan: refused
+    with both counts; as a 32-beam sensor's it is accepted. The rings never pick a sensor."""
+    from ros_messages import F32, U16, message
+
+    from lidar_core.io.pointcloud2 import decode_pointcloud2
+
+    s = scan(2)
+    pts = s.copy()
+    pts[:, 3] = np.arange(len(s)) % 32  # the driver's ring numbers, 0–31
+    body = message(pts, [("x", 0, F32), ("y", 4, F32), ("z", 8, F32), ("ring", 12, U16)], 16)
+    cloud = decode_pointcloud2(body)
+    assert cloud.ring is not None and cloud.ring.max() == 31 and cloud.intensity is None
+    ros = {"content-type": "application/x-ros2-pointcloud2"}
+    async with running(settings, encoder) as c:
+        bad = await c.post("/v1/descriptors?sensor=vlp16", content=body, headers=ros)
+        assert bad.status_code == 400, bad.text
+        e = bad.json()["error"]
+        assert e["code"] == "sensor_mismatch" and e["detail"] == {
+            "sensor": "vlp16",
+            "beams": 16,
+            "rings": [0, 31],
+        }
+        assert (
+            await c.post("/v1/descriptors?sensor=xt32", content=body, headers=ros)
+        ).status_code == 200
+        # the model's own sensor (64 beams) fits too: a scan that names none is not refused
+        assert (await c.post("/v1/descriptors", content=body, headers=ros)).status_code == 200

@@ -11,8 +11,9 @@
     is_dense  (bool)
 
 Every layout robots send decodes: x/y/z as float32 or float64, intensity (``intensity`` or
-``i``, any numeric type) or none, padding between fields and at the end of a point or a row,
-organised or not, either byte order. Sizes are checked against the bytes present before
+``i``, any numeric type) or none, a ``ring`` (any integer type: the beam a point came from,
+kept beside the points so a named sensor can be checked against it), padding between fields
+and at the end of a point or a row, organised or not, either byte order. Sizes are checked against the bytes present before
 anything is allocated. A cloud that is not dense (``is_dense`` false) may hold NaN points
 for missing returns: those are dropped; NaN in a cloud that says it is dense is an error.
 Parsed here, without ROS: the message's layout is fixed (CDR, XCDR1 as ROS 2's default
@@ -22,6 +23,7 @@ middleware writes it), and a hand parser can name what is wrong with a malformed
 from __future__ import annotations
 
 import struct
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +33,7 @@ from lidar_core.points import DEFAULT_LIMITS, PointCloud, PointLimits, validate
 
 # sensor_msgs/msg/PointField datatypes → numpy kinds (byte order added per message)
 DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+INTEGERS = ("i1", "u1", "i2", "u2", "i4", "u4")
 INTENSITY_FIELDS = ("intensity", "i")
 MAX_FIELDS = 64  # real drivers send 4–12
 MAX_NAME = 256
@@ -175,15 +178,28 @@ def _points(
     order = ">" if big else "<"
     names, formats, offsets = [], [], []
     intensity = next((f for f in INTENSITY_FIELDS if f in fields), None)
-    for name in ("x", "y", "z", *([intensity] if intensity else [])):
+    ring = "ring" if "ring" in fields else None
+    for name in ("x", "y", "z", *([intensity] if intensity else []), *([ring] if ring else [])):
         offset, datatype, count = fields[name]
         kind = DATATYPES.get(datatype)
-        allowed = ("f4", "f8") if name in "xyz" else tuple(DATATYPES.values())
+        allowed = (
+            ("f4", "f8")
+            if name in "xyz"
+            else INTEGERS
+            if name == "ring"
+            else tuple(DATATYPES.values())
+        )
         if kind not in allowed or count != 1:
             raise DecodeError(
                 f"{source}: PointCloud2 field {name} has datatype {datatype} and count {count}; "
                 f"allowed: count 1 and "
-                + ("FLOAT32 (7) or FLOAT64 (8)" if name in "xyz" else "a numeric datatype (1–8)"),
+                + (
+                    "FLOAT32 (7) or FLOAT64 (8)"
+                    if name in "xyz"
+                    else "an integer datatype (1–6)"
+                    if name == "ring"
+                    else "a numeric datatype (1–8)"
+                ),
                 field=name,
             )
         size = int(kind[1])
@@ -217,9 +233,12 @@ def _points(
     with np.errstate(over="ignore", invalid="ignore"):
         xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
         value = None if intensity is None else arr[intensity].astype(np.float32)
+    rings = None if ring is None else arr[ring].astype(np.int64)
     if not dense:  # missing returns of an organised cloud: NaN by the message's convention
         keep = np.isfinite(xyz).all(axis=1)
         if not keep.all():
             xyz = xyz[keep]
             value = None if value is None else value[keep]
-    return validate(xyz, value, limits=limits, source=source)
+            rings = None if rings is None else rings[keep]
+    cloud = validate(xyz, value, limits=limits, source=source)
+    return cloud if rings is None else replace(cloud, ring=rings)
