@@ -4,10 +4,16 @@
 #   docker build -t overlapmamba .
 #   docker run -p 8000:8000 -v om-data:/data -e OVERLAPMAMBA_AUTH__KEYS='[...]' overlapmamba
 #
+#   make image        # the same with podman (or docker), offline: a Debian bookworm base made
+#                     # with debootstrap and the dependencies from a wheelhouse (deploy/image.py)
+#
 # Two stages: `build` makes a virtual environment; `runtime` copies only that and the model.
 # Dependencies are installed before the source is copied, so editing code rebuilds one
-# small layer. docs/deploy.md has the compose file, sizing and operations.
+# small layer; from deploy/wheelhouse when it holds wheels (no index is asked), else from
+# PyPI. docs/deploy.md has the compose file, sizing and operations.
 
+# Any Debian bookworm image with python3 (3.11) and its venv module: the official slim one,
+# or the one `make image` makes from Debian's packages when no registry is reachable.
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
 FROM ${PYTHON_IMAGE} AS build
@@ -20,19 +26,25 @@ ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
 # hadolint ignore=DL3008
 RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
     && rm -rf /var/lib/apt/lists/*
-RUN python -m venv /opt/venv
+RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
-# 1. Dependencies: the core's and the `serve` extra's, read from pyproject.toml.
+# 1. Dependencies: the core's and the `serve` extra's, read from pyproject.toml; from the
+#    wheelhouse when it has wheels (an air-gapped build), else from the index.
 COPY pyproject.toml deploy/requirements.py ./
+COPY deploy/wheelhouse /wheels
 RUN python requirements.py serve > requirements.txt \
-    && pip install --no-cache-dir -r requirements.txt
+    && if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
+         pip install --no-cache-dir --no-index --find-links /wheels -r requirements.txt; \
+       else pip install --no-cache-dir -r requirements.txt; fi
 # 2. The source, without dependencies (they are all above).
 COPY README.md ./
 COPY lidar_core ./lidar_core
 COPY overlapmamba ./overlapmamba
 COPY service ./service
-RUN pip install --no-cache-dir --no-deps . \
+RUN if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
+         pip install --no-cache-dir --no-index --find-links /wheels --no-deps .; \
+       else pip install --no-cache-dir --no-deps .; fi \
     && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
     && python -m lidar_core.scan_kernel
 

@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e chromium lint format typecheck serve bench data data-sensors docs clean
+.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors docs clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
 # measured 10 s against ≈100 s for the full set on 2 cores.
@@ -36,8 +36,19 @@ test: $(VENV)/.installed-all lint chromium
 
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
 # `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.
-e2e: $(VENV)/.installed-all chromium
-	OVERLAPMAMBA_E2E=full $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
+e2e: $(VENV)/.installed-all chromium image
+	OVERLAPMAMBA_E2E=full OVERLAPMAMBA_IMAGE_TEST=1 $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
+
+# The container image, built here with podman (installed from Debian where missing) or docker:
+# a bookworm base made with debootstrap when no registry answers, the dependencies from a
+# wheelhouse of the tested venv's versions (deploy/image.py). image-test starts it and checks
+# it against the venv (tests/test_image.py; figures in reports/deploy/).
+image: $(VENV)/.installed-all
+	$(BIN)/python deploy/image.py all
+
+image-test: $(VENV)/.installed-all
+	OVERLAPMAMBA_IMAGE_TEST=1 $(BIN)/python -m pytest -p no:cacheprovider -v tests/test_image.py
+	$(BIN)/python deploy/image.py report
 
 # Debian's chromium for the browser tests (playwright drives it; it downloads no browser).
 chromium:

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = (ROOT / "README.md", ROOT / "models" / "README.md")
+DOCS = (ROOT / "README.md", ROOT / "models" / "README.md", ROOT / "docs" / "deploy.md")
 BLOCK = re.compile(r"(<!-- include (\S+) -->\n)(.*?)(<!-- end include \2 -->\n)", re.S)
 
 

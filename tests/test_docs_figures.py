@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = (ROOT / "README.md", ROOT / "models" / "README.md")
+DOCS = (ROOT / "README.md", ROOT / "models" / "README.md", ROOT / "docs" / "deploy.md")
 BLOCK = re.compile(r"<!-- include (\S+) -->\n(.*?)<!-- end include \1 -->\n", re.S)
 
 
@@ -18,12 +18,13 @@ def _blocks() -> list[tuple[Path, str, str]]:
     return [(doc, m[1], m[2]) for doc in DOCS for m in BLOCK.finditer(doc.read_text())]
 
 
-def test_the_sensor_baseline_is_in_the_readme_and_the_model_card():
-    names = {(doc.name if doc.parent == ROOT else "card", f) for doc, f, _ in _blocks()}
+def test_the_measured_tables_are_in_their_documents():
+    included = {(str(doc.relative_to(ROOT)), name) for doc, name, _ in _blocks()}
     assert {
         ("README.md", "reports/model/sensors.md"),
-        ("card", "reports/model/sensors.md"),
-    } <= names
+        ("models/README.md", "reports/model/sensors.md"),
+        ("docs/deploy.md", "reports/deploy/image.md"),
+    } <= included
 
 
 @pytest.mark.parametrize("doc,name,text", _blocks(), ids=lambda x: str(x)[-40:])
