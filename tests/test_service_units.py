@@ -414,11 +414,61 @@ def test_store_reader_connections_are_pooled_not_per_thread(tmp_path):
 
 
 def test_rwlock_lets_readers_share_and_writers_exclude():
+    """Two readers hold the lock at once; a writer waits for both and holds it alone; a
+    reader arriving while a writer waits queues behind it (no writer starvation). Each wait
+    is bounded, so a broken lock fails the test instead of hanging it."""
+    import threading
+
     lock = RWLock()
-    with lock.read(), lock.read():
-        pass
-    with lock.write():
-        pass
+    inside: list[str] = []
+    both_in = threading.Barrier(2, timeout=5)
+
+    def reader(name: str) -> None:
+        with lock.read():
+            inside.append(f"+{name}")
+            both_in.wait()  # only passes if both readers are inside together
+            inside.append(f"-{name}")
+
+    readers = [threading.Thread(target=reader, args=(n,)) for n in ("r1", "r2")]
+    for t in readers:
+        t.start()
+    for t in readers:
+        t.join(5)
+    assert (not any(t.is_alive() for t in readers) and inside[:2] == ["+r1", "+r2"]) or inside[
+        :2
+    ] == ["+r2", "+r1"]
+
+    events: list[str] = []
+    reader_in, writer_waiting = threading.Event(), threading.Event()
+
+    def holder() -> None:
+        with lock.read():
+            reader_in.set()
+            assert writer_waiting.wait(5)
+            time.sleep(0.05)  # the writer is blocked behind this reader meanwhile
+            events.append("reader out")
+
+    def writer() -> None:
+        assert reader_in.wait(5)
+        writer_waiting.set()
+        with lock.write():
+            events.append("writer in")
+            time.sleep(0.05)
+            events.append("writer out")
+
+    def late_reader() -> None:
+        assert writer_waiting.wait(5)
+        time.sleep(0.02)  # arrives while the writer waits: it must queue behind the writer
+        with lock.read():
+            events.append("late reader in")
+
+    threads = [threading.Thread(target=f) for f in (holder, writer, late_reader)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(5)
+    assert not any(t.is_alive() for t in threads), events
+    assert events == ["reader out", "writer in", "writer out", "late reader in"]
 
 
 # ---- auth and settings -----------------------------------------------------------------------
