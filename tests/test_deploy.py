@@ -1,9 +1,10 @@
 """Deployment: the Dockerfile lints clean and has the shape operations rely on; the runtime
 dependency set (what the image installs) is complete without torch; compose is consistent.
 
-No Docker engine runs here, so the image's runtime is proven the long way: the same
-requirements the Dockerfile installs go into a fresh virtual environment, and a real
-``overlapmamba serve`` from it answers with a descriptor.
+Building the image takes minutes, so ``make test`` proves its runtime the long way: the
+same requirements the Dockerfile installs go into a fresh virtual environment, and a real
+``overlapmamba serve`` from it answers with a descriptor. ``make image-test``
+(tests/test_image.py) checks the image itself.
 """
 
 from __future__ import annotations
@@ -197,3 +198,24 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
         text=True,
     )
     assert doctor.returncode == 0, doctor.stdout + doctor.stderr
+
+
+def test_the_image_script_copies_every_file_the_dockerfile_copies():
+    """deploy/image.py's rebuild-after-an-edit copies the build context by a list: every
+    source the Dockerfile COPYs from the context must be on it (and let in by
+    .dockerignore), or that timing would build another image."""
+    sys.path.insert(0, str(ROOT / "deploy"))
+    from image import CONTEXT
+
+    sources = []
+    for word, args in instructions():
+        if word == "COPY" and "--from=" not in args:
+            sources += args.split()[:-1]
+    assert sources, "the Dockerfile copies nothing?"
+    allowed = (ROOT / ".dockerignore").read_text()
+    for src in sources:
+        assert any(src == c or src.startswith(c + "/") for c in CONTEXT), src
+        let_in = {f"!{src}", f"!{src}/"}
+        assert any(line.strip() in let_in for line in allowed.splitlines()), (
+            f"{src} is not let in by .dockerignore"
+        )
