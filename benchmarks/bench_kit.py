@@ -180,6 +180,7 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
     from lidar_core.calibration import calibrated
     from model_export.modelfile import with_calibration
 
+    data = data.replace(f"{ROOT}/", "")  # paths inside the checkout, as a clone has them
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)
     served_settings(with_calibration(model, section, entry))  # as the service will read it
     print(f"{model}: calibration {section} = {values}")

@@ -50,6 +50,14 @@ def test_shipped_model_metadata_matches_its_card(session, meta):
     assert meta.model_id == facts["model_id"]
     assert meta.weight_format == facts["weight_format"]
     assert str(meta.views) == facts["views"]
+    assert meta.sensor_input == facts["sensor_input"]
+    # the thresholds the service answers with come from the file, each from its benchmark
+    assert ", ".join(meta.calibration) == facts["calibrated"]
+    for section, entry in meta.calibration.items():
+        assert entry.chosen_by.startswith("python benchmarks/") and "--write-calibration" in (
+            entry.chosen_by
+        ), section
+        assert entry.data.startswith("data/synth/val"), section  # never a test town
     assert meta.source_commit == facts["source_commit"]
     assert meta.profile.name == facts["sensor"]
     assert f"{meta.profile.height}x{meta.profile.width}" == facts["range_image"]
