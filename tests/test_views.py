@@ -83,3 +83,29 @@ def test_the_range_cache_keeps_each_count_apart(kitti_seq_dir, tmp_path, monkeyp
     want = project_views(seq.points(i), KITTI, 2).astype(np.float16)
     np.testing.assert_array_equal(two[i], want)
     assert len(list((tmp_path / "range_images").glob("*.npy"))) == 2
+
+
+def test_the_range_cache_keeps_each_sensor_input_apart(kitti_seq_dir, tmp_path, monkeypatch):
+    """The same scans as another sensor's (thinned KITTI rings would be, here the sensor
+    table alone differs) or by another mode are other images: other cache files; the
+    model's own sensor keeps the key it always had."""
+    pytest.importorskip("torch")
+    from dataclasses import replace
+
+    from lidar_core.datasets import open_sequence
+    from lidar_core.sensors import CATALOGUE
+    from lidar_core.sensors.input import SensorInput
+    from model_export.rangecache import cache_key, range_images
+
+    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path))
+    seq = open_sequence(kitti_seq_dir)
+    seq = replace(seq, scan_paths=seq.scan_paths[:5], poses=seq.poses[:5])
+    own = SensorInput(KITTI, CATALOGUE["kitti-hdl64"], "elevation")
+    vlp = SensorInput(KITTI, CATALOGUE["vlp16"], "elevation")
+    vlp_rows = SensorInput(KITTI, CATALOGUE["vlp16"], "rows")
+    keys = {cache_key(seq, KITTI, 1, s) for s in (own, vlp, vlp_rows)}
+    assert len(keys) == 3 and cache_key(seq, KITTI, 1, own) == cache_key(seq, KITTI)
+    images = range_images(seq, KITTI, sensor=vlp, progress=False)
+    np.testing.assert_array_equal(images[2], vlp.project(seq.points(2))[0].astype(np.float16))
+    with pytest.raises(ValueError, match="not the profile"):
+        range_images(seq, SMALL, sensor=vlp, progress=False)
