@@ -13,9 +13,10 @@
 Every layout robots send decodes: x/y/z as float32 or float64, intensity (``intensity`` or
 ``i``, any numeric type) or none, a ``ring`` (any integer type: the beam a point came from,
 kept beside the points so a named sensor can be checked against it), padding between fields
-and at the end of a point or a row, organised or not, either byte order. Sizes are checked against the bytes present before
-anything is allocated. A cloud that is not dense (``is_dense`` false) may hold NaN points
-for missing returns: those are dropped; NaN in a cloud that says it is dense is an error.
+and at the end of a point or a row, organised or not, either byte order. Sizes are checked
+against the bytes present before anything is allocated. A cloud that is not dense
+(``is_dense`` false) may hold NaN points for missing returns: those are dropped; NaN in a
+cloud that says it is dense is an error.
 Parsed here, without ROS: the message's layout is fixed (CDR, XCDR1 as ROS 2's default
 middleware writes it), and a hand parser can name what is wrong with a malformed one.
 """
