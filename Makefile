@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors docs clean
+.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
 # measured 10 s against ≈100 s for the full set on 2 cores.
@@ -31,7 +31,7 @@ $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 	@touch $@
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.
-test: $(VENV)/.installed-all lint chromium
+test: $(VENV)/.installed-all lint docs-site chromium
 	$(BIN)/python -m pytest --durations=15
 
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
@@ -106,5 +106,10 @@ data-sensors: $(VENV)/.installed-all
 docs: $(BIN)/python
 	$(BIN)/python docs/render.py
 
+# The documentation site (mkdocs.yml: README.md its home, docs/ its pages, the model card and
+# reports/ beside them), built in strict mode: a broken link or anchor fails `make test`.
+docs-site: $(VENV)/.installed-all
+	$(BIN)/mkdocs build --strict --quiet
+
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis bench-results
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis bench-results site

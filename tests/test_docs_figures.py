@@ -1,37 +1,81 @@
 """Figures a reader sees come from the command that measured them: a table a command writes
-under reports/ is included in the documents as it is, between markers naming the file, and
-this test fails when a copy differs from its file (or a marked block lost its file)."""
+under reports/ is included in the documents as it is, or rendered from a report's JSON,
+between markers naming its source (docs/render.py, `make docs`), and this test fails when a
+copy differs from what its source gives (or a marked block lost its source)."""
 
 from __future__ import annotations
 
+import importlib.util
 import re
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = (ROOT / "README.md", ROOT / "models" / "README.md", ROOT / "docs" / "deploy.md")
-BLOCK = re.compile(r"<!-- include (\S+) -->\n(.*?)<!-- end include \1 -->\n", re.S)
+_spec = importlib.util.spec_from_file_location("docs_render", ROOT / "docs" / "render.py")
+assert _spec and _spec.loader
+render = importlib.util.module_from_spec(_spec)
+sys.modules["docs_render"] = render
+_spec.loader.exec_module(render)
+
+INCLUDE = re.compile(r"<!-- include (\S+) -->\n(.*?)<!-- end include \1 -->\n", re.S)
+RENDER = re.compile(r"<!-- render (\S+) -->\n(.*?)<!-- end render \1 -->\n", re.S)
 
 
-def _blocks() -> list[tuple[Path, str, str]]:
-    return [(doc, m[1], m[2]) for doc in DOCS for m in BLOCK.finditer(doc.read_text())]
+def _rel(doc: Path) -> str:
+    return str(doc.relative_to(ROOT))
+
+
+def _includes() -> list[tuple[Path, str, str]]:
+    return [(doc, m[1], m[2]) for doc in render.DOCS for m in INCLUDE.finditer(doc.read_text())]
+
+
+def _rendered() -> list[tuple[Path, str, str]]:
+    return [(doc, m[1], m[2]) for doc in render.DOCS for m in RENDER.finditer(doc.read_text())]
 
 
 def test_the_measured_tables_are_in_their_documents():
-    included = {(str(doc.relative_to(ROOT)), name) for doc, name, _ in _blocks()}
+    included = {(_rel(doc), name) for doc, name, _ in _includes()}
     assert {
-        ("README.md", "reports/model/sensors.md"),
+        ("docs/results.md", "reports/model/sensors.md"),
         ("models/README.md", "reports/model/sensors.md"),
         ("docs/deploy.md", "reports/deploy/image.md"),
     } <= included
+    assert ("README.md", "headline") in {(_rel(doc), name) for doc, name, _ in _rendered()}
 
 
-@pytest.mark.parametrize("doc,name,text", _blocks(), ids=lambda x: str(x)[-40:])
+@pytest.mark.parametrize("doc,name,text", _includes(), ids=lambda x: str(x)[-40:])
 def test_an_included_table_is_its_file(doc, name, text):
     path = ROOT / name
     assert path.is_file(), f"{doc.name} includes {name}, which does not exist"
     assert text == path.read_text(), (
-        f"{doc.relative_to(ROOT)}'s copy of {name} differs from the file: paste the file "
-        "between the markers again (it is written by the command its first line names)"
+        f"{_rel(doc)}'s copy of {name} differs from the file: `make docs` pastes it again "
+        "(it is written by the command its first line names)"
     )
+
+
+@pytest.mark.parametrize("doc,name,text", _rendered(), ids=lambda x: str(x)[-40:])
+def test_a_rendered_table_is_its_json(doc, name, text):
+    assert name in render.RENDERERS, f"{_rel(doc)} asks for an unknown table {name!r}"
+    made = render.RENDERERS[name]()
+    assert text == made, f"{_rel(doc)}'s table {name} differs from its JSON: run `make docs`"
+    assert re.match(r"<!-- from reports/\S+\.json, written by `[^`]+`", made), (
+        "a rendered table names its JSON and the command that wrote it"
+    )
+
+
+def test_a_stale_block_is_found_and_rendered_again():
+    doc = "x\n<!-- render headline -->\n| stale |\n<!-- end render headline -->\ny\n"
+    fresh = render.render(doc)
+    assert "| stale |" not in fresh and fresh.startswith("x\n") and fresh.endswith("y\n")
+    assert render.render(fresh) == fresh
+    with pytest.raises(KeyError, match="no renderer 'nope'"):
+        render.render("<!-- render nope -->\n<!-- end render nope -->\n")
+    with pytest.raises(FileNotFoundError, match="missing"):
+        render.render("<!-- include reports/nope.md -->\n<!-- end include reports/nope.md -->\n")
+
+
+def test_the_readme_fits_a_newcomer():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 300, f"README.md has {len(lines)} lines; its details belong in docs/"
