@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from reports_kit import REPORTS, provenance, write_report  # noqa: F401 (re-exported)
 from rich.console import Console
 
 from service.process import serve_process
@@ -122,43 +123,6 @@ def server(env_extra: dict[str, str], startup_s: float = 180.0) -> Iterator[str]
             finally:
                 with contextlib.suppress(OSError, ValueError, IndexError):
                     SERVER_CPU_S[0] += _pid_cpu_s(srv.proc.pid)
-
-
-def provenance() -> dict[str, object]:
-    """Where a figure came from: the command, the commit (``-dirty`` with local changes), the
-    machine (CPU model, cores) and the time, for the JSON a benchmark writes."""
-    import platform
-    import shlex
-    import subprocess
-    import sys
-    from datetime import UTC, datetime
-
-    def git(*args: str) -> str:
-        try:
-            done = subprocess.run(
-                ["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10
-            )
-        except OSError:
-            return ""
-        return done.stdout.strip()
-
-    commit = git("rev-parse", "HEAD") or "unknown"
-    if git("status", "--porcelain", "--untracked-files=no"):
-        commit += "-dirty"
-    cpu = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    script = Path(sys.argv[0]).resolve()
-    shown = str(script.relative_to(ROOT)) if script.is_relative_to(ROOT) else sys.argv[0]
-    return {
-        "command": "python " + shlex.join([shown, *sys.argv[1:]]),
-        "commit": commit,
-        "machine": {"cpu": cpu, "cores": CORES},
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-    }
 
 
 # ---- a model's calibration ------------------------------------------------------------------

@@ -26,7 +26,7 @@ Reports medians and p90 (B = 1 at 1 and 2 threads, B = 8 at 2 threads per scan),
 error against PyTorch, node count (loop bodies included), file size, load time, the ratios,
 the FLOP count of the shipped graph with the fraction of this machine's peak, and
 onnxruntime's per-operator-type profile of the shipped graph. Prints tables and writes JSON
-(default bench-results/encoder.json). Real KITTI range images when ../shared/data is
+(default reports/service/encoder.json). Real KITTI range images when ../shared/data is
 present, else seeded random ones (speed does not depend on the content).
 """
 
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import platform
 import tempfile
@@ -47,6 +46,7 @@ import onnx
 import onnxruntime as ort
 import torch
 from onnx_profile import op_profile
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 from torch.utils.flop_counter import FlopCounterMode
@@ -260,7 +260,7 @@ def cpu_peak_gflops(cores: int) -> tuple[float, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=30, help="timed runs per B = 1 setting")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "encoder.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "service" / "encoder.json")
     ap.add_argument("--narrow", action="store_true", help="the narrow configuration (presets)")
     ap.add_argument("--no-peer", action="store_true", help="skip the OT-style peer comparison")
     args = ap.parse_args()
@@ -429,8 +429,7 @@ def main() -> None:
         "op_profile_ms": profile,
         "peer": peer,
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    write_report(args.json, record)
     console.print(f"wrote {args.json}")
 
 

@@ -13,7 +13,7 @@ unverified loop closure on the top-1's *score*; the same table for that score (t
 yaw features rounded to float16, as the map stores them) gives ``loop_closure.max_score``.
 ``--write-calibration`` records both F1max points in the model file, which the service takes
 them from. Each scan enters the model as its town's sensor's (its manifest's).
-Writes JSON (default bench-results/loop_threshold.json).
+Writes JSON (default reports/service/loop_threshold.json).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_kit import ROOT, provenance, served_settings, write_calibration
+from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
@@ -51,7 +52,7 @@ def main() -> None:
         default=f"{served.k},{served.weight:g}",
         help="the second stage, K,WEIGHT or off (default: the service's for --model)",
     )
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "loop_threshold.json")
+    ap.add_argument("--out", type=Path, default=REPORTS / "service" / "loop_threshold.json")
     ap.add_argument(
         "--write-calibration",
         action="store_true",

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -61,7 +62,7 @@ def main() -> None:
     ap.add_argument("--exe", type=Path, help="map_closure_pipeline (omit to score --results)")
     ap.add_argument("--results", type=Path, default=ROOT / "bench-results" / "mapclosures")
     ap.add_argument("--ours", type=Path, help="verify_threshold.py JSON for the same town")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "mapclosures.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "service" / "mapclosures.json")
     args = ap.parse_args()
     console = Console()
     run_s = None
@@ -145,8 +146,7 @@ def main() -> None:
             "at the query",
         )
     console.print(table)
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.json, report)
     console.print(f"wrote {args.json}")
 
 

@@ -13,13 +13,12 @@ frames, for Scan Context, the OT-style network and OverlapMamba.
 Databases are real scans' descriptors/contexts tiled with small noise up to N (search time
 does not depend on the content). Scans: KITTI 00 from ../shared/data when present, else the
 synthetic test preset. Threads: 2 for PyTorch and onnxruntime (``--threads``). Prints a
-table and writes JSON (default bench-results/place_recognition.json).
+table and writes JSON (default reports/model/place_recognition.json).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -115,7 +115,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=20, help="extraction repetitions per method")
     ap.add_argument("--queries", type=int, default=200, help="search queries per size")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "place_recognition.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "model" / "place_recognition.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rng = np.random.default_rng(0)
@@ -178,8 +178,7 @@ def main() -> None:
         "search_ms": {str(n): v for n, v in search.items()},
         "torch": torch.__version__,
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    write_report(args.json, record)
     console.print(f"wrote {args.json}")
 
 

@@ -1,7 +1,7 @@
 """Range-projection speed: median and p90 over repeated runs on a ~125k-point scan.
 
 Uses a real KITTI scan when ../shared/data is present (padded to 125k points), else a seeded
-synthetic one. Prints a table and writes JSON (default bench-results/projection.json).
+synthetic one. Prints a table and writes JSON (default reports/service/projection.json).
 Goal: median ≤ 3 ms for 125k points with the kitti-hdl64 profile. Also the model's input as
 the service makes it for a scan (``service_input``): the shipped model's sub-column views,
 for its own sensor (native) and for other sensors' (their beams by elevation), on the same
@@ -11,12 +11,12 @@ points.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from reports_kit import REPORTS, write_report
 
 from lidar_core.io import read_points
 from lidar_core.modelmeta import EncoderMetadata
@@ -58,7 +58,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--points", type=int, default=125_000)
     ap.add_argument("--repeats", type=int, default=200)
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "projection.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "service" / "projection.json")
     args = ap.parse_args()
     xyz, source = scan(args.points)
     rows = []
@@ -110,8 +110,7 @@ def main() -> None:
             f"{r['profile']:<12} {r['function']:<34} {r['median_ms']:>10.2f} "
             f"{r['p90_ms']:>8.2f}  {goal}"
         )
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"source": source, "results": rows}, indent=2))
+    write_report(args.json, {"source": source, "results": rows})
     print(f"wrote {args.json}")
 
 

@@ -1,5 +1,5 @@
 """Recipe experiments: one short training run per call, its validation and health per epoch,
-appended as a JSON line (default bench-results/recipe.jsonl).
+appended as a JSON line (default reports/model/recipe.jsonl).
 
     python benchmarks/recipe.py NAME '{"train": {...}, "model": {...}}' \
         --data DIR [--data DIR …] --val DIR
@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from reports_kit import REPORTS
+
 from model_export.model import OverlapMambaConfig
 from model_export.train import TrainConfig, train
 
@@ -35,7 +37,7 @@ def main() -> None:
     ap.add_argument("spec", help='JSON: {"train": {...}, "model": {...}}')
     ap.add_argument("--data", type=Path, action="append", required=True)
     ap.add_argument("--val", type=Path, required=True)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "recipe.jsonl")
+    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "recipe.jsonl")
     args = ap.parse_args()
     spec = json.loads(args.spec)
     model = OverlapMambaConfig(**{**NARROW, **spec.get("model", {})})

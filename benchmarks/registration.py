@@ -15,18 +15,18 @@ defaults) holds the even frames as keyframes; each turned odd frame is queried (
 with ``verify=true`` and ``verify=false`` alternately, over one keep-alive connection, in
 several rounds. Reported: the client's p50 of each, the share verification adds (the
 bar: ≤ 30 % for 5 candidates), and the server's ``verify`` stage. Prints tables and writes
-JSON (default bench-results/registration.json).
+JSON (default reports/service/registration.json).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--http", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--rounds", type=int, default=3, help="query rounds through the server")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "registration.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "service" / "registration.json")
     args = ap.parse_args()
     console = Console()
     seq = open_sequence(KITTI)
@@ -128,8 +128,7 @@ def main() -> None:
         "geometry_bytes": _stats(sizes),
         **{k: _stats(v) for k, v in rows.items() if v},
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(record, indent=2, default=float) + "\n")
+    write_report(args.json, record, default=float)
     t = Table(title=f"verification on real scans ({record['scans']})")
     for c in ("figure", "min", "median", "p90", "max"):
         t.add_column(c, justify="right")
@@ -140,7 +139,7 @@ def main() -> None:
     if args.http:
         cost = http_cost(clouds, even, rng, args.rounds)
         record["http"] = cost
-        args.json.write_text(json.dumps(record, indent=2, default=float) + "\n")
+        write_report(args.json, record, default=float)
         t = Table(title="query cost through the server (k = 5, p50 over alternating queries)")
         for c in ("", "verify=false", "verify=true", "added"):
             t.add_column(c, justify="right")

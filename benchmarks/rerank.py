@@ -11,7 +11,7 @@ service takes it from.
 
     python benchmarks/rerank.py [--model models/overlapmamba-hdl64.onnx]
 
-Writes JSON (default bench-results/rerank.json). ≈ 2 min on 2 cores once the range images
+Writes JSON (default reports/model/rerank.json). ≈ 2 min on 2 cores once the range images
 are cached (``make data`` makes val; ``overlapmamba gen-data data/synth/val-s1 --preset
 val-s1`` the second session).
 """
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_kit import ROOT, provenance, write_calibration
+from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
 
@@ -43,7 +44,7 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--val", type=Path, default=ROOT / "data" / "synth" / "val")
     ap.add_argument("--second-session", type=Path, default=ROOT / "data" / "synth" / "val-s1")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "rerank.json")
+    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "rerank.json")
     ap.add_argument(
         "--write-calibration",
         action="store_true",

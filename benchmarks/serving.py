@@ -41,14 +41,13 @@ and a ring of walls, 120k points). onnxruntime runs with intra-op threads = all 
 this process and in the server (both defaults). Before each part the CPU use of other
 processes is sampled for a second; above 10 % a warning says the numbers will be noisy.
 Prints one table per part and a summary with the goals (met / not met from this run's
-numbers), and writes JSON (default bench-results/service.json). ``--quick``: sizes 10k and
+numbers), and writes JSON (default reports/service/bench.json). ``--quick``: sizes 10k and
 100k, 12 overhead reps, 3 s per throughput run, 100 queries.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -58,7 +57,8 @@ from typing import Any
 import faiss
 import httpx
 import onnxruntime as ort
-from bench_kit import CORES, ROOT, OtherLoad, other_load
+from bench_kit import CORES, OtherLoad, other_load
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 from serving_http import RATIO_GOAL, SGEMM_GOAL, http_part, print_http
@@ -183,7 +183,7 @@ def main() -> None:
     ap.add_argument("--queries", type=int, help="search queries per size [200; quick 100]")
     ap.add_argument("--skip-http", action="store_true")
     ap.add_argument("--skip-search", action="store_true")
-    ap.add_argument("--out", "--json", type=Path, default=ROOT / "bench-results" / "service.json")
+    ap.add_argument("--out", "--json", type=Path, default=REPORTS / "service" / "bench.json")
     args = ap.parse_args()
     q = args.quick
     sizes = args.sizes or ("10000,100000" if q else "10000,100000,1000000")
@@ -231,8 +231,7 @@ def main() -> None:
         colour = {"met": "green", "not met": "red"}.get(r["status"], "white")
         t.add_row(r["goal"], r["measured"], f"[{colour}]{r['status']}[/]")
     console.print(t)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=2) + "\n")
+    write_report(args.out, record)
     console.print(f"wrote {args.out}")
 
 

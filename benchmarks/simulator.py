@@ -3,7 +3,7 @@
 Builds the default 6×6-node town (the train preset's size), plans a drive, and simulates
 ``--frames`` KITTI HDL-64E scans with 1 and with 2 worker processes, writing real files as
 ``overlapmamba gen-data`` does. Then times the overlap ground truth for the same scans.
-Prints a table and writes JSON (default bench-results/simulator.json).
+Prints a table and writes JSON (default reports/synthetic/simulator.json).
 
 Goal: ≥ 10 scans/s on 2 cores at ≈120k points per scan, so that a 4,000-scan
 sequence simulates in about 7 minutes or less.
@@ -12,13 +12,14 @@ sequence simulates in about 7 minutes or less.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
 import tempfile
 import time
 from pathlib import Path
+
+from reports_kit import REPORTS, write_report
 
 from lidar_synth.config import GenConfig
 from lidar_synth.generate import build_scene, simulate_scans, write_layout
@@ -31,7 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--frames", type=int, default=240)
     ap.add_argument("--seed", type=int, default=1001, help="default: the train preset's town")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "simulator.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "synthetic" / "simulator.json")
     args = ap.parse_args()
 
     cfg = GenConfig(seed=args.seed, frames=args.frames, gt_radius=30.0)
@@ -104,24 +105,19 @@ def main() -> None:
     print(
         f"\ngoal ≥ 10 scans/s on 2 cores: {'met' if ok else 'NOT met'} ({sim2['scans_per_s']:.1f})"
     )
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(
-        json.dumps(
-            {
-                "benchmark": "simulator",
-                "machine": {"processor": platform.processor(), "cores": os.cpu_count()},
-                "town": {
-                    "triangles": len(world.static),
-                    "street_km": world.street_length / 1000,
-                    "build_s": t_world,
-                },
-                "rows": rows,
-                "goal_scans_per_s_2_cores": 10.0,
-                "goal_met": ok,
+    write_report(
+        args.json,
+        {
+            "benchmark": "simulator",
+            "town": {
+                "triangles": len(world.static),
+                "street_km": world.street_length / 1000,
+                "build_s": t_world,
             },
-            indent=2,
-        )
-        + "\n"
+            "rows": rows,
+            "goal_scans_per_s_2_cores": 10.0,
+            "goal_met": ok,
+        },
     )
     print(f"wrote {args.json}")
 

@@ -17,7 +17,7 @@ each map backend's operations, measured on this machine.
                 scan query runs it by default, two-stage: the rerank.k (20) nearest and the
                 runner-up, their yaw, re-ranked (service.ranking)
 
-Writes JSON (default bench-results/sizing.json).
+Writes JSON (default reports/deploy/sizing.json).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -253,7 +254,7 @@ def main() -> None:
     ap.add_argument("--search-keyframes", type=int, default=10_000)
     ap.add_argument("--search-reps", type=int, default=200)
     ap.add_argument("--work", type=Path, default=ROOT / "bench-results" / "sizing-work")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "sizing.json")
+    ap.add_argument("--out", type=Path, default=REPORTS / "deploy" / "sizing.json")
     args = ap.parse_args()
     console = Console()
 
@@ -293,8 +294,7 @@ def main() -> None:
         "backends": backends,
         "search_stage": search,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
+    write_report(args.out, result)
 
     t = Table(title=f"encoder, one scan per call ({source})")
     for col in ("onnxruntime threads", "median ms / scan", "scans/s"):

@@ -4,7 +4,7 @@ The reference configuration (18.1 M parameters, three scan directions, convLast2
 64 NetVLAD clusters) at batch 16, on real KITTI range images when ../shared/data is present
 (else seeded random ones: the speed does not depend on the content), with each scan backend
 in the same run so their ratio is fair. Prints a table and writes JSON
-(default bench-results/training.json).
+(default reports/model/training.json).
 
 ``--width narrow`` times the shipped width instead (``model_export.presets.NARROW``), and
 ``--device cuda`` a GPU (the ``chunked`` backend: the C kernel is the CPU's), synchronising
@@ -19,7 +19,6 @@ the table's last row times it on the same batch, in the same run.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from reports_kit import REPORTS, write_report
 
 from lidar_core.sensors import get_profile
 from model_export.augment import ROBUST, AugmentConfig, Augmenter
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--backends", nargs="+", default=None, help="default: fused chunked (CPU)")
     ap.add_argument("--width", choices=sorted(WIDTHS), default="reference")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "training.json")
+    ap.add_argument("--json", type=Path, default=REPORTS / "model" / "training.json")
     args = ap.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device is visible to PyTorch here")
@@ -162,7 +162,7 @@ def main() -> None:
         "rows": rows,
         "augmentation": augment_row,
     }
-    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    write_report(args.json, record)
     print(f"wrote {args.json}")
 
 

@@ -31,13 +31,13 @@ the service projects a scan that names its sensor. Prints tables, writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from bench_kit import ROOT, provenance, served_settings, write_calibration
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
@@ -212,7 +212,11 @@ def main() -> None:
     ap.add_argument("--min-fitness", type=float, default=served.verify.min_fitness)
     ap.add_argument("--max-rmse", type=float, default=served.verify.max_rmse_m)
     ap.add_argument("--max-distance", type=float, default=served.verify.max_distance)
-    ap.add_argument("--json", type=Path, default=ROOT / "bench-results" / "verify.json")
+    ap.add_argument(
+        "--json",
+        type=Path,
+        help="default reports/service/verify_threshold.json calibrating, else verify-test.json",
+    )
     default_rerank = f"{served.rerank.k},{served.rerank.weight:g}"
     ap.add_argument(
         "--rerank", default=default_rerank, help="K,WEIGHT or off (default: the service's)"
@@ -351,8 +355,10 @@ def main() -> None:
         "max_rmse_m": args.max_rmse,
         "max_distance": args.max_distance,
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=2) + "\n")
+    if args.json is None:
+        name = "verify_threshold.json" if args.calibrate else "verify-test.json"
+        args.json = REPORTS / "service" / name
+    write_report(args.json, report)
     console.print(f"wrote {args.json}")
 
 

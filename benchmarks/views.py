@@ -10,13 +10,12 @@ and 2 onnxruntime threads, one scan per call and 8 scans per call (per scan), so
 ratio holds on a shared machine even when the absolute times drift. Also reported: the
 project stage alone.
 
-Writes JSON (default bench-results/views.json).
+Writes JSON (default reports/service/views.json).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import tempfile
@@ -25,6 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -59,7 +59,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--reps", type=int, default=40, help="timed calls per setting and model")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench-results" / "views.json")
+    ap.add_argument("--out", type=Path, default=REPORTS / "service" / "views.json")
     args = ap.parse_args()
     console = Console()
     if not KITTI.is_dir():
@@ -106,8 +106,7 @@ def main() -> None:
         "reps": args.reps,
         "rows": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_report(args.out, result)
 
     t = Table(title=f"a scan described as the service does it: one view against {views}")
     for col in ("threads", "what", "one view, ms/scan (p90)", f"{views} views", "ratio"):

@@ -1,0 +1,62 @@
+"""Benchmarks write their figures under reports/, each JSON with the command, commit, machine
+and date inside (benchmarks/reports_kit.py), so the documents can render them from files in
+the repository rather than from an ignored folder."""
+
+from __future__ import annotations
+
+import ast
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+
+
+def _argument_defaults(tree: ast.AST) -> list[tuple[str, str]]:
+    """(option, the default's source) for every add_argument(..., default=...) call."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument":
+            for kw in node.keywords:
+                if kw.arg == "default" and node.args and isinstance(node.args[0], ast.Constant):
+                    out.append((str(node.args[0].value), ast.unparse(kw.value)))
+    return out
+
+
+def test_every_benchmark_writes_its_json_under_reports_with_its_provenance():
+    scripts = sorted(BENCH.glob("*.py"))
+    assert len(scripts) > 10
+    for script in scripts:
+        text = script.read_text()
+        tree = ast.parse(text)
+        for option, default in _argument_defaults(tree):
+            if default.endswith(('.json"', '.jsonl"')):
+                assert "REPORTS" in default or "reports" in default, (
+                    f"{script.name} {option} defaults to {default}: figures go under reports/"
+                )
+            assert "bench-results" not in default or not default.endswith('.json"'), (
+                f"{script.name} {option}: {default} is an ignored folder"
+            )
+        if "json.dumps" in text and ".write_text(" in text and script.name != "reports_kit.py":
+            assert "write_report(" in text or "**provenance()" in text, (
+                f"{script.name} writes JSON without its provenance: use "
+                "reports_kit.write_report, which records the command, commit, machine and date"
+            )
+
+
+def test_a_written_report_names_its_command_commit_machine_and_date(tmp_path, monkeypatch):
+    sys.path.insert(0, str(BENCH))
+    try:
+        import reports_kit
+    finally:
+        sys.path.remove(str(BENCH))
+    monkeypatch.setattr(sys, "argv", [str(BENCH / "views.py"), "--scans", "3"])
+    out = tmp_path / "deep" / "x.json"
+    reports_kit.write_report(out, {"figure": 1.5, "date": "kept"})
+    got = json.loads(out.read_text())
+    assert got["command"] == "python benchmarks/views.py --scans 3"
+    assert len(got["commit"].removesuffix("-dirty")) in (40, len("unknown"))
+    assert got["machine"]["cores"] >= 1 and got["machine"]["cpu"]
+    assert got["figure"] == 1.5 and got["date"] == "kept"  # the record's own keys win
+    assert list(got)[:4] == ["command", "commit", "machine", "date"]
