@@ -56,10 +56,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from lidar_core.datasets import open_sequence
-from lidar_core.datasets.base import Sequence
 from lidar_core.errors import DatasetError
-from lidar_core.sensors import SensorProfile, get_profile
 from model_export.augment import Augmenter
 from model_export.batches import BatchPlan, BatchSampler, PairIndex
 from model_export.calibrate import recalibrate_batchnorm
@@ -73,64 +70,19 @@ from model_export.mining import HardNegatives, mine
 from model_export.model import OverlapMamba, OverlapMambaConfig
 from model_export.rangecache import cache_key, range_images
 from model_export.realscans import (
-    RealTurns,
     invariance,
-    native_input,
-    real_turns,
-    turned_image,
 )
 from model_export.train_config import SCHEDULE, TrainConfig, load_config_file
+from model_export.train_inputs import (
+    Images,
+    model_profile,
+    open_split,
+    real_turn_scans,
+    start_config,
+    start_weights,
+)
 
 __all__ = ["TrainConfig", "load_config_file", "train"]
-
-
-class _Images:
-    """Range images of several sequences behind global scan indices."""
-
-    def __init__(self, seqs: list[Sequence], profile: SensorProfile, progress: bool) -> None:
-        self.seqs, self.profile = seqs, profile
-        self.parts = [range_images(s, profile, progress=progress) for s in seqs]
-        self.offsets = np.cumsum([0, *[len(p) for p in self.parts]])
-
-    def _locate(self, idx: np.ndarray) -> list[tuple[int, int]]:
-        k = np.searchsorted(self.offsets, idx, side="right") - 1
-        return [(int(s), int(i - self.offsets[s])) for s, i in zip(k, idx, strict=True)]
-
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
-        return np.stack([self.parts[s][i] for s, i in self._locate(idx)])
-
-    def turned(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """The scans ``idx`` re-projected after a turn by ``theta`` degrees (the turn term)."""
-        return np.stack(
-            [
-                turned_image(self.seqs[s].points(i).xyz, t, self.profile)
-                for (s, i), t in zip(self._locate(idx), theta, strict=True)
-            ]
-        )
-
-
-def _open(path: Path, cfg: OverlapMambaConfig, role: str) -> Sequence:
-    seq = open_sequence(path)
-    manifest = path / "manifest.json"
-    if manifest.is_file():
-        meta = json.loads(manifest.read_text()).get("config", {})
-        if role == "training" and meta.get("split") == "test":
-            raise DatasetError(f"{path} is a test split: it is never trained on")
-        if meta.get("sensor", cfg.sensor) != cfg.sensor:
-            raise DatasetError(
-                f"{path} was recorded with {meta['sensor']}, the model expects {cfg.sensor}"
-            )
-    return seq
-
-
-def _profile(cfg: OverlapMambaConfig) -> SensorProfile:
-    profile = get_profile(cfg.sensor)
-    if (profile.height, profile.width) != (cfg.height, cfg.width):
-        raise ConfigError(
-            f"model input {cfg.height}×{cfg.width} does not match sensor {cfg.sensor}'s "
-            f"range images ({profile.height}×{profile.width})"
-        )
-    return profile
 
 
 def train(
@@ -169,19 +121,19 @@ def train(
         raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
     train_cfg = train_cfg or TrainConfig()
     if state is None and train_cfg.init:
-        model_cfg = _start_config(train_cfg, model_cfg)
+        model_cfg = start_config(train_cfg, model_cfg)
     model_cfg = model_cfg or OverlapMambaConfig()
     if epochs is not None:
         train_cfg.epochs = epochs
     if train_cfg.device == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda: no CUDA device is visible to PyTorch here")
     device = torch.device(train_cfg.device)
-    profile = _profile(model_cfg)
+    profile = model_profile(model_cfg)
 
     if not data or val is None:
         raise ConfigError("training needs at least one training sequence and a validation one")
-    seqs = [_open(p, model_cfg, "training") for p in data]
-    val_seq = _open(val, model_cfg, "validation")
+    seqs = [open_split(p, model_cfg, "training") for p in data]
+    val_seq = open_split(val, model_cfg, "validation")
     if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
         raise ConfigError(f"{val} is both training and validation data")
     fingerprints = {
@@ -190,7 +142,7 @@ def train(
     }
     if state is not None and state["train"]["data"] != fingerprints:
         raise ConfigError("--resume with other data than the run was started on")
-    images = _Images(seqs, profile, progress)
+    images = Images(seqs, profile, progress)
     val_images = range_images(val_seq, profile, progress=progress)
     val_gt = sequence_loops(val_seq, profile, progress=progress)
     if not val_gt.has_loop().any():
@@ -216,7 +168,7 @@ def train(
     torch.manual_seed(train_cfg.seed)
     model = OverlapMamba(model_cfg)
     if state is None and train_cfg.init:
-        model.load_state_dict(_start_weights(train_cfg, progress))
+        model.load_state_dict(start_weights(train_cfg, progress))
     model = model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -250,7 +202,7 @@ def train(
             "metrics": metrics,
         }
 
-    turns = _real_turns(train_cfg.real_path(), profile, progress)
+    turns = real_turn_scans(train_cfg.real_path(), profile, progress)
 
     def validate() -> tuple[dict, float]:
         t = time.perf_counter()
@@ -463,64 +415,3 @@ def train(
             }
         )
     return history
-
-
-def _start_config(
-    train_cfg: TrainConfig, model_cfg: OverlapMambaConfig | None
-) -> OverlapMambaConfig:
-    """The network config of ``init``'s file; a different one given alongside is refused
-    (the runtime-only scan settings aside)."""
-    path = train_cfg.init_path()
-    assert path is not None
-    if not path.is_file():
-        raise ConfigError(f"init {train_cfg.init!r}: {path} does not exist")
-    if path.suffix == ".onnx":
-        from model_export.modelfile import read_metadata
-
-        try:
-            cfg = OverlapMambaConfig.from_dict(read_metadata(path).network)
-        except ValueError as err:
-            raise ConfigError(f"init {train_cfg.init!r}: {err}") from None
-    else:
-        cfg = OverlapMambaConfig.from_dict(read_checkpoint(path)["model_config"])
-    if model_cfg is not None:
-        runtime = ("scan_backend", "scan_chunk")
-        a, b = cfg.to_dict(), model_cfg.to_dict()
-        differ = sorted(k for k in a if k not in runtime and a[k] != b.get(k))
-        if differ:
-            raise ConfigError(
-                f"init {train_cfg.init!r} is a network with other "
-                + ", ".join(f"{k} ({a[k]!r}, not {b.get(k)!r})" for k in differ)
-                + ": drop the model settings or start from a matching network"
-            )
-    return cfg
-
-
-def _start_weights(train_cfg: TrainConfig, progress: bool) -> dict[str, torch.Tensor]:
-    """``init``'s weights: a checkpoint's state dict, or an exported encoder's recovered
-    (and checked against onnxruntime: :func:`model_export.recover.recover`)."""
-    path = train_cfg.init_path()
-    assert path is not None
-    if path.suffix == ".onnx":
-        from model_export.recover import recover
-
-        model, _, check = recover(path)
-        if progress:
-            tqdm.write(
-                f"start: {path}'s weights recovered (descriptors within "
-                f"{check['descriptor_max_abs']:.1e} of onnxruntime's)"
-            )
-        return model.state_dict()
-    return read_checkpoint(path)["state_dict"]
-
-
-def _real_turns(path: Path | None, profile: SensorProfile, progress: bool) -> RealTurns | None:
-    """The real scans of the per-epoch turn check, projected once; None (with a note) when
-    the check is off or the folder is missing."""
-    if path is None:
-        return None
-    if not (path / "velodyne").is_dir():
-        if progress:
-            tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
-        return None
-    return real_turns(open_sequence(path), native_input(profile))

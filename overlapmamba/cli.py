@@ -1,5 +1,6 @@
-"""``overlapmamba`` — data tools, training and export, and the service, as three command
-groups (``overlapmamba.data``, ``overlapmamba.model``, ``overlapmamba.ops``) assembled here.
+"""``overlapmamba`` — data tools, training and export, evaluation, and the service, as four
+command groups (``overlapmamba.data``, ``overlapmamba.model``, ``overlapmamba.evaluation``,
+``overlapmamba.ops``) assembled here.
 
 Commands are thin: they parse options, call the library, and turn library errors into a red
 message and exit code 2 (bad input) instead of a traceback (``overlapmamba.common``).
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import typer
 
-from overlapmamba import data, model, ops
+from overlapmamba import data, evaluation, model, ops
 
 app = typer.Typer(
     name="overlapmamba",
@@ -18,7 +19,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-for group in (data, model, ops):
+for group in (data, model, evaluation, ops):
     app.add_typer(group.app)
 
 

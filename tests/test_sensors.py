@@ -17,8 +17,10 @@ def test_builtin_profiles_match_the_issue():
 
 
 def test_unknown_profile_names_the_allowed_ones():
-    with pytest.raises(ProfileError, match="allowed: hdl32, kitti-hdl64"):
+    # the built-in profiles and every catalogue sensor, sorted, then the file alternative
+    with pytest.raises(ProfileError, match="allowed: hdl32, hdl64e, kitti-hdl64, os0-128, ") as e:
         get_profile("velodyne-vlp16")
+    assert "vlp16, vlp32c, xt32, or a path to a .json/.toml profile file" in str(e.value)
 
 
 @pytest.mark.parametrize(

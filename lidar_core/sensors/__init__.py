@@ -5,12 +5,14 @@ model's input (:mod:`.input`)."""
 from lidar_core.sensors.catalogue import (
     CATALOGUE,
     Sensor,
+    get_profile,
     get_sensor,
+    load_profile,
     load_sensor,
     sensor_names,
     sensor_of_profile,
 )
-from lidar_core.sensors.profile import BUILTIN_PROFILES, SensorProfile, get_profile, load_profile
+from lidar_core.sensors.profile import BUILTIN_PROFILES, SensorProfile
 
 __all__ = [
     "BUILTIN_PROFILES",

@@ -274,6 +274,49 @@ def sensor_names() -> list[str]:
     return sorted(CATALOGUE)
 
 
+def get_profile(name_or_path: str | Path | SensorProfile) -> SensorProfile:
+    """A built-in profile by name, a catalogue sensor's own profile by the sensor's name, or
+    a custom one from a ``.json``/``.toml`` file."""
+    if isinstance(name_or_path, SensorProfile):
+        return name_or_path
+    key = str(name_or_path)
+    if key in BUILTIN_PROFILES:
+        return BUILTIN_PROFILES[key]
+    if key in CATALOGUE:
+        return CATALOGUE[key].profile()
+    path = Path(key)
+    if path.suffix.lower() in {".json", ".toml"}:
+        return load_profile(path)
+    allowed = sorted(set(BUILTIN_PROFILES) | set(CATALOGUE))
+    raise ProfileError(
+        f"unknown sensor profile {key!r}; allowed: {', '.join(allowed)}, "
+        "or a path to a .json/.toml profile file",
+        allowed=allowed,
+    )
+
+
+def load_profile(path: str | Path) -> SensorProfile:
+    """Read a custom profile; a TOML file may hold it at top level or under ``[sensor]``."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ProfileError(f"cannot read sensor profile file {path}: {err.strerror}") from err
+    try:
+        data: Any = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise ProfileError(f"sensor profile file {path} is not valid: {err}") from err
+    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
+        data = data["sensor"]
+    if isinstance(data, dict) and "base" in data:
+        base = get_profile(str(data.pop("base")))
+        return base.replace(**data)
+    try:
+        return SensorProfile.model_validate(data)
+    except ValidationError as err:
+        raise ProfileError(f"sensor profile file {path}: {first_error(err)}") from err
+
+
 def get_sensor(name_or_path: str | Path | Sensor) -> Sensor:
     """A catalogue sensor by name, or a user-defined one from a ``.toml``/``.json`` file."""
     if isinstance(name_or_path, Sensor):

@@ -7,15 +7,12 @@ there, so scans are never projected differently in training and in serving.
 A profile describes an image (rows, columns, a linear vertical field of view); the physical
 sensors a fleet carries, with their beam tables, are :mod:`lidar_core.sensors.catalogue`, and
 each has a profile of its own (:meth:`~lidar_core.sensors.catalogue.Sensor.profile`), which
-:func:`get_profile` also answers by the sensor's name.
+:func:`~lidar_core.sensors.catalogue.get_profile` also answers by the sensor's name.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import tomllib
-from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -98,51 +95,6 @@ BUILTIN_PROFILES: dict[str, SensorProfile] = {
         ),
     )
 }
-
-
-def get_profile(name_or_path: str | Path | SensorProfile) -> SensorProfile:
-    """A built-in profile by name, a catalogue sensor's own profile by the sensor's name, or
-    a custom one from a ``.json``/``.toml`` file."""
-    from lidar_core.sensors.catalogue import CATALOGUE
-
-    if isinstance(name_or_path, SensorProfile):
-        return name_or_path
-    key = str(name_or_path)
-    if key in BUILTIN_PROFILES:
-        return BUILTIN_PROFILES[key]
-    if key in CATALOGUE:
-        return CATALOGUE[key].profile()
-    path = Path(key)
-    if path.suffix.lower() in {".json", ".toml"}:
-        return load_profile(path)
-    allowed = sorted(set(BUILTIN_PROFILES) | set(CATALOGUE))
-    raise ProfileError(
-        f"unknown sensor profile {key!r}; allowed: {', '.join(allowed)}, "
-        "or a path to a .json/.toml profile file",
-        allowed=allowed,
-    )
-
-
-def load_profile(path: str | Path) -> SensorProfile:
-    """Read a custom profile; a TOML file may hold it at top level or under ``[sensor]``."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise ProfileError(f"cannot read sensor profile file {path}: {err.strerror}") from err
-    try:
-        data: Any = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        raise ProfileError(f"sensor profile file {path} is not valid: {err}") from err
-    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
-        data = data["sensor"]
-    if isinstance(data, dict) and "base" in data:
-        base = get_profile(str(data.pop("base")))
-        return base.replace(**data)
-    try:
-        return SensorProfile.model_validate(data)
-    except ValidationError as err:
-        raise ProfileError(f"sensor profile file {path}: {first_error(err)}") from err
 
 
 def first_error(err: ValidationError) -> str:
