@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
 
@@ -31,6 +32,10 @@ from lidar_core.rerank import Rerank
 Role = Literal["robot", "mapper", "viewer", "admin"]
 IndexKind = Literal["auto", "flat", "ivf"]
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+
+
+# load_settings(config=...)'s file while it builds a Settings (else OVERLAPMAMBA_CONFIG's)
+_CONFIG_FILE: ContextVar[Path | None] = ContextVar("overlapmamba_config_file", default=None)
 
 
 class _Section(BaseModel):
@@ -309,7 +314,7 @@ class Settings(BaseSettings):
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         sources = [init_settings, env_settings]
-        config = os.environ.get("OVERLAPMAMBA_CONFIG")
+        config = _CONFIG_FILE.get() or os.environ.get("OVERLAPMAMBA_CONFIG")
         if config:
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(config)))
         return tuple(sources)
@@ -340,12 +345,10 @@ def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
         return Settings(**values)
     if not config.is_file():
         raise ValueError(f"config file {config} does not exist")
-    previous = os.environ.get("OVERLAPMAMBA_CONFIG")
-    os.environ["OVERLAPMAMBA_CONFIG"] = str(config)
+    # the file reaches settings_customise_sources through a context variable: the process
+    # environment is never written (another thread's Settings() would read it)
+    token = _CONFIG_FILE.set(config)
     try:
         return Settings(**values)
     finally:
-        if previous is None:
-            del os.environ["OVERLAPMAMBA_CONFIG"]
-        else:
-            os.environ["OVERLAPMAMBA_CONFIG"] = previous
+        _CONFIG_FILE.reset(token)

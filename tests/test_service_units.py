@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import gzip
 import hashlib
+import os
 import time
 from collections import Counter
 from pathlib import Path
@@ -502,9 +503,34 @@ def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
     cfg = tmp_path / "s.toml"
     cfg.write_text("port = 9001\n[batching]\nmax_batch = 3\n[limits]\nmax_points = 5000\n")
     monkeypatch.setenv("OVERLAPMAMBA_BATCHING__MAX_WAIT_MS", "7")
+    monkeypatch.delenv("OVERLAPMAMBA_CONFIG", raising=False)
+
+    class Watched(dict):  # the process environment, every write recorded
+        def __init__(self, *a):
+            super().__init__(*a)
+            self.writes: list[str] = []
+
+        def __setitem__(self, k, v):
+            self.writes.append(k)
+            super().__setitem__(k, v)
+
+        def __delitem__(self, k):
+            self.writes.append(k)
+            super().__delitem__(k)
+
+    env = Watched(os.environ)
+    monkeypatch.setattr(os, "environ", env)
     s = load_settings(cfg, host="127.0.0.1")
     assert (s.port, s.batching.max_batch, s.batching.max_wait_ms) == (9001, 3, 7.0)
     assert s.limits.max_points == 5000
+    assert env.writes == []  # the file is read without writing the environment
+    monkeypatch.undo()
+    monkeypatch.setenv("OVERLAPMAMBA_BATCHING__MAX_WAIT_MS", "7")
+    assert Settings().port != 9001  # and a later Settings() does not see it
+    other = tmp_path / "o.toml"
+    other.write_text("port = 9002\n")
+    monkeypatch.setenv("OVERLAPMAMBA_CONFIG", str(other))
+    assert load_settings(cfg).port == 9001 and Settings().port == 9002  # --config wins
     with pytest.raises(ValueError, match="does not exist"):
         load_settings(tmp_path / "missing.toml")
     with pytest.raises(ValueError, match="without API keys"):
