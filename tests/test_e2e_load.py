@@ -12,7 +12,18 @@ import time
 
 import httpx
 import pytest
-from e2e_kit import Mapper, Poller, drive_dir, missing_keyframes, percentiles, size, write_report
+from e2e_kit import (
+    FULL,
+    PRECISION_BAR,
+    RECALL_BAR,
+    Mapper,
+    Poller,
+    drive_dir,
+    missing_keyframes,
+    percentiles,
+    size,
+    write_report,
+)
 from service_kit import server
 
 from client import NO_RETRY
@@ -76,6 +87,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
             "verified_closures": report.verified_closures,
             "closure_precision": report.precision,
             "closure_recall": report.recall,
+            "bars": {"precision": PRECISION_BAR, "recall": RECALL_BAR, "asserted": FULL},
             "pose_error": report.pose_error,
         },
         "mapper": {
@@ -99,3 +111,9 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     assert not missing, missing[:10]
     assert all(body["index_equals_store"].values()), maps
     assert report.observations > 0 and mapper.acked and poller.requests > 0
+    if FULL:  # on a town the thresholds never saw (e2e_kit.HELD_OUT)
+        assert report.precision is not None and report.recall is not None, (
+            f"{drive.name} has no loop ground truth: the bars cannot be checked"
+        )
+        assert report.precision >= PRECISION_BAR, (report.precision, path)
+        assert report.recall >= RECALL_BAR, (report.recall, path)
