@@ -7,6 +7,8 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import shutil
+import subprocess
 import time
 
 import httpx
@@ -30,6 +32,8 @@ from client import (
 )
 from client.cli import app as cli_app
 from service.settings import Settings
+
+README = ROOT / "README.md"
 
 pytestmark = pytest.mark.anyio
 
@@ -241,7 +245,7 @@ async def test_sync_and_async_agree_against_a_real_server(live):
 
 
 def test_readme_example_runs(live, monkeypatch, capsys):
-    text = (ROOT / "README.md").read_text()
+    text = README.read_text()
     block = re.search(r"<!-- client-example -->\s*```python\n(.*?)```", text, re.S)
     assert block, "the README lost its client example"
     code = block.group(1)
@@ -250,6 +254,36 @@ def test_readme_example_runs(live, monkeypatch, capsys):
     exec(compile(code, "README.md", "exec"), {})
     printed = capsys.readouterr().out.split()
     assert printed[0] == "f0" and float(printed[1]) < 1e-3
+
+
+def test_readme_curl_example_runs(live):
+    """The README's five lines of curl, against a real server, as a newcomer pastes them."""
+    block = re.search(r"## Five lines\n.*?```bash\n(.*?)```", README.read_text(), re.S)
+    assert block, "the README lost its curl example"
+    if shutil.which("curl") is None:
+        pytest.skip("no curl on this machine")
+    if not (ROOT.parent / "shared" / "data" / "kitti00_0000-0100").is_dir():
+        pytest.skip("../shared/data (KITTI 00) is absent")
+    host = live.removeprefix("http://")
+    script = block[1].replace("localhost:8000", host).replace("/maps/town", "/maps/readme")
+    done = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", script],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    answers, text, at = [], done.stdout, 0
+    while text[at:].strip():  # curl -s prints the three answers back to back
+        at += len(text[at:]) - len(text[at:].lstrip())
+        obj, at = json.JSONDecoder().raw_decode(text, at)
+        answers.append(obj)
+    assert len(answers) == 3, text[:500]
+    query = answers[-1]
+    assert query["matches"][0]["keyframe_id"] == "f0"
+    assert query["matches"][0]["verification"]["verified"] is True  # the next frame: a closure
+    assert len(query["matches"][0]["relative_pose"]) == 16
 
 
 def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_path):
