@@ -39,14 +39,15 @@ RUN python requirements.py serve > requirements.txt \
        else pip install --no-cache-dir -r requirements.txt; fi
 # 2. The source, without dependencies (they are all above).
 COPY README.md ./
-COPY lidar_core ./lidar_core
-COPY overlapmamba ./overlapmamba
-COPY service ./service
+COPY overlapmamba/__init__.py overlapmamba/__main__.py overlapmamba/py.typed ./overlapmamba/
+COPY overlapmamba/cli ./overlapmamba/cli
+COPY overlapmamba/core ./overlapmamba/core
+COPY overlapmamba/service ./overlapmamba/service
 RUN if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
          pip install --no-cache-dir --no-index --find-links /wheels --no-deps .; \
        else pip install --no-cache-dir --no-deps .; fi \
     && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
-    && python -m lidar_core.scan_kernel
+    && python -m overlapmamba.core.scan_kernel
 
 FROM ${PYTHON_IMAGE} AS runtime
 LABEL org.opencontainers.image.title="overlapmamba" \

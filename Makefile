@@ -69,7 +69,7 @@ format: $(VENV)/.installed-all
 # The selective-scan kernel is compiled here, at install, never at a request; without a
 # compiler the service says so at start and serves the model's portable graph.
 serve: $(VENV)/.installed-serve
-	-$(BIN)/python -m lidar_core.scan_kernel
+	-$(BIN)/python -m overlapmamba.core.scan_kernel
 	$(BIN)/overlapmamba serve --host $(HOST) --port $(PORT) --model $(MODEL)
 
 bench: $(VENV)/.installed-all
@@ -93,11 +93,11 @@ data: $(VENV)/.installed-all
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \
 	done
 
-# The sensor towns (lidar_synth.presets, ≈ 45 min on 2 cores): one validation and one test
+# The sensor towns (overlapmamba.synth.presets, ≈ 45 min on 2 cores): one validation and one test
 # town rendered by every catalogue sensor on a car, the test town from a robot's, an AMR's
 # and a backpack's sensor, and five second drives of it by other sensors. Resumable, as above.
 data-sensors: $(VENV)/.installed-all
-	for p in $$($(BIN)/python -c "from lidar_synth.presets import SENSOR_PRESETS; print(*SENSOR_PRESETS)"); do \
+	for p in $$($(BIN)/python -c "from overlapmamba.synth.presets import SENSOR_PRESETS; print(*SENSOR_PRESETS)"); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p -q; \
 	done
 

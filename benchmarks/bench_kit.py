@@ -1,5 +1,6 @@
 """What the benchmarks share: paths, scans (KITTI 00 when present, else synthetic), a real
-server in a temporary data folder (:mod:`service.process`), and a watch on the CPU use of
+server in a temporary data folder (:mod:`overlapmamba.service.process`), and a watch on the CPU use
+of
 other processes, so a noisy run says so."""
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 from reports_kit import REPORTS, provenance, write_report  # noqa: F401 (re-exported)
 from rich.console import Console
 
-from service.process import serve_process
+from overlapmamba.service.process import serve_process
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -131,18 +132,18 @@ def server(env_extra: dict[str, str], startup_s: float = 180.0) -> Iterator[str]
 def served_settings(meta: Any) -> Any:
     """The settings the service answers with for a model of metadata ``meta``: its file's
     calibration where it has one, else the defaults (or OVERLAPMAMBA_* variables), as
-    ``service.calibration.resolve`` decides at start-up."""
-    from service.calibration import resolve
-    from service.settings import Settings
+    ``overlapmamba.service.calibration.resolve`` decides at start-up."""
+    from overlapmamba.service.calibration import resolve
+    from overlapmamba.service.settings import Settings
 
     return resolve(Settings(), meta)[0]
 
 
 def write_calibration(model: Path, section: str, values: dict[str, Any], data: str) -> None:
     """Record thresholds this benchmark chose in the model file itself
-    (``lidar_core.calibration``): the service takes them from there."""
-    from lidar_core.calibration import calibrated
-    from model_export.modelfile import with_calibration
+    (``overlapmamba.core.calibration``): the service takes them from there."""
+    from overlapmamba.core.calibration import calibrated
+    from overlapmamba.train.modelfile import with_calibration
 
     data = data.replace(f"{ROOT}/", "")  # paths inside the checkout, as a clone has them
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)

@@ -2,10 +2,11 @@
 
 Variants, all the reference configuration (18.1 M parameters, three scan directions; or
 the narrow one with ``--narrow``) with the same random weights, exported by
-``model_export.export`` and run by onnxruntime on CPU:
+``overlapmamba.train.export`` and run by onnxruntime on CPU:
 
-- ``c-kernel (served)`` — the shipped file as the service runs it (``service.encoder``):
-  the graph cut at its scan nodes, each scan by the C kernel (``service.fastscan``);
+- ``c-kernel (served)`` — the shipped file as the service runs it
+(``overlapmamba.service.encoder``):
+  the graph cut at its scan nodes, each scan by the C kernel (``overlapmamba.service.fastscan``);
 - ``scan-loop`` — the portable form: the scan as ONNX Scan loops over L/T chunks side by
   side (T = √L = 30), NetVLAD's reduction matrix stored int8;
 - ``scan-loop fp32`` — the same with every weight float32;
@@ -53,12 +54,12 @@ from rich.console import Console
 from rich.table import Table
 from torch.utils.flop_counter import FlopCounterMode
 
-import model_export.model as model_module
-from lidar_core.sensors import get_profile
-from model_export.export import count_nodes, export_onnx
-from model_export.model import OverlapMamba, OverlapMambaConfig
-from model_export.modelfile import read_metadata
-from model_export.presets import NARROW
+import overlapmamba.train.model as model_module
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.train.export import count_nodes, export_onnx
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.modelfile import read_metadata
+from overlapmamba.train.presets import NARROW
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -68,8 +69,8 @@ PROFILE = get_profile("kitti-hdl64")
 
 def images(n: int) -> tuple[np.ndarray, str]:
     if (REAL / "velodyne").is_dir():
-        from lidar_core.io import read_points
-        from lidar_core.projection import project
+        from overlapmamba.core.io import read_points
+        from overlapmamba.core.projection import project
 
         paths = sorted((REAL / "velodyne").glob("*.bin"))[:n]
         x = np.stack([project(read_points(p), PROFILE) for p in paths])[:, None]
@@ -152,7 +153,7 @@ def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
 
 def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     """The file as the service runs it: its Encoder (C-kernel path when it builds and agrees)."""
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     t = time.perf_counter()
     encoders = {th: Encoder(path, intra_op_threads=th) for th in (1, 2)}
@@ -190,7 +191,7 @@ def alternate(fa, fb, n: int) -> tuple[float, float]:  # type: ignore[no-untyped
 def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> dict[str, Any]:
     """Served encoder vs the same graph without its scan, B = 1, alternating every repetition,
     at 1 and 2 threads: the goal's ratio, free of drift between separately timed variants."""
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     out: dict[str, Any] = {}
     for th in (1, 2):
@@ -235,7 +236,7 @@ def peer_comparison(
     """Served encoder vs the OT-style peer, 2 threads, alternating every repetition: ours as
     the product runs it (``views`` images a scan: its sub-column views, one encoder batch),
     ours in one pass, and the peer, in turn."""
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     ours = Encoder(ours_path, intra_op_threads=2)
     peer = session(peer_path, 2)
@@ -478,7 +479,7 @@ def main() -> None:
 
 
 def _export_unverified(model: OverlapMamba, path: Path) -> Path:
-    from model_export.export import _trace, quantize_int8
+    from overlapmamba.train.export import _trace, quantize_int8
 
     proto = _trace(model)  # (no interface check: it requires the Scan loops)
     quantize_int8(proto)

@@ -1,13 +1,13 @@
 """Calibrate the service's loop-closure threshold on the validation town (never on test).
 
-Runs the shipped ONNX encoder exactly as the service does (``service.encoder.Encoder``:
+Runs the shipped ONNX encoder exactly as the service does (``overlapmamba.service.encoder.Encoder``:
 the model's own projection, onnxruntime), scores the loop-closure protocol of
-``lidar_core.metrics`` on ``data/synth/val`` and prints the operating points: the top-1
+``overlapmamba.core.metrics`` on ``data/synth/val`` and prints the operating points: the top-1
 descriptor distance at F1max, and the largest distance whose precision is at least 0.9,
 0.95 and 0.99 (a false loop closure corrupts a SLAM map, so robots want high precision).
 The service's ``loop_closure.max_distance`` default is chosen from this table.
 
-The service answers scan queries in two stages (``lidar_core.rerank``: the ``rerank.k``
+The service answers scan queries in two stages (``overlapmamba.core.rerank``: the ``rerank.k``
 nearest descriptors re-ranked by d² − weight · aligned yaw-feature correlation) and calls an
 unverified loop closure on the top-1's *score*; the same table for that score (the keyframes'
 yaw features rounded to float16, as the map stores them) gives ``loop_closure.max_score``.
@@ -31,12 +31,12 @@ from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
 
-from lidar_core.datasets import open_sequence
-from lidar_core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
-from lidar_core.overlap import LoopGroundTruth
-from lidar_core.rerank import Rerank, two_stage
-from service.encoder import Encoder
-from service.sensors import Sensors
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
+from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.rerank import Rerank, two_stage
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.sensors import Sensors
 
 
 def main() -> None:
@@ -91,7 +91,7 @@ def main() -> None:
     staged = evaluate_retrieval(
         two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent=recent
     )
-    # The protocol's PR thresholds are squared L2 distances (lidar_core.metrics.nearest);
+    # The protocol's PR thresholds are squared L2 distances (overlapmamba.core.metrics.nearest);
     # the service compares L2 distances: max_distance = √threshold. A score is thresholded
     # as it is (max_score).
     points = operating_points(res, "max_distance", np.sqrt)

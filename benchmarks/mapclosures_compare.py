@@ -37,9 +37,9 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.datasets import open_sequence
-from lidar_core.overlap import LoopGroundTruth
-from lidar_core.poses import pose_error
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.poses import pose_error
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,11 +30,11 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.datasets import open_sequence
-from lidar_core.projection import project
-from lidar_core.scancontext import ScanContextParams, match, ring_key, scan_context
-from lidar_core.sensors import get_profile
-from model_export.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.projection import project
+from overlapmamba.core.scancontext import ScanContextParams, match, ring_key, scan_context
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 from reports_kit import REPORTS, write_report
 
-from lidar_core.io import read_points
-from lidar_core.modelmeta import EncoderMetadata
-from lidar_core.projection import project, project_with_index
-from lidar_core.sensors import CATALOGUE, get_profile
-from lidar_core.sensors.input import SensorInput
+from overlapmamba.core.io import read_points
+from overlapmamba.core.modelmeta import EncoderMetadata
+from overlapmamba.core.projection import project, project_with_index
+from overlapmamba.core.sensors import CATALOGUE, get_profile
+from overlapmamba.core.sensors.input import SensorInput
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_overlapnet_reference" / "000000.bin"
@@ -115,7 +115,7 @@ def main() -> None:
 
 
 def _shipped_metadata() -> EncoderMetadata:
-    from service.calibration import read_model_metadata
+    from overlapmamba.service.calibration import read_model_metadata
 
     return read_model_metadata(ROOT / "models" / "overlapmamba-hdl64.onnx")
 

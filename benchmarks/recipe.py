@@ -23,8 +23,8 @@ from pathlib import Path
 
 from reports_kit import REPORTS
 
-from model_export.model import OverlapMambaConfig
-from model_export.train import TrainConfig, train
+from overlapmamba.train.model import OverlapMambaConfig
+from overlapmamba.train.train import TrainConfig, train
 
 ROOT = Path(__file__).resolve().parents[1]
 NARROW = {"d_model": 64, "conv_last2": 256, "clusters": 32}

@@ -1,9 +1,9 @@
 """Geometric verification on real scans: pose accuracy, separation and cost of
-:mod:`service.verify` (small_gicp GICP against a keyframe's compact geometry).
+:mod:`overlapmamba.service.verify` (small_gicp GICP against a keyframe's compact geometry).
 
 Protocol: KITTI 00 frames 0–100 from ../shared/data. Each odd frame is turned
 in place by a random yaw and registered against the nearest even frame, as a keyframe
-stored by the service (``service.verify.keyframe_geometry``: the scan's registration
+stored by the service (``overlapmamba.service.verify.keyframe_geometry``: the scan's registration
 grid). The seed is the relative yaw the shipped model's yaw features give
 (``estimate_yaw``), as the service would use it. Ground truth: T_even←odd from the poses
 file, times the turn. Reports the translation and yaw errors, fitness and rmse, and the
@@ -30,11 +30,11 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.datasets import open_sequence
-from lidar_core.poses import pose_error, rotation_z, translations, yaw_deg
-from lidar_core.yaw import estimate_yaw
-from service.encoder import Encoder
-from service.verify import RegistrationParams, keyframe_geometry, prepare, register
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.poses import pose_error, rotation_z, translations, yaw_deg
+from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.verify import RegistrationParams, keyframe_geometry, prepare, register
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"

@@ -1,10 +1,10 @@
 """Choose the second stage's shortlist size and weight on the validation town (never on test).
 
 The service re-ranks the K nearest descriptors of a scan query by d² − WEIGHT · aligned
-yaw-feature correlation (``lidar_core.rerank``). This grid scores every (K, WEIGHT) with the
+yaw-feature correlation (``overlapmamba.core.rerank``). This grid scores every (K, WEIGHT) with the
 shipped encoder on ``data/synth/val`` (loop closure: F1max and Recall@1, all / same / reverse
 direction) and ``data/synth/val-s1`` queried against ``val`` (AR@1 across sessions), and
-ranks them by the mean of those seven numbers. ``lidar_core.rerank.Rerank``'s defaults (the
+ranks them by the mean of those seven numbers. ``overlapmamba.core.rerank.Rerank``'s defaults (the
 service's ``rerank`` settings and ``overlapmamba eval --rerank``) are the winner for the
 shipped model; ``--write-calibration`` records the winner in the model file, which the
 service takes it from.
@@ -29,11 +29,11 @@ from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.datasets import open_sequence
-from lidar_core.rerank import OFF, Rerank
-from model_export.checkpoint import load_model
-from model_export.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
-from model_export.sessions import check_sessions, descriptor_recall, town_positions
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.rerank import OFF, Rerank
+from overlapmamba.train.checkpoint import load_model
+from overlapmamba.train.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
+from overlapmamba.train.sessions import check_sessions, descriptor_recall, town_positions
 
 KS = (5, 10, 20)
 WEIGHTS = (0.02, 0.05, 0.1, 0.2, 0.5)

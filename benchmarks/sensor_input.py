@@ -1,7 +1,7 @@
 """Choose how a model takes scans of other sensors, on the validation towns (never on test).
 
 A scan of a sensor other than the model's own enters the model's input in one of two ways
-(:mod:`lidar_core.sensors.input`): ``elevation`` (each row shows the beam nearest its own
+(:mod:`overlapmamba.core.sensors.input`): ``elevation`` (each row shows the beam nearest its own
 elevation; rows the sensor has no beam for stay empty) or ``rows`` (the sensor's beams
 stretched over the rows). This scores both with the model on the ``val-SENSOR`` towns
 (``make data-sensors``) of four sensors that span the catalogue's differences from the
@@ -30,13 +30,13 @@ from bench_kit import ROOT, provenance
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.datasets import open_sequence
-from lidar_core.datasets.base import Sequence
-from lidar_core.rerank import Rerank
-from lidar_core.sensors import CATALOGUE, get_sensor
-from lidar_core.sensors.input import MODES, SensorInput
-from model_export.evaluate import loop_closure, sequence_loops
-from service.encoder import Encoder
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.rerank import Rerank
+from overlapmamba.core.sensors import CATALOGUE, get_sensor
+from overlapmamba.core.sensors.input import MODES, SensorInput
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.train.evaluate import loop_closure, sequence_loops
 
 KEYS = ("f1max", "recall@1")
 PICKED = ("vlp16", "vlp32c", "os0-128", "xt32")
@@ -115,7 +115,7 @@ def main() -> None:
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     console.print(f"wrote {args.out}")
     if args.write:
-        from model_export.modelfile import with_sensor_input
+        from overlapmamba.train.modelfile import with_sensor_input
 
         meta = with_sensor_input(args.model, pick)  # type: ignore[arg-type]
         console.print(f"{args.model}: sensor_input = {pick}, model id {meta.model_id}")

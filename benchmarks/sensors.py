@@ -5,7 +5,7 @@ Rows, all on test data (never chosen on):
 
 - **same sensor** (``test-SENSOR`` and the low and tilted mountings, ``make data-sensors``):
   one drive through one town, rendered by each sensor, so the rows differ by the sensor
-  alone. The loop-closure protocol (``lidar_core.metrics``: the top-1 of the frames more than
+  alone. The loop-closure protocol (``overlapmamba.core.metrics``: the top-1 of the frames more than
   100 earlier, a loop when its overlap in the sensor's own image is above 0.3): F1max and
   Recall@1 of the descriptor alone, of the service's two stages (the descriptor shortlist
   re-ranked by the yaw features) and of Scan Context; and the service's verified loop
@@ -42,28 +42,28 @@ from rich.console import Console
 from verify_threshold import descriptor_recall as verified_recall
 from verify_threshold import run_town, score
 
-from lidar_core.datasets import open_sequence
-from lidar_core.metrics import evaluate_retrieval
-from lidar_core.rerank import Rerank, two_stage
-from lidar_core.scancontext import ScanContextParams
-from lidar_core.sensors import CATALOGUE
-from model_export.checkpoint import load_model
-from model_export.evaluate import (
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.metrics import evaluate_retrieval
+from overlapmamba.core.rerank import Rerank, two_stage
+from overlapmamba.core.scancontext import ScanContextParams
+from overlapmamba.core.sensors import CATALOGUE
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import VerifySettings
+from overlapmamba.train.checkpoint import load_model
+from overlapmamba.train.evaluate import (
     loop_closure,
     scan_contexts,
     scancontext_loop_closure,
     sequence_loops,
     summary,
 )
-from model_export.realscans import eval_real
-from model_export.sessions import (
+from overlapmamba.train.realscans import eval_real
+from overlapmamba.train.sessions import (
     check_sessions,
     descriptor_recall,
     scan_context_recall,
     town_positions,
 )
-from service.encoder import Encoder
-from service.settings import VerifySettings
 
 MOUNTED = ("test-vlp16-robot", "test-os0-128-amr", "test-xt32-backpack")
 # (query drive, map): the issue's pairs, and each map's own sensor across sessions beside
@@ -138,7 +138,7 @@ def across(
     rerank: Rerank,
 ) -> dict[str, Any]:
     """A second drive's scans against a first drive's map of another sensor: AR@1/5/20."""
-    from service.sensors import Sensors
+    from overlapmamba.service.sensors import Sensors
 
     qs, ds = open_sequence(query), open_sequence(database)
     check_sessions(ds, qs)

@@ -2,7 +2,7 @@
 
 1. **HTTP overhead** — scan → descriptor through a real ``overlapmamba serve`` (uvicorn in a
    subprocess, temporary data folder) against the bare encoder in this process, in the same
-   run: bare = ``lidar_core.io.decode`` + ``Encoder.project`` + ``Encoder.encode`` at B = 1;
+   run: bare = ``overlapmamba.core.io.decode`` + ``Encoder.project`` + ``Encoder.encode`` at B = 1;
    HTTP = ``POST /v1/descriptors`` with the same body (``application/octet-stream``,
    ``X-Point-Fields: xyzi``) over one keep-alive httpx connection, sequentially, descriptor
    JSON parsed. The two are timed in alternating blocks so drift hits both alike. Ratio =
@@ -19,7 +19,8 @@
    sizes (the ``/v1/stats`` histogram, before/after difference), with micro-batching (the
    defaults) and without (``OVERLAPMAMBA_BATCHING__MAX_BATCH=1``). The clients share this
    machine's cores with the server.
-3. **Search** — ``service.backends.faiss.index.VectorIndex`` in process, 256-d float32 unit
+3. **Search** — ``overlapmamba.service.backends.faiss.index.VectorIndex`` in process, 256-d float32
+unit
    vectors, flat (exact) and IVF (nlist = ``ivf_lists(N)``) over an nprobe sweep: per-query
    p50/p99 at nq = 1 with ``faiss.omp_set_num_threads(1)`` (FAISS parallelises over queries, so a
    single-query search runs on one thread in the service too; builds use every core),

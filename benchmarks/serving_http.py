@@ -17,9 +17,9 @@ from rich.console import Console
 from rich.table import Table
 from transport_floor import floor_server
 
-from lidar_core.io import decode
-from service.encoder import Encoder
-from service.settings import BatchSettings
+from overlapmamba.core.io import decode
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import BatchSettings
 
 HEADERS = {"Content-Type": "application/octet-stream", "X-Point-Fields": "xyzi"}
 RATIO_GOAL = 1.10

@@ -17,8 +17,8 @@ from bench_kit import CORES, pct
 from rich.console import Console
 from rich.table import Table
 
-from service.backends.faiss.index import VectorIndex
-from service.settings import IndexSettings
+from overlapmamba.service.backends.faiss.index import VectorIndex
+from overlapmamba.service.settings import IndexSettings
 
 DIM = 256
 K = 10

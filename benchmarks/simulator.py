@@ -21,9 +21,9 @@ from pathlib import Path
 
 from reports_kit import REPORTS, write_report
 
-from lidar_synth.config import GenConfig
-from lidar_synth.generate import build_scene, simulate_scans, write_layout
-from lidar_synth.truth import compute_ground_truth
+from overlapmamba.synth.config import GenConfig
+from overlapmamba.synth.generate import build_scene, simulate_scans, write_layout
+from overlapmamba.synth.truth import compute_ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -15,7 +15,7 @@ each map backend's operations, measured on this machine.
                 FAISS on 1 and on 2 OpenMP threads (index.threads), on an idle process and
                 with the encoder busy in another thread (as under load); and the stage as a
                 scan query runs it by default, two-stage: the rerank.k (20) nearest and the
-                runner-up, their yaw, re-ranked (service.ranking)
+                runner-up, their yaw, re-ranked (overlapmamba.service.ranking)
 
 Writes JSON (default reports/deploy/sizing.json).
 """
@@ -35,14 +35,14 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.io import read_points
-from lidar_core.yaw import estimate_yaw
-from service.backends.factory import open_backend
-from service.backends.qdrant.codec import point_payload
-from service.domain import Filters, NewKeyframe, content_hash
-from service.encoder import Encoder
-from service.ranking import rerank_matches, rerank_params, shortlist
-from service.settings import RerankSettings, Settings
+from overlapmamba.core.io import read_points
+from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.service.backends.factory import open_backend
+from overlapmamba.service.backends.qdrant.codec import point_payload
+from overlapmamba.service.domain import Filters, NewKeyframe, content_hash
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
+from overlapmamba.service.settings import RerankSettings, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -179,7 +179,7 @@ def search_stage(
     parts, per (FAISS threads, load)."""
     import threading
 
-    from service.backends.faiss.index import set_threads
+    from overlapmamba.service.backends.faiss.index import set_threads
 
     b = open_backend(Settings(data_dir=root), model_id="bench", dim=dim)
     b.load_all()

@@ -6,7 +6,7 @@ The reference configuration (18.1 M parameters, three scan directions, convLast2
 in the same run so their ratio is fair. Prints a table and writes JSON
 (default reports/model/training.json).
 
-``--width narrow`` times the shipped width instead (``model_export.presets.NARROW``), and
+``--width narrow`` times the shipped width instead (``overlapmamba.train.presets.NARROW``), and
 ``--device cuda`` a GPU (the ``chunked`` backend: the C kernel is the CPU's), synchronising
 before each step's clock stops.
 
@@ -28,12 +28,12 @@ import numpy as np
 import torch
 from reports_kit import REPORTS, write_report
 
-from lidar_core.sensors import get_profile
-from model_export.augment import ROBUST, AugmentConfig, Augmenter
-from model_export.losses import batch_hard_imtrihard
-from model_export.model import OverlapMamba, OverlapMambaConfig
-from model_export.presets import NARROW
-from model_export.runtime import reexec_with_hugepages
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.train.augment import ROBUST, AugmentConfig, Augmenter
+from overlapmamba.train.losses import batch_hard_imtrihard
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.presets import NARROW
+from overlapmamba.train.runtime import reexec_with_hugepages
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -42,8 +42,8 @@ REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
 def images(n: int) -> tuple[torch.Tensor, str]:
     profile = get_profile("kitti-hdl64")
     if (REAL / "velodyne").is_dir():
-        from lidar_core.io import read_points
-        from lidar_core.projection import project
+        from overlapmamba.core.io import read_points
+        from overlapmamba.core.projection import project
 
         paths = sorted((REAL / "velodyne").glob("*.bin"))[:n]
         x = np.stack([project(read_points(p), profile) for p in paths])

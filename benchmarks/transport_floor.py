@@ -30,7 +30,7 @@ from starlette.requests import Request
 from starlette.responses import Response
 from starlette.routing import Route
 
-from service.process import free_port
+from overlapmamba.service.process import free_port
 
 ANSWER = [0.0625] * 256  # a descriptor's worth of JSON
 

@@ -1,13 +1,15 @@
 """Calibrate and measure verified loop closures on synthetic towns.
 
 Per town, as the service does it: every scan is encoded by the shipped ONNX encoder
-(``service.encoder.Encoder``) and kept as a keyframe's compact geometry
-(``lidar_core.geometry``); each query (the loop-closure protocol of ``lidar_core.metrics``:
+(``overlapmamba.service.encoder.Encoder``) and kept as a keyframe's compact geometry
+(``overlapmamba.core.geometry``); each query (the loop-closure protocol of
+``overlapmamba.core.metrics``:
 the database is every frame more than ``exclude_recent`` frames earlier) takes its top
 ``--k`` candidates in the service's order (the ``rerank.k`` nearest descriptors re-ranked by
-d² − weight · aligned yaw-feature correlation: ``service.ranking``; ``--rerank off`` for the
+d² − weight · aligned yaw-feature correlation: ``overlapmamba.service.ranking``; ``--rerank off``
+for the
 descriptor order), seeds each with the yaw from the yaw features and registers it
-(``service.verify.verify_candidates``). The closure is the verified candidate of
+(``overlapmamba.service.verify.verify_candidates``). The closure is the verified candidate of
 highest fitness. It is **correct** when its relative pose is right: within 1 m and 2° of the
 poses' T = P_keyframe⁻¹ · P_query (an edge a pose graph can take). Also reported: the
 precision counting only pairs the town's ground truth calls loops (overlap above its
@@ -42,15 +44,15 @@ from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
 
-from lidar_core.datasets import open_sequence
-from lidar_core.overlap import LoopGroundTruth
-from lidar_core.poses import pose_error
-from lidar_core.rerank import Rerank, by_score
-from lidar_core.yaw import estimate_yaw
-from service.encoder import Encoder
-from service.sensors import Sensors
-from service.settings import VerifySettings
-from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.poses import pose_error
+from overlapmamba.core.rerank import Rerank, by_score
+from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.sensors import Sensors
+from overlapmamba.service.settings import VerifySettings
+from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
 
 def run_town(
@@ -82,7 +84,7 @@ def run_town(
     for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
         top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.k)]
         deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
-        if rerank.on:  # as service.ranking orders the answer
+        if rerank.on:  # as overlapmamba.service.ranking orders the answer
             order, _ = by_score(d2[i, top], conf, rerank.weight)
             top, deg = top[order], deg[order]
         top, deg = top[:k], deg[:k]

@@ -1,9 +1,10 @@
-"""What the shipped model's sub-column views cost (lidar_core.views): a scan described as the
+"""What the shipped model's sub-column views cost (overlapmamba.core.views): a scan described as the
 service describes it (``Encoder.project`` + ``Encoder.encode``), with the model's views and
 with one, on real KITTI 00 scans.
 
 The one-view model is the same graph written with ``views = 1``
-(``model_export.modelfile.with_views``: the file the model id ``om-ef2469f958d5098b`` names), so
+(``overlapmamba.train.modelfile.with_views``: the file the model id ``om-ef2469f958d5098b`` names),
+so
 the two differ only in how many projections a scan makes and how many graph rows the encoder
 runs. Timed interleaved (one view, then the model's, rep after rep) in one process, with 1
 and 2 onnxruntime threads, one scan per call and 8 scans per call (per scan), so that the
@@ -28,9 +29,9 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
-from lidar_core.io import read_points
-from model_export.modelfile import with_views
-from service.encoder import Encoder
+from overlapmamba.core.io import read_points
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.train.modelfile import with_views
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"

@@ -188,9 +188,12 @@ CONTEXT = (
     "deploy/requirements.py",
     "deploy/healthcheck.py",
     "deploy/wheelhouse",
-    "lidar_core",
-    "overlapmamba",
-    "service",
+    "overlapmamba/__init__.py",
+    "overlapmamba/__main__.py",
+    "overlapmamba/py.typed",
+    "overlapmamba/cli",
+    "overlapmamba/core",
+    "overlapmamba/service",
     "models/overlapmamba-hdl64.onnx",
 )
 
@@ -214,7 +217,7 @@ def build(
                     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
                 else:
                     shutil.copy2(src, dst)
-            marker = context / "service" / "__init__.py"
+            marker = context / "overlapmamba" / "service" / "__init__.py"
             marker.write_text(marker.read_text() + f"# edited {time.time_ns()}\n")
         t0 = time.perf_counter()
         build_arg = f"PYTHON_IMAGE={base}"

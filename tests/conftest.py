@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_core.poses import rotation_z, write_poses
+from overlapmamba.core.poses import rotation_z, write_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OVERLAPMAMBA_SHARED_DATA", ROOT.parent / "shared" / "data"))
@@ -109,8 +109,8 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
     pytest.importorskip("embreex")
-    from lidar_synth.generate import generate
-    from lidar_synth.presets import PRESETS
+    from overlapmamba.synth.generate import generate
+    from overlapmamba.synth.presets import PRESETS
 
     out = tmp_path_factory.mktemp("synth") / name
     # Its own limit: a stuck or dead worker fails this fixture in a minute, with the chunk named
@@ -153,11 +153,11 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
     of ``SMALL_MODEL`` on the tiny towns, trained once per session: ``(run folder,
     history)``. Tests that read a run share it and never write into it (copy it first)."""
     pytest.importorskip("torch")
-    from model_export.model import OverlapMambaConfig
-    from model_export.train import TrainConfig, train
+    from overlapmamba.train.model import OverlapMambaConfig
+    from overlapmamba.train.train import TrainConfig, train
 
     out = tmp_path_factory.mktemp("runs") / "tiny"
-    from model_export.train_config import REAL_SCANS
+    from overlapmamba.train.train_config import REAL_SCANS
 
     cfg = TrainConfig(**{**TINY_TRAIN, "real": REAL_SCANS})
     model = OverlapMambaConfig(**SMALL_MODEL)
@@ -169,9 +169,9 @@ def save_random_checkpoint(path: Path, **config) -> Path:
     """A checkpoint of an untrained OverlapMamba (seed 0) with the given config overrides."""
     import torch
 
-    from lidar_core.sensors import get_profile
-    from model_export.checkpoint import save_checkpoint
-    from model_export.model import OverlapMamba, OverlapMambaConfig
+    from overlapmamba.core.sensors import get_profile
+    from overlapmamba.train.checkpoint import save_checkpoint
+    from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
 
     torch.manual_seed(0)
     cfg = OverlapMambaConfig(**config)
@@ -195,6 +195,6 @@ def encoder():
     """The shipped encoder as the service loads it (2 onnxruntime threads), once a module."""
     from service_kit import MODEL
 
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     return Encoder(MODEL, intra_op_threads=2)

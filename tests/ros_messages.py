@@ -1,5 +1,5 @@
 """ROS 2 PointCloud2 messages for tests, made by rosbags' own CDR serializer (an
-implementation independent of ``lidar_core.io.pointcloud2``)."""
+implementation independent of ``overlapmamba.core.io.pointcloud2``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from lidar_core.poses import quaternion, rotation_z
+from overlapmamba.core.poses import quaternion, rotation_z
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 PC2 = STORE.types["sensor_msgs/msg/PointCloud2"]

@@ -1,5 +1,5 @@
 """Shared helpers for the service tests: scans, an app with its lifespan, a real server
-(:mod:`service.process`, which the benchmarks use too)."""
+(:mod:`overlapmamba.service.process`, which the benchmarks use too)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from service.app import create_app
-from service.encoder import Encoder
-from service.process import serve_process
-from service.settings import Settings
+from overlapmamba.service.app import create_app
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.process import serve_process
+from overlapmamba.service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "overlapmamba-hdl64.onnx"
@@ -55,7 +55,7 @@ def server(
     data_dir: Path, env: dict[str, str] | None = None
 ) -> Iterator[tuple[str, subprocess.Popen]]:
     """A real `overlapmamba serve` process on a free loopback port, ready when yielded
-    (:func:`service.process.serve_process`); its log: ``server_log(proc)``."""
+    (:func:`overlapmamba.service.process.serve_process`); its log: ``server_log(proc)``."""
     env = {"OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})}
     with serve_process(data_dir, model=MODEL, env=env, cwd=ROOT) as srv:
         srv.proc.log_path = srv.log_path  # type: ignore[attr-defined]

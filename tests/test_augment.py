@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.sensors import get_profile
-from model_export.augment import ROBUST, AugmentConfig, Augmenter
-from model_export.errors import ConfigError
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.train.augment import ROBUST, AugmentConfig, Augmenter
+from overlapmamba.train.errors import ConfigError
 
 PROFILE = get_profile("kitti-hdl64")
 EMPTY = np.float32(PROFILE.empty_value)

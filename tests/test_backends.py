@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.backends.base import MapBackend
-from service.backends.factory import open_backend
-from service.backends.faiss.index import search_reference
-from service.domain import Filters, NewKeyframe, content_hash
-from service.errors import BadRequest, Conflict, NotFound
-from service.settings import Settings
+from overlapmamba.service.backends.base import MapBackend
+from overlapmamba.service.backends.factory import open_backend
+from overlapmamba.service.backends.faiss.index import search_reference
+from overlapmamba.service.domain import Filters, NewKeyframe, content_hash
+from overlapmamba.service.errors import BadRequest, Conflict, NotFound
+from overlapmamba.service.settings import Settings
 
 DIM = 32
 MODEL_ID = "test-model"
@@ -214,7 +214,7 @@ def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(
     client per folder, so the second "replica" shares the first one's client)."""
     from qdrant_client import models
 
-    from service.backends.qdrant.backend import QdrantBackend
+    from overlapmamba.service.backends.qdrant.backend import QdrantBackend
 
     s = settings_for("qdrant", tmp_path)
     with opened("qdrant", tmp_path) as a:
@@ -259,7 +259,7 @@ def test_get_nowait_answers_only_without_io(tmp_path):
     """The event loop's map lookup: FAISS holds every map in memory and answers like get
     (the map, or the same error); Qdrant answers only while its last look at the server is
     fresh, else None (the caller then asks get, in a worker thread)."""
-    from service.backends.qdrant.backend import FRESH_S, QdrantBackend
+    from overlapmamba.service.backends.qdrant.backend import FRESH_S, QdrantBackend
 
     with opened("faiss", tmp_path / "f") as f:
         m, _ = f.create("yard", None)

@@ -9,14 +9,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from lidar_core.errors import DatasetError
+from overlapmamba.core.errors import DatasetError
 
 pytest.importorskip("rosbags")
 from ros_messages import MOUNT, write_recordings
 
-from client._replay import open_drive
-from lidar_core.datasets import open_sequence
-from lidar_core.datasets.bags import open_bag
+from overlapmamba.client._replay import open_drive
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.datasets.bags import open_bag
 
 FRAMES = (0, 1, 2, 40)
 
@@ -89,8 +89,8 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
     finds its own keyframe at distance 0: the descriptors are the .bin files' descriptors."""
     from typer.testing import CliRunner
 
-    from client import PlaceRecognitionClient
-    from client.cli import app
+    from overlapmamba.client import PlaceRecognitionClient
+    from overlapmamba.client.cli import app
 
     paths, clouds, poses = recordings
     runner = CliRunner()
@@ -121,8 +121,8 @@ def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tm
     from conftest import SMALL_MODEL, save_random_checkpoint
     from typer.testing import CliRunner
 
-    from lidar_core.poses import write_poses
     from overlapmamba.cli import app
+    from overlapmamba.core.poses import write_poses
 
     paths, clouds, poses = recordings
     folder = tmp_path / "kitti4"
@@ -141,8 +141,8 @@ def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tm
     a, b = (json.loads((tmp_path / f"{n}.json").read_text())["metrics"] for n in "ab")
     assert a == b and a["all"]["queries"] == 0  # 4 scans hold no loop: the numbers are thin,
     # so also what eval computed from each: the same range images, the same positions
-    from model_export.checkpoint import load_model
-    from model_export.rangecache import range_images
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.rangecache import range_images
 
     _, profile, _ = load_model(ckpt)
     seq, bag = open_sequence(folder), open_bag(paths["ros1.bag"], tf="map")

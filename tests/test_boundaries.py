@@ -18,22 +18,22 @@ HEAVY = [
     "sklearn",
     "matplotlib",
 ]
-LIDAR_CORE_MODULES = [
-    "lidar_core",
-    "lidar_core.errors",
-    "lidar_core.sensors",
-    "lidar_core.points",
-    "lidar_core.io",
-    "lidar_core.projection",
-    "lidar_core.poses",
-    "lidar_core.datasets",
-    "lidar_core.datasets.kitti",
-    "lidar_core.datasets.pcd_folder",
-    "lidar_core.overlap",
-    "lidar_core.metrics",
-    "lidar_core.visualize",
-    "lidar_core.yaw",
-    "lidar_core.scan_kernel",
+CORE_MODULES = [
+    "overlapmamba.core",
+    "overlapmamba.core.errors",
+    "overlapmamba.core.sensors",
+    "overlapmamba.core.points",
+    "overlapmamba.core.io",
+    "overlapmamba.core.projection",
+    "overlapmamba.core.poses",
+    "overlapmamba.core.datasets",
+    "overlapmamba.core.datasets.kitti",
+    "overlapmamba.core.datasets.pcd_folder",
+    "overlapmamba.core.overlap",
+    "overlapmamba.core.metrics",
+    "overlapmamba.core.visualize",
+    "overlapmamba.core.yaw",
+    "overlapmamba.core.scan_kernel",
 ]
 
 
@@ -47,40 +47,56 @@ def _modules_after_import(*names: str) -> set[str]:
     return set(json.loads(res.stdout))
 
 
+UNITS = {"cli", "core", "synth", "train", "service", "client"}
+CORE, SYNTH, TRAIN, SERVICE, CLIENT, CLI = (
+    "overlapmamba.core",
+    "overlapmamba.synth",
+    "overlapmamba.train",
+    "overlapmamba.service",
+    "overlapmamba.client",
+    "overlapmamba.cli",
+)
+
+
 def _roots(mods: set[str]) -> set[str]:
-    return {m.split(".")[0] for m in mods}
+    """Each module's unit: a third-party package's top level, or one of overlapmamba's
+    packages (``overlapmamba.core``, ``.train``, …; the bare namespace is its own unit)."""
+    out = set()
+    for m in mods:
+        parts = m.split(".")
+        if parts[0] == "overlapmamba" and len(parts) > 1 and parts[1] in UNITS:
+            out.add(".".join(parts[:2]))
+        else:
+            out.add(parts[0])
+    return out
 
 
 def test_shared_core_imports_no_heavy_or_sibling_package():
-    roots = _roots(_modules_after_import(*LIDAR_CORE_MODULES))
-    forbidden = set(HEAVY) | {"service", "model_export", "client", "overlapmamba"}
-    assert not roots & forbidden, f"lidar_core pulled in {sorted(roots & forbidden)}"
+    roots = _roots(_modules_after_import(*CORE_MODULES))
+    forbidden = set(HEAVY) | {SERVICE, TRAIN, CLIENT, CLI, SYNTH}
+    assert not roots & forbidden, f"overlapmamba.core pulled in {sorted(roots & forbidden)}"
 
 
 @pytest.mark.parametrize(
     ("package", "forbidden"),
     [
         # Each map backend loads only its own engine; the app loads the configured one.
-        ("service.app", {"torch", "model_export", "client", "qdrant_client"}),
+        (f"{SERVICE}.app", {"torch", TRAIN, CLIENT, SYNTH, "qdrant_client"}),
         (
-            "service.backends.faiss.backend",
-            {"torch", "model_export", "client", "onnxruntime", "qdrant_client"},
+            f"{SERVICE}.backends.faiss.backend",
+            {"torch", TRAIN, CLIENT, "onnxruntime", "qdrant_client"},
         ),
-        (
-            "service.backends.qdrant.backend",
-            {"torch", "model_export", "client", "onnxruntime", "faiss"},
-        ),
-        ("service.logs", set(HEAVY) | {"model_export", "client"}),
-        ("service.backup", {"torch", "model_export", "client", "onnxruntime", "faiss"}),
-        ("client", {"torch", "onnxruntime", "faiss", "service", "model_export"}),
-        ("client.cli", {"torch", "onnxruntime", "faiss", "service", "model_export", "matplotlib"}),
-        ("client.fleet", {"torch", "onnxruntime", "faiss", "service", "model_export"}),
-        ("overlapmamba.cli", set(HEAVY) | {"service", "model_export", "client"}),
+        (f"{SERVICE}.backends.qdrant.backend", {"torch", TRAIN, CLIENT, "onnxruntime", "faiss"}),
+        (f"{SERVICE}.logs", set(HEAVY) | {TRAIN, CLIENT}),
+        (f"{SERVICE}.backup", {"torch", TRAIN, CLIENT, "onnxruntime", "faiss"}),
+        (CLIENT, {"torch", "onnxruntime", "faiss", SERVICE, TRAIN}),
+        (f"{CLIENT}.cli", {"torch", "onnxruntime", "faiss", SERVICE, TRAIN, "matplotlib"}),
+        (f"{CLIENT}.fleet", {"torch", "onnxruntime", "faiss", SERVICE, TRAIN}),
+        (CLI, set(HEAVY) | {SERVICE, TRAIN, CLIENT, SYNTH}),
         # The simulator needs trimesh/embreex, never torch: data can be made without it.
-        (
-            "lidar_synth.generate",
-            {"torch", "onnxruntime", "faiss", "service", "client", "model_export"},
-        ),
+        (f"{SYNTH}.generate", {"torch", "onnxruntime", "faiss", SERVICE, CLIENT, TRAIN}),
+        # The namespace itself is empty: importing a part never imports the others.
+        ("overlapmamba", set(HEAVY) | {CORE, SYNTH, TRAIN, SERVICE, CLIENT, CLI}),
     ],
 )
 def test_package_boundaries(package, forbidden):

@@ -8,7 +8,7 @@ torch = pytest.importorskip("torch")
 
 from torch import nn  # noqa: E402
 
-from model_export.calibrate import recalibrate_batchnorm  # noqa: E402
+from overlapmamba.train.calibrate import recalibrate_batchnorm  # noqa: E402
 
 
 def net() -> nn.Module:

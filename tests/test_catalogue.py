@@ -7,17 +7,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lidar_core.errors import ProfileError
-from lidar_core.projection import project
-from lidar_core.sensors import CATALOGUE, get_profile, get_sensor, sensor_of_profile
-from lidar_core.sensors.input import (
+from overlapmamba.core.errors import ProfileError
+from overlapmamba.core.projection import project
+from overlapmamba.core.sensors import CATALOGUE, get_profile, get_sensor, sensor_of_profile
+from overlapmamba.core.sensors.input import (
     SensorInput,
     beam_of,
     check_mode,
     project_input_reference,
     row_beams,
 )
-from lidar_core.views import project_views
+from overlapmamba.core.views import project_views
 
 KITTI = get_profile("kitti-hdl64")
 REQUIRED = {"vlp16", "vlp32c", "hdl32", "kitti-hdl64", "os1-64", "os1-128", "os0-128"}
@@ -174,7 +174,7 @@ def test_views_shift_the_sensor_input_like_the_native_one():
     inp = SensorInput(KITTI, CATALOGUE["os1-64"], "elevation")
     v = inp.project(xyz, views=3)
     assert v.shape == (3, 64, 900)
-    # view j: the sensor turned by j/3 of a column, its points by −j/3 (lidar_core.views)
+    # view j: the sensor turned by j/3 of a column, its points by −j/3 (overlapmamba.core.views)
     theta = -np.radians(360 / 900 / 3)
     c, s = np.cos(theta), np.sin(theta)
     turned = xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
@@ -206,14 +206,14 @@ def test_the_sensors_command_lists_the_catalogue():
 
 
 def test_the_input_mode_is_part_of_the_model_id():
-    from lidar_core.modelmeta import identity
+    from overlapmamba.core.modelmeta import identity
 
     plain = identity("om-abc", 1)
     assert plain == {"views": 1, "sensor_input": "elevation", "model_id": "om-abc", "graph_id": ""}
     rows = identity("om-abc", 1, "rows")
     assert rows["model_id"] != "om-abc" and rows["graph_id"] == "om-abc"
     assert identity("om-abc", 3)["model_id"] != identity("om-abc", 3, "rows")["model_id"]
-    from lidar_core.sensors.catalogue import catalogue_name
+    from overlapmamba.core.sensors.catalogue import catalogue_name
 
     assert catalogue_name("vlp16") == "vlp16"
     with pytest.raises(ProfileError, match="allowed: hdl32"):

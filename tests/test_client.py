@@ -17,8 +17,8 @@ import pytest
 from service_kit import ROOT, running, scan, server
 from typer.testing import CliRunner
 
-import client
-from client import (
+import overlapmamba.client as client
+from overlapmamba.client import (
     NO_RETRY,
     AsyncPlaceRecognitionClient,
     BadRequestError,
@@ -30,8 +30,8 @@ from client import (
     PlaceRecognitionClient,
     Retry,
 )
-from client.cli import app as cli_app
-from service.settings import Settings
+from overlapmamba.client.cli import app as cli_app
+from overlapmamba.service.settings import Settings
 
 README = ROOT / "README.md"
 
@@ -354,7 +354,7 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
 def test_a_recording_holds_poses_keyframes_and_closure_edges(tmp_path):
     from mcap.reader import make_reader
 
-    from client.recording import DESCRIPTOR_ONLY, VERIFIED, MapRecording
+    from overlapmamba.client.recording import DESCRIPTOR_ONLY, VERIFIED, MapRecording
 
     with MapRecording(tmp_path / "r.mcap") as rec:
         rec.observation("r1", 1.5, [0, 0, 0, 0, 0, 0, 1], keyframe_id="k0")
@@ -375,8 +375,8 @@ def test_a_recording_holds_poses_keyframes_and_closure_edges(tmp_path):
 
 
 def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
-    from client._replay import open_drive
-    from client.fleet import simulate
+    from overlapmamba.client._replay import open_drive
+    from overlapmamba.client.fleet import simulate
 
     drive = open_drive(tiny_seq)
     assert drive.loop_radius is not None

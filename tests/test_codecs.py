@@ -15,9 +15,9 @@ from hypothesis.extra.numpy import arrays
 from pypcd4 import Encoding
 from pypcd4 import PointCloud as PcdCloud
 
-from lidar_core.errors import DecodeError, NonFiniteError, PointCloudError, PointCountError
-from lidar_core.io import decode, decode_npy, decode_pcd, decode_raw, read_points
-from lidar_core.points import PointLimits, validate
+from overlapmamba.core.errors import DecodeError, NonFiniteError, PointCloudError, PointCountError
+from overlapmamba.core.io import decode, decode_npy, decode_pcd, decode_raw, read_points
+from overlapmamba.core.points import PointLimits, validate
 
 finite32 = st.floats(-1e4, 1e4, allow_nan=False, width=32)
 

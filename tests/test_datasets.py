@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.datasets import REGISTRY, detect_kind, open_sequence
-from lidar_core.errors import DatasetError
-from lidar_core.poses import (
+from overlapmamba.core.datasets import REGISTRY, detect_kind, open_sequence
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.poses import (
     camera_to_lidar,
     read_calib,
     read_poses,

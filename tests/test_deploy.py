@@ -24,9 +24,12 @@ import pytest
 import yaml
 from service_kit import MODEL, OCTET, scan
 
-from service.process import free_port
+from overlapmamba.service.process import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
+# what the Dockerfile's build stage copies of the package: the runtime parts only
+RUNTIME_FILES = ("overlapmamba/__init__.py", "overlapmamba/__main__.py", "overlapmamba/py.typed")
+RUNTIME_PACKAGES = ("overlapmamba/cli", "overlapmamba/core", "overlapmamba/service")
 DOCKERFILE = ROOT / "Dockerfile"
 
 
@@ -72,6 +75,11 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     runs = " ".join(a for w, a in ins if w == "RUN")
     assert "requirements.py serve" in runs and "--no-deps ." in runs
     assert "torch" not in " ".join(copies) and "train" not in runs
+    # the package's runtime parts, and nothing that trains, synthesises or is a client
+    for part in (*RUNTIME_FILES, *RUNTIME_PACKAGES):
+        assert part in " ".join(copies), part
+    for part in ("overlapmamba/train", "overlapmamba/synth", "overlapmamba/client"):
+        assert part not in " ".join(copies), part
     # the default model ships in the runtime stage, where the settings point
     env = " ".join(a for w, a in runtime if w == "ENV")
     model = re.search(r"OVERLAPMAMBA_MODEL=(\S+)", env)
@@ -101,7 +109,7 @@ def test_compose_runs_the_service_on_qdrant():
     assert "qdrant" in svc["depends_on"]
     assert qdrant["image"].startswith("qdrant/qdrant:v")
     grace = int(svc["stop_grace_period"].rstrip("s"))
-    from service.settings import Settings
+    from overlapmamba.service.settings import Settings
 
     delay = float(env.get("OVERLAPMAMBA_SHUTDOWN_DELAY_S", 0))
     assert grace > delay + Settings().limits.request_timeout_s  # delay, drain, snapshot, exit
@@ -137,17 +145,20 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
         pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
         pip_list = [str(py), "-m", "pip", "list", "--format=freeze"]
     subprocess.run([*pip, "-r", str(tmp_path / "requirements.txt")], check=True)
-    # the source as the image copies it (no model_export, no client, no tests)
+    # the source as the image copies it (no training, synthesis or client code, no tests)
     src = tmp_path / "src"
-    src.mkdir()
-    for name in ("pyproject.toml", "README.md"):
+    (src / "overlapmamba").mkdir(parents=True)
+    for name in ("pyproject.toml", "README.md", *RUNTIME_FILES):
         shutil.copy(ROOT / name, src / name)
-    for pkg in ("lidar_core", "overlapmamba", "service"):
+    for pkg in RUNTIME_PACKAGES:
         shutil.copytree(ROOT / pkg, src / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     subprocess.run([*pip, "--no-deps", str(src)], check=True)
     listed = subprocess.run(pip_list, capture_output=True, text=True).stdout.lower()
     assert "torch" not in listed and "qdrant-client" in listed
-    probe = "import importlib.util as u; print(u.find_spec('torch'), u.find_spec('service').origin)"
+    probe = (
+        "import importlib.util as u; "
+        "print(u.find_spec('torch'), u.find_spec('overlapmamba.service').origin)"
+    )
     found = subprocess.run([str(py), "-c", probe], cwd=tmp_path, capture_output=True, text=True)
     torch_spec, origin = found.stdout.split()
     assert torch_spec == "None" and str(venv) in origin  # imports come from the venv

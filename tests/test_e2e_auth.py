@@ -16,7 +16,7 @@ from service_kit import server
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from service.auth import hash_key
+from overlapmamba.service.auth import hash_key
 
 pytestmark = pytest.mark.e2e
 ROLES = ("robot", "mapper", "viewer", "admin")

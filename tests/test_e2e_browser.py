@@ -19,8 +19,8 @@ import pytest
 from e2e_kit import FULL, OUT, drive_dir, size, write_report
 from service_kit import server
 
-from client._replay import open_drive
-from client.fleet import simulate
+from overlapmamba.client._replay import open_drive
+from overlapmamba.client.fleet import simulate
 
 pytestmark = pytest.mark.e2e
 

@@ -23,8 +23,8 @@ import pytest
 from e2e_kit import Mapper, Worker, size, write_report
 from service_kit import MODEL, OCTET, scan, server, server_log
 
-from service.doctor import diagnose
-from service.encoder import Encoder
+from overlapmamba.service.doctor import diagnose
+from overlapmamba.service.encoder import Encoder
 
 pytestmark = pytest.mark.e2e
 MAP = "crash"

@@ -26,7 +26,7 @@ import zstandard
 from e2e_kit import OUT, size, unit, write_report
 from service_kit import MODEL, OCTET, scan, server
 
-from service.encoder import Encoder
+from overlapmamba.service.encoder import Encoder
 
 pytestmark = pytest.mark.e2e
 HERE = Path(__file__).resolve().parent

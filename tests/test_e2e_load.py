@@ -26,9 +26,9 @@ from e2e_kit import (
 )
 from service_kit import server
 
-from client import NO_RETRY
-from client._replay import open_drive
-from client.fleet import simulate
+from overlapmamba.client import NO_RETRY
+from overlapmamba.client._replay import open_drive
+from overlapmamba.client.fleet import simulate
 
 pytestmark = pytest.mark.e2e
 

@@ -15,27 +15,27 @@ ort = pytest.importorskip("onnxruntime")
 
 from typer.testing import CliRunner  # noqa: E402
 
-from lidar_core.datasets import open_sequence  # noqa: E402
-from lidar_core.modelmeta import (  # noqa: E402
+from overlapmamba.cli import app  # noqa: E402
+from overlapmamba.core.datasets import open_sequence  # noqa: E402
+from overlapmamba.core.modelmeta import (  # noqa: E402
     SCAN_DOMAIN,
     SCAN_OPS,
     EncoderMetadata,
     ModelMetadataError,
 )
-from lidar_core.projection import project  # noqa: E402
-from lidar_core.sensors import get_profile  # noqa: E402
-from model_export.checkpoint import save_checkpoint  # noqa: E402
-from model_export.errors import CheckpointError  # noqa: E402
-from model_export.export import (  # noqa: E402
+from overlapmamba.core.projection import project  # noqa: E402
+from overlapmamba.core.sensors import get_profile  # noqa: E402
+from overlapmamba.train.checkpoint import save_checkpoint  # noqa: E402
+from overlapmamba.train.errors import CheckpointError  # noqa: E402
+from overlapmamba.train.export import (  # noqa: E402
     ExportError,
     count_nodes,
     export_onnx,
     run_onnx,
     verification_images,
 )
-from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
-from model_export.modelfile import read_metadata  # noqa: E402
-from overlapmamba.cli import app  # noqa: E402
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from overlapmamba.train.modelfile import read_metadata  # noqa: E402
 
 PROFILE = get_profile("kitti-hdl64")
 TINY = dict(d_model=16, d_state=4, dt_rank=4, conv_last2=32, clusters=4, out_dim=16)
@@ -176,7 +176,7 @@ def test_open_scan_one_direction_two_blocks_exports_too(tmp_path):
     np.testing.assert_allclose(d, ref_d, rtol=0, atol=1e-4)
     np.testing.assert_allclose(y, ref_y, rtol=0, atol=1e-4)
     # The served C-kernel path cuts two scans into three sessions and agrees.
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     fast = Encoder(res.path, intra_op_threads=2)
     assert fast.scan_path.startswith("c-kernel (2 scans, 3 sessions"), fast.scan_path
@@ -196,7 +196,7 @@ def test_open_scan_one_direction_two_blocks_exports_too(tmp_path):
 
 @pytest.mark.parametrize("fmt", ["f32", "i8"])
 def test_served_c_kernel_path_matches_the_portable_graph_on_real_scans(exported, kitti_images, fmt):
-    from service.encoder import Encoder
+    from overlapmamba.service.encoder import Encoder
 
     fast = Encoder(exported[fmt].path, intra_op_threads=2)
     portable = Encoder(exported[fmt].path, intra_op_threads=2, scan_kernel=False)
@@ -213,11 +213,11 @@ def test_served_c_kernel_path_matches_the_portable_graph_on_real_scans(exported,
 def test_an_encoder_with_views_describes_a_scan_by_the_mean_of_its_views(
     exported, kitti_seq_dir, tmp_path
 ):
-    from lidar_core.views import project_views
-    from model_export.checkpoint import load_model
-    from model_export.evaluate import describe
-    from model_export.modelfile import with_views
-    from service.encoder import Encoder
+    from overlapmamba.core.views import project_views
+    from overlapmamba.service.encoder import Encoder
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.evaluate import describe
+    from overlapmamba.train.modelfile import with_views
 
     two = with_views(exported["i8"].path, tmp_path / "two.onnx", 2)
     enc = Encoder(tmp_path / "two.onnx", intra_op_threads=2)
@@ -245,9 +245,9 @@ def test_the_c_kernel_path_falls_back_to_the_portable_graph_and_says_why(
 ):
     import onnx.inliner
 
-    import lidar_core.scan_kernel as scan_kernel
-    import service.fastscan as fastscan
-    from service.encoder import Encoder
+    import overlapmamba.core.scan_kernel as scan_kernel
+    import overlapmamba.service.fastscan as fastscan
+    from overlapmamba.service.encoder import Encoder
 
     path = exported["f32"].path
     want, _ = Encoder(path, scan_kernel=False).encode(kitti_images[:2])
@@ -360,8 +360,8 @@ def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, 
     """load_model opens the .onnx (the shipped model has no checkpoint beside it): the same
     descriptors as its network through describe, its profile and config from the metadata,
     its model id as the digest; a foreign or missing file is refused with the reason."""
-    from model_export.checkpoint import ExportedNetwork, load_model
-    from model_export.evaluate import describe, network_digest
+    from overlapmamba.train.checkpoint import ExportedNetwork, load_model
+    from overlapmamba.train.evaluate import describe, network_digest
 
     net, profile, info = load_model(exported["f32"].path)
     assert isinstance(net, ExportedNetwork) and not net.training
@@ -372,7 +372,7 @@ def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, 
     d_ref, y_ref = describe(exported["model"], kitti_images[:5, 0])
     np.testing.assert_allclose(d, d_ref, atol=1e-4)
     np.testing.assert_allclose(y, y_ref, atol=1e-3)
-    from model_export.recover import recover  # a file its weights cannot come back from
+    from overlapmamba.train.recover import recover  # a file its weights cannot come back from
 
     foreign = tmp_path / "foreign.onnx"
     foreign.write_bytes(b"not a graph")
@@ -384,11 +384,11 @@ def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, 
 
 
 def test_weights_come_back_from_an_exported_encoder(tmp_path, kitti_images):
-    """model_export.recover undoes the exporter's rewrites (transposed linear weights, A
+    """overlapmamba.train.recover undoes the exporter's rewrites (transposed linear weights, A
     folded from A_log, SPP's batch norm folded into its convolution, int8 storage): the
     recovered network gives onnxruntime's descriptors, its unfolded weights are the
     original's, and a graph that does not give every parameter back is refused."""
-    from model_export.recover import TOLERANCE, recover
+    from overlapmamba.train.recover import TOLERANCE, recover
 
     model = tiny_model(seed=3)
     with torch.no_grad():  # batch norm with statistics and affine terms worth folding

@@ -1,5 +1,5 @@
-"""A keyframe's compact geometry (lidar_core.geometry) and the registration that verifies a
-match against it (service.verify), on real KITTI scans."""
+"""A keyframe's compact geometry (overlapmamba.core.geometry) and the registration that verifies a
+match against it (overlapmamba.service.verify), on real KITTI scans."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_core.geometry import (
+from overlapmamba.core.geometry import (
     LIMIT_M,
     GeometryError,
     decode_geometry,
@@ -16,7 +16,7 @@ from lidar_core.geometry import (
     pack_geometry,
     voxel_means,
 )
-from lidar_core.poses import rotation_z, yaw_deg
+from overlapmamba.core.poses import rotation_z, yaw_deg
 
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti00_0000-0100"
 
@@ -79,7 +79,7 @@ def test_encode_refuses_bad_settings():
 def kitti():
     if not (KITTI / "velodyne").is_dir():
         pytest.skip("real KITTI scans not present (../shared/data)")
-    from lidar_core.datasets import open_sequence
+    from overlapmamba.core.datasets import open_sequence
 
     return open_sequence(KITTI)
 
@@ -90,7 +90,7 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
     give it) 3° off: the pose comes back within 20 cm and 0.3° of the poses file (issue 22's
     bar for the median), with most grid points matched; against a frame ~60 m away the fit
     is poor."""
-    from service.verify import RegistrationParams, prepare, register
+    from overlapmamba.service.verify import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     turn = rotation_z(130.0)
@@ -111,7 +111,7 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
 def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
     from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""
-    from service.verify import (
+    from overlapmamba.service.verify import (
         RegistrationParams,
         bev_spectrum,
         prepare,
@@ -149,7 +149,7 @@ def test_gicp_moves_a_thinned_query_and_steepness_comes_from_the_normals(kitti):
     on the normals is the one on small_gicp's regularised covariances (z share ≥ 1/5)."""
     import small_gicp
 
-    from service.verify import RegistrationParams, prepare, structure
+    from overlapmamba.service.verify import RegistrationParams, prepare, structure
 
     p = RegistrationParams()
     q = prepare(kitti.points(11).xyz, p)
@@ -168,8 +168,8 @@ def test_gicp_moves_a_thinned_query_and_steepness_comes_from_the_normals(kitti):
 
 
 def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
-    from service.settings import VerifySettings
-    from service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+    from overlapmamba.service.settings import VerifySettings
+    from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
     v = VerifySettings(max_distance=0.3)
     p = params_of(v)
@@ -182,7 +182,7 @@ def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
 
 
 def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
-    from service.verify import RegistrationParams, prepare, register
+    from overlapmamba.service.verify import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     sparse = prepare(kitti.points(0).xyz[:50], p)

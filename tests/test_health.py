@@ -8,7 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from model_export.health import KEYS, HealthLog, batch_distances  # noqa: E402
+from overlapmamba.train.health import KEYS, HealthLog, batch_distances  # noqa: E402
 
 
 def test_batch_distances_by_hand():
@@ -63,7 +63,7 @@ def test_the_steps_after_the_last_full_window_are_logged_at_the_end():
 def test_json_safe_turns_nan_into_null():
     import json
 
-    from model_export.health import json_safe
+    from overlapmamba.train.health import json_safe
 
     text = json.dumps(json_safe({"a": [1.0, float("nan")], "b": {"c": float("inf")}}))
     assert json.loads(text) == {"a": [1.0, None], "b": {"c": None}}

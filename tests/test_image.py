@@ -69,7 +69,7 @@ class Container:
     (SIGTERM) and started again on the same volume."""
 
     def __init__(self, volume: str) -> None:
-        from service.auth import hash_key
+        from overlapmamba.service.auth import hash_key
 
         self.name = f"om-test-{uuid.uuid4().hex[:8]}"
         self.volume = volume
@@ -117,7 +117,7 @@ def volume():
 
 
 def test_the_image_serves_what_the_venv_serves(volume, kitti_seq_dir, encoder):
-    from lidar_core.datasets import open_sequence
+    from overlapmamba.core.datasets import open_sequence
 
     inspect = json.loads(_run("image", "inspect", IMAGE).stdout)[0]
     size = int(inspect["Size"])
@@ -200,7 +200,7 @@ def test_compose_starts_the_service_part(tmp_path):
     compose = shutil.which("podman-compose", path=str(Path(sys.executable).parent))
     if compose is None or Path(_engine()[0]).name != "podman":
         pytest.skip("podman-compose with podman (a dev dependency) checks the compose file")
-    from service.auth import hash_key
+    from overlapmamba.service.auth import hash_key
 
     env_file = tmp_path / "compose.env"
     keys = json.dumps([{"name": "admin", "role": "admin", "sha256": hash_key(KEY)}])

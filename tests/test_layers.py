@@ -1,7 +1,7 @@
 """The service's data path only goes down: routes → use cases → scan pipeline → parts.
 
 Read from the source (no imports run): a module may import service modules of its own layer
-or below, never one above it. The order is the one README "One /observe" walks through.
+or below, never one above it. The order is the one docs/architecture.md walks through.
 Beside the scan path: no module of any package imports another that (through any chain)
 imports it back, and HTTP (FastAPI, Starlette, the HTTP schemas) stays at the edge — the app, the
 routes and what they alone use."""
@@ -15,25 +15,31 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # top to bottom; modules not listed (settings, errors, stats, schemas, …) are shared leaves
 LAYERS = [
-    ["service.app"],
+    ["overlapmamba.service.app"],
     [
-        "service.api.queries",
-        "service.api.descriptors",
-        "service.api.keyframes",
-        "service.api.maps",
-        "service.api.system",
+        "overlapmamba.service.api.queries",
+        "overlapmamba.service.api.descriptors",
+        "overlapmamba.service.api.keyframes",
+        "overlapmamba.service.api.maps",
+        "overlapmamba.service.api.system",
     ],
-    ["service.deps"],
-    ["service.places"],
-    ["service.pipeline"],
-    ["service.batcher", "service.scans", "service.encoder"],
-    ["service.fastscan"],
+    ["overlapmamba.service.deps"],
+    ["overlapmamba.service.places"],
+    ["overlapmamba.service.pipeline"],
+    ["overlapmamba.service.batcher", "overlapmamba.service.scans", "overlapmamba.service.encoder"],
+    ["overlapmamba.service.fastscan"],
 ]
 
 
-# the HTTP edge: what may import fastapi, starlette or service.schemas
-EDGE = {"service.app", "service.deps", "service.auth", "service.bodies", "service.schemas"}
-HTTP = ("fastapi", "starlette", "service.schemas")
+# the HTTP edge: what may import fastapi, starlette or overlapmamba.service.schemas
+EDGE = {
+    "overlapmamba.service.app",
+    "overlapmamba.service.deps",
+    "overlapmamba.service.auth",
+    "overlapmamba.service.bodies",
+    "overlapmamba.service.schemas",
+}
+HTTP = ("fastapi", "starlette", "overlapmamba.service.schemas")
 
 
 def _source(module: str) -> Path:
@@ -64,10 +70,10 @@ def imports(module: str) -> set[str]:
 
 
 def service_imports(module: str) -> set[str]:
-    return {m for m in imports(module) if m.startswith("service.")}
+    return {m for m in imports(module) if m.startswith("overlapmamba.service.")}
 
 
-def service_modules(packages: tuple[str, ...] = ("service",)) -> list[str]:
+def service_modules(packages: tuple[str, ...] = ("overlapmamba/service",)) -> list[str]:
     out = []
     for package in packages:
         for path in sorted((ROOT / package).rglob("*.py")):
@@ -86,23 +92,30 @@ def test_the_scan_path_only_imports_downward():
     ]
     assert not upward, upward
     # and the path is really wired through these layers
-    assert "service.places" in service_imports("service.api.queries")
-    assert "service.pipeline" in service_imports("service.places")
-    assert {"service.batcher", "service.scans"} <= service_imports("service.pipeline")
+    assert "overlapmamba.service.places" in service_imports("overlapmamba.service.api.queries")
+    assert "overlapmamba.service.pipeline" in service_imports("overlapmamba.service.places")
+    assert {"overlapmamba.service.batcher", "overlapmamba.service.scans"} <= service_imports(
+        "overlapmamba.service.pipeline"
+    )
     # routes reach scans only through the use cases, never the pipeline or encoder itself
     for route in LAYERS[1]:
-        assert not {"service.pipeline", "service.batcher", "service.encoder"} & service_imports(
-            route
-        ), route
+        assert not {
+            "overlapmamba.service.pipeline",
+            "overlapmamba.service.batcher",
+            "overlapmamba.service.encoder",
+        } & service_imports(route), route
 
 
 def test_nothing_below_the_routes_knows_http():
     modules = service_modules()
-    assert "service.backends.faiss.map" in modules and "service.places" in modules
+    assert (
+        "overlapmamba.service.backends.faiss.map" in modules
+        and "overlapmamba.service.places" in modules
+    )
     leaks = [
         f"{m} imports {dep}"
         for m in modules
-        if m not in EDGE and not m.startswith("service.api")
+        if m not in EDGE and not m.startswith("overlapmamba.service.api")
         for dep in sorted(imports(m))
         if dep.startswith(HTTP)
     ]
@@ -111,8 +124,7 @@ def test_nothing_below_the_routes_knows_http():
 
 def test_no_import_loop_in_any_package():
     """Function-level imports count too: a lazy import that closes a loop is still one."""
-    packages = ("lidar_core", "lidar_synth", "model_export", "service", "client", "overlapmamba")
-    modules = service_modules(packages)
+    modules = service_modules(("overlapmamba",))
     graph = {m: {d for d in imports(m) if d in modules and d != m} for m in modules}
     loops = []
 

@@ -6,7 +6,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from model_export.losses import (  # noqa: E402
+from overlapmamba.train.losses import (  # noqa: E402
     BandRanking,
     ImTrihardParams,
     batch_hard_imtrihard,
@@ -201,7 +201,7 @@ def test_band_ranking_orders_neighbours_below_positives_and_nothing_else():
 
 
 def test_turn_consistency_counts_moves_beyond_the_allowance_at_the_batchs_scale():
-    from model_export.losses import batch_spread, turn_consistency
+    from overlapmamba.train.losses import batch_spread, turn_consistency
 
     g = torch.Generator().manual_seed(0)
     desc = torch.nn.functional.normalize(torch.randn(8, 16, generator=g), dim=1)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from sklearn.metrics import auc as sk_auc
 from sklearn.metrics import precision_recall_curve
 
-from lidar_core.metrics import (
+from overlapmamba.core.metrics import (
     average_recall_at_n,
     evaluate_loop_closure,
     f1_max,
@@ -137,11 +137,12 @@ def test_query_mask_scores_a_subset():
 
 
 def test_errors_at_an_operating_point_sort_every_query_by_hand():
-    """lidar_core.anatomy on a hand-made retrieval: which accepted answers are true, which false
+    """overlapmamba.core.anatomy on a hand-made retrieval: which accepted answers are true, which
+    false
     alarms are neighbours (and overlap a little) or look-alikes, which loops are missed."""
-    from lidar_core.anatomy import errors_at_f1max
-    from lidar_core.metrics import evaluate_retrieval
-    from lidar_core.overlap import LoopGroundTruth
+    from overlapmamba.core.anatomy import errors_at_f1max
+    from overlapmamba.core.metrics import evaluate_retrieval
+    from overlapmamba.core.overlap import LoopGroundTruth
 
     n = 8
     # query → (top-1 candidate, distance); positives per frame; positions in metres

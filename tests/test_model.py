@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
 
 SMALL = dict(width=120, d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32)
 
@@ -88,9 +88,9 @@ def test_inference_is_deterministic_and_the_shift_is_training_only():
 
 @pytest.mark.real_data
 def test_descriptor_is_invariant_to_yaw_on_a_real_scan(kitti_seq_dir):
-    from lidar_core.io import read_points
-    from lidar_core.projection import project
-    from lidar_core.sensors import get_profile
+    from overlapmamba.core.io import read_points
+    from overlapmamba.core.projection import project
+    from overlapmamba.core.sensors import get_profile
 
     scan = read_points(kitti_seq_dir / "velodyne" / "000040.bin")
     x = torch.from_numpy(project(scan, get_profile("kitti-hdl64")))[None, None]
@@ -148,11 +148,11 @@ def test_config_round_trips_and_rejects_bad_values():
 def test_yaw_features_give_the_turn_of_a_real_scan(kitti_seq_dir):
     """A real scan turned about z by θ (any angle, not a column multiple): the yaw estimated
     from the model's per-column features is within 1° of θ."""
-    from lidar_core.io import read_points
-    from lidar_core.poses import rotation_z, transform_points
-    from lidar_core.projection import project
-    from lidar_core.sensors import get_profile
-    from lidar_core.yaw import estimate_yaw
+    from overlapmamba.core.io import read_points
+    from overlapmamba.core.poses import rotation_z, transform_points
+    from overlapmamba.core.projection import project
+    from overlapmamba.core.sensors import get_profile
+    from overlapmamba.core.yaw import estimate_yaw
 
     profile = get_profile("kitti-hdl64")
     m = model(width=900)

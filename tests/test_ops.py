@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from service_kit import MODEL, OCTET, running, scan, server, server_log
 
-from service.backends.faiss.map import FaissMap
-from service.doctor import diagnose
-from service.domain import NewKeyframe
-from service.encoder import Encoder
-from service.logs import JsonFormatter, new_request_id, request_id
-from service.settings import IndexSettings, Settings
+from overlapmamba.service.backends.faiss.map import FaissMap
+from overlapmamba.service.doctor import diagnose
+from overlapmamba.service.domain import NewKeyframe
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.logs import JsonFormatter, new_request_id, request_id
+from overlapmamba.service.settings import IndexSettings, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 

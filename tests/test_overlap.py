@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.datasets import open_sequence
-from lidar_core.overlap import (
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.overlap import (
     LoopGroundTruth,
     LoopParams,
     candidate_pairs,
@@ -14,9 +14,9 @@ from lidar_core.overlap import (
     overlap_and_yaw,
     pair_overlaps,
 )
-from lidar_core.poses import rotation_z, transform_points
-from lidar_core.projection import project
-from lidar_core.sensors import get_profile
+from overlapmamba.core.poses import rotation_z, transform_points
+from overlapmamba.core.projection import project
+from overlapmamba.core.sensors import get_profile
 
 KITTI = get_profile("kitti-hdl64")
 
@@ -128,7 +128,7 @@ def test_pair_overlaps_groups_by_query(synthetic_seq_dir):
 
 def test_pair_overlaps_of_no_pairs_is_empty(synthetic_seq_dir):
     # Regression: a drive that never comes back has no candidate pairs; this used to raise.
-    from lidar_core.overlap import pair_overlaps
+    from overlapmamba.core.overlap import pair_overlaps
 
     seq = open_sequence(synthetic_seq_dir)
     ov, yaw = pair_overlaps(seq, np.zeros((0, 2), np.int64), get_profile("kitti-hdl64"))

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.errors import DecodeError, NonFiniteError
-from lidar_core.io import decode
+from overlapmamba.core.errors import DecodeError, NonFiniteError
+from overlapmamba.core.io import decode
 
 pytest.importorskip("rosbags")
 from ros_messages import F32, F64, LAYOUTS, U8, U16, XYZ, XYZI, message, patch_u32
@@ -17,7 +17,7 @@ from ros_messages import F32, F64, LAYOUTS, U8, U16, XYZ, XYZI, message, patch_u
 @pytest.fixture(scope="module")
 def points(kitti_seq_dir) -> np.ndarray:
     """4,000 real KITTI points, x y z intensity."""
-    from lidar_core.io import read_points
+    from overlapmamba.core.io import read_points
 
     cloud = read_points(kitti_seq_dir / "velodyne" / "000000.bin")
     assert cloud.intensity is not None

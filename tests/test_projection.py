@@ -7,16 +7,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lidar_core.io import read_points
-from lidar_core.poses import rotation_z, transform_points
-from lidar_core.projection import (
+from overlapmamba.core.io import read_points
+from overlapmamba.core.poses import rotation_z, transform_points
+from overlapmamba.core.projection import (
     pixel_coordinates,
     project,
     project_reference,
     project_with_index,
     valid_mask,
 )
-from lidar_core.sensors import get_profile
+from overlapmamba.core.sensors import get_profile
 
 KITTI = get_profile("kitti-hdl64")
 SMALL = KITTI.replace(name="small", height=16, width=90, max_range=40.0)

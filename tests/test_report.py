@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from conftest import SMALL_MODEL, make_world, save_random_checkpoint
 
-from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
-from lidar_core.poses import rotation_z, transform_points
-from lidar_core.rerank import Rerank
-from lidar_core.scancontext import (
+from overlapmamba.core.metrics import evaluate_loop_closure, evaluate_retrieval, nearest
+from overlapmamba.core.poses import rotation_z, transform_points
+from overlapmamba.core.rerank import Rerank
+from overlapmamba.core.scancontext import (
     ScanContextParams,
     brute_force_shift_distance,
     match,
@@ -99,20 +99,20 @@ torch = pytest.importorskip("torch")
 
 from typer.testing import CliRunner  # noqa: E402
 
-from model_export.errors import ConfigError  # noqa: E402
-from model_export.evaluate import RERANKED  # noqa: E402
-from model_export.export import export_onnx  # noqa: E402
-from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
-from model_export.presets import PRESETS, SHIPPED, TEST_DATA, get_preset  # noqa: E402
-from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
+from overlapmamba.train.errors import ConfigError  # noqa: E402
+from overlapmamba.train.evaluate import RERANKED  # noqa: E402
+from overlapmamba.train.export import export_onnx  # noqa: E402
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from overlapmamba.train.presets import PRESETS, SHIPPED, TEST_DATA, get_preset  # noqa: E402
+from overlapmamba.train.train import TrainConfig, train  # noqa: E402
 
 SMALL = SMALL_MODEL
 runner = CliRunner()
 
 
 def test_transformer_mixer_is_yaw_invariant_and_exports(tmp_path):
-    from lidar_core.sensors import get_profile
+    from overlapmamba.core.sensors import get_profile
 
     torch.manual_seed(0)
     cfg = OverlapMambaConfig(**SMALL, mixer="transformer", spp=False, ff_dim=64)
@@ -173,7 +173,7 @@ def test_train_preset_cli_errors(args, message, tmp_path, monkeypatch):
 
 @pytest.mark.real_data
 def test_eval_real_transfers_to_hdl32_as_that_sensors_scans(nuscenes_dir, tmp_path):
-    from lidar_core.modelmeta import EncoderMetadata
+    from overlapmamba.core.modelmeta import EncoderMetadata
 
     save_random_checkpoint(tmp_path / "random.pt", **SMALL)
     out = tmp_path / "real.json"
@@ -193,7 +193,7 @@ def test_eval_real_transfers_to_hdl32_as_that_sensors_scans(nuscenes_dir, tmp_pa
 def test_eval_real_of_the_shipped_model_describes_each_scan_by_its_views(nuscenes_dir, tmp_path):
     """The shipped .onnx (sub-column views) through eval-real with another sensor's scans:
     every scan's views projected as an HDL-32E's, the views combined."""
-    from lidar_core.modelmeta import EncoderMetadata
+    from overlapmamba.core.modelmeta import EncoderMetadata
 
     model = Path(__file__).resolve().parents[1] / "models" / "overlapmamba-hdl64.onnx"
     out = tmp_path / "real.json"
@@ -214,8 +214,8 @@ def test_eval_real_of_the_shipped_model_describes_each_scan_by_its_views(nuscene
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path, monkeypatch):
-    import model_export.report as report_mod
-    from model_export.report import (
+    import overlapmamba.train.report as report_mod
+    from overlapmamba.train.report import (
         NARROW_RUNS,
         NARROW_UNTRAINED_LABEL,
         NETWORKS,
@@ -318,7 +318,7 @@ def test_report_tables_from_tiny_runs(tiny_seq, tiny_val_seq, tiny_run, tmp_path
 
 
 def test_table_one_mean_over_towns_averages_rates_and_sums_counts():
-    from model_export.report import mean_over_towns
+    from overlapmamba.train.report import mean_over_towns
 
     def town(f1, n):
         row = {"auc": f1, "f1max": f1, "recall@1": f1, "recall@1%": 1.0}
@@ -334,10 +334,10 @@ def test_table_one_mean_over_towns_averages_rates_and_sums_counts():
 def test_the_shipped_row_falls_back_to_the_exported_encoder(tmp_path):
     """Without the shipped run's best.pt (a fresh machine), Table I's shipped row and the
     real-scan checks read the exported .onnx; with it, the checkpoint; with neither, none."""
-    from model_export.checkpoint import ExportedNetwork, load_model
-    from model_export.export import export_onnx
-    from model_export.presets import SHIPPED
-    from model_export.report import NETWORKS, _networks, row_label, shipped_model
+    from overlapmamba.train.checkpoint import ExportedNetwork, load_model
+    from overlapmamba.train.export import export_onnx
+    from overlapmamba.train.presets import SHIPPED
+    from overlapmamba.train.report import NETWORKS, _networks, row_label, shipped_model
 
     ckpt = save_random_checkpoint(tmp_path / "random.pt", **SMALL_MODEL)
     model, profile, _ = load_model(ckpt)

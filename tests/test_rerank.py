@@ -1,4 +1,5 @@
-"""Two-stage retrieval (lidar_core.rerank) and the service's re-ranked answers (service.ranking)."""
+"""Two-stage retrieval (overlapmamba.core.rerank) and the service's re-ranked answers
+(overlapmamba.service.ranking)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from lidar_core.metrics import evaluate_loop_closure, evaluate_retrieval
-from lidar_core.rerank import OFF, Rerank, aligned_correlation, rerank, rerank_ranked, two_stage
+from overlapmamba.core.metrics import evaluate_loop_closure, evaluate_retrieval
+from overlapmamba.core.rerank import (
+    OFF,
+    Rerank,
+    aligned_correlation,
+    rerank,
+    rerank_ranked,
+    two_stage,
+)
 
 RNG = np.random.default_rng(7)
 
@@ -97,8 +105,8 @@ def test_two_stages_find_the_place_the_descriptor_ranks_second():
 
 
 def test_the_services_answer_is_reranked_only_when_every_candidate_can_be_scored():
-    from service.domain import Keyframe, Match
-    from service.ranking import rerank_matches, shortlist
+    from overlapmamba.service.domain import Keyframe, Match
+    from overlapmamba.service.ranking import rerank_matches, shortlist
 
     def match(kid: str, dist: float, conf: float | None) -> Match:
         kf = Keyframe(0, kid, "r", "s", 0.0, None, "h", 0, 0.0)

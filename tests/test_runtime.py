@@ -9,7 +9,7 @@ import sys
 import pytest
 
 SCRIPT = (
-    "import os; from model_export.runtime import reexec_with_hugepages; "
+    "import os; from overlapmamba.train.runtime import reexec_with_hugepages; "
     "reexec_with_hugepages(); print(os.environ.get('GLIBC_TUNABLES', ''))"
 )
 

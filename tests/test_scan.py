@@ -7,13 +7,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from model_export import scan_fused  # noqa: E402
-from model_export.scan import (  # noqa: E402
+from overlapmamba.train import scan_fused  # noqa: E402
+from overlapmamba.train.scan import (  # noqa: E402
     selective_scan,
     selective_scan_loop,
     selective_scan_ref,
 )
-from model_export.scan_backends import scan  # noqa: E402
+from overlapmamba.train.scan_backends import scan  # noqa: E402
 
 
 def inputs(B: int, E: int, L: int, N: int, seed: int = 0, dtype=torch.float64):
@@ -159,9 +159,9 @@ def test_scan_rejects_unknown_backends_and_dtypes():
 @pytest.mark.parametrize("circular", [False, True])
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_numpy_forward_of_the_served_kernel_matches_the_reference(circular, threads):
-    """lidar_core.scan_kernel.scan_forward (the service's fast path: token-major float32
+    """overlapmamba.core.scan_kernel.scan_forward (the service's fast path: token-major float32
     arrays, rows split across threads, uneven splits included) against the plain loop."""
-    from lidar_core.scan_kernel import scan_forward
+    from overlapmamba.core.scan_kernel import scan_forward
 
     args = inputs(3, 7, 45, 4, seed=threads, dtype=torch.float32)
     ref = selective_scan_ref(*args, circular=circular).numpy()
@@ -200,7 +200,7 @@ def test_each_path_of_the_served_kernel_matches_float64(kind, circular):
     """The served kernel's own exponential (a polynomial, or powers of exp(−Δ) times a
     quartic) and the ring's start added as a decaying correction, against the plain loop in
     float64: within float32 rounding of the result."""
-    from lidar_core.scan_kernel import scan_forward
+    from overlapmamba.core.scan_kernel import scan_forward
 
     args = _served_inputs(kind)
     ref = selective_scan_ref(*args, circular=circular).numpy()
@@ -227,7 +227,7 @@ def test_the_served_kernel_for_older_processors_gives_the_same_numbers(tmp_path)
             arrays[f"{kind}{i}"] = x.float().numpy()
     np.savez(tmp_path / "in.npz", **arrays)
     code = (
-        "import numpy as np, sys; from lidar_core.scan_kernel import scan_forward;"
+        "import numpy as np, sys; from overlapmamba.core.scan_kernel import scan_forward;"
         "z = np.load(sys.argv[1]);"
         "np.savez(sys.argv[2], **{k + str(c): scan_forward(*(z[k + str(i)] for i in range(6)),"
         " circular=bool(c), threads=2) for k in ('powers', 'exps', 'slow') for c in (0, 1)})"
@@ -240,7 +240,7 @@ def test_the_served_kernel_for_older_processors_gives_the_same_numbers(tmp_path)
     subprocess.run(
         [sys.executable, "-c", code, str(tmp_path / "in.npz"), str(out)], env=env, check=True
     )
-    from lidar_core.scan_kernel import scan_forward
+    from overlapmamba.core.scan_kernel import scan_forward
 
     old = np.load(out)
     for kind in ("powers", "exps", "slow"):

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from lidar_core.errors import ProfileError
-from lidar_core.sensors import BUILTIN_PROFILES, SensorProfile, get_profile
+from overlapmamba.core.errors import ProfileError
+from overlapmamba.core.sensors import BUILTIN_PROFILES, SensorProfile, get_profile
 
 
 def test_builtin_profiles_match_the_issue():

@@ -15,8 +15,8 @@ import pytest
 import zstandard
 from service_kit import OCTET, running, scan
 
-from service.auth import hash_key
-from service.settings import Settings
+from overlapmamba.service.auth import hash_key
+from overlapmamba.service.settings import Settings
 
 pytestmark = pytest.mark.anyio
 
@@ -166,7 +166,8 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         assert len(q["matches"]) == 2
         assert q["loop_closure"]["accepted"] is True
         assert q["loop_closure"]["margin_top1_top2"] > 0
-        # a scan query is re-ranked (service.ranking): every match scored, in score order,
+        # a scan query is re-ranked (overlapmamba.service.ranking): every match scored, in score
+        # order,
         # and the call is on the top-1's score
         w = settings.rerank.weight
         for m in q["matches"]:
@@ -622,7 +623,7 @@ async def test_stream_refuses_missing_and_wrong_keys(tmp_path, encoder):
 async def test_not_ready_before_the_lifespan(settings, encoder):
     import httpx
 
-    from service.app import create_app
+    from overlapmamba.service.app import create_app
 
     app = create_app(settings, encoder=encoder)
     async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
@@ -639,7 +640,7 @@ def test_no_route_dependency_runs_in_the_thread_pool(settings, encoder):
 
     from fastapi.routing import APIRoute
 
-    from service.app import create_app
+    from overlapmamba.service.app import create_app
 
     def calls(dependant):
         for dep in dependant.dependencies:
@@ -718,7 +719,7 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
     A bare-descriptor keyframe says verified: null; verify=false skips the stage; a map
     made with keep_geometry=false keeps none; a scan too sparse to register is a
     verified: false with its reason, not an error."""
-    from lidar_core.poses import rotation_z
+    from overlapmamba.core.poses import rotation_z
 
     # every candidate registered, however far its descriptor (the gate has its own test)
     verify = any_backend.verify.model_copy(update={"max_distance": None})

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from service_kit import MODEL, OCTET, running, scan
 
-from lidar_core.calibration import calibrated
-from lidar_core.points import PointCloud
-from lidar_core.sensors import CATALOGUE
-from lidar_core.sensors.input import SensorInput
-from service.encoder import Encoder
-from service.settings import Settings
+from overlapmamba.core.calibration import calibrated
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors import CATALOGUE
+from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import Settings
 
 pytestmark = pytest.mark.anyio
 
@@ -139,7 +139,7 @@ async def test_a_map_of_one_sensor_holds_and_answers_others(settings, encoder):
 
 # ---- calibration travels with the model ----------------------------------------------------
 def _calibrated_copy(tmp_path, name: str, max_score: float, max_distance: float):
-    from model_export.modelfile import with_calibration
+    from overlapmamba.train.modelfile import with_calibration
 
     path = tmp_path / name
     path.write_bytes(MODEL.read_bytes())
@@ -204,8 +204,8 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     reads it back; the other sections stay the defaults, the model id stays the same."""
     import sys
 
-    from lidar_core.modelmeta import EncoderMetadata
-    from model_export.modelfile import read_metadata
+    from overlapmamba.core.modelmeta import EncoderMetadata
+    from overlapmamba.train.modelfile import read_metadata
 
     sys.path.insert(0, str(MODEL.parents[1] / "benchmarks"))
     from bench_kit import served_settings, write_calibration
@@ -226,10 +226,10 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
 
 
 def test_a_maps_unknown_sensor_is_the_maps_fault_and_a_bad_calibration_stops_the_service():
-    from lidar_core.modelmeta import EncoderMetadata
-    from service.calibration import resolve
-    from service.errors import BadRequest, Conflict
-    from service.sensors import Sensors
+    from overlapmamba.core.modelmeta import EncoderMetadata
+    from overlapmamba.service.calibration import resolve
+    from overlapmamba.service.errors import BadRequest, Conflict
+    from overlapmamba.service.sensors import Sensors
 
     meta = Encoder(MODEL).meta
     sensors = Sensors(meta)
@@ -255,8 +255,8 @@ def test_a_maps_unknown_sensor_is_the_maps_fault_and_a_bad_calibration_stops_the
 
 
 def test_the_sensor_input_mode_is_rewritten_with_its_model_id(tmp_path):
-    from model_export.errors import ExportError
-    from model_export.modelfile import read_metadata, with_sensor_input
+    from overlapmamba.train.errors import ExportError
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
 
     path = tmp_path / "m.onnx"
     path.write_bytes(MODEL.read_bytes())
@@ -272,7 +272,7 @@ def test_the_sensor_input_mode_is_rewritten_with_its_model_id(tmp_path):
 
 
 def sensor_input_kind(enc: Encoder, name: str) -> str:
-    from service.sensors import Sensors
+    from overlapmamba.service.sensors import Sensors
 
     return Sensors(enc.meta).input(name).kind
 
@@ -282,7 +282,7 @@ async def test_a_clouds_ring_field_must_fit_the_sensor_it_is_projected_as(settin
     with both counts; as a 32-beam sensor's it is accepted. The rings never pick a sensor."""
     from ros_messages import F32, U16, message
 
-    from lidar_core.io.pointcloud2 import decode_pointcloud2
+    from overlapmamba.core.io.pointcloud2 import decode_pointcloud2
 
     s = scan(2)
     pts = s.copy()

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 import zstandard
 
-from service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
-from service.backends.faiss.backend import FaissBackend
-from service.backends.faiss.index import VectorIndex, search_reference
-from service.backends.faiss.locks import RWLock
-from service.backends.faiss.store import Store
-from service.batcher import MicroBatcher
-from service.domain import Filters, NewKeyframe
-from service.errors import (
+from overlapmamba.service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
+from overlapmamba.service.backends.faiss.backend import FaissBackend
+from overlapmamba.service.backends.faiss.index import VectorIndex, search_reference
+from overlapmamba.service.backends.faiss.locks import RWLock
+from overlapmamba.service.backends.faiss.store import Store
+from overlapmamba.service.batcher import MicroBatcher
+from overlapmamba.service.domain import Filters, NewKeyframe
+from overlapmamba.service.errors import (
     BadRequest,
     Conflict,
     Forbidden,
@@ -32,8 +32,8 @@ from service.errors import (
     Unauthorized,
     UnsupportedMediaType,
 )
-from service.scans import decompress, scan_format
-from service.settings import AuthSettings, IndexSettings, Settings, load_settings
+from overlapmamba.service.scans import decompress, scan_format
+from overlapmamba.service.settings import AuthSettings, IndexSettings, Settings, load_settings
 
 D = 32
 
@@ -235,7 +235,7 @@ def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
     import dataclasses
     import sqlite3
 
-    from service.backends.faiss.store import SCHEMA_VERSION
+    from overlapmamba.service.backends.faiss.store import SCHEMA_VERSION
 
     rng = np.random.default_rng(4)
     vecs = unit(rng, 3)

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from lidar_core.datasets import open_sequence
-from lidar_core.errors import DatasetError
-from model_export.sessions import (
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.train.sessions import (
     HIT_RADIUS,
     check_sessions,
     descriptor_recall,
@@ -71,9 +71,9 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     from conftest import SMALL_MODEL, save_random_checkpoint
     from typer.testing import CliRunner
 
-    from lidar_synth.generate import generate
-    from lidar_synth.presets import PRESETS
     from overlapmamba.cli import app
+    from overlapmamba.synth.generate import generate
+    from overlapmamba.synth.presets import PRESETS
 
     # two 30-scan drives through a 2 × 2 town: the second keeps to the first's streets, so
     # all 30 of its scans pass within 5 m of the first's (checked from the planned poses)
@@ -104,8 +104,8 @@ def test_eval_across_sessions_of_a_generated_town(tmp_path):
     # the report's cross-session table: the same numbers for the same network
     import shutil
 
-    from model_export.presets import SHIPPED
-    from model_export.report import NETWORKS, cross_sessions, row_label
+    from overlapmamba.train.presets import SHIPPED
+    from overlapmamba.train.report import NETWORKS, cross_sessions, row_label
 
     (tmp_path / "runs" / SHIPPED).mkdir(parents=True)
     shutil.copy(ckpt, tmp_path / "runs" / SHIPPED / "best.pt")

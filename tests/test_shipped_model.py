@@ -1,7 +1,7 @@
 """The bundled default model: its metadata agrees with its model card, it is small enough,
 and on a real KITTI scan its descriptor does not move when the sensor turns.
 
-It is read the way the service reads it: onnxruntime and lidar_core only, no torch."""
+It is read the way the service reads it: onnxruntime and overlapmamba.core only, no torch."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 
 ort = pytest.importorskip("onnxruntime")
 
@@ -77,8 +77,8 @@ def test_shipped_model_metadata_matches_its_card(session, meta):
 
 def describe(session, meta: EncoderMetadata, clouds: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     """Descriptors and yaw features of point clouds as the service makes them: the model's
-    sub-column views of each (lidar_core.views), one graph row each, combined."""
-    from lidar_core.views import combine_views, project_views
+    sub-column views of each (overlapmamba.core.views), one graph row each, combined."""
+    from overlapmamba.core.views import combine_views, project_views
 
     views = np.stack([project_views(xyz, meta.profile, meta.views) for xyz in clouds])
     images = views.reshape(-1, 1, *views.shape[2:])
@@ -87,8 +87,8 @@ def describe(session, meta: EncoderMetadata, clouds: list[np.ndarray]) -> tuple[
 
 @pytest.mark.real_data
 def test_shipped_model_descriptor_ignores_yaw_on_a_real_scan(session, meta, kitti_seq_dir):
-    from lidar_core.datasets import open_sequence
-    from lidar_core.poses import rotation_z, transform_points
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.poses import rotation_z, transform_points
 
     seq = open_sequence(kitti_seq_dir)
     rng = np.random.default_rng(7)
@@ -109,8 +109,8 @@ def test_shipped_model_descriptor_ignores_yaw_on_a_real_scan(session, meta, kitt
 def test_shipped_model_views_hold_the_cosine_where_one_view_does_not(session, meta, kitti_seq_dir):
     """On the scans and turns where a single projection moves the descriptor most, the
     model's views keep the cosine at ≥ 0.999 (`eval-real` checks all 101 scans)."""
-    from lidar_core.datasets import open_sequence
-    from lidar_core.poses import rotation_z, transform_points
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.poses import rotation_z, transform_points
 
     assert meta.views > 1
     one = meta.model_copy(update={"views": 1})
@@ -133,9 +133,9 @@ def test_shipped_model_is_served_by_the_c_kernel(meta):
     compiler is there, the service builds that path and it agrees with the portable graph."""
     import onnx
 
-    from lidar_core.modelmeta import SCAN_DOMAIN, SCAN_OPS
-    from lidar_core.scan_kernel import KernelBuildError, load
-    from service.encoder import Encoder
+    from overlapmamba.core.modelmeta import SCAN_DOMAIN, SCAN_OPS
+    from overlapmamba.core.scan_kernel import KernelBuildError, load
+    from overlapmamba.service.encoder import Encoder
 
     model = onnx.load(str(MODEL))
     scans = [n.op_type for n in model.graph.node if n.domain == SCAN_DOMAIN]

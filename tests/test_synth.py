@@ -13,20 +13,20 @@ pytest.importorskip("embreex")
 
 import itertools
 
-from lidar_core.datasets import open_sequence
-from lidar_core.overlap import LoopParams, loop_ground_truth, overlap_and_yaw
-from lidar_core.sensors import CATALOGUE, get_profile
-from lidar_synth.config import GenConfig
-from lidar_synth.dynamics import Dynamics
-from lidar_synth.generate import build_scene, generate, read_manifest
-from lidar_synth.geometry import MAT, Mesh
-from lidar_synth.lidar import Scanner, get_lidar
-from lidar_synth.mounting import MOUNTINGS, Mounting, get_mounting
-from lidar_synth.presets import PRESETS
-from lidar_synth.streets import DISTRICTS
-from lidar_synth.trajectory import DriveParams, plan_drive, plan_route
-from lidar_synth.truth import read_overlaps
-from lidar_synth.world import WorldParams, build_world
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.overlap import LoopParams, loop_ground_truth, overlap_and_yaw
+from overlapmamba.core.sensors import CATALOGUE, get_profile
+from overlapmamba.synth.config import GenConfig
+from overlapmamba.synth.dynamics import Dynamics
+from overlapmamba.synth.generate import build_scene, generate, read_manifest
+from overlapmamba.synth.geometry import MAT, Mesh
+from overlapmamba.synth.lidar import Scanner, get_lidar
+from overlapmamba.synth.mounting import MOUNTINGS, Mounting, get_mounting
+from overlapmamba.synth.presets import PRESETS
+from overlapmamba.synth.streets import DISTRICTS
+from overlapmamba.synth.trajectory import DriveParams, plan_drive, plan_route
+from overlapmamba.synth.truth import read_overlaps
+from overlapmamba.synth.world import WorldParams, build_world
 
 SMALL = {"nx": 3, "ny": 3, "block_min": 50.0, "block_max": 65.0}
 TINY = PRESETS["tiny"]  # the session-wide ``tiny_seq`` fixture (conftest) is this preset
@@ -305,8 +305,8 @@ def test_loops_exist_in_both_directions_and_are_reused(tiny_seq, monkeypatch):
     man = read_manifest(tiny_seq)["counts"]["ground_truth"]
     assert man["same_direction_queries"] > 0 and man["reverse_direction_queries"] > 0
     seq = open_sequence(tiny_seq)
-    # The shipped loop table is found by lidar_core and used as is: no overlap is recomputed.
-    import lidar_core.overlap as overlap_mod
+    # The shipped loop table is found by overlapmamba.core and used as is: no overlap is recomputed.
+    import overlapmamba.core.overlap as overlap_mod
 
     monkeypatch.setattr(overlap_mod, "pair_overlaps", lambda *a, **k: pytest.fail("recomputed"))
     gt = loop_ground_truth(seq, get_profile(TINY.sensor), LoopParams(radius=12.0), progress=False)
@@ -323,10 +323,10 @@ def test_loop_only_pair_table_gives_the_same_loop_table_and_cannot_be_trained_on
     instead of the preset's 12, a quarter of the work: the shipped table restricted to 6 m.)"""
     import shutil
 
-    from lidar_core.errors import DatasetError
-    from lidar_core.overlap import LoopGroundTruth
-    from lidar_synth.truth import compute_ground_truth
-    from model_export.batches import read_pair_table
+    from overlapmamba.core.errors import DatasetError
+    from overlapmamba.core.overlap import LoopGroundTruth
+    from overlapmamba.synth.truth import compute_ground_truth
+    from overlapmamba.train.batches import read_pair_table
 
     copy = tmp_path / "tiny"
     shutil.copytree(tiny_seq, copy)
@@ -480,9 +480,9 @@ def test_gen_data_refuses_bad_options(tmp_path, args, message):
 def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
-    import lidar_synth.generate as gen
-    from lidar_synth.workers import WorkerError
+    import overlapmamba.synth.generate as gen
     from overlapmamba.cli import app
+    from overlapmamba.synth.workers import WorkerError
 
     def dies(*args, **kwargs):
         raise WorkerError("a worker process died while running scan 2")
@@ -498,7 +498,7 @@ def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
 
 
 def test_a_second_session_drives_the_same_town_with_other_cars_and_route():
-    from lidar_synth.generate import build_scene
+    from overlapmamba.synth.generate import build_scene
 
     cfg = GenConfig(seed=9, frames=40, sensor="hdl32", world={"nx": 2, "ny": 2})
     w0, d0, dyn0 = build_scene(cfg)
@@ -519,8 +519,8 @@ def test_a_second_session_keeps_to_the_first_sessions_streets(first, second):
     session 1 re-drives session 0's streets (in its own order, both directions)."""
     from scipy.spatial import cKDTree
 
-    from lidar_synth.generate import build_scene
-    from lidar_synth.trajectory import driven_streets
+    from overlapmamba.synth.generate import build_scene
+    from overlapmamba.synth.trajectory import driven_streets
 
     assert PRESETS[second].split == PRESETS[first].split  # a val session is selection data
     w0, d0, _ = build_scene(PRESETS[first])

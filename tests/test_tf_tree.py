@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.errors import DatasetError
-from lidar_core.poses import rotation_z, yaw_deg
-from lidar_core.tf_tree import TransformTree, interpolate
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.poses import rotation_z, yaw_deg
+from overlapmamba.core.tf_tree import TransformTree, interpolate
 
 S = 10**9
 

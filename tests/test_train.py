@@ -13,15 +13,15 @@ pytest.importorskip("embreex")
 from conftest import SMALL_MODEL, TINY_TRAIN, save_random_checkpoint  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
-from lidar_core.datasets import open_sequence  # noqa: E402
-from lidar_core.errors import DatasetError  # noqa: E402
-from lidar_core.sensors import get_profile  # noqa: E402
-from model_export.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
-from model_export.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
-from model_export.errors import CheckpointError, ConfigError  # noqa: E402
-from model_export.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
-from model_export.train import TrainConfig, train  # noqa: E402
 from overlapmamba.cli import app  # noqa: E402
+from overlapmamba.core.datasets import open_sequence  # noqa: E402
+from overlapmamba.core.errors import DatasetError  # noqa: E402
+from overlapmamba.core.sensors import get_profile  # noqa: E402
+from overlapmamba.train.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
+from overlapmamba.train.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
+from overlapmamba.train.errors import CheckpointError, ConfigError  # noqa: E402
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
+from overlapmamba.train.train import TrainConfig, train  # noqa: E402
 
 SMALL = SMALL_MODEL
 runner = CliRunner()
@@ -112,7 +112,7 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
     that network, validated, its batch norm neither recalibrated nor updated after), and
     the turn term feeds turned copies and records how far they moved; a start that does not
     fit the run is refused with the reason."""
-    from model_export.export import export_onnx
+    from overlapmamba.train.export import export_onnx
 
     straight, history = tiny_run
     model, profile, _ = load_model(straight / "epoch-002.pt")
@@ -247,10 +247,10 @@ def test_the_recipe_keeps_the_spread_and_grows_the_separation(tiny_seq):
     """The shipped recipe's sampler, augmentation and loss for 12 steps of the small network on
     the tiny town: the descriptors must not shrink towards one point (the collapse the old
     margin caused) while negatives move away from positives at the descriptors' scale."""
-    from model_export.augment import Augmenter
-    from model_export.health import HealthLog, batch_distances
-    from model_export.losses import pair_masks
-    from model_export.rangecache import range_images
+    from overlapmamba.train.augment import Augmenter
+    from overlapmamba.train.health import HealthLog, batch_distances
+    from overlapmamba.train.losses import pair_masks
+    from overlapmamba.train.rangecache import range_images
 
     tc = TrainConfig()  # the defaults are the recipe
     seq = open_sequence(tiny_seq)
@@ -398,15 +398,15 @@ def test_eval_real_prints_invariance_retrieval_and_yaw(kitti_seq_dir, tmp_path):
 def test_eval_real_thins_the_queries_to_fewer_rings(kitti_seq_dir, tmp_path):
     """--beams 32,16: queries of every 2nd / 4th ring of the real HDL-64E (found by
     elevation) against whole scans, declared as the sensor they now are and not."""
-    from lidar_core.sensors import CATALOGUE
-    from model_export.realscans import thin_points, thinned_sensor
+    from overlapmamba.core.sensors import CATALOGUE
+    from overlapmamba.train.realscans import thin_points, thinned_sensor
 
     kitti = CATALOGUE["kitti-hdl64"]
     half = thinned_sensor(kitti, 32)
     assert half.beams == 32 and half.elevations_deg == kitti.elevations_deg[::2]
     with pytest.raises(ValueError, match="whole divisor"):
         thinned_sensor(kitti, 48)
-    from lidar_core.datasets import open_sequence
+    from overlapmamba.core.datasets import open_sequence
 
     xyz = open_sequence(kitti_seq_dir).points(0).xyz
     kept = thin_points(xyz, kitti, 16)
@@ -428,10 +428,10 @@ def test_eval_real_thins_the_queries_to_fewer_rings(kitti_seq_dir, tmp_path):
 
 
 def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):
-    """model_export.mining on the tiny town with stand-in descriptors: each anchor's
+    """overlapmamba.train.mining on the tiny town with stand-in descriptors: each anchor's
     candidates are its nearest pool scans (squared L2) that do not overlap it, and a batch
     of mined groups takes its negatives from them."""
-    from model_export.mining import mine
+    from overlapmamba.train.mining import mine
 
     pairs = PairIndex.from_sequences([open_sequence(tiny_seq)])
     sampler = BatchSampler(pairs, BatchPlan(batch_size=16, negative_threshold=0.1))

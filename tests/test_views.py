@@ -1,4 +1,4 @@
-"""Sub-column views (lidar_core.views): what each view is, how views combine, refusals."""
+"""Sub-column views (overlapmamba.core.views): what each view is, how views combine, refusals."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lidar_core.io import read_points
-from lidar_core.poses import rotation_z, transform_points
-from lidar_core.projection import project
-from lidar_core.views import MAX_VIEWS, combine_views, project_views, view_turns
+from overlapmamba.core.io import read_points
+from overlapmamba.core.poses import rotation_z, transform_points
+from overlapmamba.core.projection import project
+from overlapmamba.core.views import MAX_VIEWS, combine_views, project_views, view_turns
 from tests.test_projection import KITTI, SMALL, random_scan
 
 
@@ -70,8 +70,8 @@ def test_outputs_that_are_not_whole_scans_are_refused():
 
 def test_the_range_cache_keeps_each_count_apart(kitti_seq_dir, tmp_path, monkeypatch):
     pytest.importorskip("torch")
-    from lidar_core.datasets import open_sequence
-    from model_export.rangecache import cache_key, range_images
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.train.rangecache import cache_key, range_images
 
     monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path))
     seq = open_sequence(kitti_seq_dir)
@@ -92,10 +92,10 @@ def test_the_range_cache_keeps_each_sensor_input_apart(kitti_seq_dir, tmp_path, 
     pytest.importorskip("torch")
     from dataclasses import replace
 
-    from lidar_core.datasets import open_sequence
-    from lidar_core.sensors import CATALOGUE
-    from lidar_core.sensors.input import SensorInput
-    from model_export.rangecache import cache_key, range_images
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.sensors import CATALOGUE
+    from overlapmamba.core.sensors.input import SensorInput
+    from overlapmamba.train.rangecache import cache_key, range_images
 
     monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path))
     seq = open_sequence(kitti_seq_dir)

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_synth.config import GenConfig
-from lidar_synth.generate import generate, read_manifest
-from lidar_synth.workers import WorkerError, run_jobs, start_method
+from overlapmamba.synth.config import GenConfig
+from overlapmamba.synth.generate import generate, read_manifest
+from overlapmamba.synth.workers import WorkerError, run_jobs, start_method
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("lidar_core", "model_export", "service", "client", "overlapmamba", "benchmarks")
+PACKAGES = ("overlapmamba", "benchmarks")
 
 
 def test_generate_with_workers_after_onnxruntime_and_torch_ran_in_this_process(tmp_path):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_core.poses import rotation_z, transform_points
-from lidar_core.projection import project
-from lidar_core.sensors import get_profile
-from lidar_core.yaw import circular_correlation, estimate_yaw
+from overlapmamba.core.poses import rotation_z, transform_points
+from overlapmamba.core.projection import project
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.core.yaw import circular_correlation, estimate_yaw
 
 KITTI = get_profile("kitti-hdl64")
 
@@ -52,7 +52,7 @@ def test_correlation_is_the_cosine_of_centred_maps_at_every_roll():
 def test_range_images_of_a_turned_real_scan_give_its_yaw(kitti_seq_dir):
     """The range image itself is an equivariant feature map: a sanity check of the sign and
     the sub-column refinement on real data, at angles that are not multiples of 0.4°."""
-    from lidar_core.io import read_points
+    from overlapmamba.core.io import read_points
 
     xyz = read_points(kitti_seq_dir / "velodyne" / "000030.bin").xyz
     query = np.clip(project(xyz, KITTI), 0, None)

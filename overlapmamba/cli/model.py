@@ -1,0 +1,277 @@
+"""``overlapmamba`` model commands: train, export to ONNX and the model report (evaluation:
+``overlapmamba.cli.evaluation``). Each needs PyTorch (the train extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from overlapmamba.cli.common import (
+    check_torch,
+    command_group,
+    friendly_errors,
+    metrics_table,
+    out,
+)
+from overlapmamba.core.views import MAX_VIEWS
+
+app, command = command_group("Model")
+
+
+@command(
+    "train",
+    epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
+    "--out runs/om\n\n  overlapmamba train --out runs/om --resume --epochs 20\n\n"
+    "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml\n\n"
+    "  overlapmamba train --preset default   (the shipped model; writes runs/default)",
+)
+@friendly_errors
+def train_cmd(
+    output: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="run folder (checkpoints, metrics); --preset: runs/NAME"),
+    ] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="named recipe with its data and configs, e.g. default (the shipped model); "
+            "the list is in overlapmamba/train/presets.py, and an unknown name prints it"
+        ),
+    ] = None,
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--data",
+            help="training sequence (repeat for several); needs "
+            "ground_truth/overlaps.npz as gen-data writes it",
+        ),
+    ] = None,
+    val: Annotated[Path | None, typer.Option(help="validation sequence")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help=".json/.toml with [model] and [train] sections")
+    ] = None,
+    epochs: Annotated[
+        int | None, typer.Option(min=1, help="total epochs (extends on --resume)")
+    ] = None,
+    epoch_scans: Annotated[int | None, typer.Option(min=1, help="scans per epoch")] = None,
+    batch_size: Annotated[
+        int | None,
+        typer.Option(
+            min=2,
+            help="a multiple of the group size (4 by default: anchor, 2 positives, 1 near miss)",
+        ),
+    ] = None,
+    lr: Annotated[float | None, typer.Option(min=0.0)] = None,
+    loss: Annotated[str | None, typer.Option(help="imtrihard or triplet")] = None,
+    seed: Annotated[int | None, typer.Option(min=0)] = None,
+    device: Annotated[str | None, typer.Option(help="cpu or cuda")] = None,
+    init: Annotated[
+        Path | None,
+        typer.Option(
+            help="start from this network: a checkpoint (.pt) or an exported encoder (.onnx, "
+            "weights recovered exactly; needs freeze_bn, which it sets)"
+        ),
+    ] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Train OverlapMamba on synthetic sequences; validate, checkpoint and plot every epoch."""
+    check_torch()
+    from overlapmamba.train.model import OverlapMambaConfig
+    from overlapmamba.train.train import TrainConfig, load_config_file, train
+
+    overrides = {
+        k: v
+        for k, v in dict(
+            epoch_scans=epoch_scans,
+            batch_size=batch_size,
+            lr=lr,
+            loss=loss,
+            seed=seed,
+            device=device,
+            init=None if init is None else str(init),
+            freeze_bn=True if init is not None and init.suffix == ".onnx" else None,
+        ).items()
+        if v is not None
+    }
+    model_cfg = train_cfg = None
+    if preset is not None:
+        from overlapmamba.train.presets import get_preset
+
+        if resume or config is not None or data or val:
+            raise typer.BadParameter(
+                "--preset fixes the data and configs: drop --data/--val/--config/--resume "
+                "(resume a preset run with --out runs/NAME --resume)"
+            )
+        recipe = get_preset(preset)
+        data, val = [Path(d) for d in recipe.data], Path(recipe.val)
+        missing = [p for p in (*data, val) if not (p / "manifest.json").is_file()]
+        if missing:
+            raise typer.BadParameter(
+                f"preset {preset!r} needs {', '.join(map(str, missing))}: run `make data` "
+                "(or overlapmamba gen-data DIR --preset train|val) from the repository root"
+            )
+        model_cfg = OverlapMambaConfig.from_dict(recipe.model)
+        train_cfg = TrainConfig.from_dict({**recipe.train, **overrides})
+        output = output or Path("runs") / preset
+    elif resume:
+        if config is not None or overrides or data or val:
+            raise typer.BadParameter(
+                "--resume continues the run as configured: give only --out and --epochs"
+            )
+    else:
+        if not data or val is None:
+            raise typer.BadParameter("give --data (at least one) and --val, or --resume")
+        model_d, train_d = load_config_file(config) if config else ({}, {})
+        train_cfg = TrainConfig.from_dict({**train_d, **overrides})
+        try:  # a run from --init takes its network's config unless [model] says otherwise
+            model_cfg = (
+                OverlapMambaConfig.from_dict(model_d) if model_d or not train_cfg.init else None
+            )
+        except (TypeError, ValueError) as err:
+            raise typer.BadParameter(f"[model] config: {err}") from None
+    if output is None:
+        raise typer.BadParameter("give --out (the run folder), or a --preset")
+    history = train(
+        data or [],
+        val,
+        output,
+        model_cfg,
+        train_cfg,
+        resume=resume,
+        epochs=epochs,
+        progress=not quiet,
+    )
+    if history:
+        out.print(
+            metrics_table(f"Validation after epoch {history[-1]['epoch']}", history[-1]["val"])
+        )
+    out.print(f"checkpoints, metrics.json and curves.png in {output}")
+
+
+@command(
+    "export",
+    epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
+    "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32"
+    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx",
+)
+@friendly_errors
+def export_cmd(
+    checkpoint: Annotated[
+        Path,
+        typer.Argument(
+            help="a .pt written by train; or an exported .onnx, to write the same graph with "
+            "another --views"
+        ),
+    ],
+    out_path: Annotated[Path, typer.Option("--out", help="the .onnx file to write")],
+    weights: Annotated[
+        str, typer.Option(help="storage of the large head matrix: int8 or float32")
+    ] = "int8",
+    views: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=MAX_VIEWS,
+            help="sub-column views that describe a scan: its descriptor is the mean of this "
+            "many projections, each turned by a further 1/views of a column (a continuous "
+            "turn then barely moves it; the encoder runs this many times per scan)",
+        ),
+    ] = 1,
+) -> None:
+    """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
+    check_torch()
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.export import export_onnx
+    from overlapmamba.train.model import OverlapMamba
+    from overlapmamba.train.modelfile import with_views
+
+    if out_path.suffix != ".onnx":
+        raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    if checkpoint.suffix == ".onnx":
+        if weights != "int8":
+            raise typer.BadParameter(
+                "an exported encoder keeps its weights as they are; --weights applies to a .pt",
+                param_hint="--weights",
+            )
+        meta = with_views(checkpoint, out_path, views)
+        out.print(
+            f"wrote {out_path}: the graph of {checkpoint} with {meta.views} view(s) per scan, "
+            f"model id {meta.model_id}"
+        )
+        return
+    model, profile, ckpt = load_model(checkpoint)
+    assert isinstance(model, OverlapMamba)  # load_model gives an encoder only for .onnx
+    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
+    meta, v = res.metadata, res.verification
+    table = Table(title=f"exported {res.path}", show_header=False)
+    for key, value in (
+        ("model id", meta.model_id),
+        ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
+        ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
+        ("views per scan", str(meta.views)),
+        ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
+        (
+            "descriptor vs PyTorch",
+            f"max abs {v['descriptor_max_abs']:.2e}, min cosine {v['descriptor_min_cosine']:.6f}",
+        ),
+        ("yaw features vs PyTorch", f"max abs {v['yaw_features_max_abs']:.2e}"),
+        ("source", meta.source_commit),
+        ("time", f"{res.seconds:.1f} s"),
+    ):
+        table.add_row(key, value)
+    out.print(table)
+
+
+@command(
+    "report",
+    epilog="Example (after `make data` and the training presets):\n\n"
+    "  overlapmamba report --runs runs --test data/synth/test --test data/synth/test-b "
+    "--test data/synth/test-c --second-session data/synth/test-s1 --out reports/model",
+)
+@friendly_errors
+def report_cmd(
+    runs: Annotated[Path, typer.Option(help="folder holding the preset runs")] = Path("runs"),
+    test: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="test town with loops (repeat for several; default: the test, test-b and "
+            "test-c presets that exist, with test-s1 as the second session)"
+        ),
+    ] = None,
+    second_session: Annotated[
+        Path | None,
+        typer.Option(
+            help="a second drive through the first --test town: queried against it "
+            "(AR@1/5/20 across sessions)"
+        ),
+    ] = None,
+    out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Model-card tables I–IV, cross-session recall and real-scan checks: JSON, Markdown, PNG."""
+    check_torch()
+    from overlapmamba.train.presets import SECOND_SESSION, TEST_DATA
+    from overlapmamba.train.report import build_report
+
+    tests = test or [Path(t) for t in TEST_DATA if (Path(t) / "manifest.json").is_file()]
+    tests = tests or [Path(TEST_DATA[0])]  # none yet: the message below says what to run
+    if (
+        second_session is None
+        and test is None
+        and (Path(SECOND_SESSION) / "manifest.json").is_file()
+    ):
+        second_session = Path(SECOND_SESSION)
+    for t in [*tests, *([second_session] if second_session else [])]:
+        if not (t / "manifest.json").is_file():
+            raise typer.BadParameter(f"{t} is not a generated sequence: run `make data` first")
+    sessions = (tests[0], second_session) if second_session else None
+    report = build_report(runs, tests, out_dir, progress=not quiet, sessions=sessions)
+    for note in report["notes"]:
+        out.print(f"[yellow]note:[/] {note}")
+    for label, subs in report["table1"].items():
+        out.print(metrics_table(f"test towns (mean of {len(tests)}): {label}", subs))
+    out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")

@@ -1,0 +1,257 @@
+"""``overlapmamba`` service commands: serve, settings, API keys, map backups and the data
+folder's doctor. None imports PyTorch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from overlapmamba.cli.common import (
+    command_group,
+    console,
+    out,
+)
+
+app, command = command_group("Service")
+
+
+def _service_settings(config: Path | None, **overrides: Any) -> Any:
+    from pydantic import ValidationError
+
+    from overlapmamba.service.settings import load_settings
+
+    try:
+        return load_settings(config, **overrides)
+    except (ValidationError, ValueError) as err:
+        raise typer.BadParameter(f"invalid service settings: {err}") from None
+
+
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config", help="TOML settings file (also OVERLAPMAMBA_CONFIG); env OVERLAPMAMBA_*"
+    ),
+]
+DataDirOpt = Annotated[
+    Path | None, typer.Option("--data-dir", help="where maps live [default: ./data]")
+]
+
+
+@command(
+    "serve",
+    epilog="Examples:\n\n  overlapmamba serve\n\n"
+    "  overlapmamba serve --host 0.0.0.0 --port 8080 --config service.toml\n\n"
+    "  OVERLAPMAMBA_BATCHING__MAX_BATCH=4 overlapmamba serve --data-dir /var/lib/om",
+)
+def serve_cmd(
+    host: Annotated[str | None, typer.Option(help="bind address [default: 127.0.0.1]")] = None,
+    port: Annotated[int | None, typer.Option(min=0, max=65535, help="[default: 8000]")] = None,
+    data_dir: DataDirOpt = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(help="exported .onnx encoder [default: models/overlapmamba-hdl64.onnx]"),
+    ] = None,
+    config: ConfigOpt = None,
+    insecure: Annotated[
+        bool, typer.Option("--insecure", help="allow a non-loopback host without API keys")
+    ] = False,
+    index_backend: Annotated[
+        str | None,
+        typer.Option(
+            "--index-backend", help="faiss (embedded, in --data-dir) or qdrant [default: faiss]"
+        ),
+    ] = None,
+    qdrant_url: Annotated[
+        str | None, typer.Option("--qdrant-url", help="the Qdrant server, e.g. http://qdrant:6333")
+    ] = None,
+    qdrant_api_key: Annotated[
+        str | None,
+        typer.Option(
+            "--qdrant-api-key",
+            envvar="OVERLAPMAMBA_QDRANT__API_KEY",
+            show_envvar=True,
+            help="Qdrant's API key (prefer the environment variable: argv is visible)",
+        ),
+    ] = None,
+    qdrant_path: Annotated[
+        Path | None,
+        typer.Option("--qdrant-path", help="Qdrant's embedded local mode in this folder (trials)"),
+    ] = None,
+    log_format: Annotated[
+        str | None, typer.Option("--log-format", help="json (one object per line) or text")
+    ] = None,
+) -> None:
+    """Run the place-recognition HTTP service (uvicorn). SIGTERM drains requests in flight
+    and snapshots the maps before it exits."""
+    from overlapmamba.service.app import run
+
+    qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
+    settings = _service_settings(
+        config,
+        host=host,
+        port=port,
+        data_dir=data_dir,
+        model=model,
+        insecure=insecure or None,
+        log_format=log_format,
+        index={"backend": index_backend} if index_backend else None,
+        qdrant={k: v for k, v in qdrant.items() if v is not None} or None,
+    )
+    try:
+        settings.check_binding()
+    except ValueError as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    if not settings.model.is_file():
+        console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
+        raise typer.Exit(2)
+    run(settings)
+
+
+@command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")
+def dump_config_cmd(config: ConfigOpt = None) -> None:
+    """Print the merged service settings (defaults, file, environment) as JSON, with the
+    thresholds the service answers with for its model: the model file's calibration unless
+    a setting overrides (where each came from goes to stderr)."""
+    from overlapmamba.service.calibration import read_model_metadata, resolve
+
+    settings = _service_settings(config)
+    try:
+        meta = read_model_metadata(settings.model)
+    except Exception as err:
+        console.print(f"[yellow]note:[/] {settings.model}: {err}; its calibration is not shown")
+    else:
+        settings, used = resolve(settings, meta)
+        for key, t in used.items():
+            console.print(f"{key} = {t.value} ({t.source})", markup=False)
+    out.print_json(settings.model_dump_json())
+
+
+@command("hash-key", epilog="Example:\n\n  overlapmamba hash-key --role robot --name r1")
+def hash_key_cmd(
+    name: Annotated[str, typer.Option(help="a name for the key, shown in logs")] = "key",
+    role: Annotated[str, typer.Option(help="robot, mapper, viewer or admin")] = "robot",
+    key: Annotated[
+        str | None, typer.Option(help="hash this key instead of generating a new one")
+    ] = None,
+) -> None:
+    """Make an API key: prints the key once, and the TOML to put in the settings (its hash)."""
+    from overlapmamba.service.auth import ROLE_ACTIONS, hash_key, new_key
+
+    if role not in ROLE_ACTIONS:
+        raise typer.BadParameter(f"role {role!r}; allowed: {', '.join(ROLE_ACTIONS)}")
+    secret = key or new_key()
+    if key is None:
+        console.print(f"key (shown once, give it to the client): [bold]{secret}[/]")
+    out.print(
+        f'[[auth.keys]]\nname = "{name}"\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',
+        markup=False,
+    )
+
+
+@command(
+    "export-map",
+    epilog="Example:\n\n  overlapmamba export-map town backups/town.sqlite --data-dir data",
+)
+def export_map_cmd(
+    map_id: Annotated[str, typer.Argument(help="the map to back up")],
+    out_file: Annotated[Path, typer.Argument(help="the backup file to write (new)")],
+    data_dir: DataDirOpt = None,
+) -> None:
+    """Back up a map (its durable store), consistently, even while the service runs."""
+    from overlapmamba.service.backup import BackupError, export_map
+    from overlapmamba.service.errors import ServiceError
+
+    try:
+        r = export_map(data_dir or Path("data"), map_id, out_file)
+    except (BackupError, ServiceError) as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    out.print(f"exported map {r['map_id']}: {r['keyframes']} keyframes, {r['bytes']} bytes")
+
+
+@command(
+    "import-map",
+    epilog="Example:\n\n  overlapmamba import-map town backups/town.sqlite --data-dir data",
+)
+def import_map_cmd(
+    map_id: Annotated[str, typer.Argument(help="the map to create from the backup")],
+    src: Annotated[Path, typer.Argument(help="a file written by export-map")],
+    data_dir: DataDirOpt = None,
+    replace: Annotated[bool, typer.Option("--replace", help="overwrite an existing map")] = False,
+) -> None:
+    """Restore a map from a backup. The service must be stopped; its next start indexes it."""
+    from overlapmamba.service.backup import BackupError, import_map
+    from overlapmamba.service.errors import ServiceError
+
+    try:
+        r = import_map(data_dir or Path("data"), map_id, src, replace=replace)
+    except (BackupError, ServiceError) as err:
+        console.print(f"[bold red]error:[/] {err}")
+        raise typer.Exit(2) from None
+    out.print(f"imported map {r['map_id']}: {r['keyframes']} keyframes (model {r['model_id']})")
+
+
+@command(
+    "doctor",
+    epilog="Examples:\n\n  overlapmamba doctor --data-dir /data\n\n"
+    "  overlapmamba doctor --data-dir /data --json > doctor.json",
+)
+def doctor_cmd(
+    data_dir: DataDirOpt = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(help="the model the service serves [default: the configured one]"),
+    ] = None,
+    config: ConfigOpt = None,
+    max_snapshot_age_h: Annotated[
+        float, typer.Option(min=0, help="warn when a snapshot with writes since is older")
+    ] = 24.0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the findings as JSON")] = False,
+) -> None:
+    """Check a data folder: store vs index counts, snapshots (readable, complete, age), model
+    id consistency, leftovers of interrupted operations. Exit code 1 if anything is broken."""
+
+    from overlapmamba.service.doctor import diagnose, diagnose_backend
+
+    settings = _service_settings(config, data_dir=data_dir, model=model)
+    model_id = dim = None
+    if settings.model.is_file():
+        from overlapmamba.service.encoder import Encoder
+
+        enc = Encoder(settings.model, intra_op_threads=1)
+        model_id, dim = enc.model_id, enc.dim
+    if settings.index.backend == "qdrant":
+        from overlapmamba.service.backends.factory import open_backend
+
+        backend = open_backend(settings, model_id=model_id or "", dim=dim or 0)
+        try:
+            report = diagnose_backend(backend, model_id=model_id, dim=dim)
+        finally:
+            backend.close()
+    else:
+        report = diagnose(
+            settings.data_dir,
+            model_id=model_id,
+            dim=dim,
+            max_snapshot_age_s=max_snapshot_age_h * 3600,
+            settings=settings.index,
+        )
+    if model_id is None:
+        report.add(None, "model", "warn", f"model {settings.model} not found: ids not checked")
+    if as_json:
+        out.print_json(report.to_json())
+    else:
+        table = Table(title=f"overlapmamba doctor: {report.data_dir}")
+        for col in ("map", "check", "status", "finding"):
+            table.add_column(col)
+        colour = {"ok": "green", "warn": "yellow", "error": "bold red"}
+        for f in report.findings:
+            table.add_row(f.map_id or "-", f.check, f"[{colour[f.status]}]{f.status}[/]", f.message)
+        out.print(table)
+        out.print("healthy" if report.healthy else "[bold red]problems found[/]")
+    if not report.healthy:
+        raise typer.Exit(1)

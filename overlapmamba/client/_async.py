@@ -1,0 +1,274 @@
+"""``AsyncPlaceRecognitionClient``: the asyncio client, method for method the same as the
+blocking one (httpx.AsyncClient; websockets for streams)."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+from collections import deque
+from collections.abc import AsyncIterable, AsyncIterator, Iterable
+from typing import Any
+
+import httpx
+
+from overlapmamba.client._base import (
+    Call,
+    Calls,
+    Retry,
+    Timeouts,
+    raise_for,
+    retryable,
+    stream_frames,
+    stream_result,
+    transport_error,
+    ws_url,
+)
+from overlapmamba.client._exceptions import APIError, ClientError
+from overlapmamba.client._models import (
+    BatchInsertResult,
+    Descriptor,
+    Keyframe,
+    MapInfo,
+    Observation,
+    ObserveResult,
+    QueryResult,
+)
+from overlapmamba.client._scans import Scan
+
+
+class AsyncPlaceRecognitionClient:
+    """Asyncio client of the place-recognition service.
+
+    >>> async with AsyncPlaceRecognitionClient("http://127.0.0.1:8000") as pr:
+    ...     await pr.create_map("town")
+    """
+
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        api_key: str | None = None,
+        timeout: Timeouts = Timeouts(),  # noqa: B008 — frozen, shared safely
+        retry: Retry = Retry(),  # noqa: B008
+        compress: bool = False,
+        transport: httpx.AsyncBaseTransport | None = None,
+        seed: int | None = None,
+        sensor: str | None = None,
+    ) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.api_key = api_key
+        self.timeout = timeout
+        self.retry = retry
+        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
+        self._rng = random.Random(seed)
+        headers = {"x-api-key": api_key} if api_key else {}
+        self._http = httpx.AsyncClient(
+            base_url=self.base_url, timeout=timeout.httpx(), headers=headers, transport=transport
+        )
+
+    async def close(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncPlaceRecognitionClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def _run(self, call: Call) -> Any:
+        attempts = self.retry.attempts if call.idempotent else 1
+        for attempt in range(1, attempts + 1):
+            try:
+                try:
+                    resp = await self._http.request(
+                        call.method,
+                        call.path,
+                        params=call.params,
+                        content=call.content,
+                        json=call.json,
+                        headers=call.headers,
+                    )
+                except httpx.TransportError as err:
+                    raise transport_error(err) from err
+                raise_for(resp)
+                return call.parse(resp)
+            except ClientError as err:
+                if attempt == attempts or not retryable(err, self.retry):
+                    raise
+                retry_after = err.retry_after if isinstance(err, APIError) else None
+                await asyncio.sleep(self.retry.delay(attempt, retry_after, self._rng))
+        raise AssertionError("unreachable")
+
+    # ---- the API ----------------------------------------------------------------------------
+
+    async def health(self) -> dict[str, Any]:
+        return await self._run(self._calls.health())
+
+    async def sensors(self) -> dict[str, Any]:
+        """The sensors scans may name (``/v1/sensors``): the catalogue, with each one's beam
+        table and how its scans enter the model."""
+        return await self._run(self._calls.sensors())
+
+    async def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
+        return await self._run(self._calls.describe(scan, sensor))
+
+    async def describe_batch(
+        self, scans: list[Scan], *, sensor: str | None = None
+    ) -> list[Descriptor]:
+        return await self._run(self._calls.describe_batch(scans, sensor))
+
+    async def create_map(
+        self,
+        map_id: str,
+        *,
+        index: str | None = None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
+    ) -> MapInfo:
+        """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
+        answers are never verified (default: the server's, true). ``sensor``: the sensor of
+        scans sent to it that name none (default: the model's own)."""
+        return await self._run(self._calls.create_map(map_id, index, keep_geometry, sensor))
+
+    async def list_maps(self) -> list[MapInfo]:
+        return await self._run(self._calls.list_maps())
+
+    async def get_map(self, map_id: str) -> MapInfo:
+        return await self._run(self._calls.get_map(map_id))
+
+    async def delete_map(self, map_id: str) -> None:
+        await self._run(self._calls.delete_map(map_id))
+
+    async def insert_keyframe(
+        self,
+        map_id: str,
+        scan: Scan,
+        *,
+        keyframe_id: str,
+        timestamp: float,
+        robot_id: str = "unknown",
+        session_id: str = "default",
+        pose: Any = None,
+        sensor: str | None = None,
+    ) -> Keyframe:
+        call = self._calls.insert_keyframe(
+            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
+        )
+        return await self._run(call)
+
+    async def insert_descriptors(
+        self, map_id: str, keyframes: list[dict[str, Any]], *, model_id: str
+    ) -> BatchInsertResult:
+        call = self._calls.insert_descriptors(map_id, model_id, keyframes)
+        return await self._run(call)
+
+    async def get_keyframe(self, map_id: str, keyframe_id: str) -> Keyframe:
+        return await self._run(self._calls.get_keyframe(map_id, keyframe_id))
+
+    async def delete_keyframe(self, map_id: str, keyframe_id: str) -> None:
+        await self._run(self._calls.delete_keyframe(map_id, keyframe_id))
+
+    async def query(
+        self,
+        map_id: str,
+        scan: Scan | None = None,
+        *,
+        descriptor: Any = None,
+        k: int = 10,
+        sensor: str | None = None,
+        **filters: Any,
+    ) -> QueryResult:
+        """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
+        timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
+        verification of a scan query's candidates; ``sensor``: the scan's."""
+        return await self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
+
+    async def observe(
+        self,
+        map_id: str,
+        scan: Scan,
+        *,
+        robot_id: str,
+        timestamp: float,
+        session_id: str = "default",
+        pose: Any = None,
+        insert: str = "auto",
+        k: int = 10,
+        verify: bool = True,
+        sensor: str | None = None,
+    ) -> ObserveResult:
+        """``verify``: the server registers the top candidates against their keyframes'
+        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        call = self._calls.observe(
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
+        )
+        return await self._run(call)
+
+    async def stats(self, map_id: str | None = None) -> dict[str, Any]:
+        return await self._run(self._calls.stats(map_id))
+
+    async def stream(
+        self,
+        map_id: str,
+        observations: Iterable[Observation] | AsyncIterable[Observation],
+        *,
+        robot_id: str,
+        session_id: str = "default",
+        k: int = 10,
+        window: int = 2,
+        errors: str = "raise",
+        sensor: str | None = None,
+    ) -> AsyncIterator[ObserveResult | APIError]:
+        """Observe over one WebSocket, results in order. At most ``window`` observations are
+        in flight (the server closes a client that outruns it). ``errors="return"`` yields a
+        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
+        (an observation may name its own)."""
+        from websockets.asyncio.client import connect
+
+        url = ws_url(
+            self.base_url,
+            map_id,
+            robot_id=robot_id,
+            session_id=session_id,
+            k=k,
+            sensor=sensor or self._calls.sensor,
+        )
+        headers = {"x-api-key": self.api_key} if self.api_key else {}
+        compress = self._calls.compress
+
+        async def items() -> AsyncIterator[Observation]:
+            if isinstance(observations, AsyncIterable):
+                async for o in observations:
+                    yield o
+            else:
+                for o in observations:
+                    yield o
+
+        async with connect(
+            url, additional_headers=headers, open_timeout=self.timeout.connect
+        ) as ws:
+            pending: deque[int] = deque()
+            i = 0
+            async for obs in items():
+                meta, body = stream_frames(
+                    obs.scan,
+                    obs.timestamp,
+                    obs.pose,
+                    obs.insert,
+                    i,
+                    compress,
+                    obs.verify,
+                    obs.sensor,
+                )
+                await ws.send(meta)
+                await ws.send(body)
+                pending.append(i)
+                i += 1
+                while len(pending) >= window:
+                    text = await asyncio.wait_for(ws.recv(), self.timeout.read)
+                    yield stream_result(text, errors)
+                    pending.popleft()
+            while pending:
+                text = await asyncio.wait_for(ws.recv(), self.timeout.read)
+                yield stream_result(text, errors)
+                pending.popleft()

@@ -1,0 +1,97 @@
+"""Recorded drives for the CLI and the fleet simulator: scans, times, poses, ground truth.
+
+A drive is a sequence folder (KITTI layout or PCD folder, ``overlapmamba.core.datasets``) or a ROS
+recording (a ROS 1 bag, a rosbag2 folder, a bare MCAP file: ``overlapmamba.core.datasets.bags``,
+its PointCloud2 ``topic``, poses from an ``odometry`` topic when named). A folder's times
+come from ``times.txt`` when present (else 10 Hz), a bag's from the bag; poses become
+x,y,z,qx,qy,qz,qw (none for a bag without odometry); the loop radius comes from the
+sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
+A drive's sensor is the one its user names, else the one its ``manifest.json`` records (a
+synthetic drive's); otherwise none is sent, and the server takes the map's or the model's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from overlapmamba.core.datasets import open_recording
+from overlapmamba.core.datasets.bags import Bag
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.poses import quaternion
+
+
+@dataclass
+class Drive:
+    seq: Sequence | Bag  # points(i), name, poses ((N, 4, 4) world poses, or None on a bag)
+    times: np.ndarray  # (N,) seconds
+    poses: np.ndarray | None  # (N, 7) x, y, z, qx, qy, qz, qw; None: the drive has none
+    loop_radius: float | None  # metres, from the shipped ground truth; None: no ground truth
+    sensor: str | None = None  # what the scans' requests name; None: the map's, or the model's
+
+    @property
+    def name(self) -> str:
+        return self.seq.name
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.seq.points(i).as_xyzi()
+
+    def pose(self, i: int) -> np.ndarray | None:
+        return None if self.poses is None else self.poses[i]
+
+
+def _pose7(world: np.ndarray) -> np.ndarray:
+    return np.array([[*T[:3, 3], *quaternion(T[:3, :3])] for T in world])
+
+
+def open_drive(
+    root: str | Path,
+    *,
+    topic: str | None = None,
+    odometry: str | None = None,
+    tf: str | None = None,
+    sensor: str | None = None,
+) -> Drive:
+    """``topic``, ``odometry`` and ``tf``: for a ROS recording, which PointCloud2 topic
+    (needed when it holds several), and which nav_msgs/Odometry topic or /tf fixed frame
+    ("map", or "map:velodyne" for another child frame than the scans') gives the poses.
+    ``sensor``: the sensor that recorded it (default: its manifest's, if any)."""
+    root = Path(root)
+    seq = open_recording(root, topic=topic, odometry=odometry, tf=tf)
+    if isinstance(seq, Bag):
+        poses = None if seq.poses is None else _pose7(seq.poses)
+        return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor)
+    n = len(seq)
+    times_file = root / "times.txt"
+    times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1
+    if len(times) != n:
+        raise ValueError(f"{times_file}: {len(times)} times for {n} scans")
+    radius = None
+    gt = root / "ground_truth" / "loops.npz"
+    if gt.is_file():
+        radius = float(LoopGroundTruth.load(gt).params.get("radius", 30.0))
+    return Drive(
+        seq=seq,
+        times=np.asarray(times, dtype=np.float64),
+        poses=_pose7(seq.poses),
+        loop_radius=radius,
+        sensor=sensor or _manifest_sensor(root),
+    )
+
+
+def _manifest_sensor(root: Path) -> str | None:
+    path = root / "manifest.json"
+    if not path.is_file():
+        return None
+    try:
+        sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
+    except (json.JSONDecodeError, AttributeError, OSError):
+        raise ValueError(f"{path} is not a readable manifest") from None
+    return sensor if isinstance(sensor, str) else None

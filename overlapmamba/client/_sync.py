@@ -1,0 +1,256 @@
+"""``PlaceRecognitionClient``: the blocking client (httpx.Client; websockets for streams)."""
+
+from __future__ import annotations
+
+import random
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import httpx
+
+from overlapmamba.client._base import (
+    Call,
+    Calls,
+    Retry,
+    Timeouts,
+    raise_for,
+    retryable,
+    stream_frames,
+    stream_result,
+    transport_error,
+    ws_url,
+)
+from overlapmamba.client._exceptions import APIError, ClientError
+from overlapmamba.client._models import (
+    BatchInsertResult,
+    Descriptor,
+    Keyframe,
+    MapInfo,
+    Observation,
+    ObserveResult,
+    QueryResult,
+)
+from overlapmamba.client._scans import Scan
+
+
+class PlaceRecognitionClient:
+    """Blocking client of the place-recognition service.
+
+    >>> with PlaceRecognitionClient("http://127.0.0.1:8000") as pr:
+    ...     pr.create_map("town")
+    """
+
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        api_key: str | None = None,
+        timeout: Timeouts = Timeouts(),  # noqa: B008 — frozen, shared safely
+        retry: Retry = Retry(),  # noqa: B008
+        compress: bool = False,
+        transport: httpx.BaseTransport | None = None,
+        seed: int | None = None,
+        sensor: str | None = None,
+    ) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.api_key = api_key
+        self.timeout = timeout
+        self.retry = retry
+        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
+        self._rng = random.Random(seed)
+        headers = {"x-api-key": api_key} if api_key else {}
+        self._http = httpx.Client(
+            base_url=self.base_url, timeout=timeout.httpx(), headers=headers, transport=transport
+        )
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> PlaceRecognitionClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _run(self, call: Call) -> Any:
+        attempts = self.retry.attempts if call.idempotent else 1
+        for attempt in range(1, attempts + 1):
+            try:
+                try:
+                    resp = self._http.request(
+                        call.method,
+                        call.path,
+                        params=call.params,
+                        content=call.content,
+                        json=call.json,
+                        headers=call.headers,
+                    )
+                except httpx.TransportError as err:
+                    raise transport_error(err) from err
+                raise_for(resp)
+                return call.parse(resp)
+            except ClientError as err:
+                if attempt == attempts or not retryable(err, self.retry):
+                    raise
+                retry_after = err.retry_after if isinstance(err, APIError) else None
+                time.sleep(self.retry.delay(attempt, retry_after, self._rng))
+        raise AssertionError("unreachable")
+
+    # ---- the API ----------------------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        return self._run(self._calls.health())
+
+    def sensors(self) -> dict[str, Any]:
+        """The sensors scans may name (``/v1/sensors``): the catalogue, with each one's beam
+        table and how its scans enter the model."""
+        return self._run(self._calls.sensors())
+
+    def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
+        return self._run(self._calls.describe(scan, sensor))
+
+    def describe_batch(self, scans: list[Scan], *, sensor: str | None = None) -> list[Descriptor]:
+        return self._run(self._calls.describe_batch(scans, sensor))
+
+    def create_map(
+        self,
+        map_id: str,
+        *,
+        index: str | None = None,
+        keep_geometry: bool | None = None,
+        sensor: str | None = None,
+    ) -> MapInfo:
+        """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
+        answers are never verified (default: the server's, true). ``sensor``: the sensor of
+        scans sent to it that name none (default: the model's own)."""
+        return self._run(self._calls.create_map(map_id, index, keep_geometry, sensor))
+
+    def list_maps(self) -> list[MapInfo]:
+        return self._run(self._calls.list_maps())
+
+    def get_map(self, map_id: str) -> MapInfo:
+        return self._run(self._calls.get_map(map_id))
+
+    def delete_map(self, map_id: str) -> None:
+        self._run(self._calls.delete_map(map_id))
+
+    def insert_keyframe(
+        self,
+        map_id: str,
+        scan: Scan,
+        *,
+        keyframe_id: str,
+        timestamp: float,
+        robot_id: str = "unknown",
+        session_id: str = "default",
+        pose: Any = None,
+        sensor: str | None = None,
+    ) -> Keyframe:
+        call = self._calls.insert_keyframe(
+            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
+        )
+        return self._run(call)
+
+    def insert_descriptors(
+        self, map_id: str, keyframes: list[dict[str, Any]], *, model_id: str
+    ) -> BatchInsertResult:
+        call = self._calls.insert_descriptors(map_id, model_id, keyframes)
+        return self._run(call)
+
+    def get_keyframe(self, map_id: str, keyframe_id: str) -> Keyframe:
+        return self._run(self._calls.get_keyframe(map_id, keyframe_id))
+
+    def delete_keyframe(self, map_id: str, keyframe_id: str) -> None:
+        self._run(self._calls.delete_keyframe(map_id, keyframe_id))
+
+    def query(
+        self,
+        map_id: str,
+        scan: Scan | None = None,
+        *,
+        descriptor: Any = None,
+        k: int = 10,
+        sensor: str | None = None,
+        **filters: Any,
+    ) -> QueryResult:
+        """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
+        timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
+        verification of a scan query's candidates; ``sensor``: the scan's."""
+        return self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
+
+    def observe(
+        self,
+        map_id: str,
+        scan: Scan,
+        *,
+        robot_id: str,
+        timestamp: float,
+        session_id: str = "default",
+        pose: Any = None,
+        insert: str = "auto",
+        k: int = 10,
+        verify: bool = True,
+        sensor: str | None = None,
+    ) -> ObserveResult:
+        """``verify``: the server registers the top candidates against their keyframes'
+        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        call = self._calls.observe(
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
+        )
+        return self._run(call)
+
+    def stats(self, map_id: str | None = None) -> dict[str, Any]:
+        return self._run(self._calls.stats(map_id))
+
+    def stream(
+        self,
+        map_id: str,
+        observations: Iterable[Observation],
+        *,
+        robot_id: str,
+        session_id: str = "default",
+        k: int = 10,
+        window: int = 2,
+        errors: str = "raise",
+        sensor: str | None = None,
+    ) -> Iterator[ObserveResult | APIError]:
+        """Observe over one WebSocket, results in order. At most ``window`` observations are
+        in flight (the server closes a client that outruns it). ``errors="return"`` yields a
+        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
+        (an observation may name its own)."""
+        from websockets.sync.client import connect
+
+        url = ws_url(
+            self.base_url,
+            map_id,
+            robot_id=robot_id,
+            session_id=session_id,
+            k=k,
+            sensor=sensor or self._calls.sensor,
+        )
+        headers = {"x-api-key": self.api_key} if self.api_key else {}
+        compress = self._calls.compress
+        with connect(url, additional_headers=headers, open_timeout=self.timeout.connect) as ws:
+            pending: deque[int] = deque()
+            for i, obs in enumerate(observations):
+                meta, body = stream_frames(
+                    obs.scan,
+                    obs.timestamp,
+                    obs.pose,
+                    obs.insert,
+                    i,
+                    compress,
+                    obs.verify,
+                    obs.sensor,
+                )
+                ws.send(meta)
+                ws.send(body)
+                pending.append(i)
+                while len(pending) >= window:
+                    yield stream_result(ws.recv(timeout=self.timeout.read), errors)
+                    pending.popleft()
+            while pending:
+                yield stream_result(ws.recv(timeout=self.timeout.read), errors)
+                pending.popleft()

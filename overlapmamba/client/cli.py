@@ -1,0 +1,459 @@
+"""``overlapmamba-client``: operate the service from a shell.
+
+Every command takes ``--url`` (env ``OVERLAPMAMBA_URL``) and ``--api-key``
+(env ``OVERLAPMAMBA_API_KEY``). Errors print the server's message and exit with 1 (the
+service refused) or 2 (it could not be reached, or bad arguments).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from overlapmamba.client._base import Timeouts
+from overlapmamba.client._display import matrix_text, pose_text, progress, stats_table
+from overlapmamba.client._exceptions import APIError, ClientError
+from overlapmamba.client._replay import open_drive
+from overlapmamba.client._sync import PlaceRecognitionClient
+
+app = typer.Typer(
+    name="overlapmamba-client",
+    help="Client of the OverlapMamba place-recognition service.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+maps_app = typer.Typer(help="Create, list and delete maps.", no_args_is_help=True)
+app.add_typer(maps_app, name="maps")
+console = Console(stderr=True, soft_wrap=True)
+out = Console()
+F = TypeVar("F", bound=Callable[..., Any])
+
+UrlOpt = Annotated[
+    str, typer.Option("--url", envvar="OVERLAPMAMBA_URL", help="the service's base URL")
+]
+KeyOpt = Annotated[
+    str | None, typer.Option("--api-key", envvar="OVERLAPMAMBA_API_KEY", help="API key")
+]
+MapOpt = Annotated[str, typer.Option("--map", "-m", help="map id")]
+VerifyOpt = Annotated[
+    bool,
+    typer.Option(
+        "--verify/--no-verify",
+        help="the server registers the top candidates against their keyframes' geometry",
+    ),
+]
+TopicOpt = Annotated[
+    str | None,
+    typer.Option(help="ROS recordings: the PointCloud2 topic (when it holds several)"),
+]
+OdometryOpt = Annotated[
+    str | None,
+    typer.Option(help="ROS recordings: a nav_msgs/Odometry topic giving each scan's pose"),
+]
+TfOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--tf",
+        help="ROS recordings: poses from /tf and /tf_static in this fixed frame (FIXED, or "
+        "FIXED:CHILD when the LiDAR's frame is not the scans' header frame)",
+    ),
+]
+SensorOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="the sensor the scans come from (`overlapmamba sensors`, GET /v1/sensors): "
+        "vlp16, os1-64, …; default: the drive's manifest's, else the map's"
+    ),
+]
+DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
+DEFAULT_URL = "http://127.0.0.1:8000"
+
+
+def _errors(func: F) -> F:
+    @wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except APIError as err:
+            console.print(f"[bold red]error:[/] {err.status} {err.code}: {err.message}")
+            raise typer.Exit(1) from None
+        except ClientError as err:
+            console.print(f"[bold red]error:[/] {err}")
+            raise typer.Exit(2) from None
+        except (ValueError, OSError) as err:
+            console.print(f"[bold red]error:[/] {err}")
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _client(url: str, api_key: str | None) -> PlaceRecognitionClient:
+    return PlaceRecognitionClient(url, api_key=api_key, timeout=Timeouts(read=120))
+
+
+@maps_app.command("list")
+@_errors
+def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
+    """List the maps and their sizes."""
+    with _client(url, api_key) as pr:
+        maps = pr.list_maps()
+    table = Table("map", "keyframes", "index", "model")
+    for m in maps:
+        table.add_row(m.map_id, str(m.keyframes), m.index.get("active", ""), m.model_id)
+    out.print(table)
+
+
+@maps_app.command("create")
+@_errors
+def maps_create(
+    map_id: Annotated[str, typer.Argument(help="[a-z0-9][a-z0-9_-]{0,63}")],
+    index: Annotated[str | None, typer.Option(help="flat, ivf or auto")] = None,
+    geometry: Annotated[
+        bool | None,
+        typer.Option(
+            "--geometry/--no-geometry",
+            help="keyframes keep their geometry for verified answers [default: yes]",
+        ),
+    ] = None,
+    sensor: Annotated[
+        str | None,
+        typer.Option(help="the sensor of scans that name none [default: the model's own]"),
+    ] = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Create a map (idempotent)."""
+    with _client(url, api_key) as pr:
+        m = pr.create_map(map_id, index=index, keep_geometry=geometry, sensor=sensor)
+    out.print(
+        f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes, "
+        f"geometry {'kept' if m.keep_geometry else 'not kept'}, sensor "
+        f"{m.sensor or 'the model’s own'}"
+    )
+
+
+@maps_app.command("delete")
+@_errors
+def maps_delete(
+    map_id: str,
+    yes: Annotated[bool, typer.Option("--yes", help="do not ask")] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Delete a map and all its keyframes."""
+    if not yes:
+        typer.confirm(f"delete map {map_id!r} and all its keyframes?", abort=True)
+    with _client(url, api_key) as pr:
+        pr.delete_map(map_id)
+    out.print(f"map {map_id}: deleted")
+
+
+@app.command(
+    "ingest",
+    epilog="Examples:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5\n\n"
+    "  overlapmamba-client ingest drive.mcap --map town --odometry /odom --sensor os1-64",
+)
+@_errors
+def ingest(
+    seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
+    map_id: MapOpt,
+    robot: Annotated[str, typer.Option(help="robot id")] = "mapper",
+    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
+    tf: TfOpt = None,
+    sensor: SensorOpt = None,
+    compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    session = session or drive.name
+    frames = range(0, len(drive), every)
+    t0 = time.monotonic()
+    created = 0
+    with (
+        PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr,
+        progress(console) as bar,
+    ):
+        pr.create_map(map_id)
+        task = bar.add_task(f"ingest {drive.name}", total=len(frames), rate=0.0, latency=0.0)
+        for n, i in enumerate(frames, start=1):
+            t = time.monotonic()
+            kf = pr.insert_keyframe(
+                map_id,
+                drive.scan(i),
+                keyframe_id=f"{session}-{i:06d}",
+                timestamp=float(drive.times[i]),
+                robot_id=robot,
+                session_id=session,
+                pose=drive.pose(i),
+                sensor=drive.sensor,
+            )
+            created += bool(kf.created)
+            now = time.monotonic()
+            bar.update(task, advance=1, rate=n / (now - t0), latency=(now - t) * 1e3)
+    out.print(
+        f"{len(frames)} scans → map {map_id}: {created} new keyframes, "
+        f"{len(frames) - created} already there; {time.monotonic() - t0:.1f} s"
+    )
+
+
+@app.command("query", epilog="Example:\n\n  overlapmamba-client query scan.bin --map town -k 5")
+@_errors
+def query(
+    scan: Annotated[Path, typer.Argument(help=".bin, .npy or .pcd scan")],
+    map_id: MapOpt,
+    k: Annotated[int, typer.Option("-k", min=1, help="matches to show")] = 5,
+    verify: VerifyOpt = True,
+    sensor: SensorOpt = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """The top-k places for one scan, with yaw, each verified candidate's relative pose and
+    fitness, and the loop-closure verdict with its pose."""
+    with _client(url, api_key) as pr:
+        r = pr.query(map_id, scan, k=k, verify=verify, sensor=sensor)
+    table = Table(
+        "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
+    )
+    for rank, m in enumerate(r.matches, start=1):
+        yaw = "" if m.yaw_deg is None else f"{m.yaw_deg:.1f}"
+        v = m.verification
+        table.add_row(
+            str(rank),
+            m.keyframe_id,
+            f"{m.distance:.5f}",
+            yaw,
+            "" if v is None else {True: "yes", False: "no", None: "no geometry"}[v.verified],
+            "" if v is None or v.fitness is None else f"{v.fitness:.3f}",
+            pose_text(m.relative_pose),
+            m.robot_id,
+        )
+    out.print(table)
+    lc = r.loop_closure
+    if lc.accepted and lc.verified:
+        out.print(f"loop closure: ACCEPTED, verified: {lc.keyframe_id} (fitness {lc.fitness:.3f})")
+        out.print(f"relative pose T_keyframe←query:\n{matrix_text(lc.relative_pose)}")
+    elif lc.verified is False:
+        out.print("loop closure: not accepted (no candidate passed verification)")
+    else:
+        out.print(
+            f"loop closure: {'ACCEPTED' if lc.accepted else 'not accepted'}, descriptor only "
+            f"(threshold {lc.threshold:g}, margin {lc.margin_top1_top2})"
+        )
+
+
+@app.command(
+    "observe",
+    epilog="Example:\n\n  overlapmamba-client observe data/synth/val --map town --robot r1",
+)
+@_errors
+def observe(
+    seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
+    map_id: MapOpt,
+    robot: Annotated[str, typer.Option(help="robot id")] = "robot-1",
+    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
+    tf: TfOpt = None,
+    k: Annotated[int, typer.Option("-k", min=1)] = 5,
+    verify: VerifyOpt = True,
+    sensor: SensorOpt = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="write an MCAP of robot poses, keyframes and loop closures (Foxglove)"),
+    ] = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Replay a drive as a robot (observe: query, then insert when due); print each loop
+    closure as it is detected, with its relative pose when verified."""
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    session = session or drive.name
+    closures = inserted = 0
+    frames = range(0, len(drive), every)
+    with contextlib.ExitStack() as stack:
+        pr = stack.enter_context(_client(url, api_key))
+        rec = None
+        if record is not None:
+            from overlapmamba.client.recording import MapRecording
+
+            rec = stack.enter_context(MapRecording(record))
+        pr.create_map(map_id)
+        for i in frames:
+            o = pr.observe(
+                map_id,
+                drive.scan(i),
+                robot_id=robot,
+                session_id=session,
+                timestamp=float(drive.times[i]),
+                pose=drive.pose(i),
+                k=k,
+                verify=verify,
+                sensor=drive.sensor,
+            )
+            inserted += o.inserted
+            lc = o.loop_closure
+            if rec is not None:
+                rec.observation(
+                    robot,
+                    float(drive.times[i]),
+                    _listed(drive.pose(i)),
+                    o.keyframe_id if o.inserted else None,
+                    _closure_end(pr, map_id, o),
+                )
+            if lc.accepted and o.matches:
+                closures += 1
+                if lc.verified:
+                    out.print(
+                        f"frame {i}: verified loop closure with {lc.keyframe_id} (fitness "
+                        f"{lc.fitness:.3f}; x, y m / yaw °: {pose_text(lc.relative_pose)})"
+                    )
+                else:
+                    m = o.matches[0]
+                    yaw = "" if m.yaw_deg is None else f", yaw {m.yaw_deg:.1f}°"
+                    out.print(
+                        f"frame {i}: loop closure with {m.keyframe_id} (descriptor only, "
+                        f"distance {m.distance:.5f}{yaw})"
+                    )
+    out.print(f"{len(frames)} scans observed: {inserted} inserted, {closures} loop closures")
+    if record is not None:
+        out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
+
+
+def _listed(pose: Any) -> list[float] | None:
+    return None if pose is None else [float(v) for v in pose]
+
+
+def _closure_end(
+    pr: PlaceRecognitionClient, map_id: str, o: Any
+) -> tuple[str, list[float], bool | None] | None:
+    """(keyframe id, its pose, verified) of an accepted loop closure whose keyframe has a
+    pose; the keyframe is fetched when it ranked below the answer's k."""
+    lc = o.loop_closure
+    if not lc.accepted or lc.keyframe_id is None:
+        return None
+    pose = next((m.pose for m in o.matches if m.keyframe_id == lc.keyframe_id), None)
+    if pose is None:
+        pose = pr.get_keyframe(map_id, lc.keyframe_id).pose
+    return None if pose is None else (lc.keyframe_id, list(pose), lc.verified)
+
+
+@app.command("stats")
+@_errors
+def stats(
+    map_id: Annotated[str | None, typer.Option("--map", "-m", help="one map's stats")] = None,
+    watch: Annotated[bool, typer.Option("--watch", help="refresh until Ctrl-C")] = False,
+    interval: Annotated[float, typer.Option(min=0.2, help="seconds between refreshes")] = 2.0,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """Recognition statistics (counts, latency percentiles, robots)."""
+    with _client(url, api_key) as pr:
+        if not watch:
+            out.print(stats_table(pr.stats(map_id)))
+            return
+        with Live(stats_table(pr.stats(map_id)), console=out, auto_refresh=False) as live:
+            try:
+                while True:
+                    time.sleep(interval)
+                    live.update(stats_table(pr.stats(map_id)), refresh=True)
+            except KeyboardInterrupt:
+                pass
+
+
+@app.command(
+    "simulate-fleet",
+    epilog="Example:\n\n  overlapmamba-client simulate-fleet --robots 8 --map fleet "
+    "--sequence data/synth/val --duration 60 --rate 10",
+)
+@_errors
+def simulate_fleet(
+    map_id: MapOpt,
+    sequence: Annotated[
+        list[Path], typer.Option("--sequence", "-s", help="drive(s) to replay; repeatable")
+    ],
+    topic: TopicOpt = None,
+    odometry: OdometryOpt = None,
+    tf: TfOpt = None,
+    sensor: SensorOpt = None,
+    robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
+    duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
+    rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
+    k: Annotated[int, typer.Option("-k", min=1)] = 5,
+    out_json: Annotated[Path, typer.Option("--out", help="report JSON")] = Path(
+        "fleet-report.json"
+    ),
+    plot: Annotated[Path | None, typer.Option(help="latency plot PNG")] = Path("fleet-latency.png"),
+    seed: Annotated[int, typer.Option(help="offsets and session names")] = 0,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+) -> None:
+    """N robots replay drives concurrently through observe; report throughput, latency,
+    errors and loop closures against ground truth."""
+    from overlapmamba.client.fleet import simulate, write_outputs
+
+    drives = [open_drive(p, topic=topic, odometry=odometry, tf=tf, sensor=sensor) for p in sequence]
+    report, samples = asyncio.run(
+        simulate(
+            url,
+            map_id,
+            drives,
+            robots=robots,
+            duration_s=duration,
+            rate_hz=rate,
+            api_key=api_key,
+            k=k,
+            seed=seed,
+        )
+    )
+    write_outputs(report, samples, out_json, plot)
+    table = Table(title=f"fleet: {robots} robots × {rate:g} Hz for {report.duration_s:.1f} s")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    lat = report.latency_ms
+    rows = [
+        ("observations", str(report.observations)),
+        ("throughput (obs/s)", f"{report.throughput_per_s:.2f}"),
+        ("latency p50 / p95 / p99 ms", f"{lat['p50']:.0f} / {lat['p95']:.0f} / {lat['p99']:.0f}"),
+        ("errors", ", ".join(f"{k}: {v}" for k, v in report.errors.items()) or "none"),
+        ("keyframes inserted", str(report.inserted)),
+        ("loop closures accepted", str(report.loop_closures)),
+        ("of which verified (with a relative pose)", str(report.verified_closures)),
+    ]
+    if report.correct is not None:
+        rows += [
+            ("correct (ground truth)", str(report.correct)),
+            ("queries with a loop available", str(report.queries_with_loop)),
+            ("precision", "n/a" if report.precision is None else f"{report.precision:.3f}"),
+            ("recall", "n/a" if report.recall is None else f"{report.recall:.3f}"),
+        ]
+    if report.pose_error:
+        t, y = report.pose_error["translation_m"], report.pose_error["yaw_deg"]
+        rows += [
+            ("pose error median / p90 (m)", f"{t['median']:.3f} / {t['p90']:.3f}"),
+            ("yaw error median / p90 (°)", f"{y['median']:.2f} / {y['p90']:.2f}"),
+        ]
+    for name, value in rows:
+        table.add_row(name, value)
+    out.print(table)
+    out.print(f"wrote {out_json}" + (f" and {plot}" if plot else ""))
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,299 @@
+"""The fleet simulator: N robots replay recorded drives through ``observe`` at once.
+
+Each robot has its own robot id, session and starting offset into its drive, sends one
+scan every 1/rate seconds (never faster; a slow answer delays only that robot), and stops
+at the end of its drive or of the duration, whichever comes first: every loop is bounded
+in count and time, and only the given URL is contacted.
+
+Ground truth, where a drive ships ``ground_truth/loops.npz``: an accepted loop closure is
+correct when its top match is a keyframe of the same drive whose pose lies within the
+drive's loop radius of the query's. A query *has* a loop when such a keyframe had been
+acknowledged before the query was sent and the service's own-session recency filter
+(``exclude_recent_s``, the server default) did not hide it. Precision = correct / accepted,
+recall = correct / queries that had a loop. A verified closure's relative pose is scored
+against the drive's poses (T = P_keyframe⁻¹ · P_query): translation and yaw errors.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.client._async import AsyncPlaceRecognitionClient
+from overlapmamba.client._base import Retry
+from overlapmamba.client._exceptions import APIError, ClientError
+from overlapmamba.client._replay import Drive
+from overlapmamba.core.poses import pose_error
+
+
+@dataclass
+class _Sample:
+    robot: str
+    drive: int
+    frame: int
+    sent: float  # monotonic seconds since start
+    latency_ms: float
+    accepted: bool
+    top: str | None  # the accepted closure's keyframe (else the top match)
+    inserted: str | None
+    error: str | None
+    verified: bool | None = None
+    relative_pose: np.ndarray | None = None
+
+
+@dataclass
+class FleetReport:
+    robots: int
+    duration_s: float
+    rate_hz: float
+    observations: int
+    throughput_per_s: float
+    latency_ms: dict[str, float]
+    errors: dict[str, int]
+    inserted: int
+    loop_closures: int
+    correct: int | None
+    queries_with_loop: int | None
+    precision: float | None
+    recall: float | None
+    verified_closures: int = 0
+    pose_error: dict[str, dict[str, float]] | None = None  # correct verified closures
+    per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+async def simulate(
+    url: str,
+    map_id: str,
+    drives: list[Drive],
+    *,
+    robots: int,
+    duration_s: float,
+    rate_hz: float,
+    api_key: str | None = None,
+    k: int = 5,
+    exclude_recent_s: float = 30.0,
+    seed: int = 0,
+    retry: Retry | None = None,
+) -> tuple[FleetReport, list[_Sample]]:
+    """``retry``: how each robot retries (default: 3 attempts); ``NO_RETRY`` makes every
+    overload or transport error count as an error, as load tests want."""
+    if robots < 1 or duration_s <= 0 or rate_hz <= 0 or not drives:
+        raise ValueError("need robots ≥ 1, duration > 0, rate > 0 and at least one drive")
+    samples: list[_Sample] = []
+    # keyframe id -> (drive, frame, acknowledged at)
+    keyframes: dict[str, tuple[int, int, float]] = {}
+    start = time.monotonic()
+    deadline = start + duration_s
+
+    async with AsyncPlaceRecognitionClient(
+        url, api_key=api_key, retry=retry or Retry(attempts=3, backoff_s=0.2)
+    ) as pr:
+        await pr.create_map(map_id)
+
+        async def robot(r: int) -> None:
+            d = r % len(drives)
+            drive = drives[d]
+            name, session = f"robot-{r:02d}", f"sim-{seed}-{r:02d}"
+            # Robots sharing a drive start spread evenly along it, so each later drives
+            # through places another has already mapped: cross-robot loop closures.
+            sharing = -(-robots // len(drives))
+            offset = (r // len(drives)) * len(drive) // sharing
+            period = 1.0 / rate_hz
+            next_t = time.monotonic()
+            for i in range(offset, len(drive)):
+                now = time.monotonic()
+                if now >= deadline:
+                    return
+                if next_t > now:
+                    await asyncio.sleep(next_t - now)
+                next_t = max(next_t + period, time.monotonic())
+                scan = await asyncio.to_thread(drive.scan, i)
+                sent = time.monotonic()
+                try:
+                    o = await pr.observe(
+                        map_id,
+                        scan,
+                        robot_id=name,
+                        session_id=session,
+                        timestamp=float(drive.times[i]),
+                        pose=drive.pose(i),
+                        k=k,
+                        sensor=drive.sensor,
+                    )
+                except ClientError as err:
+                    kind = err.code if isinstance(err, APIError) else type(err).__name__
+                    samples.append(
+                        _Sample(
+                            name,
+                            d,
+                            i,
+                            sent - start,
+                            (time.monotonic() - sent) * 1e3,
+                            False,
+                            None,
+                            None,
+                            kind,
+                        )
+                    )
+                    continue
+                done = time.monotonic()
+                if o.inserted and o.keyframe_id:
+                    keyframes[o.keyframe_id] = (d, i, done)
+                lc = o.loop_closure
+                samples.append(
+                    _Sample(
+                        name,
+                        d,
+                        i,
+                        sent - start,
+                        (done - sent) * 1e3,
+                        lc.accepted,
+                        lc.keyframe_id or (o.matches[0].keyframe_id if o.matches else None),
+                        o.keyframe_id if o.inserted else None,
+                        None,
+                        lc.verified,
+                        lc.relative_pose,
+                    )
+                )
+
+        await asyncio.gather(*(robot(r) for r in range(robots)))
+    elapsed = time.monotonic() - start
+    return _report(
+        samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start
+    ), samples
+
+
+def _report(
+    samples: list[_Sample],
+    keyframes: dict[str, tuple[int, int, float]],
+    drives: list[Drive],
+    robots: int,
+    elapsed: float,
+    rate_hz: float,
+    exclude_recent_s: float,
+    start: float,
+) -> FleetReport:
+    ok = [s for s in samples if s.error is None]
+    lat = np.array([s.latency_ms for s in ok]) if ok else np.zeros(1)
+    accepted = [s for s in ok if s.accepted]
+    has_gt = all(d.loop_radius is not None and d.poses is not None for d in drives)
+    correct = with_loop = None
+    t_err: list[float] = []
+    yaw_err: list[float] = []
+    if has_gt:
+        correct, with_loop = 0, 0
+        kf_by_drive: dict[int, list[tuple[int, float, str]]] = {}
+        for kid, (d, i, t) in keyframes.items():
+            kf_by_drive.setdefault(d, []).append((i, t - start, kid))
+        for s in ok:
+            drive = drives[s.drive]
+            radius = float(drive.loop_radius or 0.0)
+            assert drive.poses is not None and drive.seq.poses is not None  # has_gt
+            p = drive.poses[s.frame, :3]
+            own_session = s.robot
+            ts = drive.times[s.frame]
+            cands = [
+                (i, kid)
+                for i, t_ack, kid in kf_by_drive.get(s.drive, [])
+                if t_ack <= s.sent
+                and not (
+                    kid.startswith(own_session + ":") and drive.times[i] > ts - exclude_recent_s
+                )
+                and np.linalg.norm(drive.poses[i, :3] - p) < radius
+            ]
+            with_loop += bool(cands)
+            if s.accepted and s.top in keyframes:
+                d, j, _ = keyframes[s.top]
+                if d == s.drive and np.linalg.norm(drive.poses[j, :3] - p) < radius:
+                    correct += 1
+                    if s.verified and s.relative_pose is not None:
+                        poses = drive.seq.poses
+                        truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
+                        t, y = pose_error(s.relative_pose, truth)
+                        t_err.append(t)
+                        yaw_err.append(y)
+    per_robot: dict[str, dict[str, Any]] = {}
+    for s in samples:
+        r = per_robot.setdefault(s.robot, {"observations": 0, "errors": 0, "loop_closures": 0})
+        r["observations"] += 1
+        r["errors"] += s.error is not None
+        r["loop_closures"] += s.accepted
+    return FleetReport(
+        robots=robots,
+        duration_s=elapsed,
+        rate_hz=rate_hz,
+        observations=len(samples),
+        throughput_per_s=len(ok) / elapsed if elapsed > 0 else 0.0,
+        latency_ms={
+            "p50": float(np.percentile(lat, 50)),
+            "p95": float(np.percentile(lat, 95)),
+            "p99": float(np.percentile(lat, 99)),
+            "max": float(lat.max()),
+        },
+        errors=dict(Counter(s.error for s in samples if s.error is not None)),
+        inserted=len(keyframes),
+        loop_closures=len(accepted),
+        correct=correct,
+        queries_with_loop=with_loop,
+        precision=(correct / len(accepted)) if correct is not None and accepted else None,
+        recall=(correct / with_loop) if correct is not None and with_loop else None,
+        verified_closures=sum(bool(s.verified) for s in accepted),
+        pose_error=None
+        if not t_err
+        else {
+            "translation_m": {
+                "median": float(np.median(t_err)),
+                "p90": float(np.percentile(t_err, 90)),
+            },
+            "yaw_deg": {
+                "median": float(np.median(yaw_err)),
+                "p90": float(np.percentile(yaw_err, 90)),
+            },
+        },
+        per_robot=per_robot,
+    )
+
+
+def write_outputs(
+    report: FleetReport, samples: list[_Sample], out: Path, plot: Path | None
+) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    if plot is None:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for name in sorted({s.robot for s in samples}):
+        mine = [s for s in samples if s.robot == name and s.error is None]
+        a.plot([s.sent for s in mine], [s.latency_ms for s in mine], ".", ms=3, label=name)
+    a.set_xlabel("time since start (s)")
+    a.set_ylabel("observe latency (ms)")
+    a.set_title(f"{report.robots} robots at {report.rate_hz:g} Hz")
+    if report.robots <= 8:
+        a.legend(fontsize=7, markerscale=3)
+    lat = [s.latency_ms for s in samples if s.error is None]
+    b.hist(lat, bins=40)
+    for q, v in report.latency_ms.items():
+        if q != "max":
+            b.axvline(v, ls="--", lw=1, color="k")
+            b.text(v, b.get_ylim()[1] * 0.95, q, rotation=90, va="top", fontsize=8)
+    b.set_xlabel("observe latency (ms)")
+    b.set_ylabel("observations")
+    fig.tight_layout()
+    plot.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(plot, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,309 @@
+"""Recorded robot drives in ROS formats, read with rosbags (one library for all of them):
+
+    drive.bag                    ROS 1 bag
+    drive/ (metadata.yaml)       rosbag2, SQLite (.db3) or MCAP storage
+    drive.mcap                   a bare MCAP file of ROS 2 messages
+
+A topic of ``sensor_msgs/msg/PointCloud2`` becomes a drive's scans, in the order recorded,
+each decoded by :func:`overlapmamba.core.io.pointcloud2.decode_message` (so every field layout a
+driver sends works, and a malformed message names what is wrong). Times are the bag's
+receive times. Poses, when asked for, are each scan's at its header stamp, from one of:
+
+    odometry="/odom"           a nav_msgs/msg/Odometry topic: its pose (the child frame
+                               taken as the LiDAR's), interpolated between messages
+    tf="map"                   /tf and /tf_static: the scans' frame (their header frame_id)
+    tf="map:base_link"         or the named one, in the named fixed frame, through the chain
+                               of transforms between them (``overlapmamba.core.tf_tree``)
+
+A scan whose nearest pose sample is more than ``max_pose_gap_s`` away is refused.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.io.pointcloud2 import decode_message
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.poses import from_quaternion
+from overlapmamba.core.tf_tree import TransformTree
+
+PREFETCH = 8  # scans decoded per seek
+CACHED = 32  # scans kept (≈ 2 MB each for a 120k-point scan)
+POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
+ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+TF = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage", "tf/tfMessage")
+TF_TOPICS = {"/tf": False, "/tf_static": True}  # topic -> static
+
+
+def is_bag(path: str | Path) -> bool:
+    """A ROS 1 bag, a rosbag2 folder or a bare MCAP file."""
+    p = Path(path)
+    return (p.is_file() and p.suffix in (".bag", ".mcap")) or (
+        p.is_dir() and (p / "metadata.yaml").is_file()
+    )
+
+
+def _reader(path: Path) -> Any:
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as err:  # pragma: no cover - the client and serve extras install it
+        raise DatasetError(
+            f"{path}: reading ROS bags needs the rosbags package (pip install rosbags)"
+        ) from err
+    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+
+
+@dataclass
+class Bag:
+    """One PointCloud2 topic of a recording: ``len``, ``points(i)``, ``times``, ``poses``."""
+
+    path: Path
+    topic: str
+    stamps_ns: np.ndarray  # (N,) int64: the bag's receive times, as it indexes them
+    poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
+    _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
+
+    @property
+    def name(self) -> str:
+        return self.path.stem if self.path.is_file() else self.path.name
+
+    @property
+    def times(self) -> np.ndarray:
+        """(N,) seconds."""
+        return self.stamps_ns / 1e9
+
+    @property
+    def root(self) -> Path:
+        return self.path
+
+    def __iter__(self) -> Iterator[PointCloud]:
+        for i in range(len(self)):
+            yield self.points(i)
+
+    def positions(self) -> np.ndarray:
+        """(N, 3) scan positions in the world frame (from the odometry)."""
+        if self.poses is None:
+            raise DatasetError(f"{self.path}: no poses; name an odometry topic")
+        return self.poses[:, :3, 3]
+
+    def update_digest(self, h: Any) -> None:
+        """What identifies the recording, cheaply (as ``Sequence.update_digest``): its
+        files' names and sizes, the topic, the message times and the poses."""
+        files = sorted(self.path.rglob("*")) if self.path.is_dir() else [self.path]
+        for f in files:
+            if f.is_file():
+                h.update(f"{f.name}:{f.stat().st_size}".encode())
+        h.update(self.topic.encode())
+        h.update(np.ascontiguousarray(self.stamps_ns).tobytes())
+        if self.poses is not None:
+            h.update(np.ascontiguousarray(self.poses).tobytes())
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    def points(self, i: int) -> PointCloud:
+        """Scan ``i``. Random access: the reader seeks to its time and decodes it and the
+        next ``PREFETCH`` - 1 (a replay reads on in order); the latest ``CACHED`` are kept.
+        Safe from several threads (the fleet simulator's robots share a drive)."""
+        with self._lock:
+            if i in self._cache:
+                return self._cache[i]
+        if not 0 <= i < len(self):
+            raise IndexError(f"scan {i} of {len(self)}")
+        t = int(self.stamps_ns[i])
+        j = i - self._nth(i)  # the index of the first message at scan i's time
+        found: dict[int, PointCloud] = {}
+        with _reader(self.path) as r:
+            cons = [c for c in r.connections if c.topic == self.topic]
+            for con, _, raw in r.messages(connections=cons, start=t):
+                if j >= i:
+                    msg = r.deserialize(raw, con.msgtype)
+                    found[j] = decode_message(msg, source=f"{self.topic} message {j}")
+                j += 1
+                if j >= min(i + PREFETCH, len(self)):
+                    break
+        if i not in found:
+            raise DatasetError(f"{self.path}: message {i} of {self.topic} is gone")
+        with self._lock:
+            self._cache.update(found)
+            while len(self._cache) > CACHED:
+                self._cache.pop(next(iter(self._cache)))
+        return found[i]
+
+    def _nth(self, i: int) -> int:
+        """Which of the messages sharing scan i's time stamp it is."""
+        return int(i - np.searchsorted(self.stamps_ns, self.stamps_ns[i]))
+
+
+def open_bag(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    odometry: str | None = None,
+    tf: str | None = None,
+    max_pose_gap_s: float = 0.1,
+    sensor: str | None = None,
+) -> Bag:
+    """Index a recording's PointCloud2 topic (``topic``: which, when it holds several) and,
+    when ``odometry`` names a topic or ``tf`` a frame ("FIXED" or "FIXED:CHILD"), each
+    scan's pose. ``sensor``: the catalogue sensor that recorded it (a recording does not
+    say; nothing is guessed). Raises DatasetError naming what is wrong and what the
+    recording holds, ProfileError for an unknown sensor."""
+    if sensor is not None:
+        from overlapmamba.core.sensors.catalogue import catalogue_name
+
+        sensor = catalogue_name(sensor)
+    path = Path(path)
+    if not is_bag(path):
+        raise DatasetError(
+            f"{path} is not a ROS recording; allowed: a .bag file, a rosbag2 folder "
+            "(metadata.yaml) or a .mcap file"
+        )
+    if odometry is not None and tf is not None:
+        raise DatasetError("poses come from an odometry topic or from /tf, not both")
+    try:
+        with _reader(path) as r:
+            topic = _cloud_topic(r, path, topic)
+            cons = [c for c in r.connections if c.topic == topic]
+            stamps, headers = [], []
+            for con, t, raw in r.messages(connections=cons):
+                stamps.append(t)
+                if odometry is not None or tf is not None:
+                    h = r.deserialize(raw, con.msgtype).header
+                    headers.append((h.stamp.sec * 10**9 + h.stamp.nanosec, h.frame_id))
+            if not stamps:
+                raise DatasetError(f"{path}: topic {topic} holds no messages")
+            poses = None
+            if odometry is not None:
+                with _named(path):
+                    tree = _odometry_tree(r, path, odometry)
+                    poses = tree.lookup(
+                        odometry, "scan", _stamps(path, headers), max_gap_s=max_pose_gap_s
+                    )
+            elif tf is not None:
+                fixed, _, child = tf.partition(":")
+                with _named(path):
+                    tree = _tf_tree(r, path)
+                    child = child or _frame(path, topic, headers)
+                    poses = tree.lookup(
+                        fixed.lstrip("/"),
+                        child.lstrip("/"),
+                        _stamps(path, headers),
+                        max_gap_s=max_pose_gap_s,
+                    )
+    except DatasetError:
+        raise
+    except Exception as err:  # rosbags raises its own types for damaged files
+        raise DatasetError(f"{path}: the recording cannot be read: {err}") from err
+    ns = np.asarray(stamps, dtype=np.int64)
+    if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
+        raise DatasetError(f"{path}: {topic} is not in time order")
+    return Bag(path, topic, ns, poses, sensor=sensor)
+
+
+@contextmanager
+def _named(path: Path) -> Iterator[None]:
+    """A transform tree's errors, prefixed with the recording they are about."""
+    try:
+        yield
+    except DatasetError as err:
+        if str(err).startswith(f"{path}:"):
+            raise
+        raise DatasetError(f"{path}: {err}", **err.detail) from err
+
+
+def _cloud_topic(r: Any, path: Path, topic: str | None) -> str:
+    clouds = sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2})
+    if topic is None:
+        if len(clouds) != 1:
+            raise DatasetError(
+                f"{path}: {len(clouds)} PointCloud2 topics ({', '.join(clouds) or 'none'}); "
+                "name one with --topic",
+                topics=clouds,
+            )
+        return clouds[0]
+    if topic not in clouds:
+        raise DatasetError(
+            f"{path}: no PointCloud2 topic {topic!r}; it has {', '.join(clouds) or 'none'}",
+            topics=clouds,
+        )
+    return topic
+
+
+def _stamps(path: Path, headers: list[tuple[int, str]]) -> np.ndarray:
+    """The scans' header stamps, the times their poses are looked up at."""
+    stamps = np.array([s for s, _ in headers], dtype=np.int64)
+    if not stamps.any():
+        raise DatasetError(f"{path}: the scans' header stamps are all zero; poses need them")
+    return stamps
+
+
+def _frame(path: Path, topic: str, headers: list[tuple[int, str]]) -> str:
+    """The scans' frame (their header frame_id), the child frame of their /tf poses."""
+    frames = sorted({f for _, f in headers})
+    if len(frames) != 1 or not frames[0]:
+        raise DatasetError(
+            f"{path}: the scans of {topic} are in frames {frames}; name the LiDAR's frame "
+            "with --tf FIXED:CHILD"
+        )
+    return frames[0]
+
+
+def _pose(p: Any) -> np.ndarray:
+    """geometry_msgs Pose or Transform → 4×4."""
+    xyz = p.position if hasattr(p, "position") else p.translation
+    o = p.orientation if hasattr(p, "orientation") else p.rotation
+    return from_quaternion([xyz.x, xyz.y, xyz.z], [o.x, o.y, o.z, o.w])
+
+
+def _stamp(header: Any) -> int:
+    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
+
+
+def _odometry_tree(r: Any, path: Path, topic: str) -> TransformTree:
+    """The odometry topic as one link, topic → "scan" (its frame names, often unset
+    by hand-written nodes, are not needed)."""
+    cons = [c for c in r.connections if c.topic == topic]
+    if not cons or cons[0].msgtype not in ODOMETRY:
+        have = sorted({c.topic for c in r.connections if c.msgtype in ODOMETRY})
+        raise DatasetError(
+            f"{path}: no nav_msgs/Odometry topic {topic!r}; it has {', '.join(have) or 'none'}",
+            topics=have,
+        )
+    tree = TransformTree()
+    for con, _, raw in r.messages(connections=cons):
+        msg = r.deserialize(raw, con.msgtype)
+        tree.add(topic, "scan", _stamp(msg.header), _pose(msg.pose.pose))
+    if not tree.frames:
+        raise DatasetError(f"{path}: odometry topic {topic} holds no messages")
+    return tree
+
+
+def _tf_tree(r: Any, path: Path) -> TransformTree:
+    """Every transform on /tf (timed) and /tf_static (static)."""
+    cons = [c for c in r.connections if c.topic in TF_TOPICS and c.msgtype in TF]
+    if not cons:
+        raise DatasetError(
+            f"{path}: no /tf or /tf_static topic of tf2_msgs/TFMessage; name an odometry "
+            "topic instead (--odometry)"
+        )
+    tree = TransformTree()
+    for con, _, raw in r.messages(connections=cons):
+        for tr in r.deserialize(raw, con.msgtype).transforms:
+            parent, child = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
+            tree.add(
+                parent, child, _stamp(tr.header), _pose(tr.transform), static=TF_TOPICS[con.topic]
+            )
+    return tree

@@ -1,0 +1,65 @@
+"""What every sequence reader provides."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.io import read_points
+from overlapmamba.core.points import PointCloud
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """A recorded drive: scan files and one LiDAR-frame pose (scan → world) per scan.
+
+    scan_paths: N files, in time order
+    poses:      (N, 4, 4) float64, LiDAR frame
+    sensor:     name of the sensor profile the data was recorded with, if known
+    """
+
+    root: Path
+    scan_paths: tuple[Path, ...]
+    poses: np.ndarray
+    sensor: str | None = None
+
+    def __post_init__(self) -> None:
+        if len(self.scan_paths) != len(self.poses):
+            raise DatasetError(
+                f"{self.root}: {len(self.scan_paths)} scans but {len(self.poses)} poses; "
+                "a sequence needs exactly one pose per scan",
+                scans=len(self.scan_paths),
+                poses=len(self.poses),
+            )
+        if not self.scan_paths:
+            raise DatasetError(f"{self.root}: the sequence holds no scans")
+
+    @property
+    def name(self) -> str:
+        return self.root.name
+
+    def __len__(self) -> int:
+        return len(self.scan_paths)
+
+    def points(self, i: int) -> PointCloud:
+        return read_points(self.scan_paths[i])
+
+    def __iter__(self) -> Iterator[PointCloud]:
+        for i in range(len(self)):
+            yield self.points(i)
+
+    def update_digest(self, h: hashlib._Hash) -> None:
+        """Feed what identifies the recording (poses, scan names and sizes) into a hash, cheaply:
+        no scan is read. Caches keyed by it go stale when a scan or pose changes."""
+        h.update(np.ascontiguousarray(self.poses).tobytes())
+        for p in self.scan_paths:
+            h.update(f"{p.name}:{p.stat().st_size}".encode())
+
+    def positions(self) -> np.ndarray:
+        """(N, 3) scan positions in the world frame."""
+        return self.poses[:, :3, 3]

@@ -1,0 +1,37 @@
+"""A folder of PCD scans plus ``poses.txt`` (LiDAR-frame, 3×4 per line), such as
+``clouds/0.pcd … clouds/38.pcd``. Files are ordered by the number in their name."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.poses import read_poses
+
+_NUMBER = re.compile(r"(\d+)")
+
+
+def _scan_dir(root: Path) -> Path:
+    return root / "clouds" if (root / "clouds").is_dir() else root
+
+
+def looks_like(root: Path) -> bool:
+    return (root / "poses.txt").is_file() and any(_scan_dir(root).glob("*.pcd"))
+
+
+def _natural_key(path: Path) -> tuple[int, str]:
+    m = _NUMBER.search(path.stem)
+    return (int(m.group(1)) if m else -1, path.name)
+
+
+def open_pcd_folder(root: str | Path, *, sensor: str | None = None) -> Sequence:
+    root = Path(root)
+    scans = tuple(sorted(_scan_dir(root).glob("*.pcd"), key=_natural_key))
+    if not scans:
+        raise DatasetError(f"{root}: no .pcd files in {_scan_dir(root)}")
+    pose_file = root / "poses.txt"
+    if not pose_file.is_file():
+        raise DatasetError(f"{root}: poses.txt is missing (one 3×4 pose per scan)")
+    return Sequence(root=root, scan_paths=scans, poses=read_poses(pose_file), sensor=sensor)

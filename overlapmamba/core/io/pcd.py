@@ -1,0 +1,147 @@
+"""PCD scans (ascii, binary, binary_compressed) through pypcd4.
+
+pypcd4 trusts the header; we check it first — declared point count, the fields we need, and
+for ``binary_compressed`` the declared uncompressed size — so a hostile header cannot make
+it allocate gigabytes (a decompression bomb) or silently return fewer points than declared.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import warnings
+
+import numpy as np
+from pypcd4 import PointCloud as PcdCloud
+from pypcd4.pypcd4 import MetaData
+
+from overlapmamba.core.errors import DecodeError
+from overlapmamba.core.points import DEFAULT_LIMITS, PointCloud, PointLimits, validate
+
+INTENSITY_FIELDS = ("intensity", "i")
+DATA_ENCODINGS = ("ascii", "binary", "binary_compressed")
+# The PCD v0.7 header has at most 10 entries (VERSION … DATA); pypcd4 stops reading at 10.
+_MAX_HEADER_ENTRIES = 10
+_MAX_HEADER_BYTES = 4096
+
+
+def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, list[str], int]:
+    """Parse the header ourselves; return it, its cleaned lines and the data offset.
+
+    pypcd4 is later handed exactly these lines, so it cannot read the header differently.
+    """
+    lines: list[str] = []
+    while True:
+        raw = buf.readline(_MAX_HEADER_BYTES + 1)
+        if not raw:
+            raise DecodeError(f"{source}: PCD header ends without a DATA line")
+        if len(raw) > _MAX_HEADER_BYTES:
+            raise DecodeError(f"{source}: PCD header line longer than {_MAX_HEADER_BYTES} bytes")
+        try:
+            line = raw.decode("ascii").strip()
+        except UnicodeDecodeError as err:
+            raise DecodeError(f"{source}: PCD header is not ASCII text") from err
+        if not line or line.startswith("#"):
+            continue
+        lines.append(line)
+        if line.startswith("DATA"):
+            break
+        if len(lines) >= _MAX_HEADER_ENTRIES:
+            raise DecodeError(
+                f"{source}: PCD header has no DATA line in its first {_MAX_HEADER_ENTRIES} "
+                "entries (VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT, VIEWPOINT, POINTS, "
+                "DATA)"
+            )
+    encoding = lines[-1].split()[1:]
+    if encoding not in ([e] for e in DATA_ENCODINGS):
+        raise DecodeError(
+            f"{source}: PCD 'DATA {' '.join(encoding)}' is not supported; allowed: "
+            f"{', '.join(DATA_ENCODINGS)}",
+            allowed=list(DATA_ENCODINGS),
+        )
+    try:
+        meta = MetaData.parse_header(lines)
+    except Exception as err:  # pydantic.ValidationError, ValueError on junk numbers
+        raise DecodeError(f"{source}: malformed PCD header: {_short(err)}") from err
+    n = len(meta.fields)
+    if not (len(meta.size) == len(meta.type) == len(meta.count) == n):
+        raise DecodeError(
+            f"{source}: PCD header lists {n} FIELDS but {len(meta.size)} SIZE, "
+            f"{len(meta.type)} TYPE and {len(meta.count)} COUNT entries"
+        )
+    if meta.points != meta.width * meta.height:
+        raise DecodeError(
+            f"{source}: PCD header declares POINTS {meta.points} but WIDTH×HEIGHT is "
+            f"{meta.width * meta.height}"
+        )
+    return meta, lines, buf.tell()
+
+
+def _short(err: Exception) -> str:
+    return str(err).splitlines()[0][:200]
+
+
+def decode_pcd(
+    data: bytes | bytearray | memoryview,
+    *,
+    limits: PointLimits = DEFAULT_LIMITS,
+    source: str = "scan",
+) -> PointCloud:
+    buf = io.BytesIO(data)
+    meta, lines, offset = _read_header(buf, source)
+    missing = [f for f in ("x", "y", "z") if f not in meta.fields]
+    if missing:
+        raise DecodeError(
+            f"{source}: PCD has fields {list(meta.fields)}; required: x, y, z "
+            f"(optional intensity); missing {missing}"
+        )
+    for name, size, typ, count in zip(meta.fields, meta.size, meta.type, meta.count, strict=True):
+        if name in ("x", "y", "z") and (typ != "F" or count != 1):
+            raise DecodeError(
+                f"{source}: PCD field {name} is TYPE {typ} COUNT {count}; allowed: F with COUNT 1"
+            )
+        if name in INTENSITY_FIELDS and count != 1:
+            raise DecodeError(f"{source}: PCD field {name} has COUNT {count}; allowed: 1")
+        if (typ == "F" and size not in (4, 8)) or (typ in "UI" and size not in (1, 2, 4, 8)):
+            raise DecodeError(f"{source}: PCD field {name} has unsupported SIZE {size}")
+    limits.check_count(meta.points, source=source)
+    try:
+        record = meta.build_dtype().itemsize
+    except Exception as err:
+        raise DecodeError(f"{source}: PCD field types are invalid: {_short(err)}") from err
+    body = len(data) - offset
+    encoding = meta.data.value
+    if encoding == "binary" and body < meta.points * record:
+        raise DecodeError(
+            f"{source}: PCD declares {meta.points} points ({meta.points * record} bytes) "
+            f"but holds {body} bytes of data"
+        )
+    if encoding == "binary_compressed":
+        if body < 8:
+            raise DecodeError(f"{source}: binary_compressed PCD lacks its size header")
+        compressed, uncompressed = struct.unpack("<II", bytes(data[offset : offset + 8]))
+        if uncompressed != meta.points * record or compressed > body - 8:
+            raise DecodeError(
+                f"{source}: binary_compressed PCD sizes are inconsistent (compressed "
+                f"{compressed}, uncompressed {uncompressed}, expected uncompressed "
+                f"{meta.points * record}, {body - 8} bytes present)"
+            )
+    try:
+        clean = "\n".join(lines).encode() + b"\n" + bytes(memoryview(data)[offset:])
+        with warnings.catch_warnings():
+            # e.g. loadtxt's "input contained no data": the count check below reports it.
+            warnings.simplefilter("ignore")
+            pc = PcdCloud.from_fileobj(io.BytesIO(clean))  # type: ignore[arg-type]
+        arr = np.atleast_1d(pc.pc_data)
+    except Exception as err:  # lzf, numpy and pypcd4 raise a variety of types
+        raise DecodeError(f"{source}: PCD data cannot be decoded: {_short(err)}") from err
+    if arr.shape[0] != meta.points:
+        raise DecodeError(
+            f"{source}: PCD declares {meta.points} points but its data holds {arr.shape[0]}"
+        )
+    # float64 fields beyond float32's range become inf here; validate() reports them.
+    with np.errstate(over="ignore"):
+        xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
+        field = next((f for f in INTENSITY_FIELDS if f in meta.fields), None)
+        intensity = None if field is None else np.asarray(arr[field], dtype=np.float32)
+    return validate(xyz, intensity, limits=limits, source=source)

@@ -1,0 +1,169 @@
+"""What an exported encoder says about itself: one schema for the writer and the readers.
+
+The export (``overlapmamba.train.export``) writes these fields into the ONNX file's
+``metadata_props``; the service reads them back (onnxruntime's ``custom_metadata_map``) and
+needs nothing else: the sensor profile gives the projection, ``sensor_input`` how scans of
+other sensors enter it (:mod:`overlapmamba.core.sensors.input`), ``views`` how many sub-column
+views of it make one descriptor (:mod:`overlapmamba.core.views`), ``descriptor_dim`` sizes the
+index, ``model_id`` keeps descriptors of different models out of one map, ``calibration``
+holds the thresholds the benchmarks chose for it (:mod:`overlapmamba.core.calibration`).
+
+Every value in ``metadata_props`` is a string; structured fields are JSON. The keys are
+namespaced ``overlapmamba.*`` so they never collide with a tool's own.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibration
+from overlapmamba.core.errors import LidarCoreError
+from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.input import Mode
+from overlapmamba.core.views import MAX_VIEWS
+
+FORMAT = "overlapmamba-encoder"
+VERSION = 1
+PREFIX = "overlapmamba."
+INPUT = "range_image"  # (B, 1, H, W) float32
+OUTPUTS = ("descriptor", "yaw_features")  # (B, D) unit norm; (B, C, W)
+# The selective scan is one node per block in this domain, defined by a model-local function
+# inside the file (portable: runtimes inline it); a runtime with its own kernel may bind the
+# node instead. circular → op name. Contract: overlapmamba.train.scan_onnx.
+SCAN_DOMAIN = "overlapmamba"
+SCAN_OPS = {False: "SelectiveScan", True: "SelectiveScanRing"}
+
+
+class ModelMetadataError(LidarCoreError, ValueError):
+    code = "invalid_model_metadata"
+
+
+class EncoderMetadata(BaseModel):
+    """Everything a consumer of the exported encoder needs, besides the graph."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", protected_namespaces=())
+
+    format: str = FORMAT
+    version: int = VERSION
+    model_id: str = Field(
+        min_length=1, description="content hash of the graph and weights (and of views > 1)"
+    )
+    profile: SensorProfile = Field(description="sensor profile: every projection parameter")
+    network: dict[str, Any] = Field(alias="model_config", description="the network config")
+    descriptor_dim: int = Field(gt=0)
+    yaw_channels: int = Field(gt=0)
+    views: int = Field(
+        default=1,
+        ge=1,
+        le=MAX_VIEWS,
+        description="sub-column views a scan is described by (overlapmamba.core.views); "
+        "part of the model id",
+    )
+    graph_id: str = Field(
+        default="",
+        description="with views > 1, the content hash of the graph and weights alone (the "
+        "model id the same file has with one view); empty otherwise",
+    )
+    sensor_input: Mode = Field(
+        default="elevation",
+        description="how a scan of another sensor than the profile's becomes this model's "
+        "input (overlapmamba.core.sensors.input): elevation or rows; part of the model id",
+    )
+    calibration: dict[str, Calibrated] = Field(
+        default_factory=dict,
+        description="thresholds calibrated for this model by the benchmarks "
+        "(overlapmamba.core.calibration); the service takes them unless a setting overrides",
+    )
+    weights: str = Field(description="'trained' or 'random' (an untrained network)")
+    weight_format: str = Field(description="storage of the large matrices: float32 or int8")
+    training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
+    metrics: dict[str, Any] = Field(default_factory=dict, description="validation summary")
+    source_commit: str = Field(description="git commit of the exporting code ('-dirty' if so)")
+    exported_at: str = Field(description="UTC time, ISO 8601")
+    torch_version: str = ""
+    opset: int = Field(gt=0)
+
+    @field_validator("calibration", mode="before")
+    @classmethod
+    def _known_calibration(cls, v: Any) -> Any:
+        """Sections this code does not know (a newer writer's) are left out with a warning,
+        so the model still loads; a known section with unknown fields is refused."""
+        if not isinstance(v, dict):
+            return v
+        unknown = sorted(set(v) - set(CALIBRATED))
+        if unknown:
+            logging.getLogger("overlapmamba").warning(
+                "model calibration: sections %s are not known here and are ignored", unknown
+            )
+        return check_calibration({k: x for k, x in v.items() if k in CALIBRATED})
+
+    @property
+    def graph(self) -> str:
+        """The content hash of the graph and weights, whatever the views."""
+        return self.graph_id or self.model_id
+
+    def to_props(self) -> dict[str, str]:
+        """String → string pairs for ``metadata_props``."""
+        out = {}
+        for key, value in self.model_dump(by_alias=True, mode="json").items():
+            out[PREFIX + key] = value if isinstance(value, str) else json.dumps(value)
+        return out
+
+    @classmethod
+    def from_props(cls, props: dict[str, str]) -> EncoderMetadata:
+        """The inverse of :meth:`to_props`; a model without our metadata is refused."""
+        fields = {k[len(PREFIX) :]: v for k, v in props.items() if k.startswith(PREFIX)}
+        if fields.get("format") != FORMAT:
+            raise ModelMetadataError(
+                f"the model has no '{PREFIX}format={FORMAT}' metadata: export it with "
+                "`overlapmamba export CHECKPOINT --out model.onnx`",
+                found=sorted(props),
+            )
+        strings = {"format", "model_id", "graph_id", "weights", "weight_format", "source_commit"}
+        strings |= {"exported_at", "torch_version", "sensor_input"}
+        try:
+            values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
+        except json.JSONDecodeError as err:
+            raise ModelMetadataError(f"model metadata is not valid JSON: {err}") from None
+        if values.get("version") != VERSION:
+            raise ModelMetadataError(
+                f"model metadata version {values.get('version')!r} is not supported; "
+                f"this code reads {VERSION}",
+                version=values.get("version"),
+                allowed=[VERSION],
+            )
+        try:
+            return cls.model_validate(values)
+        except ValidationError as err:
+            raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None
+
+
+DEFAULT_SENSOR_INPUT: Mode = "elevation"
+
+
+def identity(
+    graph_id: str, views: int, sensor_input: Mode = DEFAULT_SENSOR_INPUT
+) -> dict[str, Any]:
+    """The metadata fields that name a graph (its content hash, ``om-…``) described by
+    ``views`` views and taking other sensors' scans by ``sensor_input``: ``views``,
+    ``sensor_input``, ``model_id`` (the graph's own with one view and the default input, as
+    every file before views had; else a hash of all three, since other views, or another
+    sensor input, give other descriptors, which must not share a map) and ``graph_id`` (kept
+    only when it differs from the model id)."""
+    if views == 1 and sensor_input == DEFAULT_SENSOR_INPUT:
+        return {"views": 1, "sensor_input": sensor_input, "model_id": graph_id, "graph_id": ""}
+    key = f"{graph_id}+views={views}"
+    if sensor_input != DEFAULT_SENSOR_INPUT:  # the default keeps the ids made before it
+        key += f"+sensor_input={sensor_input}"
+    model_id = "om-" + hashlib.sha256(key.encode()).hexdigest()[:16]
+    return {
+        "views": views,
+        "sensor_input": sensor_input,
+        "model_id": model_id,
+        "graph_id": graph_id,
+    }

@@ -1,0 +1,354 @@
+"""Overlap ground truth (OverlapNet's definition) and loop-closure tables.
+
+Overlap of a reference scan j with a query scan i:
+
+    1. move j's points into i's frame with the relative pose T_i⁻¹ · T_j;
+    2. project both with the same sensor profile (nearest point wins each pixel);
+    3. overlap = #(pixels valid in both with |r_j − r_i| < τ) / #(valid pixels of i).
+
+τ = 1 m by default. Overlap is asymmetric in general. Relative yaw is the rotation about z
+of T_i⁻¹ · T_j, in degrees.
+
+A *loop* for query i is a frame j with i − j > exclude_recent (100), ‖t_i − t_j‖ < radius
+(30 m) and overlap > min_overlap (0.3), as in OverlapTransformer's KITTI protocol.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from tqdm.auto import tqdm
+
+from overlapmamba.core.cache import cache_root
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.poses import relative_transform, transform_points, yaw_deg
+from overlapmamba.core.projection import pixel_coordinates, project
+from overlapmamba.core.sensors import SensorProfile
+
+GT_FORMAT_VERSION = 1
+
+
+def overlap_and_yaw(
+    query_xyz: np.ndarray,
+    query_pose: np.ndarray,
+    ref_xyz: Seq[np.ndarray],
+    ref_poses: np.ndarray,
+    profile: SensorProfile,
+    *,
+    threshold: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap and relative yaw of K reference scans against one query, vectorised.
+
+    query_xyz: (N, 3); query_pose: (4, 4); ref_xyz: K arrays (M_k, 3); ref_poses: (K, 4, 4)
+    → overlap (K,) float32 in [0, 1], yaw (K,) float32 degrees.
+    """
+    ref_poses = np.asarray(ref_poses, dtype=np.float64).reshape(-1, 4, 4)
+    K = len(ref_xyz)
+    if ref_poses.shape[0] != K:
+        raise ValueError(f"{K} reference scans but {ref_poses.shape[0]} reference poses")
+    rel = relative_transform(np.asarray(query_pose, dtype=np.float64), ref_poses)
+    yaws = yaw_deg(rel).astype(np.float32)
+    if K == 0:
+        return np.zeros(0, np.float32), yaws
+    H, W = profile.height, profile.width
+    query = project(query_xyz, profile)
+    query_valid = query != np.float32(profile.empty_value)
+    n_query = int(query_valid.sum())
+
+    # Each reference projected into its own H·W slab, one at a time: its temporaries stay
+    # small enough for the cache (0.75× the time of one concatenated projection, same bits).
+    flat = np.full((K, H * W), np.inf, dtype=np.float32)
+    for slab, xyz, t in zip(flat, ref_xyz, rel, strict=True):
+        pc = pixel_coordinates(transform_points(np.asarray(xyz)[:, :3], t), profile)
+        np.minimum.at(slab, pc.row.astype(np.int64) * W + pc.col, pc.depth)
+    refs = flat.reshape(K, H, W)
+
+    hit = np.isfinite(refs) & query_valid & (np.abs(refs - query) < np.float32(threshold))
+    if n_query == 0:
+        return np.zeros(K, np.float32), yaws
+    return (hit.reshape(K, -1).sum(axis=1) / n_query).astype(np.float32), yaws
+
+
+def candidate_pairs(
+    positions: np.ndarray, *, radius: float, min_gap: int = 0, chunk: int = 2048
+) -> np.ndarray:
+    """(P, 2) int pairs (i, j) with ‖p_i − p_j‖ < radius and i − j ≥ min_gap (j earlier).
+
+    With min_gap = 0 every ordered pair within the radius is returned, i == j included.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    out = []
+    for start in range(0, len(pos), chunk):
+        q = pos[start : start + chunk]
+        d2 = ((q[:, None, :] - pos[None, :, :]) ** 2).sum(-1)
+        ok = d2 < radius * radius
+        if min_gap > 0:
+            i = np.arange(start, start + len(q))[:, None]
+            ok &= (i - np.arange(len(pos))[None, :]) >= min_gap
+        qi, rj = np.nonzero(ok)
+        out.append(np.stack([qi + start, rj], axis=1))
+    return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 2), np.int64)
+
+
+def pair_overlaps(
+    seq: Sequence,
+    pairs: np.ndarray,
+    profile: SensorProfile,
+    *,
+    threshold: float = 1.0,
+    progress: bool = True,
+    desc: str = "overlap",
+    cache_scans: int = 512,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap and yaw for arbitrary (query, reference) pairs of one sequence.
+
+    Pairs are grouped by query so each query is projected once; scans are read through a
+    small LRU cache because neighbouring queries share most of their references.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    overlaps = np.zeros(len(pairs), np.float32)
+    yaws = np.zeros(len(pairs), np.float32)
+    load: Callable[[int], np.ndarray] = lru_cache(maxsize=cache_scans)(lambda i: seq.points(i).xyz)
+    order = np.argsort(pairs[:, 0], kind="stable")
+    queries, starts = np.unique(pairs[order, 0], return_index=True)
+    bounds = [*starts[1:], len(order)] if len(starts) else []  # no pairs: nothing to do
+    for q, s, e in tqdm(
+        list(zip(queries, starts, bounds, strict=True)),
+        desc=desc,
+        unit="query",
+        disable=not progress,
+    ):
+        idx = order[s:e]
+        refs = pairs[idx, 1]
+        ov, yw = overlap_and_yaw(
+            load(int(q)),
+            seq.poses[q],
+            [load(int(j)) for j in refs],
+            seq.poses[refs],
+            profile,
+            threshold=threshold,
+        )
+        overlaps[idx], yaws[idx] = ov, yw
+    return overlaps, yaws
+
+
+@dataclass(frozen=True)
+class LoopGroundTruth:
+    """Every candidate pair within the radius, with its overlap; loops are those above
+    ``min_overlap``. Pairs are (query, reference) with reference earlier than query.
+
+    query, reference: (P,) int64; overlap, yaw_deg, distance: (P,) float32
+    """
+
+    n_frames: int
+    query: np.ndarray
+    reference: np.ndarray
+    overlap: np.ndarray
+    yaw_deg: np.ndarray
+    distance: np.ndarray
+    params: dict = field(default_factory=dict)
+
+    @property
+    def min_overlap(self) -> float:
+        return float(self.params.get("min_overlap", 0.3))
+
+    @property
+    def is_loop(self) -> np.ndarray:
+        return self.overlap > self.min_overlap
+
+    def positives(self) -> list[np.ndarray]:
+        """For each frame, the sorted earlier frames that are true loops."""
+        loop = self.is_loop
+        out: list[list[int]] = [[] for _ in range(self.n_frames)]
+        for q, r in zip(self.query[loop], self.reference[loop], strict=True):
+            out[int(q)].append(int(r))
+        return [np.array(sorted(x), dtype=np.int64) for x in out]
+
+    def has_loop(self) -> np.ndarray:
+        """(n_frames,) bool: the frame revisits a place seen earlier."""
+        mask = np.zeros(self.n_frames, dtype=bool)
+        mask[self.query[self.is_loop]] = True
+        return mask
+
+    def best_loops(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each revisiting frame (ascending), the reference of its highest-overlap loop, and
+        that pair's relative yaw in degrees: (F,) int64, (F,) int64, (F,) float32."""
+        loop = self.is_loop
+        q, r = self.query[loop], self.reference[loop]
+        order = np.lexsort((-self.overlap[loop], q))  # by query, best overlap first (stable)
+        q, r, yaw = q[order], r[order], self.yaw_deg[loop][order]
+        first = np.r_[True, q[1:] != q[:-1]] if len(q) else np.zeros(0, bool)
+        return q[first], r[first], yaw[first]
+
+    def direction_masks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n_frames,) bool masks of same- and reverse-direction revisits: a revisit is
+        reverse when its best loop is turned by more than 90°."""
+        frames, _, yaw = self.best_loops()
+        same = np.zeros(self.n_frames, bool)
+        reverse = np.zeros(self.n_frames, bool)
+        same[frames[np.abs(yaw) <= 90]] = True
+        reverse[frames[np.abs(yaw) > 90]] = True
+        return same, reverse
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
+        np.savez_compressed(
+            tmp,
+            n_frames=self.n_frames,
+            query=self.query,
+            reference=self.reference,
+            overlap=self.overlap,
+            yaw_deg=self.yaw_deg,
+            distance=self.distance,
+            params=json.dumps(self.params, sort_keys=True),
+        )
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> LoopGroundTruth:
+        with np.load(path, allow_pickle=False) as z:
+            return cls(
+                n_frames=int(z["n_frames"]),
+                query=z["query"],
+                reference=z["reference"],
+                overlap=z["overlap"],
+                yaw_deg=z["yaw_deg"],
+                distance=z["distance"],
+                params=json.loads(str(z["params"])),
+            )
+
+
+def _fingerprint(seq: Sequence, params: dict) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps(params, sort_keys=True).encode())
+    seq.update_digest(h)
+    return h.hexdigest()[:16]
+
+
+def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
+    """``$OVERLAPMAMBA_CACHE`` (default ``~/.cache/overlapmamba``)``/ground_truth/…``.
+
+    Never the sequence folder itself: real data is shared and must stay untouched. Writers
+    that own their folder (the synthetic generator) pass an explicit path instead.
+    """
+    return cache_root() / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
+
+
+class LoopParams(BaseModel):
+    """What makes a pair of scans a loop, everywhere loops are counted (ground truth, the
+    generator's tables, evaluation, training's validation, the CLI): the query is more than
+    ``exclude_recent`` frames after the reference, closer than ``radius`` metres, and they
+    overlap by at least ``min_overlap`` (overlap of points within ``threshold`` metres of
+    range)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    exclude_recent: int = Field(default=100, ge=0)
+    radius: float = Field(default=30.0, gt=0)
+    min_overlap: float = Field(default=0.3, ge=0, le=1)
+    threshold: float = Field(default=1.0, gt=0)
+
+    @classmethod
+    def of(cls, table_params: dict) -> LoopParams:
+        """The parameters a saved loop table (``LoopGroundTruth.params``) was made with."""
+        return cls(**{k: table_params[k] for k in cls.model_fields if k in table_params})
+
+
+def loop_params(seq: Sequence, profile: SensorProfile, loops: LoopParams | None = None) -> dict:
+    """The parameters that identify a loop table, with their fingerprint over the sequence."""
+    loops = loops or LoopParams()
+    params = {
+        "format": GT_FORMAT_VERSION,
+        "exclude_recent": loops.exclude_recent,
+        "radius": loops.radius,
+        "min_overlap": loops.min_overlap,
+        "threshold": loops.threshold,
+        "profile": profile.model_dump(),
+    }
+    params["fingerprint"] = _fingerprint(seq, params)
+    return params
+
+
+def loop_table_from_pairs(
+    seq: Sequence,
+    params: dict,
+    query: np.ndarray,
+    reference: np.ndarray,
+    overlap: np.ndarray,
+    yaw: np.ndarray,
+) -> LoopGroundTruth:
+    """A loop table from overlaps already computed for a superset of its candidate pairs
+    (the same pairs :func:`loop_ground_truth` would compute, with the same overlap code)."""
+    pos = seq.positions()
+    query, reference = np.asarray(query, np.int64), np.asarray(reference, np.int64)
+    dist = np.linalg.norm(pos[query] - pos[reference], axis=1)
+    keep = (query - reference > params["exclude_recent"]) & (dist < params["radius"])
+    return LoopGroundTruth(
+        n_frames=len(seq),
+        query=query[keep],
+        reference=reference[keep],
+        overlap=np.asarray(overlap, np.float32)[keep],
+        yaw_deg=np.asarray(yaw, np.float32)[keep],
+        distance=dist[keep].astype(np.float32),
+        params=params,
+    )
+
+
+def _load_matching(path: Path, fingerprint: str) -> LoopGroundTruth | None:
+    if not path.is_file():
+        return None
+    try:
+        gt = LoopGroundTruth.load(path)
+    except (OSError, ValueError, KeyError):
+        return None  # unreadable or stale: recompute
+    return gt if gt.params.get("fingerprint") == fingerprint else None
+
+
+def loop_ground_truth(
+    seq: Sequence,
+    profile: SensorProfile,
+    loops: LoopParams | None = None,
+    *,
+    cache: str | Path | bool = True,
+    progress: bool = True,
+) -> LoopGroundTruth:
+    """Loop table of a sequence (OverlapTransformer protocol), cached to ``.npz``.
+
+    ``cache=True`` uses :func:`default_cache_path`, after looking for a table the data's
+    writer shipped in ``<sequence>/ground_truth/loops.npz`` (the synthetic generator does);
+    a path uses that file; False disables. A table is reused only if sequence, profile and
+    parameters are unchanged.
+    """
+    loops = loops or LoopParams()
+    params = loop_params(seq, profile, loops)
+    fp = params["fingerprint"]
+    path = None
+    if cache is not False:
+        if cache is True:
+            shipped = _load_matching(seq.root / "ground_truth" / "loops.npz", fp)
+            if shipped is not None:
+                return shipped
+        path = default_cache_path(seq, fp) if cache is True else Path(cache)
+        cached = _load_matching(path, fp)
+        if cached is not None:
+            return cached
+    pos = seq.positions()
+    pairs = candidate_pairs(pos, radius=loops.radius, min_gap=loops.exclude_recent + 1)
+    overlaps, yaws = pair_overlaps(
+        seq, pairs, profile, threshold=loops.threshold, progress=progress, desc="loop ground truth"
+    )
+    gt = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlaps, yaws)
+    if path is not None:
+        gt.save(path)
+    return gt

@@ -1,0 +1,161 @@
+"""A scan of any sensor → a model's input range image: the model's profile says the image
+(rows, columns, range), the scan's sensor says where its beams point.
+
+    native     the sensor's own profile is the model's (a KITTI HDL-64E scan into the
+               HDL-64E model): :func:`overlapmamba.core.views.project_views`, exactly
+    elevation  every point goes to its beam (the nearest elevation of the sensor's table),
+               and each row of the model takes the beam nearest its own elevation when that
+               beam lies within half a beam gap (or half a row) of it; rows the sensor has
+               no beam for stay empty. Rows keep their elevation: a VLP-16's beams land
+               where an HDL-64E's would
+    rows       the sensor's beams, highest first, stretched over the model's rows (row r
+               takes beam ⌊(r + ½)·B / H⌋): every row filled, elevations not kept (the
+               sensor-transfer check ``eval-real`` ran on nuScenes' HDL-32E before sensors
+               had tables)
+
+Which one a model takes is its own (``EncoderMetadata.sensor_input``): the projection of a
+scan is never chosen by its consumer. Columns, sub-column views and the range limits are
+the model's in every mode, so yaw features keep their meaning.
+
+:func:`project_input_reference` is the slow per-point version kept beside the fast one for
+tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.catalogue import Sensor
+from overlapmamba.core.sensors.profile import SensorProfile
+from overlapmamba.core.views import check_views, project_views
+
+Mode = Literal["elevation", "rows"]
+MODES: tuple[str, ...] = ("elevation", "rows")
+_PI = np.float32(np.pi)
+
+
+def check_mode(mode: str) -> Mode:
+    if mode not in MODES:
+        raise ValueError(f"sensor input mode {mode!r} is not known; allowed: {', '.join(MODES)}")
+    return mode  # type: ignore[return-value]
+
+
+def beam_of(elevation_deg: np.ndarray, sensor: Sensor) -> np.ndarray:
+    """(N,) elevations in degrees → (N,) int32 index of the nearest beam (0: the highest;
+    exactly halfway between two: the lower)."""
+    asc = np.asarray(sensor.elevations_deg, np.float64)[::-1]
+    mids = (asc[1:] + asc[:-1]) / 2
+    nearest_asc = np.searchsorted(mids, np.asarray(elevation_deg, np.float64))
+    return (len(asc) - 1 - nearest_asc).astype(np.int32)
+
+
+def row_beams(model: SensorProfile, sensor: Sensor, mode: Mode) -> np.ndarray:
+    """(H,) int64: the beam each model row shows, −1 for a row left empty."""
+    H, B = model.height, sensor.beams
+    if mode == "rows":
+        return np.minimum((np.arange(H) + 0.5) * B / H, B - 1).astype(np.int64)
+    pitch = (model.fov_up_deg - model.fov_down_deg) / H
+    centre = model.fov_up_deg - (np.arange(H) + 0.5) * pitch
+    el = np.asarray(sensor.elevations_deg, np.float64)
+    b = beam_of(centre, sensor).astype(np.int64)
+    gaps = -np.diff(el) if B > 1 else np.array([pitch])
+    above = np.concatenate([gaps[:1], gaps])  # gap to the beam above (the top: the one below)
+    below = np.concatenate([gaps, gaps[-1:]])
+    off = centre - el[b]
+    reach = np.maximum(np.where(off > 0, above[b], below[b]) / 2, pitch / 2)
+    return np.where(np.abs(off) <= reach + 1e-9, b, -1)
+
+
+@dataclass(frozen=True)
+class SensorInput:
+    """How scans of ``sensor`` become the input of a model trained on ``model``."""
+
+    model: SensorProfile
+    sensor: Sensor
+    mode: Mode
+
+    @property
+    def native(self) -> bool:
+        return self.sensor.profile() == self.model
+
+    @property
+    def kind(self) -> str:
+        """native, elevation or rows: what this pairing actually does."""
+        return "native" if self.native else self.mode
+
+    def rows(self) -> np.ndarray:
+        return row_beams(self.model, self.sensor, self.mode)
+
+    def key(self) -> dict[str, object]:
+        """What the images depend on beyond the model's profile (for caches)."""
+        if self.native:
+            return {}
+        return {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
+
+    def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
+        """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
+        if self.native:
+            return project_views(points, self.model, views)
+        return _project_beams(points, self.model, self.sensor, self.rows(), views)
+
+
+def _project_beams(
+    points: PointCloud | np.ndarray,
+    model: SensorProfile,
+    sensor: Sensor,
+    rows: np.ndarray,
+    views: int,
+) -> np.ndarray:
+    views = check_views(views)
+    xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+        raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
+    xyz = xyz[:, :3].astype(np.float32, copy=False)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    depth = np.sqrt(x * x + y * y + z * z)
+    keep = (depth > np.float32(model.min_range)) & (depth < np.float32(model.max_range))
+    x, y, z, depth = x[keep], y[keep], z[keep], depth[keep]
+    B, H, W = sensor.beams, model.height, model.width
+    beam = beam_of(np.degrees(np.arcsin(z / depth)), sensor).astype(np.int64)
+    # The column coordinate as overlapmamba.core.projection computes it (same float32 order).
+    u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
+    out = np.full((views, H, W), np.float32(model.empty_value), np.float32)
+    filled = rows >= 0
+    for j in range(views):
+        shifted = u + np.float32(j / views) if j else u
+        col = np.floor(shifted).astype(np.int64)
+        col = np.clip(col, 0, W - 1) if j == 0 else col % W
+        ring = np.full(B * W, np.inf, np.float32)
+        np.minimum.at(ring, beam * W + col, depth)
+        ring[np.isinf(ring)] = np.float32(model.empty_value)
+        out[j, filled] = ring.reshape(B, W)[rows[filled]]
+    return out
+
+
+def project_input_reference(
+    points: PointCloud | np.ndarray, model: SensorProfile, sensor: Sensor, mode: Mode
+) -> np.ndarray:
+    """Slow, obvious version of one view for tests: per point, its beam by the smallest
+    elevation difference; per model row, the points of the beam that row shows."""
+    xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+    rows = row_beams(model, sensor, mode)
+    H, W = model.height, model.width
+    image = np.full((H, W), np.float32(model.empty_value), np.float32)
+    el_table = np.asarray(sensor.elevations_deg)
+    for x, y, z in np.asarray(xyz, np.float32)[:, :3]:
+        r = np.sqrt(x * x + y * y + z * z)
+        if not (np.float32(model.min_range) < r < np.float32(model.max_range)):
+            continue
+        el = float(np.degrees(np.arcsin(z / r)))
+        gap = np.abs(el_table - el)
+        beam = int(np.flatnonzero(gap == gap.min())[-1])  # halfway: the lower beam
+        u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
+        col = min(max(int(np.floor(u)), 0), W - 1)
+        for row in np.flatnonzero(rows == beam):
+            if image[row, col] == model.empty_value or r < image[row, col]:
+                image[row, col] = r
+    return image

@@ -1,0 +1,157 @@
+"""A transform tree as ROS tf keeps one: frames joined by parent → child transforms, each
+either static or a time series, looked up between any two connected frames at given times.
+
+    tree = TransformTree()
+    tree.add("odom", "base_link", stamp_ns, T)              # from /tf
+    tree.add("base_link", "velodyne", 0, M, static=True)    # from /tf_static
+    poses = tree.lookup("odom", "velodyne", scan_stamps_ns, max_gap_s=0.1)
+
+``lookup(target, source, …)`` returns T_target←source (maps ``source``-frame points into
+``target``; for a sensor frame, its pose in ``target``) at each time: the chain up to the
+two frames' common ancestor is composed, each time-varying link interpolated between the
+samples around the time (translation linearly, rotation along the great arc). Unlike tf2,
+a time up to ``max_gap_s`` past either end of a link's samples takes the end sample, and a
+time whose nearest sample is farther than ``max_gap_s`` is refused, naming the link.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.poses import from_quaternion, quaternion
+
+
+@dataclass
+class _Link:
+    parent: str
+    static: np.ndarray | None = None
+    stamps: list[int] = field(default_factory=list)
+    transforms: list[np.ndarray] = field(default_factory=list)
+
+
+class TransformTree:
+    def __init__(self) -> None:
+        self._links: dict[str, _Link] = {}  # child frame -> its link to its parent
+
+    def add(
+        self, parent: str, child: str, stamp_ns: int, transform: np.ndarray, *, static: bool = False
+    ) -> None:
+        """T_parent←child at ``stamp_ns`` (any time, when ``static``). A frame has one
+        parent; a static link that is sent again is replaced (as /tf_static latches)."""
+        if not parent or not child or parent == child:
+            raise DatasetError(f"transform {parent!r} → {child!r}: frames must be named and differ")
+        T = np.asarray(transform, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise DatasetError(f"transform {parent!r} → {child!r} is not a finite 4×4 matrix")
+        link = self._links.setdefault(child, _Link(parent))
+        if link.parent != parent:
+            raise DatasetError(
+                f"frame {child!r} has two parents, {link.parent!r} and {parent!r}; "
+                "a transform tree allows one"
+            )
+        if static:
+            link.static = T
+        else:
+            link.stamps.append(int(stamp_ns))
+            link.transforms.append(T)
+
+    @property
+    def frames(self) -> list[str]:
+        return sorted({*self._links, *(link.parent for link in self._links.values())})
+
+    def lookup(
+        self, target: str, source: str, stamps_ns: np.ndarray, *, max_gap_s: float = 0.1
+    ) -> np.ndarray:
+        """(N, 4, 4) T_target←source at each of ``stamps_ns`` (N,). Raises DatasetError
+        naming an unknown frame, frames in different trees, or a link without a sample
+        within ``max_gap_s`` of a time."""
+        stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        for frame in (target, source):
+            if frame not in self.frames:
+                raise DatasetError(
+                    f"frame {frame!r} is in no transform; frames: "
+                    f"{', '.join(self.frames) or 'none'}",
+                    frames=self.frames,
+                )
+        up_source, up_target = self._chain(source), self._chain(target)
+        common = next((f for f in up_target if f in up_source), None)
+        if common is None:
+            raise DatasetError(
+                f"frames {target!r} and {source!r} are not connected (their roots are "
+                f"{up_target[-1]!r} and {up_source[-1]!r})"
+            )
+        root_source = self._compose(up_source[: up_source.index(common)], stamps, max_gap_s)
+        root_target = self._compose(up_target[: up_target.index(common)], stamps, max_gap_s)
+        out: np.ndarray = np.linalg.inv(root_target) @ root_source
+        return out
+
+    def _chain(self, frame: str) -> list[str]:
+        """The frame, its parent, …, its root."""
+        chain = [frame]
+        while chain[-1] in self._links:
+            parent = self._links[chain[-1]].parent
+            if parent in chain:
+                raise DatasetError(f"the transforms form a cycle: {' → '.join([*chain, parent])}")
+            chain.append(parent)
+        return chain
+
+    def _compose(self, frames: list[str], stamps: np.ndarray, max_gap_s: float) -> np.ndarray:
+        """T_ancestor←frames[0] for a chain of child frames below the ancestor."""
+        out = np.tile(np.eye(4), (len(stamps), 1, 1))
+        for child in frames:
+            out = self._at(child, stamps, max_gap_s) @ out
+        return out
+
+    def _at(self, child: str, stamps: np.ndarray, max_gap_s: float) -> np.ndarray:
+        link = self._links[child]
+        if link.static is not None and not link.stamps:
+            return np.broadcast_to(link.static, (len(stamps), 4, 4))
+        if link.static is not None:
+            raise DatasetError(f"link {link.parent!r} → {child!r} is both static and timed")
+        t = np.asarray(link.stamps, dtype=np.int64)
+        order = np.argsort(t, kind="stable")
+        t, T = t[order], np.stack(link.transforms)[order]
+        after = np.searchsorted(t, stamps, side="right")  # the first sample later
+        lo = np.clip(after - 1, 0, None)  # before the first sample: the first
+        hi = np.clip(after, None, len(t) - 1)  # past the last: the last
+        gap = np.minimum(np.abs(t[lo] - stamps), np.abs(t[hi] - stamps)) / 1e9
+        if len(stamps) and gap.max() > max_gap_s:
+            i = int(gap.argmax())
+            raise DatasetError(
+                f"no transform {link.parent!r} → {child!r} within {max_gap_s} s of time "
+                f"{stamps[i] / 1e9:.3f} s (nearest {gap[i]:.3f} s away; it has "
+                f"{t[0] / 1e9:.3f}–{t[-1] / 1e9:.3f} s)"
+            )
+        span = (t[hi] - t[lo]).astype(np.float64)
+        a = np.divide(stamps - t[lo], span, out=np.zeros(len(stamps)), where=span > 0)
+        return interpolate(T[lo], T[hi], a)
+
+
+def interpolate(T0: np.ndarray, T1: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) transforms a of the way from T0 to T1 (N, 4, 4): translation linearly,
+    rotation by spherical linear interpolation of the quaternions. At a = 0 (a sample's own
+    time) T0 itself."""
+    a = np.asarray(a, dtype=np.float64)
+    out = np.array(T0, dtype=np.float64)
+    mid = a > 0
+    if mid.any():
+        out[mid] = _slerp(out[mid], np.asarray(T1, dtype=np.float64)[mid], a[mid])
+    return out
+
+
+def _slerp(T0: np.ndarray, T1: np.ndarray, a: np.ndarray) -> np.ndarray:
+    q0 = np.array([quaternion(m[:3, :3]) for m in T0])
+    q1 = np.array([quaternion(m[:3, :3]) for m in T1])
+    dot = np.sum(q0 * q1, axis=1)
+    q1 = np.where(dot[:, None] < 0, -q1, q1)  # the shorter arc
+    theta = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
+    sin = np.sin(theta)
+    small = sin < 1e-9
+    w0 = np.where(small, 1 - a, np.sin((1 - a) * theta) / np.where(small, 1, sin))
+    w1 = np.where(small, a, np.sin(a * theta) / np.where(small, 1, sin))
+    q = w0[:, None] * q0 + w1[:, None] * q1
+    xyz = (1 - a)[:, None] * T0[:, :3, 3] + a[:, None] * T1[:, :3, 3]
+    return np.stack([from_quaternion(p, r) for p, r in zip(xyz, q, strict=True)])

@@ -1,0 +1,70 @@
+"""What the use cases (:mod:`overlapmamba.service.places`) are given besides a scan, and what they
+answer:
+typed results that the routes turn into their HTTP shapes, once, at the edge."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from overlapmamba.service.domain import InsertResult, Match
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """The call on a query: is it a revisit of a keyframe, and which one.
+
+    With verification (a scan query, ``verify.k`` > 0, candidates with geometry): the
+    verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
+    query, ``verify=false``, keyframes without geometry): the top match when its re-ranking
+    score is under ``loop_closure.max_score`` (a re-ranked answer, :mod:`.ranking`), or its
+    descriptor distance under ``loop_closure.max_distance`` — ``verified`` is then None."""
+
+    accepted: bool
+    threshold: float  # loop_closure.max_score or max_distance (the unverified call)
+    margin: float | None  # runner-up − best, in the rule's units
+    rule: Literal["score", "distance"] = "distance"  # what threshold and margin compare
+    keyframe_id: str | None = None
+    verified: bool | None = None
+    relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query
+    fitness: float | None = None
+
+
+@dataclass
+class Answer:
+    """A place query's answer: the top k matches, best first, and the loop-closure call."""
+
+    matches: list[Match]
+    loop_closure: LoopClosure
+    timings: dict[str, float]  # ms per stage, and "total"
+
+
+InsertReason = Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
+
+
+@dataclass
+class Observed(Answer):
+    inserted: bool
+    keyframe_id: str | None
+    reason: InsertReason  # why it was (or was not) inserted
+
+
+@dataclass(frozen=True)
+class Inserted:
+    result: InsertResult
+    timings: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What a robot says about its scan besides the bytes."""
+
+    robot_id: str
+    session_id: str
+    timestamp: float
+    pose: list[float] | None = None
+    insert: Literal["auto", "always", "never"] = "auto"
+    k: int = 10
+    verify: bool = True

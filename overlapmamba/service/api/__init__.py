@@ -1,0 +1,1 @@
+"""HTTP routers, one per resource; :mod:`overlapmamba.service.app` assembles them."""

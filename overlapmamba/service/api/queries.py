@@ -1,0 +1,317 @@
+"""Place queries and the robot's round trip: ``query``, ``observe``, and the ``stream`` socket.
+
+WebSocket protocol (``/v1/maps/{map_id}/stream?robot_id=&session_id=&k=&sensor=``):
+each observation is two frames from the client —
+
+1. a text frame, JSON: ``{"seq": any, "timestamp": float, "pose": "x,y,z,qx,qy,qz,qw" |
+   [7 numbers] | null, "insert": "auto"|"always"|"never", "verify": bool, "content_type":
+   "application/octet-stream"|"application/x-npy"|"application/x-pcd"|
+   "application/x-ros2-pointcloud2", "fields":
+   "xyzi"|"xyz", "encoding": "identity"|"gzip"|"zstd", "sensor": a known sensor}`` (all but
+   ``timestamp`` optional; ``sensor`` defaults to the stream's ``sensor`` parameter, else the
+   map's);
+2. a binary frame: the scan bytes.
+
+For each observation the server sends one text frame, in the order received:
+``{"seq", "ok": true, ...the observe answer}`` or ``{"seq", "ok": false, "error": {...}}``.
+A bad observation gets an error frame and the stream goes on. Backpressure: at most
+``observe.stream_queue`` observations may wait; a client that sends more before reading
+its results is closed with code 1013 (try again later) and a reason. Authentication uses
+the same headers as HTTP; a refused key closes the handshake with 1008.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from overlapmamba.core.errors import LidarCoreError
+from overlapmamba.service.api.openapi import SCAN_BODY, SensorQuery, error_responses
+from overlapmamba.service.auth import Action, presented_key
+from overlapmamba.service.bodies import read_scan
+from overlapmamba.service.deps import CanEncode, ServiceDep
+from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
+from overlapmamba.service.errors import BadRequest, ServiceError, error_body
+from overlapmamba.service.places import Answer, Observation, Observed
+from overlapmamba.service.scans import ScanBody, decompress
+from overlapmamba.service.schemas import (
+    NAME_PATTERN,
+    SENSOR_PATTERN,
+    DescriptorQueryIn,
+    LoopClosureOut,
+    MatchOut,
+    ObserveOut,
+    QueryOut,
+    Timings,
+)
+from overlapmamba.service.threads import in_thread
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
+ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
+InsertMode = Literal["auto", "always", "never"]
+VERIFY_HELP = (
+    "register the top verify.k candidates against their keyframes' geometry (a relative pose "
+    "and a verified loop closure); false: the descriptor alone, faster"
+)
+
+QUERY_BODY = {
+    **SCAN_BODY,
+    "requestBody": {
+        **SCAN_BODY["requestBody"],
+        "description": SCAN_BODY["requestBody"]["description"]
+        + ' Or `application/json` `{"descriptor": [256 floats]}` to query by descriptor.',
+        "content": {
+            **SCAN_BODY["requestBody"]["content"],
+            "application/json": {
+                "schema": {"$ref": "#/components/schemas/DescriptorQueryIn"},
+                "example": {"descriptor": [0.0625, "…256 values"]},
+            },
+        },
+    },
+}
+
+
+@router.post(
+    "/query",
+    response_model=QueryOut,
+    openapi_extra=QUERY_BODY,
+    responses=ERRORS,
+    summary="Top-k places for a scan or a descriptor",
+)
+async def query(
+    map_id: str,
+    request: Request,
+    svc: ServiceDep,
+    who: CanEncode,
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    exclude_session: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
+    exclude_robot: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
+    exclude_recent_s: Annotated[
+        float | None,
+        Query(ge=0, allow_inf_nan=False, description="with session_id and timestamp"),
+    ] = None,
+    session_id: Annotated[
+        str | None, Query(pattern=NAME_PATTERN, description="the querying session")
+    ] = None,
+    timestamp: Annotated[
+        float | None, Query(allow_inf_nan=False, description="the query's time")
+    ] = None,
+    max_distance: Annotated[float | None, Query(ge=0, le=2)] = None,
+    time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
+    sensor: SensorQuery = None,
+    x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> QueryOut:
+    """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
+    query each match carries the relative yaw from the stored yaw features, and the top
+    `verify.k` (5) are registered against their keyframe's geometry: `relative_pose` and
+    `verification`. The loop closure is the verified candidate of highest fitness; without
+    verification, the top match when its distance is under the configured threshold (and
+    the margin to the runner-up is large enough). k results come back whenever k eligible
+    keyframes exist."""
+    svc.sensors.check(sensor)
+    m = await svc.open_map(map_id)
+    filters = Filters(
+        exclude_session=exclude_session,
+        exclude_robot=exclude_robot,
+        exclude_recent_s=exclude_recent_s,
+        session_id=session_id,
+        timestamp=timestamp,
+        time_from=time_from,
+        time_to=time_to,
+        max_distance=max_distance,
+    )
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
+    probe: ScanBody | list[float] = scan
+    if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
+        body = await in_thread(
+            decompress, scan.data, scan.encoding, svc.settings.limits.max_decoded_bytes
+        )
+        try:
+            probe = DescriptorQueryIn.model_validate_json(body).descriptor
+        except ValidationError as err:
+            raise BadRequest(
+                'body is not {"descriptor": [numbers]}',
+                code="bad_descriptor",
+                errors=json.loads(err.json(include_url=False, include_input=False)),
+            ) from None
+    return query_out(await svc.query(m, probe, k, filters, verify=verify))
+
+
+@router.post(
+    "/observe",
+    response_model=ObserveOut,
+    openapi_extra=SCAN_BODY,
+    responses=ERRORS,
+    summary="The robot's round trip: query, then maybe insert",
+)
+async def observe(
+    map_id: str,
+    request: Request,
+    svc: ServiceDep,
+    who: CanEncode,
+    timestamp: Annotated[float, Query(allow_inf_nan=False)],
+    robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
+    session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
+    pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
+    insert: InsertMode = "auto",
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
+    sensor: SensorQuery = None,
+    x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> ObserveOut:
+    """Query the map excluding this session's own recent keyframes, then insert the scan as
+    a keyframe when due (`auto`: the robot moved `observe.insert_min_distance_m` or
+    `observe.insert_min_interval_s` passed since its last keyframe). The keyframe id is
+    `robot:session:timestamp`, so a retried observation is not inserted twice."""
+    if insert != "never":
+        request.app.state.auth.authorize(who, Action.INSERT, map_id)
+    svc.sensors.check(sensor)
+    m = await svc.open_map(map_id)
+    obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
+    return observe_out(await svc.observe(m, scan, obs))
+
+
+def query_out(a: Answer) -> QueryOut:
+    lc = a.loop_closure
+    return QueryOut(
+        matches=[MatchOut(**x.public()) for x in a.matches],
+        loop_closure=LoopClosureOut(
+            accepted=lc.accepted,
+            threshold=lc.threshold,
+            rule=lc.rule,
+            margin_top1_top2=lc.margin,
+            keyframe_id=lc.keyframe_id,
+            verified=lc.verified,
+            relative_pose=None
+            if lc.relative_pose is None
+            else [float(x) for x in lc.relative_pose.reshape(-1)],
+            fitness=lc.fitness,
+        ),
+        timings_ms=Timings(**a.timings),
+    )
+
+
+def observe_out(o: Observed) -> ObserveOut:
+    return ObserveOut(
+        **dict(query_out(o)),
+        inserted=o.inserted,
+        keyframe_id=o.keyframe_id,
+        insert_reason=o.reason,
+    )
+
+
+class StreamMeta(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    seq: Any = None
+    timestamp: float = Field(allow_inf_nan=False)
+    pose: str | list[float] | None = None
+    insert: InsertMode = "auto"
+    verify: bool = True
+    content_type: str = "application/octet-stream"
+    fields: str = "xyzi"
+    encoding: str = "identity"
+    sensor: str | None = Field(None, pattern=SENSOR_PATTERN)
+
+
+@router.websocket("/stream")
+async def stream(
+    websocket: WebSocket,
+    map_id: str,
+    robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
+    session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
+    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    sensor: SensorQuery = None,
+) -> None:
+    """Observations over one WebSocket; see the module docstring for the frame format."""
+    app = websocket.app
+    svc = getattr(app.state, "service", None)
+    try:
+        if svc is None or not app.state.ready:
+            raise ServiceError("the service is starting", code="not_ready")
+        who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
+        app.state.auth.authorize(who, Action.ENCODE)
+        svc.sensors.check(sensor)
+        m = await svc.open_map(map_id)
+    except ServiceError as err:
+        await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
+        return
+    await websocket.accept()
+    limit = svc.settings.observe.stream_queue
+    queue: asyncio.Queue[tuple[Any, bytes | None, str | None] | None] = asyncio.Queue()
+
+    async def process() -> None:
+        while (item := await queue.get()) is not None:
+            meta, scan, problem = item
+            seq = meta.seq if isinstance(meta, StreamMeta) else meta
+            try:
+                if problem is not None:
+                    raise BadRequest(problem, code="bad_stream_frame")
+                assert isinstance(meta, StreamMeta) and scan is not None
+                if meta.insert != "never":
+                    app.state.auth.authorize(who, Action.INSERT, map_id)
+                pose = (
+                    check_pose(meta.pose) if isinstance(meta.pose, list) else parse_pose(meta.pose)
+                )
+                obs = Observation(
+                    robot_id, session_id, meta.timestamp, pose, meta.insert, k, meta.verify
+                )
+                body = ScanBody(
+                    scan,
+                    meta.content_type,
+                    meta.fields,
+                    meta.encoding,
+                    sensor=svc.sensors.check(meta.sensor) or sensor,
+                )
+                o = await svc.observe(m, body, obs)
+                msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
+            except (ServiceError, LidarCoreError) as err:
+                msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
+            await websocket.send_text(json.dumps(msg))
+
+    worker = asyncio.create_task(process())
+    pending: StreamMeta | str | None = None
+    try:
+        while True:
+            frame = await websocket.receive()
+            if frame["type"] == "websocket.disconnect":
+                break
+            if worker.done():  # the sender failed (client gone)
+                break
+            if frame.get("text") is not None:
+                try:
+                    pending = StreamMeta.model_validate_json(frame["text"])
+                except ValidationError as err:
+                    item: tuple[Any, bytes | None, str | None] = (
+                        None,
+                        None,
+                        f"metadata frame is not valid: {err.errors(include_url=False)[0]['msg']}",
+                    )
+                    pending = None
+                else:
+                    continue
+            elif pending is None:
+                item = (None, None, "binary frame without a metadata frame before it")
+            else:
+                item = (pending, frame.get("bytes") or b"", None)
+                pending = None
+            if queue.qsize() >= limit:
+                await websocket.close(
+                    code=1013,
+                    reason=f"client outran the server: {limit} observations pending",
+                )
+                break
+            queue.put_nowait(item)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        queue.put_nowait(None)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(worker, timeout=svc.settings.limits.request_timeout_s)

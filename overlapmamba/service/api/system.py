@@ -1,0 +1,101 @@
+"""Health, readiness, statistics, Prometheus metrics and the dashboard."""
+
+from __future__ import annotations
+
+from importlib import resources
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from overlapmamba.service.api.openapi import error_responses
+from overlapmamba.service.backends.base import each_map
+from overlapmamba.service.deps import CanView, ServiceDep
+from overlapmamba.service.errors import ServiceError
+from overlapmamba.service.schemas import Health
+from overlapmamba.service.threads import in_thread
+
+router = APIRouter(tags=["system"])
+
+
+@router.get("/healthz", response_model=Health, summary="The process is alive")
+async def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get(
+    "/readyz",
+    response_model=Health,
+    responses={503: {"description": "still loading the model or replaying map indexes"}},
+    summary="Ready: the model and every map index are loaded and replayed",
+)
+async def readyz(request: Request) -> Response:
+    state = request.app.state
+    if getattr(state, "draining", False):
+        return JSONResponse(
+            Health(status="draining", detail={"stage": "shutting down"}).model_dump(),
+            status_code=503,
+        )
+    if not getattr(state, "ready", False):
+        return JSONResponse(
+            Health(status="loading", detail={"stage": state.stage}).model_dump(),
+            status_code=503,
+            headers={"Retry-After": "1"},
+        )
+    svc = state.service
+    try:  # the Qdrant backend asks its server: unreachable means not ready
+        where = await in_thread(svc.registry.describe)
+    except ServiceError as err:
+        return JSONResponse(
+            Health(status="unavailable", detail={"stage": err.message}).model_dump(),
+            status_code=503,
+            headers={"Retry-After": "1"},
+        )
+    return JSONResponse(
+        Health(
+            status="ready",
+            detail={
+                "model_id": svc.model_id,
+                "views": svc.encoder.views,
+                "scan": svc.encoder.scan_path,
+                "sensor": svc.sensors.model_sensor.name,
+                "thresholds": {k: t.public() for k, t in svc.thresholds.items()},
+                **where,
+                "failed_maps": sorted(svc.registry.failed),  # why: in the log
+            },
+        ).model_dump()
+    )
+
+
+@router.get("/v1/stats", responses=error_responses(401, 403), summary="Recognition statistics")
+async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
+    """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
+    2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
+    maps = await in_thread(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
+    return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.pipeline.pending}
+
+
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=PlainTextResponse,
+    responses={
+        200: {
+            "description": "Prometheus text exposition format",
+            "content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
+        },
+        **error_responses(401, 403),
+    },
+)
+async def metrics(svc: ServiceDep, _: CanView) -> Response:
+    svc.stats.p_queue.set(svc.pipeline.pending)
+    return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+@router.get("/dashboard", response_class=HTMLResponse, summary="Live dashboard (HTML)")
+async def dashboard(_: CanView) -> HTMLResponse:
+    """A self-contained page that polls /v1/stats and draws live charts. With API keys
+    configured, the browser asks for one (HTTP Basic; the key is the password)."""
+    page = resources.files("overlapmamba.service").joinpath("static/dashboard.html").read_text()
+    return HTMLResponse(page)

@@ -1,0 +1,405 @@
+"""Assembles the FastAPI app: lifespan (model, maps, scan pipeline), routers, error mapping,
+and one ASGI middleware for body limits, request timeouts and request metrics."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from types import FrameType
+from typing import Any
+
+import uvicorn
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from overlapmamba.core.errors import LidarCoreError, PointCountError
+from overlapmamba.service.api import descriptors, keyframes, maps, queries, system
+from overlapmamba.service.auth import Authenticator
+from overlapmamba.service.backends.factory import open_backend
+from overlapmamba.service.backup import data_dir_lock
+from overlapmamba.service.calibration import log_thresholds, resolve
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.errors import PayloadTooLarge, ServiceError, Unavailable, error_body
+from overlapmamba.service.logs import configure as configure_logs
+from overlapmamba.service.logs import new_request_id, request_id
+from overlapmamba.service.places import PlaceService
+from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn
+from overlapmamba.service.settings import Settings
+from overlapmamba.service.threads import in_thread
+
+log = logging.getLogger("overlapmamba.service")
+access = logging.getLogger("overlapmamba.access")
+
+DESCRIPTION = """
+LiDAR place recognition with OverlapMamba. Send a scan, get a 256-d descriptor; keep maps of
+keyframes; ask which places a scan matches and whether it closes a loop.
+
+* Scans are binary bodies (`application/octet-stream` float32 xyzi|xyz, `application/x-npy`,
+  `application/x-pcd`, `application/x-ros2-pointcloud2`: a ROS 2 PointCloud2 message as
+  CDR bytes), optionally `Content-Encoding: gzip|zstd` — never JSON lists.
+* Errors are `{"error": {"code", "message", "detail"}}`.
+* With API keys configured, send `Authorization: Bearer <key>` or `X-API-Key: <key>`.
+"""
+
+
+def _error(
+    status: int, code: str, message: str, detail: Any = None, headers: Any = None
+) -> JSONResponse:
+    return JSONResponse(error_body(code, message, detail), status_code=status, headers=headers)
+
+
+def _lidar_status(err: LidarCoreError) -> int:
+    if isinstance(err, PointCountError) and err.detail.get("points", 0) > err.detail.get(
+        "max_points", float("inf")
+    ):
+        return 413
+    return 422 if err.code in ("non_finite_points", "point_count_out_of_range") else 400
+
+
+class GuardMiddleware:
+    """Per HTTP request: give it a request id (logs, ``X-Request-ID``), refuse bodies over the
+    limit while they stream in (413), cancel a request that runs past its timeout (504),
+    count requests by route and status, and write one access log line."""
+
+    def __init__(self, app: ASGIApp, max_body_bytes: int, timeout_s: float) -> None:
+        self.app = app
+        self.max_body = max_body_bytes
+        self.timeout_s = timeout_s
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers", []))
+        given = headers.get(b"x-request-id", b"").decode("latin-1")
+        rid = new_request_id(given)
+        token = request_id.set(rid)
+        t0 = time.perf_counter()
+        status = 500
+        try:
+            if scope["type"] == "websocket":
+                status = 101
+                await self.app(scope, receive, send)
+            else:
+                status = await self._http(scope, receive, send, rid)
+        finally:
+            client = scope.get("client")
+            path = _printable(scope.get("path"))
+            access.log(
+                logging.DEBUG if scope.get("path") in _PROBES else logging.INFO,
+                "%s %s %s",
+                scope.get("method", "WS"),
+                path,
+                status,
+                extra={
+                    "method": scope.get("method", "WEBSOCKET"),
+                    "path": path,
+                    "status": status,
+                    "duration_ms": round((time.perf_counter() - t0) * 1e3, 2),
+                    "client": client[0] if client else None,
+                },
+            )
+            request_id.reset(token)
+
+    async def _http(self, scope: Scope, receive: Receive, send: Send, rid: str) -> int:
+        received = 0
+        started = False
+        status = 500
+        for name, value in scope.get("headers", []):
+            if name == b"content-length" and value.isdigit() and int(value) > self.max_body:
+                resp = _error(
+                    413,
+                    "payload_too_large",
+                    f"body is {int(value)} bytes; allowed: at most {self.max_body}",
+                    {"max_body_bytes": self.max_body},
+                    headers={"x-request-id": rid},
+                )
+                await resp(scope, receive, send)
+                return 413
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_body:
+                    raise PayloadTooLarge(
+                        f"body exceeds {self.max_body} bytes", max_body_bytes=self.max_body
+                    )
+            return message
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started, status
+            if message["type"] == "http.response.start":
+                started = True
+                status = message["status"]
+                message = {**message, "headers": [*message.get("headers", []), _rid(rid)]}
+            await send(message)
+
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                await self.app(scope, limited_receive, tracking_send)
+        except TimeoutError:
+            if not started:
+                status = 504
+                resp = _error(
+                    504,
+                    "timeout",
+                    f"request ran past its {self.timeout_s} s timeout",
+                    headers={"x-request-id": rid},
+                )
+                await resp(scope, receive, send)
+        finally:
+            svc = getattr(scope["app"].state, "service", None) if "app" in scope else None
+            route = scope.get("route")
+            if svc is not None:
+                svc.stats.request(getattr(route, "path", "unmatched"), status)
+        return status
+
+
+_PROBES = {"/healthz", "/readyz", "/metrics"}  # polled every few seconds: debug level
+
+
+def _printable(path: str | None) -> str:
+    """A decoded path may hold control characters (%0A): escape them for text logs."""
+    if not path:
+        return ""
+    return path if path.isprintable() else path.encode("unicode_escape").decode("ascii")
+
+
+def _rid(rid: str) -> tuple[bytes, bytes]:
+    return (b"x-request-id", rid.encode())
+
+
+async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
+    app.state.stage = "loading maps"
+    registry = svc.registry
+    delay = 0.5
+    while True:
+        try:
+            await in_thread(registry.load_all)
+            break
+        except Unavailable as err:  # Qdrant not up yet: a replica may start before it
+            app.state.stage = f"waiting for the index: {err.message}"
+            log.warning("%s; retrying in %.1f s", err.message, delay)
+            await asyncio.sleep(delay)
+            delay = min(10.0, 2 * delay)
+        except Exception as err:
+            log.exception("loading the maps failed")
+            app.state.stage = f"failed: {type(err).__name__}: {err}"
+            return
+    try:
+        loaded = await in_thread(
+            lambda: [(m.map_id, m.model_id, m.count) for m in registry.snapshot_list()]
+        )
+    except Exception as err:  # e.g. Qdrant went away meanwhile: /readyz reports it
+        log.warning("listing the maps failed: %s", err)
+        loaded = []
+    for map_id, model_id, count in loaded:
+        svc.stats.p_keyframes.labels(map_id).set(count)
+        if model_id != svc.model_id:
+            log.warning(
+                "map %s was built with model %s, not %s: its queries and inserts will be "
+                "refused (409)",
+                map_id,
+                model_id,
+                svc.model_id,
+            )
+    app.state.ready = True
+    app.state.stage = "ready"
+    log.info("ready: %d maps (%s)", len(loaded), registry.name)
+
+
+def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI:
+    """The app. The model loads in the lifespan unless an ``encoder`` is handed in (tests)."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # One service per data folder; with Qdrant the process keeps no state of its own.
+        owns_data = settings.index.backend == "faiss"
+        with data_dir_lock(settings.data_dir) if owns_data else contextlib.nullcontext():
+            app.state.stage = "loading model"
+            enc = encoder
+            if enc is None:
+                threads = settings.batching.intra_op_threads
+                kernel = settings.scan_kernel
+                enc = await in_thread(
+                    lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
+                )
+            log.info(
+                "model %s (%s, %s weights, %d view(s) a scan) loaded in %.2f s from %s; scan: %s",
+                enc.model_id,
+                enc.meta.profile.name,
+                enc.meta.weights,
+                enc.views,
+                enc.load_s,
+                enc.path,
+                enc.scan_path,
+            )
+            # The model's own calibration, unless a setting overrides
+            # (overlapmamba.service.calibration).
+            serving, thresholds = resolve(settings, enc.meta)
+            log_thresholds(enc.model_id, thresholds)
+            app.state.settings = serving
+            registry = open_backend(serving, model_id=enc.model_id, dim=enc.dim)
+            svc = PlaceService(serving, enc, registry, thresholds)
+            await svc.pipeline.start()
+            app.state.service = svc
+            # Maps load after start-up: /healthz answers meanwhile (a liveness probe must
+            # not kill a process replaying a large map); /readyz says 503 until done.
+            loader = asyncio.create_task(_load_maps(app, svc))
+            try:
+                yield
+            finally:
+                app.state.ready = False
+                if not loader.done():
+                    loader.cancel()
+                with contextlib.suppress(BaseException):
+                    await loader
+                await svc.pipeline.stop()
+                t0 = time.perf_counter()
+                await in_thread(registry.close)
+                log.info(
+                    "stopped: %s maps closed in %.2f s",
+                    registry.name,
+                    time.perf_counter() - t0,
+                )
+
+    app = FastAPI(
+        title="OverlapMamba place recognition",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.ready = False
+    app.state.draining = False
+    app.state.stage = "starting"
+    app.state.service = None
+    app.state.settings = settings
+    app.state.auth = Authenticator(settings.auth)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(request: Request, err: ServiceError) -> JSONResponse:
+        headers = dict(err.headers)
+        if err.status == 401 and request.url.path == "/dashboard":
+            headers["WWW-Authenticate"] = 'Basic realm="overlapmamba"'
+        return _error(err.status, err.code, err.message, err.detail, headers)
+
+    @app.exception_handler(LidarCoreError)
+    async def lidar_error(_: Request, err: LidarCoreError) -> JSONResponse:
+        return _error(_lidar_status(err), err.code, err.message, err.detail)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, err: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in err.errors()]
+        where = ", ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
+        return _error(422, "invalid_request", f"invalid request: {where}", {"errors": errors})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, err: StarletteHTTPException) -> JSONResponse:
+        code = {404: "route_not_found", 405: "method_not_allowed"}.get(
+            err.status_code, "http_error"
+        )
+        return _error(err.status_code, code, str(err.detail), None, getattr(err, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def internal_error(_: Request, err: Exception) -> JSONResponse:
+        log.exception("unhandled error")
+        return _error(500, "internal_error", f"internal error: {type(err).__name__}")
+
+    for r in (system.router, descriptors.router, maps.router, keyframes.router, queries.router):
+        app.include_router(r)
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's schema, plus the request models of routes that parse their own bodies
+        (scan-or-JSON queries; batches read after the key check)."""
+        if app.openapi_schema is None:
+            schema = get_openapi(
+                title=app.title, version=app.version, description=app.description, routes=app.routes
+            )
+            comps = schema.setdefault("components", {}).setdefault("schemas", {})
+            for model in (DescriptorQueryIn, KeyframeBatchIn):
+                js = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                for name, sub in js.pop("$defs", {}).items():
+                    comps.setdefault(name, sub)
+                comps.setdefault(model.__name__, js)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    app.add_middleware(
+        GuardMiddleware,
+        max_body_bytes=settings.limits.max_body_bytes,
+        timeout_s=settings.limits.request_timeout_s,
+    )
+    return app
+
+
+class _DrainingServer(uvicorn.Server):
+    """uvicorn, plus: on SIGTERM/SIGINT, /readyz turns 503 at once; the service goes on
+    serving for ``delay_s`` (a load balancer's probes notice and stop sending), then uvicorn
+    stops accepting and drains the requests in flight. A second signal skips the delay."""
+
+    def __init__(self, config: uvicorn.Config, app: FastAPI, delay_s: float) -> None:
+        super().__init__(config)
+        self.app = app
+        self.delay_s = delay_s
+        self._delayed: threading.Timer | None = None
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        if not self.app.state.draining:
+            self.app.state.draining = True
+            log.info(
+                "signal %d: /readyz is 503; serving %.1f s more, then draining requests in "
+                "flight (up to %s s) and snapshotting maps",
+                sig,
+                self.delay_s,
+                self.config.timeout_graceful_shutdown,
+            )
+            if self.delay_s > 0:
+                # uvicorn checks should_exit every 0.1 s; setting it later is thread-safe.
+                self._delayed = threading.Timer(self.delay_s, self._drain, (sig, frame))
+                self._delayed.daemon = True
+                self._delayed.start()
+                return
+        elif self._delayed is not None:
+            self._delayed.cancel()
+        self._drain(sig, frame)
+
+    def _drain(self, sig: int, frame: FrameType | None) -> None:
+        if not self.should_exit:
+            log.info("draining requests in flight")
+        super().handle_exit(sig, frame)
+
+
+def run(settings: Settings) -> None:
+    """Serve until SIGTERM or SIGINT. Then: stop accepting, let requests in flight finish (up
+    to the request timeout), stop the encoder, snapshot every map, exit 0."""
+    configure_logs(settings.log_level, settings.log_format)
+    if not settings.auth.keys and not settings.loopback:
+        log.warning(
+            "INSECURE: listening on %s with NO API KEYS — anyone who can reach this port can "
+            "read and change every map",
+            settings.host,
+        )
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_config=None,  # our handler (overlapmamba.service.logs), not uvicorn's
+        access_log=False,  # GuardMiddleware writes the access lines, with request ids
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=math.ceil(settings.limits.request_timeout_s),
+    )
+    _DrainingServer(config, app, settings.shutdown_delay_s).run()

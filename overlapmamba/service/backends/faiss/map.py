@@ -1,0 +1,356 @@
+"""One map of the ``faiss`` backend: a durable store, the FAISS index derived from it, and
+the rules that join them.
+
+    data_dir/maps/<map_id>/store.sqlite   the source of truth (:mod:`.store`)
+    data_dir/maps/<map_id>/index.snap     FAISS index + the store seq it holds (:mod:`.snapshot`)
+
+A write takes the map's write lock, commits to the store, then updates the index, so the
+index never holds what the store does not, and ``applied_seq`` is exact. A crash between
+the commit and the index update loses nothing: on start the snapshot is loaded and every
+store change after its seq is replayed. Searches share a read lock and run concurrently.
+
+Snapshots are written atomically (temporary file, fsync, rename, fsync of the folder), every
+``snapshot_every`` writes, on shutdown, and on request.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
+from overlapmamba.service.backends.faiss.columns import FilterColumns
+from overlapmamba.service.backends.faiss.index import VectorIndex, ivf_lists
+from overlapmamba.service.backends.faiss.locks import RWLock
+from overlapmamba.service.backends.faiss.snapshot import (
+    SNAPSHOT_NAME,
+    read_snapshot,
+    write_snapshot,
+)
+from overlapmamba.service.backends.faiss.store import Store, fsync_dir
+from overlapmamba.service.domain import (
+    Filters,
+    InsertResult,
+    Keyframe,
+    Match,
+    NewKeyframe,
+    check_rows,
+)
+from overlapmamba.service.errors import NotFound
+from overlapmamba.service.settings import IndexSettings
+
+log = logging.getLogger("overlapmamba.service")
+
+
+class FaissMap:
+    """One map: its store, the FAISS index derived from it, and the rules that join them."""
+
+    def __init__(
+        self,
+        map_id: str,
+        folder: Path,
+        store: Store,
+        index: VectorIndex,
+        settings: IndexSettings,
+        *,
+        applied_seq: int,
+        snapshot_seq: int,
+    ) -> None:
+        self.map_id = map_id
+        self.folder = folder
+        self.store = store
+        self.index = index
+        self.settings = settings
+        self.applied_seq = applied_seq
+        self.snapshot_seq = snapshot_seq
+        self.lock = RWLock()
+        self.columns = FilterColumns()
+        self._snapshot_lock = threading.Lock()
+        self._maintenance = threading.Lock()
+        self.closed = False
+        self.kind: str = store.get_meta("index_kind") or "flat"
+        self.model_id: str = store.get_meta("model_id") or ""
+        self.created_at = float(store.get_meta("created_at") or 0.0)
+        self.dim = int(store.get_meta("dim") or index.dim)
+        # maps made before the setting existed keep geometry for their new keyframes
+        self.keep_geometry: bool = store.get_meta("keep_geometry") != "false"
+        # maps made before sensors were named hold the model's own sensor's scans
+        self.sensor: str | None = store.get_meta("sensor")
+
+    # ---- opening and snapshots --------------------------------------------------------------
+
+    @classmethod
+    def create(
+        cls,
+        map_id: str,
+        folder: Path,
+        *,
+        model_id: str,
+        dim: int,
+        kind: str,
+        settings: IndexSettings,
+        keep_geometry: bool = True,
+        sensor: str | None = None,
+    ) -> FaissMap:
+        # Built in a temporary folder and renamed into place: a crash leaves either no map
+        # or a whole one (load_all removes the debris), never a store without its metadata.
+        tmp = folder.with_name(f".create-{map_id}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        store = Store(tmp / "store.sqlite")
+        store.set_meta(
+            map_id=map_id,
+            model_id=model_id,
+            dim=dim,
+            index_kind=kind,
+            keep_geometry="true" if keep_geometry else "false",
+            created_at=time.time(),
+            **({} if sensor is None else {"sensor": sensor}),
+        )
+        store.close()  # a lingering connection would checkpoint into the file later
+        os.replace(tmp, folder)
+        fsync_dir(folder.parent)
+        return cls.open(map_id, folder, settings)
+
+    @classmethod
+    def open(cls, map_id: str, folder: Path, settings: IndexSettings) -> FaissMap:
+        """Load the snapshot (if any, and sound) and replay the store's newer changes."""
+        store = Store(folder / "store.sqlite")
+        dim = int(store.get_meta("dim") or 0)
+        index, seq = read_snapshot(folder / SNAPSHOT_NAME, dim, settings)
+        replay_from = seq
+        if index is None:
+            index, replay_from = VectorIndex.flat(dim), 0
+        m = cls(map_id, folder, store, index, settings, applied_seq=seq, snapshot_seq=seq)
+        with m.lock.write():
+            for ids, meta in store.live_meta():  # filter columns for every live row
+                m.columns.add(ids, meta)
+            added = 0
+            for ids, vecs, _ in store.live_rows(replay_from):
+                m.index.add(ids, vecs)
+                added += len(ids)
+            removed = m.index.remove(store.deleted_after(replay_from))
+            m.applied_seq = store.last_seq
+        if added or removed:
+            log.info("map %s: replayed %d inserts, %d deletes", map_id, added, removed)
+        if m.wants_rebuild():
+            m.rebuild()
+        return m
+
+    def _use_ivf(self, n: int) -> bool:
+        auto = self.kind == "auto" and n > self.settings.approximate_above
+        return (self.kind == "ivf" or auto) and n >= 64  # IVF needs vectors to train on
+
+    def wants_rebuild(self) -> bool:
+        n = self.index.ntotal
+        if not self._use_ivf(n):
+            return self.index.kind != "flat"  # e.g. an IVF snapshot of a map now flat
+        if self.index.kind != "ivf":
+            return True
+        return ivf_lists(n) >= 2 * self.index.nlist  # grown well past what it was sized for
+
+    def maintain(self) -> None:
+        """After writes: rebuild or snapshot in a background thread when due (one at a time)."""
+        due_rebuild = self.wants_rebuild()
+        # A snapshot rewrites the whole index (1 GB at 1M keyframes): for big maps, wait for
+        # 5 % of their size in writes; a restart replays at most that much from the store.
+        every = max(self.settings.snapshot_every, self.index.ntotal // 20)
+        due_snapshot = self.writes_since_snapshot >= every
+        if not (due_rebuild or due_snapshot) or not self._maintenance.acquire(blocking=False):
+            return
+
+        def work() -> None:
+            try:
+                if due_rebuild:
+                    self.rebuild()
+                self.snapshot()
+            except Exception:  # a failed derived-file write must not take the map down
+                log.exception("map %s: background maintenance failed", self.map_id)
+            finally:
+                self._maintenance.release()
+
+        threading.Thread(target=work, name=f"maintain-{self.map_id}", daemon=True).start()
+
+    def rebuild(self) -> None:
+        """Build the index this map's kind and size call for, from the store, then swap it in.
+        Searches and writes go on meanwhile; the writes made during the build are applied
+        under the write lock before the swap."""
+        with self._snapshot_lock:  # no tombstone purge while rows are being read
+            self._rebuild()
+
+    def _rebuild(self) -> None:
+        if self.closed:
+            return
+        with self.lock.read():
+            seq = self.applied_seq
+        ids, vecs = [], []
+        for i, v, _ in self.store.live_rows(0, upto_seq=seq):
+            ids.append(i)
+            vecs.append(v)
+        all_ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        all_vecs = np.concatenate(vecs) if vecs else np.zeros((0, self.dim), np.float32)
+        if self._use_ivf(len(all_ids)):
+            new = VectorIndex.ivf(all_vecs, nprobe=self.settings.ivf_nprobe)
+        else:
+            new = VectorIndex.flat(self.dim)
+        new.add(all_ids, all_vecs)
+        with self.lock.write():
+            if self.closed:
+                return
+            for rows, v, _ in self.store.live_rows(seq):
+                new.add(rows, v)
+            new.remove(self.store.deleted_after(seq))
+            self.index = new
+        log.info("map %s: index rebuilt as %s with %d vectors", self.map_id, new.kind, new.ntotal)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Write the index and its seq atomically; then purge tombstones it reflects."""
+        with self._snapshot_lock:
+            with self.lock.read():
+                self.check_open()
+                seq = self.applied_seq
+                payload = self.index.serialize()
+                kind = self.index.kind
+            path = write_snapshot(self.folder / SNAPSHOT_NAME, payload, seq, kind, self.dim)
+            self.snapshot_seq = seq
+            purged = self.store.purge_tombstones(seq)
+        return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
+
+    def close(self) -> None:
+        """Under the write lock: requests that still hold this map then see it gone."""
+        self.closed = True
+        self.store.close()
+
+    def check_open(self) -> None:
+        if self.closed:
+            raise NotFound(f"map {self.map_id!r} was deleted", code="map_not_found")
+
+    # ---- writes -----------------------------------------------------------------------------
+
+    def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
+        """Insert rows, idempotent on keyframe_id: a known id with the same content returns
+        the stored keyframe; with other content the whole request is refused (409)."""
+        ids_wanted = check_rows(rows, self.dim)
+        with self.lock.write():
+            self.check_open()
+            existing = self.store.get_many(ids_wanted)
+            new = check_existing(rows, existing)
+            created: dict[str, Keyframe] = {}
+            if new:
+                ids, seq = self.store.insert(new)
+                id_arr = np.array(ids, dtype=np.int64)
+                vecs = np.stack([r.descriptor for r in new]).astype(np.float32)
+                self.index.add(id_arr, vecs)
+                self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
+                self.applied_seq = seq
+                created = self.store.get_many([r.keyframe_id for r in new])
+        return insert_results(rows, existing, created)
+
+    def delete(self, keyframe_id: str) -> None:
+        with self.lock.write():
+            self.check_open()
+            row_id = self.store.delete(keyframe_id)
+            if row_id is None:
+                raise NotFound(
+                    f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
+                    code="keyframe_not_found",
+                )
+            ids = np.array([row_id], dtype=np.int64)
+            self.index.remove(ids)
+            self.columns.remove(ids)
+            self.applied_seq = self.store.last_seq
+
+    @property
+    def writes_since_snapshot(self) -> int:
+        return self.applied_seq - self.snapshot_seq
+
+    # ---- reads ------------------------------------------------------------------------------
+
+    def allowed(self, f: Filters) -> np.ndarray | None:
+        if not f.restricts_rows:
+            return None
+        c = self.columns
+        mask = c.alive.copy()
+        if f.exclude_session is not None:
+            mask &= c.session != c.lookup(f.exclude_session)
+        if f.exclude_robot is not None:
+            mask &= c.robot != c.lookup(f.exclude_robot)
+        if f.exclude_recent_s is not None:
+            assert f.session_id is not None and f.timestamp is not None  # Filters checked it
+            own = c.session == c.lookup(f.session_id)
+            mask &= ~(own & (c.ts > f.timestamp - f.exclude_recent_s))
+        if f.time_from is not None:
+            mask &= c.ts >= f.time_from
+        if f.time_to is not None:
+            mask &= c.ts <= f.time_to
+        return mask
+
+    def search(
+        self,
+        descriptor: np.ndarray,
+        k: int,
+        filters: Filters,
+        yaw: np.ndarray | None = None,
+        *,
+        yaw_k: int | None = None,
+    ) -> list[Match]:
+        q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
+        with self.lock.read():
+            self.check_open()
+            mask = self.allowed(filters)
+            dists, ids = self.index.search(q, k, mask)
+            rows = self.store.by_ids([int(i) for i in ids])
+        found = [
+            (float(d), *rows[int(i)]) for d, i in zip(dists, ids, strict=True) if int(i) in rows
+        ]
+        return build_matches(found, yaw, filters.max_distance, yaw_k)
+
+    @property
+    def count(self) -> int:
+        self.check_open()
+        return self.index.ntotal
+
+    def get(self, keyframe_id: str) -> Keyframe | None:
+        self.check_open()
+        return self.store.get(keyframe_id)
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        self.check_open()
+        return self.store.geometry(keyframe_ids)
+
+    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+        self.check_open()
+        return self.store.last_keyframe(robot_id)
+
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        self.check_open()
+        return self.store.positions(limit)
+
+    def info(self) -> dict[str, Any]:
+        with self.lock.read():
+            self.check_open()
+            keyframes = self.store.count()
+        return {
+            "map_id": self.map_id,
+            "model_id": self.model_id,
+            "backend": "faiss",
+            "index": {
+                "kind": self.kind,
+                "active": self.index.kind,
+                "nlist": self.index.nlist,
+                "vectors": self.index.ntotal,
+            },
+            "keyframes": keyframes,
+            "keep_geometry": self.keep_geometry,
+            "sensor": self.sensor,
+            "seq": self.applied_seq,
+            "snapshot_seq": self.snapshot_seq,
+            "created_at": self.created_at,
+        }

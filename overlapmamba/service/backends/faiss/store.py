@@ -1,0 +1,450 @@
+"""The durable store of one map: SQLite in WAL mode, the source of truth.
+
+Every write is one transaction, committed (``synchronous=FULL``: fsynced) before the caller
+acknowledges it. Each write takes the next value of the map's sequence number ``seq``;
+an insert stamps its row with it, a delete stamps ``deleted_seq`` on the row and keeps it as
+a tombstone, so "everything after seq S" — what a FAISS snapshot at S is missing — is two
+indexed range scans. Tombstones older than the newest snapshot are purged.
+
+Row ids (``INTEGER PRIMARY KEY AUTOINCREMENT``) are never reused; they are the FAISS ids.
+
+    descriptor  (D,) float32 blob, unit norm — exactly what the encoder gave and the index
+                holds. float16 would save 512 B per keyframe and move a descriptor by ~3e-4
+                (the validation metrics do not change: benchmarks/loop_threshold.py); the
+                store keeps the exact value, the index and the answers never differ
+    yaw         (C, W) float16 blob, or NULL when a batch insert sent none (the yaw comes
+                from a correlation peak; float16 does not move it)
+    geometry    the keyframe's compact geometry (:mod:`overlapmamba.core.geometry`, ≈ 7 KB), or NULL
+                for a keyframe inserted as a bare descriptor or into a map that keeps none.
+                Written in the same transaction as the descriptor: as durable as it.
+
+    sensor      the sensor of the scan a keyframe came from (a name; NULL: not recorded).
+
+Schema 2 added ``geometry``, schema 3 ``sensor``; an older store gains the columns when
+opened for writing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.service.domain import Keyframe, NewKeyframe
+
+SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)  # a read-only open (doctor) reads any
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    keyframe_id TEXT UNIQUE,
+    deleted_keyframe_id TEXT,
+    robot_id TEXT NOT NULL,
+    session_id TEXT NOT NULL,
+    timestamp REAL NOT NULL,
+    pose TEXT,
+    descriptor BLOB NOT NULL,
+    yaw BLOB,
+    yaw_shape TEXT,
+    content_hash TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    deleted_seq INTEGER,
+    created_at REAL NOT NULL,
+    geometry BLOB,
+    sensor TEXT
+);
+CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
+CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
+CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp)
+    WHERE keyframe_id IS NOT NULL;
+"""
+
+
+class StoreError(RuntimeError):
+    """The store file is missing, of another schema, or of another model."""
+
+
+_KF_COLUMNS = (
+    "id, keyframe_id, robot_id, session_id, timestamp, pose, content_hash, seq, created_at, sensor"
+)
+_KF_WIDTH = 10
+
+
+def _keyframe(row: tuple[Any, ...]) -> Keyframe:
+    return Keyframe(
+        id=row[0],
+        keyframe_id=row[1],
+        robot_id=row[2],
+        session_id=row[3],
+        timestamp=row[4],
+        pose=json.loads(row[5]) if row[5] else None,
+        content_hash=row[6],
+        seq=row[7],
+        created_at=row[8],
+        sensor=row[9],
+    )
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a rename or a new entry in ``path`` durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def to_f16(features: np.ndarray) -> np.ndarray:
+    return np.asarray(features, dtype=np.float16)
+
+
+def index_vector(blob: bytes) -> np.ndarray:
+    return np.frombuffer(blob, dtype=np.float32).copy()
+
+
+class Store:
+    def __init__(self, path: Path, *, readonly: bool = False) -> None:
+        """``readonly``: only read (no schema script, no writes; `overlapmamba doctor`)."""
+        self.path = Path(path)
+        self.readonly = readonly
+        self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
+        self._closed = False
+        self._write_lock = threading.Lock()
+        if readonly:
+            if not self.path.is_file():
+                raise StoreError(f"{path} does not exist")
+            self._write = self._connect()
+            version = self.get_meta("schema_version")
+            if version is None or int(version) not in READABLE_VERSIONS:
+                raise StoreError(
+                    f"{path}: schema version {version}; this code reads {READABLE_VERSIONS}"
+                )
+            return
+        self._write = self._connect()
+        # Reader connections are pooled, not per thread: worker threads come and go, and a
+        # connection per thread that ever read would leak file descriptors.
+        with self._write:
+            self._write.executescript(_SCHEMA)
+        version = self.get_meta("schema_version")
+        if version is None:
+            self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
+        elif int(version) in (1, 2):
+            self._migrate(int(version))
+        elif int(version) != SCHEMA_VERSION:
+            raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
+
+    def _migrate(self, version: int) -> None:
+        """Add the columns later schemas have (NULL for every existing keyframe), in one
+        transaction."""
+        added = {2: "geometry BLOB", 3: "sensor TEXT"}
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                for step in range(version + 1, SCHEMA_VERSION + 1):
+                    con.execute(f"ALTER TABLE keyframes ADD COLUMN {added[step]}")
+                con.execute(
+                    "INSERT OR REPLACE INTO meta(key, value) VALUES ('schema_version', ?)",
+                    (str(SCHEMA_VERSION),),
+                )
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+
+    def _connect(self) -> sqlite3.Connection:
+        if self.readonly:
+            uri = f"file:{self.path}?mode=ro"
+            con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+            con.execute("PRAGMA busy_timeout=10000")
+            return con
+        con = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA synchronous=FULL")
+        con.execute("PRAGMA busy_timeout=10000")
+        return con
+
+    @contextlib.contextmanager
+    def _reading(self) -> Iterator[sqlite3.Connection]:
+        try:
+            con = self._pool.get_nowait()
+        except queue.Empty:
+            con = self._connect()
+        try:
+            yield con
+        finally:
+            if self._closed:
+                con.close()
+            else:
+                self._pool.put(con)
+
+    def _rows(self, sql: str, args: Sequence[Any] = ()) -> list[Any]:
+        with self._reading() as con:
+            return con.execute(sql, args).fetchall()
+
+    def close(self) -> None:
+        with self._write_lock:
+            self._closed = True
+            while True:
+                try:
+                    self._pool.get_nowait().close()
+                except queue.Empty:
+                    break
+            self._write.close()
+
+    # ---- meta -----------------------------------------------------------------------------
+
+    def get_meta(self, key: str) -> str | None:
+        rows = self._rows("SELECT value FROM meta WHERE key = ?", (key,))
+        return rows[0][0] if rows else None
+
+    def set_meta(self, **values: Any) -> None:
+        with self._write_lock:
+            self._write.execute("BEGIN IMMEDIATE")
+            try:
+                self._write.executemany(
+                    "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                    [(k, v if isinstance(v, str) else json.dumps(v)) for k, v in values.items()],
+                )
+                self._write.execute("COMMIT")
+            except BaseException:
+                self._write.execute("ROLLBACK")
+                raise
+
+    @property
+    def last_seq(self) -> int:
+        return int(self.get_meta("seq") or 0)
+
+    # ---- writes ---------------------------------------------------------------------------
+
+    def insert(self, rows: list[NewKeyframe]) -> tuple[list[int], int]:
+        """Insert rows in one committed transaction → (their ids, the new seq)."""
+        now = time.time()
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                seq = int(con.execute("SELECT value FROM meta WHERE key='seq'").fetchone()[0]) + 1
+                ids = []
+                for r in rows:
+                    yaw = None if r.yaw is None else to_f16(r.yaw)
+                    cur = con.execute(
+                        "INSERT INTO keyframes(keyframe_id, robot_id, session_id, timestamp, "
+                        "pose, descriptor, yaw, yaw_shape, content_hash, seq, created_at, "
+                        "geometry, sensor) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (
+                            r.keyframe_id,
+                            r.robot_id,
+                            r.session_id,
+                            r.timestamp,
+                            None if r.pose is None else json.dumps(r.pose),
+                            np.asarray(r.descriptor, dtype=np.float32).tobytes(),
+                            None if yaw is None else yaw.tobytes(),
+                            None if yaw is None else json.dumps(list(yaw.shape)),
+                            r.content_hash,
+                            seq,
+                            now,
+                            r.geometry,
+                            r.sensor,
+                        ),
+                    )
+                    ids.append(int(cur.lastrowid or 0))
+                con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        return ids, seq
+
+    def delete(self, keyframe_id: str) -> int | None:
+        """Tombstone one keyframe → its id, or None if there is no such live keyframe."""
+        with self._write_lock:
+            con = self._write
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                row = con.execute(
+                    "SELECT id FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
+                ).fetchone()
+                if row is None:
+                    con.execute("ROLLBACK")
+                    return None
+                seq = int(con.execute("SELECT value FROM meta WHERE key='seq'").fetchone()[0]) + 1
+                con.execute(
+                    "UPDATE keyframes SET keyframe_id = NULL, deleted_keyframe_id = ?, "
+                    "deleted_seq = ? WHERE id = ?",
+                    (keyframe_id, seq, row[0]),
+                )
+                con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        return int(row[0])
+
+    def purge_tombstones(self, upto_seq: int) -> int:
+        """Drop tombstones that a durable snapshot at ``upto_seq`` already reflects."""
+        with self._write_lock:
+            cur = self._write.execute(
+                "DELETE FROM keyframes WHERE deleted_seq IS NOT NULL AND deleted_seq <= ?",
+                (upto_seq,),
+            )
+        return cur.rowcount
+
+    # ---- reads ----------------------------------------------------------------------------
+
+    def count(self) -> int:
+        return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
+
+    def census(self, at_seq: int) -> tuple[int, int, int]:
+        """(last seq, live keyframes, keyframes alive at ``at_seq``), read in one
+        transaction: one consistent view even while a service writes."""
+        with self._reading() as con:
+            con.execute("BEGIN")
+            try:
+                row = con.execute("SELECT value FROM meta WHERE key = 'seq'").fetchone()
+                live = con.execute(
+                    "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+                ).fetchone()[0]
+                at = con.execute(
+                    "SELECT COUNT(*) FROM keyframes WHERE seq <= ? "
+                    "AND (deleted_seq IS NULL OR deleted_seq > ?)",
+                    (at_seq, at_seq),
+                ).fetchone()[0]
+            finally:
+                con.execute("COMMIT")
+        return int(row[0]) if row else 0, int(live), int(at)
+
+    def get(self, keyframe_id: str) -> Keyframe | None:
+        rows = self._rows(
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
+        )
+        return _keyframe(rows[0]) if rows else None
+
+    def get_many(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
+        out: dict[str, Keyframe] = {}
+        for start in range(0, len(keyframe_ids), 500):
+            chunk = keyframe_ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            for row in self._rows(
+                f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id IN ({marks})", chunk
+            ):
+                kf = _keyframe(row)
+                out[kf.keyframe_id] = kf
+        return out
+
+    def by_ids(self, ids: list[int]) -> dict[int, tuple[Keyframe, np.ndarray | None]]:
+        """Live keyframes and their yaw features (C, W) as stored (float16), by row id."""
+        if not ids:
+            return {}
+        marks = ",".join("?" * len(ids))
+        out = {}
+        for row in self._rows(
+            f"SELECT {_KF_COLUMNS}, yaw, yaw_shape FROM keyframes "
+            f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
+            ids,
+        ):
+            kf = _keyframe(row[:_KF_WIDTH])
+            yaw = None
+            blob, shape_text = row[_KF_WIDTH], row[_KF_WIDTH + 1]
+            if blob is not None:
+                shape = tuple(json.loads(shape_text))
+                yaw = np.frombuffer(blob, dtype=np.float16).reshape(shape)
+            out[kf.id] = (kf, yaw)
+        return out
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        """The geometry blobs of those live keyframes that have one."""
+        if not keyframe_ids:
+            return {}
+        marks = ",".join("?" * len(keyframe_ids))
+        rows = self._rows(
+            f"SELECT keyframe_id, geometry FROM keyframes WHERE keyframe_id IN ({marks}) "
+            "AND geometry IS NOT NULL",
+            keyframe_ids,
+        )
+        return {r[0]: bytes(r[1]) for r in rows}
+
+    def descriptor(self, keyframe_id: str) -> np.ndarray | None:
+        rows = self._rows("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
+        return index_vector(rows[0][0]) if rows else None
+
+    def live_rows(
+        self, after_seq: int = 0, chunk: int = 20_000, *, upto_seq: int | None = None
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, list[tuple[str, str, float]]]]:
+        """Rows inserted after ``after_seq`` (and up to ``upto_seq``) that are live — or were
+        deleted only after ``upto_seq`` — in chunks:
+        ids (n,) int64, vectors (n, D) float32, [(robot, session, timestamp)]."""
+        args: tuple[int, ...]
+        if upto_seq is None:
+            where, args = "seq > ? AND keyframe_id IS NOT NULL", (after_seq,)
+        else:
+            where = "seq > ? AND seq <= ? AND (deleted_seq IS NULL OR deleted_seq > ?)"
+            args = (after_seq, upto_seq, upto_seq)
+        with self._reading() as con:
+            cur = con.execute(
+                "SELECT id, descriptor, robot_id, session_id, timestamp FROM keyframes "
+                f"WHERE {where} ORDER BY id",
+                args,
+            )
+            while rows := cur.fetchmany(chunk):
+                ids = np.array([r[0] for r in rows], dtype=np.int64)
+                vecs = np.stack([index_vector(r[1]) for r in rows])
+                yield ids, vecs, [(r[2], r[3], r[4]) for r in rows]
+
+    def live_meta(
+        self, chunk: int = 50_000
+    ) -> Iterator[tuple[np.ndarray, list[tuple[str, str, float]]]]:
+        """Every live row's id and (robot, session, timestamp), without the descriptors."""
+        with self._reading() as con:
+            cur = con.execute(
+                "SELECT id, robot_id, session_id, timestamp FROM keyframes "
+                "WHERE keyframe_id IS NOT NULL ORDER BY id"
+            )
+            while rows := cur.fetchmany(chunk):
+                yield np.array([r[0] for r in rows], np.int64), [(r[1], r[2], r[3]) for r in rows]
+
+    def deleted_after(self, after_seq: int) -> np.ndarray:
+        rows = self._rows(
+            "SELECT id FROM keyframes WHERE deleted_seq > ? AND seq <= ?", (after_seq, after_seq)
+        )
+        return np.array([r[0] for r in rows], dtype=np.int64)
+
+    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+        rows = self._rows(
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND "
+            "keyframe_id IS NOT NULL ORDER BY timestamp DESC LIMIT 1",
+            (robot_id,),
+        )
+        return _keyframe(rows[0]) if rows else None
+
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        """(robot_id, x, y) of the latest ``limit`` keyframes with a pose."""
+        rows = self._rows(
+            "SELECT robot_id, pose FROM keyframes WHERE keyframe_id IS NOT NULL AND pose IS NOT "
+            "NULL ORDER BY timestamp DESC LIMIT ?",
+            (int(limit),),
+        )
+        out = []
+        for robot, pose in rows:
+            xyz = json.loads(pose)
+            out.append((str(robot), float(xyz[0]), float(xyz[1])))
+        return out
+
+    def backup(self, dest: Path) -> None:
+        """A consistent copy, safe while the service writes (SQLite's online backup)."""
+        target = sqlite3.connect(dest)
+        try:
+            with self._reading() as con:
+                con.backup(target)
+        finally:
+            target.close()

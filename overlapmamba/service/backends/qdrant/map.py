@@ -1,0 +1,251 @@
+"""One map of the ``qdrant`` backend: a Qdrant collection, read and written through its
+backend's client (which maps Qdrant's errors to the service's)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+from qdrant_client import QdrantClient, models
+
+from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
+from overlapmamba.service.backends.qdrant.codec import (
+    CHUNK,
+    LEAN,
+    NO_GEOMETRY,
+    filter_of,
+    geometry_of,
+    keyframe_of,
+    match_of,
+    point_id,
+    point_payload,
+    yaw_of,
+)
+from overlapmamba.service.domain import (
+    Filters,
+    InsertResult,
+    Keyframe,
+    Match,
+    NewKeyframe,
+    check_rows,
+)
+from overlapmamba.service.errors import Conflict, NotFound
+
+if TYPE_CHECKING:
+    from overlapmamba.service.backends.qdrant.backend import QdrantBackend
+
+log = logging.getLogger("overlapmamba.service")
+T = TypeVar("T")
+
+
+class QdrantMap:
+    def __init__(self, backend: QdrantBackend, map_id: str, meta: dict[str, Any]) -> None:
+        self.backend = backend
+        self.map_id = map_id
+        self.collection = backend.collection(map_id)
+        self.model_id: str = str(meta["model_id"])
+        self.dim = int(meta["dim"])
+        self.kind: str = str(meta["index_kind"])
+        self.keep_geometry = bool(meta.get("keep_geometry", True))
+        self.sensor: str | None = meta.get("sensor")
+        self.created_at = float(meta.get("created_at") or 0.0)
+        self.checked = time.monotonic()
+        self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
+
+    def _call(self, fn: Callable[[QdrantClient], T]) -> T:
+        return self.backend.call(fn, self.map_id)
+
+    # ---- writes -----------------------------------------------------------------------------
+
+    def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
+        wanted = check_rows(rows, self.dim)
+        with self._write:
+            existing = self._get_many(wanted)
+            new = check_existing(rows, existing)
+            created: dict[str, Keyframe] = {}
+            if new:
+                now = time.time()
+                for start in range(0, len(new), CHUNK):
+                    self._upsert(new[start : start + CHUNK], now)
+                # insert_only never overwrites: read back what is stored now. Another
+                # replica's concurrent insert of the same id may have landed first.
+                stored = self._get_many([r.keyframe_id for r in new])
+                for r in new:
+                    kf = stored.get(r.keyframe_id)
+                    if kf is None:  # deleted by someone else in between: report ours
+                        kf = keyframe_of(point_payload(r, now))
+                    check_existing([r], {r.keyframe_id: kf})
+                    created[r.keyframe_id] = kf
+        return insert_results(rows, existing, created)
+
+    def _upsert(self, rows: list[NewKeyframe], now: float) -> None:
+        batch = models.Batch(
+            ids=[point_id(r.keyframe_id) for r in rows],
+            vectors=[np.asarray(r.descriptor, dtype=np.float32).tolist() for r in rows],
+            payloads=[point_payload(r, now) for r in rows],
+        )
+        self._call(
+            lambda c: c.upsert(
+                self.collection,
+                batch,
+                wait=True,
+                ordering=self.backend.ordering,
+                update_mode=models.UpdateMode.INSERT_ONLY,
+            )
+        )
+
+    def delete(self, keyframe_id: str) -> None:
+        with self._write:
+            if self.get(keyframe_id) is None:
+                raise NotFound(
+                    f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
+                    code="keyframe_not_found",
+                )
+            selector = models.PointIdsList(points=[point_id(keyframe_id)])
+            self._call(
+                lambda c: c.delete(
+                    self.collection, selector, wait=True, ordering=self.backend.ordering
+                )
+            )
+
+    def maintain(self) -> None:
+        """Nothing to do here: Qdrant's optimizers index, vacuum and flush on their own."""
+
+    def snapshot(self) -> dict[str, Any]:
+        if self.backend.local:
+            raise Conflict(
+                "Qdrant's local mode has no snapshots (each write is already on disk); a "
+                "Qdrant server takes them",
+                code="not_supported",
+            )
+        # Not waited for: a large collection's snapshot outlasts the request timeout, and
+        # a retried request would start another. Qdrant lists it when done.
+        self._call(lambda c: c.create_snapshot(self.collection, wait=False))
+        return {"backend": "qdrant", "name": None, "bytes": None, "started": True}
+
+    # ---- reads ------------------------------------------------------------------------------
+
+    @property
+    def count(self) -> int:
+        return int(self._call(lambda c: c.count(self.collection, exact=True)).count)
+
+    def _get_many(self, keyframe_ids: list[str]) -> dict[str, Keyframe]:
+        out: dict[str, Keyframe] = {}
+        for start in range(0, len(keyframe_ids), 500):
+            ids = [point_id(k) for k in keyframe_ids[start : start + 500]]
+            for rec in self._retrieve(ids):
+                kf = keyframe_of(rec.payload or {})
+                out[kf.keyframe_id] = kf
+        return out
+
+    def _retrieve(self, ids: list[str]) -> list[models.Record]:
+        return self._call(
+            lambda c: c.retrieve(
+                self.collection, ids, with_payload=LEAN, consistency=self.backend.consistency
+            )
+        )
+
+    def get(self, keyframe_id: str) -> Keyframe | None:
+        return self._get_many([keyframe_id]).get(keyframe_id)
+
+    def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
+        records = self._call(
+            lambda c: c.retrieve(
+                self.collection,
+                [point_id(k) for k in keyframe_ids],
+                with_payload=["keyframe_id", "geometry"],
+                consistency=self.backend.consistency,
+            )
+        )
+        out = {}
+        for rec in records:
+            p = rec.payload or {}
+            if p.get("geometry"):
+                out[str(p["keyframe_id"])] = geometry_of(p)
+        return out
+
+    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+        records, _ = self._call(
+            lambda c: c.scroll(
+                self.collection,
+                scroll_filter=models.Filter(must=[match_of("robot_id", robot_id)]),
+                limit=1,
+                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
+                with_payload=LEAN,
+                consistency=self.backend.consistency,
+            )
+        )
+        return keyframe_of(records[0].payload or {}) if records else None
+
+    def positions(self, limit: int) -> list[tuple[str, float, float]]:
+        records, _ = self._call(
+            lambda c: c.scroll(
+                self.collection,
+                limit=int(limit),
+                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
+                with_payload=models.PayloadSelectorInclude(include=["robot_id", "pose"]),
+                consistency=self.backend.consistency,
+            )
+        )
+        out = []
+        for r in records:
+            payload = r.payload or {}
+            pose = payload.get("pose")
+            if pose:
+                out.append((str(payload.get("robot_id", "")), float(pose[0]), float(pose[1])))
+        return out
+
+    def search(
+        self,
+        descriptor: np.ndarray,
+        k: int,
+        filters: Filters,
+        yaw: np.ndarray | None = None,
+        *,
+        yaw_k: int | None = None,
+    ) -> list[Match]:
+        q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
+        params = None
+        if not self.backend.local:  # local mode is exact and warns about any parameter
+            exact = self.kind == "flat"
+            params = models.SearchParams(exact=exact, hnsw_ef=None if exact else self.backend.ef)
+        result = self._call(
+            lambda c: c.query_points(
+                self.collection,
+                query=q,
+                limit=k,
+                query_filter=filter_of(filters),
+                search_params=params,
+                with_payload=NO_GEOMETRY if yaw is not None else LEAN,
+                consistency=self.backend.consistency,
+            )
+        )
+        found = [
+            (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
+            for p in result.points
+        ]
+        return build_matches(found, yaw, filters.max_distance, yaw_k)
+
+    def info(self) -> dict[str, Any]:
+        n = self.count
+        return {
+            "map_id": self.map_id,
+            "model_id": self.model_id,
+            "backend": "qdrant",
+            "index": {
+                "kind": self.kind,
+                "active": "exact" if self.kind == "flat" or self.backend.local else "hnsw",
+                "nlist": 0,
+                "vectors": n,
+                "collection": self.collection,
+            },
+            "keyframes": n,
+            "keep_geometry": self.keep_geometry,
+            "sensor": self.sensor,
+            "seq": None,
+            "snapshot_seq": None,
+            "created_at": self.created_at,
+        }

@@ -1,0 +1,141 @@
+"""Dynamic micro-batching of encoder calls, as Triton's dynamic batcher does.
+
+Requests put one range image each on a bounded queue and await a future. One worker takes
+the first waiting image and everything queued behind it, up to ``max_batch``; it waits (at
+most ``max_wait_ms``) for more only while scans are on their way — announced by the caller
+with :meth:`MicroBatcher.incoming` while it decodes and projects them — so a lone scan is
+encoded at once instead of waiting for company that is not coming. The batch runs in a
+worker thread, off the event loop; while it encodes, the next one fills, so under load
+batches grow without any added wait.
+
+A full queue answers at once with :class:`~overlapmamba.service.errors.Overloaded` (503 +
+Retry-After):
+queueing more work than can finish within a request timeout only turns 503s into 504s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from overlapmamba.service.errors import Overloaded, Timeout
+
+EncodeFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class _Item:
+    image: np.ndarray  # (V, H, W): one scan's views (Encoder.project)
+    future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
+
+
+class MicroBatcher:
+    def __init__(
+        self,
+        encode: EncodeFn,
+        *,
+        max_batch: int = 8,
+        max_wait_ms: float = 2.0,
+        queue_size: int = 64,
+        on_batch: Callable[[int, float], None] | None = None,
+    ) -> None:
+        self._encode = encode
+        self.max_batch = max_batch
+        self.max_wait_s = max_wait_ms / 1000.0
+        self.queue_size = queue_size
+        self._on_batch = on_batch
+        self._queue: asyncio.Queue[_Item] | None = None
+        self._coming = 0  # scans announced by incoming() and not yet queued
+        self._worker: asyncio.Task[None] | None = None
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="encoder")
+
+    async def start(self) -> None:
+        self._queue = asyncio.Queue(maxsize=self.queue_size)
+        self._worker = asyncio.create_task(self._run(), name="micro-batcher")
+
+    async def stop(self) -> None:
+        if self._worker is not None:
+            self._worker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._worker
+        self._pool.shutdown(wait=True)
+
+    @contextlib.contextmanager
+    def incoming(self) -> Iterator[None]:
+        """Around the work that makes a scan's image (on the event loop's side): while any
+        scan is announced, a started batch waits up to ``max_wait_ms`` for it."""
+        self._coming += 1
+        try:
+            yield
+        finally:
+            self._coming -= 1
+
+    @property
+    def pending(self) -> int:
+        return self._queue.qsize() if self._queue is not None else 0
+
+    async def encode(
+        self, image: np.ndarray, *, timeout_s: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One scan's (V, H, W) images → descriptor (D,), yaw features (C, W)."""
+        assert self._queue is not None, "MicroBatcher.start() was not awaited"
+        fut: asyncio.Future[tuple[np.ndarray, np.ndarray]] = (
+            asyncio.get_running_loop().create_future()
+        )
+        try:
+            self._queue.put_nowait(_Item(image, fut))
+        except asyncio.QueueFull:
+            raise Overloaded(
+                f"the encoder queue is full ({self.queue_size} scans waiting); retry shortly",
+                queue_size=self.queue_size,
+            ) from None
+        try:
+            return await asyncio.wait_for(fut, timeout_s)
+        except TimeoutError:
+            raise Timeout(f"encoding did not finish within {timeout_s} s") from None
+
+    async def _run(self) -> None:
+        assert self._queue is not None
+        loop = asyncio.get_running_loop()
+        while True:
+            batch = [await self._queue.get()]
+            deadline = loop.time() + self.max_wait_s
+            while len(batch) < self.max_batch:
+                try:
+                    batch.append(self._queue.get_nowait())
+                    continue
+                except asyncio.QueueEmpty:
+                    pass
+                left = deadline - loop.time()
+                if left <= 0 or not self._coming:  # nothing on its way: do not wait for it
+                    break
+                try:
+                    batch.append(await asyncio.wait_for(self._queue.get(), left))
+                except TimeoutError:
+                    break
+            try:
+                await self._encode_batch(batch)
+            except Exception as err:  # a failing batch fails its callers, not the worker
+                for item in batch:
+                    if not item.future.done():
+                        item.future.set_exception(err)
+
+    async def _encode_batch(self, batch: list[_Item]) -> None:
+        loop = asyncio.get_running_loop()
+        live = [item for item in batch if not item.future.done()]  # drop timed-out ones
+        if not live:
+            return
+        images = np.stack([item.image for item in live])  # (B, V, H, W)
+        t0 = loop.time()
+        desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
+        elapsed = loop.time() - t0
+        for i, item in enumerate(live):
+            if not item.future.done():
+                item.future.set_result((desc[i], yaw[i]))
+        if self._on_batch is not None:
+            self._on_batch(len(live), elapsed)

@@ -1,0 +1,68 @@
+"""HTTP request bodies → bytes, with every size limit checked before the memory is spent.
+
+read_body(request, limits)        Content-Length and the streamed size against
+                                  max_body_bytes (413), then Content-Encoding
+                                  (gzip | zstd | identity) bounded by max_decoded_bytes
+read_scan(request, limits, fields)
+                                  the same size checks → a
+                                  :class:`~overlapmamba.service.scans.ScanBody`,
+                                  still encoded: its decompression belongs to the scan's
+                                  decode stage (:func:`overlapmamba.service.scans.decode_scan`)
+"""
+
+from __future__ import annotations
+
+from fastapi import Request
+
+from overlapmamba.service.errors import BadRequest, PayloadTooLarge
+from overlapmamba.service.scans import ScanBody, decompress
+from overlapmamba.service.settings import LimitSettings
+from overlapmamba.service.threads import in_thread
+
+
+async def read_body(request: Request, limits: LimitSettings) -> bytes:
+    """The decoded request body. 413 as soon as a limit is crossed, before reading the rest."""
+    body = await _read_raw(request, limits)
+    encoding = request.headers.get("content-encoding")
+    if encoding is None or encoding.strip().lower() == "identity":
+        return body
+    return await in_thread(decompress, body, encoding, limits.max_decoded_bytes)
+
+
+async def read_scan(
+    request: Request, limits: LimitSettings, fields: str | None, sensor: str | None = None
+) -> ScanBody:
+    """The scan body as sent (size-checked, not yet decompressed or decoded), with the sensor
+    the request names."""
+    return ScanBody(
+        await _read_raw(request, limits),
+        request.headers.get("content-type"),
+        fields,
+        request.headers.get("content-encoding"),
+        sensor=sensor,
+    )
+
+
+async def _read_raw(request: Request, limits: LimitSettings) -> bytes:
+    length = request.headers.get("content-length")
+    if length is not None:
+        try:
+            declared = int(length)
+        except ValueError:
+            raise BadRequest(f"Content-Length {length!r} is not an integer") from None
+        if declared > limits.max_body_bytes:
+            raise PayloadTooLarge(
+                f"body is {declared} bytes; allowed: at most {limits.max_body_bytes}",
+                bytes=declared,
+                max_body_bytes=limits.max_body_bytes,
+            )
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limits.max_body_bytes:
+            raise PayloadTooLarge(
+                f"body exceeds {limits.max_body_bytes} bytes", max_body_bytes=limits.max_body_bytes
+            )
+        chunks.append(chunk)
+    return b"".join(chunks)

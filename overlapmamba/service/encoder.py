@@ -1,0 +1,174 @@
+"""The exported encoder, as onnxruntime runs it: range images in, descriptors out.
+
+    images       (B, V, H, W) float32, the model's own projection (from its metadata):
+                 V sub-column views of each scan (V = 1 for most models)
+    descriptor   (B, D) float32, unit norm
+    yaw_features (B, C, W) float32, rolled by the sensor's yaw
+
+Nothing about the projection is configured here: :class:`EncoderMetadata` in the file says
+which sensor profile the network was trained on, how other sensors' scans enter it and how
+many views make a descriptor (:mod:`overlapmamba.core.views`), and :meth:`Encoder.project` uses
+exactly them with the scan's sensor (:mod:`overlapmamba.service.sensors`). The graph itself
+takes one image a row (B·V, 1, H, W); :meth:`Encoder.encode` combines the views.
+
+**Two ways to run the same file.** The *portable* graph is the file as it is: onnxruntime
+inlines each scan node's body (ONNX ``Scan`` loops). The *C-kernel* path
+(:mod:`overlapmamba.service.fastscan`) cuts the graph at its scan nodes and runs each scan with the
+kernel the model was trained with. It is built at load, then checked against the portable
+graph on a fixed input (max abs difference ≤ :data:`PARITY_TOL` in both outputs); only then
+does it serve. Anything that fails (no kernel, a file exported before scans were marked, a
+parity miss) is logged as a warning and the portable graph serves: :attr:`Encoder.scan_path`
+says which one runs, and ``/readyz`` shows it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import onnxruntime as ort
+
+from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.views import combine_views, project_views
+
+if TYPE_CHECKING:
+    from overlapmamba.service.fastscan import StagedGraph
+
+log = logging.getLogger("overlapmamba.service")
+PARITY_TOL = 1e-4  # max abs difference, C-kernel path vs portable graph, at load
+
+
+class ModelLoadError(RuntimeError):
+    """The model file is missing, unreadable, or not an OverlapMamba encoder."""
+
+
+@dataclass(frozen=True)
+class Encoded:
+    descriptor: np.ndarray  # (D,) float32
+    yaw_features: np.ndarray  # (C, W) float32
+
+
+class Encoder:
+    def __init__(self, path: Path, *, intra_op_threads: int = 0, scan_kernel: bool = True) -> None:
+        if not Path(path).is_file():
+            raise ModelLoadError(f"model file {path} does not exist")
+        opts = ort.SessionOptions()
+        threads = intra_op_threads or (os.cpu_count() or 1)
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        t0 = time.perf_counter()
+        try:
+            self.session = ort.InferenceSession(
+                str(path), sess_options=opts, providers=["CPUExecutionProvider"]
+            )
+        except Exception as err:  # onnxruntime raises its own unrelated classes
+            raise ModelLoadError(f"onnxruntime cannot load {path}: {err}") from None
+        try:
+            self.meta = EncoderMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+        except ValueError as err:
+            raise ModelLoadError(f"{path}: {err}") from None
+        inputs = [i.name for i in self.session.get_inputs()]
+        outputs = [o.name for o in self.session.get_outputs()]
+        if inputs != [INPUT] or tuple(outputs) != OUTPUTS:
+            raise ModelLoadError(
+                f"{path} has inputs {inputs} and outputs {outputs}; expected [{INPUT}] and "
+                f"{list(OUTPUTS)}"
+            )
+        self.path = Path(path)
+        self.staged: StagedGraph | None = None  # the C-kernel path, when it serves
+        self.scan_path = "portable (scan_kernel = false)"
+        if self.meta.network.get("mixer", "mamba") != "mamba":
+            self.scan_path = f"no scan ({self.meta.network['mixer']} mixer)"
+        elif scan_kernel:
+            self.scan_path = self._try_scan_kernel(opts, threads)
+        self.load_s = time.perf_counter() - t0
+        if self.meta.weights != "trained":
+            log.warning(
+                "model %s has %s weights: its descriptors are not trained for place recognition",
+                self.meta.model_id,
+                self.meta.weights,
+            )
+
+    def _run_portable(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        desc, yaw = self.session.run(list(OUTPUTS), {INPUT: images})
+        return desc, yaw
+
+    def _try_scan_kernel(self, opts: ort.SessionOptions, threads: int) -> str:
+        """Build the C-kernel path and serve with it if it agrees with the portable graph;
+        otherwise say why (a warning) and keep the portable graph. Returns :attr:`scan_path`."""
+        try:
+            import onnx
+
+            from overlapmamba.core.scan_kernel import KernelBuildError, load
+            from overlapmamba.service.fastscan import FastPathError, StagedGraph
+
+            load()
+            staged = StagedGraph(onnx.load(str(self.path)), opts, threads)
+            x = parity_image(self.meta)
+            want = self._run_portable(x)
+            got = staged.run(x)
+            gap = max(float(np.abs(a - b).max()) for a, b in zip(got, want, strict=True))
+            if not gap <= PARITY_TOL:  # NaN fails too
+                raise FastPathError(
+                    f"it disagrees with the portable graph by {gap:.3g} (allowed ≤ {PARITY_TOL})"
+                )
+        except (ImportError, KernelBuildError, FastPathError, OSError, ValueError) as err:
+            log.warning(
+                "model %s: the C scan kernel is not used, the portable graph serves (slower): %s",
+                self.meta.model_id,
+                err,
+            )
+            return f"portable ({err})"
+        self.staged = staged
+        n, k = staged.scan_count, len(staged.stages)
+        return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
+
+    @property
+    def model_id(self) -> str:
+        return self.meta.model_id
+
+    @property
+    def dim(self) -> int:
+        return self.meta.descriptor_dim
+
+    @property
+    def views(self) -> int:
+        return self.meta.views
+
+    def project(self, points: PointCloud, sensor: SensorInput | None = None) -> np.ndarray:
+        """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`;
+        ``sensor``: the scan's sensor, projected as the model takes it (None: the model's
+        own sensor)."""
+        if sensor is None:
+            return project_views(points, self.meta.profile, self.meta.views)
+        return sensor.project(points, self.meta.views)
+
+    def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
+        p = self.meta.profile
+        want = (self.meta.views, p.height, p.width)
+        if images.ndim != 4 or images.shape[1:] != want:
+            raise ValueError(
+                f"images must have shape (B, {', '.join(map(str, want))}) (B scans, "
+                f"{self.meta.views} views each, from Encoder.project); got {images.shape}"
+            )
+        x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
+        out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
+        return combine_views(*out, self.meta.views)
+
+
+def parity_image(meta: EncoderMetadata) -> np.ndarray:
+    """A fixed (1, 1, H, W) range image for the load-time check: ranges across the profile's
+    span with a fifth of the pixels empty, as real scans have."""
+    p = meta.profile
+    rng = np.random.default_rng(0)
+    img = rng.uniform(p.min_range, p.max_range, (1, 1, p.height, p.width)).astype(np.float32)
+    img[rng.random(img.shape) < 0.2] = p.empty_value
+    return img

@@ -1,0 +1,457 @@
+"""The service's use cases, independent of HTTP: scan → descriptor → map → answer.
+
+Routes and the WebSocket stream (``overlapmamba.service.api``) parse their transport, authorise,
+open
+the map (:meth:`PlaceService.open_map`, which refuses another model's map) and call one
+method here; it returns a dataclass, which the route turns into its HTTP shape. Scans go
+through :class:`~overlapmamba.service.pipeline.ScanPipeline`; map work (FAISS, SQLite, Qdrant) runs
+in
+worker threads.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Literal
+
+import numpy as np
+
+from overlapmamba.core.rerank import OFF
+from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.service.answers import (
+    Answer,
+    Inserted,
+    InsertReason,
+    LoopClosure,
+    Observation,
+    Observed,
+)
+from overlapmamba.service.backends.base import MapBackend, PlaceMap
+from overlapmamba.service.calibration import Threshold
+from overlapmamba.service.domain import (
+    DescriptorKeyframe,
+    Filters,
+    InsertResult,
+    Match,
+    NewKeyframe,
+    check_descriptor,
+    content_hash,
+    descriptor_keyframe,
+)
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.errors import BadRequest, Conflict
+from overlapmamba.service.overview import Overview
+from overlapmamba.service.pipeline import Description, ScanPipeline
+from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
+from overlapmamba.service.scans import ScanBody
+from overlapmamba.service.sensors import Sensors
+from overlapmamba.service.settings import Settings
+from overlapmamba.service.stats import Stats
+from overlapmamba.service.threads import in_thread
+from overlapmamba.service.verify import (
+    Prepared,
+    RegistrationParams,
+    keyframe_geometry,
+    params_of,
+    verify_candidates,
+)
+
+
+class PlaceService:
+    """The use cases, each one method from parsed input to a typed answer:
+    :meth:`describe`, :meth:`query`, :meth:`observe`, :meth:`insert_scan` (and
+    :meth:`insert` for precomputed rows). Each records its stage timings once, with one
+    definition of "total": from the request's bytes in hand to its answer."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        encoder: Encoder,
+        registry: MapBackend,
+        thresholds: dict[str, Threshold] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.encoder = encoder
+        self.registry = registry
+        self.sensors = Sensors(encoder.meta, settings.sensors.files)
+        self.thresholds = thresholds or {}  # where each calibrated threshold came from
+        self.stats = Stats(encoder.model_id)
+        self.overview = Overview()
+        self.pipeline = ScanPipeline(
+            encoder, settings.batching, settings.limits, on_batch=self.stats.batch
+        )
+        # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
+        # (robot ids come from clients), a dropped entry is read back from the store
+        self._last_kf: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()
+
+    @property
+    def model_id(self) -> str:
+        return self.encoder.model_id
+
+    def forget_map(self, map_id: str) -> None:
+        self.stats.forget_map(map_id)
+        self.overview.forget(map_id)
+        for key in [k for k in self._last_kf if k[0] == map_id]:
+            del self._last_kf[key]
+
+    def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        self.stats.timings(timings)
+        return timings
+
+    # ---- scan → descriptor ------------------------------------------------------------------
+
+    async def describe(self, scan: ScanBody) -> Description:
+        t0 = time.perf_counter()
+        d = await self.pipeline.describe(scan, sensor=self._input(scan))
+        self._done(d.timings, t0)
+        return d
+
+    def _sensor(self, scan: ScanBody, m: PlaceMap | None = None) -> str:
+        """The scan's sensor: its own, else its map's, else the model's
+        (overlapmamba.service.sensors)."""
+        return self.sensors.resolve(scan.sensor, None if m is None else m.sensor)
+
+    def _input(self, scan: ScanBody, m: PlaceMap | None = None) -> SensorInput:
+        return self.sensors.input(self._sensor(scan, m))
+
+    # ---- maps ---------------------------------------------------------------------------------
+
+    async def map(self, map_id: str) -> PlaceMap:
+        """The map: at once where the backend knows it without I/O (FAISS; Qdrant while its
+        last look is fresh), else looked up off the event loop (Qdrant asks its server)."""
+        m = self.registry.get_nowait(map_id)
+        return m if m is not None else await in_thread(self.registry.get, map_id)
+
+    async def open_map(self, map_id: str) -> PlaceMap:
+        """The map for descriptor work: refused (409) when it holds another model's
+        descriptors. The use cases below take maps opened here."""
+        m = await self.map(map_id)
+        if m.model_id != self.model_id:
+            raise Conflict(
+                f"map {m.map_id!r} holds descriptors of model {m.model_id!r}; this service "
+                f"runs {self.model_id!r}, whose descriptors are not comparable",
+                code="model_mismatch",
+                map_model_id=m.model_id,
+                model_id=self.model_id,
+            )
+        return m
+
+    # ---- keyframes ----------------------------------------------------------------------------
+
+    async def insert(
+        self, m: PlaceMap, rows: list[NewKeyframe], robot: str | None
+    ) -> list[InsertResult]:
+        """Precomputed rows into an opened map (all or nothing)."""
+        results = await in_thread(m.insert, rows)
+        created = sum(r.created for r in results)
+        if created:
+            self.stats.insert(m.map_id, robot, created)
+            count = await in_thread(lambda: m.count)
+            self.stats.p_keyframes.labels(m.map_id).set(count)
+            for r in results:
+                if r.created:
+                    self._remember(
+                        m.map_id, r.keyframe.robot_id, r.keyframe.timestamp, r.keyframe.pose
+                    )
+        m.maintain()
+        return results
+
+    async def insert_descriptors(
+        self, m: PlaceMap, model_id: str, keyframes: Sequence[DescriptorKeyframe]
+    ) -> list[InsertResult]:
+        """Precomputed descriptors of ``model_id`` into an opened map (offline map building):
+        each checked and hashed (:func:`~overlapmamba.service.domain.descriptor_keyframe`), then all
+        or
+        nothing."""
+        if model_id != m.model_id:
+            raise Conflict(
+                f"descriptors of model {model_id!r} cannot go into map {m.map_id!r} of model "
+                f"{m.model_id!r}",
+                code="model_mismatch",
+                map_model_id=m.model_id,
+            )
+        yaw_shape = (self.encoder.meta.yaw_channels, self.encoder.meta.profile.width)
+        for k in keyframes:
+            self.sensors.check(k.sensor)
+
+        def rows() -> list[NewKeyframe]:
+            return [descriptor_keyframe(k, i, m.dim, yaw_shape) for i, k in enumerate(keyframes)]
+
+        return await self.insert(m, await in_thread(rows), None)
+
+    async def insert_scan(
+        self, m: PlaceMap, scan: ScanBody, keyframe_id: str, obs: Observation
+    ) -> Inserted:
+        """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
+        t0 = time.perf_counter()
+        sensor = self._sensor(scan, m)
+        d = await self.pipeline.describe(
+            scan, self._registration(False, m), self.sensors.input(sensor)
+        )
+        row = await self._row(m, d, keyframe_id, obs, sensor)
+        (result,) = await self.insert(m, [row], obs.robot_id)
+        return Inserted(result, self._done(d.timings, t0))
+
+    async def _row(
+        self, m: PlaceMap, d: Description, keyframe_id: str, obs: Observation, sensor: str
+    ) -> NewKeyframe:
+        meta: dict[str, object] = {
+            "robot": obs.robot_id,
+            "session": obs.session_id,
+            "timestamp": obs.timestamp,
+            "pose": obs.pose,
+        }
+        if not self.sensors.is_model_sensor(sensor):  # the model's own keeps older hashes
+            meta["sensor"] = sensor
+        params = params_of(self.settings.verify)
+
+        def digest_and_geometry() -> tuple[bytes, bytes | None]:
+            digest = hashlib.sha256(d.points.as_xyzi().tobytes()).digest()
+            if not m.keep_geometry or d.prepared is None:
+                return digest, None
+            return digest, keyframe_geometry(d.prepared, params)
+
+        digest, geometry = await in_thread(digest_and_geometry)
+        return NewKeyframe(
+            keyframe_id=keyframe_id,
+            robot_id=obs.robot_id,
+            session_id=obs.session_id,
+            timestamp=obs.timestamp,
+            pose=obs.pose,
+            descriptor=d.descriptor,
+            yaw=d.yaw,
+            content_hash=content_hash("scan", digest, meta),
+            geometry=geometry,
+            sensor=sensor,
+        )
+
+    # ---- queries ------------------------------------------------------------------------------
+
+    async def query(
+        self,
+        m: PlaceMap,
+        probe: ScanBody | Sequence[float],
+        k: int,
+        filters: Filters,
+        *,
+        robot: str | None = None,
+        verify: bool = True,
+    ) -> Answer:
+        """Top ``k`` keyframes of an opened map for a scan, or for a descriptor (checked and
+        normalised here; a descriptor has no yaw features, so its matches have no yaw, and
+        no points, so they are not verified)."""
+        t0 = time.perf_counter()
+        self._check_k(k)
+        prepared = None
+        if isinstance(probe, ScanBody):
+            d = await self.pipeline.describe(
+                probe, self._registration(verify), self._input(probe, m)
+            )
+            desc, yaw, timings, prepared = d.descriptor, d.yaw, d.timings, d.prepared
+        else:
+            desc, yaw = check_descriptor(probe, m.dim), None
+            timings = {"decode": (time.perf_counter() - t0) * 1e3}
+        answer = await self._search(m, desc, yaw, k, filters, timings, robot, prepared)
+        self._done(timings, t0)
+        return answer
+
+    def _registration(self, verify: bool, m: PlaceMap | None = None) -> RegistrationParams | None:
+        """What the pipeline prepares a scan with, when its answer will be verified or it
+        may become a keyframe of a map that keeps geometry (the prepared grid is what the
+        keyframe keeps)."""
+        v = self.settings.verify
+        wanted = (verify and v.k > 0) or (m is not None and m.keep_geometry)
+        return params_of(v) if wanted else None
+
+    def _check_k(self, k: int) -> None:
+        if not 1 <= k <= self.settings.limits.max_k:
+            raise BadRequest(f"k={k} is out of range; allowed: 1 to {self.settings.limits.max_k}")
+
+    async def _search(
+        self,
+        m: PlaceMap,
+        descriptor: np.ndarray,
+        yaw: np.ndarray | None,
+        k: int,
+        filters: Filters,
+        timings: dict[str, float],
+        robot: str | None,
+        prepared: Prepared | None = None,
+    ) -> Answer:
+        """Search, verify the top ``verify.k`` candidates when the query is prepared for it,
+        and make the loop-closure call (see :class:`LoopClosure`)."""
+        n_verify = self.settings.verify.k if prepared is not None else 0
+        rerank = rerank_params(self.settings.rerank) if yaw is not None else OFF
+
+        def search_and_verify() -> list[Match]:  # one thread hop for all stages
+            t0 = time.perf_counter()
+            # One more than asked: the runner-up gives the loop-closure margin (no yaw).
+            n = max(shortlist(k, rerank), n_verify)
+            found = rerank_matches(m.search(descriptor, n + 1, filters, yaw, yaw_k=n), rerank)
+            t1 = time.perf_counter()
+            timings["search"] = (t1 - t0) * 1e3
+            if n_verify and found and prepared is not None:
+                found[:n_verify] = self._verify(m, prepared, found[:n_verify])
+                timings["verify"] = (time.perf_counter() - t1) * 1e3
+            return found
+
+        matches = await in_thread(search_and_verify)
+        closure = self._unverified_call(matches)
+        if closure.accepted:
+            closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
+        if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
+            closure = self._verified_closure(matches[:n_verify], closure)
+        self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
+        return Answer(matches[:k], closure, timings)
+
+    def _unverified_call(self, matches: list[Match]) -> LoopClosure:
+        """The loop-closure call from the order alone: the top-1's score under
+        ``loop_closure.max_score`` when the answer was re-ranked
+        (:mod:`overlapmamba.service.ranking`),
+        else its distance under ``max_distance``; and the runner-up at least ``min_margin``
+        behind, in the same units."""
+        lc = self.settings.loop_closure
+        rule: Literal["score", "distance"]
+        if matches and matches[0].score is not None:
+            rule, threshold = "score", lc.max_score
+            values = [x.score for x in matches[:2] if x.score is not None]
+        else:
+            rule, threshold = "distance", lc.max_distance
+            values = [x.distance for x in matches[:2]]
+        margin = values[1] - values[0] if len(values) > 1 else None
+        accepted = bool(
+            values and values[0] <= threshold and (margin is None or margin >= lc.min_margin)
+        )
+        return LoopClosure(accepted, threshold, margin, rule=rule)
+
+    def _verify(self, m: PlaceMap, prepared: Prepared, candidates: list[Match]) -> list[Match]:
+        blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
+        verdicts = verify_candidates(
+            prepared,
+            [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg, c.distance) for c in candidates],
+            self.settings.verify,
+        )
+        return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]
+
+    @staticmethod
+    def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
+        """The verified candidate of highest fitness; the descriptor's call only when no
+        candidate could be judged (none has geometry). Candidates refused by the descriptor
+        gate count as judged: a query far from every keyframe closes no loop."""
+        verdicts = [(c, c.verification) for c in candidates if c.verification is not None]
+        judged = [(c, v) for c, v in verdicts if v.verified is not None]
+        if not judged:
+            return descriptor_call
+        ok = [(c, v) for c, v in judged if v.verified]
+        if not ok:
+            return replace(descriptor_call, accepted=False, keyframe_id=None, verified=False)
+        best, v = max(ok, key=lambda cv: cv[1].fitness or 0.0)
+        return replace(
+            descriptor_call,
+            accepted=True,
+            keyframe_id=best.keyframe.keyframe_id,
+            verified=True,
+            relative_pose=v.relative_pose,
+            fitness=v.fitness,
+        )
+
+    # ---- the robot's round trip -------------------------------------------------------------
+
+    def _remember(
+        self, map_id: str, robot: str, timestamp: float, pose: list[float] | None
+    ) -> None:
+        pos = None if pose is None else np.array(pose[:3])
+        old = self._last_kf.pop((map_id, robot), None)
+        self._last_kf[(map_id, robot)] = old if old and old[0] > timestamp else (timestamp, pos)
+        while len(self._last_kf) > 10_000:
+            self._last_kf.popitem(last=False)
+
+    async def _last(self, m: PlaceMap, robot: str) -> tuple[float, np.ndarray | None] | None:
+        key = (m.map_id, robot)
+        if key not in self._last_kf:
+            kf = await in_thread(m.last_keyframe, robot)
+            if kf is None:
+                return None
+            self._remember(m.map_id, robot, kf.timestamp, kf.pose)
+        return self._last_kf.get(key)
+
+    async def _insert_due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
+        """Why this observation becomes a keyframe, or None if it does not."""
+        if obs.insert == "always":
+            return "always"
+        if obs.insert == "never":
+            return None
+        last = await self._last(m, obs.robot_id)
+        if last is None:
+            return "first"
+        o = self.settings.observe
+        if abs(obs.timestamp - last[0]) >= o.insert_min_interval_s:
+            return "time"
+        if obs.pose is None or last[1] is None:
+            return None
+        moved = float(np.linalg.norm(np.array(obs.pose[:3]) - last[1]))
+        return "distance" if moved >= o.insert_min_distance_m else None
+
+    async def _draw(self, m: PlaceMap, obs: Observation, answer: Answer) -> None:
+        """The observation on the map's picture (:mod:`overlapmamba.service.overview`): the robot's
+        position and, for a loop closure, the keyframe's."""
+        lc = answer.loop_closure
+        to = None
+        if lc.accepted and lc.keyframe_id is not None and obs.pose is not None:
+            hits = [x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id]
+            to = hits[0] if hits else await in_thread(m.get, lc.keyframe_id)  # below k
+        closure = to.pose if to is not None else None
+        self.overview.observed(
+            m.map_id, obs.robot_id, obs.pose, closure, lc.keyframe_id, lc.verified
+        )
+
+    async def observe(self, m: PlaceMap, scan: ScanBody, obs: Observation) -> Observed:
+        """Query an opened map excluding this session's recent keyframes, then insert the
+        scan as keyframe ``robot:session:timestamp`` when due."""
+        t0 = time.perf_counter()
+        self._check_k(obs.k)
+        verify = obs.verify and self.settings.verify.k > 0
+        sensor = self._sensor(scan, m)
+        d = await self.pipeline.describe(
+            scan, self._registration(verify, m), self.sensors.input(sensor)
+        )
+        filters = Filters(
+            exclude_recent_s=self.settings.observe.exclude_recent_s,
+            session_id=obs.session_id,
+            timestamp=obs.timestamp,
+        )
+        answer = await self._search(
+            m,
+            d.descriptor,
+            d.yaw,
+            obs.k,
+            filters,
+            d.timings,
+            obs.robot_id,
+            d.prepared if verify else None,
+        )
+        await self._draw(m, obs, answer)
+        reason = await self._insert_due(m, obs)
+        keyframe_id = None
+        inserted = False
+        if reason is not None:
+            keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
+            row = await self._row(m, d, keyframe_id, obs, sensor)
+            (result,) = await self.insert(m, [row], obs.robot_id)
+            inserted = result.created
+            if not inserted:
+                reason = "existing"
+        self._done(answer.timings, t0)
+        return Observed(
+            answer.matches,
+            answer.loop_closure,
+            answer.timings,
+            inserted,
+            keyframe_id,
+            reason or ("never" if obs.insert == "never" else "not_due"),
+        )

@@ -1,0 +1,354 @@
+"""The service's configuration: one typed tree, validated before anything starts.
+
+Sources, highest priority first: explicit overrides (the CLI's options), environment
+variables ``OVERLAPMAMBA_*`` (nested fields with ``__``: ``OVERLAPMAMBA_BATCHING__MAX_BATCH=4``),
+an optional TOML file (``--config`` or ``OVERLAPMAMBA_CONFIG``), then these defaults.
+``overlapmamba dump-config`` prints the merged result as TOML-ready JSON.
+
+The projection is deliberately absent: it comes from the model's own metadata and the scan's
+sensor (overlapmamba.service.sensors). The calibrated thresholds (rerank, loop_closure, verify) come
+from the model file when it carries them; a value set here overrides it
+(overlapmamba.service.calibration).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+from overlapmamba.core.rerank import Rerank
+
+Role = Literal["robot", "mapper", "viewer", "admin"]
+IndexKind = Literal["auto", "flat", "ivf"]
+MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+
+
+# load_settings(config=...)'s file while it builds a Settings (else OVERLAPMAMBA_CONFIG's)
+_CONFIG_FILE: ContextVar[Path | None] = ContextVar("overlapmamba_config_file", default=None)
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LimitSettings(_Section):
+    max_body_bytes: int = Field(64 << 20, gt=0, description="largest request body, as sent")
+    max_decoded_bytes: int = Field(
+        128 << 20, gt=0, description="largest body after Content-Encoding (bomb guard)"
+    )
+    min_points: int = Field(100, ge=1, description="fewer points than this is not a scan")
+    max_points: int = Field(2_000_000, ge=1)
+    max_batch_scans: int = Field(64, ge=1, description="scans per descriptors:batch request")
+    max_batch_keyframes: int = Field(10_000, ge=1, description="rows per keyframes:batch")
+    max_k: int = Field(100, ge=1, description="largest k a query may ask for")
+    request_timeout_s: float = Field(30.0, gt=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> LimitSettings:
+        if self.min_points > self.max_points:
+            raise ValueError("limits.min_points exceeds limits.max_points")
+        return self
+
+
+class BatchSettings(_Section):
+    max_batch: int = Field(8, ge=1, le=256, description="scans per encoder call")
+    max_wait_ms: float = Field(
+        2.0,
+        ge=0,
+        description="how long a batch waits to fill while other scans are still being decoded",
+    )
+    queue_size: int = Field(64, ge=1, description="scans waiting to encode; beyond: 503")
+    intra_op_threads: int = Field(0, ge=0, description="onnxruntime threads (0: all cores)")
+
+
+class IndexSettings(_Section):
+    backend: Literal["faiss", "qdrant"] = Field(
+        "faiss", description="faiss: embedded, in data_dir; qdrant: a Qdrant server (qdrant.*)"
+    )
+    kind: IndexKind = Field("auto", description="default index for new maps")
+    approximate_above: int = Field(
+        100_000, ge=1, description="'auto' maps switch from exact to IVF above this size"
+    )
+    ivf_nprobe: int = Field(
+        24, ge=1, description="IVF lists searched per query (recall@10 0.99 at 1M, measured)"
+    )
+    snapshot_every: int = Field(5_000, ge=1, description="writes between automatic snapshots")
+    threads: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="FAISS (OpenMP) threads for the whole process. 1: one query's exact "
+        "search over 10k keyframes is a fraction of a millisecond on one thread, and more "
+        "threads spin against the encoder's on a small machine (docs/deploy.md, sizing)",
+    )
+
+
+class QdrantSettings(_Section):
+    """The ``qdrant`` backend: each map is the collection ``<collection_prefix><map_id>``."""
+
+    url: str | None = Field(
+        None, pattern=r"^https?://", description="the Qdrant server, e.g. http://qdrant:6333"
+    )
+    api_key: SecretStr | None = Field(None, description="Qdrant's API key (env or file, please)")
+    path: Path | None = Field(
+        None, description="Qdrant's embedded local mode in this folder (tests, trials; no HNSW)"
+    )
+    collection_prefix: str = Field(
+        "overlapmamba-",
+        pattern=r"^[A-Za-z0-9_-]{0,64}$",
+        description="collections of this service; two services sharing a Qdrant use two "
+        "prefixes (each map records its id, so overlapping prefixes do not mix maps)",
+    )
+    timeout_s: float = Field(10.0, gt=0, description="per Qdrant call")
+    shards: int = Field(1, ge=1, description="new collections: shard_number")
+    replication_factor: int = Field(1, ge=1, description="new collections: copies of each shard")
+    write_consistency_factor: int = Field(
+        1, ge=1, description="new collections: copies that must confirm a write"
+    )
+    hnsw_ef: int = Field(128, ge=1, description="approximate maps: HNSW candidates per query")
+
+    @model_validator(mode="after")
+    def _one_place(self) -> QdrantSettings:
+        if self.url is not None and self.path is not None:
+            raise ValueError("qdrant: give url or path, not both")
+        if self.write_consistency_factor > self.replication_factor:
+            raise ValueError("qdrant.write_consistency_factor exceeds qdrant.replication_factor")
+        return self
+
+
+class ObserveSettings(_Section):
+    insert_min_distance_m: float = Field(
+        2.0, ge=0, description="insert=auto: distance moved since the robot's last keyframe"
+    )
+    insert_min_interval_s: float = Field(
+        10.0, ge=0, description="insert=auto: or time elapsed since the robot's last keyframe"
+    )
+    exclude_recent_s: float = Field(
+        30.0, ge=0, description="observe: skip the session's own keyframes this recent"
+    )
+    stream_queue: int = Field(
+        4, ge=1, description="WebSocket frames buffered per connection; beyond: close 1013"
+    )
+
+
+class LoopClosureSettings(_Section):
+    # Calibrated for the shipped model on the validation town (benchmarks/loop_threshold.py):
+    # the L2 distance at F1max, where precision is 0.83 and recall 0.88. Recalibrate for
+    # another model. It decides only unverified answers (verify=false, descriptor queries,
+    # keyframes without geometry); verification decides the others (VerifySettings).
+    max_distance: float = Field(
+        0.1794,
+        gt=0,
+        le=2,
+        description="accept a loop closure when the top-1 descriptor L2 distance is below",
+    )
+    # The same point for a re-ranked answer (RerankSettings): the top-1's score at F1max on
+    # the validation town (benchmarks/loop_threshold.py, the keyframes' yaw features in
+    # float16 as maps store them), where precision is 0.93 and recall 0.87.
+    max_score: float = Field(
+        -0.0461,
+        ge=-10,  # a score is d² − weight · c: d² in [0, 4], weight ≤ 10, c in [−1, 1]
+        le=14,
+        description="accept a loop closure when the re-ranked top-1's score is at most this "
+        "(when the answer was re-ranked; else max_distance decides)",
+    )
+    min_margin: float = Field(
+        0.0,
+        ge=0,
+        description="and the top-2 distance (score, when re-ranked) exceeds the top-1's by at "
+        "least this",
+    )
+
+
+class RerankSettings(_Section):
+    # Chosen on the validation town and its second session (benchmarks/rerank.py): the
+    # mean of F1max and Recall@1 on the three subsets and AR@1 across sessions. The
+    # defaults are overlapmamba.core.rerank.Rerank's, which evaluation uses too.
+    k: int = Field(
+        Rerank().k,
+        ge=1,
+        le=50,
+        description="scan queries: re-rank the k nearest descriptors by d² − weight · "
+        "aligned yaw-feature correlation (1: descriptor order only)",
+    )
+    weight: float = Field(
+        Rerank().weight, ge=0, le=10, description="the correlation's weight in the score (0: off)"
+    )
+
+
+class VerifySettings(_Section):
+    # Calibrated for the shipped model on the validation town (benchmarks/verify_threshold.py
+    # --calibrate), registering the first k of the two-stage order (RerankSettings): the
+    # strictest thresholds at the highest recall with every accepted closure's pose right
+    # (≤ 1 m, 2°): fitness 0.56, rmse 0.7 m (recall 0.883; any fitness from 0.32 to 0.56,
+    # with or without the rmse bound, gives the same). The descriptor gate: the nearest that
+    # costs at most 0.005 of recall, 0.29 (3.6 registrations a query, not 5). Recalibrated
+    # for the model's three sub-column views (one view: fitness 0.54, gate 0.30).
+    # In descriptor order, with one view, the same procedure gave 0.46, no rmse bound and
+    # 0.29 (recall 0.876).
+    k: int = Field(
+        5,
+        ge=0,
+        le=50,
+        description="scan queries: register the top k candidates against their keyframe's "
+        "geometry (0: never; a request's verify=false skips it too)",
+    )
+    min_fitness: float = Field(
+        0.56,
+        ge=0,
+        le=1,
+        description="verified: at least this share of the query's steep grid points lies "
+        "within radius_m of the keyframe's geometry after alignment",
+    )
+    max_rmse_m: float = Field(0.7, gt=0, description="verified: and their rmse is at most")
+    max_distance: float | None = Field(
+        0.29,
+        gt=0,
+        le=2,
+        description="candidates with a descriptor L2 distance above this are not registered "
+        "(verified: false, with the reason); null: every candidate is",
+    )
+    radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
+    voxel_m: float = Field(
+        2.0,
+        ge=0.5,
+        le=5,
+        description="grid of the geometry kept per keyframe and of the query's registration",
+    )
+    max_iterations: int = Field(30, ge=1, le=200, description="GICP stops here (bounded time)")
+
+
+class SensorSettings(_Section):
+    files: list[Path] = Field(
+        default_factory=list,
+        description="the operator's own sensors (overlapmamba.core.sensors.catalogue: a .toml or "
+        ".json per sensor, or base = a catalogue name and the fields that differ), accepted "
+        "by name beside the catalogue's",
+    )
+
+
+class ApiKey(_Section):
+    name: str = Field(min_length=1)
+    role: Role
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="hex SHA-256 of the key")
+    maps: list[str] | None = Field(None, description="robot keys: maps it may insert into")
+
+
+class AuthSettings(_Section):
+    keys: list[ApiKey] = Field(default_factory=list)
+
+    @field_validator("keys")
+    @classmethod
+    def _unique(cls, keys: list[ApiKey]) -> list[ApiKey]:
+        names = [k.name for k in keys]
+        if len(set(names)) != len(names):
+            raise ValueError("auth.keys: names must be unique")
+        return keys
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(
+        env_prefix="OVERLAPMAMBA_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        protected_namespaces=(),
+    )
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Path("data")
+    model: Path = Path("models/overlapmamba-hdl64.onnx")
+    scan_kernel: bool = Field(
+        True,
+        description="run each selective scan with the C kernel (overlapmamba.core.scan_kernel), "
+        "checked against the model's portable graph at load; false, or a failed check: "
+        "onnxruntime runs the portable graph alone",
+    )
+    insecure: bool = Field(False, description="allow a non-loopback host without API keys")
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    shutdown_delay_s: float = Field(
+        0.0,
+        ge=0,
+        le=300,
+        description="after SIGTERM, keep serving this long with /readyz 503 before draining, "
+        "so a load balancer stops sending first (≥ its probe interval × failures)",
+    )
+    log_format: Literal["json", "text"] = Field(
+        "json", description="json: one object per line with request ids; text: for a terminal"
+    )
+    limits: LimitSettings = Field(default_factory=LimitSettings)  # type: ignore[arg-type]
+    batching: BatchSettings = Field(default_factory=BatchSettings)  # type: ignore[arg-type]
+    index: IndexSettings = Field(default_factory=IndexSettings)  # type: ignore[arg-type]
+    observe: ObserveSettings = Field(default_factory=ObserveSettings)  # type: ignore[arg-type]
+    loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
+    verify: VerifySettings = Field(default_factory=VerifySettings)  # type: ignore[arg-type]
+    rerank: RerankSettings = Field(default_factory=RerankSettings)  # type: ignore[arg-type]
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+    qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
+    sensors: SensorSettings = Field(default_factory=SensorSettings)
+
+    @model_validator(mode="after")
+    def _backend_configured(self) -> Settings:
+        if self.index.backend == "qdrant" and self.qdrant.url is None and self.qdrant.path is None:
+            raise ValueError("index.backend = 'qdrant' needs qdrant.url (or qdrant.path)")
+        return self
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources = [init_settings, env_settings]
+        config = _CONFIG_FILE.get() or os.environ.get("OVERLAPMAMBA_CONFIG")
+        if config:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(config)))
+        return tuple(sources)
+
+    @property
+    def loopback(self) -> bool:
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+    def check_binding(self) -> None:
+        """Without API keys the service answers anyone who can reach it: loopback only,
+        unless ``insecure`` says otherwise."""
+        if not self.auth.keys and not self.loopback and not self.insecure:
+            raise ValueError(
+                f"refusing to listen on {self.host} without API keys: configure auth.keys "
+                "(see `overlapmamba hash-key`), bind to 127.0.0.1, or pass --insecure"
+            )
+
+
+def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
+    """Settings from a TOML file (if given), the environment and explicit overrides."""
+    values = {k: v for k, v in overrides.items() if v is not None}
+    if config is None:
+        return Settings(**values)
+    if not config.is_file():
+        raise ValueError(f"config file {config} does not exist")
+    # the file reaches settings_customise_sources through a context variable: the process
+    # environment is never written (another thread's Settings() would read it)
+    token = _CONFIG_FILE.set(config)
+    try:
+        return Settings(**values)
+    finally:
+        _CONFIG_FILE.reset(token)

@@ -1,0 +1,149 @@
+"""Self-describing checkpoints: everything needed to rebuild, resume, evaluate or export.
+
+A checkpoint is one ``torch.save`` dict of plain values and tensors (so it loads with
+``weights_only=True``: no pickled code runs on load):
+
+    format, version        "overlapmamba-checkpoint", 1
+    model_config           OverlapMambaConfig.to_dict()
+    profile                the sensor profile (overlapmamba.core), projection parameters included
+    state_dict             model weights
+    train                  training config, optimiser and scheduler states, completed epochs,
+                           per-epoch history, best epoch, training-data fingerprints
+    metrics                the latest validation metrics
+
+:func:`load_model` also opens an exported encoder (``.onnx``, as ``overlapmamba export``
+writes it and the service loads it) as an :class:`ExportedNetwork`, so the shipped model
+can be evaluated without the checkpoint it came from.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+from overlapmamba.core.sensors import SensorProfile, get_sensor, sensor_of_profile
+from overlapmamba.core.sensors.input import Mode, SensorInput
+from overlapmamba.train.errors import CheckpointError
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+
+FORMAT = "overlapmamba-checkpoint"
+VERSION = 1
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """Write atomically (temporary file, then rename): a crash never leaves a torn file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist", path=str(path))
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises many kinds for a foreign or torn file
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint ({type(err).__name__}); expected a file "
+            "written by `overlapmamba train`",
+            path=str(path),
+        ) from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise CheckpointError(
+            f"{path} is not an OverlapMamba checkpoint (no '{FORMAT}' format tag)", path=str(path)
+        )
+    if ckpt.get("version") != VERSION:
+        raise CheckpointError(
+            f"{path} has checkpoint version {ckpt.get('version')!r}; this code reads {VERSION}",
+            version=ckpt.get("version"),
+            allowed=[VERSION],
+        )
+    return ckpt
+
+
+class ExportedNetwork(torch.nn.Module):
+    """An exported encoder behind the network's interface, for evaluation: ``forward(x)``
+    gives (descriptors, yaw features) from onnxruntime on the CPU, through the graph's own
+    scan. ``cfg`` is the exported network's config, ``digest`` the file's model id, ``meta``
+    its whole metadata. It has no weights to train."""
+
+    def __init__(self, path: str | Path, threads: int = 0) -> None:
+        super().__init__()
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        try:
+            self.session = ort.InferenceSession(
+                str(path), sess_options=opts, providers=["CPUExecutionProvider"]
+            )
+        except Exception as err:  # onnxruntime raises its own unrelated classes
+            message = f"onnxruntime cannot load {path}: {err}"
+            raise CheckpointError(message, path=str(path)) from None
+        try:
+            self.meta = EncoderMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+            self.cfg = OverlapMambaConfig.from_dict(self.meta.network)
+        except ValueError as err:
+            raise CheckpointError(f"{path}: {err}", path=str(path)) from None
+        self.digest = self.meta.model_id
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        images = x.detach().cpu().numpy().astype(np.float32, copy=False)
+        desc, yaw = self.session.run(list(OUTPUTS), {INPUT: images})
+        return torch.from_numpy(desc), torch.from_numpy(yaw)
+
+
+# What evaluation runs: a trained network, or an exported encoder behind the same interface.
+Network = OverlapMamba | ExportedNetwork
+
+
+def views_of(model: Network) -> int:
+    """How many sub-column views describe a scan (:mod:`overlapmamba.core.views`): an exported
+    encoder's metadata says; a network in training is described by one."""
+    return model.meta.views if isinstance(model, ExportedNetwork) else 1
+
+
+def sensor_input_of(model: Network) -> Mode:
+    """How scans of other sensors enter the model (:mod:`overlapmamba.core.sensors.input`): an
+    exported encoder's metadata says; a network in training takes the metadata's default,
+    which its export will write."""
+    if isinstance(model, ExportedNetwork):
+        return model.meta.sensor_input
+    default: Mode = EncoderMetadata.model_fields["sensor_input"].default
+    return default
+
+
+def input_of(model: Network, profile: SensorProfile, seq: Sequence) -> SensorInput:
+    """How ``seq``'s scans become ``model``'s input: its sensor (a sequence that names none
+    is the model's own) into the model's profile, as the model takes other sensors."""
+    sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
+    return SensorInput(profile, sensor, sensor_input_of(model))
+
+
+def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]]:
+    """The model (eval mode, CPU), its sensor profile and the whole checkpoint dict; for an
+    exported ``.onnx``, an :class:`ExportedNetwork` and ``{"model_config", "metrics",
+    "encoder"}`` from its metadata."""
+    if Path(path).suffix == ".onnx":
+        if not Path(path).is_file():
+            raise CheckpointError(f"model {path} does not exist", path=str(path))
+        net = ExportedNetwork(path)
+        info = {"model_config": net.meta.network, "metrics": net.meta.metrics}
+        return net.eval(), net.meta.profile, {**info, "encoder": net.meta.model_dump(mode="json")}
+    ckpt = read_checkpoint(path)
+    try:
+        cfg = OverlapMambaConfig.from_dict(ckpt["model_config"])
+        model = OverlapMamba(cfg)
+        model.load_state_dict(ckpt["state_dict"])
+        profile = SensorProfile.model_validate(ckpt["profile"])
+    except (KeyError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: the checkpoint does not rebuild its model: {err}") from None
+    return model.eval(), profile, ckpt

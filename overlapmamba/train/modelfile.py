@@ -1,0 +1,96 @@
+"""An exported encoder file's metadata (:class:`overlapmamba.core.modelmeta.EncoderMetadata`): read,
+and rewritten in place with the graph and weights byte for byte. Needs onnx, never torch, so
+the service's benchmarks write a model's calibration without the training stack."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import onnx
+
+from overlapmamba.core.calibration import Calibrated, check_calibration
+from overlapmamba.core.modelmeta import EncoderMetadata, identity
+from overlapmamba.core.sensors.input import Mode, check_mode
+from overlapmamba.core.views import check_views
+from overlapmamba.train.errors import ExportError
+
+
+def read_metadata(path: Path | str) -> EncoderMetadata:
+    """The metadata of an exported model, read without building an inference session."""
+    return metadata_of(onnx.load(str(path), load_external_data=False))
+
+
+def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:
+    """The metadata of a loaded exported model."""
+    return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})
+
+
+def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
+    """Write ``src``'s encoder to ``out`` described by ``views`` sub-column views
+    (:mod:`overlapmamba.core.views`): the graph and weights byte for byte, the metadata with the new
+    count and the model id that goes with it; every other field as it was. Atomic like
+    :func:`export_onnx`. Returns the new metadata."""
+    try:
+        views = check_views(views)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    return rewrite_metadata(src, out, lambda meta: identity(meta.graph, views, meta.sensor_input))
+
+
+def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
+    """The model takes other sensors' scans by ``mode`` (:mod:`overlapmamba.core.sensors.input`):
+    the graph stays byte for byte; the model id changes with the mode (other descriptors for
+    those sensors' scans must not share a map), as it does with the views."""
+    try:
+        mode = check_mode(mode)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    return rewrite_metadata(path, path, lambda meta: identity(meta.graph, meta.views, mode))
+
+
+def with_calibration(path: Path | str, section: str, entry: Calibrated) -> EncoderMetadata:
+    """Record ``entry`` as the model's calibrated ``section`` (:mod:`overlapmamba.core.calibration`)
+    in the file itself: its other sections, the graph, the weights and the model id stay as
+    they are. Atomic. Returns the new metadata."""
+    try:
+        check_calibration({section: entry})
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    return rewrite_metadata(
+        path, path, lambda meta: {"calibration": {**meta.calibration, section: entry}}
+    )
+
+
+def rewrite_metadata(
+    src: Path | str, out: Path | str, update: Callable[[EncoderMetadata], dict[str, Any]]
+) -> EncoderMetadata:
+    """``src``'s graph and weights byte for byte into ``out``, its metadata updated by
+    ``update(metadata)`` (the fields to change); written atomically."""
+    src, out = Path(src), Path(out)
+    if not src.is_file():
+        raise ExportError(f"model {src} does not exist")
+    try:
+        proto = onnx.load(str(src))
+    except Exception as err:  # protobuf raises its own classes
+        raise ExportError(f"{src} is not an ONNX file ({type(err).__name__}: {err})") from None
+    try:
+        meta = metadata_of(proto)
+    except ValueError as err:
+        raise ExportError(f"{src}: {err}") from None
+    new = EncoderMetadata.model_validate(
+        {**meta.model_dump(by_alias=True), **update(meta)}, by_alias=True
+    )
+    del proto.metadata_props[:]
+    for key, value in new.to_props().items():
+        proto.metadata_props.add(key=key, value=value)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    try:
+        onnx.save(proto, tmp)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return new

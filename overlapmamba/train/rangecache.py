@@ -1,0 +1,86 @@
+"""Range images of a whole sequence, projected once and cached as one float16 ``.npy``.
+
+Training reads every scan many times; decoding ≈120k points and projecting them costs more
+than the network's forward pass on a batch. So each sequence is projected once, with
+overlapmamba.core's projection (the service uses the same one), into
+``$OVERLAPMAMBA_CACHE/range_images/<sequence>-<key>.npy`` and memory-mapped from then on.
+
+The key hashes the sensor profile, the scans' sensor when it is not the profile's own
+(:mod:`overlapmamba.core.sensors.input`), and the sequence's poses, scan names and sizes, so a
+changed profile, sensor or recording never reuses a stale cache. float16 keeps ranges to ≤ 4 cm at
+80 m (half a KITTI beam's range noise) at half the size: 4,000 HDL-64E scans are 460 MB.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from overlapmamba.core.cache import cache_root
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.views import check_views, project_views
+
+FORMAT = 1
+
+
+def cache_key(
+    seq: Sequence, profile: SensorProfile, views: int = 1, sensor: SensorInput | None = None
+) -> str:
+    key: list[object] = [FORMAT, profile.model_dump()]
+    if views != 1:  # one view keeps the keys (and caches) made before views existed
+        key.append({"views": views})
+    if sensor is not None and sensor.key():  # a native sensor keeps them too
+        key.append(sensor.key())
+    h = hashlib.sha256(json.dumps(key, sort_keys=True).encode())
+    seq.update_digest(h)
+    return h.hexdigest()[:16]
+
+
+def range_images(
+    seq: Sequence,
+    profile: SensorProfile,
+    *,
+    views: int = 1,
+    sensor: SensorInput | None = None,
+    progress: bool = True,
+) -> np.ndarray:
+    """(N, H, W) float16 range images of every scan, memory-mapped read-only; with
+    ``views`` > 1, (N, views, H, W): each scan's sub-column views (:mod:`overlapmamba.core.views`).
+    ``sensor``: the scans' sensor into ``profile`` (:mod:`overlapmamba.core.sensors.input`; None:
+    the profile's own sensor)."""
+    views = check_views(views)
+    if sensor is not None and sensor.model != profile:
+        raise ValueError(f"sensor input for {sensor.model.name}, not the profile {profile.name}")
+    shape: tuple[int, ...] = (len(seq), profile.height, profile.width)
+    if views > 1:
+        shape = (shape[0], views, *shape[1:])
+    key = cache_key(seq, profile, views, sensor)
+    path = cache_root() / "range_images" / f"{seq.name}-{key}.npy"
+    if path.is_file():
+        try:
+            images = np.load(path, mmap_mode="r")
+            if images.shape == shape:
+                return images
+        except (OSError, ValueError):
+            pass  # torn or foreign file: rebuild it
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npy")
+    out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=shape)
+    for i in tqdm(range(len(seq)), desc=f"range images {seq.name}", disable=not progress):
+        points = seq.points(i)
+        images = (
+            project_views(points, profile, views)
+            if sensor is None
+            else sensor.project(points, views)
+        )
+        out[i] = images if views > 1 else images[0]
+    out.flush()
+    del out
+    os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind
+    return np.load(path, mmap_mode="r")

@@ -1,0 +1,418 @@
+"""Training: cached range images → batches from the overlap table → OverlapMamba → batch loss.
+
+    overlapmamba train --data data/synth/train --val data/synth/val --out runs/NAME
+
+The recipe is a :class:`~overlapmamba.train.train_config.TrainConfig`.
+
+**Epoch 0** is the initial network with its batch-norm statistics recalibrated on training
+scans (:mod:`overlapmamba.train.calibrate`), validated like every epoch: every curve starts from a
+fair untrained model, and selection may keep it.
+
+**Epochs 1…** draw ``epoch_scans`` scans in batches (:mod:`overlapmamba.train.batches`; with
+``hard_negatives`` > 0 a share of the groups get a negative mined by the epoch's starting
+weights, :mod:`overlapmamba.train.mining`), augment them (:mod:`overlapmamba.train.augment`) and
+step
+Adam; the learning rate warms up linearly over
+``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. From
+``band_from_epoch`` on, with ``band_weight`` / ``band_share`` > 0, the loss also ranks each
+anchor's ambiguous band below its positives and a share of the groups bring a band scan
+(:class:`~overlapmamba.train.losses.BandRanking`). Every step records the
+training health (:mod:`overlapmamba.train.health`: d(q,p), d(q,n), spread, active hinges), shown in
+the progress bar and kept every ``log_every`` steps; a spread that falls below a quarter of
+where the run started prints a warning.
+
+After each epoch (0 included) it validates on the loop-closure protocol (F1max and Recall@1
+over all, same- and reverse-direction revisits), checks turned copies of real scans
+(``real``: how far a continuous turn moves a descriptor against a 1 m step), and writes,
+atomically:
+
+    runs/NAME/last.pt          everything to resume (optimiser and scheduler included)
+    runs/NAME/best.pt          the epoch with the best validation F1max (weights, no optimiser)
+    runs/NAME/epoch-NNN.pt     every epoch (weights, no optimiser); epoch-000.pt: the start
+    runs/NAME/metrics.json     per-epoch history with the health records
+    runs/NAME/curves.png       loss, health per step, validation per epoch
+
+**A trained start** (``init``): a checkpoint or an exported encoder
+(:mod:`overlapmamba.train.recover`) replaces the seed's weights, and its network config is the
+run's; with ``freeze_bn`` every batch norm stays in eval mode (no recalibration at epoch 0,
+no statistics updated after). With ``turn_weight`` > 0 each batch's first ``turn_scans``
+scans are also re-projected after a random continuous turn (and augmented like the batch),
+and :func:`~overlapmamba.train.losses.turn_consistency` joins the loss.
+
+**Reproducible and resumable.** The weights start from ``seed``; epoch k draws its batches,
+augmentation and shifts from generators seeded by (seed, k) alone, and the learning rate is a
+function of the global step. So ``--resume`` after any epoch continues exactly as an
+uninterrupted run would (tested).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.train.augment import Augmenter
+from overlapmamba.train.batches import BatchPlan, BatchSampler, PairIndex
+from overlapmamba.train.calibrate import recalibrate_batchnorm
+from overlapmamba.train.checkpoint import read_checkpoint, save_checkpoint
+from overlapmamba.train.curves import plot_curves
+from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
+from overlapmamba.train.health import HealthLog, batch_distances, json_safe
+from overlapmamba.train.losses import batch_spread, pair_masks, turn_consistency
+from overlapmamba.train.mining import HardNegatives, mine
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.rangecache import cache_key, range_images
+from overlapmamba.train.realscans import (
+    invariance,
+)
+from overlapmamba.train.train_config import SCHEDULE, TrainConfig, load_config_file
+from overlapmamba.train.train_inputs import (
+    Images,
+    model_profile,
+    open_split,
+    real_turn_scans,
+    start_config,
+    start_weights,
+)
+
+__all__ = ["TrainConfig", "load_config_file", "train"]
+
+
+def train(
+    data: list[Path],
+    val: Path | None,
+    out: Path,
+    model_cfg: OverlapMambaConfig | None = None,
+    train_cfg: TrainConfig | None = None,
+    *,
+    resume: bool = False,
+    epochs: int | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Train (or resume) a run in ``out``; returns the per-epoch history.
+
+    Resuming reads the model and training config and the data paths from ``out/last.pt``;
+    ``epochs`` may extend the run."""
+    out = Path(out)
+    last = out / "last.pt"
+    state: dict[str, Any] | None = None
+    if resume:
+        if not last.is_file():
+            raise ConfigError(f"nothing to resume: {last} does not exist")
+        state = read_checkpoint(last)
+        if state["train"].get("schedule") != SCHEDULE:
+            raise ConfigError(
+                f"{last} was written by an older trainer (learning rate stepped per epoch, no "
+                "warm-up); it cannot resume exactly here: start a new run"
+            )
+        recorded = state["train"]["data"]
+        data = data or [Path(d["path"]) for d in recorded["train"]]
+        val = val or Path(recorded["val"]["path"])
+        model_cfg = OverlapMambaConfig.from_dict(state["model_config"])
+        train_cfg = TrainConfig.from_dict(state["train"]["config"])
+    elif last.is_file():
+        raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
+    train_cfg = train_cfg or TrainConfig()
+    if state is None and train_cfg.init:
+        model_cfg = start_config(train_cfg, model_cfg)
+    model_cfg = model_cfg or OverlapMambaConfig()
+    if epochs is not None:
+        train_cfg.epochs = epochs
+    if train_cfg.device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: no CUDA device is visible to PyTorch here")
+    device = torch.device(train_cfg.device)
+    profile = model_profile(model_cfg)
+
+    if not data or val is None:
+        raise ConfigError("training needs at least one training sequence and a validation one")
+    seqs = [open_split(p, model_cfg, "training") for p in data]
+    val_seq = open_split(val, model_cfg, "validation")
+    if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
+        raise ConfigError(f"{val} is both training and validation data")
+    fingerprints = {
+        "train": [{"path": str(s.root), "key": cache_key(s, profile)} for s in seqs],
+        "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile)},
+    }
+    if state is not None and state["train"]["data"] != fingerprints:
+        raise ConfigError("--resume with other data than the run was started on")
+    images = Images(seqs, profile, progress)
+    val_images = range_images(val_seq, profile, progress=progress)
+    val_gt = sequence_loops(val_seq, profile, progress=progress)
+    if not val_gt.has_loop().any():
+        raise DatasetError(
+            f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "
+            "would mean nothing; validate on a sequence with revisits (e.g. the val preset)"
+        )
+    pairs = PairIndex.from_sequences(seqs)
+    sampler = BatchSampler(
+        pairs,
+        BatchPlan(
+            train_cfg.batch_size,
+            train_cfg.positive_threshold,
+            train_cfg.revisit_fraction,
+            negative_threshold=train_cfg.negative_threshold,
+            positives=train_cfg.group_positives,
+            negatives=train_cfg.group_negatives,
+        ),
+    )
+    augment = Augmenter(train_cfg.augment_config(), profile, model_cfg.circular)
+    steps_per_epoch = sampler.steps(train_cfg.epoch_scans)
+
+    torch.manual_seed(train_cfg.seed)
+    model = OverlapMamba(model_cfg)
+    if state is None and train_cfg.init:
+        model.load_state_dict(start_weights(train_cfg, progress))
+    model = model.to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda step: train_cfg.lr_factor(step, steps_per_epoch)
+    )
+    history: list[dict[str, Any]] = []
+    best = {"epoch": -1, "f1max": -1.0}
+    if state is not None:
+        model.load_state_dict(state["state_dict"])
+        opt.load_state_dict(state["train"]["optimizer"])
+        sched.load_state_dict(state["train"]["scheduler"])
+        history, best = list(state["train"]["history"]), dict(state["train"]["best"])
+
+    def payload(with_optimizer: bool, metrics: dict) -> dict[str, Any]:
+        train_state: dict[str, Any] = {
+            "config": train_cfg.to_dict(),
+            "schedule": SCHEDULE,
+            "epochs_done": history[-1]["epoch"] if history else 0,
+            "history": history,
+            "best": best,
+            "data": fingerprints,
+        }
+        if with_optimizer:
+            train_state["optimizer"] = opt.state_dict()
+            train_state["scheduler"] = sched.state_dict()
+        return {
+            "model_config": model_cfg.to_dict(),
+            "profile": profile.model_dump(),
+            "state_dict": model.state_dict(),
+            "train": train_state,
+            "metrics": metrics,
+        }
+
+    turns = real_turn_scans(train_cfg.real_path(), profile, progress)
+
+    def validate() -> tuple[dict, float]:
+        t = time.perf_counter()
+        desc_val, _ = describe(model, val_images, device=str(device))
+        return summary(loop_closure(desc_val, val_gt)), time.perf_counter() - t
+
+    def real_check() -> dict[str, Any] | None:
+        if turns is None:
+            return None
+        desc, _ = describe(model, turns.plain, device=str(device))
+        desc_t, _ = describe(model, turns.turned, device=str(device))
+        return invariance(desc, desc_t, turns.positions)
+
+    start = (
+        f"{train_cfg.init}'s weights"
+        if train_cfg.init
+        else "initial weights"
+        + (
+            ", batch norm recalibrated"
+            if train_cfg.recalibrate_batches and not train_cfg.freeze_bn
+            else ""
+        )
+    )
+
+    def finish_epoch(entry: dict[str, Any]) -> None:
+        """Record an epoch; write its checkpoint, best.pt, last.pt, metrics and curves."""
+        nonlocal best
+        history.append(entry)
+        epoch, val_metrics = entry["epoch"], entry["val"]
+        f1 = val_metrics["all"]["f1max"]
+        is_best = not math.isnan(f1) and f1 > best["f1max"]
+        if is_best:
+            best = {"epoch": epoch, "f1max": f1}
+        weights_only = payload(False, val_metrics)
+        save_checkpoint(out / f"epoch-{epoch:03d}.pt", weights_only)
+        if is_best:
+            save_checkpoint(out / "best.pt", weights_only)
+        save_checkpoint(last, payload(True, val_metrics))
+        record = {
+            "model_config": model_cfg.to_dict(),
+            "train_config": train_cfg.to_dict(),
+            "best": best,
+            "history": history,
+        }
+        tmp = out / ".metrics.json.tmp"
+        tmp.write_text(json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
+        tmp.replace(out / "metrics.json")
+        plot_curves(history, out / "curves.png")
+        if progress:
+            v, h = val_metrics, entry.get("health")
+            trained = (
+                f"loss {entry['loss']:.4f}, {entry['scans_per_s']:.2f} scans/s, d(q,p) "
+                f"{h['d_pos']:.4f} d(q,n) {h['d_neg']:.4f} spread {h['spread']:.4f} "
+                f"separation {h['separation']:.2f} active {h['active']:.0%}; "
+                if h
+                else f"start: {start}; "
+            )
+            if h and not math.isnan(h.get("d_turn", math.nan)):
+                trained += f"turned copy {h['d_turn']:.5f}; "
+            real = entry.get("real")
+            turn = (
+                f"; real scans: turned copy {real['turned_over_one_metre_step']:.2f}× a 1 m step, "
+                f"min cosine {real['cosine_min']:.5f}"
+                if real
+                else ""
+            )
+            tqdm.write(
+                f"epoch {epoch}: {trained}val F1max {v['all']['f1max']:.3f} (same "
+                f"{v['same']['f1max']:.3f}, reverse {v['reverse']['f1max']:.3f}), "
+                f"R@1 {v['all']['recall@1']:.3f}{turn}"
+            )
+
+    if not history and (train_cfg.recalibrate_batches or train_cfg.init):
+        # Epoch 0: the initial weights, validated like every epoch; fresh ones with
+        # batch-norm statistics from training scans (they start as 0/1 and eval mode would
+        # use them as such), unless batch norm is frozen.
+        rng = np.random.default_rng([train_cfg.seed, 0])
+        t0 = time.perf_counter()
+        if train_cfg.recalibrate_batches and not train_cfg.freeze_bn:
+            batches = [sampler.batch(rng) for _ in range(train_cfg.recalibrate_batches)]
+            recalibrate_batchnorm(
+                model,
+                (
+                    torch.from_numpy(images[i].astype(np.float32))[:, None].to(device)
+                    for i in batches
+                ),
+            )
+        calib_s = time.perf_counter() - t0
+        val_metrics, val_s = validate()
+        finish_epoch(
+            {
+                "epoch": 0,
+                "loss": None,
+                "lr": 0.0,
+                "calibrate_s": calib_s,
+                "val_s": val_s,
+                "val": val_metrics,
+                "real": real_check(),
+            }
+        )
+
+    reference_spread = next(
+        (h["health_log"][0]["spread"] for h in history if h.get("health_log")), math.nan
+    )
+    first = history[-1]["epoch"] + 1 if history else 1
+    for epoch in range(first, train_cfg.epochs + 1):
+        rng = np.random.default_rng([train_cfg.seed, epoch])
+        torch.manual_seed(int(rng.integers(2**31)))  # the shifted branch's draws
+        hard: HardNegatives | None = None
+        mine_s = 0.0
+        if train_cfg.hard_negatives > 0:
+            tm = time.perf_counter()
+            size = min(train_cfg.mine_pool, len(pairs))
+            pool = np.sort(rng.choice(len(pairs), size=size, replace=False))
+            pool_desc, _ = describe(model, images[pool], device=str(device))
+            hard = mine(
+                pool, pool_desc, lambda a: sampler.related[a], sampler.anchors, train_cfg.mine_top
+            )
+            mine_s = time.perf_counter() - tm
+        band = train_cfg.band_share if train_cfg.band_on(epoch) else 0.0
+        batches = sampler.epoch(rng, train_cfg.epoch_scans, hard, train_cfg.hard_negatives, band)
+        loss_fn = train_cfg.loss_fn(epoch)
+        model.train()
+        if train_cfg.freeze_bn:
+            for m in model.modules():
+                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                    m.eval()
+        health = HealthLog(
+            every=train_cfg.log_every,
+            step0=(epoch - 1) * steps_per_epoch,
+            reference_spread=reference_spread,
+        )
+        warned = False
+        t0 = time.perf_counter()
+        data_s = 0.0
+        bar = tqdm(batches, desc=f"epoch {epoch}/{train_cfg.epochs}", disable=not progress)
+        for idx in bar:
+            td = time.perf_counter()
+            x = augment(images[idx], rng)
+            with_turns = train_cfg.turn_weight > 0
+            if with_turns:  # drawn only when on: runs without the term keep their streams
+                k = train_cfg.turn_scans
+                theta = rng.uniform(-180.0, 180.0, k)
+                x = np.concatenate([x, augment(images.turned(idx[:k], theta), rng)])
+            data_s += time.perf_counter() - td
+            desc, _ = model(torch.from_numpy(x)[:, None].to(device))
+            B = len(idx)
+            desc, turned = desc[:B], desc[B:]
+            overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
+            out_loss = loss_fn(desc, overlap)
+            value = out_loss.value
+            d_turn = math.nan
+            if with_turns:
+                value = value + train_cfg.turn_weight * turn_consistency(
+                    desc[: len(turned)], turned, batch_spread(desc), train_cfg.turn_allowance
+                )
+                d_turn = float((desc[: len(turned)] - turned).detach().pow(2).sum(1).mean())
+            opt.zero_grad(set_to_none=True)
+            value.backward()
+            opt.step()
+            sched.step()
+            masks = pair_masks(overlap, train_cfg.positive_threshold, train_cfg.negative_threshold)
+            health.add(
+                {
+                    "loss": value.item(),
+                    "d_turn": d_turn,
+                    "active": out_loss.active,
+                    "margin": out_loss.margin,
+                    "band_active": out_loss.band_active,
+                    **batch_distances(desc, *masks),
+                }
+            )
+            reference_spread = health.reference_spread
+            if health.collapsing() and not warned and progress:
+                warned = True
+                tqdm.write(
+                    f"warning: epoch {epoch}: the descriptors' spread fell below a quarter of "
+                    f"where the run started ({health.logged[-1]['spread']:.4g} against "
+                    f"{reference_spread:.4g}): the run is collapsing"
+                )
+            r = health.recent()
+            done = len(health.steps) * train_cfg.batch_size
+            bar.set_postfix(
+                loss=f"{r['loss']:.4f}",
+                sep=f"{r['separation']:.2f}",
+                spread=f"{r['spread']:.4f}",
+                active=f"{r['active']:.0%}",
+                scans_s=f"{done / (time.perf_counter() - t0):.2f}",
+            )
+        health.flush()  # the steps after the last full window
+        train_s = time.perf_counter() - t0
+        val_metrics, val_s = validate()
+        steps = health.steps
+        finish_epoch(
+            {
+                "epoch": epoch,
+                "loss": float(np.mean([s["loss"] for s in steps])),
+                "step_losses": [s["loss"] for s in steps],
+                "health": health.summary(),
+                "health_log": health.logged,
+                "collapsing": health.collapsing(),
+                "lr": opt.param_groups[0]["lr"],
+                "train_s": train_s,
+                "data_s": data_s,
+                "mining": None if hard is None else {**hard.stats, "mine_s": mine_s},
+                "scans_per_s": len(steps) * train_cfg.batch_size / train_s,
+                "val_s": val_s,
+                "val": val_metrics,
+                "real": real_check(),
+            }
+        )
+    return history

@@ -1,0 +1,227 @@
+"""The training recipe: every setting of ``overlapmamba train`` as one config that travels
+in checkpoints (``TrainConfig``), and ``.json``/``.toml`` config files.
+
+A config file has a ``[model]`` table (``OverlapMambaConfig`` fields), a ``[train]`` table
+(these fields) and, inside it, ``[train.augment]`` (``AugmentConfig`` fields).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import Field, model_validator
+from torch import Tensor
+
+from overlapmamba.core.configs import Config
+from overlapmamba.train.augment import AugmentConfig
+from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.losses import BATCH_LOSSES, SCALES, BandRanking, BatchLoss, ImTrihardParams
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _located(text: str) -> Path | None:
+    """A path setting: as given when it exists from here, else relative to the repository
+    root; None when empty (off)."""
+    if not text:
+        return None
+    path = Path(text)
+    return path if path.is_absolute() or path.exists() else ROOT / path
+
+
+REAL_SCANS = "../shared/data/kitti00_0000-0100"  # relative to the repository root
+SCHEDULE = "warmup-step/1"  # the learning-rate schedule's name in checkpoints (resume checks it)
+
+
+class TrainConfig(Config):
+    config_name: ClassVar[str] = "training"
+    config_error: ClassVar[type[Exception]] = ConfigError
+
+    epochs: int = 10
+    epoch_scans: int = 2000  # scans drawn per epoch
+    batch_size: int = 16  # groups of 1 + group_positives + group_negatives (default 4)
+    lr: float = 1e-4  # Adam; the reference's 5e-6 barely moves a freshly initialised head
+    warmup_steps: int = 50  # linear learning-rate warm-up over the first steps of the run
+    step_size: int = 5  # × gamma every step_size epochs (reference: 5, 0.9)
+    gamma: float = 0.9
+    loss: str = "imtrihard"  # imtrihard (paper eq. 13) or triplet (OverlapTransformer)
+    # ImTrihard margin α, in units of the batch's spread with the normalised scale (measured
+    # on the tiny towns, README "Training: measured"); the paper-era constants 0.5 / 0.1 on
+    # absolute distances are the ablation row abl-oldloss
+    alpha: float = 0.5
+    lam: float = 0.0  # ImTrihard compression weight λ
+    k_p: float = 1.0
+    k_n: float = 1.0
+    hinge: bool = True
+    margin: float = 0.5  # triplet margin m
+    margin_scale: str = "normalised"  # absolute, relative or normalised (losses.SCALES)
+    positive_threshold: float = 0.3  # overlap above this: positive
+    negative_threshold: float = 0.1  # overlap at most this: negative; in between: neither
+    revisit_fraction: float = 0.5  # anchors whose first positive is an old pass
+    group_positives: int = 2  # a batch is groups of anchor + positives + near misses
+    group_negatives: int = 1
+    # Hard negatives mined by the current model (overlapmamba.train.mining): the share of groups
+    # whose negative is a distant look-alike instead of the near miss (0: off), from a pool
+    # of mine_pool training scans described at each epoch's start, mine_top per anchor.
+    hard_negatives: float = 0.0
+    mine_pool: int = 2000
+    mine_top: int = 10
+    # The ambiguous band ranked below the positives (losses.BandRanking), from epoch
+    # band_from_epoch on: band_weight (0: off) and band_alpha (in the margin's units) set the
+    # term, band_share the share of the non-mined groups whose near miss is a band scan.
+    # Epochs before band_from_epoch draw and train exactly as without it.
+    band_weight: float = 0.0
+    band_alpha: float = 0.2
+    band_share: float = 0.0
+    band_from_epoch: int = 1
+    augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
+    # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
+    # also fed turned about z by a random continuous angle (re-projected from their points,
+    # then augmented like the batch),
+    # and turn_weight × their squared distance to the unturned scan, in units of the batch's
+    # spread, joins the loss (0: off, and nothing is drawn for it); a turned copy nearer
+    # than turn_allowance (in units of the spread too) costs nothing.
+    turn_weight: float = 0.0
+    turn_scans: int = 4
+    turn_allowance: float = 0.0
+    # Start from a trained network instead of the seed's weights: a checkpoint (.pt) or an
+    # exported encoder (.onnx, weights recovered exactly: overlapmamba.train.recover), relative to
+    # the repository root unless it exists from here. freeze_bn keeps every batch norm in
+    # eval mode (statistics and all), which a recovered network needs: its norms were folded
+    # into the convolutions and have no statistics to continue.
+    init: str = ""
+    freeze_bn: bool = False
+    recalibrate_batches: int = 20  # epoch 0: batch-norm statistics from this many batches
+    log_every: int = 10  # steps per health record
+    real: str = REAL_SCANS  # real scans whose turned copies are checked every epoch ("": off)
+    seed: int = 0
+    device: str = "cpu"  # cpu or cuda
+
+    @model_validator(mode="after")
+    def _check(self) -> TrainConfig:
+        if self.loss not in BATCH_LOSSES:
+            raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
+        names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")
+        for name in (*names, "group_positives", "mine_top"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be ≥ 1, got {getattr(self, name)}")
+        for name in ("warmup_steps", "recalibrate_batches", "group_negatives"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be ≥ 0, got {getattr(self, name)}")
+        if not (self.lr > 0 and 0 < self.gamma <= 1 and 0 <= self.positive_threshold < 1):
+            raise ConfigError("need lr > 0, 0 < gamma ≤ 1 and 0 ≤ positive_threshold < 1")
+        if not 0 <= self.negative_threshold <= self.positive_threshold:
+            raise ConfigError(
+                f"negative_threshold {self.negative_threshold} is not allowed: use 0 ≤ "
+                f"negative_threshold ≤ positive_threshold ({self.positive_threshold})"
+            )
+        group = 1 + self.group_positives + self.group_negatives
+        if self.batch_size % group:
+            raise ConfigError(
+                f"batch_size {self.batch_size} is not allowed: use a multiple of {group} (an "
+                f"anchor, {self.group_positives} positives and {self.group_negatives} near "
+                "misses per group)"
+            )
+        if not 0 <= self.hard_negatives <= 1 or self.mine_pool < 2:
+            raise ConfigError(
+                f"hard_negatives {self.hard_negatives} / mine_pool {self.mine_pool} are not "
+                "allowed: use 0 ≤ hard_negatives ≤ 1 and mine_pool ≥ 2"
+            )
+        if not (self.band_weight >= 0 and self.band_alpha >= 0 and 0 <= self.band_share <= 1):
+            raise ConfigError(
+                f"band_weight {self.band_weight}, band_alpha {self.band_alpha} and band_share "
+                f"{self.band_share} are not allowed: use band_weight ≥ 0, band_alpha ≥ 0 and "
+                "0 ≤ band_share ≤ 1"
+            )
+        if self.band_from_epoch < 1:
+            raise ConfigError(f"band_from_epoch must be ≥ 1, got {self.band_from_epoch}")
+        if self.band_weight > 0 and self.loss != "imtrihard":
+            raise ConfigError(
+                f"band_weight > 0 needs loss 'imtrihard' (the band term is ImTrihard's); got "
+                f"{self.loss!r}"
+            )
+        if self.turn_weight < 0 or self.turn_scans < 1 or not 0 <= self.turn_allowance < 1:
+            raise ConfigError(
+                f"turn_weight {self.turn_weight} / turn_scans {self.turn_scans} / "
+                f"turn_allowance {self.turn_allowance} are not allowed: use turn_weight ≥ 0, "
+                "turn_scans ≥ 1 and 0 ≤ turn_allowance < 1 (a turned copy one spread away is "
+                "as far as any other scan)"
+            )
+        if self.turn_scans > self.batch_size:
+            raise ConfigError(
+                f"turn_scans {self.turn_scans} is more than the batch ({self.batch_size}): "
+                "turned copies are taken from the batch's own scans"
+            )
+        if self.init.endswith(".onnx") and not self.freeze_bn:
+            raise ConfigError(
+                f"init {self.init!r} is an exported encoder: its batch norms were folded and "
+                "have no statistics to train with; set freeze_bn = true"
+            )
+        if self.init and not self.init.endswith((".onnx", ".pt")):
+            raise ConfigError(
+                f"init {self.init!r}: allowed are a checkpoint (.pt) or an exported encoder (.onnx)"
+            )
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"device {self.device!r} is not allowed; allowed: cpu, cuda")
+        if self.margin_scale not in SCALES:
+            raise ConfigError(
+                f"margin_scale {self.margin_scale!r} is unknown; allowed: {', '.join(SCALES)}"
+            )
+        self.augment_config()  # refuses unknown or out-of-range augmentation settings
+        return self
+
+    def real_path(self) -> Path | None:
+        """The real scans of the per-epoch turn check: as given when it exists from here,
+        else relative to the repository root; None when the check is off."""
+        return _located(self.real)
+
+    def init_path(self) -> Path | None:
+        """The network the run starts from (as given when it exists from here, else relative
+        to the repository root); None: the seed's fresh weights."""
+        return _located(self.init)
+
+    def augment_config(self) -> AugmentConfig:
+        return AugmentConfig.from_dict(self.augment)
+
+    def band_on(self, epoch: int) -> bool:
+        """Whether epoch ``epoch`` trains with the band term and draws band scans."""
+        return epoch >= self.band_from_epoch and (self.band_weight > 0 or self.band_share > 0)
+
+    def loss_fn(self, epoch: int = 1) -> Callable[[Tensor, Tensor], BatchLoss]:
+        """The batch loss of epoch ``epoch`` (the band term from ``band_from_epoch`` on)."""
+        fn = BATCH_LOSSES[self.loss]
+        kw: dict = {"negative": self.negative_threshold, "scale": self.margin_scale}
+        if self.loss == "imtrihard":
+            p = ImTrihardParams(self.alpha, self.lam, self.k_p, self.k_n, self.hinge)
+            if self.band_on(epoch) and self.band_weight > 0:
+                kw["band"] = BandRanking(self.band_weight, self.band_alpha)
+            return lambda d, ov: fn(d, ov, self.positive_threshold, p, **kw)
+        return lambda d, ov: fn(d, ov, self.positive_threshold, self.margin, **kw)
+
+    def lr_factor(self, step: int, steps_per_epoch: int) -> float:
+        """Learning-rate multiplier at a global step: linear warm-up, then × gamma every
+        ``step_size`` epochs."""
+        warm = min(1.0, (step + 1) / self.warmup_steps) if self.warmup_steps else 1.0
+        return warm * self.gamma ** ((step // steps_per_epoch) // self.step_size)
+
+
+def load_config_file(path: Path) -> tuple[dict, dict]:
+    """``{"model": {...}, "train": {...}}`` from .json or .toml → (model dict, train dict)."""
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    text = path.read_text()
+    if path.suffix == ".json":
+        raw = json.loads(text)
+    elif path.suffix == ".toml":
+        import tomllib
+
+        raw = tomllib.loads(text)
+    else:
+        raise ConfigError(f"{path.name}: allowed config suffixes are .json and .toml")
+    extra = sorted(set(raw) - {"model", "train"})
+    if extra:
+        raise ConfigError(f"{path}: unknown sections {extra}; allowed: model, train")
+    return dict(raw.get("model", {})), dict(raw.get("train", {}))
