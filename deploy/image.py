@@ -255,6 +255,7 @@ def markdown() -> str:
         ("base", "base image from Debian's packages (debootstrap, import)"),
         ("wheels", "wheelhouse (pip wheel, the venv's versions)"),
         ("build_cold", "image build, cold (no layer cache)"),
+        ("build_cached", "image build by `make image` (the layer cache as it found it)"),
         ("build_after_a_source_edit", "image build after a source edit (warm layer cache)"),
     ):
         if key in build:
