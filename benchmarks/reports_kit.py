@@ -19,27 +19,37 @@ REPORTS = ROOT / "reports"
 CORES = os.cpu_count() or 1
 
 
+def _git(*args: str) -> str:
+    import subprocess
+
+    try:
+        done = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10)
+    except OSError:
+        return ""
+    return done.stdout.strip()
+
+
+def _commit() -> str:
+    commit = _git("rev-parse", "HEAD") or "unknown"
+    if _git("status", "--porcelain", "--untracked-files=no"):
+        commit += "-dirty"
+    return commit
+
+
+# the code a benchmark runs is the code it started with: its commit is read when the
+# benchmark imports this module, not when it writes (a long run may outlive a commit)
+STARTED_AT = _commit()
+
+
 def provenance() -> dict[str, object]:
-    """Where a figure came from: the command, the commit (``-dirty`` with local changes), the
-    machine (CPU model, cores) and the time, for the JSON a benchmark writes."""
+    """Where a figure came from: the command, the commit the run started from (``-dirty``
+    with local changes), the machine (CPU model, cores) and the time it was written."""
     import platform
     import shlex
-    import subprocess
     import sys
     from datetime import UTC, datetime
 
-    def git(*args: str) -> str:
-        try:
-            done = subprocess.run(
-                ["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10
-            )
-        except OSError:
-            return ""
-        return done.stdout.strip()
-
-    commit = git("rev-parse", "HEAD") or "unknown"
-    if git("status", "--porcelain", "--untracked-files=no"):
-        commit += "-dirty"
+    commit = STARTED_AT
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
