@@ -1,7 +1,6 @@
 """What the benchmarks share: paths, scans (KITTI 00 when present, else synthetic), a real
 server in a temporary data folder (:mod:`overlapmamba.service.process`), and a watch on the CPU use
-of
-other processes, so a noisy run says so."""
+of other processes, so a noisy run says so."""
 
 from __future__ import annotations
 

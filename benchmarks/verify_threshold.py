@@ -7,12 +7,11 @@ Per town, as the service does it: every scan is encoded by the shipped ONNX enco
 the database is every frame more than ``exclude_recent`` frames earlier) takes its top
 ``--k`` candidates in the service's order (the ``rerank.k`` nearest descriptors re-ranked by
 d² − weight · aligned yaw-feature correlation: ``overlapmamba.service.ranking``; ``--rerank off``
-for the
-descriptor order), seeds each with the yaw from the yaw features and registers it
+for the descriptor order), seeds each with the yaw from the yaw features and registers it
 (``overlapmamba.service.verify.verify_candidates``). The closure is the verified candidate of
-highest fitness. It is **correct** when its relative pose is right: within 1 m and 2° of the
-poses' T = P_keyframe⁻¹ · P_query (an edge a pose graph can take). Also reported: the
-precision counting only pairs the town's ground truth calls loops (overlap above its
+highest fitness. It is **correct** when its relative pose is right: within 1 m and 2° of the poses'
+T = P_keyframe⁻¹ · P_query (an edge a pose graph can take). Also reported: the precision counting
+only pairs the town's ground truth calls loops (overlap above its
 ``min_overlap``, 0.3) as correct — stricter, since a registration can be exact on a pair
 that shares less. Recall: queries with a ground-truth loop whose closure is correct and a
 loop, over all queries with a loop (what the descriptor's Recall@5 bounds).

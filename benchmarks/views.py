@@ -4,12 +4,10 @@ with one, on real KITTI 00 scans.
 
 The one-view model is the same graph written with ``views = 1``
 (``overlapmamba.train.modelfile.with_views``: the file the model id ``om-ef2469f958d5098b`` names),
-so
-the two differ only in how many projections a scan makes and how many graph rows the encoder
-runs. Timed interleaved (one view, then the model's, rep after rep) in one process, with 1
-and 2 onnxruntime threads, one scan per call and 8 scans per call (per scan), so that the
-ratio holds on a shared machine even when the absolute times drift. Also reported: the
-project stage alone.
+so the two differ only in how many projections a scan makes and how many graph rows the encoder
+runs. Timed interleaved (one view, then the model's, rep after rep) in one process, with 1 and 2
+onnxruntime threads, one scan per call and 8 scans per call (per scan), so that the ratio holds on a
+shared machine even when the absolute times drift. Also reported: the project stage alone.
 
 Writes JSON (default reports/service/views.json).
 """

@@ -138,8 +138,7 @@ def test_query_mask_scores_a_subset():
 
 def test_errors_at_an_operating_point_sort_every_query_by_hand():
     """overlapmamba.core.anatomy on a hand-made retrieval: which accepted answers are true, which
-    false
-    alarms are neighbours (and overlap a little) or look-alikes, which loops are missed."""
+    false alarms are neighbours (and overlap a little) or look-alikes, which loops are missed."""
     from overlapmamba.core.anatomy import errors_at_f1max
     from overlapmamba.core.metrics import evaluate_retrieval
     from overlapmamba.core.overlap import LoopGroundTruth

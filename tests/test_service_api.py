@@ -16,6 +16,7 @@ import zstandard
 from service_kit import OCTET, running, scan
 
 from overlapmamba.service.auth import hash_key
+from overlapmamba.service.calibration import resolve
 from overlapmamba.service.settings import Settings
 
 pytestmark = pytest.mark.anyio
@@ -111,6 +112,8 @@ async def test_health_descriptors_and_every_scan_encoding(settings, encoder):
 
 async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
     settings = any_backend
+    # the thresholds the service answers with: the model file's calibration where it has one
+    served = resolve(settings, encoder.meta)[0]
     async with running(settings, encoder) as c:
         r = await c.put("/v1/maps/town", json={"index": "flat"})
         assert r.status_code == 201 and r.json()["created"] is True
@@ -166,15 +169,14 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         assert len(q["matches"]) == 2
         assert q["loop_closure"]["accepted"] is True
         assert q["loop_closure"]["margin_top1_top2"] > 0
-        # a scan query is re-ranked (overlapmamba.service.ranking): every match scored, in score
-        # order,
-        # and the call is on the top-1's score
-        w = settings.rerank.weight
+        # a scan query is re-ranked (overlapmamba.service.ranking): every match scored, in
+        # score order, and the call is on the top-1's score
+        w = served.rerank.weight
         for m in q["matches"]:
             assert math.isclose(m["score"], m["distance"] ** 2 - w * m["yaw_confidence"])
         assert q["matches"][0]["score"] <= q["matches"][1]["score"]
         lc = q["loop_closure"]
-        assert lc["rule"] == "score" and lc["threshold"] == settings.loop_closure.max_score
+        assert lc["rule"] == "score" and lc["threshold"] == served.loop_closure.max_score
         assert math.isclose(
             lc["margin_top1_top2"], q["matches"][1]["score"] - q["matches"][0]["score"]
         )
@@ -190,7 +192,7 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         # …so no re-ranking: descriptor order, no score, the call on the distance
         assert [m["score"] for m in r.json()["matches"]] == [None] * 3
         lc = r.json()["loop_closure"]
-        assert lc["rule"] == "distance" and lc["threshold"] == settings.loop_closure.max_distance
+        assert lc["rule"] == "distance" and lc["threshold"] == served.loop_closure.max_distance
         r = await c.post(
             "/v1/maps/town/query",
             params={"k": 3, "time_from": 100.5, "time_to": 101.5},

@@ -2,8 +2,7 @@
 
 ``PlaceRecognitionClient`` (blocking) and ``AsyncPlaceRecognitionClient`` (asyncio) have
 the same methods; ``overlapmamba-client`` is the command line (``overlapmamba.client.cli``), with
-the
-fleet simulator (``overlapmamba.client.fleet``). No torch, onnxruntime or faiss here.
+the fleet simulator (``overlapmamba.client.fleet``). No torch, onnxruntime or faiss here.
 """
 
 from overlapmamba.client._async import AsyncPlaceRecognitionClient

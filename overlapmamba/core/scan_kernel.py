@@ -2,8 +2,7 @@
 
 Training reaches it through :mod:`overlapmamba.train.scan_fused` (autograd, torch tensors); the
 service's fast path (:mod:`overlapmamba.service.fastscan`) calls :func:`scan_forward` on the arrays
-of the
-exported graph's scan nodes. Both load the same library, so the scan a model was trained with
+of the exported graph's scan nodes. Both load the same library, so the scan a model was trained with
 is the scan it is served with.
 
 **Build.** Compiled with the system C compiler (``cc`` or ``$CC``) into

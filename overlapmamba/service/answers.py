@@ -1,6 +1,5 @@
 """What the use cases (:mod:`overlapmamba.service.places`) are given besides a scan, and what they
-answer:
-typed results that the routes turn into their HTTP shapes, once, at the edge."""
+answer: typed results that the routes turn into their HTTP shapes, once, at the edge."""
 
 from __future__ import annotations
 

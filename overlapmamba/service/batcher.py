@@ -9,8 +9,7 @@ worker thread, off the event loop; while it encodes, the next one fills, so unde
 batches grow without any added wait.
 
 A full queue answers at once with :class:`~overlapmamba.service.errors.Overloaded` (503 +
-Retry-After):
-queueing more work than can finish within a request timeout only turns 503s into 504s.
+Retry-After): queueing more work than can finish within a request timeout only turns 503s into 504s.
 """
 
 from __future__ import annotations

@@ -15,9 +15,8 @@
      └── Timeout                         504  the request ran past its deadline
 
 Shared-core errors (:mod:`overlapmamba.core.errors`) are mapped in :mod:`overlapmamba.service.app`:
-undecodable
-bodies → 400, non-finite points and point counts → 422 (too many points → 413).
-Every response body is ``{"error": {"code", "message", "detail"}}``.
+undecodable bodies → 400, non-finite points and point counts → 422 (too many points → 413). Every
+response body is ``{"error": {"code", "message", "detail"}}``.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """The service's use cases, independent of HTTP: scan → descriptor → map → answer.
 
 Routes and the WebSocket stream (``overlapmamba.service.api``) parse their transport, authorise,
-open
-the map (:meth:`PlaceService.open_map`, which refuses another model's map) and call one
-method here; it returns a dataclass, which the route turns into its HTTP shape. Scans go
-through :class:`~overlapmamba.service.pipeline.ScanPipeline`; map work (FAISS, SQLite, Qdrant) runs
-in
+open the map (:meth:`PlaceService.open_map`, which refuses another model's map) and call one method
+here; it returns a dataclass, which the route turns into its HTTP shape. Scans go through
+:class:`~overlapmamba.service.pipeline.ScanPipeline`; map work (FAISS, SQLite, Qdrant) runs in
 worker threads.
 """
 
@@ -166,8 +164,7 @@ class PlaceService:
     ) -> list[InsertResult]:
         """Precomputed descriptors of ``model_id`` into an opened map (offline map building):
         each checked and hashed (:func:`~overlapmamba.service.domain.descriptor_keyframe`), then all
-        or
-        nothing."""
+        or nothing."""
         if model_id != m.model_id:
             raise Conflict(
                 f"descriptors of model {model_id!r} cannot go into map {m.map_id!r} of model "

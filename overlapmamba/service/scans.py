@@ -1,7 +1,6 @@
 """A scan as it came over the wire (:class:`ScanBody`) → points, with every limit checked
 before the memory is spent. No HTTP here: :mod:`overlapmamba.service.bodies` reads request bodies
-into
-these, the scan pipeline decodes them.
+into these, the scan pipeline decodes them.
 
     decompress(body, encoding, max)   Content-Encoding (gzip | zstd | identity), bounded
     scan_format(content_type)         the codec a media type names

@@ -108,8 +108,7 @@ ABLATIONS = {
 # best.pt is not under runs/ (a fresh machine has the .onnx, not the checkpoint).
 SHIPPED_ONNX = Path(__file__).resolve().parents[2] / "models" / "overlapmamba-hdl64.onnx"
 # The service's second stage (overlapmamba.core.rerank's defaults): the shipped row also appears
-# with
-# it (label + evaluate.RERANKED) in Table I, across sessions and in the real-scan checks.
+# with it (label + evaluate.RERANKED) in Table I, across sessions and in the real-scan checks.
 SERVICE_RERANK = Rerank()
 REAL = {
     "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),

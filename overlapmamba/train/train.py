@@ -11,8 +11,7 @@ fair untrained model, and selection may keep it.
 **Epochs 1…** draw ``epoch_scans`` scans in batches (:mod:`overlapmamba.train.batches`; with
 ``hard_negatives`` > 0 a share of the groups get a negative mined by the epoch's starting
 weights, :mod:`overlapmamba.train.mining`), augment them (:mod:`overlapmamba.train.augment`) and
-step
-Adam; the learning rate warms up linearly over
+step Adam; the learning rate warms up linearly over
 ``warmup_steps`` and then falls × ``gamma`` every ``step_size`` epochs. From
 ``band_from_epoch`` on, with ``band_weight`` / ``band_share`` > 0, the loss also ranks each
 anchor's ambiguous band below its positives and a share of the groups bring a band scan

@@ -3,10 +3,9 @@
 the same way (write-once ids, one result per requested row, matches with their yaw).
 
 Routes and :mod:`overlapmamba.service.places` see only these protocols; the query semantics
-(filters,
-distances, yaw, idempotent inserts) are defined here and in :mod:`overlapmamba.service.domain` once
-and
-checked against both engines by ``tests/test_backends.py``.
+(filters, distances, yaw, idempotent inserts) are defined here and in
+:mod:`overlapmamba.service.domain` once and checked against both engines by
+``tests/test_backends.py``.
 """
 
 from __future__ import annotations
