@@ -13,15 +13,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from reports_kit import REPORTS, provenance, write_report  # noqa: F401 (re-exported)
+from reports_kit import CORES, REPORTS, ROOT, provenance, write_report  # noqa: F401 (re-exported)
 from rich.console import Console
 
 from overlapmamba.service.process import serve_process
 
-ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
 MODEL = ROOT / "models" / "overlapmamba-hdl64.onnx"
-CORES = os.cpu_count() or 1
 
 # ---- scans ----------------------------------------------------------------------------------
 

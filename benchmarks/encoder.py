@@ -173,19 +173,17 @@ def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     }
 
 
-def alternate(fa, fb, n: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """Median seconds of ``fa`` and ``fb`` called in turn ``n`` times (after 3 warm-ups), so
-    load on the shared machine hits both alike."""
-    a, b = [], []
+def alternate(*fns, n: int) -> list[float]:  # type: ignore[no-untyped-def]
+    """Median seconds of each of ``fns`` called in turn ``n`` times (after 3 warm-ups), so
+    load on the shared machine hits them all alike."""
+    times: list[list[float]] = [[] for _ in fns]
     for i in range(n + 3):
-        t = time.perf_counter()
-        fa()
-        t1 = time.perf_counter()
-        fb()
-        if i >= 3:
-            a.append(t1 - t)
-            b.append(time.perf_counter() - t1)
-    return float(np.median(a)), float(np.median(b))
+        for f, t in zip(fns, times, strict=True):
+            t0 = time.perf_counter()
+            f()
+            if i >= 3:
+                t.append(time.perf_counter() - t0)
+    return [float(np.median(t)) for t in times]
 
 
 def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> dict[str, Any]:
@@ -197,7 +195,7 @@ def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> d
     for th in (1, 2):
         ours, base = Encoder(ours_path, intra_op_threads=th), session(noscan_path, th)
         a, b = alternate(
-            lambda o=ours: o.encode(x1), lambda s=base: s.run(None, {"range_image": x1}), reps
+            lambda o=ours: o.encode(x1), lambda s=base: s.run(None, {"range_image": x1}), n=reps
         )
         out[f"b1_t{th}"] = {"served_ms": a * 1e3, "noscan_ms": b * 1e3, "ratio": a / b}
         if ours.staged is not None:  # where the served time goes: kernel vs sessions
@@ -205,7 +203,7 @@ def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> d
             alternate(
                 lambda g=g, p=parts: g.run(x1, p),
                 lambda s=base: s.run(None, {"range_image": x1}),
-                reps,
+                n=reps,
             )
             n = reps + 3  # alternate's warm-ups run too
             sessions, scan = parts["sessions"] / n * 1e3, parts["scan"] / n * 1e3
@@ -216,18 +214,6 @@ def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> d
                 "ratio_with_a_free_scan": sessions / (b * 1e3),
             }
     return out
-
-
-def alternate_many(fns, n: int) -> list[float]:  # type: ignore[no-untyped-def]
-    """Median seconds of each of ``fns`` called in turn ``n`` times (after 3 warm-ups)."""
-    times: list[list[float]] = [[] for _ in fns]
-    for i in range(n + 3):
-        for f, t in zip(fns, times, strict=True):
-            t0 = time.perf_counter()
-            f()
-            if i >= 3:
-                t.append(time.perf_counter() - t0)
-    return [float(np.median(t)) for t in times]
 
 
 def peer_comparison(
@@ -243,13 +229,11 @@ def peer_comparison(
     out: dict[str, Any] = {"scan_path": ours.scan_path, "views": views}
     for name, x, n in (("b1", x1, reps), ("b8", x8, max(5, reps // 4))):
         xv = np.repeat(x, views, axis=0)  # a scan's views: same shape, so the same cost
-        v, a, b = alternate_many(
-            [
-                lambda xv=xv: ours.encode(xv),
-                lambda x=x: ours.encode(x),
-                lambda x=x: peer.run(None, {"range_image": x}),
-            ],
-            n,
+        v, a, b = alternate(
+            lambda xv=xv: ours.encode(xv),
+            lambda x=x: ours.encode(x),
+            lambda x=x: peer.run(None, {"range_image": x}),
+            n=n,
         )
         out[name] = {
             "ours_views_ms_per_scan": v * 1e3 / len(x),

@@ -19,20 +19,19 @@ render = importlib.util.module_from_spec(_spec)
 sys.modules["docs_render"] = render
 _spec.loader.exec_module(render)
 
-INCLUDE = re.compile(r"<!-- include (\S+) -->\n(.*?)<!-- end include \1 -->\n", re.S)
-RENDER = re.compile(r"<!-- render (\S+) -->\n(.*?)<!-- end render \1 -->\n", re.S)
-
 
 def _rel(doc: Path) -> str:
     return str(doc.relative_to(ROOT))
 
 
 def _includes() -> list[tuple[Path, str, str]]:
-    return [(doc, m[1], m[2]) for doc in render.DOCS for m in INCLUDE.finditer(doc.read_text())]
+    blocks = render.INCLUDE.finditer
+    return [(doc, m[2], m[3]) for doc in render.DOCS for m in blocks(doc.read_text())]
 
 
 def _rendered() -> list[tuple[Path, str, str]]:
-    return [(doc, m[1], m[2]) for doc in render.DOCS for m in RENDER.finditer(doc.read_text())]
+    blocks = render.RENDER.finditer
+    return [(doc, m[2], m[3]) for doc in render.DOCS for m in blocks(doc.read_text())]
 
 
 def test_the_measured_tables_are_in_their_documents():
