@@ -5,12 +5,13 @@ the model's own projection, onnxruntime), scores the loop-closure protocol of
 ``overlapmamba.core.metrics`` on ``data/synth/val`` and prints the operating points: the top-1
 descriptor distance at F1max, and the largest distance whose precision is at least 0.9,
 0.95 and 0.99 (a false loop closure corrupts a SLAM map, so robots want high precision).
-The service's ``loop_closure.max_distance`` default is chosen from this table.
+The service's ``loop_closure.accept_distance`` default is chosen from this table.
 
-The service answers scan queries in two stages (``overlapmamba.core.rerank``: the ``rerank.k``
-nearest descriptors re-ranked by d² − weight · aligned yaw-feature correlation) and calls an
-unverified loop closure on the top-1's *score*; the same table for that score (the keyframes'
-yaw features rounded to float16, as the map stores them) gives ``loop_closure.max_score``.
+The service answers scan queries in two stages (``overlapmamba.core.rerank``: the
+``rerank.shortlist`` nearest descriptors re-ranked by d² − weight · aligned yaw-feature
+correlation) and calls an unverified loop closure on the top-1's *score*; the same table for
+that score (the keyframes' yaw features rounded to float16, as the map stores them) gives
+``loop_closure.max_score``.
 ``--write-calibration`` records both F1max points in the model file, which the service takes
 them from. Each scan enters the model as its town's sensor's (its manifest's).
 Writes JSON (default reports/service/loop_threshold.json).
@@ -49,14 +50,14 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument(
         "--rerank",
-        default=f"{served.k},{served.weight:g}",
+        default=f"{served.shortlist},{served.weight:g}",
         help="the second stage, K,WEIGHT or off (default: the service's for --model)",
     )
     ap.add_argument("--out", type=Path, default=REPORTS / "service" / "loop_threshold.json")
     ap.add_argument(
         "--write-calibration",
         action="store_true",
-        help="record the F1max points as the model's loop_closure.max_distance / max_score",
+        help="record the F1max points as the model's loop_closure.accept_distance / max_score",
     )
     args = ap.parse_args()
     if args.write_calibration and args.sequence.name.startswith("test"):
@@ -84,27 +85,27 @@ def main() -> None:
     # What a float16 store would hold: does the rounding cost accuracy?
     d16 = desc.astype(np.float16).astype(np.float32)
     d16 /= np.linalg.norm(d16, axis=1, keepdims=True)
-    res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent=recent)
-    res = evaluate_loop_closure(desc, gt.positives(), exclude_recent=recent)
+    res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent_frames=recent)
+    res = evaluate_loop_closure(desc, gt.positives(), exclude_recent_frames=recent)
     spread = np.linalg.norm(desc - desc.mean(0), axis=1)
     rerank = Rerank.parse(args.rerank)
     staged = evaluate_retrieval(
-        two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent=recent
+        two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent_frames=recent
     )
     # The protocol's PR thresholds are squared L2 distances (overlapmamba.core.metrics.nearest);
-    # the service compares L2 distances: max_distance = √threshold. A score is thresholded
+    # the service compares L2 distances: accept_distance = √threshold. A score is thresholded
     # as it is (max_score).
-    points = operating_points(res, "max_distance", np.sqrt)
+    points = operating_points(res, "accept_distance", np.sqrt)
     points_staged = operating_points(staged, "max_score", lambda t: t)
     table = Table(title=f"loop-closure operating points on {seq.name} ({enc.model_id})")
     for col in ("point", "max L2 distance", "precision", "recall"):
         table.add_column(col, justify="right")
-    for col in (f"max score ({rerank.k}, {rerank.weight:g})", "precision", "recall"):
+    for col in (f"max score ({rerank.shortlist}, {rerank.weight:g})", "precision", "recall"):
         table.add_column(col, justify="right")
     for name, v in points.items():
         w = points_staged[name]
         cells = []
-        for x, key in ((v, "max_distance"), (w, "max_score")):
+        for x, key in ((v, "accept_distance"), (w, "max_score")):
             cells += (
                 ["not reached", "", ""]
                 if x is None
@@ -127,7 +128,7 @@ def main() -> None:
                 "sequence": str(args.sequence),
                 "summary": res.summary(),
                 "operating_points": points,
-                "rerank": {"k": rerank.k, "weight": rerank.weight},
+                "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
                 "summary_reranked": staged.summary(),
                 "operating_points_reranked": points_staged,
                 "float16": res16.summary(),
@@ -149,7 +150,7 @@ def main() -> None:
     if args.write_calibration:
         f1, f1_staged = points["f1max"], points_staged["f1max"]
         assert f1 is not None and f1_staged is not None  # the F1max point always exists
-        values = {"max_distance": f1["max_distance"], "max_score": f1_staged["max_score"]}
+        values = {"accept_distance": f1["accept_distance"], "max_score": f1_staged["max_score"]}
         write_calibration(args.model, "loop_closure", values, str(args.sequence))
 
 

@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument(
         "--write-calibration",
         action="store_true",
-        help="record the winner as the model's rerank.k / rerank.weight",
+        help="record the winner as the model's rerank.shortlist / rerank.weight",
     )
     args = ap.parse_args()
     if args.write_calibration and args.val.name.startswith("test"):
@@ -67,12 +67,13 @@ def main() -> None:
     for p in [OFF] + [Rerank(k, w) for k in KS for w in WEIGHTS]:
         res = loop_closure(desc, gt, yaw, p)
         xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p)
-        row: dict = {"k": p.k, "weight": p.weight}
+        row: dict = {"shortlist": p.shortlist, "weight": p.weight}
         for sub in SUBSETS:
             row[f"{sub}_f1max"] = res[sub].f1max
             row[f"{sub}_recall@1"] = res[sub].recall_at_1
         row["cross_session_ar@1"] = xs["ar@1"]
-        row["mean"] = float(np.mean([v for key, v in row.items() if key not in ("k", "weight")]))
+        scores = [v for key, v in row.items() if key not in ("shortlist", "weight")]
+        row["mean"] = float(np.mean(scores))
         rows.append(row)
     best = max(rows[1:], key=lambda r: r["mean"])
 
@@ -83,7 +84,7 @@ def main() -> None:
     for r in rows:
         mark = " ←" if r is best else ""
         table.add_row(
-            "off" if r["k"] == 1 else str(r["k"]),
+            "off" if r["shortlist"] == 1 else str(r["shortlist"]),
             f"{r['weight']:g}",
             *(f"{r[f'{s}_f1max']:.3f} / {r[f'{s}_recall@1']:.3f}" for s in SUBSETS),
             f"{r['cross_session_ar@1']:.3f}",
@@ -92,7 +93,7 @@ def main() -> None:
     console = Console(width=140)
     console.print(table)
     console.print(
-        f"best: K {best['k']}, weight {best['weight']:g}; {time.perf_counter() - t0:.0f} s"
+        f"best: K {best['shortlist']}, weight {best['weight']:g}; {time.perf_counter() - t0:.0f} s"
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {
@@ -101,12 +102,12 @@ def main() -> None:
         "val": str(args.val),
         "second_session": str(args.second_session),
         "grid": rows,
-        "best": {"k": best["k"], "weight": best["weight"]},
+        "best": {"shortlist": best["shortlist"], "weight": best["weight"]},
     }
     args.out.write_text(json.dumps(record, indent=2) + "\n")
     console.print(f"wrote {args.out}")
     if args.write_calibration:
-        values = {"k": best["k"], "weight": best["weight"]}
+        values = {"shortlist": best["shortlist"], "weight": best["weight"]}
         write_calibration(args.model, "rerank", values, f"{args.val} and {args.second_session}")
 
 

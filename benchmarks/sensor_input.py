@@ -105,7 +105,7 @@ def main() -> None:
         **provenance(),
         "model_id": enc.model_id,
         "towns": [str(t) for t in towns],
-        "rerank": {"k": rerank.k, "weight": rerank.weight},
+        "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
         "by_sensor": rows,
         "mean": means,
         "pick": pick,

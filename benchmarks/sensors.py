@@ -9,7 +9,7 @@ Rows, all on test data (never chosen on):
   100 earlier, a loop when its overlap in the sensor's own image is above 0.3): F1max and
   Recall@1 of the descriptor alone, of the service's two stages (the descriptor shortlist
   re-ranked by the yaw features) and of Scan Context; and the service's verified loop
-  closures (``benchmarks/verify_threshold.py``: registration of the first ``verify.k``
+  closures (``benchmarks/verify_threshold.py``: registration of the first ``verify.candidates``
   candidates, the thresholds the model file carries): precision (a closure is right when
   its relative pose is within 1 m and 2°) and recall. Every scan enters the model as its
   sensor's, as the service projects a scan that names its sensor.
@@ -87,8 +87,10 @@ def same_sensor(enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings) -> 
     verified closures at the model's thresholds; its descriptors and contexts for later."""
     seq = open_sequence(town)
     gt = sequence_loops(seq)
-    record = VerifySettings(k=v.k, min_fitness=0.0, max_rmse_m=1e9, max_distance=v.max_distance)
-    r = run_town(enc, town, v.k, record, rerank)
+    record = VerifySettings(
+        candidates=v.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=v.gate_distance
+    )
+    r = run_town(enc, town, v.candidates, record, rerank)
     desc, yaw = r["descriptors"], r["yaw_features"]
     contexts = scan_contexts(seq)
     alone = summary(loop_closure(desc, gt))
@@ -96,9 +98,9 @@ def same_sensor(enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings) -> 
         two_stage(desc, yaw, rerank),
         len(desc),
         gt.positives(),
-        exclude_recent=int(gt.params.get("exclude_recent", 100)),
+        exclude_recent_frames=int(gt.params.get("exclude_recent", 100)),
     ).summary()
-    verified = score(r["queries"], v.min_fitness, v.max_rmse_m, v.max_distance)
+    verified = score(r["queries"], v.min_fitness, v.max_rmse_m, v.gate_distance)
     row = {
         "town": str(town),
         "sensor": r["sensor"],
@@ -267,7 +269,7 @@ def main() -> None:
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
-    rerank, v = Rerank(served.rerank.k, served.rerank.weight), served.verify
+    rerank, v = Rerank(served.rerank.shortlist, served.rerank.weight), served.verify
     names = args.only or [f"test-{s}" for s in CATALOGUE] + list(MOUNTED)
     towns = [args.data / n for n in names if (args.data / n / "manifest.json").is_file()]
     missing = sorted(set(names) - {t.name for t in towns})
@@ -296,8 +298,10 @@ def main() -> None:
     report = {
         **provenance(),
         "model_id": enc.model_id,
-        "rerank": {"k": rerank.k, "weight": rerank.weight},
-        "verify": v.model_dump(include={"k", "min_fitness", "max_rmse_m", "max_distance"}),
+        "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
+        "verify": v.model_dump(
+            include={"candidates", "min_fitness", "max_rmse_m", "gate_distance"}
+        ),
         "missing": missing,
         "same_sensor": [d["row"] for d in done.values()],
         "across_sensors": pairs,

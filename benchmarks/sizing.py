@@ -14,7 +14,7 @@ each map backend's operations, measured on this machine.
                 index + rows (k = 5 and the runner-up) + yaw (k = 5), split into its parts, with
                 FAISS on 1 and on 2 OpenMP threads (index.threads), on an idle process and
                 with the encoder busy in another thread (as under load); and the stage as a
-                scan query runs it by default, two-stage: the rerank.k (20) nearest and the
+                scan query runs it by default, two-stage: the rerank.shortlist (20) nearest and the
                 runner-up, their yaw, re-ranked (overlapmamba.service.ranking)
 
 Writes JSON (default reports/deploy/sizing.json).

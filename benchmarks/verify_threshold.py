@@ -4,8 +4,8 @@ Per town, as the service does it: every scan is encoded by the shipped ONNX enco
 (``overlapmamba.service.encoder.Encoder``) and kept as a keyframe's compact geometry
 (``overlapmamba.core.geometry``); each query (the loop-closure protocol of
 ``overlapmamba.core.metrics``:
-the database is every frame more than ``exclude_recent`` frames earlier) takes its top
-``--k`` candidates in the service's order (the ``rerank.k`` nearest descriptors re-ranked by
+the database is every frame more than ``exclude_recent_frames`` earlier) takes its top
+``--candidates`` in the service's order (the ``rerank.shortlist`` nearest descriptors re-ranked by
 d² − weight · aligned yaw-feature correlation: ``overlapmamba.service.ranking``; ``--rerank off``
 for the descriptor order), seeds each with the yaw from the yaw features and registers it
 (``overlapmamba.service.verify.verify_candidates``). The closure is the verified candidate of
@@ -19,10 +19,10 @@ loop, over all queries with a loop (what the descriptor's Recall@5 bounds).
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
 the pair of highest recall whose precision is at least ``--target`` (0.99), then the
 nearest descriptor gate that costs at most 0.005 of that recall: the service's
-``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.max_distance``; with
+``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.gate_distance``; with
 ``--write-calibration`` they are recorded in the model file, which the service takes them
 from. Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``,
-``--max-distance``, default the ones the service answers with for ``--model``: its file's
+``--gate-distance``, default the ones the service answers with for ``--model``: its file's
 calibration) are scored on each town given: precision, recall against the answer's Recall@1
 and Recall@5 on the same queries (the candidates in the service's order), pose errors, and
 the time per query. Each town's scans enter the model as its sensor's (its manifest's), as
@@ -81,7 +81,7 @@ def run_town(
     queries = []
     ms = []
     for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
-        top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.k)]
+        top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.shortlist)]
         deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         if rerank.on:  # as overlapmamba.service.ranking orders the answer
             order, _ = by_score(d2[i, top], conf, rerank.weight)
@@ -130,10 +130,10 @@ def score(
     queries: list[dict[str, Any]],
     min_fitness: float,
     max_rmse: float,
-    max_distance: float | None = None,
+    gate_distance: float | None = None,
 ) -> dict[str, Any]:
     """The service's call at these thresholds, over every query (a candidate beyond
-    ``max_distance`` is not registered, as in the service)."""
+    ``gate_distance`` is not registered, as in the service)."""
     accepted = correct = on_loop = found = 0
     t_err, yaw_err = [], []
     for q in queries:
@@ -141,7 +141,7 @@ def score(
             c
             for c in q["candidates"]
             if c["fitness"] is not None
-            and (max_distance is None or c["distance"] <= max_distance)
+            and (gate_distance is None or c["distance"] <= gate_distance)
             and c["fitness"] >= min_fitness
             and c["rmse"] is not None
             and c["rmse"] <= max_rmse
@@ -159,14 +159,14 @@ def score(
             yaw_err.append(best["yaw_err"])
     loops = sum(q["has_loop"] for q in queries)
     registered = sum(
-        max_distance is None or c["distance"] <= max_distance
+        gate_distance is None or c["distance"] <= gate_distance
         for q in queries
         for c in q["candidates"]
     )
     out: dict[str, Any] = {
         "min_fitness": min_fitness,
         "max_rmse_m": max_rmse,
-        "max_distance": max_distance,
+        "gate_distance": gate_distance,
         "registered_per_query": registered / len(queries) if queries else 0.0,
         "accepted": accepted,
         "correct": correct,
@@ -209,16 +209,18 @@ def main() -> None:
         help="with --calibrate: record the chosen thresholds in the model file",
     )
     ap.add_argument("--target", type=float, default=0.99, help="precision to calibrate for")
-    ap.add_argument("--k", type=int, default=served.verify.k, help="candidates per query")
+    ap.add_argument(
+        "--candidates", type=int, default=served.verify.candidates, help="registered per query"
+    )
     ap.add_argument("--min-fitness", type=float, default=served.verify.min_fitness)
     ap.add_argument("--max-rmse", type=float, default=served.verify.max_rmse_m)
-    ap.add_argument("--max-distance", type=float, default=served.verify.max_distance)
+    ap.add_argument("--gate-distance", type=float, default=served.verify.gate_distance)
     ap.add_argument(
         "--json",
         type=Path,
         help="default reports/service/verify_threshold.json calibrating, else verify-test.json",
     )
-    default_rerank = f"{served.rerank.k},{served.rerank.weight:g}"
+    default_rerank = f"{served.rerank.shortlist},{served.rerank.weight:g}"
     ap.add_argument(
         "--rerank", default=default_rerank, help="K,WEIGHT or off (default: the service's)"
     )
@@ -230,15 +232,17 @@ def main() -> None:
         ap.error("--write-calibration records what --calibrate chose: give both")
     console = Console()
     # record everything; calibrating, register every candidate too (the gate is swept after)
-    register_within = None if args.calibrate else args.max_distance
-    v = VerifySettings(k=args.k, min_fitness=0.0, max_rmse_m=1e9, max_distance=register_within)
+    register_within = None if args.calibrate else args.gate_distance
+    v = VerifySettings(
+        candidates=args.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=register_within
+    )
     rerank = Rerank.parse(args.rerank)
-    results = [run_town(enc, t, args.k, v, rerank) for t in towns]
+    results = [run_town(enc, t, args.candidates, v, rerank) for t in towns]
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
-        "k": args.k,
-        "rerank": {"k": rerank.k, "weight": rerank.weight},
+        "candidates": args.candidates,
+        "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
         "towns": [],
     }
     if args.calibrate:
@@ -288,7 +292,7 @@ def main() -> None:
                 for g in gates
                 if g["precision"] >= args.target and g["recall"] >= chosen["recall"] - 0.005
             ]
-            gate = min(fine, key=lambda g: g["max_distance"]) if fine else None
+            gate = min(fine, key=lambda g: g["gate_distance"]) if fine else None
             report["calibration"]["gate"] = gate
             report["gates"] = gates
             console.print(f"descriptor gate: {gate}")
@@ -296,10 +300,10 @@ def main() -> None:
                 values = {
                     "min_fitness": chosen["min_fitness"],
                     "max_rmse_m": chosen["max_rmse_m"],
-                    "max_distance": gate["max_distance"],
+                    "gate_distance": gate["gate_distance"],
                 }
                 write_calibration(args.model, "verify", values, ", ".join(map(str, towns)))
-    table = Table(title=f"verified loop closures ({enc.model_id}, k={args.k})")
+    table = Table(title=f"verified loop closures ({enc.model_id}, candidates={args.candidates})")
     for col in (
         "town",
         "queries",
@@ -317,7 +321,7 @@ def main() -> None:
     ):
         table.add_column(col, justify="right")
     for r in results:
-        s = score(r["queries"], args.min_fitness, args.max_rmse, args.max_distance)
+        s = score(r["queries"], args.min_fitness, args.max_rmse, args.gate_distance)
         rec = descriptor_recall(r["queries"])
         row = {
             "town": r["town"],
@@ -354,7 +358,7 @@ def main() -> None:
     report["thresholds"] = {
         "min_fitness": args.min_fitness,
         "max_rmse_m": args.max_rmse,
-        "max_distance": args.max_distance,
+        "gate_distance": args.gate_distance,
     }
     if args.json is None:
         name = "verify_threshold.json" if args.calibrate else "verify-test.json"

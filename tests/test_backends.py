@@ -64,7 +64,7 @@ FILTERS = [
     Filters(exclude_recent_s=40.0, session_id="s3", timestamp=150.0),
     Filters(time_from=20.0, time_to=90.5),
     Filters(exclude_robot="r0", time_from=50.0),
-    Filters(max_distance=7.0),
+    Filters(max_match_distance=7.0),
     Filters(exclude_session="nobody-has-this"),
 ]
 
@@ -112,7 +112,7 @@ def expected(rows: dict[str, NewKeyframe], queries: np.ndarray, k: int) -> list[
             keep = [
                 i
                 for d, i in zip(dist, top, strict=True)
-                if f.max_distance is None or d <= f.max_distance
+                if f.max_match_distance is None or d <= f.max_match_distance
             ]
             out.append(keep)
     return out

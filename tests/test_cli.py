@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
 from overlapmamba.cli import app
+from overlapmamba.core.renamed import DeprecatedName
 
 runner = CliRunner()
 
@@ -70,7 +72,7 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     args = [
         "ground-truth",
         str(synthetic_seq_dir),
-        "--exclude-recent",
+        "--exclude-recent-frames",
         "12",
         "--radius",
         "10",
@@ -81,6 +83,15 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
     assert "queries with a loop" in text(res) and out.is_file()
+    first = np.load(out)["query"]
+    # the old name still works for one release, with a warning, and means the same
+    renames = {"--exclude-recent-frames": "--exclude-recent", str(out): str(tmp_path / "old.npz")}
+    with pytest.warns(DeprecatedName, match="loops.exclude_recent is deprecated"):
+        res = runner.invoke(app, [renames.get(a, a) for a in args])
+    assert res.exit_code == 0, res.output
+    assert np.array_equal(np.load(tmp_path / "old.npz")["query"], first)
+    res = runner.invoke(app, [*args, "--exclude-recent", "12", "--exclude-recent-frames", "5"])
+    assert res.exit_code == 2 and "--exclude-recent is its old name" in text(res)
     res = runner.invoke(app, ["ground-truth", str(tmp_path), "-q"])
     assert res.exit_code == 2 and "matches no known sequence layout" in text(res)
 

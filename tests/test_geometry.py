@@ -171,14 +171,14 @@ def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
     from overlapmamba.service.settings import VerifySettings
     from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
-    v = VerifySettings(max_distance=0.3)
+    v = VerifySettings(gate_distance=0.3)
     p = params_of(v)
     q = prepare(kitti.points(11).xyz, p)
     blob = keyframe_geometry(prepare(kitti.points(12).xyz, p), p)
     near, far = verify_candidates(q, [(blob, 0.0, 0.1), (blob, 0.0, 0.5)], v)
     assert near.verified is True and near.relative_pose is not None
     assert far.verified is False and far.relative_pose is None and far.fitness is None
-    assert "0.500 is above verify.max_distance 0.3" in (far.reason or "")
+    assert "0.500 is above verify.gate_distance 0.3" in (far.reason or "")
 
 
 def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):

@@ -167,7 +167,7 @@ def test_errors_at_an_operating_point_sort_every_query_by_hand():
             ranked[i, 0], dist[i, 0] = answers[int(q)]
         return ranked, dist
 
-    r = evaluate_retrieval(retrieve, n, positives, exclude_recent=1, max_n=1)
+    r = evaluate_retrieval(retrieve, n, positives, exclude_recent_frames=1, max_n=1)
     assert r.queries.tolist() == [2, 3, 4, 5, 6, 7] and r.has_loop.sum() == 3
     e = errors_at_f1max(r, gt, positions, far=50.0, threshold=0.3)
     assert e["accepted"] == 4 and e["true_closures"] == 1  # 2 → 0 only

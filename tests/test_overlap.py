@@ -83,7 +83,7 @@ def test_candidate_pairs_respect_radius_and_gap():
 
 def test_loop_table_finds_the_revisit_and_is_cached(synthetic_seq_dir, tmp_path):
     seq = open_sequence(synthetic_seq_dir)  # 24 frames per lap, 2 laps
-    loops = LoopParams(exclude_recent=12, radius=10.0, min_overlap=0.3)
+    loops = LoopParams(exclude_recent_frames=12, radius=10.0, min_overlap=0.3)
     cache = tmp_path / "gt.npz"
     gt = loop_ground_truth(seq, KITTI, loops, cache=cache, progress=False)
     assert cache.is_file()
@@ -110,7 +110,7 @@ def test_corrupt_cache_is_recomputed(synthetic_seq_dir, tmp_path):
     seq = open_sequence(synthetic_seq_dir)
     cache = tmp_path / "gt.npz"
     cache.write_bytes(b"not a zip file")
-    loops = LoopParams(exclude_recent=12, radius=10.0)
+    loops = LoopParams(exclude_recent_frames=12, radius=10.0)
     gt = loop_ground_truth(seq, KITTI, loops, cache=cache, progress=False)
     assert len(gt.query) > 0 and LoopGroundTruth.load(cache).n_frames == len(seq)
 

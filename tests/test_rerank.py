@@ -29,16 +29,16 @@ def test_the_score_orders_the_shortlist_and_ties_keep_the_descriptor_order():
     q = _feats(1)[0]
     refs = np.stack([_feats(1)[0], np.roll(q, 5, axis=-1), _feats(1)[0]])
     d2 = np.array([0.010, 0.012, 0.014])  # the turned copy of q is second by descriptor
-    order, s, c = rerank(q, refs, d2, Rerank(k=3, weight=0.2))
+    order, s, c = rerank(q, refs, d2, Rerank(shortlist=3, weight=0.2))
     assert order[0] == 1 and math.isclose(c[0], 1.0)  # an exact roll correlates fully
     assert np.all(np.diff(s) >= 0)
     assert np.allclose(s, d2[order] - 0.2 * c)
     # equal scores: descriptor order
     same = np.stack([refs[1], refs[1]])
-    order, _, _ = rerank(q, same, np.array([0.02, 0.02]), Rerank(k=2, weight=0.2))
+    order, _, _ = rerank(q, same, np.array([0.02, 0.02]), Rerank(shortlist=2, weight=0.2))
     assert list(order) == [0, 1]
     # weight 0 is the descriptor order
-    order, s, _ = rerank(q, refs, d2, Rerank(k=3, weight=0.0))
+    order, s, _ = rerank(q, refs, d2, Rerank(shortlist=3, weight=0.0))
     assert list(order) == [0, 1, 2] and np.allclose(s, d2)
 
 
@@ -49,8 +49,8 @@ def test_aligned_correlation_is_the_best_rolls_cosine():
 
 
 def test_bad_parameters_are_named():
-    with pytest.raises(ValueError, match="k must be ≥ 1"):
-        Rerank(k=0)
+    with pytest.raises(ValueError, match="shortlist must be ≥ 1"):
+        Rerank(shortlist=0)
     with pytest.raises(ValueError, match="weight must be a finite number ≥ 0"):
         Rerank(weight=-0.1)
     with pytest.raises(ValueError, match="weight must be a finite number ≥ 0"):
@@ -60,7 +60,7 @@ def test_bad_parameters_are_named():
             Rerank.parse(bad)
     assert Rerank.parse("off") == OFF and not OFF.on
     assert Rerank.parse("10, 0.5") == Rerank(10, 0.5)
-    with pytest.raises(ValueError, match="k must be ≥ 1"):
+    with pytest.raises(ValueError, match="shortlist must be ≥ 1"):
         Rerank.parse("0,0.2")
 
 
@@ -69,7 +69,7 @@ def test_a_result_table_is_reranked_in_its_first_k_columns_only_and_padding_stay
     queries = np.stack([db[3], db[5]])
     ranked = np.array([[0, 1, 3, 2, 4], [5, 2, -1, -1, -1]])
     d2 = np.array([[0.1, 0.2, 0.3, 0.4, 0.5], [0.1, 0.2, np.inf, np.inf, np.inf]])
-    r, s = rerank_ranked(queries, db, ranked, d2, Rerank(k=3, weight=1.0))
+    r, s = rerank_ranked(queries, db, ranked, d2, Rerank(shortlist=3, weight=1.0))
     assert r[0, 0] == 3 and sorted(r[0, :3]) == [0, 1, 3]  # itself (c = 1) first
     assert list(r[0, 3:]) == [2, 4] and list(s[0, 3:]) == [0.4, 0.5]  # beyond k: untouched
     assert r[1, 0] == 5 and list(r[1, 2:]) == [-1, -1, -1] and np.isinf(s[1, 2:]).all()
@@ -92,10 +92,10 @@ def test_two_stages_find_the_place_the_descriptor_ranks_second():
         feats[q] = np.roll(feats[place], 7, axis=-1) + 0.1 * RNG.normal(size=(c, w))
         positives[q] = np.array([place])
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
-    plain = evaluate_loop_closure(desc, positives, exclude_recent=10)
+    plain = evaluate_loop_closure(desc, positives, exclude_recent_frames=10)
     assert plain.recall_at_1 == 0.0
-    retrieve = two_stage(desc, feats, Rerank(k=5, weight=0.2))
-    staged = evaluate_retrieval(retrieve, n, positives, exclude_recent=10)
+    retrieve = two_stage(desc, feats, Rerank(shortlist=5, weight=0.2))
+    staged = evaluate_retrieval(retrieve, n, positives, exclude_recent_frames=10)
     assert staged.recall_at_1 == 1.0 and staged.f1max > plain.f1max
     queries = np.arange(11, n)
     ranked, score = retrieve(queries, queries - 10, 5)
@@ -112,7 +112,7 @@ def test_the_services_answer_is_reranked_only_when_every_candidate_can_be_scored
         kf = Keyframe(0, kid, "r", "s", 0.0, None, "h", 0, 0.0)
         return Match(kf, 1 - dist * dist / 2, dist, None if conf is None else 0.0, conf)
 
-    p = Rerank(k=3, weight=0.2)
+    p = Rerank(shortlist=3, weight=0.2)
     found = [match("a", 0.10, 0.2), match("b", 0.11, 0.9), match("c", 0.12, 0.5)]
     found.append(match("d", 0.13, None))  # the runner-up fetched beyond the shortlist
     out = rerank_matches(found, p)

@@ -192,7 +192,7 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         # …so no re-ranking: descriptor order, no score, the call on the distance
         assert [m["score"] for m in r.json()["matches"]] == [None] * 3
         lc = r.json()["loop_closure"]
-        assert lc["rule"] == "distance" and lc["threshold"] == served.loop_closure.max_distance
+        assert lc["rule"] == "distance" and lc["threshold"] == served.loop_closure.accept_distance
         r = await c.post(
             "/v1/maps/town/query",
             params={"k": 3, "time_from": 100.5, "time_to": 101.5},
@@ -724,7 +724,7 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
     from overlapmamba.core.poses import rotation_z
 
     # every candidate registered, however far its descriptor (the gate has its own test)
-    verify = any_backend.verify.model_copy(update={"max_distance": None})
+    verify = any_backend.verify.model_copy(update={"gate_distance": None})
     async with running(any_backend.model_copy(update={"verify": verify}), encoder) as c:
         assert (await c.put("/v1/maps/town")).json()["keep_geometry"] is True
         r = await c.put("/v1/maps/bare", json={"keep_geometry": False})

@@ -138,14 +138,14 @@ async def test_a_map_of_one_sensor_holds_and_answers_others(settings, encoder):
 
 
 # ---- calibration travels with the model ----------------------------------------------------
-def _calibrated_copy(tmp_path, name: str, max_score: float, max_distance: float):
+def _calibrated_copy(tmp_path, name: str, max_score: float, accept_distance: float):
     from overlapmamba.train.modelfile import with_calibration
 
     path = tmp_path / name
     path.write_bytes(MODEL.read_bytes())
     entry = calibrated(
         "loop_closure",
-        {"max_score": max_score, "max_distance": max_distance},
+        {"max_score": max_score, "accept_distance": accept_distance},
         chosen_by="tests/test_service_sensors.py",
         data="a test",
     )
@@ -183,7 +183,7 @@ async def test_each_model_answers_with_its_own_calibration(tmp_path):
         "source": "model",
         "chosen_by": "tests/test_service_sensors.py on a test",
     }
-    assert t_loose["loop_closure.max_distance"]["value"] == 1.9
+    assert t_loose["loop_closure.accept_distance"]["value"] == 1.9
 
 
 async def test_an_explicit_setting_overrides_the_models_calibration(tmp_path, caplog):
@@ -193,9 +193,9 @@ async def test_an_explicit_setting_overrides_the_models_calibration(tmp_path, ca
         async with running(settings, Encoder(loose, intra_op_threads=2)) as c:
             t = (await c.get("/readyz")).json()["detail"]["thresholds"]
     assert t["loop_closure.max_score"] == {"value": -1.0, "source": "setting"}
-    assert t["loop_closure.max_distance"]["source"] == "model"
+    assert t["loop_closure.accept_distance"]["source"] == "model"
     assert "loop_closure.max_score=-1.0 (setting)" in caplog.text
-    assert "loop_closure.max_distance=1.9 (model)" in caplog.text
+    assert "loop_closure.accept_distance=1.9 (model)" in caplog.text
 
 
 def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_path):
@@ -213,14 +213,14 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     path = tmp_path / "m.onnx"
     path.write_bytes(MODEL.read_bytes())
     before = read_metadata(path)
-    write_calibration(path, "rerank", {"k": 7, "weight": 0.3}, "data/synth/val")
+    write_calibration(path, "rerank", {"shortlist": 7, "weight": 0.3}, "data/synth/val")
     meta = read_metadata(path)
     assert meta.model_id == before.model_id and meta.calibration["rerank"].data == "data/synth/val"
     assert "pytest" in meta.calibration["rerank"].chosen_by  # the running command
     served = served_settings(meta)
-    assert (served.rerank.k, served.rerank.weight) == (7, 0.3)
+    assert (served.rerank.shortlist, served.rerank.weight) == (7, 0.3)
     assert served.verify.min_fitness == Settings().verify.min_fitness
-    with pytest.raises(ValueError, match="not calibrated here; allowed: k, weight"):
+    with pytest.raises(ValueError, match="not calibrated here; allowed: shortlist, weight"):
         write_calibration(path, "rerank", {"gate": 1.0}, "x")
     assert isinstance(EncoderMetadata.from_props(meta.to_props()), EncoderMetadata)
 
@@ -242,7 +242,7 @@ def test_a_maps_unknown_sensor_is_the_maps_fault_and_a_bad_calibration_stops_the
     with pytest.raises(BadRequest, match="unknown sensor 'gone'"):
         sensors.resolve("gone", "vlp16")
     assert sensors.declared("kitti-hdl64") is None and sensors.declared("vlp16") == "vlp16"
-    bad = calibrated("rerank", {"k": 0, "weight": 0.2}, chosen_by="x", data="y")
+    bad = calibrated("rerank", {"shortlist": 0, "weight": 0.2}, chosen_by="x", data="y")
     broken = EncoderMetadata.model_validate(
         {**meta.model_dump(by_alias=True), "calibration": {"rerank": bad}}, by_alias=True
     )

@@ -372,7 +372,7 @@ def test_map_filters_and_idempotent_inserts(tmp_path):
     assert len(got) == 40 - 2  # s0 holds 0, 4, …, 36: only 32 and 36 are within 10 s of 39
     with pytest.raises(BadRequest, match="needs the query's session_id"):
         m.search(q, 5, Filters(exclude_recent_s=10))
-    assert all(x.distance <= 1.0 for x in m.search(q, 40, Filters(max_distance=1.0)))
+    assert all(x.distance <= 1.0 for x in m.search(q, 40, Filters(max_match_distance=1.0)))
 
 
 def test_small_ivf_maps_do_not_rebuild_after_every_write(tmp_path):

@@ -19,6 +19,7 @@ from overlapmamba.cli.common import (
     out,
     sensor_profile,
 )
+from overlapmamba.core.renamed import renamed
 
 app, command = command_group("Data")
 
@@ -99,7 +100,13 @@ def ground_truth(
         str | None, typer.Option("--sensor", "-s", help="default: the sequence's own sensor")
     ] = None,
     max_range: MaxRangeOpt = None,
-    exclude_recent: Annotated[int, typer.Option(min=0, help="loops need i − j > this")] = 100,
+    exclude_recent_frames: Annotated[
+        int, typer.Option(min=0, help="loops need i − j > this (frames)")
+    ] = 100,
+    exclude_recent: Annotated[
+        int | None,
+        typer.Option(min=0, hidden=True, help="deprecated: --exclude-recent-frames"),
+    ] = None,
     radius: Annotated[float, typer.Option(min=0.0, help="pre-filter distance (m)")] = 30.0,
     min_overlap: Annotated[float, typer.Option(min=0.0, max=1.0)] = 0.3,
     threshold: Annotated[float, typer.Option(min=0.0, help="range agreement τ (m)")] = 1.0,
@@ -116,8 +123,14 @@ def ground_truth(
     seq = open_sequence(seq_dir, kind=kind)
     profile = sensor_profile(sensor or seq.sensor or "kitti-hdl64", max_range=max_range)
     target: Path | bool = False if no_cache else (cache if cache is not None else True)
+    given = {"exclude_recent": exclude_recent} if exclude_recent is not None else {}
+    if given and exclude_recent_frames != 100:
+        raise typer.BadParameter(
+            "give --exclude-recent-frames only; --exclude-recent is its old name (deprecated)"
+        )
+    frames = renamed(given, "loops").get("exclude_recent_frames", exclude_recent_frames)
     loops = LoopParams(
-        exclude_recent=exclude_recent, radius=radius, min_overlap=min_overlap, threshold=threshold
+        exclude_recent_frames=frames, radius=radius, min_overlap=min_overlap, threshold=threshold
     )
     gt = loop_ground_truth(
         seq,
@@ -137,7 +150,7 @@ def ground_truth(
     for k, v in [
         ("frames", len(seq)),
         ("sensor profile", profile.name),
-        ("candidate pairs (< radius, gap > exclude_recent)", len(gt.query)),
+        ("candidate pairs (< radius, gap > exclude_recent_frames)", len(gt.query)),
         ("loop pairs (overlap > min_overlap)", int(gt.is_loop.sum())),
         ("queries with a loop", int(gt.has_loop().sum())),
         ("cache", str(where)),

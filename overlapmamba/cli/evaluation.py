@@ -23,7 +23,7 @@ from overlapmamba.core.rerank import Rerank
 app, command = command_group("Model")
 
 # eval's second stage by default: the service's (overlapmamba.core.rerank.Rerank's defaults).
-RERANK_DEFAULT = f"{Rerank().k},{Rerank().weight:g}"
+RERANK_DEFAULT = f"{Rerank().shortlist},{Rerank().weight:g}"
 
 
 def _second_stage(text: str) -> Rerank:
@@ -132,7 +132,7 @@ def eval_cmd(
         progress=not quiet,
     )
     name, scans = ev.sequence
-    staged = f" + yaw re-rank (top {second.k}, weight {second.weight:g})"
+    staged = f" + yaw re-rank (top {second.shortlist}, weight {second.weight:g})"
     runs = [("", "")] + ([(staged, "_reranked")] if second.on else [])
     if "metrics" not in ev.record:
         runs = []
@@ -295,9 +295,10 @@ def eval_real_cmd(
     ]
     if "reranked" in ret:
         rr = ret["reranked"]
+        top = rr.get("shortlist", rr.get("k"))  # "k" in reports written before the rename
         rows.append(
             (
-                f"odd→even Recall@1 / @5 + yaw re-rank (top {rr['k']}, weight {rr['weight']:g})",
+                f"odd→even Recall@1 / @5 + yaw re-rank (top {top}, weight {rr['weight']:g})",
                 f"{rr['recall@1']:.3f} / {rr['recall@5']:.3f}",
             )
         )

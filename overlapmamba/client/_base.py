@@ -29,6 +29,7 @@ from overlapmamba.client._models import (
     QueryResult,
 )
 from overlapmamba.client._scans import Scan, encode
+from overlapmamba.core.renamed import renamed
 
 
 @dataclass(frozen=True)
@@ -297,6 +298,7 @@ class Calls:
     ) -> Call:
         if (scan is None) == (descriptor is None):
             raise ValueError("query needs exactly one of scan= or descriptor=")
+        filters = renamed(filters, "query", stacklevel=5)  # max_distance: deprecated
         params = _filters(k=k, **filters, **(self._sensor(sensor) if scan is not None else {}))
         path = f"/v1/maps/{_m(map_id)}/query"
         parse = lambda r: QueryResult.from_json(r.json())  # noqa: E731

@@ -176,7 +176,7 @@ class PlaceRecognitionClient:
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
-        timestamp), max_distance, time_from, time_to; ``verify=False`` skips the geometric
+        timestamp), max_match_distance, time_from, time_to; ``verify=False`` skips the geometric
         verification of a scan query's candidates; ``sensor``: the scan's."""
         return self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
 

@@ -8,12 +8,14 @@ takes them from the model it loads: a threshold calibrated for one model never s
 serves another.
 
     section        values                               chosen by
-    rerank         k, weight                            benchmarks/rerank.py
-    loop_closure   max_distance, max_score              benchmarks/loop_threshold.py
-    verify         min_fitness, max_rmse_m, max_distance  benchmarks/verify_threshold.py
+    rerank         shortlist, weight                     benchmarks/rerank.py
+    loop_closure   accept_distance, max_score            benchmarks/loop_threshold.py
+    verify         min_fitness, max_rmse_m, gate_distance  benchmarks/verify_threshold.py
 
 Each section records what chose it (the command, the data, the date), so ``/readyz`` and
-the start-up log can say where every threshold came from.
+the start-up log can say where every threshold came from. A calibration written under the
+old names (``k``, ``max_distance``: :mod:`overlapmamba.core.renamed`) is read under the new
+ones, with a warning.
 """
 
 from __future__ import annotations
@@ -23,10 +25,12 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from overlapmamba.core.renamed import RENAMED, renamed
+
 CALIBRATED: dict[str, tuple[str, ...]] = {
-    "rerank": ("k", "weight"),
-    "loop_closure": ("max_distance", "max_score"),
-    "verify": ("min_fitness", "max_rmse_m", "max_distance"),
+    "rerank": ("shortlist", "weight"),
+    "loop_closure": ("accept_distance", "max_score"),
+    "verify": ("min_fitness", "max_rmse_m", "gate_distance"),
 }
 
 
@@ -50,6 +54,8 @@ def check_calibration(calibration: dict[str, Any]) -> dict[str, Calibrated]:
                 f"calibration section {section!r} is not known; allowed: {', '.join(CALIBRATED)}"
             )
         c = entry if isinstance(entry, Calibrated) else Calibrated.model_validate(entry)
+        if set(c.values) & set(RENAMED[section]):
+            c = c.model_copy(update={"values": renamed(c.values, section, stacklevel=4)})
         unknown = sorted(set(c.values) - set(CALIBRATED[section]))
         if unknown:
             raise ValueError(

@@ -4,9 +4,9 @@ Distances are squared L2 between descriptors (equivalent to cosine ranking for u
 
 **Loop-closure protocol** (OverlapTransformer, KITTI), :func:`evaluate_loop_closure`:
 
-* Query i's database is frames 0 … i − exclude_recent − 1 (exclude_recent = 100); queries with
-  an empty database are skipped. Its *positives* are the database frames that are true loops
-  (see :mod:`overlapmamba.core.overlap`).
+* Query i's database is frames 0 … i − exclude_recent_frames − 1 (exclude_recent_frames =
+  100); queries with an empty database are skipped. Its *positives* are the database
+  frames that are true loops (see :mod:`overlapmamba.core.overlap`).
 * Top-1 retrieval gives a candidate and its distance d_i.
 * PR curve — sweep a threshold t over every distinct d_i (plus t = −∞):
   accept when d_i ≤ t → TP if the candidate is a positive, else FP;
@@ -211,7 +211,7 @@ def evaluate_loop_closure(
     descriptors: np.ndarray,
     positives: Sequence[np.ndarray],
     *,
-    exclude_recent: int = 100,
+    exclude_recent_frames: int = 100,
     query_mask: np.ndarray | None = None,
     max_n: int = 25,
 ) -> LoopClosureResult:
@@ -231,7 +231,7 @@ def evaluate_loop_closure(
         by_l2,
         len(desc),
         positives,
-        exclude_recent=exclude_recent,
+        exclude_recent_frames=exclude_recent_frames,
         query_mask=query_mask,
         max_n=max_n,
     )
@@ -245,7 +245,7 @@ def evaluate_retrieval(
     n_frames: int,
     positives: Sequence[np.ndarray],
     *,
-    exclude_recent: int = 100,
+    exclude_recent_frames: int = 100,
     query_mask: np.ndarray | None = None,
     max_n: int = 25,
 ) -> LoopClosureResult:
@@ -258,10 +258,10 @@ def evaluate_retrieval(
     N = n_frames
     if len(positives) != N:
         raise ValueError(f"{N} frames but {len(positives)} positive lists")
-    queries = np.arange(exclude_recent + 1, N)
+    queries = np.arange(exclude_recent_frames + 1, N)
     if query_mask is not None:
         queries = queries[np.asarray(query_mask, dtype=bool)[queries]]
-    db_size = queries - exclude_recent  # frames 0 … i − exclude_recent − 1
+    db_size = queries - exclude_recent_frames  # frames 0 … i − exclude_recent_frames − 1
     k_pct = np.maximum(1, np.ceil(0.01 * db_size)).astype(int)
     k = int(max(max_n, k_pct.max(initial=1)))
     ranked, dist = retrieve(queries, db_size, k)

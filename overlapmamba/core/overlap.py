@@ -9,7 +9,7 @@ Overlap of a reference scan j with a query scan i:
 τ = 1 m by default. Overlap is asymmetric in general. Relative yaw is the rotation about z
 of T_i⁻¹ · T_j, in degrees.
 
-A *loop* for query i is a frame j with i − j > exclude_recent (100), ‖t_i − t_j‖ < radius
+A *loop* for query i is a frame j with i − j > exclude_recent_frames (100), ‖t_i − t_j‖ < radius
 (30 m) and overlap > min_overlap (0.3), as in OverlapTransformer's KITTI protocol.
 """
 
@@ -245,16 +245,19 @@ def default_cache_path(seq: Sequence, fingerprint: str) -> Path:
     return cache_root() / "ground_truth" / f"{seq.name}_loops_{fingerprint}.npz"
 
 
+FILE_KEYS = {"exclude_recent": "exclude_recent_frames"}  # a loop table's params → LoopParams
+
+
 class LoopParams(BaseModel):
     """What makes a pair of scans a loop, everywhere loops are counted (ground truth, the
     generator's tables, evaluation, training's validation, the CLI): the query is more than
-    ``exclude_recent`` frames after the reference, closer than ``radius`` metres, and they
+    ``exclude_recent_frames`` after the reference, closer than ``radius`` metres, and they
     overlap by at least ``min_overlap`` (overlap of points within ``threshold`` metres of
-    range)."""
+    range). A table's saved ``params`` keep the file key ``exclude_recent`` (frames)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    exclude_recent: int = Field(default=100, ge=0)
+    exclude_recent_frames: int = Field(default=100, ge=0)
     radius: float = Field(default=30.0, gt=0)
     min_overlap: float = Field(default=0.3, ge=0, le=1)
     threshold: float = Field(default=1.0, gt=0)
@@ -262,7 +265,8 @@ class LoopParams(BaseModel):
     @classmethod
     def of(cls, table_params: dict) -> LoopParams:
         """The parameters a saved loop table (``LoopGroundTruth.params``) was made with."""
-        return cls(**{k: table_params[k] for k in cls.model_fields if k in table_params})
+        saved = {FILE_KEYS.get(k, k): v for k, v in table_params.items()}
+        return cls(**{k: saved[k] for k in cls.model_fields if k in saved})
 
 
 def loop_params(seq: Sequence, profile: SensorProfile, loops: LoopParams | None = None) -> dict:
@@ -270,7 +274,7 @@ def loop_params(seq: Sequence, profile: SensorProfile, loops: LoopParams | None 
     loops = loops or LoopParams()
     params = {
         "format": GT_FORMAT_VERSION,
-        "exclude_recent": loops.exclude_recent,
+        "exclude_recent": loops.exclude_recent_frames,  # the file's key
         "radius": loops.radius,
         "min_overlap": loops.min_overlap,
         "threshold": loops.threshold,
@@ -344,7 +348,7 @@ def loop_ground_truth(
         if cached is not None:
             return cached
     pos = seq.positions()
-    pairs = candidate_pairs(pos, radius=loops.radius, min_gap=loops.exclude_recent + 1)
+    pairs = candidate_pairs(pos, radius=loops.radius, min_gap=loops.exclude_recent_frames + 1)
     overlaps, yaws = pair_overlaps(
         seq, pairs, profile, threshold=loops.threshold, progress=progress, desc="loop ground truth"
     )

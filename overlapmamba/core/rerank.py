@@ -6,7 +6,7 @@ report's ``wrong_top1``). The model's per-column yaw features keep what the desc
 away — where along the ring each structure is. Their circular cross-correlation at the best
 roll (:func:`overlapmamba.core.yaw.estimate_yaw`'s confidence, computed anyway for the relative
 yaw) is high only when the two scans see the same structures in the same arrangement, which
-is what "the nearest scan" means. So the shortlist of the ``k`` nearest descriptors is
+is what "the nearest scan" means. So the shortlist of the nearest descriptors is
 re-ordered by
 
     score = d² − weight · c
@@ -16,7 +16,7 @@ correlation (∈ [−1, 1]); lower is better. The score is also what a loop-clos
 thresholds. Scan Context ranks its own shortlist the same way (ring-key candidates, then the
 column-aligned distance).
 
-``k`` and ``weight`` were chosen on the ``val`` town and its second session ``val-s1``,
+``shortlist`` and ``weight`` were chosen on the ``val`` town and its second session ``val-s1``,
 never on a test town (``benchmarks/rerank.py``: the mean of F1max and Recall@1 on the three
 subsets and AR@1 across sessions).
 """
@@ -33,21 +33,23 @@ from overlapmamba.core.yaw import circular_correlation
 
 @dataclass(frozen=True)
 class Rerank:
-    """The second stage: re-rank the ``k`` nearest descriptors (1: off) by
+    """The second stage: re-rank the ``shortlist`` nearest descriptors (1: off) by
     d² − ``weight`` · aligned yaw-feature correlation."""
 
-    k: int = 20
+    shortlist: int = 20
     weight: float = 0.2
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise ValueError(f"rerank k must be ≥ 1 (1: no re-ranking); got {self.k}")
+        if self.shortlist < 1:
+            raise ValueError(
+                f"rerank shortlist must be ≥ 1 (1: no re-ranking); got {self.shortlist}"
+            )
         if not (self.weight >= 0 and np.isfinite(self.weight)):
             raise ValueError(f"rerank weight must be a finite number ≥ 0; got {self.weight}")
 
     @property
     def on(self) -> bool:
-        return self.k > 1 and self.weight > 0
+        return self.shortlist > 1 and self.weight > 0
 
     @classmethod
     def parse(cls, text: str) -> Rerank:
@@ -67,7 +69,7 @@ class Rerank:
         return cls(k, weight)
 
 
-OFF = Rerank(k=1, weight=0.0)
+OFF = Rerank(shortlist=1, weight=0.0)
 
 
 def aligned_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
@@ -114,17 +116,17 @@ def rerank_ranked(
     dist_sq: np.ndarray,
     p: Rerank,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Re-rank the first ``p.k`` columns of a whole result table.
+    """Re-rank the first ``p.shortlist`` columns of a whole result table.
 
     query_yaw (Q, C, W) the queries' features; yaw (M, C, W) the database's; ranked (Q, n)
     database indices nearest first, padded with −1; dist_sq (Q, n) their squared distances
-    (+inf where padded) → (ranked, scores) of the same shape: the first ``min(k, n)``
+    (+inf where padded) → (ranked, scores) of the same shape: the first ``min(shortlist, n)``
     columns re-ordered and holding scores, the rest untouched (descriptor distances)."""
     ranked = np.array(ranked, dtype=np.int64, copy=True)
     out = np.array(dist_sq, dtype=np.float64, copy=True)
     if not p.on:
         return ranked, out
-    k = min(p.k, ranked.shape[1])
+    k = min(p.shortlist, ranked.shape[1])
     for i in range(len(ranked)):
         cand = ranked[i, :k]
         ok = cand >= 0
@@ -139,13 +141,13 @@ def rerank_ranked(
 
 def two_stage(desc: np.ndarray, yaw: np.ndarray, p: Rerank) -> Retriever:
     """A retriever for :func:`overlapmamba.core.metrics.evaluate_retrieval` (query i searches frames
-    0 … db_size − 1) in two stages: the ``p.k`` nearest descriptors (desc (N, D)) re-ranked
+    0 … db_size − 1) in two stages: the ``p.shortlist`` nearest descriptors (desc (N, D)) re-ranked
     by their yaw features (yaw (N, C, W)). Each query's answer is computed once, so the
     direction subsets share their queries' shortlists."""
     memo: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def retrieve(queries: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        kk = max(k, p.k)
+        kk = max(k, p.shortlist)
         keys = [(int(q), int(n), kk) for q, n in zip(queries, db_size, strict=True)]
         todo = np.array([i for i, key in enumerate(keys) if key not in memo], dtype=np.int64)
         if len(todo):

@@ -15,14 +15,14 @@ from overlapmamba.service.domain import InsertResult, Match
 class LoopClosure:
     """The call on a query: is it a revisit of a keyframe, and which one.
 
-    With verification (a scan query, ``verify.k`` > 0, candidates with geometry): the
+    With verification (a scan query, ``verify.candidates`` > 0, candidates with geometry): the
     verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
     query, ``verify=false``, keyframes without geometry): the top match when its re-ranking
     score is under ``loop_closure.max_score`` (a re-ranked answer, :mod:`.ranking`), or its
-    descriptor distance under ``loop_closure.max_distance`` — ``verified`` is then None."""
+    descriptor distance under ``loop_closure.accept_distance`` — ``verified`` is then None."""
 
     accepted: bool
-    threshold: float  # loop_closure.max_score or max_distance (the unverified call)
+    threshold: float  # loop_closure.max_score or accept_distance (the unverified call)
     margin: float | None  # runner-up − best, in the rule's units
     rule: Literal["score", "distance"] = "distance"  # what threshold and margin compare
     keyframe_id: str | None = None

@@ -93,7 +93,7 @@ class Filters:
     timestamp: float | None = None  # the query's time, for exclude_recent_s
     time_from: float | None = None
     time_to: float | None = None
-    max_distance: float | None = None
+    max_match_distance: float | None = None
 
     def __post_init__(self) -> None:
         if self.exclude_recent_s is not None and (
@@ -125,7 +125,8 @@ class Match:
     distance: float
     yaw_deg: float | None
     yaw_confidence: float | None
-    verification: Verdict | None = None  # None: not verified (not asked, or beyond verify.k)
+    # None: not verified (not asked, or beyond the first verify.candidates)
+    verification: Verdict | None = None
     score: float | None = (
         None  # the re-ranking score (overlapmamba.service.ranking); None: not re-ranked
     )

@@ -262,7 +262,7 @@ class PlaceService:
         may become a keyframe of a map that keeps geometry (the prepared grid is what the
         keyframe keeps)."""
         v = self.settings.verify
-        wanted = (verify and v.k > 0) or (m is not None and m.keep_geometry)
+        wanted = (verify and v.candidates > 0) or (m is not None and m.keep_geometry)
         return params_of(v) if wanted else None
 
     def _check_k(self, k: int) -> None:
@@ -280,9 +280,9 @@ class PlaceService:
         robot: str | None,
         prepared: Prepared | None = None,
     ) -> Answer:
-        """Search, verify the top ``verify.k`` candidates when the query is prepared for it,
-        and make the loop-closure call (see :class:`LoopClosure`)."""
-        n_verify = self.settings.verify.k if prepared is not None else 0
+        """Search, verify the first ``verify.candidates`` candidates when the query is prepared
+        for it, and make the loop-closure call (see :class:`LoopClosure`)."""
+        n_verify = self.settings.verify.candidates if prepared is not None else 0
         rerank = rerank_params(self.settings.rerank) if yaw is not None else OFF
 
         def search_and_verify() -> list[Match]:  # one thread hop for all stages
@@ -310,7 +310,7 @@ class PlaceService:
         """The loop-closure call from the order alone: the top-1's score under
         ``loop_closure.max_score`` when the answer was re-ranked
         (:mod:`overlapmamba.service.ranking`),
-        else its distance under ``max_distance``; and the runner-up at least ``min_margin``
+        else its distance under ``accept_distance``; and the runner-up at least ``min_margin``
         behind, in the same units."""
         lc = self.settings.loop_closure
         rule: Literal["score", "distance"]
@@ -318,7 +318,7 @@ class PlaceService:
             rule, threshold = "score", lc.max_score
             values = [x.score for x in matches[:2] if x.score is not None]
         else:
-            rule, threshold = "distance", lc.max_distance
+            rule, threshold = "distance", lc.accept_distance
             values = [x.distance for x in matches[:2]]
         margin = values[1] - values[0] if len(values) > 1 else None
         accepted = bool(
@@ -412,7 +412,7 @@ class PlaceService:
         scan as keyframe ``robot:session:timestamp`` when due."""
         t0 = time.perf_counter()
         self._check_k(obs.k)
-        verify = obs.verify and self.settings.verify.k > 0
+        verify = obs.verify and self.settings.verify.candidates > 0
         sensor = self._sensor(scan, m)
         d = await self.pipeline.describe(
             scan, self._registration(verify, m), self.sensors.input(sensor)

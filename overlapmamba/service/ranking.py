@@ -1,13 +1,13 @@
 """The answer's order: the descriptor shortlist re-ranked by the yaw features.
 
 A scan query's matches come from the index nearest descriptor first, each of the first
-``rerank.k`` with the yaw features' correlation at the best roll (``yaw_confidence``, from
+``rerank.shortlist`` with the yaw features' correlation at the best roll (``yaw_confidence``, from
 the relative-yaw estimate). They are re-ordered by the score of :mod:`overlapmamba.core.rerank`,
 distance² − ``rerank.weight`` · yaw_confidence, and carry it; the loop-closure call then
 thresholds that score (``loop_closure.max_score``). Where the shortlist cannot be scored as a
 whole — a descriptor query (no yaw features), a keyframe inserted without yaw features among
 the first ``k``, re-ranking off — the answer keeps the descriptor order and no score, and
-``loop_closure.max_distance`` decides: a score is never compared with a distance.
+``loop_closure.accept_distance`` decides: a score is never compared with a distance.
 """
 
 from __future__ import annotations
@@ -22,18 +22,18 @@ from overlapmamba.service.settings import RerankSettings
 
 
 def rerank_params(s: RerankSettings) -> Rerank:
-    return Rerank(k=s.k, weight=s.weight)
+    return Rerank(shortlist=s.shortlist, weight=s.weight)
 
 
 def shortlist(k: int, p: Rerank) -> int:
     """How many matches a scan query must fetch (with yaw) to answer ``k`` re-ranked."""
-    return max(k, p.k) if p.on else k
+    return max(k, p.shortlist) if p.on else k
 
 
 def rerank_matches(matches: list[Match], p: Rerank) -> list[Match]:
-    """The first ``p.k`` matches re-ordered by score (ties keep the descriptor order) and
+    """The first ``p.shortlist`` matches re-ordered by score (ties keep the descriptor order) and
     scored, the rest as they came; unchanged when they cannot all be scored."""
-    head = matches[: p.k]
+    head = matches[: p.shortlist]
     if not p.on or not head or any(m.yaw_confidence is None for m in head):
         return matches
     order, s = by_score(
@@ -42,4 +42,4 @@ def rerank_matches(matches: list[Match], p: Rerank) -> list[Match]:
         p.weight,
     )
     ranked = [replace(head[i], score=float(x)) for i, x in zip(order, s, strict=True)]
-    return ranked + matches[p.k :]
+    return ranked + matches[p.shortlist :]

@@ -225,9 +225,9 @@ class MatchOut(BaseModel):
     score: float | None = Field(
         None,
         description="the re-ranking score distance² − rerank.weight · yaw_confidence (lower "
-        "is better) by which the first rerank.k matches are ordered; null when the answer "
+        "is better) by which the first rerank.shortlist matches are ordered; null when the answer "
         "is in descriptor order (a descriptor query, a keyframe without yaw features, "
-        "rerank off, or beyond the first rerank.k)",
+        "rerank off, or beyond the first rerank.shortlist)",
     )
     relative_pose: list[float] | None = Field(
         None,
@@ -237,7 +237,7 @@ class MatchOut(BaseModel):
     verification: VerificationOut | None = Field(
         None,
         description="null when not verified (verify=false, a descriptor query, or "
-        "beyond the top verify.k candidates)",
+        "beyond the first verify.candidates)",
     )
 
 
@@ -258,7 +258,7 @@ class LoopClosureOut(BaseModel):
     accepted: bool
     threshold: float = Field(
         description="an unverified call's threshold: loop_closure.max_score on the top-1's "
-        "score (a re-ranked answer) or loop_closure.max_distance on its distance (see rule)"
+        "score (a re-ranked answer) or loop_closure.accept_distance on its distance (see rule)"
     )
     rule: Literal["score", "distance"] = Field(
         "distance", description="what threshold and margin_top1_top2 compare"
@@ -268,7 +268,7 @@ class LoopClosureOut(BaseModel):
     verified: bool | None = Field(
         None,
         description="true: accepted after registration; false: candidates were judged "
-        "(registered, or beyond the descriptor gate verify.max_distance) and none passed; "
+        "(registered, or beyond the descriptor gate verify.gate_distance) and none passed; "
         "null: the call is the descriptor distance alone",
     )
     relative_pose: list[float] | None = Field(

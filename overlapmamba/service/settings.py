@@ -17,7 +17,7 @@ import ipaddress
 import os
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
@@ -27,6 +27,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from overlapmamba.core.renamed import RENAMED, renamed
 from overlapmamba.core.rerank import Rerank
 
 Role = Literal["robot", "mapper", "viewer", "admin"]
@@ -40,6 +41,20 @@ _CONFIG_FILE: ContextVar[Path | None] = ContextVar("overlapmamba_config_file", d
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+class _RenamedSection(_Section):
+    """A section with fields renamed (overlapmamba.core.renamed): old names still accepted,
+    with a warning, until they go."""
+
+    _where: ClassVar[str]
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_names(cls, data: Any) -> Any:
+        if isinstance(data, dict) and set(data) & set(RENAMED[cls._where]):
+            return renamed(data, cls._where, stacklevel=4)
+        return data
 
 
 class LimitSettings(_Section):
@@ -142,12 +157,14 @@ class ObserveSettings(_Section):
     )
 
 
-class LoopClosureSettings(_Section):
+class LoopClosureSettings(_RenamedSection):
+    _where = "loop_closure"
+
     # Calibrated for the shipped model on the validation town (benchmarks/loop_threshold.py):
     # the L2 distance at F1max, where precision is 0.83 and recall 0.88. Recalibrate for
     # another model. It decides only unverified answers (verify=false, descriptor queries,
     # keyframes without geometry); verification decides the others (VerifySettings).
-    max_distance: float = Field(
+    accept_distance: float = Field(
         0.1794,
         gt=0,
         le=2,
@@ -161,7 +178,7 @@ class LoopClosureSettings(_Section):
         ge=-10,  # a score is d² − weight · c: d² in [0, 4], weight ≤ 10, c in [−1, 1]
         le=14,
         description="accept a loop closure when the re-ranked top-1's score is at most this "
-        "(when the answer was re-ranked; else max_distance decides)",
+        "(when the answer was re-ranked; else accept_distance decides)",
     )
     min_margin: float = Field(
         0.0,
@@ -171,15 +188,17 @@ class LoopClosureSettings(_Section):
     )
 
 
-class RerankSettings(_Section):
+class RerankSettings(_RenamedSection):
+    _where = "rerank"
+
     # Chosen on the validation town and its second session (benchmarks/rerank.py): the
     # mean of F1max and Recall@1 on the three subsets and AR@1 across sessions. The
     # defaults are overlapmamba.core.rerank.Rerank's, which evaluation uses too.
-    k: int = Field(
-        Rerank().k,
+    shortlist: int = Field(
+        Rerank().shortlist,
         ge=1,
         le=50,
-        description="scan queries: re-rank the k nearest descriptors by d² − weight · "
+        description="scan queries: re-rank this many nearest descriptors by d² − weight · "
         "aligned yaw-feature correlation (1: descriptor order only)",
     )
     weight: float = Field(
@@ -187,7 +206,9 @@ class RerankSettings(_Section):
     )
 
 
-class VerifySettings(_Section):
+class VerifySettings(_RenamedSection):
+    _where = "verify"
+
     # Calibrated for the shipped model on the validation town (benchmarks/verify_threshold.py
     # --calibrate), registering the first k of the two-stage order (RerankSettings): the
     # strictest thresholds at the highest recall with every accepted closure's pose right
@@ -197,11 +218,11 @@ class VerifySettings(_Section):
     # for the model's three sub-column views (one view: fitness 0.54, gate 0.30).
     # In descriptor order, with one view, the same procedure gave 0.46, no rmse bound and
     # 0.29 (recall 0.876).
-    k: int = Field(
+    candidates: int = Field(
         5,
         ge=0,
         le=50,
-        description="scan queries: register the top k candidates against their keyframe's "
+        description="scan queries: register this many top candidates against their keyframe's "
         "geometry (0: never; a request's verify=false skips it too)",
     )
     min_fitness: float = Field(
@@ -212,7 +233,7 @@ class VerifySettings(_Section):
         "within radius_m of the keyframe's geometry after alignment",
     )
     max_rmse_m: float = Field(0.7, gt=0, description="verified: and their rmse is at most")
-    max_distance: float | None = Field(
+    gate_distance: float | None = Field(
         0.29,
         gt=0,
         le=2,

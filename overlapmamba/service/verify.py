@@ -26,7 +26,7 @@ A registration that does not converge within ``max_iterations`` stops there (bou
 a query or keyframe too sparse to register is refused with the reason, never an exception.
 :func:`verify_candidates` is the query's stage: it registers each candidate that has
 geometry and lies within the descriptor gate, and judges each result against the calibrated
-thresholds (``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.max_distance``:
+thresholds (``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``:
 ``benchmarks/verify_threshold.py``).
 
 **Cost and accuracy** (KITTI 00, turned odd frames against even ones,
@@ -267,17 +267,17 @@ def verify_candidates(
 ) -> list[Verdict]:
     """The prepared query and its candidates (geometry blob or None, the descriptor's
     relative yaw, the descriptor distance) → one verdict per candidate, in order. A
-    candidate farther than ``v.max_distance`` is not registered: on the validation town no
+    candidate farther than ``v.gate_distance`` is not registered: on the validation town no
     true loop lay that far, and a robot in new territory then spends nothing on it."""
     p = params_of(v)
     out = []
     for blob, yaw_deg, distance in candidates:
         if blob is None:
             out.append(Verdict(None, None, None, NO_GEOMETRY, None))
-        elif v.max_distance is not None and distance > v.max_distance:
+        elif v.gate_distance is not None and distance > v.gate_distance:
             reason = (
-                f"descriptor distance {distance:.3f} is above verify.max_distance "
-                f"{v.max_distance}: not registered"
+                f"descriptor distance {distance:.3f} is above verify.gate_distance "
+                f"{v.gate_distance}: not registered"
             )
             out.append(Verdict(False, None, None, reason, None))
         else:

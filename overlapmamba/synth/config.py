@@ -106,7 +106,7 @@ class GenConfig(BaseModel):
         """The loop table's rules: ``loop_exclude``, ``loop_min_overlap``, and the
         protocol's 30 m radius (or ``gt_radius`` when the pair table is smaller)."""
         return LoopParams(
-            exclude_recent=self.loop_exclude,
+            exclude_recent_frames=self.loop_exclude,
             radius=min(30.0, self.gt_radius),
             min_overlap=self.loop_min_overlap,
         )

@@ -110,7 +110,7 @@ def loop_closure(
     precision still pays for false alarms on non-revisiting scans.
 
     With ``rerank`` on, retrieval has two stages (:mod:`overlapmamba.core.rerank`): each query's
-    ``rerank.k`` nearest descriptors are re-ordered by the score d² − weight · aligned
+    ``rerank.shortlist`` nearest descriptors are re-ordered by the score d² − weight · aligned
     yaw-feature correlation (``yaw``: (N, C, W)), and the top-1's score is what the PR curve
     thresholds.
     """
@@ -125,13 +125,14 @@ def loop_closure(
 def _by_direction(
     gt: LoopGroundTruth, score: Callable[..., LoopClosureResult]
 ) -> dict[str, LoopClosureResult]:
-    """``score(positives, exclude_recent=, query_mask=)`` over all, same and reverse."""
+    """``score(positives, exclude_recent_frames=, query_mask=)`` over all, same and reverse."""
     positives = gt.positives()
     same, reverse = gt.direction_masks()
     exclude = int(gt.params.get("exclude_recent", 100))
     masks = {"all": None, "same": ~reverse, "reverse": ~same}
     return {
-        name: score(positives, exclude_recent=exclude, query_mask=m) for name, m in masks.items()
+        name: score(positives, exclude_recent_frames=exclude, query_mask=m)
+        for name, m in masks.items()
     }
 
 

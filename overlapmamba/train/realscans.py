@@ -157,8 +157,8 @@ def eval_real(
 
     odd, even = np.arange(1, n, 2), np.arange(0, n, 2)
     k = min(5, len(even))
-    # one search for both stages: the second re-ranks the first rerank.k of it
-    ranked, dist = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.k), len(even)))
+    # one search for both stages: the second re-ranks the first rerank.shortlist of it
+    ranked, dist = nearest(desc_t[odd], desc[even], k=min(max(k, rerank.shortlist), len(even)))
     close = _hits(pos, odd, even, ranked[:, :k], hit_radius)
     staged: dict[str, Any] = {}
     if rerank.on:  # the service's two stages: the nearest re-ranked by their yaw features
@@ -274,7 +274,7 @@ def thinned(
         d_thin, _ = describe(model, np.stack(plain))
         d_q, f_q = describe(model, np.stack(turned))
         cos = (d_thin * desc).sum(1)
-        ranked, dist = nearest(d_q, desc[even], k=min(max(k, rerank.k), len(even)))
+        ranked, dist = nearest(d_q, desc[even], k=min(max(k, rerank.shortlist), len(even)))
         close = _hits(pos, odd, even, ranked[:, :k], hit_radius)
         row: dict[str, Any] = {
             "input": inp.kind,

@@ -141,9 +141,9 @@ def descriptor_recall(
     rerank: Rerank = OFF,
 ) -> dict[str, Any]:
     """AR@1/5/20 of queries (descriptors, positions) against a database, by squared L2; with
-    ``rerank`` on, each query's ``rerank.k`` nearest re-ranked by the yaw features ``yaw``
+    ``rerank`` on, each query's ``rerank.shortlist`` nearest re-ranked by the yaw features ``yaw``
     = (database's (M, C, W), queries' (Q, C, W)): :mod:`overlapmamba.core.rerank`."""
-    k = min(max(max(RECALL_AT), rerank.k), len(desc_db))
+    k = min(max(max(RECALL_AT), rerank.shortlist), len(desc_db))
     ranked, dist = nearest(desc_q, desc_db, k)
     if rerank.on:
         if yaw is None:

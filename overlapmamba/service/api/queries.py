@@ -25,12 +25,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from overlapmamba.core.errors import LidarCoreError
+from overlapmamba.core.renamed import REMOVED_IN
 from overlapmamba.service.api.openapi import SCAN_BODY, SensorQuery, error_responses
 from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import read_scan
@@ -52,11 +54,12 @@ from overlapmamba.service.schemas import (
 from overlapmamba.service.threads import in_thread
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
+log = logging.getLogger("overlapmamba.service")
 ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
 InsertMode = Literal["auto", "always", "never"]
 VERIFY_HELP = (
-    "register the top verify.k candidates against their keyframes' geometry (a relative pose "
-    "and a verified loop closure); false: the descriptor alone, faster"
+    "register the first verify.candidates candidates against their keyframes' geometry (a "
+    "relative pose and a verified loop closure); false: the descriptor alone, faster"
 )
 
 QUERY_BODY = {
@@ -101,7 +104,14 @@ async def query(
     timestamp: Annotated[
         float | None, Query(allow_inf_nan=False, description="the query's time")
     ] = None,
-    max_distance: Annotated[float | None, Query(ge=0, le=2)] = None,
+    max_match_distance: Annotated[
+        float | None,
+        Query(ge=0, le=2, description="leave out matches farther than this (descriptor L2)"),
+    ] = None,
+    max_distance: Annotated[
+        float | None,
+        Query(ge=0, le=2, deprecated=True, description="the old name of max_match_distance"),
+    ] = None,
     time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
@@ -110,12 +120,14 @@ async def query(
 ) -> QueryOut:
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
     query each match carries the relative yaw from the stored yaw features, and the top
-    `verify.k` (5) are registered against their keyframe's geometry: `relative_pose` and
+    `verify.candidates` (5) are registered against their keyframe's geometry: `relative_pose` and
     `verification`. The loop closure is the verified candidate of highest fitness; without
     verification, the top match when its distance is under the configured threshold (and
     the margin to the runner-up is large enough). k results come back whenever k eligible
     keyframes exist."""
     svc.sensors.check(sensor)
+    if max_distance is not None:
+        max_match_distance = renamed_query_distance(max_match_distance, max_distance)
     m = await svc.open_map(map_id)
     filters = Filters(
         exclude_session=exclude_session,
@@ -125,7 +137,7 @@ async def query(
         timestamp=timestamp,
         time_from=time_from,
         time_to=time_to,
-        max_distance=max_distance,
+        max_match_distance=max_match_distance,
     )
     scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
     probe: ScanBody | list[float] = scan
@@ -177,6 +189,26 @@ async def observe(
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
     scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
     return observe_out(await svc.observe(m, scan, obs))
+
+
+def renamed_query_distance(new: float | None, old: float) -> float:
+    """``max_distance``, the query filter's old name: still taken until it goes (logged once
+    a process); both at once is a 400."""
+    if new is not None:
+        raise BadRequest(
+            "give max_match_distance only; max_distance is its old name (deprecated)",
+            code="conflicting_parameters",
+        )
+    if not _WARNED:
+        _WARNED.add("max_distance")
+        log.warning(
+            "query parameter max_distance is deprecated and goes in %s: use max_match_distance",
+            REMOVED_IN,
+        )
+    return old
+
+
+_WARNED: set[str] = set()
 
 
 def query_out(a: Answer) -> QueryOut:

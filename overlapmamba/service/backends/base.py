@@ -89,14 +89,14 @@ def insert_results(
 def build_matches(
     found: Iterable[tuple[float, Keyframe, np.ndarray | None]],
     yaw: np.ndarray | None,
-    max_distance: float | None,
+    max_match_distance: float | None,
     yaw_k: int | None = None,
 ) -> list[Match]:
     """Hits (L2 distance, keyframe, its yaw features (C, W) or None), nearest first → matches,
     with the relative yaw for those of the first ``yaw_k`` (all when None) whose features the
     query's can be correlated with. (A caller that fetches a runner-up only for its distance
     saves its correlation: a sixth of the search stage at k = 5.)"""
-    hits = [h for h in found if max_distance is None or h[0] <= max_distance]
+    hits = [h for h in found if max_match_distance is None or h[0] <= max_match_distance]
     yaws: dict[int, tuple[float, float]] = {}
     with_yaw = [j for j, h in enumerate(hits[:yaw_k]) if h[2] is not None]
     if yaw is not None and with_yaw:

@@ -310,7 +310,7 @@ class FaissMap:
         found = [
             (float(d), *rows[int(i)]) for d, i in zip(dists, ids, strict=True) if int(i) in rows
         ]
-        return build_matches(found, yaw, filters.max_distance, yaw_k)
+        return build_matches(found, yaw, filters.max_match_distance, yaw_k)
 
     @property
     def count(self) -> int:

@@ -227,7 +227,7 @@ class QdrantMap:
             (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
             for p in result.points
         ]
-        return build_matches(found, yaw, filters.max_distance, yaw_k)
+        return build_matches(found, yaw, filters.max_match_distance, yaw_k)
 
     def info(self) -> dict[str, Any]:
         n = self.count
