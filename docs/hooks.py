@@ -39,6 +39,10 @@ def on_page_markdown(markdown: str, page: Any, config: Any, files: Files) -> str
     if uri in OUTSIDE:  # a root page: its links to docs/ are the site's own pages
         markdown = re.sub(r"\]\(docs/", "](", markdown)
         return re.sub(r"\]\(CHANGELOG\.md", "](changelog.md", markdown)
+    if uri == "models/README.md":  # the model card: docs/ pages are the site's root pages
+        markdown = re.sub(r"\]\(\.\./docs/", "](../", markdown)
+        markdown = re.sub(r"\]\(\.\./README\.md", "](../index.md", markdown)
+        return re.sub(r"\]\(\.\./CHANGELOG\.md", "](../changelog.md", markdown)
     if "/" not in uri:  # a docs/ page: ../reports, ../models, ../README.md sit beside it
         markdown = re.sub(r"\]\(\.\./(reports|models)/", r"](\1/", markdown)
         markdown = re.sub(r"\]\(\.\./README\.md", "](index.md", markdown)

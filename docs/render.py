@@ -28,6 +28,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import figures  # docs/figures.py, beside this file
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = (
     ROOT / "README.md",
@@ -84,7 +87,7 @@ def headline() -> str:
     return "\n".join(lines) + "\n"
 
 
-RENDERERS: dict[str, Callable[[], str]] = {"headline": headline}
+RENDERERS: dict[str, Callable[[], str]] = {"headline": headline, **figures.RENDERERS}
 
 
 def render(text: str) -> str:
@@ -101,6 +104,38 @@ def render(text: str) -> str:
         return m[1] + RENDERERS[m[2]]() + m[4]
 
     return RENDER.sub(table, INCLUDE.sub(paste, text))
+
+
+# What a measured figure looks like in prose: a number with three or more decimals (0.929,
+# 0.99955; not a bound such as "≥ 0.999"), a time in ms, an approximate duration (≈ 2 h),
+# a rate (scans/s, observations/s), a percentage or a decimal ratio (2.29×). Settings,
+# specifications and counts are written without them (or in `code`, where a setting's value
+# belongs).
+MEASURED = re.compile(
+    r"(?<![\w.])(?<![≥≤<>] )(?<![≥≤<>])\d+\.\d{3,}"
+    r"|\d+(?:\.\d+)?\s?(?:ms|µs)\b"
+    r"|≈\s?\d+(?:[.,]\d+)?\s?(?:s|min|minutes|h|hours)\b"
+    r"|\d+(?:\.\d+)?\s?(?:scans|obs|observations|queries)/s\b"
+    r"|(?<![@\d.])\d+(?:\.\d+)?\s?%"  # not the metric Recall@1%
+    r"|\d+\.\d+\s?×"
+)
+# the pages a user reads, where every measured figure must be rendered (the changelog keeps
+# the lab notebook's history as it was measured)
+FIGURE_FREE = tuple(d for d in DOCS if d.name != "CHANGELOG.md")
+
+
+def hand_typed(text: str) -> list[tuple[int, str]]:
+    """(line number, line) of every line with a measured-looking figure outside the rendered
+    and included blocks, code blocks and `code` spans."""
+    blanked = INCLUDE.sub(lambda m: "\n" * m[0].count("\n"), text)
+    blanked = RENDER.sub(lambda m: "\n" * m[0].count("\n"), blanked)
+    blanked = re.sub(r"```.*?```", lambda m: "\n" * m[0].count("\n"), blanked, flags=re.S)
+    blanked = re.sub(r"<!--.*?-->", lambda m: "\n" * m[0].count("\n"), blanked, flags=re.S)
+    out = []
+    for i, line in enumerate(blanked.splitlines(), 1):
+        if MEASURED.search(re.sub(r"`[^`]*`", "", line)):
+            out.append((i, line.strip()))
+    return out
 
 
 def main() -> int:

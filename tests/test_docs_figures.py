@@ -41,7 +41,53 @@ def test_the_measured_tables_are_in_their_documents():
         ("models/README.md", "reports/model/sensors.md"),
         ("docs/deploy.md", "reports/deploy/image.md"),
     } <= included
-    assert ("README.md", "headline") in {(_rel(doc), name) for doc, name, _ in _rendered()}
+    rendered = {(_rel(doc), name) for doc, name, _ in _rendered()}
+    assert {
+        ("README.md", "headline"),
+        ("models/README.md", "model-tables"),
+        ("models/README.md", "encoder"),
+        ("docs/results.md", "encoder"),
+        ("docs/results.md", "service"),
+        ("docs/results.md", "verify"),
+        ("docs/results.md", "e2e"),
+        ("docs/deploy.md", "sizing"),
+        ("docs/service.md", "calibration"),
+        ("docs/client.md", "fleet"),
+    } <= rendered
+    assert set(render.RENDERERS) == {name for _, name in rendered}, "a renderer nobody uses"
+
+
+@pytest.mark.parametrize("doc", render.FIGURE_FREE, ids=_rel)
+def test_no_measured_figure_is_typed_by_hand(doc):
+    found = render.hand_typed(doc.read_text())
+    assert not found, (
+        f"{_rel(doc)} types measured figures outside rendered blocks (render them from the "
+        "JSON their command wrote, or move the history to CHANGELOG.md's lab notebook):\n"
+        + "\n".join(f"  line {i}: {line}" for i, line in found)
+    )
+
+
+def test_the_figure_detector_knows_a_measurement_from_a_setting():
+    measured = [
+        "F1max 0.929 against 0.747",
+        "a query takes 27.0 ms",
+        "the run took ≈ 2.5 h",
+        "about 34 observations/s with 8 robots",
+        "the yaw features are 92 % of it",
+        "three views cost 2.35× one view",
+    ]
+    for text in measured:
+        assert render.hand_typed(text), text
+    settings = [
+        "mounted 1.73 m up, pitched 5° down",
+        "a cosine ≥ 0.999 under any turn",
+        "`loop_closure.accept_distance = 0.1794`",
+        "Recall@1% over 2,500 scans of 64 × 900",
+        "<!-- render headline -->\n| 0.929 | 27.0 ms |\n<!-- end render headline -->\n",
+        "```\ntook 12.5 ms\n```\n",
+    ]
+    for text in settings:
+        assert not render.hand_typed(text), text
 
 
 @pytest.mark.parametrize("doc,name,text", _includes(), ids=lambda x: str(x)[-40:])
@@ -59,7 +105,7 @@ def test_a_rendered_table_is_its_json(doc, name, text):
     assert name in render.RENDERERS, f"{_rel(doc)} asks for an unknown table {name!r}"
     made = render.RENDERERS[name]()
     assert text == made, f"{_rel(doc)}'s table {name} differs from its JSON: run `make docs`"
-    assert re.match(r"<!-- from reports/\S+\.json, written by `[^`]+`", made), (
+    assert re.match(r"<!-- from reports/\S+\.(json|md)( \([\d-]+\))?, written by `[^`]+`", made), (
         "a rendered table names its JSON and the command that wrote it"
     )
 
