@@ -29,7 +29,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import figures  # docs/figures.py, beside this file
+import figures_fleet  # docs/figures_*.py, beside this file
+import figures_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = (
@@ -87,7 +88,11 @@ def headline() -> str:
     return "\n".join(lines) + "\n"
 
 
-RENDERERS: dict[str, Callable[[], str]] = {"headline": headline, **figures.RENDERERS}
+RENDERERS: dict[str, Callable[[], str]] = {
+    "headline": headline,
+    **figures_model.RENDERERS,
+    **figures_fleet.RENDERERS,
+}
 
 
 def render(text: str) -> str:

@@ -178,7 +178,7 @@ def test_open_scan_one_direction_two_blocks_exports_too(tmp_path):
     # The served C-kernel path cuts two scans into three sessions and agrees.
     from overlapmamba.service.encoder import Encoder
 
-    fast = Encoder(res.path, intra_op_threads=2)
+    fast = Encoder(res.path, intra_op_threads=2, scan_kernel=True)
     assert fast.scan_path.startswith("c-kernel (2 scans, 3 sessions"), fast.scan_path
     d2, y2 = fast.encode(images)
     np.testing.assert_allclose(d2, d, rtol=0, atol=1e-5)
@@ -198,7 +198,7 @@ def test_open_scan_one_direction_two_blocks_exports_too(tmp_path):
 def test_served_c_kernel_path_matches_the_portable_graph_on_real_scans(exported, kitti_images, fmt):
     from overlapmamba.service.encoder import Encoder
 
-    fast = Encoder(exported[fmt].path, intra_op_threads=2)
+    fast = Encoder(exported[fmt].path, intra_op_threads=2, scan_kernel=True)
     portable = Encoder(exported[fmt].path, intra_op_threads=2, scan_kernel=False)
     assert fast.scan_path.startswith("c-kernel (1 scans, 2 sessions"), fast.scan_path
     assert portable.scan_path == "portable (scan_kernel = false)" and portable.staged is None

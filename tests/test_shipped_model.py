@@ -144,5 +144,39 @@ def test_shipped_model_is_served_by_the_c_kernel(meta):
         load()
     except KernelBuildError as err:
         pytest.skip(f"no C kernel here: {err}")
-    enc = Encoder(MODEL, intra_op_threads=2)
+    enc = Encoder(MODEL, intra_op_threads=2, scan_kernel=True)
     assert enc.scan_path.startswith("c-kernel ("), enc.scan_path
+
+
+def test_the_c_kernel_serves_only_where_it_is_not_slower(monkeypatch, caplog):
+    """scan_kernel = auto (the default) times the two paths at load, in turn, as a scan is
+    served, and keeps the C kernel unless it is slower than the portable graph here."""
+    from overlapmamba.core.scan_kernel import KernelBuildError, load
+    from overlapmamba.service import encoder as encoder_mod
+    from overlapmamba.service.encoder import Encoder
+
+    try:
+        load()
+    except KernelBuildError as err:
+        pytest.skip(f"no C kernel here: {err}")
+    calls = []
+
+    def timed(kernel, portable):
+        calls.append((kernel(), portable()))  # each runs a scan's views once
+        return times
+
+    monkeypatch.setattr(encoder_mod, "_time_both", timed)
+    times = (30.0, 10.0)  # the kernel three times the portable graph's time
+    with caplog.at_level("WARNING", logger="overlapmamba"):
+        slow = Encoder(MODEL, intra_op_threads=2)
+    assert slow.staged is None and slow.scan_path.startswith("portable (the C kernel was slower")
+    assert "30.0 against 10.0 ms" in caplog.text
+    for (kd, ky), (pd, py) in calls:  # both paths were timed on the same views, and agree
+        assert kd.shape == pd.shape and abs(kd - pd).max() < 1e-4
+        assert ky.shape == py.shape == (3, 16, 900)
+    times = (10.5, 10.0)  # within the margin: the kernel (trained with) serves
+    fast = Encoder(MODEL, intra_op_threads=2)
+    assert fast.staged is not None and fast.scan_path.startswith("c-kernel (")
+    assert "10.5 against 10.0 ms" in fast.scan_path
+    forced = Encoder(MODEL, intra_op_threads=2, scan_kernel=True)
+    assert forced.staged is not None and len(calls) == 2  # True: no timing, the kernel serves

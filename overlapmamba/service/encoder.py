@@ -15,8 +15,10 @@ takes one image a row (B·V, 1, H, W); :meth:`Encoder.encode` combines the views
 inlines each scan node's body (ONNX ``Scan`` loops). The *C-kernel* path
 (:mod:`overlapmamba.service.fastscan`) cuts the graph at its scan nodes and runs each scan with the
 kernel the model was trained with. It is built at load, then checked against the portable
-graph on a fixed input (max abs difference ≤ :data:`PARITY_TOL` in both outputs); only then
-does it serve. Anything that fails (no kernel, a file exported before scans were marked, a
+graph on a fixed input (max abs difference ≤ :data:`PARITY_TOL` in both outputs), and timed
+against it as a scan is served (the two in turn): only when it agrees, and is not slower
+than the portable graph on this machine by more than :data:`KERNEL_SLOWER`, does it serve.
+Anything that fails (no kernel, a file exported before scans were marked, a
 parity miss) is logged as a warning and the portable graph serves: :attr:`Encoder.scan_path`
 says which one runs, and ``/readyz`` shows it.
 """
@@ -26,9 +28,10 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import onnxruntime as ort
@@ -56,7 +59,13 @@ class Encoded:
 
 
 class Encoder:
-    def __init__(self, path: Path, *, intra_op_threads: int = 0, scan_kernel: bool = True) -> None:
+    def __init__(
+        self,
+        path: Path,
+        *,
+        intra_op_threads: int = 0,
+        scan_kernel: bool | Literal["auto"] = "auto",
+    ) -> None:
         if not Path(path).is_file():
             raise ModelLoadError(f"model file {path} does not exist")
         opts = ort.SessionOptions()
@@ -87,7 +96,7 @@ class Encoder:
         if self.meta.network.get("mixer", "mamba") != "mamba":
             self.scan_path = f"no scan ({self.meta.network['mixer']} mixer)"
         elif scan_kernel:
-            self.scan_path = self._try_scan_kernel(opts, threads)
+            self.scan_path = self._try_scan_kernel(opts, threads, timed=scan_kernel == "auto")
         self.load_s = time.perf_counter() - t0
         if self.meta.weights != "trained":
             log.warning(
@@ -100,9 +109,10 @@ class Encoder:
         desc, yaw = self.session.run(list(OUTPUTS), {INPUT: images})
         return desc, yaw
 
-    def _try_scan_kernel(self, opts: ort.SessionOptions, threads: int) -> str:
-        """Build the C-kernel path and serve with it if it agrees with the portable graph;
-        otherwise say why (a warning) and keep the portable graph. Returns :attr:`scan_path`."""
+    def _try_scan_kernel(self, opts: ort.SessionOptions, threads: int, timed: bool) -> str:
+        """Build the C-kernel path and serve with it if it agrees with the portable graph
+        (and, ``timed``, is not slower here); otherwise say why (a warning) and keep the
+        portable graph. Returns :attr:`scan_path`."""
         try:
             import onnx
 
@@ -126,9 +136,31 @@ class Encoder:
                 err,
             )
             return f"portable ({err})"
+        if not timed:
+            self.staged = staged
+            n, k = staged.scan_count, len(staged.stages)
+            return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
+        # Faster where the kernel's exponentials vectorise well; on some processors it is
+        # not (measured: twice the portable graph's time on one cloud Xeon). Time both as a
+        # scan is served (its views in one call) and serve with the faster.
+        views = np.repeat(x, self.meta.views, axis=0)
+        kernel_ms, portable_ms = _time_both(
+            lambda: staged.run(views), lambda: self._run_portable(views)
+        )
+        timing = f"{kernel_ms:.1f} against {portable_ms:.1f} ms a scan at load"
+        if kernel_ms > KERNEL_SLOWER * portable_ms:
+            log.warning(
+                "model %s: the C scan kernel is slower than the portable graph on this machine "
+                "(%s): the portable graph serves",
+                self.meta.model_id,
+                timing,
+            )
+            return f"portable (the C kernel was slower here: {timing})"
         self.staged = staged
         n, k = staged.scan_count, len(staged.stages)
-        return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
+        return (
+            f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph; {timing})"
+        )
 
     @property
     def model_id(self) -> str:
@@ -162,6 +194,21 @@ class Encoder:
         x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
         return combine_views(*out, self.meta.views)
+
+
+KERNEL_SLOWER = 1.1  # the kernel serves unless it takes more than this × the portable graph
+TIMING_ROUNDS = 3
+
+
+def _time_both(kernel: Callable[[], object], portable: Callable[[], object]) -> tuple[float, float]:
+    """Median ms of each, the two run in turn (so a busy moment hits both alike)."""
+    times: tuple[list[float], list[float]] = ([], [])
+    for _ in range(TIMING_ROUNDS):
+        for fn, out in ((kernel, times[0]), (portable, times[1])):
+            t = time.perf_counter()
+            fn()
+            out.append((time.perf_counter() - t) * 1e3)
+    return float(np.median(times[0])), float(np.median(times[1]))
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:

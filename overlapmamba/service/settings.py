@@ -290,11 +290,12 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     data_dir: Path = Path("data")
     model: Path = Path("models/overlapmamba-hdl64.onnx")
-    scan_kernel: bool = Field(
-        True,
+    scan_kernel: bool | Literal["auto"] = Field(
+        "auto",
         description="run each selective scan with the C kernel (overlapmamba.core.scan_kernel), "
-        "checked against the model's portable graph at load; false, or a failed check: "
-        "onnxruntime runs the portable graph alone",
+        "checked against the model's portable graph at load; auto: and only if it is not "
+        "slower than the portable graph on this machine (timed at load); false, or a failed "
+        "check: onnxruntime runs the portable graph alone",
     )
     insecure: bool = Field(False, description="allow a non-loopback host without API keys")
     log_level: Literal["debug", "info", "warning", "error"] = "info"

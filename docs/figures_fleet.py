@@ -1,0 +1,323 @@
+"""The service's measured behaviour: verified closures, registration, MapClosures beside it,
+sizing, the fleet simulator and the end-to-end runs (``docs/figures_kit.py`` says how the
+tables are made)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from figures_kit import ROOT, f3, load, ms, source, table, when
+
+# ---- verification --------------------------------------------------------------------------
+VERIFY = "reports/service/verify-test.json"
+
+
+def verify() -> str:
+    """Verified loop closures on the test towns at the service's thresholds."""
+    r = load(VERIFY)
+    rows = []
+    for t in r["towns"]:
+        v, d = t["verified"], t["descriptor"]
+        rows.append(
+            [
+                Path(t["town"]).name,
+                t["queries"],
+                t["with_loop"],
+                v["accepted"],
+                f"{v['precision']:.3f}",
+                f"{v['recall']:.3f}",
+                f"{d['recall@1']:.3f}",
+                f"{d['recall@5']:.3f}",
+                f"{v['registered_per_query']:.1f}",
+                ms(t["verify_ms"]["median"]),
+            ]
+        )
+    th = r["thresholds"]
+    gate = th.get("gate_distance", th.get("max_distance"))  # older files: max_distance
+    out = source(
+        VERIFY,
+        "python benchmarks/verify_threshold.py --town data/synth/test --town data/synth/test-b "
+        "--town data/synth/test-c",
+        when(r),
+    )
+    out += (
+        f"\nModel {r['model_id']}; thresholds: fitness ≥ {th['min_fitness']}, rmse ≤ "
+        f"{th['max_rmse_m']} m, descriptor gate {gate}. A closure is correct when its pose is "
+        "within 1 m and 2° of the truth; recall counts queries with a loop.\n\n"
+    )
+    return out + table(
+        [
+            "town",
+            "queries",
+            "with loop",
+            "accepted",
+            "precision",
+            "recall",
+            "answer Recall@1",
+            "Recall@5",
+            "registered a query",
+            "verify p50",
+        ],
+        rows,
+    )
+
+
+REGISTRATION = "reports/service/registration.json"
+
+
+def registration() -> str:
+    """Relative poses on real KITTI 00, and what verification costs a query over HTTP."""
+    r = load(REGISTRATION)
+    h = r["http"]
+    rows = [
+        [
+            "translation error",
+            f"{r['t_err']['median'] * 100:.1f} cm",
+            f"{r['t_err']['p90'] * 100:.1f} cm",
+            f"{r['t_err']['max'] * 100:.1f} cm",
+        ],
+        [
+            "yaw error",
+            f"{r['yaw_err']['median']:.3f}°",
+            f"{r['yaw_err']['p90']:.3f}°",
+            f"{r['yaw_err']['max']:.3f}°",
+        ],
+        [
+            "fitness",
+            f"{r['fitness']['median']:.3f}",
+            f"{r['fitness']['p90']:.3f}",
+            f"{r['fitness']['max']:.3f}",
+        ],
+        [
+            "registration time",
+            ms(r["register_ms"]["median"]),
+            ms(r["register_ms"]["p90"]),
+            ms(r["register_ms"]["max"]),
+        ],
+        [
+            "geometry a keyframe",
+            f"{r['geometry_bytes']['median'] / 1e3:.1f} KB",
+            f"{r['geometry_bytes']['p90'] / 1e3:.1f} KB",
+            f"{r['geometry_bytes']['max'] / 1e3:.1f} KB",
+        ],
+    ]
+    out = source(REGISTRATION, "python benchmarks/registration.py", when(r))
+    out += f"\n{r['scans']}.\n\n" + table(["", "median", "p90", "max"], rows)
+    out += (
+        f"\nOver HTTP ({h['queries']} queries, {h['candidates']} candidates verified): a "
+        f"query's client time {ms(h['verify_true']['client_ms'])} with verification against "
+        f"{ms(h['verify_false']['client_ms'])} without (+{h['added_share'] * 100:.0f} %), the "
+        f"verify stage {ms(h['verify_true']['server_verify_ms'])}.\n"
+    )
+    return out
+
+
+MAPCLOSURES = "reports/service/mapclosures-test.json"
+
+
+def mapclosures() -> str:
+    """Against MapClosures on the first test town."""
+    r = load(MAPCLOSURES)
+    med = lambda xs: sorted(xs)[len(xs) // 2] if xs else float("nan")  # noqa: E731
+    out = source(MAPCLOSURES, "python benchmarks/mapclosures_compare.py", when(r))
+    out += (
+        f"\n{Path(r['town']).name}: {r['scans']:,} scans, {r['revisiting_scans']:,} revisiting.\n\n"
+    )
+    out += table(
+        ["method", "closures", "revisits covered", "translation error p50", "yaw error p50"],
+        [
+            [
+                "MapClosures",
+                r["closures"],
+                r["covered_revisits"],
+                f"{med(r['pose_error_m']) * 100:.1f} cm",
+                f"{med(r['yaw_error_deg']):.2f}°",
+            ]
+        ],
+    )
+    ours = r.get("ours", {}).get("verified")
+    if ours:
+        out += (
+            f"\nThis service on the same town: {ours['accepted']:,} verified closures, precision "
+            f"{ours['precision']:.3f}, recall {ours['recall']:.3f}.\n"
+        )
+    return out
+
+
+# ---- deployment ----------------------------------------------------------------------------
+SIZING = "reports/deploy/sizing.json"
+
+
+def sizing() -> str:
+    """What a node needs: the encoder's rate, each backend's costs a keyframe, the search
+    stage at 10,000 keyframes."""
+    r = load(SIZING)
+    out = source(SIZING, "python benchmarks/sizing.py", when(r))
+    out += f"\n{r['scans']}; project + encode as the service runs it:\n\n"
+    out += table(
+        ["threads", "p50 a scan", "scans/s"],
+        [[e["threads"], ms(e["median_ms"]), f"{e['scans_per_s']:.0f}"] for e in r["encoder"]],
+    )
+    f, q = r["backends"]["faiss"], r["backends"]["qdrant"]
+    out += "\n" + table(
+        [
+            "backend",
+            "keyframes",
+            "insert p50",
+            "query p50",
+            "filtered query p50",
+            "disk a keyframe",
+        ],
+        [
+            [
+                "FAISS",
+                f["n"],
+                ms(f["insert_p50_ms"]),
+                ms(f["query_p50_ms"]),
+                ms(f["filtered_query_p50_ms"]),
+                f"{f['store_bytes_per_keyframe'] / 1e3:.1f} KB",
+            ],
+            [
+                "Qdrant (local)",
+                q["n"],
+                ms(q["insert_p50_ms"]),
+                ms(q["query_p50_ms"]),
+                ms(q["filtered_query_p50_ms"]),
+                f"{q['local_storage_bytes_per_point'] / 1e3:.1f} KB",
+            ],
+        ],
+    )
+    rows = []
+    for s in r["search_stage"]:
+        parts = " / ".join(f"{k} {s[k]['p50_ms']:.2f}" for k in ("index", "rows", "yaw") if k in s)
+        rows.append(
+            [
+                s["load"],
+                s["keyframes"],
+                s["faiss_threads"],
+                f"{s['search']['p50_ms']:.2f} ms",
+                f"{s['search']['p90_ms']:.2f} ms",
+                parts,
+            ]
+        )
+    out += "\nA scan query's search stage:\n\n"
+    return out + table(
+        ["encoder", "keyframes", "FAISS threads", "p50", "p90", "p50 by part (ms)"], rows
+    )
+
+
+def fleet() -> str:
+    """The fleet simulator at 1, 4 and 8 robots."""
+    rows = []
+    for n in (1, 4, 8):
+        rel = f"reports/client/fleet-{n}.json"
+        if not (ROOT / rel).is_file():
+            continue
+        r = load(rel)
+        pe = (r.get("pose_error") or {}).get("translation_m")
+        rows.append(
+            [
+                r["robots"],
+                r["observations"],
+                f"{r['throughput_per_s']:.1f}",
+                ms(r["latency_ms"]["p50"]),
+                ms(r["latency_ms"]["p95"]),
+                sum(r["errors"].values()) if r["errors"] else 0,
+                f3(r["precision"]),
+                f3(r["recall"]),
+                f"{pe['median'] * 100:.1f} cm" if pe else "—",
+            ]
+        )
+    out = source(
+        "reports/client/fleet-{1,4,8}.json", "overlapmamba-client simulate-fleet --robots N"
+    )
+    return (
+        out
+        + "\n"
+        + table(
+            [
+                "robots",
+                "observations",
+                "observations/s",
+                "p50",
+                "p95",
+                "errors",
+                "precision",
+                "recall",
+                "pose error p50",
+            ],
+            rows,
+        )
+    )
+
+
+# ---- end to end ----------------------------------------------------------------------------
+def e2e() -> str:
+    """The end-to-end runs (``make e2e``), one line each from its JSON."""
+    rows = []
+    lt = load("reports/e2e/load.json")
+    fl = lt["fleet"]
+    rows.append(
+        [
+            "load (`tests/test_e2e_load.py`)",
+            lt["when"][:10],
+            f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s: "
+            f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
+            f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
+            f"verified closures precision {fl['closure_precision']:.3f}, recall "
+            f"{fl['closure_recall']:.3f}",
+        ]
+    )
+    crash = load("reports/e2e/crash.json")
+    rows.append(
+        [
+            "crash (`tests/test_e2e_crash.py`)",
+            crash["when"][:10],
+            f"{crash['crashes']} SIGKILLs under load; {crash['lost']} acknowledged writes lost; "
+            f"ready in {crash['ready_s']['median']:.1f} s median, {crash['ready_s']['max']:.1f} s "
+            "at most",
+        ]
+    )
+    fz = load("reports/e2e/fuzz_schemathesis.json")
+    corpus = load("reports/e2e/fuzz_corpus.json")
+    rows.append(
+        [
+            "fuzz (`tests/test_e2e_fuzz.py`)",
+            fz["when"][:10],
+            f"schemathesis for {fz['budget_s']} s: {fz['test_cases']:,} cases, exit code "
+            f"{fz['exit_code']}, server alive: {fz['server_alive']}; {len(corpus['cases'])} "
+            f"hostile bodies, all answered 4xx: {corpus['all_4xx']}",
+        ]
+    )
+    auth = load("reports/e2e/auth_matrix.json")
+    rows.append(
+        [
+            "auth matrix (`tests/test_e2e_auth.py`)",
+            auth["when"][:10],
+            f"{len(auth['cells'])} routes × {len(auth['roles'])} roles and three wrong keys: "
+            "the status of every cell (the test asserts each)",
+        ]
+    )
+    b = load("reports/e2e/browser.json")
+    rows.append(
+        [
+            "browser (`tests/test_e2e_browser.py`)",
+            b["when"][:10],
+            f"Chromium {b['chromium_version']}: {len(b['charts_changed'])} of "
+            f"{len(b['canvases'])} charts changed between two looks, "
+            f"{len(b['page_errors'])} page errors",
+        ]
+    )
+    out = source("reports/e2e/*.json", "make e2e")
+    return out + "\n" + table(["test", "run", "result"], rows)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "verify": verify,
+    "registration": registration,
+    "mapclosures": mapclosures,
+    "sizing": sizing,
+    "fleet": fleet,
+    "e2e": e2e,
+}
