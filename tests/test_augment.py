@@ -100,6 +100,17 @@ def test_dropout_noise_and_crop_touch_only_what_they_should():
     assert np.all(noisy[~valid] == EMPTY) and np.all(noisy[valid] > 0)
     assert 0 < np.abs(noisy[valid] - x[valid]).max() < 0.5
 
+    beams = only(beam_dropout=0.5)(x, np.random.default_rng(0))
+    for img, src in zip(beams, x, strict=True):  # whole rows emptied, the others untouched
+        gone = np.all(img == EMPTY, axis=1) & ~np.all(src == EMPTY, axis=1)
+        np.testing.assert_array_equal(img[~gone], src[~gone])
+    assert 0 < sum(np.all(img == EMPTY, axis=1).sum() for img in beams) < 6 * PROFILE.height / 2
+    # off, it draws nothing: a run without it keeps the random stream of the runs before it
+    rng_a, rng_b = np.random.default_rng(3), np.random.default_rng(3)
+    only(dropout=0.2)(x, rng_a)
+    only(dropout=0.2, beam_dropout=0.0)(x, rng_b)
+    assert rng_a.random() == rng_b.random()
+
     cropped = only(fov_crop=1.0, fov_min_deg=180.0)(x, np.random.default_rng(0))
     for img in cropped:
         empty_cols = np.all(img == EMPTY, axis=0)
@@ -109,7 +120,14 @@ def test_dropout_noise_and_crop_touch_only_what_they_should():
 
 
 @pytest.mark.parametrize(
-    "kw", [{"dropout": 1.0}, {"tilt_deg": -1.0}, {"fov_crop": 2.0}, {"fov_min_deg": 0.0}]
+    "kw",
+    [
+        {"dropout": 1.0},
+        {"beam_dropout": 1.0},
+        {"tilt_deg": -1.0},
+        {"fov_crop": 2.0},
+        {"fov_min_deg": 0.0},
+    ],
 )
 def test_out_of_range_settings_are_refused(kw):
     with pytest.raises(ConfigError, match="out of range; allowed"):

@@ -51,6 +51,51 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq, negative):
         BatchSampler(pairs, BatchPlan(batch_size=10))
 
 
+def _rendering(src, dst, sensor: str, shift_m: float = 0.0):
+    """``src`` as another sensor's rendering of its drive: its manifest with the sensor
+    changed, its poses (drifting up to ``shift_m`` in x), its scans linked, no pair table."""
+    dst.mkdir()
+    for name in ("calib.txt", "times.txt"):
+        (dst / name).write_bytes((src / name).read_bytes())
+    (dst / "velodyne").symlink_to((src / "velodyne").resolve())
+    poses = np.loadtxt(src / "poses.txt").reshape(-1, 12)
+    poses[:, 3] += shift_m * np.linspace(0, 1, len(poses))
+    np.savetxt(dst / "poses.txt", poses)
+    manifest = json.loads((src / "manifest.json").read_text())
+    manifest["config"]["sensor"] = sensor
+    (dst / "manifest.json").write_text(json.dumps(manifest))
+    return dst
+
+
+def test_renderings_of_one_drive_share_its_pair_table(tiny_seq, tmp_path):
+    """Another sensor's rendering of a drive (gen-data --sensor … --no-ground-truth) is
+    labelled by the drive's table: frame i of one rendering overlaps frame j of the other as
+    i and j do, fully when i = j, and that copy is a positive, never a revisit."""
+    ref = open_sequence(tiny_seq)
+    other = open_sequence(_rendering(tiny_seq, tmp_path / "vlp16", "vlp16"))
+    alone = PairIndex.from_sequences([ref])
+    both = PairIndex.from_sequences([ref, other])
+    n = len(ref)
+    assert len(both) == 2 * n and both.frame is not None
+    a = alone.overlap.toarray()
+    full = both.overlap.toarray()
+    for block in (full[:n, :n], full[n:, n:], full[:n, n:] - np.diag(np.diag(full[:n, n:]))):
+        np.testing.assert_array_equal(block, a - np.diag(np.diag(a)))
+    np.testing.assert_array_equal(np.diag(full[:n, n:]), 1.0)
+    np.testing.assert_array_equal(full, full.T)
+    sampler = BatchSampler(both, BatchPlan(batch_size=16))
+    for i in range(0, 2 * n, 37):
+        assert (i + n) % (2 * n) in sampler.positives[i]  # the same place, the other sensor
+        revisits = sampler.revisits[i]
+        assert np.all(np.abs(both.frame[revisits] - both.frame[i]) > 100)
+    # a rendering elsewhere, or a drive with no table at all, is refused
+    moved = open_sequence(_rendering(tiny_seq, tmp_path / "moved", "vlp16", shift_m=3.0))
+    with pytest.raises(DatasetError, match="not a rendering of the same drive"):
+        PairIndex.from_sequences([ref, moved])
+    with pytest.raises(DatasetError, match="no ground_truth/overlaps.npz in any rendering"):
+        PairIndex.from_sequences([other])
+
+
 def test_band_groups_bring_a_neighbour_and_cost_no_draw_when_off(tiny_seq):
     """With a band share of 1 every group's negative is a scan of the anchor's ambiguous band
     (overlap in (0.1, 0.3]) where the anchor has one; with 0 the batches are those drawn

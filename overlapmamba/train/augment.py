@@ -16,6 +16,8 @@ and the configured maximum, so a batch always mixes clean and degraded scans.
   invariant to them), so by default only non-circular models get them.
 - ``dropout``: up to this share of the returns lost (rain, dust, a dirty window, a sparser
   driver setting).
+- ``beam_dropout``: up to this share of the rows emptied whole (a sensor with fewer beams, or
+  beams that another sensor's elevation grid leaves out).
 - ``range_noise``: Gaussian range noise with σ up to this many metres.
 - ``fov_crop``: the probability that a scan keeps only a sector of its horizontal field of
   view, between ``fov_min_deg`` and 360° (a sensor partly occluded by the vehicle or a
@@ -50,6 +52,7 @@ class AugmentConfig(Config):
     yaw_jitter: bool = False
     yaw_roll: bool | None = None  # None: only when the model is not circular
     dropout: float = 0.0
+    beam_dropout: float = 0.0
     range_noise: float = 0.0
     fov_crop: float = 0.0
     fov_min_deg: float = 180.0
@@ -59,6 +62,7 @@ class AugmentConfig(Config):
         checks = {
             "tilt_deg": 0 <= self.tilt_deg <= 15,
             "dropout": 0 <= self.dropout < 1,
+            "beam_dropout": 0 <= self.beam_dropout < 1,
             "range_noise": 0 <= self.range_noise <= 1,
             "fov_crop": 0 <= self.fov_crop <= 1,
             "fov_min_deg": 0 < self.fov_min_deg <= 360,
@@ -67,7 +71,7 @@ class AugmentConfig(Config):
         if bad:
             raise ConfigError(
                 f"augmentation {bad[0]}={getattr(self, bad[0])!r} is out of range; allowed: "
-                "tilt_deg 0–15, dropout 0–<1, range_noise 0–1 m, fov_crop 0–1, "
+                "tilt_deg 0–15, dropout and beam_dropout 0–<1, range_noise 0–1 m, fov_crop 0–1, "
                 "fov_min_deg 0–360"
             )
         return self
@@ -115,6 +119,10 @@ class Augmenter:
                 lost = rng.random(img.shape) < rng.uniform(0, c.dropout)
                 img[lost & valid] = self.empty
                 valid &= ~lost
+            if c.beam_dropout:  # drawn only when on: the streams of runs without it stay
+                rows = rng.random(self.H) < rng.uniform(0, c.beam_dropout)
+                img[rows] = self.empty
+                valid[rows] = False
             if c.range_noise:
                 sigma = rng.uniform(0, c.range_noise)
                 noise = rng.standard_normal(img.shape).astype(np.float32) * np.float32(sigma)

@@ -41,6 +41,7 @@ from scipy import sparse
 
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
+from overlapmamba.train.drives import drive_pairs, group_drives
 from overlapmamba.train.mining import HardNegatives
 
 GROUP = 4
@@ -70,29 +71,35 @@ def read_pair_table(root: Path) -> dict[str, np.ndarray]:
 @dataclass
 class PairIndex:
     """Overlap between scans of several sequences, as one symmetric sparse matrix over
-    global scan indices (sequence k's scans follow sequence k−1's)."""
+    global scan indices (sequence k's scans follow sequence k−1's). Renderings of one drive
+    by other sensors or mountings share its pair table (:mod:`overlapmamba.train.drives`)."""
 
     overlap: sparse.csr_matrix  # (N, N) float32; absent pairs: 0 (farther than the radius)
     near: sparse.csr_matrix  # (N, N) bool: within the table's radius (any overlap)
     offsets: np.ndarray  # (S + 1,) first global index of each sequence, then N
+    frame: np.ndarray | None = None  # (N,) each scan's frame in its drive (None: global order)
 
     @classmethod
     def from_sequences(cls, seqs: list[Sequence]) -> PairIndex:
         rows, cols, vals = [], [], []
         offsets = np.cumsum([0, *[len(s) for s in seqs]])
-        for seq, off in zip(seqs, offsets, strict=False):
-            t = read_pair_table(seq.root)
-            if len(t["query"]) and int(max(t["query"].max(), t["reference"].max())) >= len(seq):
-                raise DatasetError(f"{seq.root}: overlaps.npz names scans the sequence lacks")
-            rows += [t["query"] + off, t["reference"] + off]
-            cols += [t["reference"] + off, t["query"] + off]
-            vals += [t["overlap"], t["overlap"]]
+        has_table = lambda s: (s.root / "ground_truth" / "overlaps.npz").is_file()  # noqa: E731
+        for drive in group_drives(seqs, has_table):
+            ref = seqs[drive.reference]
+            t = read_pair_table(ref.root)
+            if len(t["query"]) and int(max(t["query"].max(), t["reference"].max())) >= len(ref):
+                raise DatasetError(f"{ref.root}: overlaps.npz names scans the sequence lacks")
+            r_, c_, v_ = drive_pairs(drive, t, offsets, len(ref))
+            rows += r_
+            cols += c_
+            vals += v_
         n = int(offsets[-1])
         r, c = np.concatenate(rows), np.concatenate(cols)
         v = np.concatenate(vals).astype(np.float32)
         overlap = sparse.csr_matrix((v, (r, c)), shape=(n, n))
         near = sparse.csr_matrix((np.ones(len(r), bool), (r, c)), shape=(n, n))
-        return cls(overlap=overlap, near=near, offsets=offsets)
+        frame = np.concatenate([np.arange(len(s)) for s in seqs]) if seqs else np.zeros(0, int)
+        return cls(overlap=overlap, near=near, offsets=offsets, frame=frame)
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -154,8 +161,12 @@ class BatchSampler:
         band.data = (band.data <= plan.positive_threshold).astype(np.float32)
         band.eliminate_zeros()
         self.band = [band.indices[band.indptr[i] : band.indptr[i + 1]] for i in range(len(pairs))]
+        # a revisit is far from the anchor in its drive's time: another rendering's copy of
+        # the anchor's own frame is a positive, never a revisit
+        frame = pairs.frame if pairs.frame is not None else np.arange(len(pairs))
         self.revisits = [
-            p[np.abs(p - i) > plan.min_revisit_gap] for i, p in enumerate(self.positives)
+            p[np.abs(frame[p] - frame[i]) > plan.min_revisit_gap]
+            for i, p in enumerate(self.positives)
         ]
         self.anchors = np.array(
             [i for i, p in enumerate(self.positives) if len(p) >= plan.positives], np.int64
