@@ -96,6 +96,32 @@ def test_renderings_of_one_drive_share_its_pair_table(tiny_seq, tmp_path):
         PairIndex.from_sequences([other])
 
 
+def test_training_takes_another_sensors_rendering_only_when_asked(tiny_seq, tmp_path):
+    from overlapmamba.train.train_inputs import Images, open_split, training_input
+
+    cfg = OverlapMambaConfig(**SMALL)
+    path = _rendering(tiny_seq, tmp_path / "vlp16", "vlp16")
+    with pytest.raises(DatasetError, match="recorded with vlp16.*any_sensor = true"):
+        open_split(path, cfg, "training")
+    with pytest.raises(DatasetError, match="recorded with vlp16, the model expects"):
+        open_split(path, cfg, "validation", any_sensor=True)  # validation: the model's own
+    seq = open_split(path, cfg, "training", any_sensor=True)
+    profile = get_profile(cfg.sensor)
+    inp = training_input(profile, seq)
+    assert inp is not None and inp.kind == "elevation"
+    assert training_input(profile, open_sequence(tiny_seq)) is None
+    images = Images([seq], profile, progress=False)
+    idx = np.array([0, 5])
+    got = images[idx]
+    for k, i in enumerate(idx):  # as the exported model will take a VLP-16's scan
+        np.testing.assert_allclose(got[k], inp.project(seq.points(int(i)))[0], atol=0.05)
+    empty_rows = np.all(got == profile.empty_value, axis=(0, 2))
+    assert 0 < empty_rows.sum() < profile.height  # rows no VLP-16 beam reaches stay empty
+    turned = images.turned(idx, np.array([0.0, 90.0]))
+    np.testing.assert_allclose(turned[0], got[0], atol=0.05)
+    assert turned.shape == got.shape and not np.allclose(turned[1], got[1], atol=0.05)
+
+
 def test_band_groups_bring_a_neighbour_and_cost_no_draw_when_off(tiny_seq):
     """With a band share of 1 every group's negative is a scan of the anchor's ambiguous band
     (overlap in (0.1, 0.3]) where the anchor has one; with 0 the batches are those drawn

@@ -80,6 +80,7 @@ from overlapmamba.train.train_inputs import (
     real_turn_scans,
     start_config,
     start_weights,
+    training_input,
 )
 
 __all__ = ["TrainConfig", "load_config_file", "train"]
@@ -132,12 +133,15 @@ def train(
 
     if not data or val is None:
         raise ConfigError("training needs at least one training sequence and a validation one")
-    seqs = [open_split(p, model_cfg, "training") for p in data]
+    seqs = [open_split(p, model_cfg, "training", train_cfg.any_sensor) for p in data]
     val_seq = open_split(val, model_cfg, "validation")
     if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
         raise ConfigError(f"{val} is both training and validation data")
     fingerprints = {
-        "train": [{"path": str(s.root), "key": cache_key(s, profile)} for s in seqs],
+        "train": [
+            {"path": str(s.root), "key": cache_key(s, profile, sensor=training_input(profile, s))}
+            for s in seqs
+        ],
         "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile)},
     }
     if state is not None and state["train"]["data"] != fingerprints:

@@ -77,6 +77,11 @@ class TrainConfig(Config):
     band_alpha: float = 0.2
     band_share: float = 0.0
     band_from_epoch: int = 1
+    # Train on towns of any catalogue sensor (gen-data --sensor), each sensor's beams put
+    # into the model's input by elevation as the exported model takes them; renderings of
+    # one drive share its pair table (overlapmamba.train.drives). Validation stays the
+    # model's own sensor.
+    any_sensor: bool = False
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
     # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
     # also fed turned about z by a random continuous angle (re-projected from their points,

@@ -15,21 +15,44 @@ from tqdm.auto import tqdm
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.sensors import SensorProfile, get_profile
+from overlapmamba.core.modelmeta import EncoderMetadata
+from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
+from overlapmamba.core.sensors.input import Mode, SensorInput
 from overlapmamba.train.checkpoint import read_checkpoint
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.rangecache import range_images
-from overlapmamba.train.realscans import RealTurns, native_input, real_turns, turned_image
+from overlapmamba.train.realscans import (
+    RealTurns,
+    native_input,
+    real_turns,
+    turned_image,
+    turned_points,
+)
 from overlapmamba.train.train_config import TrainConfig
 
 
+def training_input(profile: SensorProfile, seq: Sequence) -> SensorInput | None:
+    """How ``seq``'s scans enter the model in training: None for the model's own sensor (the
+    plain projection), else its sensor's beams by elevation, as the exported model will take
+    them (the metadata's default ``sensor_input``)."""
+    if not seq.sensor or get_sensor(seq.sensor).profile() == profile:
+        return None
+    mode: Mode = EncoderMetadata.model_fields["sensor_input"].default
+    return SensorInput(profile, get_sensor(seq.sensor), mode)
+
+
 class Images:
-    """Range images of several sequences behind global scan indices."""
+    """Range images of several sequences behind global scan indices, each sequence's scans
+    projected as its sensor's (:func:`training_input`)."""
 
     def __init__(self, seqs: list[Sequence], profile: SensorProfile, progress: bool) -> None:
         self.seqs, self.profile = seqs, profile
-        self.parts = [range_images(s, profile, progress=progress) for s in seqs]
+        self.inputs = [training_input(profile, s) for s in seqs]
+        self.parts = [
+            range_images(s, profile, progress=progress, sensor=inp)
+            for s, inp in zip(seqs, self.inputs, strict=True)
+        ]
         self.offsets = np.cumsum([0, *[len(p) for p in self.parts]])
 
     def _locate(self, idx: np.ndarray) -> list[tuple[int, int]]:
@@ -41,25 +64,35 @@ class Images:
 
     def turned(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """The scans ``idx`` re-projected after a turn by ``theta`` degrees (the turn term)."""
-        return np.stack(
-            [
-                turned_image(self.seqs[s].points(i).xyz, t, self.profile)
-                for (s, i), t in zip(self._locate(idx), theta, strict=True)
-            ]
-        )
+        out = []
+        for (s, i), t in zip(self._locate(idx), theta, strict=True):
+            xyz, inp = self.seqs[s].points(i).xyz, self.inputs[s]
+            if inp is None:
+                out.append(turned_image(xyz, t, self.profile))
+            else:
+                out.append(inp.project(turned_points(xyz, t))[0])
+        return np.stack(out)
 
 
-def open_split(path: Path, cfg: OverlapMambaConfig, role: str) -> Sequence:
+def open_split(
+    path: Path, cfg: OverlapMambaConfig, role: str, any_sensor: bool = False
+) -> Sequence:
+    """A training or validation sequence: never a test split; of the model's own sensor
+    unless ``any_sensor`` (training: each sensor's scans enter by :func:`training_input`)."""
     seq = open_sequence(path)
     manifest = path / "manifest.json"
     if manifest.is_file():
         meta = json.loads(manifest.read_text()).get("config", {})
         if role == "training" and meta.get("split") == "test":
             raise DatasetError(f"{path} is a test split: it is never trained on")
-        if meta.get("sensor", cfg.sensor) != cfg.sensor:
+        sensor = meta.get("sensor", cfg.sensor)
+        if sensor != cfg.sensor and not (any_sensor and role == "training"):
+            hint = "" if role != "training" else " (train.any_sensor = true trains on any)"
             raise DatasetError(
-                f"{path} was recorded with {meta['sensor']}, the model expects {cfg.sensor}"
+                f"{path} was recorded with {sensor}, the model expects {cfg.sensor}{hint}"
             )
+        if sensor != cfg.sensor:
+            get_sensor(sensor)  # an unknown sensor is refused here, by name
     return seq
 
 
