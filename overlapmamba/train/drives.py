@@ -27,7 +27,7 @@ from overlapmamba.core.errors import DatasetError
 from overlapmamba.train.sessions import town_positions
 
 # what fixes a drive's poses in the generator's config (the sensor and mounting do not)
-DRIVE_KEYS = ("preset", "seed", "session", "frames", "world", "drive", "dynamics")
+DRIVE_KEYS = ("seed", "session", "frames", "world", "drive", "dynamics")
 SAME_PLACE_M = 0.05  # a rendering's scans lie within this of the reference's (town frame)
 
 
