@@ -148,6 +148,14 @@ def _sensor_towns() -> dict[str, GenConfig]:
 
 PRESETS.update(_sensor_towns())
 SENSOR_PRESETS = tuple(k for k in PRESETS if PRESETS[k].seed in (2103, 3304))
+# train-b rendered again by other sensors on low or tilted mounts: the same drive scan for
+# scan, labelled by train-b's own pair table (overlapmamba.train.drives), so none of their own
+RENDERINGS = {"vlp16": "robot", "os0-128": "amr", "xt32": "backpack"}
+for _sensor, _mount in RENDERINGS.items():
+    _key = f"train-b-{_sensor}-{_mount}"
+    PRESETS[_key] = PRESETS["train-b"].model_copy(
+        update={"preset": _key, "sensor": _sensor, "mount": _mount, "pair_table": "none"}
+    )
 
 
 def preset(name: str) -> GenConfig:

@@ -26,6 +26,13 @@ otherwise.
   turned by a random continuous angle, and 100 × their squared distance to the unturned
   scans, in units of the batch's spread, joins the loss. Aimed at the minimum cosine under a
   continuous turn. ≈ 6 min an epoch here.
+- ``sensors-pilot`` continues the shipped network (as ``narrow-hn-turn`` does) on
+  ``train-b`` and its renderings by a robot's VLP-16, an AMR's OS0-128 and a backpack's XT32
+  (``gen-data data/synth/train-b-vlp16-robot --preset train-b-vlp16-robot`` and so on: no pair
+  tables of their own, the drive's serves them all), taking every sensor's scans as the
+  service does and emptying whole rows at random (``beam_dropout``); 3 epochs of 3,000
+  scans. ``sensors-pilot-control`` is the same continuation on ``train-b`` alone: what the
+  renderings add, at an equal budget.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -105,6 +112,28 @@ OLD_LOSS = {
 }
 
 
+# Issue 40's first step: the shipped network continued on train-b and its renderings by three
+# other sensors on low or tilted mounts (overlapmamba.synth.presets.RENDERINGS; one pair table
+# for all four, overlapmamba.train.drives), against the same continuation on train-b alone.
+SENSORS_PILOT_DATA = (
+    "data/synth/train-b",
+    "data/synth/train-b-vlp16-robot",
+    "data/synth/train-b-os0-128-amr",
+    "data/synth/train-b-xt32-backpack",
+)
+SENSORS_PILOT = {
+    "init": "models/overlapmamba-hdl64.onnx",
+    "freeze_bn": True,
+    "epochs": 3,
+    "epoch_scans": 3000,
+    "lr": 3e-5,
+    "warmup_steps": 20,
+    "hard_negatives": 0.5,
+    "any_sensor": True,
+    "augment": {"beam_dropout": 0.2},
+}
+
+
 @dataclass(frozen=True)
 class TrainPreset:
     name: str
@@ -173,6 +202,20 @@ PRESETS: dict[str, TrainPreset] = {
             "the shipped network continued with the turn term (weight 100, 8 turned scans)",
             model=NARROW,
             train=TURN,
+        ),
+        TrainPreset(
+            "sensors-pilot",
+            "the shipped network continued on train-b and three other sensors' renderings of it",
+            model=NARROW,
+            train=SENSORS_PILOT,
+            data=SENSORS_PILOT_DATA,
+        ),
+        TrainPreset(
+            "sensors-pilot-control",
+            "the same continuation on train-b alone (its own sensor)",
+            model=NARROW,
+            train={**SENSORS_PILOT, "any_sensor": False},
+            data=SENSORS_PILOT_DATA[:1],
         ),
         TrainPreset(
             "ot",
