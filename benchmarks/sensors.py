@@ -82,7 +82,9 @@ MD = "reports/model/sensors.md"
 NUSCENES = REAL.parent / "nuscenes_scene0061"
 
 
-def same_sensor(enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings) -> dict[str, Any]:
+def same_sensor(
+    enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings, verify: bool = True
+) -> dict[str, Any]:
     """One town: the model's loop closure alone and in two stages, Scan Context's, and the
     verified closures at the model's thresholds; its descriptors and contexts for later."""
     seq = open_sequence(town)
@@ -90,7 +92,7 @@ def same_sensor(enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings) -> 
     record = VerifySettings(
         candidates=v.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=v.gate_distance
     )
-    r = run_town(enc, town, v.candidates, record, rerank)
+    r = run_town(enc, town, v.candidates if verify else 0, record, rerank)
     desc, yaw = r["descriptors"], r["yaw_features"]
     contexts = scan_contexts(seq)
     alone = summary(loop_closure(desc, gt))
@@ -111,12 +113,14 @@ def same_sensor(enc: Encoder, town: Path, rerank: Rerank, v: VerifySettings) -> 
         "descriptor": _fr(alone["all"]),
         "two_stage": _fr(staged),
         "scan_context": _fr(summary(scancontext_loop_closure(contexts, gt))["all"]),
-        "answer_recall@5": verified_recall(r["queries"])["recall@5"],
+        "answer_recall@5": verified_recall(r["queries"])["recall@5"] if verify else None,
         "verified": {
             k: verified[k] for k in ("accepted", "correct", "precision", "recall") if k in verified
-        },
+        }
+        if verify
+        else None,  # --no-verify: nothing registered
     }
-    if "translation_error_m" in verified:
+    if verify and "translation_error_m" in verified:
         row["verified"]["translation_error_m_median"] = verified["translation_error_m"]["median"]
     return {"row": row, "desc": desc, "yaw": yaw.astype(np.float32), "contexts": contexts}
 
@@ -195,10 +199,14 @@ def markdown(report: dict[str, Any]) -> str:
     ]
     for r in report["same_sensor"]:
         v = r["verified"]
+        cell = (
+            "not run"
+            if v is None
+            else f"{v['precision']:.3f} / {v['recall']:.3f} ({v['accepted']})"
+        )
         lines.append(
             f"| {r['sensor']} ({r['input']}) | {r['mount']} | {f(r['descriptor'])} | "
-            f"{f(r['two_stage'])} | {f(r['scan_context'])} | "
-            f"{v['precision']:.3f} / {v['recall']:.3f} ({v['accepted']}) |"
+            f"{f(r['two_stage'])} | {f(r['scan_context'])} | {cell} |"
         )
     lines += [
         "",
@@ -264,6 +272,11 @@ def main() -> None:
         "--only", action="append", help="these towns only (e.g. test-vlp16; a quick look)"
     )
     ap.add_argument("--no-real", action="store_true", help="skip the real KITTI rows")
+    ap.add_argument(
+        "--no-verify",
+        action="store_true",
+        help="register nothing (a model whose thresholds were never calibrated: a quick look)",
+    )
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
@@ -278,7 +291,7 @@ def main() -> None:
     done: dict[str, dict[str, Any]] = {}
     for town in towns:
         console.print(f"{town.name} …")
-        done[town.name] = same_sensor(enc, town, rerank, v)
+        done[town.name] = same_sensor(enc, town, rerank, v, verify=not args.no_verify)
         console.print(done[town.name]["row"])
     pairs = []
     for q, m in PAIRS:
