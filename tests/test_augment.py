@@ -127,6 +127,7 @@ def test_dropout_noise_and_crop_touch_only_what_they_should():
         {"tilt_deg": -1.0},
         {"fov_crop": 2.0},
         {"fov_min_deg": 0.0},
+        {"sensor_like": 1.5},
     ],
 )
 def test_out_of_range_settings_are_refused(kw):
@@ -137,3 +138,57 @@ def test_out_of_range_settings_are_refused(kw):
 def test_wrong_image_shape_is_refused():
     with pytest.raises(ValueError, match=r"expected range images \(B, 64, 900\)"):
         only()(np.zeros((2, 32, 900), np.float32), np.random.default_rng(0))
+
+
+def ring_scan(sensor, radius: float = 20.0) -> np.ndarray:
+    """A sensor's scan of a cylinder of ``radius`` m around it: every beam, every firing."""
+    el = np.radians(np.asarray(sensor.elevations_deg))[:, None]
+    az = np.linspace(-np.pi, np.pi, sensor.columns, endpoint=False)[None, :]
+    r = radius / np.cos(el) + 0.01 * np.sin(7 * az)  # structure along azimuth
+    xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
+    return np.stack([np.broadcast_to(c, r.shape).ravel() for c in xyz], axis=1).astype(np.float32)
+
+
+@pytest.mark.parametrize("name", ["vlp16", "xt32", "os0-128", "hdl32"])
+def test_sensor_like_fills_the_rows_the_service_fills_with_that_sensor(name):
+    from overlapmamba.core.sensors.catalogue import CATALOGUE
+    from overlapmamba.core.sensors.input import SensorInput
+    from overlapmamba.core.views import project_views
+    from overlapmamba.train.augment import SensorLook
+
+    own = project_views(ring_scan(CATALOGUE["kitti-hdl64"]), PROFILE, 1)[0]
+    served = SensorInput(PROFILE, CATALOGUE[name], "elevation").project(ring_scan(CATALOGUE[name]))[
+        0
+    ]
+    seen = own.copy()
+    SensorLook(PROFILE, CATALOGUE[name]).apply(seen, 0.0, EMPTY)
+    rows_served = (served != EMPTY).any(axis=1)
+    rows_seen = (seen != EMPTY).any(axis=1)
+    assert (rows_seen & ~rows_served).sum() == 0  # nothing where that sensor has no beam
+    assert rows_seen.sum() >= rows_served.sum() - 1  # and its rows, as the service fills them
+    both = (served != EMPTY) & (seen != EMPTY)
+    assert np.abs(served[both] - seen[both]).max() < 0.3  # a wall 20 m away, half a row apart
+
+
+def test_sensor_like_draws_only_when_on_and_keeps_only_what_the_sensor_reaches():
+    x = images(6)
+    plain = only(dropout=0.3)(x, np.random.default_rng(3))
+    same = only(dropout=0.3, sensor_like=0.0)(x, np.random.default_rng(3))
+    np.testing.assert_array_equal(plain, same)  # off: the random stream is untouched
+    out = only(sensor_like=1.0, sensor_like_names=("vlp16",))(x, np.random.default_rng(3))
+    assert ((out == EMPTY).all(axis=2).sum(axis=1) >= 15).all()  # VLP-16 stops at −15°
+    kept = out != EMPTY
+    assert kept.any() and set(np.unique(out[kept])) <= set(np.unique(x[x != EMPTY]))
+    with pytest.raises(ConfigError, match="not in the catalogue; allowed: .*vlp16"):
+        AugmentConfig(sensor_like=0.5, sensor_like_names=("vlp-17",))
+
+
+def test_far_loss_takes_far_returns_first_and_draws_only_when_on():
+    x = np.repeat(np.linspace(1, 79, PROFILE.width, dtype=np.float32)[None, None], 64, axis=1)
+    x = np.repeat(x, 8, axis=0)  # range grows along each row
+    same = only(dropout=0.1, far_loss=0.0)(x, np.random.default_rng(5))
+    np.testing.assert_array_equal(same, only(dropout=0.1)(x, np.random.default_rng(5)))
+    out = only(far_loss=0.9)(x, np.random.default_rng(5))
+    lost = out == EMPTY
+    assert lost[..., 600:].mean() > 3 * lost[..., :300].mean() > 0
+    assert lost.mean() < 0.45 and np.array_equal(out[~lost], x[~lost])

@@ -122,6 +122,39 @@ def test_training_takes_another_sensors_rendering_only_when_asked(tiny_seq, tmp_
     assert turned.shape == got.shape and not np.allclose(turned[1], got[1], atol=0.05)
 
 
+def test_validation_across_sensors_scores_renderings_and_selects_on_their_mean(
+    tiny_seq, tiny_val_seq, tmp_path
+):
+    """val_sensors: a rendering of the validation drive by another sensor is scored every
+    epoch on its own and against the validation scans; select_on sensors keeps the epoch
+    with the best mean; a rendering of another drive is refused by name."""
+    from overlapmamba.train.evaluate import loop_closure, sequence_loops, summary
+    from overlapmamba.train.valsensors import cross_loop_closure, selection_score
+
+    vlp = _rendering(tiny_val_seq, tmp_path / "val-vlp16", "vlp16")
+    cfg = small_run(epochs=1, val_sensors=[str(vlp)], select_on="sensors", real="")
+    out = tmp_path / "run"
+    history = train([tiny_seq], tiny_val_seq, out, OverlapMambaConfig(**SMALL), cfg, progress=False)
+    for entry in history:
+        got = entry["val_sensors"]["vlp16"]
+        assert set(got) == {"own", "cross"} and 0 <= got["cross"]["all"]["f1max"] <= 1
+    best = read_checkpoint(out / "best.pt")["train"]["best"]
+    scores = [selection_score(e["val"], e["val_sensors"]) for e in history]
+    assert best["select_on"] == "sensors" and best["score"] == pytest.approx(max(scores))
+    assert best["epoch"] == int(np.argmax(scores))
+    # the same descriptors as queries and database: the loop-closure protocol itself
+    gt = sequence_loops(open_sequence(tiny_val_seq))
+    desc = np.random.default_rng(0).standard_normal((gt.n_frames, 8)).astype(np.float32)
+    assert cross_loop_closure(desc, desc, gt) == summary(loop_closure(desc, gt))
+
+    other = _rendering(tiny_seq, tmp_path / "train-vlp16", "vlp16")
+    bad = small_run(epochs=1, val_sensors=[str(other)], real="")
+    with pytest.raises(DatasetError, match="not a rendering of the validation drive"):
+        train([tiny_seq], tiny_val_seq, tmp_path / "bad", OverlapMambaConfig(**SMALL), bad)
+    with pytest.raises(ConfigError, match="select_on 'sensors' needs val_sensors"):
+        small_run(select_on="sensors")
+
+
 def test_band_groups_bring_a_neighbour_and_cost_no_draw_when_off(tiny_seq):
     """With a band share of 1 every group's negative is a scan of the anchor's ambiguous band
     (overlap in (0.1, 0.3]) where the anchor has one; with 0 the batches are those drawn

@@ -18,6 +18,19 @@ and the configured maximum, so a batch always mixes clean and degraded scans.
   driver setting).
 - ``beam_dropout``: up to this share of the rows emptied whole (a sensor with fewer beams, or
   beams that another sensor's elevation grid leaves out).
+- ``sensor_like``: the probability that a scan is seen as another catalogue sensor sees it
+  (drawn uniformly among ``sensor_like_names``, default every catalogue sensor whose profile
+  is not the model's): each row of the model's input takes the row nearest the elevation of
+  the beam that sensor's scan would put there (:func:`~overlapmamba.core.sensors.input.row_beams`,
+  as the service projects it), rows it has no beam for are emptied, and so are returns
+  beyond its range limits and columns its firings per turn do not reach (at a random phase).
+  Row for row, the same image the service makes from that sensor's scan of the same place,
+  but for the beams' exact elevations (within half a row) and the mount.
+- ``far_loss``: returns lost in proportion to their range, up to this share at the model's
+  maximum range (a weaker laser, a darker surface: far returns go first). Other sensors'
+  renderings lose far returns so (an Ouster's markedly more than the HDL-64E's scans of
+  the same place), and a network trained without it moves far from a scan with them
+  missing.
 - ``range_noise``: Gaussian range noise with σ up to this many metres.
 - ``fov_crop``: the probability that a scan keeps only a sector of its horizontal field of
   view, between ``fov_min_deg`` and 360° (a sensor partly occluded by the vehicle or a
@@ -36,6 +49,8 @@ from pydantic import ConfigDict, model_validator
 
 from overlapmamba.core.configs import Config
 from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
+from overlapmamba.core.sensors.input import row_beams
 from overlapmamba.train.errors import ConfigError
 
 
@@ -56,6 +71,9 @@ class AugmentConfig(Config):
     range_noise: float = 0.0
     fov_crop: float = 0.0
     fov_min_deg: float = 180.0
+    sensor_like: float = 0.0
+    far_loss: float = 0.0
+    sensor_like_names: tuple[str, ...] = ()  # empty: every catalogue sensor but the model's
 
     @model_validator(mode="after")
     def _check(self) -> AugmentConfig:
@@ -66,13 +84,21 @@ class AugmentConfig(Config):
             "range_noise": 0 <= self.range_noise <= 1,
             "fov_crop": 0 <= self.fov_crop <= 1,
             "fov_min_deg": 0 < self.fov_min_deg <= 360,
+            "sensor_like": 0 <= self.sensor_like <= 1,
+            "far_loss": 0 <= self.far_loss <= 1,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ConfigError(
                 f"augmentation {bad[0]}={getattr(self, bad[0])!r} is out of range; allowed: "
                 "tilt_deg 0–15, dropout and beam_dropout 0–<1, range_noise 0–1 m, fov_crop 0–1, "
-                "fov_min_deg 0–360"
+                "fov_min_deg 0–360, sensor_like and far_loss 0–1"
+            )
+        unknown = sorted(set(self.sensor_like_names) - set(CATALOGUE))
+        if unknown:
+            raise ConfigError(
+                f"augmentation sensor_like_names: {', '.join(unknown)} not in the catalogue; "
+                f"allowed: {', '.join(sorted(CATALOGUE))}"
             )
         return self
 
@@ -95,9 +121,11 @@ class Augmenter:
         self.empty = np.float32(profile.empty_value)
         self.H, self.W = profile.height, profile.width
         self.rows_per_deg = profile.height / profile.fov_deg
+        self.max_range = np.float32(profile.max_range)
         self.roll = (not circular) if cfg.yaw_roll is None else cfg.yaw_roll
         # Azimuth of each column's centre (overlapmamba.core.projection: atan2 = π(1 − 2u/W)).
         self.azimuth = np.pi * (1 - 2 * (np.arange(self.W) + 0.5) / self.W)
+        self.looks = [SensorLook(profile, s) for s in _other_sensors(cfg, profile)]
 
     def __call__(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(B, H, W) → float32 (B, H, W), a new array."""
@@ -108,6 +136,14 @@ class Augmenter:
         for img in x:  # each transform draws for every scan, so the stream never depends on data
             if c.tilt_deg:
                 self._tilt(img, rng.uniform(0, c.tilt_deg), rng.uniform(0, 2 * np.pi))
+            if c.sensor_like:  # drawn only when on, as beam_dropout
+                seen, pick, phase = (
+                    rng.random() < c.sensor_like,
+                    rng.integers(1 << 30),
+                    rng.random(),
+                )
+                if seen and self.looks:
+                    self.looks[int(pick) % len(self.looks)].apply(img, phase, self.empty)
             if c.yaw_jitter:
                 frac = rng.random()
                 pick = rng.random(img.shape) < frac
@@ -123,6 +159,11 @@ class Augmenter:
                 rows = rng.random(self.H) < rng.uniform(0, c.beam_dropout)
                 img[rows] = self.empty
                 valid[rows] = False
+            if c.far_loss:  # drawn only when on
+                share = rng.uniform(0, c.far_loss) / self.max_range
+                lost = rng.random(img.shape) < share * np.maximum(img, 0)
+                img[lost & valid] = self.empty
+                valid &= ~lost
             if c.range_noise:
                 sigma = rng.uniform(0, c.range_noise)
                 noise = rng.standard_normal(img.shape).astype(np.float32) * np.float32(sigma)
@@ -144,3 +185,49 @@ class Augmenter:
         inside = (rows >= 0) & (rows < self.H)
         src = img[np.clip(rows, 0, self.H - 1), np.arange(self.W)[None, :]]
         img[:] = np.where(inside, src, self.empty)
+
+
+def _other_sensors(cfg: AugmentConfig, profile: SensorProfile) -> list[Sensor]:
+    if not cfg.sensor_like:
+        return []
+    names = cfg.sensor_like_names or tuple(sorted(CATALOGUE))
+    return [CATALOGUE[n] for n in names if CATALOGUE[n].profile() != profile]
+
+
+class SensorLook:
+    """How ``sensor``'s scan of a place fills the input of a model on ``profile``, in terms
+    of the model's own image of that place: the source row of each row (−1: empty), the
+    range limits, and which columns a turn of its firings reaches."""
+
+    def __init__(self, profile: SensorProfile, sensor: Sensor) -> None:
+        self.name = sensor.name
+        H = profile.height
+        pitch = (profile.fov_up_deg - profile.fov_down_deg) / H
+        beams = row_beams(profile, sensor, "elevation")
+        el = np.asarray(sensor.elevations_deg, np.float64)
+        at = (profile.fov_up_deg - el[np.maximum(beams, 0)]) / pitch  # in rows, from the top
+        src = np.floor(at).astype(np.int64)
+        self.rows = np.where((beams >= 0) & (src >= 0) & (src < H), src, -1)
+        # Where the model sensor's own row is empty (its beams are not one a row), the
+        # neighbouring row on the beam's side of the row centre stands in.
+        near = np.clip(np.where(at - src >= 0.5, src + 1, src - 1), 0, H - 1)
+        self.second = np.where(self.rows >= 0, near, -1)
+        self.min_range, self.max_range = np.float32(sensor.min_range), np.float32(sensor.max_range)
+        self.columns, self.W = sensor.columns, profile.width
+
+    def reached(self, phase: float) -> np.ndarray:
+        """(W,) bool: the columns a turn of firings at ``phase`` (of one firing's step) hits."""
+        if self.columns >= self.W:
+            return np.ones(self.W, bool)
+        hit = np.floor((np.arange(self.columns) + phase) * self.W / self.columns).astype(int)
+        mask = np.zeros(self.W, bool)
+        mask[hit % self.W] = True
+        return mask
+
+    def apply(self, img: np.ndarray, phase: float, empty: np.float32) -> None:
+        """In place on one (H, W) image."""
+        seen = img[np.maximum(self.rows, 0)]
+        seen = np.where(seen == empty, img[np.maximum(self.second, 0)], seen)
+        valid = (self.rows >= 0)[:, None] & self.reached(phase)[None, :] & (seen != empty)
+        valid &= (seen > self.min_range) & (seen < self.max_range)
+        img[:] = np.where(valid, seen, empty)

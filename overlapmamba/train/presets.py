@@ -32,7 +32,11 @@ otherwise.
   tables of their own, the drive's serves them all), taking every sensor's scans as the
   service does and emptying whole rows at random (``beam_dropout``); 3 epochs of 3,000
   scans. ``sensors-pilot-control`` is the same continuation on ``train-b`` alone: what the
-  renderings add, at an equal budget.
+  renderings add, at an equal budget. ``sensors-seen`` is the control with every sensor
+  simulated instead of rendered: half of the scans are seen as another catalogue sensor
+  would see them (``sensor_like``: its beams' rows of the image, its range limits), no
+  ``beam_dropout``. ``sensors-seen-far`` adds ``far_loss`` (far returns lost first, as the
+  other sensors' renderings lose them). Each has a ``-s1`` twin: the same with seed 1.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -134,6 +138,13 @@ SENSORS_PILOT = {
 }
 
 
+# The same continuation on train-b alone with no renderings: half of its scans are seen as
+# another catalogue sensor would see them (augment.SensorLook) instead of losing rows at random.
+SENSORS_SEEN = {**SENSORS_PILOT, "any_sensor": False, "augment": {"sensor_like": 0.5}}
+# ... and far returns lost as other sensors lose them (augment: far_loss).
+SENSORS_SEEN_FAR = {**SENSORS_SEEN, "augment": {"sensor_like": 0.5, "far_loss": 0.4}}
+
+
 @dataclass(frozen=True)
 class TrainPreset:
     name: str
@@ -218,6 +229,20 @@ PRESETS: dict[str, TrainPreset] = {
             data=SENSORS_PILOT_DATA[:1],
         ),
         TrainPreset(
+            "sensors-seen",
+            "the same continuation on train-b alone, half its scans seen as another sensor",
+            model=NARROW,
+            train=SENSORS_SEEN,
+            data=SENSORS_PILOT_DATA[:1],
+        ),
+        TrainPreset(
+            "sensors-seen-far",
+            "sensors-seen with far returns lost in proportion to range (far_loss 0.4)",
+            model=NARROW,
+            train=SENSORS_SEEN_FAR,
+            data=SENSORS_PILOT_DATA[:1],
+        ),
+        TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
             model=_OT,
@@ -233,6 +258,13 @@ PRESETS: dict[str, TrainPreset] = {
         ),
     )
 }
+
+# The runs on several sensors, each also with seed 1 (its draws; the start is the same network).
+for _name in ("sensors-pilot", "sensors-pilot-control", "sensors-seen", "sensors-seen-far"):
+    _p = PRESETS[_name]
+    PRESETS[_name + "-s1"] = TrainPreset(
+        _name + "-s1", _p.description + ", seed 1", _p.model, {**_p.train, "seed": 1}, _p.data
+    )
 
 # The ablations (Tables II–IV): the shipped width, one budget, two seeds each.
 _ABLATIONS: tuple[tuple[str, str, dict[str, Any], dict[str, Any]], ...] = (

@@ -82,6 +82,7 @@ from overlapmamba.train.train_inputs import (
     start_weights,
     training_input,
 )
+from overlapmamba.train.valsensors import open_renderings, selection_score, validate_renderings
 
 __all__ = ["TrainConfig", "load_config_file", "train"]
 
@@ -144,8 +145,6 @@ def train(
         ],
         "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile)},
     }
-    if state is not None and state["train"]["data"] != fingerprints:
-        raise ConfigError("--resume with other data than the run was started on")
     images = Images(seqs, profile, progress)
     val_images = range_images(val_seq, profile, progress=progress)
     val_gt = sequence_loops(val_seq, profile, progress=progress)
@@ -154,6 +153,15 @@ def train(
             f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "
             "would mean nothing; validate on a sequence with revisits (e.g. the val preset)"
         )
+    renderings = open_renderings(train_cfg.val_sensors, val_seq, profile, progress)
+    trained_on = {s.root.resolve() for s in seqs}
+    for rendering in renderings:
+        if Path(rendering.path).resolve() in trained_on:
+            raise ConfigError(f"{rendering.path} is both training data and a validation rendering")
+    if renderings:  # runs without them keep their fingerprints (and --resume)
+        fingerprints["val_sensors"] = [{"path": r.path, "key": r.key} for r in renderings]
+    if state is not None and state["train"]["data"] != fingerprints:
+        raise ConfigError("--resume with other data than the run was started on")
     pairs = PairIndex.from_sequences(seqs)
     sampler = BatchSampler(
         pairs,
@@ -179,7 +187,7 @@ def train(
         opt, lambda step: train_cfg.lr_factor(step, steps_per_epoch)
     )
     history: list[dict[str, Any]] = []
-    best = {"epoch": -1, "f1max": -1.0}
+    best: dict[str, Any] = {"epoch": -1, "f1max": -1.0}
     if state is not None:
         model.load_state_dict(state["state_dict"])
         opt.load_state_dict(state["train"]["optimizer"])
@@ -208,10 +216,17 @@ def train(
 
     turns = real_turn_scans(train_cfg.real_path(), profile, progress)
 
-    def validate() -> tuple[dict, float]:
+    def validate() -> dict[str, Any]:
+        """The entry's validation fields: val, val_sensors (with renderings), val_s."""
         t = time.perf_counter()
         desc_val, _ = describe(model, val_images, device=str(device))
-        return summary(loop_closure(desc_val, val_gt)), time.perf_counter() - t
+        out: dict[str, Any] = {"val": summary(loop_closure(desc_val, val_gt))}
+        if renderings:
+            out["val_sensors"] = validate_renderings(
+                model, renderings, desc_val, val_gt, str(device)
+            )
+        out["val_s"] = time.perf_counter() - t
+        return out
 
     def real_check() -> dict[str, Any] | None:
         if turns is None:
@@ -237,9 +252,14 @@ def train(
         history.append(entry)
         epoch, val_metrics = entry["epoch"], entry["val"]
         f1 = val_metrics["all"]["f1max"]
-        is_best = not math.isnan(f1) and f1 > best["f1max"]
+        score = f1
+        if train_cfg.select_on == "sensors":
+            score = selection_score(val_metrics, entry.get("val_sensors"))
+        is_best = not math.isnan(score) and score > best.get("score", best["f1max"])
         if is_best:
             best = {"epoch": epoch, "f1max": f1}
+            if train_cfg.select_on == "sensors":
+                best |= {"score": score, "select_on": "sensors"}
         weights_only = payload(False, val_metrics)
         save_checkpoint(out / f"epoch-{epoch:03d}.pt", weights_only)
         if is_best:
@@ -273,6 +293,12 @@ def train(
                 if real
                 else ""
             )
+            for name, got in (entry.get("val_sensors") or {}).items():
+                own, cross = got["own"]["all"], got["cross"]["all"]
+                turn += (
+                    f"; {name} F1max {own['f1max']:.3f}, against the val scans "
+                    f"{cross['f1max']:.3f} (R@1 {cross['recall@1']:.3f})"
+                )
             tqdm.write(
                 f"epoch {epoch}: {trained}val F1max {v['all']['f1max']:.3f} (same "
                 f"{v['same']['f1max']:.3f}, reverse {v['reverse']['f1max']:.3f}), "
@@ -295,15 +321,13 @@ def train(
                 ),
             )
         calib_s = time.perf_counter() - t0
-        val_metrics, val_s = validate()
         finish_epoch(
             {
                 "epoch": 0,
                 "loss": None,
                 "lr": 0.0,
                 "calibrate_s": calib_s,
-                "val_s": val_s,
-                "val": val_metrics,
+                **validate(),
                 "real": real_check(),
             }
         )
@@ -398,7 +422,6 @@ def train(
             )
         health.flush()  # the steps after the last full window
         train_s = time.perf_counter() - t0
-        val_metrics, val_s = validate()
         steps = health.steps
         finish_epoch(
             {
@@ -413,8 +436,7 @@ def train(
                 "data_s": data_s,
                 "mining": None if hard is None else {**hard.stats, "mine_s": mine_s},
                 "scans_per_s": len(steps) * train_cfg.batch_size / train_s,
-                "val_s": val_s,
-                "val": val_metrics,
+                **validate(),
                 "real": real_check(),
             }
         )

@@ -82,6 +82,11 @@ class TrainConfig(Config):
     # one drive share its pair table (overlapmamba.train.drives). Validation stays the
     # model's own sensor.
     any_sensor: bool = False
+    # Renderings of the validation drive by other sensors, scored every epoch on their own
+    # and against the validation scans (overlapmamba.train.valsensors); select_on "sensors"
+    # keeps the epoch with the best mean F1max over them all as best.pt ("val": val's alone).
+    val_sensors: list[str] = Field(default_factory=list)
+    select_on: str = "val"
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
     # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
     # also fed turned about z by a random continuous angle (re-projected from their points,
@@ -174,6 +179,13 @@ class TrainConfig(Config):
         if self.margin_scale not in SCALES:
             raise ConfigError(
                 f"margin_scale {self.margin_scale!r} is unknown; allowed: {', '.join(SCALES)}"
+            )
+        if self.select_on not in ("val", "sensors"):
+            raise ConfigError(f"select_on {self.select_on!r} is not allowed; allowed: val, sensors")
+        if self.select_on == "sensors" and not self.val_sensors:
+            raise ConfigError(
+                "select_on 'sensors' needs val_sensors: renderings of the validation drive by "
+                "other sensors (e.g. data/synth/val-vlp16 beside data/synth/val-kitti-hdl64)"
             )
         self.augment_config()  # refuses unknown or out-of-range augmentation settings
         return self

@@ -1,0 +1,122 @@
+"""Validation across sensors: the validation drive rendered by other sensors.
+
+``[train] val_sensors`` names renderings of the validation sequence's drive by other
+catalogue sensors (``make data-sensors`` writes ``val-kitti-hdl64`` and its renderings
+``val-vlp16``, ``val-os0-128``, …: the same drive, scan for scan). Every epoch each is
+described as the service takes that sensor's scans (by elevation,
+:func:`~overlapmamba.train.train_inputs.training_input`) and scored twice under the
+loop-closure protocol, with the validation drive's own loop table (frame i is the same
+place in every rendering, :mod:`overlapmamba.train.drives`):
+
+    own     its queries against its own earlier scans (a fleet of that sensor alone)
+    cross   its queries against the model sensor's earlier scans (a map made by the model's
+            sensor, queried by this one)
+
+``select_on = "sensors"`` keeps as ``best.pt`` the epoch with the best mean F1max over the
+validation sequence and every rendering's own and cross scores, instead of the validation
+sequence's alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.metrics import evaluate_retrieval, nearest
+from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.train.checkpoint import Network
+from overlapmamba.train.drives import drive_key, group_drives
+from overlapmamba.train.evaluate import _by_direction, describe, loop_closure, summary
+from overlapmamba.train.rangecache import cache_key, range_images
+from overlapmamba.train.train_inputs import training_input
+
+
+@dataclass(frozen=True)
+class Rendering:
+    """One rendering of the validation drive by another sensor, ready to describe."""
+
+    name: str  # its sensor, as the catalogue names it
+    path: str
+    key: str  # its range cache key (the run's data fingerprint)
+    images: np.ndarray  # (N, H, W) in the model's input
+
+
+def open_renderings(
+    paths: list[str], val_seq: Sequence, profile: SensorProfile, progress: bool
+) -> list[Rendering]:
+    """The renderings, checked to be the validation drive's (same drive keys, every scan
+    within 5 cm of the validation scan of its frame) and of distinct sensors."""
+    from overlapmamba.core.datasets import open_sequence
+
+    out: list[Rendering] = []
+    for p in paths:
+        seq = open_sequence(Path(p))
+        if seq.sensor is None:
+            raise DatasetError(f"val_sensors: {p} names no sensor in its manifest")
+        if drive_key(seq) != drive_key(val_seq):
+            raise DatasetError(
+                f"val_sensors: {p} is not a rendering of the validation drive {val_seq.root} "
+                "(another seed, session, length, town or drive): validate across sensors on "
+                "renderings of one drive, e.g. val-kitti-hdl64 with val-vlp16, val-os0-128, …"
+            )
+        group_drives([val_seq, seq], lambda s: s is val_seq)  # frames in the same places
+        if seq.sensor == val_seq.sensor or seq.sensor in {r.name for r in out}:
+            raise DatasetError(f"val_sensors: a second rendering by {seq.sensor} ({p})")
+        sensor = training_input(profile, seq)
+        images = range_images(seq, profile, sensor=sensor, progress=progress)
+        out.append(
+            Rendering(seq.sensor, str(seq.root), cache_key(seq, profile, sensor=sensor), images)
+        )
+    return out
+
+
+def cross_loop_closure(
+    queries: np.ndarray, database: np.ndarray, gt: LoopGroundTruth
+) -> dict[str, Any]:
+    """Loop closure with query i's descriptor from one rendering and the database (frames
+    0 … i − 101) from another of the same drive."""
+    if queries.shape != database.shape:
+        raise ValueError(
+            f"renderings of one drive differ in shape: {queries.shape}, {database.shape}"
+        )
+
+    def retrieve(q: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        allowed = np.arange(len(database))[None, :] < db_size[:, None]
+        return nearest(queries[q], database, k, allowed=allowed)
+
+    return summary(
+        _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(database), pos, **kw))
+    )
+
+
+def validate_renderings(
+    model: Network,
+    renderings: list[Rendering],
+    val_desc: np.ndarray,
+    gt: LoopGroundTruth,
+    device: str,
+) -> dict[str, dict[str, Any]]:
+    """{sensor: {"own": summary, "cross": summary}} for every rendering."""
+    out = {}
+    for r in renderings:
+        desc, _ = describe(model, r.images, device=device)
+        out[r.name] = {
+            "own": summary(loop_closure(desc, gt)),
+            "cross": cross_loop_closure(desc, val_desc, gt),
+        }
+    return out
+
+
+def selection_score(val: dict[str, Any], sensors: dict[str, dict[str, Any]] | None) -> float:
+    """The mean F1max over the validation sequence and every rendering's own and cross
+    scores (the validation sequence's alone without renderings)."""
+    scores = [val["all"]["f1max"]]
+    for s in (sensors or {}).values():
+        scores += [s["own"]["all"]["f1max"], s["cross"]["all"]["f1max"]]
+    return float(np.mean(scores))
