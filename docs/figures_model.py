@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-from figures_kit import ROOT, load, ms, source, table, when
+from figures_kit import ROOT, f3, load, ms, source, table, when
 
 # ---- service -------------------------------------------------------------------------------
 BENCH = "reports/service/bench.json"
@@ -183,7 +185,90 @@ def model_tables() -> str:
     return source(MODEL_TABLES, "overlapmamba report") + "\n" + text
 
 
+# The runs of issue 40 on several sensors (reports/model/sensors-pilot/NAME.json), in order:
+# the report's name and what the run was.
+SENSOR_RUNS = (
+    ("shipped-1view", "the shipped network, one view"),
+    ("pilot", "`sensors-pilot`: train-b and three renderings, beam_dropout"),
+    ("pilot-s1", "`sensors-pilot-s1` (seed 1)"),
+    ("control", "`sensors-pilot-control`: train-b alone, beam_dropout"),
+    ("control-s1", "`sensors-pilot-control-s1` (seed 1)"),
+    ("seen", "`sensors-seen`: train-b alone, sensor_like"),
+    ("seen-s1", "`sensors-seen-s1` (seed 1)"),
+    ("seen-far", "`sensors-seen-far`: sensor_like and far_loss"),
+    ("seen-far-s1", "`sensors-seen-far-s1` (seed 1)"),
+)
+SENSOR_QUERIES = ("kitti-hdl64", "vlp16", "os0-128", "xt32")
+QUICK = "--only test-kitti-hdl64 --no-real --no-verify --out reports/model/sensors-pilot/NAME.json"
+
+
+def sensor_runs() -> str:
+    """One row per run: the same-sensor test town and the second drives of other sensors
+    against its map, each from the run's own report."""
+    folder = "reports/model/sensors-pilot"
+    head = ["run", "descriptor F1max / R@1", "two stages F1max", *SENSOR_QUERIES]
+    rows = []
+    sc: dict[str, Any] | None = None
+    for name, what in SENSOR_RUNS:
+        path = ROOT / folder / f"{name}.json"
+        if not path.is_file():
+            continue
+        r = json.loads(path.read_text())
+        same = r["same_sensor"][0]
+        across = {
+            a["query_sensor"]: a for a in r["across_sensors"] if a["map_sensor"] == "kitti-hdl64"
+        }
+        row = [what, f"{f3(same['descriptor']['f1max'])} / {f3(same['descriptor']['recall@1'])}"]
+        row.append(f3(same["two_stage"]["f1max"]))
+        for q in SENSOR_QUERIES:
+            a = across.get(q)
+            row.append(
+                f"{f3(a['descriptor']['ar@1'])} / {f3(a['two_stage']['ar@1'])}" if a else "—"
+            )
+        rows.append(row)
+        sc = sc or {"same": same["scan_context"], "across": across}
+    if sc is not None:
+        row = ["Scan Context", f"{f3(sc['same']['f1max'])} / {f3(sc['same']['recall@1'])}", "—"]
+        for q in SENSOR_QUERIES:
+            a = sc["across"].get(q)
+            row.append(f3(a["scan_context"]["ar@1"]) if a else "—")
+        rows.append(row)
+    return (
+        source(f"{folder}/NAME.json", f"python benchmarks/sensors.py --model NAME.onnx {QUICK}")
+        + "\nThe test town by its own sensor (loop closure: F1max / Recall@1), then a second "
+        "drive by each sensor queried against that town's map (AR@1, a hit within 5 m: "
+        "descriptor alone / two stages; Scan Context: its own).\n\n" + table(head, rows)
+    )
+
+
+SENSOR_LIKE = "reports/model/sensor-like.json"
+
+
+def sensor_like() -> str:
+    """The augmentation against each sensor's rendering of the same validation frames."""
+    r = load(SENSOR_LIKE)
+    rows = []
+    for x in r["rows"]:
+        far = [b["share"] for b in x["kept_by_range"] if b["from_m"] >= 40]
+        rows.append(
+            [
+                x["sensor"],
+                f3(x["covered"]),
+                f3(x["agree_1m"]),
+                f3(x["extra"]),
+                f3(sum(far) / len(far)) if far else "—",
+                f3(x["cosine_real_sim"]),
+                f3(x["cosine_real_own"]),
+            ]
+        )
+    head = ["sensor", "pixels covered", "within 1 m", "extra pixels", "far returns kept"]
+    head += ["cosine rendering · simulated", "cosine rendering · model sensor's scan"]
+    return source(SENSOR_LIKE, r["command"], when(r)) + "\n" + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
+    "sensor-like": sensor_like,
+    "sensor-runs": sensor_runs,
     "model-tables": model_tables,
     "calibration": calibration,
     "service": service,

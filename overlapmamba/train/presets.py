@@ -37,6 +37,9 @@ otherwise.
   would see them (``sensor_like``: its beams' rows of the image, its range limits), no
   ``beam_dropout``. ``sensors-seen-far`` adds ``far_loss`` (far returns lost first, as the
   other sensors' renderings lose them). Each has a ``-s1`` twin: the same with seed 1.
+  ``sensors-seen-turn`` adds the turn term (one pass a scan) and validates on
+  ``val-kitti-hdl64`` and its renderings by five other sensors, keeping the epoch with the
+  best mean over them all (``select_on = "sensors"``).
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -145,6 +148,22 @@ SENSORS_SEEN = {**SENSORS_PILOT, "any_sensor": False, "augment": {"sensor_like":
 SENSORS_SEEN_FAR = {**SENSORS_SEEN, "augment": {"sensor_like": 0.5, "far_loss": 0.4}}
 
 
+# One pass a scan: sensors-seen with the turn term (TURN's weight and turned scans),
+# selected on the sensor towns' validation drive and its renderings by every other sensor
+# the across-sensor bars name (train.valsensors).
+SENSOR_VAL = "data/synth/val-kitti-hdl64"
+SENSOR_VAL_RENDERINGS = tuple(
+    f"data/synth/val-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128", "hdl32")
+)
+SENSORS_SEEN_TURN = {
+    **SENSORS_SEEN,
+    "turn_weight": TURN["turn_weight"],
+    "turn_scans": TURN["turn_scans"],
+    "val_sensors": list(SENSOR_VAL_RENDERINGS),
+    "select_on": "sensors",
+}
+
+
 @dataclass(frozen=True)
 class TrainPreset:
     name: str
@@ -241,6 +260,14 @@ PRESETS: dict[str, TrainPreset] = {
             model=NARROW,
             train=SENSORS_SEEN_FAR,
             data=SENSORS_PILOT_DATA[:1],
+        ),
+        TrainPreset(
+            "sensors-seen-turn",
+            "sensors-seen with the turn term, selected on every sensor's validation drive",
+            model=NARROW,
+            train=SENSORS_SEEN_TURN,
+            data=SENSORS_PILOT_DATA[:1],
+            val=SENSOR_VAL,
         ),
         TrainPreset(
             "ot",
