@@ -127,6 +127,15 @@ async def test_async_client_in_process(tmp_path, encoder):
         ) as pr:
             kf = await pr.insert_keyframe("robots", s1, keyframe_id="o1", timestamp=2.0)
             assert kf.sensor == "os1-64"  # the client's sensor, on every scan it sends
+        async with AsyncPlaceRecognitionClient(
+            "http://test", transport=transport, sensor="vlp16", mount=(0.7, 2.0)
+        ) as pr:  # ... and where it sits: the service levels and lifts every scan it sends
+            low = await pr.describe(s0)
+            assert float(np.dot(low.vector, v.vector)) < 0.9999
+            again = await pr.describe(s0)
+            np.testing.assert_allclose(again.vector, low.vector, atol=1e-6)
+        with pytest.raises(ValueError, match="pitch_deg input should be less than or equal to 45"):
+            AsyncPlaceRecognitionClient("http://test", transport=transport, mount="0.7,60")
 
 
 def _failing(plan: list[object], calls: list[float]):

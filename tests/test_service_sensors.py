@@ -62,6 +62,57 @@ async def test_a_scan_is_projected_as_the_sensor_it_names(settings, encoder):
         assert (await c.get("/readyz")).json()["detail"]["sensor"] == "kitti-hdl64"
 
 
+async def test_a_scan_declares_where_its_sensor_sits(settings, encoder):
+    """?mount=HEIGHT[,PITCH[,ROLL]]: the scan is levelled and moved to the model sensor's
+    height before it is projected; at that height and level nothing changes; a mount that
+    cannot be is a 400 naming what is allowed."""
+    from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
+
+    s = scan(4)
+    async with running(settings, encoder) as c:
+
+        async def describe(query: str):
+            return await c.post(f"/v1/descriptors?{query}", content=s.tobytes(), headers=OCTET)
+
+        plain = np.array((await describe("sensor=vlp16")).json()["descriptor"])
+        same = (await describe(f"sensor=vlp16&mount={REFERENCE_HEIGHT}")).json()["descriptor"]
+        np.testing.assert_allclose(same, plain, atol=1e-5)
+        low = await describe("sensor=vlp16&mount=0.7,2.5,-1")
+        assert low.status_code == 200, low.text
+        inp = SensorInput(
+            encoder.meta.profile,
+            CATALOGUE["vlp16"],
+            encoder.meta.sensor_input,
+            Mount(height=0.7, pitch_deg=2.5, roll_deg=-1),
+        )
+        images = encoder.project(PointCloud(s[:, :3].copy()), inp)[None]
+        np.testing.assert_allclose(
+            low.json()["descriptor"], encoder.encode(images)[0][0], atol=1e-5
+        )
+        assert float(np.array(low.json()["descriptor"]) @ plain) < 0.9999
+        for bad in ("0", "0.7,60", "abc", "1,2,3,4"):
+            r = await describe(f"sensor=vlp16&mount={bad}")
+            assert r.status_code == 400, (bad, r.text)
+        r = await describe("mount=0.7,60")
+        assert r.json()["error"]["code"] == "bad_mount" and "±45°" in r.json()["error"]["message"]
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        for route in ("keyframes?keyframe_id=k&timestamp=1&", "observe?robot_id=r&timestamp=2&"):
+            r = await c.post(
+                f"/v1/maps/m/{route}sensor=vlp16&mount=0.7", content=s.tobytes(), headers=OCTET
+            )
+            assert r.status_code in (200, 201), r.text
+        q = await c.post(
+            "/v1/maps/m/query?k=1&verify=false&sensor=vlp16&mount=0.7",
+            content=s.tobytes(),
+            headers=OCTET,
+        )
+        assert q.json()["matches"][0]["distance"] < 1e-3  # the same scan from the same mount
+        far = await c.post(
+            "/v1/maps/m/query?k=1&verify=false&sensor=vlp16", content=s.tobytes(), headers=OCTET
+        )
+        assert far.json()["matches"][0]["distance"] > 1e-3  # the same points, mount undeclared
+
+
 async def test_an_unknown_sensor_is_a_400_that_lists_the_known_ones(settings, encoder):
     s = scan(0).tobytes()
     async with running(settings, encoder) as c:

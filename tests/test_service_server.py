@@ -74,13 +74,17 @@ def test_stream_sigkill_durability_and_backup(tmp_path, encoder):
             pass
 
         # ---- the stream names its sensor: per connection, per frame; unknown ones refused ---
-        with connect(ws_url.replace("session_id=s1", "session_id=s2") + "&sensor=vlp16") as ws:
-            for i, extra in enumerate([{}, {"sensor": "os1-64"}, {"sensor": "mid360"}]):
+        # ... and where it sits (per connection, per frame)
+        mounted = ws_url.replace("session_id=s1", "session_id=s2") + "&sensor=vlp16&mount=0.7"
+        with connect(mounted) as ws:
+            extras = [{}, {"sensor": "os1-64"}, {"sensor": "mid360"}, {"mount": "0.7,60"}]
+            for i, extra in enumerate(extras):
                 ws.send(_meta(200.0 + i, insert="always", **extra))
                 ws.send(scan(i).tobytes())
-            named = [json.loads(ws.recv(timeout=30)) for _ in range(3)]
+            named = [json.loads(ws.recv(timeout=30)) for _ in range(4)]
         assert named[0]["ok"] and named[1]["ok"], named
         assert named[2]["error"]["code"] == "unknown_sensor"
+        assert named[3]["error"]["code"] == "bad_mount" and "±45°" in named[3]["error"]["message"]
         kfs = [c.get(f"/v1/maps/town/keyframes/{g['keyframe_id']}").json() for g in named[:2]]
         assert [k["sensor"] for k in kfs] == ["vlp16", "os1-64"]
         acked |= {g["keyframe_id"]: [] for g in named[:2]}

@@ -16,6 +16,7 @@ from overlapmamba.client._base import (
     Calls,
     Retry,
     Timeouts,
+    check_mount,
     raise_for,
     retryable,
     stream_frames,
@@ -54,12 +55,14 @@ class AsyncPlaceRecognitionClient:
         transport: httpx.AsyncBaseTransport | None = None,
         seed: int | None = None,
         sensor: str | None = None,
+        mount: str | tuple[float, ...] | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
         self.timeout = timeout
         self.retry = retry
-        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
+        # sensor: every scan's, unless a call names its; mount: where it sits (`mount` below)
+        self._calls = Calls(compress, sensor, check_mount(mount))
         self._rng = random.Random(seed)
         headers = {"x-api-key": api_key} if api_key else {}
         self._http = httpx.AsyncClient(
@@ -232,6 +235,7 @@ class AsyncPlaceRecognitionClient:
             session_id=session_id,
             k=k,
             sensor=sensor or self._calls.sensor,
+            mount=self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
         compress = self._calls.compress

@@ -12,6 +12,7 @@ from urllib.parse import quote
 
 import httpx
 import numpy as np
+from pydantic import ValidationError
 
 from overlapmamba.client._exceptions import (
     APIError,
@@ -30,6 +31,7 @@ from overlapmamba.client._models import (
 )
 from overlapmamba.client._scans import Scan, encode
 from overlapmamba.core.renamed import renamed
+from overlapmamba.core.sensors.mount import Mount
 
 
 @dataclass(frozen=True)
@@ -139,13 +141,15 @@ def _json(resp: httpx.Response) -> Any:
 class Calls:
     """Builds every call of the API; the clients run them."""
 
-    def __init__(self, compress: bool, sensor: str | None = None) -> None:
+    def __init__(self, compress: bool, sensor: str | None = None, mount: str | None = None) -> None:
         self.compress = compress
         self.sensor = sensor  # the client's sensor: every scan call names it unless told
+        self.mount = mount  # where it sits (HEIGHT[,PITCH[,ROLL]]): every scan call names it
 
     def _sensor(self, sensor: str | None) -> dict[str, str]:
         chosen = sensor or self.sensor
-        return {} if chosen is None else {"sensor": chosen}
+        params = {} if chosen is None else {"sensor": chosen}
+        return params if self.mount is None else {**params, "mount": self.mount}
 
     def health(self) -> Call:
         return Call("GET", "/readyz", _json)
@@ -386,6 +390,20 @@ def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | A
     if errors == "raise":
         raise err
     return err
+
+
+def check_mount(mount: str | tuple[float, ...] | None) -> str | None:
+    """A client's ``mount``: ``"HEIGHT[,PITCH[,ROLL]]"`` or a tuple of those numbers (metres,
+    degrees), checked here so a robot learns of a typo at start, not at its first scan."""
+    if mount is None:
+        return None
+    text = mount if isinstance(mount, str) else ",".join(repr(float(x)) for x in mount)
+    try:
+        Mount.parse(text)
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise ValueError(f"mount {text!r}: {first['loc'][0]} {first['msg'].lower()}") from None
+    return text
 
 
 def ws_url(base_url: str, map_id: str, **params: Any) -> str:

@@ -15,6 +15,7 @@ from overlapmamba.client._base import (
     Calls,
     Retry,
     Timeouts,
+    check_mount,
     raise_for,
     retryable,
     stream_frames,
@@ -53,12 +54,14 @@ class PlaceRecognitionClient:
         transport: httpx.BaseTransport | None = None,
         seed: int | None = None,
         sensor: str | None = None,
+        mount: str | tuple[float, ...] | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
         self.timeout = timeout
         self.retry = retry
-        self._calls = Calls(compress, sensor)  # sensor: every scan's, unless a call names its
+        # sensor: every scan's, unless a call names its; mount: where it sits (`mount` below)
+        self._calls = Calls(compress, sensor, check_mount(mount))
         self._rng = random.Random(seed)
         headers = {"x-api-key": api_key} if api_key else {}
         self._http = httpx.Client(

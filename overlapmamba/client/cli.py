@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from overlapmamba.client._base import Timeouts
+from overlapmamba.client._base import Timeouts, check_mount
 from overlapmamba.client._display import matrix_text, pose_text, progress, stats_table
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import open_drive
@@ -76,6 +76,27 @@ SensorOpt = Annotated[
         "vlp16, os1-64, …; default: the drive's manifest's, else the map's"
     ),
 ]
+
+
+def _mount(value: str | None) -> str | None:
+    try:
+        return check_mount(value)
+    except ValueError as err:
+        raise typer.BadParameter(
+            f"{err} (HEIGHT[,PITCH[,ROLL]]: height above the "
+            "ground in (0, 10] m, pitch and roll within ±45°)"
+        ) from None
+
+
+MountOpt = Annotated[
+    str | None,
+    typer.Option(
+        callback=_mount,
+        help="where the sensor sits: HEIGHT[,PITCH[,ROLL]] (m above the ground; degrees, pitch "
+        "positive looking down ahead, roll positive left side up), e.g. 0.7 for a delivery "
+        "robot; the service levels the scans and moves them to the model's mount",
+    ),
+]
 DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -98,8 +119,8 @@ def _errors(func: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-def _client(url: str, api_key: str | None) -> PlaceRecognitionClient:
-    return PlaceRecognitionClient(url, api_key=api_key, timeout=Timeouts(read=120))
+def _client(url: str, api_key: str | None, mount: str | None = None) -> PlaceRecognitionClient:
+    return PlaceRecognitionClient(url, api_key=api_key, timeout=Timeouts(read=120), mount=mount)
 
 
 @maps_app.command("list")
@@ -175,6 +196,7 @@ def ingest(
     odometry: OdometryOpt = None,
     tf: TfOpt = None,
     sensor: SensorOpt = None,
+    mount: MountOpt = None,
     compress: Annotated[bool, typer.Option(help="zstd-compress the scans")] = False,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
@@ -186,7 +208,7 @@ def ingest(
     t0 = time.monotonic()
     created = 0
     with (
-        PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr,
+        PlaceRecognitionClient(url, api_key=api_key, compress=compress, mount=mount) as pr,
         progress(console) as bar,
     ):
         pr.create_map(map_id)
@@ -220,12 +242,13 @@ def query(
     k: Annotated[int, typer.Option("-k", min=1, help="matches to show")] = 5,
     verify: VerifyOpt = True,
     sensor: SensorOpt = None,
+    mount: MountOpt = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """The top-k places for one scan, with yaw, each verified candidate's relative pose and
     fitness, and the loop-closure verdict with its pose."""
-    with _client(url, api_key) as pr:
+    with _client(url, api_key, mount) as pr:
         r = pr.query(map_id, scan, k=k, verify=verify, sensor=sensor)
     table = Table(
         "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
@@ -274,6 +297,7 @@ def observe(
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     verify: VerifyOpt = True,
     sensor: SensorOpt = None,
+    mount: MountOpt = None,
     record: Annotated[
         Path | None,
         typer.Option(help="write an MCAP of robot poses, keyframes and loop closures (Foxglove)"),
@@ -288,7 +312,7 @@ def observe(
     closures = inserted = 0
     frames = range(0, len(drive), every)
     with contextlib.ExitStack() as stack:
-        pr = stack.enter_context(_client(url, api_key))
+        pr = stack.enter_context(_client(url, api_key, mount))
         rec = None
         if record is not None:
             from overlapmamba.client.recording import MapRecording

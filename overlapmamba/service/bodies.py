@@ -13,7 +13,9 @@ read_scan(request, limits, fields)
 from __future__ import annotations
 
 from fastapi import Request
+from pydantic import ValidationError
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, PayloadTooLarge
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.settings import LimitSettings
@@ -30,17 +32,38 @@ async def read_body(request: Request, limits: LimitSettings) -> bytes:
 
 
 async def read_scan(
-    request: Request, limits: LimitSettings, fields: str | None, sensor: str | None = None
+    request: Request,
+    limits: LimitSettings,
+    fields: str | None,
+    sensor: str | None = None,
+    mount: str | None = None,
 ) -> ScanBody:
     """The scan body as sent (size-checked, not yet decompressed or decoded), with the sensor
-    the request names."""
+    the request names and where it sits."""
+    declared = parse_mount(mount)
     return ScanBody(
         await _read_raw(request, limits),
         request.headers.get("content-type"),
         fields,
         request.headers.get("content-encoding"),
         sensor=sensor,
+        mount=declared,
     )
+
+
+def parse_mount(text: str | None) -> Mount | None:
+    """The ``mount`` parameter (``HEIGHT[,PITCH[,ROLL]]``), or a 400 naming what is allowed."""
+    if text is None:
+        return None
+    try:
+        return Mount.parse(text)
+    except (ValueError, ValidationError) as err:
+        reason = err.errors()[0]["msg"] if isinstance(err, ValidationError) else str(err)
+        raise BadRequest(
+            f"mount {text!r} is not allowed ({reason}); give HEIGHT[,PITCH[,ROLL]]: a height "
+            "above the ground in (0, 10] m, pitch and roll within ±45°",
+            code="bad_mount",
+        ) from None
 
 
 async def _read_raw(request: Request, limits: LimitSettings) -> bytes:

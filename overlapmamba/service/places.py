@@ -115,7 +115,7 @@ class PlaceService:
         return self.sensors.resolve(scan.sensor, None if m is None else m.sensor)
 
     def _input(self, scan: ScanBody, m: PlaceMap | None = None) -> SensorInput:
-        return self.sensors.input(self._sensor(scan, m))
+        return self.sensors.input(self._sensor(scan, m), scan.mount)
 
     # ---- maps ---------------------------------------------------------------------------------
 
@@ -188,7 +188,7 @@ class PlaceService:
         t0 = time.perf_counter()
         sensor = self._sensor(scan, m)
         d = await self.pipeline.describe(
-            scan, self._registration(False, m), self.sensors.input(sensor)
+            scan, self._registration(False, m), self.sensors.input(sensor, scan.mount)
         )
         row = await self._row(m, d, keyframe_id, obs, sensor)
         (result,) = await self.insert(m, [row], obs.robot_id)
@@ -415,7 +415,7 @@ class PlaceService:
         verify = obs.verify and self.settings.verify.candidates > 0
         sensor = self._sensor(scan, m)
         d = await self.pipeline.describe(
-            scan, self._registration(verify, m), self.sensors.input(sensor)
+            scan, self._registration(verify, m), self.sensors.input(sensor, scan.mount)
         )
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,

@@ -22,6 +22,7 @@ import zstandard
 
 from overlapmamba.core.io import FIELD_LAYOUTS, decode
 from overlapmamba.core.points import PointCloud, PointLimits
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from overlapmamba.service.settings import LimitSettings
 
@@ -45,6 +46,7 @@ class ScanBody:
     encoding: str | None = None  # Content-Encoding, undone by decode_scan
     source: str = "scan"  # how errors name it ("scan 3" in a batch)
     sensor: str | None = None  # the sensor it names (overlapmamba.service.sensors); None: its map's
+    mount: Mount | None = None  # where that sensor sits (the `mount` parameter); None: as is
 
 
 def decompress(body: bytes, encoding: str | None, max_bytes: int) -> bytes:

@@ -19,6 +19,7 @@ from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.modelmeta import EncoderMetadata
 from overlapmamba.core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_profile
 from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, Conflict
 
 
@@ -39,7 +40,7 @@ class Sensors:
                 )
             known[s.name] = s
         self.known = known
-        self._inputs: dict[str, SensorInput] = {}
+        self._inputs: dict[tuple[str, Mount | None], SensorInput] = {}
 
     def names(self) -> list[str]:
         return sorted(self.known)
@@ -77,14 +78,18 @@ class Sensors:
         self.check(name)
         return None if name is None or self.is_model_sensor(name) else name
 
-    def input(self, name: str) -> SensorInput:
-        """The projection of ``name``'s scans into this model's input (cached)."""
-        if name not in self._inputs:
+    def input(self, name: str, mount: Mount | None = None) -> SensorInput:
+        """The projection of ``name``'s scans into this model's input (cached), from
+        ``mount`` when the scan declares where its sensor sits."""
+        key = (name, mount)
+        if key not in self._inputs:
             self.check(name)
-            self._inputs[name] = SensorInput(
-                self.meta.profile, self.known[name], self.meta.sensor_input
+            if len(self._inputs) >= 256:  # mounts come from clients: keep the cache bounded
+                self._inputs.clear()
+            self._inputs[key] = SensorInput(
+                self.meta.profile, self.known[name], self.meta.sensor_input, mount
             )
-        return self._inputs[name]
+        return self._inputs[key]
 
     def is_model_sensor(self, name: str) -> bool:
         return name == self.model_sensor.name

@@ -25,6 +25,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from overlapmamba.core.sensors.mount import platform_from_sensor
+
 # A box of the body: x min, x max (forward), y half-width, its top relative to the sensor
 # (negative: below it). Boxes reach the ground.
 Box = tuple[float, float, float, float]
@@ -69,15 +71,8 @@ class Mounting:
 def tilt_matrix(pitch_deg: float, roll_deg: float) -> np.ndarray | None:
     """(3, 3) rotation platform ← sensor for a pitch and a roll in degrees (see the module
     notes for their signs), or None when both are 0: a level sensor's rays stay as they are,
-    bit for bit."""
-    if pitch_deg == 0.0 and roll_deg == 0.0:
-        return None
-    p, r = np.radians(pitch_deg), np.radians(roll_deg)
-    # Pitch: a rotation about y that takes the sensor's x axis to (cos p, 0, −sin p).
-    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
-    # Roll: a rotation about x that takes the sensor's y axis to (0, cos r, sin r).
-    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
-    return ry @ rx
+    bit for bit. The service levels a declared mount with the same rotation."""
+    return platform_from_sensor(pitch_deg, roll_deg)
 
 
 MOUNTINGS: dict[str, Mounting] = {

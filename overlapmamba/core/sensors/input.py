@@ -13,6 +13,10 @@
                sensor-transfer check ``eval-real`` ran on nuScenes' HDL-32E before sensors
                had tables)
 
+A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
+:mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
+every mode.
+
 Which one a model takes is its own (``EncoderMetadata.sensor_input``): the projection of a
 scan is never chosen by its consumer. Columns, sub-column views and the range limits are
 the model's in every mode, so yaw features keep their meaning.
@@ -30,6 +34,7 @@ import numpy as np
 
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.catalogue import Sensor
+from overlapmamba.core.sensors.mount import Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
@@ -77,15 +82,19 @@ class SensorInput:
     model: SensorProfile
     sensor: Sensor
     mode: Mode
+    mount: Mount | None = None  # None: where the model's sensor sat (level, its height)
 
     @property
     def native(self) -> bool:
-        return self.sensor.profile() == self.model
+        """The model's own sensor, taken exactly as the model was trained (no mount)."""
+        return self.sensor.profile() == self.model and self.mount is None
 
     @property
     def kind(self) -> str:
-        """native, elevation or rows: what this pairing actually does."""
-        return "native" if self.native else self.mode
+        """native, elevation or rows: what this pairing actually does (with ``+mount`` when
+        the scan is first moved to the model's mount)."""
+        own = self.sensor.profile() == self.model
+        return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
     def rows(self) -> np.ndarray:
         return row_beams(self.model, self.sensor, self.mode)
@@ -94,10 +103,20 @@ class SensorInput:
         """What the images depend on beyond the model's profile (for caches)."""
         if self.native:
             return {}
-        return {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
+        key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
+        if self.mount is not None:
+            key["mount"] = self.mount.key()
+        return key
 
     def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
         """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
+        if self.mount is not None:
+            xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+            if xyz.ndim != 2 or xyz.shape[1] < 3:
+                raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
+            points = to_reference(xyz, self.mount)
+            if self.sensor.profile() == self.model:
+                return project_views(points, self.model, views)
         if self.native:
             return project_views(points, self.model, views)
         return _project_beams(points, self.model, self.sensor, self.rows(), views)

@@ -9,8 +9,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Request
 
-from overlapmamba.service.api.openapi import SCAN_BODY, SensorQuery, error_responses
-from overlapmamba.service.bodies import read_body, read_scan
+from overlapmamba.service.api.openapi import SCAN_BODY, MountQuery, SensorQuery, error_responses
+from overlapmamba.service.bodies import parse_mount, read_body, read_scan
 from overlapmamba.service.deps import CanEncode, ServiceDep
 from overlapmamba.service.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from overlapmamba.service.scans import SCAN_TYPES, ScanBody
@@ -39,11 +39,14 @@ async def describe(
     svc: ServiceDep,
     _: CanEncode,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> DescriptorOut:
     """The 256-d place descriptor of one scan, with per-stage timings."""
     svc.sensors.check(sensor)
-    d = await svc.describe(await read_scan(request, svc.settings.limits, x_point_fields, sensor))
+    d = await svc.describe(
+        await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
+    )
     return DescriptorOut(
         descriptor=d.descriptor.tolist(), model_id=svc.model_id, timings_ms=Timings(**d.timings)
     )
@@ -129,11 +132,13 @@ async def describe_batch(
     svc: ServiceDep,
     _: CanEncode,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> DescriptorBatchOut:
     """Descriptors of several scans of one sensor, in order. The scans share the encoder's
     micro-batches."""
     svc.sensors.check(sensor)
+    declared = parse_mount(mount)
     ctype = request.headers.get("content-type", "")
     media, _sep, params = ctype.partition(";")
     if media.strip().lower() != BATCH_TYPE:
@@ -156,7 +161,14 @@ async def describe_batch(
         results += await asyncio.gather(
             *(
                 svc.describe(
-                    ScanBody(s, fmt, x_point_fields, source=f"scan {start + i}", sensor=sensor)
+                    ScanBody(
+                        s,
+                        fmt,
+                        x_point_fields,
+                        source=f"scan {start + i}",
+                        sensor=sensor,
+                        mount=declared,
+                    )
                 )
                 for i, s in enumerate(scans[start : start + step])
             )

@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import ValidationError
 
-from overlapmamba.service.api.openapi import SCAN_BODY, SensorQuery, error_responses
+from overlapmamba.service.api.openapi import SCAN_BODY, MountQuery, SensorQuery, error_responses
 from overlapmamba.service.auth import Action
 from overlapmamba.service.bodies import read_body, read_scan
 from overlapmamba.service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
@@ -53,6 +53,7 @@ async def insert_keyframe(
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
     pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> KeyframeOut:
     """Encode the scan and store it as a keyframe: descriptor, yaw features, metadata.
@@ -62,7 +63,7 @@ async def insert_keyframe(
     svc.sensors.check(sensor)
     m = await svc.open_map(map_id)
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose))
-    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
     result = (await svc.insert_scan(m, scan, keyframe_id, obs)).result
     response.status_code = 201 if result.created else 200
     return _out(result.keyframe, result.created)

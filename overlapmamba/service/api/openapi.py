@@ -15,6 +15,16 @@ SENSOR_HELP = (
 )
 # The `sensor` query parameter of every route that takes a scan.
 SensorQuery = Annotated[str | None, Query(pattern=SENSOR_PATTERN, description=SENSOR_HELP)]
+MOUNT_HELP = (
+    "where the sensor sits: HEIGHT[,PITCH[,ROLL]] — metres above the ground, degrees of "
+    "pitch (positive: looks down ahead) and roll (positive: left side raised), e.g. 0.7 for a "
+    "delivery robot's roof or 1.8,5 for a backpack. The scan is levelled and moved to the "
+    "height the model's sensor had (1.73 m, a car's roof) before it is projected, so a low or "
+    "tilted sensor's scan lands where the map's does. Default: none (taken as it is)"
+)
+# The `mount` query parameter of every route that takes a scan (parsed by
+# overlapmamba.service.bodies.parse_mount: a 400 that says what is allowed).
+MountQuery = Annotated[str | None, Query(max_length=64, description=MOUNT_HELP)]
 
 SCAN_BODY: dict[str, Any] = {
     "requestBody": {

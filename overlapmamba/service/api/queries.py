@@ -33,9 +33,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.renamed import REMOVED_IN
-from overlapmamba.service.api.openapi import SCAN_BODY, SensorQuery, error_responses
+from overlapmamba.service.api.openapi import SCAN_BODY, MountQuery, SensorQuery, error_responses
 from overlapmamba.service.auth import Action, presented_key
-from overlapmamba.service.bodies import read_scan
+from overlapmamba.service.bodies import parse_mount, read_scan
 from overlapmamba.service.deps import CanEncode, ServiceDep
 from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
 from overlapmamba.service.errors import BadRequest, ServiceError, error_body
@@ -116,6 +116,7 @@ async def query(
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> QueryOut:
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
@@ -139,7 +140,7 @@ async def query(
         time_to=time_to,
         max_match_distance=max_match_distance,
     )
-    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
     probe: ScanBody | list[float] = scan
     if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
         body = await in_thread(
@@ -176,6 +177,7 @@ async def observe(
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
     x_point_fields: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> ObserveOut:
     """Query the map excluding this session's own recent keyframes, then insert the scan as
@@ -187,7 +189,7 @@ async def observe(
     svc.sensors.check(sensor)
     m = await svc.open_map(map_id)
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
-    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor)
+    scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
     return observe_out(await svc.observe(m, scan, obs))
 
 
@@ -251,6 +253,7 @@ class StreamMeta(BaseModel):
     fields: str = "xyzi"
     encoding: str = "identity"
     sensor: str | None = Field(None, pattern=SENSOR_PATTERN)
+    mount: str | None = Field(None, max_length=64)
 
 
 @router.websocket("/stream")
@@ -261,6 +264,7 @@ async def stream(
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
     k: Annotated[int, Query(ge=1, le=1000)] = 10,
     sensor: SensorQuery = None,
+    mount: MountQuery = None,
 ) -> None:
     """Observations over one WebSocket; see the module docstring for the frame format."""
     app = websocket.app
@@ -271,6 +275,7 @@ async def stream(
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
         svc.sensors.check(sensor)
+        stream_mount = parse_mount(mount)
         m = await svc.open_map(map_id)
     except ServiceError as err:
         await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
@@ -301,6 +306,7 @@ async def stream(
                     meta.fields,
                     meta.encoding,
                     sensor=svc.sensors.check(meta.sensor) or sensor,
+                    mount=parse_mount(meta.mount) if meta.mount is not None else stream_mount,
                 )
                 o = await svc.observe(m, body, obs)
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
