@@ -29,7 +29,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 from rich.table import Table

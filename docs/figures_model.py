@@ -266,7 +266,32 @@ def sensor_like() -> str:
     return source(SENSOR_LIKE, r["command"], when(r)) + "\n" + table(head, rows)
 
 
+def mounts(split: str) -> Callable[[], str]:
+    """Mounted renderings with and without their mount declared (benchmarks/mounts.py)."""
+    rel = f"reports/model/mounts-{split}.json"
+
+    def render() -> str:
+        r = load(rel)
+        rows = []
+        for x in r["rows"]:
+            m = x["mount"]
+            row = [x["town"], f"{m['height']} m, pitch {m['pitch_deg']}°, roll {m['roll_deg']}°"]
+            for k in ("own", "against_car"):
+                a, b = x["none"][k], x["declared"][k]
+                fr = [f"{f3(v['f1max'])} / {f3(v['recall@1'])}" for v in (a, b)]
+                row.append(" → ".join(fr))
+            row.append(f"{f3(x['none']['cosine_to_car'])} → {f3(x['declared']['cosine_to_car'])}")
+            rows.append(row)
+        head = ["rendering", "mount", "own map: F1max / R@1", f"the car's map ({r['car']})"]
+        head.append("cosine to the car's scan")
+        return source(rel, r["command"], when(r)) + "\n" + table(head, rows)
+
+    return render
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
+    "mounts-val": mounts("val"),
+    "mounts-test": mounts("test"),
     "sensor-like": sensor_like,
     "sensor-runs": sensor_runs,
     "model-tables": model_tables,
