@@ -139,7 +139,12 @@ def test_every_preset_builds_its_configs():
     for p in PRESETS.values():
         cfg = OverlapMambaConfig.from_dict(p.model)
         tc = TrainConfig.from_dict(p.train)
-        assert not set(TEST_DATA) & set(p.data) and p.val == "data/synth/val"
+        assert not set(TEST_DATA) & set(p.data) and not any("/test" in d for d in p.data)
+        # validation: the val town, or the sensor towns' validation drive (with renderings)
+        assert p.val in ("data/synth/val", "data/synth/val-kitti-hdl64"), p.name
+        assert all(v.startswith("data/synth/val-") for v in tc.val_sensors), p.name
+        if tc.select_on == "sensors":
+            assert p.val == "data/synth/val-kitti-hdl64" and tc.val_sensors
         if p.name.startswith("abl-"):
             assert tc.epochs * tc.epoch_scans == 10000  # one equal budget
             assert cfg.d_model == 64  # the shipped width
