@@ -39,10 +39,15 @@ from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.synth.mounting import get_mounting
 from overlapmamba.train.checkpoint import load_model
-from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
+from overlapmamba.train.evaluate import (
+    cross_loop_closure,
+    describe,
+    loop_closure,
+    sequence_loops,
+    summary,
+)
 from overlapmamba.train.modelfile import with_views
 from overlapmamba.train.rangecache import range_images
-from overlapmamba.train.valsensors import cross_loop_closure
 
 MOUNTED = ("vlp16-robot", "os0-128-amr", "xt32-backpack")
 

@@ -128,8 +128,13 @@ def test_validation_across_sensors_scores_renderings_and_selects_on_their_mean(
     """val_sensors: a rendering of the validation drive by another sensor is scored every
     epoch on its own and against the validation scans; select_on sensors keeps the epoch
     with the best mean; a rendering of another drive is refused by name."""
-    from overlapmamba.train.evaluate import loop_closure, sequence_loops, summary
-    from overlapmamba.train.valsensors import cross_loop_closure, selection_score
+    from overlapmamba.train.evaluate import (
+        cross_loop_closure,
+        loop_closure,
+        sequence_loops,
+        summary,
+    )
+    from overlapmamba.train.valsensors import selection_score
 
     vlp = _rendering(tiny_val_seq, tmp_path / "val-vlp16", "vlp16")
     cfg = small_run(epochs=1, val_sensors=[str(vlp)], select_on="sensors", real="")

@@ -22,7 +22,12 @@ import torch
 
 from overlapmamba.core.anatomy import errors_at_f1max
 from overlapmamba.core.datasets.base import Sequence
-from overlapmamba.core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
+from overlapmamba.core.metrics import (
+    LoopClosureResult,
+    evaluate_loop_closure,
+    evaluate_retrieval,
+    nearest,
+)
 from overlapmamba.core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
 from overlapmamba.core.rerank import OFF, Rerank, two_stage
 from overlapmamba.core.scancontext import ScanContextParams, scan_context
@@ -120,6 +125,25 @@ def loop_closure(
         raise ValueError("re-ranking needs the yaw features of every scan")
     retrieve = two_stage(desc, yaw, rerank)
     return _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(desc), pos, **kw))
+
+
+def cross_loop_closure(
+    queries: np.ndarray, database: np.ndarray, gt: LoopGroundTruth
+) -> dict[str, Any]:
+    """Loop closure with query i's descriptor from one rendering and the database (frames
+    0 … i − 101) from another of the same drive."""
+    if queries.shape != database.shape:
+        raise ValueError(
+            f"renderings of one drive differ in shape: {queries.shape}, {database.shape}"
+        )
+
+    def retrieve(q: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        allowed = np.arange(len(database))[None, :] < db_size[:, None]
+        return nearest(queries[q], database, k, allowed=allowed)
+
+    return summary(
+        _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(database), pos, **kw))
+    )
 
 
 def _by_direction(

@@ -27,12 +27,11 @@ import numpy as np
 
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.metrics import evaluate_retrieval, nearest
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.sensors import SensorProfile
 from overlapmamba.train.checkpoint import Network
 from overlapmamba.train.drives import drive_key, group_drives
-from overlapmamba.train.evaluate import _by_direction, describe, loop_closure, summary
+from overlapmamba.train.evaluate import cross_loop_closure, describe, loop_closure, summary
 from overlapmamba.train.rangecache import cache_key, range_images
 from overlapmamba.train.train_inputs import training_input
 
@@ -74,25 +73,6 @@ def open_renderings(
             Rendering(seq.sensor, str(seq.root), cache_key(seq, profile, sensor=sensor), images)
         )
     return out
-
-
-def cross_loop_closure(
-    queries: np.ndarray, database: np.ndarray, gt: LoopGroundTruth
-) -> dict[str, Any]:
-    """Loop closure with query i's descriptor from one rendering and the database (frames
-    0 … i − 101) from another of the same drive."""
-    if queries.shape != database.shape:
-        raise ValueError(
-            f"renderings of one drive differ in shape: {queries.shape}, {database.shape}"
-        )
-
-    def retrieve(q: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        allowed = np.arange(len(database))[None, :] < db_size[:, None]
-        return nearest(queries[q], database, k, allowed=allowed)
-
-    return summary(
-        _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(database), pos, **kw))
-    )
 
 
 def validate_renderings(

@@ -115,9 +115,7 @@ class SensorInput:
             if xyz.ndim != 2 or xyz.shape[1] < 3:
                 raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
             points = to_reference(xyz, self.mount)
-            if self.sensor.profile() == self.model:
-                return project_views(points, self.model, views)
-        if self.native:
+        if self.sensor.profile() == self.model:
             return project_views(points, self.model, views)
         return _project_beams(points, self.model, self.sensor, self.rows(), views)
 
