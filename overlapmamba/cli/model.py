@@ -18,6 +18,8 @@ from overlapmamba.cli.common import (
 )
 from overlapmamba.core.views import MAX_VIEWS
 
+MEET = ("descriptors", "tokens")  # export --meet: where a scan's sub-column views meet
+
 app, command = command_group("Model")
 
 
@@ -156,7 +158,9 @@ def train_cmd(
     "export",
     epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
     "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32"
-    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx",
+    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx"
+    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens "
+    "--out tokens.onnx",
 )
 @friendly_errors
 def export_cmd(
@@ -181,30 +185,57 @@ def export_cmd(
             "turn then barely moves it; the encoder runs this many times per scan)",
         ),
     ] = 1,
+    meet: Annotated[
+        str,
+        typer.Option(
+            help="where a scan's views meet: 'descriptors' (the encoder runs once a view and "
+            "their descriptors are averaged) or 'tokens' (the per-column stem runs once a "
+            "view, their tokens are averaged and the blocks and head run once a scan: "
+            "the graph is traced anew and its input holds --views images a scan)"
+        ),
+    ] = "descriptors",
 ) -> None:
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
     from overlapmamba.train.checkpoint import load_model
     from overlapmamba.train.export import export_onnx
-    from overlapmamba.train.model import OverlapMamba
-    from overlapmamba.train.modelfile import with_views
+    from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+    from overlapmamba.train.modelfile import load_encoder, with_views
+    from overlapmamba.train.recover import with_token_views
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    if meet not in MEET:
+        raise typer.BadParameter(
+            f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"
+        )
+    token_views = views if meet == "tokens" else 1
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
                 "an exported encoder keeps its weights as they are; --weights applies to a .pt",
                 param_hint="--weights",
             )
-        meta = with_views(checkpoint, out_path, views)
+        if token_views > 1 or load_encoder(checkpoint)[1].graph_views > 1:
+            # the graph itself changes: traced anew from the file's recovered weights
+            with_token_views(checkpoint, out_path, token_views)
+            src = out_path
+        else:
+            src = checkpoint
+        meta = with_views(src, out_path, views)
         out.print(
-            f"wrote {out_path}: the graph of {checkpoint} with {meta.views} view(s) per scan, "
+            f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
+            f"{f' met at the {meet}' if meta.views > 1 else ''}, "
             f"model id {meta.model_id}"
         )
         return
     model, profile, ckpt = load_model(checkpoint)
     assert isinstance(model, OverlapMamba)  # load_model gives an encoder only for .onnx
+    if model.cfg.token_views != token_views:
+        cfg = model.cfg.model_copy(update={"token_views": token_views})
+        state = model.state_dict()
+        model = OverlapMamba(OverlapMambaConfig.from_dict(cfg.to_dict())).eval()
+        model.load_state_dict(state)
     res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
     meta, v = res.metadata, res.verification
     table = Table(title=f"exported {res.path}", show_header=False)
@@ -212,7 +243,7 @@ def export_cmd(
         ("model id", meta.model_id),
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
-        ("views per scan", str(meta.views)),
+        ("views per scan", f"{meta.views}, met at the {meet}" if meta.views > 1 else "1"),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
         (
             "descriptor vs PyTorch",

@@ -4,7 +4,8 @@ The export (``overlapmamba.train.export``) writes these fields into the ONNX fil
 ``metadata_props``; the service reads them back (onnxruntime's ``custom_metadata_map``) and
 needs nothing else: the sensor profile gives the projection, ``sensor_input`` how scans of
 other sensors enter it (:mod:`overlapmamba.core.sensors.input`), ``views`` how many sub-column
-views of it make one descriptor (:mod:`overlapmamba.core.views`), ``descriptor_dim`` sizes the
+views of it make one descriptor (:mod:`overlapmamba.core.views`; where they meet: the graph's
+own ``token_views``, or the reader averaging descriptors), ``descriptor_dim`` sizes the
 index, ``model_id`` keeps descriptors of different models out of one map, ``calibration``
 holds the thresholds the benchmarks chose for it (:mod:`overlapmamba.core.calibration`).
 
@@ -19,7 +20,14 @@ import json
 import logging
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibration
 from overlapmamba.core.errors import LidarCoreError
@@ -101,6 +109,29 @@ class EncoderMetadata(BaseModel):
                 "model calibration: sections %s are not known here and are ignored", unknown
             )
         return check_calibration({k: x for k, x in v.items() if k in CALIBRATED})
+
+    @model_validator(mode="after")
+    def _views_in_graph(self) -> EncoderMetadata:
+        if self.graph_views > 1 and self.views != self.graph_views:
+            raise ValueError(
+                f"the graph averages {self.graph_views} views of a scan itself (token_views); "
+                f"views must be {self.graph_views}, got {self.views}"
+            )
+        return self
+
+    @property
+    def graph_views(self) -> int:
+        """How many of a scan's views the graph itself averages (the network's
+        ``token_views``): it then takes that many images a scan, scan-major, and returns one
+        descriptor a scan. 1: the graph describes every image and the reader averages the
+        views' descriptors (:func:`overlapmamba.core.views.combine_views`)."""
+        return int(self.network.get("token_views", 1))
+
+    @property
+    def descriptors_per_scan(self) -> int:
+        """How many descriptors the graph returns for one scan's :attr:`views` images, for
+        :func:`overlapmamba.core.views.combine_views`."""
+        return self.views // self.graph_views
 
     @property
     def graph(self) -> str:

@@ -191,7 +191,7 @@ class Encoder:
             )
         x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
-        return combine_views(*out, self.meta.views)
+        return combine_views(*out, self.meta.descriptors_per_scan)
 
 
 KERNEL_SLOWER = 1.1  # the kernel serves unless it takes more than this × the portable graph
@@ -210,10 +210,12 @@ def _time_both(kernel: Callable[[], object], portable: Callable[[], object]) -> 
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:
-    """A fixed (1, 1, H, W) range image for the load-time check: ranges across the profile's
-    span with a fifth of the pixels empty, as real scans have."""
+    """Fixed range images of one scan, (V, 1, H, W) with V the views the graph averages
+    itself (1 for most), for the load-time check: ranges across the profile's span with a
+    fifth of the pixels empty, as real scans have."""
     p = meta.profile
     rng = np.random.default_rng(0)
-    img = rng.uniform(p.min_range, p.max_range, (1, 1, p.height, p.width)).astype(np.float32)
+    shape = (meta.graph_views, 1, p.height, p.width)
+    img = rng.uniform(p.min_range, p.max_range, shape).astype(np.float32)
     img[rng.random(img.shape) < 0.2] = p.empty_value
     return img

@@ -107,8 +107,9 @@ Network = OverlapMamba | ExportedNetwork
 
 def views_of(model: Network) -> int:
     """How many sub-column views describe a scan (:mod:`overlapmamba.core.views`): an exported
-    encoder's metadata says; a network in training is described by one."""
-    return model.meta.views if isinstance(model, ExportedNetwork) else 1
+    encoder's metadata says; a network in training by one, or by the views it averages
+    itself (``token_views``)."""
+    return model.meta.views if isinstance(model, ExportedNetwork) else model.cfg.token_views
 
 
 def sensor_input_of(model: Network) -> Mode:

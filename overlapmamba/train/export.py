@@ -99,9 +99,12 @@ def _trace(model: OverlapMamba) -> onnx.ModelProto:
     export_model = OverlapMamba(cfg)
     export_model.load_state_dict(model.state_dict())
     export_model.eval()
-    # Batch 2, not 1: the exporter specialises a size-1 example axis to a constant.
-    example = torch.rand(2, 1, cfg.height, cfg.width)
-    batch = torch.export.Dim("batch", min=1, max=4096)
+    # Batch 2, not 1: the exporter specialises a size-1 example axis to a constant. With
+    # token_views V the input holds V images a scan: its batch axis is V × the scans.
+    views = cfg.token_views
+    example = torch.rand(2 * views, 1, cfg.height, cfg.width)
+    scans = torch.export.Dim("batch", min=1, max=4096)
+    batch = scans if views == 1 else views * scans
     try:
         proto = quiet_export(
             export_model,
@@ -120,7 +123,9 @@ def _trace(model: OverlapMamba) -> onnx.ModelProto:
     return proto
 
 
-def _check_interface(proto: onnx.ModelProto, height: int, width: int, scans: bool) -> None:
+def _check_interface(
+    proto: onnx.ModelProto, height: int, width: int, scans: bool, views: int = 1
+) -> None:
     (inp,) = proto.graph.input
     dims = inp.type.tensor_type.shape.dim
     if inp.name != INPUT or len(dims) != 4:
@@ -135,9 +140,9 @@ def _check_interface(proto: onnx.ModelProto, height: int, width: int, scans: boo
     names = [o.name for o in proto.graph.output]
     if names != list(OUTPUTS):
         raise ExportError(f"exported outputs are {names}; want {list(OUTPUTS)}")
-    for out in proto.graph.output:
+    for out in proto.graph.output:  # with token_views, views images make one scan's outputs
         d0 = out.type.tensor_type.shape.dim[0]
-        d0.dim_param = "batch"
+        d0.dim_param = "batch" if views == 1 else "scans"
     total, loops = count_nodes(proto)
     if scans and loops == 0:
         raise ExportError("the exported graph has no Scan/Loop node: the scan was unrolled")
@@ -235,21 +240,28 @@ def export_onnx(
     weight_format: str = "int8",
     images: np.ndarray | None = None,
     int8_min_size: int = INT8_MIN_SIZE,
-    views: int = 1,
+    views: int | None = None,
 ) -> ExportResult:
     """Export, check and verify; the file appears at ``out`` only when all of it passed.
-    ``views``: how many sub-column views describe a scan (:mod:`overlapmamba.core.views`)."""
+    ``views``: how many sub-column views describe a scan (:mod:`overlapmamba.core.views`);
+    None: the network's ``token_views`` (1 unless it averages views itself, and then
+    nothing else is allowed)."""
     t0 = time.perf_counter()
     out = Path(out)
     if weight_format not in WEIGHT_FORMATS:
         raise ExportError(
             f"weight format {weight_format!r} is unknown; allowed: {', '.join(WEIGHT_FORMATS)}"
         )
+    cfg = model.cfg
     try:
-        views = check_views(views)
+        views = check_views(cfg.token_views if views is None else views)
     except ValueError as err:
         raise ExportError(str(err)) from None
-    cfg = model.cfg
+    if cfg.token_views > 1 and views != cfg.token_views:
+        raise ExportError(
+            f"the network averages {cfg.token_views} views of a scan itself (token_views); "
+            f"views must be {cfg.token_views}, got {views}"
+        )
     if (profile.height, profile.width) != (cfg.height, cfg.width):
         raise ExportError(
             f"sensor profile {profile.name} makes {profile.height}×{profile.width} images but "
@@ -258,7 +270,7 @@ def export_onnx(
     model = model.eval()
     proto = _trace(model)
     # The OT-style baseline (mixer "transformer") exports too: the encoder benchmark's peer.
-    _check_interface(proto, cfg.height, cfg.width, scans=cfg.mixer == "mamba")
+    _check_interface(proto, cfg.height, cfg.width, scans=cfg.mixer == "mamba", views=views)
     if weight_format == "int8":
         quantize_int8(proto, int8_min_size)
     ckpt = checkpoint or {}
@@ -293,7 +305,7 @@ def export_onnx(
     tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
     try:
         onnx.save(proto, tmp)
-        imgs = verification_images(profile) if images is None else images
+        imgs = verification_images(profile, 3 * cfg.token_views) if images is None else images
         report = compare(tmp, model, imgs)
         bad = report["yaw_features_max_abs"] > FLOAT_TOL or (
             report["descriptor_max_abs"] > FLOAT_TOL

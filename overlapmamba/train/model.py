@@ -4,6 +4,9 @@
       → backbone: bias-free (k, 1) convolutions that shrink the height to 1     (B, 128, 1, W)
       → SPP (optional): 1×1 conv, three sequential circular max-pools, concat   (B, 128, 1, W)
       → convLast1: 1×1 conv + ReLU, W tokens of d_model                         (B, W, d)
+        (token_views V > 1: the network takes V sub-column views of each scan, (B·V, 1, H, W),
+        and its tokens are their mean: every step before is per column or a circular pool,
+        every step after runs once a scan)
       → OverlapMamba blocks: x + Σ_directions mixer(RMSNorm(x))                 (B, W, d)
       → head (GDG): concat(in, out) → convLast2 → NetVLAD → gating → L2        (B, 256)
       → yaw head: 1×1 projection of the block output                            (B, C, W)
@@ -34,6 +37,7 @@ from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from overlapmamba.core.configs import Config
+from overlapmamba.core.views import MAX_VIEWS
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.scan_backends import BACKENDS, scan
 
@@ -66,6 +70,10 @@ class OverlapMambaConfig(Config):
     out_dim: int = 256  # descriptor size
     gating: bool = True  # context gating on the descriptor
     yaw_channels: int = 16  # per-column features for yaw estimation
+    # Sub-column views (overlapmamba.core.views) met at the tokens: the network takes
+    # token_views images a scan, scan-major, and averages their tokens before the blocks, so
+    # the mixer and head run once a scan. 1: one image a scan.
+    token_views: int = 1
     scan_backend: str = "auto"  # auto, fused, chunked, loop, onnx or ref (scan_backends.scan)
     scan_chunk: int | None = None  # chunked-scan chunk length (None: √W)
     extra: dict = Field(default_factory=dict)  # free-form notes carried in checkpoints
@@ -75,10 +83,12 @@ class OverlapMambaConfig(Config):
         sizes: tuple[str, ...] = ("height", "width", "d_model", "d_state", "expand", "d_conv")
         sizes += ("dt_rank",)
         sizes += ("n_blocks", "conv_last2", "clusters", "out_dim", "yaw_channels", "heads")
-        sizes += ("ff_dim",)
+        sizes += ("ff_dim", "token_views")
         for name in sizes:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        if self.token_views > MAX_VIEWS:
+            raise ValueError(f"token_views must be at most {MAX_VIEWS}, got {self.token_views}")
         if self.mixer not in MIXERS:
             raise ValueError(f"mixer {self.mixer!r} is unknown; allowed: {', '.join(MIXERS)}")
         if self.mixer == "transformer" and self.d_model % self.heads:
@@ -301,11 +311,15 @@ class OverlapMamba(nn.Module):
                 nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
 
     def forward(self, image: Tensor) -> tuple[Tensor, Tensor]:
-        """image (B, 1, H, W) → descriptor (B, out_dim) unit norm, yaw features (B, C, W)."""
-        f = self.backbone(image)  # (B, 128, 1, W)
+        """image (B, 1, H, W) → descriptor (B, out_dim) unit norm, yaw features (B, C, W);
+        with ``token_views`` V > 1, image (B·V, 1, H, W): each scan's V views in a row."""
+        f = self.backbone(image)  # (B·V, 128, 1, W)
         if self.spp is not None:
             f = self.spp(f)
-        tokens = self.conv_last1(f).squeeze(2).transpose(1, 2)  # (B, W, d)
+        tokens = self.conv_last1(f).squeeze(2)  # (B·V, d, W)
+        if self.cfg.token_views > 1:
+            tokens = tokens.unflatten(0, (-1, self.cfg.token_views)).mean(1)
+        tokens = tokens.transpose(1, 2)  # (B, W, d)
         x = tokens
         for block in self.blocks:
             x = block(x)

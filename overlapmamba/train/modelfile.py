@@ -64,12 +64,10 @@ def with_calibration(path: Path | str, section: str, entry: Calibrated) -> Encod
     )
 
 
-def rewrite_metadata(
-    src: Path | str, out: Path | str, update: Callable[[EncoderMetadata], dict[str, Any]]
-) -> EncoderMetadata:
-    """``src``'s graph and weights byte for byte into ``out``, its metadata updated by
-    ``update(metadata)`` (the fields to change); written atomically."""
-    src, out = Path(src), Path(out)
+def load_encoder(src: Path | str) -> tuple[onnx.ModelProto, EncoderMetadata]:
+    """An exported encoder file and its metadata; :class:`ExportError` naming what is wrong
+    when it is missing, not ONNX, or not ours."""
+    src = Path(src)
     if not src.is_file():
         raise ExportError(f"model {src} does not exist")
     try:
@@ -77,12 +75,24 @@ def rewrite_metadata(
     except Exception as err:  # protobuf raises its own classes
         raise ExportError(f"{src} is not an ONNX file ({type(err).__name__}: {err})") from None
     try:
-        meta = metadata_of(proto)
+        return proto, metadata_of(proto)
     except ValueError as err:
         raise ExportError(f"{src}: {err}") from None
-    new = EncoderMetadata.model_validate(
-        {**meta.model_dump(by_alias=True), **update(meta)}, by_alias=True
-    )
+
+
+def rewrite_metadata(
+    src: Path | str, out: Path | str, update: Callable[[EncoderMetadata], dict[str, Any]]
+) -> EncoderMetadata:
+    """``src``'s graph and weights byte for byte into ``out``, its metadata updated by
+    ``update(metadata)`` (the fields to change); written atomically."""
+    src, out = Path(src), Path(out)
+    proto, meta = load_encoder(src)
+    try:
+        new = EncoderMetadata.model_validate(
+            {**meta.model_dump(by_alias=True), **update(meta)}, by_alias=True
+        )
+    except ValueError as err:  # pydantic's ValidationError: say which field and why
+        raise ExportError(f"{src}: the new metadata is invalid: {err}") from None
     del proto.metadata_props[:]
     for key, value in new.to_props().items():
         proto.metadata_props.add(key=key, value=value)

@@ -122,7 +122,7 @@ def recover(
         ) from None
     model.load_state_dict(state_dict_from_onnx(proto, model))
     if images is None:
-        images = verification_images(meta.profile)
+        images = verification_images(meta.profile, 3 * model.cfg.token_views)
     images = np.asarray(images, np.float32)
     check = {**compare(path, model, images), "scans": len(images)}
     if not check["descriptor_max_abs"] <= TOLERANCE:
@@ -133,3 +133,41 @@ def recover(
             **check,
         )
     return model, meta.profile, check
+
+
+def with_token_views(src: str | Path, out: str | Path, views: int) -> Any:
+    """Write ``src``'s encoder to ``out`` with its ``views`` sub-column views met at the
+    tokens (``OverlapMambaConfig.token_views``): the per-column stem runs once a view, the
+    blocks and head once a scan. The weights are ``src``'s, recovered and checked
+    (:func:`recover`), the graph traced anew (its input then holds ``views`` images a scan);
+    the training record and the sensor input are carried over. The calibration is not: it
+    was chosen for other descriptors (the benchmarks write the new file's). ``views`` 1
+    writes the plain one-image graph. Returns the export's
+    :class:`~overlapmamba.train.export.ExportResult`."""
+    from overlapmamba.core.modelmeta import identity
+    from overlapmamba.core.views import check_views
+    from overlapmamba.train.errors import ExportError
+    from overlapmamba.train.export import export_onnx
+    from overlapmamba.train.modelfile import load_encoder, rewrite_metadata
+
+    try:
+        views = check_views(views)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+    _, source = load_encoder(src)
+    model, profile, _ = recover(src)
+    cfg = model.cfg.model_copy(update={"token_views": views})
+    tokens = OverlapMamba(OverlapMambaConfig.from_dict(cfg.to_dict())).eval()
+    tokens.load_state_dict(model.state_dict())
+    res = export_onnx(tokens, profile, out, weight_format=source.weight_format, views=views)
+    res.metadata = rewrite_metadata(
+        out,
+        out,
+        lambda meta: {
+            **identity(meta.graph, views, source.sensor_input),
+            "weights": source.weights,
+            "training_data": source.training_data,
+            "metrics": source.metrics,
+        },
+    )
+    return res

@@ -125,6 +125,12 @@ def train(
     if state is None and train_cfg.init:
         model_cfg = start_config(train_cfg, model_cfg)
     model_cfg = model_cfg or OverlapMambaConfig()
+    if model_cfg.token_views != 1:
+        raise ConfigError(
+            f"token_views {model_cfg.token_views}: training takes one image a scan "
+            "(token_views 1); a scan's views meet at export: "
+            "`overlapmamba export RUN/best.pt --views V --meet tokens`"
+        )
     if epochs is not None:
         train_cfg.epochs = epochs
     if train_cfg.device == "cuda" and not torch.cuda.is_available():

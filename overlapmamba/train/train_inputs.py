@@ -110,7 +110,9 @@ def start_config(
     train_cfg: TrainConfig, model_cfg: OverlapMambaConfig | None
 ) -> OverlapMambaConfig:
     """The network config of ``init``'s file; a different one given alongside is refused
-    (the runtime-only scan settings aside)."""
+    (the runtime-only scan settings aside). A network that averages views itself
+    (``token_views``) trains on one image a scan: the same weights, its views met again at
+    export (``overlapmamba export --meet tokens``)."""
     path = train_cfg.init_path()
     assert path is not None
     if not path.is_file():
@@ -124,8 +126,9 @@ def start_config(
             raise ConfigError(f"init {train_cfg.init!r}: {err}") from None
     else:
         cfg = OverlapMambaConfig.from_dict(read_checkpoint(path)["model_config"])
+    cfg = cfg.model_copy(update={"token_views": 1})
     if model_cfg is not None:
-        runtime = ("scan_backend", "scan_chunk")
+        runtime = ("scan_backend", "scan_chunk", "token_views")
         a, b = cfg.to_dict(), model_cfg.to_dict()
         differ = sorted(k for k in a if k not in runtime and a[k] != b.get(k))
         if differ:
