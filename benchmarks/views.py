@@ -1,13 +1,21 @@
-"""What the shipped model's sub-column views cost (overlapmamba.core.views): a scan described as the
-service describes it (``Encoder.project`` + ``Encoder.encode``), with the model's views and
-with one, on real KITTI 00 scans.
+"""What the shipped model's sub-column views cost and buy (overlapmamba.core.views), three ways
+with the same weights: one view; V views met at the descriptors (the encoder runs once a
+view, their descriptors are averaged); V views met at the tokens (``token_views``: the
+per-column stem runs once a view, the blocks and head once a scan).
 
-The one-view model is the same graph written with ``views = 1``
-(``overlapmamba.train.modelfile.with_views``: the file the model id ``om-ef2469f958d5098b`` names),
-so the two differ only in how many projections a scan makes and how many graph rows the encoder
-runs. Timed interleaved (one view, then the model's, rep after rep) in one process, with 1 and 2
-onnxruntime threads, one scan per call and 8 scans per call (per scan), so that the ratio holds on a
-shared machine even when the absolute times drift. Also reported: the project stage alone.
+The three files are written from the model's own weights (``with_views`` rewrites the
+metadata; ``with_token_views`` traces the graph anew from the recovered weights), so they
+differ only in where the views meet. For each:
+
+- **cost**: a scan described as the service describes it (``Encoder.project`` +
+  ``Encoder.encode``) on real KITTI 00 scans, timed interleaved (each way in turn, rep after
+  rep) in one process, with 1 and 2 onnxruntime threads, one and 8 scans a call, so that the
+  ratios hold on a shared machine even when the absolute times drift; and the project stage;
+- **turn invariance**: the minimum cosine between a real scan's descriptor and that of the
+  same scan turned by a random continuous angle (``eval-real``'s turns,
+  ``overlapmamba.train.realscans``), on KITTI 00 and nuScenes, for each of ``--seeds``;
+- **loop closure** (``--sequence``, repeatable; choose on ``val``, report on test towns):
+  ``overlapmamba eval`` F1max and Recall@1, the descriptor alone and two stages (``--rerank``).
 
 Writes JSON (default reports/service/views.json).
 """
@@ -15,8 +23,11 @@ Writes JSON (default reports/service/views.json).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -27,12 +38,15 @@ from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
+from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.io import read_points
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.train.modelfile import with_views
+from overlapmamba.train.modelfile import read_metadata, with_views
 
 ROOT = Path(__file__).resolve().parents[1]
-KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
+SHARED = ROOT.parent / "shared" / "data"
+KITTI = SHARED / "kitti00_0000-0100"
+REAL = {"kitti00": KITTI, "nuscenes-hdl32": SHARED / "nuscenes_scene0061"}
 
 
 def interleaved(
@@ -54,44 +68,127 @@ def interleaved(
     }
 
 
+def ways(model: Path, tmp: Path) -> dict[str, Path]:
+    """The model's weights written three ways: {"one view", "descriptors", "tokens"}."""
+    from overlapmamba.train.recover import with_token_views
+
+    meta = read_metadata(model)
+    if meta.views == 1:
+        raise SystemExit(f"{model} is described by one view: there are no views to compare")
+    one = tmp / "one-view.onnx"
+    if meta.graph_views > 1:
+        with_token_views(model, one, 1)
+        tokens = model
+    else:
+        with_views(model, one, 1)
+        tokens = tmp / "tokens.onnx"
+        with_token_views(model, tokens, meta.views)
+    descriptors = tmp / "descriptors.onnx"
+    if meta.graph_views > 1:
+        with_views(one, descriptors, meta.views)
+    else:
+        descriptors = model
+    return {"one view": one, "descriptors": descriptors, "tokens": tokens}
+
+
+def cost(paths: dict[str, Path], reps: int) -> list[dict]:
+    clouds = [read_points(p) for p in sorted((KITTI / "velodyne").glob("*.bin"))[:16]]
+    rows: list[dict] = []
+    for threads in (1, 2):
+        encs = {k: Encoder(p, intra_op_threads=threads) for k, p in paths.items()}
+        for per in (1, 8):
+
+            def call(enc: Encoder, per: int = per) -> Callable[[int], object]:
+                def run(i: int) -> object:
+                    batch = [clouds[(i * per + j) % len(clouds)] for j in range(per)]
+                    return enc.encode(np.stack([enc.project(c) for c in batch]))
+
+                return run
+
+            got = interleaved({k: call(e) for k, e in encs.items()}, reps, per)
+            rows.append({"threads": threads, "scans_per_call": per, **got})
+        project = interleaved(
+            {
+                k: (lambda i, e=encs[k]: e.project(clouds[i % len(clouds)]))
+                for k in ("one view", "tokens")
+            },
+            reps,
+            1,
+        )
+        rows.append({"threads": threads, "stage": "project", **project})
+    return rows
+
+
+def invariance(paths: dict[str, Path], seeds: int) -> dict[str, dict]:
+    """Minimum cosine under a random continuous turn, per real set, way and seed."""
+    from overlapmamba.train.checkpoint import input_of, load_model, views_of
+    from overlapmamba.train.evaluate import describe
+    from overlapmamba.train.realscans import invariance as inv
+    from overlapmamba.train.realscans import real_turns
+
+    out: dict[str, dict] = {}
+    for name, folder in REAL.items():
+        if not folder.is_dir():
+            out[name] = {"skipped": f"{folder} is missing"}
+            continue
+        seq = open_sequence(folder)
+        out[name] = {"scans": len(seq)}
+        for way, path in paths.items():
+            model, profile, _ = load_model(path)
+            sensor = input_of(model, profile, seq)
+            mins = []
+            for seed in range(seeds):
+                t = real_turns(seq, sensor, seed, views_of(model))
+                mins.append(
+                    inv(describe(model, t.plain)[0], describe(model, t.turned)[0], t.positions)[
+                        "cosine_min"
+                    ]
+                )
+            out[name][way] = {"cosine_min_per_seed": mins, "cosine_min": min(mins)}
+    return out
+
+
+def loop_closure(paths: dict[str, Path], sequences: list[Path], rerank: str, tmp: Path) -> dict:
+    """``overlapmamba eval`` of each way on each sequence: F1max, Recall@1, both stages."""
+    out: dict[str, dict] = {}
+    for seq in sequences:
+        out[seq.name] = {}
+        for way, path in paths.items():
+            js = tmp / f"{seq.name}-{way.replace(' ', '-')}.json"
+            cmd = [sys.executable, "-m", "overlapmamba", "eval", "--checkpoint", str(path)]
+            cmd += ["--sequence", str(seq), "--rerank", rerank, "--json", str(js)]
+            subprocess.run(cmd, check=True, capture_output=True)
+            got = json.loads(js.read_text())
+            out[seq.name][way] = {
+                stage: {
+                    sub: {k: got[key][sub][k] for k in ("f1max", "recall@1")}
+                    for sub in ("all", "same", "reverse")
+                }
+                for stage, key in (("descriptor", "metrics"), ("two_stages", "metrics_reranked"))
+            }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
-    ap.add_argument("--reps", type=int, default=40, help="timed calls per setting and model")
+    ap.add_argument("--reps", type=int, default=40, help="timed calls per setting and way")
+    ap.add_argument("--seeds", type=int, default=5, help="random turns drawn per real set")
+    ap.add_argument("--sequence", type=Path, action="append", default=[], help="loop closure")
+    ap.add_argument("--rerank", default="20,0.2", help="the second stage of --sequence's eval")
     ap.add_argument("--out", type=Path, default=REPORTS / "service" / "views.json")
     args = ap.parse_args()
     console = Console()
     if not KITTI.is_dir():
         raise SystemExit(f"{KITTI} is missing: the real scans are needed")
-    clouds = [read_points(p) for p in sorted(KITTI.glob("*.bin"))[:16]]
 
     with tempfile.TemporaryDirectory() as tmp:
-        one_path = Path(tmp) / "one-view.onnx"
-        with_views(args.model, one_path, 1)
-        rows = []
-        for threads in (1, 2):
-            models = {
-                "one view": Encoder(one_path, intra_op_threads=threads),
-                "shipped": Encoder(args.model, intra_op_threads=threads),
-            }
-            views = models["shipped"].views
-            for per in (1, 8):
-
-                def call(enc: Encoder, per: int = per) -> Callable[[int], object]:
-                    def run(i: int) -> object:
-                        batch = [clouds[(i * per + j) % len(clouds)] for j in range(per)]
-                        return enc.encode(np.stack([enc.project(c) for c in batch]))
-
-                    return run
-
-                got = interleaved({k: call(e) for k, e in models.items()}, args.reps, per)
-                rows.append({"threads": threads, "scans_per_call": per, **got})
-            project = interleaved(
-                {k: (lambda i, e=e: e.project(clouds[i % len(clouds)])) for k, e in models.items()},
-                args.reps,
-                1,
-            )
-            rows.append({"threads": threads, "stage": "project", **project})
+        paths = ways(args.model, Path(tmp))
+        ids = {k: read_metadata(p).model_id for k, p in paths.items()}
+        views = read_metadata(paths["tokens"]).views
+        rows = cost(paths, args.reps)
+        turns = invariance(paths, args.seeds)
+        loops = loop_closure(paths, args.sequence, args.rerank, Path(tmp))
 
     result = {
         "machine": {
@@ -101,26 +198,34 @@ def main() -> None:
         },
         "model": str(args.model),
         "views": views,
+        "model_ids": ids,
         "scans": "KITTI 00 frames 0–15",
         "reps": args.reps,
         "rows": rows,
+        "turn_invariance": {"seeds": args.seeds, **turns},
+        "loop_closure": {"rerank": args.rerank, **loops},
     }
     write_report(args.out, result)
 
-    t = Table(title=f"a scan described as the service does it: one view against {views}")
-    for col in ("threads", "what", "one view, ms/scan (p90)", f"{views} views", "ratio"):
+    t = Table(
+        title=f"a scan described as the service does it: one view, {views} views met two ways"
+    )
+    for col in ("threads", "what", "one view, ms/scan", "at the descriptors", "at the tokens"):
         t.add_column(col, justify="right")
     for r in rows:
         what = r.get("stage") or f"project + encode, {r['scans_per_call']} a call"
-        a, b = r["one view"], r["shipped"]
-        t.add_row(
-            str(r["threads"]),
-            what,
-            f"{a['median_ms']:.1f} ({a['p90_ms']:.1f})",
-            f"{b['median_ms']:.1f} ({b['p90_ms']:.1f})",
-            f"{b['median_ms'] / a['median_ms']:.2f}",
-        )
+        a = r["one view"]["median_ms"]
+        cells = [
+            f"{r[k]['median_ms']:.1f} ({r[k]['median_ms'] / a:.2f}×)" if k in r else "—"
+            for k in ("descriptors", "tokens")
+        ]
+        t.add_row(str(r["threads"]), what, f"{a:.1f}", *cells)
     console.print(t)
+    for name, per in turns.items():
+        if "skipped" not in per:
+            console.print(
+                name, {k: round(v["cosine_min"], 5) for k, v in per.items() if k != "scans"}
+            )
     console.print(f"wrote {args.out}")
 
 
