@@ -252,6 +252,39 @@ def fleet() -> str:
     )
 
 
+FLEET_VIEWS = "reports/client/fleet-views.json"
+
+
+def fleet_views() -> str:
+    """The fleet simulator against each way of meeting the views, alternating rounds."""
+    r = load(FLEET_VIEWS)
+    rows = []
+    for name, m in r["models"].items():
+        runs = m["runs"]
+        rows.append(
+            [
+                f"{name} (`{m['model_id']}`)",
+                ", ".join(f"{x['throughput_per_s']:.1f}" for x in runs),
+                ", ".join(ms(x["latency_ms"]["p50"]) for x in runs),
+                ", ".join(ms(x["latency_ms"]["p95"]) for x in runs),
+                sum(sum((x["errors"] or {}).values()) for x in runs),
+                ", ".join(f3(x["precision"]) for x in runs),
+                ", ".join(f3(x["recall"]) for x in runs),
+            ]
+        )
+    out = source(FLEET_VIEWS, r.get("command") or "python benchmarks/fleet_views.py", when(r))
+    busy = r.get("other_load")
+    note = (
+        f"; other processes used {100 * busy:.0f}% of the CPU meanwhile" if busy is not None else ""
+    )
+    out += (
+        f"\n{r['robots']} robots on `{r['sequence']}`, {r['rate_hz']:g} Hz asked each, "
+        f"{r['duration_s']:.0f} s a round, {r['rounds']} rounds of each model in turn{note}.\n\n"
+    )
+    head = ["model", "observations/s", "p50", "p95", "errors", "precision", "recall"]
+    return out + table(head, rows)
+
+
 # ---- end to end ----------------------------------------------------------------------------
 def e2e() -> str:
     """The end-to-end runs (``make e2e``), one line each from its JSON."""
@@ -319,5 +352,6 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "mapclosures": mapclosures,
     "sizing": sizing,
     "fleet": fleet,
+    "fleet-views": fleet_views,
     "e2e": e2e,
 }
