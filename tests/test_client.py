@@ -346,13 +346,16 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     report, plot = tmp_path / "fleet.json", tmp_path / "fleet.png"
     out = run(
         "simulate-fleet", "--map", "cli-fleet", "--sequence", str(synthetic_seq_dir),
-        "--robots", "2", "--duration", "3", "--rate", "4",
+        "--robots", "2", "--duration", "3", "--rate", "4", "--mount", "1.8,2",
         "--out", str(report), "--plot", str(plot),
     )  # fmt: skip
     data = json.loads(report.read_text())
     assert data["robots"] == 2 and data["observations"] >= 4 and data["errors"] == {}
     assert data["precision"] is None  # this sequence ships no ground truth
     assert plot.stat().st_size > 1000
+    bad = ["simulate-fleet", "--map", "x", "--sequence", str(synthetic_seq_dir), "--mount", "0"]
+    res = runner.invoke(cli_app, bad, env=env)
+    assert res.exit_code == 2 and "HEIGHT[,PITCH[,ROLL]]" in " ".join(res.output.split())
     assert "deleted" in run("maps", "delete", "cli-fleet", "--yes")
     res = runner.invoke(cli_app, ["maps", "delete", "cli-fleet", "--yes"], env=env)
     assert res.exit_code == 1 and "map_not_found" in res.output

@@ -416,6 +416,7 @@ def simulate_fleet(
     odometry: OdometryOpt = None,
     tf: TfOpt = None,
     sensor: SensorOpt = None,
+    mount: MountOpt = None,
     robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
     duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
     rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
@@ -444,6 +445,7 @@ def simulate_fleet(
             api_key=api_key,
             k=k,
             seed=seed,
+            mount=mount,
         )
     )
     write_outputs(report, samples, out_json, plot)

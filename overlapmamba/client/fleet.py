@@ -84,9 +84,11 @@ async def simulate(
     exclude_recent_s: float = 30.0,
     seed: int = 0,
     retry: Retry | None = None,
+    mount: str | tuple[float, ...] | None = None,
 ) -> tuple[FleetReport, list[_Sample]]:
     """``retry``: how each robot retries (default: 3 attempts); ``NO_RETRY`` makes every
-    overload or transport error count as an error, as load tests want."""
+    overload or transport error count as an error, as load tests want. ``mount``: where
+    every robot's sensor sits (HEIGHT[,PITCH[,ROLL]]; None: the model's mount)."""
     if robots < 1 or duration_s <= 0 or rate_hz <= 0 or not drives:
         raise ValueError("need robots ≥ 1, duration > 0, rate > 0 and at least one drive")
     samples: list[_Sample] = []
@@ -96,7 +98,7 @@ async def simulate(
     deadline = start + duration_s
 
     async with AsyncPlaceRecognitionClient(
-        url, api_key=api_key, retry=retry or Retry(attempts=3, backoff_s=0.2)
+        url, api_key=api_key, retry=retry or Retry(attempts=3, backoff_s=0.2), mount=mount
     ) as pr:
         await pr.create_map(map_id)
 
