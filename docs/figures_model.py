@@ -221,6 +221,7 @@ def model_tables() -> str:
 # the report's name and what the run was.
 SENSOR_RUNS = (
     ("shipped-1view", "the shipped network, one view"),
+    ("tokens", "the shipped network, three views met at the tokens (its twin file)"),
     ("pilot", "`sensors-pilot`: train-b and three renderings, beam_dropout"),
     ("pilot-s1", "`sensors-pilot-s1` (seed 1)"),
     ("control", "`sensors-pilot-control`: train-b alone, beam_dropout"),
