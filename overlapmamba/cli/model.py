@@ -199,7 +199,7 @@ def export_cmd(
     check_torch()
     from overlapmamba.train.checkpoint import load_model
     from overlapmamba.train.export import export_onnx
-    from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+    from overlapmamba.train.model import OverlapMamba, meeting_views
     from overlapmamba.train.modelfile import load_encoder, with_views
     from overlapmamba.train.recover import with_token_views
 
@@ -231,11 +231,7 @@ def export_cmd(
         return
     model, profile, ckpt = load_model(checkpoint)
     assert isinstance(model, OverlapMamba)  # load_model gives an encoder only for .onnx
-    if model.cfg.token_views != token_views:
-        cfg = model.cfg.model_copy(update={"token_views": token_views})
-        state = model.state_dict()
-        model = OverlapMamba(OverlapMambaConfig.from_dict(cfg.to_dict())).eval()
-        model.load_state_dict(state)
+    model = meeting_views(model, token_views)
     res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
     meta, v = res.metadata, res.verification
     table = Table(title=f"exported {res.path}", show_header=False)

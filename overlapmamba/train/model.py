@@ -329,3 +329,14 @@ class OverlapMamba(nn.Module):
         if self.gate is not None:
             d = d * torch.sigmoid(self.gate(d))
         return F.normalize(d, dim=-1), self.yaw_head(x.transpose(1, 2))
+
+
+def meeting_views(model: OverlapMamba, token_views: int) -> OverlapMamba:
+    """``model``'s weights in a network that averages ``token_views`` views of a scan at its
+    tokens (1: one image a scan), in eval mode; ``model`` itself when it already does."""
+    if model.cfg.token_views == token_views:
+        return model
+    cfg = OverlapMambaConfig.from_dict({**model.cfg.to_dict(), "token_views": token_views})
+    out = OverlapMamba(cfg).eval()
+    out.load_state_dict(model.state_dict())
+    return out

@@ -25,14 +25,17 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from overlapmamba.core.sensors import SensorProfile
 from overlapmamba.train.errors import CheckpointError
-from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, meeting_views
+
+if TYPE_CHECKING:
+    from overlapmamba.train.export import ExportResult
 
 TOLERANCE = 1e-5  # max abs descriptor difference to onnxruntime (measured: 8e-8)
 _SCOPES = "pkg.torch.onnx.name_scopes"
@@ -135,7 +138,7 @@ def recover(
     return model, meta.profile, check
 
 
-def with_token_views(src: str | Path, out: str | Path, views: int) -> Any:
+def with_token_views(src: str | Path, out: str | Path, views: int) -> ExportResult:
     """Write ``src``'s encoder to ``out`` with its ``views`` sub-column views met at the
     tokens (``OverlapMambaConfig.token_views``): the per-column stem runs once a view, the
     blocks and head once a scan. The weights are ``src``'s, recovered and checked
@@ -156,9 +159,7 @@ def with_token_views(src: str | Path, out: str | Path, views: int) -> Any:
         raise ExportError(str(err)) from None
     _, source = load_encoder(src)
     model, profile, _ = recover(src)
-    cfg = model.cfg.model_copy(update={"token_views": views})
-    tokens = OverlapMamba(OverlapMambaConfig.from_dict(cfg.to_dict())).eval()
-    tokens.load_state_dict(model.state_dict())
+    tokens = meeting_views(model, views)
     res = export_onnx(tokens, profile, out, weight_format=source.weight_format, views=views)
     res.metadata = rewrite_metadata(
         out,
