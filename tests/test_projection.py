@@ -11,6 +11,7 @@ from overlapmamba.core.io import read_points
 from overlapmamba.core.poses import rotation_z, transform_points
 from overlapmamba.core.projection import (
     pixel_coordinates,
+    pixel_index,
     project,
     project_reference,
     project_with_index,
@@ -40,6 +41,35 @@ def test_fast_projection_equals_reference(seed, n, empty):
     pts[: n // 4] = pts[n // 4 : 2 * (n // 4)] * 1.001  # force pixel collisions
     profile = SMALL.replace(empty_value=empty)
     np.testing.assert_array_equal(project(pts, profile), project_reference(pts, profile))
+
+
+def placements(pts: np.ndarray, profile) -> np.ndarray:
+    """pixel_coordinates' flat pixel of every point, H·W for a dropped one."""
+    pc = pixel_coordinates(pts, profile)
+    pix = np.full(len(pts), profile.height * profile.width, np.int64)
+    pix[pc.keep] = pc.row.astype(np.int64) * profile.width + pc.col
+    return pix
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 400))
+def test_pixel_index_places_points_as_pixel_coordinates(seed, n):
+    rng = np.random.default_rng(seed)
+    pts = random_scan(rng, n) * rng.uniform(0.01, 2.0)  # some under min_range, some over max
+    pts[: n // 5, 2] += 30.0  # and some above the field of view (rows clamped to 0)
+    profile = SMALL.replace(min_range=2.0)
+    pix, depth = pixel_index(np.ascontiguousarray(pts.T), profile)
+    np.testing.assert_array_equal(pix, placements(pts, profile))
+    np.testing.assert_array_equal(
+        depth[pixel_coordinates(pts, profile).keep], pixel_coordinates(pts, profile).depth
+    )
+
+
+def test_pixel_index_on_real_scans(kitti_seq_dir):
+    for frame in ("000000", "000050"):
+        pts = read_points(kitti_seq_dir / "velodyne" / f"{frame}.bin").xyz
+        pix, _ = pixel_index(np.ascontiguousarray(pts.T), KITTI)
+        np.testing.assert_array_equal(pix, placements(pts, KITTI))
 
 
 def test_nearest_point_wins_and_index_points_at_it():
