@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors docs docs-site clean
+.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
 # measured 10 s against ≈100 s for the full set on 2 cores.
@@ -98,6 +98,13 @@ data: $(VENV)/.installed-all
 # and a backpack's sensor, and five second drives of it by other sensors. Resumable, as above.
 data-sensors: $(VENV)/.installed-all
 	for p in $$($(BIN)/python -c "from overlapmamba.synth.presets import SENSOR_PRESETS; print(*SENSOR_PRESETS)"); do \
+	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p -q; \
+	done
+
+# The drawn training towns (overlapmamba.synth.presets.drawn_town: train-x00 … train-x11, 1,000
+# scans each, the catalogue's sensors in turn on drawn mountings). Resumable, as above.
+data-towns: $(VENV)/.installed-all
+	for p in $$($(BIN)/python -c "from overlapmamba.synth.presets import DRAWN_PRESETS; print(*DRAWN_PRESETS)"); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p -q; \
 	done
 

@@ -183,6 +183,21 @@ def test_sensor_like_draws_only_when_on_and_keeps_only_what_the_sensor_reaches()
         AugmentConfig(sensor_like=0.5, sensor_like_names=("vlp-17",))
 
 
+def test_sensor_like_leaves_scans_of_other_sensors_alone_and_keeps_the_stream():
+    x = images(6)
+    native = np.array([True, False, True, False, False, True])
+    aug = only(sensor_like=1.0, dropout=0.2)
+    out = aug(x, np.random.default_rng(4), native)
+    every = aug(x, np.random.default_rng(4))
+    drop = only(dropout=0.2, sensor_like=1.0, sensor_like_names=())
+    np.testing.assert_array_equal(out[native], every[native])  # the same draws for each scan
+    others = drop(x, np.random.default_rng(4), np.zeros(6, bool))
+    np.testing.assert_array_equal(out[~native], others[~native])  # dropout alone on the rest
+    assert not np.array_equal(out[~native], every[~native])
+    with pytest.raises(ValueError, match=r"native: one flag a scan \(6\)"):
+        aug(x, np.random.default_rng(4), np.ones(5, bool))
+
+
 def test_far_loss_takes_far_returns_first_and_draws_only_when_on():
     x = np.repeat(np.linspace(1, 79, PROFILE.width, dtype=np.float32)[None, None], 64, axis=1)
     x = np.repeat(x, 8, axis=0)  # range grows along each row

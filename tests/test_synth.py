@@ -22,7 +22,7 @@ from overlapmamba.synth.generate import build_scene, generate, read_manifest
 from overlapmamba.synth.geometry import MAT, Mesh
 from overlapmamba.synth.lidar import Scanner, get_lidar
 from overlapmamba.synth.mounting import MOUNTINGS, Mounting, get_mounting
-from overlapmamba.synth.presets import PRESETS
+from overlapmamba.synth.presets import DRAWN_PRESETS, PRESETS, drawn_town
 from overlapmamba.synth.streets import DISTRICTS
 from overlapmamba.synth.trajectory import DriveParams, plan_drive, plan_route
 from overlapmamba.synth.truth import read_overlaps
@@ -385,11 +385,35 @@ def test_presets_are_fixed_distinct_towns_that_plan():
         towns = [PRESETS[f"{split}-{name}"] for name in CATALOGUE]
         assert len({(c.seed, c.session, c.frames) for c in towns}) == 1
     planned = {}
-    for cfg in PRESETS.values():  # a drive depends on the town, the session and its length
+    drawn = set(DRAWN_PRESETS[2:])  # two of the drawn towns plan here (the rest: same code)
+    for cfg in (c for k, c in PRESETS.items() if k not in drawn):  # a drive depends on the
+        # town, the session and its length
         key = (cfg.seed, cfg.session, cfg.frames, json.dumps(cfg.world), json.dumps(cfg.drive))
         if key not in planned:
             planned[key] = len(build_scene(cfg)[1].poses)
         assert planned[key] == cfg.frames
+
+
+def test_drawn_towns_are_fixed_and_cover_every_sensor_and_mounting():
+    towns = [PRESETS[k] for k in DRAWN_PRESETS]
+    assert [drawn_town(k) for k in range(len(towns))] == towns  # the index alone fixes a town
+    assert {c.sensor for c in towns[: len(CATALOGUE)]} == set(CATALOGUE)
+    assert [c.sensor for c in towns[:5]] == ["vlp16", "os0-128", "xt32", "os1-128", "hdl32"]
+    assert {c.mount for c in towns} == set(MOUNTINGS)
+    assert len({json.dumps(c.world, sort_keys=True) for c in towns}) > 1
+    for c in towns:
+        assert c.split == "train" and c.pair_table == "all" and c.frames == 1000
+        low, high = {"car": (1.5, 2.2), "robot": (0.5, 1.0), "amr": (0.25, 0.5)}.get(
+            c.mount, (1.5, 2.0)
+        )
+        assert low <= c.mount_height <= high and abs(c.mount_roll_deg) <= 3.0
+        assert (
+            (0 <= c.mount_pitch_deg <= 10)
+            if c.mount == "backpack"
+            else (abs(c.mount_pitch_deg) <= 3.0)
+        )
+        m = c.mounting()  # the drive's own height and tilt, as the generator uses them
+        assert (m.height, m.pitch_deg) == (c.mount_height, c.mount_pitch_deg)
 
 
 @pytest.mark.real_data

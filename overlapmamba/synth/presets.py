@@ -18,6 +18,7 @@ can refuse test data.
 | test-SENSOR | 3304 | 2000 | every sensor, car | 5 × 5 nodes | reported numbers only |
 | test-S-MOUNT | 3304 | 2000 | vlp16, os0-128, xt32 | the same town | reported numbers only |
 | test-s1-SENSOR | 3304 | 1000 | five sensors | that town, session 1 | queries across sensors |
+| train-xNN | 7001 + NN | 1000 | in turn  | drawn: 4–6 × 4–6, blocks 50–160 m | many towns |
 | tiny   | 5    | 600   | kitti-hdl64 | 4 × 3, small   | tests: fast, both-direction loops |
 | tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | tests: validation of tiny runs |
 
@@ -25,6 +26,14 @@ Validation and test towns (val, test*, tiny-val) compute only the loop table's c
 (``pair_table="loops"``: pairs more than ``loop_exclude`` frames apart), which is all that
 selection and evaluation read; training towns keep every pair within ``gt_radius``, because
 the sampler draws positives and near misses from neighbouring frames.
+
+The drawn towns (``train-x00`` … ``train-x11``, ``make data-towns``) are many smaller
+training towns, each of one catalogue sensor in turn and drawn from its index alone
+(:func:`drawn_town`): the street grid and block size, the mounting (car, robot, AMR or
+backpack) and its height, pitch and roll. Each has its own pair table, computed on its own
+scans, so the places a sensor low on a robot sees are labelled as that sensor sees them.
+Their seeds are not checked for revisits: a drawn town without revisits still gives
+neighbouring positives and near misses; ``manifest.json`` says how it came out.
 
 The tiny presets revisit after every 30–60 m of exploring in a small town (blocks of
 50–65 m), so 600 scans can hold loops in both directions; their pair tables stop at 12 m.
@@ -156,6 +165,66 @@ for _sensor, _mount in RENDERINGS.items():
     PRESETS[_key] = PRESETS["train-b"].model_copy(
         update={"preset": _key, "sensor": _sensor, "mount": _mount, "pair_table": "none"}
     )
+
+
+DRAWN_TOWNS = 12
+# The sensors in turn, the sparsest and those farthest from the HDL-64E first, so that any
+# first few drawn towns already hold the sensors the across-sensor bars name.
+_SENSOR_CYCLE = (
+    "vlp16",
+    "os0-128",
+    "xt32",
+    "os1-128",
+    "hdl32",
+    "kitti-hdl64",
+    "vlp32c",
+    "os1-64",
+    "os2-128",
+    "hdl64e",
+)
+_HEIGHTS = {"amr": (0.25, 0.5), "backpack": (1.5, 2.0), "car": (1.5, 2.2), "robot": (0.5, 1.0)}
+
+
+def drawn_town(k: int) -> GenConfig:
+    """Training town ``train-x{k:02d}``: its sensor (the catalogue in turn, ``_SENSOR_CYCLE``)
+    and, drawn from ``k`` alone (the same index is the same town on every machine), its street
+    grid, block size, mounting and the mounting's height, pitch (a backpack's 0–10° down,
+    others ±3°) and roll (±3°)."""
+    import numpy as np
+
+    from overlapmamba.core.sensors.catalogue import CATALOGUE
+
+    rng = np.random.default_rng([7001, k])
+    mounts = sorted(_HEIGHTS)
+    sensor = _SENSOR_CYCLE[k % len(_SENSOR_CYCLE)]
+    assert set(_SENSOR_CYCLE) == set(CATALOGUE), "every catalogue sensor in the cycle"
+    mount = mounts[int(rng.integers(len(mounts)))]
+    low, high = _HEIGHTS[mount]
+    pitch = rng.uniform(0.0, 10.0) if mount == "backpack" else rng.uniform(-3.0, 3.0)
+    block = float((50, 60, 70, 80)[int(rng.integers(4))])
+    key = f"train-x{k:02d}"
+    return GenConfig(
+        seed=7001 + k,
+        frames=1000,
+        preset=key,
+        split="train",
+        sensor=sensor,
+        mount=mount,
+        mount_height=round(float(rng.uniform(low, high)), 2),
+        mount_pitch_deg=round(float(pitch), 1),
+        mount_roll_deg=round(float(rng.uniform(-3.0, 3.0)), 1),
+        world={
+            "nx": int(rng.integers(4, 7)),
+            "ny": int(rng.integers(4, 7)),
+            "block_min": block,
+            "block_max": 2 * block,
+        },
+        drive=_DENSE_REVISITS,
+    )
+
+
+DRAWN_PRESETS = tuple(f"train-x{k:02d}" for k in range(DRAWN_TOWNS))
+PRESETS.update({key: drawn_town(k) for k, key in enumerate(DRAWN_PRESETS)})
 
 
 def preset(name: str) -> GenConfig:

@@ -25,7 +25,9 @@ and the configured maximum, so a batch always mixes clean and degraded scans.
   as the service projects it), rows it has no beam for are emptied, and so are returns
   beyond its range limits and columns its firings per turn do not reach (at a random phase).
   Row for row, the same image the service makes from that sensor's scan of the same place,
-  but for the beams' exact elevations (within half a row) and the mount.
+  but for the beams' exact elevations (within half a row) and the mount. Only scans of the
+  model's own sensor are seen so (the ``native`` mask of a batch): a scan of another sensor
+  already has its sensor's look.
 - ``far_loss``: returns lost in proportion to their range, up to this share at the model's
   maximum range (a weaker laser, a darker surface: far returns go first). Other sensors'
   renderings lose far returns so (an Ouster's markedly more than the HDL-64E's scans of
@@ -127,13 +129,20 @@ class Augmenter:
         self.azimuth = np.pi * (1 - 2 * (np.arange(self.W) + 0.5) / self.W)
         self.looks = [SensorLook(profile, s) for s in _other_sensors(cfg, profile)]
 
-    def __call__(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """(B, H, W) → float32 (B, H, W), a new array."""
+    def __call__(
+        self, images: np.ndarray, rng: np.random.Generator, native: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(B, H, W) → float32 (B, H, W), a new array. ``native``: (B,) bool, the scans of
+        the model's own sensor (None: all), the only ones ``sensor_like`` changes."""
         x = np.array(images, dtype=np.float32)
         if x.ndim != 3 or x.shape[1:] != (self.H, self.W):
             raise ValueError(f"expected range images (B, {self.H}, {self.W}), got {x.shape}")
+        own = np.ones(len(x), bool) if native is None else np.asarray(native, bool)
+        if own.shape != (len(x),):
+            raise ValueError(f"native: one flag a scan ({len(x)}), got shape {own.shape}")
         c = self.cfg
-        for img in x:  # each transform draws for every scan, so the stream never depends on data
+        for img, mine in zip(x, own, strict=True):  # each transform draws for every scan
+            # (so the stream never depends on data)
             if c.tilt_deg:
                 self._tilt(img, rng.uniform(0, c.tilt_deg), rng.uniform(0, 2 * np.pi))
             if c.sensor_like:  # drawn only when on, as beam_dropout
@@ -142,7 +151,7 @@ class Augmenter:
                     rng.integers(1 << 30),
                     rng.random(),
                 )
-                if seen and self.looks:
+                if seen and mine and self.looks:
                     self.looks[int(pick) % len(self.looks)].apply(img, phase, self.empty)
             if c.yaw_jitter:
                 frac = rng.random()

@@ -148,6 +148,17 @@ SENSORS_SEEN = {**SENSORS_PILOT, "any_sensor": False, "augment": {"sensor_like":
 SENSORS_SEEN_FAR = {**SENSORS_SEEN, "augment": {"sensor_like": 0.5, "far_loss": 0.4}}
 
 
+# Many towns: sensors-seen's budget and start on train-b and the first six drawn towns
+# (overlapmamba.synth.presets.drawn_town: VLP-16, OS0-128, XT32, OS1-128, HDL-32E and the
+# HDL-64E, on drawn mountings, heights and tilts, each town with its own pair table); the
+# model's own sensor's scans are still seen as other sensors' half of the time.
+SENSORS_TOWNS_DATA = (
+    "data/synth/train-b",
+    *(f"data/synth/train-x{k:02d}" for k in range(6)),
+)
+SENSORS_TOWNS = {**SENSORS_SEEN, "any_sensor": True}
+
+
 # One pass a scan: sensors-seen with the turn term (TURN's weight and turned scans),
 # selected on the sensor towns' validation drive and its renderings by every other sensor
 # the across-sensor bars name (train.valsensors).
@@ -262,6 +273,13 @@ PRESETS: dict[str, TrainPreset] = {
             data=SENSORS_PILOT_DATA[:1],
         ),
         TrainPreset(
+            "sensors-towns",
+            "sensors-seen's budget on train-b and six drawn towns of other sensors and mounts",
+            model=NARROW,
+            train=SENSORS_TOWNS,
+            data=SENSORS_TOWNS_DATA,
+        ),
+        TrainPreset(
             "sensors-seen-turn",
             "sensors-seen with the turn term, selected on every sensor's validation drive",
             model=NARROW,
@@ -287,7 +305,13 @@ PRESETS: dict[str, TrainPreset] = {
 }
 
 # The runs on several sensors, each also with seed 1 (its draws; the start is the same network).
-for _name in ("sensors-pilot", "sensors-pilot-control", "sensors-seen", "sensors-seen-far"):
+for _name in (
+    "sensors-pilot",
+    "sensors-pilot-control",
+    "sensors-seen",
+    "sensors-seen-far",
+    "sensors-towns",
+):
     _p = PRESETS[_name]
     PRESETS[_name + "-s1"] = TrainPreset(
         _name + "-s1", _p.description + ", seed 1", _p.model, {**_p.train, "seed": 1}, _p.data

@@ -375,12 +375,13 @@ def train(
         bar = tqdm(batches, desc=f"epoch {epoch}/{train_cfg.epochs}", disable=not progress)
         for idx in bar:
             td = time.perf_counter()
-            x = augment(images[idx], rng)
+            x = augment(images[idx], rng, images.native(idx))
             with_turns = train_cfg.turn_weight > 0
             if with_turns:  # drawn only when on: runs without the term keep their streams
                 k = train_cfg.turn_scans
                 theta = rng.uniform(-180.0, 180.0, k)
-                x = np.concatenate([x, augment(images.turned(idx[:k], theta), rng)])
+                turned = augment(images.turned(idx[:k], theta), rng, images.native(idx[:k]))
+                x = np.concatenate([x, turned])
             data_s += time.perf_counter() - td
             desc, _ = model(torch.from_numpy(x)[:, None].to(device))
             B = len(idx)

@@ -62,6 +62,10 @@ class Images:
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         return np.stack([self.parts[s][i] for s, i in self._locate(idx)])
 
+    def native(self, idx: np.ndarray) -> np.ndarray:
+        """(len(idx),) bool: which scans are of the model's own sensor."""
+        return np.array([self.inputs[s] is None for s, _ in self._locate(idx)], bool)
+
     def turned(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """The scans ``idx`` re-projected after a turn by ``theta`` degrees (the turn term)."""
         out = []
