@@ -289,3 +289,25 @@ def test_faiss_snapshot_still_reports_its_seq(tmp_path):
         m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
         snap = m.snapshot()
         assert snap["seq"] == 1 and snap["bytes"] > 0
+
+
+@pytest.mark.parametrize("kind", ["faiss", "qdrant"])
+def test_a_maps_sensor_and_mount_are_kept_across_restarts_and_fixed(kind, tmp_path):
+    from overlapmamba.core.sensors.mount import Mount
+
+    low = Mount(height=0.35, pitch_deg=2.0)
+    with opened(kind, tmp_path) as b:
+        m, created = b.create("amr", None, None, "os0-128", low)
+        assert created and m.mount == low and m.info()["mount"] == low.key()
+        plain, _ = b.create("cars", None)
+        assert plain.mount is None and plain.info()["mount"] is None
+        assert b.create("amr", None, None, None, low)[1] is False  # the same again: no change
+        assert b.create("amr", None)[0].mount == low  # naming none keeps it
+        with pytest.raises(Conflict, match=r"exists with mount 0.35,2,0, not 0.7,0,0") as err:
+            b.create("amr", None, None, None, Mount(height=0.7))
+        assert err.value.detail["mount"] == low.key()
+        with pytest.raises(Conflict, match="exists with mount none, not 0.7"):
+            b.create("cars", None, None, None, Mount(height=0.7))
+    with opened(kind, tmp_path) as b:  # a restart: the settings are the map's
+        assert b.get("amr").mount == low and b.get("amr").sensor == "os0-128"
+        assert b.get("cars").mount is None

@@ -113,8 +113,12 @@ async def test_async_client_in_process(tmp_path, encoder):
             assert "vlp16" in {x["name"] for x in (await pr.sensors())["sensors"]}
             v = await pr.describe(s0, sensor="vlp16")
             assert float(np.dot(v.vector, d.vector)) < 0.9999  # another projection
-            robots = await pr.create_map("robots", sensor="vlp16")
-            assert robots.sensor == "vlp16"
+            robots = await pr.create_map("robots", sensor="vlp16", mount=(0.7,))
+            assert robots.sensor == "vlp16" and robots.mount == {
+                "height": 0.7,
+                "pitch_deg": 0.0,
+                "roll_deg": 0.0,
+            }
             kf = await pr.insert_keyframe("robots", s0, keyframe_id="v0", timestamp=1.0)
             assert kf.sensor == "vlp16"
             q = await pr.query("robots", s0, k=1, verify=False, sensor="os1-64")
@@ -306,6 +310,8 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
 
     assert "created" in run("maps", "create", "cli-town")
     assert "sensor vlp16" in run("maps", "create", "cli-robots", "--sensor", "vlp16")
+    out = run("maps", "create", "cli-amr", "--sensor", "os0-128", "--mount", "0.35,1.5")
+    assert "sensor os0-128, mounted 0.35 m, pitch 1.5°, roll 0°" in " ".join(out.split())
     out = run("ingest", str(synthetic_seq_dir), "--map", "cli-robots", "--every", "12",
               "--sensor", "xt32")  # fmt: skip
     assert "4 new keyframes" in out

@@ -188,6 +188,60 @@ async def test_a_map_of_one_sensor_holds_and_answers_others(settings, encoder):
         assert got["sensor"] == "vlp16"
 
 
+async def test_a_map_declares_where_the_sensor_of_its_scans_sits(settings, encoder):
+    """A map made with ``mount`` takes it for every scan sent to it that names none: the
+    same keyframe as the scan sent with that mount, fixed when the map is made."""
+    s = scan(5)
+
+    async def keyframe(c, map_id: str, kid: str, query: str = "") -> np.ndarray:
+        r = await c.post(
+            f"/v1/maps/{map_id}/keyframes?keyframe_id={kid}&timestamp=1&sensor=vlp16{query}",
+            content=s.tobytes(),
+            headers=OCTET,
+        )
+        assert r.status_code == 201, r.text
+        got = await c.post(
+            f"/v1/maps/{map_id}/query?k=1&verify=false&sensor=vlp16{query}",
+            content=s.tobytes(),
+            headers=OCTET,
+        )
+        return got.json()["matches"][0]
+
+    async with running(settings, encoder) as c:
+        r = await c.put("/v1/maps/robots", json={"mount": "0.7,2.5"})
+        assert r.status_code == 201, r.text
+        assert r.json()["mount"] == {"height": 0.7, "pitch_deg": 2.5, "roll_deg": 0.0}
+        assert (await c.put("/v1/maps/cars")).json()["mount"] is None
+        mounted = await keyframe(c, "robots", "a")  # the map's mount, undeclared by the scan
+        assert mounted["distance"] < 1e-3
+        said = await keyframe(c, "cars", "b", "&mount=0.7,2.5")  # the same mount, said per scan
+        d = await c.post(
+            "/v1/descriptors?sensor=vlp16&mount=0.7,2.5", content=s.tobytes(), headers=OCTET
+        )
+        by_descriptor = await c.post(  # the keyframe is the scan described from that mount
+            "/v1/maps/robots/query", params={"k": 1}, json={"descriptor": d.json()["descriptor"]}
+        )
+        hit = by_descriptor.json()["matches"][0]
+        assert hit["keyframe_id"] == "a" and hit["distance"] < 1e-3
+        assert said["distance"] < 1e-3
+        cross = await c.post(  # the robots' keyframe, asked from the car map's scan
+            "/v1/maps/robots/query?k=1&verify=false&sensor=vlp16&mount=1.73",
+            content=s.tobytes(),
+            headers=OCTET,
+        )
+        assert cross.json()["matches"][0]["distance"] > 1e-3  # a scan's own mount wins
+        conflict = await c.put("/v1/maps/robots", json={"mount": "0.35"})
+        assert conflict.status_code == 409
+        assert conflict.json()["error"]["detail"]["mount"]["height"] == 0.7
+        assert (await c.put("/v1/maps/robots", json={"mount": "0.7,2.5,0"})).status_code == 200
+        bad = await c.put("/v1/maps/new", json={"mount": "0.7,60"})
+        assert bad.status_code == 400 and bad.json()["error"]["code"] == "bad_mount"
+        assert (await c.get("/v1/maps/new")).status_code == 404  # nothing made
+    async with running(settings, encoder) as c:  # a restart keeps it
+        got = (await c.get("/v1/maps/robots")).json()
+        assert got["mount"] == {"height": 0.7, "pitch_deg": 2.5, "roll_deg": 0.0}
+
+
 # ---- calibration travels with the model ----------------------------------------------------
 def _calibrated_copy(tmp_path, name: str, max_score: float, accept_distance: float):
     from overlapmamba.train.modelfile import with_calibration

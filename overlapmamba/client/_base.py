@@ -207,8 +207,14 @@ class Calls:
         index: str | None,
         keep_geometry: bool | None,
         sensor: str | None = None,
+        mount: str | tuple[float, ...] | None = None,
     ) -> Call:
-        settings = {"index": index, "keep_geometry": keep_geometry, "sensor": sensor}
+        settings = {
+            "index": index,
+            "keep_geometry": keep_geometry,
+            "sensor": sensor,
+            "mount": check_mount(mount),
+        }
         body = {k: v for k, v in settings.items() if v is not None} or None
         return Call(
             "PUT", f"/v1/maps/{_m(map_id)}", lambda r: MapInfo.from_json(r.json()), json=body

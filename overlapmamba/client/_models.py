@@ -25,6 +25,7 @@ class MapInfo:
     created: bool | None = None
     keep_geometry: bool = True
     sensor: str | None = None  # the sensor of scans that name none; None: the model's own
+    mount: dict[str, float] | None = None  # where it sits (height, pitch_deg, roll_deg)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> MapInfo:
@@ -37,6 +38,7 @@ class MapInfo:
             created=d.get("created"),
             keep_geometry=bool(d.get("keep_geometry", True)),
             sensor=d.get("sensor"),
+            mount=d.get("mount"),
         )
 
 

@@ -124,11 +124,15 @@ class PlaceRecognitionClient:
         index: str | None = None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
+        mount: str | tuple[float, ...] | None = None,
     ) -> MapInfo:
         """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
         answers are never verified (default: the server's, true). ``sensor``: the sensor of
-        scans sent to it that name none (default: the model's own)."""
-        return self._run(self._calls.create_map(map_id, index, keep_geometry, sensor))
+        scans sent to it that name none (default: the model's own); ``mount``
+        (``"0.35"``, ``(1.8, 5.0)``: height m, pitch °, roll °): where it sits on the scans
+        sent to it that declare none (default: none declared)."""
+        call = self._calls.create_map(map_id, index, keep_geometry, sensor, mount)
+        return self._run(call)
 
     def list_maps(self) -> list[MapInfo]:
         return self._run(self._calls.list_maps())

@@ -151,16 +151,29 @@ def maps_create(
         str | None,
         typer.Option(help="the sensor of scans that name none [default: the model's own]"),
     ] = None,
+    mount: Annotated[
+        str | None,
+        typer.Option(
+            metavar="HEIGHT[,PITCH[,ROLL]]",
+            help="where that sensor sits on scans that name no mount (m, degrees)",
+        ),
+    ] = None,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Create a map (idempotent)."""
     with _client(url, api_key) as pr:
-        m = pr.create_map(map_id, index=index, keep_geometry=geometry, sensor=sensor)
+        m = pr.create_map(map_id, index=index, keep_geometry=geometry, sensor=sensor, mount=mount)
+    where = (
+        ""
+        if m.mount is None
+        else f", mounted {m.mount['height']:g} m, pitch {m.mount['pitch_deg']:g}°, "
+        f"roll {m.mount['roll_deg']:g}°"
+    )
     out.print(
         f"map {m.map_id}: {'created' if m.created else 'exists'}, {m.keyframes} keyframes, "
         f"geometry {'kept' if m.keep_geometry else 'not kept'}, sensor "
-        f"{m.sensor or 'the model’s own'}"
+        f"{m.sensor or 'the model’s own'}{where}"
     )
 
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from overlapmamba.core.rerank import OFF
 from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.answers import (
     Answer,
     Inserted,
@@ -115,7 +116,12 @@ class PlaceService:
         return self.sensors.resolve(scan.sensor, None if m is None else m.sensor)
 
     def _input(self, scan: ScanBody, m: PlaceMap | None = None) -> SensorInput:
-        return self.sensors.input(self._sensor(scan, m), scan.mount)
+        return self.sensors.input(self._sensor(scan, m), self._mount(scan, m))
+
+    @staticmethod
+    def _mount(scan: ScanBody, m: PlaceMap | None = None) -> Mount | None:
+        """Where the scan's sensor sits: its own mount, else its map's, else none said."""
+        return scan.mount if scan.mount is not None or m is None else m.mount
 
     # ---- maps ---------------------------------------------------------------------------------
 
@@ -187,9 +193,7 @@ class PlaceService:
         """A scan into an opened map as keyframe ``keyframe_id`` (idempotent on the id)."""
         t0 = time.perf_counter()
         sensor = self._sensor(scan, m)
-        d = await self.pipeline.describe(
-            scan, self._registration(False, m), self.sensors.input(sensor, scan.mount)
-        )
+        d = await self.pipeline.describe(scan, self._registration(False, m), self._input(scan, m))
         row = await self._row(m, d, keyframe_id, obs, sensor)
         (result,) = await self.insert(m, [row], obs.robot_id)
         return Inserted(result, self._done(d.timings, t0))
@@ -414,9 +418,7 @@ class PlaceService:
         self._check_k(obs.k)
         verify = obs.verify and self.settings.verify.candidates > 0
         sensor = self._sensor(scan, m)
-        d = await self.pipeline.describe(
-            scan, self._registration(verify, m), self.sensors.input(sensor, scan.mount)
-        )
+        d = await self.pipeline.describe(scan, self._registration(verify, m), self._input(scan, m))
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
             session_id=obs.session_id,

@@ -81,11 +81,22 @@ class MapSettingsIn(_Model):
         "/v1/sensors lists them); default: the model's own. Scans of other sensors say so "
         "with their `sensor` parameter: a map holds keyframes of any sensor",
     )
+    mount: str | None = Field(
+        None,
+        max_length=64,
+        description="where the sensor of scans sent to this map that name no `mount` sits: "
+        "HEIGHT[,PITCH[,ROLL]] (m above the ground, degrees; pitch + looks down ahead, roll + "
+        "raises the left side), as the scan routes' `mount` parameter takes it; default: "
+        "none, scans taken as the model's own mount (1.73 m, level)",
+    )
 
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={
-            "examples": [{"index": "auto", "keep_geometry": True, "sensor": "os1-64"}]
+            "examples": [
+                {"index": "auto", "keep_geometry": True, "sensor": "os1-64"},
+                {"sensor": "os0-128", "mount": "0.35"},
+            ]
         },
     )
 
@@ -100,6 +111,11 @@ class MapOut(BaseModel):
     keep_geometry: bool = Field(True, description="keyframes from scans keep their geometry")
     sensor: str | None = Field(
         None, description="the sensor of scans that name none; null: the model's own"
+    )
+    mount: dict[str, float] | None = Field(
+        None,
+        description="where the sensor of scans that name no mount sits (height, pitch_deg, "
+        "roll_deg); null: none declared",
     )
     seq: int | None = Field(None, description="faiss: the store's last write sequence number")
     snapshot_seq: int | None = Field(None, description="faiss: the seq the snapshot holds")

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Body, Query, Response
 
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import check_same_settings, each_map
+from overlapmamba.service.bodies import parse_mount
 from overlapmamba.service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
 from overlapmamba.service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
 from overlapmamba.service.threads import in_thread
@@ -32,12 +33,14 @@ async def create_map(
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
     wanted = settings.sensor if settings else None
     sensor = svc.sensors.declared(wanted)  # the model's own is stored as None
+    mount = parse_mount(settings.mount if settings else None)
     m, created = await in_thread(
         svc.registry.create,
         map_id,
         settings.index if settings else None,
         settings.keep_geometry if settings else None,
         sensor,
+        mount,
     )
     if wanted is not None and sensor is None and m.sensor is not None:  # the backend saw None
         check_same_settings(m, None, wanted)

@@ -15,6 +15,7 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.domain import Filters, InsertResult, Keyframe, Match, NewKeyframe
 from overlapmamba.service.errors import Conflict, NotFound
@@ -31,9 +32,11 @@ def map_not_found(map_id: str) -> NotFound:
     )
 
 
-def check_same_settings(m: PlaceMap, keep_geometry: bool | None, sensor: str | None) -> None:
-    """Creating an existing map again: a geometry or sensor setting, when given, must match
-    (409)."""
+def check_same_settings(
+    m: PlaceMap, keep_geometry: bool | None, sensor: str | None, mount: Mount | None = None
+) -> None:
+    """Creating an existing map again: a geometry, sensor or mount setting, when given, must
+    match (409)."""
     if keep_geometry is not None and m.keep_geometry != keep_geometry:
         raise Conflict(
             f"map {m.map_id!r} exists with keep_geometry={str(m.keep_geometry).lower()}; "
@@ -48,6 +51,19 @@ def check_same_settings(m: PlaceMap, keep_geometry: bool | None, sensor: str | N
             code="map_conflict",
             sensor=m.sensor,
         )
+    if mount is not None and m.mount != mount:
+        held = "none" if m.mount is None else mount_text(m.mount)
+        raise Conflict(
+            f"map {m.map_id!r} exists with mount {held}, not {mount_text(mount)}; a map's "
+            "mount is fixed when it is created (scans from elsewhere name theirs)",
+            code="map_conflict",
+            mount=None if m.mount is None else m.mount.key(),
+        )
+
+
+def mount_text(mount: Mount) -> str:
+    """``HEIGHT,PITCH,ROLL`` as the ``mount`` parameter takes it."""
+    return f"{mount.height:g},{mount.pitch_deg:g},{mount.roll_deg:g}"
 
 
 def check_existing(rows: list[NewKeyframe], existing: dict[str, Keyframe]) -> list[NewKeyframe]:
@@ -129,6 +145,7 @@ class PlaceMap(Protocol):
     kind: str  # the index kind asked for: auto, flat (exact) or ivf (approximate)
     keep_geometry: bool  # keyframes inserted from scans keep their compact geometry
     sensor: str | None  # the sensor of scans that name none; None: the model's own
+    mount: Mount | None  # where the sensor of scans that name none sits; None: not said
 
     @property
     def count(self) -> int: ...  # live keyframes the index holds
@@ -183,6 +200,7 @@ class MapBackend(Protocol):
         kind: str | None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
+        mount: Mount | None = None,
     ) -> tuple[PlaceMap, bool]: ...
 
     def delete(self, map_id: str) -> None: ...

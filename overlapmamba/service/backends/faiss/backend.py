@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import check_same_settings, map_not_found
 from overlapmamba.service.backends.faiss.index import set_threads
 from overlapmamba.service.backends.faiss.map import FaissMap
@@ -84,6 +85,7 @@ class FaissBackend:
         kind: str | None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
+        mount: Mount | None = None,
     ) -> tuple[FaissMap, bool]:
         """Create a map, or return the existing one when each setting is None or the same."""
         check_map_id(map_id)
@@ -98,7 +100,7 @@ class FaissBackend:
                         code="map_conflict",
                         index=m.kind,
                     )
-                check_same_settings(m, keep_geometry, sensor)
+                check_same_settings(m, keep_geometry, sensor, mount)
                 return m, False
             folder = self.root / map_id
             if folder.exists():  # debris without a store (load_all skipped it): not a map
@@ -111,6 +113,7 @@ class FaissBackend:
                 kind=kind or self.settings.kind,
                 keep_geometry=True if keep_geometry is None else keep_geometry,
                 sensor=sensor,
+                mount=mount,
                 settings=self.settings,
             )
             self.maps[map_id] = m

@@ -15,6 +15,7 @@ Snapshots are written atomically (temporary file, fsync, rename, fsync of the fo
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.faiss.columns import FilterColumns
 from overlapmamba.service.backends.faiss.index import VectorIndex, ivf_lists
@@ -83,6 +85,8 @@ class FaissMap:
         self.keep_geometry: bool = store.get_meta("keep_geometry") != "false"
         # maps made before sensors were named hold the model's own sensor's scans
         self.sensor: str | None = store.get_meta("sensor")
+        mount = store.get_meta("mount")  # maps made before mounts were declared: none
+        self.mount: Mount | None = None if mount is None else Mount(**json.loads(mount))
 
     # ---- opening and snapshots --------------------------------------------------------------
 
@@ -98,6 +102,7 @@ class FaissMap:
         settings: IndexSettings,
         keep_geometry: bool = True,
         sensor: str | None = None,
+        mount: Mount | None = None,
     ) -> FaissMap:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
         # or a whole one (load_all removes the debris), never a store without its metadata.
@@ -113,6 +118,7 @@ class FaissMap:
             keep_geometry="true" if keep_geometry else "false",
             created_at=time.time(),
             **({} if sensor is None else {"sensor": sensor}),
+            **({} if mount is None else {"mount": json.dumps(mount.key())}),
         )
         store.close()  # a lingering connection would checkpoint into the file later
         os.replace(tmp, folder)
@@ -350,6 +356,7 @@ class FaissMap:
             "keyframes": keyframes,
             "keep_geometry": self.keep_geometry,
             "sensor": self.sensor,
+            "mount": None if self.mount is None else self.mount.key(),
             "seq": self.applied_seq,
             "snapshot_seq": self.snapshot_seq,
             "created_at": self.created_at,

@@ -3,7 +3,7 @@
     collection   <qdrant.collection_prefix><map_id>, Euclidean distance over unit
                  descriptors (the same L2 the FAISS backend answers with); its metadata
                  holds the map's model id, dimension, index kind, whether it keeps
-                 geometry, and its creation time
+                 geometry, its sensor and mount, and its creation time
     point id     uuid5(keyframe_id): a retried insert lands on the same point
     payload      keyframe_id, robot_id, session_id (keyword indexes), timestamp (float
                  index), pose, content_hash, created_at, the yaw features (float16,
@@ -41,6 +41,7 @@ from qdrant_client import QdrantClient, models
 from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
 from qdrant_client.http.exceptions import ResponseHandlingException, UnexpectedResponse
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import check_same_settings, map_not_found
 from overlapmamba.service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
 from overlapmamba.service.backends.qdrant.map import QdrantMap
@@ -212,6 +213,7 @@ class QdrantBackend:
         kind: str | None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
+        mount: Mount | None = None,
     ) -> tuple[QdrantMap, bool]:
         check_map_id(map_id)
         with self._create:
@@ -219,7 +221,7 @@ class QdrantBackend:
             created = m is None
             if m is None:
                 keep = True if keep_geometry is None else keep_geometry
-                self._create_collection(map_id, kind or self.index.kind, keep, sensor)
+                self._create_collection(map_id, kind or self.index.kind, keep, sensor, mount)
                 m = self._open(map_id)
                 assert m is not None
             if kind is not None and m.kind != kind:
@@ -228,12 +230,17 @@ class QdrantBackend:
                     code="map_conflict",
                     index=m.kind,
                 )
-            check_same_settings(m, keep_geometry, sensor)
+            check_same_settings(m, keep_geometry, sensor, mount)
             self._maps[map_id] = m
             return m, created
 
     def _create_collection(
-        self, map_id: str, kind: str, keep_geometry: bool, sensor: str | None
+        self,
+        map_id: str,
+        kind: str,
+        keep_geometry: bool,
+        sensor: str | None,
+        mount: Mount | None = None,
     ) -> None:
         name = self.collection(map_id)
         q = self.settings
@@ -245,6 +252,7 @@ class QdrantBackend:
             "index_kind": kind,
             "keep_geometry": keep_geometry,
             "sensor": sensor,
+            "mount": None if mount is None else mount.key(),
             "created_at": time.time(),
         }
         hnsw = models.HnswConfigDiff(m=0) if kind == "flat" else None  # exact: no graph

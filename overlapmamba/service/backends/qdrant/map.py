@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 from qdrant_client import QdrantClient, models
 
+from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.qdrant.codec import (
     CHUNK,
@@ -51,6 +52,8 @@ class QdrantMap:
         self.kind: str = str(meta["index_kind"])
         self.keep_geometry = bool(meta.get("keep_geometry", True))
         self.sensor: str | None = meta.get("sensor")
+        mount = meta.get("mount")  # collections made before mounts were declared: none
+        self.mount: Mount | None = None if mount is None else Mount(**mount)
         self.created_at = float(meta.get("created_at") or 0.0)
         self.checked = time.monotonic()
         self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
@@ -245,6 +248,7 @@ class QdrantMap:
             "keyframes": n,
             "keep_geometry": self.keep_geometry,
             "sensor": self.sensor,
+            "mount": None if self.mount is None else self.mount.key(),
             "seq": None,
             "snapshot_seq": None,
             "created_at": self.created_at,
