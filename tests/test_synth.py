@@ -373,7 +373,10 @@ def test_generate_refuses_a_non_empty_folder_and_bad_config(tmp_path):
 
 
 def test_presets_are_fixed_distinct_towns_that_plan():
-    rigs = {(c.seed, c.session, c.sensor, c.mount) for c in PRESETS.values()}
+    rigs = {
+        (c.seed, c.session, c.sensor, c.mount, c.mount_height, c.mount_pitch_deg, c.mount_roll_deg)
+        for c in PRESETS.values()
+    }
     assert len(rigs) == len(PRESETS) and PRESETS["test"].split == "test"
     tests = [c for c in PRESETS.values() if c.split == "test"]
     evals = [c for c in PRESETS.values() if c.split != "train"]
@@ -385,7 +388,8 @@ def test_presets_are_fixed_distinct_towns_that_plan():
         towns = [PRESETS[f"{split}-{name}"] for name in CATALOGUE]
         assert len({(c.seed, c.session, c.frames) for c in towns}) == 1
     planned = {}
-    drawn = set(DRAWN_PRESETS[2:])  # two of the drawn towns plan here (the rest: same code)
+    # two of the drawn towns plan here (the rest, and their level car renderings: same code)
+    drawn = {*DRAWN_PRESETS[2:], *(f"{k}-car" for k in DRAWN_PRESETS)}
     for cfg in (c for k, c in PRESETS.items() if k not in drawn):  # a drive depends on the
         # town, the session and its length
         key = (cfg.seed, cfg.session, cfg.frames, json.dumps(cfg.world), json.dumps(cfg.drive))
@@ -414,6 +418,10 @@ def test_drawn_towns_are_fixed_and_cover_every_sensor_and_mounting():
         )
         m = c.mounting()  # the drive's own height and tilt, as the generator uses them
         assert (m.height, m.pitch_deg) == (c.mount_height, c.mount_pitch_deg)
+    for k, c in enumerate(towns[:6]):  # the mounting's ablation: the same drive, on a car
+        car = PRESETS[f"train-x{k:02d}-car"]
+        assert car == drawn_town(k, mounted=False) and car.mounting() == MOUNTINGS["car"]
+        assert (car.seed, car.sensor, car.world, car.frames) == (c.seed, c.sensor, c.world, 1000)
 
 
 @pytest.mark.real_data

@@ -185,11 +185,12 @@ _SENSOR_CYCLE = (
 _HEIGHTS = {"amr": (0.25, 0.5), "backpack": (1.5, 2.0), "car": (1.5, 2.2), "robot": (0.5, 1.0)}
 
 
-def drawn_town(k: int) -> GenConfig:
+def drawn_town(k: int, mounted: bool = True) -> GenConfig:
     """Training town ``train-x{k:02d}``: its sensor (the catalogue in turn, ``_SENSOR_CYCLE``)
     and, drawn from ``k`` alone (the same index is the same town on every machine), its street
     grid, block size, mounting and the mounting's height, pitch (a backpack's 0–10° down,
-    others ±3°) and roll (±3°)."""
+    others ±3°) and roll (±3°). ``mounted=False``: the same town, sensor and drive with the
+    sensor on a car's roof, level (``train-x{k:02d}-car``: the mounting's ablation)."""
     import numpy as np
 
     from overlapmamba.core.sensors.catalogue import CATALOGUE
@@ -202,17 +203,21 @@ def drawn_town(k: int) -> GenConfig:
     low, high = _HEIGHTS[mount]
     pitch = rng.uniform(0.0, 10.0) if mount == "backpack" else rng.uniform(-3.0, 3.0)
     block = float((50, 60, 70, 80)[int(rng.integers(4))])
-    key = f"train-x{k:02d}"
+    height, roll = round(float(rng.uniform(low, high)), 2), round(float(rng.uniform(-3, 3)), 1)
+    where: dict[str, Any] = {
+        "mount": mount,
+        "mount_height": height,
+        "mount_pitch_deg": round(float(pitch), 1),
+        "mount_roll_deg": roll,
+    }
+    key = f"train-x{k:02d}" + ("" if mounted else "-car")
     return GenConfig(
         seed=7001 + k,
         frames=1000,
         preset=key,
         split="train",
         sensor=sensor,
-        mount=mount,
-        mount_height=round(float(rng.uniform(low, high)), 2),
-        mount_pitch_deg=round(float(pitch), 1),
-        mount_roll_deg=round(float(rng.uniform(-3.0, 3.0)), 1),
+        **(where if mounted else {"mount": "car"}),
         world={
             "nx": int(rng.integers(4, 7)),
             "ny": int(rng.integers(4, 7)),
@@ -225,6 +230,8 @@ def drawn_town(k: int) -> GenConfig:
 
 DRAWN_PRESETS = tuple(f"train-x{k:02d}" for k in range(DRAWN_TOWNS))
 PRESETS.update({key: drawn_town(k) for k, key in enumerate(DRAWN_PRESETS)})
+# The first six again on a car's roof, level: the same towns, sensors and drives
+PRESETS.update({f"train-x{k:02d}-car": drawn_town(k, mounted=False) for k in range(6)})
 
 
 def preset(name: str) -> GenConfig:

@@ -157,6 +157,12 @@ SENSORS_TOWNS_DATA = (
     *(f"data/synth/train-x{k:02d}" for k in range(6)),
 )
 SENSORS_TOWNS = {**SENSORS_SEEN, "any_sensor": True}
+# ... and the same towns, sensors and drives with every sensor on a car's roof, level: the
+# ablation of the drawn mountings, heights and tilts
+SENSORS_TOWNS_CAR_DATA = (
+    "data/synth/train-b",
+    *(f"data/synth/train-x{k:02d}-car" for k in range(6)),
+)
 
 
 # One pass a scan: sensors-seen with the turn term (TURN's weight and turned scans),
@@ -280,6 +286,13 @@ PRESETS: dict[str, TrainPreset] = {
             data=SENSORS_TOWNS_DATA,
         ),
         TrainPreset(
+            "sensors-towns-car",
+            "sensors-towns with every drawn town's sensor on a car's roof, level",
+            model=NARROW,
+            train=SENSORS_TOWNS,
+            data=SENSORS_TOWNS_CAR_DATA,
+        ),
+        TrainPreset(
             "sensors-seen-turn",
             "sensors-seen with the turn term, selected on every sensor's validation drive",
             model=NARROW,
@@ -311,6 +324,7 @@ for _name in (
     "sensors-seen",
     "sensors-seen-far",
     "sensors-towns",
+    "sensors-towns-car",
 ):
     _p = PRESETS[_name]
     PRESETS[_name + "-s1"] = TrainPreset(
