@@ -232,6 +232,8 @@ SENSOR_RUNS = (
     ("seen-far-s1", "`sensors-seen-far-s1` (seed 1)"),
     ("towns", "`sensors-towns`: train-b and six drawn towns of other sensors, sensor_like"),
     ("towns-s1", "`sensors-towns-s1` (seed 1)"),
+    ("towns-car", "`sensors-towns-car`: the same six towns, every sensor on a car, level"),
+    ("towns-car-s1", "`sensors-towns-car-s1` (seed 1)"),
 )
 SENSOR_QUERIES = ("kitti-hdl64", "vlp16", "os0-128", "xt32")
 QUICK = "--only test-kitti-hdl64 --no-real --no-verify --out reports/model/sensors-pilot/NAME.json"
