@@ -278,6 +278,36 @@ def sensor_runs() -> str:
     )
 
 
+MOUNT_RUNS = ("seen", "seen-s1", "towns", "towns-s1", "towns-car", "towns-car-s1")
+
+
+def sensor_runs_mounts() -> str:
+    """The runs' descriptors on the mounted test renderings, mount declared (mounts.py)."""
+    folder = "reports/model/sensors-pilot"
+    labels = dict(SENSOR_RUNS)
+    rows, head = [], ["run"]
+    for name in MOUNT_RUNS:
+        path = ROOT / folder / f"mounts-{name}.json"
+        if not path.is_file():
+            continue
+        r = json.loads(path.read_text())
+        if len(head) == 1:
+            head += [f"{x['town']}: own / the car's map" for x in r["rows"]]
+        cells = []
+        for x in r["rows"]:
+            d = x["declared"]
+            cells.append(f"{f3(d['own']['recall@1'])} / {f3(d['against_car']['recall@1'])}")
+        rows.append([labels[name], *cells])
+    cmd = "python benchmarks/mounts.py --model NAME.onnx --split test --out "
+    cmd += "reports/model/sensors-pilot/mounts-NAME.json"
+    return (
+        source(f"{folder}/mounts-NAME.json", cmd)
+        + "\nRecall@1 of the descriptor alone on the test drive's mounted renderings, mount "
+        "declared: against the rendering's own earlier scans / against the car's map.\n\n"
+        + table(head, rows)
+    )
+
+
 SENSOR_LIKE = "reports/model/sensor-like.json"
 
 
@@ -361,6 +391,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "mounts-test": mounts("test"),
     "sensor-like": sensor_like,
     "sensor-runs": sensor_runs,
+    "sensor-runs-mounts": sensor_runs_mounts,
     "model-tables": model_tables,
     "calibration": calibration,
     "service": service,
