@@ -71,9 +71,10 @@ def coordinates(xyz: np.ndarray) -> np.ndarray:
 
 
 def moved(xyz: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    """(3, N) float32 points after a 4×4 rigid transform, in float32 (one (3, 3) @ (3, N)
-    product: 17× faster than a float64 (N, 3) @ (3, 3) one, the overlap tables' largest
-    cost, and within micrometres of it over the tables' 30 m and 120 m)."""
+    """(3, N) float32 points after a 4×4 rigid transform, in float32: one (3, 3) @ (3, N)
+    product, far cheaper than the float64 (N, 3) @ (3, 3) one that was the overlap tables'
+    largest cost (benchmarks/overlap_tables.py), and within micrometres of it over the
+    tables' 30 m and 120 m."""
     t = np.asarray(transform, dtype=np.float32)
     return t[:3, :3] @ xyz + t[:3, 3:]
 

@@ -76,7 +76,7 @@ def pixel_index(xyz: np.ndarray, profile: SensorProfile) -> tuple[np.ndarray, np
     """Flat pixel (row · W + col, intp) and depth (float32) of every point of (3, N)
     float32 coordinates, out-of-range points sent to the extra pixel H · W: the placements
     of :func:`pixel_coordinates` with the same float32 operations in the same order, in
-    place and without dropping points (1.5× faster; the overlap tables' hot loop)."""
+    place and without dropping points (the overlap tables' hot loop)."""
     x, y, z = xyz
     H, W = profile.height, profile.width
     depth = x * x

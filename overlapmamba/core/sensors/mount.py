@@ -47,6 +47,10 @@ class Mount(BaseModel):
     def key(self) -> dict[str, float]:
         return self.model_dump()
 
+    def text(self) -> str:
+        """``HEIGHT,PITCH,ROLL``, as :meth:`parse` takes it."""
+        return f"{self.height:g},{self.pitch_deg:g},{self.roll_deg:g}"
+
 
 def platform_from_sensor(pitch_deg: float, roll_deg: float) -> np.ndarray | None:
     """(3, 3) rotation platform ← sensor (a level frame from the tilted sensor's), or None

@@ -52,18 +52,13 @@ def check_same_settings(
             sensor=m.sensor,
         )
     if mount is not None and m.mount != mount:
-        held = "none" if m.mount is None else mount_text(m.mount)
+        held = "none" if m.mount is None else m.mount.text()
         raise Conflict(
-            f"map {m.map_id!r} exists with mount {held}, not {mount_text(mount)}; a map's "
+            f"map {m.map_id!r} exists with mount {held}, not {mount.text()}; a map's "
             "mount is fixed when it is created (scans from elsewhere name theirs)",
             code="map_conflict",
             mount=None if m.mount is None else m.mount.key(),
         )
-
-
-def mount_text(mount: Mount) -> str:
-    """``HEIGHT,PITCH,ROLL`` as the ``mount`` parameter takes it."""
-    return f"{mount.height:g},{mount.pitch_deg:g},{mount.roll_deg:g}"
 
 
 def check_existing(rows: list[NewKeyframe], existing: dict[str, Keyframe]) -> list[NewKeyframe]:
