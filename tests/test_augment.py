@@ -198,6 +198,32 @@ def test_sensor_like_leaves_scans_of_other_sensors_alone_and_keeps_the_stream():
         aug(x, np.random.default_rng(4), np.ones(5, bool))
 
 
+def test_seen_as_other_gives_each_scan_one_other_sensors_look_and_nothing_else():
+    from overlapmamba.core.sensors.catalogue import CATALOGUE
+    from overlapmamba.train.augment import SensorLook
+
+    x = images(5)
+    aug = only(dropout=0.3)  # the sensor term needs no sensor_like, and ignores the rest
+    out = aug.seen_as_other(x, np.random.default_rng(6))
+    np.testing.assert_array_equal(out, aug.seen_as_other(x, np.random.default_rng(6)))
+    assert not np.shares_memory(out, x) and not np.array_equal(out, x)
+    others = [SensorLook(PROFILE, s) for s in CATALOGUE.values() if s.profile() != PROFILE]
+    for got, img in zip(out, x, strict=True):  # each is exactly one sensor's look at a phase
+        looks = []
+        for look in others:
+            for phase in np.linspace(0, 1, 41)[:-1]:
+                seen = img.copy()
+                look.apply(seen, phase, EMPTY)
+                looks.append(np.array_equal(seen, got))
+        assert any(looks)
+    one = only(sensor_like_names=("vlp16",)).seen_as_other(x, np.random.default_rng(0))
+    assert ((one == EMPTY).all(axis=2).sum(axis=1) >= 15).all()  # VLP-16 stops at −15°
+    with pytest.raises(ValueError, match=r"expected range images \(K, 64, 900\)"):
+        aug.seen_as_other(x[0], np.random.default_rng(0))
+    with pytest.raises(ValueError, match="no other sensor"):
+        only(sensor_like_names=("kitti-hdl64",)).seen_as_other(x, np.random.default_rng(0))
+
+
 def test_far_loss_takes_far_returns_first_and_draws_only_when_on():
     x = np.repeat(np.linspace(1, 79, PROFILE.width, dtype=np.float32)[None, None], 64, axis=1)
     x = np.repeat(x, 8, axis=0)  # range grows along each row

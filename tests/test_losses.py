@@ -200,29 +200,29 @@ def test_band_ranking_orders_neighbours_below_positives_and_nothing_else():
     assert float((-g[2] * away).sum()) > 0 and float((-g[1] * (desc[1] - desc[0])).sum()) < 0
 
 
-def test_turn_consistency_counts_moves_beyond_the_allowance_at_the_batchs_scale():
-    from overlapmamba.train.losses import batch_spread, turn_consistency
+def test_consistency_counts_moves_beyond_the_allowance_at_the_batchs_scale():
+    from overlapmamba.train.losses import batch_spread, consistency
 
     g = torch.Generator().manual_seed(0)
     desc = torch.nn.functional.normalize(torch.randn(8, 16, generator=g), dim=1)
     turned = torch.nn.functional.normalize(desc + 0.05 * torch.randn(8, 16, generator=g), dim=1)
     spread = batch_spread(desc)
     moved = (desc - turned).pow(2).sum(1) / spread  # in units of the spread
-    assert float(turn_consistency(desc, desc, spread)) == 0.0
-    full = turn_consistency(desc, turned, spread)
+    assert float(consistency(desc, desc, spread)) == 0.0
+    full = consistency(desc, turned, spread)
     assert float(full) == pytest.approx(float(moved.mean()), rel=1e-6)
     # an allowance above every move makes the term 0; one in between counts the excess only
-    assert float(turn_consistency(desc, turned, spread, float(moved.max()) + 1e-6)) == 0.0
+    assert float(consistency(desc, turned, spread, float(moved.max()) + 1e-6)) == 0.0
     mid = float(moved.median())
     expected = torch.relu(moved - mid).mean()
-    assert float(turn_consistency(desc, turned, spread, mid)) == pytest.approx(float(expected))
+    assert float(consistency(desc, turned, spread, mid)) == pytest.approx(float(expected))
     # scale-free: every descriptor gathered towards one point (distances × 0.1) costs the same
     centre = desc.mean(0)
     small, small_t = centre + 0.1 * (desc - centre), centre + 0.1 * (turned - centre)
-    gathered = turn_consistency(small, small_t, batch_spread(small), mid)
+    gathered = consistency(small, small_t, batch_spread(small), mid)
     assert float(gathered) == pytest.approx(float(expected), rel=1e-4)
     # its gradient pulls each scan towards its turned copy
     x = desc.clone().requires_grad_(True)
-    turn_consistency(x, turned, batch_spread(x)).backward()
+    consistency(x, turned, batch_spread(x)).backward()
     step = x.detach() - 0.01 * x.grad
     assert float((step - turned).pow(2).sum(1).mean()) < float((desc - turned).pow(2).sum(1).mean())

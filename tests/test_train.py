@@ -219,14 +219,16 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
 ):
     """--init MODEL.onnx: the run starts from the encoder's recovered weights (epoch 0 is
     that network, validated, its batch norm neither recalibrated nor updated after), and
-    the turn term feeds turned copies and records how far they moved; a start that does not
-    fit the run is refused with the reason."""
+    the turn term feeds turned copies and the sensor term copies seen as another sensor,
+    each recording how far they moved; a start that does not fit the run is refused with
+    the reason."""
     from overlapmamba.train.export import export_onnx
 
     straight, history = tiny_run
     model, profile, _ = load_model(straight / "epoch-002.pt")
     onnx_path = export_onnx(model, profile, tmp_path / "start.onnx", weight_format="float32").path
     turn = dict(turn_weight=1.0, turn_scans=2, epochs=1, freeze_bn=True, init=str(onnx_path))
+    turn |= {"look_weight": 1.0, "look_scans": 3}
     out = tmp_path / "continued"
     got = train([tiny_seq], tiny_val_seq, out, None, small_run(**turn), progress=False)
     f1 = history[2]["val"]["all"]["f1max"]
@@ -237,7 +239,9 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
         torch.testing.assert_close(start[key], after[key], rtol=0, atol=0)  # frozen
     assert not torch.equal(start["blocks.0.in_proj.weight"], after["blocks.0.in_proj.weight"])
     assert all(r["d_turn"] > 0 for r in got[1]["health_log"])
-    assert all(r["d_turn"] != r["d_turn"] for r in history[1]["health_log"])  # off: NaN
+    assert all(r["d_look"] > 0 for r in got[1]["health_log"])
+    for key in ("d_turn", "d_look"):
+        assert all(r[key] != r[key] for r in history[1]["health_log"])  # off: NaN
 
     with pytest.raises(ConfigError, match="set freeze_bn = true"):
         small_run(init=str(onnx_path))
@@ -431,6 +435,8 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
         ({"turn_weight": -1}, "use turn_weight ≥ 0"),
         ({"turn_allowance": 1.0}, "0 ≤ turn_allowance < 1"),
         ({"turn_scans": 17}, "more than the batch"),
+        ({"look_weight": -1}, "use look_weight ≥ 0"),
+        ({"look_scans": 0}, r"1 ≤ look_scans ≤ batch_size \(16\)"),
         ({"init": "model.bin"}, "allowed are a checkpoint"),
     ],
 )

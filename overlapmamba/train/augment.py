@@ -186,6 +186,23 @@ class Augmenter:
                     img[:, cols] = self.empty
         return x
 
+    def seen_as_other(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """(K, H, W) images of the model's own sensor → each as one other sensor (drawn
+        uniformly among ``sensor_like_names``, at a random firing phase) would see it: the
+        copies of the sensor term (``look_weight``), a new array, nothing else changed."""
+        x = np.array(images, dtype=np.float32)
+        if x.ndim != 3 or x.shape[1:] != (self.H, self.W):
+            raise ValueError(f"expected range images (K, {self.H}, {self.W}), got {x.shape}")
+        if not self.looks:
+            raise ValueError(
+                "no other sensor to see the scans as: sensor_like_names names "
+                "only the model's own sensor"
+            )
+        for img in x:
+            pick, phase = rng.integers(1 << 30), rng.random()
+            self.looks[int(pick) % len(self.looks)].apply(img, phase, self.empty)
+        return x
+
     def _tilt(self, img: np.ndarray, tilt_deg: float, axis: float) -> None:
         shift = np.rint(tilt_deg * self.rows_per_deg * np.cos(self.azimuth - axis)).astype(int)
         if not shift.any():
@@ -197,8 +214,6 @@ class Augmenter:
 
 
 def _other_sensors(cfg: AugmentConfig, profile: SensorProfile) -> list[Sensor]:
-    if not cfg.sensor_like:
-        return []
     names = cfg.sensor_like_names or tuple(sorted(CATALOGUE))
     return [CATALOGUE[n] for n in names if CATALOGUE[n].profile() != profile]
 

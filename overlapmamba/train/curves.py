@@ -26,9 +26,13 @@ def plot_curves(history: list[dict], path: Path) -> None:
     band = [math.nan if r.get("d_band") is None else r["d_band"] for r in log]
     if any(math.isfinite(x) for x in band):  # runs from before the band was logged lack it
         b.plot(steps, band, "c-", label="d_band (neighbours)")
-    turn = [math.nan if r.get("d_turn") is None else r["d_turn"] for r in log]
-    if any(math.isfinite(x) for x in turn):  # the turn term's runs
-        b.plot(steps, turn, "m-", label="d_turn (turned copy)")
+    for key, style, label in (
+        ("d_turn", "m-", "d_turn (turned copy)"),  # the turn term's runs
+        ("d_look", "y-", "d_look (as another sensor)"),  # the sensor term's runs
+    ):
+        copy = [math.nan if r.get(key) is None else r[key] for r in log]
+        if any(math.isfinite(x) for x in copy):
+            b.plot(steps, copy, style, label=label)
     b.set(xlabel="step", ylabel="squared distance", title="health", yscale="log")
     b.legend(fontsize=7, loc="upper left")
     twin = b.twinx()

@@ -16,6 +16,8 @@ Per step, from the batch's descriptors and its positive/negative pair masks:
     band_active  share of the band term's hinges that were > 0 (NaN when it is off)
     d_turn   mean squared distance between a scan and its turned copy (the turn term's;
              NaN when it is off)
+    d_look   mean squared distance between a scan and its copy seen as another sensor (the
+             sensor term's; NaN when it is off)
 
 A collapse reads as: ``active`` near 1, ``spread`` falling towards 0 and the loss sitting at
 its margin. :class:`HealthLog` keeps a record every ``every`` steps (means over those steps)
@@ -45,6 +47,7 @@ KEYS = (
     "margin",
     "band_active",
     "d_turn",
+    "d_look",
 )
 
 

@@ -196,19 +196,18 @@ def batch_spread(desc: Tensor) -> Tensor:
     return total.clamp_min(0) / max(1, B * (B - 1))
 
 
-def turn_consistency(
-    desc: Tensor, turned: Tensor, spread: Tensor, allowance: float = 0.0
-) -> Tensor:
-    """How far scans' descriptors ``desc`` (T, D) moved from those of the same scans turned
-    about z by a continuous angle ``turned`` (T, D): the mean of (squared distance ÷ the
-    batch's ``spread`` − ``allowance``)⁺, the spread with its gradient. So a turned copy
-    nearer than ``allowance`` spreads costs nothing, and gathering every descriptor towards
+def consistency(desc: Tensor, moved: Tensor, spread: Tensor, allowance: float = 0.0) -> Tensor:
+    """How far scans' descriptors ``desc`` (T, D) are from those of copies of the same scans
+    ``moved`` (T, D): turned about z by a continuous angle (the turn term) or seen as
+    another sensor sees them (the sensor term). The mean of (squared distance ÷ the
+    batch's ``spread`` − ``allowance``)⁺, the spread with its gradient. So a copy nearer
+    than ``allowance`` spreads costs nothing, and gathering every descriptor towards
     one point lowers nothing: measured with an allowance in absolute units, the run shrank
     its spread 13× within 200 steps and met a cosine bar that way (README, Training: the
     turn term). The circular network ignores whole-column turns exactly, but a fraction of a
     column re-bins every point, and training alone let that move grow."""
-    moved = (desc - turned).pow(2).sum(1) / spread.clamp_min(1e-12)
-    return torch.relu(moved - allowance).mean()
+    away = (desc - moved).pow(2).sum(1) / spread.clamp_min(1e-12)
+    return torch.relu(away - allowance).mean()
 
 
 SCALES = ("absolute", "relative", "normalised")

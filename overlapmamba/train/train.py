@@ -36,7 +36,10 @@ atomically:
 run's; with ``freeze_bn`` every batch norm stays in eval mode (no recalibration at epoch 0,
 no statistics updated after). With ``turn_weight`` > 0 each batch's first ``turn_scans``
 scans are also re-projected after a random continuous turn (and augmented like the batch),
-and :func:`~overlapmamba.train.losses.turn_consistency` joins the loss.
+and :func:`~overlapmamba.train.losses.consistency` joins the loss. With ``look_weight`` > 0,
+up to ``look_scans`` of each batch's scans of the model's own sensor are also fed as another
+catalogue sensor sees them (:meth:`~overlapmamba.train.augment.Augmenter.seen_as_other`), and
+the same measure of their distance joins the loss.
 
 **Reproducible and resumable.** The weights start from ``seed``; epoch k draws its batches,
 augmentation and shifts from generators seeded by (seed, k) alone, and the learning rate is a
@@ -65,7 +68,7 @@ from overlapmamba.train.curves import plot_curves
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
 from overlapmamba.train.health import HealthLog, batch_distances, json_safe
-from overlapmamba.train.losses import batch_spread, pair_masks, turn_consistency
+from overlapmamba.train.losses import batch_spread, consistency, pair_masks
 from overlapmamba.train.mining import HardNegatives, mine
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
 from overlapmamba.train.rangecache import cache_key, range_images
@@ -382,19 +385,31 @@ def train(
                 theta = rng.uniform(-180.0, 180.0, k)
                 turned = augment(images.turned(idx[:k], theta), rng, images.native(idx[:k]))
                 x = np.concatenate([x, turned])
+            looked_at = np.zeros(0, np.int64)
+            if train_cfg.look_weight > 0:  # drawn only when on, as the turn term
+                looked_at = np.flatnonzero(images.native(idx))[: train_cfg.look_scans]
+                looked = augment.seen_as_other(images[idx[looked_at]], rng)
+                looked = augment(looked, rng, np.zeros(len(looked_at), bool))
+                x = np.concatenate([x, looked])
             data_s += time.perf_counter() - td
             desc, _ = model(torch.from_numpy(x)[:, None].to(device))
             B = len(idx)
-            desc, turned = desc[:B], desc[B:]
+            T = len(x) - B - len(looked_at)
+            desc, turned, looked_d = desc[:B], desc[B : B + T], desc[B + T :]
             overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
             out_loss = loss_fn(desc, overlap)
             value = out_loss.value
-            d_turn = math.nan
+            d_turn = d_look = math.nan
             if with_turns:
-                value = value + train_cfg.turn_weight * turn_consistency(
-                    desc[: len(turned)], turned, batch_spread(desc), train_cfg.turn_allowance
+                value = value + train_cfg.turn_weight * consistency(
+                    desc[:T], turned, batch_spread(desc), train_cfg.turn_allowance
                 )
-                d_turn = float((desc[: len(turned)] - turned).detach().pow(2).sum(1).mean())
+                d_turn = float((desc[:T] - turned).detach().pow(2).sum(1).mean())
+            if len(looked_at):
+                value = value + train_cfg.look_weight * consistency(
+                    desc[looked_at], looked_d, batch_spread(desc)
+                )
+                d_look = float((desc[looked_at] - looked_d).detach().pow(2).sum(1).mean())
             opt.zero_grad(set_to_none=True)
             value.backward()
             opt.step()
@@ -404,6 +419,7 @@ def train(
                 {
                     "loss": value.item(),
                     "d_turn": d_turn,
+                    "d_look": d_look,
                     "active": out_loss.active,
                     "margin": out_loss.margin,
                     "band_active": out_loss.band_active,

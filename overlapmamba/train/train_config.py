@@ -88,7 +88,7 @@ class TrainConfig(Config):
     val_sensors: list[str] = Field(default_factory=list)
     select_on: str = "val"
     augment: dict = Field(default_factory=dict)  # AugmentConfig overrides
-    # Turn consistency (losses.turn_consistency): the first turn_scans scans of each batch are
+    # Turn consistency (losses.consistency): the first turn_scans scans of each batch are
     # also fed turned about z by a random continuous angle (re-projected from their points,
     # then augmented like the batch),
     # and turn_weight × their squared distance to the unturned scan, in units of the batch's
@@ -97,6 +97,13 @@ class TrainConfig(Config):
     turn_weight: float = 0.0
     turn_scans: int = 4
     turn_allowance: float = 0.0
+    # Sensor consistency (losses.consistency, the same measure): up to look_scans scans of
+    # the model's own sensor in each batch are also fed as another catalogue sensor sees
+    # them (augment.Augmenter.seen_as_other, then augmented like the batch), and
+    # look_weight × their squared distance to the scan as the batch has it, in units of the
+    # batch's spread, joins the loss (0: off, and nothing is drawn for it).
+    look_weight: float = 0.0
+    look_scans: int = 4
     # Start from a trained network instead of the seed's weights: a checkpoint (.pt) or an
     # exported encoder (.onnx, weights recovered exactly: overlapmamba.train.recover), relative to
     # the repository root unless it exists from here. freeze_bn keeps every batch norm in
@@ -164,6 +171,12 @@ class TrainConfig(Config):
             raise ConfigError(
                 f"turn_scans {self.turn_scans} is more than the batch ({self.batch_size}): "
                 "turned copies are taken from the batch's own scans"
+            )
+        if self.look_weight < 0 or not 1 <= self.look_scans <= self.batch_size:
+            raise ConfigError(
+                f"look_weight {self.look_weight} / look_scans {self.look_scans} are not "
+                f"allowed: use look_weight ≥ 0 and 1 ≤ look_scans ≤ batch_size "
+                f"({self.batch_size}): the copies are of the batch's own scans"
             )
         if self.init.endswith(".onnx") and not self.freeze_bn:
             raise ConfigError(
