@@ -228,6 +228,8 @@ SENSOR_RUNS = (
     ("control-s1", "`sensors-pilot-control-s1` (seed 1)"),
     ("seen", "`sensors-seen`: train-b alone, sensor_like"),
     ("seen-s1", "`sensors-seen-s1` (seed 1)"),
+    ("seen-look", "`sensors-seen-look`: sensor_like and the sensor term"),
+    ("seen-look-s1", "`sensors-seen-look-s1` (seed 1)"),
     ("seen-far", "`sensors-seen-far`: sensor_like and far_loss"),
     ("seen-far-s1", "`sensors-seen-far-s1` (seed 1)"),
     ("towns", "`sensors-towns`: train-b and six drawn towns of other sensors, sensor_like"),
@@ -309,6 +311,37 @@ def sensor_runs_mounts() -> str:
         "declared: against the rendering's own earlier scans / against the car's map.\n\n"
         + table(head, rows)
     )
+
+
+ALIGN_RUNS = ("shipped-1view", "seen-look")
+
+
+def sensor_align() -> str:
+    """Per-sensor calibration of the descriptors (benchmarks/sensor_align.py), per network."""
+    folder = "reports/model/sensors-pilot"
+    labels = dict(SENSOR_RUNS)
+    rows = []
+    for name in ALIGN_RUNS:
+        path = ROOT / folder / f"align-{name}.json"
+        if not path.is_file():
+            continue
+        for x in json.loads(path.read_text())["rows"]:
+            cells = [f"{f3(x[h]['test']['ar@1'])} / {f3(x[h]['test']['ar@5'])}" for h in HOWS]
+            rows.append([labels[name], x["sensor"], *cells, f"{x['ridge']:g}"])
+    head = ["network", "queries", "raw", "shift (means)", "linear (ridge)", "ridge (on val)"]
+    cmd = "python benchmarks/sensor_align.py --model NAME.onnx --out "
+    cmd += f"{folder}/align-NAME.json"
+    return (
+        source(f"{folder}/align-NAME.json", cmd)
+        + "\nThe second test drive of each sensor against the model sensor's map of the first "
+        "(`test-kitti-hdl64`), AR@1 / AR@5 of the descriptor alone (a hit within 5 m), each "
+        "query's descriptor taken raw, shifted by the two sensors' validation means, or "
+        "mapped linearly; fitted on the validation renderings, the ridge weight chosen there."
+        "\n\n" + table(head, rows)
+    )
+
+
+HOWS = ("raw", "shift", "linear")
 
 
 SENSOR_LIKE = "reports/model/sensor-like.json"
@@ -395,6 +428,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sensor-like": sensor_like,
     "sensor-runs": sensor_runs,
     "sensor-runs-mounts": sensor_runs_mounts,
+    "sensor-align": sensor_align,
     "model-tables": model_tables,
     "calibration": calibration,
     "service": service,

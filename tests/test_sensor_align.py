@@ -1,0 +1,44 @@
+"""benchmarks/sensor_align.py: the per-sensor maps of descriptors into the model sensor's."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def align():
+    sys.path.insert(0, str(BENCH))
+    try:
+        import sensor_align
+    finally:
+        sys.path.remove(str(BENCH))
+    return sensor_align
+
+
+def places(rng: np.random.Generator, n: int, dim: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Unit descriptors of n places along a drive (positions 10 m apart), crowded in a cone
+    as a trained network's are."""
+    d = rng.normal(size=(n, dim)) * 0.2 + np.eye(dim)[0]
+    pos = np.column_stack([np.arange(n) * 10.0, np.zeros(n), np.zeros(n)])
+    return d / np.linalg.norm(d, axis=1, keepdims=True), pos
+
+
+def test_shift_undoes_a_sensors_offset_and_linear_its_mixing(align):
+    rng = np.random.default_rng(0)
+    model, pos = places(rng, 200)
+    offset = rng.normal(size=16) * 0.5
+    shifted = model + offset  # a sensor whose descriptors sit elsewhere by one vector
+    mixed = (model - model.mean(0)) @ np.linalg.qr(rng.normal(size=(16, 16)))[0] + offset
+    raw = align.recall(model, pos, shifted, pos)["ar@1"]
+    assert raw < 0.5
+    assert align.recall(model, pos, align.fit(shifted, model, "shift")(shifted), pos)["ar@1"] == 1
+    assert align.recall(model, pos, align.fit(mixed, model, "shift")(mixed), pos)["ar@1"] < 0.5
+    back = align.fit(mixed, model, "linear", 1e-6)
+    np.testing.assert_allclose(back(mixed), model, atol=1e-6)
+    assert align.fit(model, model, "raw")(shifted) is shifted
