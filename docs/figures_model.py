@@ -314,6 +314,7 @@ def sensor_runs_mounts() -> str:
 
 
 ALIGN_RUNS = ("shipped-1view", "seen-look")
+HOWS = ("raw", "shift", "linear")
 
 
 def sensor_align() -> str:
@@ -339,9 +340,6 @@ def sensor_align() -> str:
         "mapped linearly; fitted on the validation renderings, the ridge weight chosen there."
         "\n\n" + table(head, rows)
     )
-
-
-HOWS = ("raw", "shift", "linear")
 
 
 SENSOR_LIKE = "reports/model/sensor-like.json"

@@ -571,3 +571,43 @@ def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):
             assert ov[g, g + 3] <= 0.1 and ov[g, g + 1] > 0.3
     with pytest.raises(ConfigError, match="0 ≤ hard_negatives ≤ 1"):
         TrainConfig(hard_negatives=1.5)
+
+
+def test_batch_copies_take_only_the_model_sensors_scans_and_draw_only_when_on():
+    """The sensor term's copies are of the batch's scans of the model's own sensor (their
+    places in the batch returned), none when it has none; nothing is drawn for a term
+    that is off."""
+    from overlapmamba.core.sensors import get_profile
+    from overlapmamba.train.augment import AugmentConfig, Augmenter
+    from overlapmamba.train.train_inputs import batch_copies
+
+    profile = get_profile("kitti-hdl64")
+    rng0 = np.random.default_rng(0)
+    scans = rng0.uniform(5, 60, (6, profile.height, profile.width)).astype(np.float32)
+
+    class Batch:  # the three things batch_copies reads of train_inputs.Images
+        def __init__(self, native):
+            self.parts = [scans]
+            self.flags = np.asarray(native, bool)
+
+        def __getitem__(self, idx):
+            return scans[idx]
+
+        def native(self, idx):
+            return self.flags[idx]
+
+    aug = Augmenter(AugmentConfig.none(), profile, circular=True)
+    idx = np.array([5, 4, 3, 2, 1, 0])
+    mixed = Batch([True, False, True, False, False, True])  # scans 0, 2 and 5: its own
+    turned, at, looked = batch_copies(mixed, idx, np.random.default_rng(1), aug, 0, 2)
+    assert turned.shape == (0, profile.height, profile.width)
+    np.testing.assert_array_equal(at, [0, 3])  # scans 5 and 2: the first two of its own
+    assert looked.shape == (2, profile.height, profile.width)
+    for copy, scan in zip(looked, scans[idx[at]], strict=True):  # its rows, some emptied
+        kept = copy != profile.empty_value
+        assert kept.any() and (~kept).any() and np.isin(copy[kept], scan).all()
+    _, at, looked = batch_copies(Batch([False] * 6), idx, np.random.default_rng(1), aug, 0, 2)
+    assert len(at) == 0 and len(looked) == 0  # none of the model's sensor: no copies
+    rng = np.random.default_rng(2)
+    batch_copies(mixed, idx, rng, aug, 0, 0)
+    assert rng.random() == np.random.default_rng(2).random()  # both off: nothing drawn

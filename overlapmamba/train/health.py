@@ -140,3 +140,38 @@ def json_safe(obj: Any) -> Any:
     if isinstance(obj, list | tuple):
         return [json_safe(v) for v in obj]
     return obj
+
+
+def epoch_line(entry: dict[str, Any], start: str) -> str:
+    """The line a run prints after an epoch: its training health (epoch 0: where it
+    started), the copies' distances, validation, the real-scan turn check and the
+    renderings of other sensors."""
+    v, h = entry["val"], entry.get("health")
+    trained = (
+        f"loss {entry['loss']:.4f}, {entry['scans_per_s']:.2f} scans/s, d(q,p) "
+        f"{h['d_pos']:.4f} d(q,n) {h['d_neg']:.4f} spread {h['spread']:.4f} "
+        f"separation {h['separation']:.2f} active {h['active']:.0%}; "
+        if h
+        else f"start: {start}; "
+    )
+    for key, what in (("d_turn", "turned copy"), ("d_look", "as another sensor")):
+        if h and not math.isnan(h.get(key, math.nan)):
+            trained += f"{what} {h[key]:.5f}; "
+    real = entry.get("real")
+    rest = (
+        f"; real scans: turned copy {real['turned_over_one_metre_step']:.2f}× a 1 m step, "
+        f"min cosine {real['cosine_min']:.5f}"
+        if real
+        else ""
+    )
+    for name, got in (entry.get("val_sensors") or {}).items():
+        own, cross = got["own"]["all"], got["cross"]["all"]
+        rest += (
+            f"; {name} F1max {own['f1max']:.3f}, against the val scans "
+            f"{cross['f1max']:.3f} (R@1 {cross['recall@1']:.3f})"
+        )
+    return (
+        f"epoch {entry['epoch']}: {trained}val F1max {v['all']['f1max']:.3f} (same "
+        f"{v['same']['f1max']:.3f}, reverse {v['reverse']['f1max']:.3f}), "
+        f"R@1 {v['all']['recall@1']:.3f}{rest}"
+    )

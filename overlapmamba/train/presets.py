@@ -38,7 +38,8 @@ otherwise.
   ``beam_dropout``. ``sensors-seen-far`` adds ``far_loss`` (far returns lost first, as the
   other sensors' renderings lose them); ``sensors-seen-look`` adds the sensor term (each
   batch's scans pulled towards their copies seen as another sensor, ``look_weight``;
-  ``sensors-seen-look-light`` at 0.3). Each has a ``-s1`` twin: the same with seed 1.
+  ``sensors-seen-look-light`` at 0.3). Each but the last has a ``-s1`` twin: the same with
+  seed 1.
   ``sensors-seen-turn`` adds the turn term (one pass a scan) and validates on
   ``val-kitti-hdl64`` and its renderings by five other sensors, keeping the epoch with the
   best mean over them all (``select_on = "sensors"``).
@@ -147,10 +148,9 @@ SENSORS_PILOT = {
 # another catalogue sensor would see them (augment.SensorLook) instead of losing rows at random.
 SENSORS_SEEN = {**SENSORS_PILOT, "any_sensor": False, "augment": {"sensor_like": 0.5}}
 # ... and the sensor term: 8 scans a batch also seen as another sensor, their distance to
-# the batch's copy joining the loss at weight 1 (the loss's own scale: a copy as far as the
-# shipped network puts another sensor's scan of the place, cosine ≈ 0.8, costs ≈ 0.4 spreads).
+# the batch's copy joining the loss at weight 1, as the ranking loss itself
 SENSORS_SEEN_LOOK = {**SENSORS_SEEN, "look_weight": 1.0, "look_scans": 8}
-# ... at a third of that weight (at weight 1 the spread shrank epoch by epoch)
+# ... at a third of that weight
 SENSORS_SEEN_LOOK_LIGHT = {**SENSORS_SEEN_LOOK, "look_weight": 0.3}
 # ... and far returns lost as other sensors lose them (augment: far_loss).
 SENSORS_SEEN_FAR = {**SENSORS_SEEN, "augment": {"sensor_like": 0.5, "far_loss": 0.4}}

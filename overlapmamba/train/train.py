@@ -34,12 +34,10 @@ atomically:
 **A trained start** (``init``): a checkpoint or an exported encoder
 (:mod:`overlapmamba.train.recover`) replaces the seed's weights, and its network config is the
 run's; with ``freeze_bn`` every batch norm stays in eval mode (no recalibration at epoch 0,
-no statistics updated after). With ``turn_weight`` > 0 each batch's first ``turn_scans``
-scans are also re-projected after a random continuous turn (and augmented like the batch),
-and :func:`~overlapmamba.train.losses.consistency` joins the loss. With ``look_weight`` > 0,
-up to ``look_scans`` of each batch's scans of the model's own sensor are also fed as another
-catalogue sensor sees them (:meth:`~overlapmamba.train.augment.Augmenter.seen_as_other`), and
-the same measure of their distance joins the loss.
+no statistics updated after). With ``turn_weight`` or ``look_weight`` > 0, copies of some
+of each batch's scans, turned or seen as another sensor
+(:func:`~overlapmamba.train.train_inputs.batch_copies`), are fed too, and
+:func:`~overlapmamba.train.losses.consistency` of each scan and its copy joins the loss.
 
 **Reproducible and resumable.** The weights start from ``seed``; epoch k draws its batches,
 augmentation and shifts from generators seeded by (seed, k) alone, and the learning rate is a
@@ -67,7 +65,7 @@ from overlapmamba.train.checkpoint import read_checkpoint, save_checkpoint
 from overlapmamba.train.curves import plot_curves
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
-from overlapmamba.train.health import HealthLog, batch_distances, json_safe
+from overlapmamba.train.health import HealthLog, batch_distances, epoch_line, json_safe
 from overlapmamba.train.losses import batch_spread, consistency, pair_masks
 from overlapmamba.train.mining import HardNegatives, mine
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
@@ -78,6 +76,7 @@ from overlapmamba.train.realscans import (
 from overlapmamba.train.train_config import SCHEDULE, TrainConfig, load_config_file
 from overlapmamba.train.train_inputs import (
     Images,
+    batch_copies,
     model_profile,
     open_split,
     real_turn_scans,
@@ -184,6 +183,11 @@ def train(
         ),
     )
     augment = Augmenter(train_cfg.augment_config(), profile, model_cfg.circular)
+    if train_cfg.look_weight > 0 and not augment.looks:
+        raise ConfigError(
+            "look_weight > 0 needs another sensor to see scans as: augment.sensor_like_names "
+            f"names only the model's own ({profile.name})"
+        )
     steps_per_epoch = sampler.steps(train_cfg.epoch_scans)
 
     torch.manual_seed(train_cfg.seed)
@@ -285,34 +289,7 @@ def train(
         tmp.replace(out / "metrics.json")
         plot_curves(history, out / "curves.png")
         if progress:
-            v, h = val_metrics, entry.get("health")
-            trained = (
-                f"loss {entry['loss']:.4f}, {entry['scans_per_s']:.2f} scans/s, d(q,p) "
-                f"{h['d_pos']:.4f} d(q,n) {h['d_neg']:.4f} spread {h['spread']:.4f} "
-                f"separation {h['separation']:.2f} active {h['active']:.0%}; "
-                if h
-                else f"start: {start}; "
-            )
-            if h and not math.isnan(h.get("d_turn", math.nan)):
-                trained += f"turned copy {h['d_turn']:.5f}; "
-            real = entry.get("real")
-            turn = (
-                f"; real scans: turned copy {real['turned_over_one_metre_step']:.2f}× a 1 m step, "
-                f"min cosine {real['cosine_min']:.5f}"
-                if real
-                else ""
-            )
-            for name, got in (entry.get("val_sensors") or {}).items():
-                own, cross = got["own"]["all"], got["cross"]["all"]
-                turn += (
-                    f"; {name} F1max {own['f1max']:.3f}, against the val scans "
-                    f"{cross['f1max']:.3f} (R@1 {cross['recall@1']:.3f})"
-                )
-            tqdm.write(
-                f"epoch {epoch}: {trained}val F1max {v['all']['f1max']:.3f} (same "
-                f"{v['same']['f1max']:.3f}, reverse {v['reverse']['f1max']:.3f}), "
-                f"R@1 {v['all']['recall@1']:.3f}{turn}"
-            )
+            tqdm.write(epoch_line(entry, start))
 
     if not history and (train_cfg.recalibrate_batches or train_cfg.init):
         # Epoch 0: the initial weights, validated like every epoch; fresh ones with
@@ -379,32 +356,23 @@ def train(
         for idx in bar:
             td = time.perf_counter()
             x = augment(images[idx], rng, images.native(idx))
-            with_turns = train_cfg.turn_weight > 0
-            if with_turns:  # drawn only when on: runs without the term keep their streams
-                k = train_cfg.turn_scans
-                theta = rng.uniform(-180.0, 180.0, k)
-                turned = augment(images.turned(idx[:k], theta), rng, images.native(idx[:k]))
-                x = np.concatenate([x, turned])
-            looked_at = np.zeros(0, np.int64)
-            if train_cfg.look_weight > 0:  # drawn only when on, as the turn term
-                looked_at = np.flatnonzero(images.native(idx))[: train_cfg.look_scans]
-                looked = augment.seen_as_other(images[idx[looked_at]], rng)
-                looked = augment(looked, rng, np.zeros(len(looked_at), bool))
-                x = np.concatenate([x, looked])
+            turn_k = train_cfg.turn_scans if train_cfg.turn_weight > 0 else 0
+            look_k = train_cfg.look_scans if train_cfg.look_weight > 0 else 0
+            turned, looked_at, looked = batch_copies(images, idx, rng, augment, turn_k, look_k)
+            x = np.concatenate([x, turned, looked])
             data_s += time.perf_counter() - td
             desc, _ = model(torch.from_numpy(x)[:, None].to(device))
-            B = len(idx)
-            T = len(x) - B - len(looked_at)
-            desc, turned, looked_d = desc[:B], desc[B : B + T], desc[B + T :]
+            B, T = len(idx), len(turned)
+            desc, turned_d, looked_d = desc[:B], desc[B : B + T], desc[B + T :]
             overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
             out_loss = loss_fn(desc, overlap)
             value = out_loss.value
             d_turn = d_look = math.nan
-            if with_turns:
+            if T:
                 value = value + train_cfg.turn_weight * consistency(
-                    desc[:T], turned, batch_spread(desc), train_cfg.turn_allowance
+                    desc[:T], turned_d, batch_spread(desc), train_cfg.turn_allowance
                 )
-                d_turn = float((desc[:T] - turned).detach().pow(2).sum(1).mean())
+                d_turn = float((desc[:T] - turned_d).detach().pow(2).sum(1).mean())
             if len(looked_at):
                 value = value + train_cfg.look_weight * consistency(
                     desc[looked_at], looked_d, batch_spread(desc)

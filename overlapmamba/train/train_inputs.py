@@ -1,7 +1,8 @@
 """What a training run starts from: its sequences (never a test split, always the model's
-sensor), their range images behind global scan indices, the network and weights of a trained
-start (``init``: a checkpoint or an exported encoder), and the real scans of the per-epoch
-turn check. :func:`overlapmamba.train.train.train` runs the epochs."""
+sensor), their range images behind global scan indices, the copies of a batch's scans the
+turn and sensor terms compare them with, the network and weights of a trained start
+(``init``: a checkpoint or an exported encoder), and the real scans of the per-epoch turn
+check. :func:`overlapmamba.train.train.train` runs the epochs."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.modelmeta import EncoderMetadata
 from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
 from overlapmamba.core.sensors.input import Mode, SensorInput
+from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.checkpoint import read_checkpoint
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.model import OverlapMambaConfig
@@ -160,6 +162,40 @@ def start_weights(train_cfg: TrainConfig, progress: bool) -> dict[str, torch.Ten
             )
         return model.state_dict()
     return read_checkpoint(path)["state_dict"]
+
+
+def batch_copies(
+    images: Images,
+    idx: np.ndarray,
+    rng: np.random.Generator,
+    augment: Augmenter,
+    turn_scans: int,
+    look_scans: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The copies a batch ``idx`` is compared with → (turned, looked_at, looked):
+
+    - ``turned``: its first ``turn_scans`` scans re-projected after a random continuous
+      turn, then augmented like the batch (0: none, and nothing drawn);
+    - ``looked``: its first ``look_scans`` scans of the model's own sensor (their places in
+      the batch: ``looked_at``) as another catalogue sensor sees them, then augmented like
+      the batch but for ``sensor_like`` (0: none, and nothing drawn). How many draws these
+      take depends on how many of the batch's scans are the model sensor's, which the batch
+      (and so the epoch's generator) fixes: ``--resume`` stays exact.
+    """
+    shape = (0, *images.parts[0].shape[1:])
+    turned = looked = np.zeros(shape, np.float32)
+    if turn_scans:
+        theta = rng.uniform(-180.0, 180.0, turn_scans)
+        turned = augment(
+            images.turned(idx[:turn_scans], theta), rng, images.native(idx[:turn_scans])
+        )
+    looked_at = np.zeros(0, np.int64)
+    if look_scans:
+        looked_at = np.flatnonzero(images.native(idx))[:look_scans]
+        if len(looked_at):
+            seen = augment.seen_as_other(images[idx[looked_at]], rng)
+            looked = augment(seen, rng, np.zeros(len(looked_at), bool))
+    return turned, looked_at, looked
 
 
 def real_turn_scans(path: Path | None, profile: SensorProfile, progress: bool) -> RealTurns | None:
