@@ -230,6 +230,7 @@ SENSOR_RUNS = (
     ("seen-s1", "`sensors-seen-s1` (seed 1)"),
     ("seen-look", "`sensors-seen-look`: sensor_like and the sensor term"),
     ("seen-look-s1", "`sensors-seen-look-s1` (seed 1)"),
+    ("seen-look-light", "`sensors-seen-look-light`: the sensor term at weight 0.3"),
     ("seen-far", "`sensors-seen-far`: sensor_like and far_loss"),
     ("seen-far-s1", "`sensors-seen-far-s1` (seed 1)"),
     ("towns", "`sensors-towns`: train-b and six drawn towns of other sensors, sensor_like"),
