@@ -6,6 +6,10 @@ The reference configuration (18.1 M parameters, three scan directions, convLast2
 in the same run so their ratio is fair. Prints a table and writes JSON
 (default reports/model/training.json).
 
+Each backend is timed with the convolutions' weights channels-last (what ``overlapmamba
+train`` runs: ``overlapmamba.train.model.channels_last``) and, for the ratio, in PyTorch's
+default layout (``--layouts``), in the same run.
+
 ``--width narrow`` times the shipped width instead (``overlapmamba.train.presets.NARROW``), and
 ``--device cuda`` a GPU (the ``chunked`` backend: the C kernel is the CPU's), synchronising
 before each step's clock stops.
@@ -31,7 +35,7 @@ from reports_kit import REPORTS, write_report
 from overlapmamba.core.sensors import get_profile
 from overlapmamba.train.augment import ROBUST, AugmentConfig, Augmenter
 from overlapmamba.train.losses import batch_hard_imtrihard
-from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 from overlapmamba.train.presets import NARROW
 from overlapmamba.train.runtime import reexec_with_hugepages
 
@@ -53,14 +57,22 @@ def images(n: int) -> tuple[torch.Tensor, str]:
 
 
 WIDTHS = {"reference": {}, "narrow": NARROW}
+LAYOUTS = ("channels-last", "contiguous")
 
 
 def step_times(
-    backend: str, x: torch.Tensor, steps: int, width: str = "reference", device: str = "cpu"
+    backend: str,
+    x: torch.Tensor,
+    steps: int,
+    width: str = "reference",
+    device: str = "cpu",
+    layout: str = "channels-last",
 ) -> np.ndarray:
     torch.manual_seed(0)
     cfg = OverlapMambaConfig(**WIDTHS[width], scan_backend=backend)
     model = OverlapMamba(cfg).to(device).train()
+    if layout == "channels-last":
+        model = channels_last(model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     B = len(x)
     x = x.to(device)
@@ -89,6 +101,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--backends", nargs="+", default=None, help="default: fused chunked (CPU)")
     ap.add_argument("--width", choices=sorted(WIDTHS), default="reference")
+    ap.add_argument(
+        "--layouts",
+        nargs="+",
+        choices=LAYOUTS,
+        default=list(LAYOUTS),
+        help="the convolutions' weight layouts to time (the first is what training runs)",
+    )
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     ap.add_argument("--json", type=Path, default=REPORTS / "model" / "training.json")
     args = ap.parse_args()
@@ -102,17 +121,19 @@ def main() -> None:
     x, source = images(args.batch)
     rows = []
     for backend in args.backends:
-        t = step_times(backend, x, args.steps, args.width, args.device)
-        med = float(np.median(t))
-        rows.append(
-            {
-                "backend": backend,
-                "step_median_s": med,
-                "step_p90_s": float(np.percentile(t, 90)),
-                "scans_per_s": args.batch / med,
-                "epoch_2000_scans_s": 2000 * med / args.batch,
-            }
-        )
+        for layout in args.layouts:
+            t = step_times(backend, x, args.steps, args.width, args.device, layout)
+            med = float(np.median(t))
+            rows.append(
+                {
+                    "backend": backend,
+                    "layout": layout,
+                    "step_median_s": med,
+                    "step_p90_s": float(np.percentile(t, 90)),
+                    "scans_per_s": args.batch / med,
+                    "epoch_2000_scans_s": 2000 * med / args.batch,
+                }
+            )
     base = rows[0]["scans_per_s"]
     augment = Augmenter(AugmentConfig(**ROBUST), get_profile("kitti-hdl64"), circular=True)
     rng = np.random.default_rng(0)
@@ -133,17 +154,18 @@ def main() -> None:
         f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '') or 'unset'}"
     )
     print(
-        f"{'scan backend':<14}{'step (median)':>15}{'p90':>9}{'scans/s':>10}"
+        f"{'scan backend':<14}{'layout':<15}{'step (median)':>15}{'p90':>9}{'scans/s':>10}"
         f"{'2,000-scan epoch':>18}{'vs first':>10}"
     )
     for r in rows:
         print(
-            f"{r['backend']:<14}{r['step_median_s']:>13.2f} s{r['step_p90_s']:>7.2f} s"
+            f"{r['backend']:<14}{r['layout']:<15}"
+            f"{r['step_median_s']:>13.2f} s{r['step_p90_s']:>7.2f} s"
             f"{r['scans_per_s']:>10.2f}{r['epoch_2000_scans_s']:>16.0f} s"
             f"{r['scans_per_s'] / base:>9.2f}×"
         )
     print(
-        f"{'augmentation':<14}{aug_s * 1000:>12.1f} ms   (the ROBUST set, on the batch above: "
+        f"{'augmentation':<29}{aug_s * 1000:>12.1f} ms   (the ROBUST set, on the batch above: "
         f"{augment_row['share_of_first_backend_step']:.1%} of a {rows[0]['backend']} step)"
     )
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -391,6 +391,32 @@ def mounts(split: str) -> Callable[[], str]:
     return render
 
 
+TRAINING_SPEED = "reports/model/training-narrow.json"
+
+
+def training_speed() -> str:
+    """One training step of the shipped width per scan backend and weight layout, one run."""
+    r = load(TRAINING_SPEED)
+    base = r["rows"][0]["scans_per_s"]
+    rows = [
+        [
+            x["backend"],
+            x.get("layout", "contiguous"),
+            f"{x['step_median_s']:.2f} s",
+            f"{x['scans_per_s']:.1f}",
+            f"{x['scans_per_s'] / base:.2f}×",
+        ]
+        for x in r["rows"]
+    ]
+    head = ["scan backend", "weight layout", "step (median)", "scans/s", "vs first"]
+    return (
+        source(TRAINING_SPEED, r["command"], when(r))
+        + f"\nBatch {r['batch']}, {r['width']} width, {r['threads']} threads, {r['source']}, "
+        f"{r['steps']} timed steps each.\n\n"
+        + table(head, rows)
+    )
+
+
 # ---- synthetic data ------------------------------------------------------------------------
 OVERLAP_TABLES = "reports/synthetic/overlap_tables.json"
 
@@ -422,6 +448,7 @@ def overlap_tables() -> str:
 
 RENDERERS: dict[str, Callable[[], str]] = {
     "overlap-tables": overlap_tables,
+    "training-speed": training_speed,
     "mounts-val": mounts("val"),
     "mounts-test": mounts("test"),
     "sensor-like": sensor_like,

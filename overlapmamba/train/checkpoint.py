@@ -30,7 +30,7 @@ from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.sensors import SensorProfile, get_sensor, sensor_of_profile
 from overlapmamba.core.sensors.input import Mode, SensorInput
 from overlapmamba.train.errors import CheckpointError
-from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 
 FORMAT = "overlapmamba-checkpoint"
 VERSION = 1
@@ -142,7 +142,7 @@ def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]
     ckpt = read_checkpoint(path)
     try:
         cfg = OverlapMambaConfig.from_dict(ckpt["model_config"])
-        model = OverlapMamba(cfg)
+        model = channels_last(OverlapMamba(cfg))
         model.load_state_dict(ckpt["state_dict"])
         profile = SensorProfile.model_validate(ckpt["profile"])
     except (KeyError, ValueError, RuntimeError) as err:

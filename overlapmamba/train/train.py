@@ -68,7 +68,7 @@ from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, 
 from overlapmamba.train.health import HealthLog, batch_distances, epoch_line, json_safe
 from overlapmamba.train.losses import batch_spread, consistency, pair_masks
 from overlapmamba.train.mining import HardNegatives, mine
-from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 from overlapmamba.train.rangecache import cache_key, range_images
 from overlapmamba.train.realscans import (
     invariance,
@@ -194,7 +194,7 @@ def train(
     model = OverlapMamba(model_cfg)
     if state is None and train_cfg.init:
         model.load_state_dict(start_weights(train_cfg, progress))
-    model = model.to(device)
+    model = channels_last(model.to(device))
     opt = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda step: train_cfg.lr_factor(step, steps_per_epoch)
