@@ -154,7 +154,7 @@ def across(
     for start in range(0, len(qs), 8):
         pts = [qs.points(i) for i in range(start, min(len(qs), start + 8))]
         d, y = enc.encode(np.stack([enc.project(p, inp) for p in pts]))
-        descs.append(d)
+        descs.append(enc.to_model_space(d, inp))  # as the service answers
         yaws.append(y)
     desc_q, yaw_q = np.concatenate(descs), np.concatenate(yaws)
     pos_db, pos_q = town_positions(ds), town_positions(qs)

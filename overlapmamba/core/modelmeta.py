@@ -7,7 +7,9 @@ other sensors enter it (:mod:`overlapmamba.core.sensors.input`), ``views`` how m
 views of it make one descriptor (:mod:`overlapmamba.core.views`; where they meet: the graph's
 own ``token_views``, or the reader averaging descriptors), ``descriptor_dim`` sizes the
 index, ``model_id`` keeps descriptors of different models out of one map, ``calibration``
-holds the thresholds the benchmarks chose for it (:mod:`overlapmamba.core.calibration`).
+holds the thresholds the benchmarks chose for it (:mod:`overlapmamba.core.calibration`),
+``sensor_maps`` the maps that move other sensors' descriptors into the model sensor's
+(:mod:`overlapmamba.core.sensormaps`; part of the model id).
 
 Every value in ``metadata_props`` is a string; structured fields are JSON. The keys are
 namespaced ``overlapmamba.*`` so they never collide with a tool's own.
@@ -31,6 +33,7 @@ from pydantic import (
 
 from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibration
 from overlapmamba.core.errors import LidarCoreError
+from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors import SensorProfile
 from overlapmamba.core.sensors.input import Mode
 from overlapmamba.core.views import MAX_VIEWS
@@ -87,6 +90,11 @@ class EncoderMetadata(BaseModel):
         description="thresholds calibrated for this model by the benchmarks "
         "(overlapmamba.core.calibration); the service takes them unless a setting overrides",
     )
+    sensor_maps: dict[str, SensorMap] = Field(
+        default_factory=dict,
+        description="per sensor, the map of its scans' descriptors into the model sensor's "
+        "(overlapmamba.core.sensormaps); part of the model id",
+    )
     weights: str = Field(description="'trained' or 'random' (an untrained network)")
     weight_format: str = Field(description="storage of the large matrices: float32 or int8")
     training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
@@ -118,6 +126,26 @@ class EncoderMetadata(BaseModel):
                 f"views must be {self.graph_views}, got {self.views}"
             )
         return self
+
+    @model_validator(mode="after")
+    def _maps_fit_the_model(self) -> EncoderMetadata:
+        if self.profile.name in self.sensor_maps:
+            raise ValueError(
+                f"a sensor map for {self.profile.name!r}, the model's own sensor: its "
+                "descriptors are the space the maps lead into and are never mapped"
+            )
+        wrong = sorted(k for k, v in self.sensor_maps.items() if v.dim != self.descriptor_dim)
+        if wrong:
+            raise ValueError(
+                f"sensor maps {', '.join(wrong)} are not of the descriptor's dimension "
+                f"{self.descriptor_dim}"
+            )
+        return self
+
+    @property
+    def maps_digest(self) -> str:
+        """The sensor maps' content hash ('' without maps), as :func:`identity` takes it."""
+        return maps_digest(self.sensor_maps) if self.sensor_maps else ""
 
     @property
     def graph_views(self) -> int:
@@ -178,19 +206,22 @@ DEFAULT_SENSOR_INPUT: Mode = "elevation"
 
 
 def identity(
-    graph_id: str, views: int, sensor_input: Mode = DEFAULT_SENSOR_INPUT
+    graph_id: str, views: int, sensor_input: Mode = DEFAULT_SENSOR_INPUT, maps: str = ""
 ) -> dict[str, Any]:
     """The metadata fields that name a graph (its content hash, ``om-…``) described by
-    ``views`` views and taking other sensors' scans by ``sensor_input``: ``views``,
-    ``sensor_input``, ``model_id`` (the graph's own with one view and the default input, as
-    every file before views had; else a hash of all three, since other views, or another
-    sensor input, give other descriptors, which must not share a map) and ``graph_id`` (kept
-    only when it differs from the model id)."""
-    if views == 1 and sensor_input == DEFAULT_SENSOR_INPUT:
+    ``views`` views, taking other sensors' scans by ``sensor_input`` and mapping their
+    descriptors by sensor maps of content hash ``maps`` ('' for none): ``views``,
+    ``sensor_input``, ``model_id`` (the graph's own with one view, the default input and no
+    maps, as every file before views had; else a hash of them all, since other views,
+    another sensor input or other maps give other descriptors, which must not share a map)
+    and ``graph_id`` (kept only when it differs from the model id)."""
+    if views == 1 and sensor_input == DEFAULT_SENSOR_INPUT and not maps:
         return {"views": 1, "sensor_input": sensor_input, "model_id": graph_id, "graph_id": ""}
     key = f"{graph_id}+views={views}"
     if sensor_input != DEFAULT_SENSOR_INPUT:  # the default keeps the ids made before it
         key += f"+sensor_input={sensor_input}"
+    if maps:  # none keeps the ids made before maps
+        key += f"+sensor_maps={maps}"
     model_id = "om-" + hashlib.sha256(key.encode()).hexdigest()[:16]
     return {
         "views": views,

@@ -193,6 +193,13 @@ class Encoder:
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
         return combine_views(*out, self.meta.descriptors_per_scan)
 
+    def to_model_space(self, desc: np.ndarray, sensor: SensorInput | None) -> np.ndarray:
+        """Descriptors (B, D) or (D,) of scans of ``sensor`` (from :meth:`encode`) as the
+        service answers them: mapped into the model sensor's space where the file carries a
+        map for that sensor (:mod:`overlapmamba.core.sensormaps`), else as they are."""
+        sensor_map = None if sensor is None else self.meta.sensor_maps.get(sensor.sensor.name)
+        return desc if sensor_map is None else sensor_map.apply(desc)
+
 
 KERNEL_SLOWER = 1.1  # the kernel serves unless it takes more than this × the portable graph
 TIMING_ROUNDS = 3

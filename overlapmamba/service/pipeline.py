@@ -114,7 +114,9 @@ class ScanPipeline:
     ) -> Description:
         """``registration``: also prepare the points for verification, while the encoder
         works (its wait, if any, is added to the encode stage). ``sensor``: the scan's
-        sensor as the model takes it (None: the model's own)."""
+        sensor as the model takes it (None: the model's own); where the model file carries
+        a map for that sensor (:mod:`overlapmamba.core.sensormaps`), the descriptor is
+        mapped into the model sensor's space."""
         with self.batcher.incoming():
             image, points, timings = await in_thread(self._prepare, scan, sensor)
         t0 = time.perf_counter()
@@ -128,4 +130,5 @@ class ScanPipeline:
             if task is not None and not task.done():
                 task.cancel()
         timings["encode"] = (time.perf_counter() - t0) * 1e3
+        desc = self.encoder.to_model_space(desc, sensor)
         return Description(np.asarray(desc), np.asarray(yaw), points, timings, prepared)

@@ -376,6 +376,12 @@ class SensorOut(BaseModel):
         "elevation (each row the beam nearest its elevation; rows it has no beam for stay "
         "empty) or rows (its beams stretched over the rows)"
     )
+    descriptor_map: str | None = Field(
+        None,
+        description="how this model file maps its scans' descriptors into the model "
+        "sensor's (shift or linear: overlapmamba.core.sensormaps); none: used as the network "
+        "gives them",
+    )
 
 
 class SensorList(BaseModel):

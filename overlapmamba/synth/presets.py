@@ -226,6 +226,33 @@ def drawn_town(k: int, mounted: bool = True) -> GenConfig:
     )
 
 
+def calibration_town(k: int, sensor: str, frames: int = 400) -> GenConfig:
+    """Calibration town ``cal-x{k:02d}`` as ``sensor`` on a car's roof, level, sees it: a
+    small town drawn from ``k`` alone (seed 9001 + k, its own street grid and block size),
+    driven the same way whatever the sensor, so its renderings by two sensors pair scan for
+    scan. No pair table: sensor maps (``benchmarks/sensor_align.py``) need only the pairing.
+    Split ``val``: fitted on, never trained or reported on."""
+    import numpy as np
+
+    rng = np.random.default_rng([9001, k])
+    block = float((50, 60, 70, 80)[int(rng.integers(4))])
+    return GenConfig(
+        seed=9001 + k,
+        frames=frames,
+        preset=f"cal-x{k:02d}",
+        split="val",
+        sensor=sensor,
+        pair_table="none",
+        world={
+            "nx": int(rng.integers(3, 6)),
+            "ny": int(rng.integers(3, 6)),
+            "block_min": block,
+            "block_max": 2 * block,
+        },
+        drive=_DENSE_REVISITS,
+    )
+
+
 DRAWN_PRESETS = tuple(f"train-x{k:02d}" for k in range(DRAWN_TOWNS))
 PRESETS.update({key: drawn_town(k) for k, key in enumerate(DRAWN_PRESETS)})
 # The first six again on a car's roof, level: the same towns, sensors and drives

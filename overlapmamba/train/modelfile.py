@@ -13,6 +13,7 @@ import onnx
 
 from overlapmamba.core.calibration import Calibrated, check_calibration
 from overlapmamba.core.modelmeta import EncoderMetadata, identity
+from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors.input import Mode, check_mode
 from overlapmamba.core.views import check_views
 from overlapmamba.train.errors import ExportError
@@ -37,7 +38,12 @@ def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
         views = check_views(views)
     except ValueError as err:
         raise ExportError(str(err)) from None
-    return rewrite_metadata(src, out, lambda meta: identity(meta.graph, views, meta.sensor_input))
+
+    def update(meta: EncoderMetadata) -> dict[str, Any]:
+        _maps_stay_valid(meta, "views", meta.views, views)
+        return identity(meta.graph, views, meta.sensor_input, meta.maps_digest)
+
+    return rewrite_metadata(src, out, update)
 
 
 def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
@@ -48,7 +54,42 @@ def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
         mode = check_mode(mode)
     except ValueError as err:
         raise ExportError(str(err)) from None
-    return rewrite_metadata(path, path, lambda meta: identity(meta.graph, meta.views, mode))
+
+    def update(meta: EncoderMetadata) -> dict[str, Any]:
+        _maps_stay_valid(meta, "sensor_input", meta.sensor_input, mode)
+        return identity(meta.graph, meta.views, mode, meta.maps_digest)
+
+    return rewrite_metadata(path, path, update)
+
+
+def with_sensor_maps(
+    src: Path | str, out: Path | str, maps: dict[str, SensorMap]
+) -> EncoderMetadata:
+    """Write ``src``'s encoder to ``out`` carrying ``maps`` (:mod:`overlapmamba.core.sensormaps`;
+    they replace any it had, none removes them): the graph and weights byte for byte, the
+    model id the one that goes with the maps (other sensors' descriptors change with them).
+    Atomic. Returns the new metadata."""
+    return rewrite_metadata(
+        src,
+        out,
+        lambda meta: {
+            "sensor_maps": maps,
+            **identity(
+                meta.graph, meta.views, meta.sensor_input, maps_digest(maps) if maps else ""
+            ),
+        },
+    )
+
+
+def _maps_stay_valid(meta: EncoderMetadata, field: str, old: object, new: object) -> None:
+    """Sensor maps are fitted on the descriptors of one views/sensor_input: another value
+    would leave them mapping descriptors they were not fitted on."""
+    if meta.sensor_maps and old != new:
+        raise ExportError(
+            f"the model carries sensor maps fitted with {field} = {old}; with {new} they "
+            "would map other descriptors than they were fitted on: write the file without "
+            "them first (with_sensor_maps(..., {})), then fit them again"
+        )
 
 
 def with_calibration(path: Path | str, section: str, entry: Calibrated) -> EncoderMetadata:

@@ -76,6 +76,7 @@ async def sensors(svc: ServiceDep, _: CanEncode) -> SensorList:
                 max_range=s.known[name].max_range,
                 source=s.known[name].source,
                 projection=s.input(name).kind,
+                descriptor_map=getattr(svc.encoder.meta.sensor_maps.get(name), "how", None),
             )
             for name in s.names()
         ],

@@ -60,6 +60,10 @@ async def readyz(request: Request) -> Response:
                 "views": svc.encoder.views,
                 "scan": svc.encoder.scan_path,
                 "sensor": svc.sensors.model_sensor.name,
+                "sensor_maps": {
+                    name: {"how": m.how, "pairs": m.pairs, "data": m.data, "at": m.at}
+                    for name, m in svc.encoder.meta.sensor_maps.items()
+                },
                 "thresholds": {k: t.public() for k, t in svc.thresholds.items()},
                 **where,
                 "failed_maps": sorted(svc.registry.failed),  # why: in the log

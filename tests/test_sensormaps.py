@@ -1,0 +1,141 @@
+"""Sensor maps: other sensors' descriptors moved into the model sensor's, fitted for one model
+and carried in its file (overlapmamba.core.sensormaps), and the service applying them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from service_kit import MODEL, OCTET, running, scan
+
+from overlapmamba.core.sensormaps import SensorMap, fit_map, maps_digest
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import Settings
+
+STAMP = {"chosen_by": "tests/test_sensormaps.py", "data": "a test", "at": "2026-11-27T00:00:00"}
+
+
+def unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def paired(rng: np.random.Generator, n: int = 300, dim: int = 16):
+    """Unit descriptors of n places by the model sensor, and the same places by a sensor
+    that mixes and offsets them."""
+    model = unit(rng.normal(size=(n, dim)) * 0.3 + np.eye(dim)[0])
+    mix = np.linalg.qr(rng.normal(size=(dim, dim)))[0]
+    offset = rng.normal(size=dim) * 0.5
+    return model, (model - model.mean(0)) @ mix + offset, offset
+
+
+def test_maps_undo_a_sensors_offset_and_mixing_and_keep_unit_length():
+    rng = np.random.default_rng(0)
+    model, mixed, offset = paired(rng)
+    linear = fit_map(mixed, model, "linear", **STAMP)
+    np.testing.assert_allclose(linear.apply(mixed), model, atol=1e-5)
+    shift = fit_map(model + offset, model, "shift", **STAMP)
+    np.testing.assert_allclose(shift.apply(model + offset), model, atol=1e-5)
+    one = linear.apply(mixed[0])  # one descriptor as well as a batch
+    assert one.shape == (16,) and one.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(linear.apply(mixed), axis=1), 1.0, atol=1e-6)
+    # a ridge shrinks the matrix, and the fitted map says what it was fitted on
+    ridged = fit_map(mixed, model, "linear", ridge=0.1, **STAMP)
+    assert np.linalg.norm(ridged.arrays()[2]) < np.linalg.norm(linear.arrays()[2])
+    assert ridged.ridge == 0.1 and ridged.pairs == 300 and shift.ridge is None
+    # the file's JSON gives the same map back
+    again = SensorMap.model_validate_json(linear.model_dump_json())
+    np.testing.assert_array_equal(again.apply(mixed), linear.apply(mixed))
+    assert maps_digest({"vlp16": again}) == maps_digest({"vlp16": linear})
+    assert maps_digest({"vlp16": linear}) != maps_digest({"vlp16": ridged})
+    assert maps_digest({"vlp16": linear}) != maps_digest({"xt32": linear})
+
+
+def test_bad_maps_and_inputs_are_refused_with_what_is_allowed():
+    rng = np.random.default_rng(1)
+    model, mixed, _ = paired(rng, 40)
+    linear = fit_map(mixed, model, "linear", **STAMP)
+    with pytest.raises(ValueError, match="allowed: shift, linear"):
+        fit_map(mixed, model, "rotate", **STAMP)
+    with pytest.raises(ValueError, match=r"two \(N ≥ 2, D\) arrays"):
+        fit_map(mixed[:, :8], model, "linear", **STAMP)
+    with pytest.raises(ValueError, match="this map takes 16"):
+        linear.apply(np.ones((2, 8)))
+    fields = linear.model_dump()
+    with pytest.raises(ValueError, match="a 16² map needs 256"):
+        SensorMap.model_validate(
+            {**fields, "matrix": fit_map(mixed[:, :4], model[:, :4], "linear", **STAMP).matrix}
+        )
+    with pytest.raises(ValueError, match="a shift map has no matrix"):
+        SensorMap.model_validate({**fields, "how": "shift"})
+    with pytest.raises(ValueError, match="a linear map needs its matrix"):
+        SensorMap.model_validate({**fields, "matrix": None})
+    with pytest.raises(ValueError, match="not base64"):
+        SensorMap.model_validate({**fields, "mean_in": "not base64!"})
+
+
+def _map_for(dim: int, seed: int = 0) -> SensorMap:
+    """A linear map of the model's dimension: a turn of the descriptor space."""
+    rng = np.random.default_rng(seed)
+    q = unit(rng.normal(size=(600, dim)))
+    return fit_map(q, unit(q @ np.linalg.qr(rng.normal(size=(dim, dim)))[0]), "linear", **STAMP)
+
+
+def test_a_model_file_carries_its_maps_in_its_id_and_refuses_stale_ones(tmp_path):
+    from overlapmamba.train.errors import ExportError
+    from overlapmamba.train.modelfile import (
+        read_metadata,
+        with_sensor_input,
+        with_sensor_maps,
+        with_views,
+    )
+
+    before = read_metadata(MODEL)
+    m = _map_for(before.descriptor_dim)
+    out = tmp_path / "mapped.onnx"
+    meta = with_sensor_maps(MODEL, out, {"vlp16": m})
+    assert meta.model_id != before.model_id and meta.graph == before.graph
+    assert set(read_metadata(out).sensor_maps) == {"vlp16"}
+    assert with_sensor_maps(out, tmp_path / "other.onnx", {"xt32": m}).model_id != meta.model_id
+    assert with_sensor_maps(out, tmp_path / "plain.onnx", {}).model_id == before.model_id
+    # views and the input mode change other sensors' descriptors: maps fitted before refuse
+    with pytest.raises(ExportError, match="sensor maps fitted with views = 3"):
+        with_views(out, tmp_path / "one.onnx", 1)
+    with pytest.raises(ExportError, match="sensor maps fitted with sensor_input = elevation"):
+        with_sensor_input(out, "rows")
+    with pytest.raises(ExportError, match="'kitti-hdl64', the model's own sensor"):
+        with_sensor_maps(MODEL, tmp_path / "own.onnx", {"kitti-hdl64": m})
+    with pytest.raises(ExportError, match="not of the descriptor's dimension"):
+        with_sensor_maps(MODEL, tmp_path / "small.onnx", {"vlp16": _map_for(8)})
+    assert not (tmp_path / "own.onnx").exists() and not (tmp_path / "small.onnx").exists()
+
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_the_service_maps_the_descriptors_of_sensors_its_model_has_maps_for(tmp_path):
+    from overlapmamba.train.modelfile import with_sensor_maps
+
+    plain = Encoder(MODEL, intra_op_threads=2)
+    m = _map_for(plain.dim)
+    path = tmp_path / "mapped.onnx"
+    with_sensor_maps(MODEL, path, {"vlp16": m})
+    s = scan(4).tobytes()
+    got = {}
+    for name, enc in (("plain", plain), ("mapped", Encoder(path, intra_op_threads=2))):
+        async with running(Settings(data_dir=tmp_path / name), enc) as c:
+            for sensor in ("vlp16", "xt32", "kitti-hdl64"):
+                r = await c.post(f"/v1/descriptors?sensor={sensor}", content=s, headers=OCTET)
+                assert r.status_code == 200, r.text
+                got[name, sensor] = np.array(r.json()["descriptor"])
+            ready = (await c.get("/readyz")).json()["detail"]["sensor_maps"]
+            listed = {
+                x["name"]: x["descriptor_map"]
+                for x in (await c.get("/v1/sensors")).json()["sensors"]
+            }
+            got[name, "ready"], got[name, "listed"] = ready, listed
+    np.testing.assert_allclose(got["mapped", "vlp16"], m.apply(got["plain", "vlp16"]), atol=1e-5)
+    assert float(got["mapped", "vlp16"] @ got["plain", "vlp16"]) < 0.99  # it did move
+    for sensor in ("xt32", "kitti-hdl64"):  # no map: the network's descriptor
+        np.testing.assert_allclose(got["mapped", sensor], got["plain", sensor], atol=1e-6)
+    assert got["plain", "ready"] == {} and set(got["mapped", "ready"]) == {"vlp16"}
+    assert got["mapped", "ready"]["vlp16"]["how"] == "linear"
+    assert got["mapped", "listed"]["vlp16"] == "linear" and got["mapped", "listed"]["xt32"] is None
