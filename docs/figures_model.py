@@ -412,8 +412,7 @@ def training_speed() -> str:
     return (
         source(TRAINING_SPEED, r["command"], when(r))
         + f"\nBatch {r['batch']}, {r['width']} width, {r['threads']} threads, {r['source']}, "
-        f"{r['steps']} timed steps each.\n\n"
-        + table(head, rows)
+        f"{r['steps']} timed steps each.\n\n" + table(head, rows)
     )
 
 
