@@ -46,6 +46,7 @@ Writes reports/model/sensor-align.json. ≈ 2 min a sensor on 2 cores with a one
 from __future__ import annotations
 
 import argparse
+import hashlib
 import shutil
 import time
 from collections.abc import Callable
@@ -68,18 +69,25 @@ SENSORS = ("vlp16", "os0-128", "xt32", "os1-128")  # those with a second test dr
 RIDGE = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)  # per frame fitted on
 
 
-def describe(enc: Encoder, town: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(N, D) float64 descriptors as the service makes them for the town's sensor, and the
-    scans' (N, 3) positions in the town's frame."""
+def describe(enc: Encoder, town: Path, cache: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, D) float64 descriptors the network gives the town's scans as its sensor's (never
+    mapped: what maps are fitted on and applied to), and the scans' (N, 3) positions in the
+    town's frame. ``cache``: a folder keeping them under the model id and the town's manifest,
+    so a rerun describes only what changed."""
     seq = open_sequence(town)
+    f = None
+    if cache is not None:
+        stamp = hashlib.sha256((town / "manifest.json").read_bytes()).hexdigest()[:12]
+        f = cache / enc.model_id / f"{town.name}-{stamp}.npy"
+        if f.is_file():
+            return np.load(f), town_positions(seq)
     sensors = Sensors(enc.meta)
     inp = sensors.input(sensors.resolve(seq.sensor))
-    out = []
-    for start in range(0, len(seq), 8):
-        pts = [seq.points(i) for i in range(start, min(len(seq), start + 8))]
-        d, _ = enc.encode(np.stack([enc.project(p, inp) for p in pts]))
-        out.append(d)
-    return np.concatenate(out).astype(np.float64), town_positions(seq)
+    desc, _ = enc.describe((seq.points(i) for i in range(len(seq))), inp, mapped=False)
+    if f is not None:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        np.save(f, desc.astype(np.float64))
+    return desc.astype(np.float64), town_positions(seq)
 
 
 HOWS = ("raw", "shift", "linear")
@@ -157,7 +165,7 @@ def main() -> None:
         "--scratch",
         type=Path,
         default=ROOT / "data" / "synth" / "calibration",
-        help="--fit towns: where renderings are made (and deleted) and descriptors kept",
+        help="where calibration renderings are made (and deleted) and descriptors kept",
     )
     ap.add_argument("--write-maps", type=Path, help="the model again, carrying the linear maps")
     ap.add_argument("--out", type=Path, default=REPORTS / "model" / "sensor-align.json")
@@ -175,13 +183,14 @@ def main() -> None:
     missing = [n for n in need if not (args.data / n / "manifest.json").is_file()]
     if missing:
         raise SystemExit(f"missing: {', '.join(missing)} (make data-sensors)")
+    cache = args.scratch / "descriptors"  # val and test drives' too: reruns are cheap
     towns = None
     if args.fit == "towns":
         towns = calibration_towns(
             enc, [own, *args.sensors], args.towns, args.frames, args.scratch, console
         )
-    val_m, pos_val = describe(enc, args.data / f"val-{own}")
-    db, pos_db = describe(enc, args.data / f"test-{own}")
+    val_m, pos_val = describe(enc, args.data / f"val-{own}", cache)
+    db, pos_db = describe(enc, args.data / f"test-{own}", cache)
     n = len(val_m)
     if towns is None:  # fitted on the first half, chosen on the second
         first = np.arange(n // 2)
@@ -195,13 +204,13 @@ def main() -> None:
         )
     rows, maps = [], {}
     for name in args.sensors:
-        val_q, pos = describe(enc, args.data / f"val-{name}")
+        val_q, pos = describe(enc, args.data / f"val-{name}", cache)
         if pos.shape != pos_val.shape or np.abs(pos - pos_val).max() > 0.01:
             raise SystemExit(f"val-{name} is not val-{own}'s drive scan for scan")
         check_sessions(
             open_sequence(args.data / f"test-{own}"), open_sequence(args.data / f"test-s1-{name}")
         )
-        q, pos_q = describe(enc, args.data / f"test-s1-{name}")
+        q, pos_q = describe(enc, args.data / f"test-s1-{name}", cache)
         if towns is None:  # chosen fitted on the first half, then refitted on all
             sel_q, sel_m, fit_q, fit_m = val_q[first], val_m[first], val_q, val_m
         else:
@@ -225,7 +234,7 @@ def main() -> None:
         maps[name] = fitted(fit_q, fit_m, "linear", best, fitted_on.replace("SENSOR", name))
         # the sensor's own map (its first test drive) queried by its second: both mapped, as
         # a service with the maps keeps them; does the map cost the sensor's own fleet?
-        own_db, own_pos = describe(enc, args.data / f"test-{name}")
+        own_db, own_pos = describe(enc, args.data / f"test-{name}", cache)
         apply = maps[name].apply
         row["own"] = {
             "raw": recall(own_db, own_pos, q, pos_q),

@@ -150,13 +150,8 @@ def across(
     check_sessions(ds, qs)
     sensors = Sensors(enc.meta)
     inp = sensors.input(sensors.resolve(qs.sensor))
-    descs, yaws = [], []
-    for start in range(0, len(qs), 8):
-        pts = [qs.points(i) for i in range(start, min(len(qs), start + 8))]
-        d, y = enc.encode(np.stack([enc.project(p, inp) for p in pts]))
-        descs.append(enc.to_model_space(d, inp))  # as the service answers
-        yaws.append(y)
-    desc_q, yaw_q = np.concatenate(descs), np.concatenate(yaws)
+    # as the service answers: mapped where the file carries a map for the sensor
+    desc_q, yaw_q = enc.describe((qs.points(i) for i in range(len(qs))), inp)
     pos_db, pos_q = town_positions(ds), town_positions(qs)
     p = ScanContextParams()
     return {

@@ -139,3 +139,27 @@ async def test_the_service_maps_the_descriptors_of_sensors_its_model_has_maps_fo
     assert got["plain", "ready"] == {} and set(got["mapped", "ready"]) == {"vlp16"}
     assert got["mapped", "ready"]["vlp16"]["how"] == "linear"
     assert got["mapped", "listed"]["vlp16"] == "linear" and got["mapped", "listed"]["xt32"] is None
+
+
+def test_an_encoder_describes_a_drive_in_batches_mapped_or_as_the_network_gives_it(tmp_path):
+    from overlapmamba.core.points import PointCloud
+    from overlapmamba.core.sensors import CATALOGUE
+    from overlapmamba.core.sensors.input import SensorInput
+    from overlapmamba.train.modelfile import with_sensor_maps
+
+    path = tmp_path / "mapped.onnx"
+    m = _map_for(Encoder(MODEL).dim)
+    with_sensor_maps(MODEL, path, {"vlp16": m})
+    enc = Encoder(path, intra_op_threads=2)
+    vlp = SensorInput(enc.meta.profile, CATALOGUE["vlp16"], enc.meta.sensor_input)
+    clouds = [PointCloud(scan(i)[:, :3].copy()) for i in range(3)]
+    raw, yaw = enc.describe(clouds, vlp, batch=2, mapped=False)  # a full batch and a rest
+    assert raw.shape == (3, enc.dim) and yaw.shape[0] == 3
+    one, _ = enc.encode(enc.project(clouds[2], vlp)[None])
+    np.testing.assert_allclose(raw[2], one[0], atol=1e-6)
+    mapped, _ = enc.describe(iter(clouds), vlp)
+    np.testing.assert_allclose(mapped, m.apply(raw), atol=1e-5)
+    own, _ = enc.describe(clouds)  # the model's own sensor: never mapped
+    np.testing.assert_allclose(own, enc.describe(clouds, mapped=False)[0], atol=0)
+    with pytest.raises(ValueError, match="no scans to describe"):
+        enc.describe([])

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -192,6 +192,38 @@ class Encoder:
         x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
         return combine_views(*out, self.meta.descriptors_per_scan)
+
+    def describe(
+        self,
+        clouds: Iterable[PointCloud],
+        sensor: SensorInput | None = None,
+        *,
+        batch: int = 8,
+        mapped: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Scans of one sensor → (N, D) descriptors, (N, C, W) yaw features, ``batch`` scans
+        a pass: projected, encoded and (``mapped``) taken into the model sensor's space as
+        the service answers them. ``mapped=False``: the network's own descriptors (what
+        sensor maps are fitted on)."""
+        descs: list[np.ndarray] = []
+        yaws: list[np.ndarray] = []
+        chunk: list[PointCloud] = []
+
+        def flush() -> None:
+            d, y = self.encode(np.stack([self.project(p, sensor) for p in chunk]))
+            descs.append(self.to_model_space(d, sensor) if mapped else d)
+            yaws.append(y)
+            chunk.clear()
+
+        for cloud in clouds:
+            chunk.append(cloud)
+            if len(chunk) == batch:
+                flush()
+        if chunk:
+            flush()
+        if not descs:
+            raise ValueError("no scans to describe")
+        return np.concatenate(descs), np.concatenate(yaws)
 
     def to_model_space(self, desc: np.ndarray, sensor: SensorInput | None) -> np.ndarray:
         """Descriptors (B, D) or (D,) of scans of ``sensor`` (from :meth:`encode`) as the
