@@ -221,6 +221,10 @@ def model_tables() -> str:
 # the report's name and what the run was.
 SENSOR_RUNS = (
     ("shipped-1view", "the shipped network, one view"),
+    (
+        "shipped-1view-maps",
+        "the shipped network, one view, with sensor maps fitted on four calibration towns",
+    ),
     ("tokens", "the shipped network, three views met at the tokens (its twin file)"),
     ("pilot", "`sensors-pilot`: train-b and three renderings, beam_dropout"),
     ("pilot-s1", "`sensors-pilot-s1` (seed 1)"),
@@ -343,6 +347,51 @@ def sensor_align() -> str:
     )
 
 
+ALIGN_TOWNS = (
+    ("towns", "shipped-1view", "4"),
+    ("towns8", "shipped-1view", "8"),
+)
+
+
+def sensor_align_towns() -> str:
+    """The maps fitted on calibration towns (sensor_align.py --fit towns), per network and
+    number of towns: across sensors, and what they cost each sensor's own map."""
+    folder = "reports/model/sensors-pilot"
+    labels = dict(SENSOR_RUNS)
+    rows = []
+    for prefix, name, towns in ALIGN_TOWNS:
+        path = ROOT / folder / f"align-{prefix}-{name}.json"
+        if not path.is_file():
+            continue
+        r = json.loads(path.read_text())
+        for x in r["rows"]:
+            cells = [f"{f3(x[h]['test']['ar@1'])} / {f3(x[h]['test']['ar@5'])}" for h in HOWS]
+            own = x["own"]
+            rows.append(
+                [
+                    labels[name],
+                    towns,
+                    x["sensor"],
+                    *cells,
+                    f"{x['ridge']:g}",
+                    f"{f3(own['raw']['ar@1'])} → {f3(own['linear']['ar@1'])}",
+                ]
+            )
+    head = ["network", "towns", "queries", "raw", "shift (means)", "linear (ridge)"]
+    head += ["ridge (on val)", "its own map: raw → mapped"]
+    cmd = "python benchmarks/sensor_align.py --model NAME.onnx --fit towns --towns N "
+    cmd += "--write-maps NAME-maps.onnx --out "
+    cmd += f"{folder}/align-towns-NAME.json (N = 4; N = 8: align-towns8-NAME.json)"
+    return (
+        source(f"{folder}/align-towns-NAME.json", cmd)
+        + "\nThe maps fitted on N calibration towns × 400 scans, the ridge weight chosen on "
+        "the validation renderings. The second test drive of each sensor against the model "
+        "sensor's map of the first (`test-kitti-hdl64`), AR@1 / AR@5 of the descriptor alone "
+        "(a hit within 5 m); then AR@1 of that drive against the sensor's own first drive "
+        "(`test-SENSOR`), both raw, then both mapped.\n\n" + table(head, rows)
+    )
+
+
 SENSOR_LIKE = "reports/model/sensor-like.json"
 
 
@@ -454,6 +503,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sensor-runs": sensor_runs,
     "sensor-runs-mounts": sensor_runs_mounts,
     "sensor-align": sensor_align,
+    "sensor-align-towns": sensor_align_towns,
     "model-tables": model_tables,
     "calibration": calibration,
     "service": service,
