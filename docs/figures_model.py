@@ -350,6 +350,7 @@ def sensor_align() -> str:
 ALIGN_TOWNS = (
     ("towns", "shipped-1view", "4"),
     ("towns8", "shipped-1view", "8"),
+    ("towns16", "shipped-1view", "16"),
 )
 
 
@@ -381,7 +382,7 @@ def sensor_align_towns() -> str:
     head += ["ridge (on val)", "its own map: raw → mapped"]
     cmd = "python benchmarks/sensor_align.py --model NAME.onnx --fit towns --towns N "
     cmd += "--write-maps NAME-maps.onnx --out "
-    cmd += f"{folder}/align-towns-NAME.json (N = 4; N = 8: align-towns8-NAME.json)"
+    cmd += f"{folder}/align-towns-NAME.json (N = 4; N = 8, 16: align-townsN-NAME.json)"
     return (
         source(f"{folder}/align-towns-NAME.json", cmd)
         + "\nThe maps fitted on N calibration towns × 400 scans, the ridge weight chosen on "
