@@ -216,14 +216,19 @@ def drawn_town(k: int, mounted: bool = True) -> GenConfig:
         split="train",
         sensor=sensor,
         **(where if mounted else {"mount": "car"}),
-        world={
-            "nx": int(rng.integers(4, 7)),
-            "ny": int(rng.integers(4, 7)),
-            "block_min": block,
-            "block_max": 2 * block,
-        },
+        world=_street_grid(rng, block, 4, 7),
         drive=_DENSE_REVISITS,
     )
+
+
+def _street_grid(rng: Any, block: float, low: int, high: int) -> dict[str, Any]:
+    """A drawn town's world: ``low`` ≤ nx, ny < ``high`` streets, blocks ``block``–2×."""
+    return {
+        "nx": int(rng.integers(low, high)),
+        "ny": int(rng.integers(low, high)),
+        "block_min": block,
+        "block_max": 2 * block,
+    }
 
 
 def calibration_town(k: int, sensor: str, frames: int = 400) -> GenConfig:
@@ -243,12 +248,7 @@ def calibration_town(k: int, sensor: str, frames: int = 400) -> GenConfig:
         split="val",
         sensor=sensor,
         pair_table="none",
-        world={
-            "nx": int(rng.integers(3, 6)),
-            "ny": int(rng.integers(3, 6)),
-            "block_min": block,
-            "block_max": 2 * block,
-        },
+        world=_street_grid(rng, block, 3, 6),
         drive=_DENSE_REVISITS,
     )
 
