@@ -101,6 +101,18 @@ def test_metadata_describes_the_model(exported):
     assert exported["i8"].metadata.model_id != meta.model_id
 
 
+def test_the_model_id_is_the_graph_and_weights_only(exported, tmp_path):
+    """The same network exported again (in the same process: the exporter numbers its nodes
+    across calls) gets the same model id, and the file names no source file or line (the
+    exporter's stack traces, which made the id depend on the checkout's folder)."""
+    again = export_onnx(
+        exported["model"], PROFILE, tmp_path / "again.onnx", weight_format="float32"
+    )
+    assert again.metadata.model_id == exported["f32"].metadata.model_id
+    raw = exported["f32"].path.read_bytes()
+    assert b"stack_trace" not in raw and str(Path(__file__).parents[1]).encode() not in raw
+
+
 @pytest.mark.parametrize("batch", [1, 8])
 def test_parity_on_random_range_images(exported, batch):
     images = verification_images(PROFILE, count=batch, seed=batch)

@@ -115,12 +115,35 @@ def _trace(model: OverlapMamba) -> onnx.ModelProto:
             custom_translation_table=TRANSLATIONS,
         )
         attach_functions(proto, cfg.width, cfg.d_inner, cfg.d_state, cfg.scan_chunk)
+        _drop_stack_traces(proto)
     except Exception as err:  # the exporter raises many kinds; say which step failed
         notes = "\n".join(getattr(err, "__notes__", []))
         raise ExportError(
             f"torch.onnx.export failed: {type(err).__name__}: {str(err)[:2000]}\n{notes}"
         ) from None
     return proto
+
+
+# The exporter's note on every node of the Python line that made it: an absolute path and a
+# line number, so the graph's hash (the model id) changed with the checkout's folder and any
+# edit above the line. The other notes (module scopes, which recover.py reads) stay.
+_STACK_TRACE = "pkg.torch.onnx.stack_trace"
+
+
+def _drop_stack_traces(proto: onnx.ModelProto) -> None:
+    def strip(nodes) -> None:
+        for node in nodes:
+            keep = [p for p in node.metadata_props if p.key != _STACK_TRACE]
+            if len(keep) != len(node.metadata_props):
+                del node.metadata_props[:]
+                node.metadata_props.extend(keep)
+            for attr in node.attribute:  # loop bodies
+                for body in (attr.g, *attr.graphs) if attr.HasField("g") else attr.graphs:
+                    strip(body.node)
+
+    strip(proto.graph.node)
+    for f in proto.functions:
+        strip(f.node)
 
 
 def _check_interface(

@@ -25,6 +25,7 @@ computes exactly what the exported body computes.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import logging
 import warnings
@@ -131,7 +132,20 @@ def scan_function(
     circular: bool, length: int, channels: int, state: int, chunk: int | None, opset: int
 ) -> onnx.FunctionProto:
     """The node's body for one scan shape: :func:`selective_scan_loop` exported with a
-    symbolic batch axis (L, E, N fixed, as they are in one model), as a FunctionProto."""
+    symbolic batch axis (L, E, N fixed, as they are in one model), as a FunctionProto.
+
+    Exported once per process and shape (half of a model's export time), then copied: the
+    exporter numbers the nodes it names across calls, so without the cache a second export
+    of the same model in one process got another function, and another model id."""
+    out = onnx.FunctionProto()
+    out.CopyFrom(_scan_function(circular, length, channels, state, chunk, opset))
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _scan_function(
+    circular: bool, length: int, channels: int, state: int, chunk: int | None, opset: int
+) -> onnx.FunctionProto:
     B = 2  # not 1: the exporter would specialise a size-1 example axis to a constant
     ex = (
         torch.zeros(B, length, channels),
