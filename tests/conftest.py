@@ -3,8 +3,13 @@ tiny seeded synthetic drive with a revisit."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import subprocess
+import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -107,8 +112,54 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "loop")
 
 
+# The tiny towns are generated from the start of a run, in one background process at low
+# priority (nice 10), so they take the CPU the suite leaves idle (its service tests wait on
+# sockets a good part of the time); the first test that needs a town waits only for what is
+# left of it. Started only when a collected test needs one.
+TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-val"}  # in the order generated
+_TOWNS_NEEDED = pytest.StashKey[list[str]]()
+_background: dict[str, Any] = {}
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    used = {f for item in session.items for f in getattr(item, "fixturenames", ())}
+    session.config.stash[_TOWNS_NEEDED] = [t for f, t in TOWN_FIXTURES.items() if f in used]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _towns_in_background(request: pytest.FixtureRequest, tmp_path_factory):
+    names = request.config.stash.get(_TOWNS_NEEDED, [])
+    if not names or importlib.util.find_spec("embreex") is None:
+        yield
+        return
+    root = tmp_path_factory.mktemp("synth")
+    log = (root / "background.log").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("background_towns.py")), str(root), *names],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        preexec_fn=lambda: os.nice(10),
+    )
+    _background.update(root=root, proc=proc, log=root / "background.log", names=names)
+    yield
+    if proc.poll() is None:  # a run that ended before needing them all
+        proc.kill()
+    proc.wait()
+    log.close()
+
+
 def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
     pytest.importorskip("embreex")
+    if name in _background.get("names", ()):
+        root, proc = _background["root"], _background["proc"]
+        while not (root / f"{name}.done").exists():
+            if proc.poll() is not None:
+                tail = _background["log"].read_text()[-3000:]
+                pytest.fail(
+                    f"the background generation of {name} stopped (exit {proc.returncode}):\n{tail}"
+                )
+            time.sleep(0.5)
+        return root / name
     from overlapmamba.synth.generate import generate
     from overlapmamba.synth.presets import PRESETS
 
