@@ -1,12 +1,14 @@
-"""Generate synthetic presets one after another into a folder, each marked done when whole
-(``NAME.done``): the test suite's tiny towns, started at the beginning of a run in the
-background (``tests/conftest.py``), at low priority.
+"""The test suite's shared synthetic data, made in the background from the start of a run
+(``tests/conftest.py`` starts it at low priority): synthetic presets one after another, then
+optionally the shared tiny training run on the first two, each marked done when whole
+(``NAME.done``). The run's history is pickled as ``train`` returned it (NaNs included).
 
-    python tests/background_towns.py ROOT PRESET [PRESET ...]
+    python tests/background_towns.py ROOT PRESET [PRESET ...] [--run]
 """
 
 from __future__ import annotations
 
+import pickle
 import sys
 from pathlib import Path
 
@@ -15,7 +17,15 @@ from overlapmamba.synth.presets import PRESETS
 
 if __name__ == "__main__":
     root = Path(sys.argv[1])
-    for name in sys.argv[2:]:
+    names = [a for a in sys.argv[2:] if a != "--run"]
+    for name in names:
         # Its own stall limit: a stuck or dead worker fails the run with the chunk named.
         generate(root / name, PRESETS[name], workers=2, progress=False, stall_timeout_s=120)
         (root / f"{name}.done").touch()
+    if "--run" in sys.argv:
+        sys.path.insert(0, str(Path(__file__).parent))
+        from conftest import train_tiny_run
+
+        history = train_tiny_run(root / "tiny", root / "tiny-val", root / "runs" / "tiny")
+        (root / "tiny-run.pkl").write_bytes(pickle.dumps(history))
+        (root / "tiny-run.done").touch()

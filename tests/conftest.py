@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import pickle
+import signal
 import subprocess
 import sys
 import time
@@ -112,10 +114,10 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "loop")
 
 
-# The tiny towns are generated from the start of a run, in one background process at low
-# priority (nice 10), so they take the CPU the suite leaves idle (its service tests wait on
-# sockets a good part of the time); the first test that needs a town waits only for what is
-# left of it. Started only when a collected test needs one.
+# The tiny towns, then the shared tiny run, are made from the start of a run in one
+# background process at low priority (nice 10), so they take the CPU the suite leaves idle
+# (its service tests wait on sockets a good part of the time); the first test that needs one
+# waits only for what is left of it. Each is made there only when a collected test needs it.
 TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-val"}  # in the order generated
 _TOWNS_NEEDED = pytest.StashKey[list[str]]()
 _background: dict[str, Any] = {}
@@ -123,11 +125,14 @@ _background: dict[str, Any] = {}
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     used = {f for item in session.items for f in getattr(item, "fixturenames", ())}
-    session.config.stash[_TOWNS_NEEDED] = [t for f, t in TOWN_FIXTURES.items() if f in used]
+    needed = [t for f, t in TOWN_FIXTURES.items() if f in used]
+    if "tiny_run" in used and importlib.util.find_spec("torch") is not None:
+        needed.append("--run")
+    session.config.stash[_TOWNS_NEEDED] = needed
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _towns_in_background(request: pytest.FixtureRequest, tmp_path_factory):
+def _towns_in_background(request: pytest.FixtureRequest, tmp_path_factory, _session_cache):
     names = request.config.stash.get(_TOWNS_NEEDED, [])
     if not names or importlib.util.find_spec("embreex") is None:
         yield
@@ -138,28 +143,33 @@ def _towns_in_background(request: pytest.FixtureRequest, tmp_path_factory):
         [sys.executable, str(Path(__file__).with_name("background_towns.py")), str(root), *names],
         stdout=log,
         stderr=subprocess.STDOUT,
+        # (the environment holds the session's cache: range images shared with the tests)
         preexec_fn=lambda: os.nice(10),
+        start_new_session=True,  # its generation workers go with it
     )
     _background.update(root=root, proc=proc, log=root / "background.log", names=names)
     yield
     if proc.poll() is None:  # a run that ended before needing them all
-        proc.kill()
+        os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     log.close()
+
+
+def _wait_for_background(name: str) -> Path:
+    """The background folder once ``name`` is done in it; fails with its log if it stopped."""
+    root, proc = _background["root"], _background["proc"]
+    while not (root / f"{name}.done").exists():
+        if proc.poll() is not None:
+            tail = _background["log"].read_text()[-3000:]
+            pytest.fail(f"the background work on {name} stopped (exit {proc.returncode}):\n{tail}")
+        time.sleep(0.5)
+    return root
 
 
 def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
     pytest.importorskip("embreex")
     if name in _background.get("names", ()):
-        root, proc = _background["root"], _background["proc"]
-        while not (root / f"{name}.done").exists():
-            if proc.poll() is not None:
-                tail = _background["log"].read_text()[-3000:]
-                pytest.fail(
-                    f"the background generation of {name} stopped (exit {proc.returncode}):\n{tail}"
-                )
-            time.sleep(0.5)
-        return root / name
+        return _wait_for_background(name) / name
     from overlapmamba.synth.generate import generate
     from overlapmamba.synth.presets import PRESETS
 
@@ -204,16 +214,23 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
     of ``SMALL_MODEL`` on the tiny towns, trained once per session: ``(run folder,
     history)``. Tests that read a run share it and never write into it (copy it first)."""
     pytest.importorskip("torch")
+    if "--run" in _background.get("names", ()):
+        root = _wait_for_background("tiny-run")
+        assert (tiny_seq, tiny_val_seq) == (root / "tiny", root / "tiny-val")
+        return root / "runs" / "tiny", pickle.loads((root / "tiny-run.pkl").read_bytes())
+    out = tmp_path_factory.mktemp("runs") / "tiny"
+    return out, train_tiny_run(tiny_seq, tiny_val_seq, out)
+
+
+def train_tiny_run(tiny_seq: Path, tiny_val_seq: Path, out: Path) -> list[dict]:
+    """``tiny_run``'s training (the background process runs it too): its history."""
     from overlapmamba.train.model import OverlapMambaConfig
     from overlapmamba.train.train import TrainConfig, train
-
-    out = tmp_path_factory.mktemp("runs") / "tiny"
     from overlapmamba.train.train_config import REAL_SCANS
 
     cfg = TrainConfig(**{**TINY_TRAIN, "real": REAL_SCANS})
     model = OverlapMambaConfig(**SMALL_MODEL)
-    history = train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
-    return out, history
+    return train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
 
 
 def save_random_checkpoint(path: Path, **config) -> Path:

@@ -214,6 +214,7 @@ def test_band_term_starts_at_its_epoch_and_changes_nothing_before(
     assert any(not torch.equal(c[k], d[k]) for k in c if k.endswith("weight"))
 
 
+@pytest.mark.timeout(900)  # when run alone, its set-up waits for the tiny towns and run
 def test_a_run_continues_an_exported_encoder_with_the_turn_term(
     tiny_seq, tiny_val_seq, tiny_run, tmp_path
 ):
