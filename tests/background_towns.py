@@ -12,20 +12,15 @@ import pickle
 import sys
 from pathlib import Path
 
-from overlapmamba.synth.generate import generate
-from overlapmamba.synth.presets import PRESETS
-
 if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    from conftest import generate_preset, train_tiny_run
+
     root = Path(sys.argv[1])
-    names = [a for a in sys.argv[2:] if a != "--run"]
-    for name in names:
-        # Its own stall limit: a stuck or dead worker fails the run with the chunk named.
-        generate(root / name, PRESETS[name], workers=2, progress=False, stall_timeout_s=120)
+    for name in [a for a in sys.argv[2:] if a != "--run"]:
+        generate_preset(root / name, name)
         (root / f"{name}.done").touch()
     if "--run" in sys.argv:
-        sys.path.insert(0, str(Path(__file__).parent))
-        from conftest import train_tiny_run
-
         history = train_tiny_run(root / "tiny", root / "tiny-val", root / "runs" / "tiny")
         (root / "tiny-run.pkl").write_bytes(pickle.dumps(history))
         (root / "tiny-run.done").touch()

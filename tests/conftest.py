@@ -170,12 +170,16 @@ def _generate_preset(tmp_path_factory: pytest.TempPathFactory, name: str) -> Pat
     pytest.importorskip("embreex")
     if name in _background.get("names", ()):
         return _wait_for_background(name) / name
+    return generate_preset(tmp_path_factory.mktemp("synth") / name, name)
+
+
+def generate_preset(out: Path, name: str) -> Path:
+    """The preset ``name`` generated into ``out`` (the background process calls it too)."""
     from overlapmamba.synth.generate import generate
     from overlapmamba.synth.presets import PRESETS
 
-    out = tmp_path_factory.mktemp("synth") / name
-    # Its own limit: a stuck or dead worker fails this fixture in a minute, with the chunk named
-    # (a tiny scan takes < 1 s, a ground-truth chunk a few seconds).
+    # Its own limit: a stuck or dead worker fails in a minute, with the chunk named (a tiny
+    # scan takes < 1 s, a ground-truth chunk a few seconds).
     generate(out, PRESETS[name], workers=2, progress=False, stall_timeout_s=60)
     return out
 

@@ -28,6 +28,7 @@ import hashlib
 import os
 import subprocess
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -76,22 +77,22 @@ def source_commit() -> str:
     return res.stdout.strip() if res.returncode == 0 and res.stdout.strip() else "unknown"
 
 
-def count_nodes(graph: onnx.GraphProto | onnx.ModelProto) -> tuple[int, int]:
-    """(all nodes including those inside loop bodies and local functions, Scan/Loop nodes)."""
-    total = loops = 0
+def all_nodes(graph: onnx.GraphProto | onnx.ModelProto) -> Iterator[onnx.NodeProto]:
+    """Every node, those inside loop bodies and local functions included (in place)."""
+    nodes = list(graph.graph.node) if isinstance(graph, onnx.ModelProto) else list(graph.node)
     if isinstance(graph, onnx.ModelProto):
-        for fn in graph.functions:
-            t, lp = count_nodes(helper.make_graph(fn.node, fn.name, [], []))
-            total, loops = total + t, loops + lp
-        graph = graph.graph
-    for node in graph.node:
-        total += 1
-        loops += node.op_type in ("Scan", "Loop")
+        nodes += [n for fn in graph.functions for n in fn.node]
+    for node in nodes:
+        yield node
         for attr in node.attribute:
             if attr.type == onnx.AttributeProto.GRAPH:
-                t, lp = count_nodes(attr.g)
-                total, loops = total + t, loops + lp
-    return total, loops
+                yield from all_nodes(attr.g)
+
+
+def count_nodes(graph: onnx.GraphProto | onnx.ModelProto) -> tuple[int, int]:
+    """(all nodes including those inside loop bodies and local functions, Scan/Loop nodes)."""
+    kinds = [node.op_type for node in all_nodes(graph)]
+    return len(kinds), sum(k in ("Scan", "Loop") for k in kinds)
 
 
 def _trace(model: OverlapMamba) -> onnx.ModelProto:
@@ -131,19 +132,11 @@ _STACK_TRACE = "pkg.torch.onnx.stack_trace"
 
 
 def _drop_stack_traces(proto: onnx.ModelProto) -> None:
-    def strip(nodes) -> None:
-        for node in nodes:
-            keep = [p for p in node.metadata_props if p.key != _STACK_TRACE]
-            if len(keep) != len(node.metadata_props):
-                del node.metadata_props[:]
-                node.metadata_props.extend(keep)
-            for attr in node.attribute:  # loop bodies
-                for body in (attr.g, *attr.graphs) if attr.HasField("g") else attr.graphs:
-                    strip(body.node)
-
-    strip(proto.graph.node)
-    for f in proto.functions:
-        strip(f.node)
+    for node in all_nodes(proto):
+        keep = [p for p in node.metadata_props if p.key != _STACK_TRACE]
+        if len(keep) != len(node.metadata_props):
+            del node.metadata_props[:]
+            node.metadata_props.extend(keep)
 
 
 def _check_interface(
