@@ -31,8 +31,11 @@ $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 	@touch $@
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.
+# Two pytest-xdist workers, a test file each at a time: on 2 cores they fill the time one
+# process leaves idle waiting on its servers (each computes on one thread: tests/conftest.py).
+TEST_WORKERS ?= 2
 test: $(VENV)/.installed-all lint docs-site chromium
-	$(BIN)/python -m pytest --durations=15
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
 # `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.

@@ -6,12 +6,20 @@ from __future__ import annotations
 import importlib.util
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+# pytest-xdist's workers share the machine's cores: each computes (torch, OpenMP, BLAS) on
+# its share, so two workers on 2 cores do not spin four threads. Set before numpy and torch
+# start their pools; a test that wants another count sets it itself.
+if (_workers := os.environ.get("PYTEST_XDIST_WORKER_COUNT")) is not None:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // int(_workers))))
 
 import numpy as np
 import pytest
@@ -118,9 +126,42 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # background process at low priority (nice 10), so they take the CPU the suite leaves idle
 # (its service tests wait on sockets a good part of the time); the first test that needs one
 # waits only for what is left of it. Each is made there only when a collected test needs it.
+# With pytest-xdist's workers (`make test` runs two) the first worker to need them starts
+# the process in a folder the run's main process made; every worker waits on it, and the
+# main process stops it when the run ends.
 TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-val"}  # in the order generated
 _TOWNS_NEEDED = pytest.StashKey[list[str]]()
+_RUN_FOLDER = pytest.StashKey[Path]()
 _background: dict[str, Any] = {}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if not hasattr(config, "workerinput"):  # the run's main process (with or without workers)
+        config.stash[_RUN_FOLDER] = Path(tempfile.mkdtemp(prefix="overlapmamba-tests-"))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    """pytest-xdist: each worker is told the main process's folder."""
+    node.workerinput["overlapmamba_run_folder"] = str(node.config.stash[_RUN_FOLDER])
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _RUN_FOLDER not in config.stash:
+        return
+    folder = config.stash[_RUN_FOLDER]
+    pid = _background_pid(folder / "background")
+    if pid is not None and _running(pid):  # a run that ended before needing them all
+        os.killpg(pid, signal.SIGKILL)  # with its generation workers
+    if (proc := _background.get("proc")) is not None:
+        proc.wait()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def _run_folder(config: pytest.Config) -> Path:
+    if hasattr(config, "workerinput"):
+        return Path(config.workerinput["overlapmamba_run_folder"])
+    return config.stash[_RUN_FOLDER]
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -132,36 +173,63 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _towns_in_background(request: pytest.FixtureRequest, tmp_path_factory, _session_cache):
+def _towns_in_background(request: pytest.FixtureRequest, _session_cache) -> None:
     names = request.config.stash.get(_TOWNS_NEEDED, [])
     if not names or importlib.util.find_spec("embreex") is None:
-        yield
         return
-    root = tmp_path_factory.mktemp("synth")
-    log = (root / "background.log").open("w")
-    proc = subprocess.Popen(
-        [sys.executable, str(Path(__file__).with_name("background_towns.py")), str(root), *names],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        # (the environment holds the session's cache: range images shared with the tests)
-        preexec_fn=lambda: os.nice(10),
-        start_new_session=True,  # its generation workers go with it
-    )
-    _background.update(root=root, proc=proc, log=root / "background.log", names=names)
-    yield
-    if proc.poll() is None:  # a run that ended before needing them all
-        os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    log.close()
+    root = _run_folder(request.config) / "background"
+    _background.update(root=root, names=names)
+    try:
+        root.mkdir()  # one process makes the folder: that one starts the work
+    except FileExistsError:
+        return
+    script = Path(__file__).with_name("background_towns.py")
+    with (root / "background.log").open("w") as out:
+        proc = subprocess.Popen(
+            [sys.executable, str(script), str(root), *names],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            # (the environment holds this process's cache: range images shared with its tests)
+            preexec_fn=lambda: os.nice(10),
+            start_new_session=True,  # its generation workers go with it
+        )
+    _background["proc"] = proc
+    (root / "pid.tmp").write_text(str(proc.pid))
+    (root / "pid.tmp").replace(root / "pid")
+
+
+def _background_pid(root: Path) -> int | None:
+    try:
+        return int((root / "pid").read_text())
+    except FileNotFoundError:
+        return None
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` runs (not gone, not a zombie nobody has reaped yet)."""
+    if (proc := _background.get("proc")) is not None and proc.pid == pid:
+        return proc.poll() is None
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    except OSError:  # no /proc here: ask the kernel whether the pid exists
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 
 def _wait_for_background(name: str) -> Path:
     """The background folder once ``name`` is done in it; fails with its log if it stopped."""
-    root, proc = _background["root"], _background["proc"]
+    root = _background["root"]
     while not (root / f"{name}.done").exists():
-        if proc.poll() is not None:
-            tail = _background["log"].read_text()[-3000:]
-            pytest.fail(f"the background work on {name} stopped (exit {proc.returncode}):\n{tail}")
+        pid = _background_pid(root)
+        if pid is not None and not _running(pid) and not (root / f"{name}.done").exists():
+            tail = (root / "background.log").read_text()[-3000:]
+            pytest.fail(f"the background work on {name} stopped:\n{tail}")
         time.sleep(0.5)
     return root
 
@@ -212,6 +280,13 @@ TINY_TRAIN = dict(
 )
 
 
+def small_run(**changes: Any):
+    """``TINY_TRAIN`` as a ``TrainConfig``, with ``changes``."""
+    from overlapmamba.train.train import TrainConfig
+
+    return TrainConfig(**{**TINY_TRAIN, **changes})
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPathFactory):
     """A finished run (``TINY_TRAIN``: epoch 0, then 2 epochs of 32 scans in batches of 16)
@@ -229,10 +304,10 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
 def train_tiny_run(tiny_seq: Path, tiny_val_seq: Path, out: Path) -> list[dict]:
     """``tiny_run``'s training (the background process runs it too): its history."""
     from overlapmamba.train.model import OverlapMambaConfig
-    from overlapmamba.train.train import TrainConfig, train
+    from overlapmamba.train.train import train
     from overlapmamba.train.train_config import REAL_SCANS
 
-    cfg = TrainConfig(**{**TINY_TRAIN, "real": REAL_SCANS})
+    cfg = small_run(real=REAL_SCANS)
     model = OverlapMambaConfig(**SMALL_MODEL)
     return train([tiny_seq], tiny_val_seq, out, model, cfg, progress=False)
 

@@ -188,14 +188,16 @@ def test_modes_are_checked():
         check_mode("stretch")
 
 
-def test_the_sensors_command_lists_the_catalogue():
+def test_the_sensors_command_lists_the_catalogue(monkeypatch):
     import json
 
     from typer.testing import CliRunner
 
-    from overlapmamba.cli import app
+    from overlapmamba.cli import app, common
 
-    res = CliRunner().invoke(app, ["sensors"], env={"COLUMNS": "200"})
+    # (the console took its width when first imported, in whichever test that was)
+    monkeypatch.setattr(common.out, "width", 200)
+    res = CliRunner().invoke(app, ["sensors"])
     assert res.exit_code == 0, res.output
     assert "vlp32c" in res.output and "+15.00° … -25.00°" in res.output
     res = CliRunner().invoke(app, ["sensors", "--json"])

@@ -321,7 +321,9 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     write_calibration(path, "rerank", {"shortlist": 7, "weight": 0.3}, "data/synth/val")
     meta = read_metadata(path)
     assert meta.model_id == before.model_id and meta.calibration["rerank"].data == "data/synth/val"
-    assert "pytest" in meta.calibration["rerank"].chosen_by  # the running command
+    from reports_kit import provenance
+
+    assert meta.calibration["rerank"].chosen_by == provenance()["command"]  # this process's
     served = served_settings(meta)
     assert (served.rerank.shortlist, served.rerank.weight) == (7, 0.3)
     assert served.verify.min_fitness == Settings().verify.min_fitness
