@@ -1,5 +1,5 @@
 """The test suite's shared synthetic data, made in the background from the start of a run
-(``tests/conftest.py`` starts it at low priority): synthetic presets one after another, then
+(``tests/conftest.py`` starts it): synthetic presets one after another, then
 optionally the shared tiny training run on the first two, each marked done when whole
 (``NAME.done``). The run's history is pickled as ``train`` returned it (NaNs included).
 

@@ -62,6 +62,20 @@ def _session_cache(tmp_path_factory: pytest.TempPathFactory):
         yield
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads_kept():
+    """A test that changes torch's thread count puts it back: runs compared across tests
+    (and with the background run) compute in the same order only on the same count."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    yield
+    torch = sys.modules.get("torch")
+    if torch is not None and before is not None and torch.get_num_threads() != before:
+        after = torch.get_num_threads()
+        torch.set_num_threads(before)
+        pytest.fail(f"the test left torch on {after} threads (it ran with {before}); restore it")
+
+
 def make_world(rng: np.random.Generator, extent: float = 60.0) -> np.ndarray:
     """Points on vertical walls and poles around a square road, plus a ground plane."""
     parts = []
@@ -123,12 +137,12 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 # The tiny towns, then the shared tiny run, are made from the start of a run in one
-# background process at low priority (nice 10), so they take the CPU the suite leaves idle
-# (its service tests wait on sockets a good part of the time); the first test that needs one
-# waits only for what is left of it. Each is made there only when a collected test needs it.
-# With pytest-xdist's workers (`make test` runs two) the first worker to need them starts
-# the process in a folder the run's main process made; every worker waits on it, and the
-# main process stops it when the run ends.
+# background process, so they take the CPU the suite leaves idle (its service tests wait on
+# sockets a good part of the time); the first test that needs one waits only for what is left
+# of it. Each is made there only when a collected test needs it. With pytest-xdist's workers
+# (`make test` runs two) the first worker to need them starts the process (at normal priority:
+# it is then the run's critical path) in a folder the run's main process made; every worker
+# waits on it, and the main process stops it when the run ends.
 TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-val"}  # in the order generated
 _TOWNS_NEEDED = pytest.StashKey[list[str]]()
 _RUN_FOLDER = pytest.StashKey[Path]()
@@ -190,7 +204,9 @@ def _towns_in_background(request: pytest.FixtureRequest, _session_cache) -> None
             stdout=out,
             stderr=subprocess.STDOUT,
             # (the environment holds this process's cache: range images shared with its tests)
-            preexec_fn=lambda: os.nice(10),
+            # nice 10 beside one test process, which leaves a core idle a good part of the
+            # time; beside xdist's workers, which keep both busy, it is their critical path
+            preexec_fn=lambda: os.nice(0 if hasattr(request.config, "workerinput") else 10),
             start_new_session=True,  # its generation workers go with it
         )
     _background["proc"] = proc

@@ -37,9 +37,13 @@ def test_generate_with_workers_after_onnxruntime_and_torch_ran_in_this_process(t
     shape = [1 if not isinstance(d, int) else d for d in inp.shape]
     out = sess.run(None, {inp.name: np.random.default_rng(0).random(shape, np.float32)})
     assert np.isfinite(out[0]).all()
+    before = torch.get_num_threads()
     torch.set_num_threads(2)
-    a = torch.randn(512, 512)
-    assert torch.isfinite(a @ a).all()
+    try:
+        a = torch.randn(512, 512)
+        assert torch.isfinite(a @ a).all()
+    finally:
+        torch.set_num_threads(before)  # the process's later tests compute as they would have
     garbage: list = [sess]
     garbage.append(garbage)  # a cycle: only the garbage collector frees this session
     del sess, garbage  # pending for the collector, as in the reported hang
