@@ -178,14 +178,6 @@ def _run_folder(config: pytest.Config) -> Path:
     return config.stash[_RUN_FOLDER]
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The test files that use the background's towns or run go last (in their order): the
-    rest of the suite runs while they are made, instead of a worker waiting for them."""
-    users = {*TOWN_FIXTURES, "tiny_run"}
-    later = {item.path for item in items if users & set(getattr(item, "fixturenames", ()))}
-    items.sort(key=lambda item: item.path in later)  # stable: each file's order is kept
-
-
 def pytest_collection_finish(session: pytest.Session) -> None:
     used = {f for item in session.items for f in getattr(item, "fixturenames", ())}
     needed = [t for f, t in TOWN_FIXTURES.items() if f in used]
