@@ -225,16 +225,16 @@ def _running(pid: int) -> bool:
     """Whether ``pid`` runs (not gone, not a zombie nobody has reaped yet)."""
     if (proc := _background.get("proc")) is not None and proc.pid == pid:
         return proc.poll() is None
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    except OSError:  # no /proc here: ask the kernel whether the pid exists
+    if not Path("/proc/self").exists():  # no /proc here: ask the kernel whether it exists
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
             return False
         return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
     return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 

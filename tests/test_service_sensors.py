@@ -314,6 +314,7 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
 
     sys.path.insert(0, str(MODEL.parents[1] / "benchmarks"))
     from bench_kit import served_settings, write_calibration
+    from reports_kit import provenance
 
     path = tmp_path / "m.onnx"
     path.write_bytes(MODEL.read_bytes())
@@ -321,8 +322,6 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     write_calibration(path, "rerank", {"shortlist": 7, "weight": 0.3}, "data/synth/val")
     meta = read_metadata(path)
     assert meta.model_id == before.model_id and meta.calibration["rerank"].data == "data/synth/val"
-    from reports_kit import provenance
-
     assert meta.calibration["rerank"].chosen_by == provenance()["command"]  # this process's
     served = served_settings(meta)
     assert (served.rerank.shortlist, served.rerank.weight) == (7, 0.3)
