@@ -15,8 +15,11 @@ TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/whe
 .PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
-# measured 10 s against ≈100 s for the full set on 2 cores.
-UV := $(BIN)/uv pip install -q --python $(BIN)/python
+# measured 10 s against ≈100 s for the full set on 2 cores. --compile-bytecode writes the
+# packages' .pyc files once, at install (and compileall our own): where PYTHONDONTWRITEBYTECODE
+# is set, as on these development machines, every Python process would otherwise compile
+# torch and the rest from source again (docs/development.md: what that costs the tests).
+UV := $(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,10 +27,12 @@ $(BIN)/python:
 
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
 	$(UV) $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
+	$(BIN)/python -m compileall -q overlapmamba
 	@touch $@
 
 $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 	$(UV) -e '.[serve]'
+	$(BIN)/python -m compileall -q overlapmamba
 	@touch $@
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.
