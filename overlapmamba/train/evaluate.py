@@ -10,6 +10,7 @@ best-overlap loop: same direction (|yaw| ≤ 90°) or reverse.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from collections.abc import Callable
@@ -35,10 +36,20 @@ from overlapmamba.core.scancontext import retrieve as sc_retrieve
 from overlapmamba.core.sensors import SensorProfile, get_profile
 from overlapmamba.core.views import combine_views
 from overlapmamba.train.checkpoint import ExportedNetwork, Network, input_of, views_of
+from overlapmamba.train.model import OverlapMamba
 
 SUBSETS = ("all", "same", "reverse")
 # The label suffix of a network's two-stage rows (descriptor shortlist, yaw re-rank).
 RERANKED = " + yaw re-rank"
+
+
+def channels_last(model: Network) -> Network:
+    """A copy of an OverlapMamba with its 4-d weights in channels-last layout; an exported
+    network (onnxruntime's, which lays out its own tensors) as it is. Fed channels-last
+    images, the backbone's convolutions run faster on CPU, most for narrow networks."""
+    if not isinstance(model, OverlapMamba):
+        return model
+    return copy.deepcopy(model).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
 
 
 @torch.no_grad()
@@ -52,7 +63,11 @@ def describe(
 
     Batches of 8 scans: the backbone's activations then stay in cache. On 2 CPU cores 8 took
     0.65× the time per scan of 32 (reference config) and 0.57× (the tests' small one), with
-    bit-identical descriptors."""
+    bit-identical descriptors.
+
+    A PyTorch network runs as a channels-last copy (:func:`channels_last`), the original left
+    as it was: its convolutions take the faster path on CPU, and the descriptors differ from
+    the plain layout's by float rounding only."""
     views = images.shape[1] if images.ndim == 4 else 1
     meet = model.cfg.token_views  # views the network averages itself (its tokens)
     if views != meet and meet > 1:
@@ -62,10 +77,12 @@ def describe(
         )
     was_training = model.training
     model.eval()
+    net = channels_last(model)
     descs, yaws = [], []
     for s in range(0, len(images), batch):
         x = np.asarray(images[s : s + batch], dtype=np.float32)
-        d, y = model(torch.from_numpy(x.reshape(-1, 1, *x.shape[-2:])).to(device))
+        x_t = torch.from_numpy(x.reshape(-1, 1, *x.shape[-2:])).to(device)
+        d, y = net(x_t.contiguous(memory_format=torch.channels_last))
         d, y = combine_views(d.cpu().numpy(), y.cpu().numpy(), views // meet)
         descs.append(d)
         yaws.append(y)
