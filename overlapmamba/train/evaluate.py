@@ -46,7 +46,8 @@ RERANKED = " + yaw re-rank"
 def channels_last(model: Network) -> Network:
     """A copy of an OverlapMamba with its 4-d weights in channels-last layout; an exported
     network (onnxruntime's, which lays out its own tensors) as it is. Fed channels-last
-    images, the backbone's convolutions run faster on CPU, most for narrow networks."""
+    images, the backbone's convolutions run faster on CPU for the tests' small network and
+    no slower for ``narrow`` and the reference width (benchmarks/describe_layout.py)."""
     if not isinstance(model, OverlapMamba):
         return model
     return copy.deepcopy(model).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
@@ -66,8 +67,7 @@ def describe(
     bit-identical descriptors.
 
     A PyTorch network runs as a channels-last copy (:func:`channels_last`), the original left
-    as it was: its convolutions take the faster path on CPU, and the descriptors differ from
-    the plain layout's by float rounding only."""
+    as it was: the descriptors differ from the plain layout's by float rounding only."""
     views = images.shape[1] if images.ndim == 4 else 1
     meet = model.cfg.token_views  # views the network averages itself (its tokens)
     if views != meet and meet > 1:
