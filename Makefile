@@ -18,7 +18,7 @@ TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/whe
 # measured 10 s against ≈100 s for the full set on 2 cores. --compile-bytecode writes the
 # packages' .pyc files once, at install (and compileall our own): where PYTHONDONTWRITEBYTECODE
 # is set, as on these development machines, every Python process would otherwise compile
-# torch and the rest from source again (docs/development.md: what that costs the tests).
+# torch and the rest from source again (python benchmarks/bytecode.py times both ways).
 UV := $(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python
 
 $(BIN)/python:
