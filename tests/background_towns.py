@@ -21,6 +21,6 @@ if __name__ == "__main__":
         generate_preset(root / name, name)
         (root / f"{name}.done").touch()
     if "--run" in sys.argv:
-        history = train_tiny_run(root / "tiny", root / "tiny-val", root / "runs" / "tiny")
+        history = train_tiny_run(root / "tiny", root / "tiny-check", root / "runs" / "tiny")
         (root / "tiny-run.pkl").write_bytes(pickle.dumps(history))
         (root / "tiny-run.done").touch()

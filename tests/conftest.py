@@ -143,7 +143,7 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # (`make test` runs two) the first worker to need them starts the process (at normal priority:
 # it is then the run's critical path) in a folder the run's main process made; every worker
 # waits on it, and the main process stops it when the run ends.
-TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-val"}  # in the order generated
+TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-check"}  # in the order generated
 _TOWNS_NEEDED = pytest.StashKey[list[str]]()
 _RUN_FOLDER = pytest.StashKey[Path]()
 _background: dict[str, Any] = {}
@@ -276,8 +276,9 @@ def tiny_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_val_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The ``tiny-val`` preset: another small town, for validating tiny training runs."""
-    return _generate_preset(tmp_path_factory, "tiny-val")
+    """The ``tiny-check`` preset: another small town (350 scans), for validating tiny
+    training runs."""
+    return _generate_preset(tmp_path_factory, "tiny-check")
 
 
 # A small OverlapMamba for training tests: the reference backbone, a narrow mixer and head.
@@ -311,7 +312,7 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
     pytest.importorskip("torch")
     if "--run" in _background.get("names", ()):
         root = _wait_for_background("tiny-run")
-        assert (tiny_seq, tiny_val_seq) == (root / "tiny", root / "tiny-val")
+        assert (tiny_seq, tiny_val_seq) == (root / "tiny", root / "tiny-check")
         return root / "runs" / "tiny", pickle.loads((root / "tiny-run.pkl").read_bytes())
     out = tmp_path_factory.mktemp("runs") / "tiny"
     return out, train_tiny_run(tiny_seq, tiny_val_seq, out)

@@ -47,7 +47,7 @@ def test_batches_hold_anchor_positives_and_a_near_miss(tiny_seq, negative):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)  # its set-up generates the tiny-val town (≈2 min on 2 busy cores)
+@pytest.mark.timeout(900)  # its set-up generates the tiny-check town
 def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     cfg = OverlapMambaConfig(**SMALL)
     straight, history = tiny_run  # train([tiny_seq], tiny_val_seq, …, cfg, small_run())

@@ -20,12 +20,13 @@ can refuse test data.
 | test-s1-SENSOR | 3304 | 1000 | five sensors | that town, session 1 | queries across sensors |
 | train-xNN | 7001 + NN | 1000 | in turn  | drawn: 4–6 × 4–6, blocks 50–160 m | many towns |
 | tiny   | 5    | 600   | kitti-hdl64 | 4 × 3, small   | tests: fast, both-direction loops |
-| tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | tests: validation of tiny runs |
+| tiny-val | 24 | 600   | kitti-hdl64 | 4 × 3, small   | validating tiny runs (recipe.py) |
+| tiny-check | 177 | 350 | kitti-hdl64 | 4 × 3, small | tests: validating tiny runs |
 
-Validation and test towns (val, test*, tiny-val) compute only the loop table's candidate pairs
-(``pair_table="loops"``: pairs more than ``loop_exclude`` frames apart), which is all that
-selection and evaluation read; training towns keep every pair within ``gt_radius``, because
-the sampler draws positives and near misses from neighbouring frames.
+Validation and test towns (val, test*, tiny-val, tiny-check) compute only the loop table's
+candidate pairs (``pair_table="loops"``: pairs more than ``loop_exclude`` frames apart), which
+is all that selection and evaluation read; training towns keep every pair within
+``gt_radius``, because the sampler draws positives and near misses from neighbouring frames.
 
 The drawn towns (``train-x00`` … ``train-x11``, ``make data-towns``) are many smaller
 training towns, each of one catalogue sensor in turn and drawn from its index alone
@@ -40,6 +41,10 @@ The tiny presets revisit after every 30–60 m of exploring in a small town (blo
 Their seeds follow the same kind of rule: the first seed counting up from 5 (tiny) and from
 6 (tiny-val) whose 600-scan drive has at least 10 same- and 10 opposite-direction scans
 within 6 m of a scan more than 100 frames older (tiny: 88 and 82; tiny-val: 11 and 90).
+``tiny-check`` is the test suite's validation town: every validation of a tiny run
+describes all its scans, which made validation most of each tiny run's time, so it is
+shorter. Its seed follows the same rule for a 350-scan drive, counting up from 6: 177 (12
+and 12; no 300-scan drive among seeds 1–399 has even 8 of each).
 
 The sensor towns (``make data-sensors``) are one validation town and one test town, each
 driven once (session 0) and rendered by every catalogue sensor on a car's roof: the drives
@@ -114,6 +119,9 @@ PRESETS: dict[str, GenConfig] = {
     ),
     "tiny": GenConfig(seed=5, frames=600, preset="tiny", split="train", **_TINY),
     "tiny-val": GenConfig(seed=24, frames=600, preset="tiny-val", split="val", **_TINY, **_EVAL),
+    "tiny-check": GenConfig(
+        seed=177, frames=350, preset="tiny-check", split="val", **_TINY, **_EVAL
+    ),
 }
 
 
