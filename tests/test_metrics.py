@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from sklearn.metrics import auc as sk_auc
-from sklearn.metrics import precision_recall_curve
 
 from overlapmamba.core.metrics import (
     average_recall_at_n,
@@ -38,6 +36,10 @@ def test_pr_curve_matches_reference(seed, n):
 def test_pr_curve_agrees_with_sklearn_when_loops_equal_correct_answers():
     """When every query with a loop retrieves a true loop and the others retrieve none,
     our protocol reduces to a plain binary PR curve over (correct, −distance)."""
+    # imported here: scikit-learn takes ≈1.5 s to import, in every worker's collection
+    from sklearn.metrics import auc as sk_auc
+    from sklearn.metrics import precision_recall_curve
+
     rng = np.random.default_rng(3)
     d = rng.random(200)
     correct = rng.random(200) < 0.4
