@@ -15,11 +15,16 @@ TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/whe
 .PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
-# measured 10 s against ≈100 s for the full set on 2 cores. --compile-bytecode writes the
-# packages' .pyc files once, at install (and compileall our own): where PYTHONDONTWRITEBYTECODE
-# is set, as on these development machines, every Python process would otherwise compile
-# torch and the rest from source again (python benchmarks/bytecode.py times both ways).
-UV := $(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python
+# measured 10 s against ≈100 s for the full set on 2 cores.
+UV := $(BIN)/uv pip install -q --python $(BIN)/python
+
+# Python writes the bytecode of what it imports (.pyc, into the venv and __pycache__/) in
+# every command make runs, even where the caller sets PYTHONDONTWRITEBYTECODE, as these
+# development machines do: each of the suite's processes (workers, servers, CLIs, worker
+# pools) would otherwise compile torch, FastAPI and the rest from source again (python
+# benchmarks/bytecode.py times both ways). Compiled as imported, not at install: uv's
+# --compile-bytecode compiles every module of every package, most never imported.
+export PYTHONDONTWRITEBYTECODE :=
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -27,12 +32,10 @@ $(BIN)/python:
 
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
 	$(UV) $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
-	$(BIN)/python -m compileall -q overlapmamba
 	@touch $@
 
 $(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
 	$(UV) -e '.[serve]'
-	$(BIN)/python -m compileall -q overlapmamba
 	@touch $@
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.

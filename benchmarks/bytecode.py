@@ -1,21 +1,24 @@
-"""Process start-up with and without the packages' bytecode: what `make`'s install buys.
+"""Process start-up with and without the packages' bytecode: what `make` buys by letting
+Python write it.
 
 Where ``PYTHONDONTWRITEBYTECODE`` is set (these development machines set it), Python never
-writes ``.pyc`` files, so unless the install wrote them (``uv pip install
---compile-bytecode`` and ``compileall`` in the Makefile) every process compiles each module it
-imports from source. The test suite starts many processes: two workers, the background
-towns, worker pools, servers, CLIs, one per package-boundary check.
+writes ``.pyc`` files, so every process compiles each module it imports from source. The
+Makefile clears the variable for every command it runs, so the first process to import a
+module writes its bytecode and later ones read it. The test suite starts many processes:
+two workers, the background towns, worker pools, servers, CLIs, one per package-boundary
+check.
 
 This starts fresh interpreters of this venv doing what those processes do first (import the
 service's app, the training loop with its optimiser, the CLI), each ``--repeats`` times and
 alternating the two ways so that both meet the same machine:
 
-- ``bytecode``: as installed (the venv's ``.pyc`` files and ``overlapmamba``'s);
+- ``bytecode``: as under ``make`` (``PYTHONDONTWRITEBYTECODE`` cleared; one untimed run
+  first writes whatever ``.pyc`` files were missing);
 - ``source``: ``PYTHONPYCACHEPREFIX`` pointed at an empty folder and
   ``PYTHONDONTWRITEBYTECODE=1``, so no ``.pyc`` is found or written: every import compiles.
 
 It reports each process's median wall time both ways and their ratio, and whether the venv
-holds bytecode at all (a venv installed without it measures the same both ways). Writes
+holds bytecode (after the untimed runs it should). Writes
 reports/deploy/bytecode.json.
 """
 
@@ -50,7 +53,7 @@ def _timed(code: str, env: dict[str, str]) -> float:
 
 
 def venv_has_bytecode() -> bool:
-    """Whether the installed torch has its ``.pyc`` files (the install wrote them)."""
+    """Whether the installed torch has its ``.pyc`` files."""
     import importlib.util
 
     spec = importlib.util.find_spec("torch")
@@ -68,11 +71,12 @@ def main() -> None:
         ap.error(f"--repeats must be at least 1; got {args.repeats}")
 
     base = {k: v for k, v in os.environ.items() if k != "PYTHONPYCACHEPREFIX"}
+    base["PYTHONDONTWRITEBYTECODE"] = ""  # as the Makefile runs every command
     rows = {}
     with tempfile.TemporaryDirectory(prefix="no-bytecode-") as empty:
         source = {**base, "PYTHONPYCACHEPREFIX": empty, "PYTHONDONTWRITEBYTECODE": "1"}
         for name, code in PROCESSES.items():
-            _timed(code, base)  # the files into the page cache for both ways
+            _timed(code, base)  # missing .pyc written; the files into the page cache
             times: dict[str, list[float]] = {"bytecode": [], "source": []}
             for _ in range(args.repeats):
                 times["bytecode"].append(_timed(code, base))
