@@ -161,6 +161,8 @@ def pytest_configure_node(node: Any) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
+    if (proc := _background.get("proc")) is not None:
+        proc.poll()  # reaped if done: the worker that started it would warn at exit otherwise
     if _RUN_FOLDER not in config.stash:
         return
     folder = config.stash[_RUN_FOLDER]
