@@ -23,7 +23,7 @@ UV := $(BIN)/uv pip install -q --python $(BIN)/python
 # development machines do: each of the suite's processes (workers, servers, CLIs, worker
 # pools) would otherwise compile torch, FastAPI and the rest from source again (python
 # benchmarks/bytecode.py times both ways). Compiled as imported, not at install: uv's
-# --compile-bytecode compiles every module of every package, most never imported.
+# --compile-bytecode compiles every module of every package, imported or not.
 export PYTHONDONTWRITEBYTECODE :=
 
 $(BIN)/python:
