@@ -27,10 +27,12 @@ from reports_kit import REPORTS, write_report
 
 from overlapmamba.train.evaluate import describe
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+from overlapmamba.train.presets import NARROW
 
 WIDTHS = {
+    # tests/conftest.py's SMALL_MODEL (the tests are not a package this can import)
     "small (tests)": dict(d_model=32, d_state=4, dt_rank=4, conv_last2=48, clusters=6, out_dim=32),
-    "narrow (shipped)": dict(d_model=64, conv_last2=256, clusters=32),
+    "narrow (shipped)": NARROW,
     "reference": {},
 }
 
