@@ -43,6 +43,8 @@ def test_reference_configuration_has_the_reference_size():
         {"n_blocks": 2},
         {"gating": False},
         {"height": 32},
+        {"backbone": "all-rows"},
+        {"backbone": "all-rows", "height": 32},
     ],
 )
 def test_ablations_are_config_changes_and_stay_equivariant(kw):
@@ -54,6 +56,30 @@ def test_ablations_are_config_changes_and_stay_equivariant(kw):
             d_k, yaw_k = m(torch.roll(x, k, dims=-1))
             assert (d * d_k).sum(-1).min() >= 0.99999
             torch.testing.assert_close(yaw_k, torch.roll(yaw, k, dims=-1), rtol=1e-4, atol=1e-5)
+
+
+def rows_reaching_the_descriptor(m: OverlapMamba, H: int) -> list[int]:
+    x = image(1, H=H)
+    with torch.no_grad():
+        d = m(x)[0]
+        rows = []
+        for r in range(H):
+            y = x.clone()
+            y[..., r, :] = 123.0  # a change the row cannot hide from a network that reads it
+            if (m(y)[0] - d).abs().max() > 1e-6:
+                rows.append(r)
+    return rows
+
+
+@pytest.mark.parametrize(
+    ("H", "reference_rows"), [(64, range(27)), (32, range(27)), (16, range(15)), (5, range(5))]
+)
+def test_the_all_rows_backbone_reads_every_row_the_reference_drops_some(H, reference_rows):
+    """The reference layers' strided 1 × 1 convolutions keep their first row only: on 64 rows
+    the descriptor never reads rows 27–63 (benchmarks/receptive_rows.py measures the shipped
+    file). ``all-rows`` pads the strided convolutions and ends in one (h, 1) convolution."""
+    assert rows_reaching_the_descriptor(model(height=H), H) == list(reference_rows)
+    assert rows_reaching_the_descriptor(model(height=H, backbone="all-rows"), H) == list(range(H))
 
 
 def test_without_circular_mode_equivariance_breaks():
@@ -142,6 +168,8 @@ def test_config_round_trips_and_rejects_bad_values():
         OverlapMambaConfig(d_state=0)
     with pytest.raises(ValueError, match="allowed: auto, fused, chunked, loop, onnx, ref"):
         OverlapMambaConfig(scan_backend="gpu")
+    with pytest.raises(ValueError, match="backbone 'all' is unknown; allowed: reference, all-rows"):
+        OverlapMambaConfig(backbone="all")
 
 
 @pytest.mark.real_data

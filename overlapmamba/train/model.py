@@ -42,6 +42,7 @@ from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.scan_backends import BACKENDS, scan
 
 MIXERS = ("mamba", "transformer")
+BACKBONES = ("reference", "all-rows")
 
 
 class OverlapMambaConfig(Config):
@@ -52,6 +53,9 @@ class OverlapMambaConfig(Config):
     sensor: str = "kitti-hdl64"  # overlapmamba.core sensor profile the range images come from
     height: int = 64  # range-image rows (beams)
     width: int = 900  # range-image columns: the token count
+    # reference (the reference code's layers: on 64 rows the descriptor sees rows 0–26 only)
+    # or all-rows (every row reaches it): _backbone
+    backbone: str = "reference"
     spp: bool = True  # sequential spatial-pyramid pooling after the backbone
     d_model: int = 256  # token width after convLast1
     d_state: int = 16  # N: SSM state per channel
@@ -89,6 +93,10 @@ class OverlapMambaConfig(Config):
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
         if self.token_views > MAX_VIEWS:
             raise ValueError(f"token_views must be at most {MAX_VIEWS}, got {self.token_views}")
+        if self.backbone not in BACKBONES:
+            raise ValueError(
+                f"backbone {self.backbone!r} is unknown; allowed: {', '.join(BACKBONES)}"
+            )
         if self.mixer not in MIXERS:
             raise ValueError(f"mixer {self.mixer!r} is unknown; allowed: {', '.join(MIXERS)}")
         if self.mixer == "transformer" and self.d_model % self.heads:
@@ -104,16 +112,33 @@ class OverlapMambaConfig(Config):
         return self.expand * self.d_model
 
 
-def _backbone(height: int) -> nn.Sequential:
-    """Bias-free (k, 1) convs with ReLU; strides (2, 1) halve the height until it is 1."""
+def _backbone(height: int, kind: str = "reference") -> nn.Sequential:
+    """Bias-free (k, 1) convs with ReLU; strides (2, 1) halve the height until it is 1.
+
+    ``reference``: the reference code's layers. A strided conv drops the rows its last step
+    does not reach, and the 1 × 1 convs with stride (2, 1) that finish the height keep only
+    their first row: on a 64-row image the descriptor depends on rows 0–26 alone (KITTI's
+    +3° … −8.8°; ``benchmarks/receptive_rows.py`` measures it).
+    ``all-rows``: the same convolutions, each strided one given the zero rows below the
+    image that let its last step reach the bottom row, and one (h, 1) convolution in place
+    of the 1 × 1 convs that finish the height: every row reaches the descriptor (on a
+    64-row image, 102 k backbone weights against 86 k)."""
+    if kind not in BACKBONES:
+        raise ValueError(f"backbone {kind!r} is unknown; allowed: {', '.join(BACKBONES)}")
     specs = [(1, 16, 5, 1), (16, 32, 3, 2), (32, 64, 3, 2), (64, 64, 3, 2), (64, 128, 2, 2)]
     layers: list[nn.Module] = []
     h = height
     for cin, cout, k, s in specs:
         if h < k:  # short images (few beams): keep the kernel inside the image
             k, s = h, 1
+        pad = (-(h - k)) % s if kind == "all-rows" else 0
+        if pad:
+            layers.append(nn.ZeroPad2d((0, 0, 0, pad)))
         layers += [nn.Conv2d(cin, cout, (k, 1), stride=(s, 1), bias=False), nn.ReLU(inplace=True)]
-        h = (h - k) // s + 1
+        h = (h + pad - k) // s + 1
+    if kind == "all-rows":
+        layers += [nn.Conv2d(128, 128, (h, 1), bias=False), nn.ReLU(inplace=True)]
+        return nn.Sequential(*layers)
     layers += [nn.Conv2d(128, 128, 1, bias=False), nn.ReLU(inplace=True)]
     while h > 1:
         layers += [nn.Conv2d(128, 128, 1, stride=(2, 1), bias=False), nn.ReLU(inplace=True)]
@@ -291,7 +316,7 @@ class OverlapMamba(nn.Module):
     def __init__(self, cfg: OverlapMambaConfig | None = None) -> None:
         super().__init__()
         self.cfg = cfg = cfg or OverlapMambaConfig()
-        self.backbone = _backbone(cfg.height)
+        self.backbone = _backbone(cfg.height, cfg.backbone)
         self.spp = SPP(128, circular=cfg.circular) if cfg.spp else None
         self.conv_last1 = nn.Sequential(nn.Conv2d(128, cfg.d_model, 1, bias=True), nn.ReLU())
         self.blocks = nn.ModuleList(_mixer_block(cfg) for _ in range(cfg.n_blocks))
