@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from reports_kit import REPORTS
+from reports_kit import REPORTS, provenance
 
 from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.train import TrainConfig, train
@@ -64,7 +64,13 @@ def main() -> None:
                 "data_s": h.get("data_s"),
             }
         )
-    record = {"name": args.name, "spec": spec, "wall_s": time.time() - t, "epochs": rows}
+    record = {
+        **provenance(),
+        "name": args.name,
+        "spec": spec,
+        "wall_s": time.time() - t,
+        "epochs": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with args.out.open("a") as f:
         f.write(json.dumps(record) + "\n")
