@@ -1,0 +1,189 @@
+"""An experiment across sensors, with the shipped weights and no training: every sensor's
+scan, the model sensor's too, thinned to the beams nearest a common set of elevations before
+it enters the network, against each sensor's scan projected as the service projects it today.
+
+    elevation   the service today (``overlapmamba.core.sensors.input``, ``elevation`` mode;
+                the model sensor's scans native)
+    common      of each sensor, only the beam nearest each of the VLP-16's 16 elevations
+                (−15° … +15°, 2° apart: the sparsest spinning sensor of the catalogue), when
+                that beam lies within ``TOLERANCE_DEG`` of it; a point's beam is the nearest
+                elevation of its sensor's table (as the service finds it); the points kept
+                are projected as a VLP-16's scan would be (``elevation`` mode, the model's
+                views). Every sensor's image then shows the same rings at the same rows
+
+Why it might pay: the network reads rows 0–26 of its 64 (``benchmarks/receptive_rows.py``),
++2.8° … −8.6°, where a VLP-16 has 7 beams, an XT32 13 and an HDL-64E 26. What differs
+between two sensors' images of one place is mostly that vertical sampling.
+
+AR@1/5/20 (a hit within 5 m, ``overlapmamba.train.sessions.descriptor_recall``, the
+descriptor alone) of a second drive by one sensor queried against the first drive's map by
+another, on
+
+- ``val``: calibration town ``cal-x00`` (``overlapmamba.synth.presets.calibration_town``,
+  split val), 500 scans a drive, sessions 0 and 1. The common set and its tolerance were
+  chosen here (against a window of elevations, which lost);
+- ``test``: the sensor test town's presets (``test-kitti-hdl64``, ``test-os1-128`` and the
+  ``test-s1-…`` second drives), as ``benchmarks/sensors.py`` pairs them.
+
+Drives are generated into ``--scratch`` without overlap tables (or read from ``--data``
+where a preset's folder exists there) and kept for a rerun.
+
+    python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx]
+
+Writes reports/model/common-beams.json. ≈ 30 min on 2 cores with the three-view file, most
+of it describing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from reports_kit import REPORTS, ROOT, write_report
+from rich.console import Console
+
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
+from overlapmamba.core.sensors.input import SensorInput, beam_of
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.train.sessions import check_sessions, descriptor_recall, town_positions
+
+COMMON = CATALOGUE["vlp16"]
+TOLERANCE_DEG = 0.5
+QUERIES = ("kitti-hdl64", "vlp16", "os0-128", "xt32", "os1-128")
+MAPS = ("kitti-hdl64", "os1-128")
+WAYS = ("elevation", "common")
+
+
+def common_beams(sensor: Sensor) -> np.ndarray:
+    """Indices of ``sensor``'s beams nearest each common elevation (within the tolerance)."""
+    el = np.asarray(sensor.elevations_deg, np.float64)
+    keep = {
+        int(np.argmin(np.abs(el - e)))
+        for e in COMMON.elevations_deg
+        if np.abs(el - e).min() <= TOLERANCE_DEG
+    }
+    return np.array(sorted(keep), np.int64)
+
+
+def common_images(enc: Encoder, cloud: PointCloud, sensor: Sensor) -> np.ndarray:
+    """(views, H, W): the scan's common beams, projected as a VLP-16 scan."""
+    xyz = cloud.xyz
+    r = np.linalg.norm(xyz, axis=1)
+    el = np.degrees(np.arcsin(np.clip(xyz[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
+    kept = xyz[np.isin(beam_of(el, sensor), common_beams(sensor))]
+    return SensorInput(enc.meta.profile, COMMON, "elevation").project(kept, enc.meta.views)
+
+
+def describe(enc: Encoder, town: Path, way: str) -> tuple[np.ndarray, np.ndarray]:
+    seq = open_sequence(town)
+    sensor = CATALOGUE[seq.sensor or enc.meta.profile.name]
+    own = sensor.name == enc.meta.profile.name
+    served = None if own else SensorInput(enc.meta.profile, sensor, "elevation")
+    out: list[np.ndarray] = []
+    batch: list[np.ndarray] = []
+    for i in range(len(seq)):
+        cloud = seq.points(i)
+        if way == "common":
+            batch.append(common_images(enc, cloud, sensor))
+        else:
+            batch.append(enc.project(cloud, served))
+        if len(batch) == 8 or i == len(seq) - 1:
+            out.append(enc.encode(np.stack(batch))[0])
+            batch.clear()
+    return np.concatenate(out), town_positions(seq)
+
+
+def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
+    """The drive ``name``: ``data/name`` when it is there, else generated into scratch."""
+    from overlapmamba.synth.generate import generate
+
+    for root in (data, scratch):
+        if (root / name / "manifest.json").is_file():
+            return root / name
+    out = scratch / name
+    if out.exists():  # an interrupted generation
+        import shutil
+
+        shutil.rmtree(out)
+    generate(out, cfg_of(), workers=2, progress=False, ground_truth=False)
+    return out
+
+
+def pairs(
+    enc: Encoder, towns: dict[tuple[str, int], Path], console: Console
+) -> list[dict[str, Any]]:
+    rows = []
+    cache: dict[tuple[Path, str], tuple[np.ndarray, np.ndarray]] = {}
+
+    def get(town: Path, way: str) -> tuple[np.ndarray, np.ndarray]:
+        if (town, way) not in cache:
+            cache[(town, way)] = describe(enc, town, way)
+        return cache[(town, way)]
+
+    for m in MAPS:
+        for q in QUERIES:
+            db_town, q_town = towns[(m, 0)], towns[(q, 1)]
+            check_sessions(open_sequence(db_town), open_sequence(q_town))
+            row: dict[str, Any] = {"queries": q, "map": m}
+            for way in WAYS:
+                db, pdb = get(db_town, way)
+                qd, pq = get(q_town, way)
+                r = descriptor_recall(db, pdb, qd, pq)
+                row[way] = {k: r[k] for k in ("ar@1", "ar@5", "ar@20")}
+            console.print(row)
+            rows.append(row)
+    return rows
+
+
+def main() -> None:
+    from overlapmamba.synth.presets import calibration_town, preset
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
+    ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
+    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
+    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "common-beams.json")
+    args = ap.parse_args()
+    console = Console(width=120)
+    t0 = time.perf_counter()
+    enc = Encoder(args.model)
+    sensors = sorted(set(QUERIES) | set(MAPS))
+    val: dict[tuple[str, int], Path] = {}
+    test: dict[tuple[str, int], Path] = {}
+    for s in sensors:
+        for session in (0, 1):
+            cfg = calibration_town(0, s, args.frames).model_copy(update={"session": session})
+            val[(s, session)] = drive(
+                args.scratch, args.data, f"cal-x00-s{session}-{s}", lambda c=cfg: c
+            )
+    for s in MAPS:
+        test[(s, 0)] = drive(args.scratch, args.data, f"test-{s}", lambda s=s: preset(f"test-{s}"))
+    for s in QUERIES:
+        test[(s, 1)] = drive(
+            args.scratch, args.data, f"test-s1-{s}", lambda s=s: preset(f"test-s1-{s}")
+        )
+    console.print(f"drives ready in {time.perf_counter() - t0:.0f} s")
+    record = {
+        "model_id": enc.model_id,
+        "views": enc.meta.views,
+        "common": {
+            "elevations_of": COMMON.name,
+            "tolerance_deg": TOLERANCE_DEG,
+            "beams_kept": {s: int(common_beams(CATALOGUE[s]).size) for s in sensors},
+        },
+        "val": pairs(enc, val, console),
+        "test": pairs(enc, test, console),
+    }
+    record["seconds"] = time.perf_counter() - t0
+    write_report(args.out, record)
+    console.print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
