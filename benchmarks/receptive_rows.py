@@ -127,12 +127,9 @@ def main() -> None:
     args = ap.parse_args()
     console = Console()
     models = [m.resolve() for m in args.model] if args.model else list(MODELS)
-    record = {
-        "rounding": ROUNDING,
-        "scan": f"kitti00/{args.frame:06d}",
-        "models": [measure(m, args.frame) for m in models],
-    }
-    for m in record["models"]:
+    measured = [measure(m, args.frame) for m in models]
+    record = {"rounding": ROUNDING, "scan": f"kitti00/{args.frame:06d}", "models": measured}
+    for m in measured:
         console.print(
             f"{m['model']} ({m['model_id']}): {m['rows_reaching_descriptor']} of {m['rows']} rows "
             f"reach the descriptor, rows {m['descriptor_rows']}, elevation "

@@ -30,6 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_fleet  # docs/figures_*.py, beside this file
+import figures_input
 import figures_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,6 +92,7 @@ def headline() -> str:
 RENDERERS: dict[str, Callable[[], str]] = {
     "headline": headline,
     **figures_model.RENDERERS,
+    **figures_input.RENDERERS,
     **figures_fleet.RENDERERS,
 }
 

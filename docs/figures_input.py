@@ -1,0 +1,119 @@
+"""Tables on what the network reads of its input and what that means across sensors, each
+rendered from the JSON a command wrote (``docs/render.py`` pastes them; nothing here types a
+measured number)."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from typing import Any
+
+from figures_kit import ROOT, f3, load, source, table, when
+
+RECEPTIVE_ROWS = "reports/model/receptive-rows.json"
+BACKBONE_ROWS = "reports/model/backbone-rows.jsonl"
+COMMON_BEAMS = "reports/model/common-beams.json"
+
+
+def receptive_rows() -> str:
+    """Which rows of the range image reach each model file's descriptor, and how many of each
+    catalogue sensor's beams those rows show."""
+    r = load(RECEPTIVE_ROWS)
+    out = source(RECEPTIVE_ROWS, r["command"], when(r))
+    files = []
+    for m in r["models"]:
+        lo, hi = m["elevation_deg_reaching_descriptor"]
+        rows = ", ".join(f"{a}–{b}" for a, b in m["descriptor_rows"])
+        files.append(
+            [
+                f"`{m['model']}` ({m['views']} views)",
+                f"{m['rows_reaching_descriptor']} of {m['rows']}: rows {rows}",
+                f"{lo:+.1f}° … {hi:+.1f}°",
+                f"{m['smallest_change_of_a_row_reaching_it']:.1e}",
+                f"{m['largest_change_of_a_row_not_reaching_it']:.1e}",
+            ]
+        )
+    head = [
+        "file",
+        "rows that reach the descriptor",
+        "their elevations",
+        "least change a read row makes",
+        "most change another row makes",
+    ]
+    out += f"\nKITTI 00 scan {r['scan'].split('/')[-1]}, one row emptied at a time.\n\n"
+    out += table(head, files)
+    shipped = r["models"][0]
+    sensors = [
+        [name, s["beams"], s["beams_in_image"], s["beams_reaching_descriptor"]]
+        for name, s in shipped["sensors"].items()
+    ]
+    out += f"\nBeams of each sensor in `{shipped['model']}`'s image (elevation mode):\n\n"
+    return out + table(["sensor", "beams", "in the image", "in the rows read"], sensors)
+
+
+def _backbone_runs() -> list[dict[str, Any]]:
+    lines = (ROOT / BACKBONE_ROWS).read_text().splitlines()
+    return [json.loads(line) for line in lines if line.strip()]
+
+
+def backbone_rows() -> str:
+    """The reference backbone against all-rows at one budget, two seeds each, on tiny-val."""
+    runs = _backbone_runs()
+    first = runs[0]
+    words = shlex.split(first["command"])
+    command = shlex.join([*words[:2], "NAME", "SPEC", *words[4:]])  # each line: its own
+    out = source(BACKBONE_ROWS, command, when(first))
+    spec = first["spec"]["train"]
+    out += (
+        f"\nThe narrow network, {len(first['epochs']) - 1} epochs of {spec['epoch_scans']} scans "
+        "(batches of 16) on the `tiny` town, validated on `tiny-val`; epoch 0 is the untrained "
+        "network (the towns: `gen-data DIR --preset tiny`, `--preset tiny-val`). F1max / "
+        "Recall@1 (all revisits), F1max on reverse revisits.\n\n"
+    )
+    rows = []
+    for run in runs:
+        best = max(run["epochs"], key=lambda e: e["f1max"])
+        last = run["epochs"][-1]
+        rows.append(
+            [
+                run["name"],
+                " · ".join(f3(e["f1max"]) for e in run["epochs"]),
+                f"{f3(best['f1max'])} / {f3(best['recall@1'])} (epoch {best['epoch']})",
+                f3(last["f1max_reverse"]),
+            ]
+        )
+    head = ["run", "F1max per epoch", "best F1max / R@1", "reverse F1max, last epoch"]
+    return out + table(head, rows)
+
+
+def common_beams() -> str:
+    """AR@1 across sensors, as the service projects today against the common beams."""
+    r = load(COMMON_BEAMS)
+    c = r["common"]
+    out = source(COMMON_BEAMS, r["command"], when(r))
+    out += (
+        f"\nThe shipped weights ({r['views']} views, `{r['model_id']}`), the descriptor alone; "
+        f"common beams: each sensor's beams nearest the elevations of `{c['elevations_of']}`, "
+        f"within {c['tolerance_deg']:g}°. AR@1 / AR@5 (a hit within 5 m).\n"
+    )
+    splits = (("val", "val: calibration town `cal-x00` (chosen here)"), ("test", "test"))
+    for split, title in splits:
+        rows = [
+            [
+                p["queries"],
+                p["map"],
+                f"{f3(p['elevation']['ar@1'])} / {f3(p['elevation']['ar@5'])}",
+                f"{f3(p['common']['ar@1'])} / {f3(p['common']['ar@5'])}",
+            ]
+            for p in r[split]
+        ]
+        out += f"\n{title}:\n\n"
+        out += table(["queries", "map", "as served today", "common beams"], rows)
+    return out
+
+
+RENDERERS = {
+    "receptive-rows": receptive_rows,
+    "backbone-rows": backbone_rows,
+    "common-beams": common_beams,
+}
