@@ -105,9 +105,9 @@ def test_a_rendered_table_is_its_json(doc, name, text):
     assert name in render.RENDERERS, f"{_rel(doc)} asks for an unknown table {name!r}"
     made = render.RENDERERS[name]()
     assert text == made, f"{_rel(doc)}'s table {name} differs from its JSON: run `make docs`"
-    assert re.match(r"<!-- from reports/\S+\.(json|md)( \([\d-]+\))?, written by `[^`]+`", made), (
-        "a rendered table names its JSON and the command that wrote it"
-    )
+    assert re.match(
+        r"<!-- from reports/\S+\.(json|jsonl|md)( \([\d-]+\))?, written by `[^`]+`", made
+    ), "a rendered table names its JSON and the command that wrote it"
 
 
 def test_a_stale_block_is_found_and_rendered_again():
