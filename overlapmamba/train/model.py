@@ -117,8 +117,8 @@ def _backbone(height: int, kind: str = "reference") -> nn.Sequential:
 
     ``reference``: the reference code's layers. A strided conv drops the rows its last step
     does not reach, and the 1 × 1 convs with stride (2, 1) that finish the height keep only
-    their first row: on a 64-row image the descriptor depends on rows 0–26 alone (KITTI's
-    +3° … −8.8°; ``benchmarks/receptive_rows.py`` measures it).
+    their first row: on a 64-row image the descriptor depends on rows 0–26 alone, the upper
+    part of KITTI's field of view (``benchmarks/receptive_rows.py`` measures it on a file).
     ``all-rows``: the same convolutions, each strided one given the zero rows below the
     image that let its last step reach the bottom row, and one (h, 1) convolution in place
     of the 1 × 1 convs that finish the height: every row reaches the descriptor (on a
