@@ -37,6 +37,7 @@ of it describing.
 from __future__ import annotations
 
 import argparse
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -70,32 +71,32 @@ def common_beams(sensor: Sensor) -> np.ndarray:
     return np.array(sorted(keep), np.int64)
 
 
-def common_images(enc: Encoder, cloud: PointCloud, sensor: Sensor) -> np.ndarray:
-    """(views, H, W): the scan's common beams, projected as a VLP-16 scan."""
+def thinned(cloud: PointCloud, sensor: Sensor, beams: np.ndarray) -> np.ndarray:
+    """(M, 3) the points of ``cloud`` on ``beams`` of ``sensor`` (a point's beam: the nearest
+    elevation of the sensor's table)."""
     xyz = cloud.xyz
     r = np.linalg.norm(xyz, axis=1)
     el = np.degrees(np.arcsin(np.clip(xyz[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
-    kept = xyz[np.isin(beam_of(el, sensor), common_beams(sensor))]
-    return SensorInput(enc.meta.profile, COMMON, "elevation").project(kept, enc.meta.views)
+    return xyz[np.isin(beam_of(el, sensor), beams)]
 
 
 def describe(enc: Encoder, town: Path, way: str) -> tuple[np.ndarray, np.ndarray]:
+    """The town's descriptors (the network's own: the shipped file carries no sensor maps)
+    and positions. ``elevation``: as the service projects the town's sensor (the model
+    sensor's scans natively); ``common``: its common beams, projected as a VLP-16 scan."""
     seq = open_sequence(town)
     sensor = CATALOGUE[seq.sensor or enc.meta.profile.name]
-    own = sensor.name == enc.meta.profile.name
-    served = None if own else SensorInput(enc.meta.profile, sensor, "elevation")
-    out: list[np.ndarray] = []
-    batch: list[np.ndarray] = []
-    for i in range(len(seq)):
-        cloud = seq.points(i)
-        if way == "common":
-            batch.append(common_images(enc, cloud, sensor))
-        else:
-            batch.append(enc.project(cloud, served))
-        if len(batch) == 8 or i == len(seq) - 1:
-            out.append(enc.encode(np.stack(batch))[0])
-            batch.clear()
-    return np.concatenate(out), town_positions(seq)
+    clouds = (seq.points(i) for i in range(len(seq)))
+    if way == "common":
+        beams = common_beams(sensor)
+        clouds = (PointCloud(thinned(c, sensor, beams)) for c in clouds)
+        sensor_input = SensorInput(enc.meta.profile, COMMON, "elevation")
+    elif sensor.name == enc.meta.profile.name:
+        sensor_input = None
+    else:
+        sensor_input = SensorInput(enc.meta.profile, sensor, "elevation")
+    desc, _ = enc.describe(clouds, sensor_input, mapped=False)
+    return desc, town_positions(seq)
 
 
 def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
@@ -107,8 +108,6 @@ def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
             return root / name
     out = scratch / name
     if out.exists():  # an interrupted generation
-        import shutil
-
         shutil.rmtree(out)
     generate(out, cfg_of(), workers=2, progress=False, ground_truth=False)
     return out
