@@ -4,12 +4,12 @@ it enters the network, against each sensor's scan projected as the service proje
 
     elevation   the service today (``overlapmamba.core.sensors.input``, ``elevation`` mode;
                 the model sensor's scans native)
-    common      of each sensor, only the beam nearest each of the VLP-16's 16 elevations
-                (−15° … +15°, 2° apart: the sparsest spinning sensor of the catalogue), when
-                that beam lies within ``TOLERANCE_DEG`` of it; a point's beam is the nearest
-                elevation of its sensor's table (as the service finds it); the points kept
-                are projected as a VLP-16's scan would be (``elevation`` mode, the model's
-                views). Every sensor's image then shows the same rings at the same rows
+    common      the ``common`` mode (``overlapmamba.core.sensors.input``): of each sensor,
+                only the beam nearest each of the VLP-16's 16 elevations (−15° … +15°, 2°
+                apart: the sparsest spinning sensor of the catalogue), when that beam lies
+                within 0.5° of it; a point's beam is the nearest elevation of its sensor's
+                table; the points kept are projected as a VLP-16's scan would be. Every
+                sensor's image then shows the same rings at the same rows
 
 Why it might pay: the network reads rows 0–26 of its 64 (``benchmarks/receptive_rows.py``),
 +2.8° … −8.6°, where a VLP-16 has 7 beams, an XT32 13 and an HDL-64E 26. What differs
@@ -28,9 +28,11 @@ another, on
 Drives are generated into ``--scratch`` without overlap tables (or read from ``--data``
 where a preset's folder exists there) and kept for a rerun.
 
-    python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx]
+    python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx] [--out …]
 
-Writes reports/model/common-beams.json. ≈ 30 min on 2 cores with the three-view file, most
+A file that takes common beams itself (``sensor_input = "common"``: trained on them, e.g.
+the ``common-towns`` preset) is measured the common way only. Writes
+reports/model/common-beams.json. ≈ 30 min on 2 cores with the three-view file, most
 of it describing.
 """
 
@@ -47,54 +49,29 @@ from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.points import PointCloud
-from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
-from overlapmamba.core.sensors.input import SensorInput, beam_of
+from overlapmamba.core.sensors.catalogue import CATALOGUE
+from overlapmamba.core.sensors.input import (
+    COMMON_SENSOR,
+    COMMON_TOLERANCE_DEG,
+    SensorInput,
+    common_beams,
+)
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.train.sessions import check_sessions, descriptor_recall, town_positions
 
-COMMON = CATALOGUE["vlp16"]
-TOLERANCE_DEG = 0.5
 QUERIES = ("kitti-hdl64", "vlp16", "os0-128", "xt32", "os1-128")
 MAPS = ("kitti-hdl64", "os1-128")
 WAYS = ("elevation", "common")
 
 
-def common_beams(sensor: Sensor) -> np.ndarray:
-    """Indices of ``sensor``'s beams nearest each common elevation (within the tolerance)."""
-    el = np.asarray(sensor.elevations_deg, np.float64)
-    keep = {
-        int(np.argmin(np.abs(el - e)))
-        for e in COMMON.elevations_deg
-        if np.abs(el - e).min() <= TOLERANCE_DEG
-    }
-    return np.array(sorted(keep), np.int64)
-
-
-def thinned(cloud: PointCloud, sensor: Sensor, beams: np.ndarray) -> np.ndarray:
-    """(M, 3) the points of ``cloud`` on ``beams`` of ``sensor`` (a point's beam: the nearest
-    elevation of the sensor's table)."""
-    xyz = cloud.xyz
-    r = np.linalg.norm(xyz, axis=1)
-    el = np.degrees(np.arcsin(np.clip(xyz[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
-    return xyz[np.isin(beam_of(el, sensor), beams)]
-
-
 def describe(enc: Encoder, town: Path, way: str) -> tuple[np.ndarray, np.ndarray]:
     """The town's descriptors (the network's own: the shipped file carries no sensor maps)
-    and positions. ``elevation``: as the service projects the town's sensor (the model
-    sensor's scans natively); ``common``: its common beams, projected as a VLP-16 scan."""
+    and positions, the town's sensor's scans taken by ``way`` (``elevation``: as the service
+    projects them today, the model sensor's natively)."""
     seq = open_sequence(town)
     sensor = CATALOGUE[seq.sensor or enc.meta.profile.name]
     clouds = (seq.points(i) for i in range(len(seq)))
-    if way == "common":
-        beams = common_beams(sensor)
-        clouds = (PointCloud(thinned(c, sensor, beams)) for c in clouds)
-        sensor_input = SensorInput(enc.meta.profile, COMMON, "elevation")
-    elif sensor.name == enc.meta.profile.name:
-        sensor_input = None
-    else:
-        sensor_input = SensorInput(enc.meta.profile, sensor, "elevation")
+    sensor_input = SensorInput(enc.meta.profile, sensor, way)  # type: ignore[arg-type]
     desc, _ = enc.describe(clouds, sensor_input, mapped=False)
     return desc, town_positions(seq)
 
@@ -114,7 +91,7 @@ def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
 
 
 def pairs(
-    enc: Encoder, towns: dict[tuple[str, int], Path], console: Console
+    enc: Encoder, towns: dict[tuple[str, int], Path], ways: tuple[str, ...], console: Console
 ) -> list[dict[str, Any]]:
     rows = []
     cache: dict[tuple[Path, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -129,7 +106,7 @@ def pairs(
             db_town, q_town = towns[(m, 0)], towns[(q, 1)]
             check_sessions(open_sequence(db_town), open_sequence(q_town))
             row: dict[str, Any] = {"queries": q, "map": m}
-            for way in WAYS:
+            for way in ways:
                 db, pdb = get(db_town, way)
                 qd, pq = get(q_town, way)
                 r = descriptor_recall(db, pdb, qd, pq)
@@ -152,6 +129,8 @@ def main() -> None:
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
+    # a file trained on common beams takes nothing else (its elevation images mean nothing)
+    ways = ("common",) if enc.meta.sensor_input == "common" else WAYS
     sensors = sorted(set(QUERIES) | set(MAPS))
     val: dict[tuple[str, int], Path] = {}
     test: dict[tuple[str, int], Path] = {}
@@ -171,13 +150,14 @@ def main() -> None:
     record = {
         "model_id": enc.model_id,
         "views": enc.meta.views,
+        "sensor_input": enc.meta.sensor_input,
         "common": {
-            "elevations_of": COMMON.name,
-            "tolerance_deg": TOLERANCE_DEG,
+            "elevations_of": COMMON_SENSOR,
+            "tolerance_deg": COMMON_TOLERANCE_DEG,
             "beams_kept": {s: int(common_beams(CATALOGUE[s]).size) for s in sensors},
         },
-        "val": pairs(enc, val, console),
-        "test": pairs(enc, test, console),
+        "val": pairs(enc, val, ways, console),
+        "test": pairs(enc, test, ways, console),
     }
     record["seconds"] = time.perf_counter() - t0
     write_report(args.out, record)

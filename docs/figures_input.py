@@ -13,6 +13,7 @@ from figures_kit import ROOT, f3, load, source, table, when
 RECEPTIVE_ROWS = "reports/model/receptive-rows.json"
 BACKBONE_ROWS = "reports/model/backbone-rows.jsonl"
 COMMON_BEAMS = "reports/model/common-beams.json"
+COMMON_TRAINED = "reports/model/common-beams-trained.json"
 
 
 def receptive_rows() -> str:
@@ -112,8 +113,42 @@ def common_beams() -> str:
     return out
 
 
+def _ar(cell: dict[str, Any] | None) -> str:
+    return "—" if cell is None else f"{f3(cell['ar@1'])} / {f3(cell['ar@5'])}"
+
+
+def common_trained() -> str:
+    """AR@1 across sensors: the shipped weights as served and on common beams, against the
+    network trained on common beams (``common-towns``)."""
+    r, t = load(COMMON_BEAMS), load(COMMON_TRAINED)
+    out = source(COMMON_TRAINED, t["command"], when(t))
+    out += (
+        f"\nThe descriptor alone, AR@1 / AR@5 (a hit within 5 m). Shipped: `{r['model_id']}` "
+        f"({r['views']} views; {COMMON_BEAMS}); trained on common beams: `{t['model_id']}` "
+        f"({t['views']} views).\n"
+    )
+    splits = (("val", "val: calibration town `cal-x00`"), ("test", "test"))
+    for split, title in splits:
+        trained = {(p["queries"], p["map"]): p["common"] for p in t[split]}
+        rows = [
+            [
+                p["queries"],
+                p["map"],
+                _ar(p["elevation"]),
+                _ar(p["common"]),
+                _ar(trained.get((p["queries"], p["map"]))),
+            ]
+            for p in r[split]
+        ]
+        out += f"\n{title}:\n\n"
+        head = ["queries", "map", "shipped, as served", "shipped, common beams", "trained"]
+        out += table(head, rows)
+    return out
+
+
 RENDERERS = {
     "receptive-rows": receptive_rows,
     "backbone-rows": backbone_rows,
     "common-beams": common_beams,
+    "common-trained": common_trained,
 }

@@ -16,6 +16,7 @@ from overlapmamba.cli.common import (
     metrics_table,
     out,
 )
+from overlapmamba.core.sensors.input import MODES
 from overlapmamba.core.views import MAX_VIEWS
 
 MEET = ("descriptors", "tokens")  # export --meet: where a scan's sub-column views meet
@@ -129,7 +130,11 @@ def train_cmd(
             raise typer.BadParameter("give --data (at least one) and --val, or --resume")
         model_d, train_d = load_config_file(config) if config else ({}, {})
         train_cfg = TrainConfig.from_dict({**train_d, **overrides})
-        try:  # a run from --init takes its network's config unless [model] says otherwise
+        try:  # a run from --init takes its network's config, changed where [model] says
+            if model_d and train_cfg.init:
+                from overlapmamba.train.train_inputs import start_config
+
+                model_d = {**start_config(train_cfg, None).to_dict(), **model_d}
             model_cfg = (
                 OverlapMambaConfig.from_dict(model_d) if model_d or not train_cfg.init else None
             )
@@ -194,13 +199,22 @@ def export_cmd(
             "the graph is traced anew and its input holds --views images a scan)"
         ),
     ] = "descriptors",
+    sensor_input: Annotated[
+        str | None,
+        typer.Option(
+            "--sensor-input",
+            help="how scans become the model's input (overlapmamba.core.sensors.input): "
+            "elevation, rows or common (every sensor's scan, the model's own too, thinned to "
+            "common beams); default: the network's own (a .pt's config, an .onnx's metadata)",
+        ),
+    ] = None,
 ) -> None:
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
     from overlapmamba.train.checkpoint import load_model
     from overlapmamba.train.export import export_onnx
     from overlapmamba.train.model import OverlapMamba, meeting_views
-    from overlapmamba.train.modelfile import load_encoder, with_views
+    from overlapmamba.train.modelfile import load_encoder, with_sensor_input, with_views
     from overlapmamba.train.recover import with_token_views
 
     if out_path.suffix != ".onnx":
@@ -210,6 +224,11 @@ def export_cmd(
             f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"
         )
     token_views = views if meet == "tokens" else 1
+    if sensor_input is not None and sensor_input not in MODES:
+        raise typer.BadParameter(
+            f"--sensor-input must be one of {', '.join(MODES)}, got {sensor_input!r}",
+            param_hint="--sensor-input",
+        )
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
@@ -223,10 +242,12 @@ def export_cmd(
         else:
             src = checkpoint
         meta = with_views(src, out_path, views)
+        if sensor_input is not None:
+            meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
-            f"model id {meta.model_id}"
+            f"sensor input {meta.sensor_input}, model id {meta.model_id}"
         )
         return
     model, profile, ckpt = load_model(checkpoint)
@@ -234,12 +255,15 @@ def export_cmd(
     model = meeting_views(model, token_views)
     res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
     meta, v = res.metadata, res.verification
+    if sensor_input is not None and sensor_input != meta.sensor_input:
+        meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
     table = Table(title=f"exported {res.path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
         ("views per scan", f"{meta.views}, met at the {meet}" if meta.views > 1 else "1"),
+        ("sensor input", meta.sensor_input),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
         (
             "descriptor vs PyTorch",

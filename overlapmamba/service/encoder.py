@@ -30,6 +30,7 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
@@ -38,6 +39,7 @@ import onnxruntime as ort
 
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.catalogue import sensor_of_profile
 from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.views import combine_views, project_views
 
@@ -176,9 +178,19 @@ class Encoder:
         """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`;
         ``sensor``: the scan's sensor, projected as the model takes it (None: the model's
         own sensor)."""
+        if sensor is None and self.meta.sensor_input == "common":
+            sensor = self.own_input  # even the model's own scans are thinned
         if sensor is None:
             return project_views(points, self.meta.profile, self.meta.views)
         return sensor.project(points, self.meta.views)
+
+    @cached_property
+    def own_input(self) -> SensorInput:
+        """The model's own sensor into its input (a plain projection unless the file takes
+        every sensor's common beams)."""
+        return SensorInput(
+            self.meta.profile, sensor_of_profile(self.meta.profile), self.meta.sensor_input
+        )
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""

@@ -18,7 +18,12 @@ from pathlib import Path
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.modelmeta import EncoderMetadata
 from overlapmamba.core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.sensors.input import (
+    COMMON_SENSOR,
+    COMMON_TOLERANCE_DEG,
+    SensorInput,
+    common_beams,
+)
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, Conflict
 
@@ -37,6 +42,12 @@ class Sensors:
                 raise ProfileError(
                     f"sensor file {path} names {s.name!r}, which is already known; give it "
                     "a name of its own"
+                )
+            if meta.sensor_input == "common" and not common_beams(s).size:
+                raise ProfileError(
+                    f"sensor file {path}: {s.name!r} has no beam within "
+                    f"{COMMON_TOLERANCE_DEG}° of the common elevations ({COMMON_SENSOR}'s), "
+                    "and this model takes every sensor's common beams"
                 )
             known[s.name] = s
         self.known = known

@@ -28,7 +28,7 @@ import torch
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.sensors import SensorProfile, get_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import Mode, SensorInput
+from overlapmamba.core.sensors.input import Mode, SensorInput, check_mode
 from overlapmamba.train.errors import CheckpointError
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 
@@ -113,13 +113,11 @@ def views_of(model: Network) -> int:
 
 
 def sensor_input_of(model: Network) -> Mode:
-    """How scans of other sensors enter the model (:mod:`overlapmamba.core.sensors.input`): an
-    exported encoder's metadata says; a network in training takes the metadata's default,
-    which its export will write."""
+    """How scans enter the model (:mod:`overlapmamba.core.sensors.input`): an exported
+    encoder's metadata says; a network in training, its config (which its export writes)."""
     if isinstance(model, ExportedNetwork):
         return model.meta.sensor_input
-    default: Mode = EncoderMetadata.model_fields["sensor_input"].default
-    return default
+    return check_mode(model.cfg.sensor_input)
 
 
 def input_of(model: Network, profile: SensorProfile, seq: Sequence) -> SensorInput:

@@ -40,6 +40,7 @@ from onnx import helper, numpy_helper
 
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, identity
 from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.input import check_mode
 from overlapmamba.core.views import check_views
 from overlapmamba.train.errors import ExportError
 from overlapmamba.train.model import OverlapMamba
@@ -293,7 +294,7 @@ def export_onnx(
     train = ckpt.get("train") or {}
     total, loops = count_nodes(proto)
     meta = EncoderMetadata(
-        **identity(_graph_id(proto), views),
+        **identity(_graph_id(proto), views, check_mode(cfg.sensor_input)),
         profile=profile,
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,

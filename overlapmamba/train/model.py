@@ -37,6 +37,7 @@ from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from overlapmamba.core.configs import Config
+from overlapmamba.core.sensors.input import MODES
 from overlapmamba.core.views import MAX_VIEWS
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.scan_backends import BACKENDS, scan
@@ -53,6 +54,10 @@ class OverlapMambaConfig(Config):
     sensor: str = "kitti-hdl64"  # overlapmamba.core sensor profile the range images come from
     height: int = 64  # range-image rows (beams)
     width: int = 900  # range-image columns: the token count
+    # How scans become the image (overlapmamba.core.sensors.input, the exported metadata's
+    # sensor_input): elevation (the profile's own sensor natively, others by elevation),
+    # rows, or common (every sensor, the profile's own too, thinned to common beams)
+    sensor_input: str = "elevation"
     # reference (the reference code's layers: on 64 rows the descriptor sees rows 0–26 only)
     # or all-rows (every row reaches it): _backbone
     backbone: str = "reference"
@@ -93,6 +98,10 @@ class OverlapMambaConfig(Config):
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
         if self.token_views > MAX_VIEWS:
             raise ValueError(f"token_views must be at most {MAX_VIEWS}, got {self.token_views}")
+        if self.sensor_input not in MODES:
+            raise ValueError(
+                f"sensor_input {self.sensor_input!r} is unknown; allowed: {', '.join(MODES)}"
+            )
         if self.backbone not in BACKBONES:
             raise ValueError(
                 f"backbone {self.backbone!r} is unknown; allowed: {', '.join(BACKBONES)}"

@@ -43,6 +43,9 @@ otherwise.
   ``sensors-seen-turn`` adds the turn term (one pass a scan) and validates on
   ``val-kitti-hdl64`` and its renderings by five other sensors, keeping the epoch with the
   best mean over them all (``select_on = "sensors"``).
+- ``common-towns`` continues the shipped network on the ``common`` input (every sensor's
+  beams nearest the VLP-16's elevations, the HDL-64E's own too) on train-b and four drawn
+  towns, selected as ``sensors-seen-turn`` is, on four renderings.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -188,6 +191,28 @@ SENSORS_SEEN_TURN = {
     "select_on": "sensors",
 }
 
+# Common beams (overlapmamba.core.sensors.input, mode "common"): the shipped network
+# continued on every sensor's scans thinned to the beams nearest the VLP-16's elevations, the
+# HDL-64E's own too, on train-b and the first four drawn towns (VLP-16, OS0-128, XT32,
+# OS1-128: the sensors the across-sensor bars name), selected on the mean over the sensor
+# validation drive and its renderings by those four. The input changed, so the rate is the
+# recipe's own (not a continuation's tenth); batch norm stays frozen as in every continuation.
+COMMON_DATA = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in range(4)))
+COMMON_VAL_RENDERINGS = tuple(
+    f"data/synth/val-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128")
+)
+COMMON = {
+    "init": "models/overlapmamba-hdl64.onnx",
+    "freeze_bn": True,
+    "epochs": 4,
+    "epoch_scans": 4000,
+    "lr": 1e-4,
+    "warmup_steps": 20,
+    "hard_negatives": 0.5,
+    "val_sensors": list(COMMON_VAL_RENDERINGS),
+    "select_on": "sensors",
+}
+
 
 @dataclass(frozen=True)
 class TrainPreset:
@@ -321,6 +346,14 @@ PRESETS: dict[str, TrainPreset] = {
             model=NARROW,
             train=SENSORS_SEEN_TURN,
             data=SENSORS_PILOT_DATA[:1],
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "common-towns",
+            "the shipped network continued on every sensor's common beams, five towns",
+            model={**NARROW, "sensor_input": "common"},
+            train=COMMON,
+            data=COMMON_DATA,
             val=SENSOR_VAL,
         ),
         TrainPreset(

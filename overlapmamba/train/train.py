@@ -58,6 +58,7 @@ import torch
 from tqdm.auto import tqdm
 
 from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.sensors.input import check_mode
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.batches import BatchPlan, BatchSampler, PairIndex
 from overlapmamba.train.calibrate import recalibrate_batchnorm
@@ -146,22 +147,24 @@ def train(
     val_seq = open_split(val, model_cfg, "validation")
     if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
         raise ConfigError(f"{val} is both training and validation data")
+    mode = check_mode(model_cfg.sensor_input)
+    val_input = training_input(profile, val_seq, mode)
     fingerprints = {
         "train": [
-            {"path": str(s.root), "key": cache_key(s, profile, sensor=training_input(profile, s))}
-            for s in seqs
+            {"path": str(s.root), "key": cache_key(s, profile, sensor=inp)}
+            for s, inp in zip(seqs, (training_input(profile, s, mode) for s in seqs), strict=True)
         ],
-        "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile)},
+        "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile, sensor=val_input)},
     }
-    images = Images(seqs, profile, progress)
-    val_images = range_images(val_seq, profile, progress=progress)
+    images = Images(seqs, profile, progress, mode)
+    val_images = range_images(val_seq, profile, progress=progress, sensor=val_input)
     val_gt = sequence_loops(val_seq, profile, progress=progress)
     if not val_gt.has_loop().any():
         raise DatasetError(
             f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "
             "would mean nothing; validate on a sequence with revisits (e.g. the val preset)"
         )
-    renderings = open_renderings(train_cfg.val_sensors, val_seq, profile, progress)
+    renderings = open_renderings(train_cfg.val_sensors, val_seq, profile, progress, mode)
     trained_on = {s.root.resolve() for s in seqs}
     for rendering in renderings:
         if Path(rendering.path).resolve() in trained_on:
@@ -227,7 +230,7 @@ def train(
             "metrics": metrics,
         }
 
-    turns = real_turn_scans(train_cfg.real_path(), profile, progress)
+    turns = real_turn_scans(train_cfg.real_path(), profile, progress, mode)
 
     def validate() -> dict[str, Any]:
         """The entry's validation fields: val, val_sensors (with renderings), val_s."""

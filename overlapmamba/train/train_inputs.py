@@ -16,8 +16,7 @@ from tqdm.auto import tqdm
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.modelmeta import EncoderMetadata
-from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
+from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor, sensor_of_profile
 from overlapmamba.core.sensors.input import Mode, SensorInput
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.checkpoint import read_checkpoint
@@ -26,7 +25,7 @@ from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.rangecache import range_images
 from overlapmamba.train.realscans import (
     RealTurns,
-    native_input,
+    own_input,
     real_turns,
     turned_image,
     turned_points,
@@ -34,23 +33,30 @@ from overlapmamba.train.realscans import (
 from overlapmamba.train.train_config import TrainConfig
 
 
-def training_input(profile: SensorProfile, seq: Sequence) -> SensorInput | None:
-    """How ``seq``'s scans enter the model in training: None for the model's own sensor (the
-    plain projection), else its sensor's beams by elevation, as the exported model will take
-    them (the metadata's default ``sensor_input``)."""
-    if not seq.sensor or get_sensor(seq.sensor).profile() == profile:
-        return None
-    mode: Mode = EncoderMetadata.model_fields["sensor_input"].default
-    return SensorInput(profile, get_sensor(seq.sensor), mode)
+def training_input(
+    profile: SensorProfile, seq: Sequence, mode: Mode = "elevation"
+) -> SensorInput | None:
+    """How ``seq``'s scans enter the model in training, as the exported model will take
+    them (its config's ``sensor_input``): None for the model's own sensor projected plainly,
+    else its sensor's input by ``mode`` (``common``: every sensor's, the model's own too)."""
+    sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
+    inp = SensorInput(profile, sensor, mode)
+    return None if inp.native else inp
 
 
 class Images:
     """Range images of several sequences behind global scan indices, each sequence's scans
     projected as its sensor's (:func:`training_input`)."""
 
-    def __init__(self, seqs: list[Sequence], profile: SensorProfile, progress: bool) -> None:
+    def __init__(
+        self,
+        seqs: list[Sequence],
+        profile: SensorProfile,
+        progress: bool,
+        mode: Mode = "elevation",
+    ) -> None:
         self.seqs, self.profile = seqs, profile
-        self.inputs = [training_input(profile, s) for s in seqs]
+        self.inputs = [training_input(profile, s, mode) for s in seqs]
         self.parts = [
             range_images(s, profile, progress=progress, sensor=inp)
             for s, inp in zip(seqs, self.inputs, strict=True)
@@ -118,7 +124,9 @@ def start_config(
     """The network config of ``init``'s file; a different one given alongside is refused
     (the runtime-only scan settings aside). A network that averages views itself
     (``token_views``) trains on one image a scan: the same weights, its views met again at
-    export (``overlapmamba export --meet tokens``)."""
+    export (``overlapmamba export --meet tokens``). The input a continuation takes
+    (``sensor_input``) is the file's (an exported file's metadata) unless a config given
+    alongside names another: a network can be continued on another input."""
     path = train_cfg.init_path()
     assert path is not None
     if not path.is_file():
@@ -127,14 +135,17 @@ def start_config(
         from overlapmamba.train.modelfile import read_metadata
 
         try:
-            cfg = OverlapMambaConfig.from_dict(read_metadata(path).network)
+            meta = read_metadata(path)
+            cfg = OverlapMambaConfig.from_dict(meta.network)
+            cfg = cfg.model_copy(update={"sensor_input": meta.sensor_input})
         except ValueError as err:
             raise ConfigError(f"init {train_cfg.init!r}: {err}") from None
     else:
         cfg = OverlapMambaConfig.from_dict(read_checkpoint(path)["model_config"])
     cfg = cfg.model_copy(update={"token_views": 1})
     if model_cfg is not None:
-        runtime = ("scan_backend", "scan_chunk", "token_views")
+        runtime = ("scan_backend", "scan_chunk", "token_views", "sensor_input")
+        cfg = cfg.model_copy(update={"sensor_input": model_cfg.sensor_input})
         a, b = cfg.to_dict(), model_cfg.to_dict()
         differ = sorted(k for k in a if k not in runtime and a[k] != b.get(k))
         if differ:
@@ -198,7 +209,9 @@ def batch_copies(
     return turned, looked_at, looked
 
 
-def real_turn_scans(path: Path | None, profile: SensorProfile, progress: bool) -> RealTurns | None:
+def real_turn_scans(
+    path: Path | None, profile: SensorProfile, progress: bool, mode: Mode = "elevation"
+) -> RealTurns | None:
     """The real scans of the per-epoch turn check, projected once; None (with a note) when
     the check is off or the folder is missing."""
     if path is None:
@@ -207,4 +220,4 @@ def real_turn_scans(path: Path | None, profile: SensorProfile, progress: bool) -
         if progress:
             tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
         return None
-    return real_turns(open_sequence(path), native_input(profile))
+    return real_turns(open_sequence(path), own_input(profile, mode))

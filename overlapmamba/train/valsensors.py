@@ -29,6 +29,7 @@ from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.input import Mode
 from overlapmamba.train.checkpoint import Network
 from overlapmamba.train.drives import drive_key, group_drives
 from overlapmamba.train.evaluate import cross_loop_closure, describe, loop_closure, summary
@@ -47,7 +48,11 @@ class Rendering:
 
 
 def open_renderings(
-    paths: list[str], val_seq: Sequence, profile: SensorProfile, progress: bool
+    paths: list[str],
+    val_seq: Sequence,
+    profile: SensorProfile,
+    progress: bool,
+    mode: Mode = "elevation",
 ) -> list[Rendering]:
     """The renderings, checked to be the validation drive's (same drive keys, every scan
     within 5 cm of the validation scan of its frame) and of distinct sensors."""
@@ -67,7 +72,7 @@ def open_renderings(
         group_drives([val_seq, seq], lambda s: s is val_seq)  # frames in the same places
         if seq.sensor == val_seq.sensor or seq.sensor in {r.name for r in out}:
             raise DatasetError(f"val_sensors: a second rendering by {seq.sensor} ({p})")
-        sensor = training_input(profile, seq)
+        sensor = training_input(profile, seq, mode)
         images = range_images(seq, profile, sensor=sensor, progress=progress)
         out.append(
             Rendering(seq.sensor, str(seq.root), cache_key(seq, profile, sensor=sensor), images)

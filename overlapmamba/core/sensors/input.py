@@ -12,6 +12,14 @@
                takes beam ⌊(r + ½)·B / H⌋): every row filled, elevations not kept (the
                sensor-transfer check ``eval-real`` ran on nuScenes' HDL-32E before sensors
                had tables)
+    common     every sensor, the model's own too, first keeps only its beams nearest the
+               elevations of a common sensor (:data:`COMMON_SENSOR`'s, within
+               :data:`COMMON_TOLERANCE_DEG`; a point's beam is the nearest elevation of its
+               sensor's table, found in the sensor's own frame), and those points are then
+               projected as the common sensor's scan (``elevation``). Every sensor's image
+               shows the same rings at the same rows; the model's own scans lose most of
+               theirs (the KITTI HDL-64E keeps 10 of 64). Measured with the shipped weights
+               by ``benchmarks/common_beams.py``
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
 :mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
@@ -33,13 +41,15 @@ from typing import Literal
 import numpy as np
 
 from overlapmamba.core.points import PointCloud
-from overlapmamba.core.sensors.catalogue import Sensor
+from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
 from overlapmamba.core.sensors.mount import Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
-Mode = Literal["elevation", "rows"]
-MODES: tuple[str, ...] = ("elevation", "rows")
+Mode = Literal["elevation", "rows", "common"]
+MODES: tuple[str, ...] = ("elevation", "rows", "common")
+COMMON_SENSOR = "vlp16"  # the sparsest spinning sensor of the catalogue: 16 beams, 2° apart
+COMMON_TOLERANCE_DEG = 0.5
 _PI = np.float32(np.pi)
 
 
@@ -75,6 +85,27 @@ def row_beams(model: SensorProfile, sensor: Sensor, mode: Mode) -> np.ndarray:
     return np.where(np.abs(off) <= reach + 1e-9, b, -1)
 
 
+def common_beams(sensor: Sensor) -> np.ndarray:
+    """Indices of ``sensor``'s beams nearest each of the common sensor's elevations, where
+    one lies within :data:`COMMON_TOLERANCE_DEG` (sorted, highest first)."""
+    el = np.asarray(sensor.elevations_deg, np.float64)
+    keep = {
+        int(np.argmin(np.abs(el - e)))
+        for e in CATALOGUE[COMMON_SENSOR].elevations_deg
+        if np.abs(el - e).min() <= COMMON_TOLERANCE_DEG
+    }
+    return np.array(sorted(keep), np.int64)
+
+
+def on_beams(xyz: np.ndarray, sensor: Sensor, beams: np.ndarray) -> np.ndarray:
+    """(M, 3) the points of ``xyz`` (N, ≥3), in the sensor's own frame, that lie on
+    ``beams`` of ``sensor`` (a point's beam: the nearest elevation of its table)."""
+    xyz = np.asarray(xyz)[:, :3]
+    r = np.linalg.norm(xyz, axis=1)
+    el = np.degrees(np.arcsin(np.clip(xyz[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0)))
+    return xyz[np.isin(beam_of(el, sensor), beams)]
+
+
 @dataclass(frozen=True)
 class SensorInput:
     """How scans of ``sensor`` become the input of a model trained on ``model``."""
@@ -84,19 +115,33 @@ class SensorInput:
     mode: Mode
     mount: Mount | None = None  # None: where the model's sensor sat (level, its height)
 
+    def __post_init__(self) -> None:
+        check_mode(self.mode)
+        if self.mode == "common" and not common_beams(self.sensor).size:
+            raise ValueError(
+                f"sensor {self.sensor.name!r} has no beam within {COMMON_TOLERANCE_DEG}° of "
+                f"the common elevations ({COMMON_SENSOR}'s): a model taking common beams "
+                "cannot read its scans"
+            )
+
     @property
     def native(self) -> bool:
-        """The model's own sensor, taken exactly as the model was trained (no mount)."""
-        return self.sensor.profile() == self.model and self.mount is None
+        """The model's own sensor, taken exactly as the model was trained (no mount, and
+        not thinned to common beams)."""
+        return self.mode != "common" and self.sensor.profile() == self.model and self.mount is None
 
     @property
     def kind(self) -> str:
-        """native, elevation or rows: what this pairing actually does (with ``+mount`` when
-        the scan is first moved to the model's mount)."""
-        own = self.sensor.profile() == self.model
+        """native, elevation, rows or common: what this pairing actually does (with
+        ``+mount`` when the scan is first moved to the model's mount)."""
+        own = self.sensor.profile() == self.model and self.mode != "common"
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
     def rows(self) -> np.ndarray:
+        """(H,) the beam each model row shows (−1: empty); in ``common`` mode, the common
+        sensor's beam."""
+        if self.mode == "common":
+            return row_beams(self.model, CATALOGUE[COMMON_SENSOR], "elevation")
         return row_beams(self.model, self.sensor, self.mode)
 
     def key(self) -> dict[str, object]:
@@ -104,17 +149,24 @@ class SensorInput:
         if self.native:
             return {}
         key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
+        if self.mode == "common":
+            key["common"] = {"sensor": COMMON_SENSOR, "tolerance_deg": COMMON_TOLERANCE_DEG}
         if self.mount is not None:
             key["mount"] = self.mount.key()
         return key
 
     def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
         """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
-        if self.mount is not None:
+        if self.mount is not None or self.mode == "common":
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
                 raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
-            points = to_reference(xyz, self.mount)
+            if self.mode == "common":  # the beams are the sensor's: found before levelling
+                xyz = on_beams(xyz, self.sensor, common_beams(self.sensor))
+            points = to_reference(xyz, self.mount) if self.mount is not None else xyz
+        if self.mode == "common":
+            common = CATALOGUE[COMMON_SENSOR]
+            return _project_beams(points, self.model, common, self.rows(), views)
         if self.sensor.profile() == self.model:
             return project_views(points, self.model, views)
         return _project_beams(points, self.model, self.sensor, self.rows(), views)
@@ -156,9 +208,15 @@ def _project_beams(
 def project_input_reference(
     points: PointCloud | np.ndarray, model: SensorProfile, sensor: Sensor, mode: Mode
 ) -> np.ndarray:
-    """Slow, obvious version of one view for tests: per point, its beam by the smallest
-    elevation difference; per model row, the points of the beam that row shows."""
+    """Slow, obvious version of one view for tests (no mount): per point, its beam by the
+    smallest elevation difference; per model row, the points of the beam that row shows. In
+    ``common`` mode a point off the common beams is dropped, and a kept one takes the common
+    sensor's beam nearest its elevation."""
     xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+    keep = common_beams(sensor) if mode == "common" else None
+    orig_table = np.asarray(sensor.elevations_deg)
+    if mode == "common":
+        sensor, mode = CATALOGUE[COMMON_SENSOR], "elevation"
     rows = row_beams(model, sensor, mode)
     H, W = model.height, model.width
     image = np.full((H, W), np.float32(model.empty_value), np.float32)
@@ -168,11 +226,17 @@ def project_input_reference(
         if not (np.float32(model.min_range) < r < np.float32(model.max_range)):
             continue
         el = float(np.degrees(np.arcsin(z / r)))
-        gap = np.abs(el_table - el)
-        beam = int(np.flatnonzero(gap == gap.min())[-1])  # halfway: the lower beam
+        if keep is not None and _nearest(el, orig_table) not in keep:
+            continue
+        beam = _nearest(el, el_table)
         u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
         col = min(max(int(np.floor(u)), 0), W - 1)
         for row in np.flatnonzero(rows == beam):
             if image[row, col] == model.empty_value or r < image[row, col]:
                 image[row, col] = r
     return image
+
+
+def _nearest(el: float, table: np.ndarray) -> int:
+    gap = np.abs(table - el)
+    return int(np.flatnonzero(gap == gap.min())[-1])  # halfway: the lower beam
