@@ -209,6 +209,7 @@ COMMON = {
     "lr": 1e-4,
     "warmup_steps": 20,
     "hard_negatives": 0.5,
+    "any_sensor": True,
     "val_sensors": list(COMMON_VAL_RENDERINGS),
     "select_on": "sensors",
 }
