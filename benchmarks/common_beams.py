@@ -151,6 +151,9 @@ def main() -> None:
         "model_id": enc.model_id,
         "views": enc.meta.views,
         "sensor_input": enc.meta.sensor_input,
+        # what the file says of its own training and selection (its metadata, from the run)
+        "file_metrics": enc.meta.metrics,
+        "training_data": enc.meta.training_data,
         "common": {
             "elevations_of": COMMON_SENSOR,
             "tolerance_deg": COMMON_TOLERANCE_DEG,

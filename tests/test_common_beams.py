@@ -236,3 +236,24 @@ def test_a_run_continues_a_file_on_its_input_and_exports_it(
     trained, _, _ = load_model(out / "best.pt")
     meta = export_onnx(trained, profile, tmp_path / "after.onnx", checkpoint=ckpt).metadata
     assert meta.sensor_input == "common"
+
+
+def test_a_runs_summary_keeps_each_epochs_validation_and_health(tiny_run):
+    """benchmarks/run_summary.py: what a run's metrics.json says per epoch, no step losses."""
+    import sys
+    from pathlib import Path
+
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, bench)
+    try:
+        import run_summary
+    finally:
+        sys.path.remove(bench)
+    run, history = tiny_run
+    got = run_summary.summary(run)
+    assert got["epochs_run"] == got["epochs_planned"] == 2 and len(got["epochs"]) == 3
+    for row, e in zip(got["epochs"], history, strict=True):
+        assert row["val"]["all"]["f1max"] == e["val"]["all"]["f1max"]
+        assert row["score"] == pytest.approx(e["val"]["all"]["f1max"])  # select_on val
+        assert "step_losses" not in row and set(row["health"]) >= {"spread", "d_pos"}
+    assert got["epochs"][1]["health"]["spread"] == history[1]["health"]["spread"]
