@@ -45,7 +45,8 @@ otherwise.
   best mean over them all (``select_on = "sensors"``).
 - ``common-towns`` continues the shipped network on the ``common`` input (every sensor's
   beams nearest the VLP-16's elevations, the HDL-64E's own too) on train-b and four drawn
-  towns, selected as ``sensors-seen-turn`` is, on four renderings.
+  towns, selected as ``sensors-seen-turn`` is, on four renderings; ``common-towns-slow`` at
+  a continuation's rate.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -213,6 +214,8 @@ COMMON = {
     "val_sensors": list(COMMON_VAL_RENDERINGS),
     "select_on": "sensors",
 }
+# ... at a continuation's rate (TURN's and the sensor pilots'): common-towns collapsed at 1e-4
+COMMON_SLOW = {**COMMON, "lr": 3e-5}
 
 
 @dataclass(frozen=True)
@@ -354,6 +357,14 @@ PRESETS: dict[str, TrainPreset] = {
             "the shipped network continued on every sensor's common beams, five towns",
             model={**NARROW, "sensor_input": "common"},
             train=COMMON,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "common-towns-slow",
+            "common-towns at a continuation's rate (3e-5)",
+            model={**NARROW, "sensor_input": "common"},
+            train=COMMON_SLOW,
             data=COMMON_DATA,
             val=SENSOR_VAL,
         ),
