@@ -13,7 +13,7 @@ from figures_kit import ROOT, f3, load, source, table, when
 RECEPTIVE_ROWS = "reports/model/receptive-rows.json"
 BACKBONE_ROWS = "reports/model/backbone-rows.jsonl"
 COMMON_BEAMS = "reports/model/common-beams.json"
-COMMON_RUN = "reports/model/common-towns.json"
+COMMON_RUNS = ("reports/model/common-towns.json", "reports/model/common-towns-slow.json")
 
 
 def receptive_rows() -> str:
@@ -114,34 +114,39 @@ def common_beams() -> str:
 
 
 def common_run() -> str:
-    """The ``common-towns`` run's epochs: validation, across sensors, health."""
-    r = load(COMMON_RUN)
-    out = source(COMMON_RUN, r["command"], when(r))
-    names = list(r["epochs"][0]["val_sensors"])
+    """The ``common-towns`` runs' epochs (both rates): validation, across sensors, health."""
+    runs = [load(path) for path in COMMON_RUNS]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(COMMON_RUNS, runs, strict=True))
+    names = list(runs[0]["epochs"][0]["val_sensors"])
     out += (
-        f"\n{r['epochs_run']} of {r['epochs_planned']} planned epochs ran; the run keeps "
-        f"epoch {r['best']['epoch']} (the best mean score, `select_on = "
-        f'"{r["best"]["select_on"]}"`). Epoch 0 is the shipped weights on common beams. '
-        "F1max of the validation drive (`val-kitti-hdl64`) and of each rendering's scans "
-        "against it (across sensors); spread and the collapse flag from the health numbers; "
-        "min cosine of real KITTI scans under a continuous turn (one view).\n\n"
+        "\nEpoch 0 is the shipped weights on common beams. F1max of the validation drive "
+        "(`val-kitti-hdl64`) and of each rendering's scans against it (across sensors); "
+        "the spread and the collapse flag from the health numbers; the minimum cosine of real "
+        "KITTI scans under a continuous turn (one view).\n\n"
     )
-    rows = []
-    for e in r["epochs"]:
-        spread = e["health"]["spread"]
-        rows.append(
-            [
-                str(e["epoch"]),
-                f3(e["score"]),
-                f"{f3(e['val']['all']['f1max'])} / {f3(e['val']['all']['recall@1'])}",
-                *[f3(e["val_sensors"][n]["cross"]["f1max"]) for n in names],
-                "—" if spread is None else f"{spread:.3f}",
-                "—" if e["collapsing"] is None else ("yes" if e["collapsing"] else "no"),
-                f"{e['real_cosine_min']:.5f}",
-            ]
+    for r in runs:
+        out += (
+            f"- `{r['run']}` (rate {r['train_config']['lr']:g}): {r['epochs_run']} of "
+            f"{r['epochs_planned']} planned epochs ran; it keeps epoch {r['best']['epoch']}\n"
         )
-    head = ["epoch", "score", "val F1max / R@1", *[f"{n} across" for n in names]]
-    return out + table([*head, "spread", "collapsing", "real min cosine"], rows)
+    rows = []
+    for r in runs:
+        for e in r["epochs"]:
+            spread = e["health"]["spread"]
+            rows.append(
+                [
+                    f"{r['train_config']['lr']:g}",
+                    str(e["epoch"]),
+                    f3(e["score"]),
+                    f"{f3(e['val']['all']['f1max'])} / {f3(e['val']['all']['recall@1'])}",
+                    *[f3(e["val_sensors"][n]["cross"]["f1max"]) for n in names],
+                    "—" if spread is None else f"{spread:.3f}",
+                    "—" if e["collapsing"] is None else ("yes" if e["collapsing"] else "no"),
+                    f"{e['real_cosine_min']:.5f}",
+                ]
+            )
+    head = ["rate", "epoch", "score", "val F1max / R@1", *[f"{n} across" for n in names]]
+    return out + "\n" + table([*head, "spread", "collapsing", "real min cosine"], rows)
 
 
 RENDERERS = {
