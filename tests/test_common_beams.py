@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 from service_kit import MODEL, scan
+from test_catalogue import _cloud
 
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.points import PointCloud
@@ -25,16 +26,6 @@ from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
 
 KITTI = get_profile("kitti-hdl64")
 SENSORS = ("kitti-hdl64", "vlp16", "xt32", "os1-128", "os0-128", "hdl32")
-
-
-def _cloud(n: int, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    az = rng.uniform(-np.pi, np.pi, n)
-    el = np.radians(rng.uniform(-30, 20, n))
-    r = rng.uniform(1, 90, n)
-    return np.column_stack(
-        [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
-    )
 
 
 def _at(elevation_deg: float, r: float = 20.0, az_deg: float = 30.0) -> np.ndarray:

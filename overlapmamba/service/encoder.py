@@ -39,7 +39,6 @@ import onnxruntime as ort
 
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.points import PointCloud
-from overlapmamba.core.sensors.catalogue import sensor_of_profile
 from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.views import combine_views, project_views
 
@@ -188,9 +187,7 @@ class Encoder:
     def own_input(self) -> SensorInput:
         """The model's own sensor into its input (a plain projection unless the file takes
         every sensor's common beams)."""
-        return SensorInput(
-            self.meta.profile, sensor_of_profile(self.meta.profile), self.meta.sensor_input
-        )
+        return SensorInput.own(self.meta.profile, self.meta.sensor_input)
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""

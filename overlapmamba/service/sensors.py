@@ -18,12 +18,7 @@ from pathlib import Path
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.modelmeta import EncoderMetadata
 from overlapmamba.core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import (
-    COMMON_SENSOR,
-    COMMON_TOLERANCE_DEG,
-    SensorInput,
-    common_beams,
-)
+from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, Conflict
 
@@ -43,12 +38,10 @@ class Sensors:
                     f"sensor file {path} names {s.name!r}, which is already known; give it "
                     "a name of its own"
                 )
-            if meta.sensor_input == "common" and not common_beams(s).size:
-                raise ProfileError(
-                    f"sensor file {path}: {s.name!r} has no beam within "
-                    f"{COMMON_TOLERANCE_DEG}° of the common elevations ({COMMON_SENSOR}'s), "
-                    "and this model takes every sensor's common beams"
-                )
+            try:  # a sensor this model's input cannot take (no common beam) stops the start
+                SensorInput(meta.profile, s, meta.sensor_input)
+            except ValueError as err:
+                raise ProfileError(f"sensor file {path}: {err}") from None
             known[s.name] = s
         self.known = known
         self._inputs: dict[tuple[str, Mount | None], SensorInput] = {}

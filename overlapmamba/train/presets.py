@@ -198,6 +198,7 @@ SENSORS_SEEN_TURN = {
 # OS1-128: the sensors the across-sensor bars name), selected on the mean over the sensor
 # validation drive and its renderings by those four. The input changed, so the rate is the
 # recipe's own (not a continuation's tenth); batch norm stays frozen as in every continuation.
+COMMON_MODEL = {**NARROW, "sensor_input": "common"}
 COMMON_DATA = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in range(4)))
 COMMON_VAL_RENDERINGS = tuple(
     f"data/synth/val-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128")
@@ -355,7 +356,7 @@ PRESETS: dict[str, TrainPreset] = {
         TrainPreset(
             "common-towns",
             "the shipped network continued on every sensor's common beams, five towns",
-            model={**NARROW, "sensor_input": "common"},
+            model=COMMON_MODEL,
             train=COMMON,
             data=COMMON_DATA,
             val=SENSOR_VAL,
@@ -363,7 +364,7 @@ PRESETS: dict[str, TrainPreset] = {
         TrainPreset(
             "common-towns-slow",
             "common-towns at a continuation's rate (3e-5)",
-            model={**NARROW, "sensor_input": "common"},
+            model=COMMON_MODEL,
             train=COMMON_SLOW,
             data=COMMON_DATA,
             val=SENSOR_VAL,

@@ -27,8 +27,8 @@ from overlapmamba.core.poses import rotation_z, transform_points, yaw_deg
 from overlapmamba.core.rerank import OFF, Rerank, rerank_ranked
 from overlapmamba.core.scancontext import ScanContextParams, scan_context
 from overlapmamba.core.scancontext import retrieve as sc_retrieve
-from overlapmamba.core.sensors import Sensor, SensorProfile, sensor_of_profile
-from overlapmamba.core.sensors.input import Mode, SensorInput, beam_of
+from overlapmamba.core.sensors import Sensor, SensorProfile
+from overlapmamba.core.sensors.input import SensorInput, beam_of
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.train.checkpoint import Network, input_of, sensor_input_of, views_of
 from overlapmamba.train.evaluate import describe
@@ -45,12 +45,6 @@ class RealTurns:
     theta: np.ndarray  # (N,) degrees
     positions: np.ndarray  # (N, 3) from the poses
     input: str  # how the scans entered the model: native, elevation or rows
-
-
-def own_input(profile: SensorProfile, mode: Mode = "elevation") -> SensorInput:
-    """A profile's own sensor into a model taking scans by ``mode``: the plain projection,
-    unless the model takes every sensor's common beams."""
-    return SensorInput(profile, sensor_of_profile(profile), mode)
 
 
 def turned_points(xyz: np.ndarray, theta: float) -> np.ndarray:
@@ -260,7 +254,7 @@ def thinned(
     declared = SensorInput(profile, thinned_sensor(sensor, beams), mode)
     out: dict[str, Any] = {"beams": beams, "points_kept": 0.0}
     kept = []
-    for label, inp in (("declared", declared), ("undeclared", own_input(profile, mode))):
+    for label, inp in (("declared", declared), ("undeclared", SensorInput.own(profile, mode))):
         views = views_of(model)
         plain, turned = [], []
         for i in range(n):

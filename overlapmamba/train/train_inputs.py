@@ -25,7 +25,6 @@ from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.rangecache import range_images
 from overlapmamba.train.realscans import (
     RealTurns,
-    own_input,
     real_turns,
     turned_image,
     turned_points,
@@ -220,4 +219,4 @@ def real_turn_scans(
         if progress:
             tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
         return None
-    return real_turns(open_sequence(path), own_input(profile, mode))
+    return real_turns(open_sequence(path), SensorInput.own(profile, mode))

@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 
 from overlapmamba.core.points import PointCloud
-from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
+from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
 from overlapmamba.core.sensors.mount import Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
@@ -136,6 +136,12 @@ class SensorInput:
         ``+mount`` when the scan is first moved to the model's mount)."""
         own = self.sensor.profile() == self.model and self.mode != "common"
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
+
+    @classmethod
+    def own(cls, model: SensorProfile, mode: Mode = "elevation") -> SensorInput:
+        """The model's own sensor into it: the plain projection, unless the model takes every
+        sensor's common beams."""
+        return cls(model, sensor_of_profile(model), mode)
 
     def rows(self) -> np.ndarray:
         """(H,) the beam each model row shows (−1: empty); in ``common`` mode, the common
