@@ -30,10 +30,10 @@ where a preset's folder exists there) and kept for a rerun.
 
     python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx] [--out …]
 
-A file that takes common beams itself (``sensor_input = "common"``: trained on them, e.g.
-the ``common-towns`` preset) is measured the common way only. Writes
-reports/model/common-beams.json. ≈ 30 min on 2 cores with the three-view file, most
-of it describing.
+A file that takes common beams itself (``sensor_input`` ``common`` or ``structure``: trained
+on them, e.g. the ``common-towns`` and ``structure-towns`` presets) is measured its own way
+only (``--out`` names its report). Writes reports/model/common-beams.json. ≈ 30 min on 2
+cores with the three-view file, most of it describing.
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ from rich.console import Console
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.sensors.input import (
+    COMMON_MODES,
     COMMON_SENSOR,
     COMMON_TOLERANCE_DEG,
     SensorInput,
@@ -130,7 +131,8 @@ def main() -> None:
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     # a file trained on common beams takes nothing else (its elevation images mean nothing)
-    ways = ("common",) if enc.meta.sensor_input == "common" else WAYS
+    own = enc.meta.sensor_input
+    ways = (own,) if own in COMMON_MODES else WAYS
     sensors = sorted(set(QUERIES) | set(MAPS))
     val: dict[tuple[str, int], Path] = {}
     test: dict[tuple[str, int], Path] = {}

@@ -14,6 +14,7 @@ RECEPTIVE_ROWS = "reports/model/receptive-rows.json"
 BACKBONE_ROWS = "reports/model/backbone-rows.jsonl"
 COMMON_BEAMS = "reports/model/common-beams.json"
 COMMON_RUNS = ("reports/model/common-towns.json", "reports/model/common-towns-slow.json")
+STRUCTURE_RUN = "reports/model/structure-towns.json"
 
 
 def receptive_rows() -> str:
@@ -113,29 +114,16 @@ def common_beams() -> str:
     return out
 
 
-def common_run() -> str:
-    """The ``common-towns`` runs' epochs (both rates): validation, across sensors, health."""
-    runs = [load(path) for path in COMMON_RUNS]
-    out = "".join(source(p, r["command"], when(r)) for p, r in zip(COMMON_RUNS, runs, strict=True))
+def _epoch_rows(runs: list[dict[str, Any]], first: str) -> tuple[list[str], list[list[str]]]:
+    """The epochs of ``runs`` as table rows: ``first`` (a train_config key) labels each run."""
     names = list(runs[0]["epochs"][0]["val_sensors"])
-    out += (
-        "\nEpoch 0 is the shipped weights on common beams. F1max of the validation drive "
-        "(`val-kitti-hdl64`) and of each rendering's scans against it (across sensors); "
-        "the spread and the collapse flag from the health numbers; the minimum cosine of real "
-        "KITTI scans under a continuous turn (one view).\n\n"
-    )
-    for r in runs:
-        out += (
-            f"- `{r['run']}` (rate {r['train_config']['lr']:g}): {r['epochs_run']} of "
-            f"{r['epochs_planned']} planned epochs ran; it keeps epoch {r['best']['epoch']}\n"
-        )
     rows = []
     for r in runs:
         for e in r["epochs"]:
             spread = e["health"]["spread"]
             rows.append(
                 [
-                    f"{r['train_config']['lr']:g}",
+                    f"{r['train_config'][first]:g}",
                     str(e["epoch"]),
                     f3(e["score"]),
                     f"{f3(e['val']['all']['f1max'])} / {f3(e['val']['all']['recall@1'])}",
@@ -145,8 +133,42 @@ def common_run() -> str:
                     f"{e['real_cosine_min']:.5f}",
                 ]
             )
-    head = ["rate", "epoch", "score", "val F1max / R@1", *[f"{n} across" for n in names]]
-    return out + "\n" + table([*head, "spread", "collapsing", "real min cosine"], rows)
+    head = ["epoch", "score", "val F1max / R@1", *[f"{n} across" for n in names]]
+    return [*head, "spread", "collapsing", "real min cosine"], rows
+
+
+_EPOCH_COLUMNS = (
+    "F1max of the validation drive (`val-kitti-hdl64`) and of each rendering's scans against "
+    "it (across sensors); the spread and the collapse flag from the health numbers; the "
+    "minimum cosine of real KITTI scans under a continuous turn (one view).\n\n"
+)
+
+
+def _planned(r: dict[str, Any], label: str) -> str:
+    return (
+        f"- `{r['run']}` ({label}): {r['epochs_run']} of {r['epochs_planned']} planned "
+        f"epochs ran; it keeps epoch {r['best']['epoch']}\n"
+    )
+
+
+def common_run() -> str:
+    """The ``common-towns`` runs' epochs (both rates): validation, across sensors, health."""
+    runs = [load(path) for path in COMMON_RUNS]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(COMMON_RUNS, runs, strict=True))
+    out += "\nEpoch 0 is the shipped weights on common beams. " + _EPOCH_COLUMNS
+    out += "".join(_planned(r, f"rate {r['train_config']['lr']:g}") for r in runs)
+    head, rows = _epoch_rows(runs, "lr")
+    return out + "\n" + table(["rate", *head], rows)
+
+
+def structure_run() -> str:
+    """The ``structure-towns`` run's epochs, from scratch: validation, across sensors, health."""
+    r = load(STRUCTURE_RUN)
+    out = source(STRUCTURE_RUN, r["command"], when(r))
+    out += "\nEpoch 0 is the untrained network. " + _EPOCH_COLUMNS
+    out += _planned(r, f"seed {r['train_config']['seed']}")
+    head, rows = _epoch_rows([r], "seed")
+    return out + "\n" + table(["seed", *head], rows)
 
 
 RENDERERS = {
@@ -154,4 +176,5 @@ RENDERERS = {
     "backbone-rows": backbone_rows,
     "common-beams": common_beams,
     "common-run": common_run,
+    "structure-run": structure_run,
 }

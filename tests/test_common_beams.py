@@ -1,6 +1,7 @@
 """The ``common`` sensor input: every sensor's scan, the model's own too, thinned to its beams
-nearest a common sensor's elevations and projected as that sensor's scan; in the core, the
-service's encoder and training."""
+nearest a common sensor's elevations and projected as that sensor's scan, and ``structure``
+(the same, above the ground and within a common range); in the core, the service's encoder
+and training."""
 
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import CATALOGUE, Sensor, get_profile, sensor_of_profile
 from overlapmamba.core.sensors.input import (
+    COMMON_MAX_RANGE,
+    COMMON_MODES,
     COMMON_SENSOR,
     COMMON_TOLERANCE_DEG,
+    GROUND_CLEARANCE,
     SensorInput,
     common_beams,
     project_input_reference,
@@ -37,14 +41,13 @@ def _rows_hit(image: np.ndarray) -> list[int]:
     return np.flatnonzero((image > 0).any(1)).tolist()
 
 
+@pytest.mark.parametrize("mode", COMMON_MODES)
 @pytest.mark.parametrize("name", SENSORS)
-def test_fast_common_projection_matches_the_reference(name):
+def test_fast_common_projection_matches_the_reference(name, mode):
     xyz = _cloud(4000, 3)
-    inp = SensorInput(KITTI, CATALOGUE[name], "common")
+    inp = SensorInput(KITTI, CATALOGUE[name], mode)
     got = inp.project(xyz)[0]
-    np.testing.assert_array_equal(
-        got, project_input_reference(xyz, KITTI, CATALOGUE[name], "common")
-    )
+    np.testing.assert_array_equal(got, project_input_reference(xyz, KITTI, CATALOGUE[name], mode))
     # only the common sensor's rows are ever filled
     common_rows = row_beams(KITTI, CATALOGUE[COMMON_SENSOR], "elevation") >= 0
     assert (got[~common_rows] == KITTI.empty_value).all() and (got[common_rows] > 0).any()
@@ -101,6 +104,36 @@ def test_common_beams_are_found_in_the_sensors_own_frame():
     assert _rows_hit(level.project(levelled)[0]) == []
 
 
+def test_structure_keeps_what_stands_above_the_reference_ground_within_the_common_range():
+    """A robot's VLP-16 half a metre up: its return off the road 4 m ahead is ground once the
+    scan is moved to the reference mount, and dropped; its return off a wall 10 m away,
+    0.67 m above the road, stays. The KITTI car's return just under the clearance is
+    dropped, just over it kept, and anything beyond the common range is dropped, whatever
+    the sensor reaches."""
+    vlp, hdl = CATALOGUE["vlp16"], CATALOGUE["kitti-hdl64"]
+    robot = SensorInput(KITTI, vlp, "structure", Mount(height=0.5))
+    road = _at(-7.0, r=0.5 / np.sin(np.radians(7.0)))
+    wall = _at(1.0, r=10.0)
+    assert _rows_hit(robot.project(road)[0]) == []
+    assert _rows_hit(SensorInput(KITTI, vlp, "common", Mount(height=0.5)).project(road)[0])
+    assert _rows_hit(robot.project(wall)[0])
+    car = SensorInput(KITTI, hdl, "structure")
+    el = np.asarray(hdl.elevations_deg)
+    on = float(el[np.argmin(np.abs(el + 5.0))])
+    low = REFERENCE_HEIGHT - GROUND_CLEARANCE  # a return just under the clearance is ground
+    assert _rows_hit(car.project(_at(on, r=(low + 0.01) / np.sin(np.radians(-on))))[0]) == []
+    assert _rows_hit(car.project(_at(on, r=(low - 0.01) / np.sin(np.radians(-on))))[0])
+    assert _rows_hit(car.project(_at(on, r=COMMON_MAX_RANGE + 0.5))[0]) == []
+    assert _rows_hit(SensorInput(KITTI, hdl, "common").project(_at(on, r=60.0))[0])
+    assert car.kind == "structure" and not car.native
+    assert car.key()["structure"] == {
+        "clearance_m": GROUND_CLEARANCE,
+        "ground_m": REFERENCE_HEIGHT,
+        "max_range_m": COMMON_MAX_RANGE,
+    }
+    assert car.key() != SensorInput(KITTI, hdl, "common").key()
+
+
 def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
     high = Sensor(
         name="sky-16",
@@ -112,10 +145,11 @@ def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
         max_range=100.0,
         range_sigma=0.01,
     )
-    with pytest.raises(ValueError, match="'sky-16' has no beam within 0.5° of the common"):
-        SensorInput(KITTI, high, "common")
+    for mode in COMMON_MODES:
+        with pytest.raises(ValueError, match="'sky-16' has no beam within 0.5° of the common"):
+            SensorInput(KITTI, high, mode)
     SensorInput(KITTI, high, "elevation")  # other modes take it (an empty image)
-    with pytest.raises(ValueError, match="allowed: elevation, rows, common"):
+    with pytest.raises(ValueError, match="allowed: elevation, rows, common, structure"):
         SensorInput(KITTI, high, "stretch")  # type: ignore[arg-type]
 
     # a service whose model takes common beams refuses such a sensor file at start
@@ -130,7 +164,8 @@ def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
     assert "sky-16" in Sensors(read_metadata(MODEL), [path]).names()
 
 
-def test_a_file_taking_common_beams_thins_every_scan_the_service_describes(tmp_path):
+@pytest.mark.parametrize("mode", COMMON_MODES)
+def test_a_file_taking_common_beams_thins_every_scan_the_service_describes(tmp_path, mode):
     from overlapmamba.service.encoder import Encoder
     from overlapmamba.service.sensors import Sensors
     from overlapmamba.train.modelfile import read_metadata, with_sensor_input
@@ -138,16 +173,16 @@ def test_a_file_taking_common_beams_thins_every_scan_the_service_describes(tmp_p
     path = tmp_path / "m.onnx"
     shutil.copyfile(MODEL, path)
     before = read_metadata(path)
-    meta = with_sensor_input(path, "common")
-    assert meta.sensor_input == "common" and meta.model_id != before.model_id
+    meta = with_sensor_input(path, mode)
+    assert meta.sensor_input == mode and meta.model_id != before.model_id
     enc = Encoder(path)
     cloud = PointCloud(scan(3)[:, :3])
     own = Sensors(enc.meta).input("kitti-hdl64")
-    assert own.kind == "common"
+    assert own.kind == mode
     np.testing.assert_array_equal(enc.project(cloud), own.project(cloud, enc.views))
     np.testing.assert_array_equal(enc.project(cloud, own), enc.project(cloud))
     assert not np.array_equal(enc.project(cloud), Encoder(MODEL).project(cloud))
-    assert Sensors(enc.meta).input("vlp16").kind == "common"
+    assert Sensors(enc.meta).input("vlp16").kind == mode
 
 
 def test_training_takes_the_models_own_scans_by_its_configs_input(tiny_seq):

@@ -41,6 +41,50 @@ def _rendering(src, dst, sensor: str, shift_m: float = 0.0):
     return dst
 
 
+def test_a_drive_on_another_mount_is_levelled_for_the_structure_input_only(tiny_seq, tmp_path):
+    """A drive's manifest says where its sensor sat: a robot's low, pitched sensor becomes
+    the sequence's mount, and the structure input (whose ground is the reference mount's)
+    levels its scans first; the other modes take them as recorded. The reference mount is
+    no mount."""
+    from overlapmamba.core.sensors.mount import Mount
+    from overlapmamba.train.checkpoint import input_of_mode
+
+    assert open_sequence(tiny_seq).mount is None  # a car's roof: the reference
+    robot = _rendering(tiny_seq, tmp_path / "robot", "vlp16")
+    manifest = json.loads((robot / "manifest.json").read_text())
+    manifest["resolved"]["mounting"].update(height=0.7, pitch_deg=2.0, roll_deg=-1.0)
+    (robot / "manifest.json").write_text(json.dumps(manifest))
+    seq = open_sequence(robot)
+    assert seq.mount == Mount(height=0.7, pitch_deg=2.0, roll_deg=-1.0)
+    profile = get_profile("kitti-hdl64")
+    assert input_of_mode(profile, seq, "structure").mount == seq.mount
+    assert input_of_mode(profile, seq, "common").mount is None
+    # returns on the robot's −7° beam from its road 0.7 m below, and on its +1° beam from a
+    # wall: once levelled the road is ground, which the structure input drops; the wall stays
+    structure = input_of_mode(profile, seq, "structure")
+    road, wall = _on_beam(-7.0, 0.7, z_level=-0.7), _on_beam(1.0, 0.7, r=10.0)
+    assert not (structure.project(road) > 0).any()
+    assert (structure.project(wall) > 0).sum() >= len(wall)
+    manifest["resolved"]["mounting"] = {"height": "low"}
+    (robot / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match="unreadable mounting"):
+        open_sequence(robot)
+
+
+def _on_beam(el_deg: float, height: float, z_level: float | None = None, r: float = 0.0):
+    """(8, 3) returns on a beam at ``el_deg`` of a sensor ``height`` m up, pitched 2° and
+    rolled −1°, in its frame, at 8 azimuths: at range ``r``, or where the level frame's z
+    is ``z_level``."""
+    from overlapmamba.core.sensors.mount import platform_from_sensor
+
+    tilt = platform_from_sensor(2.0, -1.0)
+    el, az = np.radians(el_deg), np.radians(np.arange(8) * 45.0 + 10.0)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(8, np.sin(el))], 1)
+    rng = np.full(8, r) if z_level is None else z_level / (d @ tilt.T)[:, 2]
+    assert (rng > 0).all()
+    return (d * rng[:, None]).astype(np.float32)
+
+
 def test_renderings_of_one_drive_share_its_pair_table(tiny_seq, tmp_path):
     """Another sensor's rendering of a drive (gen-data --sensor … --no-ground-truth) is
     labelled by the drive's table: frame i of one rendering overlaps frame j of the other as

@@ -204,8 +204,9 @@ def export_cmd(
         typer.Option(
             "--sensor-input",
             help="how scans become the model's input (overlapmamba.core.sensors.input): "
-            "elevation, rows or common (every sensor's scan, the model's own too, thinned to "
-            "common beams); default: the network's own (a .pt's config, an .onnx's metadata)",
+            "elevation, rows, common (every sensor's scan, the model's own too, thinned to "
+            "common beams) or structure (common, above the ground, within 50 m); default: the "
+            "network's own (a .pt's config, an .onnx's metadata)",
         ),
     ] = None,
 ) -> None:

@@ -83,8 +83,9 @@ class EncoderMetadata(BaseModel):
     sensor_input: Mode = Field(
         default="elevation",
         description="how a scan of another sensor than the profile's becomes this model's "
-        "input (overlapmamba.core.sensors.input): elevation, rows or common (every sensor, the "
-        "profile's own too, thinned to common beams); part of the model id",
+        "input (overlapmamba.core.sensors.input): elevation, rows, common (every sensor, the "
+        "profile's own too, thinned to common beams) or structure (common, above the ground "
+        "and within a common range); part of the model id",
     )
     calibration: dict[str, Calibrated] = Field(
         default_factory=dict,

@@ -123,8 +123,18 @@ def sensor_input_of(model: Network) -> Mode:
 def input_of(model: Network, profile: SensorProfile, seq: Sequence) -> SensorInput:
     """How ``seq``'s scans become ``model``'s input: its sensor (a sequence that names none
     is the model's own) into the model's profile, as the model takes other sensors."""
+    return input_of_mode(profile, seq, sensor_input_of(model))
+
+
+def input_of_mode(profile: SensorProfile, seq: Sequence, mode: Mode) -> SensorInput:
+    """:func:`input_of` for an input ``mode``. The ``structure`` input keeps what stands above
+    the reference ground, so a drive whose sensor sat elsewhere (``seq.mount``: a drawn
+    town's robot or backpack) is levelled and moved to the reference height first, as the
+    service does with a mount a robot declares; the other modes take scans as recorded (how
+    their models were trained and measured)."""
     sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
-    return SensorInput(profile, sensor, sensor_input_of(model))
+    mount = seq.mount if mode == "structure" else None
+    return SensorInput(profile, sensor, mode, mount)
 
 
 def load_model(path: str | Path) -> tuple[Network, SensorProfile, dict[str, Any]]:

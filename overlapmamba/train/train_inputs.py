@@ -16,10 +16,10 @@ from tqdm.auto import tqdm
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor, sensor_of_profile
+from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
 from overlapmamba.core.sensors.input import Mode, SensorInput
 from overlapmamba.train.augment import Augmenter
-from overlapmamba.train.checkpoint import read_checkpoint
+from overlapmamba.train.checkpoint import input_of_mode, read_checkpoint
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.rangecache import range_images
@@ -37,9 +37,9 @@ def training_input(
 ) -> SensorInput | None:
     """How ``seq``'s scans enter the model in training, as the exported model will take
     them (its config's ``sensor_input``): None for the model's own sensor projected plainly,
-    else its sensor's input by ``mode`` (``common``: every sensor's, the model's own too)."""
-    sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
-    inp = SensorInput(profile, sensor, mode)
+    else its sensor's input by ``mode`` (``common``: every sensor's, the model's own too;
+    ``structure`` levels a drive whose sensor sat elsewhere first: :func:`input_of`)."""
+    inp = input_of_mode(profile, seq, mode)
     return None if inp.native else inp
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.io import read_points
 from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.mount import Mount
 
 
 @dataclass(frozen=True)
@@ -21,12 +22,15 @@ class Sequence:
     scan_paths: N files, in time order
     poses:      (N, 4, 4) float64, LiDAR frame
     sensor:     name of the sensor profile the data was recorded with, if known
+    mount:      where that sensor sat, when known and not the reference (level,
+                :data:`~overlapmamba.core.sensors.mount.REFERENCE_HEIGHT` above the road)
     """
 
     root: Path
     scan_paths: tuple[Path, ...]
     poses: np.ndarray
     sensor: str | None = None
+    mount: Mount | None = None
 
     def __post_init__(self) -> None:
         if len(self.scan_paths) != len(self.poses):

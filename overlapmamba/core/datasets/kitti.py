@@ -15,29 +15,57 @@ import numpy as np
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import camera_to_lidar, read_calib, read_poses
+from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
 
 
 def looks_like(root: Path) -> bool:
     return (root / "velodyne").is_dir()
 
 
-def _manifest_sensor(root: Path) -> str | None:
+def _manifest(root: Path) -> dict:
     path = root / "manifest.json"
     if not path.is_file():
-        return None
+        return {}
     try:
-        sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
+        manifest = json.loads(path.read_text())
+        if not isinstance(manifest, dict):
+            raise AttributeError
     except (json.JSONDecodeError, AttributeError, OSError):
         raise DatasetError(f"{path} is not a readable manifest") from None
+    return manifest
+
+
+def _manifest_sensor(manifest: dict) -> str | None:
+    sensor = (manifest.get("config") or {}).get("sensor")
     return sensor if isinstance(sensor, str) else None
+
+
+def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
+    """Where a synthetic drive's sensor sat (its manifest's resolved mounting); None at the
+    reference mount (level, :data:`REFERENCE_HEIGHT` up) or where the manifest says nothing."""
+    mounting = (manifest.get("resolved") or {}).get("mounting")
+    if not mounting:
+        return None
+    try:
+        mount = Mount(
+            height=mounting["height"],
+            pitch_deg=mounting.get("pitch_deg", 0.0),
+            roll_deg=mounting.get("roll_deg", 0.0),
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise DatasetError(f"{root}/manifest.json: unreadable mounting {mounting!r}: {e}") from None
+    level = mount.pitch_deg == 0.0 and mount.roll_deg == 0.0
+    return None if level and abs(mount.height - REFERENCE_HEIGHT) < 1e-6 else mount
 
 
 def open_kitti(root: str | Path, *, sensor: str | None = None) -> Sequence:
     """``sensor``: the catalogue sensor the scans come from; None: what the folder's
-    ``manifest.json`` says (a synthetic drive records its sensor), else KITTI's HDL-64E."""
+    ``manifest.json`` says (a synthetic drive records its sensor), else KITTI's HDL-64E. The
+    sequence's ``mount`` is the manifest's mounting where it is not the reference."""
     root = Path(root)
+    manifest = _manifest(root)
     if sensor is None:
-        sensor = _manifest_sensor(root) or "kitti-hdl64"
+        sensor = _manifest_sensor(manifest) or "kitti-hdl64"
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
         raise DatasetError(f"{root} is not a KITTI sequence: no velodyne/ folder")
@@ -53,4 +81,5 @@ def open_kitti(root: str | Path, *, sensor: str | None = None) -> Sequence:
             raise DatasetError(f"{calib_file}: no 12-number 'Tr:' (velodyne→camera) entry")
         if len(poses):
             poses = camera_to_lidar(poses, calib["Tr"])
-    return Sequence(root=root, scan_paths=scans, poses=poses, sensor=sensor)
+    mount = _manifest_mount(root, manifest)
+    return Sequence(root=root, scan_paths=scans, poses=poses, sensor=sensor, mount=mount)

@@ -20,6 +20,13 @@
                shows the same rings at the same rows; the model's own scans lose most of
                theirs (the KITTI HDL-64E keeps 10 of 64). Measured with the shipped weights
                by ``benchmarks/common_beams.py``
+    structure  ``common``, then only what stands above the ground and within a common range:
+               after levelling, a return less than :data:`GROUND_CLEARANCE` above the
+               reference mount's ground (:data:`~overlapmamba.core.sensors.mount.REFERENCE_HEIGHT`
+               below the sensor) or beyond :data:`COMMON_MAX_RANGE` is dropped. The ground is
+               where sensors disagree most: a beam 0.2° off another's meets a flat road 3 m
+               nearer or farther at −3°, while a wall is at its range from every beam; and an
+               OS0-128 sees nothing beyond 50 m
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
 :mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
@@ -42,14 +49,17 @@ import numpy as np
 
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
-from overlapmamba.core.sensors.mount import Mount, to_reference
+from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
-Mode = Literal["elevation", "rows", "common"]
-MODES: tuple[str, ...] = ("elevation", "rows", "common")
+Mode = Literal["elevation", "rows", "common", "structure"]
+MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure")
+COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
 COMMON_SENSOR = "vlp16"  # the sparsest spinning sensor of the catalogue: 16 beams, 2° apart
 COMMON_TOLERANCE_DEG = 0.5
+GROUND_CLEARANCE = 0.3  # m above the reference mount's ground: below it, ``structure`` drops
+COMMON_MAX_RANGE = 50.0  # m: the shortest reach of a catalogue spinning sensor (OS0-128)
 _PI = np.float32(np.pi)
 
 
@@ -106,6 +116,15 @@ def on_beams(xyz: np.ndarray, sensor: Sensor, beams: np.ndarray) -> np.ndarray:
     return xyz[np.isin(beam_of(el, sensor), beams)]
 
 
+def above_ground(xyz: np.ndarray) -> np.ndarray:
+    """(M, 3) the points of ``xyz`` (N, ≥3), seen from the reference mount, that stand at
+    least :data:`GROUND_CLEARANCE` above its ground and lie nearer than
+    :data:`COMMON_MAX_RANGE` (the ``structure`` input)."""
+    xyz = np.asarray(xyz)[:, :3]
+    r = np.linalg.norm(xyz, axis=1)
+    return xyz[(xyz[:, 2] >= GROUND_CLEARANCE - REFERENCE_HEIGHT) & (r < COMMON_MAX_RANGE)]
+
+
 @dataclass(frozen=True)
 class SensorInput:
     """How scans of ``sensor`` become the input of a model trained on ``model``."""
@@ -117,7 +136,7 @@ class SensorInput:
 
     def __post_init__(self) -> None:
         check_mode(self.mode)
-        if self.mode == "common" and not common_beams(self.sensor).size:
+        if self.mode in COMMON_MODES and not common_beams(self.sensor).size:
             raise ValueError(
                 f"sensor {self.sensor.name!r} has no beam within {COMMON_TOLERANCE_DEG}° of "
                 f"the common elevations ({COMMON_SENSOR}'s): a model taking common beams "
@@ -128,13 +147,17 @@ class SensorInput:
     def native(self) -> bool:
         """The model's own sensor, taken exactly as the model was trained (no mount, and
         not thinned to common beams)."""
-        return self.mode != "common" and self.sensor.profile() == self.model and self.mount is None
+        return (
+            self.mode not in COMMON_MODES
+            and self.sensor.profile() == self.model
+            and self.mount is None
+        )
 
     @property
     def kind(self) -> str:
-        """native, elevation, rows or common: what this pairing actually does (with
-        ``+mount`` when the scan is first moved to the model's mount)."""
-        own = self.sensor.profile() == self.model and self.mode != "common"
+        """native, elevation, rows, common or structure: what this pairing actually does
+        (with ``+mount`` when the scan is first moved to the model's mount)."""
+        own = self.sensor.profile() == self.model and self.mode not in COMMON_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
     @classmethod
@@ -144,9 +167,9 @@ class SensorInput:
         return cls(model, sensor_of_profile(model), mode)
 
     def rows(self) -> np.ndarray:
-        """(H,) the beam each model row shows (−1: empty); in ``common`` mode, the common
+        """(H,) the beam each model row shows (−1: empty); in the common modes, the common
         sensor's beam."""
-        if self.mode == "common":
+        if self.mode in COMMON_MODES:
             return row_beams(self.model, CATALOGUE[COMMON_SENSOR], "elevation")
         return row_beams(self.model, self.sensor, self.mode)
 
@@ -155,22 +178,30 @@ class SensorInput:
         if self.native:
             return {}
         key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
-        if self.mode == "common":
+        if self.mode in COMMON_MODES:
             key["common"] = {"sensor": COMMON_SENSOR, "tolerance_deg": COMMON_TOLERANCE_DEG}
+        if self.mode == "structure":
+            key["structure"] = {
+                "clearance_m": GROUND_CLEARANCE,
+                "ground_m": REFERENCE_HEIGHT,
+                "max_range_m": COMMON_MAX_RANGE,
+            }
         if self.mount is not None:
             key["mount"] = self.mount.key()
         return key
 
     def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
         """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
-        if self.mount is not None or self.mode == "common":
+        if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
                 raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
-            if self.mode == "common":  # the beams are the sensor's: found before levelling
+            if self.mode in COMMON_MODES:  # the beams are the sensor's: found before levelling
                 xyz = on_beams(xyz, self.sensor, common_beams(self.sensor))
             points = to_reference(xyz, self.mount) if self.mount is not None else xyz
-        if self.mode == "common":
+            if self.mode == "structure":  # the ground is the reference mount's: after it
+                points = above_ground(points)
+        if self.mode in COMMON_MODES:
             common = CATALOGUE[COMMON_SENSOR]
             return _project_beams(points, self.model, common, self.rows(), views)
         if self.sensor.profile() == self.model:
@@ -217,11 +248,13 @@ def project_input_reference(
     """Slow, obvious version of one view for tests (no mount): per point, its beam by the
     smallest elevation difference; per model row, the points of the beam that row shows. In
     ``common`` mode a point off the common beams is dropped, and a kept one takes the common
-    sensor's beam nearest its elevation."""
+    sensor's beam nearest its elevation; in ``structure`` mode a point below the clearance
+    above the reference ground, or beyond the common range, is dropped too."""
     xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
-    keep = common_beams(sensor) if mode == "common" else None
+    keep = common_beams(sensor) if mode in COMMON_MODES else None
+    structure = mode == "structure"
     orig_table = np.asarray(sensor.elevations_deg)
-    if mode == "common":
+    if mode in COMMON_MODES:
         sensor, mode = CATALOGUE[COMMON_SENSOR], "elevation"
     rows = row_beams(model, sensor, mode)
     H, W = model.height, model.width
@@ -233,6 +266,8 @@ def project_input_reference(
             continue
         el = float(np.degrees(np.arcsin(z / r)))
         if keep is not None and _nearest(el, orig_table) not in keep:
+            continue
+        if structure and (z < GROUND_CLEARANCE - REFERENCE_HEIGHT or r >= COMMON_MAX_RANGE):
             continue
         beam = _nearest(el, el_table)
         u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
