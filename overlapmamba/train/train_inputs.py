@@ -38,7 +38,7 @@ def training_input(
     """How ``seq``'s scans enter the model in training, as the exported model will take
     them (its config's ``sensor_input``): None for the model's own sensor projected plainly,
     else its sensor's input by ``mode`` (``common``: every sensor's, the model's own too;
-    ``structure`` levels a drive whose sensor sat elsewhere first: :func:`input_of`)."""
+    ``structure`` levels a drive whose sensor sat elsewhere first: :func:`input_of_mode`)."""
     inp = input_of_mode(profile, seq, mode)
     return None if inp.native else inp
 

@@ -28,10 +28,10 @@ def _manifest(root: Path) -> dict:
         return {}
     try:
         manifest = json.loads(path.read_text())
-        if not isinstance(manifest, dict):
-            raise AttributeError
-    except (json.JSONDecodeError, AttributeError, OSError):
-        raise DatasetError(f"{path} is not a readable manifest") from None
+    except (json.JSONDecodeError, OSError):
+        manifest = None
+    if not isinstance(manifest, dict):
+        raise DatasetError(f"{path} is not a readable manifest")
     return manifest
 
 
