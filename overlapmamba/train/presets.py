@@ -50,6 +50,10 @@ otherwise.
 - ``structure-towns`` trains from scratch on the ``structure`` input (common beams, only
   what stands above the ground, within 50 m) on common-towns' towns, validation and
   selection, with the issue's augmentations.
+- ``structure-long``, ``structure-many`` and ``structure-many-renders`` are
+  ``structure-towns`` for a lent GPU's window (``benchmarks/lent_gpu.py``): 40 epochs
+  planned, as many as the window allows run; on its five towns, on train-b and the twelve
+  drawn towns, and on those with train-b's renderings by three other sensors.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -235,6 +239,17 @@ STRUCTURE = {
     "val_sensors": list(COMMON_VAL_RENDERINGS),
     "select_on": "sensors",
 }
+# The structure recipe for a lent GPU (benchmarks/lent_gpu.py: the towns simulated again
+# there, three runs side by side), 40 epochs planned and the window deciding how many run:
+# on common-towns' five towns (structure-long), on train-b and all twelve drawn towns
+# (structure-many: what more towns are worth at an equal budget), and on those with train-b's
+# renderings by a robot's VLP-16, an AMR's OS0-128 and a backpack's XT32 (structure-many-
+# renders: the same places seen by several sensors, labelled by train-b's pair table).
+STRUCTURE_LONG = {**STRUCTURE, "epochs": 40}
+MANY_TOWNS = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in range(12)))
+TRAIN_B_RENDERINGS = tuple(
+    f"data/synth/train-b-{r}" for r in ("vlp16-robot", "os0-128-amr", "xt32-backpack")
+)
 
 
 @dataclass(frozen=True)
@@ -393,6 +408,30 @@ PRESETS: dict[str, TrainPreset] = {
             model=STRUCTURE_MODEL,
             train=STRUCTURE,
             data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "structure-long",
+            "structure-towns for a lent GPU's window (40 epochs planned)",
+            model=STRUCTURE_MODEL,
+            train=STRUCTURE_LONG,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "structure-many",
+            "structure-long on train-b and twelve drawn towns",
+            model=STRUCTURE_MODEL,
+            train=STRUCTURE_LONG,
+            data=MANY_TOWNS,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "structure-many-renders",
+            "structure-many with train-b's renderings by three other sensors",
+            model=STRUCTURE_MODEL,
+            train=STRUCTURE_LONG,
+            data=(*MANY_TOWNS, *TRAIN_B_RENDERINGS),
             val=SENSOR_VAL,
         ),
         TrainPreset(

@@ -1,0 +1,266 @@
+"""Train on a lent GPU machine: the towns simulated again there, several runs side by side.
+
+A lent machine (one GPU, 16 cores, no network, a few minutes) receives the repository and
+64 MiB beside it, none of this machine's data. The scans are cheap to simulate again from
+their presets' seeds on its cores; the pair and loop tables are not (minutes a town here),
+so they travel, with the manifests they were made beside:
+
+    python benchmarks/lent_gpu.py pack TOWN… --carry .carry        # here: the tables
+    python benchmarks/lent_gpu.py prepare TOWN… --carry .carry     # there: simulate, project
+    python benchmarks/lent_gpu.py launch PRESET… --device cuda     # there: trainings, detached
+    python benchmarks/lent_gpu.py collect PRESET… --out DIR [--stop]  # their best.pt, metrics
+
+``pack`` checks that each carried loop table's fingerprint is what this repository computes
+for the scans it was made on (so patching it there is the same computation over the
+re-simulated scans). ``prepare`` simulates every town in a process of its own (a preset
+name: ``overlapmamba.synth.presets``), installs its tables, gives the loop table the new
+scans' fingerprint (the generator is deterministic up to a few returns at edges: previous
+loans found every town's ``data_sha256`` changed, same worlds, drives and poses), and
+projects the range images every training preset named by ``--input-preset`` takes, so the
+runs start at once. ``launch`` starts each preset's ``overlapmamba train`` in its own
+session (it outlives the command that started it, as a lent machine allows); ``collect``
+copies each run's ``best.pt``, ``metrics.json`` and log tail to ``--out`` and, with
+``--stop``, ends the runs first (the last finished epoch is on disk).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+SYNTH = ROOT / "data" / "synth"
+TABLES = ("overlaps.npz", "loops.npz")
+LOGS = ROOT / "runs" / "lent-logs"
+
+
+def loop_fingerprint(town: Path) -> tuple[str, str]:
+    """(stored, computed): the fingerprint in ``town``'s loop table and the one this
+    repository computes for its scans and the table's parameters."""
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.overlap import LoopGroundTruth, LoopParams, loop_params
+    from overlapmamba.core.sensors import get_profile
+
+    seq = open_sequence(town)
+    gt = LoopGroundTruth.load(town / "ground_truth" / "loops.npz")
+    profile = get_profile(seq.sensor or "kitti-hdl64")
+    params = loop_params(seq, profile, LoopParams.of(gt.params))
+    return str(gt.params.get("fingerprint")), str(params["fingerprint"])
+
+
+def pack(towns: list[str], carry: Path) -> None:
+    from overlapmamba.synth.presets import preset
+
+    for name in towns:
+        src, dst = SYNTH / name, carry / name
+        manifest = json.loads((src / "manifest.json").read_text())
+        if manifest["config"] != json.loads(json.dumps(preset(name).model_dump())):
+            raise SystemExit(f"{src}: made with another config than the preset {name!r} now")
+        stored, computed = loop_fingerprint(src)
+        if stored != computed:
+            raise SystemExit(f"{src}: its loop table's fingerprint is not recomputed here")
+        dst.mkdir(parents=True, exist_ok=True)
+        for f in TABLES:
+            if (src / "ground_truth" / f).is_file():
+                shutil.copy2(src / "ground_truth" / f, dst / f)
+        shutil.copy2(src / "manifest.json", dst / "manifest.json")
+        size = sum(p.stat().st_size for p in dst.iterdir()) / 1e6
+        print(f"{name}: {sorted(p.name for p in dst.iterdir())} {size:.1f} MB")
+
+
+def prepare_one(name: str, carry: Path, workers: int, input_presets: list[str]) -> dict:
+    """Simulate one town, install its carried tables, project its range images."""
+    from overlapmamba.synth.generate import generate
+    from overlapmamba.synth.presets import preset
+
+    out = SYNTH / name
+    row: dict[str, Any] = {"town": name}
+    t0 = time.perf_counter()
+    if not (out / "manifest.json").is_file():
+        shutil.rmtree(out, ignore_errors=True)
+        made = generate(out, preset(name), workers=workers, ground_truth=False, progress=False)
+        row |= {"frames": made["config"]["frames"], "data_sha256": made["data_sha256"]}
+    row["sim_s"] = round(time.perf_counter() - t0, 1)
+    if (carry / name).is_dir():
+        old = json.loads((carry / name / "manifest.json").read_text())
+        row["byte_identical"] = old["data_sha256"] == row.get("data_sha256")
+        (out / "ground_truth").mkdir(exist_ok=True)
+        for f in TABLES:
+            if (carry / name / f).is_file():
+                shutil.copy2(carry / name / f, out / "ground_truth" / f)
+        if (out / "ground_truth" / "loops.npz").is_file():
+            row["loop_fingerprint_patched"] = patch_loops(out)
+    t1 = time.perf_counter()
+    row["projected"] = project(out, input_presets)
+    row["project_s"] = round(time.perf_counter() - t1, 1)
+    return row
+
+
+def patch_loops(town: Path) -> bool:
+    """Give ``town``'s carried loop table the fingerprint of the scans simulated here."""
+    from overlapmamba.core.overlap import LoopGroundTruth
+
+    stored, computed = loop_fingerprint(town)
+    if stored == computed:
+        return False
+    path = town / "ground_truth" / "loops.npz"
+    gt = LoopGroundTruth.load(path)
+    gt.params["fingerprint"] = computed
+    gt.save(path)
+    return True
+
+
+def project(town: Path, input_presets: list[str]) -> int:
+    """Range images of ``town`` for each preset that trains or validates on it, cached where
+    the trainer looks (one input a model config: the presets here share theirs)."""
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.sensors.input import check_mode
+    from overlapmamba.train.model import OverlapMambaConfig
+    from overlapmamba.train.presets import get_preset
+    from overlapmamba.train.rangecache import range_images
+    from overlapmamba.train.train_inputs import model_profile, training_input
+
+    done = set()
+    for name in input_presets:
+        p = get_preset(name)
+        paths = {str(ROOT / d) for d in (*p.data, p.val, *p.train.get("val_sensors", ()))}
+        cfg = OverlapMambaConfig.from_dict(p.model)
+        key = json.dumps(p.model, sort_keys=True)
+        if str(town) not in paths or key in done:
+            continue
+        done.add(key)
+        profile = model_profile(cfg)
+        seq = open_sequence(town)
+        inp = training_input(profile, seq, check_mode(cfg.sensor_input))
+        range_images(seq, profile, sensor=inp, progress=False)
+    return len(done)
+
+
+def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str]) -> None:
+    """Every town in a process of its own, at once; a summary JSON per town."""
+    from overlapmamba.synth.presets import preset
+
+    LOGS.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    procs = {}
+    for name in towns:
+        cmd = [sys.executable, __file__, "prepare-one", name, "--carry", str(carry)]
+        frames = preset(name).frames  # a 2,000-scan town gets twice a 1,000-scan one's workers
+        cmd += ["--workers", str(max(workers, round(frames / 500))), "--input-preset"]
+        cmd += input_presets
+        log = (LOGS / f"prepare-{name}.log").open("w")
+        procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    failed = []
+    for name, proc in procs.items():
+        if proc.wait() != 0:
+            failed.append(name)
+            tail = (LOGS / f"prepare-{name}.log").read_text()[-1500:]
+            print(f"prepare {name} failed ({proc.returncode}):\n{tail}", flush=True)
+    rows = [json.loads((LOGS / f"prepare-{n}.json").read_text()) for n in towns if n not in failed]
+    summary = {"towns": rows, "failed": failed, "prepare_s": round(time.perf_counter() - t0, 1)}
+    (LOGS / "prepare.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print(f"prepared {len(rows)} of {len(towns)} towns in {summary['prepare_s']} s", flush=True)
+
+
+def launch(presets: list[str], device: str, threads: int) -> None:
+    LOGS.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1"}
+    for name in presets:
+        shutil.rmtree(ROOT / "runs" / name, ignore_errors=True)
+        cmd = [sys.executable, "-m", "overlapmamba", "train", "--preset", name]
+        cmd += ["--device", device]
+        log = (LOGS / f"{name}.log").open("w")
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env, start_new_session=True
+        )
+        (LOGS / f"{name}.pid").write_text(f"{proc.pid}\n")
+        print(f"{name}: pid {proc.pid}", flush=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def collect(presets: list[str], out: Path, stop: bool) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for name in presets:
+        if not (LOGS / f"{name}.pid").is_file():
+            print(f"== {name}: never launched", flush=True)
+            continue
+        pid = int((LOGS / f"{name}.pid").read_text())
+        alive = _alive(pid)
+        if stop and alive:
+            os.killpg(pid, signal.SIGTERM)
+            for _ in range(50):
+                if not _alive(pid):
+                    break
+                time.sleep(0.2)
+        run = ROOT / "runs" / name
+        for f in ("best.pt", "metrics.json"):
+            if (run / f).is_file():
+                shutil.copy2(run / f, out / f"{name}-{f}")
+        text = (LOGS / f"{name}.log").read_text(errors="replace").replace("\r", "\n")
+        lines = [ln for ln in text.splitlines() if ln.strip() and "it/s" not in ln]
+        print(f"== {name}: {'running' if alive else 'ended'}", flush=True)
+        print("\n".join(lines[-6:]), flush=True)
+        if (run / "metrics.json").is_file():
+            m = json.loads((run / "metrics.json").read_text())
+            for e in m["history"]:
+                print(f"  epoch {e['epoch']}: val F1max {e['val']['all']['f1max']:.3f}", end="")
+                for s, v in (e.get("val_sensors") or {}).items():
+                    print(f" {s} {v['cross']['all']['f1max']:.3f}", end="")
+                print(f" train {e.get('train_s', 0):.0f}s val {e.get('val_s', 0):.0f}s")
+            print(f"  best {m['best']}")
+    if (LOGS / "prepare.json").is_file():
+        shutil.copy2(LOGS / "prepare.json", out / "prepare.json")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("pack")
+    a.add_argument("towns", nargs="+")
+    a.add_argument("--carry", type=Path, default=ROOT / ".carry")
+    for cmd in ("prepare", "prepare-one"):
+        a = sub.add_parser(cmd)
+        a.add_argument("towns", nargs="+")
+        a.add_argument("--carry", type=Path, default=ROOT / ".carry")
+        a.add_argument("--workers", type=int, default=2)
+        a.add_argument("--input-preset", nargs="+", default=[])
+    a = sub.add_parser("launch")
+    a.add_argument("presets", nargs="+")
+    a.add_argument("--device", default="cuda")
+    a.add_argument("--threads", type=int, default=4)
+    a = sub.add_parser("collect")
+    a.add_argument("presets", nargs="+")
+    a.add_argument("--out", type=Path, required=True)
+    a.add_argument("--stop", action="store_true")
+    args = ap.parse_args()
+    if args.cmd == "pack":
+        pack(args.towns, args.carry)
+    elif args.cmd == "prepare":
+        prepare(args.towns, args.carry, args.workers, args.input_preset)
+    elif args.cmd == "prepare-one":
+        (name,) = args.towns
+        row = prepare_one(name, args.carry, args.workers, args.input_preset)
+        (LOGS / f"prepare-{name}.json").write_text(json.dumps(row) + "\n")
+    elif args.cmd == "launch":
+        launch(args.presets, args.device, args.threads)
+    else:
+        collect(args.presets, args.out, args.stop)
+
+
+if __name__ == "__main__":
+    main()
