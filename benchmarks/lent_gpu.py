@@ -223,8 +223,25 @@ def collect(presets: list[str], out: Path, stop: bool) -> None:
                     print(f" {s} {v['cross']['all']['f1max']:.3f}", end="")
                 print(f" train {e.get('train_s', 0):.0f}s val {e.get('val_s', 0):.0f}s")
             print(f"  best {m['best']}")
-    if (LOGS / "prepare.json").is_file():
-        shutil.copy2(LOGS / "prepare.json", out / "prepare.json")
+    record = (
+        json.loads((LOGS / "prepare.json").read_text()) if (LOGS / "prepare.json").is_file() else {}
+    )
+    record["machine"] = machine()
+    (out / "prepare.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+def machine() -> dict[str, Any]:
+    import platform
+
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "gpu": gpu,
+        "cpus": os.cpu_count(),
+    }
 
 
 def main() -> None:

@@ -61,9 +61,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a run folder (its metrics.json)")
     ap.add_argument("--out", type=Path, default=None, help="default reports/model/RUN.json")
+    ap.add_argument(
+        "--trained-on",
+        default="",
+        help="where the run trained when not on this machine (e.g. a lent GPU's "
+        "benchmarks/lent_gpu.py prepare.json: the machine and the towns simulated there)",
+    )
     args = ap.parse_args()
     out = args.out or REPORTS / "model" / f"{args.run.name}.json"
-    write_report(out, summary(args.run))
+    record = summary(args.run)
+    if args.trained_on:
+        path = Path(args.trained_on)
+        record["trained_on"] = json.loads(path.read_text()) if path.is_file() else args.trained_on
+    write_report(out, record)
     print(f"wrote {out}")
 
 
