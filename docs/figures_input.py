@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shlex
+from collections.abc import Callable
 from typing import Any
 
 from figures_kit import ROOT, f3, load, source, table, when
@@ -15,6 +16,14 @@ BACKBONE_ROWS = "reports/model/backbone-rows.jsonl"
 COMMON_BEAMS = "reports/model/common-beams.json"
 COMMON_RUNS = ("reports/model/common-towns.json", "reports/model/common-towns-slow.json")
 STRUCTURE_RUN = "reports/model/structure-towns.json"
+STRUCTURE_GPU = tuple(
+    f"reports/model/{n}.json"
+    for n in ("structure-long", "structure-many", "structure-many-renders")
+)
+STRUCTURE_REAL = {
+    "reports/model/structure-real-kitti.json": "KITTI 00, frames 0–100",
+    "reports/model/structure-real-nuscenes.json": "nuScenes scene-0061",
+}
 
 
 def receptive_rows() -> str:
@@ -114,23 +123,25 @@ def common_beams() -> str:
     return out
 
 
-def _epoch_rows(runs: list[dict[str, Any]], first: str) -> tuple[list[str], list[list[str]]]:
-    """The epochs of ``runs`` as table rows: ``first`` (a train_config key) labels each run."""
+def _epoch_rows(
+    runs: list[dict[str, Any]], label: Callable[[dict[str, Any]], str]
+) -> tuple[list[str], list[list[str]]]:
+    """The epochs of ``runs`` as table rows, each run's first cell ``label(run)``."""
     names = list(runs[0]["epochs"][0]["val_sensors"])
     rows = []
     for r in runs:
         for e in r["epochs"]:
-            spread = e["health"]["spread"]
+            spread, real = e["health"]["spread"], e["real_cosine_min"]
             rows.append(
                 [
-                    f"{r['train_config'][first]:g}",
+                    label(r),
                     str(e["epoch"]),
                     f3(e["score"]),
                     f"{f3(e['val']['all']['f1max'])} / {f3(e['val']['all']['recall@1'])}",
                     *[f3(e["val_sensors"][n]["cross"]["f1max"]) for n in names],
                     "—" if spread is None else f"{spread:.3f}",
                     "—" if e["collapsing"] is None else ("yes" if e["collapsing"] else "no"),
-                    f"{e['real_cosine_min']:.5f}",
+                    "—" if real is None else f"{real:.5f}",
                 ]
             )
     head = ["epoch", "score", "val F1max / R@1", *[f"{n} across" for n in names]]
@@ -157,7 +168,7 @@ def common_run() -> str:
     out = "".join(source(p, r["command"], when(r)) for p, r in zip(COMMON_RUNS, runs, strict=True))
     out += "\nEpoch 0 is the shipped weights on common beams. " + _EPOCH_COLUMNS
     out += "".join(_planned(r, f"rate {r['train_config']['lr']:g}") for r in runs)
-    head, rows = _epoch_rows(runs, "lr")
+    head, rows = _epoch_rows(runs, lambda r: f"{r['train_config']['lr']:g}")
     return out + "\n" + table(["rate", *head], rows)
 
 
@@ -167,8 +178,74 @@ def structure_run() -> str:
     out = source(STRUCTURE_RUN, r["command"], when(r))
     out += "\nEpoch 0 is the untrained network. " + _EPOCH_COLUMNS
     out += _planned(r, f"seed {r['train_config']['seed']}")
-    head, rows = _epoch_rows([r], "seed")
+    head, rows = _epoch_rows([r], lambda r: f"{r['train_config']['seed']:g}")
     return out + "\n" + table(["seed", *head], rows)
+
+
+_GPU_DATA = {
+    "structure-long": "train-b and train-x00 … x03",
+    "structure-many": "train-b and train-x00 … x11",
+    "structure-many-renders": "train-b, train-x00 … x11 and train-b's three renderings",
+}
+
+
+def structure_gpu() -> str:
+    """The structure recipe's three runs on a lent GPU: five towns, thirteen, and thirteen
+    with train-b's renderings by three other sensors."""
+    runs = [load(path) for path in STRUCTURE_GPU]
+    out = "".join(
+        source(p, r["command"], when(r)) for p, r in zip(STRUCTURE_GPU, runs, strict=True)
+    )
+    where = runs[0]["trained_on"]
+    m, towns = where["machine"], where["towns"]
+    same = sum(bool(t.get("byte_identical")) for t in towns if "byte_identical" in t)
+    carried = sum("byte_identical" in t for t in towns)
+    out += (
+        f"\nThe three ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
+        f"{m['torch']}; `python benchmarks/lent_gpu.py`), on the {len(towns)} towns and "
+        f"renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
+        f"{carried} whose tables went from here byte-identical to this machine's scans; the "
+        "tables carried, their loop tables' fingerprints renewed). No real scans went along, so "
+        "the real-scan column is empty. Epoch 0 is the untrained network. " + _EPOCH_COLUMNS
+    )
+    out += "".join(_planned(r, _GPU_DATA[r["run"].split("/")[-1]]) for r in runs)
+    head, rows = _epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    return out + "\n" + table(["run", *head], rows)
+
+
+def structure_real() -> str:
+    """The best structure network on real scans: one view under random continuous turns,
+    odd→even retrieval, KITTI queries thinned to fewer rings."""
+    reports = {path: load(path) for path in STRUCTURE_REAL}
+    out = "".join(source(p, r["command"], when(r)) for p, r in reports.items())
+    rows = []
+    for path, r in reports.items():
+        y, q = r["yaw_invariance"], r["retrieval_odd_to_even"]
+        rows.append(
+            [
+                STRUCTURE_REAL[path],
+                f"{r['sensor']} ({r['scans']} scans)",
+                f"{y['cosine_min']:.5f}",
+                f"{y['turned_over_one_metre_step']:.3f}",
+                f"{f3(q['recall@1'])} / {f3(q['scan_context']['recall@1'])}",
+            ]
+        )
+    head = [
+        "scans",
+        "sensor",
+        "min cosine, random turns (one view)",
+        "turned copy / 1 m step (squared distance)",
+        "odd→even R@1 / Scan Context's",
+    ]
+    out += "\n" + table(head, rows)
+    thin = next(iter(reports.values()))["thinned"]
+    lines = [
+        f"- {b} rings (declared): Recall@1 {f3(t['declared']['recall@1'])}, cosine to the whole "
+        f"scan median {t['declared']['cosine_to_full']['median']:.4f} / min "
+        f"{t['declared']['cosine_to_full']['min']:.4f}"
+        for b, t in thin.items()
+    ]
+    return out + "\nKITTI queries thinned against whole scans:\n\n" + "\n".join(lines) + "\n"
 
 
 RENDERERS = {
@@ -177,4 +254,6 @@ RENDERERS = {
     "common-beams": common_beams,
     "common-run": common_run,
     "structure-run": structure_run,
+    "structure-gpu": structure_gpu,
+    "structure-real": structure_real,
 }
