@@ -79,6 +79,38 @@ from typing import Any
 
 from overlapmamba.train.augment import ROBUST
 from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.recipes import (
+    ABLATION,
+    BAND,
+    DEFAULT,
+    NARROW,
+    NARROW_HN,
+    NARROW_HN_AUG,
+    OLD_LOSS,
+    TURN,
+)
+from overlapmamba.train.sensor_recipes import (
+    COMMON,
+    COMMON_DATA,
+    COMMON_MODEL,
+    COMMON_SLOW,
+    MANY_TOWNS,
+    SENSOR_VAL,
+    SENSORS_PILOT,
+    SENSORS_PILOT_DATA,
+    SENSORS_SEEN,
+    SENSORS_SEEN_FAR,
+    SENSORS_SEEN_LOOK,
+    SENSORS_SEEN_LOOK_LIGHT,
+    SENSORS_SEEN_TURN,
+    SENSORS_TOWNS,
+    SENSORS_TOWNS_CAR_DATA,
+    SENSORS_TOWNS_DATA,
+    STRUCTURE,
+    STRUCTURE_LONG,
+    STRUCTURE_MODEL,
+    TRAIN_B_RENDERINGS,
+)
 
 TRAIN_DATA = (
     "data/synth/train",
@@ -93,163 +125,6 @@ SECOND_SESSION = "data/synth/test-s1"  # a second drive through TEST_DATA[0]
 # The run whose best.pt is exported to models/overlapmamba-hdl64.onnx (the model card says
 # why); the report marks its row "(shipped)" and checks it on real scans.
 SHIPPED = "narrow-hn"
-
-_ABLATION = {"epochs": 2, "epoch_scans": 5000}
-_DEFAULT = {"epochs": 6, "epoch_scans": 3500}
-NARROW = {"d_model": 64, "conv_last2": 256, "clusters": 32}
-_NARROW_HN = {"epochs": 6, "epoch_scans": 10000, "hard_negatives": 0.5}
-# The turns the circular network is not exactly invariant to (a fraction of a column), and
-# what a second drive changes in a scan besides its place (returns lost, range noise): aimed
-# at the shipped model's open bars (minimum cosine under a continuous turn, cross-session
-# retrieval). No tilt or cropped field of view: neither the towns nor KITTI have them.
-NARROW_HN_AUG = {"yaw_jitter": True, "dropout": 0.2, "range_noise": 0.03}
-# The band ranking from epoch 7 on: half of the non-mined groups bring a band scan, and the
-# hardest positive must be nearer than the nearest band scan by 0.2 of the spread (the main
-# margin is 0.5), at half the main term's weight. One setting, not tuned (README "Training").
-BAND = {"band_weight": 0.5, "band_alpha": 0.2, "band_share": 0.5, "band_from_epoch": 7}
-# The shipped network (weights recovered from its .onnx: overlapmamba.train.recover) continued
-# with the turn term, batch norm frozen: 4 epochs of 3,200 scans at a tenth of the recipe's
-# learning rate. Weight 100 and 8 turned scans a batch: in one 200-step pilot each, weight 10
-# (4 scans) and 30 (8) left the minimum cosine on real KITTI scans below 0.999 (README,
-# Training: the turn term).
-TURN = {
-    "init": "models/overlapmamba-hdl64.onnx",
-    "freeze_bn": True,
-    "turn_weight": 100.0,
-    "turn_scans": 8,
-    "epochs": 4,
-    "epoch_scans": 3200,
-    "lr": 3e-5,
-    "warmup_steps": 20,
-    "hard_negatives": 0.5,
-}
-OLD_LOSS = {
-    "alpha": 0.5,
-    "lam": 0.1,
-    "margin_scale": "absolute",
-    "negative_threshold": 0.3,
-    "warmup_steps": 0,
-    "augment": {},  # whole-column rolls only, for non-circular models
-}
-
-
-# Issue 40's first step: the shipped network continued on train-b and its renderings by three
-# other sensors on low or tilted mounts (overlapmamba.synth.presets.RENDERINGS; one pair table
-# for all four, overlapmamba.train.drives), against the same continuation on train-b alone.
-SENSORS_PILOT_DATA = (
-    "data/synth/train-b",
-    "data/synth/train-b-vlp16-robot",
-    "data/synth/train-b-os0-128-amr",
-    "data/synth/train-b-xt32-backpack",
-)
-SENSORS_PILOT = {
-    "init": "models/overlapmamba-hdl64.onnx",
-    "freeze_bn": True,
-    "epochs": 3,
-    "epoch_scans": 3000,
-    "lr": 3e-5,
-    "warmup_steps": 20,
-    "hard_negatives": 0.5,
-    "any_sensor": True,
-    "augment": {"beam_dropout": 0.2},
-}
-
-
-# The same continuation on train-b alone with no renderings: half of its scans are seen as
-# another catalogue sensor would see them (augment.SensorLook) instead of losing rows at random.
-SENSORS_SEEN = {**SENSORS_PILOT, "any_sensor": False, "augment": {"sensor_like": 0.5}}
-# ... and the sensor term: 8 scans a batch also seen as another sensor, their distance to
-# the batch's copy joining the loss at weight 1, as the ranking loss itself
-SENSORS_SEEN_LOOK = {**SENSORS_SEEN, "look_weight": 1.0, "look_scans": 8}
-# ... at a third of that weight
-SENSORS_SEEN_LOOK_LIGHT = {**SENSORS_SEEN_LOOK, "look_weight": 0.3}
-# ... and far returns lost as other sensors lose them (augment: far_loss).
-SENSORS_SEEN_FAR = {**SENSORS_SEEN, "augment": {"sensor_like": 0.5, "far_loss": 0.4}}
-
-
-# Many towns: sensors-seen's budget and start on train-b and the first six drawn towns
-# (overlapmamba.synth.presets.drawn_town: VLP-16, OS0-128, XT32, OS1-128, HDL-32E and the
-# HDL-64E, on drawn mountings, heights and tilts, each town with its own pair table); the
-# model's own sensor's scans are still seen as other sensors' half of the time.
-SENSORS_TOWNS_DATA = (
-    "data/synth/train-b",
-    *(f"data/synth/train-x{k:02d}" for k in range(6)),
-)
-SENSORS_TOWNS = {**SENSORS_SEEN, "any_sensor": True}
-# ... and the same towns, sensors and drives with every sensor on a car's roof, level: the
-# ablation of the drawn mountings, heights and tilts
-SENSORS_TOWNS_CAR_DATA = (
-    "data/synth/train-b",
-    *(f"data/synth/train-x{k:02d}-car" for k in range(6)),
-)
-
-
-# One pass a scan: sensors-seen with the turn term (TURN's weight and turned scans),
-# selected on the sensor towns' validation drive and its renderings by every other sensor
-# the across-sensor bars name (train.valsensors).
-SENSOR_VAL = "data/synth/val-kitti-hdl64"
-SENSOR_VAL_RENDERINGS = tuple(
-    f"data/synth/val-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128", "hdl32")
-)
-SENSORS_SEEN_TURN = {
-    **SENSORS_SEEN,
-    "turn_weight": TURN["turn_weight"],
-    "turn_scans": TURN["turn_scans"],
-    "val_sensors": list(SENSOR_VAL_RENDERINGS),
-    "select_on": "sensors",
-}
-
-# Common beams (overlapmamba.core.sensors.input, mode "common"): the shipped network
-# continued on every sensor's scans thinned to the beams nearest the VLP-16's elevations, the
-# HDL-64E's own too, on train-b and the first four drawn towns (VLP-16, OS0-128, XT32,
-# OS1-128: the sensors the across-sensor bars name), selected on the mean over the sensor
-# validation drive and its renderings by those four. The input changed, so the rate is the
-# recipe's own (not a continuation's tenth); batch norm stays frozen as in every continuation.
-COMMON_MODEL = {**NARROW, "sensor_input": "common"}
-COMMON_DATA = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in range(4)))
-COMMON_VAL_RENDERINGS = tuple(
-    f"data/synth/val-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128")
-)
-COMMON = {
-    "init": "models/overlapmamba-hdl64.onnx",
-    "freeze_bn": True,
-    "epochs": 4,
-    "epoch_scans": 4000,
-    "lr": 1e-4,
-    "warmup_steps": 20,
-    "hard_negatives": 0.5,
-    "any_sensor": True,
-    "val_sensors": list(COMMON_VAL_RENDERINGS),
-    "select_on": "sensors",
-}
-# ... at a continuation's rate (TURN's and the sensor pilots'): common-towns collapsed at 1e-4
-COMMON_SLOW = {**COMMON, "lr": 3e-5}
-# The structure input (common beams above the ground, within 50 m), trained from scratch: no
-# network has seen such images, and the continuations of the HDL-64E network on common beams
-# lost on every sensor. The towns, validation and selection are common-towns'; the recipe's
-# rate, live batch norm, hard negatives and the issue's augmentations (sub-column turns,
-# dropped returns, range noise), 5 epochs of 6,000 scans (≈ 75 min on 2 CPU cores).
-STRUCTURE_MODEL = {**NARROW, "sensor_input": "structure"}
-STRUCTURE = {
-    "epochs": 5,
-    "epoch_scans": 6000,
-    "hard_negatives": 0.5,
-    "any_sensor": True,
-    "augment": NARROW_HN_AUG,
-    "val_sensors": list(COMMON_VAL_RENDERINGS),
-    "select_on": "sensors",
-}
-# The structure recipe for a lent GPU (benchmarks/lent_gpu.py: the towns simulated again
-# there, three runs side by side), 40 epochs planned and the window deciding how many run:
-# on common-towns' five towns (structure-long), on train-b and all twelve drawn towns
-# (structure-many: what more towns are worth at an equal budget), and on those with train-b's
-# renderings by a robot's VLP-16, an AMR's OS0-128 and a backpack's XT32 (structure-many-
-# renders: the same places seen by several sensors, labelled by train-b's pair table).
-STRUCTURE_LONG = {**STRUCTURE, "epochs": 40}
-MANY_TOWNS = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in range(12)))
-TRAIN_B_RENDERINGS = tuple(
-    f"data/synth/train-b-{r}" for r in ("vlp16-robot", "os0-128-amr", "xt32-backpack")
-)
 
 
 @dataclass(frozen=True)
@@ -267,7 +142,7 @@ _OT = {"mixer": "transformer", "spp": False}
 PRESETS: dict[str, TrainPreset] = {
     p.name: p
     for p in (
-        TrainPreset("default", "reference OverlapMamba, 6 × 3500 scans", train=_DEFAULT),
+        TrainPreset("default", "reference OverlapMamba, 6 × 3500 scans", train=DEFAULT),
         TrainPreset(
             "narrow",
             "narrower OverlapMamba (d 64, head 256, 32 clusters), the default's wall time",
@@ -278,19 +153,19 @@ PRESETS: dict[str, TrainPreset] = {
             "narrow-hn",
             "narrow with mined hard negatives: half the groups meet a distant look-alike",
             model=NARROW,
-            train=_NARROW_HN,
+            train=NARROW_HN,
         ),
         TrainPreset(
             "narrow-hn-long",
             "narrow-hn for 40 epochs (run on a lent GPU: --device cuda)",
             model=NARROW,
-            train={**_NARROW_HN, "epochs": 40},
+            train={**NARROW_HN, "epochs": 40},
         ),
         TrainPreset(
             "narrow-hn-b64-long",
             "narrow-hn for 40 epochs at batch 64, mining among 5,000 training scans",
             model=NARROW,
-            train={**_NARROW_HN, "epochs": 40, "batch_size": 64, "mine_pool": 5000},
+            train={**NARROW_HN, "epochs": 40, "batch_size": 64, "mine_pool": 5000},
         ),
         TrainPreset(
             "narrow-hn-aug",
@@ -438,15 +313,15 @@ PRESETS: dict[str, TrainPreset] = {
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
             model=_OT,
-            train=_DEFAULT,
+            train=DEFAULT,
         ),
         TrainPreset(
-            "one-town", "the default recipe on one training town", train=_DEFAULT, data=ONE_TOWN
+            "one-town", "the default recipe on one training town", train=DEFAULT, data=ONE_TOWN
         ),
         TrainPreset(
             "robust",
             "the default recipe with the full augmentation set (augment.ROBUST)",
-            train={**_DEFAULT, "augment": ROBUST},
+            train={**DEFAULT, "augment": ROBUST},
         ),
     )
 }
@@ -483,7 +358,7 @@ for _name, _what, _model, _train in _ABLATIONS:
             _name + ("-s1" if _seed else ""),
             f"ablation budget: {_what}" + (", seed 1" if _seed else ""),
             model={**NARROW, **_model},
-            train={**_ABLATION, **_train, **({"seed": 1} if _seed else {})},
+            train={**ABLATION, **_train, **({"seed": 1} if _seed else {})},
         )
         PRESETS[_p.name] = _p
 
