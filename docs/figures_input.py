@@ -20,6 +20,8 @@ STRUCTURE_GPU = tuple(
     f"reports/model/{n}.json"
     for n in ("structure-long", "structure-many", "structure-many-renders")
 )
+STRUCTURE_BEAMS = "reports/model/structure-beams.json"
+SENSORS = "reports/model/sensors.json"
 STRUCTURE_REAL = {
     "reports/model/structure-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/structure-real-nuscenes.json": "nuScenes scene-0061",
@@ -248,6 +250,56 @@ def structure_real() -> str:
     return out + "\nKITTI queries thinned against whole scans:\n\n" + "\n".join(lines) + "\n"
 
 
+def structure_beams() -> str:
+    """The best structure network across sensors on the sensor test town, beside the shipped
+    weights (as served, and on common beams) and Scan Context on the same pairs."""
+    r, shipped, sensors = load(STRUCTURE_BEAMS), load(COMMON_BEAMS), load(SENSORS)
+    out = "".join(
+        source(p, x["command"], when(x))
+        for p, x in ((STRUCTURE_BEAMS, r), (COMMON_BEAMS, shipped), (SENSORS, sensors))
+    )
+    sc = {
+        (a["query_sensor"], a["map_sensor"]): a["scan_context"] for a in sensors["across_sensors"]
+    }
+    out += (
+        f"\n`{r['model_id']}` ({r['views']} view a scan, input `{r['sensor_input']}`), the "
+        "descriptor alone, against the shipped weights as served (elevation) and on common "
+        "beams, and Scan Context on the same test pairs (`benchmarks/sensors.py`: the same "
+        "presets, simulated by that command). A second drive by the first sensor queried "
+        "against the first drive's map by the second; AR@1 / AR@5, a hit within 5 m.\n"
+    )
+    for split in ("test", "val"):
+        ship = {(p["queries"], p["map"]): p for p in shipped[split]}
+        rows = []
+        for p in r[split]:
+            key = (p["queries"], p["map"])
+            other = ship.get(key, {})
+            row = [
+                p["queries"],
+                p["map"],
+                f"{f3(p['structure']['ar@1'])} / {f3(p['structure']['ar@5'])}",
+            ]
+            for mode in ("elevation", "common"):
+                row.append(f3(other[mode]["ar@1"]) if mode in other else "—")
+            if split == "test":
+                row.append(f3(sc[key]["ar@1"]) if key in sc else "—")
+            rows.append(row)
+        head = [
+            "queries",
+            "map",
+            "structure network",
+            "shipped, as served",
+            "shipped, common beams",
+        ]
+        if split == "test":
+            head.append("Scan Context")
+            out += "\ntest (the sensor test town):\n\n"
+        else:
+            out += "\nval (calibration town `cal-x00`):\n\n"
+        out += table(head, rows)
+    return out
+
+
 RENDERERS = {
     "receptive-rows": receptive_rows,
     "backbone-rows": backbone_rows,
@@ -256,4 +308,5 @@ RENDERERS = {
     "structure-run": structure_run,
     "structure-gpu": structure_gpu,
     "structure-real": structure_real,
+    "structure-beams": structure_beams,
 }
