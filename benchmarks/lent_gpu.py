@@ -36,6 +36,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from reports_kit import write_report
+
 ROOT = Path(__file__).resolve().parents[1]
 SYNTH = ROOT / "data" / "synth"
 TABLES = ("overlaps.npz", "loops.npz")
@@ -166,7 +168,7 @@ def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str
             print(f"prepare {name} failed ({proc.returncode}):\n{tail}", flush=True)
     rows = [json.loads((LOGS / f"prepare-{n}.json").read_text()) for n in towns if n not in failed]
     summary = {"towns": rows, "failed": failed, "prepare_s": round(time.perf_counter() - t0, 1)}
-    (LOGS / "prepare.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_report(LOGS / "prepare.json", summary)
     print(f"prepared {len(rows)} of {len(towns)} towns in {summary['prepare_s']} s", flush=True)
 
 
@@ -226,8 +228,8 @@ def collect(presets: list[str], out: Path, stop: bool) -> None:
     record = (
         json.loads((LOGS / "prepare.json").read_text()) if (LOGS / "prepare.json").is_file() else {}
     )
-    record["machine"] = machine()
-    (out / "prepare.json").write_text(json.dumps(record, indent=1) + "\n")
+    record["device"] = machine()  # beside write_report's own record of the machine's CPU
+    write_report(out / "prepare.json", record)
 
 
 def machine() -> dict[str, Any]:

@@ -199,7 +199,7 @@ def structure_gpu() -> str:
         source(p, r["command"], when(r)) for p, r in zip(STRUCTURE_GPU, runs, strict=True)
     )
     where = runs[0]["trained_on"]
-    m, towns = where["machine"], where["towns"]
+    m, towns = where.get("device") or where["machine"], where["towns"]
     same = sum(bool(t.get("byte_identical")) for t in towns if "byte_identical" in t)
     carried = sum("byte_identical" in t for t in towns)
     out += (
