@@ -47,6 +47,13 @@ LOGS = ROOT / "runs" / "lent-logs"
 def loop_fingerprint(town: Path) -> tuple[str, str]:
     """(stored, computed): the fingerprint in ``town``'s loop table and the one this
     repository computes for its scans and the table's parameters."""
+    gt, computed = _loop_table(town)
+    return str(gt.params.get("fingerprint")), computed
+
+
+def _loop_table(town: Path) -> tuple[Any, str]:
+    """``town``'s loop table and the fingerprint its scans give it (the profile chosen as
+    ``overlapmamba.train.evaluate.sequence_loops`` chooses it)."""
     from overlapmamba.core.datasets import open_sequence
     from overlapmamba.core.overlap import LoopGroundTruth, LoopParams, loop_params
     from overlapmamba.core.sensors import get_profile
@@ -55,7 +62,7 @@ def loop_fingerprint(town: Path) -> tuple[str, str]:
     gt = LoopGroundTruth.load(town / "ground_truth" / "loops.npz")
     profile = get_profile(seq.sensor or "kitti-hdl64")
     params = loop_params(seq, profile, LoopParams.of(gt.params))
-    return str(gt.params.get("fingerprint")), str(params["fingerprint"])
+    return gt, str(params["fingerprint"])
 
 
 def pack(towns: list[str], carry: Path) -> None:
@@ -108,15 +115,11 @@ def prepare_one(name: str, carry: Path, workers: int, input_presets: list[str]) 
 
 def patch_loops(town: Path) -> bool:
     """Give ``town``'s carried loop table the fingerprint of the scans simulated here."""
-    from overlapmamba.core.overlap import LoopGroundTruth
-
-    stored, computed = loop_fingerprint(town)
-    if stored == computed:
+    gt, computed = _loop_table(town)
+    if gt.params.get("fingerprint") == computed:
         return False
-    path = town / "ground_truth" / "loops.npz"
-    gt = LoopGroundTruth.load(path)
     gt.params["fingerprint"] = computed
-    gt.save(path)
+    gt.save(town / "ground_truth" / "loops.npz")
     return True
 
 
@@ -134,11 +137,11 @@ def project(town: Path, input_presets: list[str]) -> int:
     for name in input_presets:
         p = get_preset(name)
         paths = {str(ROOT / d) for d in (*p.data, p.val, *p.train.get("val_sensors", ()))}
-        cfg = OverlapMambaConfig.from_dict(p.model)
         key = json.dumps(p.model, sort_keys=True)
         if str(town) not in paths or key in done:
             continue
         done.add(key)
+        cfg = OverlapMambaConfig.from_dict(p.model)
         profile = model_profile(cfg)
         seq = open_sequence(town)
         inp = training_input(profile, seq, check_mode(cfg.sensor_input))

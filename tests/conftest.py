@@ -30,6 +30,19 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OVERLAPMAMBA_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 
+BENCHMARKS = ROOT / "benchmarks"
+
+
+def benchmark_module(name: str) -> Any:
+    """A script of benchmarks/ imported as a module (its own imports, e.g. ``reports_kit``,
+    resolved from that folder as when it runs)."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+
+
 def _need(sub: str) -> Path:
     path = SHARED_DATA / sub
     if not path.exists():

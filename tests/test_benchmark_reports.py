@@ -9,6 +9,8 @@ import json
 import sys
 from pathlib import Path
 
+from conftest import benchmark_module
+
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "benchmarks"
 
@@ -46,11 +48,7 @@ def test_every_benchmark_writes_its_json_under_reports_with_its_provenance():
 
 
 def test_a_written_report_names_its_command_commit_machine_and_date(tmp_path, monkeypatch):
-    sys.path.insert(0, str(BENCH))
-    try:
-        import reports_kit
-    finally:
-        sys.path.remove(str(BENCH))
+    reports_kit = benchmark_module("reports_kit")
     monkeypatch.setattr(sys, "argv", [str(BENCH / "views.py"), "--scans", "3"])
     out = tmp_path / "deep" / "x.json"
     reports_kit.write_report(out, {"figure": 1.5, "date": "kept"})

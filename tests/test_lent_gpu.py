@@ -3,23 +3,16 @@
 from __future__ import annotations
 
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from conftest import benchmark_module
 
 
 @pytest.fixture(scope="module")
 def lent():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import lent_gpu
-    finally:
-        sys.path.remove(str(BENCH))
-    return lent_gpu
+    return benchmark_module("lent_gpu")
 
 
 def resimulated(town: Path, out: Path) -> Path:

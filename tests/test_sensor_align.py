@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from conftest import benchmark_module
 
 
 @pytest.fixture(scope="module")
 def align():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import sensor_align
-    finally:
-        sys.path.remove(str(BENCH))
-    return sensor_align
+    return benchmark_module("sensor_align")
 
 
 def places(rng: np.random.Generator, n: int, dim: int = 16) -> tuple[np.ndarray, np.ndarray]:
