@@ -30,8 +30,9 @@ where a preset's folder exists there) and kept for a rerun.
 
     python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx] [--out …]
 
-A file that takes common beams itself (``sensor_input`` ``common`` or ``structure``: trained
-on them, e.g. the ``common-towns`` and ``structure-towns`` presets) is measured its own way
+A file that takes every scan its own way (``sensor_input`` ``common``, ``structure`` or
+``bev``: trained on them, e.g. the ``common-towns``, ``structure-towns`` and ``bev-towns``
+presets) is measured its own way
 only (``--out`` names its report). Writes reports/model/common-beams.json. ≈ 30 min on 2
 cores with the three-view file, most of it describing.
 """
@@ -51,7 +52,7 @@ from rich.console import Console
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.sensors.input import (
-    COMMON_MODES,
+    ALL_SCANS_MODES,
     COMMON_SENSOR,
     COMMON_TOLERANCE_DEG,
     SensorInput,
@@ -132,7 +133,7 @@ def main() -> None:
     enc = Encoder(args.model)
     # a file trained on common beams takes nothing else (its elevation images mean nothing)
     own = enc.meta.sensor_input
-    ways = (own,) if own in COMMON_MODES else WAYS
+    ways = (own,) if own in ALL_SCANS_MODES else WAYS
     sensors = sorted(set(QUERIES) | set(MAPS))
     val: dict[tuple[str, int], Path] = {}
     test: dict[tuple[str, int], Path] = {}

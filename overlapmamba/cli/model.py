@@ -205,7 +205,8 @@ def export_cmd(
             "--sensor-input",
             help="how scans become the model's input (overlapmamba.core.sensors.input): "
             "elevation, rows, common (every sensor's scan, the model's own too, thinned to "
-            "common beams) or structure (common, above the ground, within 50 m); default: the "
+            "common beams), structure (common, above the ground, within 50 m) or bev (a polar "
+            "bird's-eye occupancy of every scan); default: the "
             "network's own (a .pt's config, an .onnx's metadata)",
         ),
     ] = None,

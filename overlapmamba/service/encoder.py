@@ -39,7 +39,7 @@ import onnxruntime as ort
 
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.points import PointCloud
-from overlapmamba.core.sensors.input import COMMON_MODES, SensorInput
+from overlapmamba.core.sensors.input import ALL_SCANS_MODES, SensorInput
 from overlapmamba.core.views import combine_views, project_views
 
 if TYPE_CHECKING:
@@ -177,7 +177,7 @@ class Encoder:
         """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`;
         ``sensor``: the scan's sensor, projected as the model takes it (None: the model's
         own sensor)."""
-        if sensor is None and self.meta.sensor_input in COMMON_MODES:
+        if sensor is None and self.meta.sensor_input in ALL_SCANS_MODES:
             sensor = self.own_input  # even the model's own scans are thinned
         if sensor is None:
             return project_views(points, self.meta.profile, self.meta.views)
@@ -186,7 +186,7 @@ class Encoder:
     @cached_property
     def own_input(self) -> SensorInput:
         """The model's own sensor into its input (a plain projection unless the file takes
-        every sensor's common beams, ``common`` or ``structure``)."""
+        every sensor's common beams, ``common`` or ``structure``, or a bird's-eye view, ``bev``)."""
         return SensorInput.own(self.meta.profile, self.meta.sensor_input)
 
     def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

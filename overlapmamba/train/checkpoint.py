@@ -28,7 +28,7 @@ import torch
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.sensors import SensorProfile, get_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import Mode, SensorInput, check_mode
+from overlapmamba.core.sensors.input import LEVELLED_MODES, Mode, SensorInput, check_mode
 from overlapmamba.train.errors import CheckpointError
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 
@@ -127,13 +127,13 @@ def input_of(model: Network, profile: SensorProfile, seq: Sequence) -> SensorInp
 
 
 def input_of_mode(profile: SensorProfile, seq: Sequence, mode: Mode) -> SensorInput:
-    """:func:`input_of` for an input ``mode``. The ``structure`` input keeps what stands above
-    the reference ground, so a drive whose sensor sat elsewhere (``seq.mount``: a drawn
+    """:func:`input_of` for an input ``mode``. The ``structure`` and ``bev`` inputs keep what
+    stands above the reference ground, so a drive whose sensor sat elsewhere (``seq.mount``: a drawn
     town's robot or backpack) is levelled and moved to the reference height first, as the
     service does with a mount a robot declares; the other modes take scans as recorded (how
     their models were trained and measured)."""
     sensor = get_sensor(seq.sensor) if seq.sensor else sensor_of_profile(profile)
-    mount = seq.mount if mode == "structure" else None
+    mount = seq.mount if mode in LEVELLED_MODES else None
     return SensorInput(profile, sensor, mode, mount)
 
 

@@ -56,8 +56,9 @@ class OverlapMambaConfig(Config):
     width: int = 900  # range-image columns: the token count
     # How scans become the image (overlapmamba.core.sensors.input, the exported metadata's
     # sensor_input): elevation (the profile's own sensor natively, others by elevation),
-    # rows, common (every sensor, the profile's own too, thinned to common beams) or
-    # structure (common, above the ground and within a common range)
+    # rows, common (every sensor, the profile's own too, thinned to common beams),
+    # structure (common, above the ground and within a common range) or bev (rows: rings of
+    # range × height bands, a polar bird's-eye occupancy of every scan)
     sensor_input: str = "elevation"
     # reference (the reference code's layers: on 64 rows the descriptor sees rows 0–26 only)
     # or all-rows (every row reaches it): _backbone

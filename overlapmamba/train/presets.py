@@ -54,6 +54,11 @@ otherwise.
   ``structure-towns`` for a lent GPU's window (``benchmarks/lent_gpu.py``): 40 epochs
   planned, as many as the window allows run; on its five towns, on train-b and the twelve
   drawn towns, and on those with train-b's renderings by three other sensors.
+  ``structure-all-rows-long`` is ``structure-long`` with every row reaching the descriptor
+  (the ``all-rows`` backbone).
+- ``bev-towns`` trains from scratch on the ``bev`` input (a polar bird's-eye occupancy of
+  every scan: rings of range × height bands in the rows) on structure-towns' towns,
+  validation and selection; ``bev-long`` (and ``bev-long-s1``, seed 1) for a lent GPU.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -90,6 +95,9 @@ from overlapmamba.train.recipes import (
     TURN,
 )
 from overlapmamba.train.sensor_recipes import (
+    BEV,
+    BEV_LONG,
+    BEV_MODEL,
     COMMON,
     COMMON_DATA,
     COMMON_MODEL,
@@ -107,6 +115,7 @@ from overlapmamba.train.sensor_recipes import (
     SENSORS_TOWNS_CAR_DATA,
     SENSORS_TOWNS_DATA,
     STRUCTURE,
+    STRUCTURE_ALL_ROWS_MODEL,
     STRUCTURE_LONG,
     STRUCTURE_MODEL,
     TRAIN_B_RENDERINGS,
@@ -310,6 +319,30 @@ PRESETS: dict[str, TrainPreset] = {
             val=SENSOR_VAL,
         ),
         TrainPreset(
+            "structure-all-rows-long",
+            "structure-long with every row reaching the descriptor (all-rows backbone)",
+            model=STRUCTURE_ALL_ROWS_MODEL,
+            train=STRUCTURE_LONG,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-towns",
+            "from scratch on the bev input (a polar bird's-eye occupancy), five towns",
+            model=BEV_MODEL,
+            train=BEV,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-long",
+            "bev-towns for a lent GPU's window (40 epochs planned)",
+            model=BEV_MODEL,
+            train=BEV_LONG,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
             model=_OT,
@@ -335,6 +368,7 @@ for _name in (
     "sensors-seen-far",
     "sensors-towns",
     "sensors-towns-car",
+    "bev-long",
 ):
     _p = PRESETS[_name]
     PRESETS[_name + "-s1"] = TrainPreset(

@@ -123,3 +123,15 @@ MANY_TOWNS = ("data/synth/train-b", *(f"data/synth/train-x{k:02d}" for k in rang
 TRAIN_B_RENDERINGS = tuple(
     f"data/synth/train-b-{r}" for r in ("vlp16-robot", "os0-128-amr", "xt32-backpack")
 )
+
+# The structure network saw few of its rings: the reference backbone on 64 rows reaches the
+# descriptor from rows 0–26 only (overlapmamba.train.model._backbone), where the common
+# beams fill five. structure-all-rows-long: structure-long with every row reaching it.
+STRUCTURE_ALL_ROWS_MODEL = {**STRUCTURE_MODEL, "backbone": "all-rows"}
+# The bev input (overlapmamba.core.sensors.input: a polar bird's-eye occupancy of every
+# scan's returns, rings of range × height bands in the rows), from scratch on the structure
+# recipe's towns, validation and selection, every row reaching the descriptor. Its cells are
+# 1 or empty, so range noise means nothing to it: sub-column turns and dropped returns only.
+BEV_MODEL = {**NARROW, "sensor_input": "bev", "backbone": "all-rows"}
+BEV = {**STRUCTURE, "augment": {"yaw_jitter": True, "dropout": 0.2}}
+BEV_LONG = {**BEV, "epochs": 40}

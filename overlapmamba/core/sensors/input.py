@@ -27,6 +27,18 @@
                where sensors disagree most: a beam 0.2° off another's meets a flat road 3 m
                nearer or farther at −3°, while a wall is at its range from every beam; and an
                OS0-128 sees nothing beyond 50 m
+    bev        a polar bird's-eye view instead of a range image, from every return of any
+               sensor (none thinned), levelled at the reference mount: rows are rings of
+               horizontal range (:data:`BEV_RINGS` of ``COMMON_MAX_RANGE / BEV_RINGS`` m,
+               nearest first) × height bands above the reference ground
+               (:data:`BEV_BANDS`, each ring's bands on consecutive rows, lowest first),
+               columns the model's azimuth columns, and a cell is 1 where any return falls
+               in it, ``empty_value`` elsewhere. Which cells a wall or a trunk occupies does
+               not depend on how many beams hit it, where a range image's rows do; the
+               ground is left out and so is what only some sensors reach (above the top band,
+               beyond :data:`COMMON_MAX_RANGE` in range). Measured against the range-image
+               inputs by a hand-made spectrum on the validation drive and its renderings
+               (``benchmarks/bev_input.py``)
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
 :mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
@@ -53,13 +65,23 @@ from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_referenc
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
-Mode = Literal["elevation", "rows", "common", "structure"]
-MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure")
+Mode = Literal["elevation", "rows", "common", "structure", "bev"]
+MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", "bev")
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
+# the modes every scan goes through, the model's own sensor's too (none is taken natively)
+ALL_SCANS_MODES = (*COMMON_MODES, "bev")
+# the modes that level a scan and move it to the reference mount's height (their ground is
+# that mount's): the others take scans as recorded
+LEVELLED_MODES = ("structure", "bev")
 COMMON_SENSOR = "vlp16"  # the sparsest spinning sensor of the catalogue: 16 beams, 2° apart
 COMMON_TOLERANCE_DEG = 0.5
 GROUND_CLEARANCE = 0.3  # m above the reference mount's ground: below it, ``structure`` drops
 COMMON_MAX_RANGE = 50.0  # m: the shortest reach of a catalogue spinning sensor (OS0-128)
+# m above the reference ground: the bands of the ``bev`` input (the lowest starts above the
+# ground, as ``structure``'s clearance; the top one ends where a car-mounted HDL-64E, 2.7°
+# up at most, still reaches from 27 m on)
+BEV_BANDS = (GROUND_CLEARANCE, 1.7, 3.0)
+BEV_RINGS = 32  # rings of horizontal range within COMMON_MAX_RANGE
 _PI = np.float32(np.pi)
 
 
@@ -136,6 +158,8 @@ class SensorInput:
 
     def __post_init__(self) -> None:
         check_mode(self.mode)
+        if self.mode == "bev":
+            bev_rows(self.model)
         if self.mode in COMMON_MODES and not common_beams(self.sensor).size:
             raise ValueError(
                 f"sensor {self.sensor.name!r} has no beam within {COMMON_TOLERANCE_DEG}° of "
@@ -148,16 +172,16 @@ class SensorInput:
         """The model's own sensor, taken exactly as the model was trained (no mount, and
         not thinned to common beams)."""
         return (
-            self.mode not in COMMON_MODES
+            self.mode not in ALL_SCANS_MODES
             and self.sensor.profile() == self.model
             and self.mount is None
         )
 
     @property
     def kind(self) -> str:
-        """native, elevation, rows, common or structure: what this pairing actually does
-        (with ``+mount`` when the scan is first moved to the model's mount)."""
-        own = self.sensor.profile() == self.model and self.mode not in COMMON_MODES
+        """native, elevation, rows, common, structure or bev: what this pairing actually
+        does (with ``+mount`` when the scan is first moved to the model's mount)."""
+        own = self.sensor.profile() == self.model and self.mode not in ALL_SCANS_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
     @classmethod
@@ -168,7 +192,9 @@ class SensorInput:
 
     def rows(self) -> np.ndarray:
         """(H,) the beam each model row shows (−1: empty); in the common modes, the common
-        sensor's beam."""
+        sensor's beam. The ``bev`` input's rows are rings and height bands, not beams."""
+        if self.mode == "bev":
+            raise ValueError("the bev input's rows are rings of range × height bands, not beams")
         if self.mode in COMMON_MODES:
             return row_beams(self.model, CATALOGUE[COMMON_SENSOR], "elevation")
         return row_beams(self.model, self.sensor, self.mode)
@@ -180,6 +206,13 @@ class SensorInput:
         key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
         if self.mode in COMMON_MODES:
             key["common"] = {"sensor": COMMON_SENSOR, "tolerance_deg": COMMON_TOLERANCE_DEG}
+        if self.mode == "bev":
+            key["bev"] = {
+                "bands_m": list(BEV_BANDS),
+                "rings": BEV_RINGS,
+                "ground_m": REFERENCE_HEIGHT,
+                "max_range_m": COMMON_MAX_RANGE,
+            }
         if self.mode == "structure":
             key["structure"] = {
                 "clearance_m": GROUND_CLEARANCE,
@@ -192,6 +225,10 @@ class SensorInput:
 
     def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
         """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
+        if self.mode == "bev":
+            xyz = _xyz(points)
+            xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
+            return project_bev(xyz, self.model, views)
         if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -207,6 +244,61 @@ class SensorInput:
         if self.sensor.profile() == self.model:
             return project_views(points, self.model, views)
         return _project_beams(points, self.model, self.sensor, self.rows(), views)
+
+
+def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
+    xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+        raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
+    return xyz[:, :3]
+
+
+def bev_rows(model: SensorProfile) -> int:
+    """The rows the ``bev`` input fills (:data:`BEV_RINGS` × the bands); the model's rows
+    below them stay empty. A profile with fewer rows cannot take it."""
+    rows = BEV_RINGS * (len(BEV_BANDS) - 1)
+    if rows > model.height:
+        raise ValueError(
+            f"the bev input's {BEV_RINGS} rings × {len(BEV_BANDS) - 1} bands need more rows "
+            f"than profile {model.name!r} has ({model.height})"
+        )
+    return rows
+
+
+def project_bev(
+    xyz: np.ndarray,
+    model: SensorProfile,
+    views: int,
+    bands: tuple[float, ...] = BEV_BANDS,
+    rings: int = BEV_RINGS,
+) -> np.ndarray:
+    """(N, 3) levelled points at the reference height → (views, H, W) ``bev`` images
+    (``bands`` and ``rings``: the input's own unless a benchmark measures others)."""
+    views = check_views(views)
+    if rings * (len(bands) - 1) > model.height:
+        raise ValueError(
+            f"the bev input's {rings} rings × {len(bands) - 1} bands need more rows than "
+            f"profile {model.name!r} has ({model.height})"
+        )
+    xyz = np.asarray(xyz, np.float32)
+    x, y = xyz[:, 0], xyz[:, 1]
+    z = xyz[:, 2] + np.float32(REFERENCE_HEIGHT)  # above the reference ground
+    depth = np.sqrt(x * x + y * y + xyz[:, 2] * xyz[:, 2])
+    edges = np.asarray(bands, np.float32)
+    keep = (depth > np.float32(model.min_range)) & (depth < np.float32(COMMON_MAX_RANGE))
+    keep &= (z >= edges[0]) & (z < edges[-1])
+    x, y, z = x[keep], y[keep], z[keep]
+    horizontal = np.sqrt(x * x + y * y)
+    ring = np.minimum(horizontal * np.float32(rings / COMMON_MAX_RANGE), rings - 1)
+    band = np.searchsorted(edges, z, side="right") - 1
+    row = ring.astype(np.int64) * (len(edges) - 1) + band
+    u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
+    out = np.full((views, model.height, model.width), np.float32(model.empty_value), np.float32)
+    for j in range(views):
+        col = np.floor(u + np.float32(j / views) if j else u).astype(np.int64)
+        col = np.clip(col, 0, model.width - 1) if j == 0 else col % model.width
+        out[j, row, col] = 1.0
+    return out
 
 
 def _project_beams(
@@ -275,6 +367,26 @@ def project_input_reference(
         for row in np.flatnonzero(rows == beam):
             if image[row, col] == model.empty_value or r < image[row, col]:
                 image[row, col] = r
+    return image
+
+
+def project_bev_reference(points: PointCloud | np.ndarray, model: SensorProfile) -> np.ndarray:
+    """Slow, obvious ``bev`` image (one view, no mount) for tests: per point, its height
+    above the reference ground, its ring of horizontal range and its column."""
+    image = np.full((model.height, model.width), np.float32(model.empty_value), np.float32)
+    nb = len(BEV_BANDS) - 1
+    for x, y, z in np.asarray(_xyz(points), np.float32):
+        depth = np.sqrt(x * x + y * y + z * z)
+        above = z + np.float32(REFERENCE_HEIGHT)
+        if not (np.float32(model.min_range) < depth < np.float32(COMMON_MAX_RANGE)):
+            continue
+        band = next((b for b in range(nb) if BEV_BANDS[b] <= above < BEV_BANDS[b + 1]), None)
+        if band is None:
+            continue
+        scale = np.float32(BEV_RINGS / COMMON_MAX_RANGE)
+        ring = min(int(np.sqrt(x * x + y * y) * scale), BEV_RINGS - 1)
+        u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
+        image[ring * nb + band, min(max(int(np.floor(u)), 0), model.width - 1)] = 1.0
     return image
 
 

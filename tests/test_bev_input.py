@@ -1,0 +1,150 @@
+"""The ``bev`` sensor input: a polar bird's-eye occupancy of every scan (rings of range ×
+height bands above the reference ground in the rows, the model's azimuth columns), the
+model's own sensor's scans too; in the core, the service's encoder and training."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from service_kit import MODEL, scan
+from test_catalogue import _cloud
+
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors import CATALOGUE, SensorProfile, get_profile
+from overlapmamba.core.sensors.input import (
+    BEV_BANDS,
+    BEV_RINGS,
+    COMMON_MAX_RANGE,
+    SensorInput,
+    project_bev,
+    project_bev_reference,
+)
+from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
+
+KITTI = get_profile("kitti-hdl64")
+NB = len(BEV_BANDS) - 1
+
+
+def _wall(sensor: str, r: float, az_deg: float, height: float = REFERENCE_HEIGHT) -> np.ndarray:
+    """The returns of every beam of ``sensor``, ``height`` above the ground, off a wall
+    ``r`` metres away square to azimuth ``az_deg`` (a strip ±2° wide), up to 4 m high."""
+    el = np.radians(np.asarray(CATALOGUE[sensor].elevations_deg))
+    az = np.radians(az_deg + np.linspace(-2.0, 2.0, 41))
+    e, a = np.meshgrid(el, az)
+    z = r * np.tan(e)
+    keep = (z + height >= 0) & (z + height <= 4.0)
+    pts = np.stack([r * np.cos(a), r * np.sin(a), z], -1)[keep]
+    return pts.reshape(-1, 3)
+
+
+def _cells(image: np.ndarray) -> set[tuple[int, int]]:
+    return {(int(r), int(c)) for r, c in zip(*np.nonzero(image > 0), strict=True)}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fast_bev_projection_matches_the_reference(seed):
+    xyz = _cloud(4000, seed)
+    xyz[:, 2] = np.random.default_rng(seed).uniform(-2.0, 2.5, len(xyz))  # every band, and out
+    got = SensorInput(KITTI, CATALOGUE["vlp16"], "bev").project(xyz)[0]
+    np.testing.assert_array_equal(got, project_bev_reference(xyz, KITTI))
+    assert set(np.unique(got)) == {KITTI.empty_value, 1.0}
+    assert (got[BEV_RINGS * NB :] == KITTI.empty_value).all()  # rows past the layout stay empty
+
+
+def test_a_wall_fills_the_same_cells_whichever_sensor_sees_it():
+    """A wall 20 m away is hit by 2 of a VLP-16's beams in each band and by many of an
+    HDL-64E's: a range image puts them on different rows, the bev input in the same cells.
+    Its cells are the ring of 20 m in every band the wall reaches, over the columns it spans."""
+    images = {
+        s: SensorInput(KITTI, CATALOGUE[s], "bev").project(_wall(s, 20.0, 30.0))[0]
+        for s in ("kitti-hdl64", "vlp16", "xt32", "os1-128", "os0-128")
+    }
+    ring = int(20.0 * BEV_RINGS / COMMON_MAX_RANGE)
+    rows = {r for r, _ in _cells(images["kitti-hdl64"])}
+    assert rows == {ring * NB + b for b in range(NB)}
+    for s, image in images.items():
+        assert _cells(image) == _cells(images["kitti-hdl64"]), s
+    # the range images of the same walls do not agree
+    elev = {
+        s: SensorInput(KITTI, CATALOGUE[s], "elevation").project(_wall(s, 20.0, 30.0))[0]
+        for s in ("kitti-hdl64", "vlp16")
+    }
+    assert _cells(elev["kitti-hdl64"]) != _cells(elev["vlp16"])
+
+
+def test_ground_far_returns_and_what_stands_above_the_top_band_are_left_out():
+    inp = SensorInput(KITTI, CATALOGUE["os0-128"], "bev")
+    road = np.array([[8.0, 0.0, -REFERENCE_HEIGHT + 0.05]])  # 5 cm above the road: ground
+    low = np.array([[8.0, 0.0, -REFERENCE_HEIGHT + BEV_BANDS[0] + 0.01]])
+    roof = np.array([[8.0, 0.0, -REFERENCE_HEIGHT + BEV_BANDS[-1] + 0.01]])
+    far = np.array([[COMMON_MAX_RANGE + 0.5, 0.0, 0.0]])
+    assert _cells(inp.project(road)[0]) == set()
+    assert _cells(inp.project(roof)[0]) == set()
+    assert _cells(inp.project(far)[0]) == set()
+    assert {r for r, _ in _cells(inp.project(low)[0])} == {int(8.0 * BEV_RINGS / 50.0) * NB}
+
+
+def test_a_low_mount_is_levelled_onto_the_reference_ground():
+    """A robot's VLP-16 half a metre up sees the same wall as the car's HDL-64E: once levelled
+    and moved to the reference height, the same cells; its road 4 m ahead stays ground."""
+    car = SensorInput(KITTI, CATALOGUE["kitti-hdl64"], "bev").project(_wall("kitti-hdl64", 15, 0))
+    robot_in = SensorInput(KITTI, CATALOGUE["vlp16"], "bev", Mount(height=0.5))
+    robot = robot_in.project(_wall("vlp16", 15.0, 0.0, height=0.5))
+    # the robot's beams reach up to 0.5 m + 15 m · tan 15° ≈ 4.5 m: both bands, as the car's
+    assert _cells(robot[0]) == _cells(car[0])
+    road = np.array([[4.0, 0.0, -0.5]])
+    assert _cells(robot_in.project(road)[0]) == set()
+    assert _cells(SensorInput(KITTI, CATALOGUE["vlp16"], "bev").project(road)[0])  # unlevelled
+    assert robot_in.kind == "bev+mount"
+
+
+def test_every_scan_goes_through_it_and_caches_apart():
+    own = SensorInput.own(KITTI, "bev")
+    assert not own.native and own.kind == "bev"
+    key = own.key()
+    assert key["bev"] == {
+        "bands_m": list(BEV_BANDS),
+        "rings": BEV_RINGS,
+        "ground_m": REFERENCE_HEIGHT,
+        "max_range_m": COMMON_MAX_RANGE,
+    }
+    assert key != SensorInput.own(KITTI, "structure").key()
+    with pytest.raises(ValueError, match="rows are rings of range × height bands"):
+        own.rows()
+    small = SensorProfile.model_validate({**KITTI.model_dump(), "name": "tiny", "height": 16})
+    with pytest.raises(ValueError, match="32 rings × 2 bands need more rows than profile 'tiny'"):
+        SensorInput(small, CATALOGUE["vlp16"], "bev")
+    with pytest.raises(ValueError, match="points must have shape"):
+        own.project(np.zeros((5, 2)))
+
+
+def test_a_turn_by_whole_columns_rolls_the_image():
+    xyz = _cloud(3000, 5)
+    xyz[:, 2] = np.random.default_rng(5).uniform(-1.4, 1.2, len(xyz))
+    k = 37
+    theta = -2 * np.pi * k / KITTI.width  # the columns grow clockwise
+    c, s = np.cos(theta), np.sin(theta)
+    turned = xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    a, b = project_bev(xyz, KITTI, 1)[0], project_bev(turned, KITTI, 1)[0]
+    same = (np.roll(a, k, axis=1) == b).mean()
+    assert same > 0.999  # points on a column edge may fall either side
+
+
+def test_a_file_taking_bev_projects_every_scan_the_service_describes(tmp_path):
+    from overlapmamba.service.encoder import Encoder
+    from overlapmamba.service.sensors import Sensors
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
+
+    path = tmp_path / "m.onnx"
+    shutil.copyfile(MODEL, path)
+    meta = with_sensor_input(path, "bev")
+    assert meta.sensor_input == "bev" and meta.model_id != read_metadata(MODEL).model_id
+    enc = Encoder(path)
+    cloud = PointCloud(scan(3)[:, :3])
+    own = Sensors(enc.meta).input("kitti-hdl64")
+    assert own.kind == "bev"
+    np.testing.assert_array_equal(enc.project(cloud), own.project(cloud, enc.views))
+    assert set(np.unique(enc.project(cloud))) == {KITTI.empty_value, 1.0}
+    assert Sensors(enc.meta).input("vlp16").kind == "bev"
