@@ -149,6 +149,10 @@ def test_every_preset_builds_its_configs():
             assert tc.epochs * tc.epoch_scans == 10000  # one equal budget
             assert cfg.d_model == 64  # the shipped width
         assert (cfg.mixer == "transformer") == (p.name.removesuffix("-s1") in ("ot", "abl-ot"))
+        base = PRESETS.get(p.name.removesuffix("-s1"))
+        if p.name.endswith("-s1") and base is not None:  # a seed twin differs by its seed alone
+            assert (p.model, p.data, p.val) == (base.model, base.data, base.val), p.name
+            assert p.train == {**base.train, "seed": 1}, p.name
     # the shipped recipe: four towns, the scale-free loss, the ambiguous band left out
     d = TrainConfig.from_dict(get_preset("default").train)
     assert len(get_preset("default").data) == 4 and d.margin_scale == "normalised"

@@ -372,7 +372,12 @@ for _name in (
 ):
     _p = PRESETS[_name]
     PRESETS[_name + "-s1"] = TrainPreset(
-        _name + "-s1", _p.description + ", seed 1", _p.model, {**_p.train, "seed": 1}, _p.data
+        _name + "-s1",
+        _p.description + ", seed 1",
+        _p.model,
+        {**_p.train, "seed": 1},
+        _p.data,
+        val=_p.val,
     )
 
 # The ablations (Tables II–IV): the shipped width, one budget, two seeds each.

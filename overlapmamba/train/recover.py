@@ -125,7 +125,9 @@ def recover(
         ) from None
     model.load_state_dict(state_dict_from_onnx(proto, model))
     if images is None:
-        images = verification_images(meta.profile, 3 * model.cfg.token_views)
+        images = verification_images(
+            meta.profile, 3 * model.cfg.token_views, sensor_input=meta.sensor_input
+        )
     images = np.asarray(images, np.float32)
     check = {**compare(path, model, images), "scans": len(images)}
     if not check["descriptor_max_abs"] <= TOLERANCE:
