@@ -26,6 +26,13 @@ STRUCTURE_REAL = {
     "reports/model/structure-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/structure-real-nuscenes.json": "nuScenes scene-0061",
 }
+BEV_INPUT = "reports/model/bev-input.json"
+BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
+BEV_BEAMS = "reports/model/bev-beams.json"
+BEV_REAL = {
+    "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
+    "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
+}
 
 
 def receptive_rows() -> str:
@@ -188,22 +195,33 @@ _GPU_DATA = {
     "structure-long": "train-b and train-x00 … x03",
     "structure-many": "train-b and train-x00 … x11",
     "structure-many-renders": "train-b, train-x00 … x11 and train-b's three renderings",
+    "bev-long": "the bev input, all-rows backbone; train-b and train-x00 … x03",
+    "structure-all-rows-long": "the structure input, all-rows backbone; train-b and "
+    "train-x00 … x03",
 }
 
 
 def structure_gpu() -> str:
     """The structure recipe's three runs on a lent GPU: five towns, thirteen, and thirteen
     with train-b's renderings by three other sensors."""
-    runs = [load(path) for path in STRUCTURE_GPU]
-    out = "".join(
-        source(p, r["command"], when(r)) for p, r in zip(STRUCTURE_GPU, runs, strict=True)
-    )
+    return _gpu_runs(STRUCTURE_GPU)
+
+
+def bev_gpu() -> str:
+    """The bev input and the structure input with every row reaching the descriptor, side by
+    side on a lent GPU, on structure-towns' five towns."""
+    return _gpu_runs(BEV_GPU)
+
+
+def _gpu_runs(paths: tuple[str, ...]) -> str:
+    runs = [load(path) for path in paths]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
     where = runs[0]["trained_on"]
     m, towns = where.get("device") or where["machine"], where["towns"]
     same = sum(bool(t.get("byte_identical")) for t in towns if "byte_identical" in t)
     carried = sum("byte_identical" in t for t in towns)
     out += (
-        f"\nThe three ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
+        f"\nThe {len(runs)} ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
         f"{m['torch']}; `python benchmarks/lent_gpu.py`), on the {len(towns)} towns and "
         f"renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
         f"{carried} whose tables went from here byte-identical to this machine's scans; the "
@@ -218,14 +236,23 @@ def structure_gpu() -> str:
 def structure_real() -> str:
     """The best structure network on real scans: one view under random continuous turns,
     odd→even retrieval, KITTI queries thinned to fewer rings."""
-    reports = {path: load(path) for path in STRUCTURE_REAL}
+    return _real(STRUCTURE_REAL)
+
+
+def bev_real() -> str:
+    """The best bev network on real scans, as :func:`structure_real`."""
+    return _real(BEV_REAL)
+
+
+def _real(paths: dict[str, str]) -> str:
+    reports = {path: load(path) for path in paths}
     out = "".join(source(p, r["command"], when(r)) for p, r in reports.items())
     rows = []
     for path, r in reports.items():
         y, q = r["yaw_invariance"], r["retrieval_odd_to_even"]
         rows.append(
             [
-                STRUCTURE_REAL[path],
+                paths[path],
                 f"{r['sensor']} ({r['scans']} scans)",
                 f"{y['cosine_min']:.5f}",
                 f"{y['turned_over_one_metre_step']:.3f}",
@@ -253,32 +280,38 @@ def structure_real() -> str:
 def structure_beams() -> str:
     """The best structure network across sensors on the sensor test town, beside the shipped
     weights (as served, and on common beams) and Scan Context on the same pairs."""
-    r, shipped, sensors = load(STRUCTURE_BEAMS), load(COMMON_BEAMS), load(SENSORS)
-    out = "".join(
-        source(p, x["command"], when(x))
-        for p, x in ((STRUCTURE_BEAMS, r), (COMMON_BEAMS, shipped), (SENSORS, sensors))
-    )
+    return _beams([STRUCTURE_BEAMS])
+
+
+def bev_beams() -> str:
+    """The best bev network across sensors on the sensor test town, beside the best
+    structure network, the shipped weights and Scan Context on the same pairs."""
+    return _beams([BEV_BEAMS, STRUCTURE_BEAMS])
+
+
+def _beams(paths: list[str]) -> str:
+    nets, shipped, sensors = [load(p) for p in paths], load(COMMON_BEAMS), load(SENSORS)
+    done = [*zip(paths, nets, strict=True), (COMMON_BEAMS, shipped), (SENSORS, sensors)]
+    out = "".join(source(p, x["command"], when(x)) for p, x in done)
     sc = {
         (a["query_sensor"], a["map_sensor"]): a["scan_context"] for a in sensors["across_sensors"]
     }
+    named = ", ".join(
+        f"`{r['model_id']}` ({r['views']} view a scan, input `{r['sensor_input']}`)" for r in nets
+    )
     out += (
-        f"\n`{r['model_id']}` ({r['views']} view a scan, input `{r['sensor_input']}`), the "
-        "descriptor alone, against the shipped weights as served (elevation) and on common "
-        "beams, and Scan Context on the same test pairs (`benchmarks/sensors.py`: the same "
-        "presets, simulated by that command). A second drive by the first sensor queried "
-        "against the first drive's map by the second; AR@1 / AR@5, a hit within 5 m.\n"
+        f"\n{named}: the descriptor alone, against the shipped weights as served (elevation) "
+        "and on common beams, and Scan Context on the same test pairs (`benchmarks/sensors.py`: "
+        "the same presets, simulated by that command). A second drive by the first sensor "
+        "queried against the first drive's map by the second; AR@1 / AR@5, a hit within 5 m.\n"
     )
     for split in ("test", "val"):
         ship = {(p["queries"], p["map"]): p for p in shipped[split]}
+        by_net = [{(p["queries"], p["map"]): p[r["sensor_input"]] for p in r[split]} for r in nets]
         rows = []
-        for p in r[split]:
-            key = (p["queries"], p["map"])
+        for key in by_net[0]:
             other = ship.get(key, {})
-            row = [
-                p["queries"],
-                p["map"],
-                f"{f3(p['structure']['ar@1'])} / {f3(p['structure']['ar@5'])}",
-            ]
+            row = [*key, *(f"{f3(n[key]['ar@1'])} / {f3(n[key]['ar@5'])}" for n in by_net)]
             for mode in ("elevation", "common"):
                 row.append(f3(other[mode]["ar@1"]) if mode in other else "—")
             if split == "test":
@@ -287,7 +320,7 @@ def structure_beams() -> str:
         head = [
             "queries",
             "map",
-            "structure network",
+            *(f"{r['sensor_input']} network" for r in nets),
             "shipped, as served",
             "shipped, common beams",
         ]
@@ -300,6 +333,34 @@ def structure_beams() -> str:
     return out
 
 
+def bev_input() -> str:
+    """Layouts of a polar bird's-eye view scored by a hand-made spectrum, each sensor's
+    scans against its own and against the HDL-64E's, on the validation drive."""
+    r = load(BEV_INPUT)
+    out = source(BEV_INPUT, r["command"], when(r))
+    others = [s for s in r["data"] if s != "kitti-hdl64"]
+    out += (
+        f"\nDescriptor: {r['descriptor']} (no network). F1max of each sensor's scans against its "
+        "own earlier scans (own) and against the HDL-64E's (across), on `val-kitti-hdl64` and "
+        "its renderings.\n\n"
+    )
+    rows = []
+    for lay in r["layouts"]:
+        rows.append(
+            [
+                lay["name"],
+                " / ".join(f"{b:g}" for b in lay["bands_m"]),
+                str(lay["rings"]),
+                f3(lay["kitti-hdl64"]["own"]["f1max"]),
+                *(f"{f3(lay[s]['own']['f1max'])} / {f3(lay[s]['cross']['f1max'])}" for s in others),
+                f"{f3(lay['mean_own_f1max'])} / {f3(lay['mean_cross_f1max'])}",
+            ]
+        )
+    head = ["layout", "band edges (m)", "rings", "kitti-hdl64 own"]
+    head += [f"{s} own / across" for s in others] + ["mean own / across"]
+    return out + table(head, rows)
+
+
 RENDERERS = {
     "receptive-rows": receptive_rows,
     "backbone-rows": backbone_rows,
@@ -309,4 +370,8 @@ RENDERERS = {
     "structure-gpu": structure_gpu,
     "structure-real": structure_real,
     "structure-beams": structure_beams,
+    "bev-input": bev_input,
+    "bev-gpu": bev_gpu,
+    "bev-real": bev_real,
+    "bev-beams": bev_beams,
 }
