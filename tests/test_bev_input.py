@@ -148,3 +148,28 @@ def test_a_file_taking_bev_projects_every_scan_the_service_describes(tmp_path):
     np.testing.assert_array_equal(enc.project(cloud), own.project(cloud, enc.views))
     assert set(np.unique(enc.project(cloud))) == {KITTI.empty_value, 1.0}
     assert Sensors(enc.meta).input("vlp16").kind == "bev"
+
+
+def test_training_sees_a_bev_scan_through_a_sparser_sensors_beams(tiny_seq):
+    """The sensor term on the bev input: a HDL-64E scan is projected again from only its
+    beams nearest a 32- or 16-beam sensor's, and lands in fewer cells, all of them the
+    whole scan's; a VLP-16 has no sparser sensor in the catalogue, and is never drawn."""
+    pytest.importorskip("torch")
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.sensors.input import beams_near
+    from overlapmamba.train.train_inputs import Images, _sparser_beams
+
+    hdl = CATALOGUE["kitti-hdl64"]
+    options = _sparser_beams("kitti-hdl64")
+    assert {len(b) for b in options} <= set(range(2, 33)) and len(options) >= 2
+    assert any(np.array_equal(b, beams_near(hdl, CATALOGUE["vlp16"])) for b in options)
+    assert _sparser_beams("vlp16") == []
+    seq = open_sequence(tiny_seq)
+    images = Images([seq], KITTI, progress=False, mode="bev")
+    idx = np.array([5, 9, 11])
+    at, seen = images.sparser(idx, np.random.default_rng(0), 2)
+    assert at.tolist() == [0, 1] and seen.shape == (2, KITTI.height, KITTI.width)
+    whole = images[idx[:2]] > 0
+    assert ((seen > 0) <= whole).all() and (seen > 0).sum() < whole.sum()
+    again = images.sparser(idx, np.random.default_rng(0), 2)[1]
+    np.testing.assert_array_equal(seen, again)  # the epoch's generator decides: resume exact

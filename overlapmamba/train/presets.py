@@ -59,6 +59,8 @@ otherwise.
 - ``bev-towns`` trains from scratch on the ``bev`` input (a polar bird's-eye occupancy of
   every scan: rings of range × height bands in the rows) on structure-towns' towns,
   validation and selection; ``bev-long`` (and ``bev-long-s1``, seed 1) for a lent GPU.
+  ``bev-thin-pilot`` continues ``bev-long``'s network for one short epoch with the sensor
+  term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -98,6 +100,8 @@ from overlapmamba.train.sensor_recipes import (
     BEV,
     BEV_LONG,
     BEV_MODEL,
+    BEV_THIN_PILOT,
+    BEV_THIN_PILOT_CONTROL,
     COMMON,
     COMMON_DATA,
     COMMON_MODEL,
@@ -339,6 +343,22 @@ PRESETS: dict[str, TrainPreset] = {
             "bev-towns for a lent GPU's window (40 epochs planned)",
             model=BEV_MODEL,
             train=BEV_LONG,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-thin-pilot",
+            "bev-long's network, one short epoch with the sparser-sensor term",
+            model=BEV_MODEL,
+            train=BEV_THIN_PILOT,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-thin-pilot-control",
+            "bev-thin-pilot without the sparser-sensor term",
+            model=BEV_MODEL,
+            train=BEV_THIN_PILOT_CONTROL,
             data=COMMON_DATA,
             val=SENSOR_VAL,
         ),

@@ -135,3 +135,19 @@ STRUCTURE_ALL_ROWS_MODEL = {**STRUCTURE_MODEL, "backbone": "all-rows"}
 BEV_MODEL = {**NARROW, "sensor_input": "bev", "backbone": "all-rows"}
 BEV = {**STRUCTURE, "augment": {"yaw_jitter": True, "dropout": 0.2}}
 BEV_LONG = {**BEV, "epochs": 40}
+
+# bev-long's network continued for one short epoch, with the sensor term on the bev input (8
+# scans a batch also seen through the beams of a sparser catalogue sensor, pulled to their
+# copies at weight 1: train_inputs.Images.sparser), and its control without the term: whether
+# the term moves the VLP-16's scans towards the others' (bev-long's weakest pair).
+BEV_THIN_PILOT = {
+    **BEV,
+    "init": "runs/bev-long/best.pt",
+    "epochs": 1,
+    "epoch_scans": 3000,
+    "lr": 5e-5,
+    "warmup_steps": 20,
+    "look_weight": 1.0,
+    "look_scans": 8,
+}
+BEV_THIN_PILOT_CONTROL = {**BEV_THIN_PILOT, "look_weight": 0.0}

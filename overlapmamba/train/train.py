@@ -186,7 +186,7 @@ def train(
         ),
     )
     augment = Augmenter(train_cfg.augment_config(), profile, model_cfg.circular)
-    if train_cfg.look_weight > 0 and not augment.looks:
+    if train_cfg.look_weight > 0 and not augment.looks and model_cfg.sensor_input != "bev":
         raise ConfigError(
             "look_weight > 0 needs another sensor to see scans as: augment.sensor_like_names "
             f"names only the model's own ({profile.name})"

@@ -101,7 +101,9 @@ class TrainConfig(Config):
     # the model's own sensor in each batch are also fed as another catalogue sensor sees
     # them (augment.Augmenter.seen_as_other, then augmented like the batch), and
     # look_weight × their squared distance to the scan as the batch has it, in units of the
-    # batch's spread, joins the loss (0: off, and nothing is drawn for it).
+    # batch's spread, joins the loss (0: off, and nothing is drawn for it). On the bev
+    # input, up to look_scans scans of any sensor with a sparser one in the catalogue, seen
+    # through that sensor's beams (train_inputs.Images.sparser).
     look_weight: float = 0.0
     look_scans: int = 4
     # Start from a trained network instead of the seed's weights: a checkpoint (.pt) or an

@@ -6,6 +6,7 @@ check. :func:`overlapmamba.train.train.train` runs the epochs."""
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -17,7 +18,8 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
-from overlapmamba.core.sensors.input import Mode, SensorInput
+from overlapmamba.core.sensors.catalogue import CATALOGUE
+from overlapmamba.core.sensors.input import Mode, SensorInput, beams_near, on_beams
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.checkpoint import input_of_mode, read_checkpoint
 from overlapmamba.train.errors import ConfigError
@@ -54,7 +56,7 @@ class Images:
         progress: bool,
         mode: Mode = "elevation",
     ) -> None:
-        self.seqs, self.profile = seqs, profile
+        self.seqs, self.profile, self.mode = seqs, profile, mode
         self.inputs = [training_input(profile, s, mode) for s in seqs]
         self.parts = [
             range_images(s, profile, progress=progress, sensor=inp)
@@ -83,6 +85,42 @@ class Images:
             else:
                 out.append(inp.project(turned_points(xyz, t))[0])
         return np.stack(out)
+
+    def sparser(
+        self, idx: np.ndarray, rng: np.random.Generator, count: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The ``bev`` input's look at another sensor → (at, images): of the scans ``idx``,
+        the first ``count`` whose sensor has a catalogue sensor of fewer beams to be seen as
+        (``at``: their places in ``idx``), each projected again from only its beams nearest
+        that sensor's elevations (drawn uniformly among them): the same place as a sparser
+        sensor sees it, where the range-image inputs' look (``augment.SensorLook``) moves
+        rows a bird's-eye image does not have."""
+        at: list[int] = []
+        out: list[np.ndarray] = []
+        for k, (s, i) in enumerate(self._locate(idx)):
+            inp = self.inputs[s]
+            options = _sparser_beams(inp.sensor.name) if inp is not None else []
+            if len(at) == count or not options:
+                continue
+            beams = options[int(rng.integers(len(options)))]
+            assert inp is not None
+            out.append(inp.project(on_beams(self.seqs[s].points(i).xyz, inp.sensor, beams))[0])
+            at.append(k)
+        shape = (0, *self.parts[0].shape[1:])
+        return np.array(at, np.int64), np.stack(out) if out else np.zeros(shape, np.float32)
+
+
+@functools.cache
+def _sparser_beams(name: str) -> list[np.ndarray]:
+    """For catalogue sensor ``name``: its beams nearest each catalogue sensor's with fewer
+    beams (two at least), one array a sensor, duplicates dropped."""
+    sensor = CATALOGUE[name]
+    found: dict[tuple[int, ...], np.ndarray] = {}
+    for other in CATALOGUE.values():
+        beams = beams_near(sensor, other)
+        if other.beams < sensor.beams and len(beams) >= 2:
+            found.setdefault(tuple(beams.tolist()), beams)
+    return list(found.values())
 
 
 def open_split(
@@ -190,7 +228,9 @@ def batch_copies(
       the batch: ``looked_at``) as another catalogue sensor sees them, then augmented like
       the batch but for ``sensor_like`` (0: none, and nothing drawn). How many draws these
       take depends on how many of the batch's scans are the model sensor's, which the batch
-      (and so the epoch's generator) fixes: ``--resume`` stays exact.
+      (and so the epoch's generator) fixes: ``--resume`` stays exact. On the ``bev`` input
+      (no scan is the model sensor's there): its first ``look_scans`` scans that a sparser
+      catalogue sensor could have made, as that sensor sees them (:meth:`Images.sparser`).
     """
     shape = (0, *images.parts[0].shape[1:])
     turned = looked = np.zeros(shape, np.float32)
@@ -200,7 +240,11 @@ def batch_copies(
             images.turned(idx[:turn_scans], theta), rng, images.native(idx[:turn_scans])
         )
     looked_at = np.zeros(0, np.int64)
-    if look_scans:
+    if look_scans and images.mode == "bev":
+        looked_at, seen = images.sparser(idx, rng, look_scans)
+        if len(looked_at):
+            looked = augment(seen, rng, np.zeros(len(looked_at), bool))
+    elif look_scans:
         looked_at = np.flatnonzero(images.native(idx))[:look_scans]
         if len(looked_at):
             seen = augment.seen_as_other(images[idx[looked_at]], rng)

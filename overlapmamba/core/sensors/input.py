@@ -120,10 +120,17 @@ def row_beams(model: SensorProfile, sensor: Sensor, mode: Mode) -> np.ndarray:
 def common_beams(sensor: Sensor) -> np.ndarray:
     """Indices of ``sensor``'s beams nearest each of the common sensor's elevations, where
     one lies within :data:`COMMON_TOLERANCE_DEG` (sorted, highest first)."""
+    return beams_near(sensor, CATALOGUE[COMMON_SENSOR])
+
+
+def beams_near(sensor: Sensor, other: Sensor) -> np.ndarray:
+    """Indices of ``sensor``'s beams nearest each of ``other``'s elevations, where one lies
+    within :data:`COMMON_TOLERANCE_DEG` (sorted, highest first): the beams of ``sensor`` that
+    see what ``other``'s would."""
     el = np.asarray(sensor.elevations_deg, np.float64)
     keep = {
         int(np.argmin(np.abs(el - e)))
-        for e in CATALOGUE[COMMON_SENSOR].elevations_deg
+        for e in other.elevations_deg
         if np.abs(el - e).min() <= COMMON_TOLERANCE_DEG
     }
     return np.array(sorted(keep), np.int64)
