@@ -213,6 +213,9 @@ def bev_gpu() -> str:
     return _gpu_runs(BEV_GPU)
 
 
+_COUNT = {2: "two", 3: "three", 4: "four"}
+
+
 def _gpu_runs(paths: tuple[str, ...]) -> str:
     runs = [load(path) for path in paths]
     out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
@@ -221,7 +224,7 @@ def _gpu_runs(paths: tuple[str, ...]) -> str:
     same = sum(bool(t.get("byte_identical")) for t in towns if "byte_identical" in t)
     carried = sum("byte_identical" in t for t in towns)
     out += (
-        f"\nThe {len(runs)} ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
+        f"\nThe {_COUNT[len(runs)]} ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
         f"{m['torch']}; `python benchmarks/lent_gpu.py`), on the {len(towns)} towns and "
         f"renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
         f"{carried} whose tables went from here byte-identical to this machine's scans; the "
