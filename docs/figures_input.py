@@ -224,9 +224,9 @@ def _gpu_runs(paths: tuple[str, ...]) -> str:
     same = sum(bool(t.get("byte_identical")) for t in towns if "byte_identical" in t)
     carried = sum("byte_identical" in t for t in towns)
     out += (
-        f"\nThe {_COUNT[len(runs)]} ran side by side on one lent {m['gpu']} ({m['cpus']} cores, torch "
-        f"{m['torch']}; `python benchmarks/lent_gpu.py`), on the {len(towns)} towns and "
-        f"renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
+        f"\nThe {_COUNT[len(runs)]} ran side by side on one lent {m['gpu']} ({m['cpus']} "
+        f"cores, torch {m['torch']}; `python benchmarks/lent_gpu.py`), on the {len(towns)} "
+        f"towns and renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
         f"{carried} whose tables went from here byte-identical to this machine's scans; the "
         "tables carried, their loop tables' fingerprints renewed). No real scans went along, so "
         "the real-scan column is empty. Epoch 0 is the untrained network. " + _EPOCH_COLUMNS
