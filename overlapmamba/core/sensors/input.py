@@ -36,8 +36,8 @@
                in it, ``empty_value`` elsewhere. Which cells a wall or a trunk occupies does
                not depend on how many beams hit it, where a range image's rows do; the
                ground is left out and so is what only some sensors reach (above the top band,
-               beyond :data:`COMMON_MAX_RANGE` in range). Measured against the range-image
-               inputs by a hand-made spectrum on the validation drive and its renderings
+               beyond :data:`COMMON_MAX_RANGE` in range). Its layout measured against
+               others by a hand-made spectrum on the validation drive and its renderings
                (``benchmarks/bev_input.py``)
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
@@ -260,14 +260,16 @@ def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
     return xyz[:, :3]
 
 
-def bev_rows(model: SensorProfile) -> int:
-    """The rows the ``bev`` input fills (:data:`BEV_RINGS` × the bands); the model's rows
-    below them stay empty. A profile with fewer rows cannot take it."""
-    rows = BEV_RINGS * (len(BEV_BANDS) - 1)
+def bev_rows(
+    model: SensorProfile, bands: tuple[float, ...] = BEV_BANDS, rings: int = BEV_RINGS
+) -> int:
+    """The rows the ``bev`` input fills (``rings`` × the bands); the model's rows below them
+    stay empty. A profile with fewer rows cannot take it."""
+    rows = rings * (len(bands) - 1)
     if rows > model.height:
         raise ValueError(
-            f"the bev input's {BEV_RINGS} rings × {len(BEV_BANDS) - 1} bands need more rows "
-            f"than profile {model.name!r} has ({model.height})"
+            f"the bev input's {rings} rings × {len(bands) - 1} bands need more rows than "
+            f"profile {model.name!r} has ({model.height})"
         )
     return rows
 
@@ -282,11 +284,7 @@ def project_bev(
     """(N, 3) levelled points at the reference height → (views, H, W) ``bev`` images
     (``bands`` and ``rings``: the input's own unless a benchmark measures others)."""
     views = check_views(views)
-    if rings * (len(bands) - 1) > model.height:
-        raise ValueError(
-            f"the bev input's {rings} rings × {len(bands) - 1} bands need more rows than "
-            f"profile {model.name!r} has ({model.height})"
-        )
+    bev_rows(model, bands, rings)
     xyz = np.asarray(xyz, np.float32)
     x, y = xyz[:, 0], xyz[:, 1]
     z = xyz[:, 2] + np.float32(REFERENCE_HEIGHT)  # above the reference ground
