@@ -29,6 +29,7 @@ STRUCTURE_REAL = {
 BEV_INPUT = "reports/model/bev-input.json"
 BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
 BEV_BEAMS = "reports/model/bev-beams.json"
+BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
 BEV_REAL = {
     "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
@@ -336,6 +337,19 @@ def _beams(paths: list[str]) -> str:
     return out
 
 
+def bev_pilot() -> str:
+    """bev-long's network continued for one short epoch with the sparser-sensor term, and
+    without it (the control)."""
+    runs = [load(path) for path in BEV_PILOT]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(BEV_PILOT, runs, strict=True))
+    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + _EPOCH_COLUMNS
+    out += "".join(
+        _planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
+    )
+    head, rows = _epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    return out + "\n" + table(["run", *head], rows)
+
+
 def bev_input() -> str:
     """Layouts of a polar bird's-eye view scored by a hand-made spectrum, each sensor's
     scans against its own and against the HDL-64E's, on the validation drive."""
@@ -377,4 +391,5 @@ RENDERERS = {
     "bev-gpu": bev_gpu,
     "bev-real": bev_real,
     "bev-beams": bev_beams,
+    "bev-pilot": bev_pilot,
 }
