@@ -191,7 +191,9 @@ def test_batch_copies_take_only_the_model_sensors_scans_and_draw_only_when_on():
     rng0 = np.random.default_rng(0)
     scans = rng0.uniform(5, 60, (6, profile.height, profile.width)).astype(np.float32)
 
-    class Batch:  # the three things batch_copies reads of train_inputs.Images
+    class Batch:  # the things batch_copies reads of train_inputs.Images (a range-image input)
+        mode = "elevation"
+
         def __init__(self, native):
             self.parts = [scans]
             self.flags = np.asarray(native, bool)
