@@ -442,8 +442,8 @@ def test_a_bev_network_is_verified_on_images_of_its_own_input():
     """A network on the bev input sees cells of 1 and empty, never a range: verified on
     random ranges, a trained one's activations grow far past the float tolerance's scale
     (runs/bev-long's export failed so). Export and recover take the network's own input's
-    images (an export of a tiny bev network costs half a minute here: the real one is the
-    check, in docs/training.md)."""
+    images (an export of a tiny bev network costs half a minute of `make test`: the real
+    export is the check, CHANGELOG.md)."""
     images = verification_images(PROFILE, count=2, seed=3, sensor_input="bev")
     assert images.shape == (2, 1, PROFILE.height, PROFILE.width)
     assert set(np.unique(images)) == {PROFILE.empty_value, 1.0}
