@@ -81,7 +81,7 @@ otherwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from overlapmamba.train.augment import ROBUST
@@ -390,14 +390,12 @@ for _name in (
     "sensors-towns-car",
     "bev-long",
 ):
-    _p = PRESETS[_name]
-    PRESETS[_name + "-s1"] = TrainPreset(
-        _name + "-s1",
-        _p.description + ", seed 1",
-        _p.model,
-        {**_p.train, "seed": 1},
-        _p.data,
-        val=_p.val,
+    _p = PRESETS[_name]  # every field the base's but these (a field added later follows too)
+    PRESETS[_name + "-s1"] = replace(
+        _p,
+        name=_name + "-s1",
+        description=_p.description + ", seed 1",
+        train={**_p.train, "seed": 1},
     )
 
 # The ablations (Tables II–IV): the shipped width, one budget, two seeds each.

@@ -98,12 +98,13 @@ class Images:
         at: list[int] = []
         out: list[np.ndarray] = []
         for k, (s, i) in enumerate(self._locate(idx)):
+            if len(at) == count:
+                break
             inp = self.inputs[s]
             options = _sparser_beams(inp.sensor.name) if inp is not None else []
-            if len(at) == count or not options:
+            if inp is None or not options:
                 continue
             beams = options[int(rng.integers(len(options)))]
-            assert inp is not None
             out.append(inp.project(on_beams(self.seqs[s].points(i).xyz, inp.sensor, beams))[0])
             at.append(k)
         shape = (0, *self.parts[0].shape[1:])
