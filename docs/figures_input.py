@@ -26,14 +26,6 @@ STRUCTURE_REAL = {
     "reports/model/structure-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/structure-real-nuscenes.json": "nuScenes scene-0061",
 }
-BEV_INPUT = "reports/model/bev-input.json"
-BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
-BEV_BEAMS = "reports/model/bev-beams.json"
-BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
-BEV_REAL = {
-    "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
-    "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
-}
 
 
 def receptive_rows() -> str:
@@ -133,7 +125,7 @@ def common_beams() -> str:
     return out
 
 
-def _epoch_rows(
+def epoch_rows(
     runs: list[dict[str, Any]], label: Callable[[dict[str, Any]], str]
 ) -> tuple[list[str], list[list[str]]]:
     """The epochs of ``runs`` as table rows, each run's first cell ``label(run)``."""
@@ -158,14 +150,14 @@ def _epoch_rows(
     return [*head, "spread", "collapsing", "real min cosine"], rows
 
 
-_EPOCH_COLUMNS = (
+EPOCH_COLUMNS = (
     "F1max of the validation drive (`val-kitti-hdl64`) and of each rendering's scans against "
     "it (across sensors); the spread and the collapse flag from the health numbers; the "
     "minimum cosine of real KITTI scans under a continuous turn (one view).\n\n"
 )
 
 
-def _planned(r: dict[str, Any], label: str) -> str:
+def planned(r: dict[str, Any], label: str) -> str:
     return (
         f"- `{r['run']}` ({label}): {r['epochs_run']} of {r['epochs_planned']} planned "
         f"epochs ran; it keeps epoch {r['best']['epoch']}\n"
@@ -176,9 +168,9 @@ def common_run() -> str:
     """The ``common-towns`` runs' epochs (both rates): validation, across sensors, health."""
     runs = [load(path) for path in COMMON_RUNS]
     out = "".join(source(p, r["command"], when(r)) for p, r in zip(COMMON_RUNS, runs, strict=True))
-    out += "\nEpoch 0 is the shipped weights on common beams. " + _EPOCH_COLUMNS
-    out += "".join(_planned(r, f"rate {r['train_config']['lr']:g}") for r in runs)
-    head, rows = _epoch_rows(runs, lambda r: f"{r['train_config']['lr']:g}")
+    out += "\nEpoch 0 is the shipped weights on common beams. " + EPOCH_COLUMNS
+    out += "".join(planned(r, f"rate {r['train_config']['lr']:g}") for r in runs)
+    head, rows = epoch_rows(runs, lambda r: f"{r['train_config']['lr']:g}")
     return out + "\n" + table(["rate", *head], rows)
 
 
@@ -186,9 +178,9 @@ def structure_run() -> str:
     """The ``structure-towns`` run's epochs, from scratch: validation, across sensors, health."""
     r = load(STRUCTURE_RUN)
     out = source(STRUCTURE_RUN, r["command"], when(r))
-    out += "\nEpoch 0 is the untrained network. " + _EPOCH_COLUMNS
-    out += _planned(r, f"seed {r['train_config']['seed']}")
-    head, rows = _epoch_rows([r], lambda r: f"{r['train_config']['seed']:g}")
+    out += "\nEpoch 0 is the untrained network. " + EPOCH_COLUMNS
+    out += planned(r, f"seed {r['train_config']['seed']}")
+    head, rows = epoch_rows([r], lambda r: f"{r['train_config']['seed']:g}")
     return out + "\n" + table(["seed", *head], rows)
 
 
@@ -205,19 +197,13 @@ _GPU_DATA = {
 def structure_gpu() -> str:
     """The structure recipe's three runs on a lent GPU: five towns, thirteen, and thirteen
     with train-b's renderings by three other sensors."""
-    return _gpu_runs(STRUCTURE_GPU)
-
-
-def bev_gpu() -> str:
-    """The bev input and the structure input with every row reaching the descriptor, side by
-    side on a lent GPU, on structure-towns' five towns."""
-    return _gpu_runs(BEV_GPU)
+    return gpu_runs(STRUCTURE_GPU)
 
 
 _COUNT = {2: "two", 3: "three", 4: "four"}
 
 
-def _gpu_runs(paths: tuple[str, ...]) -> str:
+def gpu_runs(paths: tuple[str, ...]) -> str:
     runs = [load(path) for path in paths]
     out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
     where = runs[0]["trained_on"]
@@ -230,25 +216,20 @@ def _gpu_runs(paths: tuple[str, ...]) -> str:
         f"towns and renderings simulated again there in {where['prepare_s']:.0f} s ({same} of the "
         f"{carried} whose tables went from here byte-identical to this machine's scans; the "
         "tables carried, their loop tables' fingerprints renewed). No real scans went along, so "
-        "the real-scan column is empty. Epoch 0 is the untrained network. " + _EPOCH_COLUMNS
+        "the real-scan column is empty. Epoch 0 is the untrained network. " + EPOCH_COLUMNS
     )
-    out += "".join(_planned(r, _GPU_DATA[r["run"].split("/")[-1]]) for r in runs)
-    head, rows = _epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    out += "".join(planned(r, _GPU_DATA[r["run"].split("/")[-1]]) for r in runs)
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
     return out + "\n" + table(["run", *head], rows)
 
 
 def structure_real() -> str:
     """The best structure network on real scans: one view under random continuous turns,
     odd→even retrieval, KITTI queries thinned to fewer rings."""
-    return _real(STRUCTURE_REAL)
+    return real_scans(STRUCTURE_REAL)
 
 
-def bev_real() -> str:
-    """The best bev network on real scans, as :func:`structure_real`."""
-    return _real(BEV_REAL)
-
-
-def _real(paths: dict[str, str]) -> str:
+def real_scans(paths: dict[str, str]) -> str:
     reports = {path: load(path) for path in paths}
     out = "".join(source(p, r["command"], when(r)) for p, r in reports.items())
     rows = []
@@ -284,16 +265,10 @@ def _real(paths: dict[str, str]) -> str:
 def structure_beams() -> str:
     """The best structure network across sensors on the sensor test town, beside the shipped
     weights (as served, and on common beams) and Scan Context on the same pairs."""
-    return _beams([STRUCTURE_BEAMS])
+    return beams_table([STRUCTURE_BEAMS])
 
 
-def bev_beams() -> str:
-    """The best bev network across sensors on the sensor test town, beside the best
-    structure network, the shipped weights and Scan Context on the same pairs."""
-    return _beams([BEV_BEAMS, STRUCTURE_BEAMS])
-
-
-def _beams(paths: list[str]) -> str:
+def beams_table(paths: list[str]) -> str:
     nets, shipped, sensors = [load(p) for p in paths], load(COMMON_BEAMS), load(SENSORS)
     done = [*zip(paths, nets, strict=True), (COMMON_BEAMS, shipped), (SENSORS, sensors)]
     out = "".join(source(p, x["command"], when(x)) for p, x in done)
@@ -337,47 +312,6 @@ def _beams(paths: list[str]) -> str:
     return out
 
 
-def bev_pilot() -> str:
-    """bev-long's network continued for one short epoch with the sparser-sensor term, and
-    without it (the control)."""
-    runs = [load(path) for path in BEV_PILOT]
-    out = "".join(source(p, r["command"], when(r)) for p, r in zip(BEV_PILOT, runs, strict=True))
-    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + _EPOCH_COLUMNS
-    out += "".join(
-        _planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
-    )
-    head, rows = _epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    return out + "\n" + table(["run", *head], rows)
-
-
-def bev_input() -> str:
-    """Layouts of a polar bird's-eye view scored by a hand-made spectrum, each sensor's
-    scans against its own and against the HDL-64E's, on the validation drive."""
-    r = load(BEV_INPUT)
-    out = source(BEV_INPUT, r["command"], when(r))
-    others = [s for s in r["data"] if s != "kitti-hdl64"]
-    out += (
-        f"\nDescriptor: {r['descriptor']} (no network). F1max of each sensor's scans against its "
-        "own earlier scans (own) and against the HDL-64E's (across), on `val-kitti-hdl64` and "
-        "its renderings.\n\n"
-    )
-    rows = []
-    for lay in r["layouts"]:
-        rows.append(
-            [
-                lay["name"],
-                " / ".join(f"{b:g}" for b in lay["bands_m"]),
-                str(lay["rings"]),
-                f3(lay["kitti-hdl64"]["own"]["f1max"]),
-                *(f"{f3(lay[s]['own']['f1max'])} / {f3(lay[s]['cross']['f1max'])}" for s in others),
-                f"{f3(lay['mean_own_f1max'])} / {f3(lay['mean_cross_f1max'])}",
-            ]
-        )
-    head = ["layout", "band edges (m)", "rings", "kitti-hdl64 own"]
-    head += [f"{s} own / across" for s in others] + ["mean own / across"]
-    return out + table(head, rows)
-
-
 RENDERERS = {
     "receptive-rows": receptive_rows,
     "backbone-rows": backbone_rows,
@@ -387,9 +321,4 @@ RENDERERS = {
     "structure-gpu": structure_gpu,
     "structure-real": structure_real,
     "structure-beams": structure_beams,
-    "bev-input": bev_input,
-    "bev-gpu": bev_gpu,
-    "bev-real": bev_real,
-    "bev-beams": bev_beams,
-    "bev-pilot": bev_pilot,
 }

@@ -29,7 +29,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import figures_fleet  # docs/figures_*.py, beside this file
+import figures_bev  # docs/figures_*.py, beside this file
+import figures_fleet
 import figures_input
 import figures_model
 
@@ -93,6 +94,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "headline": headline,
     **figures_model.RENDERERS,
     **figures_input.RENDERERS,
+    **figures_bev.RENDERERS,
     **figures_fleet.RENDERERS,
 }
 

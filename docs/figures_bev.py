@@ -1,0 +1,92 @@
+"""Tables on the bird's-eye inputs (``bev``, ``bev-soft``): their layouts, the networks
+trained on them, how those read real scans and other sensors, each rendered from the JSON a
+command wrote (``docs/render.py`` pastes them; nothing here types a measured number)."""
+
+from __future__ import annotations
+
+from figures_input import (
+    EPOCH_COLUMNS,
+    STRUCTURE_BEAMS,
+    beams_table,
+    epoch_rows,
+    gpu_runs,
+    planned,
+    real_scans,
+)
+from figures_kit import f3, load, source, table, when
+
+BEV_INPUT = "reports/model/bev-input.json"
+BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
+BEV_BEAMS = "reports/model/bev-beams.json"
+BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
+BEV_REAL = {
+    "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
+    "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
+}
+
+
+def bev_gpu() -> str:
+    """The bev input and the structure input with every row reaching the descriptor, side by
+    side on a lent GPU, on structure-towns' five towns."""
+    return gpu_runs(BEV_GPU)
+
+
+def bev_real() -> str:
+    """The best bev network on real scans, as :func:`structure_real`."""
+    return real_scans(BEV_REAL)
+
+
+def bev_beams() -> str:
+    """The best bev network across sensors on the sensor test town, beside the best
+    structure network, the shipped weights and Scan Context on the same pairs."""
+    return beams_table([BEV_BEAMS, STRUCTURE_BEAMS])
+
+
+def bev_pilot() -> str:
+    """bev-long's network continued for one short epoch with the sparser-sensor term, and
+    without it (the control)."""
+    runs = [load(path) for path in BEV_PILOT]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(BEV_PILOT, runs, strict=True))
+    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
+    out += "".join(
+        planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
+    )
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    return out + "\n" + table(["run", *head], rows)
+
+
+def bev_input() -> str:
+    """Layouts of a polar bird's-eye view scored by a hand-made spectrum, each sensor's
+    scans against its own and against the HDL-64E's, on the validation drive."""
+    r = load(BEV_INPUT)
+    out = source(BEV_INPUT, r["command"], when(r))
+    others = [s for s in r["data"] if s != "kitti-hdl64"]
+    out += (
+        f"\nDescriptor: {r['descriptor']} (no network). F1max of each sensor's scans against its "
+        "own earlier scans (own) and against the HDL-64E's (across), on `val-kitti-hdl64` and "
+        "its renderings.\n\n"
+    )
+    rows = []
+    for lay in r["layouts"]:
+        rows.append(
+            [
+                lay["name"],
+                " / ".join(f"{b:g}" for b in lay["bands_m"]),
+                str(lay["rings"]),
+                f3(lay["kitti-hdl64"]["own"]["f1max"]),
+                *(f"{f3(lay[s]['own']['f1max'])} / {f3(lay[s]['cross']['f1max'])}" for s in others),
+                f"{f3(lay['mean_own_f1max'])} / {f3(lay['mean_cross_f1max'])}",
+            ]
+        )
+    head = ["layout", "band edges (m)", "rings", "kitti-hdl64 own"]
+    head += [f"{s} own / across" for s in others] + ["mean own / across"]
+    return out + table(head, rows)
+
+
+RENDERERS = {
+    "bev-input": bev_input,
+    "bev-gpu": bev_gpu,
+    "bev-real": bev_real,
+    "bev-beams": bev_beams,
+    "bev-pilot": bev_pilot,
+}
