@@ -30,9 +30,9 @@ where a preset's folder exists there) and kept for a rerun.
 
     python benchmarks/common_beams.py [--model models/overlapmamba-hdl64.onnx] [--out …]
 
-A file that takes every scan its own way (``sensor_input`` ``common``, ``structure`` or
-``bev``: trained on them, e.g. the ``common-towns``, ``structure-towns`` and ``bev-towns``
-presets) is measured its own way
+A file that takes every scan its own way (``sensor_input`` ``common``, ``structure``,
+``bev`` or ``bev-soft``: trained on them, e.g. the ``common-towns``, ``structure-towns``,
+``bev-towns`` and ``bev-soft-pilot`` presets) is measured its own way
 only (``--out`` names its report). Writes reports/model/common-beams.json. ≈ 30 min on 2
 cores with the three-view file, most of it describing.
 """

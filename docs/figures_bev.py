@@ -19,6 +19,18 @@ BEV_INPUT = "reports/model/bev-input.json"
 BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
 BEV_BEAMS = "reports/model/bev-beams.json"
 BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
+BEV_SOFT_RUNS = tuple(
+    f"reports/model/{n}.json" for n in ("bev-soft-pilot", "bev-thin-pilot-control")
+)
+# each network → its eval-real reports on KITTI 00 and on nuScenes
+BEV_SOFT_REAL = {
+    "`bev-long` (bev)": ("bev-real-kitti", "bev-real-nuscenes"),
+    "`bev-thin-pilot-control`, epoch 1 (bev)": (
+        "bev-control-real-kitti",
+        "bev-control-real-nuscenes",
+    ),
+    "`bev-soft-pilot`, epoch 1 (bev-soft)": ("bev-soft-real-kitti", "bev-soft-real-nuscenes"),
+}
 BEV_REAL = {
     "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
@@ -83,10 +95,53 @@ def bev_input() -> str:
     return out + table(head, rows)
 
 
+def bev_soft() -> str:
+    """bev-long's network continued for one short epoch on the bev-soft input and on bev (the
+    control), by epoch; then each on real scans under random continuous turns."""
+    runs = [load(path) for path in BEV_SOFT_RUNS]
+    out = "".join(
+        source(p, r["command"], when(r)) for p, r in zip(BEV_SOFT_RUNS, runs, strict=True)
+    )
+    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
+    out += "".join(planned(r, f"input `{r['model_config']['sensor_input']}`") for r in runs)
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    out += "\n" + table(["run", *head], rows) + "\n"
+    real = {
+        label: [(f"reports/model/{n}.json", load(f"reports/model/{n}.json")) for n in names]
+        for label, names in BEV_SOFT_REAL.items()
+    }
+    out += "".join(source(p, r["command"], when(r)) for rs in real.values() for p, r in rs)
+    rows = []
+    for label, reports in real.items():
+        for _, r in reports:
+            y, q = r["yaw_invariance"], r["retrieval_odd_to_even"]
+            thin = r.get("thinned", {})
+            rows.append(
+                [
+                    label,
+                    f"{r['sensor']} ({r['scans']} scans)",
+                    f"{y['cosine_min']:.5f} / {y['cosine_mean']:.5f}",
+                    f"{y['turned_over_one_metre_step']:.3f}",
+                    f"{f3(q['recall@1'])} / {f3(q['scan_context']['recall@1'])}",
+                    " / ".join(f3(t["declared"]["recall@1"]) for t in thin.values()) or "—",
+                ]
+            )
+    head = [
+        "network",
+        "scans",
+        "cosine under random turns, min / mean (one view)",
+        "turned copy / 1 m step",
+        "odd→even R@1 / Scan Context's",
+        "thinned to 32 / 16 rings, R@1",
+    ]
+    return out + "\n" + table(head, rows)
+
+
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
     "bev-real": bev_real,
     "bev-beams": bev_beams,
     "bev-pilot": bev_pilot,
+    "bev-soft": bev_soft,
 }

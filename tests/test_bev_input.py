@@ -1,6 +1,7 @@
 """The ``bev`` sensor input: a polar bird's-eye occupancy of every scan (rings of range ×
 height bands above the reference ground in the rows, the model's azimuth columns), the
-model's own sensor's scans too; in the core, the service's encoder and training."""
+model's own sensor's scans too; in the core, the service's encoder and training. And
+``bev-soft``: the same cells, each return shared between its two nearest columns."""
 
 from __future__ import annotations
 
@@ -51,6 +52,41 @@ def test_fast_bev_projection_matches_the_reference(seed):
     np.testing.assert_array_equal(got, project_bev_reference(xyz, KITTI))
     assert set(np.unique(got)) == {KITTI.empty_value, 1.0}
     assert (got[BEV_RINGS * NB :] == KITTI.empty_value).all()  # rows past the layout stay empty
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fast_soft_projection_matches_the_reference(seed):
+    xyz = _cloud(3000, seed)
+    xyz[:, 2] = np.random.default_rng(seed).uniform(-2.0, 2.5, len(xyz))
+    got = SensorInput(KITTI, CATALOGUE["os1-128"], "bev-soft").project(xyz)[0]
+    np.testing.assert_array_equal(got, project_bev_reference(xyz, KITTI, soft=True))
+    hard = project_bev_reference(xyz, KITTI)
+    # every occupied bev cell is occupied here too, with the neighbours its returns share
+    assert ((hard > 0) <= (got > KITTI.empty_value)).all()
+    assert (got > KITTI.empty_value).sum() > (hard > 0).sum()
+    assert got.max() <= 1.0 and ((got > KITTI.empty_value) & (got < 1.0)).any()
+
+
+def _turned(xyz: np.ndarray, columns: float) -> np.ndarray:
+    theta = -2 * np.pi * columns / KITTI.width  # the columns grow clockwise
+    c, s = np.cos(theta), np.sin(theta)
+    return xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+
+
+def test_a_soft_image_moves_with_a_turn_where_a_bev_image_jumps():
+    """A turn by a tenth of a column changes no bev-soft cell by more than a tenth of the
+    cell range (so the network sees a small change for a small turn), while bev cells flip
+    whole; a turn by whole columns rolls the soft image as it rolls the bev one."""
+    xyz = _cloud(3000, 7)
+    xyz[:, 2] = np.random.default_rng(7).uniform(-1.4, 1.2, len(xyz))
+    full = np.float32(1.0 - KITTI.empty_value)
+    soft, bev = (SensorInput.own(KITTI, m) for m in ("bev-soft", "bev"))
+    a, b = soft.project(xyz)[0], soft.project(_turned(xyz, 0.1))[0]
+    assert np.abs(a - b).max() <= 0.1 * full + 1e-3 and np.abs(a - b).max() > 0.05 * full
+    jumps = np.abs(bev.project(xyz)[0] - bev.project(_turned(xyz, 0.1))[0]).max()
+    assert jumps == full
+    rolled = soft.project(_turned(xyz, 37))[0]
+    np.testing.assert_allclose(np.roll(a, 37, axis=1), rolled, atol=1e-3)
 
 
 def test_a_wall_fills_the_same_cells_whichever_sensor_sees_it():
@@ -118,6 +154,15 @@ def test_every_scan_goes_through_it_and_caches_apart():
         SensorInput(small, CATALOGUE["vlp16"], "bev")
     with pytest.raises(ValueError, match="points must have shape"):
         own.project(np.zeros((5, 2)))
+    soft = SensorInput.own(KITTI, "bev-soft")
+    assert soft.kind == "bev-soft" and not soft.native
+    assert soft.key()["bev"] == {**key["bev"], "cells": "soft"} and soft.key() != key
+    with pytest.raises(ValueError, match="bev-soft input's rows are rings"):
+        soft.rows()
+    assert (
+        SensorInput(KITTI, CATALOGUE["vlp16"], "bev-soft", Mount(height=0.5)).kind
+        == "bev-soft+mount"
+    )
 
 
 def test_a_turn_by_whole_columns_rolls_the_image():
@@ -132,22 +177,27 @@ def test_a_turn_by_whole_columns_rolls_the_image():
     assert same > 0.999  # points on a column edge may fall either side
 
 
-def test_a_file_taking_bev_projects_every_scan_the_service_describes(tmp_path):
+@pytest.mark.parametrize("mode", ["bev", "bev-soft"])
+def test_a_file_taking_bev_projects_every_scan_the_service_describes(tmp_path, mode):
     from overlapmamba.service.encoder import Encoder
     from overlapmamba.service.sensors import Sensors
     from overlapmamba.train.modelfile import read_metadata, with_sensor_input
 
     path = tmp_path / "m.onnx"
     shutil.copyfile(MODEL, path)
-    meta = with_sensor_input(path, "bev")
-    assert meta.sensor_input == "bev" and meta.model_id != read_metadata(MODEL).model_id
+    meta = with_sensor_input(path, mode)
+    assert meta.sensor_input == mode and meta.model_id != read_metadata(MODEL).model_id
     enc = Encoder(path)
     cloud = PointCloud(scan(3)[:, :3])
     own = Sensors(enc.meta).input("kitti-hdl64")
-    assert own.kind == "bev"
+    assert own.kind == mode
     np.testing.assert_array_equal(enc.project(cloud), own.project(cloud, enc.views))
-    assert set(np.unique(enc.project(cloud))) == {KITTI.empty_value, 1.0}
-    assert Sensors(enc.meta).input("vlp16").kind == "bev"
+    values = np.unique(enc.project(cloud))
+    if mode == "bev":
+        assert set(values) == {KITTI.empty_value, 1.0}
+    else:
+        assert values.min() == KITTI.empty_value and values.max() <= 1.0 and len(values) > 100
+    assert Sensors(enc.meta).input("vlp16").kind == mode
 
 
 def test_training_sees_a_bev_scan_through_a_sparser_sensors_beams(tiny_seq):

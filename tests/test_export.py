@@ -450,3 +450,7 @@ def test_a_bev_network_is_verified_on_images_of_its_own_input():
     assert 0.05 < (images == 1.0).mean() < 0.15
     ranges = verification_images(PROFILE, count=2, seed=3)
     assert ranges.max() > 1.0 and set(np.unique(ranges)) != {PROFILE.empty_value, 1.0}
+    soft = verification_images(PROFILE, count=2, seed=3, sensor_input="bev-soft")
+    shared = soft[soft != PROFILE.empty_value]
+    assert 0.05 < shared.size / soft.size < 0.15 and PROFILE.empty_value < shared.min()
+    assert shared.max() <= 1.0 and len(np.unique(shared)) > 100  # shares, not just 1

@@ -61,6 +61,8 @@ otherwise.
   validation and selection; ``bev-long`` (and ``bev-long-s1``, seed 1) for a lent GPU.
   ``bev-thin-pilot`` continues ``bev-long``'s network for one short epoch with the sensor
   term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
+- ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
+  its two nearest columns).
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -100,6 +102,8 @@ from overlapmamba.train.sensor_recipes import (
     BEV,
     BEV_LONG,
     BEV_MODEL,
+    BEV_SOFT_MODEL,
+    BEV_SOFT_PILOT,
     BEV_THIN_PILOT,
     BEV_THIN_PILOT_CONTROL,
     COMMON,
@@ -359,6 +363,14 @@ PRESETS: dict[str, TrainPreset] = {
             "bev-thin-pilot without the sparser-sensor term",
             model=BEV_MODEL,
             train=BEV_THIN_PILOT_CONTROL,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-soft-pilot",
+            "bev-thin-pilot-control on the bev-soft input (cells shared between columns)",
+            model=BEV_SOFT_MODEL,
+            train=BEV_SOFT_PILOT,
             data=COMMON_DATA,
             val=SENSOR_VAL,
         ),

@@ -151,3 +151,9 @@ BEV_THIN_PILOT = {
     "look_scans": 8,
 }
 BEV_THIN_PILOT_CONTROL = {**BEV_THIN_PILOT, "look_weight": 0.0}
+
+# The bev-soft input (each return shared between its two nearest columns: the image moves
+# with a turn instead of jumping a column): bev-long's network continued on it with
+# bev-thin-pilot-control's recipe (whose network continued on bev).
+BEV_SOFT_MODEL = {**BEV_MODEL, "sensor_input": "bev-soft"}
+BEV_SOFT_PILOT = BEV_THIN_PILOT_CONTROL

@@ -58,7 +58,7 @@ import torch
 from tqdm.auto import tqdm
 
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.sensors.input import check_mode
+from overlapmamba.core.sensors.input import BEV_MODES, check_mode
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.batches import BatchPlan, BatchSampler, PairIndex
 from overlapmamba.train.calibrate import recalibrate_batchnorm
@@ -186,7 +186,7 @@ def train(
         ),
     )
     augment = Augmenter(train_cfg.augment_config(), profile, model_cfg.circular)
-    if train_cfg.look_weight > 0 and not augment.looks and model_cfg.sensor_input != "bev":
+    if train_cfg.look_weight > 0 and not augment.looks and model_cfg.sensor_input not in BEV_MODES:
         raise ConfigError(
             "look_weight > 0 needs another sensor to see scans as: augment.sensor_like_names "
             f"names only the model's own ({profile.name})"

@@ -19,7 +19,7 @@ from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
 from overlapmamba.core.sensors.catalogue import CATALOGUE
-from overlapmamba.core.sensors.input import Mode, SensorInput, beams_near, on_beams
+from overlapmamba.core.sensors.input import BEV_MODES, Mode, SensorInput, beams_near, on_beams
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.checkpoint import input_of_mode, read_checkpoint
 from overlapmamba.train.errors import ConfigError
@@ -241,7 +241,7 @@ def batch_copies(
             images.turned(idx[:turn_scans], theta), rng, images.native(idx[:turn_scans])
         )
     looked_at = np.zeros(0, np.int64)
-    if look_scans and images.mode == "bev":
+    if look_scans and images.mode in BEV_MODES:
         looked_at, seen = images.sparser(idx, rng, look_scans)
         if len(looked_at):
             looked = augment(seen, rng, np.zeros(len(looked_at), bool))

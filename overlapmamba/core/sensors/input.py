@@ -39,6 +39,12 @@
                beyond :data:`COMMON_MAX_RANGE` in range). Its layout measured against
                others by a hand-made spectrum on the validation drive and its renderings
                (``benchmarks/bev_input.py``)
+    bev-soft   ``bev`` with each return shared between the two columns nearest its azimuth,
+               in proportion to how near it lies to each one's centre (linear in azimuth); a
+               cell shows the largest share any return gives it, from ``empty_value`` (none)
+               to 1 (a return on its centre line). Under a turn the ``bev`` image keeps a
+               return in its column until it jumps to the next; this one moves with the
+               turn, and equals the ``bev`` image rolled when the turn is whole columns
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
 :mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
@@ -65,14 +71,15 @@ from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_referenc
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
-Mode = Literal["elevation", "rows", "common", "structure", "bev"]
-MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", "bev")
+Mode = Literal["elevation", "rows", "common", "structure", "bev", "bev-soft"]
+MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", "bev", "bev-soft")
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
+BEV_MODES = ("bev", "bev-soft")  # the bird's-eye inputs: rows of rings × height bands
 # the modes every scan goes through, the model's own sensor's too (none is taken natively)
-ALL_SCANS_MODES = (*COMMON_MODES, "bev")
+ALL_SCANS_MODES = (*COMMON_MODES, *BEV_MODES)
 # the modes that level a scan and move it to the reference mount's height (their ground is
 # that mount's): the others take scans as recorded
-LEVELLED_MODES = ("structure", "bev")
+LEVELLED_MODES = ("structure", *BEV_MODES)
 COMMON_SENSOR = "vlp16"  # the sparsest spinning sensor of the catalogue: 16 beams, 2° apart
 COMMON_TOLERANCE_DEG = 0.5
 GROUND_CLEARANCE = 0.3  # m above the reference mount's ground: below it, ``structure`` drops
@@ -165,7 +172,7 @@ class SensorInput:
 
     def __post_init__(self) -> None:
         check_mode(self.mode)
-        if self.mode == "bev":
+        if self.mode in BEV_MODES:
             bev_rows(self.model)
         if self.mode in COMMON_MODES and not common_beams(self.sensor).size:
             raise ValueError(
@@ -186,7 +193,7 @@ class SensorInput:
 
     @property
     def kind(self) -> str:
-        """native, elevation, rows, common, structure or bev: what this pairing actually
+        """native, elevation, rows, common, structure, bev or bev-soft: what this pairing
         does (with ``+mount`` when the scan is first moved to the model's mount)."""
         own = self.sensor.profile() == self.model and self.mode not in ALL_SCANS_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
@@ -200,8 +207,10 @@ class SensorInput:
     def rows(self) -> np.ndarray:
         """(H,) the beam each model row shows (−1: empty); in the common modes, the common
         sensor's beam. The ``bev`` input's rows are rings and height bands, not beams."""
-        if self.mode == "bev":
-            raise ValueError("the bev input's rows are rings of range × height bands, not beams")
+        if self.mode in BEV_MODES:
+            raise ValueError(
+                f"the {self.mode} input's rows are rings of range × height bands, not beams"
+            )
         if self.mode in COMMON_MODES:
             return row_beams(self.model, CATALOGUE[COMMON_SENSOR], "elevation")
         return row_beams(self.model, self.sensor, self.mode)
@@ -213,12 +222,13 @@ class SensorInput:
         key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
         if self.mode in COMMON_MODES:
             key["common"] = {"sensor": COMMON_SENSOR, "tolerance_deg": COMMON_TOLERANCE_DEG}
-        if self.mode == "bev":
+        if self.mode in BEV_MODES:
             key["bev"] = {
                 "bands_m": list(BEV_BANDS),
                 "rings": BEV_RINGS,
                 "ground_m": REFERENCE_HEIGHT,
                 "max_range_m": COMMON_MAX_RANGE,
+                **({"cells": "soft"} if self.mode == "bev-soft" else {}),
             }
         if self.mode == "structure":
             key["structure"] = {
@@ -232,10 +242,10 @@ class SensorInput:
 
     def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
         """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
-        if self.mode == "bev":
+        if self.mode in BEV_MODES:
             xyz = _xyz(points)
             xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
-            return project_bev(xyz, self.model, views)
+            return project_bev(xyz, self.model, views, soft=self.mode == "bev-soft")
         if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -280,9 +290,11 @@ def project_bev(
     views: int,
     bands: tuple[float, ...] = BEV_BANDS,
     rings: int = BEV_RINGS,
+    soft: bool = False,
 ) -> np.ndarray:
-    """(N, 3) levelled points at the reference height → (views, H, W) ``bev`` images
-    (``bands`` and ``rings``: the input's own unless a benchmark measures others)."""
+    """(N, 3) levelled points at the reference height → (views, H, W) ``bev`` images, or
+    ``bev-soft`` ones with ``soft`` (``bands`` and ``rings``: the input's own unless a
+    benchmark measures others)."""
     views = check_views(views)
     bev_rows(model, bands, rings)
     xyz = np.asarray(xyz, np.float32)
@@ -298,12 +310,33 @@ def project_bev(
     band = np.searchsorted(edges, z, side="right") - 1
     row = ring.astype(np.int64) * (len(edges) - 1) + band
     u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
+    if soft:
+        return _soft_cells(u, row, model, views)
     out = np.full((views, model.height, model.width), np.float32(model.empty_value), np.float32)
     for j in range(views):
         col = np.floor(u + np.float32(j / views) if j else u).astype(np.int64)
         col = np.clip(col, 0, model.width - 1) if j == 0 else col % model.width
         out[j, row, col] = 1.0
     return out
+
+
+def _soft_cells(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
+    """``bev-soft``'s cells from the returns' columns ``u`` (continuous, column c spanning
+    [c, c + 1)) and rows: each return gives the two columns whose centres lie either side of
+    it 1 − its distance to each centre, in columns; a cell keeps the largest, scaled from
+    ``empty_value`` (0) to 1. The columns wrap round: azimuth is a circle."""
+    W = model.width
+    share = np.zeros((views, model.height * W), np.float32)
+    for j in range(views):
+        at = u + np.float32(j / views - 0.5)  # from the centre of column 0
+        left = np.floor(at)
+        right_share = (at - left).astype(np.float32)
+        left_col = left.astype(np.int64) % W
+        np.maximum.at(share[j], row * W + left_col, np.float32(1.0) - right_share)
+        np.maximum.at(share[j], row * W + (left_col + 1) % W, right_share)
+    empty = np.float32(model.empty_value)
+    cells = np.where(share > 0, empty + share * (np.float32(1.0) - empty), empty)
+    return cells.reshape(views, model.height, W).astype(np.float32, copy=False)
 
 
 def _project_beams(
@@ -375,10 +408,14 @@ def project_input_reference(
     return image
 
 
-def project_bev_reference(points: PointCloud | np.ndarray, model: SensorProfile) -> np.ndarray:
-    """Slow, obvious ``bev`` image (one view, no mount) for tests: per point, its height
-    above the reference ground, its ring of horizontal range and its column."""
-    image = np.full((model.height, model.width), np.float32(model.empty_value), np.float32)
+def project_bev_reference(
+    points: PointCloud | np.ndarray, model: SensorProfile, soft: bool = False
+) -> np.ndarray:
+    """Slow, obvious ``bev`` (or with ``soft``, ``bev-soft``) image (one view, no mount) for
+    tests: per point, its height above the reference ground, its ring of horizontal range
+    and its column (soft: its two nearest column centres and its share of each)."""
+    empty = np.float32(model.empty_value)
+    image = np.full((model.height, model.width), empty, np.float32)
     nb = len(BEV_BANDS) - 1
     for x, y, z in np.asarray(_xyz(points), np.float32):
         depth = np.sqrt(x * x + y * y + z * z)
@@ -391,7 +428,18 @@ def project_bev_reference(points: PointCloud | np.ndarray, model: SensorProfile)
         scale = np.float32(BEV_RINGS / COMMON_MAX_RANGE)
         ring = min(int(np.sqrt(x * x + y * y) * scale), BEV_RINGS - 1)
         u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-        image[ring * nb + band, min(max(int(np.floor(u)), 0), model.width - 1)] = 1.0
+        row = ring * nb + band
+        if not soft:
+            image[row, min(max(int(np.floor(u)), 0), model.width - 1)] = 1.0
+            continue
+        at = u - np.float32(0.5)
+        for col, share in (
+            (np.floor(at), np.float32(1.0) - (at - np.floor(at))),
+            (np.floor(at) + 1, at - np.floor(at)),
+        ):
+            if share > 0:
+                cell = empty + np.float32(share) * (np.float32(1.0) - empty)
+                image[row, int(col) % model.width] = max(image[row, int(col) % model.width], cell)
     return image
 
 
