@@ -52,17 +52,15 @@ def loop_fingerprint(town: Path) -> tuple[str, str]:
 
 
 def _loop_table(town: Path) -> tuple[Any, str]:
-    """``town``'s loop table and the fingerprint its scans give it (the profile chosen as
-    ``overlapmamba.train.evaluate.sequence_loops`` chooses it)."""
+    """``town``'s loop table and the fingerprint its scans give it
+    (``overlapmamba.train.evaluate.shipped_loops``, as evaluation checks it)."""
     from overlapmamba.core.datasets import open_sequence
-    from overlapmamba.core.overlap import LoopGroundTruth, LoopParams, loop_params
-    from overlapmamba.core.sensors import get_profile
+    from overlapmamba.train.evaluate import shipped_loops
 
-    seq = open_sequence(town)
-    gt = LoopGroundTruth.load(town / "ground_truth" / "loops.npz")
-    profile = get_profile(seq.sensor or "kitti-hdl64")
-    params = loop_params(seq, profile, LoopParams.of(gt.params))
-    return gt, str(params["fingerprint"])
+    found = shipped_loops(open_sequence(town))
+    if found is None:
+        raise SystemExit(f"{town}: no loop table (ground_truth/loops.npz)")
+    return found
 
 
 def pack(towns: list[str], carry: Path) -> None:

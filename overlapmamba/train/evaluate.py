@@ -119,14 +119,29 @@ def sequence_loops(
     sequence's own sensor's profile (the one its table was written with), whatever model is
     evaluated; a sequence that names no sensor in ``fallback`` (the model's profile, as its
     scans are then projected), else KITTI's."""
-    profile = get_profile(seq.sensor) if seq.sensor else fallback or get_profile("kitti-hdl64")
-    shipped = seq.root / "ground_truth" / "loops.npz"
-    if shipped.is_file():
-        gt = LoopGroundTruth.load(shipped)
-        params = loop_params(seq, profile, LoopParams.of(gt.params))
-        if params["fingerprint"] == gt.params.get("fingerprint"):
-            return gt
-    return loop_ground_truth(seq, profile, progress=progress)
+    shipped = shipped_loops(seq, fallback)
+    if shipped is not None and shipped[0].params.get("fingerprint") == shipped[1]:
+        return shipped[0]
+    return loop_ground_truth(seq, _loop_profile(seq, fallback), progress=progress)
+
+
+def _loop_profile(seq: Sequence, fallback: SensorProfile | None) -> SensorProfile:
+    return get_profile(seq.sensor) if seq.sensor else fallback or get_profile("kitti-hdl64")
+
+
+def shipped_loops(
+    seq: Sequence, fallback: SensorProfile | None = None
+) -> tuple[LoopGroundTruth, str] | None:
+    """The loop table a sequence's writer shipped (``ground_truth/loops.npz``), and the
+    fingerprint its scans give that table's parameters here (in the profile
+    :func:`sequence_loops` measures overlap in): the table stands for the scans when the two
+    agree. None without a table."""
+    path = seq.root / "ground_truth" / "loops.npz"
+    if not path.is_file():
+        return None
+    gt = LoopGroundTruth.load(path)
+    params = loop_params(seq, _loop_profile(seq, fallback), LoopParams.of(gt.params))
+    return gt, str(params["fingerprint"])
 
 
 def loop_closure(
