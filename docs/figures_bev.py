@@ -20,7 +20,8 @@ BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-r
 BEV_BEAMS = "reports/model/bev-beams.json"
 BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
 BEV_SOFT_RUNS = tuple(
-    f"reports/model/{n}.json" for n in ("bev-soft-pilot", "bev-thin-pilot-control")
+    f"reports/model/{n}.json"
+    for n in ("bev-soft-pilot", "bev-span-pilot", "bev-thin-pilot-control")
 )
 # each network → its eval-real reports on KITTI 00 and on nuScenes
 BEV_SOFT_REAL = {
@@ -30,7 +31,13 @@ BEV_SOFT_REAL = {
         "bev-control-real-nuscenes",
     ),
     "`bev-soft-pilot`, epoch 1 (bev-soft)": ("bev-soft-real-kitti", "bev-soft-real-nuscenes"),
+    "`bev-span-pilot`, epoch 1 (bev-span)": ("bev-span-real-kitti", "bev-span-real-nuscenes"),
+    "`bev-span-pilot`, epoch 0, the run's pick (bev-span)": (
+        "bev-span-best-real-kitti",
+        "bev-span-best-real-nuscenes",
+    ),
 }
+BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_REAL = {
     "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
@@ -96,8 +103,9 @@ def bev_input() -> str:
 
 
 def bev_soft() -> str:
-    """bev-long's network continued for one short epoch on the bev-soft input and on bev (the
-    control), by epoch; then each on real scans under random continuous turns."""
+    """bev-long's network continued for one short epoch on the bev-soft and bev-span inputs
+    and on bev (the control), by epoch; then each on real scans under random continuous
+    turns."""
     runs = [load(path) for path in BEV_SOFT_RUNS]
     out = "".join(
         source(p, r["command"], when(r)) for p, r in zip(BEV_SOFT_RUNS, runs, strict=True)
@@ -137,6 +145,12 @@ def bev_soft() -> str:
     return out + "\n" + table(head, rows)
 
 
+def bev_span_beams() -> str:
+    """The bev-span pilot's pick across sensors on the sensor test town, beside bev-long (on
+    bev), the shipped weights and Scan Context on the same pairs."""
+    return beams_table([BEV_SPAN_BEAMS, BEV_BEAMS])
+
+
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
@@ -144,4 +158,5 @@ RENDERERS = {
     "bev-beams": bev_beams,
     "bev-pilot": bev_pilot,
     "bev-soft": bev_soft,
+    "bev-span-beams": bev_span_beams,
 }

@@ -55,11 +55,44 @@ def test_fast_bev_projection_matches_the_reference(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+def test_fast_span_projection_matches_the_reference(seed):
+    xyz = _cloud(3000, seed)
+    xyz[:, 2] = np.random.default_rng(seed).uniform(-2.0, 2.5, len(xyz))
+    xyz[:5, :2] = [[20.0, -0.01], [20.0, 0.01], [-20.0, 0.02], [-20.0, -0.02], [-20.0, 0.0]]
+    got = SensorInput(KITTI, CATALOGUE["os1-128"], "bev-span").project(xyz)[0]
+    np.testing.assert_allclose(got, project_bev_reference(xyz, KITTI, "bev-span"), atol=1e-6)
+    hard = project_bev_reference(xyz, KITTI)
+    assert ((hard > 0) <= (got > KITTI.empty_value)).all() and got.max() == 1.0
+
+
+def _strip(step_deg: float, r: float = 20.0, z: float = 0.0) -> np.ndarray:
+    """Returns off a wall ``r`` m away, one every ``step_deg`` of azimuth over 10°–14°."""
+    az = np.radians(np.arange(10.0, 14.0, step_deg))
+    return np.stack([r * np.cos(az), r * np.sin(az), np.full(len(az), z)], -1)
+
+
+def test_a_span_reads_a_surface_whole_however_densely_it_is_sampled():
+    """A wall sampled every 0.05° and every 0.3° (under the 0.4° column): bev-span fills the
+    same cells, whole (1) but where the returns end; bev-soft's cells read lower where fewer
+    returns fall in them."""
+    span, soft = (SensorInput.own(KITTI, m) for m in ("bev-span", "bev-soft"))
+    dense, sparse = _strip(0.05), _strip(0.3)
+    a, b = span.project(dense)[0], span.project(sparse)[0]
+    filled = _cells(a + 1.0)
+    assert filled == _cells(b + 1.0)
+    inner = sorted(c for _, c in filled)[2:-2]
+    row = next(iter(filled))[0]
+    assert (a[row, inner] == 1.0).all() and (b[row, inner] == 1.0).all()
+    s_dense, s_sparse = soft.project(dense)[0], soft.project(sparse)[0]
+    assert s_sparse[row, inner].mean() < s_dense[row, inner].mean() - 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 1])
 def test_fast_soft_projection_matches_the_reference(seed):
     xyz = _cloud(3000, seed)
     xyz[:, 2] = np.random.default_rng(seed).uniform(-2.0, 2.5, len(xyz))
     got = SensorInput(KITTI, CATALOGUE["os1-128"], "bev-soft").project(xyz)[0]
-    np.testing.assert_array_equal(got, project_bev_reference(xyz, KITTI, soft=True))
+    np.testing.assert_array_equal(got, project_bev_reference(xyz, KITTI, "bev-soft"))
     hard = project_bev_reference(xyz, KITTI)
     # every occupied bev cell is occupied here too, with the neighbours its returns share
     assert ((hard > 0) <= (got > KITTI.empty_value)).all()
@@ -73,14 +106,15 @@ def _turned(xyz: np.ndarray, columns: float) -> np.ndarray:
     return xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
 
 
-def test_a_soft_image_moves_with_a_turn_where_a_bev_image_jumps():
-    """A turn by a tenth of a column changes no bev-soft cell by more than a tenth of the
-    cell range (so the network sees a small change for a small turn), while bev cells flip
-    whole; a turn by whole columns rolls the soft image as it rolls the bev one."""
+@pytest.mark.parametrize("mode", ["bev-soft", "bev-span"])
+def test_a_soft_image_moves_with_a_turn_where_a_bev_image_jumps(mode):
+    """A turn by a tenth of a column changes no bev-soft or bev-span cell by more than a
+    tenth of the cell range (so the network sees a small change for a small turn), while bev
+    cells flip whole; a turn by whole columns rolls them as it rolls the bev one."""
     xyz = _cloud(3000, 7)
     xyz[:, 2] = np.random.default_rng(7).uniform(-1.4, 1.2, len(xyz))
     full = np.float32(1.0 - KITTI.empty_value)
-    soft, bev = (SensorInput.own(KITTI, m) for m in ("bev-soft", "bev"))
+    soft, bev = (SensorInput.own(KITTI, m) for m in (mode, "bev"))
     a, b = soft.project(xyz)[0], soft.project(_turned(xyz, 0.1))[0]
     assert np.abs(a - b).max() <= 0.1 * full + 1e-3 and np.abs(a - b).max() > 0.05 * full
     jumps = np.abs(bev.project(xyz)[0] - bev.project(_turned(xyz, 0.1))[0]).max()
@@ -159,6 +193,7 @@ def test_every_scan_goes_through_it_and_caches_apart():
     assert soft.key()["bev"] == {**key["bev"], "cells": "soft"} and soft.key() != key
     with pytest.raises(ValueError, match="bev-soft input's rows are rings"):
         soft.rows()
+    assert SensorInput.own(KITTI, "bev-span").key()["bev"] == {**key["bev"], "cells": "span"}
     assert (
         SensorInput(KITTI, CATALOGUE["vlp16"], "bev-soft", Mount(height=0.5)).kind
         == "bev-soft+mount"

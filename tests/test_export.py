@@ -454,3 +454,5 @@ def test_a_bev_network_is_verified_on_images_of_its_own_input():
     shared = soft[soft != PROFILE.empty_value]
     assert 0.05 < shared.size / soft.size < 0.15 and PROFILE.empty_value < shared.min()
     assert shared.max() <= 1.0 and len(np.unique(shared)) > 100  # shares, not just 1
+    span = verification_images(PROFILE, count=2, seed=3, sensor_input="bev-span")
+    np.testing.assert_array_equal(span, soft)

@@ -206,8 +206,9 @@ def export_cmd(
             help="how scans become the model's input (overlapmamba.core.sensors.input): "
             "elevation, rows, common (every sensor's scan, the model's own too, thinned to "
             "common beams), structure (common, above the ground, within 50 m), bev (a polar "
-            "bird's-eye occupancy of every scan) or bev-soft (bev, each return shared between "
-            "its two nearest columns); default: the "
+            "bird's-eye occupancy of every scan), bev-soft (bev, each return shared between "
+            "its two nearest columns) or bev-span (bev, each cell how much of its column its "
+            "returns' spans cover); default: the "
             "network's own (a .pt's config, an .onnx's metadata)",
         ),
     ] = None,

@@ -85,8 +85,9 @@ class EncoderMetadata(BaseModel):
         description="how a scan of another sensor than the profile's becomes this model's "
         "input (overlapmamba.core.sensors.input): elevation, rows, common (every sensor, the "
         "profile's own too, thinned to common beams), structure (common, above the ground "
-        "and within a common range), bev (a polar bird's-eye occupancy of every scan) or bev-soft "
-        "(bev, each return shared between its two nearest columns); part of the model id",
+        "and within a common range), bev (a polar bird's-eye occupancy of every scan), bev-soft "
+        "(bev, each return shared between its two nearest columns) or bev-span (bev, each cell "
+        "how much of its column its returns' spans cover); part of the model id",
     )
     calibration: dict[str, Calibrated] = Field(
         default_factory=dict,

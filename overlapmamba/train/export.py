@@ -243,14 +243,14 @@ def verification_images(
     profile: SensorProfile, count: int = 3, seed: int = 0, sensor_input: str = "elevation"
 ) -> np.ndarray:
     """Random images with empty pixels, the value range of the model's real inputs: ranges
-    for a range image, occupied cells (1; ``bev-soft``: a share from empty to 1) for the
-    bird's-eye inputs, whose networks never see a range and amplify one far beyond the
-    tolerance's scale."""
+    for a range image, occupied cells for the bird's-eye inputs (1; ``bev-soft``,
+    ``bev-span``: a share from empty to 1), whose networks never see a range and amplify one
+    far beyond the tolerance's scale."""
     rng = np.random.default_rng(seed)
     shape = (count, 1, profile.height, profile.width)
     if sensor_input in BEV_MODES:
         img = np.ones(shape, np.float32)
-        if sensor_input == "bev-soft":
+        if sensor_input != "bev":  # bev-soft, bev-span: shares of a cell
             img = rng.uniform(profile.empty_value, 1.0, shape).astype(np.float32)
         img[rng.random(shape) < 0.9] = profile.empty_value  # a scan fills a few % of cells
         return img

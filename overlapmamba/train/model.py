@@ -58,8 +58,8 @@ class OverlapMambaConfig(Config):
     # sensor_input): elevation (the profile's own sensor natively, others by elevation),
     # rows, common (every sensor, the profile's own too, thinned to common beams),
     # structure (common, above the ground and within a common range), bev (rows: rings of
-    # range × height bands, a polar bird's-eye occupancy of every scan) or bev-soft (bev, each
-    # return shared between its two nearest columns, so the image moves with a turn)
+    # range × height bands, a polar bird's-eye occupancy of every scan), bev-soft or bev-span
+    # (bev's cells shared between columns, so the image moves with a turn: core.sensors.bev)
     sensor_input: str = "elevation"
     # reference (the reference code's layers: on 64 rows the descriptor sees rows 0–26 only)
     # or all-rows (every row reaches it): _backbone

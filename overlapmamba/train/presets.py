@@ -62,7 +62,8 @@ otherwise.
   ``bev-thin-pilot`` continues ``bev-long``'s network for one short epoch with the sensor
   term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
 - ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
-  its two nearest columns).
+  its two nearest columns), ``bev-span-pilot`` on ``bev-span`` (each cell: how much of its
+  column its returns' spans cover).
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -104,6 +105,7 @@ from overlapmamba.train.sensor_recipes import (
     BEV_MODEL,
     BEV_SOFT_MODEL,
     BEV_SOFT_PILOT,
+    BEV_SPAN_MODEL,
     BEV_THIN_PILOT,
     BEV_THIN_PILOT_CONTROL,
     COMMON,
@@ -370,6 +372,14 @@ PRESETS: dict[str, TrainPreset] = {
             "bev-soft-pilot",
             "bev-thin-pilot-control on the bev-soft input (cells shared between columns)",
             model=BEV_SOFT_MODEL,
+            train=BEV_SOFT_PILOT,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-span-pilot",
+            "bev-thin-pilot-control on the bev-span input (cells: their returns' spans)",
+            model=BEV_SPAN_MODEL,
             train=BEV_SOFT_PILOT,
             data=COMMON_DATA,
             val=SENSOR_VAL,

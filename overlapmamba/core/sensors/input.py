@@ -39,12 +39,11 @@
                beyond :data:`COMMON_MAX_RANGE` in range). Its layout measured against
                others by a hand-made spectrum on the validation drive and its renderings
                (``benchmarks/bev_input.py``)
-    bev-soft   ``bev`` with each return shared between the two columns nearest its azimuth,
-               in proportion to how near it lies to each one's centre (linear in azimuth); a
-               cell shows the largest share any return gives it, from ``empty_value`` (none)
-               to 1 (a return on its centre line). Under a turn the ``bev`` image keeps a
-               return in its column until it jumps to the next; this one moves with the
-               turn, and equals the ``bev`` image rolled when the turn is whole columns
+    bev-soft   ``bev`` with each return shared between the two columns nearest its azimuth
+    bev-span   ``bev`` with each cell showing how much of its column its returns' spans (a
+               column wide each) cover. Under a turn a ``bev`` image keeps a return in its
+               column until it jumps to the next; these two move with the turn
+               (:mod:`overlapmamba.core.sensors.bev` says what their cells show)
 
 A scan whose sensor sits elsewhere than the model's did (``mount``: height and tilt,
 :mod:`overlapmamba.core.sensors.mount`) is first levelled and moved to the model's height, in
@@ -66,15 +65,15 @@ from typing import Literal
 import numpy as np
 
 from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors.bev import BEV_MODES, bev_cells, cells_reference
 from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views
 
-Mode = Literal["elevation", "rows", "common", "structure", "bev", "bev-soft"]
-MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", "bev", "bev-soft")
+Mode = Literal["elevation", "rows", "common", "structure", "bev", "bev-soft", "bev-span"]
+MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", *BEV_MODES)
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
-BEV_MODES = ("bev", "bev-soft")  # the bird's-eye inputs: rows of rings × height bands
 # the modes every scan goes through, the model's own sensor's too (none is taken natively)
 ALL_SCANS_MODES = (*COMMON_MODES, *BEV_MODES)
 # the modes that level a scan and move it to the reference mount's height (their ground is
@@ -193,7 +192,7 @@ class SensorInput:
 
     @property
     def kind(self) -> str:
-        """native, elevation, rows, common, structure, bev or bev-soft: what this pairing
+        """native or the mode (elevation, rows, common, structure, bev…): what this pairing
         does (with ``+mount`` when the scan is first moved to the model's mount)."""
         own = self.sensor.profile() == self.model and self.mode not in ALL_SCANS_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
@@ -228,7 +227,7 @@ class SensorInput:
                 "rings": BEV_RINGS,
                 "ground_m": REFERENCE_HEIGHT,
                 "max_range_m": COMMON_MAX_RANGE,
-                **({"cells": "soft"} if self.mode == "bev-soft" else {}),
+                **({"cells": self.mode.removeprefix("bev-")} if self.mode != "bev" else {}),
             }
         if self.mode == "structure":
             key["structure"] = {
@@ -245,7 +244,7 @@ class SensorInput:
         if self.mode in BEV_MODES:
             xyz = _xyz(points)
             xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
-            return project_bev(xyz, self.model, views, soft=self.mode == "bev-soft")
+            return project_bev(xyz, self.model, views, mode=self.mode)
         if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -290,11 +289,11 @@ def project_bev(
     views: int,
     bands: tuple[float, ...] = BEV_BANDS,
     rings: int = BEV_RINGS,
-    soft: bool = False,
+    mode: str = "bev",
 ) -> np.ndarray:
-    """(N, 3) levelled points at the reference height → (views, H, W) ``bev`` images, or
-    ``bev-soft`` ones with ``soft`` (``bands`` and ``rings``: the input's own unless a
-    benchmark measures others)."""
+    """(N, 3) levelled points at the reference height → (views, H, W) images of the
+    bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
+    measures others)."""
     views = check_views(views)
     bev_rows(model, bands, rings)
     xyz = np.asarray(xyz, np.float32)
@@ -310,33 +309,7 @@ def project_bev(
     band = np.searchsorted(edges, z, side="right") - 1
     row = ring.astype(np.int64) * (len(edges) - 1) + band
     u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-    if soft:
-        return _soft_cells(u, row, model, views)
-    out = np.full((views, model.height, model.width), np.float32(model.empty_value), np.float32)
-    for j in range(views):
-        col = np.floor(u + np.float32(j / views) if j else u).astype(np.int64)
-        col = np.clip(col, 0, model.width - 1) if j == 0 else col % model.width
-        out[j, row, col] = 1.0
-    return out
-
-
-def _soft_cells(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
-    """``bev-soft``'s cells from the returns' columns ``u`` (continuous, column c spanning
-    [c, c + 1)) and rows: each return gives the two columns whose centres lie either side of
-    it 1 − its distance to each centre, in columns; a cell keeps the largest, scaled from
-    ``empty_value`` (0) to 1. The columns wrap round: azimuth is a circle."""
-    W = model.width
-    share = np.zeros((views, model.height * W), np.float32)
-    for j in range(views):
-        at = u + np.float32(j / views - 0.5)  # from the centre of column 0
-        left = np.floor(at)
-        right_share = (at - left).astype(np.float32)
-        left_col = left.astype(np.int64) % W
-        np.maximum.at(share[j], row * W + left_col, np.float32(1.0) - right_share)
-        np.maximum.at(share[j], row * W + (left_col + 1) % W, right_share)
-    empty = np.float32(model.empty_value)
-    cells = np.where(share > 0, empty + share * (np.float32(1.0) - empty), empty)
-    return cells.reshape(views, model.height, W).astype(np.float32, copy=False)
+    return bev_cells(u, row, model, views, mode)
 
 
 def _project_beams(
@@ -409,13 +382,12 @@ def project_input_reference(
 
 
 def project_bev_reference(
-    points: PointCloud | np.ndarray, model: SensorProfile, soft: bool = False
+    points: PointCloud | np.ndarray, model: SensorProfile, mode: str = "bev"
 ) -> np.ndarray:
-    """Slow, obvious ``bev`` (or with ``soft``, ``bev-soft``) image (one view, no mount) for
-    tests: per point, its height above the reference ground, its ring of horizontal range
-    and its column (soft: its two nearest column centres and its share of each)."""
-    empty = np.float32(model.empty_value)
-    image = np.full((model.height, model.width), empty, np.float32)
+    """Slow, obvious image of the bird's-eye input ``mode`` (one view, no mount) for tests:
+    per point, its height above the reference ground, its ring of horizontal range and its
+    column, then :func:`~overlapmamba.core.sensors.bev.cells_reference`."""
+    us, rows = [], []
     nb = len(BEV_BANDS) - 1
     for x, y, z in np.asarray(_xyz(points), np.float32):
         depth = np.sqrt(x * x + y * y + z * z)
@@ -428,19 +400,9 @@ def project_bev_reference(
         scale = np.float32(BEV_RINGS / COMMON_MAX_RANGE)
         ring = min(int(np.sqrt(x * x + y * y) * scale), BEV_RINGS - 1)
         u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-        row = ring * nb + band
-        if not soft:
-            image[row, min(max(int(np.floor(u)), 0), model.width - 1)] = 1.0
-            continue
-        at = u - np.float32(0.5)
-        for col, share in (
-            (np.floor(at), np.float32(1.0) - (at - np.floor(at))),
-            (np.floor(at) + 1, at - np.floor(at)),
-        ):
-            if share > 0:
-                cell = empty + np.float32(share) * (np.float32(1.0) - empty)
-                image[row, int(col) % model.width] = max(image[row, int(col) % model.width], cell)
-    return image
+        rows.append(ring * nb + band)
+        us.append(u)
+    return cells_reference(np.array(us, np.float32), np.array(rows, np.int64), model, mode)
 
 
 def _nearest(el: float, table: np.ndarray) -> int:

@@ -1,0 +1,156 @@
+"""The cells of the bird's-eye inputs: from each return's row (ring × band) and its column as a
+continuous number (column c spans [c, c + 1); :func:`overlapmamba.core.sensors.input.project_bev`
+finds both), what each cell of a (views, H, W) image shows. Sub-column view j moves every return
+j/views of a column on; empty cells are the profile's ``empty_value``, a full one 1.
+
+    bev        occupied: 1 where any return falls in the cell
+    bev-soft   shared: each return gives the two columns whose centres lie either side of it
+               1 − its distance to each centre; a cell shows the largest share it is given. It
+               moves with a turn, but a cell's value grows with how many returns it holds
+    bev-span   spanned: each return spans one column's width centred on it, and a cell shows
+               how much of its column the union of its returns' spans covers. It moves with a
+               turn as ``bev-soft`` does, and a surface sampled at least once a column reads 1
+               however densely it is sampled: only where the returns end does the value fall
+
+The columns wrap round (azimuth is a circle) in ``bev-soft`` and ``bev-span``; ``bev``'s first
+view clips, as the range images do. :func:`cells_reference` is the slow per-return version for
+tests.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from overlapmamba.core.sensors.profile import SensorProfile
+
+BEV_MODES = ("bev", "bev-soft", "bev-span")  # the bird's-eye inputs: rows of rings × bands
+
+
+def bev_cells(
+    u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int, mode: str
+) -> np.ndarray:
+    """(views, H, W) float32 cells of ``mode`` (one of :data:`BEV_MODES`) from the returns'
+    continuous columns ``u`` (N,) float32 and rows ``row`` (N,) int."""
+    if mode == "bev":
+        return _occupied(u, row, model, views)
+    if mode == "bev-soft":
+        return _scaled(_shared(u, row, model, views), model)
+    if mode == "bev-span":
+        return _scaled(_spanned(u, row, model, views), model)
+    raise ValueError(f"{mode!r} is not a bird's-eye input; allowed: {', '.join(BEV_MODES)}")
+
+
+def _occupied(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
+    out = np.full((views, model.height, model.width), np.float32(model.empty_value), np.float32)
+    for j in range(views):
+        col = np.floor(u + np.float32(j / views) if j else u).astype(np.int64)
+        col = np.clip(col, 0, model.width - 1) if j == 0 else col % model.width
+        out[j, row, col] = 1.0
+    return out
+
+
+def _scaled(share: np.ndarray, model: SensorProfile) -> np.ndarray:
+    """Shares in [0, 1] → cells: 0 empty, else from ``empty_value`` up to 1."""
+    empty = np.float32(model.empty_value)
+    cells = np.where(share > 0, empty + share.astype(np.float32) * (np.float32(1.0) - empty), empty)
+    return cells.reshape(-1, model.height, model.width).astype(np.float32, copy=False)
+
+
+def _shared(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
+    W = model.width
+    share = np.zeros((views, model.height * W), np.float32)
+    for j in range(views):
+        at = u + np.float32(j / views - 0.5)  # from the centre of column 0
+        left = np.floor(at)
+        right_share = (at - left).astype(np.float32)
+        left_col = left.astype(np.int64) % W
+        np.maximum.at(share[j], row * W + left_col, np.float32(1.0) - right_share)
+        np.maximum.at(share[j], row * W + (left_col + 1) % W, right_share)
+    return share
+
+
+def _spanned(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
+    """Per view and row, the union of the returns' spans [u − ½, u + ½) (a return within half a
+    column of the seam also spans the other side), and each column's share of it."""
+    H, W = model.height, model.width
+    row = np.asarray(row, np.int64)
+    cover = np.zeros((views, H, W), np.float64)
+    for j in range(views):
+        at = (np.asarray(u, np.float64) + j / views) % W
+        seam_lo, seam_hi = at < 0.5, at > W - 0.5
+        at = np.concatenate([at, at[seam_lo] + W, at[seam_hi] - W])
+        rows = np.concatenate([row, row[seam_lo], row[seam_hi]])
+        if not len(at):
+            continue
+        # the rows laid end to end on one line, far enough apart that no span joins two
+        line = at + rows * (W + 4.0)
+        order = np.argsort(line, kind="stable")
+        line, rows = line[order], rows[order]
+        reach = np.maximum.accumulate(line + 0.5)  # the furthest any span so far ends
+        first = np.ones(len(line), bool)
+        first[1:] = line[1:] - 0.5 > reach[:-1]  # a span that starts past every earlier end
+        starts = np.flatnonzero(first)
+        ends = np.append(starts[1:], len(line)) - 1
+        offset = rows[starts] * (W + 4.0)
+        lo = np.clip(line[starts] - 0.5 - offset, 0.0, W)
+        hi = np.clip(reach[ends] - offset, 0.0, W)
+        _add_spans(cover[j], rows[starts], lo, hi)
+    return np.minimum(cover, 1.0)
+
+
+def _add_spans(cover: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Add to ``cover`` (H, W) how much of each column the disjoint spans [lo, hi) of ``rows``
+    cover: the partial columns at each end, and 1 for every column between."""
+    H, W = cover.shape
+    c0 = np.minimum(np.floor(lo).astype(np.int64), W - 1)
+    c1 = np.floor(hi).astype(np.int64)
+    one = c0 == c1
+    np.add.at(cover, (rows[one], c0[one]), hi[one] - lo[one])
+    many = ~one
+    np.add.at(cover, (rows[many], c0[many]), c0[many] + 1 - lo[many])
+    tail = many & (c1 < W)
+    np.add.at(cover, (rows[tail], c1[tail]), hi[tail] - c1[tail])
+    between = np.zeros((H, W + 1), np.float64)
+    np.add.at(between, (rows[many], c0[many] + 1), 1.0)
+    np.add.at(between, (rows[many], c1[many]), -1.0)
+    cover += np.cumsum(between, axis=1)[:, :W]
+
+
+def cells_reference(u: np.ndarray, row: np.ndarray, model: SensorProfile, mode: str) -> np.ndarray:
+    """Slow, obvious (H, W) cells of ``mode`` (one view) for tests: return by return, and for
+    ``bev-span`` span by span and column by column."""
+    H, W = model.height, model.width
+    share = np.zeros((H, W), np.float64)
+    spans: dict[int, list[tuple[float, float]]] = {}
+    for ui, r in zip(np.asarray(u, np.float32), np.asarray(row), strict=True):
+        r = int(r)
+        if mode == "bev":
+            share[r, min(max(int(np.floor(ui)), 0), W - 1)] = 1.0
+        elif mode == "bev-soft":
+            at = ui - np.float32(0.5)
+            right = np.float32(at - np.floor(at))
+            for col, s in (
+                (int(np.floor(at)), np.float32(1.0) - right),
+                (int(np.floor(at)) + 1, right),
+            ):
+                share[r, col % W] = max(share[r, col % W], float(s))
+        else:
+            x = float(ui) % W
+            for a in (x, x + W, x - W):  # itself, and across the seam
+                spans.setdefault(r, []).append((a - 0.5, a + 0.5))
+    for r, row_spans in spans.items():
+        merged: list[list[float]] = []
+        for a, b in sorted(row_spans):
+            if merged and a <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        for a, b in merged:
+            for col in range(W):
+                share[r, col] += max(0.0, min(b, col + 1.0) - max(a, float(col)))
+    share = np.minimum(share, 1.0)
+    if mode == "bev":
+        out = np.full((H, W), np.float32(model.empty_value), np.float32)
+        out[share > 0] = 1.0
+        return out
+    return _scaled(share, model)[0]
