@@ -21,7 +21,13 @@ BEV_BEAMS = "reports/model/bev-beams.json"
 BEV_PILOT = tuple(f"reports/model/{n}.json" for n in ("bev-thin-pilot", "bev-thin-pilot-control"))
 BEV_SOFT_RUNS = tuple(
     f"reports/model/{n}.json"
-    for n in ("bev-soft-pilot", "bev-span-pilot", "bev-thin-pilot-control")
+    for n in (
+        "bev-soft-pilot",
+        "bev-span-pilot",
+        "bev-thin-pilot-control",
+        "bev-span-thin-pilot",
+        "bev-thin-pilot",
+    )
 )
 # each network → its eval-real reports on KITTI 00 and on nuScenes
 BEV_SOFT_REAL = {
@@ -32,12 +38,21 @@ BEV_SOFT_REAL = {
     ),
     "`bev-soft-pilot`, epoch 1 (bev-soft)": ("bev-soft-real-kitti", "bev-soft-real-nuscenes"),
     "`bev-span-pilot`, epoch 1 (bev-span)": ("bev-span-real-kitti", "bev-span-real-nuscenes"),
+    "`bev-thin-pilot`, epoch 1 (bev, sensor term)": (
+        "bev-thin-real-kitti",
+        "bev-thin-real-nuscenes",
+    ),
+    "`bev-span-thin-pilot`, epoch 1 (bev-span, sensor term)": (
+        "bev-span-thin-real-kitti",
+        "bev-span-thin-real-nuscenes",
+    ),
     "`bev-span-pilot`, epoch 0, the run's pick (bev-span)": (
         "bev-span-best-real-kitti",
         "bev-span-best-real-nuscenes",
     ),
 }
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
+BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
     "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
@@ -104,14 +119,21 @@ def bev_input() -> str:
 
 def bev_soft() -> str:
     """bev-long's network continued for one short epoch on the bev-soft and bev-span inputs
-    and on bev (the control), by epoch; then each on real scans under random continuous
-    turns."""
+    and on bev (the control), and on bev-span and bev with the sparser-sensor term, by epoch;
+    then each on real scans under random continuous turns."""
     runs = [load(path) for path in BEV_SOFT_RUNS]
     out = "".join(
         source(p, r["command"], when(r)) for p, r in zip(BEV_SOFT_RUNS, runs, strict=True)
     )
     out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
-    out += "".join(planned(r, f"input `{r['model_config']['sensor_input']}`") for r in runs)
+    out += "".join(
+        planned(
+            r,
+            f"input `{r['model_config']['sensor_input']}`, "
+            f"sensor term weight {r['train_config']['look_weight']:g}",
+        )
+        for r in runs
+    )
     head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
     out += "\n" + table(["run", *head], rows) + "\n"
     real = {
@@ -146,9 +168,10 @@ def bev_soft() -> str:
 
 
 def bev_span_beams() -> str:
-    """The bev-span pilot's pick across sensors on the sensor test town, beside bev-long (on
-    bev), the shipped weights and Scan Context on the same pairs."""
-    return beams_table([BEV_SPAN_BEAMS, BEV_BEAMS])
+    """The picks of the bev-span pilots (with and without the sparser-sensor term) across
+    sensors on the sensor test town, beside bev-long (on bev), the shipped weights and Scan
+    Context on the same pairs."""
+    return beams_table([BEV_SPAN_THIN_BEAMS, BEV_SPAN_BEAMS, BEV_BEAMS])
 
 
 RENDERERS = {

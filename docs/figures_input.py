@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shlex
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from figures_kit import ROOT, f3, load, source, table, when
@@ -268,6 +269,12 @@ def structure_beams() -> str:
     return beams_table([STRUCTURE_BEAMS])
 
 
+def _run_of(report: dict[str, Any]) -> str:
+    """The run a ``common_beams.py`` report measured: its ``--model``'s folder."""
+    args = shlex.split(report["command"])
+    return Path(args[args.index("--model") + 1]).parent.name
+
+
 def beams_table(paths: list[str]) -> str:
     nets, shipped, sensors = [load(p) for p in paths], load(COMMON_BEAMS), load(SENSORS)
     done = [*zip(paths, nets, strict=True), (COMMON_BEAMS, shipped), (SENSORS, sensors)]
@@ -276,7 +283,8 @@ def beams_table(paths: list[str]) -> str:
         (a["query_sensor"], a["map_sensor"]): a["scan_context"] for a in sensors["across_sensors"]
     }
     named = ", ".join(
-        f"`{r['model_id']}` ({r['views']} view a scan, input `{r['sensor_input']}`)" for r in nets
+        f"`{r['model_id']}` ({_run_of(r)}: {r['views']} view a scan, input `{r['sensor_input']}`)"
+        for r in nets
     )
     out += (
         f"\n{named}: the descriptor alone, against the shipped weights as served (elevation) "
@@ -299,7 +307,7 @@ def beams_table(paths: list[str]) -> str:
         head = [
             "queries",
             "map",
-            *(f"{r['sensor_input']} network" for r in nets),
+            *(f"`{_run_of(r)}` ({r['sensor_input']})" for r in nets),
             "shipped, as served",
             "shipped, common beams",
         ]

@@ -63,7 +63,9 @@ otherwise.
   term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
 - ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
   its two nearest columns), ``bev-span-pilot`` on ``bev-span`` (each cell: how much of its
-  column its returns' spans cover).
+  column its returns' spans cover), ``bev-span-thin-pilot`` ``bev-thin-pilot`` on
+  ``bev-span``; ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
+  lent GPU.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -106,6 +108,7 @@ from overlapmamba.train.sensor_recipes import (
     BEV_SOFT_MODEL,
     BEV_SOFT_PILOT,
     BEV_SPAN_MODEL,
+    BEV_SPAN_THIN_LONG,
     BEV_THIN_PILOT,
     BEV_THIN_PILOT_CONTROL,
     COMMON,
@@ -385,6 +388,22 @@ PRESETS: dict[str, TrainPreset] = {
             val=SENSOR_VAL,
         ),
         TrainPreset(
+            "bev-span-thin-pilot",
+            "bev-thin-pilot on the bev-span input (the sparser-sensor term with the new cells)",
+            model=BEV_SPAN_MODEL,
+            train=BEV_THIN_PILOT,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-span-thin-long",
+            "bev-long on bev-span with the sparser-sensor term, for a lent GPU",
+            model=BEV_SPAN_MODEL,
+            train=BEV_SPAN_THIN_LONG,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
             model=_OT,
@@ -411,6 +430,7 @@ for _name in (
     "sensors-towns",
     "sensors-towns-car",
     "bev-long",
+    "bev-span-thin-long",
 ):
     _p = PRESETS[_name]  # every field the base's but these (a field added later follows too)
     PRESETS[_name + "-s1"] = replace(

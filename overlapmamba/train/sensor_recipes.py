@@ -160,3 +160,6 @@ BEV_SOFT_PILOT = BEV_THIN_PILOT_CONTROL
 # The same on bev-span (each cell: how much of its column its returns' one-column spans
 # cover), whose cells do not depend on how densely a surface is sampled where bev-soft's do.
 BEV_SPAN_MODEL = {**BEV_MODEL, "sensor_input": "bev-span"}
+# What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
+# sparser-sensor term (bev-thin-pilot's weight and scans).
+BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
