@@ -16,6 +16,7 @@ from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import CATALOGUE, SensorProfile, get_profile
 from overlapmamba.core.sensors.input import (
     BEV_BANDS,
+    BEV_MODES,
     BEV_RINGS,
     COMMON_MAX_RANGE,
     SensorInput,
@@ -168,6 +169,14 @@ def test_a_low_mount_is_levelled_onto_the_reference_ground():
     assert _cells(robot_in.project(road)[0]) == set()
     assert _cells(SensorInput(KITTI, CATALOGUE["vlp16"], "bev").project(road)[0])  # unlevelled
     assert robot_in.kind == "bev+mount"
+
+
+def test_the_modes_type_names_every_mode():
+    from typing import get_args
+
+    from overlapmamba.core.sensors.input import MODES, Mode
+
+    assert get_args(Mode) == MODES and set(BEV_MODES) <= set(MODES)
 
 
 def test_every_scan_goes_through_it_and_caches_apart():

@@ -156,7 +156,6 @@ BEV_THIN_PILOT_CONTROL = {**BEV_THIN_PILOT, "look_weight": 0.0}
 # with a turn instead of jumping a column): bev-long's network continued on it with
 # bev-thin-pilot-control's recipe (whose network continued on bev).
 BEV_SOFT_MODEL = {**BEV_MODEL, "sensor_input": "bev-soft"}
-BEV_SOFT_PILOT = BEV_THIN_PILOT_CONTROL
 # The same on bev-span (each cell: how much of its column its returns' one-column spans
 # cover), whose cells do not depend on how densely a surface is sampled where bev-soft's do.
 BEV_SPAN_MODEL = {**BEV_MODEL, "sensor_input": "bev-span"}
