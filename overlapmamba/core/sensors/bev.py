@@ -146,7 +146,7 @@ def cells_reference(u: np.ndarray, row: np.ndarray, model: SensorProfile, mode: 
             else:
                 merged.append([a, b])
         for a, b in merged:
-            for col in range(W):
+            for col in range(max(0, int(np.floor(a))), min(W, int(np.ceil(b)))):
                 share[r, col] += max(0.0, min(b, col + 1.0) - max(a, float(col)))
     share = np.minimum(share, 1.0)
     if mode == "bev":
