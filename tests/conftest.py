@@ -55,6 +55,20 @@ def kitti_seq_dir() -> Path:
     return _need("kitti00_0000-0100")
 
 
+def kitti_head(kitti_dir: Path, out: Path, frames: int) -> Path:
+    """The first ``frames`` scans of a KITTI sequence folder as a sequence of their own in
+    ``out`` (scans linked, poses cut, calibration copied): a real drive small enough for a
+    test that runs a whole evaluation over it."""
+    (out / "velodyne").mkdir(parents=True)
+    for i in range(frames):
+        name = f"{i:06d}.bin"
+        (out / "velodyne" / name).symlink_to(kitti_dir / "velodyne" / name)
+    lines = (kitti_dir / "poses.txt").read_text().splitlines()[:frames]
+    (out / "poses.txt").write_text("\n".join(lines) + "\n")
+    shutil.copy(kitti_dir / "calib.txt", out / "calib.txt")
+    return out
+
+
 @pytest.fixture(scope="session")
 def kitti_reference_dir() -> Path:
     return _need("kitti00_overlapnet_reference")

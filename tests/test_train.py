@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("embreex")
 
-from conftest import SMALL_MODEL, save_random_checkpoint, small_run  # noqa: E402
+from conftest import SMALL_MODEL, kitti_head, save_random_checkpoint, small_run  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from overlapmamba.cli import app  # noqa: E402
@@ -268,10 +268,13 @@ def test_eval_real_thins_the_queries_to_fewer_rings(kitti_seq_dir, tmp_path):
     save_random_checkpoint(tmp_path / "random.pt", **SMALL)
     out = tmp_path / "real.json"
     args = ["eval-real", "--checkpoint", str(tmp_path / "random.pt"), "--sequence"]
-    result = runner.invoke(app, [*args, str(kitti_seq_dir), "--beams", "32,16", "--json", str(out)])
+    head = kitti_head(kitti_seq_dir, tmp_path / "head", 24)  # the whole evaluation, on less
+    result = runner.invoke(app, [*args, str(head), "--beams", "32,16", "--json", str(out)])
     assert result.exit_code == 0, result.output
     assert "16 rings, declared" in result.output
-    thin = json.loads(out.read_text())["thinned"]
+    report = json.loads(out.read_text())
+    assert report["scans"] == 24 and report["retrieval_odd_to_even"]["queries"] == 12
+    thin = report["thinned"]
     assert set(thin) == {"32", "16"} and thin["16"]["points_kept"] < thin["32"]["points_kept"]
     for t in thin.values():
         assert t["undeclared"]["input"] == "native" and t["declared"]["input"] != "native"
