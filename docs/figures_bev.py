@@ -4,6 +4,8 @@ command wrote (``docs/render.py`` pastes them; nothing here types a measured num
 
 from __future__ import annotations
 
+from typing import Any
+
 from figures_input import (
     EPOCH_COLUMNS,
     STRUCTURE_BEAMS,
@@ -51,6 +53,24 @@ BEV_SOFT_REAL = {
         "bev-span-best-real-nuscenes",
     ),
 }
+BEV_HEAVY_RUNS = tuple(
+    f"reports/model/{n}.json" for n in ("bev-span-thin-pilot", "bev-span-heavy-pilot")
+)
+BEV_HEAVY_REAL = {
+    "`bev-span-thin-pilot`, epoch 1 (sensor term weight 1)": (
+        "bev-span-thin-real-kitti",
+        "bev-span-thin-real-nuscenes",
+    ),
+    "`bev-span-heavy-pilot`, epoch 1 (sensor term weight 4)": (
+        "bev-span-heavy-real-kitti",
+        "bev-span-heavy-real-nuscenes",
+    ),
+}
+# (control, with the sensor term) for seed 0 and seed 1
+BEV_SPAN_SEEDS = tuple(
+    (f"reports/model/bev-span-pilot{s}.json", f"reports/model/bev-span-thin-pilot{s}.json")
+    for s in ("", "-s1")
+)
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
@@ -136,16 +156,22 @@ def bev_soft() -> str:
     )
     head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
     out += "\n" + table(["run", *head], rows) + "\n"
+    return out + real_table(BEV_SOFT_REAL)
+
+
+def real_table(networks: dict[str, tuple[str, ...]]) -> str:
+    """Each network's eval-real reports (label → report names): invariance under random
+    continuous turns, odd → even retrieval, and thinned queries against whole scans."""
     real = {
         label: [(f"reports/model/{n}.json", load(f"reports/model/{n}.json")) for n in names]
-        for label, names in BEV_SOFT_REAL.items()
+        for label, names in networks.items()
     }
-    out += "".join(source(p, r["command"], when(r)) for rs in real.values() for p, r in rs)
+    out = "".join(source(p, r["command"], when(r)) for rs in real.values() for p, r in rs)
     rows = []
     for label, reports in real.items():
         for _, r in reports:
             y, q = r["yaw_invariance"], r["retrieval_odd_to_even"]
-            thin = r.get("thinned", {})
+            thin = r.get("thinned", {}).values()
             rows.append(
                 [
                     label,
@@ -153,7 +179,8 @@ def bev_soft() -> str:
                     f"{y['cosine_min']:.5f} / {y['cosine_mean']:.5f}",
                     f"{y['turned_over_one_metre_step']:.3f}",
                     f"{f3(q['recall@1'])} / {f3(q['scan_context']['recall@1'])}",
-                    " / ".join(f3(t["declared"]["recall@1"]) for t in thin.values()) or "—",
+                    " / ".join(f3(t["declared"]["recall@1"]) for t in thin) or "—",
+                    " / ".join(f3(t["declared"]["cosine_to_full"]["median"]) for t in thin) or "—",
                 ]
             )
     head = [
@@ -163,6 +190,7 @@ def bev_soft() -> str:
         "turned copy / 1 m step",
         "odd→even R@1 / Scan Context's",
         "thinned to 32 / 16 rings, R@1",
+        "thinned to 32 / 16, median cosine to the whole scan",
     ]
     return out + "\n" + table(head, rows)
 
@@ -174,6 +202,49 @@ def bev_span_beams() -> str:
     return beams_table([BEV_SPAN_THIN_BEAMS, BEV_SPAN_BEAMS, BEV_BEAMS])
 
 
+def bev_heavy() -> str:
+    """bev-span-thin-pilot and the same with the sparser-sensor term four times as heavy:
+    by epoch, then each one's epoch 1 on real scans."""
+    runs = [load(path) for path in BEV_HEAVY_RUNS]
+    out = "".join(
+        source(p, r["command"], when(r)) for p, r in zip(BEV_HEAVY_RUNS, runs, strict=True)
+    )
+    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
+    out += "".join(
+        planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
+    )
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    out += "\n" + table(["run", *head], rows) + "\n"
+    return out + real_table(BEV_HEAVY_REAL)
+
+
+def bev_span_seeds() -> str:
+    """bev-span-pilot and bev-span-thin-pilot with seeds 0 and 1: each run's epoch 1, the
+    term's difference from its control by seed, and that difference's mean."""
+    pairs = [tuple(load(p) for p in pair) for pair in BEV_SPAN_SEEDS]
+    paths = [p for pair in BEV_SPAN_SEEDS for p in pair]
+    runs = [r for pair in pairs for r in pair]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
+    names = list(runs[0]["epochs"][0]["val_sensors"])
+
+    def values(r: dict[str, Any]) -> list[float]:
+        e = next(e for e in r["epochs"] if e["epoch"] == 1)
+        cross = [e["val_sensors"][n]["cross"]["f1max"] for n in names]
+        return [e["score"], e["val"]["all"]["f1max"], *cross]
+
+    rows, gains = [], []
+    for seed, (control, term) in enumerate(pairs):
+        a, b = values(control), values(term)
+        gains.append([y - x for x, y in zip(a, b, strict=True)])
+        for r, v in ((control, a), (term, b)):
+            rows.append([str(seed), f"`{r['run'].split('/')[-1]}`", *map(f3, v)])
+        rows.append([str(seed), "term − control", *(f"{g:+.3f}" for g in gains[-1])])
+    mean = [sum(col) / len(col) for col in zip(*gains, strict=True)]
+    rows.append(["both", "term − control, mean", *(f"{g:+.3f}" for g in mean)])
+    head = ["seed", "run (epoch 1)", "score", "val F1max", *[f"{n} across" for n in names]]
+    return out + "\n" + table(head, rows)
+
+
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
@@ -182,4 +253,6 @@ RENDERERS = {
     "bev-pilot": bev_pilot,
     "bev-soft": bev_soft,
     "bev-span-beams": bev_span_beams,
+    "bev-heavy": bev_heavy,
+    "bev-span-seeds": bev_span_seeds,
 }

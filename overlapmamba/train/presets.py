@@ -64,7 +64,11 @@ otherwise.
 - ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
   its two nearest columns), ``bev-span-pilot`` on ``bev-span`` (each cell: how much of its
   column its returns' spans cover), ``bev-span-thin-pilot`` ``bev-thin-pilot`` on
-  ``bev-span``; ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
+  ``bev-span`` (these two also with seed 1, ``-s1``: whether the term's gain is more than
+  a seed's), ``bev-span-heavy-pilot`` the same with the term four times as heavy,
+  ``bev-span-renders-pilot`` with train-b's renderings by three other sensors in its data
+  (the same places seen by other sensors, on other mounts, as positives);
+  ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
   lent GPU.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
@@ -103,6 +107,7 @@ from overlapmamba.train.recipes import (
 )
 from overlapmamba.train.sensor_recipes import (
     BEV,
+    BEV_HEAVY_PILOT,
     BEV_LONG,
     BEV_MODEL,
     BEV_SOFT_MODEL,
@@ -395,6 +400,22 @@ PRESETS: dict[str, TrainPreset] = {
             val=SENSOR_VAL,
         ),
         TrainPreset(
+            "bev-span-heavy-pilot",
+            "bev-span-thin-pilot with the sparser-sensor term at weight 4",
+            model=BEV_SPAN_MODEL,
+            train=BEV_HEAVY_PILOT,
+            data=COMMON_DATA,
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-span-renders-pilot",
+            "bev-span-thin-pilot with train-b's renderings by three other sensors added",
+            model=BEV_SPAN_MODEL,
+            train=BEV_THIN_PILOT,
+            data=(*COMMON_DATA, *TRAIN_B_RENDERINGS),
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
             "bev-span-thin-long",
             "bev-long on bev-span with the sparser-sensor term, for a lent GPU",
             model=BEV_SPAN_MODEL,
@@ -429,6 +450,8 @@ for _name in (
     "sensors-towns",
     "sensors-towns-car",
     "bev-long",
+    "bev-span-pilot",
+    "bev-span-thin-pilot",
     "bev-span-thin-long",
 ):
     _p = PRESETS[_name]  # every field the base's but these (a field added later follows too)

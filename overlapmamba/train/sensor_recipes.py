@@ -159,6 +159,10 @@ BEV_SOFT_MODEL = {**BEV_MODEL, "sensor_input": "bev-soft"}
 # The same on bev-span (each cell: how much of its column its returns' one-column spans
 # cover), whose cells do not depend on how densely a surface is sampled where bev-soft's do.
 BEV_SPAN_MODEL = {**BEV_MODEL, "sensor_input": "bev-span"}
+# bev-thin-pilot with the sensor term four times as heavy: whether pulling sparser copies
+# harder keeps closing the gap (at weight 1 a copy ends nearer its scan than the batch's
+# positives are, where a thinned real query must be nearer than scans a metre away).
+BEV_HEAVY_PILOT = {**BEV_THIN_PILOT, "look_weight": 4.0}
 # What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
 # sparser-sensor term (bev-thin-pilot's weight and scans).
 BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
