@@ -4,6 +4,7 @@ command wrote (``docs/render.py`` pastes them; nothing here types a measured num
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 from figures_input import (
@@ -159,7 +160,7 @@ def bev_soft() -> str:
     return out + real_table(BEV_SOFT_REAL)
 
 
-def real_table(networks: dict[str, tuple[str, ...]]) -> str:
+def real_table(networks: Mapping[str, tuple[str, ...]]) -> str:
     """Each network's eval-real reports (label → report names): invariance under random
     continuous turns, odd → even retrieval, and thinned queries against whole scans."""
     real = {
