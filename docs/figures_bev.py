@@ -72,6 +72,10 @@ BEV_SPAN_SEEDS = tuple(
     (f"reports/model/bev-span-pilot{s}.json", f"reports/model/bev-span-thin-pilot{s}.json")
     for s in ("", "-s1")
 )
+BEV_RENDERS_RUNS = tuple(
+    f"reports/model/{n}.json"
+    for n in ("bev-span-thin-pilot", "bev-span-thin-pilot-s1", "bev-span-renders-pilot")
+)
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
@@ -246,6 +250,29 @@ def bev_span_seeds() -> str:
     return out + "\n" + table(head, rows)
 
 
+def bev_renders() -> str:
+    """bev-span-thin-pilot (both seeds) and the same with train-b's renderings by three
+    other sensors in its data, by epoch."""
+    runs = [load(path) for path in BEV_RENDERS_RUNS]
+    out = "".join(
+        source(p, r["command"], when(r)) for p, r in zip(BEV_RENDERS_RUNS, runs, strict=True)
+    )
+    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
+    out += "".join(planned(r, f"seed {r['train_config']['seed']}") for r in runs)
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    out += "\n" + table(["run", *head], rows)
+    out += "\nEpoch 1's health numbers, the epoch's mean (`d(q,p)`, `d(q,n)`: squared distances "
+    out += "to positives and negatives; active: the share of hinges that still cost):\n\n"
+    keys = ("d_pos", "d_neg", "separation", "active")
+    health = [
+        [f"`{r['run'].split('/')[-1]}`", *(f3(e["health"][k]) for k in keys)]
+        for r in runs
+        for e in r["epochs"]
+        if e["epoch"] == 1
+    ]
+    return out + table(["run", "d(q,p)", "d(q,n)", "separation", "active"], health)
+
+
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
@@ -256,4 +283,5 @@ RENDERERS = {
     "bev-span-beams": bev_span_beams,
     "bev-heavy": bev_heavy,
     "bev-span-seeds": bev_span_seeds,
+    "bev-renders": bev_renders,
 }

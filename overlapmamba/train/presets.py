@@ -67,7 +67,8 @@ otherwise.
   ``bev-span`` (these two also with seed 1, ``-s1``: whether the term's gain is more than
   a seed's), ``bev-span-heavy-pilot`` the same with the term four times as heavy,
   ``bev-span-renders-pilot`` with train-b's renderings by three other sensors in its data
-  (the same places seen by other sensors, on other mounts, as positives);
+  (the same places seen by other sensors, on other mounts, as positives),
+  ``bev-span-thin-more`` ``bev-span-thin-pilot``'s pick continued for a second epoch;
   ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
   lent GPU.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
@@ -113,6 +114,7 @@ from overlapmamba.train.sensor_recipes import (
     BEV_SOFT_MODEL,
     BEV_SPAN_MODEL,
     BEV_SPAN_THIN_LONG,
+    BEV_SPAN_THIN_MORE,
     BEV_THIN_PILOT,
     BEV_THIN_PILOT_CONTROL,
     COMMON,
@@ -413,6 +415,14 @@ PRESETS: dict[str, TrainPreset] = {
             model=BEV_SPAN_MODEL,
             train=BEV_THIN_PILOT,
             data=(*COMMON_DATA, *TRAIN_B_RENDERINGS),
+            val=SENSOR_VAL,
+        ),
+        TrainPreset(
+            "bev-span-thin-more",
+            "bev-span-thin-pilot's pick, a second short epoch by the same recipe",
+            model=BEV_SPAN_MODEL,
+            train=BEV_SPAN_THIN_MORE,
+            data=COMMON_DATA,
             val=SENSOR_VAL,
         ),
         TrainPreset(

@@ -163,6 +163,9 @@ BEV_SPAN_MODEL = {**BEV_MODEL, "sensor_input": "bev-span"}
 # harder keeps closing the gap (at weight 1 a copy ends nearer its scan than the batch's
 # positives are, where a thinned real query must be nearer than scans a metre away).
 BEV_HEAVY_PILOT = {**BEV_THIN_PILOT, "look_weight": 4.0}
+# bev-span-thin-pilot's pick continued for a second short epoch by the same recipe: whether
+# the term's gains keep growing with more steps.
+BEV_SPAN_THIN_MORE = {**BEV_THIN_PILOT, "init": "runs/bev-span-thin-pilot/best.pt"}
 # What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
 # sparser-sensor term (bev-thin-pilot's weight and scans).
 BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
