@@ -1,6 +1,8 @@
-"""Tables on the bird's-eye inputs (``bev``, ``bev-soft``): their layouts, the networks
-trained on them, how those read real scans and other sensors, each rendered from the JSON a
-command wrote (``docs/render.py`` pastes them; nothing here types a measured number)."""
+"""Tables on the bird's-eye inputs (``bev``, ``bev-soft``, ``bev-span``): their layouts, the
+networks trained on them and the pilots that continued those (the sensor term's weight, its
+seeds, more data, more steps), how they read real scans and other sensors, each rendered
+from the JSON a command wrote (``docs/render.py`` pastes them; nothing here types a
+measured number)."""
 
 from __future__ import annotations
 
@@ -76,6 +78,19 @@ BEV_RENDERS_RUNS = tuple(
     f"reports/model/{n}.json"
     for n in ("bev-span-thin-pilot", "bev-span-thin-pilot-s1", "bev-span-renders-pilot")
 )
+BEV_MORE_RUNS = tuple(
+    f"reports/model/{n}.json" for n in ("bev-span-thin-pilot", "bev-span-thin-more")
+)
+BEV_MORE_REAL = {
+    "`bev-span-thin-pilot`, epoch 1 (one epoch)": (
+        "bev-span-thin-real-kitti",
+        "bev-span-thin-real-nuscenes",
+    ),
+    "`bev-span-thin-more`, epoch 1 (two epochs)": (
+        "bev-span-thin-more-real-kitti",
+        "bev-span-thin-more-real-nuscenes",
+    ),
+}
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
@@ -273,6 +288,22 @@ def bev_renders() -> str:
     return out + table(["run", "d(q,p)", "d(q,n)", "separation", "active"], health)
 
 
+def bev_more() -> str:
+    """bev-span-thin-pilot and its pick continued for a second short epoch by the same
+    recipe: by epoch, then each one's last epoch on real scans."""
+    runs = [load(path) for path in BEV_MORE_RUNS]
+    out = "".join(
+        source(p, r["command"], when(r)) for p, r in zip(BEV_MORE_RUNS, runs, strict=True)
+    )
+    out += (
+        "\nEpoch 0 is the network the run starts from (`bev-long`'s, then "
+        "`bev-span-thin-pilot`'s pick), batch norm recalibrated. " + EPOCH_COLUMNS
+    )
+    out += "".join(planned(r, f"starts from `{r['train_config']['init']}`") for r in runs)
+    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
+    return out + "\n" + table(["run", *head], rows) + "\n" + real_table(BEV_MORE_REAL)
+
+
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
@@ -284,4 +315,5 @@ RENDERERS = {
     "bev-heavy": bev_heavy,
     "bev-span-seeds": bev_span_seeds,
     "bev-renders": bev_renders,
+    "bev-more": bev_more,
 }
