@@ -6,7 +6,7 @@ measured number)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from figures_input import (
@@ -35,6 +35,7 @@ BEV_SOFT_RUNS = tuple(
     )
 )
 # each network → its eval-real reports on KITTI 00 and on nuScenes
+SPAN_THIN_REAL = ("bev-span-thin-real-kitti", "bev-span-thin-real-nuscenes")
 BEV_SOFT_REAL = {
     "`bev-long` (bev)": ("bev-real-kitti", "bev-real-nuscenes"),
     "`bev-thin-pilot-control`, epoch 1 (bev)": (
@@ -47,10 +48,7 @@ BEV_SOFT_REAL = {
         "bev-thin-real-kitti",
         "bev-thin-real-nuscenes",
     ),
-    "`bev-span-thin-pilot`, epoch 1 (bev-span, sensor term)": (
-        "bev-span-thin-real-kitti",
-        "bev-span-thin-real-nuscenes",
-    ),
+    "`bev-span-thin-pilot`, epoch 1 (bev-span, sensor term)": SPAN_THIN_REAL,
     "`bev-span-pilot`, epoch 0, the run's pick (bev-span)": (
         "bev-span-best-real-kitti",
         "bev-span-best-real-nuscenes",
@@ -60,10 +58,7 @@ BEV_HEAVY_RUNS = tuple(
     f"reports/model/{n}.json" for n in ("bev-span-thin-pilot", "bev-span-heavy-pilot")
 )
 BEV_HEAVY_REAL = {
-    "`bev-span-thin-pilot`, epoch 1 (sensor term weight 1)": (
-        "bev-span-thin-real-kitti",
-        "bev-span-thin-real-nuscenes",
-    ),
+    "`bev-span-thin-pilot`, epoch 1 (sensor term weight 1)": SPAN_THIN_REAL,
     "`bev-span-heavy-pilot`, epoch 1 (sensor term weight 4)": (
         "bev-span-heavy-real-kitti",
         "bev-span-heavy-real-nuscenes",
@@ -82,10 +77,7 @@ BEV_MORE_RUNS = tuple(
     f"reports/model/{n}.json" for n in ("bev-span-thin-pilot", "bev-span-thin-more")
 )
 BEV_MORE_REAL = {
-    "`bev-span-thin-pilot`, epoch 1 (one epoch)": (
-        "bev-span-thin-real-kitti",
-        "bev-span-thin-real-nuscenes",
-    ),
+    "`bev-span-thin-pilot`, epoch 1 (one epoch)": SPAN_THIN_REAL,
     "`bev-span-thin-more`, epoch 1 (two epochs)": (
         "bev-span-thin-more-real-kitti",
         "bev-span-thin-more-real-nuscenes",
@@ -97,6 +89,29 @@ BEV_REAL = {
     "reports/model/bev-real-kitti.json": "KITTI 00, frames 0–100",
     "reports/model/bev-real-nuscenes.json": "nuScenes scene-0061",
 }
+
+
+START = "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. "
+
+
+def _name(r: dict[str, Any]) -> str:
+    return f"`{r['run'].split('/')[-1]}`"
+
+
+def pilot_epochs(
+    paths: tuple[str, ...], what: Callable[[dict[str, Any]], str], start: str = START
+) -> tuple[list[dict[str, Any]], str]:
+    """The run reports ``paths`` → (the reports, their sources, what epoch 0 is
+    (``start``), each run's plan (``what`` it is) and a table of every run's epochs)."""
+    runs = [load(path) for path in paths]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
+    out += start + EPOCH_COLUMNS + "".join(planned(r, what(r)) for r in runs)
+    head, rows = epoch_rows(runs, _name)
+    return runs, out + "\n" + table(["run", *head], rows)
+
+
+def _weight(r: dict[str, Any]) -> str:
+    return f"sensor term weight {r['train_config']['look_weight']:g}"
 
 
 def bev_gpu() -> str:
@@ -119,14 +134,7 @@ def bev_beams() -> str:
 def bev_pilot() -> str:
     """bev-long's network continued for one short epoch with the sparser-sensor term, and
     without it (the control)."""
-    runs = [load(path) for path in BEV_PILOT]
-    out = "".join(source(p, r["command"], when(r)) for p, r in zip(BEV_PILOT, runs, strict=True))
-    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
-    out += "".join(
-        planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
-    )
-    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    return out + "\n" + table(["run", *head], rows)
+    return pilot_epochs(BEV_PILOT, _weight)[1]
 
 
 def bev_input() -> str:
@@ -161,22 +169,10 @@ def bev_soft() -> str:
     """bev-long's network continued for one short epoch on the bev-soft and bev-span inputs
     and on bev (the control), and on bev-span and bev with the sparser-sensor term, by epoch;
     then each on real scans under random continuous turns."""
-    runs = [load(path) for path in BEV_SOFT_RUNS]
-    out = "".join(
-        source(p, r["command"], when(r)) for p, r in zip(BEV_SOFT_RUNS, runs, strict=True)
+    _, out = pilot_epochs(
+        BEV_SOFT_RUNS, lambda r: f"input `{r['model_config']['sensor_input']}`, " + _weight(r)
     )
-    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
-    out += "".join(
-        planned(
-            r,
-            f"input `{r['model_config']['sensor_input']}`, "
-            f"sensor term weight {r['train_config']['look_weight']:g}",
-        )
-        for r in runs
-    )
-    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    out += "\n" + table(["run", *head], rows) + "\n"
-    return out + real_table(BEV_SOFT_REAL)
+    return out + "\n" + real_table(BEV_SOFT_REAL)
 
 
 def real_table(networks: Mapping[str, tuple[str, ...]]) -> str:
@@ -225,17 +221,7 @@ def bev_span_beams() -> str:
 def bev_heavy() -> str:
     """bev-span-thin-pilot and the same with the sparser-sensor term four times as heavy:
     by epoch, then each one's epoch 1 on real scans."""
-    runs = [load(path) for path in BEV_HEAVY_RUNS]
-    out = "".join(
-        source(p, r["command"], when(r)) for p, r in zip(BEV_HEAVY_RUNS, runs, strict=True)
-    )
-    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
-    out += "".join(
-        planned(r, f"sensor term weight {r['train_config']['look_weight']:g}") for r in runs
-    )
-    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    out += "\n" + table(["run", *head], rows) + "\n"
-    return out + real_table(BEV_HEAVY_REAL)
+    return pilot_epochs(BEV_HEAVY_RUNS, _weight)[1] + "\n" + real_table(BEV_HEAVY_REAL)
 
 
 def bev_span_seeds() -> str:
@@ -257,7 +243,7 @@ def bev_span_seeds() -> str:
         a, b = values(control), values(term)
         gains.append([y - x for x, y in zip(a, b, strict=True)])
         for r, v in ((control, a), (term, b)):
-            rows.append([str(seed), f"`{r['run'].split('/')[-1]}`", *map(f3, v)])
+            rows.append([str(seed), _name(r), *map(f3, v)])
         rows.append([str(seed), "term − control", *(f"{g:+.3f}" for g in gains[-1])])
     mean = [sum(col) / len(col) for col in zip(*gains, strict=True)]
     rows.append(["both", "term − control, mean", *(f"{g:+.3f}" for g in mean)])
@@ -268,19 +254,12 @@ def bev_span_seeds() -> str:
 def bev_renders() -> str:
     """bev-span-thin-pilot (both seeds) and the same with train-b's renderings by three
     other sensors in its data, by epoch."""
-    runs = [load(path) for path in BEV_RENDERS_RUNS]
-    out = "".join(
-        source(p, r["command"], when(r)) for p, r in zip(BEV_RENDERS_RUNS, runs, strict=True)
-    )
-    out += "\nEpoch 0 is `bev-long`'s network, batch norm recalibrated. " + EPOCH_COLUMNS
-    out += "".join(planned(r, f"seed {r['train_config']['seed']}") for r in runs)
-    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    out += "\n" + table(["run", *head], rows)
+    runs, out = pilot_epochs(BEV_RENDERS_RUNS, lambda r: f"seed {r['train_config']['seed']}")
     out += "\nEpoch 1's health numbers, the epoch's mean (`d(q,p)`, `d(q,n)`: squared distances "
     out += "to positives and negatives; active: the share of hinges that still cost):\n\n"
     keys = ("d_pos", "d_neg", "separation", "active")
     health = [
-        [f"`{r['run'].split('/')[-1]}`", *(f3(e["health"][k]) for k in keys)]
+        [_name(r), *(f3(e["health"][k]) for k in keys)]
         for r in runs
         for e in r["epochs"]
         if e["epoch"] == 1
@@ -291,17 +270,14 @@ def bev_renders() -> str:
 def bev_more() -> str:
     """bev-span-thin-pilot and its pick continued for a second short epoch by the same
     recipe: by epoch, then each one's last epoch on real scans."""
-    runs = [load(path) for path in BEV_MORE_RUNS]
-    out = "".join(
-        source(p, r["command"], when(r)) for p, r in zip(BEV_MORE_RUNS, runs, strict=True)
-    )
-    out += (
+    start = (
         "\nEpoch 0 is the network the run starts from (`bev-long`'s, then "
-        "`bev-span-thin-pilot`'s pick), batch norm recalibrated. " + EPOCH_COLUMNS
+        "`bev-span-thin-pilot`'s pick), batch norm recalibrated. "
     )
-    out += "".join(planned(r, f"starts from `{r['train_config']['init']}`") for r in runs)
-    head, rows = epoch_rows(runs, lambda r: f"`{r['run'].split('/')[-1]}`")
-    return out + "\n" + table(["run", *head], rows) + "\n" + real_table(BEV_MORE_REAL)
+    _, out = pilot_epochs(
+        BEV_MORE_RUNS, lambda r: f"starts from `{r['train_config']['init']}`", start
+    )
+    return out + "\n" + real_table(BEV_MORE_REAL)
 
 
 RENDERERS = {
