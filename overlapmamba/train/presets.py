@@ -26,51 +26,8 @@ otherwise.
   turned by a random continuous angle, and 100 × their squared distance to the unturned
   scans, in units of the batch's spread, joins the loss. Aimed at the minimum cosine under a
   continuous turn. ≈ 6 min an epoch here.
-- ``sensors-pilot`` continues the shipped network (as ``narrow-hn-turn`` does) on
-  ``train-b`` and its renderings by a robot's VLP-16, an AMR's OS0-128 and a backpack's XT32
-  (``gen-data data/synth/train-b-vlp16-robot --preset train-b-vlp16-robot`` and so on: no pair
-  tables of their own, the drive's serves them all), taking every sensor's scans as the
-  service does and emptying whole rows at random (``beam_dropout``); 3 epochs of 3,000
-  scans. ``sensors-pilot-control`` is the same continuation on ``train-b`` alone: what the
-  renderings add, at an equal budget. ``sensors-seen`` is the control with every sensor
-  simulated instead of rendered: half of the scans are seen as another catalogue sensor
-  would see them (``sensor_like``: its beams' rows of the image, its range limits), no
-  ``beam_dropout``. ``sensors-seen-far`` adds ``far_loss`` (far returns lost first, as the
-  other sensors' renderings lose them); ``sensors-seen-look`` adds the sensor term (each
-  batch's scans pulled towards their copies seen as another sensor, ``look_weight``;
-  ``sensors-seen-look-light`` at 0.3). Each but the last has a ``-s1`` twin: the same with
-  seed 1.
-  ``sensors-seen-turn`` adds the turn term (one pass a scan) and validates on
-  ``val-kitti-hdl64`` and its renderings by five other sensors, keeping the epoch with the
-  best mean over them all (``select_on = "sensors"``).
-- ``common-towns`` continues the shipped network on the ``common`` input (every sensor's
-  beams nearest the VLP-16's elevations, the HDL-64E's own too) on train-b and four drawn
-  towns, selected as ``sensors-seen-turn`` is, on four renderings; ``common-towns-slow`` at
-  a continuation's rate.
-- ``structure-towns`` trains from scratch on the ``structure`` input (common beams, only
-  what stands above the ground, within 50 m) on common-towns' towns, validation and
-  selection, with the issue's augmentations.
-- ``structure-long``, ``structure-many`` and ``structure-many-renders`` are
-  ``structure-towns`` for a lent GPU's window (``benchmarks/lent_gpu.py``): 40 epochs
-  planned, as many as the window allows run; on its five towns, on train-b and the twelve
-  drawn towns, and on those with train-b's renderings by three other sensors.
-  ``structure-all-rows-long`` is ``structure-long`` with every row reaching the descriptor
-  (the ``all-rows`` backbone).
-- ``bev-towns`` trains from scratch on the ``bev`` input (a polar bird's-eye occupancy of
-  every scan: rings of range × height bands in the rows) on structure-towns' towns,
-  validation and selection; ``bev-long`` (and ``bev-long-s1``, seed 1) for a lent GPU.
-  ``bev-thin-pilot`` continues ``bev-long``'s network for one short epoch with the sensor
-  term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
-- ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
-  its two nearest columns), ``bev-span-pilot`` on ``bev-span`` (each cell: how much of its
-  column its returns' spans cover), ``bev-span-thin-pilot`` ``bev-thin-pilot`` on
-  ``bev-span`` (these two also with seed 1, ``-s1``: whether the term's gain is more than
-  a seed's), ``bev-span-heavy-pilot`` the same with the term four times as heavy,
-  ``bev-span-renders-pilot`` with train-b's renderings by three other sensors in its data
-  (the same places seen by other sensors, on other mounts, as positives),
-  ``bev-span-thin-more`` ``bev-span-thin-pilot``'s pick continued for a second epoch;
-  ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
-  lent GPU.
+- ``sensors-*``, ``common-*``, ``structure-*`` and ``bev-*`` are the runs on several sensors
+  (issue 40), listed in :mod:`overlapmamba.train.sensor_recipes`.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
 - ``one-town`` is the default recipe on the first training town alone (the former data):
   what more places are worth at equal training time.
@@ -91,7 +48,7 @@ otherwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 from overlapmamba.train.augment import ROBUST
@@ -105,64 +62,16 @@ from overlapmamba.train.recipes import (
     NARROW_HN_AUG,
     OLD_LOSS,
     TURN,
+    TrainPreset,
 )
-from overlapmamba.train.sensor_recipes import (
-    BEV,
-    BEV_HEAVY_PILOT,
-    BEV_LONG,
-    BEV_MODEL,
-    BEV_SOFT_MODEL,
-    BEV_SPAN_MODEL,
-    BEV_SPAN_THIN_LONG,
-    BEV_SPAN_THIN_MORE,
-    BEV_THIN_PILOT,
-    BEV_THIN_PILOT_CONTROL,
-    COMMON,
-    COMMON_DATA,
-    COMMON_MODEL,
-    COMMON_SLOW,
-    MANY_TOWNS,
-    SENSOR_VAL,
-    SENSORS_PILOT,
-    SENSORS_PILOT_DATA,
-    SENSORS_SEEN,
-    SENSORS_SEEN_FAR,
-    SENSORS_SEEN_LOOK,
-    SENSORS_SEEN_LOOK_LIGHT,
-    SENSORS_SEEN_TURN,
-    SENSORS_TOWNS,
-    SENSORS_TOWNS_CAR_DATA,
-    SENSORS_TOWNS_DATA,
-    STRUCTURE,
-    STRUCTURE_ALL_ROWS_MODEL,
-    STRUCTURE_LONG,
-    STRUCTURE_MODEL,
-    TRAIN_B_RENDERINGS,
-)
+from overlapmamba.train.sensor_recipes import SENSOR_PRESETS
 
-TRAIN_DATA = (
-    "data/synth/train",
-    "data/synth/train-b",
-    "data/synth/train-c",
-    "data/synth/train-d",
-)
 ONE_TOWN = ("data/synth/train",)
-VAL_DATA = "data/synth/val"
 TEST_DATA = ("data/synth/test", "data/synth/test-b", "data/synth/test-c")
 SECOND_SESSION = "data/synth/test-s1"  # a second drive through TEST_DATA[0]
 # The run whose best.pt is exported to models/overlapmamba-hdl64.onnx (the model card says
 # why); the report marks its row "(shipped)" and checks it on real scans.
 SHIPPED = "narrow-hn"
-
-
-@dataclass(frozen=True)
-class TrainPreset:
-    name: str
-    description: str
-    model: dict[str, Any] = field(default_factory=dict)  # OverlapMambaConfig overrides
-    train: dict[str, Any] = field(default_factory=dict)  # TrainConfig overrides
-    data: tuple[str, ...] = TRAIN_DATA
-    val: str = VAL_DATA
 
 
 _OT = {"mixer": "transformer", "spp": False}
@@ -224,215 +133,7 @@ PRESETS: dict[str, TrainPreset] = {
             model=NARROW,
             train=TURN,
         ),
-        TrainPreset(
-            "sensors-pilot",
-            "the shipped network continued on train-b and three other sensors' renderings of it",
-            model=NARROW,
-            train=SENSORS_PILOT,
-            data=SENSORS_PILOT_DATA,
-        ),
-        TrainPreset(
-            "sensors-pilot-control",
-            "the same continuation on train-b alone (its own sensor)",
-            model=NARROW,
-            train={**SENSORS_PILOT, "any_sensor": False},
-            data=SENSORS_PILOT_DATA[:1],
-        ),
-        TrainPreset(
-            "sensors-seen",
-            "the same continuation on train-b alone, half its scans seen as another sensor",
-            model=NARROW,
-            train=SENSORS_SEEN,
-            data=SENSORS_PILOT_DATA[:1],
-        ),
-        TrainPreset(
-            "sensors-seen-look",
-            "sensors-seen with the sensor term (8 scans a batch pulled to their copy seen as "
-            "another sensor)",
-            model=NARROW,
-            train=SENSORS_SEEN_LOOK,
-            data=SENSORS_PILOT_DATA[:1],
-        ),
-        TrainPreset(
-            "sensors-seen-look-light",
-            "sensors-seen-look at look_weight 0.3",
-            model=NARROW,
-            train=SENSORS_SEEN_LOOK_LIGHT,
-            data=SENSORS_PILOT_DATA[:1],
-        ),
-        TrainPreset(
-            "sensors-seen-far",
-            "sensors-seen with far returns lost in proportion to range (far_loss 0.4)",
-            model=NARROW,
-            train=SENSORS_SEEN_FAR,
-            data=SENSORS_PILOT_DATA[:1],
-        ),
-        TrainPreset(
-            "sensors-towns",
-            "sensors-seen's budget on train-b and six drawn towns of other sensors and mounts",
-            model=NARROW,
-            train=SENSORS_TOWNS,
-            data=SENSORS_TOWNS_DATA,
-        ),
-        TrainPreset(
-            "sensors-towns-car",
-            "sensors-towns with every drawn town's sensor on a car's roof, level",
-            model=NARROW,
-            train=SENSORS_TOWNS,
-            data=SENSORS_TOWNS_CAR_DATA,
-        ),
-        TrainPreset(
-            "sensors-seen-turn",
-            "sensors-seen with the turn term, selected on every sensor's validation drive",
-            model=NARROW,
-            train=SENSORS_SEEN_TURN,
-            data=SENSORS_PILOT_DATA[:1],
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "common-towns",
-            "the shipped network continued on every sensor's common beams, five towns",
-            model=COMMON_MODEL,
-            train=COMMON,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "common-towns-slow",
-            "common-towns at a continuation's rate (3e-5)",
-            model=COMMON_MODEL,
-            train=COMMON_SLOW,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "structure-towns",
-            "from scratch on every sensor's common beams above the ground, five towns",
-            model=STRUCTURE_MODEL,
-            train=STRUCTURE,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "structure-long",
-            "structure-towns for a lent GPU's window (40 epochs planned)",
-            model=STRUCTURE_MODEL,
-            train=STRUCTURE_LONG,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "structure-many",
-            "structure-long on train-b and twelve drawn towns",
-            model=STRUCTURE_MODEL,
-            train=STRUCTURE_LONG,
-            data=MANY_TOWNS,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "structure-many-renders",
-            "structure-many with train-b's renderings by three other sensors",
-            model=STRUCTURE_MODEL,
-            train=STRUCTURE_LONG,
-            data=(*MANY_TOWNS, *TRAIN_B_RENDERINGS),
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "structure-all-rows-long",
-            "structure-long with every row reaching the descriptor (all-rows backbone)",
-            model=STRUCTURE_ALL_ROWS_MODEL,
-            train=STRUCTURE_LONG,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-towns",
-            "from scratch on the bev input (a polar bird's-eye occupancy), five towns",
-            model=BEV_MODEL,
-            train=BEV,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-long",
-            "bev-towns for a lent GPU's window (40 epochs planned)",
-            model=BEV_MODEL,
-            train=BEV_LONG,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-thin-pilot",
-            "bev-long's network, one short epoch with the sparser-sensor term",
-            model=BEV_MODEL,
-            train=BEV_THIN_PILOT,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-thin-pilot-control",
-            "bev-thin-pilot without the sparser-sensor term",
-            model=BEV_MODEL,
-            train=BEV_THIN_PILOT_CONTROL,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-soft-pilot",
-            "bev-thin-pilot-control on the bev-soft input (cells shared between columns)",
-            model=BEV_SOFT_MODEL,
-            train=BEV_THIN_PILOT_CONTROL,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-pilot",
-            "bev-thin-pilot-control on the bev-span input (cells: their returns' spans)",
-            model=BEV_SPAN_MODEL,
-            train=BEV_THIN_PILOT_CONTROL,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-thin-pilot",
-            "bev-thin-pilot on the bev-span input (the sparser-sensor term with the new cells)",
-            model=BEV_SPAN_MODEL,
-            train=BEV_THIN_PILOT,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-heavy-pilot",
-            "bev-span-thin-pilot with the sparser-sensor term at weight 4",
-            model=BEV_SPAN_MODEL,
-            train=BEV_HEAVY_PILOT,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-renders-pilot",
-            "bev-span-thin-pilot with train-b's renderings by three other sensors added",
-            model=BEV_SPAN_MODEL,
-            train=BEV_THIN_PILOT,
-            data=(*COMMON_DATA, *TRAIN_B_RENDERINGS),
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-thin-more",
-            "bev-span-thin-pilot's pick, a second short epoch by the same recipe",
-            model=BEV_SPAN_MODEL,
-            train=BEV_SPAN_THIN_MORE,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
-        TrainPreset(
-            "bev-span-thin-long",
-            "bev-long on bev-span with the sparser-sensor term, for a lent GPU",
-            model=BEV_SPAN_MODEL,
-            train=BEV_SPAN_THIN_LONG,
-            data=COMMON_DATA,
-            val=SENSOR_VAL,
-        ),
+        *SENSOR_PRESETS,
         TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",

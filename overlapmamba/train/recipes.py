@@ -1,8 +1,30 @@
 """The building blocks of the training presets (:mod:`overlapmamba.train.presets`): the
 narrow width, the shipped recipe's length, its augmentation, the band ranking, the turn term's
-continuation and the loss before issue 20."""
+continuation and the loss before issue 20; what a preset is (:class:`TrainPreset`)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+TRAIN_DATA = (
+    "data/synth/train",
+    "data/synth/train-b",
+    "data/synth/train-c",
+    "data/synth/train-d",
+)
+VAL_DATA = "data/synth/val"
+
+
+@dataclass(frozen=True)
+class TrainPreset:
+    name: str
+    description: str
+    model: dict[str, Any] = field(default_factory=dict)  # OverlapMambaConfig overrides
+    train: dict[str, Any] = field(default_factory=dict)  # TrainConfig overrides
+    data: tuple[str, ...] = TRAIN_DATA
+    val: str = VAL_DATA
+
 
 ABLATION = {"epochs": 2, "epoch_scans": 5000}
 DEFAULT = {"epochs": 6, "epoch_scans": 3500}

@@ -1,10 +1,58 @@
 """The recipes on several sensors (issue 40) behind the training presets
 (:mod:`overlapmamba.train.presets`): continuations of the shipped network on renderings and
-drawn towns, the common and structure inputs, and their data and validation renderings."""
+drawn towns, the common, structure and bird's-eye inputs, their data and validation
+renderings, and the presets made of them (:data:`SENSOR_PRESETS`):
+
+- ``sensors-pilot`` continues the shipped network (as ``narrow-hn-turn`` does) on
+  ``train-b`` and its renderings by a robot's VLP-16, an AMR's OS0-128 and a backpack's XT32
+  (``gen-data data/synth/train-b-vlp16-robot --preset train-b-vlp16-robot`` and so on: no pair
+  tables of their own, the drive's serves them all), taking every sensor's scans as the
+  service does and emptying whole rows at random (``beam_dropout``); 3 epochs of 3,000
+  scans. ``sensors-pilot-control`` is the same continuation on ``train-b`` alone: what the
+  renderings add, at an equal budget. ``sensors-seen`` is the control with every sensor
+  simulated instead of rendered: half of the scans are seen as another catalogue sensor
+  would see them (``sensor_like``: its beams' rows of the image, its range limits), no
+  ``beam_dropout``. ``sensors-seen-far`` adds ``far_loss`` (far returns lost first, as the
+  other sensors' renderings lose them); ``sensors-seen-look`` adds the sensor term (each
+  batch's scans pulled towards their copies seen as another sensor, ``look_weight``;
+  ``sensors-seen-look-light`` at 0.3). Each but the last has a ``-s1`` twin: the same with
+  seed 1.
+  ``sensors-seen-turn`` adds the turn term (one pass a scan) and validates on
+  ``val-kitti-hdl64`` and its renderings by five other sensors, keeping the epoch with the
+  best mean over them all (``select_on = "sensors"``).
+- ``common-towns`` continues the shipped network on the ``common`` input (every sensor's
+  beams nearest the VLP-16's elevations, the HDL-64E's own too) on train-b and four drawn
+  towns, selected as ``sensors-seen-turn`` is, on four renderings; ``common-towns-slow`` at
+  a continuation's rate.
+- ``structure-towns`` trains from scratch on the ``structure`` input (common beams, only
+  what stands above the ground, within 50 m) on common-towns' towns, validation and
+  selection, with the issue's augmentations.
+- ``structure-long``, ``structure-many`` and ``structure-many-renders`` are
+  ``structure-towns`` for a lent GPU's window (``benchmarks/lent_gpu.py``): 40 epochs
+  planned, as many as the window allows run; on its five towns, on train-b and the twelve
+  drawn towns, and on those with train-b's renderings by three other sensors.
+  ``structure-all-rows-long`` is ``structure-long`` with every row reaching the descriptor
+  (the ``all-rows`` backbone).
+- ``bev-towns`` trains from scratch on the ``bev`` input (a polar bird's-eye occupancy of
+  every scan: rings of range × height bands in the rows) on structure-towns' towns,
+  validation and selection; ``bev-long`` (and ``bev-long-s1``, seed 1) for a lent GPU.
+  ``bev-thin-pilot`` continues ``bev-long``'s network for one short epoch with the sensor
+  term seeing scans through a sparser sensor's beams; ``bev-thin-pilot-control`` without it.
+- ``bev-soft-pilot`` is that control on the ``bev-soft`` input (each return shared between
+  its two nearest columns), ``bev-span-pilot`` on ``bev-span`` (each cell: how much of its
+  column its returns' spans cover), ``bev-span-thin-pilot`` ``bev-thin-pilot`` on
+  ``bev-span`` (these two also with seed 1, ``-s1``: whether the term's gain is more than
+  a seed's), ``bev-span-heavy-pilot`` the same with the term four times as heavy,
+  ``bev-span-renders-pilot`` with train-b's renderings by three other sensors in its data
+  (the same places seen by other sensors, on other mounts, as positives),
+  ``bev-span-thin-more`` ``bev-span-thin-pilot``'s pick continued for a second epoch;
+  ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
+  lent GPU.
+"""
 
 from __future__ import annotations
 
-from overlapmamba.train.recipes import NARROW, NARROW_HN_AUG, TURN
+from overlapmamba.train.recipes import NARROW, NARROW_HN_AUG, TURN, TrainPreset
 
 # Issue 40's first step: the shipped network continued on train-b and its renderings by three
 # other sensors on low or tilted mounts (overlapmamba.synth.presets.RENDERINGS; one pair table
@@ -169,3 +217,216 @@ BEV_SPAN_THIN_MORE = {**BEV_THIN_PILOT, "init": "runs/bev-span-thin-pilot/best.p
 # What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
 # sparser-sensor term (bev-thin-pilot's weight and scans).
 BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
+
+# The presets made of these recipes, in the order `overlapmamba train --help` lists them.
+SENSOR_PRESETS: tuple[TrainPreset, ...] = (
+    TrainPreset(
+        "sensors-pilot",
+        "the shipped network continued on train-b and three other sensors' renderings of it",
+        model=NARROW,
+        train=SENSORS_PILOT,
+        data=SENSORS_PILOT_DATA,
+    ),
+    TrainPreset(
+        "sensors-pilot-control",
+        "the same continuation on train-b alone (its own sensor)",
+        model=NARROW,
+        train={**SENSORS_PILOT, "any_sensor": False},
+        data=SENSORS_PILOT_DATA[:1],
+    ),
+    TrainPreset(
+        "sensors-seen",
+        "the same continuation on train-b alone, half its scans seen as another sensor",
+        model=NARROW,
+        train=SENSORS_SEEN,
+        data=SENSORS_PILOT_DATA[:1],
+    ),
+    TrainPreset(
+        "sensors-seen-look",
+        "sensors-seen with the sensor term (8 scans a batch pulled to their copy seen as "
+        "another sensor)",
+        model=NARROW,
+        train=SENSORS_SEEN_LOOK,
+        data=SENSORS_PILOT_DATA[:1],
+    ),
+    TrainPreset(
+        "sensors-seen-look-light",
+        "sensors-seen-look at look_weight 0.3",
+        model=NARROW,
+        train=SENSORS_SEEN_LOOK_LIGHT,
+        data=SENSORS_PILOT_DATA[:1],
+    ),
+    TrainPreset(
+        "sensors-seen-far",
+        "sensors-seen with far returns lost in proportion to range (far_loss 0.4)",
+        model=NARROW,
+        train=SENSORS_SEEN_FAR,
+        data=SENSORS_PILOT_DATA[:1],
+    ),
+    TrainPreset(
+        "sensors-towns",
+        "sensors-seen's budget on train-b and six drawn towns of other sensors and mounts",
+        model=NARROW,
+        train=SENSORS_TOWNS,
+        data=SENSORS_TOWNS_DATA,
+    ),
+    TrainPreset(
+        "sensors-towns-car",
+        "sensors-towns with every drawn town's sensor on a car's roof, level",
+        model=NARROW,
+        train=SENSORS_TOWNS,
+        data=SENSORS_TOWNS_CAR_DATA,
+    ),
+    TrainPreset(
+        "sensors-seen-turn",
+        "sensors-seen with the turn term, selected on every sensor's validation drive",
+        model=NARROW,
+        train=SENSORS_SEEN_TURN,
+        data=SENSORS_PILOT_DATA[:1],
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "common-towns",
+        "the shipped network continued on every sensor's common beams, five towns",
+        model=COMMON_MODEL,
+        train=COMMON,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "common-towns-slow",
+        "common-towns at a continuation's rate (3e-5)",
+        model=COMMON_MODEL,
+        train=COMMON_SLOW,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "structure-towns",
+        "from scratch on every sensor's common beams above the ground, five towns",
+        model=STRUCTURE_MODEL,
+        train=STRUCTURE,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "structure-long",
+        "structure-towns for a lent GPU's window (40 epochs planned)",
+        model=STRUCTURE_MODEL,
+        train=STRUCTURE_LONG,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "structure-many",
+        "structure-long on train-b and twelve drawn towns",
+        model=STRUCTURE_MODEL,
+        train=STRUCTURE_LONG,
+        data=MANY_TOWNS,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "structure-many-renders",
+        "structure-many with train-b's renderings by three other sensors",
+        model=STRUCTURE_MODEL,
+        train=STRUCTURE_LONG,
+        data=(*MANY_TOWNS, *TRAIN_B_RENDERINGS),
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "structure-all-rows-long",
+        "structure-long with every row reaching the descriptor (all-rows backbone)",
+        model=STRUCTURE_ALL_ROWS_MODEL,
+        train=STRUCTURE_LONG,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-towns",
+        "from scratch on the bev input (a polar bird's-eye occupancy), five towns",
+        model=BEV_MODEL,
+        train=BEV,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-long",
+        "bev-towns for a lent GPU's window (40 epochs planned)",
+        model=BEV_MODEL,
+        train=BEV_LONG,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-thin-pilot",
+        "bev-long's network, one short epoch with the sparser-sensor term",
+        model=BEV_MODEL,
+        train=BEV_THIN_PILOT,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-thin-pilot-control",
+        "bev-thin-pilot without the sparser-sensor term",
+        model=BEV_MODEL,
+        train=BEV_THIN_PILOT_CONTROL,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-soft-pilot",
+        "bev-thin-pilot-control on the bev-soft input (cells shared between columns)",
+        model=BEV_SOFT_MODEL,
+        train=BEV_THIN_PILOT_CONTROL,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-pilot",
+        "bev-thin-pilot-control on the bev-span input (cells: their returns' spans)",
+        model=BEV_SPAN_MODEL,
+        train=BEV_THIN_PILOT_CONTROL,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-thin-pilot",
+        "bev-thin-pilot on the bev-span input (the sparser-sensor term with the new cells)",
+        model=BEV_SPAN_MODEL,
+        train=BEV_THIN_PILOT,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-heavy-pilot",
+        "bev-span-thin-pilot with the sparser-sensor term at weight 4",
+        model=BEV_SPAN_MODEL,
+        train=BEV_HEAVY_PILOT,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-renders-pilot",
+        "bev-span-thin-pilot with train-b's renderings by three other sensors added",
+        model=BEV_SPAN_MODEL,
+        train=BEV_THIN_PILOT,
+        data=(*COMMON_DATA, *TRAIN_B_RENDERINGS),
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-thin-more",
+        "bev-span-thin-pilot's pick, a second short epoch by the same recipe",
+        model=BEV_SPAN_MODEL,
+        train=BEV_SPAN_THIN_MORE,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-thin-long",
+        "bev-long on bev-span with the sparser-sensor term, for a lent GPU",
+        model=BEV_SPAN_MODEL,
+        train=BEV_SPAN_THIN_LONG,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+)
