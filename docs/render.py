@@ -33,6 +33,7 @@ import figures_bev  # docs/figures_*.py, beside this file
 import figures_fleet
 import figures_input
 import figures_model
+import figures_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = (
@@ -96,6 +97,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_input.RENDERERS,
     **figures_bev.RENDERERS,
     **figures_fleet.RENDERERS,
+    **figures_pairs.RENDERERS,
 }
 
 
