@@ -32,6 +32,7 @@ less with a one-view file and once Scan Context is cached.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import time
 from pathlib import Path
 from typing import Any
@@ -61,7 +62,8 @@ ANSWERS = ("descriptor", "two_stage", "scan_context")
 
 
 class Drives:
-    """Each drive's descriptors, yaw features, Scan Contexts and positions, computed once."""
+    """Each drive's descriptors and yaw features (computed once a run) and Scan Contexts
+    (kept on disk: another model's run reads them back)."""
 
     def __init__(self, enc: Encoder, scratch: Path) -> None:
         self.enc = enc
@@ -79,12 +81,15 @@ class Drives:
 
     def scan_context(self, town: Path) -> np.ndarray:
         """(N, rings, sectors) Scan Contexts: the model does not change them, so they are kept
-        beside the scratch drives (keyed by the drive's folder name and scan count)."""
-        seq = open_sequence(town)
-        path = self.sc_cache / f"{town.name}-{len(seq)}.npy"
+        beside the scratch drives, keyed by the drive's folder name, its recording (poses, scan
+        names and sizes) and the parameters: a drive generated again is described again."""
+        seq, params = open_sequence(town), ScanContextParams()
+        h = hashlib.sha256(repr(params).encode())
+        seq.update_digest(h)
+        path = self.sc_cache / f"{town.name}-{h.hexdigest()[:16]}.npy"
         if path.is_file():
             return np.load(path)
-        contexts = scan_contexts(seq, ScanContextParams())
+        contexts = scan_contexts(seq, params)
         path.parent.mkdir(parents=True, exist_ok=True)
         np.save(path, contexts)
         return contexts

@@ -77,14 +77,25 @@ def test_a_pair_of_drives_by_two_sensors_answers_three_ways_and_keeps_its_scan_c
     for name in across.ANSWERS:
         r = got[name]
         assert 0.0 <= r["ar@1"] <= r["ar@5"] <= r["ar@20"] <= 1.0
-    # the Scan Contexts are kept beside the scratch drives, keyed by drive and scan count,
+    # the Scan Contexts are kept beside the scratch drives, keyed by drive and recording,
     # and a second model's run reads them back unchanged
-    kept = sorted(p.name for p in (tmp_path / "scratch" / "scan-context").iterdir())
-    assert kept == ["map-20.npy", "queries-20.npy"]
-    first = np.load(tmp_path / "scratch" / "scan-context" / "queries-20.npy")
+    kept = sorted((tmp_path / "scratch" / "scan-context").iterdir())
+    assert [p.name.split("-")[0] for p in kept] == ["map", "queries"]
+    first = np.load(kept[1])
     again = across.Drives(enc, tmp_path / "scratch")
     np.testing.assert_array_equal(again.scan_context(two_drives / "queries"), first)
     assert across.pair(again, two_drives / "map", two_drives / "queries", rerank) == got
+    # a drive generated again (here: one pose moved) is described again, not read back
+    import shutil
+
+    moved = tmp_path / "again" / "map"
+    shutil.copytree(two_drives / "map", moved)
+    poses = (moved / "poses.txt").read_text().splitlines()
+    first_pose = poses[0].split()
+    first_pose[3] = str(float(first_pose[3]) + 1.0)
+    (moved / "poses.txt").write_text("\n".join([" ".join(first_pose), *poses[1:]]) + "\n")
+    again.scan_context(moved)
+    assert len(list((tmp_path / "scratch" / "scan-context").iterdir())) == 3
     # a drive is never its own query session
     with pytest.raises(Exception, match="same session"):
         across.pair(drives, two_drives / "map", two_drives / "map", rerank)
