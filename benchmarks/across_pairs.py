@@ -25,8 +25,8 @@ Drives come from ``--data`` when a preset's folder is there, else are generated 
 
     python benchmarks/across_pairs.py [--model models/overlapmamba-hdl64.onnx] [--out …]
 
-≈ 40 min on 2 cores with the three-view shipped file (most of it describing 14,000 scans),
-less with a one-view file and once Scan Context is cached.
+≈ 47 min on 2 cores with the three-view shipped file (describing 20,000 scans, and Scan
+Context the first time); ≈ 11 min with a one-view file once Scan Context is kept.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ calibration, or the service's defaults where it has none).
     python benchmarks/rerank_across.py --model runs/NAME/encoder.onnx \\
         --out reports/model/rerank-across-NAME.json
 
-≈ 25 min on 2 cores with a one-view file (the correlations of 200 candidates for every
+≈ 27 min on 2 cores with a one-view file (the correlations of 200 candidates for every
 query are most of it).
 """
 
