@@ -106,6 +106,7 @@ def across_pairs_candidates() -> str:
 
 RERANK = "reports/model/rerank-across-bev-span-thin.json"
 RERANK_PAIRS = "reports/model/across-pairs-bev-span-thin.json"  # its Scan Context, same drives
+RERANK_OTHERS = ("reports/model/rerank-across-bev-long.json",)
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -168,7 +169,33 @@ def rerank_across() -> str:
         f"\ntest, the setting chosen on val, pair by pair: AR@1 / Scan Context's on the same "
         f"drives (above it on {above} of 20 pairs across sensors):\n\n"
     )
-    return out + table(["queries ↓ map →", *(NAMES[m] for m in sensors)], grid)
+    out += table(["queries ↓ map →", *(NAMES[m] for m in sensors)], grid)
+    return out + _other_networks()
+
+
+def _other_networks() -> str:
+    """The same sweep for the other candidates: the setting each chose on val, on test."""
+    out = ""
+    rows = []
+    for path in RERANK_OTHERS:
+        r = load(path)
+        out += source(path, r["command"], when(r))
+        for label, x in (
+            ("descriptor", r["test"]["descriptor"]),
+            ("its own", r["test"]["own"]),
+            ("chosen on val", r["test"]["chosen"]),
+        ):
+            rows.append(
+                [
+                    _label(r).split(" (")[0],
+                    f"{label}: {_setting(x)}",
+                    f3(x["mean_ar@1"]),
+                    f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
+                    f3(x["same_mean_ar@1"]),
+                ]
+            )
+    head = ["network", "setting", "mean", "across: mean / lowest / at the bar", "same sensor"]
+    return out + "\nThe same sweep for `bev-long`, on test:\n\n" + table(head, rows)
 
 
 RENDERERS = {
