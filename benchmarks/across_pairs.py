@@ -38,16 +38,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import served_settings
-from common_beams import drive
-from reports_kit import REPORTS, ROOT, write_report
+from bench_kit import served_input, served_settings
+from common_beams import drive, drive_arguments
+from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.rerank import Rerank
 from overlapmamba.core.scancontext import ScanContextParams
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.sensors import Sensors
 from overlapmamba.train.evaluate import scan_contexts
 from overlapmamba.train.sessions import (
     check_sessions,
@@ -67,7 +66,6 @@ class Drives:
 
     def __init__(self, enc: Encoder, scratch: Path) -> None:
         self.enc = enc
-        self.sensors = Sensors(enc.meta)
         self.sc_cache = scratch / "scan-context"
         self._model: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -75,7 +73,7 @@ class Drives:
         """(N, D) descriptors and (N, C, W) yaw features, as the service takes the scans."""
         if town not in self._model:
             seq = open_sequence(town)
-            inp = self.sensors.input(self.sensors.resolve(seq.sensor))
+            inp = served_input(self.enc, seq.sensor)
             self._model[town] = self.enc.describe((seq.points(i) for i in range(len(seq))), inp)
         return self._model[town]
 
@@ -167,12 +165,8 @@ def split_towns(split: str, data: Path, scratch: Path, frames: int) -> dict[tupl
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
-    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
-    ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
-    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
+    drive_arguments(ap, REPORTS / "model" / "across-pairs.json")
     ap.add_argument("--split", choices=("test", "val", "both"), default="both")
-    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "across-pairs.json")
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
@@ -184,7 +178,7 @@ def main() -> None:
     console.print(f"drives ready in {time.perf_counter() - t0:.0f} s")
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
-        "model": str(args.model.resolve().relative_to(ROOT)),
+        "model": shown_path(args.model),
         "model_id": enc.model_id,
         "views": enc.meta.views,
         "sensor_input": enc.meta.sensor_input,
@@ -201,7 +195,7 @@ def main() -> None:
         console.print(f"[bold]{split}[/bold]")
         rows = split_rows(drives, of_split, rerank, console)
         record[split] = {
-            "drives": {f"{s}/s{k}": str(p.relative_to(ROOT)) for (s, k), p in of_split.items()},
+            "drives": {f"{s}/s{k}": shown_path(p) for (s, k), p in of_split.items()},
             "pairs": rows,
             "verdict": verdict(rows),
         }

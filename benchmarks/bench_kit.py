@@ -136,6 +136,16 @@ def served_settings(meta: Any) -> Any:
     return resolve(Settings(), meta)[0]
 
 
+def served_input(enc: Any, sensor: str | None) -> Any:
+    """The ``SensorInput`` the service gives a scan that names ``sensor`` (``None``: the
+    file's own sensor), for the model ``enc`` serves: the file's own input mode, its sensor
+    map applied where it carries one (``overlapmamba.service.sensors.Sensors``)."""
+    from overlapmamba.service.sensors import Sensors
+
+    sensors = Sensors(enc.meta)
+    return sensors.input(sensors.resolve(sensor))
+
+
 def write_calibration(model: Path, section: str, values: dict[str, Any], data: str) -> None:
     """Record thresholds this benchmark chose in the model file itself
     (``overlapmamba.core.calibration``): the service takes them from there."""

@@ -92,6 +92,16 @@ def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
     return out
 
 
+def drive_arguments(ap: argparse.ArgumentParser, out: Path) -> None:
+    """The arguments of a benchmark over these drives: the model file, where presets are
+    read (``--data``) and generated (``--scratch``), a val drive's length, the report."""
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
+    ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
+    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
+    ap.add_argument("--out", type=Path, default=out)
+
+
 def pairs(
     enc: Encoder, towns: dict[tuple[str, int], Path], ways: tuple[str, ...], console: Console
 ) -> list[dict[str, Any]]:
@@ -122,11 +132,7 @@ def main() -> None:
     from overlapmamba.synth.presets import calibration_town, preset
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
-    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
-    ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
-    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
-    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "common-beams.json")
+    drive_arguments(ap, REPORTS / "model" / "common-beams.json")
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from bench_kit import ROOT, provenance, served_settings, write_calibration
+from bench_kit import ROOT, provenance, served_input, served_settings, write_calibration
 from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
@@ -37,7 +37,6 @@ from overlapmamba.core.metrics import LoopClosureResult, evaluate_loop_closure, 
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.rerank import Rerank, two_stage
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.sensors import Sensors
 
 
 def main() -> None:
@@ -64,8 +63,7 @@ def main() -> None:
         ap.error("calibrate on the validation town, never on a test town")
 
     seq = open_sequence(args.sequence)
-    sensors = Sensors(enc.meta)
-    sensor = sensors.input(sensors.resolve(seq.sensor))
+    sensor = served_input(enc, seq.sensor)
     gt = LoopGroundTruth.load(args.sequence / "ground_truth" / "loops.npz")
     t0 = time.perf_counter()
     descs, yaws = [], []

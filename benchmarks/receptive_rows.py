@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from reports_kit import REPORTS, ROOT, write_report
+from reports_kit import REPORTS, ROOT, shown_path, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
@@ -98,7 +98,7 @@ def measure(path: Path, frame: int) -> dict[str, Any]:
             "beams_reaching_descriptor": int(np.unique(shown[shown >= 0]).size),
         }
     return {
-        "model": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path),
+        "model": shown_path(path),
         "model_id": enc.meta.model_id,
         "views": enc.meta.views,
         "backbone": enc.meta.network.get("backbone", "reference"),

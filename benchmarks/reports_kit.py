@@ -19,6 +19,13 @@ REPORTS = ROOT / "reports"
 CORES = os.cpu_count() or 1
 
 
+def shown_path(path: Path) -> str:
+    """``path`` as a report records it: relative to the checkout when inside it (as a clone
+    has it), else as given (a model or a drive elsewhere on the machine)."""
+    full = path.resolve()
+    return str(full.relative_to(ROOT)) if full.is_relative_to(ROOT) else str(path)
+
+
 def _git(*args: str) -> str:
     import subprocess
 

@@ -34,7 +34,8 @@ from typing import Any
 import numpy as np
 from across_pairs import BAR_AR1, SENSORS, Drives, split_towns
 from bench_kit import served_settings
-from reports_kit import REPORTS, ROOT, write_report
+from common_beams import drive_arguments
+from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
@@ -121,11 +122,7 @@ def cost_ms(drives: Drives, town: Path, shortlists: tuple[int, ...], reps: int =
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
-    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
-    ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
-    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
-    ap.add_argument("--out", type=Path, default=REPORTS / "model" / "rerank-across.json")
+    drive_arguments(ap, REPORTS / "model" / "rerank-across.json")
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
@@ -135,7 +132,7 @@ def main() -> None:
     grid = settings(SHORTLISTS, WEIGHTS)
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
-        "model": str(args.model.resolve().relative_to(ROOT)),
+        "model": shown_path(args.model),
         "model_id": enc.model_id,
         "views": enc.meta.views,
         "sensor_input": enc.meta.sensor_input,

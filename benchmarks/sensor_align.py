@@ -55,13 +55,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from reports_kit import REPORTS, ROOT, write_report
+from bench_kit import served_input
+from reports_kit import REPORTS, ROOT, shown_path, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.sensormaps import SensorMap, fit_map
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.sensors import Sensors
 from overlapmamba.train.modelfile import with_sensor_maps
 from overlapmamba.train.sessions import check_sessions, descriptor_recall, town_positions
 
@@ -81,8 +81,7 @@ def describe(enc: Encoder, town: Path, cache: Path | None = None) -> tuple[np.nd
         f = cache / enc.model_id / f"{town.name}-{stamp}.npy"
         if f.is_file():
             return np.load(f), town_positions(seq)
-    sensors = Sensors(enc.meta)
-    inp = sensors.input(sensors.resolve(seq.sensor))
+    inp = served_input(enc, seq.sensor)
     desc, _ = enc.describe((seq.points(i) for i in range(len(seq))), inp, mapped=False)
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
@@ -246,9 +245,8 @@ def main() -> None:
             f"{row['shift']['test']['ar@1']:.3f}, linear {row['linear']['test']['ar@1']:.3f}; "
             f"own map {row['own']['raw']['ar@1']:.3f} → {row['own']['linear']['ar@1']:.3f}"
         )
-    model = args.model.resolve()
     report = {
-        "model": str(model.relative_to(ROOT) if model.is_relative_to(ROOT) else args.model),
+        "model": shown_path(args.model),
         "model_id": enc.model_id,
         "views": enc.views,
         "fit": args.fit,

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import REAL, ROOT, provenance, served_settings
+from bench_kit import REAL, ROOT, provenance, served_input, served_settings
 from rich.console import Console
 from verify_threshold import descriptor_recall as verified_recall
 from verify_threshold import run_town, score
@@ -144,12 +144,9 @@ def across(
     rerank: Rerank,
 ) -> dict[str, Any]:
     """A second drive's scans against a first drive's map of another sensor: AR@1/5/20."""
-    from overlapmamba.service.sensors import Sensors
-
     qs, ds = open_sequence(query), open_sequence(database)
     check_sessions(ds, qs)
-    sensors = Sensors(enc.meta)
-    inp = sensors.input(sensors.resolve(qs.sensor))
+    inp = served_input(enc, qs.sensor)
     # as the service answers: mapped where the file carries a map for the sensor
     desc_q, yaw_q = enc.describe((qs.points(i) for i in range(len(qs))), inp)
     pos_db, pos_q = town_positions(ds), town_positions(qs)

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import ROOT, provenance, served_settings, write_calibration
+from bench_kit import ROOT, provenance, served_input, served_settings, write_calibration
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -49,7 +49,6 @@ from overlapmamba.core.poses import pose_error
 from overlapmamba.core.rerank import Rerank, by_score
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.sensors import Sensors
 from overlapmamba.service.settings import VerifySettings
 from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
@@ -59,8 +58,7 @@ def run_town(
 ) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors."""
     seq = open_sequence(path)
-    sensors = Sensors(enc.meta)
-    sensor = sensors.input(sensors.resolve(seq.sensor))
+    sensor = served_input(enc, seq.sensor)
     gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
     positives = gt.positives()
     recent = int(gt.params.get("exclude_recent", 100))

@@ -58,3 +58,15 @@ def test_a_written_report_names_its_command_commit_machine_and_date(tmp_path, mo
     assert got["machine"]["cores"] >= 1 and got["machine"]["cpu"]
     assert got["figure"] == 1.5 and got["date"] == "kept"  # the record's own keys win
     assert list(got)[:4] == ["command", "commit", "machine", "date"]
+
+
+def test_a_report_names_a_file_inside_the_checkout_as_a_clone_has_it_and_others_as_given(
+    tmp_path, monkeypatch
+):
+    reports_kit = benchmark_module("reports_kit")
+    monkeypatch.chdir(reports_kit.ROOT)
+    inside = Path("models") / ".." / "models" / "overlapmamba-hdl64.onnx"
+    assert reports_kit.shown_path(inside) == "models/overlapmamba-hdl64.onnx"
+    assert reports_kit.shown_path(reports_kit.ROOT / "reports") == "reports"
+    outside = tmp_path / "candidate.onnx"  # never created: a report names it all the same
+    assert reports_kit.shown_path(outside) == str(outside)
