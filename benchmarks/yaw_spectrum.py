@@ -1,0 +1,198 @@
+"""A yaw-invariant first stage from the yaw features: their spectrum's magnitude over azimuth.
+
+Across sensors the second stage's answer is limited by the descriptor's shortlist
+(``benchmarks/rerank_across.py``): the yaw features' aligned correlation finds the place
+when it is among the candidates. The features' magnitude spectrum over azimuth (per
+channel, ``|rfft|`` of the first ``bins`` frequencies, the channel mean included) does not
+change when the scan turns, as the correlation's best roll does not, and costs one FFT a
+scan and an L2 search. This measures, for one model file and every ordered pair among the
+issue's five sensors (queries of a second drive against a first drive's map), how often
+the first K answers hold a place within 5 m (R@K, K = 1, 20, 50, 200), for
+
+- ``descriptor``: the file's descriptor (its NetVLAD), as ``across_pairs`` takes the scans;
+- ``spectrum``: the magnitude spectrum alone (unit length; ``sqrt`` compresses it);
+- ``mixed``: both, by the squared distance (1 − a) · d²(descriptor) + a · d²(spectrum).
+
+The spectrum's variant (bins, compression) and ``a`` are chosen on ``val`` (calibration
+town ``cal-x00``), by the mean R@1 over all 25 pairs (ties to fewer bins: a shorter
+vector), and reported on ``test`` beside the descriptor. Then real scans (KITTI 00,
+nuScenes) turned by random continuous angles: the lowest cosine between a scan's vector and
+its turned copy's, the descriptor's and the chosen stage's, one pass a scan.
+``overlapmamba export MODEL --first-stage NAME`` writes the chosen stage into a file as its
+descriptor (``overlapmamba.train.spectrum_head``), which ``benchmarks/across_pairs.py``
+then measures as the service answers.
+
+    python benchmarks/yaw_spectrum.py --model runs/NAME/encoder.onnx \\
+        --out reports/model/yaw-spectrum-NAME.json
+
+≈ 15 min on 2 cores with a one-view file (describing 25,000 scans).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from across_pairs import SENSORS, Drives, split_towns
+from common_beams import drive_arguments
+from reports_kit import REPORTS, shown_path, write_report
+from rich.console import Console
+
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.metrics import nearest
+from overlapmamba.core.yaw_spectrum import FirstStage
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, town_positions
+
+KS = (1, 20, 50, 200)
+CHOOSE_K = 1
+BINS = (8, 32, 128)
+COMPRESS = ("none", "sqrt")
+MIX = (0.25, 0.5, 0.75, 1.0)  # 1: the spectrum alone
+
+
+class Pair:
+    """One map drive and one query drive: which map scans lie within the hit radius of each
+    query."""
+
+    def __init__(self, db_town: Path, q_town: Path) -> None:
+        db_seq, q_seq = open_sequence(db_town), open_sequence(q_town)
+        check_sessions(db_seq, q_seq)
+        pos_db, pos_q = town_positions(db_seq), town_positions(q_seq)
+        gap = pos_q[:, None, :2] - pos_db[None, :, :2]
+        self.within = (gap**2).sum(-1) <= HIT_RADIUS**2
+        self.evaluated = self.within.any(1)
+        self.db_town, self.q_town = db_town, q_town
+
+    def recall(self, db: np.ndarray, q: np.ndarray) -> dict[str, float]:
+        """R@K for K in ``KS``: the share of evaluated queries with a hit among the first K."""
+        ranked, _ = nearest(q, db, max(KS))
+        near = np.take_along_axis(self.within, np.maximum(ranked, 0), 1) & (ranked >= 0)
+        first = np.where(near.any(1), near.argmax(1), np.iinfo(np.int64).max)[self.evaluated]
+        return {f"r@{k}": float((first < k).mean()) for k in KS}
+
+
+def answers(
+    pairs: dict[tuple[str, str], Pair], drives: Drives, stages: list[FirstStage]
+) -> list[dict[str, Any]]:
+    """Each first stage's R@K on every pair, and its means over all pairs and across."""
+    out = []
+    for stage in stages:
+        rows = []
+        for (q, m), p in pairs.items():
+            db, qq = drives.model(p.db_town), drives.model(p.q_town)
+            rows.append(
+                {"queries": q, "map": m, **p.recall(stage.vectors(*db), stage.vectors(*qq))}
+            )
+        out.append({"first": stage.name, **asdict(stage), **summary(rows), "pairs": rows})
+    return out
+
+
+def summary(rows: list[dict[str, Any]]) -> dict[str, float]:
+    across = [r for r in rows if r["queries"] != r["map"]]
+    out = {}
+    for k in KS:
+        out[f"mean_r@{k}"] = float(np.mean([r[f"r@{k}"] for r in rows]))
+        out[f"across_mean_r@{k}"] = float(np.mean([r[f"r@{k}"] for r in across]))
+        out[f"across_min_r@{k}"] = float(np.min([r[f"r@{k}"] for r in across]))
+    return out
+
+
+def line(r: dict[str, Any]) -> str:
+    return (
+        f"{r['first']:>22s}: "
+        + " ".join(f"r@{k} {r[f'mean_r@{k}']:.3f}" for k in KS)
+        + f" | across mean r@1 {r['across_mean_r@1']:.3f}, min r@1 {r['across_min_r@1']:.3f}"
+    )
+
+
+def turn_cosines(model_path: Path, stages: list[FirstStage], seeds: int) -> dict[str, Any]:
+    """The minimum cosine between a real scan's first-stage vector and that of the same scan
+    turned by a random continuous angle (``eval-real``'s turns; one pass a scan, the file's
+    own views), per real set (``views.REAL``: KITTI 00, nuScenes), over ``seeds`` draws."""
+    from views import REAL
+
+    from overlapmamba.train.checkpoint import input_of, load_model, views_of
+    from overlapmamba.train.evaluate import describe
+    from overlapmamba.train.realscans import real_turns
+
+    model, profile, _ = load_model(model_path)
+    out: dict[str, Any] = {}
+    for name, folder in REAL.items():
+        if not folder.is_dir():
+            out[name] = {"skipped": f"{folder} is missing"}
+            continue
+        seq = open_sequence(folder)
+        sensor = input_of(model, profile, seq)
+        mins: dict[str, list[float]] = {stage.name: [] for stage in stages}
+        for seed in range(seeds):
+            t = real_turns(seq, sensor, seed, views_of(model))
+            plain, turned = describe(model, t.plain), describe(model, t.turned)
+            for stage in stages:
+                cos = (stage.vectors(*plain) * stage.vectors(*turned)).sum(1)
+                mins[stage.name].append(float(cos.min()))
+        out[name] = {
+            "scans": len(seq),
+            **{k: {"cosine_min_per_seed": v, "cosine_min": min(v)} for k, v in mins.items()},
+        }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    drive_arguments(ap, REPORTS / "model" / "yaw-spectrum.json")
+    ap.add_argument("--seeds", type=int, default=3, help="random turns drawn per real set")
+    args = ap.parse_args()
+    console = Console(width=120)
+    t0 = time.perf_counter()
+    enc = Encoder(args.model)
+    drives = Drives(enc, args.scratch)
+    record: dict[str, Any] = {
+        "model": shown_path(args.model),
+        "model_id": enc.model_id,
+        "views": enc.meta.views,
+        "sensor_input": enc.meta.sensor_input,
+        "sensors": list(SENSORS),
+        "grid": {"bins": list(BINS), "compress": list(COMPRESS), "mix": list(MIX)},
+        "ks": list(KS),
+        "chosen_by": f"mean r@{CHOOSE_K} over the 25 val pairs",
+        "radius_m": HIT_RADIUS,
+    }
+    grid = [FirstStage()] + [
+        FirstStage(a, b, c) for b, c in itertools.product(BINS, COMPRESS) for a in MIX
+    ]
+    chosen = FirstStage()
+    for split in ("val", "test"):
+        towns = split_towns(split, args.data, args.scratch, args.frames)
+        pairs = {
+            (q, m): Pair(towns[(m, 0)], towns[(q, 1)])
+            for m, q in itertools.product(SENSORS, SENSORS)
+        }
+        stages = grid if split == "val" else [FirstStage(), chosen]
+        rows = answers(pairs, drives, stages)
+        for r in rows:
+            console.print(f"{split} " + line(r), highlight=False)
+        if split == "val":
+            best = max(rows[1:], key=lambda r: (r[f"mean_r@{CHOOSE_K}"], -r["bins"]))
+            chosen = FirstStage(best["mix"], best["bins"], best["compress"])
+            record["val"] = {"rows": rows, "chosen": chosen.name}
+        else:
+            record["test"] = {"rows": rows}
+        console.print(f"{split} done at {time.perf_counter() - t0:.0f} s")
+    record["turns"] = {
+        "seeds": args.seeds,
+        **turn_cosines(args.model, [FirstStage(), chosen], args.seeds),
+    }
+    console.print(record["turns"])
+    record["seconds"] = round(time.perf_counter() - t0, 1)
+    write_report(args.out, record)
+    console.print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
