@@ -182,6 +182,7 @@ def main() -> None:
         "model_id": enc.model_id,
         "views": enc.meta.views,
         "sensor_input": enc.meta.sensor_input,
+        "first_stage": enc.meta.first_stage,
         "rerank": {
             "shortlist": rerank.shortlist,
             "weight": rerank.weight,

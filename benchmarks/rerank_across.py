@@ -123,13 +123,19 @@ def cost_ms(drives: Drives, town: Path, shortlists: tuple[int, ...], reps: int =
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     drive_arguments(ap, REPORTS / "model" / "rerank-across.json")
+    ap.add_argument(
+        "--shortlists",
+        type=lambda t: tuple(int(k) for k in t.split(",")),
+        default=SHORTLISTS,
+        help=f"comma-separated (default {','.join(map(str, SHORTLISTS))}; 1: the first stage)",
+    )
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
     own = (served.rerank.shortlist, served.rerank.weight)
-    grid = settings(SHORTLISTS, WEIGHTS)
+    grid = settings(args.shortlists, WEIGHTS)
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
         "model": shown_path(args.model),
@@ -142,11 +148,12 @@ def main() -> None:
             "calibrated": "rerank" in (enc.meta.calibration or {}),
         },
         "sensors": list(SENSORS),
-        "grid": {"shortlists": list(SHORTLISTS), "weights": list(WEIGHTS)},
+        "first_stage": enc.meta.first_stage,
+        "grid": {"shortlists": list(args.shortlists), "weights": list(WEIGHTS)},
         "bar_ar@1": BAR_AR1,
         "radius_m": HIT_RADIUS,
     }
-    kmax = max(SHORTLISTS)
+    kmax = max(args.shortlists)
     for split in ("val", "test"):
         towns = split_towns(split, args.data, args.scratch, args.frames)
         pairs = {
@@ -165,7 +172,7 @@ def main() -> None:
                 )
             chosen = choose(rows)
             record["val"] = {"settings": rows, "chosen": chosen}
-            record["cost_ms"] = cost_ms(drives, towns[(SENSORS[0], 0)], SHORTLISTS)
+            record["cost_ms"] = cost_ms(drives, towns[(SENSORS[0], 0)], args.shortlists)
         else:
             best = (chosen["shortlist"], chosen["weight"])
             record["test"] = {

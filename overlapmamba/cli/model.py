@@ -165,7 +165,9 @@ def train_cmd(
     "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32"
     "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx"
     "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens "
-    "--out tokens.onnx",
+    "--out tokens.onnx"
+    "\n\n  overlapmamba export runs/bev-long/encoder.onnx --first-stage mixed:0.75:32:sqrt "
+    "--out mixed.onnx",
 )
 @friendly_errors
 def export_cmd(
@@ -212,6 +214,17 @@ def export_cmd(
             "network's own (a .pt's config, an .onnx's metadata)",
         ),
     ] = None,
+    first_stage: Annotated[
+        str | None,
+        typer.Option(
+            "--first-stage",
+            help="write a first stage into the graph as its descriptor "
+            "(overlapmamba.core.yaw_spectrum): spectrum:BINS:COMPRESS (the yaw features' "
+            "magnitude spectrum over azimuth) or mixed:A:BINS:COMPRESS (joined to the "
+            "network's descriptor, A the spectrum's share of a squared distance); "
+            "default: the network's descriptor",
+        ),
+    ] = None,
 ) -> None:
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
@@ -220,6 +233,7 @@ def export_cmd(
     from overlapmamba.train.model import OverlapMamba, meeting_views
     from overlapmamba.train.modelfile import load_encoder, with_sensor_input, with_views
     from overlapmamba.train.recover import with_token_views
+    from overlapmamba.train.spectrum_head import with_first_stage
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
@@ -228,6 +242,22 @@ def export_cmd(
             f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"
         )
     token_views = views if meet == "tokens" else 1
+    stage = None
+    if first_stage is not None:
+        from overlapmamba.core.yaw_spectrum import FirstStage
+
+        try:
+            stage = FirstStage.parse(first_stage)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="--first-stage") from None
+        if checkpoint.suffix == ".onnx" and (had := load_encoder(checkpoint)[1].first_stage) != (
+            "descriptor"
+        ):
+            raise typer.BadParameter(
+                f"{checkpoint} already carries first stage {had!r}; start from the file it was "
+                "written from",
+                param_hint="--first-stage",
+            )
     if sensor_input is not None and sensor_input not in MODES:
         raise typer.BadParameter(
             f"--sensor-input must be one of {', '.join(MODES)}, got {sensor_input!r}",
@@ -248,10 +278,13 @@ def export_cmd(
         meta = with_views(src, out_path, views)
         if sensor_input is not None:
             meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
+        if stage is not None:
+            meta = with_first_stage(out_path, out_path, stage)
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
-            f"sensor input {meta.sensor_input}, model id {meta.model_id}"
+            f"sensor input {meta.sensor_input}, descriptor {meta.first_stage} "
+            f"({meta.descriptor_dim}-d), model id {meta.model_id}"
         )
         return
     model, profile, ckpt = load_model(checkpoint)
@@ -261,6 +294,8 @@ def export_cmd(
     meta, v = res.metadata, res.verification
     if sensor_input is not None and sensor_input != meta.sensor_input:
         meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
+    if stage is not None:
+        meta = with_first_stage(out_path, out_path, stage)
     table = Table(title=f"exported {res.path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),
@@ -268,6 +303,7 @@ def export_cmd(
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
         ("views per scan", f"{meta.views}, met at the {meet}" if meta.views > 1 else "1"),
         ("sensor input", meta.sensor_input),
+        ("descriptor", f"{meta.first_stage}, {meta.descriptor_dim}-d"),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),
         (
             "descriptor vs PyTorch",

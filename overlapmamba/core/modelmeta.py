@@ -99,6 +99,12 @@ class EncoderMetadata(BaseModel):
         description="per sensor, the map of its scans' descriptors into the model sensor's "
         "(overlapmamba.core.sensormaps); part of the model id",
     )
+    first_stage: str = Field(
+        "descriptor",
+        description="what the descriptor output is: 'descriptor' (the network's own) or a "
+        "first stage of overlapmamba.core.yaw_spectrum written into the graph "
+        "(spectrum:BINS:COMPRESS, mixed:A:BINS:COMPRESS; overlapmamba.train.spectrum_head)",
+    )
     weights: str = Field(description="'trained' or 'random' (an untrained network)")
     weight_format: str = Field(description="storage of the large matrices: float32 or int8")
     training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")
@@ -188,7 +194,7 @@ class EncoderMetadata(BaseModel):
                 found=sorted(props),
             )
         strings = {"format", "model_id", "graph_id", "weights", "weight_format", "source_commit"}
-        strings |= {"exported_at", "torch_version", "sensor_input"}
+        strings |= {"exported_at", "torch_version", "sensor_input", "first_stage"}
         try:
             values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
         except json.JSONDecodeError as err:
