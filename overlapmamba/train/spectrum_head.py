@@ -7,16 +7,16 @@ service's maps and its search, a descriptor query, a map shared as descriptors, 
 benchmarks) takes it without knowing: the network's descriptor output is renamed, and the
 spectrum is computed from ``yaw_features`` by one matrix product (every channel of every
 scan a row, times the real and imaginary parts of the first ``bins`` DFT frequencies over
-the W columns), its magnitude, optionally a square root, and unit length; with a mix below 1 the network's descriptor at unit length
-joins it, the two weighted so that a squared distance is (1 − a) · d²(descriptor) +
-a · d²(spectrum). ``yaw_features`` is kept as it was: the second stage and the relative yaw
-read it.
+the W columns), its magnitude, optionally a square root, and unit length; with a mix
+below 1 the network's descriptor at unit length joins it, the two weighted so that a
+squared distance is (1 − a) · d²(descriptor) + a · d²(spectrum). ``yaw_features`` is kept
+as it was: the second stage and the relative yaw read it.
 
 The graph changes, so the file gets a new graph id and model id (its descriptors must not
-share a map with the source's); its ``descriptor_dim`` is the new length, and its metadata's
-``first_stage`` names the stage, so a reader can tell. A file carrying
-sensor maps or calibration fitted on its old descriptor is refused: those would apply to a
-vector they were not fitted on.
+share a map with the source's); its ``descriptor_dim`` is the new length, and its
+metadata's ``first_stage`` names the stage, so a reader can tell. A file carrying sensor
+maps or calibration fitted on its old descriptor is refused: those would apply to a vector
+they were not fitted on.
 """
 
 from __future__ import annotations

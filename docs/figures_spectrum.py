@@ -1,0 +1,134 @@
+"""A first stage from the yaw features' magnitude spectrum (``benchmarks/yaw_spectrum.py``,
+``overlapmamba.core.yaw_spectrum``) across sensors beside the descriptor and Scan Context,
+and the file that carries it as its descriptor (``benchmarks/across_pairs.py``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from figures_kit import f3, load, source, table, when
+from figures_pairs import _label, _setting, against_scan_context
+
+SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin.json"
+SC_PAIRS = "reports/model/across-pairs-bev-span-thin.json"
+FIRST_FILE = "reports/model/across-pairs-bev-span-thin-first.json"
+FIRST_SWEEP = "reports/model/rerank-across-bev-span-thin-first.json"
+
+
+def _first(name: str) -> str:
+    """A first stage's name as the docs say it."""
+    if name == "descriptor":
+        return "the descriptor (NetVLAD)"
+    parts = name.split(":")
+    if parts[0] == "spectrum":
+        return f"the spectrum ({parts[1]} bins, {parts[2]})"
+    return f"mixed: {parts[1]} spectrum ({parts[2]} bins, {parts[3]}) + descriptor"
+
+
+def _recall_row(x: dict[str, Any]) -> list[str]:
+    return [
+        _first(x["first"]),
+        f3(x["mean_r@1"]),
+        f"{f3(x['across_mean_r@1'])} / {f3(x['across_min_r@1'])}",
+        f3(x["mean_r@20"]),
+        f3(x["mean_r@50"]),
+    ]
+
+
+def yaw_spectrum() -> str:
+    """The first stages on val (the choice) and test, the pairs against Scan Context, the
+    turned real scans, and the chosen first stage's shortlist re-ranked."""
+    r, sc_report = load(SPECTRUM), load(SC_PAIRS)
+    out = source(SPECTRUM, r["command"], when(r)) + source(
+        SC_PAIRS, sc_report["command"], when(sc_report)
+    )
+    out += (
+        f"\n{_label(r)}. Over the 25 pairs (mean) and the 20 across sensors (mean / lowest): "
+        "the share of queries whose first answer is within 5 m (R@1, the descriptor's AR@1), "
+        "and whose first 20 and 50 answers hold one (the shortlist a second stage re-ranks)."
+        "\n\nval (calibration town `cal-x00`: the choice, by mean R@1):\n\n"
+    )
+    head = ["first stage", "R@1 mean", "R@1 across: mean / lowest", "R@20", "R@50"]
+    out += table(head, [_recall_row(x) for x in r["val"]["rows"]])
+    out += f"\nChosen: {_first(r['val']['chosen'])}.\n\ntest (the sensor test town):\n\n"
+    test = r["test"]["rows"]
+    out += table(head, [_recall_row(x) for x in test])
+    best = {(p["queries"], p["map"]): p["r@1"] for p in test[-1]["pairs"]}
+    out += against_scan_context(sc_report, best, "the chosen first stage alone, pair by pair: R@1")
+    turns = r["turns"]
+    rows = [
+        [
+            name,
+            str(v["scans"]),
+            *(f"{v[k]['cosine_min']:.4f}" for k in ("descriptor", test[-1]["first"])),
+        ]
+        for name, v in turns.items()
+        if isinstance(v, dict) and "scans" in v
+    ]
+    out += (
+        f"\nReal scans turned by a random continuous angle ({turns['seeds']} draws, one pass a "
+        "scan): the lowest cosine between a scan's vector and its turned copy's:\n\n"
+    )
+    out += table(["real set", "scans", "descriptor", _first(test[-1]["first"])], rows)
+    return out + _in_the_file()
+
+
+def _in_the_file() -> str:
+    """The chosen first stage written into the file (``overlapmamba export --first-stage``),
+    measured as the service answers (``benchmarks/across_pairs.py``)."""
+    r, before = load(FIRST_FILE), load(SC_PAIRS)
+    out = "\n" + source(FIRST_FILE, r["command"], when(r))
+    out += (
+        f"\nThe chosen first stage written into the file as its descriptor: {_label(r)}, "
+        f"descriptor `{r['first_stage']}`; AR@1 over the 20 pairs across sensors as the service "
+        "answers (two stages: the service's defaults), beside the file it was written from:\n\n"
+    )
+    rows = []
+    for name, rep in ((_label(before).split(" (")[0], before), (_label(r).split(" (")[0], r)):
+        for split in ("val", "test"):
+            v = rep[split]["verdict"]
+            for answer in ("descriptor", "two_stage"):
+                x = v[answer]
+                rows.append(
+                    [
+                        name,
+                        split,
+                        answer.replace("_", " "),
+                        f"{f3(x['mean_ar@1'])} / {f3(x['min_ar@1'])}",
+                        f"{x['meeting_bar']} / {x['above_scan_context']}",
+                    ]
+                )
+    head = ["file", "split", "answer", "AR@1 mean / lowest", "pairs at the bar / above SC"]
+    return out + table(head, rows) + _sweep()
+
+
+def _sweep() -> str:
+    """The file's second stage swept (``benchmarks/rerank_across.py --shortlists``): the
+    setting chosen on val, on test."""
+    r = load(FIRST_SWEEP)
+    out = "\n" + source(FIRST_SWEEP, r["command"], when(r))
+    chosen = r["val"]["chosen"]
+    grid = r["grid"]
+    out += (
+        f"\nIts second stage swept on val (shortlists {', '.join(map(str, grid['shortlists']))} "
+        f"× weights {', '.join(f'{w:g}' for w in grid['weights'])}; chosen: "
+        f"{_setting(chosen)}), AR@1 on test:\n\n"
+    )
+    rows = [
+        [
+            f"{label}: {_setting(x)}",
+            f3(x["mean_ar@1"]),
+            f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
+            f3(x["same_mean_ar@1"]),
+        ]
+        for label, x in (
+            ("first stage alone", r["test"]["descriptor"]),
+            ("the service defaults", r["test"]["own"]),
+            ("chosen on val", r["test"]["chosen"]),
+        )
+    ]
+    head = ["answer", "mean", "across: mean / lowest / at the bar", "same sensor"]
+    return out + table(head, rows)
+
+
+RENDERERS = {"yaw-spectrum": yaw_spectrum}
