@@ -80,13 +80,12 @@ def nuscenes_dir() -> Path:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _session_cache(request: pytest.FixtureRequest):
-    """One cache folder for the run (its workers and its background process), never the
-    user's. Range images, compiled kernels and ground truth are keyed by what they were made
-    from and written atomically, so tests share them safely: each tiny town is projected once
-    per run instead of once per training call and worker."""
+def _session_cache(tmp_path_factory: pytest.TempPathFactory):
+    """One cache folder for the run, never the user's. Range images, compiled kernels and
+    ground truth are keyed by what they were made from, so tests share them safely: each tiny
+    town is projected once per run instead of once per training call."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("OVERLAPMAMBA_CACHE", str(_run_folder(request.config) / "cache"))
+        mp.setenv("OVERLAPMAMBA_CACHE", str(tmp_path_factory.mktemp("cache")))
         yield
 
 
@@ -168,11 +167,9 @@ def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # background process, so they take the CPU the suite leaves idle (its service tests wait on
 # sockets a good part of the time); the first test that needs one waits only for what is left
 # of it. Each is made there only when a collected test needs it. With pytest-xdist's workers
-# (`make test` runs two) it is the run's critical path, as every training test waits on it:
-# for the whole suite the main process starts it before the workers collect, and the workers
-# compute at a lower priority (nice 5) than it; for a part of the suite the first worker to
-# need it starts it once collected. Either way it runs in a folder the main process made,
-# every worker waits on the same files, and the main process stops it when the run ends.
+# (`make test` runs two) the first worker to need them starts the process (at normal priority:
+# it is then the run's critical path) in a folder the run's main process made; every worker
+# waits on it, and the main process stops it when the run ends.
 TOWN_FIXTURES = {"tiny_seq": "tiny", "tiny_val_seq": "tiny-check"}  # in the order generated
 _TOWNS_NEEDED = pytest.StashKey[list[str]]()
 _RUN_FOLDER = pytest.StashKey[Path]()
@@ -180,42 +177,14 @@ _background: dict[str, Any] = {}
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    if hasattr(config, "workerinput"):
-        if config.workerinput.get("overlapmamba_background_first"):
-            os.nice(5)
-        return
-    # the run's main process (with or without workers)
-    config.stash[_RUN_FOLDER] = folder = Path(tempfile.mkdtemp(prefix="overlapmamba-tests-"))
-    (folder / "cache").mkdir()
-    if _whole_suite_on_workers(config) and _can_make_towns():
-        # on a worker's share of the cores, as the workers' runs it is compared with compute
-        threads = max(1, (os.cpu_count() or 1) // int(config.getoption("numprocesses")))
-        _start_background(config, [*TOWN_FIXTURES.values(), "--run"], nice=0, threads=str(threads))
-
-
-def _whole_suite_on_workers(config: pytest.Config) -> bool:
-    """Whether this run is every test (no paths, -k or -m given) on pytest-xdist's workers."""
-    return (
-        isinstance(config.getoption("numprocesses", None), int)
-        and config.getoption("numprocesses") > 0
-        and config.args_source is pytest.Config.ArgsSource.TESTPATHS
-        and not config.option.keyword
-        and not config.option.markexpr
-        and not config.option.collectonly
-    )
-
-
-def _can_make_towns() -> bool:
-    return all(importlib.util.find_spec(m) is not None for m in ("embreex", "torch"))
+    if not hasattr(config, "workerinput"):  # the run's main process (with or without workers)
+        config.stash[_RUN_FOLDER] = Path(tempfile.mkdtemp(prefix="overlapmamba-tests-"))
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_configure_node(node: Any) -> None:
-    """pytest-xdist: each worker is told the main process's folder, and whether the
-    background work started there first (the worker then computes below its priority)."""
+    """pytest-xdist: each worker is told the main process's folder."""
     node.workerinput["overlapmamba_run_folder"] = str(node.config.stash[_RUN_FOLDER])
-    started = (node.config.stash[_RUN_FOLDER] / "background" / "pid").is_file()
-    node.workerinput["overlapmamba_background_first"] = started
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
@@ -253,35 +222,20 @@ def _towns_in_background(request: pytest.FixtureRequest, _session_cache) -> None
         return
     root = _run_folder(request.config) / "background"
     _background.update(root=root, names=names)
-    # nice 10 beside one test process, which leaves a core idle a good part of the time;
-    # beside xdist's workers, which keep both busy, it is their critical path
-    _start_background(
-        request.config, names, nice=0 if hasattr(request.config, "workerinput") else 10
-    )
-
-
-def _start_background(
-    config: pytest.Config, names: list[str], nice: int, threads: str | None = None
-) -> None:
-    """Start making ``names`` (towns, then ``--run``) in the run's background folder, unless
-    another process of the run has (the first to make the folder starts the work)."""
-    root = _run_folder(config) / "background"
     try:
-        root.mkdir()
+        root.mkdir()  # one process makes the folder: that one starts the work
     except FileExistsError:
         return
     script = Path(__file__).with_name("background_towns.py")
-    # the run's cache, shared with its tests (the range images of the towns, the kernels)
-    env = {**os.environ, "OVERLAPMAMBA_CACHE": str(_run_folder(config) / "cache")}
-    if threads is not None:
-        env["OMP_NUM_THREADS"] = threads
     with (root / "background.log").open("w") as out:
         proc = subprocess.Popen(
             [sys.executable, str(script), str(root), *names],
             stdout=out,
             stderr=subprocess.STDOUT,
-            env=env,
-            preexec_fn=lambda: os.nice(nice),
+            # (the environment holds this process's cache: range images shared with its tests)
+            # nice 10 beside one test process, which leaves a core idle a good part of the
+            # time; beside xdist's workers, which keep both busy, it is their critical path
+            preexec_fn=lambda: os.nice(0 if hasattr(request.config, "workerinput") else 10),
             start_new_session=True,  # its generation workers go with it
         )
     _background["proc"] = proc
