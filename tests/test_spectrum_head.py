@@ -86,3 +86,13 @@ async def test_the_service_serves_the_first_stage_as_its_descriptor(plain, tmp_p
         assert best["keyframe_id"] == "k2" and abs(best["yaw_deg"] - 40.0) < 1.5
         d = (await c.post("/v1/descriptors", content=scan(2).tobytes(), headers=OCTET)).json()
         assert len(d["descriptor"]) == meta.descriptor_dim and d["model_id"] == meta.model_id
+
+
+def test_a_new_trace_would_drop_the_first_stage_and_is_refused(plain, tmp_path):
+    from overlapmamba.train.recover import with_token_views
+
+    once = tmp_path / "once.onnx"
+    with_first_stage(plain, once, FirstStage(1.0, 8))
+    with pytest.raises(ExportError, match="a new trace would drop"):
+        with_token_views(once, tmp_path / "tokens.onnx", 3)
+    assert not (tmp_path / "tokens.onnx").exists()

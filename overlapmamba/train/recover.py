@@ -160,6 +160,12 @@ def with_token_views(src: str | Path, out: str | Path, views: int) -> ExportResu
     except ValueError as err:
         raise ExportError(str(err)) from None
     _, source = load_encoder(src)
+    if source.first_stage != "descriptor":  # the graph is traced anew, without it
+        raise ExportError(
+            f"{src} carries first stage {source.first_stage!r} in its graph, which a new "
+            "trace would drop: meet the views at the tokens in the file it was written "
+            "from, then write the first stage again (--first-stage)"
+        )
     model, profile, _ = recover(src)
     tokens = meeting_views(model, views)
     res = export_onnx(tokens, profile, out, weight_format=source.weight_format, views=views)
