@@ -24,7 +24,6 @@ at float32 speed. Everything else stays float32.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import os
 import subprocess
 import time
@@ -44,6 +43,7 @@ from overlapmamba.core.sensors.input import BEV_MODES, check_mode
 from overlapmamba.core.views import check_views
 from overlapmamba.train.errors import ExportError
 from overlapmamba.train.model import OverlapMamba
+from overlapmamba.train.modelfile import graph_id
 from overlapmamba.train.scan_onnx import TRANSLATIONS, attach_functions, quiet_export
 
 WEIGHT_FORMATS = ("int8", "float32")
@@ -208,11 +208,6 @@ def quantize_int8(proto: onnx.ModelProto, min_size: int = INT8_MIN_SIZE) -> list
     return done
 
 
-def _graph_id(proto: onnx.ModelProto) -> str:
-    """The graph and weights' content hash, as traced (before the metadata is attached)."""
-    return "om-" + hashlib.sha256(proto.SerializeToString(deterministic=True)).hexdigest()[:16]
-
-
 def run_onnx(path: Path | str, images: np.ndarray, threads: int = 1) -> tuple[np.ndarray, ...]:
     import onnxruntime as ort
 
@@ -305,7 +300,7 @@ def export_onnx(
     train = ckpt.get("train") or {}
     total, loops = count_nodes(proto)
     meta = EncoderMetadata(
-        **identity(_graph_id(proto), views, check_mode(cfg.sensor_input)),
+        **identity(graph_id(proto), views, check_mode(cfg.sensor_input)),
         profile=profile,
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,

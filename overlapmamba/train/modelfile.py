@@ -4,6 +4,7 @@ the service's benchmarks write a model's calibration without the training stack.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -134,8 +135,22 @@ def rewrite_metadata(
         )
     except ValueError as err:  # pydantic's ValidationError: say which field and why
         raise ExportError(f"{src}: the new metadata is invalid: {err}") from None
+    save_encoder(proto, new, out)
+    return new
+
+
+def graph_id(proto: onnx.ModelProto) -> str:
+    """The graph and weights' content hash, as :func:`overlapmamba.train.export.export_onnx`
+    names a graph: taken before the metadata is attached (call it on a proto without any)."""
+    return "om-" + hashlib.sha256(proto.SerializeToString(deterministic=True)).hexdigest()[:16]
+
+
+def save_encoder(proto: onnx.ModelProto, meta: EncoderMetadata, out: Path | str) -> None:
+    """``proto`` with ``meta`` as its only metadata, written to ``out`` atomically (a crash
+    mid-way leaves no half-written model behind)."""
+    out = Path(out)
     del proto.metadata_props[:]
-    for key, value in new.to_props().items():
+    for key, value in meta.to_props().items():
         proto.metadata_props.add(key=key, value=value)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
@@ -144,4 +159,3 @@ def rewrite_metadata(
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
-    return new

@@ -21,7 +21,6 @@ they were not fitted on.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +30,7 @@ from onnx import helper, numpy_helper
 from overlapmamba.core.modelmeta import EncoderMetadata, identity
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.train.errors import ExportError
-from overlapmamba.train.export import _graph_id
-from overlapmamba.train.modelfile import load_encoder
+from overlapmamba.train.modelfile import graph_id, load_encoder, save_encoder
 
 NETWORK_DESCRIPTOR = "netvlad_descriptor"  # the network's own descriptor, renamed
 
@@ -123,24 +121,15 @@ def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> Enc
         onnx.checker.check_model(proto)
     except onnx.checker.ValidationError as err:
         raise ExportError(f"{src}: the graph with the first stage is invalid: {err}") from None
-    del proto.metadata_props[:]
-    graph_id = _graph_id(proto)  # as export_onnx names a graph: without its metadata
+    del proto.metadata_props[:]  # the graph's id is taken without them, as export_onnx does
     new = EncoderMetadata.model_validate(
         {
             **meta.model_dump(by_alias=True),
             "first_stage": stage.name,
             "descriptor_dim": dim,
-            **identity(graph_id, meta.views, meta.sensor_input),
+            **identity(graph_id(proto), meta.views, meta.sensor_input),
         },
         by_alias=True,
     )
-    for key, value in new.to_props().items():
-        proto.metadata_props.add(key=key, value=value)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    try:
-        onnx.save(proto, tmp)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    save_encoder(proto, new, out)
     return new
