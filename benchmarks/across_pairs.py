@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import served_input, served_settings
+from bench_kit import model_record, served_input, served_settings
 from common_beams import drive, drive_arguments
 from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
@@ -178,11 +178,7 @@ def main() -> None:
     console.print(f"drives ready in {time.perf_counter() - t0:.0f} s")
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
-        "model": shown_path(args.model),
-        "model_id": enc.model_id,
-        "views": enc.meta.views,
-        "sensor_input": enc.meta.sensor_input,
-        "first_stage": enc.meta.first_stage,
+        **model_record(args.model, enc),
         "rerank": {
             "shortlist": rerank.shortlist,
             "weight": rerank.weight,

@@ -136,6 +136,21 @@ def served_settings(meta: Any) -> Any:
     return resolve(Settings(), meta)[0]
 
 
+def model_record(path: Path, enc: Any) -> dict[str, Any]:
+    """What a report says of the model file it measured (an ``Encoder``): where it lies,
+    its model id, the views and sensor input it is served with, and its first stage
+    (``overlapmamba.core.yaw_spectrum``; ``descriptor`` for the network's own)."""
+    from reports_kit import shown_path
+
+    return {
+        "model": shown_path(path),
+        "model_id": enc.model_id,
+        "views": enc.meta.views,
+        "sensor_input": enc.meta.sensor_input,
+        "first_stage": enc.meta.first_stage,
+    }
+
+
 def served_input(enc: Any, sensor: str | None) -> Any:
     """The ``SensorInput`` the service gives a scan that names ``sensor`` (``None``: the
     file's own sensor), for the model ``enc`` serves: the file's own input mode, its sensor

@@ -33,9 +33,9 @@ from typing import Any
 
 import numpy as np
 from across_pairs import BAR_AR1, SENSORS, Drives, split_towns
-from bench_kit import served_settings
+from bench_kit import model_record, served_settings
 from common_beams import drive_arguments
-from reports_kit import REPORTS, shown_path, write_report
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
@@ -138,17 +138,13 @@ def main() -> None:
     grid = settings(args.shortlists, WEIGHTS)
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
-        "model": shown_path(args.model),
-        "model_id": enc.model_id,
-        "views": enc.meta.views,
-        "sensor_input": enc.meta.sensor_input,
+        **model_record(args.model, enc),
         "own": {
             "shortlist": own[0],
             "weight": own[1],
             "calibrated": "rerank" in (enc.meta.calibration or {}),
         },
         "sensors": list(SENSORS),
-        "first_stage": enc.meta.first_stage,
         "grid": {"shortlists": list(args.shortlists), "weights": list(WEIGHTS)},
         "bar_ar@1": BAR_AR1,
         "radius_m": HIT_RADIUS,

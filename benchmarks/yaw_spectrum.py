@@ -39,8 +39,9 @@ from typing import Any
 
 import numpy as np
 from across_pairs import SENSORS, Drives, split_towns
+from bench_kit import model_record
 from common_beams import drive_arguments
-from reports_kit import REPORTS, shown_path, write_report
+from reports_kit import REPORTS, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
@@ -153,10 +154,7 @@ def main() -> None:
     enc = Encoder(args.model)
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
-        "model": shown_path(args.model),
-        "model_id": enc.model_id,
-        "views": enc.meta.views,
-        "sensor_input": enc.meta.sensor_input,
+        **model_record(args.model, enc),
         "sensors": list(SENSORS),
         "grid": {"bins": list(BINS), "compress": list(COMPRESS), "mix": list(MIX)},
         "ks": list(KS),
