@@ -119,32 +119,46 @@ def cost(paths: dict[str, Path], reps: int) -> list[dict]:
     return rows
 
 
-def invariance(paths: dict[str, Path], seeds: int) -> dict[str, dict]:
-    """Minimum cosine under a random continuous turn, per real set, way and seed."""
+def turn_minima(
+    path: Path, seeds: int, vectors: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]]
+) -> dict[str, dict]:
+    """The lowest cosine between a real scan's vector and that of the same scan turned by a
+    random continuous angle (``eval-real``'s turns, one pass a scan with the file's own
+    views), per real set (``REAL``) and per named vector (``vectors[name](descriptor,
+    yaw_features)``, rows at unit length), over ``seeds`` draws."""
     from overlapmamba.train.checkpoint import input_of, load_model, views_of
     from overlapmamba.train.evaluate import describe
-    from overlapmamba.train.realscans import invariance as inv
     from overlapmamba.train.realscans import real_turns
 
+    model, profile, _ = load_model(path)
     out: dict[str, dict] = {}
     for name, folder in REAL.items():
         if not folder.is_dir():
             out[name] = {"skipped": f"{folder} is missing"}
             continue
         seq = open_sequence(folder)
-        out[name] = {"scans": len(seq)}
-        for way, path in paths.items():
-            model, profile, _ = load_model(path)
-            sensor = input_of(model, profile, seq)
-            mins = []
-            for seed in range(seeds):
-                t = real_turns(seq, sensor, seed, views_of(model))
-                mins.append(
-                    inv(describe(model, t.plain)[0], describe(model, t.turned)[0], t.positions)[
-                        "cosine_min"
-                    ]
-                )
-            out[name][way] = {"cosine_min_per_seed": mins, "cosine_min": min(mins)}
+        sensor = input_of(model, profile, seq)
+        mins: dict[str, list[float]] = {key: [] for key in vectors}
+        for seed in range(seeds):
+            t = real_turns(seq, sensor, seed, views_of(model))
+            plain, turned = describe(model, t.plain), describe(model, t.turned)
+            for key, vector in vectors.items():
+                cos = (vector(*plain) * vector(*turned)).sum(1)
+                mins[key].append(float(cos.min()))
+        out[name] = {
+            "scans": len(seq),
+            **{k: {"cosine_min_per_seed": v, "cosine_min": min(v)} for k, v in mins.items()},
+        }
+    return out
+
+
+def invariance(paths: dict[str, Path], seeds: int) -> dict[str, dict]:
+    """Minimum cosine of the descriptor under a random continuous turn, per real set, way
+    and seed."""
+    out: dict[str, dict] = {}
+    for way, path in paths.items():
+        for name, row in turn_minima(path, seeds, {way: lambda desc, _yaw: desc}).items():
+            out.setdefault(name, {}).update(row)
     return out
 
 

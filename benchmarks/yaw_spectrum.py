@@ -113,35 +113,11 @@ def line(r: dict[str, Any]) -> str:
 
 
 def turn_cosines(model_path: Path, stages: list[FirstStage], seeds: int) -> dict[str, Any]:
-    """The minimum cosine between a real scan's first-stage vector and that of the same scan
-    turned by a random continuous angle (``eval-real``'s turns; one pass a scan, the file's
-    own views), per real set (``views.REAL``: KITTI 00, nuScenes), over ``seeds`` draws."""
-    from views import REAL
+    """Each stage's lowest cosine under random continuous turns of real scans
+    (``views.turn_minima``: KITTI 00, nuScenes; one pass a scan, the file's own views)."""
+    from views import turn_minima
 
-    from overlapmamba.train.checkpoint import input_of, load_model, views_of
-    from overlapmamba.train.evaluate import describe
-    from overlapmamba.train.realscans import real_turns
-
-    model, profile, _ = load_model(model_path)
-    out: dict[str, Any] = {}
-    for name, folder in REAL.items():
-        if not folder.is_dir():
-            out[name] = {"skipped": f"{folder} is missing"}
-            continue
-        seq = open_sequence(folder)
-        sensor = input_of(model, profile, seq)
-        mins: dict[str, list[float]] = {stage.name: [] for stage in stages}
-        for seed in range(seeds):
-            t = real_turns(seq, sensor, seed, views_of(model))
-            plain, turned = describe(model, t.plain), describe(model, t.turned)
-            for stage in stages:
-                cos = (stage.vectors(*plain) * stage.vectors(*turned)).sum(1)
-                mins[stage.name].append(float(cos.min()))
-        out[name] = {
-            "scans": len(seq),
-            **{k: {"cosine_min_per_seed": v, "cosine_min": min(v)} for k, v in mins.items()},
-        }
-    return out
+    return turn_minima(model_path, seeds, {stage.name: stage.vectors for stage in stages})
 
 
 def main() -> None:
