@@ -115,6 +115,29 @@ def _setting(r: dict[str, Any]) -> str:
     return f"shortlist {r['shortlist']}, weight {r['weight']:g}"
 
 
+def _figures(x: dict[str, Any]) -> list[str]:
+    """A setting's AR@1: over the 25 pairs, across sensors (mean / lowest / at the bar), same
+    sensor."""
+    return [
+        f3(x["mean_ar@1"]),
+        f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
+        f3(x["same_mean_ar@1"]),
+    ]
+
+
+def sweep_test_rows(r: dict[str, Any], own: str = "its own") -> list[list[str]]:
+    """A ``rerank_across`` report's three answers on test: the file's descriptor alone, its
+    own setting (named ``own``), and the setting chosen on val."""
+    return [
+        [f"{label}: {_setting(x)}" if x["shortlist"] > 1 else _setting(x), *_figures(x)]
+        for label, x in (
+            ("descriptor", r["test"]["descriptor"]),
+            (own, r["test"]["own"]),
+            ("chosen on val", r["test"]["chosen"]),
+        )
+    ]
+
+
 def rerank_across() -> str:
     """The second stage's shortlist and weight across sensors, chosen on val, on test."""
     r, sc_report = load(RERANK), load(RERANK_PAIRS)
@@ -133,9 +156,7 @@ def rerank_across() -> str:
     rows = [
         [
             _setting(x),
-            f3(x["mean_ar@1"]),
-            f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
-            f3(x["same_mean_ar@1"]),
+            *_figures(x),
             f"{r['cost_ms'][str(x['shortlist'])]:.2f} ms" if x["shortlist"] > 1 else "—",
         ]
         for x in r["val"]["settings"]
@@ -144,20 +165,7 @@ def rerank_across() -> str:
     out += table(head, rows)
     chosen = r["val"]["chosen"]
     out += f"\nChosen: {_setting(chosen)}.\n\ntest (the sensor test town: reported):\n\n"
-    rows = [
-        [
-            f"{label}: {_setting(x)}",
-            f3(x["mean_ar@1"]),
-            f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
-            f3(x["same_mean_ar@1"]),
-        ]
-        for label, x in (
-            ("descriptor", r["test"]["descriptor"]),
-            ("its own", r["test"]["own"]),
-            ("chosen on val", r["test"]["chosen"]),
-        )
-    ]
-    out += table(head[:-1], rows)
+    out += table(head[:-1], sweep_test_rows(r))
     best = {(p["queries"], p["map"]): p["ar@1"] for p in r["test"]["chosen"]["pairs"]}
     out += against_scan_context(sc_report, best, "the setting chosen on val, pair by pair: AR@1")
     return out + _other_networks()
@@ -188,20 +196,7 @@ def _other_networks() -> str:
     for path in RERANK_OTHERS:
         r = load(path)
         out += source(path, r["command"], when(r))
-        for label, x in (
-            ("descriptor", r["test"]["descriptor"]),
-            ("its own", r["test"]["own"]),
-            ("chosen on val", r["test"]["chosen"]),
-        ):
-            rows.append(
-                [
-                    _label(r).split(" (")[0],
-                    f"{label}: {_setting(x)}",
-                    f3(x["mean_ar@1"]),
-                    f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
-                    f3(x["same_mean_ar@1"]),
-                ]
-            )
+        rows += [[_label(r).split(" (")[0], *row] for row in sweep_test_rows(r)]
     head = ["network", "setting", "mean", "across: mean / lowest / at the bar", "same sensor"]
     return out + "\nThe same sweep for `bev-long`, on test:\n\n" + table(head, rows)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from figures_kit import f3, load, source, table, when
-from figures_pairs import _label, _setting, against_scan_context
+from figures_pairs import _label, _setting, against_scan_context, sweep_test_rows
 
 SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin.json"
 SC_PAIRS = "reports/model/across-pairs-bev-span-thin.json"
@@ -114,19 +114,8 @@ def _sweep() -> str:
         f"× weights {', '.join(f'{w:g}' for w in grid['weights'])}; chosen: "
         f"{_setting(chosen)}), AR@1 on test:\n\n"
     )
-    rows = [
-        [
-            f"{label}: {_setting(x)}",
-            f3(x["mean_ar@1"]),
-            f"{f3(x['cross_mean_ar@1'])} / {f3(x['cross_min_ar@1'])} / {x['pairs_at_bar']}",
-            f3(x["same_mean_ar@1"]),
-        ]
-        for label, x in (
-            ("first stage alone", r["test"]["descriptor"]),
-            ("the service defaults", r["test"]["own"]),
-            ("chosen on val", r["test"]["chosen"]),
-        )
-    ]
+    rows = sweep_test_rows(r, own="the service defaults")
+    rows[0][0] = "the spectrum alone"  # the file's descriptor is its first stage
     head = ["answer", "mean", "across: mean / lowest / at the bar", "same sensor"]
     return out + table(head, rows)
 
