@@ -4,10 +4,19 @@ each model, in alternating rounds on one machine (A, B, A, B, …), so that drif
 Default: the shipped model (three views met at the descriptors) against the same weights
 with the views met at the tokens (``models/overlapmamba-hdl64-tokens.onnx``, written by
 ``overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens`` and
-calibrated on ``val`` by the three calibration benchmarks). Each round is
-``overlapmamba-client simulate-fleet --robots N --sequence SEQ --duration S --rate R``
+calibrated on ``val`` by the three calibration benchmarks), and against the same weights
+with one view (``overlapmamba export models/overlapmamba-hdl64.onnx --views 1``, into a
+temporary folder; the shipped file's calibration kept, which was chosen for three views):
+what one encoder pass a scan buys a fleet, whatever the invariance it gives up. Each round
+is ``overlapmamba-client simulate-fleet --robots N --sequence SEQ --duration S --rate R``
 against a fresh ``overlapmamba serve`` of that model with default settings (verification
 on): observations a second, latency, errors, verified closures' precision and recall.
+
+Where the time goes: the CPU time the server spent while the fleet ran (from /proc, after it
+was ready) and the simulator's own (the robots' client, on the same cores), each divided by
+the observations, and the server's stage medians (``/v1/stats``). Their sum per observation
+bounds the throughput any fleet gets on this machine: cores ÷ (server + client CPU an
+observation), the ``ceiling`` column.
 
     python benchmarks/fleet_views.py [--rounds 2] [--robots 8] [--sequence data/synth/val]
 
@@ -18,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -26,18 +36,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import ROOT, SERVER_CPU_S, OtherLoad, other_load
+from bench_kit import CORES, ROOT, SERVER_CPU_S, OtherLoad, _pid_cpu_s, other_load
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 
 from overlapmamba.service.process import serve_process
-from overlapmamba.train.modelfile import read_metadata
+from overlapmamba.train.modelfile import read_metadata, with_views
 
+SHIPPED = ROOT / "models" / "overlapmamba-hdl64.onnx"
 MODELS = {
-    "descriptors (shipped)": ROOT / "models" / "overlapmamba-hdl64.onnx",
+    "descriptors (shipped)": SHIPPED,
     "tokens": ROOT / "models" / "overlapmamba-hdl64-tokens.onnx",
+    "one view": None,  # the shipped file with views = 1, written at the start of a run
 }
+STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
 KEPT += ("verified_closures", "loop_closures")
 
@@ -49,7 +62,10 @@ def _children_cpu_s() -> float:
 
 def round_of(model: Path, args: argparse.Namespace, tmp: Path, i: int) -> dict[str, Any]:
     """One simulate-fleet run against a fresh server of ``model``; the server's and the
-    simulator's CPU time count as this benchmark's own (``OtherLoad``)."""
+    simulator's CPU time count as this benchmark's own (``OtherLoad``), and each, divided by
+    the observations, says where an observation's time goes."""
+    import httpx
+
     cpu0 = _children_cpu_s()
     data = tmp / f"data-{i}"
     out = tmp / f"fleet-{i}.json"
@@ -59,10 +75,27 @@ def round_of(model: Path, args: argparse.Namespace, tmp: Path, i: int) -> dict[s
         cmd += ["--duration", str(args.duration), "--rate", str(args.rate)]
         cmd += ["--map", "fleet", "--url", srv.url, "--out", str(out)]
         cmd += ["--plot", str(tmp / f"fleet-{i}.png")]
-        subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT)
-    SERVER_CPU_S[0] += _children_cpu_s() - cpu0
+        server0 = _pid_cpu_s(srv.proc.pid)
+        with (tmp / f"client-{i}.log").open("w") as log:
+            client = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+            _, status, usage = os.wait4(client.pid, 0)  # its own CPU time, as it ends
+        client.returncode = os.waitstatus_to_exitcode(status)
+        server_s = _pid_cpu_s(srv.proc.pid) - server0
+        if client.returncode:
+            tail = (tmp / f"client-{i}.log").read_text()[-2000:]
+            raise SystemExit(f"simulate-fleet failed ({client.returncode}): {tail}")
+        stats = httpx.get(f"{srv.url}/v1/stats", timeout=30).json()["latency_ms"]
+    SERVER_CPU_S[0] += _children_cpu_s() - cpu0 + usage.ru_utime + usage.ru_stime
     got = json.loads(out.read_text())
-    return {k: got.get(k) for k in KEPT}
+    n = max(int(got["observations"]), 1)
+    server_ms = 1e3 * server_s / n
+    client_ms = 1e3 * (usage.ru_utime + usage.ru_stime) / n
+    return {
+        **{k: got.get(k) for k in KEPT},
+        "cpu_ms_per_observation": {"server": server_ms, "client": client_ms},
+        "ceiling_per_s": 1e3 * CORES / (server_ms + client_ms),
+        "stage_p50_ms": {k: stats[k]["p50"] for k in STAGES if k in stats},
+    }
 
 
 def main() -> None:
@@ -76,7 +109,7 @@ def main() -> None:
     args = ap.parse_args()
     console = Console()
     for name, path in MODELS.items():
-        if not path.is_file():
+        if path is not None and not path.is_file():
             raise SystemExit(f"{path} ({name}) is missing: see this script's docstring")
     if not (args.sequence / "manifest.json").is_file():
         raise SystemExit(f"{args.sequence} is not a generated town: run `make data`")
@@ -84,13 +117,20 @@ def main() -> None:
     runs: dict[str, list[dict[str, Any]]] = {k: [] for k in MODELS}
     watch = OtherLoad()
     with tempfile.TemporaryDirectory(prefix="om-fleet-views-") as tmp:
+        paths = {k: p or Path(tmp) / "one-view.onnx" for k, p in MODELS.items()}
+        with_views(SHIPPED, paths["one view"], 1)
+        meta = {k: _meta(p) for k, p in paths.items()}
         i = 0
         for r in range(args.rounds):
-            for name, path in MODELS.items():
+            for name, path in paths.items():
                 runs[name].append(round_of(path, args, Path(tmp), i))
                 i += 1
                 got = runs[name][-1]
-                console.print(f"round {r + 1}, {name}: {got['throughput_per_s']:.1f} obs/s")
+                console.print(
+                    f"round {r + 1}, {name}: {got['throughput_per_s']:.1f} obs/s, CPU an "
+                    f"observation {got['cpu_ms_per_observation']['server']:.0f} ms server + "
+                    f"{got['cpu_ms_per_observation']['client']:.0f} ms client"
+                )
     busy = other_load(console, "fleet", watch, "during")
     result = {
         "robots": args.robots,
@@ -101,14 +141,20 @@ def main() -> None:
         "rate_hz": args.rate,
         "rounds": args.rounds,
         "other_load": busy,
+        "cores": CORES,
         "models": {
-            k: {"path": str(p.relative_to(ROOT)), **_meta(p), "runs": runs[k]}
+            k: {
+                "path": str(p.relative_to(ROOT)) if p else f"{SHIPPED.relative_to(ROOT)}, views 1",
+                **meta[k],
+                "runs": runs[k],
+            }
             for k, p in MODELS.items()
         },
     }
     write_report(args.out, result)
     t = Table(title=f"{args.robots} robots, {args.duration:.0f} s a round, alternating")
-    for col in ("model", "observations/s per round", "median", "p50 latency", "errors"):
+    cols = ("model", "observations/s per round", "median", "p50 latency", "errors")
+    for col in (*cols, "CPU an observation: server + client", "ceiling"):
         t.add_column(col)
     for name, rs in runs.items():
         tput = [x["throughput_per_s"] for x in rs]
@@ -118,6 +164,12 @@ def main() -> None:
             f"{np.median(tput):.1f}",
             ", ".join(f"{x['latency_ms']['p50']:.0f} ms" for x in rs),
             str(sum(sum((x["errors"] or {}).values()) for x in rs)),
+            ", ".join(
+                f"{x['cpu_ms_per_observation']['server']:.0f} + "
+                f"{x['cpu_ms_per_observation']['client']:.0f} ms"
+                for x in rs
+            ),
+            ", ".join(f"{x['ceiling_per_s']:.1f}/s" for x in rs),
         )
     console.print(t)
     console.print(f"wrote {args.out}")
