@@ -406,3 +406,7 @@ def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
     assert report.errors == {} and report.observations == len(samples) >= 6
     assert report.correct is not None and report.queries_with_loop is not None
     assert 0 <= report.correct <= report.loop_closures
+    # the report names what it measured: the service's model, the drive, when
+    ready = httpx.get(f"{live}/readyz").json()["detail"]
+    assert report.server["model_id"] == ready["model_id"] and report.server["views"] >= 1
+    assert report.drives == [drive.name] and report.when.endswith("+00:00")

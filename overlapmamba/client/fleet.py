@@ -21,6 +21,7 @@ import json
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,10 @@ class FleetReport:
     verified_closures: int = 0
     pose_error: dict[str, dict[str, float]] | None = None  # correct verified closures
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
+    # what was measured: the service's model (its /readyz), the drives, when (UTC)
+    server: dict[str, Any] = field(default_factory=dict)
+    drives: list[str] = field(default_factory=list)
+    when: str = ""
 
     def to_json(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -101,6 +106,11 @@ async def simulate(
         url, api_key=api_key, retry=retry or Retry(attempts=3, backoff_s=0.2), mount=mount
     ) as pr:
         await pr.create_map(map_id)
+        try:  # what the report measured; a service not ready now is not an error here
+            ready = (await pr.health()).get("detail") or {}
+        except ClientError:
+            ready = {}
+        server = {k: ready.get(k) for k in ("model_id", "views", "scan", "sensor")}
 
         async def robot(r: int) -> None:
             d = r % len(drives)
@@ -170,9 +180,10 @@ async def simulate(
 
         await asyncio.gather(*(robot(r) for r in range(robots)))
     elapsed = time.monotonic() - start
-    return _report(
-        samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start
-    ), samples
+    report = _report(samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start)
+    report.server, report.drives = server, [d.name for d in drives]
+    report.when = datetime.now(UTC).isoformat(timespec="seconds")
+    return report, samples
 
 
 def _report(
