@@ -291,11 +291,14 @@ def e2e() -> str:
     rows = []
     lt = load("reports/e2e/load.json")
     fl = lt["fleet"]
+    served = lt.get("model") or {}  # recorded since 2026-11-29
+    model = f" (model `{served['model_id']}`, {served['views']} views)" if served else ""
     rows.append(
         [
             "load (`tests/test_e2e_load.py`)",
             lt["when"][:10],
-            f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s: "
+            f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s{model}, "
+            f"while a mapper inserted {lt['mapper']['keyframes_acknowledged']:,} keyframes: "
             f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
             f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
             f"verified closures precision {fl['closure_precision']:.3f}, recall "

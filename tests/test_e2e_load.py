@@ -71,6 +71,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {
         "command": "make e2e (tests/test_e2e_load.py)",
+        "model": report.server,  # the service's model id, views and scan path (its /readyz)
         "drive": drive.name,
         "robots": robots,
         "rate_hz_asked": 10.0,
