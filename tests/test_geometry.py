@@ -181,6 +181,26 @@ def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
     assert "0.500 is above verify.gate_distance 0.3" in (far.reason or "")
 
 
+def test_stop_at_first_registers_no_candidate_after_one_verifies(kitti):
+    """verify.stop_at_first: candidates are registered in order until one verifies; the rest
+    answer verified None with the reason. Off (the default), every candidate is registered."""
+    from overlapmamba.service.settings import VerifySettings
+    from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+
+    p = params_of(VerifySettings())
+    q = prepare(kitti.points(11).xyz, p)
+    here = keyframe_geometry(prepare(kitti.points(12).xyz, p), p)
+    elsewhere = keyframe_geometry(prepare(kitti.points(95).xyz, p), p)
+    candidates = [(elsewhere, 0.0, 0.1), (here, 0.0, 0.1), (here, 0.0, 0.1)]
+    every = verify_candidates(q, candidates, VerifySettings(gate_distance=None))
+    assert [x.verified for x in every] == [False, True, True]
+    first = verify_candidates(q, candidates, VerifySettings(gate_distance=None, stop_at_first=True))
+    assert [x.verified for x in first[:2]] == [False, True]
+    assert first[1].fitness == every[1].fitness  # the same registration, up to there
+    assert first[2].verified is None and first[2].relative_pose is None
+    assert first[2].reason == "not registered: candidate 2 verified first (verify.stop_at_first)"
+
+
 def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     from overlapmamba.service.verify import RegistrationParams, prepare, register
 

@@ -786,3 +786,33 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
         assert stats["verified"] >= 1 and stats["rejected"] >= 2
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_verifications_total{map="town",outcome="verified"}' in metrics
+
+
+async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, encoder):
+    """verify.stop_at_first: once a candidate verifies, the later ones answer verified: null
+    with the reason, and the loop closure is that candidate's, with its pose."""
+    verify = any_backend.verify.model_copy(update={"gate_distance": None, "stop_at_first": True})
+    async with running(any_backend.model_copy(update={"verify": verify}), encoder) as c:
+        assert (await c.put("/v1/maps/town")).status_code == 201
+        for i in range(3):
+            r = await c.post(
+                "/v1/maps/town/keyframes",
+                params=kf_params(f"k{i}", 100.0 + i),
+                content=scan(i).tobytes(),
+                headers=OCTET,
+            )
+            assert r.status_code == 201, r.text
+        q = await c.post(
+            "/v1/maps/town/query", params={"k": 3}, content=scan(1, 40.0).tobytes(), headers=OCTET
+        )
+        matches, lc = q.json()["matches"], q.json()["loop_closure"]
+        assert matches[0]["keyframe_id"] == "k1" and matches[0]["verification"]["verified"]
+        assert lc["verified"] is True and lc["keyframe_id"] == "k1"
+        assert lc["relative_pose"] == matches[0]["relative_pose"]
+        for m in matches[1:]:
+            assert m["verification"] == {
+                "verified": None,
+                "fitness": None,
+                "rmse": None,
+                "reason": "not registered: candidate 1 verified first (verify.stop_at_first)",
+            }

@@ -240,6 +240,12 @@ class VerifySettings(_RenamedSection):
         description="candidates with a descriptor L2 distance above this are not registered "
         "(verified: false, with the reason); null: every candidate is",
     )
+    stop_at_first: bool = Field(
+        False,
+        description="stop registering a query's candidates once one verifies: the later ones "
+        "answer verified: null with the reason, and the loop closure is that first verified "
+        "candidate instead of the best-fitting verified one (fewer registrations a query)",
+    )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
     voxel_m: float = Field(
         2.0,

@@ -270,9 +270,13 @@ def verify_candidates(
     candidate farther than ``v.gate_distance`` is not registered: on the validation town no
     true loop lay that far, and a robot in new territory then spends nothing on it."""
     p = params_of(v)
-    out = []
+    out: list[Verdict] = []
     for blob, yaw_deg, distance in candidates:
-        if blob is None:
+        first = next((i for i, x in enumerate(out) if x.verified), None)
+        if v.stop_at_first and first is not None:
+            reason = f"not registered: candidate {first + 1} verified first (verify.stop_at_first)"
+            out.append(Verdict(None, None, None, reason, None))
+        elif blob is None:
             out.append(Verdict(None, None, None, NO_GEOMETRY, None))
         elif v.gate_distance is not None and distance > v.gate_distance:
             reason = (
