@@ -7,7 +7,9 @@ with the views met at the tokens (``models/overlapmamba-hdl64-tokens.onnx``, wri
 calibrated on ``val`` by the three calibration benchmarks), and against the same weights
 with one view (``overlapmamba export models/overlapmamba-hdl64.onnx --views 1``, into a
 temporary folder; the shipped file's calibration kept, which was chosen for three views):
-what one encoder pass a scan buys a fleet, whatever the invariance it gives up. Each round
+what one encoder pass a scan buys a fleet, whatever the invariance it gives up; and the
+shipped file served with ``verify.stop_at_first`` (no registration after a candidate
+verifies): what registering past a verified candidate costs. Each round
 is ``overlapmamba-client simulate-fleet --robots N --sequence SEQ --duration S --rate R``
 against a fresh ``overlapmamba serve`` of that model with default settings (verification
 on): observations a second, latency, errors, verified closures' precision and recall.
@@ -49,7 +51,10 @@ MODELS = {
     "descriptors (shipped)": SHIPPED,
     "tokens": ROOT / "models" / "overlapmamba-hdl64-tokens.onnx",
     "one view": None,  # the shipped file with views = 1, written at the start of a run
+    # the shipped file served with verify.stop_at_first (no registration after one verifies)
+    "descriptors (shipped), stop at first": SHIPPED,
 }
+SETTINGS = {"descriptors (shipped), stop at first": {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "true"}}
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
 KEPT += ("verified_closures", "loop_closures")
@@ -60,7 +65,9 @@ def _children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def round_of(model: Path, args: argparse.Namespace, tmp: Path, i: int) -> dict[str, Any]:
+def round_of(
+    model: Path, args: argparse.Namespace, tmp: Path, i: int, env: dict[str, str]
+) -> dict[str, Any]:
     """One simulate-fleet run against a fresh server of ``model``; the server's and the
     simulator's CPU time count as this benchmark's own (``OtherLoad``), and each, divided by
     the observations, says where an observation's time goes."""
@@ -69,7 +76,9 @@ def round_of(model: Path, args: argparse.Namespace, tmp: Path, i: int) -> dict[s
     cpu0 = _children_cpu_s()
     data = tmp / f"data-{i}"
     out = tmp / f"fleet-{i}.json"
-    with serve_process(data, model=model, inherit_settings=False, startup_s=180, cwd=ROOT) as srv:
+    with serve_process(
+        data, model=model, env=env, inherit_settings=False, startup_s=180, cwd=ROOT
+    ) as srv:
         cmd = [str(Path(sys.executable).parent / "overlapmamba-client"), "simulate-fleet"]
         cmd += ["--robots", str(args.robots), "--sequence", str(args.sequence)]
         cmd += ["--duration", str(args.duration), "--rate", str(args.rate)]
@@ -123,7 +132,7 @@ def main() -> None:
         i = 0
         for r in range(args.rounds):
             for name, path in paths.items():
-                runs[name].append(round_of(path, args, Path(tmp), i))
+                runs[name].append(round_of(path, args, Path(tmp), i, SETTINGS.get(name, {})))
                 i += 1
                 got = runs[name][-1]
                 console.print(
@@ -146,6 +155,7 @@ def main() -> None:
             k: {
                 "path": str(p.relative_to(ROOT)) if p else f"{SHIPPED.relative_to(ROOT)}, views 1",
                 **meta[k],
+                "settings": SETTINGS.get(k, {}),  # the server's environment beside defaults
                 "runs": runs[k],
             }
             for k, p in MODELS.items()
