@@ -46,7 +46,7 @@ def verify() -> str:
         f"{th['max_rmse_m']} m, descriptor gate {gate}. A closure is correct when its pose is "
         "within 1 m and 2° of the truth; recall counts queries with a loop.\n\n"
     )
-    return out + table(
+    out += table(
         [
             "town",
             "queries",
@@ -60,6 +60,36 @@ def verify() -> str:
             "verify p50",
         ],
         rows,
+    )
+    return out + _stop_at_first(r)
+
+
+def _stop_at_first(r: dict) -> str:
+    """The same registrations scored as ``verify.stop_at_first`` answers: the first verified
+    candidate is the closure and none after it is registered (files since 2026-11-29)."""
+    rows = []
+    for t in r["towns"]:
+        if "verified_stop_at_first" not in t:
+            return ""
+        for label, v in (("best-fitting", t["verified"]), ("first", t["verified_stop_at_first"])):
+            err = v.get("translation_error_m", {}).get("median")
+            rows.append(
+                [
+                    Path(t["town"]).name,
+                    label,
+                    v["accepted"],
+                    f"{v['precision']:.3f}",
+                    f"{v['recall']:.3f}",
+                    f"{err * 100:.1f} cm" if err is not None else "—",
+                    f"{v['registered_per_query']:.2f}",
+                ]
+            )
+    head = ["town", "closure", "accepted", "precision", "recall", "pose error p50"]
+    return (
+        "\nThe same registrations as `verify.stop_at_first = true` answers them (the first "
+        "verified candidate in the answer's order is the closure, none after it registered) "
+        "beside the default (the best-fitting verified candidate):\n\n"
+        + table([*head, "registered a query"], rows)
     )
 
 

@@ -214,3 +214,33 @@ def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     assert bad.relative_pose is None and "unreadable" in (bad.reason or "")
     tiny = register(q, encode_geometry(kitti.points(2).xyz[:20], voxel=1.0), 0.0, p)
     assert tiny.relative_pose is None and "keeps" in (tiny.reason or "")
+
+
+def test_verify_threshold_scores_stop_at_first_as_the_service_answers():
+    """benchmarks/verify_threshold.py scores the same registrations both ways: the
+    best-fitting verified candidate, or the first verified with none registered after it."""
+    from conftest import benchmark_module
+
+    score = benchmark_module("verify_threshold").score
+
+    def cand(distance, fitness, t_err, loop=True):
+        return dict(
+            distance=distance, fitness=fitness, rmse=0.5, t_err=t_err, yaw_err=0.1, loop=loop
+        )
+
+    queries = [
+        # the first verified candidate's pose is wrong, a later one fits better and is right
+        {
+            "has_loop": True,
+            "candidates": [cand(0.1, 0.1, 0.0), cand(0.1, 0.7, 5.0), cand(0.2, 0.9, 0.2)],
+        },
+        # nothing verifies: every candidate under the gate is registered both ways
+        {"has_loop": False, "candidates": [cand(0.1, 0.1, 9.0, False), cand(0.5, 0.1, 9.0, False)]},
+    ]
+    best = score(queries, 0.6, 0.7, gate_distance=0.3)
+    first = score(queries, 0.6, 0.7, gate_distance=0.3, stop_at_first=True)
+    assert (best["accepted"], best["correct"], best["recall"]) == (1, 1, 1.0)
+    assert (first["accepted"], first["correct"], first["recall"]) == (1, 0, 0.0)
+    assert (
+        best["registered_per_query"] == (3 + 1) / 2 and first["registered_per_query"] == (2 + 1) / 2
+    )
