@@ -141,7 +141,8 @@ class Stats:
         self, map_id: str, robot: str | None, accepted: bool, candidates: Sequence[Any] = ()
     ) -> None:
         """One answered query; ``candidates``: its matches that went through verification
-        (those whose keyframe had no geometry count as neither verified nor rejected)."""
+        (those whose keyframe had no geometry, or not registered after an earlier one verified
+        under ``verify.stop_at_first``, count as neither verified nor rejected)."""
         self.p_queries.labels(map_id).inc()
         if accepted:
             self.p_loops.labels(map_id).inc()
