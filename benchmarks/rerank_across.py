@@ -42,7 +42,7 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
 from overlapmamba.core.rerank import aligned_correlation
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, town_positions
+from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, ground_truth, town_positions
 
 SHORTLISTS = (1, 20, 50, 100, 200)  # 1: the descriptor alone
 WEIGHTS = (0.2, 0.5, 1.0, 2.0, 8.0)
@@ -63,8 +63,7 @@ class Pair:
         self.corr = np.stack(
             [aligned_correlation(y_q[i], y_db[self.ranked[i]]) for i in range(len(d_q))]
         )
-        gap = pos_q[:, None, :2] - pos_db[None, :, :2]
-        within = (gap**2).sum(-1) <= HIT_RADIUS**2
+        within = ground_truth(pos_db, pos_q)
         self.evaluated = within.any(1)  # queries with a place of the map within the radius
         self.near = np.take_along_axis(within, self.ranked, 1)
 

@@ -48,7 +48,13 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, town_positions
+from overlapmamba.train.sessions import (
+    HIT_RADIUS,
+    check_sessions,
+    ground_truth,
+    recall_at,
+    town_positions,
+)
 
 KS = (1, 20, 50, 200)
 CHOOSE_K = 1
@@ -64,18 +70,13 @@ class Pair:
     def __init__(self, db_town: Path, q_town: Path) -> None:
         db_seq, q_seq = open_sequence(db_town), open_sequence(q_town)
         check_sessions(db_seq, q_seq)
-        pos_db, pos_q = town_positions(db_seq), town_positions(q_seq)
-        gap = pos_q[:, None, :2] - pos_db[None, :, :2]
-        self.within = (gap**2).sum(-1) <= HIT_RADIUS**2
-        self.evaluated = self.within.any(1)
+        self.within = ground_truth(town_positions(db_seq), town_positions(q_seq))
         self.db_town, self.q_town = db_town, q_town
 
     def recall(self, db: np.ndarray, q: np.ndarray) -> dict[str, float]:
         """R@K for K in ``KS``: the share of evaluated queries with a hit among the first K."""
         ranked, _ = nearest(q, db, max(KS))
-        near = np.take_along_axis(self.within, np.maximum(ranked, 0), 1) & (ranked >= 0)
-        first = np.where(near.any(1), near.argmax(1), np.iinfo(np.int64).max)[self.evaluated]
-        return {f"r@{k}": float((first < k).mean()) for k in KS}
+        return recall_at(ranked, self.within, KS, prefix="r@")
 
 
 def answers(

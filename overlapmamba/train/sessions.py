@@ -97,7 +97,7 @@ def _check_town(database: Sequence, queries: Sequence) -> None:
         )
 
 
-def _ground_truth(pos_db: np.ndarray, pos_q: np.ndarray, radius: float) -> np.ndarray:
+def ground_truth(pos_db: np.ndarray, pos_q: np.ndarray, radius: float = HIT_RADIUS) -> np.ndarray:
     """(Q, M) bool: database scan within ``radius`` of the query."""
     d2 = ((pos_q[:, None, :2] - pos_db[None, :, :2]) ** 2).sum(-1)
     return d2 <= radius * radius
@@ -115,15 +115,28 @@ def _wrong_top1(top1_m: np.ndarray, radius: float) -> dict[str, int]:
     return out
 
 
+def recall_at(
+    ranked: np.ndarray, near: np.ndarray, ks: tuple[int, ...], prefix: str = "ar@"
+) -> dict[str, float]:
+    """The share of queries with any database scan within reach (``near``, (Q, M) bool) that
+    have one among their first K answers (``ranked``, (Q, ≥ max K) indices, −1 for none),
+    for each K in ``ks``: ``{prefix}K`` (NaN when no query has any)."""
+    evaluated = np.asarray(near.any(1))
+    hits = np.take_along_axis(near, np.clip(ranked, 0, None), 1) & (ranked >= 0)
+    out = {}
+    for n in ks:
+        ok = np.asarray(hits[:, :n].any(1))[evaluated]
+        out[f"{prefix}{n}"] = float(ok.mean()) if len(ok) else float("nan")
+    return out
+
+
 def _recalls(
     ranked: np.ndarray, near: np.ndarray, pos_db: np.ndarray, pos_q: np.ndarray, radius: float
 ) -> dict[str, Any]:
     evaluated = np.asarray(near.any(1))
     hits = np.take_along_axis(near, np.clip(ranked, 0, None), 1) & (ranked >= 0)
     out: dict[str, Any] = {"queries": int(evaluated.sum()), "queries_total": len(near)}
-    for n in RECALL_AT:
-        ok = np.asarray(hits[:, :n].any(1))[evaluated]
-        out[f"ar@{n}"] = float(ok.mean()) if len(ok) else float("nan")
+    out.update(recall_at(ranked, near, RECALL_AT))
     wrong = evaluated & ~np.asarray(hits[:, 0]) & (ranked[:, 0] >= 0)
     top1 = pos_db[ranked[wrong, 0], :2]
     out["wrong_top1"] = _wrong_top1(np.linalg.norm(top1 - pos_q[wrong, :2], axis=1), radius)
@@ -149,7 +162,7 @@ def descriptor_recall(
         if yaw is None:
             raise ValueError("re-ranking needs the yaw features of both sessions")
         ranked, _ = rerank_ranked(yaw[1], yaw[0], ranked, dist, rerank)
-    near = _ground_truth(pos_db, pos_q, radius)
+    near = ground_truth(pos_db, pos_q, radius)
     out = _recalls(ranked[:, : max(RECALL_AT)], near, pos_db, pos_q, radius)
     return {"radius_m": radius, **out, **({"rerank": asdict(rerank)} if rerank.on else {})}
 
@@ -168,5 +181,5 @@ def scan_context_recall(
     contexts = np.concatenate([sc_db, sc_q])
     queries = len(sc_db) + np.arange(len(sc_q))
     ranked, _ = sc_retrieve(contexts, queries, np.full(len(sc_q), len(sc_db)), k, p.candidates)
-    near = _ground_truth(pos_db, pos_q, radius)
+    near = ground_truth(pos_db, pos_q, radius)
     return {"radius_m": radius, **_recalls(ranked, near, pos_db, pos_q, radius)}
