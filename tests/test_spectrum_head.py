@@ -96,3 +96,23 @@ def test_a_new_trace_would_drop_the_first_stage_and_is_refused(plain, tmp_path):
     with pytest.raises(ExportError, match="a new trace would drop"):
         with_token_views(once, tmp_path / "tokens.onnx", 3)
     assert not (tmp_path / "tokens.onnx").exists()
+
+
+def test_the_cli_refuses_a_file_before_writing_anything(plain, tmp_path):
+    """`overlapmamba export FILE.onnx --first-stage …` checks the source first: a calibrated
+    file is refused with the reason, and --out is never written (not even the views' copy)."""
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    out = tmp_path / "x.onnx"
+    runner = CliRunner()
+    args = ["export", str(MODEL), "--first-stage", "spectrum:8:sqrt", "--out", str(out)]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2 and "carries calibration" in r.output, r.output
+    assert not out.exists()
+    r = runner.invoke(
+        app, ["export", str(plain), "--first-stage", "spectrum:8:sqrt", "--out", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    assert read_metadata(out).first_stage == "spectrum:8:sqrt"

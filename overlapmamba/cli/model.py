@@ -233,7 +233,7 @@ def export_cmd(
     from overlapmamba.train.model import OverlapMamba, meeting_views
     from overlapmamba.train.modelfile import load_encoder, with_sensor_input, with_views
     from overlapmamba.train.recover import with_token_views
-    from overlapmamba.train.spectrum_head import with_first_stage
+    from overlapmamba.train.spectrum_head import check_source, with_first_stage
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
@@ -250,14 +250,8 @@ def export_cmd(
             stage = FirstStage.parse(first_stage)
         except ValueError as err:
             raise typer.BadParameter(str(err), param_hint="--first-stage") from None
-        if checkpoint.suffix == ".onnx" and (had := load_encoder(checkpoint)[1].first_stage) != (
-            "descriptor"
-        ):
-            raise typer.BadParameter(
-                f"{checkpoint} already carries first stage {had!r}; start from the file it was "
-                "written from",
-                param_hint="--first-stage",
-            )
+        if checkpoint.suffix == ".onnx":  # refused before anything is written to --out
+            check_source(load_encoder(checkpoint)[1], checkpoint, stage)
     if sensor_input is not None and sensor_input not in MODES:
         raise typer.BadParameter(
             f"--sensor-input must be one of {', '.join(MODES)}, got {sensor_input!r}",

@@ -42,11 +42,10 @@ def dft_matrices(width: int, bins: int) -> tuple[np.ndarray, np.ndarray]:
     return np.cos(angle).astype(np.float32), (-np.sin(angle)).astype(np.float32)
 
 
-def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> EncoderMetadata:
-    """Write ``src``'s encoder to ``out`` with ``stage``'s vector as its descriptor (see the
-    module's text). Atomic. Returns the new metadata."""
-    src, out = Path(src), Path(out)
-    proto, meta = load_encoder(src)
+def check_source(meta: EncoderMetadata, src: Path | str, stage: FirstStage) -> None:
+    """Refuse (:class:`ExportError`, saying why) a file ``stage`` cannot be written into:
+    one carrying a first stage already, or sensor maps or calibration fitted on its own
+    descriptor; and the ``descriptor`` stage, which adds nothing."""
     if stage.mix == 0.0:
         raise ExportError("first stage 'descriptor' is the file's own descriptor: nothing to add")
     if meta.first_stage != "descriptor":
@@ -61,6 +60,14 @@ def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> Enc
                 "descriptor; they would apply to another vector: write the first stage into a "
                 "file without them, then fit or calibrate that file"
             )
+
+
+def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> EncoderMetadata:
+    """Write ``src``'s encoder to ``out`` with ``stage``'s vector as its descriptor (see the
+    module's text). Atomic. Returns the new metadata."""
+    src, out = Path(src), Path(out)
+    proto, meta = load_encoder(src)
+    check_source(meta, src, stage)
     g = proto.graph
     outputs = {o.name: o for o in g.output}
     if set(outputs) != {"descriptor", "yaw_features"}:
