@@ -268,13 +268,14 @@ def verify_candidates(
     """The prepared query and its candidates (geometry blob or None, the descriptor's
     relative yaw, the descriptor distance) → one verdict per candidate, in order. A
     candidate farther than ``v.gate_distance`` is not registered: on the validation town no
-    true loop lay that far, and a robot in new territory then spends nothing on it."""
+    true loop lay that far, and a robot in new territory then spends nothing on it. With
+    ``v.stop_at_first`` none is registered after the first that verifies."""
     p = params_of(v)
     out: list[Verdict] = []
+    first: int | None = None  # the first verified candidate, 1-based
     for blob, yaw_deg, distance in candidates:
-        first = next((i for i, x in enumerate(out) if x.verified), None)
         if v.stop_at_first and first is not None:
-            reason = f"not registered: candidate {first + 1} verified first (verify.stop_at_first)"
+            reason = f"not registered: candidate {first} verified first (verify.stop_at_first)"
             out.append(Verdict(None, None, None, reason, None))
         elif blob is None:
             out.append(Verdict(None, None, None, NO_GEOMETRY, None))
@@ -286,6 +287,8 @@ def verify_candidates(
             out.append(Verdict(False, None, None, reason, None))
         else:
             out.append(judge(register(query, blob, yaw_deg, p), v))
+            if first is None and out[-1].verified:
+                first = len(out)
     return out
 
 
