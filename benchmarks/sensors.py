@@ -102,7 +102,8 @@ def same_sensor(
         gt.positives(),
         exclude_recent_frames=int(gt.params.get("exclude_recent", 100)),
     ).summary()
-    verified = score(r["queries"], v.min_fitness, v.max_rmse_m, v.gate_distance)
+    # as the service answers: the first verified candidate unless v.stop_at_first is off
+    verified = score(r["queries"], v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first)
     row = {
         "town": str(town),
         "sensor": r["sensor"],
@@ -115,7 +116,8 @@ def same_sensor(
         "scan_context": _fr(summary(scancontext_loop_closure(contexts, gt))["all"]),
         "answer_recall@5": verified_recall(r["queries"])["recall@5"] if verify else None,
         "verified": {
-            k: verified[k] for k in ("accepted", "correct", "precision", "recall") if k in verified
+            **{k: verified[k] for k in ("accepted", "correct", "precision", "recall")},
+            "stop_at_first": v.stop_at_first,
         }
         if verify
         else None,  # --no-verify: nothing registered

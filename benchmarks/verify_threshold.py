@@ -56,7 +56,9 @@ from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, v
 def run_town(
     enc: Encoder, path: Path, k: int, v: VerifySettings, rerank: Rerank, batch: int = 8
 ) -> dict[str, Any]:
-    """Every query's candidates: rank, correctness, fitness, rmse, pose errors."""
+    """Every query's candidates: rank, correctness, fitness, rmse, pose errors. Each is
+    registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them."""
+    v = v.model_copy(update={"stop_at_first": False})
     seq = open_sequence(path)
     sensor = served_input(enc, seq.sensor)
     gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")

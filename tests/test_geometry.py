@@ -175,15 +175,15 @@ def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
     p = params_of(v)
     q = prepare(kitti.points(11).xyz, p)
     blob = keyframe_geometry(prepare(kitti.points(12).xyz, p), p)
-    near, far = verify_candidates(q, [(blob, 0.0, 0.1), (blob, 0.0, 0.5)], v)
+    far, near = verify_candidates(q, [(blob, 0.0, 0.5), (blob, 0.0, 0.1)], v)
     assert near.verified is True and near.relative_pose is not None
     assert far.verified is False and far.relative_pose is None and far.fitness is None
     assert "0.500 is above verify.gate_distance 0.3" in (far.reason or "")
 
 
 def test_stop_at_first_registers_no_candidate_after_one_verifies(kitti):
-    """verify.stop_at_first: candidates are registered in order until one verifies; the rest
-    answer verified None with the reason. Off (the default), every candidate is registered."""
+    """verify.stop_at_first (the default): candidates are registered in order until one
+    verifies; the rest answer verified None with the reason. Off, every candidate is."""
     from overlapmamba.service.settings import VerifySettings
     from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
 
@@ -192,9 +192,10 @@ def test_stop_at_first_registers_no_candidate_after_one_verifies(kitti):
     here = keyframe_geometry(prepare(kitti.points(12).xyz, p), p)
     elsewhere = keyframe_geometry(prepare(kitti.points(95).xyz, p), p)
     candidates = [(elsewhere, 0.0, 0.1), (here, 0.0, 0.1), (here, 0.0, 0.1)]
-    every = verify_candidates(q, candidates, VerifySettings(gate_distance=None))
+    off = VerifySettings(gate_distance=None, stop_at_first=False)
+    every = verify_candidates(q, candidates, off)
     assert [x.verified for x in every] == [False, True, True]
-    first = verify_candidates(q, candidates, VerifySettings(gate_distance=None, stop_at_first=True))
+    first = verify_candidates(q, candidates, VerifySettings(gate_distance=None))
     assert [x.verified for x in first[:2]] == [False, True]
     assert first[1].fitness == every[1].fitness  # the same registration, up to there
     assert first[2].verified is None and first[2].relative_pose is None

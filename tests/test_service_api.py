@@ -723,8 +723,10 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
     verified: false with its reason, not an error."""
     from overlapmamba.core.poses import rotation_z
 
-    # every candidate registered, however far its descriptor (the gate has its own test)
-    verify = any_backend.verify.model_copy(update={"gate_distance": None})
+    # every candidate registered, however far its descriptor (the gate has its own test) and
+    # after one verifies (stop_at_first, the default, has its own)
+    update = {"gate_distance": None, "stop_at_first": False}
+    verify = any_backend.verify.model_copy(update=update)
     async with running(any_backend.model_copy(update={"verify": verify}), encoder) as c:
         assert (await c.put("/v1/maps/town")).json()["keep_geometry"] is True
         r = await c.put("/v1/maps/bare", json={"keep_geometry": False})
@@ -789,9 +791,10 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
 
 
 async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, encoder):
-    """verify.stop_at_first: once a candidate verifies, the later ones answer verified: null
-    with the reason, and the loop closure is that candidate's, with its pose."""
-    verify = any_backend.verify.model_copy(update={"gate_distance": None, "stop_at_first": True})
+    """verify.stop_at_first, the default: once a candidate verifies, the later ones answer
+    verified: null with the reason, and the loop closure is that candidate's, with its pose."""
+    assert any_backend.verify.stop_at_first is True
+    verify = any_backend.verify.model_copy(update={"gate_distance": None})
     async with running(any_backend.model_copy(update={"verify": verify}), encoder) as c:
         assert (await c.put("/v1/maps/town")).status_code == 201
         for i in range(3):

@@ -16,7 +16,8 @@ class LoopClosure:
     """The call on a query: is it a revisit of a keyframe, and which one.
 
     With verification (a scan query, ``verify.candidates`` > 0, candidates with geometry): the
-    verified candidate of highest fitness, with its relative pose. Otherwise (a descriptor
+    verified candidate (the first in the answer's order under ``verify.stop_at_first``, the
+    default; of highest fitness without it), with its relative pose. Otherwise (a descriptor
     query, ``verify=false``, keyframes without geometry): the top match when its re-ranking
     score is under ``loop_closure.max_score`` (a re-ranked answer, :mod:`.ranking`), or its
     descriptor distance under ``loop_closure.accept_distance`` — ``verified`` is then None."""

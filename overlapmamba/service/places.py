@@ -341,7 +341,8 @@ class PlaceService:
 
     @staticmethod
     def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
-        """The verified candidate of highest fitness; the descriptor's call only when no
+        """The verified candidate of highest fitness (the only one registered as verified
+        under ``verify.stop_at_first``); the descriptor's call only when no
         candidate could be judged (none has geometry). Candidates refused by the descriptor
         gate count as judged: a query far from every keyframe closes no loop."""
         verdicts = [(c, c.verification) for c in candidates if c.verification is not None]

@@ -241,10 +241,11 @@ class VerifySettings(_RenamedSection):
         "(verified: false, with the reason); null: every candidate is",
     )
     stop_at_first: bool = Field(
-        False,
+        True,
         description="stop registering a query's candidates once one verifies: the later ones "
         "answer verified: null with the reason, and the loop closure is that first verified "
-        "candidate instead of the best-fitting verified one (fewer registrations a query)",
+        "candidate (chosen on val: the same closures with fewer registrations a query); "
+        "false: register every candidate and close on the best-fitting verified one",
     )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
     voxel_m: float = Field(

@@ -122,7 +122,8 @@ async def query(
     """Nearest keyframes by descriptor distance, best first, after the filters; for a scan
     query each match carries the relative yaw from the stored yaw features, and the top
     `verify.candidates` (5) are registered against their keyframe's geometry: `relative_pose` and
-    `verification`. The loop closure is the verified candidate of highest fitness; without
+    `verification`, in order until one verifies (`verify.stop_at_first`). The loop closure is
+    the verified candidate (of highest fitness when `verify.stop_at_first` is false); without
     verification, the top match when its distance is under the configured threshold (and
     the margin to the runner-up is large enough). k results come back whenever k eligible
     keyframes exist."""
