@@ -301,6 +301,7 @@ def fleet_views() -> str:
                 ", ".join(f3(x["recall"]) for x in runs),
                 ", ".join(f"{c['server']:.0f} + {c['client']:.0f} ms" for c in cpu),
                 ", ".join(f"{x['ceiling_per_s']:.1f}" for x in runs),
+                ", ".join(ms(x["stage_p50_ms"]["verify"]) for x in runs),
             ]
         )
     out = source(FLEET_VIEWS, r.get("command") or "python benchmarks/fleet_views.py", when(r))
@@ -313,10 +314,11 @@ def fleet_views() -> str:
         f"{r['duration_s']:.0f} s a round, {r['rounds']} rounds of each model in turn{note}. "
         "CPU an observation: the server's and the simulator's (its robots share the "
         f"{r['cores']} cores), over the observations answered; ceiling: "
-        f"{r['cores']} cores ÷ their sum, observations a second.\n\n"
+        f"{r['cores']} cores ÷ their sum, observations a second; verify: the server's median "
+        "time in that stage a scan query.\n\n"
     )
     head = ["model", "observations/s", "p50", "errors", "precision", "recall"]
-    return out + table([*head, "CPU an observation", "ceiling"], rows)
+    return out + table([*head, "CPU an observation", "ceiling", "verify"], rows)
 
 
 # ---- end to end ----------------------------------------------------------------------------
