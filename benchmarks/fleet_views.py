@@ -5,9 +5,9 @@ Default: the shipped model (three views met at the descriptors) against the same
 with the views met at the tokens (``models/overlapmamba-hdl64-tokens.onnx``, written by
 ``overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens`` and
 calibrated on ``val`` by the three calibration benchmarks), and against the same weights
-with one view (``overlapmamba export models/overlapmamba-hdl64.onnx --views 1``, into a
-temporary folder; the shipped file's calibration kept, which was chosen for three views):
-what one encoder pass a scan buys a fleet, whatever the invariance it gives up; and the
+with one view (``models/overlapmamba-hdl64-one-view.onnx``, written by ``overlapmamba export
+models/overlapmamba-hdl64.onnx --views 1`` and calibrated on ``val`` likewise): what one
+encoder pass a scan buys a fleet, whatever the invariance it gives up; and the
 shipped file served with ``verify.stop_at_first = false`` (every candidate registered, as
 before that became the default): what registering past a verified candidate costs. Each round
 is ``overlapmamba-client simulate-fleet --robots N --sequence SEQ --duration S --rate R``
@@ -44,13 +44,13 @@ from rich.console import Console
 from rich.table import Table
 
 from overlapmamba.service.process import serve_process
-from overlapmamba.train.modelfile import read_metadata, with_views
+from overlapmamba.train.modelfile import read_metadata
 
 SHIPPED = ROOT / "models" / "overlapmamba-hdl64.onnx"
 MODELS = {
     "descriptors (shipped)": SHIPPED,
     "tokens": ROOT / "models" / "overlapmamba-hdl64-tokens.onnx",
-    "one view": None,  # the shipped file with views = 1, written at the start of a run
+    "one view": ROOT / "models" / "overlapmamba-hdl64-one-view.onnx",
     # the shipped file served with verify.stop_at_first = false (every candidate registered)
     "descriptors (shipped), every candidate registered": SHIPPED,
 }
@@ -122,7 +122,7 @@ def main() -> None:
     args = ap.parse_args()
     console = Console()
     for name, path in MODELS.items():
-        if path is not None and not path.is_file():
+        if not path.is_file():
             raise SystemExit(f"{path} ({name}) is missing: see this script's docstring")
     if not (args.sequence / "manifest.json").is_file():
         raise SystemExit(f"{args.sequence} is not a generated town: run `make data`")
@@ -130,12 +130,10 @@ def main() -> None:
     runs: dict[str, list[dict[str, Any]]] = {k: [] for k in MODELS}
     watch = OtherLoad()
     with tempfile.TemporaryDirectory(prefix="om-fleet-views-") as tmp:
-        paths = {k: p or Path(tmp) / "one-view.onnx" for k, p in MODELS.items()}
-        with_views(SHIPPED, paths["one view"], 1)
-        meta = {k: _meta(p) for k, p in paths.items()}
+        meta = {k: _meta(p) for k, p in MODELS.items()}
         i = 0
         for r in range(args.rounds):
-            for name, path in paths.items():
+            for name, path in MODELS.items():
                 runs[name].append(round_of(path, args, Path(tmp), i, SETTINGS.get(name, {})))
                 i += 1
                 got = runs[name][-1]
@@ -157,7 +155,7 @@ def main() -> None:
         "cores": CORES,
         "models": {
             k: {
-                "path": str(p.relative_to(ROOT)) if p else f"{SHIPPED.relative_to(ROOT)}, views 1",
+                "path": str(p.relative_to(ROOT)),
                 **meta[k],
                 "settings": SETTINGS.get(k, {}),  # the server's environment beside defaults
                 "runs": runs[k],

@@ -11,13 +11,14 @@ from figures_kit import ROOT, f3, load, ms, source, table, when
 
 # ---- verification --------------------------------------------------------------------------
 VERIFY = "reports/service/verify-test.json"
+VERIFY_ONE_VIEW = "reports/service/verify-test-one-view.json"
 
 
-def verify() -> str:
-    """Verified loop closures on the test towns at the service's thresholds, as the service
+def verify(path: str = VERIFY, both: bool = True) -> str:
+    """Verified loop closures on the test towns at the model's thresholds, as the service
     answers by default (``verify.stop_at_first``: the first verified candidate; files before
-    2026-11-29 hold only the best-fitting one)."""
-    r = load(VERIFY)
+    2026-11-29 hold only the best-fitting one); ``both``: and beside the other setting."""
+    r = load(path)
     rows = []
     for t in r["towns"]:
         v, d = t.get("verified_stop_at_first", t["verified"]), t["descriptor"]
@@ -38,8 +39,9 @@ def verify() -> str:
     th = r["thresholds"]
     gate = th.get("gate_distance", th.get("max_distance"))  # older files: max_distance
     out = source(
-        VERIFY,
-        "python benchmarks/verify_threshold.py --town data/synth/test --town data/synth/test-b "
+        path,
+        r.get("command")
+        or "python benchmarks/verify_threshold.py --town data/synth/test --town data/synth/test-b "
         "--town data/synth/test-c",
         when(r),
     )
@@ -64,7 +66,7 @@ def verify() -> str:
         ],
         rows,
     )
-    return out + _stop_at_first(r)
+    return out + _stop_at_first(r) if both else out
 
 
 def _stop_at_first(r: dict) -> str:
@@ -387,6 +389,7 @@ def e2e() -> str:
 
 RENDERERS: dict[str, Callable[[], str]] = {
     "verify": verify,
+    "verify-one-view": lambda: verify(VERIFY_ONE_VIEW, both=False),
     "registration": registration,
     "mapclosures": mapclosures,
     "sizing": sizing,

@@ -127,6 +127,37 @@ def test_shipped_model_views_hold_the_cosine_where_one_view_does_not(session, me
     assert cos[1].min() < cos[meta.views].min()
 
 
+# the documented twins of the shipped file (the model card): its weights, other views
+TWINS = {
+    "overlapmamba-hdl64-one-view.onnx": (1, "descriptors"),
+    "overlapmamba-hdl64-tokens.onnx": (3, "tokens"),
+}
+
+
+@pytest.mark.parametrize("name", TWINS)
+def test_twins_are_the_shipped_weights_with_their_own_calibration(meta, name):
+    """Each twin is the shipped network described by other views (a model id of its own, so
+    its maps are its own), calibrated on val by the benchmarks' commands naming that file: a
+    shipped file retrained without its twins made again fails here."""
+    path = ROOT / "models" / name
+    twin = EncoderMetadata.from_props(
+        ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        .get_modelmeta()
+        .custom_metadata_map
+    )
+    views, meet = TWINS[name]
+    assert (twin.views, "tokens" if twin.graph_views > 1 else "descriptors") == (views, meet)
+    assert twin.model_id != meta.model_id and twin.model_id in CARD.read_text()
+    assert twin.training_data == meta.training_data and twin.metrics == meta.metrics
+    if meet == "descriptors":  # the same graph and weights, byte for byte
+        assert twin.graph == meta.graph
+    assert list(twin.calibration) == list(meta.calibration)
+    for section, entry in twin.calibration.items():
+        assert f"--model models/{name}" in entry.chosen_by, (section, entry.chosen_by)
+        assert "--write-calibration" in entry.chosen_by, section
+        assert entry.data.startswith("data/synth/val"), section  # never a test town
+
+
 def test_shipped_model_is_served_by_the_c_kernel(meta):
     """Each block's scan (its forward, backward and shifted directions side by side) is one
     marked node of the shipped file, so the service's C-kernel path can bind it; where a C
