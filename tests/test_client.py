@@ -322,6 +322,8 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     out = run("query", str(synthetic_seq_dir / "velodyne" / "000012.bin"), "--map", "cli-town")
     assert "loop-000012" in out and "loop closure: ACCEPTED, verified: loop-000012" in out
     assert "relative pose T_keyframe←query" in out  # the 4×4 a pose graph takes
+    # the server's default verify.stop_at_first: the candidates after it are not registered
+    assert "skipped: not registered: candidate 1 verified first" in " ".join(out.split())
     out = run("query", str(synthetic_seq_dir / "velodyne" / "000012.bin"), "--map", "cli-town",
               "--no-verify")  # fmt: skip
     assert "descriptor only" in out

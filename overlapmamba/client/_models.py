@@ -107,8 +107,9 @@ def _matrix(values: list[float] | None) -> np.ndarray | None:
 
 @dataclass(frozen=True)
 class Verification:
-    """A candidate's registration against its keyframe's geometry. ``verified`` None: the
-    keyframe keeps no geometry."""
+    """A candidate's registration against its keyframe's geometry. ``verified`` None: not
+    registered, ``reason`` says why (the keyframe keeps no geometry, or an earlier candidate
+    verified first: the server's ``verify.stop_at_first``)."""
 
     verified: bool | None
     fitness: float | None

@@ -266,20 +266,25 @@ def query(
     table = Table(
         "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
     )
+    skipped: list[str] = []  # why candidates were not registered, each reason once
     for rank, m in enumerate(r.matches, start=1):
         yaw = "" if m.yaw_deg is None else f"{m.yaw_deg:.1f}"
         v = m.verification
+        if v is not None and v.verified is None and v.reason and v.reason not in skipped:
+            skipped.append(v.reason)
         table.add_row(
             str(rank),
             m.keyframe_id,
             f"{m.distance:.5f}",
             yaw,
-            "" if v is None else {True: "yes", False: "no", None: "no geometry"}[v.verified],
+            "" if v is None else {True: "yes", False: "no", None: "skipped"}[v.verified],
             "" if v is None or v.fitness is None else f"{v.fitness:.3f}",
             pose_text(m.relative_pose),
             m.robot_id,
         )
     out.print(table)
+    for reason in skipped:
+        out.print(f"skipped: {reason}")
     lc = r.loop_closure
     if lc.accepted and lc.verified:
         out.print(f"loop closure: ACCEPTED, verified: {lc.keyframe_id} (fitness {lc.fitness:.3f})")

@@ -259,8 +259,9 @@ class MatchOut(BaseModel):
 
 class VerificationOut(BaseModel):
     verified: bool | None = Field(
-        description="registration passed the calibrated thresholds; null: the keyframe keeps "
-        "no geometry (inserted as a descriptor, or its map keeps none)"
+        description="registration passed the calibrated thresholds; null: not registered, "
+        "because the keyframe keeps no geometry (inserted as a descriptor, or its map keeps "
+        "none) or an earlier candidate verified first (verify.stop_at_first); reason says which"
     )
     fitness: float | None = Field(
         description="share of the query's grid points within verify.radius_m (1 m) of the "

@@ -223,7 +223,7 @@ def register(
 class Verdict:
     """One candidate's verification, as an answer carries it."""
 
-    verified: bool | None  # None: the keyframe has no geometry to register against
+    verified: bool | None  # None: not registered (no geometry, or an earlier one verified)
     fitness: float | None
     rmse: float | None
     reason: str | None  # why it is not verified, when it is not
