@@ -121,6 +121,8 @@ def test_sigkill_under_mixed_load_loses_no_acknowledged_write(tmp_path):
     rnd = random.Random(7)
     data = tmp_path / "data"
     env = {"OVERLAPMAMBA_INDEX__SNAPSHOT_EVERY": "20", "OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}
+    # check() registers each observed keyframe among others of the same scan: every candidate
+    env["OVERLAPMAMBA_VERIFY__STOP_AT_FIRST"] = "false"
     model_id = Encoder(MODEL).model_id
     alive: dict[str, list[float]] = {}  # acknowledged id -> its descriptor (observations: [])
     deleted: set[str] = set()
