@@ -112,7 +112,11 @@ def views() -> str:
             else "the same projections"
             for k in ways[1:]
         ]
-        what = f"encode, {x['scans_per_call']} a call" if "scans_per_call" in x else x["stage"]
+        what = (
+            f"project + encode, {x['scans_per_call']} a call"
+            if "scans_per_call" in x
+            else x["stage"]
+        )
         rows.append([x["threads"], what, ms(one), *cells])
     out = source(VIEWS, r.get("command") or "python benchmarks/views.py", when(r))
     out += f"\n{r['scans']}, {r['reps']} repetitions, medians a scan (× one view).\n\n"
