@@ -307,7 +307,7 @@ def main() -> None:
         "model_id": enc.model_id,
         "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
         "verify": v.model_dump(
-            include={"candidates", "min_fitness", "max_rmse_m", "gate_distance"}
+            include={"candidates", "min_fitness", "max_rmse_m", "gate_distance", "stop_at_first"}
         ),
         "missing": missing,
         "same_sensor": [d["row"] for d in done.values()],

@@ -214,7 +214,8 @@ class VerifySettings(_RenamedSection):
     # strictest thresholds at the highest recall with every accepted closure's pose right
     # (≤ 1 m, 2°): fitness 0.56, rmse 0.7 m (recall 0.883; any fitness from 0.32 to 0.56,
     # with or without the rmse bound, gives the same). The descriptor gate: the nearest that
-    # costs at most 0.005 of recall, 0.29 (3.6 registrations a query, not 5). Recalibrated
+    # costs at most 0.005 of recall, 0.29 (3.6 registrations a query, not 5, registering every
+    # candidate; 2.0 stopping at the first verified, stop_at_first). Recalibrated
     # for the model's three sub-column views (one view: fitness 0.54, gate 0.30).
     # In descriptor order, with one view, the same procedure gave 0.46, no rmse bound and
     # 0.29 (recall 0.876).
@@ -222,8 +223,9 @@ class VerifySettings(_RenamedSection):
         5,
         ge=0,
         le=50,
-        description="scan queries: register this many top candidates against their keyframe's "
-        "geometry (0: never; a request's verify=false skips it too)",
+        description="scan queries: register up to this many top candidates against their "
+        "keyframe's geometry, in order until one verifies (stop_at_first) (0: never; a "
+        "request's verify=false skips it too)",
     )
     min_fitness: float = Field(
         0.56,
@@ -244,7 +246,8 @@ class VerifySettings(_RenamedSection):
         True,
         description="stop registering a query's candidates once one verifies: the later ones "
         "answer verified: null with the reason, and the loop closure is that first verified "
-        "candidate (chosen on val: the same closures with fewer registrations a query); "
+        "candidate (chosen on val: as many closures, all right, with fewer registrations a "
+        "query); "
         "false: register every candidate and close on the best-fitting verified one",
     )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")

@@ -25,7 +25,8 @@ from wrong candidates better (``benchmarks/verify_threshold.py``).
 A registration that does not converge within ``max_iterations`` stops there (bounded time);
 a query or keyframe too sparse to register is refused with the reason, never an exception.
 :func:`verify_candidates` is the query's stage: it registers each candidate that has
-geometry and lies within the descriptor gate, and judges each result against the calibrated
+geometry and lies within the descriptor gate, in order until one verifies when
+``verify.stop_at_first`` (the default) says so, and judges each result against the calibrated
 thresholds (``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``:
 ``benchmarks/verify_threshold.py``).
 
