@@ -47,17 +47,15 @@ from overlapmamba.service.process import serve_process
 from overlapmamba.train.modelfile import read_metadata
 
 SHIPPED = ROOT / "models" / "overlapmamba-hdl64.onnx"
-MODELS = {
-    "descriptors (shipped)": SHIPPED,
-    "tokens": ROOT / "models" / "overlapmamba-hdl64-tokens.onnx",
-    "one view": ROOT / "models" / "overlapmamba-hdl64-one-view.onnx",
-    # the shipped file served with verify.stop_at_first = false (every candidate registered)
-    "descriptors (shipped), every candidate registered": SHIPPED,
-}
-SETTINGS = {
-    "descriptors (shipped), every candidate registered": {
-        "OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"
-    }
+# name → (model file, the server's environment beside the defaults)
+MODELS: dict[str, tuple[Path, dict[str, str]]] = {
+    "descriptors (shipped)": (SHIPPED, {}),
+    "tokens": (ROOT / "models" / "overlapmamba-hdl64-tokens.onnx", {}),
+    "one view": (ROOT / "models" / "overlapmamba-hdl64-one-view.onnx", {}),
+    "descriptors (shipped), every candidate registered": (
+        SHIPPED,
+        {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},
+    ),
 }
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
@@ -121,7 +119,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPORTS / "client" / "fleet-views.json")
     args = ap.parse_args()
     console = Console()
-    for name, path in MODELS.items():
+    for name, (path, _) in MODELS.items():
         if not path.is_file():
             raise SystemExit(f"{path} ({name}) is missing: see this script's docstring")
     if not (args.sequence / "manifest.json").is_file():
@@ -130,11 +128,11 @@ def main() -> None:
     runs: dict[str, list[dict[str, Any]]] = {k: [] for k in MODELS}
     watch = OtherLoad()
     with tempfile.TemporaryDirectory(prefix="om-fleet-views-") as tmp:
-        meta = {k: _meta(p) for k, p in MODELS.items()}
+        meta = {k: _meta(p) for k, (p, _) in MODELS.items()}
         i = 0
         for r in range(args.rounds):
-            for name, path in MODELS.items():
-                runs[name].append(round_of(path, args, Path(tmp), i, SETTINGS.get(name, {})))
+            for name, (path, env) in MODELS.items():
+                runs[name].append(round_of(path, args, Path(tmp), i, env))
                 i += 1
                 got = runs[name][-1]
                 console.print(
@@ -157,10 +155,10 @@ def main() -> None:
             k: {
                 "path": str(p.relative_to(ROOT)),
                 **meta[k],
-                "settings": SETTINGS.get(k, {}),  # the server's environment beside defaults
+                "settings": env,  # the server's environment beside defaults
                 "runs": runs[k],
             }
-            for k, p in MODELS.items()
+            for k, (p, env) in MODELS.items()
         },
     }
     write_report(args.out, result)
