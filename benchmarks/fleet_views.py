@@ -5,9 +5,10 @@ Default: the shipped model (three views met at the descriptors) against the same
 with the views met at the tokens (``models/overlapmamba-hdl64-tokens.onnx``, written by
 ``overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens`` and
 calibrated on ``val`` by the three calibration benchmarks), and against the same weights
-with one view (``models/overlapmamba-hdl64-one-view.onnx``, written by ``overlapmamba export
-models/overlapmamba-hdl64.onnx --views 1`` and calibrated on ``val`` likewise): what one
-encoder pass a scan buys a fleet, whatever the invariance it gives up; and the
+with one view whose columns start at each scan's mean bearing
+(``models/overlapmamba-hdl64-one-view.onnx``, written by ``overlapmamba export
+models/overlapmamba-hdl64.onnx --views 1 --column-phase aligned`` and calibrated on ``val``
+likewise): what one encoder pass a scan buys a fleet; and the
 shipped file served with ``verify.stop_at_first = false`` (every candidate registered, as
 before that became the default): what registering past a verified candidate costs. Each round
 is ``overlapmamba-client simulate-fleet --robots N --sequence SEQ --duration S --rate R``
@@ -51,7 +52,7 @@ SHIPPED = ROOT / "models" / "overlapmamba-hdl64.onnx"
 MODELS: dict[str, tuple[Path, dict[str, str]]] = {
     "descriptors (shipped)": (SHIPPED, {}),
     "tokens": (ROOT / "models" / "overlapmamba-hdl64-tokens.onnx", {}),
-    "one view": (ROOT / "models" / "overlapmamba-hdl64-one-view.onnx", {}),
+    "one view, aligned columns": (ROOT / "models" / "overlapmamba-hdl64-one-view.onnx", {}),
     "descriptors (shipped), every candidate registered": (
         SHIPPED,
         {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},

@@ -68,13 +68,13 @@ def main() -> None:
     t0 = time.perf_counter()
     descs, yaws = [], []
     for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
-        images = np.stack(
-            [
-                enc.project(seq.points(i), sensor)
-                for i in range(start, min(len(seq), start + args.batch))
-            ]
+        projected = [
+            enc.project_offset(seq.points(i), sensor)
+            for i in range(start, min(len(seq), start + args.batch))
+        ]
+        d, y = enc.encode(
+            np.stack([im for im, _ in projected]), np.array([o for _, o in projected])
         )
-        d, y = enc.encode(images)
         descs.append(d)
         yaws.append(y)
     desc = np.concatenate(descs)

@@ -1,13 +1,16 @@
-"""What the shipped model's sub-column views cost and buy (overlapmamba.core.views), three ways
-with the same weights: one view; V views met at the descriptors (the encoder runs once a
-view, their descriptors are averaged); V views met at the tokens (``token_views``: the
-per-column stem runs once a view, the blocks and head once a scan).
+"""What the shipped model's sub-column views cost and buy (overlapmamba.core.views), four ways
+with the same weights: one view; one view with aligned columns (each scan's columns start at
+its mean bearing: one pass, a turn rolls the image by whole columns); V views met at the
+descriptors (the encoder runs once a view, their descriptors are averaged); V views met at
+the tokens (``token_views``: the per-column stem runs once a view, the blocks and head once
+a scan).
 
-The three files are written from the model's own weights (``with_views`` rewrites the
-metadata; ``with_token_views`` traces the graph anew from the recovered weights), so they
-differ only in where the views meet. For each:
+The four files are written from the model's own weights (``with_views`` and
+``with_column_phase`` rewrite the metadata; ``with_token_views`` traces the graph anew from
+the recovered weights), so they differ only in where the views meet and the columns start.
+For each:
 
-- **cost**: a scan described as the service describes it (``Encoder.project`` +
+- **cost**: a scan described as the service describes it (``Encoder.project_offset`` +
   ``Encoder.encode``) on real KITTI 00 scans, timed interleaved (each way in turn, rep after
   rep) in one process, with 1 and 2 onnxruntime threads, one and 8 scans a call, so that the
   ratios hold on a shared machine even when the absolute times drift; and the project stage;
@@ -41,7 +44,7 @@ from rich.table import Table
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.io import read_points
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.train.modelfile import read_metadata, with_views
+from overlapmamba.train.modelfile import read_metadata, with_column_phase, with_views
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -69,7 +72,8 @@ def interleaved(
 
 
 def ways(model: Path, tmp: Path) -> dict[str, Path]:
-    """The model's weights written three ways: {"one view", "descriptors", "tokens"}."""
+    """The model's weights written four ways: {"one view", "aligned", "descriptors",
+    "tokens"}."""
     from overlapmamba.train.recover import with_token_views
 
     meta = read_metadata(model)
@@ -88,7 +92,12 @@ def ways(model: Path, tmp: Path) -> dict[str, Path]:
         with_views(one, descriptors, meta.views)
     else:
         descriptors = model
-    return {"one view": one, "descriptors": descriptors, "tokens": tokens}
+    if meta.aligned:
+        raise SystemExit(f"{model} aligns its columns: give the file with the sensor's")
+    aligned = tmp / "aligned.onnx"
+    with_views(one, aligned, 1)
+    with_column_phase(aligned, "aligned")
+    return {"one view": one, "aligned": aligned, "descriptors": descriptors, "tokens": tokens}
 
 
 def cost(paths: dict[str, Path], reps: int) -> list[dict]:
@@ -101,7 +110,9 @@ def cost(paths: dict[str, Path], reps: int) -> list[dict]:
             def call(enc: Encoder, per: int = per) -> Callable[[int], object]:
                 def run(i: int) -> object:
                     batch = [clouds[(i * per + j) % len(clouds)] for j in range(per)]
-                    return enc.encode(np.stack([enc.project(c) for c in batch]))
+                    projected = [enc.project_offset(c) for c in batch]
+                    images = np.stack([im for im, _ in projected])
+                    return enc.encode(images, np.array([o for _, o in projected]))
 
                 return run
 
@@ -109,8 +120,8 @@ def cost(paths: dict[str, Path], reps: int) -> list[dict]:
             rows.append({"threads": threads, "scans_per_call": per, **got})
         project = interleaved(
             {
-                k: (lambda i, e=encs[k]: e.project(clouds[i % len(clouds)]))
-                for k in ("one view", "tokens")
+                k: (lambda i, e=encs[k]: e.project_offset(clouds[i % len(clouds)]))
+                for k in ("one view", "aligned", "tokens")
             },
             reps,
             1,
@@ -126,7 +137,7 @@ def turn_minima(
     random continuous angle (``eval-real``'s turns, one pass a scan with the file's own
     views), per real set (``REAL``) and per named vector (``vectors[name](descriptor,
     yaw_features)``, rows at unit length), over ``seeds`` draws."""
-    from overlapmamba.train.checkpoint import input_of, load_model, views_of
+    from overlapmamba.train.checkpoint import aligned_of, input_of, load_model, views_of
     from overlapmamba.train.evaluate import describe
     from overlapmamba.train.realscans import real_turns
 
@@ -140,8 +151,9 @@ def turn_minima(
         sensor = input_of(model, profile, seq)
         mins: dict[str, list[float]] = {key: [] for key in vectors}
         for seed in range(seeds):
-            t = real_turns(seq, sensor, seed, views_of(model))
-            plain, turned = describe(model, t.plain), describe(model, t.turned)
+            t = real_turns(seq, sensor, seed, views_of(model), aligned_of(model))
+            plain = describe(model, t.plain, offsets=t.plain_offsets)
+            turned = describe(model, t.turned, offsets=t.turned_offsets)
             for key, vector in vectors.items():
                 cos = (vector(*plain) * vector(*turned)).sum(1)
                 mins[key].append(float(cos.min()))
@@ -191,18 +203,37 @@ def main() -> None:
     ap.add_argument("--sequence", type=Path, action="append", default=[], help="loop closure")
     ap.add_argument("--rerank", default="20,0.2", help="the second stage of --sequence's eval")
     ap.add_argument("--out", type=Path, default=REPORTS / "service" / "views.json")
+    ap.add_argument(
+        "--cost-only",
+        action="store_true",
+        help="measure the cost rows again and write them into --out, keeping its turn "
+        "invariance and loop closure (and their command and date, as `measured_by`)",
+    )
     args = ap.parse_args()
     console = Console()
     if not KITTI.is_dir():
         raise SystemExit(f"{KITTI} is missing: the real scans are needed")
 
+    kept: dict = {}
+    if args.cost_only:
+        if not args.out.is_file():
+            raise SystemExit(f"--cost-only keeps {args.out}'s other results: it does not exist")
+        kept = json.loads(args.out.read_text())
     with tempfile.TemporaryDirectory() as tmp:
         paths = ways(args.model, Path(tmp))
         ids = {k: read_metadata(p).model_id for k, p in paths.items()}
+        if kept and kept.get("model_ids") != ids:
+            raise SystemExit(
+                f"{args.out} measured other files ({kept.get('model_ids')}); run it in full"
+            )
         views = read_metadata(paths["tokens"]).views
         rows = cost(paths, args.reps)
-        turns = invariance(paths, args.seeds)
-        loops = loop_closure(paths, args.sequence, args.rerank, Path(tmp))
+        if kept:
+            turns = {k: v for k, v in kept["turn_invariance"].items() if k != "seeds"}
+            loops = {k: v for k, v in kept["loop_closure"].items() if k != "rerank"}
+        else:
+            turns = invariance(paths, args.seeds)
+            loops = loop_closure(paths, args.sequence, args.rerank, Path(tmp))
 
     result = {
         "machine": {
@@ -219,19 +250,26 @@ def main() -> None:
         "turn_invariance": {"seeds": args.seeds, **turns},
         "loop_closure": {"rerank": args.rerank, **loops},
     }
+    if kept:  # what the kept results were measured by
+        result["turn_invariance"]["seeds"] = kept["turn_invariance"]["seeds"]
+        result["loop_closure"]["rerank"] = kept["loop_closure"]["rerank"]
+        result["measured_by"] = kept.get("measured_by") or {
+            k: kept[k] for k in ("command", "commit", "date") if k in kept
+        }
     write_report(args.out, result)
 
     t = Table(
         title=f"a scan described as the service does it: one view, {views} views met two ways"
     )
-    for col in ("threads", "what", "one view, ms/scan", "at the descriptors", "at the tokens"):
+    cols = ("one view, ms/scan", "aligned", "at the descriptors", "at the tokens")
+    for col in ("threads", "what", *cols):
         t.add_column(col, justify="right")
     for r in rows:
         what = r.get("stage") or f"project + encode, {r['scans_per_call']} a call"
         a = r["one view"]["median_ms"]
         cells = [
             f"{r[k]['median_ms']:.1f} ({r[k]['median_ms'] / a:.2f}×)" if k in r else "—"
-            for k in ("descriptors", "tokens")
+            for k in ("aligned", "descriptors", "tokens")
         ]
         t.add_row(str(r["threads"]), what, f"{a:.1f}", *cells)
     console.print(t)

@@ -211,7 +211,13 @@ def test_the_input_mode_is_part_of_the_model_id():
     from overlapmamba.core.modelmeta import identity
 
     plain = identity("om-abc", 1)
-    assert plain == {"views": 1, "sensor_input": "elevation", "model_id": "om-abc", "graph_id": ""}
+    assert plain == {
+        "views": 1,
+        "sensor_input": "elevation",
+        "column_phase": "sensor",
+        "model_id": "om-abc",
+        "graph_id": "",
+    }
     rows = identity("om-abc", 1, "rows")
     assert rows["model_id"] != "om-abc" and rows["graph_id"] == "om-abc"
     assert identity("om-abc", 3)["model_id"] != identity("om-abc", 3, "rows")["model_id"]

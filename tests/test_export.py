@@ -258,6 +258,60 @@ def test_an_encoder_with_views_describes_a_scan_by_the_mean_of_its_views(
         enc.encode(images[:, :1])
 
 
+def test_an_encoder_with_aligned_columns_is_turn_invariant_in_one_pass(
+    exported, kitti_seq_dir, tmp_path
+):
+    """``export --column-phase aligned``: the same graph under another id; a scan turned by
+    any angle gets the same descriptor in one pass, and the yaw features, shifted back to
+    the sensor's columns, still say the turn (the service's Encoder and evaluation alike)."""
+    from overlapmamba.core.poses import rotation_z, transform_points
+    from overlapmamba.core.yaw import estimate_yaw
+    from overlapmamba.service.encoder import Encoder
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.evaluate import describe
+    from overlapmamba.train.modelfile import read_metadata
+
+    src, out = exported["i8"].path, tmp_path / "aligned.onnx"
+    res = CliRunner().invoke(
+        app, ["export", str(src), "--column-phase", "aligned", "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    meta, plain = read_metadata(out), read_metadata(src)
+    assert meta.aligned and meta.model_id != plain.model_id and meta.graph == plain.model_id
+    assert meta.model_id in " ".join(res.output.split())
+    enc, sensor_cols = Encoder(out, intra_op_threads=2), Encoder(src, intra_op_threads=2)
+    xyz = open_sequence(kitti_seq_dir).points(30).xyz
+    thetas = [0.0, 37.3, -151.9]
+    scans = [transform_points(xyz, rotation_z(-t)) for t in thetas]
+    desc, yaw = enc.describe(scans)
+    assert (desc[1:] @ desc[0]).min() > 0.9999
+    d_plain = sensor_cols.describe(scans)[0]
+    assert (d_plain[1:] @ d_plain[0]).min() < (desc[1:] @ desc[0]).min()
+    for t, y in zip(thetas[1:], yaw[1:], strict=True):
+        est = estimate_yaw(yaw[0], y)[0][0]
+        assert abs((est - t + 180) % 360 - 180) < 0.2, (t, est)
+    # images without their offsets keep the image's columns: the turn is off by them
+    images, offsets = zip(*(enc.project_offset(s) for s in scans), strict=True)
+    raw = enc.encode(np.stack(images))[1]
+    np.testing.assert_allclose(enc.unshift(raw, np.array(offsets)), yaw, atol=1e-5)
+    # evaluation describes scans the same way
+    model, _, _ = load_model(out)
+    d_eval, y_eval = describe(model, np.stack(images), offsets=np.array(offsets))
+    np.testing.assert_allclose(d_eval, desc, atol=1e-5)
+    np.testing.assert_allclose(y_eval, yaw, atol=1e-4)
+    # back to the sensor's columns: the first file's id; an unknown phase is refused
+    back = tmp_path / "back.onnx"
+    res = CliRunner().invoke(
+        app, ["export", str(out), "--column-phase", "sensor", "--out", str(back)]
+    )
+    assert res.exit_code == 0 and read_metadata(back).model_id == plain.model_id
+    res = CliRunner().invoke(
+        app, ["export", str(src), "--column-phase", "north", "--out", str(tmp_path / "x.onnx")]
+    )
+    assert res.exit_code == 2 and "got 'north'" in res.output
+    assert not (tmp_path / "x.onnx").exists()
+
+
 def test_the_c_kernel_path_falls_back_to_the_portable_graph_and_says_why(
     exported, kitti_images, tmp_path, monkeypatch, caplog
 ):

@@ -819,3 +819,34 @@ async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, 
                 "rmse": None,
                 "reason": "not registered: candidate 1 verified first (verify.stop_at_first)",
             }
+
+
+async def test_a_file_with_aligned_columns_answers_a_turned_scan_with_its_turn(settings):
+    """The one-view twin aligns each scan's columns (overlapmamba.core.views): a turned copy of
+    a keyframe gets its descriptor in one pass, and the service shifts the yaw features back
+    to the sensor's columns, so the yaw is the turn's, not off by the two scans' offsets."""
+    from service_kit import MODEL
+
+    from overlapmamba.service.encoder import Encoder
+
+    enc = Encoder(MODEL.with_name("overlapmamba-hdl64-one-view.onnx"), intra_op_threads=2)
+    assert enc.meta.aligned and enc.views == 1
+    turn = 40.2  # half a column off the grid: the offsets differ by that much
+    offsets = [enc.project_offset(scan(2, t)[:, :3])[1] for t in (0.0, turn)]
+    assert abs(offsets[1] - offsets[0]) * 360 / enc.meta.profile.width > 0.15
+    async with running(settings, enc) as c:
+        assert (await c.put("/v1/maps/town", json={"index": "flat"})).status_code == 201
+        r = await c.post(
+            "/v1/maps/town/keyframes",
+            params=kf_params("k2", 100.0),
+            content=scan(2).tobytes(),
+            headers=OCTET,
+        )
+        assert r.status_code == 201, r.text
+        r = await c.post(
+            "/v1/maps/town/query", params={"k": 1}, content=scan(2, turn).tobytes(), headers=OCTET
+        )
+        assert r.status_code == 200, r.text
+        best = r.json()["matches"][0]
+        assert best["keyframe_id"] == "k2" and best["similarity"] > 0.9999
+        assert abs(best["yaw_deg"] - turn) < 0.1, best

@@ -17,7 +17,7 @@ from overlapmamba.cli.common import (
     out,
 )
 from overlapmamba.core.sensors.input import MODES
-from overlapmamba.core.views import MAX_VIEWS
+from overlapmamba.core.views import COLUMN_PHASES, MAX_VIEWS
 
 MEET = ("descriptors", "tokens")  # export --meet: where a scan's sub-column views meet
 
@@ -164,6 +164,8 @@ def train_cmd(
     epilog="Examples:\n\n  overlapmamba export runs/om/best.pt --out models/overlapmamba-hdl64.onnx"
     "\n\n  overlapmamba export runs/om/best.pt --out fp32.onnx --weights float32"
     "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 2 --out two-views.onnx"
+    "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 1 --column-phase aligned "
+    "--out one-pass.onnx"
     "\n\n  overlapmamba export models/overlapmamba-hdl64.onnx --views 3 --meet tokens "
     "--out tokens.onnx"
     "\n\n  overlapmamba export runs/bev-long/encoder.onnx --first-stage mixed:0.75:32:sqrt "
@@ -214,6 +216,16 @@ def export_cmd(
             "network's own (a .pt's config, an .onnx's metadata)",
         ),
     ] = None,
+    column_phase: Annotated[
+        str | None,
+        typer.Option(
+            "--column-phase",
+            help="where a scan's columns start (overlapmamba.core.views): 'sensor' (its own "
+            "azimuth) or 'aligned' (the scan's mean bearing at a column centre, so a turned "
+            "scan's image is the plain one rolled by whole columns: turn invariance in one "
+            "pass); default: the source's (a .pt: sensor)",
+        ),
+    ] = None,
     first_stage: Annotated[
         str | None,
         typer.Option(
@@ -231,7 +243,12 @@ def export_cmd(
     from overlapmamba.train.checkpoint import load_model
     from overlapmamba.train.export import export_onnx
     from overlapmamba.train.model import OverlapMamba, meeting_views
-    from overlapmamba.train.modelfile import load_encoder, with_sensor_input, with_views
+    from overlapmamba.train.modelfile import (
+        load_encoder,
+        with_column_phase,
+        with_sensor_input,
+        with_views,
+    )
     from overlapmamba.train.recover import with_token_views
     from overlapmamba.train.spectrum_head import check_source, with_first_stage
 
@@ -257,6 +274,11 @@ def export_cmd(
             f"--sensor-input must be one of {', '.join(MODES)}, got {sensor_input!r}",
             param_hint="--sensor-input",
         )
+    if column_phase is not None and column_phase not in COLUMN_PHASES:
+        raise typer.BadParameter(
+            f"--column-phase must be one of {', '.join(COLUMN_PHASES)}, got {column_phase!r}",
+            param_hint="--column-phase",
+        )
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
@@ -272,11 +294,14 @@ def export_cmd(
         meta = with_views(src, out_path, views)
         if sensor_input is not None:
             meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
+        if column_phase is not None:
+            meta = with_column_phase(out_path, column_phase)
         if stage is not None:
             meta = with_first_stage(out_path, out_path, stage)
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
+            f"columns {meta.column_phase}, "
             f"sensor input {meta.sensor_input}, descriptor {meta.first_stage} "
             f"({meta.descriptor_dim}-d), model id {meta.model_id}"
         )
@@ -288,6 +313,8 @@ def export_cmd(
     meta, v = res.metadata, res.verification
     if sensor_input is not None and sensor_input != meta.sensor_input:
         meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
+    if column_phase is not None and column_phase != meta.column_phase:
+        meta = with_column_phase(out_path, column_phase)
     if stage is not None:
         meta = with_first_stage(out_path, out_path, stage)
     table = Table(title=f"exported {res.path}", show_header=False)
@@ -296,6 +323,7 @@ def export_cmd(
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),
         ("sensor", f"{profile.name} {profile.height}×{profile.width}"),
         ("views per scan", f"{meta.views}, met at the {meet}" if meta.views > 1 else "1"),
+        ("columns", meta.column_phase),
         ("sensor input", meta.sensor_input),
         ("descriptor", f"{meta.first_stage}, {meta.descriptor_dim}-d"),
         ("file", f"{res.size_bytes / 1e6:.1f} MB, {res.nodes} nodes, {res.scan_nodes} Scan"),

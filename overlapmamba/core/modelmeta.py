@@ -35,8 +35,8 @@ from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibrat
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors import SensorProfile
-from overlapmamba.core.sensors.input import Mode
-from overlapmamba.core.views import MAX_VIEWS
+from overlapmamba.core.sensors.input import BEV_MODES, Mode
+from overlapmamba.core.views import MAX_VIEWS, check_column_phase
 
 FORMAT = "overlapmamba-encoder"
 VERSION = 1
@@ -79,6 +79,12 @@ class EncoderMetadata(BaseModel):
         default="",
         description="with views > 1, the content hash of the graph and weights alone (the "
         "model id the same file has with one view); empty otherwise",
+    )
+    column_phase: str = Field(
+        default="sensor",
+        description="where a scan's columns start (overlapmamba.core.views): 'sensor' (the "
+        "sensor's own azimuth) or 'aligned' (the scan's mean bearing at a column centre: a "
+        "turned scan's image is the plain one rolled by whole columns); part of the model id",
     )
     sensor_input: Mode = Field(
         default="elevation",
@@ -127,6 +133,21 @@ class EncoderMetadata(BaseModel):
                 "model calibration: sections %s are not known here and are ignored", unknown
             )
         return check_calibration({k: x for k, x in v.items() if k in CALIBRATED})
+
+    @model_validator(mode="after")
+    def _known_phase(self) -> EncoderMetadata:
+        check_column_phase(self.column_phase)
+        if self.column_phase != "sensor" and self.sensor_input in BEV_MODES:
+            raise ValueError(
+                f"column_phase {self.column_phase} applies to the range-image inputs; the "
+                f"{self.sensor_input} input has none"
+            )
+        return self
+
+    @property
+    def aligned(self) -> bool:
+        """Each scan's columns start at its own mean bearing (:mod:`overlapmamba.core.views`)."""
+        return self.column_phase == "aligned"
 
     @model_validator(mode="after")
     def _views_in_graph(self) -> EncoderMetadata:
@@ -194,7 +215,7 @@ class EncoderMetadata(BaseModel):
                 found=sorted(props),
             )
         strings = {"format", "model_id", "graph_id", "weights", "weight_format", "source_commit"}
-        strings |= {"exported_at", "torch_version", "sensor_input", "first_stage"}
+        strings |= {"exported_at", "torch_version", "sensor_input", "first_stage", "column_phase"}
         try:
             values = {k: v if k in strings else json.loads(v) for k, v in fields.items()}
         except json.JSONDecodeError as err:
@@ -216,7 +237,11 @@ DEFAULT_SENSOR_INPUT: Mode = "elevation"
 
 
 def identity(
-    graph_id: str, views: int, sensor_input: Mode = DEFAULT_SENSOR_INPUT, maps: str = ""
+    graph_id: str,
+    views: int,
+    sensor_input: Mode = DEFAULT_SENSOR_INPUT,
+    maps: str = "",
+    column_phase: str = "sensor",
 ) -> dict[str, Any]:
     """The metadata fields that name a graph (its content hash, ``om-…``) described by
     ``views`` views, taking other sensors' scans by ``sensor_input`` and mapping their
@@ -224,18 +249,19 @@ def identity(
     ``sensor_input``, ``model_id`` (the graph's own with one view, the default input and no
     maps, as every file before views had; else a hash of them all, since other views,
     another sensor input or other maps give other descriptors, which must not share a map)
-    and ``graph_id`` (kept only when it differs from the model id)."""
-    if views == 1 and sensor_input == DEFAULT_SENSOR_INPUT and not maps:
-        return {"views": 1, "sensor_input": sensor_input, "model_id": graph_id, "graph_id": ""}
+    and ``graph_id`` (kept only when it differs from the model id); ``column_phase`` too
+    (aligned columns describe scans differently: another id)."""
+    check_column_phase(column_phase)
+    named = {"views": views, "sensor_input": sensor_input, "column_phase": column_phase}
+    plain = sensor_input == DEFAULT_SENSOR_INPUT and column_phase == "sensor"
+    if views == 1 and plain and not maps:
+        return {**named, "model_id": graph_id, "graph_id": ""}
     key = f"{graph_id}+views={views}"
     if sensor_input != DEFAULT_SENSOR_INPUT:  # the default keeps the ids made before it
         key += f"+sensor_input={sensor_input}"
     if maps:  # none keeps the ids made before maps
         key += f"+sensor_maps={maps}"
+    if column_phase != "sensor":  # the sensor's columns keep the ids made before phases
+        key += f"+column_phase={column_phase}"
     model_id = "om-" + hashlib.sha256(key.encode()).hexdigest()[:16]
-    return {
-        "views": views,
-        "sensor_input": sensor_input,
-        "model_id": model_id,
-        "graph_id": graph_id,
-    }
+    return {**named, "model_id": model_id, "graph_id": graph_id}

@@ -35,6 +35,7 @@ class PixelCoordinates:
     depth: (K,) float32 range r in metres
     azimuth_column: (K,) float32 u before the floor (sub-column views shift it:
                     :mod:`overlapmamba.core.views`)
+    x, y:  (K,) float32 the kept points' coordinates (aligned columns take their bearing)
     """
 
     keep: np.ndarray
@@ -42,6 +43,8 @@ class PixelCoordinates:
     col: np.ndarray
     depth: np.ndarray
     azimuth_column: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
 
 
 def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
@@ -69,7 +72,7 @@ def pixel_coordinates(points: PointCloud | np.ndarray, profile: SensorProfile) -
     v = (np.float32(1.0) - (np.arcsin(z / depth) - fov_down) / fov) * np.float32(H)
     col = np.clip(np.floor(u), 0, W - 1).astype(np.int32)
     row = np.clip(np.floor(v), 0, H - 1).astype(np.int32)
-    return PixelCoordinates(keep=keep, row=row, col=col, depth=depth, azimuth_column=u)
+    return PixelCoordinates(keep=keep, row=row, col=col, depth=depth, azimuth_column=u, x=x, y=y)
 
 
 def pixel_index(xyz: np.ndarray, profile: SensorProfile) -> tuple[np.ndarray, np.ndarray]:

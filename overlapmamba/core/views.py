@@ -22,6 +22,18 @@ sensor's, so yaw estimates keep their meaning.
 
 The count is the model's (``EncoderMetadata.views``, part of its model id), never a setting
 of a consumer: descriptors of different counts must not share a map.
+
+**Aligned columns** (``column_phase = "aligned"``, also the model's and part of its id): one
+pass a scan and no views. Where a scan's columns start is taken from the scan itself: the
+mean bearing of its returns (each point's unit direction in the horizontal plane, weighted by
+its horizontal share, summed in float64) is put at the centre of a column by shifting every
+column coordinate by the same fraction of a column (:func:`scan_offset`, within ±½). A turn
+of the sensor turns that bearing with the points, so the turned scan's image is the plain
+one rolled by whole columns, which the network does not see: the cosine to a turned copy is
+1 up to float rounding at column edges. Two scans of a place from different poses are
+sampled at offsets that differ arbitrarily, as they are today. The yaw features of an aligned
+image are shifted back by the offset (:func:`unshift_features`, an exact circular shift of
+their spectra) so that their columns are the sensor's and yaw estimates keep their meaning.
 """
 
 from __future__ import annotations
@@ -33,6 +45,7 @@ from overlapmamba.core.projection import pixel_coordinates, rasterize
 from overlapmamba.core.sensors import SensorProfile
 
 MAX_VIEWS = 8
+COLUMN_PHASES = ("sensor", "aligned")  # where a scan's columns start (the module notes)
 
 
 def check_views(views: int) -> int:
@@ -47,22 +60,100 @@ def view_turns(views: int, profile: SensorProfile) -> np.ndarray:
     return np.arange(check_views(views)) * (360.0 / profile.width) / views
 
 
+def check_column_phase(phase: str) -> str:
+    if phase not in COLUMN_PHASES:
+        raise ValueError(f"column_phase must be one of {', '.join(COLUMN_PHASES)}; got {phase!r}")
+    return phase
+
+
+def scan_offset(
+    x: np.ndarray, y: np.ndarray, depth: np.ndarray, width: int, harmonic: int = 1
+) -> float:
+    """Columns to add to every column coordinate of a scan (kept points' ``x``, ``y`` and
+    range ``depth``) so that its mean bearing falls at the centre of a column: in (−½, ½].
+    Turn-equivariant: the scan turned by any angle gets the offset that makes its image the
+    plain one rolled by whole columns. 0 for a scan without points.
+
+    ``harmonic`` k > 1 takes the direction of the bearings' k-th circular moment instead
+    (defined modulo 360°/k, which must be whole columns): what ``benchmarks/column_phase.py``
+    compares; aligned files use the mean bearing (k = 1)."""
+    if len(x) == 0:
+        return 0.0
+    if harmonic < 1 or width % harmonic:
+        raise ValueError(
+            f"harmonic must be a whole divisor of the {width} columns (360°/k whole columns); "
+            f"got {harmonic}"
+        )
+    inv = 1.0 / np.maximum(np.asarray(depth, np.float64), 1e-9)
+    if harmonic == 1:  # float64 sums: a turned copy must find the same bearing
+        sx = np.einsum("i,i->", x, inv, dtype=np.float64)
+        sy = np.einsum("i,i->", y, inv, dtype=np.float64)
+        bearing = np.arctan2(float(sy), float(sx))
+    else:  # unit bearings to the k-th power, weighted by their horizontal share like k = 1
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        level = np.maximum(np.hypot(x, y), 1e-9)
+        moment = (((x + 1j * y) / level) ** harmonic * (level * inv)).sum()
+        bearing = np.angle(moment) / harmonic
+    # the projection's column coordinate of that bearing (overlapmamba.core.projection)
+    u = 0.5 * (1.0 - bearing / np.pi) * width
+    return float(0.5 - (u - np.floor(u)))
+
+
+def unshift_features(features: np.ndarray, offsets: np.ndarray | float) -> np.ndarray:
+    """Yaw features (B, C, W) (or (C, W)) of images projected with column offsets
+    ``offsets`` (B,) → float32 features whose columns are the sensor's: each map shifted
+    back by its offset, a circular shift of its spectrum (exact for whole columns; in
+    between, band-limited: an even width's Nyquist bin keeps only its real part)."""
+    f = np.asarray(features, np.float64)
+    single = f.ndim == 2
+    f = f[None] if single else f
+    off = np.broadcast_to(np.asarray(offsets, np.float64), (len(f),))
+    W = f.shape[-1]
+    k = np.arange(W // 2 + 1)
+    phase = np.exp(2j * np.pi * np.outer(off, k) / W)[:, None, :]
+    out = np.fft.irfft(np.fft.rfft(f, axis=-1) * phase, n=W, axis=-1).astype(np.float32)
+    return out[0] if single else out
+
+
 def project_views(
-    points: PointCloud | np.ndarray, profile: SensorProfile, views: int
+    points: PointCloud | np.ndarray,
+    profile: SensorProfile,
+    views: int,
+    *,
+    aligned: bool = False,
 ) -> np.ndarray:
     """(views, H, W) float32 range images; view 0 is exactly :func:`project`'s image. View j
     is the image of the sensor turned by j / views of a column: the column coordinate of
-    every point grows by j / views and wraps around the ring."""
+    every point grows by j / views and wraps around the ring. ``aligned``: every view's
+    columns also start where the scan's mean bearing puts them (:func:`project_views_offset`)."""
+    return project_views_offset(points, profile, views, aligned=aligned)[0]
+
+
+def project_views_offset(
+    points: PointCloud | np.ndarray,
+    profile: SensorProfile,
+    views: int,
+    *,
+    aligned: bool = False,
+) -> tuple[np.ndarray, float]:
+    """:func:`project_views` and the column offset it added (:func:`scan_offset`; 0 unless
+    ``aligned``), which the yaw features are shifted back by (:func:`unshift_features`)."""
     views = check_views(views)
     pc = pixel_coordinates(points, profile)
     out = np.empty((views, profile.height, profile.width), np.float32)
-    out[0] = rasterize(pc.row, pc.col, pc.depth, profile)
-    if views > 1:
-        u = pc.azimuth_column
-        for j in range(1, views):
-            col = np.floor(u + np.float32(j / views)).astype(np.int32) % profile.width
-            out[j] = rasterize(pc.row, col, pc.depth, profile)
-    return out
+    u = pc.azimuth_column
+    offset = 0.0
+    if aligned:
+        offset = scan_offset(pc.x, pc.y, pc.depth, profile.width)
+        u = u + np.float32(offset)
+        col = np.floor(u).astype(np.int32) % profile.width
+    else:
+        col = pc.col
+    out[0] = rasterize(pc.row, col, pc.depth, profile)
+    for j in range(1, views):
+        col = np.floor(u + np.float32(j / views)).astype(np.int32) % profile.width
+        out[j] = rasterize(pc.row, col, pc.depth, profile)
+    return out, offset
 
 
 def combine_views(

@@ -40,7 +40,7 @@ import onnxruntime as ort
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.input import ALL_SCANS_MODES, SensorInput
-from overlapmamba.core.views import combine_views, project_views
+from overlapmamba.core.views import combine_views, project_views_offset, unshift_features
 
 if TYPE_CHECKING:
     from overlapmamba.service.fastscan import StagedGraph
@@ -176,12 +176,21 @@ class Encoder:
     def project(self, points: PointCloud, sensor: SensorInput | None = None) -> np.ndarray:
         """(V, H, W) float32 range images in the model's sensor profile, V = :attr:`views`;
         ``sensor``: the scan's sensor, projected as the model takes it (None: the model's
-        own sensor)."""
+        own sensor). A file with aligned columns also needs each image's offset for its yaw
+        features: :meth:`project_offset`."""
+        return self.project_offset(points, sensor)[0]
+
+    def project_offset(
+        self, points: PointCloud, sensor: SensorInput | None = None
+    ) -> tuple[np.ndarray, float]:
+        """:meth:`project` and its column offset (:mod:`overlapmamba.core.views`; 0 unless the
+        file aligns columns), which :meth:`encode` shifts the yaw features back by."""
+        aligned = self.meta.aligned
         if sensor is None and self.meta.sensor_input in ALL_SCANS_MODES:
             sensor = self.own_input  # even the model's own scans are thinned
         if sensor is None:
-            return project_views(points, self.meta.profile, self.meta.views)
-        return sensor.project(points, self.meta.views)
+            return project_views_offset(points, self.meta.profile, self.meta.views, aligned=aligned)
+        return sensor.project_offset(points, self.meta.views, aligned=aligned)
 
     @cached_property
     def own_input(self) -> SensorInput:
@@ -189,8 +198,13 @@ class Encoder:
         every sensor's common beams, ``common`` or ``structure``, or a bird's-eye view, ``bev``)."""
         return SensorInput.own(self.meta.profile, self.meta.sensor_input)
 
-    def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W)."""
+    def encode(
+        self, images: np.ndarray, offsets: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W). ``offsets`` (B,):
+        the images' column offsets (:meth:`project_offset`), the yaw features shifted back
+        by them so that their columns are the sensor's; None leaves them in the images'
+        columns (what :meth:`unshift` does later, as the service's batcher does)."""
         p = self.meta.profile
         want = (self.meta.views, p.height, p.width)
         if images.ndim != 4 or images.shape[1:] != want:
@@ -200,7 +214,16 @@ class Encoder:
             )
         x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
-        return combine_views(*out, self.meta.descriptors_per_scan)
+        desc, yaw = combine_views(*out, self.meta.descriptors_per_scan)
+        return (desc, yaw) if offsets is None else (desc, self.unshift(yaw, offsets))
+
+    def unshift(self, yaw: np.ndarray, offsets: np.ndarray | float) -> np.ndarray:
+        """Yaw features of images projected at column ``offsets`` in the sensor's columns
+        (:func:`overlapmamba.core.views.unshift_features`); as they are where every offset
+        is 0 (a file with the sensor's columns)."""
+        if not np.any(np.asarray(offsets)):
+            return yaw
+        return unshift_features(yaw, offsets)
 
     def describe(
         self,
@@ -219,7 +242,10 @@ class Encoder:
         chunk: list[PointCloud] = []
 
         def flush() -> None:
-            d, y = self.encode(np.stack([self.project(p, sensor) for p in chunk]))
+            projected = [self.project_offset(p, sensor) for p in chunk]
+            d, y = self.encode(
+                np.stack([im for im, _ in projected]), np.array([o for _, o in projected])
+            )
             descs.append(self.to_model_space(d, sensor) if mapped else d)
             yaws.append(y)
             chunk.clear()

@@ -97,14 +97,14 @@ class ScanPipeline:
 
     def _prepare(
         self, scan: ScanBody, sensor: SensorInput | None
-    ) -> tuple[np.ndarray, PointCloud, dict[str, float]]:
+    ) -> tuple[np.ndarray, float, PointCloud, dict[str, float]]:
         t0 = time.perf_counter()
         points = decode_scan(scan, self.limits)
         check_rings(points, sensor.sensor if sensor is not None else None)
         t1 = time.perf_counter()
-        image = self.encoder.project(points, sensor)
+        image, offset = self.encoder.project_offset(points, sensor)
         t2 = time.perf_counter()
-        return image, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
+        return image, offset, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
 
     async def describe(
         self,
@@ -118,7 +118,7 @@ class ScanPipeline:
         a map for that sensor (:mod:`overlapmamba.core.sensormaps`), the descriptor is
         mapped into the model sensor's space."""
         with self.batcher.incoming():
-            image, points, timings = await in_thread(self._prepare, scan, sensor)
+            image, offset, points, timings = await in_thread(self._prepare, scan, sensor)
         t0 = time.perf_counter()
         task = None
         if registration is not None:
@@ -129,6 +129,7 @@ class ScanPipeline:
         finally:
             if task is not None and not task.done():
                 task.cancel()
+        yaw = self.encoder.unshift(yaw, offset)  # the sensor's columns (a no-op at 0)
         timings["encode"] = (time.perf_counter() - t0) * 1e3
         desc = self.encoder.to_model_space(desc, sensor)
         return Description(np.asarray(desc), np.asarray(yaw), points, timings, prepared)

@@ -112,6 +112,12 @@ def views_of(model: Network) -> int:
     return model.meta.views if isinstance(model, ExportedNetwork) else model.cfg.token_views
 
 
+def aligned_of(model: Network) -> bool:
+    """Whether each scan's columns start at its own mean bearing (:mod:`overlapmamba.core.views`):
+    an exported encoder's metadata says; a network in training takes the sensor's columns."""
+    return isinstance(model, ExportedNetwork) and model.meta.aligned
+
+
 def sensor_input_of(model: Network) -> Mode:
     """How scans enter the model (:mod:`overlapmamba.core.sensors.input`): an exported
     encoder's metadata says; a network in training, its config (which its export writes)."""

@@ -34,8 +34,14 @@ from overlapmamba.core.rerank import OFF, Rerank, two_stage
 from overlapmamba.core.scancontext import ScanContextParams, scan_context
 from overlapmamba.core.scancontext import retrieve as sc_retrieve
 from overlapmamba.core.sensors import SensorProfile, get_profile
-from overlapmamba.core.views import combine_views
-from overlapmamba.train.checkpoint import ExportedNetwork, Network, input_of, views_of
+from overlapmamba.core.views import combine_views, unshift_features
+from overlapmamba.train.checkpoint import (
+    ExportedNetwork,
+    Network,
+    aligned_of,
+    input_of,
+    views_of,
+)
 from overlapmamba.train.model import OverlapMamba
 
 SUBSETS = ("all", "same", "reverse")
@@ -55,7 +61,12 @@ def channels_last(model: Network) -> Network:
 
 @torch.no_grad()
 def describe(
-    model: Network, images: np.ndarray, *, batch: int | None = None, device: str = "cpu"
+    model: Network,
+    images: np.ndarray,
+    *,
+    batch: int | None = None,
+    device: str = "cpu",
+    offsets: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, H, W) range images → descriptors (N, D) float32, yaw features (N, C, W) float32.
     (N, V, H, W) are V sub-column views of each scan (:mod:`overlapmamba.core.views`): a scan's
@@ -68,7 +79,10 @@ def describe(
     batch of 8 would leave it idle between launches.
 
     A PyTorch network runs as a channels-last copy (:func:`channels_last`), the original left
-    as it was: the descriptors differ from the plain layout's by float rounding only."""
+    as it was: the descriptors differ from the plain layout's by float rounding only.
+
+    ``offsets`` (N,): the images' column offsets (aligned columns,
+    :mod:`overlapmamba.core.views`); the yaw features are shifted back by them."""
     views = images.shape[1] if images.ndim == 4 else 1
     meet = model.cfg.token_views  # views the network averages itself (its tokens)
     if views != meet and meet > 1:
@@ -86,6 +100,8 @@ def describe(
         x_t = torch.from_numpy(x.reshape(-1, 1, *x.shape[-2:])).to(device)
         d, y = net(x_t.contiguous(memory_format=torch.channels_last))
         d, y = combine_views(d.cpu().numpy(), y.cpu().numpy(), views // meet)
+        if offsets is not None and np.any(offsets[s : s + batch]):
+            y = unshift_features(y, offsets[s : s + batch])
         descs.append(d)
         yaws.append(y)
     model.train(was_training)
@@ -98,16 +114,14 @@ def describe_sequence(
     """Every scan of ``seq`` described as the model describes a scan: its cached range
     images, from the sequence's sensor (:func:`~overlapmamba.train.checkpoint.input_of`), with as
     many sub-column views as the model takes (:func:`views_of`)."""
-    from overlapmamba.train.rangecache import range_images
+    from overlapmamba.train.rangecache import range_images, range_offsets
 
+    views, sensor, aligned = views_of(model), input_of(model, profile, seq), aligned_of(model)
     images = range_images(
-        seq,
-        profile,
-        views=views_of(model),
-        sensor=input_of(model, profile, seq),
-        progress=progress,
+        seq, profile, views=views, sensor=sensor, progress=progress, aligned=aligned
     )
-    return describe(model, images)
+    offsets = range_offsets(seq, profile, views=views, sensor=sensor) if aligned else None
+    return describe(model, images, offsets=offsets)
 
 
 def sequence_loops(

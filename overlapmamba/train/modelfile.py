@@ -16,7 +16,7 @@ from overlapmamba.core.calibration import Calibrated, check_calibration
 from overlapmamba.core.modelmeta import EncoderMetadata, identity
 from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors.input import Mode, check_mode
-from overlapmamba.core.views import check_views
+from overlapmamba.core.views import check_column_phase, check_views
 from overlapmamba.train.errors import ExportError
 
 
@@ -42,7 +42,7 @@ def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
 
     def update(meta: EncoderMetadata) -> dict[str, Any]:
         _maps_stay_valid(meta, "views", meta.views, views)
-        return identity(meta.graph, views, meta.sensor_input, meta.maps_digest)
+        return identity(meta.graph, views, meta.sensor_input, meta.maps_digest, meta.column_phase)
 
     return rewrite_metadata(src, out, update)
 
@@ -58,7 +58,7 @@ def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
 
     def update(meta: EncoderMetadata) -> dict[str, Any]:
         _maps_stay_valid(meta, "sensor_input", meta.sensor_input, mode)
-        return identity(meta.graph, meta.views, mode, meta.maps_digest)
+        return identity(meta.graph, meta.views, mode, meta.maps_digest, meta.column_phase)
 
     return rewrite_metadata(path, path, update)
 
@@ -76,10 +76,30 @@ def with_sensor_maps(
         lambda meta: {
             "sensor_maps": maps,
             **identity(
-                meta.graph, meta.views, meta.sensor_input, maps_digest(maps) if maps else ""
+                meta.graph,
+                meta.views,
+                meta.sensor_input,
+                maps_digest(maps) if maps else "",
+                meta.column_phase,
             ),
         },
     )
+
+
+def with_column_phase(path: Path | str, phase: str) -> EncoderMetadata:
+    """The model's scans start their columns at ``phase`` (:mod:`overlapmamba.core.views`:
+    ``sensor`` or ``aligned``): the graph stays byte for byte; the model id changes with it
+    (aligned images give other descriptors, which must not share a map with the others')."""
+    try:
+        phase = check_column_phase(phase)
+    except ValueError as err:
+        raise ExportError(str(err)) from None
+
+    def update(meta: EncoderMetadata) -> dict[str, Any]:
+        _maps_stay_valid(meta, "column_phase", meta.column_phase, phase)
+        return identity(meta.graph, meta.views, meta.sensor_input, meta.maps_digest, phase)
+
+    return rewrite_metadata(path, path, update)
 
 
 def _maps_stay_valid(meta: EncoderMetadata, field: str, old: object, new: object) -> None:

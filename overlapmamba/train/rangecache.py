@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -24,17 +25,23 @@ from overlapmamba.core.cache import cache_root
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.sensors import SensorProfile
 from overlapmamba.core.sensors.input import SensorInput
-from overlapmamba.core.views import check_views, project_views
+from overlapmamba.core.views import check_views, project_views_offset
 
 FORMAT = 1
 
 
 def cache_key(
-    seq: Sequence, profile: SensorProfile, views: int = 1, sensor: SensorInput | None = None
+    seq: Sequence,
+    profile: SensorProfile,
+    views: int = 1,
+    sensor: SensorInput | None = None,
+    aligned: bool = False,
 ) -> str:
     key: list[object] = [FORMAT, profile.model_dump()]
     if views != 1:  # one view keeps the keys (and caches) made before views existed
         key.append({"views": views})
+    if aligned:  # the sensor's columns keep them too
+        key.append({"column_phase": "aligned"})
     if sensor is not None and sensor.key():  # a native sensor keeps them too
         key.append(sensor.key())
     h = hashlib.sha256(json.dumps(key, sort_keys=True).encode())
@@ -49,20 +56,21 @@ def range_images(
     views: int = 1,
     sensor: SensorInput | None = None,
     progress: bool = True,
+    aligned: bool = False,
 ) -> np.ndarray:
     """(N, H, W) float16 range images of every scan, memory-mapped read-only; with
     ``views`` > 1, (N, views, H, W): each scan's sub-column views (:mod:`overlapmamba.core.views`).
     ``sensor``: the scans' sensor into ``profile`` (:mod:`overlapmamba.core.sensors.input`; None:
-    the profile's own sensor)."""
+    the profile's own sensor). ``aligned``: each scan's columns start at its mean bearing;
+    the offsets are cached beside the images (:func:`range_offsets`)."""
     views = check_views(views)
     if sensor is not None and sensor.model != profile:
         raise ValueError(f"sensor input for {sensor.model.name}, not the profile {profile.name}")
     shape: tuple[int, ...] = (len(seq), profile.height, profile.width)
     if views > 1:
         shape = (shape[0], views, *shape[1:])
-    key = cache_key(seq, profile, views, sensor)
-    path = cache_root() / "range_images" / f"{seq.name}-{key}.npy"
-    if path.is_file():
+    path = _cache_path(seq, profile, views, sensor, aligned)
+    if path.is_file() and (not aligned or _offsets_path(path).is_file()):
         try:
             images = np.load(path, mmap_mode="r")
             if images.shape == shape:
@@ -72,15 +80,45 @@ def range_images(
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npy")
     out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=shape)
+    offsets = np.zeros(len(seq), np.float64)
     for i in tqdm(range(len(seq)), desc=f"range images {seq.name}", disable=not progress):
         points = seq.points(i)
-        images = (
-            project_views(points, profile, views)
+        images, offsets[i] = (
+            project_views_offset(points, profile, views, aligned=aligned)
             if sensor is None
-            else sensor.project(points, views)
+            else sensor.project_offset(points, views, aligned=aligned)
         )
         out[i] = images if views > 1 else images[0]
     out.flush()
     del out
+    if aligned:  # first, so that images without their offsets are never found
+        np.save(_offsets_path(path), offsets)
     os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind
     return np.load(path, mmap_mode="r")
+
+
+def range_offsets(
+    seq: Sequence,
+    profile: SensorProfile,
+    *,
+    views: int = 1,
+    sensor: SensorInput | None = None,
+    progress: bool = True,
+) -> np.ndarray:
+    """(N,) the column offsets of :func:`range_images` with ``aligned`` (projected and cached
+    with the images if not yet there)."""
+    path = _cache_path(seq, profile, check_views(views), sensor, True)
+    if not (path.is_file() and _offsets_path(path).is_file()):
+        range_images(seq, profile, views=views, sensor=sensor, progress=progress, aligned=True)
+    return np.load(_offsets_path(path))
+
+
+def _cache_path(
+    seq: Sequence, profile: SensorProfile, views: int, sensor: SensorInput | None, aligned: bool
+) -> Path:
+    key = cache_key(seq, profile, views, sensor, aligned)
+    return cache_root() / "range_images" / f"{seq.name}-{key}.npy"
+
+
+def _offsets_path(images: Path) -> Path:
+    return images.with_name(f"{images.stem}.offsets.npy")

@@ -30,7 +30,13 @@ from overlapmamba.core.scancontext import retrieve as sc_retrieve
 from overlapmamba.core.sensors import Sensor, SensorProfile
 from overlapmamba.core.sensors.input import SensorInput, beam_of
 from overlapmamba.core.yaw import estimate_yaw
-from overlapmamba.train.checkpoint import Network, input_of, sensor_input_of, views_of
+from overlapmamba.train.checkpoint import (
+    Network,
+    aligned_of,
+    input_of,
+    sensor_input_of,
+    views_of,
+)
 from overlapmamba.train.evaluate import describe
 
 
@@ -45,6 +51,8 @@ class RealTurns:
     theta: np.ndarray  # (N,) degrees
     positions: np.ndarray  # (N, 3) from the poses
     input: str  # how the scans entered the model: native, elevation or rows
+    plain_offsets: np.ndarray | None = None  # (N,) column offsets, aligned columns only
+    turned_offsets: np.ndarray | None = None
 
 
 def turned_points(xyz: np.ndarray, theta: float) -> np.ndarray:
@@ -66,21 +74,34 @@ def turns(n: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-180.0, 180.0, n)
 
 
-def real_turns(seq: Sequence, sensor: SensorInput, seed: int = 0, views: int = 1) -> RealTurns:
+def real_turns(
+    seq: Sequence, sensor: SensorInput, seed: int = 0, views: int = 1, aligned: bool = False
+) -> RealTurns:
     """Every scan of ``seq`` and its turned copy, as ``sensor`` puts them into the model's
-    input; ``views`` > 1: each scan's sub-column views, (N, views, H, W)."""
+    input; ``views`` > 1: each scan's sub-column views, (N, views, H, W); ``aligned``: each
+    scan's columns at its mean bearing (:mod:`overlapmamba.core.views`), with the offsets."""
     theta = turns(len(seq), seed)
-
-    def images(xyz: np.ndarray) -> np.ndarray:
-        img = sensor.project(xyz, views)
-        return img if views > 1 else img[0]
-
     plain, turned = [], []
     for i in range(len(seq)):
         xyz = seq.points(i).xyz
-        plain.append(images(xyz))
-        turned.append(images(turned_points(xyz, theta[i])))
-    return RealTurns(np.stack(plain), np.stack(turned), theta, seq.positions(), sensor.kind)
+        plain.append(sensor.project_offset(xyz, views, aligned=aligned))
+        turned.append(sensor.project_offset(turned_points(xyz, theta[i]), views, aligned=aligned))
+
+    def stack(projected: list[tuple[np.ndarray, float]]) -> np.ndarray:
+        return np.stack([img if views > 1 else img[0] for img, _ in projected])
+
+    def offsets(projected: list[tuple[np.ndarray, float]]) -> np.ndarray | None:
+        return np.array([o for _, o in projected]) if aligned else None
+
+    return RealTurns(
+        stack(plain),
+        stack(turned),
+        theta,
+        seq.positions(),
+        sensor.kind,
+        offsets(plain),
+        offsets(turned),
+    )
 
 
 def invariance(desc: np.ndarray, desc_t: np.ndarray, positions: np.ndarray) -> dict[str, Any]:
@@ -142,10 +163,10 @@ def eval_real(
     beside; with ``rerank`` on, the two-stage answers too), the yaw estimate, and for each
     count in ``beams`` the same retrieval with thinned queries (:func:`thinned`)."""
     inp = input_of(model, profile, seq)
-    t = real_turns(seq, inp, seed, views_of(model))
+    t = real_turns(seq, inp, seed, views_of(model), aligned_of(model))
     theta, pos, n = t.theta, t.positions, len(seq)
-    desc, feats = describe(model, t.plain)
-    desc_t, feats_t = describe(model, t.turned)
+    desc, feats = describe(model, t.plain, offsets=t.plain_offsets)
+    desc_t, feats_t = describe(model, t.turned, offsets=t.turned_offsets)
     inv = invariance(desc, desc_t, pos)
     yaw_copy = np.array([estimate_yaw(feats[i], feats_t[i])[0][0] for i in range(n)])
     err_copy = np.abs((yaw_copy - theta + 180.0) % 360.0 - 180.0)
@@ -254,20 +275,24 @@ def thinned(
     declared = SensorInput(profile, thinned_sensor(sensor, beams), mode)
     out: dict[str, Any] = {"beams": beams, "points_kept": 0.0}
     kept = []
+    views, aligned = views_of(model), aligned_of(model)
     for label, inp in (("declared", declared), ("undeclared", SensorInput.own(profile, mode))):
-        views = views_of(model)
-        plain, turned = [], []
+        plain, turned, t_off = [], [], []
         for i in range(n):
             xyz = seq.points(i).xyz
             thin = thin_points(xyz, sensor, beams)
             if label == "declared":
                 kept.append(len(thin) / max(len(xyz), 1))
-            plain.append(inp.project(thin, views) if views > 1 else inp.project(thin)[0])
+            img = inp.project(thin, views, aligned=aligned)
+            plain.append(img if views > 1 else img[0])
             if i % 2:
-                t_img = inp.project(turned_points(thin, theta[i]), views)
+                t_img, off = inp.project_offset(
+                    turned_points(thin, theta[i]), views, aligned=aligned
+                )
                 turned.append(t_img if views > 1 else t_img[0])
+                t_off.append(off)
         d_thin, _ = describe(model, np.stack(plain))
-        d_q, f_q = describe(model, np.stack(turned))
+        d_q, f_q = describe(model, np.stack(turned), offsets=np.array(t_off))
         cos = (d_thin * desc).sum(1)
         ranked, dist = nearest(d_q, desc[even], k=min(max(k, rerank.shortlist), len(even)))
         close = _hits(pos, odd, even, ranked[:, :k], hit_radius)

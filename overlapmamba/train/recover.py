@@ -173,7 +173,7 @@ def with_token_views(src: str | Path, out: str | Path, views: int) -> ExportResu
         out,
         out,
         lambda meta: {
-            **identity(meta.graph, views, source.sensor_input),
+            **identity(meta.graph, views, source.sensor_input, "", source.column_phase),
             "weights": source.weights,
             "training_data": source.training_data,
             "metrics": source.metrics,

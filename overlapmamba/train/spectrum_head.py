@@ -134,7 +134,7 @@ def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> Enc
             **meta.model_dump(by_alias=True),
             "first_stage": stage.name,
             "descriptor_dim": dim,
-            **identity(graph_id(proto), meta.views, meta.sensor_input),
+            **identity(graph_id(proto), meta.views, meta.sensor_input, "", meta.column_phase),
         },
         by_alias=True,
     )

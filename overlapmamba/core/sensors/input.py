@@ -69,7 +69,7 @@ from overlapmamba.core.sensors.bev import BEV_MODES, bev_cells, cells_reference
 from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
-from overlapmamba.core.views import check_views, project_views
+from overlapmamba.core.views import check_views, project_views_offset, scan_offset
 
 Mode = Literal["elevation", "rows", "common", "structure", "bev", "bev-soft", "bev-span"]
 MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", *BEV_MODES)
@@ -239,12 +239,27 @@ class SensorInput:
             key["mount"] = self.mount.key()
         return key
 
-    def project(self, points: PointCloud | np.ndarray, views: int = 1) -> np.ndarray:
-        """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`."""
+    def project(
+        self, points: PointCloud | np.ndarray, views: int = 1, *, aligned: bool = False
+    ) -> np.ndarray:
+        """(views, H, W) float32 in the model's profile; view 0 as :func:`project_input`.
+        ``aligned``: the columns start where the scan's mean bearing puts them
+        (:mod:`overlapmamba.core.views`; :meth:`project_offset` also says by how much)."""
+        return self.project_offset(points, views, aligned=aligned)[0]
+
+    def project_offset(
+        self, points: PointCloud | np.ndarray, views: int = 1, *, aligned: bool = False
+    ) -> tuple[np.ndarray, float]:
+        """:meth:`project` and the column offset of its images (0 unless ``aligned``)."""
+        if aligned and self.mode in BEV_MODES:
+            raise ValueError(
+                f"the {self.mode} input has no aligned columns: column_phase aligned applies "
+                "to the range-image inputs (elevation, rows, common, structure)"
+            )
         if self.mode in BEV_MODES:
             xyz = _xyz(points)
             xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
-            return project_bev(xyz, self.model, views, mode=self.mode)
+            return project_bev(xyz, self.model, views, mode=self.mode), 0.0
         if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -256,10 +271,10 @@ class SensorInput:
                 points = above_ground(points)
         if self.mode in COMMON_MODES:
             common = CATALOGUE[COMMON_SENSOR]
-            return _project_beams(points, self.model, common, self.rows(), views)
+            return _project_beams(points, self.model, common, self.rows(), views, aligned)
         if self.sensor.profile() == self.model:
-            return project_views(points, self.model, views)
-        return _project_beams(points, self.model, self.sensor, self.rows(), views)
+            return project_views_offset(points, self.model, views, aligned=aligned)
+        return _project_beams(points, self.model, self.sensor, self.rows(), views, aligned)
 
 
 def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
@@ -318,7 +333,8 @@ def _project_beams(
     sensor: Sensor,
     rows: np.ndarray,
     views: int,
-) -> np.ndarray:
+    aligned: bool = False,
+) -> tuple[np.ndarray, float]:
     views = check_views(views)
     xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
     if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -332,17 +348,20 @@ def _project_beams(
     beam = beam_of(np.degrees(np.arcsin(z / depth)), sensor).astype(np.int64)
     # The column coordinate as overlapmamba.core.projection computes it (same float32 order).
     u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(W)
+    offset = scan_offset(x, y, depth, W) if aligned else 0.0
+    if aligned:
+        u = u + np.float32(offset)
     out = np.full((views, H, W), np.float32(model.empty_value), np.float32)
     filled = rows >= 0
     for j in range(views):
         shifted = u + np.float32(j / views) if j else u
         col = np.floor(shifted).astype(np.int64)
-        col = np.clip(col, 0, W - 1) if j == 0 else col % W
+        col = np.clip(col, 0, W - 1) if j == 0 and not aligned else col % W
         ring = np.full(B * W, np.inf, np.float32)
         np.minimum.at(ring, beam * W + col, depth)
         ring[np.isinf(ring)] = np.float32(model.empty_value)
         out[j, filled] = ring.reshape(B, W)[rows[filled]]
-    return out
+    return out, offset
 
 
 def project_input_reference(
