@@ -175,9 +175,10 @@ def bev_soft() -> str:
     return out + "\n" + real_table(BEV_SOFT_REAL)
 
 
-def real_table(networks: Mapping[str, tuple[str, ...]]) -> str:
+def real_table(networks: Mapping[str, tuple[str, ...]], described: str = "one view") -> str:
     """Each network's eval-real reports (label → report names): invariance under random
-    continuous turns, odd → even retrieval, and thinned queries against whole scans."""
+    continuous turns, odd → even retrieval, and thinned queries against whole scans;
+    ``described``: how the networks describe a scan (the cosine column says)."""
     real = {
         label: [(f"reports/model/{n}.json", load(f"reports/model/{n}.json")) for n in names]
         for label, names in networks.items()
@@ -202,7 +203,7 @@ def real_table(networks: Mapping[str, tuple[str, ...]]) -> str:
     head = [
         "network",
         "scans",
-        "cosine under random turns, min / mean (one view)",
+        f"cosine under random turns, min / mean ({described})",
         "turned copy / 1 m step",
         "odd→even R@1 / Scan Context's",
         "thinned to 32 / 16 rings, R@1",

@@ -97,12 +97,21 @@ VIEWS = "reports/service/views.json"
 
 
 def views() -> str:
-    """The shipped model's sub-column views three ways (one view; met at the descriptors;
-    met at the tokens): cost interleaved, turn invariance on real scans, loop closure."""
+    """The shipped model's sub-column views four ways (one view; one view with aligned
+    columns, where the JSON has it; met at the descriptors; met at the tokens): cost
+    interleaved, turn invariance on real scans, loop closure."""
     r = load(VIEWS)
-    ways = ("one view", "descriptors", "tokens")
+    aligned = "aligned" in r["model_ids"]
+    ways = ("one view", *(("aligned",) if aligned else ()), "descriptors", "tokens")
     v = r["views"]
-    head = ["threads", "what", "one view", f"{v} views met at the descriptors", "at the tokens"]
+    head = [
+        "threads",
+        "what",
+        "one view",
+        *(("one view, aligned columns",) if aligned else ()),
+        f"{v} views met at the descriptors",
+        "at the tokens",
+    ]
     rows = []
     for x in r["rows"]:
         one = x["one view"]["median_ms"]
@@ -119,6 +128,12 @@ def views() -> str:
         )
         rows.append([x["threads"], what, ms(one), *cells])
     out = source(VIEWS, r.get("command") or "python benchmarks/views.py", when(r))
+    kept = r.get("measured_by")
+    if kept:  # --cost-only: the cost rows are this command's, the rest an earlier run's
+        out += (
+            f"\nThe cost rows are that command's; the turn invariance and loop closure are "
+            f"from `{kept['command']}` ({kept['date'][:10]}, commit {kept['commit'][:7]}).\n"
+        )
     out += f"\n{r['scans']}, {r['reps']} repetitions, medians a scan (× one view).\n\n"
     out += table(head, rows)
     turns = r.get("turn_invariance") or {}
@@ -499,6 +514,53 @@ def overlap_tables() -> str:
     return out
 
 
+# eval-real of the shipped file and its one-view twin (label → report names)
+REAL_ONE_PASS = {
+    "the shipped file, three views": ("real-shipped-kitti", "real-shipped-nuscenes"),
+    "the one-view twin, aligned columns": ("real-one-view-kitti", "real-one-view-nuscenes"),
+}
+
+
+def real_one_pass() -> str:
+    """The shipped file and its one-view twin on real scans: turn invariance, odd → even
+    retrieval, KITTI queries thinned to 32 and 16 rings."""
+    from figures_bev import real_table
+
+    return real_table(REAL_ONE_PASS, described="as each file describes a scan")
+
+
+COLUMN_PHASE = "reports/model/column-phase-val.json"
+
+
+def column_phase() -> str:
+    """Where a one-view scan's columns start, scored on val and its second session: the
+    sensor's azimuth and the bearings' moments, each stage, and the pick."""
+    r = load(COLUMN_PHASE)
+    subsets = ("all", "same", "reverse")
+    rows = []
+    for x in r["rows"]:
+        for stage, label in (("descriptor", "descriptor alone"), ("two_stages", "two stages")):
+            v = x[stage]
+            rows.append(
+                [
+                    x["columns"],
+                    label,
+                    *(f"{v[f'{s}_f1max']:.3f} / {v[f'{s}_recall@1']:.3f}" for s in subsets),
+                    f"{v['cross_session_ar@1']:.3f}",
+                    f"{v['mean']:.4f}",
+                ]
+            )
+    out = source(COLUMN_PHASE, r["command"], when(r))
+    out += (
+        f"\n`{Path(r['val']).name}` (loop closure, F1max / Recall@1) and "
+        f"`{Path(r['second_session']).name}` against it (AR@1 across sessions); second stage "
+        f"{r['rerank']}; the aligned pick by the mean of both stages' means: "
+        f"**{r['best_aligned']}**.\n\n"
+    )
+    head = ["columns", "stage", "all", "same direction", "reverse", "AR@1 across", "mean"]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "overlap-tables": overlap_tables,
     "training-speed": training_speed,
@@ -514,4 +576,6 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "service": service,
     "encoder": encoder,
     "views": views,
+    "real-one-pass": real_one_pass,
+    "column-phase": column_phase,
 }
