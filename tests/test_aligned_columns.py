@@ -158,3 +158,31 @@ def test_every_harmonic_follows_the_turn_and_others_are_refused(harmonic):
     assert -0.5 < off <= 0.5 and abs(shift - round(shift)) < 1e-3
     with pytest.raises(ValueError, match="whole divisor of the 900 columns"):
         scan_offset(pts[:, 0], pts[:, 1], depth, KITTI.width, 7)
+
+
+def test_the_range_cache_keeps_aligned_images_apart_with_their_offsets(
+    kitti_seq_dir, tmp_path, monkeypatch
+):
+    """Evaluation of an aligned file reads aligned images and their offsets from the range
+    cache: other files than the sensor's columns', the offsets beside them, and asking for
+    the offsets alone projects them once."""
+    pytest.importorskip("torch")
+    from dataclasses import replace
+
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.train.rangecache import cache_key, range_images, range_offsets
+
+    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path))
+    seq = open_sequence(kitti_seq_dir)
+    seq = replace(seq, scan_paths=seq.scan_paths[:4], poses=seq.poses[:4])
+    assert cache_key(seq, KITTI) != cache_key(seq, KITTI, aligned=True)
+    offsets = range_offsets(seq, KITTI, progress=False)  # projects and caches both
+    aligned = range_images(seq, KITTI, progress=False, aligned=True)
+    plain = range_images(seq, KITTI, progress=False)
+    for i in range(4):
+        want, off = project_views_offset(seq.points(i), KITTI, 1, aligned=True)
+        np.testing.assert_array_equal(aligned[i], want[0].astype(np.float16))
+        assert offsets[i] == off
+    assert not np.array_equal(aligned, plain)
+    files = sorted(p.name for p in (tmp_path / "range_images").glob("*.npy"))
+    assert len(files) == 3 and sum(f.endswith(".offsets.npy") for f in files) == 1
