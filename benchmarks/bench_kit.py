@@ -175,3 +175,15 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
 
 def pct(ms: list[float] | np.ndarray, q: float) -> float:
     return float(np.percentile(np.asarray(ms, dtype=np.float64), q)) if len(ms) else float("nan")
+
+
+def refuse_aligned(model: Path, why: str) -> None:
+    """Stop with the reason when ``model`` aligns its columns (``column_phase`` aligned,
+    ``overlapmamba.core.views``) and the benchmark would project its scans another way."""
+    from overlapmamba.train.modelfile import read_metadata
+
+    if read_metadata(model).aligned:
+        raise SystemExit(
+            f"{model} aligns each scan's columns (column_phase aligned); {why}: give the file "
+            "with the sensor's columns (overlapmamba export FILE --column-phase sensor)"
+        )

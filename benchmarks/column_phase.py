@@ -32,7 +32,7 @@ from itertools import islice
 from pathlib import Path
 
 import numpy as np
-from bench_kit import ROOT, provenance
+from bench_kit import ROOT, provenance, refuse_aligned
 from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
@@ -88,6 +88,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.val.name.startswith("test") or args.second_session.name.startswith("test"):
         ap.error("choose on the validation town, never on a test town")
+    refuse_aligned(args.model, "its rows start from the sensor's columns")
     k, w = args.rerank.split(",")
     second_stage = Rerank(int(k), float(w))
 

@@ -29,6 +29,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from bench_kit import refuse_aligned
 from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 from rich.table import Table
@@ -76,6 +77,7 @@ def main() -> None:
     car_path = args.data / f"{args.split}-kitti-hdl64"
     if not car_path.is_dir():
         raise SystemExit(f"{car_path} is missing: run `make data-sensors`")
+    refuse_aligned(args.model, "this benchmark projects scans with the sensor's columns")
     with tempfile.TemporaryDirectory() as tmp:
         one = Path(tmp) / "one-view.onnx"  # a scan as one view, before any views
         with_views(args.model, one, 1)

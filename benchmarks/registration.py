@@ -71,7 +71,12 @@ def main() -> None:
     even = np.arange(0, n, 2)
     clouds = [seq.points(i) for i in range(n)]  # each scan read once
     blobs = {int(j): keyframe_geometry(prepare(clouds[j].xyz, p), p) for j in even}
-    yaw_feats = {int(j): enc.encode(enc.project(clouds[j])[None])[1][0] for j in even}
+
+    def yaw_features(points: object) -> np.ndarray:  # in the sensor's columns, as served
+        image, offset = enc.project_offset(points)  # type: ignore[arg-type]
+        return enc.encode(image[None], np.array([offset]))[1][0]
+
+    yaw_feats = {int(j): yaw_features(clouds[j]) for j in even}
     rows: dict[str, list[float]] = {
         k: []
         for k in (
@@ -96,7 +101,7 @@ def main() -> None:
         j = int(even[np.argmin(d)])
         far = even[d >= 30.0]
         # the service's seed: the yaw of the keyframe relative to the query, from features
-        qyaw = enc.encode(enc.project(turned)[None])[1][0]
+        qyaw = yaw_features(turned)
         seed = float(estimate_yaw(qyaw, yaw_feats[j][None])[0][0])
         truth = np.linalg.inv(poses[j]) @ poses[i] @ np.linalg.inv(R)
         rows["seed_yaw_err"].append(abs((seed - yaw_deg(np.linalg.inv(truth)) + 180) % 360 - 180))

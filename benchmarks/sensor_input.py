@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_kit import ROOT, provenance
+from bench_kit import ROOT, provenance, refuse_aligned
 from rich.console import Console
 from rich.table import Table
 
@@ -56,6 +56,7 @@ def main() -> None:
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
+    refuse_aligned(args.model, "it compares inputs with the sensor's columns, bird's-eye ones too")
     enc = Encoder(args.model)  # as the service runs it (the C-kernel path when it builds)
     profile, own = enc.meta.profile, enc.meta.sensor_input
     for name in args.sensor or ():

@@ -25,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from bench_kit import refuse_aligned
 from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 from rich.table import Table
@@ -52,6 +53,7 @@ def main() -> None:
     ref_path = args.data / "val-kitti-hdl64"
     if not ref_path.is_dir():
         raise SystemExit(f"{ref_path} is missing: run `make data-sensors`")
+    refuse_aligned(args.model, "the augmentation's images take the sensor's columns")
     with tempfile.TemporaryDirectory() as tmp:
         one = Path(tmp) / "one-view.onnx"  # a scan as one view: what the augmentation makes
         with_views(args.model, one, 1)

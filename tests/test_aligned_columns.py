@@ -186,3 +186,7 @@ def test_the_range_cache_keeps_aligned_images_apart_with_their_offsets(
     assert not np.array_equal(aligned, plain)
     files = sorted(p.name for p in (tmp_path / "range_images").glob("*.npy"))
     assert len(files) == 3 and sum(f.endswith(".offsets.npy") for f in files) == 1
+    # a torn offsets file is found and both are projected again
+    offsets_file = next((tmp_path / "range_images").glob("*.offsets.npy"))
+    offsets_file.write_bytes(b"torn")
+    np.testing.assert_array_equal(range_offsets(seq, KITTI, progress=False), offsets)

@@ -305,6 +305,12 @@ def test_an_encoder_with_aligned_columns_is_turn_invariant_in_one_pass(
         app, ["export", str(out), "--column-phase", "sensor", "--out", str(back)]
     )
     assert res.exit_code == 0 and read_metadata(back).model_id == plain.model_id
+    # back to the sensor's columns and on to a bird's-eye input in one call (the phase first)
+    bev = tmp_path / "bev.onnx"
+    args = ["export", str(out), "--column-phase", "sensor", "--sensor-input", "bev"]
+    res = CliRunner().invoke(app, [*args, "--out", str(bev)])
+    assert res.exit_code == 0, res.output
+    assert (read_metadata(bev).sensor_input, read_metadata(bev).column_phase) == ("bev", "sensor")
     res = CliRunner().invoke(
         app, ["export", str(src), "--column-phase", "north", "--out", str(tmp_path / "x.onnx")]
     )

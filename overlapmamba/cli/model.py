@@ -292,9 +292,12 @@ def export_cmd(
         else:
             src = checkpoint
         meta = with_views(src, out_path, views)
+        # back to the sensor's columns first, so that a bird's-eye input may follow
+        if column_phase == "sensor":
+            meta = with_column_phase(out_path, column_phase)
         if sensor_input is not None:
             meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
-        if column_phase is not None:
+        if column_phase == "aligned":
             meta = with_column_phase(out_path, column_phase)
         if stage is not None:
             meta = with_first_stage(out_path, out_path, stage)

@@ -28,6 +28,7 @@ from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.views import check_views, project_views_offset
 
 FORMAT = 1
+ALIGNMENT = 1  # how aligned columns are taken (overlapmamba.core.views.scan_offset): bump on change
 
 
 def cache_key(
@@ -41,7 +42,7 @@ def cache_key(
     if views != 1:  # one view keeps the keys (and caches) made before views existed
         key.append({"views": views})
     if aligned:  # the sensor's columns keep them too
-        key.append({"column_phase": "aligned"})
+        key.append({"column_phase": "aligned", "alignment": ALIGNMENT})
     if sensor is not None and sensor.key():  # a native sensor keeps them too
         key.append(sensor.key())
     h = hashlib.sha256(json.dumps(key, sort_keys=True).encode())
@@ -92,7 +93,10 @@ def range_images(
     out.flush()
     del out
     if aligned:  # first, so that images without their offsets are never found
-        np.save(_offsets_path(path), offsets)
+        done = _offsets_path(path)
+        part = done.with_name(f"{done.stem}.tmp{os.getpid()}.npy")
+        np.save(part, offsets)
+        os.replace(part, done)
     os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind
     return np.load(path, mmap_mode="r")
 
@@ -108,9 +112,20 @@ def range_offsets(
     """(N,) the column offsets of :func:`range_images` with ``aligned`` (projected and cached
     with the images if not yet there)."""
     path = _cache_path(seq, profile, check_views(views), sensor, True)
-    if not (path.is_file() and _offsets_path(path).is_file()):
+    offsets = _load_offsets(path, len(seq))
+    if offsets is None or not path.is_file():
+        _offsets_path(path).unlink(missing_ok=True)  # torn or foreign: project again
         range_images(seq, profile, views=views, sensor=sensor, progress=progress, aligned=True)
-    return np.load(_offsets_path(path))
+        offsets = np.load(_offsets_path(path))
+    return offsets
+
+
+def _load_offsets(images: Path, n: int) -> np.ndarray | None:
+    try:
+        offsets = np.load(_offsets_path(images))
+    except (OSError, ValueError):
+        return None
+    return offsets if offsets.shape == (n,) else None
 
 
 def _cache_path(
