@@ -68,13 +68,8 @@ def main() -> None:
     t0 = time.perf_counter()
     descs, yaws = [], []
     for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
-        projected = [
-            enc.project_offset(seq.points(i), sensor)
-            for i in range(start, min(len(seq), start + args.batch))
-        ]
-        d, y = enc.encode(
-            np.stack([im for im, _ in projected]), np.array([o for _, o in projected])
-        )
+        pts = [seq.points(i) for i in range(start, min(len(seq), start + args.batch))]
+        d, y = enc.describe(pts, sensor, batch=len(pts), mapped=False)
         descs.append(d)
         yaws.append(y)
     desc = np.concatenate(descs)

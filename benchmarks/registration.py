@@ -32,6 +32,7 @@ from rich.console import Console
 from rich.table import Table
 
 from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.points import PointCloud
 from overlapmamba.core.poses import pose_error, rotation_z, translations, yaw_deg
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
@@ -72,9 +73,8 @@ def main() -> None:
     clouds = [seq.points(i) for i in range(n)]  # each scan read once
     blobs = {int(j): keyframe_geometry(prepare(clouds[j].xyz, p), p) for j in even}
 
-    def yaw_features(points: object) -> np.ndarray:  # in the sensor's columns, as served
-        image, offset = enc.project_offset(points)  # type: ignore[arg-type]
-        return enc.encode(image[None], np.array([offset]))[1][0]
+    def yaw_features(points: PointCloud) -> np.ndarray:  # in the sensor's columns, as served
+        return enc.describe([points])[1][0]
 
     yaw_feats = {int(j): yaw_features(clouds[j]) for j in even}
     rows: dict[str, list[float]] = {

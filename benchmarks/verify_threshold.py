@@ -73,11 +73,8 @@ def run_town(
     params = params_of(v)
     for start in tqdm(range(0, n, batch), desc=f"encode {path.name}", unit="batch"):
         pts = [seq.points(i) for i in range(start, min(n, start + batch))]
-        projected = [enc.project_offset(p, sensor) for p in pts]  # as the service does
-        d, y = enc.encode(
-            np.stack([im for im, _ in projected]), np.array([o for _, o in projected])
-        )
-        descs.append(enc.to_model_space(d, sensor))  # as the service answers
+        d, y = enc.describe(pts, sensor, batch=len(pts))  # as the service answers
+        descs.append(d)
         yaws.append(np.asarray(y, dtype=np.float16))  # as the store keeps them
         # as the service does: one registration grid per scan, the keyframe keeps it
         prepared += [prepare(p.xyz, params) for p in pts]

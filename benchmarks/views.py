@@ -10,7 +10,7 @@ The four files are written from the model's own weights (``with_views`` and
 the recovered weights), so they differ only in where the views meet and the columns start.
 For each:
 
-- **cost**: a scan described as the service describes it (``Encoder.project_offset`` +
+- **cost**: a scan described as the service describes it (``Encoder.describe``: ``project_offset`` +
   ``Encoder.encode``) on real KITTI 00 scans, timed interleaved (each way in turn, rep after
   rep) in one process, with 1 and 2 onnxruntime threads, one and 8 scans a call, so that the
   ratios hold on a shared machine even when the absolute times drift; and the project stage;
@@ -110,9 +110,7 @@ def cost(paths: dict[str, Path], reps: int) -> list[dict]:
             def call(enc: Encoder, per: int = per) -> Callable[[int], object]:
                 def run(i: int) -> object:
                     batch = [clouds[(i * per + j) % len(clouds)] for j in range(per)]
-                    projected = [enc.project_offset(c) for c in batch]
-                    images = np.stack([im for im, _ in projected])
-                    return enc.encode(images, np.array([o for _, o in projected]))
+                    return enc.describe(batch, batch=per)
 
                 return run
 
