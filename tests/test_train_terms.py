@@ -129,6 +129,56 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
         )
 
 
+@pytest.mark.timeout(900)  # when run alone, its set-up waits for the tiny towns and run
+def test_a_run_continues_an_aligned_encoder_on_aligned_images(
+    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+):
+    """--init of a file with aligned columns: the run takes the file's column phase, trains
+    and validates on aligned images (epoch 0 scores what evaluating the file scores), and its
+    export is aligned again; a config given alongside may set the phase, the turn term and a
+    bird's-eye input are refused with aligned columns."""
+    from overlapmamba.train.evaluate import describe_sequence, loop_closure, sequence_loops
+    from overlapmamba.train.export import export_onnx
+    from overlapmamba.train.modelfile import read_metadata, with_column_phase
+
+    straight, _ = tiny_run
+    model, profile, _ = load_model(straight / "epoch-002.pt")
+    onnx_path = export_onnx(model, profile, tmp_path / "start.onnx", weight_format="float32").path
+    with_column_phase(onnx_path, "aligned")
+    exported, _, _ = load_model(onnx_path)
+    val = open_sequence(tiny_val_seq)
+    desc, _ = describe_sequence(exported, val, profile)
+    f1 = loop_closure(desc, sequence_loops(val, profile))["all"].f1max
+    plain, _ = describe_sequence(model, val, profile)
+    assert not np.allclose(desc, plain, atol=1e-3)  # the phase matters to this network
+
+    run = dict(epochs=1, freeze_bn=True, init=str(onnx_path))
+    out = tmp_path / "aligned"
+    got = train([tiny_seq], tiny_val_seq, out, None, small_run(**run), progress=False)
+    assert got[0]["val"]["all"]["f1max"] == pytest.approx(f1, abs=1e-3)
+    continued, _, _ = load_model(out / "epoch-001.pt")
+    assert continued.cfg.column_phase == "aligned"
+    path = export_onnx(continued, profile, tmp_path / "after.onnx", weight_format="float32").path
+    assert read_metadata(path).column_phase == "aligned"
+
+    sensor = OverlapMambaConfig(**{**SMALL, "column_phase": "sensor"})
+    train([tiny_seq], tiny_val_seq, tmp_path / "s", sensor, small_run(**run), progress=False)
+    assert load_model(tmp_path / "s" / "epoch-000.pt")[0].cfg.column_phase == "sensor"
+    with pytest.raises(ConfigError, match="the turn term has nothing to teach"):
+        train(
+            [tiny_seq],
+            tiny_val_seq,
+            tmp_path / "turn",
+            None,
+            small_run(**run, turn_weight=1.0, turn_scans=2),
+            progress=False,
+        )
+    with pytest.raises(ValueError, match="nothing to align"):
+        OverlapMambaConfig(**{**SMALL, "column_phase": "aligned", "sensor_input": "bev"})
+    with pytest.raises(ValueError, match="column_phase 'diagonal' is unknown"):
+        OverlapMambaConfig(**{**SMALL, "column_phase": "diagonal"})
+
+
 @pytest.mark.timeout(600)  # when run alone, its set-up generates the tiny town
 def test_the_recipe_keeps_the_spread_and_grows_the_separation(tiny_seq):
     """The shipped recipe's sampler, augmentation and loss for 12 steps of the small network on

@@ -114,8 +114,11 @@ def views_of(model: Network) -> int:
 
 def aligned_of(model: Network) -> bool:
     """Whether each scan's columns start at its own mean bearing (:mod:`overlapmamba.core.views`):
-    an exported encoder's metadata says; a network in training takes the sensor's columns."""
-    return isinstance(model, ExportedNetwork) and model.meta.aligned
+    an exported encoder's metadata says; a network in training, its config (which its export
+    writes)."""
+    if isinstance(model, ExportedNetwork):
+        return model.meta.aligned
+    return model.cfg.column_phase == "aligned"
 
 
 def sensor_input_of(model: Network) -> Mode:

@@ -300,7 +300,9 @@ def export_onnx(
     train = ckpt.get("train") or {}
     total, loops = count_nodes(proto)
     meta = EncoderMetadata(
-        **identity(graph_id(proto), views, check_mode(cfg.sensor_input)),
+        **identity(
+            graph_id(proto), views, check_mode(cfg.sensor_input), column_phase=cfg.column_phase
+        ),
         profile=profile,
         model_config=cfg.to_dict(),
         descriptor_dim=cfg.out_dim,

@@ -37,8 +37,8 @@ from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from overlapmamba.core.configs import Config
-from overlapmamba.core.sensors.input import MODES
-from overlapmamba.core.views import MAX_VIEWS
+from overlapmamba.core.sensors.input import BEV_MODES, MODES
+from overlapmamba.core.views import COLUMN_PHASES, MAX_VIEWS
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.scan_backends import BACKENDS, scan
 
@@ -61,6 +61,10 @@ class OverlapMambaConfig(Config):
     # range × height bands, a polar bird's-eye occupancy of every scan), bev-soft or bev-span
     # (bev's cells shared between columns, so the image moves with a turn: core.sensors.bev)
     sensor_input: str = "elevation"
+    # Where the image's columns start (overlapmamba.core.views, the exported metadata's
+    # column_phase): sensor (the sensor's own azimuth) or aligned (each scan's mean bearing
+    # at a column centre, so a turn rolls the image by whole columns)
+    column_phase: str = "sensor"
     # reference (the reference code's layers: on 64 rows the descriptor sees rows 0–26 only)
     # or all-rows (every row reaches it): _backbone
     backbone: str = "reference"
@@ -104,6 +108,14 @@ class OverlapMambaConfig(Config):
         if self.sensor_input not in MODES:
             raise ValueError(
                 f"sensor_input {self.sensor_input!r} is unknown; allowed: {', '.join(MODES)}"
+            )
+        if self.column_phase not in COLUMN_PHASES:
+            allowed = ", ".join(COLUMN_PHASES)
+            raise ValueError(f"column_phase {self.column_phase!r} is unknown; allowed: {allowed}")
+        if self.column_phase == "aligned" and self.sensor_input in BEV_MODES:
+            raise ValueError(
+                f"column_phase aligned: the {self.sensor_input} input's columns are not the "
+                "sensor's azimuth, so there is nothing to align; use column_phase sensor"
             )
         if self.backbone not in BACKBONES:
             raise ValueError(

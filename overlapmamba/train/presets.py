@@ -26,6 +26,11 @@ otherwise.
   turned by a random continuous angle, and 100 × their squared distance to the unturned
   scans, in units of the batch's spread, joins the loss. Aimed at the minimum cosine under a
   continuous turn. ≈ 6 min an epoch here.
+- ``aligned-pilot`` continues the one-view twin's network (the shipped weights; its file
+  takes each scan's columns at its mean bearing, :mod:`overlapmamba.core.views`) on aligned
+  images of train-b (``ALIGNED``), and ``aligned-pilot-control`` the same weights in the
+  sensor's columns at an equal budget: whether training on aligned images closes the gap the
+  alignment costs the descriptor alone (README, the views table). Each with ``-s1``.
 - ``sensors-*``, ``common-*``, ``structure-*`` and ``bev-*`` are the runs on several sensors
   (issue 40), listed in :mod:`overlapmamba.train.sensor_recipes`.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
@@ -55,6 +60,8 @@ from overlapmamba.train.augment import ROBUST
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.recipes import (
     ABLATION,
+    ALIGNED,
+    ALIGNED_DATA,
     BAND,
     DEFAULT,
     NARROW,
@@ -133,6 +140,20 @@ PRESETS: dict[str, TrainPreset] = {
             model=NARROW,
             train=TURN,
         ),
+        TrainPreset(
+            "aligned-pilot",
+            "the one-view twin (aligned columns) continued on aligned images of train-b",
+            model=NARROW,
+            train=ALIGNED,
+            data=ALIGNED_DATA,
+        ),
+        TrainPreset(
+            "aligned-pilot-control",
+            "the same continuation in the sensor's columns, from the same weights",
+            model=NARROW,
+            train={**ALIGNED, "init": "models/overlapmamba-hdl64.onnx"},
+            data=ALIGNED_DATA,
+        ),
         *SENSOR_PRESETS,
         TrainPreset(
             "ot",
@@ -153,6 +174,8 @@ PRESETS: dict[str, TrainPreset] = {
 
 # The runs on several sensors, each also with seed 1 (its draws; the start is the same network).
 for _name in (
+    "aligned-pilot",
+    "aligned-pilot-control",
     "sensors-pilot",
     "sensors-pilot-control",
     "sensors-seen",

@@ -55,6 +55,21 @@ TURN = {
     "warmup_steps": 20,
     "hard_negatives": 0.5,
 }
+# One pass a scan with aligned columns (overlapmamba.core.views): the one-view twin's network
+# (the shipped weights, its file aligned) continued on aligned images of train-b, batch norm
+# frozen, at the turn continuation's rate and without its term (a turn is a whole-column roll
+# of an aligned image). 3 epochs of 3,000 scans, ≈ 15 min here. The control starts from the
+# same weights in the sensor's columns (the shipped file, one view in training).
+ALIGNED = {
+    "init": "models/overlapmamba-hdl64-one-view.onnx",
+    "freeze_bn": True,
+    "epochs": 3,
+    "epoch_scans": 3000,
+    "lr": 3e-5,
+    "warmup_steps": 20,
+    "hard_negatives": 0.5,
+}
+ALIGNED_DATA = ("data/synth/train-b",)
 OLD_LOSS = {
     "alpha": 0.5,
     "lam": 0.1,

@@ -148,23 +148,36 @@ def train(
     if any(s.root.resolve() == val_seq.root.resolve() for s in seqs):
         raise ConfigError(f"{val} is both training and validation data")
     mode = check_mode(model_cfg.sensor_input)
+    aligned = model_cfg.column_phase == "aligned"
+    if aligned and train_cfg.turn_weight > 0:
+        raise ConfigError(
+            "turn_weight > 0 with column_phase aligned: a turned scan's aligned image is the "
+            "plain one rolled by whole columns, which the circular network does not see, so "
+            "the turn term has nothing to teach; set turn_weight 0"
+        )
     val_input = training_input(profile, val_seq, mode)
+    inputs = [training_input(profile, s, mode) for s in seqs]
     fingerprints = {
         "train": [
-            {"path": str(s.root), "key": cache_key(s, profile, sensor=inp)}
-            for s, inp in zip(seqs, (training_input(profile, s, mode) for s in seqs), strict=True)
+            {"path": str(s.root), "key": cache_key(s, profile, sensor=inp, aligned=aligned)}
+            for s, inp in zip(seqs, inputs, strict=True)
         ],
-        "val": {"path": str(val_seq.root), "key": cache_key(val_seq, profile, sensor=val_input)},
+        "val": {
+            "path": str(val_seq.root),
+            "key": cache_key(val_seq, profile, sensor=val_input, aligned=aligned),
+        },
     }
-    images = Images(seqs, profile, progress, mode)
-    val_images = range_images(val_seq, profile, progress=progress, sensor=val_input)
+    images = Images(seqs, profile, progress, mode, aligned)
+    val_images = range_images(
+        val_seq, profile, progress=progress, sensor=val_input, aligned=aligned
+    )
     val_gt = sequence_loops(val_seq, profile, progress=progress)
     if not val_gt.has_loop().any():
         raise DatasetError(
             f"{val}: the validation sequence has no loop closure, so F1max and Recall@1 "
             "would mean nothing; validate on a sequence with revisits (e.g. the val preset)"
         )
-    renderings = open_renderings(train_cfg.val_sensors, val_seq, profile, progress, mode)
+    renderings = open_renderings(train_cfg.val_sensors, val_seq, profile, progress, mode, aligned)
     trained_on = {s.root.resolve() for s in seqs}
     for rendering in renderings:
         if Path(rendering.path).resolve() in trained_on:
@@ -230,7 +243,7 @@ def train(
             "metrics": metrics,
         }
 
-    turns = real_turn_scans(train_cfg.real_path(), profile, progress, mode)
+    turns = real_turn_scans(train_cfg.real_path(), profile, progress, mode, aligned)
 
     def validate() -> dict[str, Any]:
         """The entry's validation fields: val, val_sensors (with renderings), val_s."""

@@ -47,7 +47,8 @@ def training_input(
 
 class Images:
     """Range images of several sequences behind global scan indices, each sequence's scans
-    projected as its sensor's (:func:`training_input`)."""
+    projected as its sensor's (:func:`training_input`); ``aligned``: each scan's columns
+    start at its mean bearing (:mod:`overlapmamba.core.views`)."""
 
     def __init__(
         self,
@@ -55,11 +56,12 @@ class Images:
         profile: SensorProfile,
         progress: bool,
         mode: Mode = "elevation",
+        aligned: bool = False,
     ) -> None:
-        self.seqs, self.profile, self.mode = seqs, profile, mode
+        self.seqs, self.profile, self.mode, self.aligned = seqs, profile, mode, aligned
         self.inputs = [training_input(profile, s, mode) for s in seqs]
         self.parts = [
-            range_images(s, profile, progress=progress, sensor=inp)
+            range_images(s, profile, progress=progress, sensor=inp, aligned=aligned)
             for s, inp in zip(seqs, self.inputs, strict=True)
         ]
         self.offsets = np.cumsum([0, *[len(p) for p in self.parts]])
@@ -105,7 +107,8 @@ class Images:
             if inp is None or not options:
                 continue
             beams = options[int(rng.integers(len(options)))]
-            out.append(inp.project(on_beams(self.seqs[s].points(i).xyz, inp.sensor, beams))[0])
+            xyz = on_beams(self.seqs[s].points(i).xyz, inp.sensor, beams)
+            out.append(inp.project(xyz, aligned=self.aligned)[0])
             at.append(k)
         shape = (0, *self.parts[0].shape[1:])
         return np.array(at, np.int64), np.stack(out) if out else np.zeros(shape, np.float32)
@@ -164,7 +167,8 @@ def start_config(
     (``token_views``) trains on one image a scan: the same weights, its views met again at
     export (``overlapmamba export --meet tokens``). The input a continuation takes
     (``sensor_input``) is the file's (an exported file's metadata) unless a config given
-    alongside names another: a network can be continued on another input."""
+    alongside names another: a network can be continued on another input. So is where its
+    columns start (``column_phase``), unless the config given alongside sets it."""
     path = train_cfg.init_path()
     assert path is not None
     if not path.is_file():
@@ -175,15 +179,20 @@ def start_config(
         try:
             meta = read_metadata(path)
             cfg = OverlapMambaConfig.from_dict(meta.network)
-            cfg = cfg.model_copy(update={"sensor_input": meta.sensor_input})
+            cfg = cfg.model_copy(
+                update={"sensor_input": meta.sensor_input, "column_phase": meta.column_phase}
+            )
         except ValueError as err:
             raise ConfigError(f"init {train_cfg.init!r}: {err}") from None
     else:
         cfg = OverlapMambaConfig.from_dict(read_checkpoint(path)["model_config"])
     cfg = cfg.model_copy(update={"token_views": 1})
     if model_cfg is not None:
-        runtime = ("scan_backend", "scan_chunk", "token_views", "sensor_input")
-        cfg = cfg.model_copy(update={"sensor_input": model_cfg.sensor_input})
+        runtime = ("scan_backend", "scan_chunk", "token_views", "sensor_input", "column_phase")
+        update: dict[str, str] = {"sensor_input": model_cfg.sensor_input}
+        if "column_phase" in model_cfg.model_fields_set:  # else the file's
+            update["column_phase"] = model_cfg.column_phase
+        cfg = cfg.model_copy(update=update)
         a, b = cfg.to_dict(), model_cfg.to_dict()
         differ = sorted(k for k in a if k not in runtime and a[k] != b.get(k))
         if differ:
@@ -254,14 +263,19 @@ def batch_copies(
 
 
 def real_turn_scans(
-    path: Path | None, profile: SensorProfile, progress: bool, mode: Mode = "elevation"
+    path: Path | None,
+    profile: SensorProfile,
+    progress: bool,
+    mode: Mode = "elevation",
+    aligned: bool = False,
 ) -> RealTurns | None:
-    """The real scans of the per-epoch turn check, projected once; None (with a note) when
-    the check is off or the folder is missing."""
+    """The real scans of the per-epoch turn check, projected once (``aligned``: each at its
+    mean bearing, as the model takes them); None (with a note) when the check is off or the
+    folder is missing."""
     if path is None:
         return None
     if not (path / "velodyne").is_dir():
         if progress:
             tqdm.write(f"note: no real scans at {path}: the per-epoch turn check is skipped")
         return None
-    return real_turns(open_sequence(path), SensorInput.own(profile, mode))
+    return real_turns(open_sequence(path), SensorInput.own(profile, mode), aligned=aligned)

@@ -53,6 +53,7 @@ def open_renderings(
     profile: SensorProfile,
     progress: bool,
     mode: Mode = "elevation",
+    aligned: bool = False,
 ) -> list[Rendering]:
     """The renderings, checked to be the validation drive's (same drive keys, every scan
     within 5 cm of the validation scan of its frame) and of distinct sensors."""
@@ -73,10 +74,9 @@ def open_renderings(
         if seq.sensor == val_seq.sensor or seq.sensor in {r.name for r in out}:
             raise DatasetError(f"val_sensors: a second rendering by {seq.sensor} ({p})")
         sensor = training_input(profile, seq, mode)
-        images = range_images(seq, profile, sensor=sensor, progress=progress)
-        out.append(
-            Rendering(seq.sensor, str(seq.root), cache_key(seq, profile, sensor=sensor), images)
-        )
+        images = range_images(seq, profile, sensor=sensor, progress=progress, aligned=aligned)
+        key = cache_key(seq, profile, sensor=sensor, aligned=aligned)
+        out.append(Rendering(seq.sensor, str(seq.root), key, images))
     return out
 
 
