@@ -46,18 +46,21 @@ MODELS = (
 ROUNDING = 1e-5
 
 
-def row_effects(enc: Encoder, views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def row_effects(
+    enc: Encoder, views: np.ndarray, offset: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """(H,) largest absolute change of the descriptor and of the yaw features when each row
-    of ``views`` ((V, H, W), from ``Encoder.project``) is emptied in every view."""
+    of ``views`` ((V, H, W) at column ``offset``, from ``Encoder.project_offset``) is
+    emptied in every view."""
     empty = np.float32(enc.meta.profile.empty_value)
     H = views.shape[1]
     batch = np.repeat(views[None], H, axis=0)  # (H, V, H, W): row r emptied in scan r
     for r in range(H):
         batch[r, :, r] = empty
-    d0, y0 = enc.encode(views[None])
+    d0, y0 = enc.encode(views[None], np.array([offset]))
     desc, yaw = [], []
     for lo in range(0, H, 8):
-        d, y = enc.encode(batch[lo : lo + 8])
+        d, y = enc.encode(batch[lo : lo + 8], np.full(len(batch[lo : lo + 8]), offset))
         desc.append(np.abs(d - d0).max(axis=1))
         yaw.append(np.abs(y - y0).reshape(len(y), -1).max(axis=1))
     return np.concatenate(desc), np.concatenate(yaw)
@@ -83,8 +86,8 @@ def row_elevations(profile: SensorProfile) -> np.ndarray:
 def measure(path: Path, frame: int) -> dict[str, Any]:
     enc = Encoder(path, intra_op_threads=2)
     profile = enc.meta.profile
-    views = enc.project(open_sequence(KITTI).points(frame))
-    desc, yaw = row_effects(enc, views)
+    views, offset = enc.project_offset(open_sequence(KITTI).points(frame))
+    desc, yaw = row_effects(enc, views, offset)
     seen = np.flatnonzero(desc > ROUNDING)
     unseen = np.flatnonzero(desc <= ROUNDING)
     el = row_elevations(profile)

@@ -50,9 +50,9 @@ def overhead(
         t0 = time.perf_counter()
         points = decode(body, "raw", fields="xyzi")
         t1 = time.perf_counter()
-        image = enc.project(points)
+        image, offset = enc.project_offset(points)
         t2 = time.perf_counter()
-        desc, _ = enc.encode(image[None])
+        desc, _ = enc.encode(image[None], np.array([offset]))
         t3 = time.perf_counter()
         assert desc.shape == (1, enc.dim)
         for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2), strict=True):

@@ -290,10 +290,13 @@ def test_an_encoder_with_aligned_columns_is_turn_invariant_in_one_pass(
     for t, y in zip(thetas[1:], yaw[1:], strict=True):
         est = estimate_yaw(yaw[0], y)[0][0]
         assert abs((est - t + 180) % 360 - 180) < 0.2, (t, est)
-    # images without their offsets keep the image's columns: the turn is off by them
+    # the images' own columns (offsets 0) are the sensor's shifted by the offsets; without
+    # offsets the file refuses to encode, naming what to pass
     images, offsets = zip(*(enc.project_offset(s) for s in scans), strict=True)
-    raw = enc.encode(np.stack(images))[1]
+    raw = enc.encode(np.stack(images), np.zeros(len(images)))[1]
     np.testing.assert_allclose(enc.unshift(raw, np.array(offsets)), yaw, atol=1e-5)
+    with pytest.raises(ValueError, match="pass the images' column offsets"):
+        enc.encode(np.stack(images))
     # evaluation describes scans the same way
     model, _, _ = load_model(out)
     d_eval, y_eval = describe(model, np.stack(images), offsets=np.array(offsets))

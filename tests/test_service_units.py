@@ -544,10 +544,12 @@ def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
 # ---- micro-batcher ---------------------------------------------------------------------------
 
 
-def _encode(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _encode(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     time.sleep(0.02)  # a real encoder takes time; batches fill meanwhile
     b = images.shape[0]
-    return images.reshape(b, -1)[:, :4].copy(), images[:, 0, :2].copy()
+    yaw = images[:, 0, :2].copy()
+    yaw[:, 0, 0] = offsets  # each row's offset, where the caller can see it
+    return images.reshape(b, -1)[:, :4].copy(), yaw
 
 
 def test_batcher_batches_concurrent_requests_in_order():
@@ -562,13 +564,14 @@ def test_batcher_batches_concurrent_requests_in_order():
         )
         await mb.start()
         images = [np.full((1, 2, 3), i, np.float32) for i in range(12)]
-        out = await asyncio.gather(*(mb.encode(x) for x in images))
+        out = await asyncio.gather(*(mb.encode(x, i / 100) for i, x in enumerate(images)))
         await mb.stop()
         return out, sizes
 
     out, sizes = asyncio.run(main())
-    for i, (desc, _) in enumerate(out):
+    for i, (desc, yaw) in enumerate(out):
         assert desc[0] == i  # every caller gets its own row back
+        assert yaw[0, 0] == pytest.approx(i / 100)  # and its offset went with its image
     assert sum(k * v for k, v in sizes.items()) == 12
     assert max(sizes) > 1 and max(sizes) <= 4
 
@@ -615,7 +618,7 @@ def test_batcher_refuses_beyond_its_queue_and_reports_errors():
         )
         await mb.stop()
 
-        def broken(_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def broken(_: np.ndarray, __: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             raise RuntimeError("boom")
 
         mb2 = MicroBatcher(broken)

@@ -24,12 +24,14 @@ import numpy as np
 
 from overlapmamba.service.errors import Overloaded, Timeout
 
-EncodeFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+# (B, V, H, W) images, (B,) column offsets → descriptors, yaw features (Encoder.encode)
+EncodeFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass
 class _Item:
-    image: np.ndarray  # (V, H, W): one scan's views (Encoder.project)
+    image: np.ndarray  # (V, H, W): one scan's views (Encoder.project_offset)
+    offset: float  # its column offset (0 unless the model aligns columns)
     future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
 
 
@@ -79,15 +81,16 @@ class MicroBatcher:
         return self._queue.qsize() if self._queue is not None else 0
 
     async def encode(
-        self, image: np.ndarray, *, timeout_s: float | None = None
+        self, image: np.ndarray, offset: float = 0.0, *, timeout_s: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One scan's (V, H, W) images → descriptor (D,), yaw features (C, W)."""
+        """One scan's (V, H, W) images and column offset → descriptor (D,), yaw features
+        (C, W) in the sensor's columns."""
         assert self._queue is not None, "MicroBatcher.start() was not awaited"
         fut: asyncio.Future[tuple[np.ndarray, np.ndarray]] = (
             asyncio.get_running_loop().create_future()
         )
         try:
-            self._queue.put_nowait(_Item(image, fut))
+            self._queue.put_nowait(_Item(image, offset, fut))
         except asyncio.QueueFull:
             raise Overloaded(
                 f"the encoder queue is full ({self.queue_size} scans waiting); retry shortly",
@@ -130,8 +133,9 @@ class MicroBatcher:
         if not live:
             return
         images = np.stack([item.image for item in live])  # (B, V, H, W)
+        offsets = np.array([item.offset for item in live], np.float64)
         t0 = loop.time()
-        desc, yaw = await loop.run_in_executor(self._pool, self._encode, images)
+        desc, yaw = await loop.run_in_executor(self._pool, self._encode, images, offsets)
         elapsed = loop.time() - t0
         for i, item in enumerate(live):
             if not item.future.done():

@@ -201,10 +201,16 @@ class Encoder:
     def encode(
         self, images: np.ndarray, offsets: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W). ``offsets`` (B,):
-        the images' column offsets (:meth:`project_offset`), the yaw features shifted back
-        by them so that their columns are the sensor's; None leaves them in the images'
-        columns (what :meth:`unshift` does later, as the service's batcher does)."""
+        """images (B, V, H, W) → descriptor (B, D), yaw_features (B, C, W) in the sensor's
+        columns. ``offsets`` (B,): the images' column offsets (:meth:`project_offset`), which
+        the yaw features are shifted back by; a file with aligned columns needs them (its
+        images' columns are not the sensor's), for the others None means 0."""
+        if offsets is None and self.meta.aligned:
+            raise ValueError(
+                f"model {self.meta.model_id} aligns each scan's columns (column_phase aligned): "
+                "pass the images' column offsets from Encoder.project_offset, so that the yaw "
+                "features come back in the sensor's columns"
+            )
         p = self.meta.profile
         want = (self.meta.views, p.height, p.width)
         if images.ndim != 4 or images.shape[1:] != want:

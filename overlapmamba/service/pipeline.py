@@ -124,12 +124,13 @@ class ScanPipeline:
         if registration is not None:
             task = asyncio.ensure_future(in_thread(prepare, points.xyz, registration))
         try:
-            desc, yaw = await self.batcher.encode(image, timeout_s=self.limits.request_timeout_s)
+            desc, yaw = await self.batcher.encode(
+                image, offset, timeout_s=self.limits.request_timeout_s
+            )
             prepared = await task if task is not None else None
         finally:
             if task is not None and not task.done():
                 task.cancel()
-        yaw = self.encoder.unshift(yaw, offset)  # the sensor's columns (a no-op at 0)
         timings["encode"] = (time.perf_counter() - t0) * 1e3
         desc = self.encoder.to_model_space(desc, sensor)
         return Description(np.asarray(desc), np.asarray(yaw), points, timings, prepared)
