@@ -529,38 +529,6 @@ def real_one_pass() -> str:
     return real_table(REAL_ONE_PASS, described="as each file describes a scan")
 
 
-COLUMN_PHASE = "reports/model/column-phase-val.json"
-
-
-def column_phase() -> str:
-    """Where a one-view scan's columns start, scored on val and its second session: the
-    sensor's azimuth and the bearings' moments, each stage, and the pick."""
-    r = load(COLUMN_PHASE)
-    subsets = ("all", "same", "reverse")
-    rows = []
-    for x in r["rows"]:
-        for stage, label in (("descriptor", "descriptor alone"), ("two_stages", "two stages")):
-            v = x[stage]
-            rows.append(
-                [
-                    x["columns"],
-                    label,
-                    *(f"{v[f'{s}_f1max']:.3f} / {v[f'{s}_recall@1']:.3f}" for s in subsets),
-                    f"{v['cross_session_ar@1']:.3f}",
-                    f"{v['mean']:.4f}",
-                ]
-            )
-    out = source(COLUMN_PHASE, r["command"], when(r))
-    out += (
-        f"\n`{Path(r['val']).name}` (loop closure, F1max / Recall@1) and "
-        f"`{Path(r['second_session']).name}` against it (AR@1 across sessions); second stage "
-        f"{r['rerank']}; the aligned pick by the mean of both stages' means: "
-        f"**{r['best_aligned']}**.\n\n"
-    )
-    head = ["columns", "stage", "all", "same direction", "reverse", "AR@1 across", "mean"]
-    return out + table(head, rows)
-
-
 RENDERERS: dict[str, Callable[[], str]] = {
     "overlap-tables": overlap_tables,
     "training-speed": training_speed,
@@ -577,5 +545,4 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "encoder": encoder,
     "views": views,
     "real-one-pass": real_one_pass,
-    "column-phase": column_phase,
 }

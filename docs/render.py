@@ -34,6 +34,7 @@ import figures_fleet
 import figures_input
 import figures_model
 import figures_pairs
+import figures_phase
 import figures_spectrum
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -99,6 +100,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_bev.RENDERERS,
     **figures_fleet.RENDERERS,
     **figures_pairs.RENDERERS,
+    **figures_phase.RENDERERS,
     **figures_spectrum.RENDERERS,
 }
 

@@ -31,9 +31,10 @@ column coordinate by the same fraction of a column (:func:`scan_offset`, within 
 of the sensor turns that bearing with the points, so the turned scan's image is the plain
 one rolled by whole columns, which the network does not see: the cosine to a turned copy is
 1 up to float rounding at column edges. Two scans of a place from different poses are
-sampled at offsets that differ arbitrarily, where the sensor's columns keep two passes with
-the same heading on one grid: what the alignment costs the descriptor alone
-(``benchmarks/column_phase.py``, on ``val``). The yaw features of an aligned
+sampled at offsets that differ arbitrarily, as they are in the sensor's columns (the towns'
+revisits differ in heading by more than a column: ``benchmarks/revisit_phase.py``); with
+these weights the alignment still costs the descriptor alone some loop closure
+(``benchmarks/column_phase.py``, on ``val``), for a reason not measured. The yaw features of an aligned
 image are shifted back by the offset (:func:`unshift_features`, an exact circular shift of
 their spectra) so that their columns are the sensor's and yaw estimates keep their meaning.
 """

@@ -1,0 +1,80 @@
+"""Where a one-view scan's columns start (aligned columns, ``overlapmamba.core.views``): the
+choice of direction on ``val``, how far apart the synthetic revisits' column grids are, and
+the one-view twin's network trained on aligned images against the same training in the
+sensor's columns."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from figures_kit import f3, load, source, table, when
+
+COLUMN_PHASE = "reports/model/column-phase-val.json"
+
+
+def column_phase() -> str:
+    """Where a one-view scan's columns start, scored on val and its second session: the
+    sensor's azimuth and the bearings' moments, each stage, and the pick."""
+    r = load(COLUMN_PHASE)
+    subsets = ("all", "same", "reverse")
+    rows = []
+    for x in r["rows"]:
+        for stage, label in (("descriptor", "descriptor alone"), ("two_stages", "two stages")):
+            v = x[stage]
+            rows.append(
+                [
+                    x["columns"],
+                    label,
+                    *(f"{v[f'{s}_f1max']:.3f} / {v[f'{s}_recall@1']:.3f}" for s in subsets),
+                    f"{v['cross_session_ar@1']:.3f}",
+                    f"{v['mean']:.4f}",
+                ]
+            )
+    out = source(COLUMN_PHASE, r["command"], when(r))
+    out += (
+        f"\n`{Path(r['val']).name}` (loop closure, F1max / Recall@1) and "
+        f"`{Path(r['second_session']).name}` against it (AR@1 across sessions); second stage "
+        f"{r['rerank']}; the aligned pick by the mean of both stages' means: "
+        f"**{r['best_aligned']}**.\n\n"
+    )
+    head = ["columns", "stage", "all", "same direction", "reverse", "AR@1 across", "mean"]
+    return out + table(head, rows)
+
+
+REVISIT_PHASE = "reports/synthetic/revisit-phase.json"
+
+
+def revisit_phase() -> str:
+    """Each town's revisits: heading off 0°/180° and the remainder in columns."""
+    r = load(REVISIT_PHASE)
+    u = r["uniform"]
+    out = source(REVISIT_PHASE, r["command"], when(r))
+    out += (
+        f"\nEach scan with an earlier one within {r['radius_m']:g} m (outside the "
+        f"{r['exclude_frames']}-frame exclusion) and its nearest such scan: how far their "
+        f"headings are from 0° or 180°, and the remainder of their difference in columns "
+        f"({r['width']} a turn), folded to [0, ½]. A uniform remainder has median "
+        f"{u['column_remainder_median']:g} and puts {u['within_tenth_of_a_column']:g} of the "
+        "pairs within a tenth of a column.\n\n"
+    )
+    rows = [
+        [
+            f"`{name}`",
+            str(x["revisits"]),
+            f"{x['reverse_share']:.2f}",
+            f"{x['heading_off_median_deg']:.2f}°",
+            f3(x["column_remainder_median"]),
+            f3(x["within_tenth_of_a_column"]),
+        ]
+        for name, x in r["towns"].items()
+    ]
+    head = ["town", "revisits", "reverse share", "heading off 0°/180°, median"]
+    head += ["remainder, median (columns)", "within 0.1 column"]
+    return out + table(head, rows)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "column-phase": column_phase,
+    "revisit-phase": revisit_phase,
+}
