@@ -59,7 +59,7 @@ def town_phase(poses: np.ndarray, width: int) -> dict[str, float | int]:
     cols = diff / (360.0 / width)
     frac = np.abs(cols - np.round(cols))
     return {
-        "revisits": int(len(q)),
+        "revisits": len(q),
         "reverse_share": float(reverse.mean()),
         "heading_off_median_deg": float(np.median(off)),
         "column_remainder_median": float(np.median(frac)),

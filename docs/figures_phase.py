@@ -74,7 +74,51 @@ def revisit_phase() -> str:
     return out + table(head, rows)
 
 
+ALIGNED_RUNS = (
+    "reports/model/aligned-pilot.json",
+    "reports/model/aligned-pilot-control.json",
+)
+
+
+def aligned_pilot() -> str:
+    """The one-view twin's network trained on aligned images and the same training in the
+    sensor's columns: every epoch's validation by direction, health and real turns."""
+    runs = [load(p) for p in ALIGNED_RUNS]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(ALIGNED_RUNS, runs, strict=True))
+    out += (
+        "\nEpoch 0 is the start (the shipped weights) in the run's columns. Loop closure of "
+        "`val`, the descriptor alone (F1max / Recall@1); the spread from the health numbers; "
+        "the minimum cosine of real KITTI scans under a continuous turn, in the run's "
+        "columns.\n\n"
+    )
+    for r in runs:
+        phase = r["model_config"].get("column_phase", "sensor")
+        out += (
+            f"- `{r['run']}` (columns: {phase}, seed {r['train_config']['seed']}): "
+            f"{r['epochs_run']} of {r['epochs_planned']} planned epochs ran; it keeps epoch "
+            f"{r['best']['epoch']}\n"
+        )
+    rows = []
+    for r in runs:
+        for e in r["epochs"]:
+            v, spread, real = e["val"], e["health"]["spread"], e["real_cosine_min"]
+            rows.append(
+                [
+                    f"`{r['run'].split('/')[-1]}`",
+                    str(e["epoch"]),
+                    *(f"{f3(v[s]['f1max'])} / {f3(v[s]['recall@1'])}" for s in SUBSETS),
+                    "—" if spread is None else f"{spread:.3f}",
+                    "—" if real is None else f"{real:.5f}",
+                ]
+            )
+    head = ["run", "epoch", "all", "same direction", "reverse", "spread", "real min cosine"]
+    return out + "\n" + table(head, rows)
+
+
+SUBSETS = ("all", "same", "reverse")
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "column-phase": column_phase,
     "revisit-phase": revisit_phase,
+    "aligned-pilot": aligned_pilot,
 }

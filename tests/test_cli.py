@@ -106,3 +106,14 @@ def test_installed_console_script_runs():
     assert script.is_file(), "pip install did not create the overlapmamba console script"
     res = subprocess.run([str(script), "--help"], capture_output=True, text=True, check=True)
     assert "range-image" in res.stdout and "ground-truth" in res.stdout
+
+
+def test_report_refuses_a_model_that_is_not_an_exported_encoder(tmp_path):
+    """``report --model`` names the encoder its shipped row reads: a checkpoint or a missing
+    file is refused before anything is evaluated, naming what to give."""
+    ckpt = tmp_path / "best.pt"
+    ckpt.write_bytes(b"not read")
+    for model in (ckpt, tmp_path / "gone.onnx"):
+        res = runner.invoke(app, ["report", "--runs", str(tmp_path), "--model", str(model)])
+        assert res.exit_code == 2, res.output
+        assert "give an exported encoder (.onnx) that exists" in text(res)

@@ -366,12 +366,23 @@ def report_cmd(
         ),
     ] = None,
     out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            help="the exported encoder the shipped row and the real-scan checks read when the "
+            "shipped run's best.pt is not under --runs (default: models/overlapmamba-hdl64.onnx;"
+            " e.g. the one-view twin)"
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
 ) -> None:
     """Model-card tables I–IV, cross-session recall and real-scan checks: JSON, Markdown, PNG."""
     check_torch()
     from overlapmamba.train.presets import SECOND_SESSION, TEST_DATA
-    from overlapmamba.train.report import build_report
+    from overlapmamba.train.report import SHIPPED_ONNX, build_report
+
+    if model is not None and (model.suffix != ".onnx" or not model.is_file()):
+        raise typer.BadParameter(f"--model {model}: give an exported encoder (.onnx) that exists")
 
     tests = test or [Path(t) for t in TEST_DATA if (Path(t) / "manifest.json").is_file()]
     tests = tests or [Path(TEST_DATA[0])]  # none yet: the message below says what to run
@@ -385,7 +396,14 @@ def report_cmd(
         if not (t / "manifest.json").is_file():
             raise typer.BadParameter(f"{t} is not a generated sequence: run `make data` first")
     sessions = (tests[0], second_session) if second_session else None
-    report = build_report(runs, tests, out_dir, progress=not quiet, sessions=sessions)
+    report = build_report(
+        runs,
+        tests,
+        out_dir,
+        progress=not quiet,
+        sessions=sessions,
+        shipped_onnx=model or SHIPPED_ONNX,
+    )
     for note in report["notes"]:
         out.print(f"[yellow]note:[/] {note}")
     for label, subs in report["table1"].items():

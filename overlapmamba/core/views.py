@@ -34,9 +34,10 @@ one rolled by whole columns, which the network does not see: the cosine to a tur
 sampled at offsets that differ arbitrarily, as they are in the sensor's columns (the towns'
 revisits differ in heading by more than a column: ``benchmarks/revisit_phase.py``); with
 these weights the alignment still costs the descriptor alone some loop closure
-(``benchmarks/column_phase.py``, on ``val``), for a reason not measured. The yaw features of an aligned
-image are shifted back by the offset (:func:`unshift_features`, an exact circular shift of
-their spectra) so that their columns are the sensor's and yaw estimates keep their meaning.
+(``benchmarks/column_phase.py``, on ``val``), for a reason not measured. The yaw features of
+an aligned image are shifted back by the offset (:func:`unshift_features`, an exact circular
+shift of their spectra) so that their columns are the sensor's and yaw estimates keep their
+meaning.
 """
 
 from __future__ import annotations

@@ -368,14 +368,20 @@ def build_report(
             "recalibrate_batches = 0): Table I has no untrained row for the shipped network"
         )
     shipped = shipped_model(runs, shipped_onnx)
+    model: dict[str, Any] | None = None
     if shipped is not None and shipped.suffix == ".onnx":
         from overlapmamba.train.modelfile import read_metadata
 
-        views = read_metadata(shipped).views
+        meta = read_metadata(shipped)
+        views, phase = meta.views, meta.column_phase
+        model = {"path": str(shipped), "model_id": meta.model_id, "views": views}
+        model |= {"column_phase": phase, "sensor_input": meta.sensor_input}
         notes.append(
             f"{runs}/{SHIPPED}/best.pt is absent: the shipped row and the real-scan checks are "
             f"the exported encoder {shipped.name} (onnxruntime, its own scan and weight "
-            f"storage; {views} sub-column view{'s' if views > 1 else ''} a scan)"
+            f"storage; {views} sub-column view{'s' if views > 1 else ''} a scan"
+            + (", aligned columns" if phase == "aligned" else "")
+            + ")"
         )
     cross = None
     if sessions:
@@ -385,6 +391,7 @@ def build_report(
         )
     report = {
         "notes": notes,
+        "model": model,
         "test": [str(t) for t in tests],
         "table1": t1,
         "table1_towns": towns,
