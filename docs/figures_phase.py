@@ -117,8 +117,74 @@ def aligned_pilot() -> str:
 
 SUBSETS = ("all", "same", "reverse")
 
+# (file, report, the command that wrote it: report.json records none)
+HEADLINES = (
+    (
+        "three views (the default file)",
+        "reports/model/two-stage/report.json",
+        "overlapmamba report --runs EMPTY --out reports/model/two-stage",
+    ),
+    (
+        "one view, aligned columns (the twin)",
+        "reports/model/two-stage-one-view/report.json",
+        "overlapmamba report --runs EMPTY --model models/overlapmamba-hdl64-one-view.onnx "
+        "--out reports/model/two-stage-one-view",
+    ),
+)
+SHIPPED_ROW = "OverlapMamba narrow, mined hard negatives (shipped)"
+
+
+def headline_one_view() -> str:
+    """The README's headline for the default file and for its one-view twin, by the same
+    command: the test towns (mean), across sessions, real KITTI 00 retrieval and turns."""
+    reports = [(name, load(path)) for name, path, _ in HEADLINES]
+    out = "".join(source(path, command) for _, path, command in HEADLINES)
+    rows = []
+    for name, r in reports:
+        t1, xs, real = r["table1"], r["cross_session"], r["real"]["kitti00"]
+        got = real["retrieval_odd_to_even"]
+        for stage, key, kitti in (
+            ("descriptor alone", SHIPPED_ROW, got["recall@1"]),
+            ("two stages", SHIPPED_ROW + " + yaw re-rank", got["reranked"]["recall@1"]),
+        ):
+            m = t1[key]
+            rows.append(
+                [
+                    name,
+                    stage,
+                    *(f"{f3(m[s]['f1max'])} / {f3(m[s]['recall@1'])}" for s in SUBSETS),
+                    f3(xs[key]["ar@1"]),
+                    f3(kitti),
+                    f"{real['yaw_invariance']['cosine_min']:.5f}",
+                ]
+            )
+    sc = reports[0][1]["table1"]["Scan Context"]
+    sc_x = reports[0][1]["cross_session"]["Scan Context"]
+    sc_real = reports[0][1]["real"]["kitti00"]["retrieval_odd_to_even"]["scan_context"]
+    rows.insert(
+        0,
+        [
+            "Scan Context",
+            "",
+            *(f"{f3(sc[s]['f1max'])} / {f3(sc[s]['recall@1'])}" for s in SUBSETS),
+            f3(sc_x["ar@1"]),
+            f3(sc_real["recall@1"]),
+            "—",
+        ],
+    )
+    out += (
+        "\nThe test towns' mean (F1max / Recall@1), the second drive through `test` against "
+        "the first (AR@1), real KITTI 00 odd frames, turned, against the even ones "
+        "(Recall@1) and the minimum cosine of a real KITTI scan to its turned copies.\n\n"
+    )
+    head = ["file", "stage", "all", "same direction", "reverse", "across sessions AR@1"]
+    head += ["real KITTI 00 Recall@1", "real turn min cosine"]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "column-phase": column_phase,
     "revisit-phase": revisit_phase,
     "aligned-pilot": aligned_pilot,
+    "headline-one-view": headline_one_view,
 }
