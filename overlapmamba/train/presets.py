@@ -30,7 +30,7 @@ otherwise.
   takes each scan's columns at its mean bearing, :mod:`overlapmamba.core.views`) on aligned
   images of train-b (``ALIGNED``), and ``aligned-pilot-control`` the same weights in the
   sensor's columns at an equal budget: whether training on aligned images closes the gap the
-  alignment costs the descriptor alone (README, the views table). Each with ``-s1``.
+  alignment costs the descriptor alone (docs/results.md, the views table). Each with ``-s1``.
 - ``sensors-*``, ``common-*``, ``structure-*`` and ``bev-*`` are the runs on several sensors
   (issue 40), listed in :mod:`overlapmamba.train.sensor_recipes`.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.

@@ -58,7 +58,7 @@ TURN = {
 # One pass a scan with aligned columns (overlapmamba.core.views): the one-view twin's network
 # (the shipped weights, its file aligned) continued on aligned images of train-b, batch norm
 # frozen, at the turn continuation's rate and without its term (a turn is a whole-column roll
-# of an aligned image). 3 epochs of 3,000 scans, ≈ 15 min here. The control starts from the
+# of an aligned image). 3 epochs of 3,000 scans, ≈ 20 min here. The control starts from the
 # same weights in the sensor's columns (the shipped file, one view in training).
 ALIGNED = {
     "init": "models/overlapmamba-hdl64-one-view.onnx",
