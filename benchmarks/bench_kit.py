@@ -101,15 +101,17 @@ def other_load(console: Console, part: str, watch: OtherLoad, when: str) -> floa
 
 
 @contextlib.contextmanager
-def server(env_extra: dict[str, str], startup_s: float = 180.0) -> Iterator[str]:
-    """A real ``overlapmamba serve`` on a free port with a temporary data folder, configured
-    by ``env_extra`` only (not by this process's OVERLAPMAMBA_* variables); its base URL once
-    /readyz answers 200. Its CPU time is added to SERVER_CPU_S as it stops."""
+def server(
+    env_extra: dict[str, str], startup_s: float = 180.0, model: Path = MODEL
+) -> Iterator[str]:
+    """A real ``overlapmamba serve`` of ``model`` on a free port with a temporary data folder,
+    configured by ``env_extra`` only (not by this process's OVERLAPMAMBA_* variables); its
+    base URL once /readyz answers 200. Its CPU time is added to SERVER_CPU_S as it stops."""
     with tempfile.TemporaryDirectory(prefix="om-bench-") as tmp:
         data = Path(tmp) / "data"
         with serve_process(
             data,
-            model=MODEL,
+            model=model,
             env=env_extra,
             inherit_settings=False,
             log_path=Path(tmp) / "server.log",

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from reports_kit import REPORTS, write_report
+from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -130,6 +130,7 @@ def main() -> None:
     record = {
         "scans": f"KITTI 00 frames 0–{n - 1}: {len(rows['t_err'])} odd frames turned in place, "
         "registered against the nearest even frame",
+        "model": {"path": shown_path(args.model), "model_id": enc.model_id, "views": enc.views},
         "params": p.__dict__,
         "geometry_bytes": _stats(sizes),
         **{k: _stats(v) for k, v in rows.items() if v},
@@ -143,7 +144,7 @@ def main() -> None:
             t.add_row(k, *(f"{v[s]:.4g}" for s in ("min", "median", "p90", "max")))
     console.print(t)
     if args.http:
-        cost = http_cost(clouds, even, rng, args.rounds)
+        cost = http_cost(clouds, even, rng, args.rounds, args.model)
         record["http"] = cost
         write_report(args.json, record, default=float)
         t = Table(title="query cost through the server (k = 5, p50 over alternating queries)")
@@ -177,7 +178,9 @@ def main() -> None:
     console.print(f"wrote {args.json}")
 
 
-def http_cost(clouds: list, even: np.ndarray, rng: np.random.Generator, rounds: int) -> dict:
+def http_cost(
+    clouds: list, even: np.ndarray, rng: np.random.Generator, rounds: int, model: Path
+) -> dict:
     import httpx
     from bench_kit import server
 
@@ -191,7 +194,7 @@ def http_cost(clouds: list, even: np.ndarray, rng: np.random.Generator, rounds: 
     stages: dict[bool, dict[str, list[float]]] = {True: {}, False: {}}  # server's, ms
     verified = registered = 0
     every = {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"}  # the bar is for 5 registrations
-    with server(every) as url, httpx.Client(base_url=url, timeout=60) as c:
+    with server(every, model=model) as url, httpx.Client(base_url=url, timeout=60) as c:
         assert c.put("/v1/maps/kitti").status_code == 201
         for j in even:
             r = c.post(

@@ -139,7 +139,14 @@ def registration() -> str:
         ],
     ]
     out = source(REGISTRATION, "python benchmarks/registration.py", when(r))
-    out += f"\n{r['scans']}.\n\n" + table(["", "median", "p90", "max"], rows)
+    m = r.get("model")
+    served = (
+        f" Model {m['model_id']} ({m['views']} view{'s' if m['views'] > 1 else ''} a scan), "
+        "its yaw features seeding the registration and serving the queries."
+        if m
+        else ""
+    )
+    out += f"\n{r['scans']}.{served}\n\n" + table(["", "median", "p90", "max"], rows)
     out += (
         f"\nOver HTTP ({h['queries']} queries, up to {h['candidates']} candidates registered, "
         f"{h.get('registered_per_query', h['candidates']):.1f} a query): a "
