@@ -17,7 +17,8 @@ each map backend's operations, measured on this machine.
                 scan query runs it by default, two-stage: the rerank.shortlist (20) nearest and the
                 runner-up, their yaw, re-ranked (overlapmamba.service.ranking)
 
-Writes JSON (default reports/deploy/sizing.json).
+Writes JSON (default reports/deploy/sizing.json). ``--model FILE --encoder-only --out …``
+measures only another file's encoder rate (the one-view twin's: sizing-one-view.json).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from reports_kit import REPORTS, write_report
+from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
 
@@ -261,6 +262,11 @@ def main() -> None:
     ap.add_argument("--search-reps", type=int, default=200)
     ap.add_argument("--work", type=Path, default=ROOT / "bench-results" / "sizing-work")
     ap.add_argument("--out", type=Path, default=REPORTS / "deploy" / "sizing.json")
+    ap.add_argument(
+        "--encoder-only",
+        action="store_true",
+        help="only the encoder's rate (another model file beside the default's sizing)",
+    )
     args = ap.parse_args()
     console = Console()
 
@@ -270,6 +276,19 @@ def main() -> None:
     image, offset = enc.project_offset(clouds[0])
     desc, yaw = enc.encode(image[None], np.array([offset]))
     dim, yaw_shape = desc.shape[1], tuple(yaw.shape[1:])
+    model = {"path": shown_path(args.model), "model_id": enc.model_id, "views": enc.views}
+    model["column_phase"] = "aligned" if enc.meta.aligned else "sensor"
+    machine = {
+        "platform": platform.platform(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+    }
+    if args.encoder_only:
+        write_report(
+            args.out, {"machine": machine, "scans": source, "model": model, "encoder": enc_rates}
+        )
+        console.print(f"wrote {shown_path(args.out)}")
+        return
 
     import shutil
 
@@ -289,12 +308,9 @@ def main() -> None:
     shutil.rmtree(args.work, ignore_errors=True)
 
     result = {
-        "machine": {
-            "platform": platform.platform(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-        },
+        "machine": machine,
         "scans": source,
+        "model": model,
         "encoder": enc_rates,
         "descriptor_dim": dim,
         "yaw_shape": list(yaw_shape),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from figures_kit import ROOT, f3, load, ms, source, table, when
 
@@ -192,17 +193,30 @@ def mapclosures() -> str:
 
 # ---- deployment ----------------------------------------------------------------------------
 SIZING = "reports/deploy/sizing.json"
+SIZING_ONE_VIEW = "reports/deploy/sizing-one-view.json"
+
+
+def _file(m: dict[str, Any]) -> str:
+    """A model file as a sizing row names it: its file, views and columns."""
+    views = f"{m['views']} view{'s' if m['views'] > 1 else ''}"
+    aligned = ", aligned columns" if m.get("column_phase") == "aligned" else ""
+    return f"`{Path(m['path']).name}` ({views}{aligned})"
 
 
 def sizing() -> str:
     """What a node needs: the encoder's rate, each backend's costs a keyframe, the search
     stage at 10,000 keyframes."""
-    r = load(SIZING)
+    r, twin = load(SIZING), load(SIZING_ONE_VIEW)
     out = source(SIZING, "python benchmarks/sizing.py", when(r))
-    out += f"\n{r['scans']}; project + encode as the service runs it:\n\n"
+    out += source(SIZING_ONE_VIEW, twin["command"], when(twin))
+    out += f"\n{r['scans']}; project + encode as the service runs it, one scan a call:\n\n"
     out += table(
-        ["threads", "p50 a scan", "scans/s"],
-        [[e["threads"], ms(e["median_ms"]), f"{e['scans_per_s']:.0f}"] for e in r["encoder"]],
+        ["model", "threads", "p50 a scan", "scans/s"],
+        [
+            [_file(x["model"]), e["threads"], ms(e["median_ms"]), f"{e['scans_per_s']:.0f}"]
+            for x in (r, twin)
+            for e in x["encoder"]
+        ],
     )
     f, q = r["backends"]["faiss"], r["backends"]["qdrant"]
     out += "\n" + table(
