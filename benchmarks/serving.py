@@ -42,13 +42,16 @@ and a ring of walls, 120k points). onnxruntime runs with intra-op threads = all 
 this process and in the server (both defaults). Before each part the CPU use of other
 processes is sampled for a second; above 10 % a warning says the numbers will be noisy.
 Prints one table per part and a summary with the goals (met / not met from this run's
-numbers), and writes JSON (default reports/service/bench.json). ``--quick``: sizes 10k and
+numbers), and writes JSON (default reports/service/bench.json; a part skipped with
+``--skip-http`` or ``--skip-search`` keeps its last measurement there, ``parts_measured``
+saying which run each part is from). ``--quick``: sizes 10k and
 100k, 12 overhead reps, 3 s per throughput run, 100 queries.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import sys
 import time
@@ -59,13 +62,19 @@ import faiss
 import httpx
 import onnxruntime as ort
 from bench_kit import CORES, OtherLoad, other_load
-from reports_kit import REPORTS, write_report
+from reports_kit import REPORTS, provenance, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
 from serving_http import RATIO_GOAL, SGEMM_GOAL, http_part, print_http
 from serving_search import P50_GOAL_MS, RECALL_GOAL, SERVICE_NPROBE, print_search, search_part
 
 # ---- summary --------------------------------------------------------------------------------
+
+
+def _nprobe(ivf: dict[str, Any]) -> dict[int, Any]:
+    """An IVF sweep's rows by nprobe, as ints also where the part was read back from JSON
+    (a part kept from an earlier run)."""
+    return {int(k): v for k, v in ivf["nprobe"].items()}
 
 
 def summarise(record: dict[str, Any]) -> list[dict[str, Any]]:
@@ -137,18 +146,18 @@ def summarise(record: dict[str, Any]) -> list[dict[str, Any]]:
             )
         else:
             ivf = big["ivf"]
-            p50 = ivf["nprobe"][ivf["chosen_nprobe"]]["p50_ms"]
+            p50 = _nprobe(ivf)[ivf["chosen_nprobe"]]["p50_ms"]
             ok = ivf["chosen_reaches_goal"] and p50 < P50_GOAL_MS
             rows.append(
                 {
                     "goal": f"IVF p50 < {P50_GOAL_MS} ms at 1M at recall@10 ≥ {RECALL_GOAL}",
                     "measured": f"{p50:.3f} ms at nprobe {ivf['chosen_nprobe']} (recall "
-                    f"{ivf['nprobe'][ivf['chosen_nprobe']]['recall_at_10']:.3f})",
+                    f"{_nprobe(ivf)[ivf['chosen_nprobe']]['recall_at_10']:.3f})",
                     "status": verdict(ok),
                 }
             )
         for n, r in main.items():
-            row = r["ivf"]["nprobe"].get(SERVICE_NPROBE)
+            row = _nprobe(r["ivf"]).get(SERVICE_NPROBE)
             if row:
                 rows.append(
                     {
@@ -208,12 +217,25 @@ def main() -> None:
         "httpx": httpx.__version__,
         "quick": q,
     }
+    # A part skipped keeps the last measurement of it in --out, saying so (parts_measured).
+    previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    this_run = provenance()
+    measured: dict[str, str] = {}
     for part, skip, run, show in (
         ("http", args.skip_http, http_part, print_http),
         ("search", args.skip_search, search_part, print_search),
     ):
         if skip:
+            if part in previous:
+                record[part] = previous[part]
+                was = previous.get("parts_measured", {}).get(part) or (
+                    f"{previous['date'][:10]}, {previous['command']}"
+                    if "date" in previous
+                    else "an earlier run of benchmarks/serving.py"
+                )
+                measured[part] = f"kept from {shown_path(args.out)} ({was})"
             continue
+        measured[part] = f"{str(this_run['date'])[:10]}, {this_run['command']}"
         probe = OtherLoad()
         time.sleep(1.0)
         before = other_load(console, part, probe, "before")
@@ -224,6 +246,7 @@ def main() -> None:
             "during": other_load(console, part, watch, "during"),
         }
         show(record[part], console)
+    record["parts_measured"] = measured
     record["summary"] = summarise(record)
     t = Table(title="Summary (from this run's measurements)")
     for c in ("goal", "measured", "status"):

@@ -19,7 +19,7 @@ def service() -> str:
     r = load(BENCH)
     rows = [[s["goal"], s["measured"], s["status"]] for s in r["summary"]]
     parts = "; ".join(f"{k}: {v}" for k, v in r.get("parts_measured", {}).items())
-    out = source(BENCH, "make bench (python benchmarks/serving.py)")
+    out = source(BENCH, "make bench (python benchmarks/serving.py)", when(r))
     out += "\n" + table(["goal", "measured", "status"], rows)
     if parts:
         out += f"\nParts: {parts}.\n"
