@@ -61,13 +61,10 @@ TURN = {
 # of an aligned image). 3 epochs of 3,000 scans, ≈ 20 min here. The control starts from the
 # same weights in the sensor's columns (the shipped file, one view in training).
 ALIGNED = {
+    **{k: v for k, v in TURN.items() if not k.startswith("turn_")},
     "init": "models/overlapmamba-hdl64-one-view.onnx",
-    "freeze_bn": True,
     "epochs": 3,
     "epoch_scans": 3000,
-    "lr": 3e-5,
-    "warmup_steps": 20,
-    "hard_negatives": 0.5,
 }
 ALIGNED_DATA = ("data/synth/train-b",)
 OLD_LOSS = {
