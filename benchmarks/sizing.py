@@ -277,7 +277,7 @@ def main() -> None:
     desc, yaw = enc.encode(image[None], np.array([offset]))
     dim, yaw_shape = desc.shape[1], tuple(yaw.shape[1:])
     model = {"path": shown_path(args.model), "model_id": enc.model_id, "views": enc.views}
-    model["column_phase"] = "aligned" if enc.meta.aligned else "sensor"
+    model["column_phase"] = enc.meta.column_phase
     machine = {
         "platform": platform.platform(),
         "cores": os.cpu_count(),

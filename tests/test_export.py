@@ -265,6 +265,7 @@ def test_an_encoder_with_aligned_columns_is_turn_invariant_in_one_pass(
     any angle gets the same descriptor in one pass, and the yaw features, shifted back to
     the sensor's columns, still say the turn (the service's Encoder and evaluation alike)."""
     from overlapmamba.core.poses import rotation_z, transform_points
+    from overlapmamba.core.views import unshift_features
     from overlapmamba.core.yaw import estimate_yaw
     from overlapmamba.service.encoder import Encoder
     from overlapmamba.train.checkpoint import load_model
@@ -294,7 +295,7 @@ def test_an_encoder_with_aligned_columns_is_turn_invariant_in_one_pass(
     # offsets the file refuses to encode, naming what to pass
     images, offsets = zip(*(enc.project_offset(s) for s in scans), strict=True)
     raw = enc.encode(np.stack(images), np.zeros(len(images)))[1]
-    np.testing.assert_allclose(enc.unshift(raw, np.array(offsets)), yaw, atol=1e-5)
+    np.testing.assert_allclose(unshift_features(raw, np.array(offsets)), yaw, atol=1e-5)
     with pytest.raises(ValueError, match="pass the images' column offsets"):
         enc.encode(np.stack(images))
     # evaluation describes scans the same way

@@ -107,7 +107,11 @@ def unshift_features(features: np.ndarray, offsets: np.ndarray | float) -> np.nd
     """Yaw features (B, C, W) (or (C, W)) of images projected with column offsets
     ``offsets`` (B,) → float32 features whose columns are the sensor's: each map shifted
     back by its offset, a circular shift of its spectrum (exact for whole columns; in
-    between, band-limited: an even width's Nyquist bin keeps only its real part)."""
+    between, band-limited: an even width's Nyquist bin keeps only its real part). Where
+    every offset is 0 (a file with the sensor's columns) the features are returned as they
+    are, as float32."""
+    if not np.any(np.asarray(offsets)):
+        return np.asarray(features, np.float32)
     f = np.asarray(features, np.float64)
     single = f.ndim == 2
     f = f[None] if single else f

@@ -221,15 +221,7 @@ class Encoder:
         x = np.ascontiguousarray(images, dtype=np.float32).reshape(-1, 1, p.height, p.width)
         out = self.staged.run(x) if self.staged is not None else self._run_portable(x)
         desc, yaw = combine_views(*out, self.meta.descriptors_per_scan)
-        return (desc, yaw) if offsets is None else (desc, self.unshift(yaw, offsets))
-
-    def unshift(self, yaw: np.ndarray, offsets: np.ndarray | float) -> np.ndarray:
-        """Yaw features of images projected at column ``offsets`` in the sensor's columns
-        (:func:`overlapmamba.core.views.unshift_features`); as they are where every offset
-        is 0 (a file with the sensor's columns)."""
-        if not np.any(np.asarray(offsets)):
-            return yaw
-        return unshift_features(yaw, offsets)
+        return (desc, yaw) if offsets is None else (desc, unshift_features(yaw, offsets))
 
     def describe(
         self,

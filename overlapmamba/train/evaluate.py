@@ -100,7 +100,7 @@ def describe(
         x_t = torch.from_numpy(x.reshape(-1, 1, *x.shape[-2:])).to(device)
         d, y = net(x_t.contiguous(memory_format=torch.channels_last))
         d, y = combine_views(d.cpu().numpy(), y.cpu().numpy(), views // meet)
-        if offsets is not None and np.any(offsets[s : s + batch]):
+        if offsets is not None:
             y = unshift_features(y, offsets[s : s + batch])
         descs.append(d)
         yaws.append(y)
