@@ -208,7 +208,8 @@ def export_cmd(
         typer.Option(
             "--sensor-input",
             help="how scans become the model's input (overlapmamba.core.sensors.input): "
-            "elevation, rows, common (every sensor's scan, the model's own too, thinned to "
+            "elevation, elevation-lerp (another sensor's scan made into the model's own beams), "
+            "rows, common (every sensor's scan, the model's own too, thinned to "
             "common beams), structure (common, above the ground, within 50 m), bev (a polar "
             "bird's-eye occupancy of every scan), bev-soft (bev, each return shared between "
             "its two nearest columns) or bev-span (bev, each cell how much of its column its "

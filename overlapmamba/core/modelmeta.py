@@ -89,7 +89,8 @@ class EncoderMetadata(BaseModel):
     sensor_input: Mode = Field(
         default="elevation",
         description="how a scan of another sensor than the profile's becomes this model's "
-        "input (overlapmamba.core.sensors.input): elevation, rows, common (every sensor, the "
+        "input (overlapmamba.core.sensors.input): elevation, elevation-lerp (the scan made into "
+        "the profile's own beams), rows, common (every sensor, the "
         "profile's own too, thinned to common beams), structure (common, above the ground "
         "and within a common range), bev (a polar bird's-eye occupancy of every scan), bev-soft "
         "(bev, each return shared between its two nearest columns) or bev-span (bev, each cell "

@@ -8,6 +8,13 @@
                beam lies within half a beam gap (or half a row) of it; rows the sensor has
                no beam for stay empty. Rows keep their elevation: a VLP-16's beams land
                where an HDL-64E's would
+    elevation-lerp
+               the scan made into the model's own sensor's: each of its beams takes a range
+               interpolated between the two of the sensor's beams around its elevation (or the
+               nearest, at an edge: :func:`lerp_rows`), and lands in its row as the model's own
+               projection puts it. A sensor with fewer beams then shows the rows, and the
+               rows left empty, of the model's own sensor. The model's own sensor is taken
+               natively, as in ``elevation``
     rows       the sensor's beams, highest first, stretched over the model's rows (row r
                takes beam ⌊(r + ½)·B / H⌋): every row filled, elevations not kept (the
                sensor-transfer check ``eval-real`` ran on nuScenes' HDL-32E before sensors
@@ -71,8 +78,10 @@ from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_referenc
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views_offset, scan_offset
 
-Mode = Literal["elevation", "rows", "common", "structure", "bev", "bev-soft", "bev-span"]
-MODES: tuple[str, ...] = ("elevation", "rows", "common", "structure", *BEV_MODES)
+Mode = Literal[
+    "elevation", "elevation-lerp", "rows", "common", "structure", "bev", "bev-soft", "bev-span"
+]
+MODES: tuple[str, ...] = ("elevation", "elevation-lerp", "rows", "common", "structure", *BEV_MODES)
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
 # the modes every scan goes through, the model's own sensor's too (none is taken natively)
 ALL_SCANS_MODES = (*COMMON_MODES, *BEV_MODES)
@@ -88,6 +97,12 @@ COMMON_MAX_RANGE = 50.0  # m: the shortest reach of a catalogue spinning sensor 
 # up at most, still reaches from 27 m on)
 BEV_BANDS = (GROUND_CLEARANCE, 1.7, 3.0)
 BEV_RINGS = 32  # rings of horizontal range within COMMON_MAX_RANGE
+# ``elevation-lerp``: two beams' returns are one surface, and the rows between them take a
+# range interpolated between theirs, when they stand at one height within LERP_LEVEL (m) or
+# at one horizontal distance within the share LERP_EDGE of the nearer; else an edge, and
+# the rows keep their nearest beam
+LERP_LEVEL = 0.2
+LERP_EDGE = 0.1
 _PI = np.float32(np.pi)
 
 
@@ -108,19 +123,98 @@ def beam_of(elevation_deg: np.ndarray, sensor: Sensor) -> np.ndarray:
 
 def row_beams(model: SensorProfile, sensor: Sensor, mode: Mode) -> np.ndarray:
     """(H,) int64: the beam each model row shows, −1 for a row left empty."""
-    H, B = model.height, sensor.beams
+    H = model.height
     if mode == "rows":
-        return np.minimum((np.arange(H) + 0.5) * B / H, B - 1).astype(np.int64)
+        return np.minimum((np.arange(H) + 0.5) * sensor.beams / H, sensor.beams - 1).astype(
+            np.int64
+        )
     pitch = (model.fov_up_deg - model.fov_down_deg) / H
-    centre = model.fov_up_deg - (np.arange(H) + 0.5) * pitch
+    return nearest_beams(model.fov_up_deg - (np.arange(H) + 0.5) * pitch, sensor, pitch)
+
+
+def nearest_beams(elevation_deg: np.ndarray, sensor: Sensor, pitch: float) -> np.ndarray:
+    """(N,) int64: the beam of ``sensor`` nearest each elevation, where it lies within half
+    the beam's gap to its neighbour on that side (or half ``pitch``); −1 elsewhere."""
     el = np.asarray(sensor.elevations_deg, np.float64)
-    b = beam_of(centre, sensor).astype(np.int64)
-    gaps = -np.diff(el) if B > 1 else np.array([pitch])
+    b = beam_of(elevation_deg, sensor).astype(np.int64)
+    gaps = -np.diff(el) if sensor.beams > 1 else np.array([pitch])
     above = np.concatenate([gaps[:1], gaps])  # gap to the beam above (the top: the one below)
     below = np.concatenate([gaps, gaps[-1:]])
-    off = centre - el[b]
+    off = elevation_deg - el[b]
     reach = np.maximum(np.where(off > 0, above[b], below[b]) / 2, pitch / 2)
     return np.where(np.abs(off) <= reach + 1e-9, b, -1)
+
+
+@dataclass(frozen=True)
+class LerpPlan:
+    """How ``elevation-lerp`` makes the model's own sensor's beams (V of them) from another
+    sensor's: per own beam, the sensor's beams above (``a``) and below (``b``) it and the
+    share ``t`` of the way from one to the other in the sine of the elevation (−1, −1 where
+    it lies outside them), the nearest beam within reach (``nearest``, −1: none) and the
+    model row the beam lands in (``row``)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    t: np.ndarray
+    nearest: np.ndarray
+    row: np.ndarray
+
+    @classmethod
+    def of(cls, model: SensorProfile, sensor: Sensor) -> LerpPlan:
+        own = np.asarray(sensor_of_profile(model).elevations_deg, np.float64)
+        el = np.asarray(sensor.elevations_deg, np.float64)  # highest first
+        pitch = (model.fov_up_deg - model.fov_down_deg) / model.height
+        above = np.searchsorted(-el, -own, side="right") - 1  # the last beam at or above
+        inside = (above >= 0) & (above < len(el) - 1)
+        a = np.where(inside, above, -1).astype(np.int64)
+        b = np.where(inside, above + 1, -1).astype(np.int64)
+        # the share in sin(elevation): 1/range is linear in it along a flat ground
+        sa, sb = (np.sin(np.radians(el[np.clip(i, 0, None)])) for i in (a, b))
+        t = np.where(inside, (sa - np.sin(np.radians(own))) / np.where(inside, sa - sb, 1.0), 0.0)
+        # the row as the model's own projection puts a return at that elevation
+        row = np.clip(np.floor((model.fov_up_deg - own) / pitch), 0, model.height - 1)
+        row = row.astype(np.int64)
+        return cls(a, b, t.astype(np.float32), nearest_beams(own, sensor, pitch), row)
+
+
+def lerp_rows(
+    ring: np.ndarray,
+    plan: LerpPlan,
+    elevations_deg: np.ndarray | tuple[float, ...],
+    height: int,
+    empty: float,
+) -> np.ndarray:
+    """(B, W) one view's range per beam of a sensor (``empty`` where none) → (height, W) the
+    model's image of the own beams ``plan`` makes from them. An own beam between two of the
+    sensor's takes a range interpolated between theirs (1/range linear in the sine of the
+    elevation: exact on a flat ground) when the two returns are one surface: at one height
+    within :data:`LERP_LEVEL` (a ground) or at one horizontal distance within
+    :data:`LERP_EDGE` of it (a wall). Else (an edge, where interpolating would put a return
+    in the gap, or a beam without a return) it takes its nearest beam, as ``elevation``."""
+    W = ring.shape[1]
+    emp = np.float32(empty)
+    vals = np.full((len(plan.row), W), emp, np.float32)
+    has = plan.nearest >= 0
+    vals[has] = ring[plan.nearest[has]]
+    own = np.flatnonzero(plan.a >= 0)
+    ra, rb = ring[plan.a[own]], ring[plan.b[own]]
+    el = np.radians(np.asarray(elevations_deg, np.float64)).astype(np.float32)
+    sa, sb = np.sin(el[plan.a[own]])[:, None], np.sin(el[plan.b[own]])[:, None]
+    ca, cb = np.cos(el[plan.a[own]])[:, None], np.cos(el[plan.b[own]])[:, None]
+    level = np.abs(ra * sa - rb * sb) <= np.float32(LERP_LEVEL)
+    da, db = ra * ca, rb * cb
+    wall = np.abs(da - db) <= np.float32(LERP_EDGE) * np.minimum(da, db)
+    valid = (ra != emp) & (rb != emp) & (ra > 0) & (rb > 0) & (level | wall)
+    w = plan.t[own, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lerp = np.float32(1.0) / ((np.float32(1.0) - w) / ra + w / rb)
+    vals[own] = np.where(valid, lerp, vals[own])
+    out = np.full((height, W), np.inf, np.float32)
+    vals[vals == emp] = np.inf
+    for v in np.flatnonzero(plan.row >= 0):  # the nearest return where beams share a row
+        np.minimum(out[plan.row[v]], vals[v], out=out[plan.row[v]])
+    out[np.isinf(out)] = emp
+    return out
 
 
 def common_beams(sensor: Sensor) -> np.ndarray:
@@ -254,7 +348,7 @@ class SensorInput:
         if aligned and self.mode in BEV_MODES:
             raise ValueError(
                 f"the {self.mode} input has no aligned columns: column_phase aligned applies "
-                "to the range-image inputs (elevation, rows, common, structure)"
+                "to the range-image inputs (elevation, elevation-lerp, rows, common, structure)"
             )
         if self.mode in BEV_MODES:
             xyz = _xyz(points)
@@ -274,7 +368,10 @@ class SensorInput:
             return _project_beams(points, self.model, common, self.rows(), views, aligned)
         if self.sensor.profile() == self.model:
             return project_views_offset(points, self.model, views, aligned=aligned)
-        return _project_beams(points, self.model, self.sensor, self.rows(), views, aligned)
+        plan = LerpPlan.of(self.model, self.sensor) if self.mode == "elevation-lerp" else None
+        return _project_beams(
+            points, self.model, self.sensor, self.rows(), views, aligned, plan=plan
+        )
 
 
 def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
@@ -334,6 +431,8 @@ def _project_beams(
     rows: np.ndarray,
     views: int,
     aligned: bool = False,
+    *,
+    plan: LerpPlan | None = None,
 ) -> tuple[np.ndarray, float]:
     views = check_views(views)
     xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
@@ -360,7 +459,12 @@ def _project_beams(
         ring = np.full(B * W, np.inf, np.float32)
         np.minimum.at(ring, beam * W + col, depth)
         ring[np.isinf(ring)] = np.float32(model.empty_value)
-        out[j, filled] = ring.reshape(B, W)[rows[filled]]
+        if plan is not None:
+            out[j] = lerp_rows(
+                ring.reshape(B, W), plan, sensor.elevations_deg, H, model.empty_value
+            )
+        else:
+            out[j, filled] = ring.reshape(B, W)[rows[filled]]
     return out, offset
 
 
