@@ -230,7 +230,7 @@ def structure_real() -> str:
     return real_scans(STRUCTURE_REAL)
 
 
-def real_scans(paths: dict[str, str]) -> str:
+def real_scans(paths: dict[str, str], views: str = "one view") -> str:
     reports = {path: load(path) for path in paths}
     out = "".join(source(p, r["command"], when(r)) for p, r in reports.items())
     rows = []
@@ -248,14 +248,20 @@ def real_scans(paths: dict[str, str]) -> str:
     head = [
         "scans",
         "sensor",
-        "min cosine, random turns (one view)",
+        f"min cosine, random turns ({views})",
         "turned copy / 1 m step (squared distance)",
         "odd→even R@1 / Scan Context's",
     ]
     out += "\n" + table(head, rows)
     thin = next(iter(reports.values()))["thinned"]
     lines = [
-        f"- {b} rings (declared): Recall@1 {f3(t['declared']['recall@1'])}, cosine to the whole "
+        f"- {b} rings (declared): Recall@1 {f3(t['declared']['recall@1'])}"
+        + (
+            f" (two stages {f3(t['declared']['reranked']['recall@1'])})"
+            if "reranked" in t["declared"]
+            else ""
+        )
+        + ", cosine to the whole "
         f"scan median {t['declared']['cosine_to_full']['median']:.4f} / min "
         f"{t['declared']['cosine_to_full']['min']:.4f}"
         for b, t in thin.items()
@@ -320,7 +326,56 @@ def beams_table(paths: list[str]) -> str:
     return out
 
 
+LERP_INPUT = "reports/model/lerp-input-{split}.json"
+
+
+def lerp_input(split: str) -> str:
+    """``elevation`` against ``elevation-lerp`` on one split's renderings and thinned scans:
+    own map, the car's map, cosine to the car, and the pick by the mean."""
+    rel = LERP_INPUT.format(split=split)
+    r = load(rel)
+    rows = []
+    for x in r["rows"]:
+        a, b = x["elevation"], x["elevation-lerp"]
+        rows.append(
+            [
+                f"`{x['rendering']}`",
+                *(
+                    f"{f3(a[f'{k}_f1max'])} / {f3(a[f'{k}_recall@1'])} → "
+                    f"{f3(b[f'{k}_f1max'])} / {f3(b[f'{k}_recall@1'])}"
+                    for k in ("own", "car")
+                ),
+                f"{f3(a['cosine_to_car'])} → {f3(b['cosine_to_car'])}",
+            ]
+        )
+    m = r["mean"]
+    out = source(rel, r["command"], when(r))
+    out += (
+        f"\n`{Path(r['model']).name}`, {r['views']} view a scan, the descriptor alone, "
+        f"`elevation` → `elevation-lerp`. The car's map: `{r['car']}`. Mean of the four "
+        f"(F1max and R@1, own map and the car's) over the rows: {m['elevation']:.3f} → "
+        f"{m['elevation-lerp']:.3f}, the higher: **{r['pick']}**.\n\n"
+    )
+    head = ["rendering", "own map: F1max / R@1", "the car's map: F1max / R@1", "cosine to car"]
+    return out + table(head, rows)
+
+
+LERP_REAL = {
+    "reports/model/lerp-real-kitti.json": "KITTI 00, frames 0–100",
+    "reports/model/lerp-real-nuscenes.json": "nuScenes scene-0061",
+}
+
+
+def lerp_real() -> str:
+    """The shipped weights with the ``elevation-lerp`` input on real scans (its thinned
+    KITTI queries are where the input differs from the shipped file's)."""
+    return real_scans(LERP_REAL, "three views")
+
+
 RENDERERS = {
+    "lerp-input-val": lambda: lerp_input("val"),
+    "lerp-input-test": lambda: lerp_input("test"),
+    "lerp-real": lerp_real,
     "receptive-rows": receptive_rows,
     "backbone-rows": backbone_rows,
     "common-beams": common_beams,

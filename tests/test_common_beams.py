@@ -149,7 +149,9 @@ def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
         with pytest.raises(ValueError, match="'sky-16' has no beam within 0.5° of the common"):
             SensorInput(KITTI, high, mode)
     SensorInput(KITTI, high, "elevation")  # other modes take it (an empty image)
-    with pytest.raises(ValueError, match="allowed: elevation, elevation-lerp, rows, common, structure"):
+    with pytest.raises(
+        ValueError, match="allowed: elevation, elevation-lerp, rows, common, structure"
+    ):
         SensorInput(KITTI, high, "stretch")  # type: ignore[arg-type]
 
     # a service whose model takes common beams refuses such a sensor file at start
