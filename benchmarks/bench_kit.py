@@ -9,6 +9,7 @@ import os
 import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -189,3 +190,40 @@ def refuse_aligned(model: Path, why: str) -> None:
             f"{model} aligns each scan's columns (column_phase aligned); {why}: give the file "
             "with the sensor's columns (overlapmamba export FILE --column-phase sensor)"
         )
+
+
+@dataclass(frozen=True)
+class CarRendering:
+    """A model as one view and the model sensor's car rendering of one split: its loop table
+    (``gt``, labelling every rendering of the drive: frame i is the same place in each) and
+    its descriptors (``d_car``)."""
+
+    model: Any
+    profile: Any
+    car: Any
+    gt: Any
+    d_car: np.ndarray
+
+
+@contextlib.contextmanager
+def car_rendering(model_path: Path, data: Path, split: str) -> Iterator[CarRendering]:
+    """:class:`CarRendering` of ``split`` (``make data-sensors``), the model a temporary
+    one-view copy of ``model_path`` (a scan as one view, before any views). Refuses an
+    aligned file: the renderings' benchmarks project with the sensor's columns."""
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.evaluate import describe, sequence_loops
+    from overlapmamba.train.modelfile import with_views
+    from overlapmamba.train.rangecache import range_images
+
+    car_path = data / f"{split}-kitti-hdl64"
+    if not car_path.is_dir():
+        raise SystemExit(f"{car_path} is missing: run `make data-sensors`")
+    refuse_aligned(model_path, "this benchmark projects scans with the sensor's columns")
+    with tempfile.TemporaryDirectory() as tmp:
+        one = Path(tmp) / "one-view.onnx"
+        with_views(model_path, one, 1)
+        model, profile, _ = load_model(one)
+        car = open_sequence(car_path)
+        d_car, _ = describe(model, range_images(car, profile, progress=False))
+        yield CarRendering(model, profile, car, sequence_loops(car), d_car)

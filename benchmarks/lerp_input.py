@@ -27,13 +27,12 @@ each sharing them with other jobs (the JSON's ``seconds``).
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import refuse_aligned
+from bench_kit import car_rendering
 from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 from rich.table import Table
@@ -43,15 +42,12 @@ from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.sensors.catalogue import get_sensor, sensor_of_profile
 from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.profile import SensorProfile
-from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import (
     cross_loop_closure,
     describe,
     loop_closure,
-    sequence_loops,
     summary,
 )
-from overlapmamba.train.modelfile import with_views
 from overlapmamba.train.rangecache import range_images
 from overlapmamba.train.realscans import thin_points, thinned_sensor
 
@@ -92,19 +88,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     out = args.out or REPORTS / "model" / f"lerp-input-{args.split}.json"
-    car_path = args.data / f"{args.split}-kitti-hdl64"
-    if not car_path.is_dir():
-        raise SystemExit(f"{car_path} is missing: run `make data-sensors`")
-    refuse_aligned(args.model, "this benchmark projects scans with the sensor's columns")
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        one = Path(tmp) / "one-view.onnx"  # a scan as one view, before any views
-        with_views(args.model, one, 1)
-        model, profile, _ = load_model(one)
-        car = open_sequence(car_path)
-        gt = sequence_loops(car)
-        d_car, _ = describe(model, range_images(car, profile, progress=False))
+    with car_rendering(args.model, args.data, args.split) as cr:
+        model, profile, car, gt, d_car = cr.model, cr.profile, cr.car, cr.gt, cr.d_car
         for name in filter(None, args.sensors.split(",")):
             town = args.data / f"{args.split}-{name}"
             if not town.is_dir():
@@ -117,7 +104,7 @@ def main() -> None:
                 row[mode] = score(d, d_car, gt)
             rows.append(row)
         for beams in (int(b) for b in args.beams.split(",") if b):
-            row = {"rendering": f"{car_path.name}, {beams} rings", "sensor": f"thinned-{beams}"}
+            row = {"rendering": f"{car.root.name}, {beams} rings", "sensor": f"thinned-{beams}"}
             for mode in INPUTS:
                 d, _ = describe(model, thinned_images(car, profile, beams, mode))
                 row[mode] = score(d, d_car, gt)
@@ -128,7 +115,7 @@ def main() -> None:
         {
             "model": str(args.model),
             "split": args.split,
-            "car": car_path.name,
+            "car": car.root.name,
             "views": 1,
             "rows": rows,
             "mean": mean,

@@ -25,11 +25,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from pathlib import Path
 from typing import Any
 
-from bench_kit import refuse_aligned
+from bench_kit import car_rendering
 from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 from rich.table import Table
@@ -39,15 +38,12 @@ from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.synth.mounting import get_mounting
-from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import (
     cross_loop_closure,
     describe,
     loop_closure,
-    sequence_loops,
     summary,
 )
-from overlapmamba.train.modelfile import with_views
 from overlapmamba.train.rangecache import range_images
 
 MOUNTED = ("vlp16-robot", "os0-128-amr", "xt32-backpack")
@@ -74,17 +70,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     out = args.out or REPORTS / "model" / f"mounts-{args.split}.json"
-    car_path = args.data / f"{args.split}-kitti-hdl64"
-    if not car_path.is_dir():
-        raise SystemExit(f"{car_path} is missing: run `make data-sensors`")
-    refuse_aligned(args.model, "this benchmark projects scans with the sensor's columns")
-    with tempfile.TemporaryDirectory() as tmp:
-        one = Path(tmp) / "one-view.onnx"  # a scan as one view, before any views
-        with_views(args.model, one, 1)
-        model, profile, _ = load_model(one)
-        car = open_sequence(car_path)
-        gt = sequence_loops(car)
-        d_car, _ = describe(model, range_images(car, profile, progress=False))
+    with car_rendering(args.model, args.data, args.split) as cr:
+        model, profile, gt, d_car = cr.model, cr.profile, cr.gt, cr.d_car
         rows = []
         for name in MOUNTED:
             town = args.data / f"{args.split}-{name}"
@@ -105,7 +92,7 @@ def main() -> None:
             rows.append(row)
     write_report(
         out,
-        {"model": str(args.model), "split": args.split, "car": car_path.name, "rows": rows},
+        {"model": str(args.model), "split": args.split, "car": cr.car.root.name, "rows": rows},
     )
     t = Table(title=f"mounted renderings of the {args.split} drive, descriptor alone")
     for col in ("town", "mount", "own: none → declared", "against the car: none → declared"):

@@ -126,3 +126,37 @@ def test_views_and_aligned_columns_take_the_lerp_too():
     np.testing.assert_array_equal(views[0], inp.project(xyz)[0])
     img, off = inp.project_offset(np.asarray(xyz) @ np.diag([1.0, 1.0, 1.0]), aligned=True)
     assert img.shape == (1, 64, 900) and np.isfinite(off)
+
+
+@pytest.mark.anyio
+async def test_a_file_taking_the_lerp_serves_other_sensors_scans_by_it(tmp_path, encoder):
+    """A file rewritten to ``elevation-lerp`` (another model id) answers a VLP-16's scan with
+    the lerp image's descriptor, not the shipped input's; its own sensor's stay native."""
+    import shutil
+
+    from service_kit import MODEL, OCTET, running, scan
+
+    from overlapmamba.core.points import PointCloud
+    from overlapmamba.service.encoder import Encoder
+    from overlapmamba.service.settings import Settings
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
+
+    path = tmp_path / "lerp.onnx"
+    shutil.copyfile(MODEL, path)
+    meta = with_sensor_input(path, "elevation-lerp")
+    assert meta.model_id != read_metadata(MODEL).model_id
+    lerp = Encoder(path)
+    s = scan(3)
+    cloud = PointCloud(s[:, :3].copy())
+    vlp = SensorInput(lerp.meta.profile, CATALOGUE["vlp16"], "elevation-lerp")
+    want = lerp.encode(lerp.project(cloud, vlp)[None])[0][0]
+    async with running(Settings(data_dir=tmp_path / "data"), lerp) as c:
+        r = await c.post("/v1/descriptors?sensor=vlp16", content=s.tobytes(), headers=OCTET)
+        assert r.status_code == 200, r.text
+        got = np.array(r.json()["descriptor"])
+        np.testing.assert_allclose(got, want, atol=1e-5)
+        kinds = {x["name"]: x["projection"] for x in (await c.get("/v1/sensors")).json()["sensors"]}
+        assert kinds["kitti-hdl64"] == "native" and kinds["vlp16"] == "elevation-lerp"
+    async with running(Settings(data_dir=tmp_path / "shipped"), encoder) as c:
+        r = await c.post("/v1/descriptors?sensor=vlp16", content=s.tobytes(), headers=OCTET)
+        assert float(np.array(r.json()["descriptor"]) @ got) < 0.99999
