@@ -372,7 +372,27 @@ def lerp_real() -> str:
     return real_scans(LERP_REAL, "three views")
 
 
+PROJECTION = "reports/service/projection.json"
+
+
+def lerp_cost() -> str:
+    """What the service's projection of one scan costs by each input, other sensors' scans
+    (``benchmarks/projection.py``'s ``service_input`` rows)."""
+    r = load(PROJECTION)
+    rows = [
+        [x["profile"], f"`{x['input']}`", f"{x['median_ms']:.1f}", f"{x['p90_ms']:.1f}"]
+        for x in r["results"]
+        if x["function"].startswith("service_input")
+    ]
+    n = r["results"][0]["points"]
+    out = source(PROJECTION, r["command"], when(r))
+    out += f"\nOne scan of {n:,} points ({r['source']}) projected as the service does, by sensor "
+    out += "and input (the shipped file's views), ms:\n\n"
+    return out + table(["scan's sensor", "input", "median", "p90"], rows)
+
+
 RENDERERS = {
+    "lerp-cost": lerp_cost,
     "lerp-input-val": lambda: lerp_input("val"),
     "lerp-input-test": lambda: lerp_input("test"),
     "lerp-real": lerp_real,
