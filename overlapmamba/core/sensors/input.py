@@ -67,6 +67,7 @@ tests.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -204,7 +205,7 @@ def lerp_rows(
     level = np.abs(ra * sa - rb * sb) <= np.float32(LERP_LEVEL)
     da, db = ra * ca, rb * cb
     wall = np.abs(da - db) <= np.float32(LERP_EDGE) * np.minimum(da, db)
-    valid = (ra != emp) & (rb != emp) & (ra > 0) & (rb > 0) & (level | wall)
+    valid = (ra != emp) & (rb != emp) & (level | wall)
     w = plan.t[own, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         lerp = np.float32(1.0) / ((np.float32(1.0) - w) / ra + w / rb)
@@ -308,6 +309,12 @@ class SensorInput:
             return row_beams(self.model, CATALOGUE[COMMON_SENSOR], "elevation")
         return row_beams(self.model, self.sensor, self.mode)
 
+    @cached_property
+    def lerp_plan(self) -> LerpPlan | None:
+        """``elevation-lerp``'s plan for this sensor (made once per pairing, not per scan);
+        None in the other modes."""
+        return LerpPlan.of(self.model, self.sensor) if self.mode == "elevation-lerp" else None
+
     def key(self) -> dict[str, object]:
         """What the images depend on beyond the model's profile (for caches)."""
         if self.native:
@@ -368,9 +375,8 @@ class SensorInput:
             return _project_beams(points, self.model, common, self.rows(), views, aligned)
         if self.sensor.profile() == self.model:
             return project_views_offset(points, self.model, views, aligned=aligned)
-        plan = LerpPlan.of(self.model, self.sensor) if self.mode == "elevation-lerp" else None
         return _project_beams(
-            points, self.model, self.sensor, self.rows(), views, aligned, plan=plan
+            points, self.model, self.sensor, self.rows(), views, aligned, plan=self.lerp_plan
         )
 
 
