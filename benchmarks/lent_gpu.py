@@ -9,6 +9,7 @@ so they travel, with the manifests they were made beside:
     python benchmarks/lent_gpu.py prepare TOWN… --carry .carry     # there: simulate, project
     python benchmarks/lent_gpu.py launch PRESET… --device cuda     # there: trainings, detached
     python benchmarks/lent_gpu.py collect PRESET… --out DIR [--stop]  # their best.pt, metrics
+    python benchmarks/lent_gpu.py window TOWN… --presets PRESET… --seconds S --out DIR
 
 ``pack`` checks that each carried loop table's fingerprint is what this repository computes
 for the scans it was made on (so patching it there is the same computation over the
@@ -20,7 +21,10 @@ projects the range images every training preset named by ``--input-preset`` take
 runs start at once. ``launch`` starts each preset's ``overlapmamba train`` in its own
 session (it outlives the command that started it, as a lent machine allows); ``collect``
 copies each run's ``best.pt``, ``metrics.json`` and log tail to ``--out`` and, with
-``--stop``, ends the runs first (the last finished epoch is on disk).
+``--stop``, ends the runs first (the last finished epoch is on disk). ``window`` is the
+three in one call, for a lease whose machine goes back moments after a call ends: it
+prepares, launches, reports each run's finished epochs once a minute, and ``S`` seconds after
+it started collects with ``--stop`` (the runs' logs packed beside, ``logs.tar.gz``).
 """
 
 from __future__ import annotations
@@ -233,6 +237,35 @@ def collect(presets: list[str], out: Path, stop: bool) -> None:
     write_report(out / "prepare.json", record)
 
 
+def window(towns: list[str], presets: list[str], seconds: float, out: Path, **opts: Any) -> None:
+    """prepare, launch and, ``seconds`` after the start (or once every run has ended),
+    collect with ``--stop``."""
+    import tarfile
+
+    t0 = time.monotonic()
+    prepare(towns, opts["carry"], opts["workers"], presets)
+    launch(presets, opts["device"], opts["threads"])
+    pids = {n: int((LOGS / f"{n}.pid").read_text()) for n in presets}
+    shown: dict[str, int] = {}
+    while time.monotonic() - t0 < seconds and any(_alive(p) for p in pids.values()):
+        time.sleep(5)
+        for name in presets:
+            done = _epochs_done(ROOT / "runs" / name)
+            if done != shown.get(name, 0):
+                shown[name] = done
+                print(f"{time.monotonic() - t0:6.0f} s  {name}: {done} epochs done", flush=True)
+    collect(presets, out, stop=True)
+    with tarfile.open(out / "logs.tar.gz", "w:gz") as tar:
+        tar.add(LOGS, arcname="lent-logs")
+
+
+def _epochs_done(run: Path) -> int:
+    try:
+        return len(json.loads((run / "metrics.json").read_text())["history"]) - 1
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
 def machine() -> dict[str, Any]:
     import platform
 
@@ -263,6 +296,15 @@ def main() -> None:
     a.add_argument("presets", nargs="+")
     a.add_argument("--device", default="cuda")
     a.add_argument("--threads", type=int, default=4)
+    a = sub.add_parser("window")
+    a.add_argument("towns", nargs="+")
+    a.add_argument("--presets", nargs="+", required=True)
+    a.add_argument("--seconds", type=float, required=True)
+    a.add_argument("--out", type=Path, required=True)
+    a.add_argument("--carry", type=Path, default=ROOT / ".carry")
+    a.add_argument("--workers", type=int, default=2)
+    a.add_argument("--device", default="cuda")
+    a.add_argument("--threads", type=int, default=4)
     a = sub.add_parser("collect")
     a.add_argument("presets", nargs="+")
     a.add_argument("--out", type=Path, required=True)
@@ -278,6 +320,9 @@ def main() -> None:
         (LOGS / f"prepare-{name}.json").write_text(json.dumps(row) + "\n")
     elif args.cmd == "launch":
         launch(args.presets, args.device, args.threads)
+    elif args.cmd == "window":
+        opts = {k: getattr(args, k) for k in ("carry", "workers", "device", "threads")}
+        window(args.towns, args.presets, args.seconds, args.out, **opts)
     else:
         collect(args.presets, args.out, args.stop)
 

@@ -47,7 +47,7 @@ renderings, and the presets made of them (:data:`SENSOR_PRESETS`):
   (the same places seen by other sensors, on other mounts, as positives),
   ``bev-span-thin-more`` ``bev-span-thin-pilot``'s pick continued for a second epoch;
   ``bev-span-thin-long`` (and ``-s1``) from scratch on it with the term, for a
-  lent GPU.
+  lent GPU, and ``bev-span-long`` the same without the term (its control).
 """
 
 from __future__ import annotations
@@ -217,6 +217,9 @@ BEV_SPAN_THIN_MORE = {**BEV_THIN_PILOT, "init": "runs/bev-span-thin-pilot/best.p
 # What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
 # sparser-sensor term (bev-thin-pilot's weight and scans).
 BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
+# ... and its control, from scratch on bev-span without the term (bev-long on bev-span): what
+# the term is worth at an equal budget, side by side on the same lent machine.
+BEV_SPAN_LONG = BEV_LONG
 
 # The presets made of these recipes, in the order `overlapmamba train --help` lists them.
 SENSOR_PRESETS: tuple[TrainPreset, ...] = (
@@ -426,6 +429,14 @@ SENSOR_PRESETS: tuple[TrainPreset, ...] = (
         "bev-long on bev-span with the sparser-sensor term, for a lent GPU",
         model=BEV_SPAN_MODEL,
         train=BEV_SPAN_THIN_LONG,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "bev-span-long",
+        "bev-long on bev-span without the term (bev-span-thin-long's control), for a lent GPU",
+        model=BEV_SPAN_MODEL,
+        train=BEV_SPAN_LONG,
         data=COMMON_DATA,
         val=SENSOR_VAL,
     ),
