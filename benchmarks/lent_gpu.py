@@ -10,6 +10,7 @@ so they travel, with the manifests they were made beside:
     python benchmarks/lent_gpu.py launch PRESET… --device cuda     # there: trainings, detached
     python benchmarks/lent_gpu.py collect PRESET… --out DIR [--stop]  # their best.pt, metrics
     python benchmarks/lent_gpu.py window TOWN… --presets PRESET… --seconds S --out DIR
+    python benchmarks/lent_gpu.py wheels --dest .whl                # here: what it lacks
 
 ``pack`` checks that each carried loop table's fingerprint is what this repository computes
 for the scans it was made on (so patching it there is the same computation over the
@@ -151,8 +152,9 @@ def project(town: Path, input_presets: list[str]) -> int:
     return len(done)
 
 
-def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str]) -> None:
-    """Every town in a process of its own, at once; a summary JSON per town."""
+def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str]) -> list[str]:
+    """Every town in a process of its own, at once; a summary JSON per town. Returns the
+    towns that failed."""
     from overlapmamba.synth.presets import preset
 
     LOGS.mkdir(parents=True, exist_ok=True)
@@ -175,6 +177,7 @@ def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str
     summary = {"towns": rows, "failed": failed, "prepare_s": round(time.perf_counter() - t0, 1)}
     write_report(LOGS / "prepare.json", summary)
     print(f"prepared {len(rows)} of {len(towns)} towns in {summary['prepare_s']} s", flush=True)
+    return failed
 
 
 def launch(presets: list[str], device: str, threads: int) -> None:
@@ -193,6 +196,13 @@ def launch(presets: list[str], device: str, threads: int) -> None:
 
 
 def _alive(pid: int) -> bool:
+    """Whether ``pid`` still runs: a child that ended is reaped (a zombie answers a signal
+    as if it ran; a window once waited out its whole lease on three of them)."""
+    try:
+        if os.waitpid(pid, os.WNOHANG)[0] == pid:
+            return False
+    except ChildProcessError:
+        pass  # not our child (launched by another call): ask the kernel
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -243,7 +253,10 @@ def window(towns: list[str], presets: list[str], seconds: float, out: Path, **op
     import tarfile
 
     t0 = time.monotonic()
-    prepare(towns, opts["carry"], opts["workers"], presets)
+    preflight(towns[0], opts["device"])
+    failed = prepare(towns, opts["carry"], opts["workers"], presets)
+    if failed:
+        raise SystemExit(f"window: {', '.join(failed)} not prepared; no run launched")
     launch(presets, opts["device"], opts["threads"])
     pids = {n: int((LOGS / f"{n}.pid").read_text()) for n in presets}
     shown: dict[str, int] = {}
@@ -257,6 +270,62 @@ def window(towns: list[str], presets: list[str], seconds: float, out: Path, **op
     collect(presets, out, stop=True)
     with tarfile.open(out / "logs.tar.gz", "w:gz") as tar:
         tar.add(LOGS, arcname="lent-logs")
+
+
+def preflight(town: str, device: str) -> None:
+    """What a lent machine lacks shows here in seconds, not after its towns: two scans of
+    ``town``'s preset simulated (the world's meshes, the ray caster, the writer) and one
+    training step of a narrow network on ``device``."""
+    import tempfile
+
+    import torch
+
+    from overlapmamba.synth.generate import generate
+    from overlapmamba.synth.presets import preset
+    from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
+    from overlapmamba.train.recipes import NARROW
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = preset(town).model_copy(update={"frames": 2})
+        generate(Path(tmp) / "town", cfg, workers=1, ground_truth=False, progress=False)
+    net = OverlapMamba(OverlapMambaConfig.from_dict(NARROW)).to(device)
+    x = torch.rand(4, 1, 64, 900, device=device)
+    net(x)[0].pow(2).sum().backward()
+    print(f"preflight on {device}: simulated and stepped in {time.perf_counter() - t0:.1f} s")
+
+
+# What a lent machine's image lacks of what simulation and training import (its package list:
+# the device tool's KINDS.md), as wheels for its Python (`wheels`; carried as .whl).
+DEVICE_LACKS = (
+    "pydantic",
+    "pydantic-core",
+    "annotated-types",
+    "typing-inspection",
+    "typing-extensions",
+    "pypcd4",
+    "python-neo-lzf",
+    "trimesh",
+    "embreex",
+)
+
+
+def wheels(dest: Path, python: str) -> None:
+    """Download ``DEVICE_LACKS`` at this environment's versions, for CPython ``python``."""
+    import importlib.metadata
+
+    pins = [f"{name}=={importlib.metadata.version(name)}" for name in DEVICE_LACKS]
+    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:"]
+    cmd += ["--python-version", python, "--implementation", "cp", "-d", str(dest)]
+    for tag in (
+        "manylinux_2_28",
+        "manylinux_2_27",
+        "manylinux_2_17",
+        "manylinux2014",
+        "manylinux1",
+    ):
+        cmd += ["--platform", f"{tag}_x86_64"]
+    subprocess.run([*cmd, *pins], check=True)
 
 
 def _epochs_done(run: Path) -> int:
@@ -296,6 +365,12 @@ def main() -> None:
     a.add_argument("presets", nargs="+")
     a.add_argument("--device", default="cuda")
     a.add_argument("--threads", type=int, default=4)
+    a = sub.add_parser("wheels")
+    a.add_argument("--dest", type=Path, default=ROOT / ".whl")
+    a.add_argument("--python", default="3.12")
+    a = sub.add_parser("preflight")
+    a.add_argument("town")
+    a.add_argument("--device", default="cuda")
     a = sub.add_parser("window")
     a.add_argument("towns", nargs="+")
     a.add_argument("--presets", nargs="+", required=True)
@@ -320,6 +395,10 @@ def main() -> None:
         (LOGS / f"prepare-{name}.json").write_text(json.dumps(row) + "\n")
     elif args.cmd == "launch":
         launch(args.presets, args.device, args.threads)
+    elif args.cmd == "wheels":
+        wheels(args.dest, args.python)
+    elif args.cmd == "preflight":
+        preflight(args.town, args.device)
     elif args.cmd == "window":
         opts = {k: getattr(args, k) for k in ("carry", "workers", "device", "threads")}
         window(args.towns, args.presets, args.seconds, args.out, **opts)

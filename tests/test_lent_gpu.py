@@ -58,3 +58,37 @@ def test_a_carried_loop_table_gets_the_new_scans_fingerprint_and_is_then_used(
     assert {k: v for k, v in gt.params.items() if k != "fingerprint"} == {
         k: v for k, v in carried.params.items() if k != "fingerprint"
     }
+
+
+def test_a_run_that_ended_is_not_alive_though_nobody_waited_for_it(lent):
+    """A child that ended stays a zombie until reaped, and a zombie answers a signal: a
+    window once waited out its whole lease on three runs that had failed at their start."""
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(["true"])
+    time.sleep(0.5)  # ended; not waited for
+    assert lent._alive(proc.pid) is False
+    proc.wait()  # Popen learns it ended (already reaped above)
+    sleeper = subprocess.Popen(["sleep", "30"])
+    try:
+        assert lent._alive(sleeper.pid) is True
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+def test_a_window_whose_towns_failed_launches_nothing(lent, monkeypatch, tmp_path):
+    launched = []
+    monkeypatch.setattr(lent, "preflight", lambda town, device: None)
+    monkeypatch.setattr(lent, "prepare", lambda towns, carry, workers, presets: ["val-vlp16"])
+    monkeypatch.setattr(lent, "launch", lambda *args: launched.append(args))
+    opts = {"carry": tmp_path, "workers": 1, "device": "cpu", "threads": 1}
+    with pytest.raises(SystemExit, match="val-vlp16 not prepared; no run launched"):
+        lent.window(["train-x00", "val-vlp16"], ["bev-span-long"], 60.0, tmp_path / "out", **opts)
+    assert launched == []
+
+
+def test_preflight_simulates_two_scans_and_steps_a_network(lent, capsys):
+    lent.preflight("train-x00", "cpu")  # the VLP-16 town: the cheapest world to build
+    assert "preflight on cpu: simulated and stepped" in capsys.readouterr().out
