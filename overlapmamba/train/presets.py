@@ -58,6 +58,7 @@ from typing import Any
 
 from overlapmamba.train.augment import ROBUST
 from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.lerp_recipes import LERP_PRESETS
 from overlapmamba.train.recipes import (
     ABLATION,
     ALIGNED,
@@ -155,6 +156,7 @@ PRESETS: dict[str, TrainPreset] = {
             data=ALIGNED_DATA,
         ),
         *SENSOR_PRESETS,
+        *LERP_PRESETS,
         TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
