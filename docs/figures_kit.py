@@ -3,10 +3,11 @@ what they share (reading a report, naming its source, formatting a table).
 
 One function per ``<!-- render NAME -->`` block lives in ``figures_model.py`` (the model,
 the encoder, the service's thresholds), ``figures_fleet.py`` (verification, sizing, the
-fleet, the end-to-end runs), ``figures_input.py`` and ``figures_bev.py`` (the sensor inputs'
-experiments), ``figures_pairs.py`` (issue 40's bar across sensors, pair by pair) and
-``figures_phase.py`` (where a one-view scan's columns start); ``docs/render.py`` pastes
-them, ``make docs`` rewrites them and ``tests/test_docs_figures.py`` fails on a stale one.
+fleet, the end-to-end runs), ``figures_input.py``, ``figures_bev.py`` and ``figures_lerp.py``
+(the sensor inputs' experiments), ``figures_pairs.py`` (issue 40's bar across sensors,
+pair by pair) and ``figures_phase.py`` (where a one-view scan's columns start);
+``docs/render.py`` pastes them, ``make docs`` rewrites them and
+``tests/test_docs_figures.py`` fails on a stale one.
 Each table opens with the JSON it reads and the command that wrote it; nothing here types a
 measured number.
 """

@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_bev  # docs/figures_*.py, beside this file
 import figures_fleet
 import figures_input
+import figures_lerp
 import figures_model
 import figures_pairs
 import figures_phase
@@ -98,6 +99,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_model.RENDERERS,
     **figures_input.RENDERERS,
     **figures_bev.RENDERERS,
+    **figures_lerp.RENDERERS,
     **figures_fleet.RENDERERS,
     **figures_pairs.RENDERERS,
     **figures_phase.RENDERERS,
