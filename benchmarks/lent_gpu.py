@@ -180,9 +180,11 @@ def prepare(towns: list[str], carry: Path, workers: int, input_presets: list[str
     return failed
 
 
-def launch(presets: list[str], device: str, threads: int) -> None:
+def launch(presets: list[str], device: str, threads: int) -> dict[str, int]:
+    """Each preset's training in a session of its own → {preset: pid} (also in LOGS)."""
     LOGS.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1"}
+    pids: dict[str, int] = {}
     for name in presets:
         shutil.rmtree(ROOT / "runs" / name, ignore_errors=True)
         cmd = [sys.executable, "-m", "overlapmamba", "train", "--preset", name]
@@ -193,6 +195,8 @@ def launch(presets: list[str], device: str, threads: int) -> None:
         )
         (LOGS / f"{name}.pid").write_text(f"{proc.pid}\n")
         print(f"{name}: pid {proc.pid}", flush=True)
+        pids[name] = proc.pid
+    return pids
 
 
 def _alive(pid: int) -> bool:
@@ -257,8 +261,7 @@ def window(towns: list[str], presets: list[str], seconds: float, out: Path, **op
     failed = prepare(towns, opts["carry"], opts["workers"], presets)
     if failed:
         raise SystemExit(f"window: {', '.join(failed)} not prepared; no run launched")
-    launch(presets, opts["device"], opts["threads"])
-    pids = {n: int((LOGS / f"{n}.pid").read_text()) for n in presets}
+    pids = launch(presets, opts["device"], opts["threads"])
     shown: dict[str, int] = {}
     while time.monotonic() - t0 < seconds and any(_alive(p) for p in pids.values()):
         time.sleep(5)

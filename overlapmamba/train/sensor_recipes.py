@@ -217,9 +217,6 @@ BEV_SPAN_THIN_MORE = {**BEV_THIN_PILOT, "init": "runs/bev-span-thin-pilot/best.p
 # What the pilots point to, from scratch for a lent GPU: bev-long on bev-span with the
 # sparser-sensor term (bev-thin-pilot's weight and scans).
 BEV_SPAN_THIN_LONG = {**BEV_LONG, "look_weight": 1.0, "look_scans": 8}
-# ... and its control, from scratch on bev-span without the term (bev-long on bev-span): what
-# the term is worth at an equal budget, side by side on the same lent machine.
-BEV_SPAN_LONG = BEV_LONG
 
 # The presets made of these recipes, in the order `overlapmamba train --help` lists them.
 SENSOR_PRESETS: tuple[TrainPreset, ...] = (
@@ -436,7 +433,7 @@ SENSOR_PRESETS: tuple[TrainPreset, ...] = (
         "bev-span-long",
         "bev-long on bev-span without the term (bev-span-thin-long's control), for a lent GPU",
         model=BEV_SPAN_MODEL,
-        train=BEV_SPAN_LONG,
+        train=BEV_LONG,  # bev-long's recipe on bev-span: what the term is worth
         data=COMMON_DATA,
         val=SENSOR_VAL,
     ),
