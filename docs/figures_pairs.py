@@ -54,7 +54,7 @@ def _verdict(r: dict[str, Any], split: str) -> str:
     return "; ".join(parts) + ".\n"
 
 
-def _report(r: dict[str, Any], split: str, with_sc: bool) -> str:
+def pair_tables(r: dict[str, Any], split: str, with_sc: bool) -> str:
     def answers(p: dict[str, Any]) -> str:
         return f"{f3(p['descriptor']['ar@1'])} / {f3(p['two_stage']['ar@1'])}"
 
@@ -85,7 +85,7 @@ def across_pairs() -> str:
     r = load(SHIPPED)
     out = source(SHIPPED, r["command"], when(r))
     out += _intro(r) + "\ntest (the sensor test town):\n"
-    return out + _report(r, "test", with_sc=True)
+    return out + pair_tables(r, "test", with_sc=True)
 
 
 def across_pairs_candidates() -> str:
@@ -99,8 +99,8 @@ def across_pairs_candidates() -> str:
     ):
         out += f"\n{title}:\n"
         for _, r in reports[:-1]:
-            out += _report(r, split, with_sc=False)
-        out += _report(reports[-1][1], split, with_sc=True)
+            out += pair_tables(r, split, with_sc=False)
+        out += pair_tables(reports[-1][1], split, with_sc=True)
     return out
 
 

@@ -184,7 +184,7 @@ def test_views_shift_the_sensor_input_like_the_native_one():
 
 def test_modes_are_checked():
     assert check_mode("rows") == "rows"
-    with pytest.raises(ValueError, match="allowed: elevation, elevation-lerp, rows"):
+    with pytest.raises(ValueError, match="allowed: elevation, elevation-lerp, elevation-fill"):
         check_mode("stretch")
 
 

@@ -150,7 +150,7 @@ def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
             SensorInput(KITTI, high, mode)
     SensorInput(KITTI, high, "elevation")  # other modes take it (an empty image)
     with pytest.raises(
-        ValueError, match="allowed: elevation, elevation-lerp, rows, common, structure"
+        ValueError, match="elevation-fill, elevation-reach, rows, common, structure"
     ):
         SensorInput(KITTI, high, "stretch")  # type: ignore[arg-type]
 
@@ -244,7 +244,7 @@ def test_a_run_continues_a_file_on_its_input_and_exports_it(
     assert read_metadata(start).sensor_input == "common"
     bad = CliRunner().invoke(app, ["export", str(plain), "--out", "x.onnx", "--sensor-input", "x"])
     said = " ".join(bad.output.replace("│", " ").split())  # the error box wraps its lines
-    assert bad.exit_code != 0 and "must be one of elevation, elevation-lerp, rows, common" in said
+    assert bad.exit_code != 0 and "must be one of elevation, elevation-lerp, elevation-fill" in said
 
     cont = TrainConfig(init=str(start), freeze_bn=True)
     assert start_config(cont, None).sensor_input == "common"

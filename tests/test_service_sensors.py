@@ -373,7 +373,7 @@ def test_the_sensor_input_mode_is_rewritten_with_its_model_id(tmp_path):
     enc = Encoder(path)  # the service projects another sensor's scans by the file's mode
     assert sensor_input_kind(enc, "vlp16") == "rows"
     assert with_sensor_input(path, "elevation").model_id == before.model_id
-    with pytest.raises(ExportError, match="allowed: elevation, elevation-lerp, rows"):
+    with pytest.raises(ExportError, match="allowed: elevation, elevation-lerp, elevation-fill"):
         with_sensor_input(path, "stretch")  # type: ignore[arg-type]
 
 

@@ -209,6 +209,8 @@ def export_cmd(
             "--sensor-input",
             help="how scans become the model's input (overlapmamba.core.sensors.input): "
             "elevation, elevation-lerp (another sensor's scan made into the model's own beams), "
+            "elevation-fill (elevation, another sensor's one-column gaps filled), "
+            "elevation-reach (elevation-fill, every scan cut at 50 m), "
             "rows, common (every sensor's scan, the model's own too, thinned to "
             "common beams), structure (common, above the ground, within 50 m), bev (a polar "
             "bird's-eye occupancy of every scan), bev-soft (bev, each return shared between "

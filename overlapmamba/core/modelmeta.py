@@ -88,13 +88,14 @@ class EncoderMetadata(BaseModel):
     )
     sensor_input: Mode = Field(
         default="elevation",
-        description="how a scan of another sensor than the profile's becomes this model's "
-        "input (overlapmamba.core.sensors.input): elevation, elevation-lerp (the scan made into "
-        "the profile's own beams), rows, common (every sensor, the "
-        "profile's own too, thinned to common beams), structure (common, above the ground "
-        "and within a common range), bev (a polar bird's-eye occupancy of every scan), bev-soft "
-        "(bev, each return shared between its two nearest columns) or bev-span (bev, each cell "
-        "how much of its column its returns' spans cover); part of the model id",
+        description="how a scan of another sensor than the profile's becomes this model's input "
+        "(overlapmamba.core.sensors.input): elevation, elevation-lerp (the scan made into the "
+        "profile's own beams), elevation-fill (elevation, another sensor's one-column gaps "
+        "filled), elevation-reach (elevation-fill, every scan cut at 50 m), rows, common (every"
+        " sensor, the profile's own too, thinned to common beams), structure (common, above the"
+        " ground and within a common range), bev (a polar bird's-eye occupancy of every scan), "
+        "bev-soft (bev, each return shared between its two nearest columns) or bev-span (bev, "
+        "each cell how much of its column its returns' spans cover); part of the model id",
     )
     calibration: dict[str, Calibrated] = Field(
         default_factory=dict,

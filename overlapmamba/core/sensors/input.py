@@ -15,6 +15,18 @@
                projection puts it. A sensor with fewer beams then shows the rows, and the
                rows left empty, of the model's own sensor. The model's own sensor is taken
                natively, as in ``elevation``
+    elevation-fill
+               ``elevation``, then every one-column gap in a row of another sensor's image
+               (an empty cell between two returns) takes the nearer of the two
+               (:mod:`overlapmamba.core.sensors.gaps`): a sensor firing about once a column,
+               as the 1,024-column Ousters do into 900 columns, leaves a hole at every lost
+               return, where the model's own sensor covers it with another firing. The model's
+               own sensor is taken natively, as in ``elevation``
+    elevation-reach
+               ``elevation-fill`` with every scan, the model's own sensor's too, cut at
+               :data:`COMMON_MAX_RANGE`: a map made by a sensor that sees to 80 m and a
+               query by one that sees to 50 m then show the same returns (the model's own
+               scans are no longer taken natively, their gaps still not filled)
     rows       the sensor's beams, highest first, stretched over the model's rows (row r
                takes beam ⌊(r + ½)·B / H⌋): every row filled, elevations not kept (the
                sensor-transfer check ``eval-real`` ran on nuScenes' HDL-32E before sensors
@@ -66,7 +78,7 @@ tests.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Literal
 
@@ -75,17 +87,38 @@ import numpy as np
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.bev import BEV_MODES, bev_cells, cells_reference
 from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
+from overlapmamba.core.sensors.gaps import fill_gaps
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_reference
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views_offset, scan_offset
 
 Mode = Literal[
-    "elevation", "elevation-lerp", "rows", "common", "structure", "bev", "bev-soft", "bev-span"
+    "elevation",
+    "elevation-lerp",
+    "elevation-fill",
+    "elevation-reach",
+    "rows",
+    "common",
+    "structure",
+    "bev",
+    "bev-soft",
+    "bev-span",
 ]
-MODES: tuple[str, ...] = ("elevation", "elevation-lerp", "rows", "common", "structure", *BEV_MODES)
+MODES: tuple[str, ...] = (
+    "elevation",
+    "elevation-lerp",
+    "elevation-fill",
+    "elevation-reach",
+    "rows",
+    "common",
+    "structure",
+    *BEV_MODES,
+)
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
 # the modes every scan goes through, the model's own sensor's too (none is taken natively)
-ALL_SCANS_MODES = (*COMMON_MODES, *BEV_MODES)
+ALL_SCANS_MODES = (*COMMON_MODES, "elevation-reach", *BEV_MODES)
+# the modes that fill other sensors' one-column gaps (overlapmamba.core.sensors.gaps)
+FILL_MODES = ("elevation-fill", "elevation-reach")
 # the modes that level a scan and move it to the reference mount's height (their ground is
 # that mount's): the others take scans as recorded
 LEVELLED_MODES = ("structure", *BEV_MODES)
@@ -322,6 +355,8 @@ class SensorInput:
         key: dict[str, object] = {"sensor": self.sensor.model_dump(mode="json"), "mode": self.mode}
         if self.mode in COMMON_MODES:
             key["common"] = {"sensor": COMMON_SENSOR, "tolerance_deg": COMMON_TOLERANCE_DEG}
+        if self.mode == "elevation-reach":
+            key["reach_m"] = COMMON_MAX_RANGE
         if self.mode in BEV_MODES:
             key["bev"] = {
                 "bands_m": list(BEV_BANDS),
@@ -352,6 +387,15 @@ class SensorInput:
         self, points: PointCloud | np.ndarray, views: int = 1, *, aligned: bool = False
     ) -> tuple[np.ndarray, float]:
         """:meth:`project` and the column offset of its images (0 unless ``aligned``)."""
+        if self.mode in FILL_MODES:
+            if self.mode == "elevation-reach":
+                xyz = _xyz(points)
+                points = xyz[np.linalg.norm(xyz, axis=1) < COMMON_MAX_RANGE]
+            images, offset = replace(self, mode="elevation").project_offset(
+                points, views, aligned=aligned
+            )
+            own = self.sensor.profile() == self.model
+            return (images if own else fill_gaps(images, self.model.empty_value)), offset
         if aligned and self.mode in BEV_MODES:
             raise ValueError(
                 f"the {self.mode} input has no aligned columns: column_phase aligned applies "
