@@ -80,7 +80,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -104,16 +104,7 @@ Mode = Literal[
     "bev-soft",
     "bev-span",
 ]
-MODES: tuple[str, ...] = (
-    "elevation",
-    "elevation-lerp",
-    "elevation-fill",
-    "elevation-reach",
-    "rows",
-    "common",
-    "structure",
-    *BEV_MODES,
-)
+MODES: tuple[str, ...] = get_args(Mode)
 COMMON_MODES = ("common", "structure")  # the modes that thin every scan to common beams
 # the modes every scan goes through, the model's own sensor's too (none is taken natively)
 ALL_SCANS_MODES = (*COMMON_MODES, "elevation-reach", *BEV_MODES)
