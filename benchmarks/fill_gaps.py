@@ -39,6 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.sensors.catalogue import get_sensor
 from overlapmamba.core.sensors.gaps import fill_gaps, gaps
 from overlapmamba.core.sensors.input import SensorInput
@@ -49,9 +50,8 @@ SENSORS = ("vlp16", "hdl32", "xt32", "os1-128", "os0-128")
 WAYS = ("elevation", "elevation-fill", "fill-every-sensor")
 
 
-def images(enc: Encoder, town: Path, frames: list[int]) -> np.ndarray:
+def images(enc: Encoder, seq: Sequence, frames: list[int]) -> np.ndarray:
     """(N, V, H, W) the file's images of ``frames`` by ``elevation`` (the scans' own sensor)."""
-    seq = open_sequence(town)
     inp = SensorInput(enc.meta.profile, get_sensor(seq.sensor), "elevation")
     return np.stack([inp.project(seq.points(i), enc.meta.views) for i in frames])
 
@@ -62,13 +62,12 @@ def descriptors(enc: Encoder, imgs: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def own_loops(enc: Encoder, town: Path) -> dict[str, dict[str, float]]:
+def own_loops(enc: Encoder, seq: Sequence) -> dict[str, dict[str, float]]:
     """The car drive's loop closure, descriptor alone, its scans plain and filled."""
-    seq = open_sequence(town)
     gt = sequence_loops(seq)
     d: dict[str, list[np.ndarray]] = {"plain": [], "filled": []}
     for start in range(0, len(seq), 64):
-        imgs = images(enc, town, list(range(start, min(start + 64, len(seq)))))
+        imgs = images(enc, seq, list(range(start, min(start + 64, len(seq)))))
         d["plain"].append(descriptors(enc, imgs))
         d["filled"].append(descriptors(enc, fill_gaps(imgs, enc.meta.profile.empty_value)))
     out: dict[str, dict[str, float]] = {}
@@ -104,8 +103,9 @@ def main() -> None:
     for town in (car_town, *(args.data / f"{args.split}-{s}" for s in SENSORS)):
         if not town.is_dir():
             raise SystemExit(f"{town} is missing: run `make data-sensors`")
-    frames = list(range(0, len(open_sequence(car_town)), args.step))
-    car_imgs = images(enc, car_town, frames)
+    car_seq = open_sequence(car_town)
+    frames = list(range(0, len(car_seq), args.step))
+    car_imgs = images(enc, car_seq, frames)
     car = {
         "plain": descriptors(enc, car_imgs),
         "filled": descriptors(enc, fill_gaps(car_imgs, empty)),
@@ -126,7 +126,7 @@ def main() -> None:
     }
     rows = []
     for name in SENSORS:
-        imgs = images(enc, args.data / f"{args.split}-{name}", frames)
+        imgs = images(enc, open_sequence(args.data / f"{args.split}-{name}"), frames)
         plain, filled = descriptors(enc, imgs), descriptors(enc, fill_gaps(imgs, empty))
         rows.append(
             {
@@ -140,7 +140,7 @@ def main() -> None:
             }
         )
     mean = {w: float(np.mean([r[w] for r in rows])) for w in WAYS}
-    own = own_loops(enc, car_town)
+    own = own_loops(enc, car_seq)
     keeps = {
         "elevation": True,
         "elevation-fill": True,  # the car's scans are taken natively: unchanged

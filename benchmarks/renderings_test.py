@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from reports_kit import REPORTS, write_report
+from reports_kit import REPORTS, ROOT, write_report
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.train.checkpoint import load_model, sensor_input_of
@@ -27,7 +27,6 @@ from overlapmamba.train.rangecache import range_images
 from overlapmamba.train.train_inputs import training_input
 from overlapmamba.train.valsensors import open_renderings, selection_score, validate_renderings
 
-ROOT = Path(__file__).resolve().parents[1]
 DRIVE = "data/synth/test-kitti-hdl64"
 RENDERINGS = tuple(f"data/synth/test-{s}" for s in ("vlp16", "os0-128", "xt32", "os1-128"))
 

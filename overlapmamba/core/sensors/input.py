@@ -299,21 +299,28 @@ class SensorInput:
                 "cannot read its scans"
             )
 
+    @cached_property
+    def own_sensor(self) -> bool:
+        """The scans are of the model's own sensor (its profile is the model's); made once a
+        pairing, not once a scan."""
+        return self.sensor.profile() == self.model
+
+    @cached_property
+    def _elevation(self) -> SensorInput:
+        """The fill modes' projection before the fill: this pairing by ``elevation``."""
+        return replace(self, mode="elevation")
+
     @property
     def native(self) -> bool:
         """The model's own sensor, taken exactly as the model was trained (no mount, and
         not thinned to common beams)."""
-        return (
-            self.mode not in ALL_SCANS_MODES
-            and self.sensor.profile() == self.model
-            and self.mount is None
-        )
+        return self.mode not in ALL_SCANS_MODES and self.own_sensor and self.mount is None
 
     @property
     def kind(self) -> str:
         """native or the mode (elevation, rows, common, structure, bev…): what this pairing
         does (with ``+mount`` when the scan is first moved to the model's mount)."""
-        own = self.sensor.profile() == self.model and self.mode not in ALL_SCANS_MODES
+        own = self.own_sensor and self.mode not in ALL_SCANS_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
     @classmethod
@@ -382,11 +389,9 @@ class SensorInput:
             if self.mode == "elevation-reach":
                 xyz = _xyz(points)
                 points = xyz[np.linalg.norm(xyz, axis=1) < COMMON_MAX_RANGE]
-            images, offset = replace(self, mode="elevation").project_offset(
-                points, views, aligned=aligned
-            )
-            own = self.sensor.profile() == self.model
-            return (images if own else fill_gaps(images, self.model.empty_value)), offset
+            images, offset = self._elevation.project_offset(points, views, aligned=aligned)
+            filled = images if self.own_sensor else fill_gaps(images, self.model.empty_value)
+            return filled, offset
         if aligned and self.mode in BEV_MODES:
             raise ValueError(
                 f"the {self.mode} input has no aligned columns: column_phase aligned applies "
@@ -408,7 +413,7 @@ class SensorInput:
         if self.mode in COMMON_MODES:
             common = CATALOGUE[COMMON_SENSOR]
             return _project_beams(points, self.model, common, self.rows(), views, aligned)
-        if self.sensor.profile() == self.model:
+        if self.own_sensor:
             return project_views_offset(points, self.model, views, aligned=aligned)
         return _project_beams(
             points, self.model, self.sensor, self.rows(), views, aligned, plan=self.lerp_plan
