@@ -1,7 +1,8 @@
-"""Tables on the ``elevation-lerp`` input in training: the shipped network continued on five
-towns of five sensors, other sensors' scans by ``elevation-lerp`` or by the shipped
-``elevation``, by epoch, then each run's pick on real scans; each rendered from the JSON a
-command wrote (``docs/render.py`` pastes them; nothing here types a measured number)."""
+"""Tables on the inputs in training: the shipped network continued on five towns of five
+sensors, other sensors' scans by ``elevation-lerp``, ``elevation-fill``, ``elevation-reach`` or
+by the shipped ``elevation``, by epoch, then each run's pick on real scans; each rendered
+from the JSON a command wrote (``docs/render.py`` pastes them; nothing here types a measured
+number)."""
 
 from __future__ import annotations
 
@@ -36,12 +37,16 @@ START = (
 )
 
 
+def pilot_by_input(runs: tuple[str, ...], real: dict[str, tuple[str, str]]) -> str:
+    """Continuations that differ in their input, by epoch, then each one's pick on real
+    scans (``real``: row label → its eval-real reports on KITTI 00 and on nuScenes)."""
+    _, out = pilot_epochs(runs, lambda r: f"input `{r['model_config']['sensor_input']}`", START)
+    return out + "\n" + real_table(real)
+
+
 def lerp_pilot() -> str:
     """The two continuations by epoch, then each one's pick on real scans."""
-    _, out = pilot_epochs(
-        LERP_RUNS, lambda r: f"input `{r['model_config']['sensor_input']}`", START
-    )
-    return out + "\n" + real_table(LERP_REAL)
+    return pilot_by_input(LERP_RUNS, LERP_REAL)
 
 
 LERP_TEST = tuple(
@@ -51,7 +56,12 @@ LERP_TEST = tuple(
 
 def lerp_pilot_test() -> str:
     """Each run's start and pick on the sensor test town, scored as the trainer scores val."""
-    reports = [(p, load(p)) for p in LERP_TEST]
+    return pilot_test(LERP_TEST)
+
+
+def pilot_test(paths: tuple[str, ...]) -> str:
+    """The renderings_test reports ``paths``: each checkpoint on the sensor test town."""
+    reports = [(p, load(p)) for p in paths]
     out = "".join(source(p, r["command"], when(r)) for p, r in reports)
     names = list(reports[0][1]["checkpoints"][0]["renderings"])
     rows = []
@@ -89,4 +99,54 @@ def lerp_pilot_test() -> str:
     )
 
 
-RENDERERS = {"lerp-pilot": lerp_pilot, "lerp-pilot-test": lerp_pilot_test}
+# The fill and reach continuations (overlapmamba/train/fill_recipes.py) beside their control at
+# an equal budget, lerp-towns-pilot-control (the same continuation by the shipped input).
+FILL_NAMES = ("fill-towns-pilot", "reach-towns-pilot", "lerp-towns-pilot-control")
+FILL_RUNS = tuple(f"reports/model/{n}.json" for n in FILL_NAMES)
+FILL_REAL = {
+    "the shipped weights, one view (elevation)": (
+        "lerp-control-start-real-kitti",
+        "lerp-control-start-real-nuscenes",
+    ),
+    "the shipped weights, one view (elevation-fill)": (
+        "fill-start-real-kitti",
+        "fill-start-real-nuscenes",
+    ),
+    "`fill-towns-pilot`, its pick (elevation-fill)": (
+        "fill-pilot-real-kitti",
+        "fill-pilot-real-nuscenes",
+    ),
+    "the shipped weights, one view (elevation-reach)": (
+        "reach-start-real-kitti",
+        "reach-start-real-nuscenes",
+    ),
+    "`reach-towns-pilot`, its pick (elevation-reach)": (
+        "reach-pilot-real-kitti",
+        "reach-pilot-real-nuscenes",
+    ),
+    "`lerp-towns-pilot-control`, its pick (elevation)": (
+        "lerp-control-real-kitti",
+        "lerp-control-real-nuscenes",
+    ),
+}
+FILL_TEST = tuple(f"reports/model/{n}-test.json" for n in FILL_NAMES)
+
+
+def fill_pilot() -> str:
+    """The fill and reach continuations and their control by epoch, then each pick on real
+    scans."""
+    return pilot_by_input(FILL_RUNS, FILL_REAL)
+
+
+def fill_pilot_test() -> str:
+    """The fill and reach continuations' and their control's start and pick on the sensor
+    test town."""
+    return pilot_test(FILL_TEST)
+
+
+RENDERERS = {
+    "lerp-pilot": lerp_pilot,
+    "lerp-pilot-test": lerp_pilot_test,
+    "fill-pilot": fill_pilot,
+    "fill-pilot-test": fill_pilot_test,
+}

@@ -118,6 +118,23 @@ def test_the_reach_mode_cuts_every_scan_at_the_common_range_and_fills_other_sens
     assert (SensorInput(KITTI, other, "elevation-fill").project(xyz, 3) >= COMMON_MAX_RANGE).any()
 
 
+def test_the_fill_continuations_differ_from_their_control_only_in_the_input():
+    """fill-towns-pilot and reach-towns-pilot are measured against lerp-towns-pilot-control at
+    an equal budget: the same data, validation, training config and network but the input."""
+    pytest.importorskip("torch")
+    from overlapmamba.train.presets import get_preset
+
+    control = get_preset("lerp-towns-pilot-control")
+    for name, mode in (
+        ("fill-towns-pilot", "elevation-fill"),
+        ("reach-towns-pilot", "elevation-reach"),
+    ):
+        p = get_preset(name)
+        assert (p.data, p.val, p.train) == (control.data, control.val, control.train)
+        assert p.model == {**control.model, "sensor_input": mode}
+        assert check_mode(p.model["sensor_input"]) == mode
+
+
 @pytest.mark.anyio
 async def test_a_file_taking_the_fill_serves_other_sensors_scans_by_it(tmp_path, encoder):
     """A file rewritten to ``elevation-fill`` (another model id) answers an OS1-128's scan

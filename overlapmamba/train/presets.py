@@ -58,6 +58,7 @@ from typing import Any
 
 from overlapmamba.train.augment import ROBUST
 from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.fill_recipes import FILL_PRESETS
 from overlapmamba.train.lerp_recipes import LERP_PRESETS
 from overlapmamba.train.recipes import (
     ABLATION,
@@ -157,6 +158,7 @@ PRESETS: dict[str, TrainPreset] = {
         ),
         *SENSOR_PRESETS,
         *LERP_PRESETS,
+        *FILL_PRESETS,
         TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",

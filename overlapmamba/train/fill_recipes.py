@@ -1,0 +1,37 @@
+"""The ``elevation-fill`` and ``elevation-reach`` continuations (issue 40; the inputs:
+:mod:`overlapmamba.core.sensors.input`, the gaps: :mod:`overlapmamba.core.sensors.gaps`).
+
+Served as they are, both inputs lift the 128-beam Ousters' scans across sensors: their
+one-column gaps (1,024 firings a turn into 900 columns) are what the network never saw
+(``benchmarks/fill_gaps.py``). The towns of those sensors did not teach it them either
+(``lerp-towns-pilot-control``: the same continuation by the shipped ``elevation`` input, so
+it is both presets' control at an equal budget). ``fill-towns-pilot`` continues the shipped
+network on the same five towns with other sensors' gaps filled; ``reach-towns-pilot`` also
+cuts every scan, the model's own too, at 50 m. Data, validation, selection, rate, frozen
+batch norm and budget are ``lerp-towns-pilot``'s: two epochs of 3,000 scans.
+"""
+
+from __future__ import annotations
+
+from overlapmamba.train.lerp_recipes import LERP_TOWNS
+from overlapmamba.train.recipes import NARROW, TrainPreset
+from overlapmamba.train.sensor_recipes import COMMON_DATA, SENSOR_VAL
+
+FILL_PRESETS: tuple[TrainPreset, ...] = (
+    TrainPreset(
+        "fill-towns-pilot",
+        "the shipped network continued on five towns, other sensors' one-column gaps filled",
+        model={**NARROW, "sensor_input": "elevation-fill"},
+        train=LERP_TOWNS,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+    TrainPreset(
+        "reach-towns-pilot",
+        "the same continuation, gaps filled and every scan cut at 50 m",
+        model={**NARROW, "sensor_input": "elevation-reach"},
+        train=LERP_TOWNS,
+        data=COMMON_DATA,
+        val=SENSOR_VAL,
+    ),
+)
