@@ -17,21 +17,25 @@ from overlapmamba.train.lerp_recipes import LERP_TOWNS
 from overlapmamba.train.recipes import NARROW, TrainPreset
 from overlapmamba.train.sensor_recipes import COMMON_DATA, SENSOR_VAL
 
-FILL_PRESETS: tuple[TrainPreset, ...] = (
+FILL_PRESETS: tuple[TrainPreset, ...] = tuple(
     TrainPreset(
-        "fill-towns-pilot",
-        "the shipped network continued on five towns, other sensors' one-column gaps filled",
-        model={**NARROW, "sensor_input": "elevation-fill"},
+        name,
+        description,
+        model={**NARROW, "sensor_input": mode},
         train=LERP_TOWNS,
         data=COMMON_DATA,
         val=SENSOR_VAL,
-    ),
-    TrainPreset(
-        "reach-towns-pilot",
-        "the same continuation, gaps filled and every scan cut at 50 m",
-        model={**NARROW, "sensor_input": "elevation-reach"},
-        train=LERP_TOWNS,
-        data=COMMON_DATA,
-        val=SENSOR_VAL,
-    ),
+    )
+    for name, mode, description in (
+        (
+            "fill-towns-pilot",
+            "elevation-fill",
+            "the shipped network continued on five towns, other sensors' one-column gaps filled",
+        ),
+        (
+            "reach-towns-pilot",
+            "elevation-reach",
+            "the same continuation, gaps filled and every scan cut at 50 m",
+        ),
+    )
 )
