@@ -76,7 +76,7 @@ def _input(r: dict[str, Any]) -> str:
     return f"`{r['sensor_input']}`"
 
 
-def _summary(
+def pairs_summary(
     split: str,
     reports: list[tuple[str, dict[str, Any]]],
     label: Callable[..., str] = _input,
@@ -127,7 +127,7 @@ def across_pairs_fill() -> str:
         ("val", "val (calibration town `cal-x00`, where the input is chosen)"),
         ("test", "test (the sensor test town)"),
     ):
-        out += f"\n{title}:\n\n" + _summary(split, reports)
+        out += f"\n{title}:\n\n" + pairs_summary(split, reports)
     out += "\ntest, pair by pair:\n"
     for _, r in reports[1:]:
         out += pair_tables(r, "test", with_sc=False)
@@ -138,7 +138,7 @@ def across_pairs_fill() -> str:
 TRAINED = (*PAIRS, *(f"reports/model/across-pairs-{n}.json" for n in TRAINED_RUNS))
 
 
-def _model(r: dict[str, Any]) -> str:
+def model_label(r: dict[str, Any]) -> str:
     name = r["model"].split("/")[-1].removesuffix(".onnx")
     return f"`{name}` (`{r['sensor_input']}`)"
 
@@ -151,7 +151,8 @@ def across_pairs_trained() -> str:
     out += (
         "\nThe sensor test town, three views a scan; over the 20 pairs across sensors, AR@1 (a "
         "hit within 5 m) mean / lowest / pairs at the bar (≥ 0.85 and above Scan Context) / "
-        "pairs above Scan Context:\n\n" + _summary("test", reports, _model, "file (input)")
+        "pairs above Scan Context:\n\n"
+        + pairs_summary("test", reports, model_label, "file (input)")
     )
     out += "\ntest, pair by pair:\n"
     for _, r in reports[len(PAIRS) :]:

@@ -30,6 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_bev  # docs/figures_*.py, beside this file
+import figures_cut
 import figures_fill
 import figures_fleet
 import figures_input
@@ -101,6 +102,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_input.RENDERERS,
     **figures_bev.RENDERERS,
     **figures_lerp.RENDERERS,
+    **figures_cut.RENDERERS,
     **figures_fill.RENDERERS,
     **figures_fleet.RENDERERS,
     **figures_pairs.RENDERERS,

@@ -36,6 +36,20 @@ def scan(seed: int, yaw_deg: float = 0.0) -> np.ndarray:
     return out
 
 
+def rewritten(folder: Path, sensor_input: str) -> Encoder:
+    """The shipped file copied into ``folder`` and rewritten to take ``sensor_input`` (another
+    model id: the weights are the same, the descriptors are not), loaded."""
+    import shutil
+
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
+
+    path = folder / f"{sensor_input}.onnx"
+    shutil.copyfile(MODEL, path)
+    meta = with_sensor_input(path, sensor_input)
+    assert meta.sensor_input == sensor_input and meta.model_id != read_metadata(MODEL).model_id
+    return Encoder(path)
+
+
 @contextlib.asynccontextmanager
 async def running(settings: Settings, encoder: Encoder) -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(settings, encoder=encoder)

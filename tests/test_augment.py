@@ -233,3 +233,28 @@ def test_far_loss_takes_far_returns_first_and_draws_only_when_on():
     lost = out == EMPTY
     assert lost[..., 600:].mean() > 3 * lost[..., :300].mean() > 0
     assert lost.mean() < 0.45 and np.array_equal(out[~lost], x[~lost])
+
+
+def test_range_cut_empties_every_return_beyond_one_drawn_range_and_draws_only_when_on():
+    x = np.repeat(np.linspace(1, 79, PROFILE.width, dtype=np.float32)[None, None], 64, axis=1)
+    x = np.repeat(x, 16, axis=0)  # range grows along each row
+    same = only(dropout=0.1, range_cut=0.0)(x, np.random.default_rng(5))
+    np.testing.assert_array_equal(same, only(dropout=0.1)(x, np.random.default_rng(5)))
+    out = only(range_cut=1.0, range_cut_min_m=30.0)(x, np.random.default_rng(5))
+    cuts = []
+    for got, img in zip(out, x, strict=True):
+        lost = got == EMPTY
+        assert np.array_equal(got[~lost], img[~lost])  # what is kept is untouched
+        if not lost.any():  # drawn beyond the farthest return (79 m)
+            continue
+        cut = img[lost].min()  # one range a scan: everything from it on is gone, nothing before
+        assert 30.0 <= cut <= PROFILE.max_range and (lost == (img >= cut)).all()
+        cuts.append(cut)
+    assert len(set(cuts)) > 8  # drawn per scan
+    half = only(range_cut=0.5)(x, np.random.default_rng(1))
+    whole = [(got == img).all() for got, img in zip(half, x, strict=True)]
+    assert 0 < sum(whole) < len(x)  # a share of the scans keeps everything
+    with pytest.raises(ConfigError, match="range_cut=1.5 is out of range"):
+        AugmentConfig(range_cut=1.5)
+    with pytest.raises(ConfigError, match="range_cut_min_m=90.0 m must be below"):
+        only(range_cut=0.5, range_cut_min_m=90.0)

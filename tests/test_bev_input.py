@@ -5,11 +5,9 @@ model's own sensor's scans too; in the core, the service's encoder and training.
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
-from service_kit import MODEL, scan
+from service_kit import scan
 from test_catalogue import _cloud
 
 from overlapmamba.core.points import PointCloud
@@ -223,15 +221,11 @@ def test_a_turn_by_whole_columns_rolls_the_image():
 
 @pytest.mark.parametrize("mode", ["bev", "bev-soft"])
 def test_a_file_taking_bev_projects_every_scan_the_service_describes(tmp_path, mode):
-    from overlapmamba.service.encoder import Encoder
-    from overlapmamba.service.sensors import Sensors
-    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
+    from service_kit import rewritten
 
-    path = tmp_path / "m.onnx"
-    shutil.copyfile(MODEL, path)
-    meta = with_sensor_input(path, mode)
-    assert meta.sensor_input == mode and meta.model_id != read_metadata(MODEL).model_id
-    enc = Encoder(path)
+    from overlapmamba.service.sensors import Sensors
+
+    enc = rewritten(tmp_path, mode)
     cloud = PointCloud(scan(3)[:, :3])
     own = Sensors(enc.meta).input("kitti-hdl64")
     assert own.kind == mode

@@ -5,8 +5,6 @@ and training."""
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 from service_kit import MODEL, scan
@@ -168,16 +166,12 @@ def test_a_sensor_with_no_common_beam_is_refused_by_name(tmp_path):
 
 @pytest.mark.parametrize("mode", COMMON_MODES)
 def test_a_file_taking_common_beams_thins_every_scan_the_service_describes(tmp_path, mode):
+    from service_kit import rewritten
+
     from overlapmamba.service.encoder import Encoder
     from overlapmamba.service.sensors import Sensors
-    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
 
-    path = tmp_path / "m.onnx"
-    shutil.copyfile(MODEL, path)
-    before = read_metadata(path)
-    meta = with_sensor_input(path, mode)
-    assert meta.sensor_input == mode and meta.model_id != before.model_id
-    enc = Encoder(path)
+    enc = rewritten(tmp_path, mode)
     cloud = PointCloud(scan(3)[:, :3])
     own = Sensors(enc.meta).input("kitti-hdl64")
     assert own.kind == mode

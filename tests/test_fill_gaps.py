@@ -133,6 +133,11 @@ def test_the_fill_continuations_differ_from_their_control_only_in_the_input():
         assert (p.data, p.val, p.train) == (control.data, control.val, control.train)
         assert p.model == {**control.model, "sensor_input": mode}
         assert check_mode(p.model["sensor_input"]) == mode
+    cut, fill = get_preset("cut-towns-pilot"), get_preset("fill-towns-pilot")
+    assert (cut.data, cut.val, cut.model) == (fill.data, fill.val, fill.model)
+    assert cut.train == {**fill.train, "augment": {"range_cut": 0.5, "range_cut_min_m": 40.0}}
+    assert get_preset("reach-towns-pilot-s1").train == {**p.train, "seed": 1}
+    assert get_preset("cut-towns-pilot-s1").train == {**cut.train, "seed": 1}
 
 
 @pytest.mark.anyio
@@ -140,20 +145,12 @@ async def test_a_file_taking_the_fill_serves_other_sensors_scans_by_it(tmp_path,
     """A file rewritten to ``elevation-fill`` (another model id) answers an OS1-128's scan
     with the filled image's descriptor; its own sensor's scans stay native (the shipped
     file's descriptor exactly)."""
-    import shutil
-
-    from service_kit import MODEL, OCTET, running, scan
+    from service_kit import OCTET, rewritten, running, scan
 
     from overlapmamba.core.points import PointCloud
-    from overlapmamba.service.encoder import Encoder
     from overlapmamba.service.settings import Settings
-    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
 
-    path = tmp_path / "fill.onnx"
-    shutil.copyfile(MODEL, path)
-    meta = with_sensor_input(path, "elevation-fill")
-    assert meta.model_id != read_metadata(MODEL).model_id
-    fill = Encoder(path)
+    fill = rewritten(tmp_path, "elevation-fill")
     s = scan(3)
     os1 = SensorInput(fill.meta.profile, CATALOGUE["os1-128"], "elevation-fill")
     want = fill.encode(fill.project(PointCloud(s[:, :3].copy()), os1)[None])[0][0]
@@ -170,3 +167,33 @@ async def test_a_file_taking_the_fill_serves_other_sensors_scans_by_it(tmp_path,
         np.testing.assert_allclose(np.array(r.json()["descriptor"]), own, atol=1e-6)
         r = await c.post("/v1/descriptors?sensor=os1-128", content=s.tobytes(), headers=OCTET)
         assert float(np.array(r.json()["descriptor"]) @ want) < 0.99999
+
+
+def test_cut_margin_measures_the_paired_cosine_against_the_nearest_other_place():
+    """benchmarks/cut_margin.py: the same pose's cosine, an unrelated one's, the nearest
+    other place's, and whether the nearest car scan is the scan's own place."""
+    from conftest import benchmark_module
+
+    margins = benchmark_module("cut_margin").margins
+    car = np.eye(4)
+    near = np.eye(4, dtype=bool)
+    near[2, 3] = near[3, 2] = True  # frames 2 and 3: one place
+    other = np.array([2, 3, 0, 1])
+    unit = lambda v: np.asarray(v) / np.linalg.norm(v)  # noqa: E731
+    scans = np.stack(
+        [
+            unit([0.9, 0.1, 0, 0]),
+            unit([0.2, 0.8, 0, 0]),
+            unit([0, 0, 0.1, 0.9]),
+            unit([1, 0, 0, 0.1]),
+        ]
+    )
+    got = margins(scans, car, near, other)
+    cos = scans @ car.T
+    assert got["paired"] == pytest.approx(np.median(np.diag(cos)))
+    assert got["unrelated"] == pytest.approx(np.median(cos[[0, 1, 2, 3], other]))
+    assert got["margin"] == pytest.approx(got["paired"] - got["unrelated"])
+    # scan 2 finds frame 3 (its own place: a hit); scan 3 finds frame 0 (another place: a miss)
+    assert got["recall@1"] == 0.75
+    wrong = [cos[0, 1:].max(), max(cos[1, 0], cos[1, 2:].max()), cos[2, :2].max(), cos[3, :2].max()]
+    assert got["nearest_wrong"] == pytest.approx(np.median(wrong))

@@ -132,20 +132,12 @@ def test_views_and_aligned_columns_take_the_lerp_too():
 async def test_a_file_taking_the_lerp_serves_other_sensors_scans_by_it(tmp_path, encoder):
     """A file rewritten to ``elevation-lerp`` (another model id) answers a VLP-16's scan with
     the lerp image's descriptor, not the shipped input's; its own sensor's stay native."""
-    import shutil
-
-    from service_kit import MODEL, OCTET, running, scan
+    from service_kit import OCTET, rewritten, running, scan
 
     from overlapmamba.core.points import PointCloud
-    from overlapmamba.service.encoder import Encoder
     from overlapmamba.service.settings import Settings
-    from overlapmamba.train.modelfile import read_metadata, with_sensor_input
 
-    path = tmp_path / "lerp.onnx"
-    shutil.copyfile(MODEL, path)
-    meta = with_sensor_input(path, "elevation-lerp")
-    assert meta.model_id != read_metadata(MODEL).model_id
-    lerp = Encoder(path)
+    lerp = rewritten(tmp_path, "elevation-lerp")
     s = scan(3)
     cloud = PointCloud(s[:, :3].copy())
     vlp = SensorInput(lerp.meta.profile, CATALOGUE["vlp16"], "elevation-lerp")

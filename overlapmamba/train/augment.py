@@ -33,6 +33,13 @@ and the configured maximum, so a batch always mixes clean and degraded scans.
   renderings lose far returns so (an Ouster's markedly more than the HDL-64E's scans of
   the same place), and a network trained without it moves far from a scan with them
   missing.
+- ``range_cut``: the probability that a scan loses every return at or beyond a range drawn
+  between ``range_cut_min_m`` and the model's maximum range (a sensor that reaches less far:
+  an OS0-128 sees nothing beyond 50 m, where an HDL-64E's map holds returns to 80 m). Where
+  the ``elevation-reach`` input cuts every scan at 50 m, always, and so loses what sensors that
+  do see far agree on, this asks the network to place a scan near its place whether or not
+  its far returns are there. The image keeps each cell's nearest return, so emptying the
+  cells at or beyond the cut is cutting the scan's points there.
 - ``range_noise``: Gaussian range noise with σ up to this many metres.
 - ``fov_crop``: the probability that a scan keeps only a sector of its horizontal field of
   view, between ``fov_min_deg`` and 360° (a sensor partly occluded by the vehicle or a
@@ -75,6 +82,8 @@ class AugmentConfig(Config):
     fov_min_deg: float = 180.0
     sensor_like: float = 0.0
     far_loss: float = 0.0
+    range_cut: float = 0.0
+    range_cut_min_m: float = 40.0
     sensor_like_names: tuple[str, ...] = ()  # empty: every catalogue sensor but the model's
 
     @model_validator(mode="after")
@@ -88,13 +97,16 @@ class AugmentConfig(Config):
             "fov_min_deg": 0 < self.fov_min_deg <= 360,
             "sensor_like": 0 <= self.sensor_like <= 1,
             "far_loss": 0 <= self.far_loss <= 1,
+            "range_cut": 0 <= self.range_cut <= 1,
+            "range_cut_min_m": self.range_cut_min_m > 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ConfigError(
                 f"augmentation {bad[0]}={getattr(self, bad[0])!r} is out of range; allowed: "
                 "tilt_deg 0–15, dropout and beam_dropout 0–<1, range_noise 0–1 m, fov_crop 0–1, "
-                "fov_min_deg 0–360, sensor_like and far_loss 0–1"
+                "fov_min_deg 0–360, sensor_like, far_loss and range_cut 0–1, range_cut_min_m > 0 "
+                "(and below the model's maximum range)"
             )
         unknown = sorted(set(self.sensor_like_names) - set(CATALOGUE))
         if unknown:
@@ -128,6 +140,11 @@ class Augmenter:
         # Azimuth of each column's centre (overlapmamba.core.projection: atan2 = π(1 − 2u/W)).
         self.azimuth = np.pi * (1 - 2 * (np.arange(self.W) + 0.5) / self.W)
         self.looks = [SensorLook(profile, s) for s in _other_sensors(cfg, profile)]
+        if cfg.range_cut and cfg.range_cut_min_m >= profile.max_range:
+            raise ConfigError(
+                f"augmentation range_cut_min_m={cfg.range_cut_min_m} m must be below the "
+                f"model's maximum range ({profile.max_range} m): the cut is drawn between them"
+            )
 
     def __call__(
         self, images: np.ndarray, rng: np.random.Generator, native: np.ndarray | None = None
@@ -173,6 +190,12 @@ class Augmenter:
                 lost = rng.random(img.shape) < share * np.maximum(img, 0)
                 img[lost & valid] = self.empty
                 valid &= ~lost
+            if c.range_cut:  # drawn only when on
+                cut, at = rng.random() < c.range_cut, rng.uniform(c.range_cut_min_m, self.max_range)
+                if cut:
+                    far = valid & (img >= np.float32(at))
+                    img[far] = self.empty
+                    valid &= ~far
             if c.range_noise:
                 sigma = rng.uniform(0, c.range_noise)
                 noise = rng.standard_normal(img.shape).astype(np.float32) * np.float32(sigma)

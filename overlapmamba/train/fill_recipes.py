@@ -13,29 +13,43 @@ batch norm and budget are ``lerp-towns-pilot``'s: two epochs of 3,000 scans.
 
 from __future__ import annotations
 
+from typing import Any
+
 from overlapmamba.train.lerp_recipes import LERP_TOWNS
 from overlapmamba.train.recipes import NARROW, TrainPreset
 from overlapmamba.train.sensor_recipes import COMMON_DATA, SENSOR_VAL
 
+CUT_TOWNS: dict[str, Any] = {
+    **LERP_TOWNS,
+    "augment": {"range_cut": 0.5, "range_cut_min_m": 40.0},
+}
 FILL_PRESETS: tuple[TrainPreset, ...] = tuple(
     TrainPreset(
         name,
         description,
         model={**NARROW, "sensor_input": mode},
-        train=LERP_TOWNS,
+        train=train,
         data=COMMON_DATA,
         val=SENSOR_VAL,
     )
-    for name, mode, description in (
+    for name, mode, train, description in (
         (
             "fill-towns-pilot",
             "elevation-fill",
+            LERP_TOWNS,
             "the shipped network continued on five towns, other sensors' one-column gaps filled",
         ),
         (
             "reach-towns-pilot",
             "elevation-reach",
+            LERP_TOWNS,
             "the same continuation, gaps filled and every scan cut at 50 m",
+        ),
+        (
+            "cut-towns-pilot",
+            "elevation-fill",
+            CUT_TOWNS,
+            "fill-towns-pilot with half the scans cut at a range drawn in 40-80 m (range_cut)",
         ),
     )
 )

@@ -191,6 +191,9 @@ for _name in (
     "bev-span-pilot",
     "bev-span-thin-pilot",
     "bev-span-thin-long",
+    "reach-towns-pilot",
+    "lerp-towns-pilot-control",
+    "cut-towns-pilot",
 ):
     _p = PRESETS[_name]  # every field the base's but these (a field added later follows too)
     PRESETS[_name + "-s1"] = replace(
