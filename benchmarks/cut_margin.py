@@ -24,13 +24,12 @@ Writes reports/model/cut-margin-SPLIT.json (≈ 2 min on 2 cores with the shippe
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from reports_kit import REPORTS, ROOT, shown_path, write_report
+from fill_gaps import drive_arguments
+from reports_kit import REPORTS, shown_path, write_report
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
@@ -70,15 +69,7 @@ def margins(
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
-    ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
-    ap.add_argument("--split", choices=("val", "test"), default="val")
-    ap.add_argument("--step", type=int, default=10, help="every STEP-th frame")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
-    if args.step < 1:
-        raise SystemExit(f"--step must be 1 or more; got {args.step}")
+    args = drive_arguments(__doc__.split("\n\n")[0])
     out = args.out or REPORTS / "model" / f"cut-margin-{args.split}.json"
     t0 = time.perf_counter()
     enc = Encoder(args.model)

@@ -81,14 +81,24 @@ def median_cosine(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.median((a * b).sum(1)))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def drive_arguments(description: str) -> argparse.Namespace:
+    """The options of a benchmark on one drive's renderings (this one's and
+    ``cut_margin.py``'s): the model file, the data folder, the split, the frame step, the
+    output."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
     ap.add_argument("--split", choices=("val", "test"), default="val")
     ap.add_argument("--step", type=int, default=10, help="every STEP-th frame")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    if args.step < 1:
+        raise SystemExit(f"--step must be 1 or more; got {args.step}")
+    return args
+
+
+def main() -> None:
+    args = drive_arguments(__doc__.split("\n\n")[0])
     out = args.out or REPORTS / "model" / f"fill-gaps-{args.split}.json"
     t0 = time.perf_counter()
     enc = Encoder(args.model)

@@ -9,10 +9,9 @@ from __future__ import annotations
 from typing import Any
 
 from figures_bev import pilot_epochs, real_table
-from figures_fill import PAIRS, model_label, pairs_summary
+from figures_fill import PAIRS, trained_pairs
 from figures_kit import f3, load, source, table, when
 from figures_lerp import pilot_test
-from figures_pairs import pair_tables
 
 # the control (fill), the cut made an augmentation, then the cut at the input by two seeds
 CUT_NAMES = ("fill-towns-pilot", "cut-towns-pilot", "reach-towns-pilot", "reach-towns-pilot-s1")
@@ -78,19 +77,7 @@ def cut_pilot_test() -> str:
 def across_pairs_cut() -> str:
     """Each pick across sensors on the test town (three views a scan, as the service runs
     them), beside the shipped weights by each input; the cut run's pick pair by pair."""
-    reports = [(p, load(p)) for p in CUT_PAIRS]
-    out = "".join(source(p, r["command"], when(r)) for p, r in reports)
-    out += (
-        "\nThe sensor test town, three views a scan; over the 20 pairs across sensors, AR@1 (a "
-        "hit within 5 m) mean / lowest / pairs at the bar (≥ 0.85 and above Scan Context) / "
-        "pairs above Scan Context:\n\n"
-        + pairs_summary("test", reports, model_label, "file (input)")
-    )
-    out += "\ntest, pair by pair:\n"
-    for p, r in reports:
-        if p.endswith("cut-towns-pilot.json"):
-            out += pair_tables(r, "test", with_sc=False)
-    return out
+    return trained_pairs(CUT_PAIRS, CUT_PAIRS[-1:])
 
 
 CUT_MARGIN = tuple(f"reports/model/cut-margin-{s}.json" for s in ("val", "test"))

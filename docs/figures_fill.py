@@ -143,10 +143,10 @@ def model_label(r: dict[str, Any]) -> str:
     return f"`{name}` (`{r['sensor_input']}`)"
 
 
-def across_pairs_trained() -> str:
-    """The fill and reach continuations' picks across sensors on the test town, beside the
-    shipped weights taking each input (the selection was the trainer's, on val)."""
-    reports = [(p, load(p)) for p in TRAINED]
+def trained_pairs(paths: tuple[str, ...], matrices: tuple[str, ...]) -> str:
+    """The across-pairs reports ``paths`` summed up on the test town (three views a scan),
+    then pair by pair those among ``matrices``."""
+    reports = [(p, load(p)) for p in paths]
     out = "".join(source(p, r["command"], when(r)) for p, r in reports)
     out += (
         "\nThe sensor test town, three views a scan; over the 20 pairs across sensors, AR@1 (a "
@@ -155,9 +155,16 @@ def across_pairs_trained() -> str:
         + pairs_summary("test", reports, model_label, "file (input)")
     )
     out += "\ntest, pair by pair:\n"
-    for _, r in reports[len(PAIRS) :]:
-        out += pair_tables(r, "test", with_sc=False)
+    for p, r in reports:
+        if p in matrices:
+            out += pair_tables(r, "test", with_sc=False)
     return out
+
+
+def across_pairs_trained() -> str:
+    """The fill and reach continuations' picks across sensors on the test town, beside the
+    shipped weights taking each input (the selection was the trainer's, on val)."""
+    return trained_pairs(TRAINED, TRAINED[len(PAIRS) :])
 
 
 def fill_real() -> str:
