@@ -13,8 +13,14 @@ from figures_fill import PAIRS, trained_pairs
 from figures_kit import f3, load, source, table, when
 from figures_lerp import pilot_test
 
-# the control (fill), the cut made an augmentation, then the cut at the input by two seeds
-CUT_NAMES = ("fill-towns-pilot", "cut-towns-pilot", "reach-towns-pilot", "reach-towns-pilot-s1")
+# the control (fill), the cut made an augmentation and the cut at the input, each by two seeds
+CUT_NAMES = (
+    "fill-towns-pilot",
+    "cut-towns-pilot",
+    "cut-towns-pilot-s1",
+    "reach-towns-pilot",
+    "reach-towns-pilot-s1",
+)
 CUT_RUNS = tuple(f"reports/model/{n}.json" for n in CUT_NAMES)
 CUT_REAL = {
     "`fill-towns-pilot`, its pick (elevation-fill)": (
