@@ -51,7 +51,7 @@ CUT_PAIRS = (
     *PAIRS,
     *(
         f"reports/model/across-pairs-{n}.json"
-        for n in ("fill-towns-pilot", "reach-towns-pilot", "cut-towns-pilot")
+        for n in ("fill-towns-pilot", "reach-towns-pilot", "cut-towns-pilot", "cut-towns-pilot-s1")
     ),
 )
 
@@ -82,8 +82,8 @@ def cut_pilot_test() -> str:
 
 def across_pairs_cut() -> str:
     """Each pick across sensors on the test town (three views a scan, as the service runs
-    them), beside the shipped weights by each input; the cut run's pick pair by pair."""
-    return trained_pairs(CUT_PAIRS, CUT_PAIRS[-1:])
+    them), beside the shipped weights by each input; the cut runs' picks pair by pair."""
+    return trained_pairs(CUT_PAIRS, CUT_PAIRS[-2:])
 
 
 CUT_MARGIN = tuple(f"reports/model/cut-margin-{s}.json" for s in ("val", "test"))
