@@ -27,14 +27,12 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import fill_gaps
 import numpy as np
-from fill_gaps import drive_arguments
 from reports_kit import REPORTS, shown_path, write_report
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
-from overlapmamba.core.sensors.catalogue import get_sensor
-from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.service.encoder import Encoder
 
 SENSORS = ("vlp16", "xt32", "os1-128", "os0-128")
@@ -44,10 +42,7 @@ HIT_M = 5.0  # m: the across-pairs benchmark's hit radius
 
 def descriptors(enc: Encoder, seq: Sequence, mode: str, frames: list[int]) -> np.ndarray:
     """(N, D) unit descriptors of ``frames`` of ``seq`` taken by input ``mode``."""
-    inp = SensorInput(enc.meta.profile, get_sensor(seq.sensor), mode)  # type: ignore[arg-type]
-    imgs = np.stack([inp.project(seq.points(i), enc.meta.views) for i in frames])
-    d = np.concatenate([enc.encode(imgs[i : i + 8])[0] for i in range(0, len(imgs), 8)])
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    return fill_gaps.descriptors(enc, fill_gaps.images(enc, seq, frames, mode))
 
 
 def margins(
@@ -69,7 +64,7 @@ def margins(
 
 
 def main() -> None:
-    args = drive_arguments(__doc__.split("\n\n")[0])
+    args = fill_gaps.drive_arguments(__doc__.split("\n\n")[0])
     out = args.out or REPORTS / "model" / f"cut-margin-{args.split}.json"
     t0 = time.perf_counter()
     enc = Encoder(args.model)

@@ -50,9 +50,10 @@ SENSORS = ("vlp16", "hdl32", "xt32", "os1-128", "os0-128")
 WAYS = ("elevation", "elevation-fill", "fill-every-sensor")
 
 
-def images(enc: Encoder, seq: Sequence, frames: list[int]) -> np.ndarray:
-    """(N, V, H, W) the file's images of ``frames`` by ``elevation`` (the scans' own sensor)."""
-    inp = SensorInput(enc.meta.profile, get_sensor(seq.sensor), "elevation")
+def images(enc: Encoder, seq: Sequence, frames: list[int], mode: str = "elevation") -> np.ndarray:
+    """(N, V, H, W) the file's images of ``frames`` taken by input ``mode`` from the scans'
+    own sensor."""
+    inp = SensorInput(enc.meta.profile, get_sensor(seq.sensor), mode)  # type: ignore[arg-type]
     return np.stack([inp.project(seq.points(i), enc.meta.views) for i in frames])
 
 

@@ -197,3 +197,24 @@ def test_cut_margin_measures_the_paired_cosine_against_the_nearest_other_place()
     assert got["recall@1"] == 0.75
     wrong = [cos[0, 1:].max(), max(cos[1, 0], cos[1, 2:].max()), cos[2, :2].max(), cos[3, :2].max()]
     assert got["nearest_wrong"] == pytest.approx(np.median(wrong))
+
+
+def test_cut_margin_descriptors_take_each_input_as_named(kitti_seq_dir):
+    """benchmarks/cut_margin.py's descriptors: the shipped file's unit descriptors of real
+    KITTI scans, one a frame, by the input it names: the cut (``elevation-reach``) moves
+    them, and the uncut input takes the model's own sensor natively, as ``elevation``."""
+    from conftest import ROOT, benchmark_module
+
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.service.encoder import Encoder
+
+    cut_margin, fill_gaps_bench = benchmark_module("cut_margin"), benchmark_module("fill_gaps")
+    enc, frames = Encoder(ROOT / "models" / "overlapmamba-hdl64.onnx"), [0, 40]
+    seq = open_sequence(kitti_seq_dir)
+    uncut = cut_margin.descriptors(enc, seq, "elevation-fill", frames)
+    cut = cut_margin.descriptors(enc, seq, "elevation-reach", frames)
+    assert uncut.shape == cut.shape == (2, enc.meta.descriptor_dim)
+    np.testing.assert_allclose(np.linalg.norm(uncut, axis=1), 1.0, atol=1e-5)
+    plain = fill_gaps_bench.descriptors(enc, fill_gaps_bench.images(enc, seq, frames))
+    np.testing.assert_allclose(uncut, plain, atol=1e-6)
+    assert (np.sum(uncut * cut, axis=1) < 0.99999).all()
