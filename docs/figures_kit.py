@@ -5,7 +5,8 @@ One function per ``<!-- render NAME -->`` block lives in ``figures_model.py`` (t
 the encoder, the service's thresholds), ``figures_fleet.py`` (verification, sizing, the
 fleet, the end-to-end runs), ``figures_input.py``, ``figures_bev.py`` and ``figures_lerp.py``
 (the sensor inputs' experiments), ``figures_pairs.py`` (issue 40's bar across sensors,
-pair by pair) and ``figures_phase.py`` (where a one-view scan's columns start);
+pair by pair), ``figures_phase.py`` (where a one-view scan's columns start) and
+``figures_scan.py`` (which scan path the service picks at load);
 ``docs/render.py`` pastes them, ``make docs`` rewrites them and
 ``tests/test_docs_figures.py`` fails on a stale one.
 Each table opens with the JSON it reads and the command that wrote it; nothing here types a

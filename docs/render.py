@@ -38,6 +38,7 @@ import figures_lerp
 import figures_model
 import figures_pairs
 import figures_phase
+import figures_scan
 import figures_spectrum
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -107,6 +108,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_fleet.RENDERERS,
     **figures_pairs.RENDERERS,
     **figures_phase.RENDERERS,
+    **figures_scan.RENDERERS,
     **figures_spectrum.RENDERERS,
 }
 

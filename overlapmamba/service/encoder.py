@@ -16,8 +16,14 @@ inlines each scan node's body (ONNX ``Scan`` loops). The *C-kernel* path
 (:mod:`overlapmamba.service.fastscan`) cuts the graph at its scan nodes and runs each scan with the
 kernel the model was trained with. It is built at load, then checked against the portable
 graph on a fixed input (max abs difference ≤ :data:`PARITY_TOL` in both outputs), and timed
-against it on that input (the two in turn): only when it agrees, and is not slower
-than the portable graph on this machine by more than :data:`KERNEL_SLOWER`, does it serve.
+against it on one scan of that input (:func:`_time_both`): only when it agrees, and costs no
+more than :data:`KERNEL_SLOWER` × the portable graph's CPU time on this machine, does it serve.
+CPU time, not wall time: the service is sized by its load, where every core is busy and what
+a scan costs all threads together bounds the throughput; and in blocks, not call by call,
+because after a run the portable graph's onnxruntime workers spin on the cores for a while,
+and a kernel call timed just after one ran beside them (that made the choice a coin flip on
+one 2-core machine, where the kernel costs about half the portable graph's CPU a scan:
+``python benchmarks/scan_choice.py``, reports/service/scan-choice.json).
 Anything that fails (no kernel, a file exported before scans were marked, a
 parity miss) is logged as a warning and the portable graph serves: :attr:`Encoder.scan_path`
 says which one runs, and ``/readyz`` shows it.
@@ -143,10 +149,13 @@ class Encoder:
             return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
         # Faster where the kernel's exponentials vectorise well; on some processors it is
         # not (measured: twice the portable graph's time on one cloud Xeon). Time both on
-        # the parity image (one graph row; a start-up costs a few tenths of a second more)
-        # and serve with the faster.
-        kernel_ms, portable_ms = _time_both(lambda: staged.run(x), lambda: self._run_portable(x))
-        timing = f"{kernel_ms:.1f} against {portable_ms:.1f} ms an image at load"
+        # one scan of the parity image (its views, as a scan is served; a start-up costs a
+        # few tenths of a second more) and serve with the cheaper.
+        scan = np.concatenate([x] * self.meta.descriptors_per_scan)
+        kernel_ms, portable_ms = _time_both(
+            lambda: staged.run(scan), lambda: self._run_portable(scan)
+        )
+        timing = f"{kernel_ms:.1f} against {portable_ms:.1f} ms of CPU a scan at load"
         if kernel_ms > KERNEL_SLOWER * portable_ms:
             log.warning(
                 "model %s: the C scan kernel is slower than the portable graph on this machine "
@@ -266,19 +275,25 @@ class Encoder:
         return desc if sensor_map is None else sensor_map.apply(desc)
 
 
-KERNEL_SLOWER = 1.1  # the kernel serves unless it takes more than this × the portable graph
-TIMING_ROUNDS = 3
+KERNEL_SLOWER = 1.1  # the kernel serves unless it costs more than this × the portable graph
+TIMING_CALLS = 3  # timed calls of each path at load, after a warm one
+TIMING_PAUSE_S = 0.02  # after a block: longer than onnxruntime's idle workers spin
 
 
 def _time_both(kernel: Callable[[], object], portable: Callable[[], object]) -> tuple[float, float]:
-    """Median ms of each, the two run in turn (so a busy moment hits both alike)."""
-    times: tuple[list[float], list[float]] = ([], [])
-    for _ in range(TIMING_ROUNDS):
-        for fn, out in ((kernel, times[0]), (portable, times[1])):
-            t = time.perf_counter()
+    """CPU ms a call of each (the process's, every thread: what a busy machine pays), each
+    timed in a block of its own (a warm call, then :data:`TIMING_CALLS` back to back), the
+    kernel's first: the portable graph's workers, which spin after its runs, then spin after
+    the timing, not into the kernel's."""
+    spent = []
+    for fn in (kernel, portable):
+        fn()
+        t = time.process_time()
+        for _ in range(TIMING_CALLS):
             fn()
-            out.append((time.perf_counter() - t) * 1e3)
-    return float(np.median(times[0])), float(np.median(times[1]))
+        spent.append(1e3 * (time.process_time() - t) / TIMING_CALLS)
+        time.sleep(TIMING_PAUSE_S)
+    return spent[0], spent[1]
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:
