@@ -182,78 +182,83 @@ def headline_one_view() -> str:
     return out + table(head, rows)
 
 
-SENSORS = "reports/model/sensors.json"
-SENSORS_ONE_VIEW = "reports/model/sensors-one-view.json"
+# the sensors baseline (benchmarks/sensors.py) of the default file and of its twins
+SENSOR_RUNS = (
+    ("three views (the default file)", "reports/model/sensors.json"),
+    ("one view, aligned columns", "reports/model/sensors-one-view.json"),
+    ("three views met at the tokens", "reports/model/sensors-tokens.json"),
+)
 
 
 def _fr(m: dict) -> str:
     return f"{m['f1max']:.3f} / {m['recall@1']:.3f}"
 
 
-def sensors_one_view() -> str:
-    """The sensors baseline (``benchmarks/sensors.py``) for the default file and for its
-    one-view twin on the same drives, town by town and pair by pair."""
-    base, twin = load(SENSORS), load(SENSORS_ONE_VIEW)
-    out = source(SENSORS, "python benchmarks/sensors.py", when(base))
-    cmd = twin.get("command", "python benchmarks/sensors.py --model ...")
-    out += source(SENSORS_ONE_VIEW, cmd, when(twin))
-    out += (
-        "\nSame sensor, F1max / Recall@1 (all revisits), the default file → the one-view "
-        "twin; Scan Context's as the default file's run measured it; verified precision / "
-        "recall at each file's own thresholds:\n\n"
+def sensors_twins() -> str:
+    """The sensors baseline for the default file and for its twins on the same drives, town
+    by town and pair by pair, a row per file."""
+    runs = [(label, path, load(path)) for label, path in SENSOR_RUNS]
+    out = "".join(
+        source(path, r.get("command", "python benchmarks/sensors.py"), when(r))
+        for _, path, r in runs
     )
-    theirs = {Path(r["town"]).name: r for r in twin["same_sensor"]}
-    same = all(
-        theirs[Path(r["town"]).name]["scan_context"] == r["scan_context"]
-        for r in base["same_sensor"]
-        if Path(r["town"]).name in theirs
+    towns = [{Path(x["town"]).name: x for x in r["same_sensor"]} for _, _, r in runs]
+    common = [t for t in towns[0] if all(t in other for other in towns[1:])]
+    same = all(tw[t]["scan_context"] == towns[0][t]["scan_context"] for tw in towns for t in common)
+    out += (
+        "\nSame sensor, F1max / Recall@1 (all revisits); verified precision / recall at each "
+        "file's own thresholds. Scan Context "
+        + (
+            "scored the same in every run on every town: the same drives."
+            if same
+            else "scored differently between the runs: not the same drives."
+        )
+        + "\n\n"
     )
     rows = []
-    for r in base["same_sensor"]:
-        t = theirs.get(Path(r["town"]).name)
-        if t is None:
-            continue
-        pv = [f"{x['verified']['precision']:.3f} / {x['verified']['recall']:.3f}" for x in (r, t)]
-        rows.append(
-            [
-                f"{r['sensor']} ({r['mount']})",
-                f"{_fr(r['descriptor'])} → {_fr(t['descriptor'])}",
-                f"{_fr(r['two_stage'])} → {_fr(t['two_stage'])}",
-                _fr(r["scan_context"]),
-                f"{pv[0]} → {pv[1]}",
-            ]
-        )
-    head = ["sensor (mounting)", "descriptor alone", "two stages (service)", "Scan Context"]
-    out += table([*head, "verified precision / recall"], rows)
-    out += (
-        "\nScan Context scored the same in both runs on every town: the same drives.\n"
-        if same
-        else "\nScan Context's scores differ between the runs: not the same drives.\n"
-    )
-    out += "\nAcross sensors, AR@1 (a hit within 5 m), the default file → the twin:\n\n"
-    pairs = {(p["query_sensor"], p["map_sensor"]): p for p in twin["across_sensors"]}
+    for t in common:
+        for k, (label, _, _) in enumerate(runs):
+            x = towns[k][t]
+            v = x["verified"]
+            rows.append(
+                [
+                    f"{x['sensor']} ({x['mount']})" if k == 0 else "",
+                    label,
+                    _fr(x["descriptor"]),
+                    _fr(x["two_stage"]),
+                    _fr(x["scan_context"]) if k == 0 else "",
+                    f"{v['precision']:.3f} / {v['recall']:.3f}",
+                ]
+            )
+    head = ["sensor (mounting)", "file", "descriptor alone", "two stages (service)"]
+    out += table([*head, "Scan Context", "verified precision / recall"], rows)
+    out += "\nAcross sensors, AR@1 (a hit within 5 m):\n\n"
+    pairs = [
+        {(p["query_sensor"], p["map_sensor"]): p for p in r["across_sensors"]} for *_, r in runs
+    ]
     rows = []
-    for p in base["across_sensors"]:
-        q = pairs.get((p["query_sensor"], p["map_sensor"]))
-        if q is None:
+    for key in pairs[0]:
+        if not all(key in other for other in pairs[1:]):
             continue
-        rows.append(
-            [
-                p["query_sensor"],
-                p["map_sensor"],
-                f"{p['descriptor']['ar@1']:.3f} → {q['descriptor']['ar@1']:.3f}",
-                f"{p['two_stage']['ar@1']:.3f} → {q['two_stage']['ar@1']:.3f}",
-                f"{p['scan_context']['ar@1']:.3f}",
-            ]
-        )
-    head = ["queries", "map", "descriptor alone", "two stages (service)", "Scan Context"]
-    return out + table(head, rows)
+        for k, (label, _, _) in enumerate(runs):
+            p = pairs[k][key]
+            rows.append(
+                [
+                    f"{key[0]} against {key[1]}" if k == 0 else "",
+                    label,
+                    f"{p['descriptor']['ar@1']:.3f}",
+                    f"{p['two_stage']['ar@1']:.3f}",
+                    f"{p['scan_context']['ar@1']:.3f}" if k == 0 else "",
+                ]
+            )
+    head = ["queries against map", "file", "descriptor alone", "two stages (service)"]
+    return out + table([*head, "Scan Context"], rows)
 
 
 RENDERERS: dict[str, Callable[[], str]] = {
     "column-phase": column_phase,
     "revisit-phase": revisit_phase,
     "aligned-pilot": aligned_pilot,
-    "sensors-one-view": sensors_one_view,
+    "sensors-twins": sensors_twins,
     "headline-one-view": headline_one_view,
 }
