@@ -36,11 +36,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_kit import REAL as KITTI
 from reports_kit import REPORTS, ROOT, shown_path, write_report
 
 from overlapmamba.service.encoder import Encoder, parity_image
 
-KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
 MODELS = [ROOT / "models" / "overlapmamba-hdl64.onnx"]
 MODELS.append(ROOT / "models" / "overlapmamba-hdl64-one-view.onnx")
 PAUSE_S = 0.05  # between blocks: longer than onnxruntime's workers spin after a run

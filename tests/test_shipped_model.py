@@ -265,3 +265,31 @@ def test_the_load_time_timing_counts_cpu_in_blocks():
     calls = encoder_mod.TIMING_CALLS + 1
     assert order == ["kernel"] * calls + ["portable"] * calls
     assert kernel_ms < 2.0 <= 10.0 <= portable_ms < 50.0
+
+
+def test_scan_choice_times_what_the_service_runs(kitti_seq_dir):
+    """benchmarks/scan_choice.py: the images it times are the scans' views as the encoder
+    hands them to its graph, and one small run records each load's pick and both paths'
+    wall and CPU time a scan."""
+    from conftest import benchmark_module
+
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.scan_kernel import KernelBuildError, load
+    from overlapmamba.service.encoder import Encoder
+
+    try:
+        load()
+    except KernelBuildError as err:
+        pytest.skip(f"no C kernel here: {err}")
+    bench = benchmark_module("scan_choice")
+    enc = Encoder(MODEL, intra_op_threads=1, scan_kernel=True)
+    x, source = bench.scans(enc, 2)
+    seq = open_sequence(kitti_seq_dir)
+    want = np.stack([enc.project_offset(seq.points(i))[0] for i in range(2)])
+    assert source.startswith("real KITTI") and x.shape == (2 * enc.views, 1, 64, 900)
+    np.testing.assert_array_equal(x.reshape(want.shape), want)
+    got = bench.measure(MODEL, loads=1, reps=1)
+    assert sum(got["loads"]["picked"].values()) == 1 and len(got["loads"]["logged"]) == 1
+    for n in ("1_scans_a_call", "8_scans_a_call"):
+        for way in ("c-kernel", "portable"):
+            assert got["cost"][n][way]["wall_ms"] > 0 and got["cost"][n][way]["cpu_ms"] > 0
