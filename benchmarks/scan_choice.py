@@ -4,7 +4,7 @@ what each way costs where the service runs it.
 A model file runs two ways (:mod:`overlapmamba.service.encoder`): the portable graph
 (onnxruntime runs the scan's loops) and the C-kernel path (the graph cut at its scans, the
 kernel the model was trained with between the cuts). With ``scan_kernel = auto`` (the
-default) the encoder times both at load and serves with the kernel unless it is slower.
+default) the encoder times both at load and serves with the kernel unless it costs more.
 For each model file (default: the shipped file and its one-view twin), at the service's
 default threads (every core):
 
@@ -21,7 +21,7 @@ fixed images.
 
     python benchmarks/scan_choice.py [--model FILE ...] [--loads 10] [--reps 10]
 
-Writes reports/service/scan-choice.json (≈ 1 min on 2 cores).
+Writes reports/service/scan-choice.json (under a minute on 2 cores).
 """
 
 from __future__ import annotations
