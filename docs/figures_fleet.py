@@ -347,25 +347,32 @@ def fleet_views() -> str:
 
 
 # ---- end to end ----------------------------------------------------------------------------
-def e2e() -> str:
-    """The end-to-end runs (``make e2e``), one line each from its JSON."""
-    rows = []
-    lt = load("reports/e2e/load.json")
+def _load_row(rel: str, label: str) -> list[str]:
+    """One load run (``tests/test_e2e_load.py``): its fleet, mapper and closures."""
+    lt = load(rel)
     fl = lt["fleet"]
     served = lt.get("model") or {}  # recorded since 2026-11-29
-    model = f" (model `{served['model_id']}`, {served['views']} views)" if served else ""
-    rows.append(
-        [
-            "load (`tests/test_e2e_load.py`)",
-            lt["when"][:10],
-            f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s{model}, "
-            f"while a mapper inserted {lt['mapper']['keyframes_acknowledged']:,} keyframes: "
-            f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
-            f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
-            f"verified closures precision {fl['closure_precision']:.3f}, recall "
-            f"{fl['closure_recall']:.3f}",
-        ]
-    )
+    views = served.get("views", 0)
+    model = f" (model `{served['model_id']}`, {views} view{'s' * (views != 1)})" if served else ""
+    return [
+        label,
+        lt["when"][:10],
+        f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s{model}, "
+        f"while a mapper inserted {lt['mapper']['keyframes_acknowledged']:,} keyframes: "
+        f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
+        f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
+        f"verified closures precision {fl['closure_precision']:.3f}, recall "
+        f"{fl['closure_recall']:.3f}",
+    ]
+
+
+def e2e() -> str:
+    """The end-to-end runs (``make e2e``), one line each from its JSON."""
+    rows = [_load_row("reports/e2e/load.json", "load (`tests/test_e2e_load.py`)")]
+    for twin in sorted((ROOT / "reports" / "e2e").glob("load-*.json")):
+        stem = twin.stem.removeprefix("load-")
+        label = f"load, `OVERLAPMAMBA_E2E_MODEL=models/{stem}.onnx`"
+        rows.append(_load_row(f"reports/e2e/{twin.name}", label))
     crash = load("reports/e2e/crash.json")
     rows.append(
         [

@@ -66,12 +66,13 @@ async def running(settings: Settings, encoder: Encoder) -> AsyncIterator[httpx.A
 
 @contextlib.contextmanager
 def server(
-    data_dir: Path, env: dict[str, str] | None = None
+    data_dir: Path, env: dict[str, str] | None = None, model: Path = MODEL
 ) -> Iterator[tuple[str, subprocess.Popen]]:
-    """A real `overlapmamba serve` process on a free loopback port, ready when yielded
-    (:func:`overlapmamba.service.process.serve_process`); its log: ``server_log(proc)``."""
+    """A real `overlapmamba serve` process of ``model`` (default: the shipped file) on a free
+    loopback port, ready when yielded (:func:`overlapmamba.service.process.serve_process`);
+    its log: ``server_log(proc)``."""
     env = {"OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})}
-    with serve_process(data_dir, model=MODEL, env=env, cwd=ROOT) as srv:
+    with serve_process(data_dir, model=model, env=env, cwd=ROOT) as srv:
         srv.proc.log_path = srv.log_path  # type: ignore[attr-defined]
         yield srv.url, srv.proc
 

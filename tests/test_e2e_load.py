@@ -3,12 +3,16 @@ map-building job inserting descriptors and a dashboard polling statistics, all a
 Zero errors, and afterwards every acknowledged write is there.
 
 Quick (``make test``): 2 robots for 8 s. Full (``make e2e``): 8 robots at 10 Hz for 60 s.
+``OVERLAPMAMBA_E2E_MODEL=FILE`` serves another model file (a twin of the shipped one); its
+report is then ``reports/e2e/load-STEM.json`` beside the shipped file's ``load.json``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import time
+from pathlib import Path
 
 import httpx
 import pytest
@@ -24,7 +28,7 @@ from e2e_kit import (
     size,
     write_report,
 )
-from service_kit import server
+from service_kit import MODEL, server
 
 from overlapmamba.client import NO_RETRY
 from overlapmamba.client._replay import open_drive
@@ -38,7 +42,14 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     robots, duration = size(2, 8), size(8.0, 60.0)
     drive = open_drive(drive_dir())
     env: dict[str, str] = {}  # the defaults: micro-batching on (docs/deploy.md, sizing)
-    with server(tmp_path / "data", env) as (url, _), httpx.Client(base_url=url, timeout=60) as c:
+    model = Path(os.environ.get("OVERLAPMAMBA_E2E_MODEL") or MODEL)
+    if not model.is_file():
+        pytest.fail(f"OVERLAPMAMBA_E2E_MODEL={model} is not a file")
+    name = "load" if model.resolve() == MODEL.resolve() else f"load-{model.stem}"
+    with (
+        server(tmp_path / "data", env, model) as (url, _),
+        httpx.Client(base_url=url, timeout=60) as c,
+    ):
         model_id = c.get("/readyz").json()["detail"]["model_id"]
         assert c.put("/v1/maps/built").status_code == 201
         mapper = Mapper(url, model_id=model_id).start()
@@ -70,7 +81,10 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
 
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {
-        "command": "make e2e (tests/test_e2e_load.py)",
+        "command": "make e2e (tests/test_e2e_load.py)"
+        if name == "load"
+        else f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={os.environ['OVERLAPMAMBA_E2E_MODEL']} "
+        "python -m pytest -m e2e tests/test_e2e_load.py",
         "model": report.server,  # the service's model id, views and scan path (its /readyz)
         "drive": drive.name,
         "robots": robots,
@@ -107,7 +121,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "index_equals_store": {k: m["index"]["vectors"] == m["keyframes"] for k, m in maps.items()},
         "server_encode_ms": stats["latency_ms"].get("encode"),
     }
-    path = write_report("load", body)
+    path = write_report(name, body)
     assert errors == 0, (report.errors, mapper.errors[:3], poller.errors[:3], path)
     assert not missing, missing[:10]
     assert all(body["index_equals_store"].values()), maps
