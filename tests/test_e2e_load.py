@@ -83,7 +83,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     body = {
         "command": "make e2e (tests/test_e2e_load.py)"
         if name == "load"
-        else f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={os.environ['OVERLAPMAMBA_E2E_MODEL']} "
+        else f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={model} "
         "python -m pytest -m e2e tests/test_e2e_load.py",
         "model": report.server,  # the service's model id, views and scan path (its /readyz)
         "drive": drive.name,
