@@ -18,7 +18,7 @@ from overlapmamba.core.overlap import LoopParams, loop_ground_truth, overlap_and
 from overlapmamba.core.sensors import CATALOGUE, get_profile
 from overlapmamba.synth.config import GenConfig
 from overlapmamba.synth.dynamics import Dynamics
-from overlapmamba.synth.generate import build_scene, generate, read_manifest
+from overlapmamba.synth.generate import build_scene, firing_phase, generate, read_manifest
 from overlapmamba.synth.geometry import MAT, Mesh
 from overlapmamba.synth.lidar import Scanner, get_lidar
 from overlapmamba.synth.mounting import MOUNTINGS, Mounting, get_mounting
@@ -161,6 +161,63 @@ def test_scanner_sees_flat_ground_at_the_right_ranges():
     assert horiz[ahead].min() > 3.5
     assert horiz[~ahead].min() < 4.2
     assert pts[:, 3].min() > 0 and pts[:, 3].max() <= 0.99
+
+
+def _firing_fraction(pts: np.ndarray, columns: int) -> np.ndarray:
+    """Each point's azimuth in firings after the locked head's nearest one, in [−½, ½): the
+    head fires at azimuth π − 2π(k + ½)/columns (clockwise)."""
+    az = np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64))
+    k = ((np.pi - az) / (2 * np.pi) * columns - 0.5) % columns
+    return (k + 0.5) % 1.0 - 0.5
+
+
+def test_a_drifting_scan_fires_a_fraction_of_a_spacing_later():
+    """phase 0 fires where every locked turn does; phase φ a fraction φ of a firing's
+    spacing later at every firing, with every other draw (noise, dropout) the same."""
+    lidar = get_lidar("kitti-hdl64")
+    scanner = Scanner(_room(), lidar, Mounting("pole", 5.0))
+    pose = np.eye(4)
+    pose[2, 3] = 5.0
+    scan = lambda phase: scanner.scan(  # noqa: E731
+        _still(pose), 0.0, Mesh.empty(), np.random.default_rng(3), phase
+    )
+    locked, default = (
+        scan(0.0),
+        scanner.scan(_still(pose), 0.0, Mesh.empty(), np.random.default_rng(3)),
+    )
+    assert np.array_equal(locked, default)
+    assert np.abs(_firing_fraction(locked, lidar.columns)).max() < 1e-3
+    for phase in (0.25, 0.7):
+        pts = scan(phase)
+        late = _firing_fraction(pts, lidar.columns)
+        want = (phase + 0.5) % 1.0 - 0.5
+        assert np.abs(late - want).max() < 1e-3, phase
+        assert abs(len(pts) - len(locked)) < 0.01 * len(locked)
+    with pytest.raises(ValueError, match=r"phase must be in \[0, 1\)"):
+        scan(1.0)
+
+
+def test_a_drifting_town_differs_from_its_locked_twin_only_in_its_firings(tmp_path):
+    """The same drive and draws, the firings moved; the locked config dumps as before the
+    field existed (old manifests stay equal to their presets)."""
+    cfg = GenConfig(seed=9, frames=4, world={"nx": 2, "ny": 2}, pair_table="none")
+    assert "firing_phase" not in cfg.model_dump()
+    drift = cfg.model_copy(update={"firing_phase": "drifting"})
+    generate(tmp_path / "a", cfg, workers=1, progress=False)
+    generate(tmp_path / "b", drift, workers=1, progress=False)
+    assert read_manifest(tmp_path / "b")["config"]["firing_phase"] == "drifting"
+    assert "firing_phase" not in read_manifest(tmp_path / "a")["config"]
+    for k in range(4):
+        a = np.fromfile(tmp_path / "a" / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        b = np.fromfile(tmp_path / "b" / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        assert abs(len(a) - len(b)) < 0.02 * len(a) and not np.array_equal(a[:100], b[:100])
+    assert [firing_phase(cfg.session_seed(), k) for k in range(4)] == [
+        firing_phase([9], k) for k in range(4)
+    ]
+    assert len({round(firing_phase([9], k), 6) for k in range(100)}) == 100
+    assert "test-drift" in PRESETS and PRESETS["test-drift"].firing_phase == "drifting"
+    locked = {"firing_phase": "locked", "preset": "test"}
+    assert PRESETS["test-drift"].model_copy(update=locked) == PRESETS["test"]
 
 
 def _room(half: float = 15.0, height: float = 40.0) -> Mesh:
@@ -374,7 +431,10 @@ def test_generate_refuses_a_non_empty_folder_and_bad_config(tmp_path):
 
 def test_presets_are_fixed_distinct_towns_that_plan():
     rigs = {
-        (c.seed, c.session, c.sensor, c.mount, c.mount_height, c.mount_pitch_deg, c.mount_roll_deg)
+        (
+            *(c.seed, c.session, c.sensor, c.mount, c.mount_height),
+            *(c.mount_pitch_deg, c.mount_roll_deg, c.firing_phase),
+        )
         for c in PRESETS.values()
     }
     assert len(rigs) == len(PRESETS) and PRESETS["test"].split == "test"

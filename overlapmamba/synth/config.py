@@ -4,9 +4,16 @@ extent)."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+)
 
 from overlapmamba.core.overlap import LoopParams
 from overlapmamba.core.sensors.catalogue import CATALOGUE, sensor_names
@@ -47,6 +54,13 @@ class GenConfig(BaseModel):
     )
     mount_roll_deg: float | None = Field(
         default=None, ge=-30.0, le=30.0, description="positive: left side raised"
+    )
+    firing_phase: Literal["locked", "drifting"] = Field(
+        default="locked",
+        description="locked: the head fires at the same azimuths every turn (every preset "
+        "made before generator 1.8.0); drifting: each scan's firings start a random fraction "
+        "of a firing's spacing later, as a real head's do from turn to turn "
+        "(overlapmamba.synth.lidar)",
     )
     preset: str | None = None
     split: str = Field(default="train", description="train, val or test; test is never trained on")
@@ -96,6 +110,15 @@ class GenConfig(BaseModel):
         if v not in ("train", "val", "test"):
             raise ValueError(f"unknown split {v!r}; allowed: train, val, test")
         return v
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> Any:
+        """``firing_phase`` is dumped only where it is not the default, so the manifests
+        and configs of every locked town read as they did before the field existed."""
+        out = handler(self)
+        if isinstance(out, dict) and out.get("firing_phase") == "locked":
+            out.pop("firing_phase")
+        return out
 
     def session_seed(self) -> list[int]:
         """Entropy of everything that changes between sessions (session 0: the seed alone,

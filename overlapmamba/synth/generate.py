@@ -44,8 +44,9 @@ from overlapmamba.synth.world import World, build_world
 # the streets of the first (session 0 unchanged); 1.6.0: the sensor catalogue and mountings
 # (kitti-hdl64 on the car byte-identical to 1.5.0; hdl32 now as its manual gives it);
 # 1.7.0: overlap tables in float32 (scans byte-identical to 1.6.0; each overlap within
-# 5e-5 of 1.6.0's, none across 0.3: benchmarks/overlap_tables.py)
-GENERATOR_VERSION = "1.7.0"
+# 5e-5 of 1.6.0's, none across 0.3: benchmarks/overlap_tables.py); 1.8.0: the drifting
+# firing phase (``firing_phase``; locked towns byte-identical to 1.7.0)
+GENERATOR_VERSION = "1.8.0"
 DYNAMIC_RADIUS = 110.0  # m: cars and people farther than this are not cast against
 
 
@@ -61,6 +62,7 @@ def _init_worker(
     mounting: Mounting,
     seed: list[int],
     out: str,
+    drifting: bool = False,
 ):
     _W.update(
         scanner=Scanner(world.static, get_lidar(sensor), mounting),
@@ -68,7 +70,14 @@ def _init_worker(
         dyn=dynamics,
         seed=seed,
         out=Path(out),
+        drifting=drifting,
     )
+
+
+def firing_phase(seed: list[int], k: int) -> float:
+    """Scan ``k``'s firing phase in a drifting town: from a stream of its own, so that the
+    town's every other draw (noise, dropout, traffic) is the locked town's."""
+    return float(np.random.default_rng([*seed, 2, k]).random())
 
 
 def _simulate(k: int) -> tuple[int, int]:
@@ -76,7 +85,9 @@ def _simulate(k: int) -> tuple[int, int]:
     t = float(drive.times[k])
     heading = float(np.arctan2(drive.poses[k, 1, 0], drive.poses[k, 0, 0]))
     mesh = _W["dyn"].mesh_at(t, drive.poses[k, :2, 3], DYNAMIC_RADIUS, heading)
-    pts = _W["scanner"].scan(drive.pose_at, t, mesh, np.random.default_rng([*_W["seed"], 1, k]))
+    phase = firing_phase(_W["seed"], k) if _W["drifting"] else 0.0
+    rng = np.random.default_rng([*_W["seed"], 1, k])
+    pts = _W["scanner"].scan(drive.pose_at, t, mesh, rng, phase)
     path = _W["out"] / "velodyne" / f"{k:06d}.bin"
     tmp = path.with_suffix(".tmp")
     pts.tofile(tmp)
@@ -96,7 +107,17 @@ def simulate_scans(
 ) -> np.ndarray:
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = np.zeros(cfg.frames, np.int64)
-    args = (world, drive, dynamics, cfg.sensor, cfg.mounting(), cfg.session_seed(), str(out))
+    drifting = cfg.firing_phase == "drifting"
+    args = (
+        world,
+        drive,
+        dynamics,
+        cfg.sensor,
+        cfg.mounting(),
+        cfg.session_seed(),
+        str(out),
+        drifting,
+    )
     bar = tqdm(total=cfg.frames, desc="simulate", unit="scan", disable=not progress)
     if workers <= 1:
         _init_worker(*args)

@@ -15,6 +15,16 @@ Per scan:
      forward), in firing order.
 
 Output: (N, 4) float32 x, y, z, intensity — KITTI's ``.bin`` record.
+
+**Where the firings fall.** With ``phase`` 0 (every town made before generator 1.8.0: the
+``locked`` firing phase of :class:`overlapmamba.synth.config.GenConfig`) the head fires at
+the same azimuths every turn, so a model's column grid meets the firings in the same pattern
+in every scan (the kitti-hdl64's 2,083 firings give its 900 columns two or three each, always
+the same columns). A real head does not: its firings' spacing varies with the motor's speed
+from turn to turn (on KITTI 00 frames 0–100 the median spacing per scan ranges over about
+1 %), so over a turn the pattern between firings and columns drifts. ``phase`` φ ∈ [0, 1)
+(the ``drifting`` firing phase, drawn per scan) starts the scan's firings φ of a spacing
+later: every firing's azimuth and instant move by φ / ``columns`` of a turn.
 """
 
 from __future__ import annotations
@@ -128,16 +138,30 @@ class Scanner:
             albedo[nearer] = dyn.mesh.albedo[face2[nearer]]
         return t, mat, albedo, ng
 
-    def scan(self, pose_at, t_scan: float, dynamic: Mesh, rng: np.random.Generator) -> np.ndarray:
-        """One sweep around timestamp ``t_scan``; ``pose_at(times) → (M, 4, 4)``."""
+    def scan(
+        self,
+        pose_at,
+        t_scan: float,
+        dynamic: Mesh,
+        rng: np.random.Generator,
+        phase: float = 0.0,
+    ) -> np.ndarray:
+        """One sweep around timestamp ``t_scan``; ``pose_at(times) → (M, 4, 4)``. ``phase``
+        in [0, 1): the firings start that fraction of a spacing later (the module notes)."""
         m = self.model
         H = m.beams
-        poses = pose_at(t_scan + self.col_time)  # (C, 4, 4) pose of each firing
+        if not 0.0 <= phase < 1.0:
+            raise ValueError(f"phase must be in [0, 1) of a firing's spacing; got {phase}")
+        col_time, dirs = self.col_time, self.dirs_by_column
+        if phase:  # the head spins clockwise: later firings, smaller azimuths
+            col_time = col_time + phase / (m.columns * m.rate_hz)
+            dirs = dirs @ _turn_z(-2.0 * np.pi * phase / m.columns).T
+        poses = pose_at(t_scan + col_time)  # (C, 4, 4) pose of each firing
         ref = pose_at(np.array([t_scan]))[0]
         # Firing order: column by column, all lasers of a column together. Each column's
         # directions turned by its own pose: one stacked matmul (30× an einsum, same bits).
         o = np.repeat(poses[:, :3, 3].astype(np.float32), H, axis=0)
-        d = (self.dirs_by_column @ poses[:, :3, :3].transpose(0, 2, 1)).astype(np.float32)
+        d = (dirs @ poses[:, :3, :3].transpose(0, 2, 1)).astype(np.float32)
         d = d.reshape(-1, 3)
 
         dyn = _Scene(dynamic) if len(dynamic) else None
@@ -181,6 +205,12 @@ class Scanner:
         intensity = rho * (0.9 + 0.1 * cos_inc) * (1.0 - 0.15 * np.minimum(r / 100.0, 1.0))
         intensity = np.clip(intensity + rng.normal(0, 0.03, len(r)), 0.0, 0.99)
         return np.column_stack([local, intensity]).astype("<f4")
+
+
+def _turn_z(angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` radians about the sensor's z axis."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 __all__ = ["LidarModel", "Scanner", "get_lidar"]

@@ -14,6 +14,7 @@ can refuse test data.
 | test-b  | 3103 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-c  | 3203 | 2500  | kitti-hdl64 | 6 × 6 nodes            | reported numbers only    |
 | test-s1 | 3003 | 1500  | kitti-hdl64 | the test town, session 1 | queries across sessions |
+| NAME-drift | as NAME | as NAME | kitti-hdl64 | val, test, test-b, test-c, drifting | phase |
 | val-SENSOR | 2103 | 2000 | every sensor, car | 5 × 5 nodes | selection across sensors |
 | test-SENSOR | 3304 | 2000 | every sensor, car | 5 × 5 nodes | reported numbers only |
 | test-S-MOUNT | 3304 | 2000 | vlp16, os0-128, xt32 | the same town | reported numbers only |
@@ -45,6 +46,13 @@ within 6 m of a scan more than 100 frames older (tiny: 88 and 82; tiny-val: 11 a
 describes all its scans, which made validation most of each tiny run's time, so it is
 shorter. Its seed follows the same rule for a 350-scan drive, counting up from 6: 177 (12
 and 12; no 300-scan drive among seeds 1–399 has even 8 of each).
+
+The drifting towns (``val-drift``, ``test-drift``, ``test-b-drift``, ``test-c-drift``) are
+those towns' drives with ``firing_phase="drifting"``: each scan's firings start a random
+fraction of a firing's spacing later, as a real head's do from turn to turn
+(:mod:`overlapmamba.synth.lidar`), and every other draw of the scan is the locked town's. A
+scan differs from its locked twin only in where the firings fell; the loop tables agree
+within the overlap's resolution.
 
 The sensor towns (``make data-sensors``) are one validation town and one test town, each
 driven once (session 0) and rendered by every catalogue sensor on a car's roof: the drives
@@ -164,6 +172,14 @@ def _sensor_towns() -> dict[str, GenConfig]:
 
 
 PRESETS.update(_sensor_towns())
+DRIFT_PRESETS = tuple(f"{k}-drift" for k in ("val", "test", "test-b", "test-c"))
+_DRIFTING = {"firing_phase": "drifting"}
+PRESETS.update(
+    {
+        f"{k}-drift": PRESETS[k].model_copy(update={"preset": f"{k}-drift", **_DRIFTING})
+        for k in ("val", "test", "test-b", "test-c")
+    }
+)
 SENSOR_PRESETS = tuple(k for k in PRESETS if PRESETS[k].seed in (2103, 3304))
 # train-b rendered again by other sensors on low or tilted mounts: the same drive scan for
 # scan, labelled by train-b's own pair table (overlapmamba.train.drives), so none of their own
