@@ -556,6 +556,7 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
         (["--preset", "test", "--mount", "drone"], "allowed: car, robot"),
         (["--seed", "1", "--frames", "1"], "greater than or equal to 2"),
         (["--seed", "1", "--frames", "4", "--stall-timeout", "0"], "greater than or equal to 1"),
+        (["--preset", "test", "--firing-phase", "random"], "'locked' or 'drifting'"),
     ],
 )
 def test_gen_data_refuses_bad_options(tmp_path, args, message):
@@ -639,3 +640,8 @@ def test_gen_data_session_option_is_recorded(tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert read_manifest(out)["config"]["session"] == 2 and "3 / 2 / hdl32" in res.output
+    assert "firing_phase" not in read_manifest(out)["config"]  # locked, as before
+    drift = ["gen-data", str(tmp_path / "d"), *args[2:], "--firing-phase", "drifting"]
+    res = CliRunner().invoke(app, [*drift, "--nodes", "2", "--no-ground-truth", "-q"])
+    assert res.exit_code == 0, res.output
+    assert read_manifest(tmp_path / "d")["config"]["firing_phase"] == "drifting"

@@ -243,6 +243,14 @@ def gen_data(
         float | None,
         typer.Option(min=-30.0, max=30.0, help="degrees, positive raises the left side"),
     ] = None,
+    firing_phase: Annotated[
+        str | None,
+        typer.Option(
+            help="locked: the head fires at the same azimuths every turn (default, or the "
+            "preset's); drifting: each scan's firings start a random fraction of a spacing "
+            "later, as a real head's drift"
+        ),
+    ] = None,
     preset: Annotated[
         str | None,
         typer.Option(help="a preset (train, val, test, …): fixed seed, size and sensor"),
@@ -289,6 +297,7 @@ def gen_data(
             ("mount_height", mount_height),
             ("mount_pitch_deg", mount_pitch),
             ("mount_roll_deg", mount_roll),
+            ("firing_phase", firing_phase),
         )
         if v is not None
     }
