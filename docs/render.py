@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_bev  # docs/figures_*.py, beside this file
 import figures_cut
 import figures_fill
+import figures_firing
 import figures_fleet
 import figures_input
 import figures_lerp
@@ -105,6 +106,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_lerp.RENDERERS,
     **figures_cut.RENDERERS,
     **figures_fill.RENDERERS,
+    **figures_firing.RENDERERS,
     **figures_fleet.RENDERERS,
     **figures_pairs.RENDERERS,
     **figures_phase.RENDERERS,
