@@ -141,7 +141,8 @@ def test_every_preset_builds_its_configs():
         tc = TrainConfig.from_dict(p.train)
         assert not set(TEST_DATA) & set(p.data) and not any("/test" in d for d in p.data)
         # validation: the val town, or the sensor towns' validation drive (with renderings)
-        assert p.val in ("data/synth/val", "data/synth/val-kitti-hdl64"), p.name
+        allowed = ("data/synth/val", "data/synth/val-kitti-hdl64", "data/synth/val-drift")
+        assert p.val in allowed, p.name
         assert all(v.startswith("data/synth/val-") for v in tc.val_sensors), p.name
         if tc.select_on == "sensors":
             assert p.val == "data/synth/val-kitti-hdl64" and tc.val_sensors

@@ -22,9 +22,10 @@ the same azimuths every turn, so a model's column grid meets the firings in the 
 in every scan (the kitti-hdl64's 2,083 firings give its 900 columns two or three each, always
 the same columns). A real head does not: its firings' spacing varies with the motor's speed
 from turn to turn (KITTI 00's scans, one by one: ``benchmarks/firing_spacing.py``), so the
-count of firings a turn varies too and the pattern between firings and columns drifts. ``phase`` φ ∈ [0, 1)
-(the ``drifting`` firing phase, drawn per scan) starts the scan's firings φ of a spacing
-later: every firing's azimuth and instant move by φ / ``columns`` of a turn.
+count of firings a turn varies too and the pattern between firings and columns drifts.
+``phase`` φ ∈ [0, 1) (the ``drifting`` firing phase, drawn per scan) starts the scan's
+firings φ of a spacing later: every firing's azimuth and instant move by φ / ``columns`` of
+a turn.
 """
 
 from __future__ import annotations

@@ -31,6 +31,11 @@ otherwise.
   images of train-b (``ALIGNED``), and ``aligned-pilot-control`` the same weights in the
   sensor's columns at an equal budget: whether training on aligned images closes the gap the
   alignment costs the descriptor alone (docs/results.md, the views table). Each with ``-s1``.
+- ``drift-pilot`` is ``aligned-pilot`` on ``train-b-drift`` (train-b with each scan's firings
+  a random fraction of a spacing later, as a real head's drift), and ``drift-pilot-control``
+  ``aligned-pilot`` on train-b as it is; both validate on ``val-drift``: whether training on
+  drifting firings helps the one-view twin where the firings drift (docs/results.md, where
+  the firings fall).
 - ``sensors-*``, ``common-*``, ``structure-*`` and ``bev-*`` are the runs on several sensors
   (issue 40), listed in :mod:`overlapmamba.train.sensor_recipes`.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
@@ -66,6 +71,8 @@ from overlapmamba.train.recipes import (
     ALIGNED_DATA,
     BAND,
     DEFAULT,
+    DRIFT_DATA,
+    DRIFT_VAL,
     NARROW,
     NARROW_HN,
     NARROW_HN_AUG,
@@ -155,6 +162,22 @@ PRESETS: dict[str, TrainPreset] = {
             model=NARROW,
             train={**ALIGNED, "init": "models/overlapmamba-hdl64.onnx"},
             data=ALIGNED_DATA,
+        ),
+        TrainPreset(
+            "drift-pilot",
+            "aligned-pilot on train-b with drifting firings, validated on val-drift",
+            model=NARROW,
+            train=ALIGNED,
+            data=DRIFT_DATA,
+            val=DRIFT_VAL,
+        ),
+        TrainPreset(
+            "drift-pilot-control",
+            "aligned-pilot on train-b as it is (locked firings), validated on val-drift",
+            model=NARROW,
+            train=ALIGNED,
+            data=ALIGNED_DATA,
+            val=DRIFT_VAL,
         ),
         *SENSOR_PRESETS,
         *LERP_PRESETS,

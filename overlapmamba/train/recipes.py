@@ -67,6 +67,11 @@ ALIGNED = {
     "epoch_scans": 3000,
 }
 ALIGNED_DATA = ("data/synth/train-b",)
+# The same continuation on train-b rendered with drifting firings (the synthetic towns' heads
+# fire at the same azimuths every turn, a real head's drift: overlapmamba.synth.lidar), and its
+# control on train-b as it is; both validated on val rendered with drifting firings.
+DRIFT_DATA = ("data/synth/train-b-drift",)
+DRIFT_VAL = "data/synth/val-drift"
 OLD_LOSS = {
     "alpha": 0.5,
     "lam": 0.1,
