@@ -1,12 +1,18 @@
 """Where a scan's firings fall (``benchmarks/firing_phase.py``): each HDL-64E town rendered
 with the head's firings locked to the same azimuths every turn and drifting from turn to turn,
-and each model file's loop closure on both: the ``firing-phase`` block of docs/results.md."""
+and each model file's loop closure on both: the ``firing-phase`` block of docs/results.md;
+the one-view twin's network trained on drifting firings: ``drift-pilot`` in docs/training.md."""
 
 from __future__ import annotations
 
 from figures_kit import load, source, table, when
+from figures_phase import pilot_runs
 
 FIRING = "reports/model/firing-phase.json"
+DRIFT_RUNS = tuple(
+    f"reports/model/{run}.json"
+    for run in ("drift-pilot", "drift-pilot-control", "drift-pilot-s1", "drift-pilot-control-s1")
+)
 STAGE_LABEL = {
     "descriptor": "descriptor alone",
     "two_stages": "two stages",
@@ -44,4 +50,10 @@ def firing_phase() -> str:
     return out + table(head, rows)
 
 
-RENDERERS = {"firing-phase": firing_phase}
+def drift_pilot() -> str:
+    """The one-view twin's network continued on train-b with drifting firings and on train-b
+    as it is, both validated on val-drift: every epoch by direction, health, real turns."""
+    return pilot_runs(DRIFT_RUNS, "val-drift")
+
+
+RENDERERS = {"firing-phase": firing_phase, "drift-pilot": drift_pilot}

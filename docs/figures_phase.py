@@ -83,13 +83,19 @@ ALIGNED_RUNS = (
 def aligned_pilot() -> str:
     """The one-view twin's network trained on aligned images and the same training in the
     sensor's columns: every epoch's validation by direction, health and real turns."""
-    runs = [load(p) for p in ALIGNED_RUNS]
-    out = "".join(source(p, r["command"], when(r)) for p, r in zip(ALIGNED_RUNS, runs, strict=True))
+    return pilot_runs(ALIGNED_RUNS, "val")
+
+
+def pilot_runs(paths: tuple[str, ...], val: str) -> str:
+    """Continuations of the one-view twin's network side by side (``run_summary.py``
+    reports): every epoch's validation on ``val`` by direction, health and real turns."""
+    runs = [load(p) for p in paths]
+    out = "".join(source(p, r["command"], when(r)) for p, r in zip(paths, runs, strict=True))
     out += (
         "\nEpoch 0 is the start (the shipped weights) in the run's columns. Loop closure of "
-        "`val`, the descriptor alone (F1max / Recall@1); the spread from the health numbers; "
-        "the minimum cosine of real KITTI scans under a continuous turn, in the run's "
-        "columns.\n\n"
+        f"`{val}`, the descriptor alone (F1max / Recall@1); the spread from the health "
+        "numbers; the minimum cosine of real KITTI scans under a continuous turn, in the "
+        "run's columns.\n\n"
     )
     for r in runs:
         phase = r["model_config"].get("column_phase", "sensor")

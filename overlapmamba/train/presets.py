@@ -35,7 +35,7 @@ otherwise.
   a random fraction of a spacing later, as a real head's drift), and ``drift-pilot-control``
   ``aligned-pilot`` on train-b as it is; both validate on ``val-drift``: whether training on
   drifting firings helps the one-view twin where the firings drift (docs/results.md, where
-  the firings fall).
+  the firings fall). Each with ``-s1``.
 - ``sensors-*``, ``common-*``, ``structure-*`` and ``bev-*`` are the runs on several sensors
   (issue 40), listed in :mod:`overlapmamba.train.sensor_recipes`.
 - ``ot`` is the OverlapTransformer-style baseline on the default recipe.
@@ -203,6 +203,8 @@ PRESETS: dict[str, TrainPreset] = {
 for _name in (
     "aligned-pilot",
     "aligned-pilot-control",
+    "drift-pilot",
+    "drift-pilot-control",
     "sensors-pilot",
     "sensors-pilot-control",
     "sensors-seen",
