@@ -118,7 +118,7 @@ def main() -> None:
     console = Console(width=160)
     t0 = time.perf_counter()
     rows: dict[str, dict] = {}
-    files: dict[str, dict[str, str]] = {}
+    files: dict[str, dict[str, object]] = {}
     with tempfile.TemporaryDirectory(prefix="om-firing-") as tmp_name:
         tmp = Path(tmp_name)
         models = {shown_path(p): p for p in args.model} or dict(DEFAULT_MODELS)
@@ -130,11 +130,11 @@ def main() -> None:
                 raise SystemExit(f"{path} ({name}) is missing")
             meta = read_metadata(path)
             files[name] = {
-                "path": shown_path(path)
-                if path.parent == MODELS
-                else "the shipped file at one view (with_views(..., 1))",
+                "path": "the shipped file at one view (with_views(..., 1))"
+                if name == PLAIN
+                else shown_path(path),
                 "model_id": meta.model_id,
-                "views": str(meta.views),
+                "views": meta.views,
                 "column_phase": meta.column_phase,
             }
         for i, (name, path) in enumerate(models.items()):
