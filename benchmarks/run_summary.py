@@ -6,8 +6,8 @@ the step losses and health log (a run folder is not committed; this is).
 Per epoch: the validation town (F1max, Recall@1; all, same-direction and reverse revisits),
 each validation rendering by another sensor (its own loops, and against the validation
 scans: ``overlapmamba.train.valsensors``), the selection score, the health numbers (d(q,p),
-d(q,n), spread, active share, the collapse flag), the real-scan turn check, and how many of
-the planned epochs ran.
+d(q,n), spread, active share, the collapse flag), the real-scan turn check, the seconds
+spent (recalibrating, mining, training, validating), and how many of the planned epochs ran.
 """
 
 from __future__ import annotations
@@ -41,7 +41,21 @@ def epoch_row(e: dict[str, Any]) -> dict[str, Any]:
         "collapsing": e.get("collapsing"),
         "real_cosine_min": (e.get("real") or {}).get("cosine_min"),
         "lr": e.get("lr"),
+        "seconds": seconds(e),
     }
+
+
+def seconds(e: dict[str, Any]) -> dict[str, float]:
+    """Where an epoch's time went, as its metrics record it: batch-norm recalibration (epoch
+    0), mining hard negatives, the training steps (data included) and validation."""
+    mining = e.get("mining") or {}
+    parts = {
+        "calibrate": e.get("calibrate_s"),
+        "mine": mining.get("mine_s"),
+        "train": e.get("train_s"),
+        "validate": e.get("val_s"),
+    }
+    return {k: float(v) for k, v in parts.items() if v is not None}
 
 
 def summary(run: Path) -> dict[str, Any]:
@@ -54,6 +68,7 @@ def summary(run: Path) -> dict[str, Any]:
         "epochs_run": max(e["epoch"] for e in m["history"]),
         "best": m["best"],
         "epochs": [epoch_row(e) for e in m["history"]],
+        "seconds": sum(sum(seconds(e).values()) for e in m["history"]),
     }
 
 

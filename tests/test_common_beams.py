@@ -279,3 +279,8 @@ def test_a_runs_summary_keeps_each_epochs_validation_and_health(tiny_run):
         assert row["score"] == pytest.approx(e["val"]["all"]["f1max"])  # select_on val
         assert "step_losses" not in row and set(row["health"]) >= {"spread", "d_pos"}
     assert got["epochs"][1]["health"]["spread"] == history[1]["health"]["spread"]
+    # where the time went: epoch 0 recalibrates and validates, a training epoch trains too
+    assert set(got["epochs"][0]["seconds"]) == {"calibrate", "validate"}
+    assert got["epochs"][1]["seconds"]["train"] == history[1]["train_s"] > 0
+    total = sum(sum(row["seconds"].values()) for row in got["epochs"])
+    assert got["seconds"] == pytest.approx(total) and total > 0

@@ -62,6 +62,7 @@ from dataclasses import replace
 from typing import Any
 
 from overlapmamba.train.augment import ROBUST
+from overlapmamba.train.cpu_recipes import CPU_PRESETS
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.fill_recipes import FILL_PRESETS
 from overlapmamba.train.lerp_recipes import LERP_PRESETS
@@ -182,6 +183,7 @@ PRESETS: dict[str, TrainPreset] = {
         *SENSOR_PRESETS,
         *LERP_PRESETS,
         *FILL_PRESETS,
+        *CPU_PRESETS,
         TrainPreset(
             "ot",
             "OverlapTransformer-style baseline (1 transformer layer, no SPP), default recipe",
@@ -216,6 +218,8 @@ for _name in (
     "bev-span-pilot",
     "bev-span-thin-pilot",
     "bev-span-thin-long",
+    "bev-span-thin-cpu",
+    "bev-span-cpu",
     "reach-towns-pilot",
     "lerp-towns-pilot-control",
     "cut-towns-pilot",
