@@ -93,8 +93,15 @@ BEV_CPU_REAL = {
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
     f"reports/model/across-pairs-{n}.json"
-    for n in ("bev-span-thin-cpu", "bev-long", "bev-span-thin", "bev-span-thin-first")
+    for n in (
+        "bev-span-thin-cpu",
+        "bev-span-thin-cpu-first",
+        "bev-long",
+        "bev-span-thin",
+        "bev-span-thin-first",
+    )
 )
+BEV_CPU_SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin-cpu.json"
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
@@ -320,7 +327,30 @@ def bev_cpu() -> str:
         f"{parts.get('validate', 0.0) / 60:.0f} min validating (every epoch and epoch 0); the "
         "range images' cache, built once a machine, is not in it.\n"
     )
-    return out + "\n" + real_table(BEV_CPU_REAL) + "\n" + _pairs_summary(BEV_CPU_PAIRS)
+    out += "\n" + real_table(BEV_CPU_REAL) + "\n" + _spectrum_choice(BEV_CPU_SPECTRUM)
+    return out + "\n" + _pairs_summary(BEV_CPU_PAIRS)
+
+
+def _spectrum_choice(path: str) -> str:
+    """A yaw-spectrum report → the first stage chosen on the calibration town and how far it
+    and the descriptor move under continuous turns of real scans."""
+    r = load(path)
+    chosen = r["val"]["chosen"]
+    turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
+    moves = "; ".join(
+        f"{name}: {v[chosen]['cosine_min']:.4f} (the descriptor's {d['cosine_min']:.4f})"
+        for name, v in turns.items()
+        for d in [v["descriptor"]]
+    )
+    return (
+        source(path, r["command"], when(r))
+        + f"\nThe first stage chosen for it on the calibration town `cal-x00` by mean R@1 over its "
+        f"25 pairs: `{chosen}`, written into the file as its descriptor by `overlapmamba export "
+        f"{r['model']} --first-stage {chosen} --out runs/bev-span-thin-cpu-first/encoder.onnx` "
+        f"(`bev-span-thin-cpu-first` below). The lowest cosine of a real scan's vector and its "
+        f"turned copy's ({r['turns']['seeds']} random continuous turns, one pass a scan): "
+        f"{moves}.\n"
+    )
 
 
 def _pairs_summary(paths: tuple[str, ...]) -> str:
