@@ -19,6 +19,7 @@ from figures_input import (
     real_scans,
 )
 from figures_kit import f3, load, source, table, when
+from figures_pairs import _label
 
 BEV_INPUT = "reports/model/bev-input.json"
 BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
@@ -327,14 +328,20 @@ def bev_cpu() -> str:
         f"{parts.get('validate', 0.0) / 60:.0f} min validating (every epoch and epoch 0); the "
         "range images' cache, built once a machine, is not in it.\n"
     )
-    out += "\n" + real_table(BEV_CPU_REAL) + "\n" + _spectrum_choice(BEV_CPU_SPECTRUM)
+    out += (
+        "\n"
+        + real_table(BEV_CPU_REAL)
+        + "\n"
+        + _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
+    )
     return out + "\n" + _pairs_summary(BEV_CPU_PAIRS)
 
 
-def _spectrum_choice(path: str) -> str:
-    """A yaw-spectrum report → the first stage chosen on the calibration town and how far it
-    and the descriptor move under continuous turns of real scans."""
-    r = load(path)
+def _spectrum_choice(path: str, written: str) -> str:
+    """A yaw-spectrum report → the first stage chosen on the calibration town, the file it
+    was written into (``written``: that file's across-pairs report) and how far it and the
+    descriptor move under continuous turns of real scans."""
+    r, file = load(path), load(written)
     chosen = r["val"]["chosen"]
     turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
     moves = "; ".join(
@@ -346,11 +353,16 @@ def _spectrum_choice(path: str) -> str:
         source(path, r["command"], when(r))
         + f"\nThe first stage chosen for it on the calibration town `cal-x00` by mean R@1 over its "
         f"25 pairs: `{chosen}`, written into the file as its descriptor by `overlapmamba export "
-        f"{r['model']} --first-stage {chosen} --out runs/bev-span-thin-cpu-first/encoder.onnx` "
-        f"(`bev-span-thin-cpu-first` below). The lowest cosine of a real scan's vector and its "
+        f"{r['model']} --first-stage {chosen} --out {file['model']}` "
+        f"({_file_name(file)} below). The lowest cosine of a real scan's vector and its "
         f"turned copy's ({r['turns']['seeds']} random continuous turns, one pass a scan): "
         f"{moves}.\n"
     )
+
+
+def _file_name(r: dict[str, Any]) -> str:
+    """An across-pairs report's file as figures_pairs names it (a run's by the run)."""
+    return _label(r).split(" (")[0]
 
 
 def _pairs_summary(paths: tuple[str, ...]) -> str:
@@ -367,7 +379,7 @@ def _pairs_summary(paths: tuple[str, ...]) -> str:
             same = [x[answer]["ar@1"] for x in t["pairs"] if x["queries"] == x["map"]]
             rows.append(
                 [
-                    f"`{r['model'].split('/')[-2]}` ({r['sensor_input']}"
+                    f"{_file_name(r)} ({r['sensor_input']}"
                     + (
                         f", first stage {r['first_stage']})"
                         if r.get("first_stage") not in (None, "descriptor")
