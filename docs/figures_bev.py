@@ -19,7 +19,6 @@ from figures_input import (
     real_scans,
 )
 from figures_kit import f3, load, source, table, when
-from figures_pairs import _label
 
 BEV_INPUT = "reports/model/bev-input.json"
 BEV_GPU = tuple(f"reports/model/{n}.json" for n in ("bev-long", "structure-all-rows-long"))
@@ -84,25 +83,6 @@ BEV_MORE_REAL = {
         "bev-span-thin-more-real-nuscenes",
     ),
 }
-BEV_CPU_RUN = "reports/model/bev-span-thin-cpu.json"
-BEV_CPU_REAL = {
-    "`bev-span-thin-cpu`, its pick": (
-        "bev-span-thin-cpu-real-kitti",
-        "bev-span-thin-cpu-real-nuscenes",
-    ),
-}
-# the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
-BEV_CPU_PAIRS = tuple(
-    f"reports/model/across-pairs-{n}.json"
-    for n in (
-        "bev-span-thin-cpu",
-        "bev-span-thin-cpu-first",
-        "bev-long",
-        "bev-span-thin",
-        "bev-span-thin-first",
-    )
-)
-BEV_CPU_SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin-cpu.json"
 BEV_SPAN_BEAMS = "reports/model/bev-span-beams.json"
 BEV_SPAN_THIN_BEAMS = "reports/model/bev-span-thin-beams.json"
 BEV_REAL = {
@@ -301,112 +281,6 @@ def bev_more() -> str:
     return out + "\n" + real_table(BEV_MORE_REAL)
 
 
-def bev_cpu() -> str:
-    """bev-span-thin-long's recipe from scratch at a 2-core budget (bev-span-thin-cpu): by
-    epoch, where its time went, then its pick on real scans."""
-    start = (
-        "\nBeside it, `bev-long`'s epochs on a lent GPU (the same recipe on `bev`, without the "
-        "term). Epoch 0 is the untrained network, batch norm recalibrated. "
-    )
-
-    def what(r: dict[str, Any]) -> str:
-        where = "a lent GPU" if r.get("trained_on") else f"{r['machine']['cores']} CPU cores"
-        return f"input `{r['model_config']['sensor_input']}`, {_weight(r)}, on {where}"
-
-    runs, out = pilot_epochs((BEV_CPU_RUN, BEV_GPU[0]), what, start)
-    r = runs[0]
-    parts: dict[str, float] = {}
-    for e in r["epochs"]:
-        for k, v in e["seconds"].items():
-            parts[k] = parts.get(k, 0.0) + v
-    m = r["machine"]
-    out += (
-        f"\nWhere its time went ({m['cpu']}, {m['cores']} cores): {r['seconds'] / 60:.0f} min in "
-        f"all, of them {parts.get('train', 0.0) / 60:.0f} min of training steps "
-        f"({r['epochs_run']} × {r['train_config']['epoch_scans']:,} scans), "
-        f"{parts.get('mine', 0.0) / 60:.0f} min mining hard negatives and "
-        f"{parts.get('validate', 0.0) / 60:.0f} min validating (every epoch and epoch 0); the "
-        "range images' cache, built once a machine, is not in it.\n"
-    )
-    out += (
-        "\n"
-        + real_table(BEV_CPU_REAL)
-        + "\n"
-        + _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
-    )
-    return out + "\n" + _pairs_summary(BEV_CPU_PAIRS)
-
-
-def _spectrum_choice(path: str, written: str) -> str:
-    """A yaw-spectrum report → the first stage chosen on the calibration town, the file it
-    was written into (``written``: that file's across-pairs report) and how far it and the
-    descriptor move under continuous turns of real scans."""
-    r, file = load(path), load(written)
-    chosen = r["val"]["chosen"]
-    turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
-    moves = "; ".join(
-        f"{name}: {v[chosen]['cosine_min']:.4f} (the descriptor's {d['cosine_min']:.4f})"
-        for name, v in turns.items()
-        for d in [v["descriptor"]]
-    )
-    return (
-        source(path, r["command"], when(r))
-        + f"\nThe first stage chosen for it on the calibration town `cal-x00` by mean R@1 over its "
-        f"25 pairs: `{chosen}`, written into the file as its descriptor by `overlapmamba export "
-        f"{r['model']} --first-stage {chosen} --out {file['model']}` "
-        f"({_file_name(file)} below). The lowest cosine of a real scan's vector and its "
-        f"turned copy's ({r['turns']['seeds']} random continuous turns, one pass a scan): "
-        f"{moves}.\n"
-    )
-
-
-def _file_name(r: dict[str, Any]) -> str:
-    """An across-pairs report's file as figures_pairs names it (a run's by the run)."""
-    return _label(r).split(" (")[0]
-
-
-def _pairs_summary(paths: tuple[str, ...]) -> str:
-    """Across-pairs reports → one row per file and answer on the test town: AR@1 over the 20
-    pairs across sensors (mean, lowest), over the five same-sensor pairs (mean), how many
-    pairs meet the bar and how many lie above Scan Context on the same drives."""
-    reports = [(p, load(p)) for p in paths]
-    out = "".join(source(p, r["command"], when(r)) for p, r in reports)
-    rows = []
-    for _, r in reports:
-        t = r["test"]
-        for answer in ("descriptor", "two_stage"):
-            v = t["verdict"][answer]
-            same = [x[answer]["ar@1"] for x in t["pairs"] if x["queries"] == x["map"]]
-            rows.append(
-                [
-                    f"{_file_name(r)} ({r['sensor_input']}"
-                    + (
-                        f", first stage {r['first_stage']})"
-                        if r.get("first_stage") not in (None, "descriptor")
-                        else ")"
-                    ),
-                    answer.replace("_", " "),
-                    f"{f3(v['mean_ar@1'])} / {f3(v['min_ar@1'])}",
-                    f3(sum(same) / len(same)),
-                    f"{v['meeting_bar']} / {v['above_scan_context']}",
-                ]
-            )
-    sc = reports[0][1]["test"]["verdict"]["scan_context"]
-    head = [
-        "file",
-        "answer",
-        "AR@1 across: mean / lowest",
-        "AR@1 same sensor",
-        "at the bar / above SC",
-    ]
-    return (
-        out
-        + "\nAcross sensors on the sensor test town (`python benchmarks/across_pairs.py --model "
-        "FILE --split test`; 20 pairs across, a hit within 5 m; Scan Context on the same drives: "
-        f"AR@1 mean {f3(sc['mean_ar@1'])}, lowest {f3(sc['min_ar@1'])}):\n\n" + table(head, rows)
-    )
-
-
 RENDERERS = {
     "bev-input": bev_input,
     "bev-gpu": bev_gpu,
@@ -419,5 +293,4 @@ RENDERERS = {
     "bev-span-seeds": bev_span_seeds,
     "bev-renders": bev_renders,
     "bev-more": bev_more,
-    "bev-cpu": bev_cpu,
 }

@@ -30,6 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_bev  # docs/figures_*.py, beside this file
+import figures_cpu
 import figures_cut
 import figures_fill
 import figures_firing
@@ -104,6 +105,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_input.RENDERERS,
     **figures_bev.RENDERERS,
     **figures_lerp.RENDERERS,
+    **figures_cpu.RENDERERS,
     **figures_cut.RENDERERS,
     **figures_fill.RENDERERS,
     **figures_firing.RENDERERS,
