@@ -33,8 +33,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from reports_kit import REPORTS, write_report
@@ -135,9 +136,7 @@ def turn_minima(
     random continuous angle (``eval-real``'s turns, one pass a scan with the file's own
     views), per real set (``REAL``) and per named vector (``vectors[name](descriptor,
     yaw_features)``, rows at unit length), over ``seeds`` draws."""
-    from overlapmamba.train.checkpoint import aligned_of, input_of, load_model, views_of
-    from overlapmamba.train.evaluate import describe
-    from overlapmamba.train.realscans import real_turns
+    from overlapmamba.train.checkpoint import load_model
 
     model, profile, _ = load_model(path)
     out: dict[str, dict] = {}
@@ -146,20 +145,38 @@ def turn_minima(
             out[name] = {"skipped": f"{folder} is missing"}
             continue
         seq = open_sequence(folder)
-        sensor = input_of(model, profile, seq)
-        mins: dict[str, list[float]] = {key: [] for key in vectors}
-        for seed in range(seeds):
-            t = real_turns(seq, sensor, seed, views_of(model), aligned_of(model))
-            plain = describe(model, t.plain, offsets=t.plain_offsets)
-            turned = describe(model, t.turned, offsets=t.turned_offsets)
-            for key, vector in vectors.items():
-                cos = (vector(*plain) * vector(*turned)).sum(1)
-                mins[key].append(float(cos.min()))
+        mins = turned_minima(model, profile, seq, seeds, vectors)
         out[name] = {
             "scans": len(seq),
             **{k: {"cosine_min_per_seed": v, "cosine_min": min(v)} for k, v in mins.items()},
         }
     return out
+
+
+def turned_minima(
+    model: Any,
+    profile: Any,
+    seq: Any,
+    seeds: int,
+    vectors: Mapping[str, Callable[[np.ndarray, np.ndarray], np.ndarray]],
+    stride: int = 1,
+) -> dict[str, list[float]]:
+    """Per named vector, the lowest cosine between a scan's vector and its turned copy's over
+    every ``stride``-th scan of ``seq``, one value per seed's draw of turns (a model and
+    profile from ``overlapmamba.train.checkpoint.load_model``)."""
+    from overlapmamba.train.checkpoint import aligned_of, input_of, views_of
+    from overlapmamba.train.evaluate import describe
+    from overlapmamba.train.realscans import real_turns
+
+    sensor = input_of(model, profile, seq)
+    mins: dict[str, list[float]] = {key: [] for key in vectors}
+    for seed in range(seeds):
+        t = real_turns(seq, sensor, seed, views_of(model), aligned_of(model), stride=stride)
+        plain = describe(model, t.plain, offsets=t.plain_offsets)
+        turned = describe(model, t.turned, offsets=t.turned_offsets)
+        for key, vector in vectors.items():
+            mins[key].append(float((vector(*plain) * vector(*turned)).sum(1).min()))
+    return mins
 
 
 def invariance(paths: dict[str, Path], seeds: int) -> dict[str, dict]:

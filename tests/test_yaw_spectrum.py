@@ -6,8 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import benchmark_module
 
+from overlapmamba.core.points import PointCloud
+from overlapmamba.core.sensors import get_profile
+from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.yaw_spectrum import FirstStage, spectrum, unit
+from overlapmamba.train.realscans import real_turns
+
+bench = benchmark_module("yaw_spectrum")
 
 
 def _features(n: int = 5, c: int = 4, w: int = 64, seed: int = 0) -> np.ndarray:
@@ -68,3 +75,71 @@ def test_first_stages_parse_and_name_themselves_and_refuse_what_is_not_allowed()
         spectrum(_features(), 40)
     with pytest.raises(ValueError, match=r"must be \(N, C, W\)"):
         spectrum(np.zeros((4, 64)), 8)
+
+
+def _row(name: str, r1: float, turn_min: float) -> dict:
+    stage = FirstStage.parse(name)
+    return {
+        "first": name,
+        "mix": stage.mix,
+        "bins": stage.bins,
+        "compress": stage.compress,
+        "mean_r@1": r1,
+        "turn_min": turn_min,
+    }
+
+
+def test_the_choice_is_the_best_val_recall_among_variants_that_keep_still_under_a_turn():
+    rows = [
+        _row("descriptor", 0.60, 0.9999),
+        _row("spectrum:128:sqrt", 0.90, 0.991),  # best, but moves under a turn
+        _row("mixed:0.5:8:none", 0.81, 0.9993),
+        _row("mixed:0.25:32:none", 0.83, 0.9992),
+        _row("mixed:0.25:4:none", 0.83, 0.9998),  # the tie goes to fewer bins
+    ]
+    chosen, unconstrained = bench.choose(rows, 0.999)
+    assert (chosen.name, unconstrained.name) == ("mixed:0.25:4:none", "spectrum:128:sqrt")
+    assert bench.choose(rows, 0.0) == (unconstrained, unconstrained)
+    assert bench.choose(rows, 0.99999)[0] == FirstStage()  # none keeps still: the descriptor
+    # on test: the descriptor, the best without the condition, and the choice last
+    assert [s.name for s in bench.tested(chosen, unconstrained)] == [
+        "descriptor",
+        "spectrum:128:sqrt",
+        "mixed:0.25:4:none",
+    ]
+    assert [s.name for s in bench.tested(unconstrained, unconstrained)] == [
+        "descriptor",
+        "spectrum:128:sqrt",
+    ]
+    assert [s.name for s in bench.tested(FirstStage(), unconstrained)] == [
+        "spectrum:128:sqrt",
+        "descriptor",
+    ]
+
+
+class _Drive:
+    """A sequence of ``n`` random clouds, scan i at x = i."""
+
+    def __init__(self, n: int) -> None:
+        rng = np.random.default_rng(5)
+        self.clouds = [rng.uniform(-30, 30, (3000, 3)).astype(np.float32) for _ in range(n)]
+
+    def __len__(self) -> int:
+        return len(self.clouds)
+
+    def points(self, i: int) -> PointCloud:
+        return PointCloud(self.clouds[i])
+
+    def positions(self) -> np.ndarray:
+        return np.stack([np.array([i, 0.0, 0.0]) for i in range(len(self))])
+
+
+def test_turns_of_every_strideth_scan_are_those_scans_turns():
+    """The val turns of the choice take every stride-th scan of a drive."""
+    drive, sensor = _Drive(7), SensorInput.own(get_profile("kitti-hdl64"))
+    every, some = real_turns(drive, sensor), real_turns(drive, sensor, stride=3)
+    np.testing.assert_array_equal(some.plain, every.plain[[0, 3, 6]])
+    np.testing.assert_array_equal(some.positions[:, 0], [0, 3, 6])
+    assert len(some.turned) == len(some.theta) == 3
+    with pytest.raises(ValueError, match="stride must be ≥ 1"):
+        real_turns(drive, sensor, stride=0)

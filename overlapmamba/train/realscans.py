@@ -75,15 +75,24 @@ def turns(n: int, seed: int) -> np.ndarray:
 
 
 def real_turns(
-    seq: Sequence, sensor: SensorInput, seed: int = 0, views: int = 1, aligned: bool = False
+    seq: Sequence,
+    sensor: SensorInput,
+    seed: int = 0,
+    views: int = 1,
+    aligned: bool = False,
+    stride: int = 1,
 ) -> RealTurns:
-    """Every scan of ``seq`` and its turned copy, as ``sensor`` puts them into the model's
-    input; ``views`` > 1: each scan's sub-column views, (N, views, H, W); ``aligned``: each
-    scan's columns at its mean bearing (:mod:`overlapmamba.core.views`), with the offsets."""
-    theta = turns(len(seq), seed)
+    """Every ``stride``-th scan of ``seq`` (all by default) and its turned copy, as
+    ``sensor`` puts them into the model's input; ``views`` > 1: each scan's sub-column views,
+    (N, views, H, W); ``aligned``: each scan's columns at its mean bearing
+    (:mod:`overlapmamba.core.views`), with the offsets."""
+    if stride < 1:
+        raise ValueError(f"stride must be ≥ 1 (every stride-th scan); got {stride}")
+    index = np.arange(0, len(seq), stride)
+    theta = turns(len(index), seed)
     plain, turned = [], []
-    for i in range(len(seq)):
-        xyz = seq.points(i).xyz
+    for i, k in enumerate(index):
+        xyz = seq.points(int(k)).xyz
         plain.append(sensor.project_offset(xyz, views, aligned=aligned))
         turned.append(sensor.project_offset(turned_points(xyz, theta[i]), views, aligned=aligned))
 
@@ -97,7 +106,7 @@ def real_turns(
         stack(plain),
         stack(turned),
         theta,
-        seq.positions(),
+        seq.positions()[index],
         sensor.kind,
         offsets(plain),
         offsets(turned),
