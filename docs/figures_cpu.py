@@ -13,11 +13,10 @@ from figures_kit import f3, load, source, table, when
 from figures_pairs import _label
 
 BEV_CPU_RUN = "reports/model/bev-span-thin-cpu.json"
+BEV_CPU_CONTROL = "reports/model/bev-span-cpu.json"  # the same without the sparser-sensor term
 BEV_CPU_REAL = {
-    "`bev-span-thin-cpu`, its pick": (
-        "bev-span-thin-cpu-real-kitti",
-        "bev-span-thin-cpu-real-nuscenes",
-    ),
+    f"`{run}`, its pick": (f"{run}-real-kitti", f"{run}-real-nuscenes")
+    for run in ("bev-span-thin-cpu", "bev-span-cpu")
 }
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
@@ -25,19 +24,33 @@ BEV_CPU_PAIRS = tuple(
     for n in (
         "bev-span-thin-cpu",
         "bev-span-thin-cpu-first",
+        "bev-span-thin-cpu-still",
+        "bev-span-cpu",
+        "bev-span-cpu-still",
         "bev-long",
         "bev-span-thin",
         "bev-span-thin-first",
     )
 )
 BEV_CPU_SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin-cpu.json"
+# the first stage chosen again among the variants that keep still under a turn (--turn-floor)
+BEV_CPU_STILL = {  # each run's report → the across-pairs report of the file it chose
+    "reports/model/yaw-spectrum-bev-span-thin-cpu-still.json": (
+        "reports/model/across-pairs-bev-span-thin-cpu-still.json"
+    ),
+    "reports/model/yaw-spectrum-bev-span-cpu-still.json": (
+        "reports/model/across-pairs-bev-span-cpu-still.json"
+    ),
+}
 
 
 def bev_cpu() -> str:
-    """bev-span-thin-long's recipe from scratch at a 2-core budget (bev-span-thin-cpu): by
-    epoch, where its time went, then its pick on real scans."""
+    """bev-span-thin-long's recipe from scratch at a 2-core budget (bev-span-thin-cpu) and its
+    control without the term (bev-span-cpu): by epoch, where their time went, their picks on
+    real scans, the first stages chosen for the first, every file across sensors."""
     start = (
-        "\nBeside it, `bev-long`'s epochs on a lent GPU (the same recipe on `bev`, without the "
+        "\n`bev-span-cpu` is its control at the same budget: the same recipe without the term. "
+        "Beside them, `bev-long`'s epochs on a lent GPU (the same recipe on `bev`, without the "
         "term). Epoch 0 is the untrained network, batch norm recalibrated. "
     )
 
@@ -45,28 +58,36 @@ def bev_cpu() -> str:
         where = "a lent GPU" if r.get("trained_on") else f"{r['machine']['cores']} CPU cores"
         return f"input `{r['model_config']['sensor_input']}`, {_weight(r)}, on {where}"
 
-    runs, out = pilot_epochs((BEV_CPU_RUN, BEV_GPU[0]), what, start)
-    r = runs[0]
-    parts: dict[str, float] = {}
-    for e in r["epochs"]:
-        for k, v in e["seconds"].items():
-            parts[k] = parts.get(k, 0.0) + v
-    m = r["machine"]
-    out += (
-        f"\nWhere its time went ({m['cpu']}, {m['cores']} cores): {r['seconds'] / 60:.0f} min in "
-        f"all, of them {parts.get('train', 0.0) / 60:.0f} min of training steps "
-        f"({r['epochs_run']} × {r['train_config']['epoch_scans']:,} scans), "
-        f"{parts.get('mine', 0.0) / 60:.0f} min mining hard negatives and "
-        f"{parts.get('validate', 0.0) / 60:.0f} min validating (every epoch and epoch 0); the "
-        "range images' cache, built once a machine, is not in it.\n"
-    )
-    out += (
-        "\n"
-        + real_table(BEV_CPU_REAL)
-        + "\n"
-        + _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
-    )
+    runs, out = pilot_epochs((BEV_CPU_RUN, BEV_CPU_CONTROL, BEV_GPU[0]), what, start)
+    out += "\n" + _time_spent(runs[:2]) + "\n" + real_table(BEV_CPU_REAL) + "\n"
+    out += _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
+    out += "".join("\n" + _still_choice(p, written) for p, written in BEV_CPU_STILL.items())
     return out + "\n" + _pairs_summary(BEV_CPU_PAIRS)
+
+
+def _time_spent(runs: list[dict[str, Any]]) -> str:
+    """Run summaries → where each run's recorded time went, in minutes."""
+    rows = []
+    for r in runs:
+        parts: dict[str, float] = {}
+        for e in r["epochs"]:
+            for k, v in e["seconds"].items():
+                parts[k] = parts.get(k, 0.0) + v
+        rows.append(
+            [
+                f"`{r['run'].split('/')[-1]}`",
+                f"{r['epochs_run']} × {r['train_config']['epoch_scans']:,}",
+                f"{r['seconds'] / 60:.0f}",
+                *(f"{parts.get(k, 0.0) / 60:.0f}" for k in ("train", "mine", "validate")),
+            ]
+        )
+    m = runs[0]["machine"]
+    head = ["run", "epochs × scans", "minutes in all", "training steps", "mining", "validating"]
+    return (
+        f"\nWhere their time went ({m['cpu']}, {m['cores']} cores; validation is every epoch "
+        "and epoch 0; the range images' cache, built once a machine, is not in it):\n\n"
+        + table(head, rows)
+    )
 
 
 def _spectrum_choice(path: str, written: str) -> str:
@@ -89,6 +110,45 @@ def _spectrum_choice(path: str, written: str) -> str:
         f"({_file_name(file)} below). The lowest cosine of a real scan's vector and its "
         f"turned copy's ({r['turns']['seeds']} random continuous turns, one pass a scan): "
         f"{moves}.\n"
+    )
+
+
+def _still_choice(path: str, written: str) -> str:
+    """A yaw-spectrum report chosen with a turn floor → the choice, beside the descriptor and
+    the best variant without the floor: on val (with how far each moves under a turn of the
+    calibration town's scans), on test and under turns of real scans, and the file it was
+    written into (``written``: that file's across-pairs report)."""
+    r, file = load(path), load(written)
+    val = {x["first"]: x for x in r["val"]["rows"]}
+    test = {x["first"]: x for x in r["test"]["rows"]}
+    turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
+    rows = [
+        [
+            f"`{name}`" + (" (chosen)" if name == r["val"]["chosen"] else ""),
+            f3(val[name]["mean_r@1"]),
+            f"{val[name]['turn_min']:.5f}",
+            f"{f3(t['mean_r@1'])}; {f3(t['across_mean_r@1'])} / {f3(t['across_min_r@1'])}",
+            *(f"{v[name]['cosine_min']:.5f}" for v in turns.values()),
+        ]
+        for name, t in test.items()
+    ]
+    head = [
+        "first stage",
+        "val R@1 mean",
+        "val turn, lowest cosine",
+        "test R@1 mean; across: mean / lowest",
+        *(f"{k}, lowest cosine" for k in turns),
+    ]
+    return (
+        source(path, r["command"], when(r))
+        + f"\n{_label(r)}: chosen again on `cal-x00`, by mean R@1 among the variants whose "
+        f"lowest cosine under random continuous turns of that town's scans (every "
+        f"{r['turn_stride']}th scan of each sensor's second drive, {r['turns']['seeds']} draws) "
+        f"reaches {r['turn_floor']:g}: "
+        f"`{r['val']['chosen']}` (without that condition: `{r['val']['unconstrained']}`), "
+        f"written into the file by `overlapmamba export {r['model']} --first-stage "
+        f"{r['val']['chosen']} --out {file['model']}` ({_file_name(file)} below). Each measured "
+        "on test and under turns of real scans (one pass a scan):\n\n" + table(head, rows)
     )
 
 
