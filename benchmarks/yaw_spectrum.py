@@ -22,7 +22,8 @@ copy's must reach ``--turn-floor`` (issue 40's one-pass bar, 0.999, by default; 
 the condition; the descriptor when no variant reaches it). The choice, and the best variant
 without the condition when that is another, are reported on ``test`` beside the
 descriptor. Then real scans (KITTI 00, nuScenes) turned the same way: the lowest cosine for
-each of them, one pass a scan.
+each of them, one pass a scan. Reports written before the floor existed chose without it
+(as ``--turn-floor 0`` does, from a grid without 4 and 16 bins).
 ``overlapmamba export MODEL --first-stage NAME`` writes the chosen stage into a file as its
 descriptor (``overlapmamba.train.spectrum_head``), which ``benchmarks/across_pairs.py``
 then measures as the service answers.

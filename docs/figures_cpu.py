@@ -13,10 +13,11 @@ from figures_kit import f3, load, source, table, when
 from figures_pairs import _label
 
 BEV_CPU_RUN = "reports/model/bev-span-thin-cpu.json"
-BEV_CPU_CONTROL = "reports/model/bev-span-cpu.json"  # the same without the sparser-sensor term
+# the same without the sparser-sensor term, two seeds
+BEV_CPU_CONTROL = tuple(f"reports/model/{n}.json" for n in ("bev-span-cpu", "bev-span-cpu-s1"))
 BEV_CPU_REAL = {
     f"`{run}`, its pick": (f"{run}-real-kitti", f"{run}-real-nuscenes")
-    for run in ("bev-span-thin-cpu", "bev-span-cpu")
+    for run in ("bev-span-thin-cpu", "bev-span-cpu", "bev-span-cpu-s1")
 }
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
@@ -27,6 +28,7 @@ BEV_CPU_PAIRS = tuple(
         "bev-span-thin-cpu-still",
         "bev-span-cpu",
         "bev-span-cpu-still",
+        "bev-span-cpu-s1",
         "bev-long",
         "bev-span-thin",
         "bev-span-thin-first",
@@ -49,17 +51,21 @@ def bev_cpu() -> str:
     control without the term (bev-span-cpu): by epoch, where their time went, their picks on
     real scans, the first stages chosen for the first, every file across sensors."""
     start = (
-        "\n`bev-span-cpu` is its control at the same budget: the same recipe without the term. "
+        "\n`bev-span-cpu` is its control at the same budget: the same recipe without the term "
+        "(`-s1`: its second seed). "
         "Beside them, `bev-long`'s epochs on a lent GPU (the same recipe on `bev`, without the "
         "term). Epoch 0 is the untrained network, batch norm recalibrated. "
     )
 
     def what(r: dict[str, Any]) -> str:
         where = "a lent GPU" if r.get("trained_on") else f"{r['machine']['cores']} CPU cores"
-        return f"input `{r['model_config']['sensor_input']}`, {_weight(r)}, on {where}"
+        return (
+            f"input `{r['model_config']['sensor_input']}`, {_weight(r)}, seed "
+            f"{r['train_config'].get('seed', 0)}, on {where}"
+        )
 
-    runs, out = pilot_epochs((BEV_CPU_RUN, BEV_CPU_CONTROL, BEV_GPU[0]), what, start)
-    out += "\n" + _time_spent(runs[:2]) + "\n" + real_table(BEV_CPU_REAL) + "\n"
+    runs, out = pilot_epochs((BEV_CPU_RUN, *BEV_CPU_CONTROL, BEV_GPU[0]), what, start)
+    out += "\n" + _time_spent(runs[:-1]) + "\n" + real_table(BEV_CPU_REAL) + "\n"
     out += _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
     out += "".join("\n" + _still_choice(p, written) for p, written in BEV_CPU_STILL.items())
     return out + "\n" + _pairs_summary(BEV_CPU_PAIRS)
