@@ -10,7 +10,8 @@ from typing import Any
 
 from figures_bev import BEV_GPU, _weight, pilot_epochs, real_table
 from figures_kit import f3, load, source, table, when
-from figures_pairs import _label
+from figures_pairs import _file_name, _label
+from figures_spectrum import real_sets
 
 BEV_CPU_RUN = "reports/model/bev-span-thin-cpu.json"
 # the same without the sparser-sensor term, two seeds
@@ -102,7 +103,7 @@ def _spectrum_choice(path: str, written: str) -> str:
     descriptor move under continuous turns of real scans."""
     r, file = load(path), load(written)
     chosen = r["val"]["chosen"]
-    turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
+    turns = real_sets(r)
     moves = "; ".join(
         f"{name}: {v[chosen]['cosine_min']:.4f} (the descriptor's {d['cosine_min']:.4f})"
         for name, v in turns.items()
@@ -127,7 +128,7 @@ def _still_choice(path: str, written: str) -> str:
     r, file = load(path), load(written)
     val = {x["first"]: x for x in r["val"]["rows"]}
     test = {x["first"]: x for x in r["test"]["rows"]}
-    turns = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
+    turns = real_sets(r)
     rows = [
         [
             f"`{name}`" + (" (chosen)" if name == r["val"]["chosen"] else ""),
@@ -156,11 +157,6 @@ def _still_choice(path: str, written: str) -> str:
         f"{r['val']['chosen']} --out {file['model']}` ({_file_name(file)} below). Each measured "
         "on test and under turns of real scans (one pass a scan):\n\n" + table(head, rows)
     )
-
-
-def _file_name(r: dict[str, Any]) -> str:
-    """An across-pairs report's file as figures_pairs names it (a run's by the run)."""
-    return _label(r).split(" (")[0]
 
 
 def _pairs_summary(paths: tuple[str, ...]) -> str:

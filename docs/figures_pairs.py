@@ -22,12 +22,17 @@ NAMES = {
 }
 
 
-def _label(r: dict[str, Any]) -> str:
-    """A report's model: its file (a run's ``encoder.onnx`` by the run's name)."""
+def _file_name(r: dict[str, Any]) -> str:
+    """A report's model file by its name (a run's ``encoder.onnx`` by the run's)."""
     path = r["model"]
     name = path.split("/")[-2] if path.endswith("/encoder.onnx") else path.split("/")[-1]
+    return f"`{name}`"
+
+
+def _label(r: dict[str, Any]) -> str:
+    """A report's model: its file (:func:`_file_name`), model id, input and views."""
     views = f"{r['views']} view{'s' if r['views'] != 1 else ''} a scan"
-    return f"`{name}` (`{r['model_id']}`, input `{r['sensor_input']}`, {views})"
+    return f"{_file_name(r)} (`{r['model_id']}`, input `{r['sensor_input']}`, {views})"
 
 
 def _matrix(r: dict[str, Any], split: str, cell: Any) -> str:
@@ -196,7 +201,7 @@ def _other_networks() -> str:
     for path in RERANK_OTHERS:
         r = load(path)
         out += source(path, r["command"], when(r))
-        rows += [[_label(r).split(" (")[0], *row] for row in sweep_test_rows(r)]
+        rows += [[_file_name(r), *row] for row in sweep_test_rows(r)]
     head = ["network", "setting", "mean", "across: mean / lowest / at the bar", "same sensor"]
     return out + "\nThe same sweep for `bev-long`, on test:\n\n" + table(head, rows)
 

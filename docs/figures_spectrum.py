@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from figures_kit import f3, load, source, table, when
-from figures_pairs import _label, _setting, against_scan_context, sweep_test_rows
+from figures_pairs import _file_name, _label, _setting, against_scan_context, sweep_test_rows
 
 SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin.json"
 SC_PAIRS = "reports/model/across-pairs-bev-span-thin.json"
@@ -23,6 +23,12 @@ def _first(name: str) -> str:
     if parts[0] == "spectrum":
         return f"the spectrum ({parts[1]} bins, {parts[2]})"
     return f"mixed: {parts[1]} spectrum ({parts[2]} bins, {parts[3]}) + descriptor"
+
+
+def real_sets(r: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """A yaw-spectrum report's turned real sets that were there (name → each stage's lowest
+    cosine and the scans), without the seeds' count or a skipped set."""
+    return {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
 
 
 def _recall_row(x: dict[str, Any]) -> list[str]:
@@ -62,8 +68,7 @@ def yaw_spectrum() -> str:
             str(v["scans"]),
             *(f"{v[k]['cosine_min']:.4f}" for k in ("descriptor", test[-1]["first"])),
         ]
-        for name, v in turns.items()
-        if isinstance(v, dict) and "scans" in v
+        for name, v in real_sets(r).items()
     ]
     out += (
         f"\nReal scans turned by a random continuous angle ({turns['seeds']} draws, one pass a "
@@ -84,7 +89,7 @@ def _in_the_file() -> str:
         "answers (two stages: the service's defaults), beside the file it was written from:\n\n"
     )
     rows = []
-    for name, rep in ((_label(before).split(" (")[0], before), (_label(r).split(" (")[0], r)):
+    for name, rep in ((_file_name(before), before), (_file_name(r), r)):
         for split in ("val", "test"):
             v = rep[split]["verdict"]
             for answer in ("descriptor", "two_stage"):
