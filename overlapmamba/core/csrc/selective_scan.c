@@ -378,6 +378,7 @@ tokens(const float *u, const float *delta, const float *A_t, const float *Bm, co
             n_live = kept;
         }
     }
+    free(store); /* NULL when open: free does nothing */
     free(live);
     free(v);
 }
