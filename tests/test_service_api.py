@@ -8,6 +8,8 @@ import gzip
 import io
 import json
 import math
+import os
+import re
 import struct
 
 import numpy as np
@@ -233,6 +235,9 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_stage_seconds_bucket{le="0.001",stage="encode"}' in metrics
         assert 'overlapmamba_map_keyframes{map="town"} 2.0' in metrics
+        if os.path.exists("/proc/self/stat"):  # the process's own series (Linux)
+            resident = re.search(r"^process_resident_memory_bytes (\S+)$", metrics, re.M)
+            assert resident and float(resident[1]) > 0
         page = await c.get("/dashboard")
         assert page.status_code == 200 and "/v1/stats" in page.text
         assert "http://" not in page.text and "https://" not in page.text  # no CDN: offline

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from prometheus_client import CollectorRegistry, Gauge, Histogram
+from prometheus_client import CollectorRegistry, Gauge, Histogram, ProcessCollector
 from prometheus_client import Counter as PCounter
 
 WINDOW = 2048
@@ -76,6 +76,10 @@ class Stats:
         self.batch_sizes: Counter[int] = Counter()
         self.registry = CollectorRegistry()
         r = self.registry
+        # The process's own series (process_resident_memory_bytes, process_cpu_seconds_total,
+        # open file descriptors, start time; Linux), which the default registry would carry:
+        # what an alert on a growing process watches.
+        ProcessCollector(registry=r)
         self.p_latency = Histogram(
             "overlapmamba_stage_seconds",
             "Time per request stage",
