@@ -1,6 +1,8 @@
-"""A real `overlapmamba serve` process keeps its memory flat while it encodes: the service
+"""A real `overlapmamba serve` process keeps its memory flat while it answers: the service
 runs for weeks, so whatever one scan allocates must be given back (the selective-scan
-kernel once kept ≈ 0.5 MB a ring scan per call, ≈ 4 GB an hour at a fleet's rate)."""
+kernel once kept ≈ 0.5 MB a ring scan per call, gigabytes an hour at a fleet's rate). Two
+paths are run scan after scan: encoding alone, and a scan query whose candidates are
+registered against their keyframes' geometry (small_gicp)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,11 @@ import httpx
 import pytest
 from service_kit import OCTET, scan, server
 
-pytestmark = pytest.mark.slow
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads Linux's /proc"),
+]
+GROWTH_MB = 30.0  # over a phase's requests, after its warm-up
 
 
 def _resident_mb(pid: int) -> float:
@@ -19,19 +25,39 @@ def _resident_mb(pid: int) -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
-@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads Linux's /proc")
-def test_a_real_server_encoding_scan_after_scan_keeps_its_memory_flat(tmp_path):
+def test_a_real_server_answering_scan_after_scan_keeps_its_memory_flat(tmp_path):
     bodies = [scan(i).tobytes() for i in range(4)]
+    turned = [scan(i, yaw_deg=25.0 * (i + 1)).tobytes() for i in range(4)]
     with server(tmp_path / "data") as (url, proc), httpx.Client(base_url=url, timeout=60) as c:
-
-        def describe(n: int) -> None:
-            for i in range(n):
-                r = c.post("/v1/descriptors", content=bodies[i % 4], headers=OCTET)
-                assert r.status_code == 200, r.text
-
-        describe(40)  # the allocators' and the runtime's first blocks
-        before = _resident_mb(proc.pid)
-        describe(160)
-        grown = _resident_mb(proc.pid) - before
         scan_path = c.get("/readyz").json()["detail"]["scan"]
-    assert grown < 30.0, f"the server grew {grown:.0f} MB over 160 scans (scan path {scan_path})"
+
+        def grown(send, warm: int, n: int) -> float:
+            for i in range(warm):  # the allocators' and the runtime's first blocks
+                send(i)
+            before = _resident_mb(proc.pid)
+            for i in range(n):
+                send(i)
+            return _resident_mb(proc.pid) - before
+
+        def describe(i: int) -> None:
+            r = c.post("/v1/descriptors", content=bodies[i % 4], headers=OCTET)
+            assert r.status_code == 200, r.text
+
+        encoding = grown(describe, 40, 160)
+        assert encoding < GROWTH_MB, f"encoding grew {encoding:.0f} MB (scan path {scan_path})"
+
+        assert c.put("/v1/maps/town").status_code == 201
+        for i, body in enumerate(bodies):
+            params = {"keyframe_id": f"k{i}", "timestamp": 100.0 + i, "robot_id": "r1"}
+            r = c.post("/v1/maps/town/keyframes", params=params, content=body, headers=OCTET)
+            assert r.status_code == 201, r.text
+        checked: list[bool | None] = []
+
+        def query(i: int) -> None:
+            r = c.post("/v1/maps/town/query", params={"k": 3}, content=turned[i % 4], headers=OCTET)
+            assert r.status_code == 200, r.text
+            checked.append(r.json()["matches"][0]["verification"]["verified"])
+
+        verifying = grown(query, 20, 120)
+        assert all(checked), "each turned keyframe should verify against itself"
+        assert verifying < GROWTH_MB, f"verified queries grew {verifying:.0f} MB"
