@@ -201,4 +201,49 @@ def _pairs_summary(paths: tuple[str, ...]) -> str:
     )
 
 
-RENDERERS = {"bev-cpu": bev_cpu}
+# every epoch of a run measured across sensors: the calibration town's pairs, and test's
+EPOCH_PAIRS = tuple(
+    f"reports/model/epoch-pairs-{n}.json" for n in ("bev-span-thin-cpu", "bev-span-cpu")
+)
+
+
+def epoch_pairs() -> str:
+    """Epoch-pairs reports → for each run, every epoch's trainer score and descriptor AR@1 on
+    the calibration town's pairs and the test town's, the two picks, and how well each score
+    ranks the epochs as the test town does."""
+    out = ""
+    for path in EPOCH_PAIRS:
+        r = load(path)
+        picks = {r["trainer_best"]: "the trainer's pick", r["chosen"]: "the pairs' pick"}
+        if r["trainer_best"] == r["chosen"]:
+            picks = {r["chosen"]: "both picks"}
+        rows = [
+            [
+                f"{e['epoch']}" + (f" ({picks[e['epoch']]})" if e["epoch"] in picks else ""),
+                f3(e["trainer_score"]),
+                f"{f3(e['val']['mean_ar@1'])}; {f3(e['val']['across_mean_ar@1'])}",
+                f"{f3(e['test']['mean_ar@1'])}; {f3(e['test']['across_mean_ar@1'])}"
+                f" / {f3(e['test']['across_min_ar@1'])}",
+            ]
+            for e in r["epochs"]
+        ]
+        rho = r["rank_correlation_with_test_across"]
+        head = [
+            "epoch",
+            "trainer's score (`val` F1max, renderings' mean)",
+            "cal-x00 AR@1: 25 pairs; across",
+            "test AR@1: 25 pairs; across mean / lowest",
+        ]
+        out += (
+            source(path, r["command"], when(r))
+            + f"\n`{r['run'].split('/')[-1]}`, every epoch's descriptor (one view, as "
+            "`overlapmamba export` writes it) on the calibration town's pairs and on the test "
+            "town's. Over "
+            f"its {len(rows)} epochs Spearman's rank correlation with the test town's mean AR@1 "
+            f"across sensors is {rho['trainer_score']:.2f} for the trainer's score and "
+            f"{rho['pairs_mean_ar@1']:.2f} for the calibration pairs' mean:\n\n" + table(head, rows)
+        )
+    return out
+
+
+RENDERERS = {"bev-cpu": bev_cpu, "epoch-pairs": epoch_pairs}
