@@ -25,6 +25,7 @@ BEV_CPU_PAIRS = tuple(
     f"reports/model/across-pairs-{n}.json"
     for n in (
         "bev-span-thin-cpu",
+        "bev-span-thin-cpu-e10",  # the calibration pairs' epoch (epoch_pairs.py)
         "bev-span-thin-cpu-first",
         "bev-span-thin-cpu-still",
         "bev-span-cpu",
