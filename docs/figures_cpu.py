@@ -19,6 +19,11 @@ BEV_CPU_CONTROL = tuple(f"reports/model/{n}.json" for n in ("bev-span-cpu", "bev
 BEV_CPU_REAL = {
     f"`{run}`, its pick": (f"{run}-real-kitti", f"{run}-real-nuscenes")
     for run in ("bev-span-thin-cpu", "bev-span-cpu", "bev-span-cpu-s1")
+} | {  # the calibration pairs' epoch (benchmarks/epoch_pairs.py)
+    "`bev-span-thin-cpu`, the pairs' pick (epoch 10)": (
+        "bev-span-thin-cpu-e10-real-kitti",
+        "bev-span-thin-cpu-e10-real-nuscenes",
+    )
 }
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
