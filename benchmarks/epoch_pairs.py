@@ -20,7 +20,8 @@ test town is reported on only.
     python benchmarks/epoch_pairs.py --run runs/NAME [--test] \\
         --out reports/model/epoch-pairs-NAME.json
 
-≈ 1 min an epoch on 2 cores (5,000 scans), ≈ 3.5 min with ``--test`` (20,000 scans).
+≈ 1 min an epoch on 2 cores (5,000 scans), ≈ 3 min with ``--test`` (25,000 scans): ≈ 32 min
+for a run of 11 epochs.
 """
 
 from __future__ import annotations
