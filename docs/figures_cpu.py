@@ -31,6 +31,7 @@ BEV_CPU_PAIRS = tuple(
     for n in (
         "bev-span-thin-cpu",
         "bev-span-thin-cpu-e10",  # the calibration pairs' epoch (epoch_pairs.py)
+        "bev-span-thin-cpu-e10-still",
         "bev-span-thin-cpu-first",
         "bev-span-thin-cpu-still",
         "bev-span-cpu",
@@ -49,6 +50,9 @@ BEV_CPU_STILL = {  # each run's report → the across-pairs report of the file i
     ),
     "reports/model/yaw-spectrum-bev-span-cpu-still.json": (
         "reports/model/across-pairs-bev-span-cpu-still.json"
+    ),
+    "reports/model/yaw-spectrum-bev-span-thin-cpu-e10.json": (
+        "reports/model/across-pairs-bev-span-thin-cpu-e10-still.json"
     ),
 }
 
