@@ -43,6 +43,16 @@ def benchmark_module(name: str) -> Any:
         sys.path.remove(str(BENCHMARKS))
 
 
+def resident_bytes(pid: int | str = "self") -> int:
+    """A process's resident memory (Linux: ``/proc/PID/statm``); ``PROC_STATM`` says whether
+    this machine has it."""
+    pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE")
+
+
+PROC_STATM = Path("/proc/self/statm").exists()
+
+
 def _need(sub: str) -> Path:
     path = SHARED_DATA / sub
     if not path.exists():

@@ -3,9 +3,8 @@ style §5), forward and gradients, open and circular."""
 
 from __future__ import annotations
 
-import os
-
 import pytest
+from conftest import PROC_STATM, resident_bytes
 
 torch = pytest.importorskip("torch")
 
@@ -252,12 +251,7 @@ def test_the_served_kernel_for_older_processors_gives_the_same_numbers(tmp_path)
             np.testing.assert_allclose(old[f"{kind}{c}"], here, rtol=0, atol=2e-6 * scale)
 
 
-def _resident_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-@pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="reads Linux's /proc")
+@pytest.mark.skipif(not PROC_STATM, reason="reads Linux's /proc")
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_served_kernel_gives_back_what_it_allocates(threads):
     """The service runs the kernel on every scan it encodes, for as long as it is up: a ring
@@ -268,10 +262,10 @@ def test_the_served_kernel_gives_back_what_it_allocates(threads):
     arrays = [x.numpy() for x in inputs(1, 8, 900, 16, seed=3, dtype=torch.float32)]
     for _ in range(20):  # the allocator's and the thread pool's first blocks
         scan_forward(*arrays, circular=True, threads=threads)
-    before = _resident_bytes()
+    before = resident_bytes()
     calls = 400
     for _ in range(calls):
         scan_forward(*arrays, circular=True, threads=threads)
-    grown = _resident_bytes() - before
+    grown = resident_bytes() - before
     per_call = 900 * 16 * 32  # what one call's ring buffer is, with 8-lane vectors
     assert grown < calls * per_call / 10, f"resident memory grew {grown / 1e6:.1f} MB"

@@ -6,23 +6,16 @@ registered against their keyframes' geometry (small_gicp)."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import httpx
 import pytest
+from conftest import PROC_STATM, resident_bytes
 from service_kit import OCTET, scan, server
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads Linux's /proc"),
+    pytest.mark.skipif(not PROC_STATM, reason="reads Linux's /proc"),
 ]
 GROWTH_MB = 30.0  # over a phase's requests, after its warm-up
-
-
-def _resident_mb(pid: int) -> float:
-    pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
-    return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 def test_a_real_server_answering_scan_after_scan_keeps_its_memory_flat(tmp_path):
@@ -34,10 +27,10 @@ def test_a_real_server_answering_scan_after_scan_keeps_its_memory_flat(tmp_path)
         def grown(send, warm: int, n: int) -> float:
             for i in range(warm):  # the allocators' and the runtime's first blocks
                 send(i)
-            before = _resident_mb(proc.pid)
+            before = resident_bytes(proc.pid) / 1e6
             for i in range(n):
                 send(i)
-            return _resident_mb(proc.pid) - before
+            return resident_bytes(proc.pid) / 1e6 - before
 
         def describe(i: int) -> None:
             r = c.post("/v1/descriptors", content=bodies[i % 4], headers=OCTET)
