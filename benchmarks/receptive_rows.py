@@ -31,8 +31,8 @@ from reports_kit import REPORTS, ROOT, shown_path, write_report
 from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.sensors.beams import row_beams
 from overlapmamba.core.sensors.catalogue import CATALOGUE
-from overlapmamba.core.sensors.input import row_beams
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.service.encoder import Encoder
 

@@ -244,7 +244,7 @@ def test_training_sees_a_bev_scan_through_a_sparser_sensors_beams(tiny_seq):
     whole scan's; a VLP-16 has no sparser sensor in the catalogue, and is never drawn."""
     pytest.importorskip("torch")
     from overlapmamba.core.datasets import open_sequence
-    from overlapmamba.core.sensors.input import beams_near
+    from overlapmamba.core.sensors.beams import beams_near
     from overlapmamba.train.train_inputs import Images, _sparser_beams
 
     hdl = CATALOGUE["kitti-hdl64"]

@@ -10,13 +10,8 @@ from hypothesis import strategies as st
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.projection import project
 from overlapmamba.core.sensors import CATALOGUE, get_profile, get_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import (
-    SensorInput,
-    beam_of,
-    check_mode,
-    project_input_reference,
-    row_beams,
-)
+from overlapmamba.core.sensors.beams import beam_of, row_beams
+from overlapmamba.core.sensors.input import SensorInput, check_mode, project_input_reference
 from overlapmamba.core.views import project_views
 
 KITTI = get_profile("kitti-hdl64")

@@ -1,5 +1,5 @@
 """The ``elevation-lerp`` input: another sensor's scan made into the model's own sensor's
-beams (``LerpPlan`` and ``lerp_rows`` of :mod:`overlapmamba.core.sensors.input`)."""
+beams (``LerpPlan`` and ``lerp_rows`` of :mod:`overlapmamba.core.sensors.beams`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 from test_catalogue import _cloud
 
 from overlapmamba.core.sensors import CATALOGUE, get_profile
-from overlapmamba.core.sensors.input import LerpPlan, SensorInput, check_mode
+from overlapmamba.core.sensors.beams import LerpPlan
+from overlapmamba.core.sensors.input import SensorInput, check_mode
 from overlapmamba.core.views import project_views
 
 KITTI = get_profile("kitti-hdl64")

@@ -21,7 +21,7 @@ and the configured maximum, so a batch always mixes clean and degraded scans.
 - ``sensor_like``: the probability that a scan is seen as another catalogue sensor sees it
   (drawn uniformly among ``sensor_like_names``, default every catalogue sensor whose profile
   is not the model's): each row of the model's input takes the row nearest the elevation of
-  the beam that sensor's scan would put there (:func:`~overlapmamba.core.sensors.input.row_beams`,
+  the beam that sensor's scan would put there (:func:`~overlapmamba.core.sensors.beams.row_beams`,
   as the service projects it), rows it has no beam for are emptied, and so are returns
   beyond its range limits and columns its firings per turn do not reach (at a random phase).
   Row for row, the same image the service makes from that sensor's scan of the same place,
@@ -58,8 +58,8 @@ from pydantic import ConfigDict, model_validator
 
 from overlapmamba.core.configs import Config
 from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.beams import row_beams
 from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor
-from overlapmamba.core.sensors.input import row_beams
 from overlapmamba.train.errors import ConfigError
 
 

@@ -6,7 +6,7 @@ nuScenes HDL-32E scene): ``overlapmamba eval-real``.
   Context on the same queries;
 - **yaw estimate** from the yaw features;
 - **thinned beams** (``--beams 32,16``): the queries keep every second or fourth ring of the
-  HDL-64E (rings found by elevation, :func:`overlapmamba.core.sensors.input.beam_of`), the database
+  HDL-64E (rings found by elevation, :func:`overlapmamba.core.sensors.beams.beam_of`), the database
   stays whole: what a fleet's 32- or 16-beam sensor gives against a map of full scans.
 
 Scans enter the model as their sensor's (:mod:`overlapmamba.core.sensors.input`): the sequence's
@@ -28,7 +28,8 @@ from overlapmamba.core.rerank import OFF, Rerank, rerank_ranked
 from overlapmamba.core.scancontext import ScanContextParams, scan_context
 from overlapmamba.core.scancontext import retrieve as sc_retrieve
 from overlapmamba.core.sensors import Sensor, SensorProfile
-from overlapmamba.core.sensors.input import SensorInput, beam_of
+from overlapmamba.core.sensors.beams import beam_of
+from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.train.checkpoint import (
     Network,

@@ -18,8 +18,9 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.sensors import SensorProfile, get_profile, get_sensor
+from overlapmamba.core.sensors.beams import beams_near, on_beams
 from overlapmamba.core.sensors.catalogue import CATALOGUE
-from overlapmamba.core.sensors.input import BEV_MODES, Mode, SensorInput, beams_near, on_beams
+from overlapmamba.core.sensors.input import BEV_MODES, Mode, SensorInput
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.checkpoint import input_of_mode, read_checkpoint
 from overlapmamba.train.errors import ConfigError

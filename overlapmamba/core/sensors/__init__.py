@@ -1,6 +1,6 @@
 """Sensors: the projection profiles of range images (:mod:`.profile`), the LiDARs fleets
 carry with their beam tables (:mod:`.catalogue`), and how a scan of any of them becomes a
-model's input (:mod:`.input`)."""
+model's input (:mod:`.input`: by its beams, :mod:`.beams`, or bird's-eye, :mod:`.bev`)."""
 
 from overlapmamba.core.sensors.catalogue import (
     CATALOGUE,
