@@ -311,3 +311,121 @@ def test_a_maps_sensor_and_mount_are_kept_across_restarts_and_fixed(kind, tmp_pa
     with opened(kind, tmp_path) as b:  # a restart: the settings are the map's
         assert b.get("amr").mount == low and b.get("amr").sensor == "os0-128"
         assert b.get("cars").mount is None
+
+
+def test_a_map_created_again_while_its_deletion_waits_is_kept(tmp_path, monkeypatch):
+    """A robot's idempotent PUT of a map while an operator's DELETE of it waits for the map
+    (a snapshot or a write in progress) must neither take the old map's folder nor lose its
+    own to the deletion: it waits for the deletion, then creates a fresh map whose
+    keyframes survive a restart. Past the wait it answers 503 map_busy."""
+    import threading
+    import time
+
+    from overlapmamba.service.backends.faiss import backend as faiss_backend
+    from overlapmamba.service.errors import Unavailable
+
+    rng = np.random.default_rng(0)
+    with opened("faiss", tmp_path) as b:
+        old, _ = b.create("town", "flat")
+        old.insert([row(i, rng) for i in range(3)])
+        created: list[tuple[object, bool]] = []
+        with old.lock.read():  # what a snapshot being written holds
+            deleting = threading.Thread(target=b.delete, args=("town",))
+            deleting.start()
+            t0 = time.monotonic()
+            while "town" in b.maps and time.monotonic() - t0 < 10:
+                time.sleep(0.01)
+            monkeypatch.setattr(faiss_backend, "DELETE_WAIT_S", 0.2)
+            with pytest.raises(Unavailable, match="still being deleted") as busy:
+                b.create("town", "flat")
+            assert busy.value.code == "map_busy"
+            monkeypatch.setattr(faiss_backend, "DELETE_WAIT_S", 30.0)
+            creating = threading.Thread(target=lambda: created.append(b.create("town", "flat")))
+            creating.start()
+            creating.join(0.3)
+            assert creating.is_alive()  # waiting for the deletion, not taking its folder
+        deleting.join(10)
+        creating.join(10)
+        new, was_created = created[0]
+        assert was_created and new is not old
+        assert isinstance(new, type(old)) and new.count == 0
+        new.insert([row(i, rng) for i in range(10, 12)])
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 2
+
+
+def test_a_deletion_waits_for_a_snapshot_under_way(tmp_path):
+    """A snapshot writes its file after letting go of the map's lock: a deletion that did
+    not wait for it could move the folder away and let the file land in a new map's."""
+    import threading
+
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+        with m._snapshot_lock:  # a snapshot between its serialising and its file
+            deleting = threading.Thread(target=b.delete, args=("town",))
+            deleting.start()
+            deleting.join(0.3)
+            assert deleting.is_alive()
+        deleting.join(10)
+        assert not deleting.is_alive() and "town" not in b.maps
+        assert not (tmp_path / "data" / "maps" / "town").exists()
+
+
+def test_a_failed_or_foreign_snapshot_costs_a_rebuild_never_keyframes(tmp_path, monkeypatch):
+    """A snapshot cut short by a full disk leaves no half-written copy (as large as the
+    index) behind, and one left by a crash is removed at start-up; a snapshot that reflects
+    more writes than its store holds is not this store's and is rebuilt from it."""
+    from overlapmamba.service.backends.faiss import snapshot as snap
+    from overlapmamba.service.backends.faiss.index import VectorIndex
+
+    folder = tmp_path / "data" / "maps" / "town"
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+
+        def full(fd: int) -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(snap.os, "fsync", full)
+        with pytest.raises(OSError, match="No space left"):
+            m.snapshot()
+        monkeypatch.undo()
+        assert not list(folder.glob("*.tmp"))
+    (folder / "index.snap.tmp").write_bytes(b"half a snapshot")
+    empty = VectorIndex.flat(DIM).serialize()
+    snap.write_snapshot(folder / snap.SNAPSHOT_NAME, empty, 999, "flat", DIM)
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 3
+        assert not list(folder.glob("*.tmp"))
+
+
+def test_an_import_cut_off_between_its_renames_is_finished_at_start_up(tmp_path, monkeypatch):
+    """import-map moves the old map away, then the new one in: a crash between the two must
+    not leave start-up to clear both as debris."""
+    from overlapmamba.service import backup
+
+    data = tmp_path / "data"
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    backup.export_map(data, "town", tmp_path / "town.sqlite")
+    with opened("faiss", tmp_path) as b:
+        b.get("town").insert([row(i, np.random.default_rng(i)) for i in range(3, 5)])
+    real_replace, calls = backup.os.replace, []
+
+    def crash_on_the_second(src, dst):  # the process dies after moving the old map away
+        calls.append(dst)
+        if len(calls) == 2:
+            raise SystemExit("killed")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(backup.os, "replace", crash_on_the_second)
+    with pytest.raises(SystemExit):
+        backup.import_map(data, "town", tmp_path / "town.sqlite", replace=True)
+    monkeypatch.undo()
+    assert not (data / "maps" / "town").exists()
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 3  # the import's keyframes, not nothing
+    assert not list((data / "maps").glob(".import-*"))
+    assert not (data / "maps" / "town" / "imported").exists()

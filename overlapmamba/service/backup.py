@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from overlapmamba.service.backends.faiss.backend import IMPORTED_MARK
 from overlapmamba.service.backends.faiss.store import READABLE_VERSIONS, Store, fsync_dir
 from overlapmamba.service.domain import check_map_id
 
@@ -90,8 +91,9 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
     with data_dir_lock(data_dir):
         if folder.exists() and not replace:
             raise BackupError(f"map {map_id!r} exists under {data_dir}; pass --replace")
-        # The new map is complete before the old one moves: a failure or a crash at any
-        # point leaves one of the two whole (load_all clears the .import/.trash debris).
+        # The new map is complete, and marked so, before the old one moves: a crash at any
+        # point leaves one of the two whole. Start-up clears the .import/.trash debris, and
+        # finishes an import cut off between the two renames (IMPORTED_MARK, load_all).
         tmp = folder.with_name(f".import-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -99,10 +101,15 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         store = Store(tmp / "store.sqlite")
         store.set_meta(map_id=map_id)
         store.close()
+        with open(tmp / "store.sqlite", "rb+") as f:
+            os.fsync(f.fileno())
+        (tmp / IMPORTED_MARK).touch()
+        fsync_dir(tmp)
         trash = folder.with_name(f".trash-{map_id}-{time.time_ns()}")
         if folder.exists():
             os.replace(folder, trash)
         os.replace(tmp, folder)
         fsync_dir(folder.parent)
+        (folder / IMPORTED_MARK).unlink()
         shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}

@@ -19,7 +19,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
 @router.put(
     "/{map_id}",
     response_model=MapOut,
-    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409)},
+    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409, 503)},
     summary="Create a map (idempotent)",
 )
 async def create_map(
@@ -30,7 +30,8 @@ async def create_map(
     settings: MapSettingsIn | None = Body(None),  # noqa: B008
 ) -> MapOut:
     """Create the map, or return it unchanged if it exists with the same settings (200).
-    Map ids: `[a-z0-9][a-z0-9_-]{0,63}`."""
+    Map ids: `[a-z0-9][a-z0-9_-]{0,63}`. While a map of that id is being deleted, the
+    creation waits for the deletion to finish (503 `map_busy` if it takes over a minute)."""
     wanted = settings.sensor if settings else None
     sensor = svc.sensors.declared(wanted)  # the model's own is stored as None
     mount = parse_mount(settings.mount if settings else None)

@@ -3,8 +3,12 @@
     data_dir/maps/<map_id>/        one :class:`~overlapmamba.service.backends.faiss.map.FaissMap`
     data_dir/maps/.create-<id>     a map being created (renamed into place when whole)
     data_dir/maps/.trash-<id>-<t>  a deleted map on its way out
+    data_dir/maps/.import-<id>     an imported map (``overlapmamba import-map``) before it
+                                   moves into place; complete once it holds IMPORTED_MARK
 
-Debris of an interrupted create, delete or import is removed at start-up.
+Debris of an interrupted create, delete or import is removed at start-up, except a complete
+import whose map folder is missing (the crash fell between its two renames): it is moved into
+place, so the import is finished rather than both copies lost.
 """
 
 from __future__ import annotations
@@ -27,6 +31,10 @@ from overlapmamba.service.errors import Conflict, Unavailable
 from overlapmamba.service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")
+IMPORTED_MARK = "imported"  # written into .import-<id> once its store is whole and on disk
+# how long (s) a create waits for a deletion of the same map id to move its folder away (that
+# waits for the map's writes and snapshot in progress) before answering 503 map_busy
+DELETE_WAIT_S = 60.0
 
 
 class FaissBackend:
@@ -42,12 +50,16 @@ class FaissBackend:
         self.maps: dict[str, FaissMap] = {}
         self.failed: dict[str, str] = {}  # map id -> why it could not be opened
         self._lock = threading.Lock()
+        # map id -> set once its deletion has moved its folder away: until then a create of
+        # the same id waits, or it would take the folder the deletion is about to move
+        self._deleting: dict[str, threading.Event] = {}
         set_threads(settings.threads)
 
     def load_all(self) -> None:
         """Open every map. One that cannot be opened (a damaged store) is logged and listed
         in ``failed`` — the other maps still serve; its files are left untouched."""
         self.root.mkdir(parents=True, exist_ok=True)
+        self._finish_imports()
         for folder in sorted(self.root.iterdir()):
             if folder.is_dir() and MAP_ID.fullmatch(folder.name):
                 if not (folder / "store.sqlite").exists():
@@ -59,6 +71,19 @@ class FaissBackend:
                     self.failed[folder.name] = f"{type(err).__name__}: {err}"
             elif folder.name.startswith((".trash-", ".import-", ".create-")):
                 shutil.rmtree(folder, ignore_errors=True)
+
+    def _finish_imports(self) -> None:
+        """An import cut off after moving the old map away and before moving the new one in
+        leaves only ``.import-<id>`` (complete) and ``.trash-<id>-…``: move the import in."""
+        for folder in sorted(self.root.glob(".import-*")):
+            map_id = folder.name.removeprefix(".import-")
+            target = self.root / map_id
+            complete = (folder / IMPORTED_MARK).exists()
+            if MAP_ID.fullmatch(map_id) and complete and not target.exists():
+                os.replace(folder, target)
+                (target / IMPORTED_MARK).unlink()
+                fsync_dir(self.root)
+                log.warning("map %s: finished an import cut off at start-up", map_id)
 
     def describe(self) -> dict[str, Any]:
         return {"backend": self.name, "data_dir": str(self.root.parent), "maps": len(self.maps)}
@@ -87,47 +112,73 @@ class FaissBackend:
         sensor: str | None = None,
         mount: Mount | None = None,
     ) -> tuple[FaissMap, bool]:
-        """Create a map, or return the existing one when each setting is None or the same."""
+        """Create a map, or return the existing one when each setting is None or the same.
+        While a map of that id is being deleted, wait for the deletion to finish first."""
         check_map_id(map_id)
-        with self._lock:
-            if map_id in self.failed:
-                self.get(map_id)  # raises: its files exist but cannot be opened
-            m = self.maps.get(map_id)
-            if m is not None:
-                if kind is not None and m.kind != kind:
-                    raise Conflict(
-                        f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
-                        code="map_conflict",
-                        index=m.kind,
-                    )
-                check_same_settings(m, keep_geometry, sensor, mount)
-                return m, False
-            folder = self.root / map_id
-            if folder.exists():  # debris without a store (load_all skipped it): not a map
-                shutil.rmtree(folder)
-            m = FaissMap.create(
-                map_id,
-                folder,
-                model_id=self.model_id,
-                dim=self.dim,
-                kind=kind or self.settings.kind,
-                keep_geometry=True if keep_geometry is None else keep_geometry,
-                sensor=sensor,
-                mount=mount,
-                settings=self.settings,
-            )
-            self.maps[map_id] = m
-            return m, True
+        deadline = time.monotonic() + DELETE_WAIT_S
+        while True:
+            with self._lock:
+                pending = self._deleting.get(map_id)
+                if pending is None:
+                    return self._create(map_id, kind, keep_geometry, sensor, mount)
+            if not pending.wait(max(0.0, deadline - time.monotonic())):
+                raise Unavailable(
+                    f"map {map_id!r} is still being deleted after {DELETE_WAIT_S:g} s; try again",
+                    code="map_busy",
+                )
+
+    def _create(
+        self,
+        map_id: str,
+        kind: str | None,
+        keep_geometry: bool | None,
+        sensor: str | None,
+        mount: Mount | None,
+    ) -> tuple[FaissMap, bool]:
+        """:meth:`create` with the lock held and no deletion of ``map_id`` under way."""
+        if map_id in self.failed:
+            self.get(map_id)  # raises: its files exist but cannot be opened
+        m = self.maps.get(map_id)
+        if m is not None:
+            if kind is not None and m.kind != kind:
+                raise Conflict(
+                    f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
+                    code="map_conflict",
+                    index=m.kind,
+                )
+            check_same_settings(m, keep_geometry, sensor, mount)
+            return m, False
+        folder = self.root / map_id
+        if folder.exists():  # debris without a store (load_all skipped it): not a map
+            shutil.rmtree(folder)
+        m = FaissMap.create(
+            map_id,
+            folder,
+            model_id=self.model_id,
+            dim=self.dim,
+            kind=kind or self.settings.kind,
+            keep_geometry=True if keep_geometry is None else keep_geometry,
+            sensor=sensor,
+            mount=mount,
+            settings=self.settings,
+        )
+        self.maps[map_id] = m
+        return m, True
 
     def delete(self, map_id: str) -> None:
         with self._lock:
             m = self.get(map_id)
             del self.maps[map_id]
-        with m.lock.write():
-            m.close()
-            trash = self.root / f".trash-{map_id}-{time.time_ns()}"
-            os.replace(m.folder, trash)
-            fsync_dir(self.root)
+            done = self._deleting[map_id] = threading.Event()
+        try:
+            with m.retiring():  # after the writes, snapshot and rebuild under way
+                trash = self.root / f".trash-{map_id}-{time.time_ns()}"
+                os.replace(m.folder, trash)
+                fsync_dir(self.root)
+        finally:
+            with self._lock:
+                del self._deleting[map_id]
+            done.set()
         shutil.rmtree(trash, ignore_errors=True)
 
     def snapshot_list(self) -> list[FaissMap]:

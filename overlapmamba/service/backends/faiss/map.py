@@ -15,12 +15,14 @@ Snapshots are written atomically (temporary file, fsync, rename, fsync of the fo
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import shutil
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -130,7 +132,17 @@ class FaissMap:
         """Load the snapshot (if any, and sound) and replay the store's newer changes."""
         store = Store(folder / "store.sqlite")
         dim = int(store.get_meta("dim") or 0)
+        stale = (folder / SNAPSHOT_NAME).with_suffix(".snap.tmp")  # a write cut short
+        stale.unlink(missing_ok=True)
         index, seq = read_snapshot(folder / SNAPSHOT_NAME, dim, settings)
+        if index is not None and seq > store.last_seq:  # not this store's: rebuild from it
+            log.warning(
+                "map %s: its snapshot reflects writes up to %d, its store holds %d: rebuilt",
+                map_id,
+                seq,
+                store.last_seq,
+            )
+            index, seq = None, 0
         replay_from = seq
         if index is None:
             index, replay_from = VectorIndex.flat(dim), 0
@@ -228,6 +240,15 @@ class FaissMap:
             self.snapshot_seq = seq
             purged = self.store.purge_tombstones(seq)
         return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
+
+    @contextlib.contextmanager
+    def retiring(self) -> Iterator[None]:
+        """Close the map once the writes, snapshot and rebuild under way have ended; the body
+        then runs while nothing else can touch its folder (a deletion moves it away there,
+        and a snapshot cut off by it cannot land in another map's folder of the same id)."""
+        with self._snapshot_lock, self.lock.write():
+            self.close()
+            yield
 
     def close(self) -> None:
         """Under the write lock: requests that still hold this map then see it gone."""

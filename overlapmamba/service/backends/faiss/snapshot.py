@@ -26,11 +26,15 @@ SNAPSHOT_NAME = "index.snap"
 def write_snapshot(path: Path, payload: bytes, seq: int, kind: str, dim: int) -> Path:
     header = json.dumps({"seq": seq, "kind": kind, "dim": dim}).encode()
     tmp = path.with_suffix(".snap.tmp")
-    with open(tmp, "wb") as f:
-        f.write(SNAPSHOT_MAGIC + struct.pack("<I", len(header)) + header + payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(SNAPSHOT_MAGIC + struct.pack("<I", len(header)) + header + payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk: a half-written copy as large as the index must go
+        tmp.unlink(missing_ok=True)
+        raise
     fsync_dir(path.parent)
     return path
 
