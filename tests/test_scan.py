@@ -269,3 +269,53 @@ def test_the_served_kernel_gives_back_what_it_allocates(threads):
     grown = resident_bytes() - before
     per_call = 900 * 16 * 32  # what one call's ring buffer is, with 8-lane vectors
     assert grown < calls * per_call / 10, f"resident memory grew {grown / 1e6:.1f} MB"
+
+
+def test_a_split_waits_for_every_part_even_when_one_fails():
+    """The parts write into buffers only the caller keeps alive: when one part fails, the
+    split must not return (and let the caller free them) while another still runs."""
+    import threading
+    import time
+
+    from overlapmamba.core.scan_kernel import run_split
+
+    ended: list[int] = []
+    lock = threading.Lock()
+
+    def part(r0: int, r1: int) -> None:
+        if r0 == 1:  # the first part handed to the pool fails at once
+            raise RuntimeError("part 1 failed")
+        if r0 > 1:  # the caller's own part (0) ends at once, the pool's others later
+            time.sleep(0.3)
+        with lock:
+            ended.append(r0)
+
+    with pytest.raises(RuntimeError, match="part 1 failed"):
+        run_split(part, 4, 4)
+    assert sorted(ended) == [0, 2, 3]  # all the others ran to their end first
+
+
+def test_the_fused_scan_refuses_tensors_it_would_read_out_of_bounds():
+    """The kernel reads raw memory as u's dtype and the legend's shapes: a mismatch is an
+    error naming the tensor, never a read past a buffer."""
+    u, delta, A, Bm, Cm, D = inputs(2, 4, 9, 3)
+    with pytest.raises(TypeError, match=r"u's torch.float64; got A torch.float32"):
+        scan_fused.selective_scan_fused(u, delta, A.float(), Bm, Cm, D)
+    with pytest.raises(ValueError, match=r"B \(2, 9, 2\).*want"):
+        scan_fused.selective_scan_fused(u, delta, A, Bm[..., :2], Cm, D)
+    with pytest.raises(ValueError, match=r"D \(3,\)"):
+        scan_fused.selective_scan_fused(u, delta, A, Bm, Cm, D[:3])
+    with pytest.raises(ValueError, match="u must be"):
+        scan_fused.selective_scan_fused(u[0], delta, A, Bm, Cm, D)
+    with pytest.raises(ValueError, match="CPU tensors; got C on meta"):
+        scan_fused.selective_scan_fused(u, delta, A, Bm, Cm.to("meta"), D)
+
+
+def test_the_served_kernel_refuses_a_malformed_state_matrix():
+    """A broken file's A (not E × N) is a ValueError the encoder falls back on, not an
+    IndexError it does not expect."""
+    from overlapmamba.core.scan_kernel import scan_forward
+
+    u, delta, A, Bm, Cm, D = (x.numpy() for x in inputs(1, 8, 5, 4, dtype=torch.float32))
+    with pytest.raises(ValueError, match="A \\(E, N\\)"):
+        scan_forward(u, delta, A[0], Bm, Cm, D, circular=True)

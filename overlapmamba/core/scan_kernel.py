@@ -34,7 +34,7 @@ import sys
 import tempfile
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 
 import numpy as np
@@ -124,11 +124,18 @@ def load() -> ctypes.CDLL:
         except (OSError, KernelBuildError) as err:
             _error = str(err)
             raise KernelBuildError(_error) from None
+        # the C signatures, so that ctypes refuses a wrong argument instead of passing it on
+        ptr, i32 = ctypes.c_void_p, ctypes.c_int
         for suffix in ("f", "d"):
-            getattr(lib, f"scan_fwd_{suffix}").restype = None
-            getattr(lib, f"scan_bwd_{suffix}").restype = None
+            fwd, bwd = getattr(lib, f"scan_fwd_{suffix}"), getattr(lib, f"scan_bwd_{suffix}")
+            fwd.restype = bwd.restype = None
+            fwd.argtypes = [ptr] * 7 + [i32] * 7  # u Δ A B C D y; B E L N circular b0 b1
+            bwd.argtypes = [ptr] * 12 + [i32] * 7  # … dy du dΔ dA dB dC; the same ints
         lib.scan_fwd_tokens_f.restype = None
+        # u Δ Aᵀ B C D y; M L E N circular; units [k0, k1)
+        lib.scan_fwd_tokens_f.argtypes = [ptr] * 7 + [i32] * 5 + [ctypes.c_long] * 2
         lib.scan_tokens_lanes.restype = ctypes.c_int
+        lib.scan_tokens_lanes.argtypes = []
         _lib = lib
         return lib
 
@@ -155,12 +162,30 @@ def run_split(fn: Callable[..., object], rows: int, threads: int, *args: object)
             pool = _pools[threads - 1] = ThreadPoolExecutor(threads - 1, thread_name_prefix="scan")
     bounds = [round(rows * i / threads) for i in range(threads + 1)]
     parts = [(lo, hi) for lo, hi in itertools.pairwise(bounds) if hi > lo]
-    jobs = [pool.submit(fn, *args, lo, hi) for lo, hi in parts[1:]]
+    jobs: list[Future[object]] = []
     try:
+        for lo, hi in parts[1:]:
+            jobs.append(pool.submit(fn, *args, lo, hi))
         fn(*args, *parts[0])
     finally:
-        for j in jobs:
-            j.result()
+        _settle(jobs)
+
+
+def _settle(jobs: list[Future[object]]) -> None:
+    """Wait until every job has ended, then raise the first one's error, if any. The jobs
+    write into buffers that only the caller's frame keeps alive, so nothing may leave before
+    they end: not another job's error, not an interrupt (Ctrl-C) arriving while waiting."""
+    interrupted: BaseException | None = None
+    while True:
+        try:
+            wait(jobs)
+            break
+        except BaseException as err:  # re-raised below, once the jobs have ended
+            interrupted = interrupted or err
+    if interrupted is not None:
+        raise interrupted
+    for j in jobs:
+        j.result()
 
 
 def _ptr(a: np.ndarray) -> ctypes.c_void_p:
@@ -183,6 +208,8 @@ def scan_forward(
     The kernel (``scan_fwd_tokens_f``) reads this layout as it is, a block of 8 (AVX) or 4
     channels per vector; E is padded to a multiple of 8 where it is not one. The M · E/lanes
     (row, block) units are split across ``threads`` threads."""
+    if u.ndim != 3 or A.ndim != 2:
+        raise ValueError(f"u must be (M, L, E) and A (E, N); got u {u.shape}, A {A.shape}")
     M, L, E = u.shape
     N = A.shape[1]
     if delta.shape != u.shape or Bm.shape != (M, L, N) or Cm.shape != (M, L, N):

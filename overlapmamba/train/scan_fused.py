@@ -77,9 +77,30 @@ def selective_scan_fused(
     u: Tensor, delta: Tensor, A: Tensor, Bm: Tensor, Cm: Tensor, D: Tensor, circular: bool = False
 ) -> Tensor:
     """Same result as :func:`overlapmamba.train.scan.selective_scan_ref`; CPU, float32/float64."""
-    if u.device.type != "cpu":
-        raise ValueError(f"the fused scan runs on CPU tensors, not {u.device}")
+    _check(u, delta, A, Bm, Cm, D)
     # The kernel walks channel-major rows of u and Δ and reads B and C per step, token-major
     # as given: (B, L, N) keeps each step's N values together.
     y: Tensor = _FusedScan.apply(u.transpose(1, 2), delta.transpose(1, 2), A, Bm, Cm, D, circular)
     return y.transpose(1, 2)
+
+
+def _check(u: Tensor, delta: Tensor, A: Tensor, Bm: Tensor, Cm: Tensor, D: Tensor) -> None:
+    """The kernel reads raw memory as u's type and the legend's shapes: any other tensor, or
+    one elsewhere than the CPU, is refused here rather than read out of bounds."""
+    named = {"u": u, "delta": delta, "A": A, "B": Bm, "C": Cm, "D": D}
+    if off := [f"{k} on {t.device}" for k, t in named.items() if t.device.type != "cpu"]:
+        raise ValueError(f"the fused scan runs on CPU tensors; got {', '.join(off)}")
+    _suffix(u.dtype)
+    if off := [f"{k} {t.dtype}" for k, t in named.items() if t.dtype != u.dtype]:
+        raise TypeError(f"the fused scan takes one dtype, u's {u.dtype}; got {', '.join(off)}")
+    if u.dim() != 3 or A.dim() != 2:
+        raise ValueError(
+            f"u must be (B, L, E) and A (E, N); got u {tuple(u.shape)}, A {tuple(A.shape)}"
+        )
+    (Bsz, L, E), N = u.shape, A.shape[1]
+    want = {"delta": (Bsz, L, E), "A": (E, N), "B": (Bsz, L, N), "C": (Bsz, L, N), "D": (E,)}
+    if off := [f"{k} {tuple(named[k].shape)}" for k, s in want.items() if named[k].shape != s]:
+        raise ValueError(
+            f"scan shapes disagree with u {tuple(u.shape)} and A {tuple(A.shape)}: "
+            f"{', '.join(off)}; want delta (B, L, E), A (E, N), B and C (B, L, N), D (E,)"
+        )

@@ -359,11 +359,11 @@ tokens(const float *u, const float *delta, const float *A_t, const float *Bm, co
             const int t1 = t0 + RING_CHECK < L ? t0 + RING_CHECK : L;
             for (int t = t0; t < t1; t++) {
                 const float *ct = Cb + (size_t)t * N;
-                const vf *restrict at = a;
-                if (store)
-                    at = store + (size_t)t * N;
-                else
-                    decays(loadv(dm + (size_t)t * E), A2, d, powers, N, a);
+                /* the first pass's decays, or made again when there was no room to keep them
+                   (written through at itself: restrict forbids another pointer's writes) */
+                vf *restrict at = store ? store + (size_t)t * N : a;
+                if (!store)
+                    decays(loadv(dm + (size_t)t * E), A2, d, powers, N, at);
                 vf acc = (vf){0};
                 for (int i = 0; i < n_live; i++) {
                     const int n = live[i];
