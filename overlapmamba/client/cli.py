@@ -10,19 +10,31 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable
-from functools import wraps
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from overlapmamba.client._base import Timeouts, check_mount
+from overlapmamba.client._cli_options import (
+    DEFAULT_URL,
+    DRIVE_HELP,
+    KeyOpt,
+    MapOpt,
+    MountOpt,
+    OdometryOpt,
+    SensorOpt,
+    TfOpt,
+    TopicOpt,
+    UrlOpt,
+    VerifyOpt,
+    client,
+    console,
+    errors,
+    out,
+)
 from overlapmamba.client._display import matrix_text, pose_text, progress, stats_table
-from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import open_drive
 from overlapmamba.client._sync import PlaceRecognitionClient
 
@@ -35,99 +47,13 @@ app = typer.Typer(
 )
 maps_app = typer.Typer(help="Create, list and delete maps.", no_args_is_help=True)
 app.add_typer(maps_app, name="maps")
-console = Console(stderr=True, soft_wrap=True)
-out = Console()
-F = TypeVar("F", bound=Callable[..., Any])
-
-UrlOpt = Annotated[
-    str, typer.Option("--url", envvar="OVERLAPMAMBA_URL", help="the service's base URL")
-]
-KeyOpt = Annotated[
-    str | None, typer.Option("--api-key", envvar="OVERLAPMAMBA_API_KEY", help="API key")
-]
-MapOpt = Annotated[str, typer.Option("--map", "-m", help="map id")]
-VerifyOpt = Annotated[
-    bool,
-    typer.Option(
-        "--verify/--no-verify",
-        help="the server registers the top candidates against their keyframes' geometry",
-    ),
-]
-TopicOpt = Annotated[
-    str | None,
-    typer.Option(help="ROS recordings: the PointCloud2 topic (when it holds several)"),
-]
-OdometryOpt = Annotated[
-    str | None,
-    typer.Option(help="ROS recordings: a nav_msgs/Odometry topic giving each scan's pose"),
-]
-TfOpt = Annotated[
-    str | None,
-    typer.Option(
-        "--tf",
-        help="ROS recordings: poses from /tf and /tf_static in this fixed frame (FIXED, or "
-        "FIXED:CHILD when the LiDAR's frame is not the scans' header frame)",
-    ),
-]
-SensorOpt = Annotated[
-    str | None,
-    typer.Option(
-        help="the sensor the scans come from (`overlapmamba sensors`, GET /v1/sensors): "
-        "vlp16, os1-64, …; default: the drive's manifest's, else the map's"
-    ),
-]
-
-
-def _mount(value: str | None) -> str | None:
-    try:
-        return check_mount(value)
-    except ValueError as err:
-        raise typer.BadParameter(
-            f"{err} (HEIGHT[,PITCH[,ROLL]]: height above the "
-            "ground in (0, 10] m, pitch and roll within ±45°)"
-        ) from None
-
-
-MountOpt = Annotated[
-    str | None,
-    typer.Option(
-        callback=_mount,
-        help="where the sensor sits: HEIGHT[,PITCH[,ROLL]] (m above the ground; degrees, pitch "
-        "positive looking down ahead, roll positive left side up), e.g. 0.7 for a delivery "
-        "robot; the service levels the scans and moves them to the model's mount",
-    ),
-]
-DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
-DEFAULT_URL = "http://127.0.0.1:8000"
-
-
-def _errors(func: F) -> F:
-    @wraps(func)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return func(*args, **kwargs)
-        except APIError as err:
-            console.print(f"[bold red]error:[/] {err.status} {err.code}: {err.message}")
-            raise typer.Exit(1) from None
-        except ClientError as err:
-            console.print(f"[bold red]error:[/] {err}")
-            raise typer.Exit(2) from None
-        except (ValueError, OSError) as err:
-            console.print(f"[bold red]error:[/] {err}")
-            raise typer.Exit(2) from None
-
-    return wrapper  # type: ignore[return-value]
-
-
-def _client(url: str, api_key: str | None, mount: str | None = None) -> PlaceRecognitionClient:
-    return PlaceRecognitionClient(url, api_key=api_key, timeout=Timeouts(read=120), mount=mount)
 
 
 @maps_app.command("list")
-@_errors
+@errors
 def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
     """List the maps and their sizes."""
-    with _client(url, api_key) as pr:
+    with client(url, api_key) as pr:
         maps = pr.list_maps()
     table = Table("map", "keyframes", "index", "model")
     for m in maps:
@@ -136,7 +62,7 @@ def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
 
 
 @maps_app.command("create")
-@_errors
+@errors
 def maps_create(
     map_id: Annotated[str, typer.Argument(help="[a-z0-9][a-z0-9_-]{0,63}")],
     index: Annotated[str | None, typer.Option(help="flat, ivf or auto")] = None,
@@ -162,7 +88,7 @@ def maps_create(
     api_key: KeyOpt = None,
 ) -> None:
     """Create a map (idempotent)."""
-    with _client(url, api_key) as pr:
+    with client(url, api_key) as pr:
         m = pr.create_map(map_id, index=index, keep_geometry=geometry, sensor=sensor, mount=mount)
     where = (
         ""
@@ -178,7 +104,7 @@ def maps_create(
 
 
 @maps_app.command("delete")
-@_errors
+@errors
 def maps_delete(
     map_id: str,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask")] = False,
@@ -188,7 +114,7 @@ def maps_delete(
     """Delete a map and all its keyframes."""
     if not yes:
         typer.confirm(f"delete map {map_id!r} and all its keyframes?", abort=True)
-    with _client(url, api_key) as pr:
+    with client(url, api_key) as pr:
         pr.delete_map(map_id)
     out.print(f"map {map_id}: deleted")
 
@@ -198,7 +124,7 @@ def maps_delete(
     epilog="Examples:\n\n  overlapmamba-client ingest data/synth/val --map town --every 5\n\n"
     "  overlapmamba-client ingest drive.mcap --map town --odometry /odom --sensor os1-64",
 )
-@_errors
+@errors
 def ingest(
     seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
@@ -248,7 +174,7 @@ def ingest(
 
 
 @app.command("query", epilog="Example:\n\n  overlapmamba-client query scan.bin --map town -k 5")
-@_errors
+@errors
 def query(
     scan: Annotated[Path, typer.Argument(help=".bin, .npy or .pcd scan")],
     map_id: MapOpt,
@@ -261,7 +187,7 @@ def query(
 ) -> None:
     """The top-k places for one scan, with yaw, each verified candidate's relative pose and
     fitness, and the loop-closure verdict with its pose."""
-    with _client(url, api_key, mount) as pr:
+    with client(url, api_key, mount) as pr:
         r = pr.query(map_id, scan, k=k, verify=verify, sensor=sensor)
     table = Table(
         "rank", "keyframe", "distance", "yaw °", "verified", "fitness", "x, y m / yaw °", "robot"
@@ -302,7 +228,7 @@ def query(
     "observe",
     epilog="Example:\n\n  overlapmamba-client observe data/synth/val --map town --robot r1",
 )
-@_errors
+@errors
 def observe(
     seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
@@ -330,7 +256,7 @@ def observe(
     closures = inserted = 0
     frames = range(0, len(drive), every)
     with contextlib.ExitStack() as stack:
-        pr = stack.enter_context(_client(url, api_key, mount))
+        pr = stack.enter_context(client(url, api_key, mount))
         rec = None
         if record is not None:
             from overlapmamba.client.recording import MapRecording
@@ -397,7 +323,7 @@ def _closure_end(
 
 
 @app.command("stats")
-@_errors
+@errors
 def stats(
     map_id: Annotated[str | None, typer.Option("--map", "-m", help="one map's stats")] = None,
     watch: Annotated[bool, typer.Option("--watch", help="refresh until Ctrl-C")] = False,
@@ -406,7 +332,7 @@ def stats(
     api_key: KeyOpt = None,
 ) -> None:
     """Recognition statistics (counts, latency percentiles, robots)."""
-    with _client(url, api_key) as pr:
+    with client(url, api_key) as pr:
         if not watch:
             out.print(stats_table(pr.stats(map_id)))
             return
@@ -424,7 +350,7 @@ def stats(
     epilog="Example:\n\n  overlapmamba-client simulate-fleet --robots 8 --map fleet "
     "--sequence data/synth/val --duration 60 --rate 10",
 )
-@_errors
+@errors
 def simulate_fleet(
     map_id: MapOpt,
     sequence: Annotated[
