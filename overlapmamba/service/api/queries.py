@@ -313,6 +313,12 @@ async def stream(
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
             except (ServiceError, LidarCoreError) as err:
                 msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
+            except Exception as err:  # e.g. the store's disk full: answered, logged, go on
+                log.exception(
+                    "stream of map %s, robot %s: observation %r failed", map_id, robot_id, seq
+                )
+                message = f"internal error: {type(err).__name__}"
+                msg = {"seq": seq, "ok": False, **error_body("internal_error", message, None)}
             await websocket.send_text(json.dumps(msg))
 
     worker = asyncio.create_task(process())

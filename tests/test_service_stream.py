@@ -1,0 +1,91 @@
+"""The observation stream (``/v1/maps/{map}/stream``, a WebSocket) on the ASGI app in
+process: an observation that fails in a way the service did not foresee is answered and
+logged, and the stream goes on."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import sqlite3
+
+import pytest
+from service_kit import running, scan
+
+from overlapmamba.service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+
+async def _stream(app, path: str, query: str, frames: list[dict], answers: int) -> list[dict]:
+    """Open a WebSocket on the ASGI app, send ``frames`` (ASGI receive messages) and gather
+    the server's first ``answers`` text frames, decoded."""
+    got: list[dict] = []
+    inbox: asyncio.Queue[dict] = asyncio.Queue()
+    for message in [{"type": "websocket.connect"}, *frames]:
+        inbox.put_nowait(message)
+    enough = asyncio.Event()
+
+    async def send(message: dict) -> None:
+        if message["type"] == "websocket.send":
+            got.append(json.loads(message["text"]))
+            if len(got) >= answers:
+                enough.set()
+        elif message["type"] == "websocket.close":
+            enough.set()
+
+    scope = {
+        "type": "websocket",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": query.encode(),
+        "headers": [],
+        "scheme": "ws",
+        "server": ("test", 80),
+        "client": ("127.0.0.1", 1),
+        "root_path": "",
+        "subprotocols": [],
+        "asgi": {"version": "3.0"},
+        "state": {},
+    }
+    task = asyncio.create_task(app(scope, inbox.get, send))
+    await asyncio.wait_for(enough.wait(), timeout=60)
+    inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+    with contextlib.suppress(BaseException):
+        await asyncio.wait_for(task, timeout=10)
+    return got
+
+
+async def test_an_unforeseen_error_is_answered_and_the_stream_goes_on(tmp_path, encoder, caplog):
+    """The store's disk full (sqlite3.OperationalError) during one observation: the robot
+    gets that frame's error and the next frame's answer, not a stream that dies silently."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+        svc = app.state.service
+        real, calls = svc.observe, []
+
+        async def disk_full_once(m, body, obs):
+            calls.append(obs.timestamp)
+            if len(calls) == 1:
+                raise sqlite3.OperationalError("database or disk is full")
+            return await real(m, body, obs)
+
+        svc.observe = disk_full_once
+        points = scan(0).tobytes()
+        frames = []
+        for seq in (1, 2):
+            frames.append(
+                {
+                    "type": "websocket.receive",
+                    "text": json.dumps({"seq": seq, "timestamp": float(seq)}),
+                }
+            )
+            frames.append({"type": "websocket.receive", "bytes": points})
+        first, second = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+    assert first["seq"] == 1 and first["ok"] is False
+    assert first["error"]["code"] == "internal_error"
+    assert "OperationalError" in first["error"]["message"]
+    assert second["seq"] == 2 and second["ok"] is True, second
+    assert calls == [1.0, 2.0]
+    assert any("observation 1 failed" in r.getMessage() for r in caplog.records)
