@@ -244,6 +244,13 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
 
         assert (await c.delete("/v1/maps/yard")).status_code == 204
         assert (await c.get("/v1/maps/yard")).status_code == 404
+        assert 'overlapmamba_queries_total{map="town"}' in metrics
+        assert 'overlapmamba_verifications_total{map="town"' in metrics
+        assert (await c.delete("/v1/maps/town")).status_code == 204
+        metrics = (await c.get("/metrics")).text  # a deleted map's series go with it
+        assert (
+            'map="town"' not in metrics and "town" not in (await c.get("/v1/stats")).json()["maps"]
+        )
 
 
 async def test_keyframe_batches_check_model_and_values(any_backend, encoder):

@@ -179,10 +179,16 @@ class Stats:
                     rec.inserts += n
 
     def forget_map(self, map_id: str) -> None:
+        """A deleted map's counts and every /metrics series labelled with it go: maps that
+        come and go must not grow the service's memory and its scrapes for ever."""
         with self._lock:
             self.by_map.pop(map_id, None)
-        with contextlib.suppress(KeyError):
-            self.p_keyframes.remove(map_id)
+        labelled = [(m, (map_id,)) for m in (self.p_keyframes, self.p_queries, self.p_inserts)]
+        labelled += [(self.p_loops, (map_id,))]
+        labelled += [(self.p_verify, (map_id, outcome)) for outcome in ("verified", "rejected")]
+        for metric, labels in labelled:
+            with contextlib.suppress(KeyError):
+                metric.remove(*labels)
 
     def percentiles(self) -> dict[str, dict[str, float | int]]:
         out: dict[str, dict[str, float | int]] = {}
