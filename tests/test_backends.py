@@ -429,3 +429,35 @@ def test_an_import_cut_off_between_its_renames_is_finished_at_start_up(tmp_path,
         assert b.get("town").count == 3  # the import's keyframes, not nothing
     assert not list((data / "maps").glob(".import-*"))
     assert not (data / "maps" / "town" / "imported").exists()
+
+
+def test_a_write_stored_but_not_indexed_is_rebuilt_never_snapshotted_away(tmp_path, monkeypatch):
+    """The store commits first, then the index and the filter columns are updated. When that
+    update fails (out of memory), the keyframe is stored (a retry answers created: false):
+    the map must rebuild it into its index, and no snapshot may record it as applied
+    before, or a restart would never replay it."""
+    rng = np.random.default_rng(0)
+    rows = [row(i, rng) for i in range(4)]
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert(rows[:2])
+        real_add = m.index.add
+
+        def out_of_memory(ids, vecs):
+            raise MemoryError("faiss could not grow its index")
+
+        m._maintenance.acquire()  # no background rebuild yet: the snapshot must see to it
+        monkeypatch.setattr(m.index, "add", out_of_memory)
+        with pytest.raises(MemoryError):
+            m.insert([rows[2]])
+        monkeypatch.setattr(m.index, "add", real_add)
+        assert m.insert([rows[2]])[0].created is False  # stored: a retry finds it
+        m.insert([rows[3]])  # a later write moves the applied seq past the lost one
+        m.snapshot()
+        assert m.count == 4
+        m._maintenance.release()
+        only = Filters(time_from=2.0, time_to=2.0)  # read from the filter columns
+        found = [x.keyframe.keyframe_id for x in m.search(rows[2].descriptor, 1, only)]
+        assert found == ["kf-2"]
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 4

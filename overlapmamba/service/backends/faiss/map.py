@@ -79,6 +79,10 @@ class FaissMap:
         self._snapshot_lock = threading.Lock()
         self._maintenance = threading.Lock()
         self.closed = False
+        # a write reached the store but not the index or the filter columns (it failed
+        # between, e.g. out of memory): they are rebuilt from the store before any snapshot,
+        # which would otherwise record the write as applied and a restart never replay it
+        self.incomplete = False
         self.kind: str = store.get_meta("index_kind") or "flat"
         self.model_id: str = store.get_meta("model_id") or ""
         self.created_at = float(store.get_meta("created_at") or 0.0)
@@ -167,6 +171,8 @@ class FaissMap:
         return (self.kind == "ivf" or auto) and n >= 64  # IVF needs vectors to train on
 
     def wants_rebuild(self) -> bool:
+        if self.incomplete:
+            return True
         n = self.index.ntotal
         if not self._use_ivf(n):
             return self.index.kind != "flat"  # e.g. an IVF snapshot of a map now flat
@@ -208,6 +214,7 @@ class FaissMap:
             return
         with self.lock.read():
             seq = self.applied_seq
+            repair = self.incomplete
         ids, vecs = [], []
         for i, v, _ in self.store.live_rows(0, upto_seq=seq):
             ids.append(i)
@@ -225,12 +232,21 @@ class FaissMap:
             for rows, v, _ in self.store.live_rows(seq):
                 new.add(rows, v)
             new.remove(self.store.deleted_after(seq))
+            if repair:  # the filter columns too, from every live row
+                columns = FilterColumns()
+                for rows, meta in self.store.live_meta():
+                    columns.add(rows, meta)
+                self.columns = columns
             self.index = new
+            self.applied_seq = self.store.last_seq
+            self.incomplete = False
         log.info("map %s: index rebuilt as %s with %d vectors", self.map_id, new.kind, new.ntotal)
 
     def snapshot(self) -> dict[str, Any]:
         """Write the index and its seq atomically; then purge tombstones it reflects."""
         with self._snapshot_lock:
+            if self.incomplete:
+                self._rebuild()
             with self.lock.read():
                 self.check_open()
                 seq = self.applied_seq
@@ -273,9 +289,11 @@ class FaissMap:
             if new:
                 ids, seq = self.store.insert(new)
                 id_arr = np.array(ids, dtype=np.int64)
-                vecs = np.stack([r.descriptor for r in new]).astype(np.float32)
-                self.index.add(id_arr, vecs)
-                self.columns.add(id_arr, [(r.robot_id, r.session_id, r.timestamp) for r in new])
+                with self._behind_on_failure():
+                    vecs = np.stack([r.descriptor for r in new]).astype(np.float32)
+                    self.index.add(id_arr, vecs)
+                    meta = [(r.robot_id, r.session_id, r.timestamp) for r in new]
+                    self.columns.add(id_arr, meta)
                 self.applied_seq = seq
                 created = self.store.get_many([r.keyframe_id for r in new])
         return insert_results(rows, existing, created)
@@ -290,9 +308,27 @@ class FaissMap:
                     code="keyframe_not_found",
                 )
             ids = np.array([row_id], dtype=np.int64)
-            self.index.remove(ids)
-            self.columns.remove(ids)
+            with self._behind_on_failure():
+                self.index.remove(ids)
+                self.columns.remove(ids)
             self.applied_seq = self.store.last_seq
+
+    @contextlib.contextmanager
+    def _behind_on_failure(self) -> Iterator[None]:
+        """Around a committed write's index and column updates: if they fail, the map is
+        marked :attr:`incomplete` and rebuilt from the store in the background (or before the
+        next snapshot, should that fail too); the error goes on to the caller."""
+        try:
+            yield
+        except BaseException:
+            self.incomplete = True
+            with contextlib.suppress(Exception):  # the rebuild, once this write lock is let go
+                self.maintain()
+            log.error(
+                "map %s: a stored write did not reach its index; rebuilt from the store",
+                self.map_id,
+            )
+            raise
 
     @property
     def writes_since_snapshot(self) -> int:
