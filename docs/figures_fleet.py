@@ -354,6 +354,12 @@ def _load_row(rel: str, label: str) -> list[str]:
     served = lt.get("model") or {}  # recorded since 2026-11-29
     views = served.get("views", 0)
     model = f" (model `{served['model_id']}`, {views} view{'s' * (views != 1)})" if served else ""
+    rss = lt.get("server_resident_mb") or {}  # recorded since 2026-12-01 (its /metrics)
+    memory = (
+        f"; the server's resident memory {rss['ready']:.0f} MB ready, {rss['after']:.0f} MB after"
+        if rss.get("ready") is not None and rss.get("after") is not None
+        else ""
+    )
     return [
         label,
         lt["when"][:10],
@@ -362,7 +368,7 @@ def _load_row(rel: str, label: str) -> list[str]:
         f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
         f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
         f"verified closures precision {fl['closure_precision']:.3f}, recall "
-        f"{fl['closure_recall']:.3f}",
+        f"{fl['closure_recall']:.3f}{memory}",
     ]
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -174,6 +175,15 @@ class Poller(Worker):
 
 def missing_keyframes(c: httpx.Client, map_id: str, ids: list[str]) -> list[str]:
     return [k for k in ids if c.get(f"/v1/maps/{map_id}/keyframes/{k}").status_code != 200]
+
+
+def resident_mb(c: httpx.Client) -> float | None:
+    """The server's resident memory (MB) as its own ``/metrics`` says
+    (``process_resident_memory_bytes``; None where the platform has no such series)."""
+    r = c.get("/metrics")
+    r.raise_for_status()
+    found = re.search(r"^process_resident_memory_bytes (\S+)$", r.text, re.M)
+    return float(found[1]) / 1e6 if found else None
 
 
 def percentiles(values: list[float]) -> dict[str, float]:

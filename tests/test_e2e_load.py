@@ -25,6 +25,7 @@ from e2e_kit import (
     drive_dir,
     missing_keyframes,
     percentiles,
+    resident_mb,
     size,
     write_report,
 )
@@ -52,6 +53,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     ):
         model_id = c.get("/readyz").json()["detail"]["model_id"]
         assert c.put("/v1/maps/built").status_code == 201
+        resident_ready = resident_mb(c)
         mapper = Mapper(url, model_id=model_id).start()
         poller = Poller(url).start()
         t0 = time.monotonic()
@@ -78,6 +80,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         missing += missing_keyframes(c, "built", list(mapper.acked))
         maps = {m["map_id"]: m for m in c.get("/v1/maps").json()["maps"]}
         stats = c.get("/v1/stats").json()
+        resident_after = resident_mb(c)
 
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {
@@ -120,6 +123,8 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "acknowledged_missing": len(missing),
         "index_equals_store": {k: m["index"]["vectors"] == m["keyframes"] for k, m in maps.items()},
         "server_encode_ms": stats["latency_ms"].get("encode"),
+        # the server's own /metrics (process_resident_memory_bytes): ready, and after the load
+        "server_resident_mb": {"ready": resident_ready, "after": resident_after},
     }
     path = write_report(name, body)
     assert errors == 0, (report.errors, mapper.errors[:3], poller.errors[:3], path)
