@@ -461,3 +461,26 @@ def test_a_write_stored_but_not_indexed_is_rebuilt_never_snapshotted_away(tmp_pa
         assert found == ["kf-2"]
     with opened("faiss", tmp_path) as b:
         assert b.get("town").count == 4
+
+
+def test_a_full_disk_is_named_and_the_map_goes_on_afterwards(tmp_path):
+    """SQLite rolls a transaction back itself when the disk fills: the error the operator
+    sees must say the disk is full (503 storage_full), not that no transaction was active;
+    nothing half-written stays, and once there is room again the map takes writes."""
+    from overlapmamba.service.errors import Unavailable
+
+    rng = np.random.default_rng(0)
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, rng) for i in range(2)])
+        con = m.store._write
+        pages = con.execute("PRAGMA page_count").fetchone()[0]
+        con.execute(f"PRAGMA max_page_count = {pages + 1}")  # the disk is full
+        big = [row(i, rng, yaw=True) for i in range(2, 60)]
+        with pytest.raises(Unavailable, match="store cannot grow: database or disk is full") as e:
+            m.insert(big)
+        assert e.value.code == "storage_full" and not con.in_transaction
+        assert m.count == 2 and m.store.count() == 2
+        con.execute("PRAGMA max_page_count = 1073741823")  # room again
+        assert all(r.created for r in m.insert(big))
+        assert m.count == 60

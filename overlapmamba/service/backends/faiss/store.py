@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.service.domain import Keyframe, NewKeyframe
+from overlapmamba.service.errors import Unavailable
 
 SCHEMA_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)  # a read-only open (doctor) reads any
@@ -112,6 +113,20 @@ def index_vector(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype=np.float32).copy()
 
 
+def _undo(con: sqlite3.Connection, err: BaseException) -> None:
+    """After a failed write: roll its transaction back, unless SQLite already has (it does
+    so itself on a full disk or an I/O error, and a second ROLLBACK would raise in place of
+    the first error). A full disk becomes an error that says so (503 storage_full), not a
+    bare 500."""
+    if con.in_transaction:
+        con.execute("ROLLBACK")
+    if isinstance(err, sqlite3.OperationalError) and "full" in str(err):
+        raise Unavailable(
+            f"the map's store cannot grow: {err}; free disk space under the data folder",
+            code="storage_full",
+        ) from err
+
+
 class Store:
     def __init__(self, path: Path, *, readonly: bool = False) -> None:
         """``readonly``: only read (no schema script, no writes; `overlapmamba doctor`)."""
@@ -158,8 +173,8 @@ class Store:
                     (str(SCHEMA_VERSION),),
                 )
                 con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
+            except BaseException as err:
+                _undo(con, err)
                 raise
 
     def _connect(self) -> sqlite3.Connection:
@@ -217,8 +232,8 @@ class Store:
                     [(k, v if isinstance(v, str) else json.dumps(v)) for k, v in values.items()],
                 )
                 self._write.execute("COMMIT")
-            except BaseException:
-                self._write.execute("ROLLBACK")
+            except BaseException as err:
+                _undo(self._write, err)
                 raise
 
     @property
@@ -261,8 +276,8 @@ class Store:
                     ids.append(int(cur.lastrowid or 0))
                 con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
                 con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
+            except BaseException as err:
+                _undo(con, err)
                 raise
         return ids, seq
 
@@ -286,8 +301,8 @@ class Store:
                 )
                 con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
                 con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
+            except BaseException as err:
+                _undo(con, err)
                 raise
         return int(row[0])
 
