@@ -227,32 +227,44 @@ def epoch_pairs() -> str:
         picks = {r["trainer_best"]: "the trainer's pick", r["chosen"]: "the pairs' pick"}
         if r["trainer_best"] == r["chosen"]:
             picks = {r["chosen"]: "both picks"}
+        tested = "rank_correlation_with_test_across" in r  # measured with --test
         rows = [
             [
                 f"{e['epoch']}" + (f" ({picks[e['epoch']]})" if e["epoch"] in picks else ""),
                 f3(e["trainer_score"]),
                 f"{f3(e['val']['mean_ar@1'])}; {f3(e['val']['across_mean_ar@1'])}",
-                f"{f3(e['test']['mean_ar@1'])}; {f3(e['test']['across_mean_ar@1'])}"
-                f" / {f3(e['test']['across_min_ar@1'])}",
+                *(
+                    [
+                        f"{f3(e['test']['mean_ar@1'])}; {f3(e['test']['across_mean_ar@1'])}"
+                        f" / {f3(e['test']['across_min_ar@1'])}"
+                    ]
+                    if tested
+                    else []
+                ),
             ]
             for e in r["epochs"]
         ]
-        rho = r["rank_correlation_with_test_across"]
-        head = [
-            "epoch",
-            "trainer's score (`val` F1max, renderings' mean)",
-            "cal-x00 AR@1: 25 pairs; across",
-            "test AR@1: 25 pairs; across mean / lowest",
-        ]
-        out += (
-            source(path, r["command"], when(r))
-            + f"\n`{r['run'].split('/')[-1]}`, every epoch's descriptor (one view, as "
-            "`overlapmamba export` writes it) on the calibration town's pairs and on the test "
-            "town's. Over "
-            f"its {len(rows)} epochs Spearman's rank correlation with the test town's mean AR@1 "
-            f"across sensors is {rho['trainer_score']:.2f} for the trainer's score and "
-            f"{rho['pairs_mean_ar@1']:.2f} for the calibration pairs' mean:\n\n" + table(head, rows)
-        )
+        head = ["epoch", "trainer's score (`val` F1max, renderings' mean)"]
+        head += ["cal-x00 AR@1: 25 pairs; across"]
+        name = r["run"].split("/")[-1]
+        if tested:
+            rho = r["rank_correlation_with_test_across"]
+            head += ["test AR@1: 25 pairs; across mean / lowest"]
+            said = (
+                f"\n`{name}`, every epoch's descriptor (one view, as `overlapmamba export` "
+                "writes it) on the calibration town's pairs and on the test town's. Over its "
+                f"{len(rows)} epochs Spearman's rank correlation with the test town's mean AR@1 "
+                f"across sensors is {rho['trainer_score']:.2f} for the trainer's score and "
+                f"{rho['pairs_mean_ar@1']:.2f} for the calibration pairs' mean:\n\n"
+            )
+        else:
+            said = (
+                f"\n`{name}`, every epoch's descriptor (one view, as `overlapmamba export` "
+                "writes it) on the calibration town's pairs only (without `--test`: the two "
+                "picks are measured on the test town in the table of files across sensors "
+                "above):\n\n"
+            )
+        out += source(path, r["command"], when(r)) + said + table(head, rows)
     return out
 
 
