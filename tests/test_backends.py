@@ -484,3 +484,30 @@ def test_a_full_disk_is_named_and_the_map_goes_on_afterwards(tmp_path):
         con.execute("PRAGMA max_page_count = 1073741823")  # room again
         assert all(r.created for r in m.insert(big))
         assert m.count == 60
+
+
+def test_a_read_under_way_finishes_before_its_map_is_deleted(tmp_path, monkeypatch):
+    """GET of a keyframe while its map is deleted: the read finishes first (or finds the
+    map gone: 404), never a store closed or moved away under it (500)."""
+    import threading
+    import time
+
+    rng = np.random.default_rng(0)
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, rng) for i in range(2)])
+        real_get, got = m.store.get, []
+
+        def slow_get(keyframe_id):
+            time.sleep(0.3)  # a read the deletion overtakes
+            return real_get(keyframe_id)
+
+        monkeypatch.setattr(m.store, "get", slow_get)
+        reading = threading.Thread(target=lambda: got.append(m.get("kf-1")))
+        reading.start()
+        time.sleep(0.05)
+        b.delete("town")
+        reading.join(10)
+        assert got and got[0] is not None and got[0].keyframe_id == "kf-1"
+        with pytest.raises(NotFound):
+            m.get("kf-1")

@@ -380,21 +380,29 @@ class FaissMap:
         self.check_open()
         return self.index.ntotal
 
+    # The store reads below hold the read lock as search does: a deletion closes the map
+    # under the write lock, so a read either finishes first or finds the map gone (404),
+    # never a store whose folder was moved away (500) or re-created under the same id.
+
     def get(self, keyframe_id: str) -> Keyframe | None:
-        self.check_open()
-        return self.store.get(keyframe_id)
+        with self.lock.read():
+            self.check_open()
+            return self.store.get(keyframe_id)
 
     def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]:
-        self.check_open()
-        return self.store.geometry(keyframe_ids)
+        with self.lock.read():
+            self.check_open()
+            return self.store.geometry(keyframe_ids)
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
-        self.check_open()
-        return self.store.last_keyframe(robot_id)
+        with self.lock.read():
+            self.check_open()
+            return self.store.last_keyframe(robot_id)
 
     def positions(self, limit: int) -> list[tuple[str, float, float]]:
-        self.check_open()
-        return self.store.positions(limit)
+        with self.lock.read():
+            self.check_open()
+            return self.store.positions(limit)
 
     def info(self) -> dict[str, Any]:
         with self.lock.read():
