@@ -83,7 +83,7 @@ async def test_an_unforeseen_error_is_answered_and_the_stream_goes_on(tmp_path, 
             )
             frames.append({"type": "websocket.receive", "bytes": points})
         first, second = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
-    assert first["seq"] == 1 and first["ok"] is False
+    assert first["seq"] == 1 and first["ok"] is False and first["status"] == 500
     assert first["error"]["code"] == "internal_error"
     assert "OperationalError" in first["error"]["message"]
     assert second["seq"] == 2 and second["ok"] is True, second

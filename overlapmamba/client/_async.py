@@ -17,6 +17,7 @@ from overlapmamba.client._base import (
     Retry,
     Timeouts,
     check_mount,
+    check_window,
     raise_for,
     retryable,
     stream_frames,
@@ -232,6 +233,7 @@ class AsyncPlaceRecognitionClient:
         (an observation may name its own)."""
         from websockets.asyncio.client import connect
 
+        check_window(window)
         url = ws_url(
             self.base_url,
             map_id,

@@ -4,6 +4,7 @@ and the retry rules. The two clients only differ in how they send (``_sync``, ``
 from __future__ import annotations
 
 import json
+import math
 import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -51,13 +52,28 @@ class Timeouts:
 class Retry:
     """Exponential backoff with jitter, for idempotent calls only (every call of these
     clients is: reads, PUT/DELETE, and inserts keyed by ``keyframe_id``). A server's
-    ``Retry-After`` is honoured when it asks for longer."""
+    ``Retry-After`` is honoured when it asks for longer, up to ``max_retry_after_s``: an
+    answer asking for more (a proxy's hour, or ``inf``) is raised to the caller at once,
+    rather than holding a robot's call that long."""
 
     attempts: int = 4  # total tries, including the first
     backoff_s: float = 0.25  # wait before the 2nd try; doubles each time
     max_backoff_s: float = 8.0
     jitter: float = 0.5  # ± this fraction of the wait, at random
     statuses: tuple[int, ...] = (429, 502, 503, 504)
+    max_retry_after_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.attempts < 1:
+            raise ValueError(
+                f"Retry.attempts must be at least 1 (the first try); got {self.attempts}"
+            )
+        waits = {"backoff_s": self.backoff_s, "max_backoff_s": self.max_backoff_s}
+        waits |= {"max_retry_after_s": self.max_retry_after_s}
+        if bad := [f"{k}={v}" for k, v in waits.items() if not 0 <= v < math.inf]:
+            raise ValueError(f"Retry waits must be finite seconds ≥ 0; got {', '.join(bad)}")
+        if not 0 <= self.jitter <= 1:
+            raise ValueError(f"Retry.jitter must lie in [0, 1]; got {self.jitter}")
 
     def delay(self, attempt: int, retry_after: float | None, rng: random.Random) -> float:
         base = min(self.max_backoff_s, self.backoff_s * 2 ** (attempt - 1))
@@ -85,12 +101,23 @@ class Call:
 def _retry_after(resp: httpx.Response) -> float | None:
     value = resp.headers.get("retry-after")
     try:
-        return float(value) if value is not None else None
+        seconds = float(value) if value is not None else None
     except ValueError:
         return None
+    return None if seconds is None or math.isnan(seconds) else max(seconds, 0.0)
 
 
 def raise_for(resp: httpx.Response) -> None:
+    """Raise the answer's error; a redirect (3xx: httpx does not follow one, e.g. a proxy
+    sending http to https) is an error too, naming where it points."""
+    if 300 <= resp.status_code < 400:
+        where = resp.headers.get("location", "nowhere given")
+        raise error_for(resp.status_code)(
+            resp.status_code,
+            "redirect",
+            f"the server redirects to {where}: point the client at that URL",
+            {"location": where},
+        )
     if resp.status_code < 400:
         return
     try:
@@ -114,7 +141,9 @@ def transport_error(err: httpx.TransportError) -> TransportError:
 def retryable(err: Exception, retry: Retry) -> bool:
     if isinstance(err, TransportError):
         return True
-    return isinstance(err, APIError) and err.status in retry.statuses
+    if not (isinstance(err, APIError) and err.status in retry.statuses):
+        return False
+    return err.retry_after is None or err.retry_after <= retry.max_retry_after_s
 
 
 def _filters(**values: Any) -> dict[str, Any]:
@@ -384,6 +413,15 @@ def stream_frames(
     return json.dumps(meta), body
 
 
+def check_window(window: int) -> int:
+    """A stream's ``window``: how many observations may be in flight, at least 1."""
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+        raise ValueError(
+            f"window must be a whole number ≥ 1 (observations in flight); got {window!r}"
+        )
+    return window
+
+
 def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
     """One result frame of the stream → its result; a refused observation's APIError is
     raised, or returned with ``errors="return"``."""
@@ -391,7 +429,9 @@ def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | A
     if d.get("ok"):
         return ObserveResult.from_json(d)
     e = d.get("error", {})
-    err = error_for(400)(400, e.get("code", "stream_error"), e.get("message", ""), e.get("detail"))
+    status = int(d.get("status") or 400)  # the HTTP status of that error (servers before: none)
+    code, message = e.get("code", "stream_error"), e.get("message", "")
+    err = error_for(status)(status, code, message, e.get("detail"))
     err.detail.setdefault("seq", d.get("seq"))
     if errors == "raise":
         raise err

@@ -16,6 +16,7 @@ from overlapmamba.client._base import (
     Retry,
     Timeouts,
     check_mount,
+    check_window,
     raise_for,
     retryable,
     stream_frames,
@@ -229,6 +230,7 @@ class PlaceRecognitionClient:
         (an observation may name its own)."""
         from websockets.sync.client import connect
 
+        check_window(window)
         url = ws_url(
             self.base_url,
             map_id,
@@ -236,6 +238,7 @@ class PlaceRecognitionClient:
             session_id=session_id,
             k=k,
             sensor=sensor or self._calls.sensor,
+            mount=self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
         compress = self._calls.compress

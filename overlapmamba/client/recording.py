@@ -47,8 +47,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
 
 
 def _time(t: float) -> dict[str, int]:
-    sec = int(t // 1)
-    return {"sec": sec, "nsec": round((t - sec) * 1e9) % 1_000_000_000}
+    """Seconds → ROS time; the nanoseconds rounded first, so that 1.9999999999 s is 2 s, not
+    1 s and 0 ns."""
+    sec, nsec = divmod(round(t * 1e9), 1_000_000_000)
+    return {"sec": int(sec), "nsec": int(nsec)}
 
 
 def _pose(p: list[float]) -> dict[str, Any]:

@@ -22,14 +22,20 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from overlapmamba.core.errors import LidarCoreError, PointCountError
+from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.service.api import descriptors, keyframes, maps, queries, system
 from overlapmamba.service.auth import Authenticator
 from overlapmamba.service.backends.factory import open_backend
 from overlapmamba.service.backup import data_dir_lock
 from overlapmamba.service.calibration import log_thresholds, resolve
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.errors import PayloadTooLarge, ServiceError, Unavailable, error_body
+from overlapmamba.service.errors import (
+    PayloadTooLarge,
+    ServiceError,
+    Unavailable,
+    error_body,
+    lidar_status,
+)
 from overlapmamba.service.logs import configure as configure_logs
 from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.places import PlaceService
@@ -56,14 +62,6 @@ def _error(
     status: int, code: str, message: str, detail: Any = None, headers: Any = None
 ) -> JSONResponse:
     return JSONResponse(error_body(code, message, detail), status_code=status, headers=headers)
-
-
-def _lidar_status(err: LidarCoreError) -> int:
-    if isinstance(err, PointCountError) and err.detail.get("points", 0) > err.detail.get(
-        "max_points", float("inf")
-    ):
-        return 413
-    return 422 if err.code in ("non_finite_points", "point_count_out_of_range") else 400
 
 
 class GuardMiddleware:
@@ -297,7 +295,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
 
     @app.exception_handler(LidarCoreError)
     async def lidar_error(_: Request, err: LidarCoreError) -> JSONResponse:
-        return _error(_lidar_status(err), err.code, err.message, err.detail)
+        return _error(lidar_status(err), err.code, err.message, err.detail)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, err: RequestValidationError) -> JSONResponse:

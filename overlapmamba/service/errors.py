@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from overlapmamba.core.errors import LidarCoreError, PointCountError
+
 
 class ServiceError(Exception):
     status = 500
@@ -107,3 +109,13 @@ class Timeout(ServiceError):
 
 def error_body(code: str, message: str, detail: dict[str, Any] | None = None) -> dict[str, Any]:
     return {"error": {"code": code, "message": message, "detail": detail or {}}}
+
+
+def lidar_status(err: LidarCoreError) -> int:
+    """The HTTP status of a scan the core library refused: 413 too many points, 422 values
+    out of range, else 400 (over HTTP and in the stream's error frames)."""
+    if isinstance(err, PointCountError) and err.detail.get("points", 0) > err.detail.get(
+        "max_points", float("inf")
+    ):
+        return 413
+    return 422 if err.code in ("non_finite_points", "point_count_out_of_range") else 400

@@ -13,7 +13,8 @@ each observation is two frames from the client —
 2. a binary frame: the scan bytes.
 
 For each observation the server sends one text frame, in the order received:
-``{"seq", "ok": true, ...the observe answer}`` or ``{"seq", "ok": false, "error": {...}}``.
+``{"seq", "ok": true, ...the observe answer}`` or ``{"seq", "ok": false, "status": the HTTP
+status the same error would have, "error": {...}}``.
 A bad observation gets an error frame and the stream goes on. Backpressure: at most
 ``observe.stream_queue`` observations may wait; a client that sends more before reading
 its results is closed with code 1013 (try again later) and a reason. Authentication uses
@@ -38,7 +39,7 @@ from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount, read_scan
 from overlapmamba.service.deps import CanEncode, ServiceDep
 from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
-from overlapmamba.service.errors import BadRequest, ServiceError, error_body
+from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
 from overlapmamba.service.places import Answer, Observation, Observed
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.schemas import (
@@ -311,14 +312,19 @@ async def stream(
                 )
                 o = await svc.observe(m, body, obs)
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
-            except (ServiceError, LidarCoreError) as err:
-                msg = {"seq": seq, "ok": False, **error_body(err.code, err.message, err.detail)}
+            except ServiceError as err:
+                msg = {"seq": seq, "ok": False, "status": err.status}
+                msg |= error_body(err.code, err.message, err.detail)
+            except LidarCoreError as err:
+                msg = {"seq": seq, "ok": False, "status": lidar_status(err)}
+                msg |= error_body(err.code, err.message, err.detail)
             except Exception as err:  # e.g. the store's disk full: answered, logged, go on
                 log.exception(
                     "stream of map %s, robot %s: observation %r failed", map_id, robot_id, seq
                 )
                 message = f"internal error: {type(err).__name__}"
-                msg = {"seq": seq, "ok": False, **error_body("internal_error", message, None)}
+                msg = {"seq": seq, "ok": False, "status": 500}
+                msg |= error_body("internal_error", message, None)
             await websocket.send_text(json.dumps(msg))
 
     worker = asyncio.create_task(process())

@@ -1,0 +1,110 @@
+"""The clients at their limits, without a server: a Retry-After no robot should wait out, a
+redirect, a stream error frame's status, the sync stream's mount and window, bad retry
+settings and ROS time at a second's edge."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+
+from overlapmamba.client import (
+    BadRequestError,
+    OverloadedError,
+    PlaceRecognitionClient,
+    Retry,
+    ServerError,
+)
+from overlapmamba.client._base import stream_result
+
+
+def _answers(plan: list[httpx.Response], calls: list[float]) -> httpx.MockTransport:
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(time.monotonic())
+        return plan.pop(0) if plan else httpx.Response(200, json={"status": "ready"})
+
+    return httpx.MockTransport(handler)
+
+
+def _busy(retry_after: str) -> httpx.Response:
+    body = {"error": {"code": "overloaded", "message": "busy", "detail": {}}}
+    return httpx.Response(503, json=body, headers={"Retry-After": retry_after})
+
+
+@pytest.mark.parametrize("asked", ["3600", "inf"])
+def test_a_retry_after_longer_than_the_cap_is_raised_at_once(asked):
+    """A proxy's Retry-After of an hour (or inf) must not hold a robot's call that long:
+    past ``max_retry_after_s`` the error goes to the caller without waiting."""
+    calls: list[float] = []
+    retry = Retry(attempts=4, backoff_s=0.01, jitter=0.0, max_retry_after_s=5.0)
+    with PlaceRecognitionClient(transport=_answers([_busy(asked)], calls), retry=retry) as pr:
+        t0 = time.monotonic()
+        with pytest.raises(OverloadedError) as e:
+            pr.health()
+        assert time.monotonic() - t0 < 2.0
+    assert len(calls) == 1 and e.value.retry_after == float(asked)
+    calls.clear()
+    with PlaceRecognitionClient(transport=_answers([_busy("0.05")], calls), retry=retry) as pr:
+        assert pr.health()["status"] == "ready"  # within the cap: waited and retried
+    assert len(calls) == 2
+
+
+def test_a_redirect_is_an_error_that_says_where_and_is_not_retried():
+    calls: list[float] = []
+    moved = httpx.Response(301, headers={"location": "https://places.example/v1/healthz"})
+    with (
+        PlaceRecognitionClient(transport=_answers([moved], calls)) as pr,
+        pytest.raises(BadRequestError, match="redirects to https://places.example") as e,
+    ):
+        pr.health()
+    assert e.value.code == "redirect" and len(calls) == 1
+
+
+def test_retry_settings_are_checked():
+    with pytest.raises(ValueError, match="attempts must be at least 1"):
+        Retry(attempts=0)
+    with pytest.raises(ValueError, match="max_retry_after_s=inf"):
+        Retry(max_retry_after_s=float("inf"))
+    with pytest.raises(ValueError, match="jitter"):
+        Retry(jitter=2.0)
+
+
+def test_a_stream_error_frame_keeps_its_status():
+    """A stream error is the exception its HTTP status would give (503 storage_full is an
+    OverloadedError a robot can wait out), not always a 400."""
+    frame = {"seq": 3, "ok": False, "status": 503, "error": {"code": "storage_full"}}
+    err = stream_result(json.dumps(frame), errors="return")
+    assert isinstance(err, OverloadedError) and err.status == 503
+    assert err.code == "storage_full" and err.detail["seq"] == 3
+    frame = {"seq": 4, "ok": False, "status": 500, "error": {"code": "internal_error"}}
+    with pytest.raises(ServerError):
+        stream_result(json.dumps(frame))
+    older = {"seq": 5, "ok": False, "error": {"code": "bad_stream_frame", "message": "m"}}
+    assert stream_result(json.dumps(older), errors="return").status == 400  # type: ignore[union-attr]
+
+
+def test_the_sync_stream_sends_the_clients_mount_and_checks_its_window(monkeypatch):
+    import websockets.sync.client as ws_client
+
+    urls: list[str] = []
+
+    def refused(url: str, **_: object) -> None:
+        urls.append(url)
+        raise ConnectionRefusedError("no server here")
+
+    monkeypatch.setattr(ws_client, "connect", refused)
+    with PlaceRecognitionClient("http://test", mount="0.7,5") as pr:
+        with pytest.raises(ConnectionRefusedError):
+            list(pr.stream("town", [], robot_id="r1"))
+        assert "mount=" in urls[0] and "0.7" in urls[0]
+        with pytest.raises(ValueError, match="window must be a whole number ≥ 1"):
+            list(pr.stream("town", [], robot_id="r1", window=0))
+
+
+def test_ros_time_rounds_across_a_seconds_edge():
+    from overlapmamba.client.recording import _time
+
+    assert _time(1.9999999999) == {"sec": 2, "nsec": 0}
+    assert _time(3.25) == {"sec": 3, "nsec": 250_000_000}
