@@ -338,6 +338,9 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
         assert {m["keyframe_id"] for m in o["matches"]} == {"r1:s:0.0", "r1:s:2.0"}
         o = await observe(40.0, "6,0,0,0,0,0,1", insert="always")  # a retry: not inserted twice
         assert not o["inserted"] and o["insert_reason"] == "existing"
+        o = await observe(40.0, "6,0,0,0,0,0,1")  # a retry whose first answer was lost
+        assert not o["inserted"] and o["insert_reason"] == "existing"
+        assert o["keyframe_id"] == "r1:s:40.0"  # it is there: not "not_due" and no id
         o = await observe(41.0, "6,0,0,0,0,0,1", insert="never", robot="r2")
         assert not o["inserted"] and o["insert_reason"] == "never"
         # the map's picture: keyframes from their poses, tracks and closures from the traffic

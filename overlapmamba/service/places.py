@@ -382,6 +382,15 @@ class PlaceService:
             self._remember(m.map_id, robot, kf.timestamp, kf.pose)
         return self._last_kf.get(key)
 
+    async def _retried(self, m: PlaceMap, obs: Observation) -> bool:
+        """Whether this observation's own keyframe (``robot:session:timestamp``) is already
+        in the map: the robot's last keyframe is at its very timestamp, and it is there."""
+        last = self._last_kf.get((m.map_id, obs.robot_id))
+        if last is None or last[0] != obs.timestamp:
+            return False
+        keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
+        return await in_thread(m.get, keyframe_id) is not None
+
     async def _insert_due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
         """Why this observation becomes a keyframe, or None if it does not."""
         if obs.insert == "always":
@@ -446,6 +455,10 @@ class PlaceService:
             inserted = result.created
             if not inserted:
                 reason = "existing"
+        elif obs.insert == "auto" and await self._retried(m, obs):
+            # a retry of an observation that was inserted but whose answer was lost: not due
+            # now only because its own keyframe is the robot's last; say that it is there
+            keyframe_id, reason = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}", "existing"
         self._done(answer.timings, t0)
         return Observed(
             answer.matches,

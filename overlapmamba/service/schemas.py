@@ -359,8 +359,17 @@ class QueryOut(BaseModel):
 
 class ObserveOut(QueryOut):
     inserted: bool
-    keyframe_id: str | None = Field(description="the keyframe this scan became, if inserted")
-    insert_reason: Literal["first", "distance", "time", "always", "never", "not_due", "existing"]
+    keyframe_id: str | None = Field(
+        description="the keyframe this scan became: inserted now, or already (a retry: "
+        "insert_reason existing)"
+    )
+    insert_reason: Literal[
+        "first", "distance", "time", "always", "never", "not_due", "existing"
+    ] = Field(
+        description="why it was inserted (first, distance, time, always), or why not: never, "
+        "not_due, existing (its keyframe robot:session:timestamp is already in the map: a "
+        "retry whose first answer was lost; keyframe_id names it)"
+    )
 
 
 class SensorOut(BaseModel):
