@@ -12,10 +12,12 @@ import pytest
 
 from overlapmamba.client import (
     BadRequestError,
+    ConnectError,
     OverloadedError,
     PlaceRecognitionClient,
     Retry,
     ServerError,
+    TransportError,
 )
 from overlapmamba.client._base import stream_result
 
@@ -96,7 +98,7 @@ def test_the_sync_stream_sends_the_clients_mount_and_checks_its_window(monkeypat
 
     monkeypatch.setattr(ws_client, "connect", refused)
     with PlaceRecognitionClient("http://test", mount="0.7,5") as pr:
-        with pytest.raises(ConnectionRefusedError):
+        with pytest.raises(ConnectError, match="cannot connect the stream: no server here"):
             list(pr.stream("town", [], robot_id="r1"))
         assert "mount=" in urls[0] and "0.7" in urls[0]
         with pytest.raises(ValueError, match="window must be a whole number ≥ 1"):
@@ -108,3 +110,47 @@ def test_ros_time_rounds_across_a_seconds_edge():
 
     assert _time(1.9999999999) == {"sec": 2, "nsec": 0}
     assert _time(3.25) == {"sec": 3, "nsec": 250_000_000}
+
+
+class _ClosingSocket:
+    """A stream socket that takes observations and then is closed by the server: 1013, the
+    client outran it."""
+
+    def __init__(self, *_: object, **__: object) -> None:
+        self.sent = 0
+
+    def __enter__(self) -> _ClosingSocket:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        return None
+
+    def send(self, _: object) -> None:
+        self.sent += 1
+
+    def recv(self, timeout: float | None = None) -> str:
+        from websockets.exceptions import ConnectionClosedError
+        from websockets.frames import Close
+
+        raise ConnectionClosedError(Close(1013, "client outran the server"), None)
+
+
+def test_a_stream_the_server_closes_is_a_client_error_naming_what_went_unanswered(
+    monkeypatch,
+):
+    """The socket's own failures come as the library's errors (a robot's ``except
+    ClientError`` catches them), saying which observations were sent and never answered."""
+    import numpy as np
+    import websockets.sync.client as ws_client
+
+    from overlapmamba.client import Observation
+
+    monkeypatch.setattr(ws_client, "connect", _ClosingSocket)
+    scan = np.zeros((10, 4), np.float32)
+    obs = [Observation(scan=scan, timestamp=float(t)) for t in range(3)]
+    with (
+        PlaceRecognitionClient("http://test") as pr,
+        pytest.raises(TransportError, match="1013 client outran the server") as e,
+    ):
+        list(pr.stream("town", obs, robot_id="r1", window=2))
+    assert e.value.unanswered == [0, 1]  # type: ignore[attr-defined]

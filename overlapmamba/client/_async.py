@@ -20,6 +20,7 @@ from overlapmamba.client._base import (
     check_window,
     raise_for,
     retryable,
+    stream_failure,
     stream_frames,
     stream_result,
     transport_error,
@@ -244,7 +245,6 @@ class AsyncPlaceRecognitionClient:
             mount=self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
-        compress = self._calls.compress
 
         async def items() -> AsyncIterator[Observation]:
             if isinstance(observations, AsyncIterable):
@@ -254,31 +254,49 @@ class AsyncPlaceRecognitionClient:
                 for o in observations:
                     yield o
 
-        async with connect(
-            url, additional_headers=headers, open_timeout=self.timeout.connect
-        ) as ws:
-            pending: deque[int] = deque()
-            i = 0
-            async for obs in items():
-                meta, body = stream_frames(
-                    obs.scan,
-                    obs.timestamp,
-                    obs.pose,
-                    obs.insert,
-                    i,
-                    compress,
-                    obs.verify,
-                    obs.sensor,
-                )
-                await ws.send(meta)
-                await ws.send(body)
-                pending.append(i)
-                i += 1
-                while len(pending) >= window:
-                    text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-                    yield stream_result(text, errors)
-                    pending.popleft()
-            while pending:
+        pending: deque[int] = deque()
+        try:
+            async with connect(
+                url, additional_headers=headers, open_timeout=self.timeout.connect
+            ) as ws:
+                async for result in self._exchange(ws, items(), window, errors, pending):
+                    yield result
+        except Exception as err:
+            failure = stream_failure(err, pending)
+            if failure is None:
+                raise
+            raise failure from err
+
+    async def _exchange(
+        self,
+        ws: Any,
+        observations: AsyncIterator[Observation],
+        window: int,
+        errors: str,
+        pending: deque[int],
+    ) -> AsyncIterator[ObserveResult | APIError]:
+        compress = self._calls.compress
+        i = 0
+        async for obs in observations:
+            meta, body = stream_frames(
+                obs.scan,
+                obs.timestamp,
+                obs.pose,
+                obs.insert,
+                i,
+                compress,
+                obs.verify,
+                obs.sensor,
+            )
+            await ws.send(meta)
+            await ws.send(body)
+            pending.append(i)
+            i += 1
+            while len(pending) >= window:
                 text = await asyncio.wait_for(ws.recv(), self.timeout.read)
                 yield stream_result(text, errors)
                 pending.popleft()
+        while pending:
+            text = await asyncio.wait_for(ws.recv(), self.timeout.read)
+            yield stream_result(text, errors)
+            pending.popleft()

@@ -3,10 +3,12 @@ and the retry rules. The two clients only differ in how they send (``_sync``, ``
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import random
-from collections.abc import Callable
+import socket
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import quote
@@ -17,6 +19,7 @@ from pydantic import ValidationError
 
 from overlapmamba.client._exceptions import (
     APIError,
+    ClientError,
     ConnectError,
     Timeout,
     TransportError,
@@ -411,6 +414,36 @@ def stream_frames(
     if sensor is not None:
         meta["sensor"] = sensor
     return json.dumps(meta), body
+
+
+_NETWORK_ERRNOS = {errno.ENETUNREACH, errno.EHOSTUNREACH, errno.ETIMEDOUT, errno.ENETDOWN}
+
+
+def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | None:
+    """A stream's socket failure → the library's error (ConnectError, Timeout or
+    TransportError) naming the observations, by their place in the stream, that were sent
+    and never answered (``unanswered`` on the error too); None for any other error."""
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
+    left = list(unanswered)
+    lost = f"; observations {left} were sent and not answered" if left else ""
+    out: ClientError
+    if isinstance(err, ConnectionClosed):
+        got = err.rcvd
+        why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
+        out = TransportError(f"the stream closed ({why}){lost}")
+    elif isinstance(err, InvalidHandshake):
+        out = ConnectError(f"the server refused the stream: {err}{lost}")
+    elif isinstance(err, TimeoutError):
+        out = Timeout(f"no answer in time on the stream{lost}")
+    elif isinstance(err, (ConnectionError, socket.gaierror, socket.herror)) or (
+        isinstance(err, OSError) and err.errno in _NETWORK_ERRNOS
+    ):  # not any OSError: a drive's missing scan file is the caller's own error
+        out = ConnectError(f"cannot connect the stream: {err}{lost}")
+    else:
+        return None
+    out.unanswered = left  # type: ignore[attr-defined]
+    return out
 
 
 def check_window(window: int) -> int:

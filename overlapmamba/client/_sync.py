@@ -19,6 +19,7 @@ from overlapmamba.client._base import (
     check_window,
     raise_for,
     retryable,
+    stream_failure,
     stream_frames,
     stream_result,
     transport_error,
@@ -241,9 +242,27 @@ class PlaceRecognitionClient:
             mount=self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
+        pending: deque[int] = deque()
+        try:
+            yield from self._stream(connect, url, headers, observations, window, errors, pending)
+        except Exception as err:
+            failure = stream_failure(err, pending)
+            if failure is None:
+                raise
+            raise failure from err
+
+    def _stream(
+        self,
+        connect: Any,
+        url: str,
+        headers: dict[str, str],
+        observations: Iterable[Observation],
+        window: int,
+        errors: str,
+        pending: deque[int],
+    ) -> Iterator[ObserveResult | APIError]:
         compress = self._calls.compress
         with connect(url, additional_headers=headers, open_timeout=self.timeout.connect) as ws:
-            pending: deque[int] = deque()
             for i, obs in enumerate(observations):
                 meta, body = stream_frames(
                     obs.scan,
