@@ -183,8 +183,9 @@ class Stats:
         come and go must not grow the service's memory and its scrapes for ever."""
         with self._lock:
             self.by_map.pop(map_id, None)
-        labelled = [(m, (map_id,)) for m in (self.p_keyframes, self.p_queries, self.p_inserts)]
-        labelled += [(self.p_loops, (map_id,))]
+        labelled: list[tuple[Gauge | PCounter, tuple[str, ...]]] = [
+            (m, (map_id,)) for m in (self.p_keyframes, self.p_queries, self.p_inserts, self.p_loops)
+        ]
         labelled += [(self.p_verify, (map_id, outcome)) for outcome in ("verified", "rejected")]
         for metric, labels in labelled:
             with contextlib.suppress(KeyError):
