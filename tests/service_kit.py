@@ -79,3 +79,21 @@ def server(
 
 def server_log(proc: subprocess.Popen) -> str:
     return Path(proc.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
+
+
+def ws_scope(path: str, query: str, headers: dict[str, str] | None = None) -> dict:
+    """The ASGI scope of a WebSocket opened on ``path?query`` (tests drive the app directly)."""
+    return {
+        "type": "websocket",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": query.encode(),
+        "headers": [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()],
+        "scheme": "ws",
+        "server": ("test", 80),
+        "client": ("127.0.0.1", 1),
+        "root_path": "",
+        "subprotocols": [],
+        "asgi": {"version": "3.0"},
+        "state": {},
+    }

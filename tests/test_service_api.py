@@ -15,7 +15,7 @@ import struct
 import numpy as np
 import pytest
 import zstandard
-from service_kit import OCTET, running, scan
+from service_kit import OCTET, running, scan, ws_scope
 
 from overlapmamba.service.auth import hash_key
 from overlapmamba.service.calibration import resolve
@@ -596,21 +596,7 @@ async def _ws_handshake(app, path: str, query: str, headers: dict[str, str]) -> 
     async def send(message):
         sent.append(message)
 
-    scope = {
-        "type": "websocket",
-        "path": path,
-        "raw_path": path.encode(),
-        "query_string": query.encode(),
-        "headers": [(k.lower().encode(), v.encode()) for k, v in headers.items()],
-        "scheme": "ws",
-        "server": ("test", 80),
-        "client": ("127.0.0.1", 1),
-        "root_path": "",
-        "subprotocols": [],
-        "asgi": {"version": "3.0"},
-        "state": {},
-    }
-    task = asyncio.create_task(app(scope, receive, send))
+    task = asyncio.create_task(app(ws_scope(path, query, headers), receive, send))
     for _ in range(200):
         if sent:
             break

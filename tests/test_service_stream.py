@@ -10,7 +10,7 @@ import json
 import sqlite3
 
 import pytest
-from service_kit import running, scan
+from service_kit import running, scan, ws_scope
 
 from overlapmamba.service.settings import Settings
 
@@ -34,21 +34,7 @@ async def _stream(app, path: str, query: str, frames: list[dict], answers: int) 
         elif message["type"] == "websocket.close":
             enough.set()
 
-    scope = {
-        "type": "websocket",
-        "path": path,
-        "raw_path": path.encode(),
-        "query_string": query.encode(),
-        "headers": [],
-        "scheme": "ws",
-        "server": ("test", 80),
-        "client": ("127.0.0.1", 1),
-        "root_path": "",
-        "subprotocols": [],
-        "asgi": {"version": "3.0"},
-        "state": {},
-    }
-    task = asyncio.create_task(app(scope, inbox.get, send))
+    task = asyncio.create_task(app(ws_scope(path, query), inbox.get, send))
     await asyncio.wait_for(enough.wait(), timeout=60)
     inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
     with contextlib.suppress(BaseException):

@@ -33,10 +33,20 @@ def map_not_found(map_id: str) -> NotFound:
 
 
 def check_same_settings(
-    m: PlaceMap, keep_geometry: bool | None, sensor: str | None, mount: Mount | None = None
+    m: PlaceMap,
+    keep_geometry: bool | None,
+    sensor: str | None,
+    mount: Mount | None = None,
+    kind: str | None = None,
 ) -> None:
-    """Creating an existing map again: a geometry, sensor or mount setting, when given, must
-    match (409)."""
+    """Creating an existing map again: an index kind, geometry, sensor or mount setting, when
+    given, must match (409)."""
+    if kind is not None and m.kind != kind:
+        raise Conflict(
+            f"map {m.map_id!r} exists with index {m.kind!r}, not {kind!r}",
+            code="map_conflict",
+            index=m.kind,
+        )
     if keep_geometry is not None and m.keep_geometry != keep_geometry:
         raise Conflict(
             f"map {m.map_id!r} exists with keep_geometry={str(m.keep_geometry).lower()}; "

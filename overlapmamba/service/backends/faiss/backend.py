@@ -27,7 +27,7 @@ from overlapmamba.service.backends.faiss.index import set_threads
 from overlapmamba.service.backends.faiss.map import FaissMap
 from overlapmamba.service.backends.faiss.store import fsync_dir
 from overlapmamba.service.domain import MAP_ID, check_map_id
-from overlapmamba.service.errors import Conflict, Unavailable
+from overlapmamba.service.errors import Unavailable
 from overlapmamba.service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")
@@ -140,13 +140,7 @@ class FaissBackend:
             self.get(map_id)  # raises: its files exist but cannot be opened
         m = self.maps.get(map_id)
         if m is not None:
-            if kind is not None and m.kind != kind:
-                raise Conflict(
-                    f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
-                    code="map_conflict",
-                    index=m.kind,
-                )
-            check_same_settings(m, keep_geometry, sensor, mount)
+            check_same_settings(m, keep_geometry, sensor, mount, kind)
             return m, False
         folder = self.root / map_id
         if folder.exists():  # debris without a store (load_all skipped it): not a map

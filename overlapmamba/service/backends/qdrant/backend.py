@@ -224,13 +224,7 @@ class QdrantBackend:
                 self._create_collection(map_id, kind or self.index.kind, keep, sensor, mount)
                 m = self._open(map_id)
                 assert m is not None
-            if kind is not None and m.kind != kind:
-                raise Conflict(
-                    f"map {map_id!r} exists with index {m.kind!r}, not {kind!r}",
-                    code="map_conflict",
-                    index=m.kind,
-                )
-            check_same_settings(m, keep_geometry, sensor, mount)
+            check_same_settings(m, keep_geometry, sensor, mount, kind)
             self._maps[map_id] = m
             return m, created
 
