@@ -18,10 +18,10 @@ from overlapmamba.client._base import (
     Timeouts,
     check_mount,
     check_window,
+    observation_frames,
     raise_for,
     retryable,
     stream_failure,
-    stream_frames,
     stream_result,
     transport_error,
     ws_url,
@@ -278,16 +278,7 @@ class AsyncPlaceRecognitionClient:
         compress = self._calls.compress
         i = 0
         async for obs in observations:
-            meta, body = stream_frames(
-                obs.scan,
-                obs.timestamp,
-                obs.pose,
-                obs.insert,
-                i,
-                compress,
-                obs.verify,
-                obs.sensor,
-            )
+            meta, body = observation_frames(obs, i, compress)
             await ws.send(meta)
             await ws.send(body)
             pending.append(i)

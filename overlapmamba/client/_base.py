@@ -30,6 +30,7 @@ from overlapmamba.client._models import (
     Descriptor,
     Keyframe,
     MapInfo,
+    Observation,
     ObserveResult,
     QueryResult,
 )
@@ -386,6 +387,13 @@ class Calls:
     def stats(self, map_id: str | None) -> Call:
         path = "/v1/stats" if map_id is None else f"/v1/maps/{_m(map_id)}/stats"
         return Call("GET", path, _json)
+
+
+def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str, bytes]:
+    """:func:`stream_frames` of one :class:`Observation` at place ``seq`` in its stream."""
+    return stream_frames(
+        obs.scan, obs.timestamp, obs.pose, obs.insert, seq, compress, obs.verify, obs.sensor
+    )
 
 
 def stream_frames(

@@ -17,10 +17,10 @@ from overlapmamba.client._base import (
     Timeouts,
     check_mount,
     check_window,
+    observation_frames,
     raise_for,
     retryable,
     stream_failure,
-    stream_frames,
     stream_result,
     transport_error,
     ws_url,
@@ -264,16 +264,7 @@ class PlaceRecognitionClient:
         compress = self._calls.compress
         with connect(url, additional_headers=headers, open_timeout=self.timeout.connect) as ws:
             for i, obs in enumerate(observations):
-                meta, body = stream_frames(
-                    obs.scan,
-                    obs.timestamp,
-                    obs.pose,
-                    obs.insert,
-                    i,
-                    compress,
-                    obs.verify,
-                    obs.sensor,
-                )
+                meta, body = observation_frames(obs, i, compress)
                 ws.send(meta)
                 ws.send(body)
                 pending.append(i)
