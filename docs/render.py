@@ -37,6 +37,7 @@ import figures_firing
 import figures_fleet
 import figures_input
 import figures_lerp
+import figures_memory
 import figures_model
 import figures_pairs
 import figures_phase
@@ -110,6 +111,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_fill.RENDERERS,
     **figures_firing.RENDERERS,
     **figures_fleet.RENDERERS,
+    **figures_memory.RENDERERS,
     **figures_pairs.RENDERERS,
     **figures_phase.RENDERERS,
     **figures_scan.RENDERERS,

@@ -1,0 +1,47 @@
+"""A node's memory under load (``benchmarks/server_memory.py``): a real server's resident
+memory when ready and after each round of concurrent scan queries, with the service's
+defaults and with glibc's malloc held to two arenas, rendered from the JSON the command wrote
+(``docs/render.py`` pastes it; nothing here types a measured number)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from figures_kit import load, source, table, when
+
+SERVER_MEMORY = "reports/service/server-memory.json"
+
+
+def server_memory() -> str:
+    """Resident memory ready and after rounds of concurrent queries, for each configuration."""
+    r = load(SERVER_MEMORY)
+    out = source(SERVER_MEMORY, r["command"], when(r))
+    out += (
+        f"\n{r['scans']}; {r['rounds']} rounds of {r['per_round']} scan queries from "
+        f"{r['clients']} clients at once (full encoder batches of {r['max_batch']} scans, "
+        "three views each), on a fresh server for each configuration; resident memory from "
+        "its own `/metrics`:\n\n"
+    )
+    rows = []
+    for name, c in r["configs"].items():
+        mb = [x["resident_mb"] for x in c["rounds"]]
+        rate = [x["queries_per_s"] for x in c["rounds"]]
+        half = len(mb) // 2
+        rows.append(
+            [
+                f"`{name}`" if name != "defaults" else "the defaults",
+                f"{c['ready_mb']:.0f} MB",
+                f"{mb[0]:.0f} MB",
+                f"{mb[half - 1]:.0f} MB",
+                f"{mb[-1]:.0f} MB",
+                f"{max(mb):.0f} MB",
+                f"{sum(rate) / len(rate):.1f}",
+                sum(x["errors"] for x in c["rounds"]),
+            ]
+        )
+    head = ["malloc", "ready", "after round 1", f"after round {len(mb) // 2}"]
+    head += [f"after round {len(mb)}", "most", "queries/s (mean of rounds)", "errors"]
+    return out + table(head, rows)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {"server-memory": server_memory}
