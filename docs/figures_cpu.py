@@ -13,17 +13,24 @@ from figures_kit import f3, load, source, table, when
 from figures_pairs import _file_name, _label
 from figures_spectrum import real_sets
 
-BEV_CPU_RUN = "reports/model/bev-span-thin-cpu.json"
+# the recipe with the sparser-sensor term, two seeds
+BEV_CPU_TERM = tuple(
+    f"reports/model/{n}.json" for n in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1")
+)
 # the same without the sparser-sensor term, two seeds
 BEV_CPU_CONTROL = tuple(f"reports/model/{n}.json" for n in ("bev-span-cpu", "bev-span-cpu-s1"))
 BEV_CPU_REAL = {
     f"`{run}`, its pick": (f"{run}-real-kitti", f"{run}-real-nuscenes")
-    for run in ("bev-span-thin-cpu", "bev-span-cpu", "bev-span-cpu-s1")
+    for run in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1", "bev-span-cpu", "bev-span-cpu-s1")
 } | {  # the calibration pairs' epoch (benchmarks/epoch_pairs.py)
     "`bev-span-thin-cpu`, the pairs' pick (epoch 10)": (
         "bev-span-thin-cpu-e10-real-kitti",
         "bev-span-thin-cpu-e10-real-nuscenes",
-    )
+    ),
+    "`bev-span-thin-cpu-s1`, the pairs' pick (epoch 9)": (
+        "bev-span-thin-cpu-s1-e9-real-kitti",
+        "bev-span-thin-cpu-s1-e9-real-nuscenes",
+    ),
 }
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
@@ -34,6 +41,8 @@ BEV_CPU_PAIRS = tuple(
         "bev-span-thin-cpu-e10-still",
         "bev-span-thin-cpu-first",
         "bev-span-thin-cpu-still",
+        "bev-span-thin-cpu-s1",
+        "bev-span-thin-cpu-s1-e9",  # its calibration pairs' epoch
         "bev-span-cpu",
         "bev-span-cpu-still",
         "bev-span-cpu-s1",
@@ -62,8 +71,8 @@ def bev_cpu() -> str:
     control without the term (bev-span-cpu): by epoch, where their time went, their picks on
     real scans, the first stages chosen for the first, every file across sensors."""
     start = (
-        "\n`bev-span-cpu` is its control at the same budget: the same recipe without the term "
-        "(`-s1`: its second seed). "
+        "\n`bev-span-thin-cpu-s1` is its second seed; `bev-span-cpu` is its control at the "
+        "same budget: the same recipe without the term (`-s1`: its second seed). "
         "Beside them, `bev-long`'s epochs on a lent GPU (the same recipe on `bev`, without the "
         "term). Epoch 0 is the untrained network, batch norm recalibrated. "
     )
@@ -75,7 +84,7 @@ def bev_cpu() -> str:
             f"{r['train_config'].get('seed', 0)}, on {where}"
         )
 
-    runs, out = pilot_epochs((BEV_CPU_RUN, *BEV_CPU_CONTROL, BEV_GPU[0]), what, start)
+    runs, out = pilot_epochs((*BEV_CPU_TERM, *BEV_CPU_CONTROL, BEV_GPU[0]), what, start)
     out += "\n" + _time_spent(runs[:-1]) + "\n" + real_table(BEV_CPU_REAL) + "\n"
     out += _spectrum_choice(BEV_CPU_SPECTRUM, BEV_CPU_PAIRS[1])
     out += "".join("\n" + _still_choice(p, written) for p, written in BEV_CPU_STILL.items())
@@ -213,7 +222,8 @@ def _pairs_summary(paths: tuple[str, ...]) -> str:
 
 # every epoch of a run measured across sensors: the calibration town's pairs, and test's
 EPOCH_PAIRS = tuple(
-    f"reports/model/epoch-pairs-{n}.json" for n in ("bev-span-thin-cpu", "bev-span-cpu")
+    f"reports/model/epoch-pairs-{n}.json"
+    for n in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1", "bev-span-cpu")
 )
 
 
