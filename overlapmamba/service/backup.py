@@ -17,8 +17,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from overlapmamba.service.backends.faiss.backend import IMPORTED_MARK
-from overlapmamba.service.backends.faiss.store import READABLE_VERSIONS, Store, fsync_dir
+from overlapmamba.service.backends.faiss.store import (
+    IMPORTED_MARK,
+    READABLE_VERSIONS,
+    Store,
+    fsync_dir,
+)
 from overlapmamba.service.domain import check_map_id
 
 LOCK_NAME = "service.lock"

@@ -25,13 +25,12 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import check_same_settings, map_not_found
 from overlapmamba.service.backends.faiss.index import set_threads
 from overlapmamba.service.backends.faiss.map import FaissMap
-from overlapmamba.service.backends.faiss.store import fsync_dir
+from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, fsync_dir
 from overlapmamba.service.domain import MAP_ID, check_map_id
 from overlapmamba.service.errors import Unavailable
 from overlapmamba.service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")
-IMPORTED_MARK = "imported"  # written into .import-<id> once its store is whole and on disk
 # how long (s) a create waits for a deletion of the same map id to move its folder away (that
 # waits for the map's writes and snapshot in progress) before answering 503 map_busy
 DELETE_WAIT_S = 60.0

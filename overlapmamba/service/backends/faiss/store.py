@@ -113,6 +113,11 @@ def index_vector(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype=np.float32).copy()
 
 
+# written into data_dir/maps/.import-<id> once an imported store is whole and on disk
+# (overlapmamba.service.backup; FaissBackend.load_all finishes such an import)
+IMPORTED_MARK = "imported"
+
+
 def _undo(con: sqlite3.Connection, err: BaseException) -> None:
     """After a failed write: roll its transaction back, unless SQLite already has (it does
     so itself on a full disk or an I/O error, and a second ROLLBACK would raise in place of
