@@ -576,6 +576,37 @@ def test_batcher_batches_concurrent_requests_in_order():
     assert max(sizes) > 1 and max(sizes) <= 4
 
 
+def test_stopping_the_batcher_answers_every_scan_still_waiting():
+    """At shutdown the scans in the batch cut off and those queued behind it are answered
+    Unavailable at once, not left to wait out their callers' timeouts."""
+    import threading
+
+    from overlapmamba.service.errors import Unavailable
+
+    release = threading.Event()
+
+    def slow(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        release.wait(5)  # the batch under way when the service stops
+        return _encode(images, offsets)
+
+    async def main() -> list[BaseException | tuple[np.ndarray, np.ndarray]]:
+        mb = MicroBatcher(slow, max_batch=1, max_wait_ms=1)
+        await mb.start()
+        image = np.zeros((1, 2, 3), np.float32)
+        calls = [asyncio.create_task(mb.encode(image, timeout_s=30)) for _ in range(3)]
+        await asyncio.sleep(0.1)  # one batch under way, two scans queued
+        stopping = asyncio.create_task(mb.stop())
+        await asyncio.sleep(0.1)
+        release.set()  # the cut-off batch's thread ends; the pool shuts down
+        await asyncio.wait_for(stopping, 10)
+        return await asyncio.wait_for(asyncio.gather(*calls, return_exceptions=True), 5)
+
+    t0 = time.monotonic()
+    answers = asyncio.run(main())
+    assert all(isinstance(a, Unavailable) for a in answers), answers
+    assert time.monotonic() - t0 < 10
+
+
 def test_batcher_waits_only_for_scans_on_their_way():
     """A lone scan is encoded at once; a batch waits (up to max_wait_ms) for a scan that
     another caller is still decoding, announced with incoming()."""

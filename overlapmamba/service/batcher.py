@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from overlapmamba.service.errors import Overloaded, Timeout
+from overlapmamba.service.errors import Overloaded, Timeout, Unavailable
 
 # (B, V, H, W) images, (B,) column offsets → descriptors, yaw features (Encoder.encode)
 EncodeFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -53,6 +53,7 @@ class MicroBatcher:
         self._queue: asyncio.Queue[_Item] | None = None
         self._coming = 0  # scans announced by incoming() and not yet queued
         self._worker: asyncio.Task[None] | None = None
+        self._batch: list[_Item] = []  # the batch being encoded
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="encoder")
 
     async def start(self) -> None:
@@ -60,11 +61,21 @@ class MicroBatcher:
         self._worker = asyncio.create_task(self._run(), name="micro-batcher")
 
     async def stop(self) -> None:
+        """Stop the worker; every scan still waiting, or in the batch cut off, is answered
+        Unavailable at once rather than left to its caller's timeout."""
         if self._worker is not None:
             self._worker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._worker
-        self._pool.shutdown(wait=True)
+        left = list(self._batch)
+        while self._queue is not None and not self._queue.empty():
+            left.append(self._queue.get_nowait())
+        for item in left:
+            if not item.future.done():
+                item.future.set_exception(
+                    Unavailable("the encoder stopped: the service is shutting down")
+                )
+        await asyncio.to_thread(self._pool.shutdown, wait=True)  # not on the event loop
 
     @contextlib.contextmanager
     def incoming(self) -> Iterator[None]:
@@ -120,12 +131,14 @@ class MicroBatcher:
                     batch.append(await asyncio.wait_for(self._queue.get(), left))
                 except TimeoutError:
                     break
+            self._batch = batch
             try:
                 await self._encode_batch(batch)
             except Exception as err:  # a failing batch fails its callers, not the worker
                 for item in batch:
                     if not item.future.done():
                         item.future.set_exception(err)
+            self._batch = []
 
     async def _encode_batch(self, batch: list[_Item]) -> None:
         loop = asyncio.get_running_loop()
