@@ -17,31 +17,29 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import re
+import sys
 import time
 from typing import Any
 
 import httpx
 from bench_kit import scan_bodies, server
-from reports_kit import REPORTS, write_report
+from reports_kit import REPORTS, ROOT, write_report
 from rich.console import Console
 
 from overlapmamba.service.settings import BatchSettings
 
+sys.path.insert(0, str(ROOT / "tests"))
+from e2e_kit import resident_mb
+
 CONFIGS = {"defaults": {}, "MALLOC_ARENA_MAX=2": {"MALLOC_ARENA_MAX": "2"}}
-
-
-def resident_mb(c: httpx.Client) -> float:
-    found = re.search(r"^process_resident_memory_bytes (\S+)$", c.get("/metrics").text, re.M)
-    if found is None:
-        raise SystemExit("the server's /metrics has no process_resident_memory_bytes (Linux only)")
-    return float(found[1]) / 1e6
 
 
 def measure(env: dict[str, str], bodies: list[bytes], args: argparse.Namespace) -> dict[str, Any]:
     with server(env) as url, httpx.Client(base_url=url, timeout=120) as c:
         assert c.put("/v1/maps/m").status_code == 201
         ready = resident_mb(c)
+        if ready is None:
+            raise SystemExit("the server's /metrics has no process_resident_memory_bytes (Linux)")
 
         def query(i: int) -> int:
             r = c.post(

@@ -390,37 +390,21 @@ class Calls:
 
 
 def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str, bytes]:
-    """:func:`stream_frames` of one :class:`Observation` at place ``seq`` in its stream."""
-    return stream_frames(
-        obs.scan, obs.timestamp, obs.pose, obs.insert, seq, compress, obs.verify, obs.sensor
-    )
-
-
-def stream_frames(
-    scan: Scan,
-    timestamp: float,
-    pose: Any,
-    insert: str,
-    seq: Any,
-    compress: bool,
-    verify: bool = True,
-    sensor: str | None = None,
-) -> tuple[str, bytes]:
-    """The two WebSocket frames of one observation (see the service's stream protocol);
-    ``sensor``: this scan's, when it is not the stream's."""
-    body, headers = encode(scan, compress=compress)
+    """The two WebSocket frames of one observation at place ``seq`` in its stream (see the
+    service's stream protocol); its ``sensor`` is sent when it is not the stream's."""
+    body, headers = encode(obs.scan, compress=compress)
     meta = {
         "seq": seq,
-        "timestamp": float(timestamp),
-        "pose": _pose(pose),
-        "insert": insert,
-        "verify": verify,
+        "timestamp": float(obs.timestamp),
+        "pose": _pose(obs.pose),
+        "insert": obs.insert,
+        "verify": obs.verify,
         "content_type": headers["content-type"],
         "fields": headers["x-point-fields"],
         "encoding": headers.get("content-encoding", "identity"),
     }
-    if sensor is not None:
-        meta["sensor"] = sensor
+    if obs.sensor is not None:
+        meta["sensor"] = obs.sensor
     return json.dumps(meta), body
 
 

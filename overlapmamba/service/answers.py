@@ -68,3 +68,9 @@ class Observation:
     insert: Literal["auto", "always", "never"] = "auto"
     k: int = 10
     verify: bool = True
+
+    @property
+    def keyframe_id(self) -> str:
+        """The keyframe this observation becomes: ``robot:session:timestamp`` (a retry of it
+        names the same one)."""
+        return f"{self.robot_id}:{self.session_id}:{self.timestamp!r}"

@@ -388,8 +388,7 @@ class PlaceService:
         last = self._last_kf.get((m.map_id, obs.robot_id))
         if last is None or last[0] != obs.timestamp:
             return False
-        keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
-        return await in_thread(m.get, keyframe_id) is not None
+        return await in_thread(m.get, obs.keyframe_id) is not None
 
     async def _insert_due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
         """Why this observation becomes a keyframe, or None if it does not."""
@@ -449,7 +448,7 @@ class PlaceService:
         keyframe_id = None
         inserted = False
         if reason is not None:
-            keyframe_id = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}"
+            keyframe_id = obs.keyframe_id
             row = await self._row(m, d, keyframe_id, obs, sensor)
             (result,) = await self.insert(m, [row], obs.robot_id)
             inserted = result.created
@@ -458,7 +457,7 @@ class PlaceService:
         elif obs.insert == "auto" and await self._retried(m, obs):
             # a retry of an observation that was inserted but whose answer was lost: not due
             # now only because its own keyframe is the robot's last; say that it is there
-            keyframe_id, reason = f"{obs.robot_id}:{obs.session_id}:{obs.timestamp!r}", "existing"
+            keyframe_id, reason = obs.keyframe_id, "existing"
         self._done(answer.timings, t0)
         return Observed(
             answer.matches,
