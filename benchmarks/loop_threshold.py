@@ -13,7 +13,10 @@ correlation) and calls an unverified loop closure on the top-1's *score*; the sa
 that score (the keyframes' yaw features rounded to float16, as the map stores them) gives
 ``loop_closure.max_score``.
 ``--write-calibration`` records both F1max points in the model file, which the service takes
-them from. Each scan enters the model as its town's sensor's (its manifest's).
+them from. Each scan enters the model as its town's sensor's (its manifest's). Several
+``--sequence`` (a model for several sensors: each one's validation town) are scored as one
+PR curve, each query searching its own town's past (``overlapmamba.core.metrics.pooled``):
+one threshold judged on all of them, as the service applies one to every sensor's scans.
 Writes JSON (default reports/service/loop_threshold.json).
 """
 
@@ -33,7 +36,12 @@ from rich.table import Table
 from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.metrics import LoopClosureResult, evaluate_loop_closure, evaluate_retrieval
+from overlapmamba.core.metrics import (
+    LoopClosureResult,
+    evaluate_loop_closure,
+    evaluate_retrieval,
+    pooled,
+)
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.rerank import Rerank, two_stage
 from overlapmamba.service.encoder import Encoder
@@ -45,7 +53,13 @@ def main() -> None:
     pre, _ = ap.parse_known_args()
     enc = Encoder(pre.model)
     served = served_settings(enc.meta).rerank  # the model file's calibration, else defaults
-    ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
+    ap.add_argument(
+        "--sequence",
+        type=Path,
+        action="append",
+        help="a validation town (default data/synth/val); several are scored as one curve, one "
+        "threshold for all (a model for several sensors: each town's own)",
+    )
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument(
         "--rerank",
@@ -59,38 +73,25 @@ def main() -> None:
         help="record the F1max points as the model's loop_closure.accept_distance / max_score",
     )
     args = ap.parse_args()
-    if args.write_calibration and args.sequence.name.startswith("test"):
+    args.sequence = args.sequence or [ROOT / "data" / "synth" / "val"]
+    if args.write_calibration and any(p.name.startswith("test") for p in args.sequence):
         ap.error("calibrate on the validation town, never on a test town")
 
-    seq = open_sequence(args.sequence)
-    sensor = served_input(enc, seq.sensor)
-    gt = LoopGroundTruth.load(args.sequence / "ground_truth" / "loops.npz")
-    t0 = time.perf_counter()
-    descs, yaws = [], []
-    for start in tqdm(range(0, len(seq), args.batch), desc="encode", unit="batch"):
-        pts = [seq.points(i) for i in range(start, min(len(seq), start + args.batch))]
-        d, y = enc.describe(pts, sensor, batch=len(pts), mapped=False)
-        descs.append(d)
-        yaws.append(y)
-    desc = np.concatenate(descs)
-    yaw16 = np.concatenate(yaws).astype(np.float16)  # what a map stores
-    recent = int(gt.params.get("exclude_recent", 100))
-    # What a float16 store would hold: does the rounding cost accuracy?
-    d16 = desc.astype(np.float16).astype(np.float32)
-    d16 /= np.linalg.norm(d16, axis=1, keepdims=True)
-    res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent_frames=recent)
-    res = evaluate_loop_closure(desc, gt.positives(), exclude_recent_frames=recent)
-    spread = np.linalg.norm(desc - desc.mean(0), axis=1)
     rerank = Rerank.parse(args.rerank)
-    staged = evaluate_retrieval(
-        two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent_frames=recent
-    )
+    t0 = time.perf_counter()
+    towns = [score_town(enc, path, args.batch, rerank) for path in args.sequence]
+    res = pooled([t[0] for t in towns])
+    res16 = pooled([t[1] for t in towns])
+    staged = pooled([t[2] for t in towns])
+    desc = np.concatenate([t[3] for t in towns])
+    spread = np.linalg.norm(desc - desc.mean(0), axis=1)
+    names = ", ".join(p.name for p in args.sequence)
     # The protocol's PR thresholds are squared L2 distances (overlapmamba.core.metrics.nearest);
     # the service compares L2 distances: accept_distance = √threshold. A score is thresholded
     # as it is (max_score).
     points = operating_points(res, "accept_distance", np.sqrt)
     points_staged = operating_points(staged, "max_score", lambda t: t)
-    table = Table(title=f"loop-closure operating points on {seq.name} ({enc.model_id})")
+    table = Table(title=f"loop-closure operating points on {names} ({enc.model_id})")
     for col in ("point", "max L2 distance", "precision", "recall"):
         table.add_column(col, justify="right")
     for col in (f"max score ({rerank.shortlist}, {rerank.weight:g})", "precision", "recall"):
@@ -118,7 +119,11 @@ def main() -> None:
             {
                 **provenance(),
                 "model_id": enc.model_id,
-                "sequence": str(args.sequence),
+                "sequence": ", ".join(map(str, args.sequence)),
+                "towns": [
+                    {"sequence": str(p), "summary": t[0].summary(), "reranked": t[2].summary()}
+                    for p, t in zip(args.sequence, towns, strict=True)
+                ],
                 "summary": res.summary(),
                 "operating_points": points,
                 "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
@@ -144,7 +149,36 @@ def main() -> None:
         f1, f1_staged = points["f1max"], points_staged["f1max"]
         assert f1 is not None and f1_staged is not None  # the F1max point always exists
         values = {"accept_distance": f1["accept_distance"], "max_score": f1_staged["max_score"]}
-        write_calibration(args.model, "loop_closure", values, str(args.sequence))
+        write_calibration(args.model, "loop_closure", values, ", ".join(map(str, args.sequence)))
+
+
+def score_town(
+    enc: Encoder, path: Path, batch: int, rerank: Rerank
+) -> tuple[LoopClosureResult, LoopClosureResult, LoopClosureResult, np.ndarray]:
+    """One town as the service sees it (its scans as its sensor's): the descriptor's result,
+    the float16-rounded descriptor's, the two stages' (the yaw features in float16, as a map
+    stores them), and the descriptors."""
+    seq = open_sequence(path)
+    sensor = served_input(enc, seq.sensor)
+    gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
+    descs, yaws = [], []
+    for start in tqdm(range(0, len(seq), batch), desc=f"encode {seq.name}", unit="batch"):
+        pts = [seq.points(i) for i in range(start, min(len(seq), start + batch))]
+        d, y = enc.describe(pts, sensor, batch=len(pts), mapped=False)
+        descs.append(d)
+        yaws.append(y)
+    desc = np.concatenate(descs)
+    yaw16 = np.concatenate(yaws).astype(np.float16)  # what a map stores
+    recent = int(gt.params.get("exclude_recent", 100))
+    # What a float16 store would hold: does the rounding cost accuracy?
+    d16 = desc.astype(np.float16).astype(np.float32)
+    d16 /= np.linalg.norm(d16, axis=1, keepdims=True)
+    res16 = evaluate_loop_closure(d16, gt.positives(), exclude_recent_frames=recent)
+    res = evaluate_loop_closure(desc, gt.positives(), exclude_recent_frames=recent)
+    staged = evaluate_retrieval(
+        two_stage(desc, yaw16, rerank), len(desc), gt.positives(), exclude_recent_frames=recent
+    )
+    return res, res16, staged, desc
 
 
 def operating_points(

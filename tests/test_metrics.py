@@ -12,8 +12,10 @@ from hypothesis import strategies as st
 from overlapmamba.core.metrics import (
     average_recall_at_n,
     evaluate_loop_closure,
+    evaluate_retrieval,
     f1_max,
     nearest,
+    pooled,
     pr_auc,
     pr_curve,
     pr_curve_reference,
@@ -186,3 +188,56 @@ def test_errors_at_an_operating_point_sort_every_query_by_hand():
     fn = best["missed_loops"]["total"] - best["false_alarms"]["with_a_loop"]
     f1 = 2 * tp / (2 * tp + (best["accepted"] - tp) + fn)
     assert best["threshold"] == r.f1max_threshold and f1 == pytest.approx(r.f1max)
+
+
+def _noisy_loops(seed: int, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A sequence whose frames from 200 on revisit frames 0 … with noise, some not at all."""
+    rng = np.random.default_rng(seed)
+    desc = rng.normal(size=(n, 8))
+    pos = [np.array([], int)] * n
+    for i in range(200, n):
+        if rng.random() < 0.7:
+            j = i - 200
+            desc[i] = desc[j] + rng.normal(scale=rng.uniform(0.1, 1.5), size=8)
+            pos[i] = np.array([j])
+    return desc, pos
+
+
+def test_pooled_sequences_score_as_one_curve_with_each_query_in_its_own_past():
+    (da, pa), (db, pb) = _noisy_loops(0, 320), _noisy_loops(1, 260)
+    ra, rb = evaluate_loop_closure(da, pa), evaluate_loop_closure(db, pb)
+    both = pooled([ra, rb])
+    # independently: one sequence of both, each query searching only its own sequence's past
+    off = len(da)
+    desc = np.concatenate([da, db])
+    pos = pa + [p + off for p in pb]
+
+    def own_past(queries: np.ndarray, db_size: np.ndarray, k: int):
+        j = np.arange(len(desc))[None, :]
+        start = np.where(queries >= off, off, 0)[:, None]
+        return nearest(desc[queries], desc, k, allowed=(j >= start) & (j < db_size[:, None]))
+
+    mask = np.r_[np.ones(off, bool), np.arange(len(db)) > 100]
+    ref = evaluate_retrieval(own_past, len(desc), pos, query_mask=mask)
+    assert both.n_queries == ref.n_queries == ra.n_queries + rb.n_queries
+    assert both.n_with_loop == ref.n_with_loop
+    np.testing.assert_allclose(both.precision, ref.precision)
+    np.testing.assert_allclose(both.recall, ref.recall)
+    np.testing.assert_allclose(both.thresholds, ref.thresholds)
+    assert both.f1max == pytest.approx(ref.f1max) and both.auc == pytest.approx(ref.auc)
+    np.testing.assert_allclose(both.recall_curve, ref.recall_curve)
+    assert both.recall_at_1 == pytest.approx(ref.recall_at_1)
+    # one threshold for both: at each, F1 of the union lies between the two sequences' F1
+    assert both.f1max <= max(ra.f1max, rb.f1max) + 1e-12
+
+
+def test_pooled_ignores_recall_of_a_sequence_without_loops_and_refuses_nothing():
+    desc, pos = _loop_world()
+    with_loops = evaluate_loop_closure(desc, pos)
+    without = evaluate_loop_closure(desc[:150], [np.array([], int)] * 150)
+    assert math.isnan(without.recall_at_1)
+    both = pooled([with_loops, without])
+    assert both.recall_at_1 == with_loops.recall_at_1 and not math.isnan(both.recall_at_1pct)
+    assert both.n_queries == with_loops.n_queries + without.n_queries
+    with pytest.raises(ValueError, match="at least one"):
+        pooled([])

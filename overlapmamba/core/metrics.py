@@ -297,3 +297,47 @@ def evaluate_retrieval(
         top1_correct=correct,
         has_loop=has,
     )
+
+
+def pooled(results: Sequence[LoopClosureResult]) -> LoopClosureResult:
+    """Several sequences' loop-closure results as one: every scored query of each (its
+    database still its own sequence's past) in one PR curve, so one threshold is judged on
+    all of them (a model calibrated for several towns or sensors at once); Recall@N and
+    Recall@1% over all their queries with a loop. ``queries`` and ``top1`` stay frame
+    indices within each query's own sequence."""
+    if not results:
+        raise ValueError("pooled() needs at least one result")
+    cat = np.concatenate
+    dist, correct = cat([r.top1_distance for r in results]), cat([r.top1_correct for r in results])
+    has = cat([r.has_loop for r in results])
+    precision, recall, thresholds = pr_curve(dist, correct, has)
+    loops = np.array([r.n_with_loop for r in results], dtype=np.float64)
+    defined = bool(has.any())
+
+    some = loops > 0  # a sequence without loops has no Recall@N (NaN) and weighs nothing
+
+    def weighted(values: list[float] | np.ndarray) -> float:
+        v = np.asarray(values, dtype=np.float64)[some]
+        return float((v * loops[some]).sum() / loops.sum()) if defined else math.nan
+
+    curves = [r.recall_curve for r, s in zip(results, some, strict=True) if s]
+    if len({len(c) for c in curves}) > 1:
+        raise ValueError("pooled() needs results scored with the same max_n")
+    curve = (np.stack(curves) * loops[some, None]).sum(0) / loops.sum() if curves else np.zeros(0)
+    return LoopClosureResult(
+        auc=pr_auc(precision, recall) if defined else math.nan,
+        f1max=f1_max(precision, recall) if defined else math.nan,
+        recall_at_1=weighted([r.recall_at_1 for r in results]),
+        recall_at_1pct=weighted([r.recall_at_1pct for r in results]),
+        recall_curve=curve,
+        precision=precision,
+        recall=recall,
+        thresholds=thresholds,
+        n_queries=sum(r.n_queries for r in results),
+        n_with_loop=int(loops.sum()),
+        queries=cat([r.queries for r in results]),
+        top1=cat([r.top1 for r in results]),
+        top1_distance=dist,
+        top1_correct=correct,
+        has_loop=has,
+    )
