@@ -170,9 +170,14 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
     from overlapmamba.core.calibration import calibrated
     from overlapmamba.train.modelfile import with_calibration
 
+    from overlapmamba.train.modelfile import read_metadata
+
     data = data.replace(f"{ROOT}/", "")  # paths inside the checkout, as a clone has them
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)
-    served_settings(with_calibration(model, section, entry))  # as the service will read it
+    meta = read_metadata(model)
+    # as the service will read it, before the file changes: a value it refuses is not written
+    served_settings(meta.model_copy(update={"calibration": {**meta.calibration, section: entry}}))
+    with_calibration(model, section, entry)
     print(f"{model}: calibration {section} = {values}")
 
 

@@ -14,7 +14,9 @@ the best mean AR@1 over all 25 pairs (the five same-sensor pairs among them, so 
 setting cannot buy the pairs across sensors with one sensor's own answers); ties go to the
 shorter shortlist, then the lighter weight. It is reported on ``test`` (the sensor test
 town), never chosen there, beside the descriptor alone and the file's own setting (its
-calibration, or the service's defaults where it has none).
+calibration, or the service's defaults where it has none). ``--write-calibration`` records
+the chosen setting in the file as its ``rerank`` calibration (the service reads it from
+there): the calibration of a file meant for a fleet of mixed sensors.
 
     python benchmarks/rerank_across.py --model runs/NAME/encoder.onnx \\
         --out reports/model/rerank-across-NAME.json
@@ -33,7 +35,7 @@ from typing import Any
 
 import numpy as np
 from across_pairs import BAR_AR1, SENSORS, Drives, split_towns
-from bench_kit import model_record, served_settings
+from bench_kit import model_record, served_settings, write_calibration
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
@@ -42,6 +44,7 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
 from overlapmamba.core.rerank import aligned_correlation
 from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import RerankSettings
 from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, ground_truth, town_positions
 
 SHORTLISTS = (1, 20, 50, 100, 200)  # 1: the descriptor alone
@@ -128,7 +131,19 @@ def main() -> None:
         default=SHORTLISTS,
         help=f"comma-separated (default {','.join(map(str, SHORTLISTS))}; 1: the first stage)",
     )
+    ap.add_argument(
+        "--write-calibration",
+        action="store_true",
+        help="record the setting chosen on val as the model's rerank.shortlist / rerank.weight",
+    )
     args = ap.parse_args()
+    limit = RerankSettings.model_fields["shortlist"].metadata
+    most = min(m.le for m in limit if hasattr(m, "le"))
+    if args.write_calibration and max(args.shortlists) > most:
+        ap.error(
+            f"--write-calibration chooses what the service can answer with: its shortlist is "
+            f"at most {most}, so give --shortlists of at most {most} (e.g. 1,20,{most})"
+        )
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
@@ -168,6 +183,10 @@ def main() -> None:
             chosen = choose(rows)
             record["val"] = {"settings": rows, "chosen": chosen}
             record["cost_ms"] = cost_ms(drives, towns[(SENSORS[0], 0)], args.shortlists)
+            if args.write_calibration:
+                values = {"shortlist": chosen["shortlist"], "weight": chosen["weight"]}
+                where = ", ".join(sorted({t.name for t in towns.values()}))
+                write_calibration(args.model, "rerank", values, where)
         else:
             best = (chosen["shortlist"], chosen["weight"])
             record["test"] = {

@@ -328,6 +328,10 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     assert served.verify.min_fitness == Settings().verify.min_fitness
     with pytest.raises(ValueError, match="not calibrated here; allowed: shortlist, weight"):
         write_calibration(path, "rerank", {"gate": 1.0}, "x")
+    # a value the service would refuse at start-up is refused before the file is touched
+    with pytest.raises(ValueError, match="calibration of rerank is not valid"):
+        write_calibration(path, "rerank", {"shortlist": 200, "weight": 2.0}, "data/synth/val")
+    assert read_metadata(path).calibration == meta.calibration
     assert isinstance(EncoderMetadata.from_props(meta.to_props()), EncoderMetadata)
 
 
