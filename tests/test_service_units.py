@@ -229,6 +229,47 @@ def test_store_sequences_tombstones_and_replay_queries(tmp_path):
     store.close()
 
 
+def test_a_read_returning_its_connection_as_the_store_closes_leaves_none_open(tmp_path):
+    """A reader's connection goes back to the pool, or is closed, in one step against
+    close(): a close() that ran between the reader's look and its return left the connection
+    pooled after the close, open on a file its map may have deleted. Reads after close()
+    are refused by name."""
+    import queue
+    import sqlite3
+    import threading
+
+    from overlapmamba.service.backends.faiss.store import StoreError
+
+    store = Store(tmp_path / "s.sqlite")
+    returned: list[sqlite3.Connection] = []
+    closing = threading.Thread(target=store.close)
+
+    class Pool:  # the store's pool, with close() started as a reader returns to it
+        def __init__(self, pool) -> None:
+            self.pool = pool
+
+        def get_nowait(self) -> sqlite3.Connection:
+            return self.pool.get_nowait()
+
+        def put(self, con: sqlite3.Connection) -> None:
+            if not returned:
+                closing.start()
+                closing.join(0.3)  # the old code let close() finish here, before the return
+            returned.append(con)
+            self.pool.put(con)
+
+    store._pool = Pool(store._pool)  # type: ignore[assignment]
+    assert store.get_meta("schema_version") is not None
+    closing.join(5)
+    assert not closing.is_alive() and len(returned) == 1
+    with pytest.raises(queue.Empty):
+        store._pool.get_nowait()  # nothing pooled after close()
+    with pytest.raises(sqlite3.ProgrammingError, match="closed"):
+        returned[0].execute("SELECT 1")  # closed with the store, not left open
+    with pytest.raises(StoreError, match="is closed"):
+        store.get_meta("schema_version")
+
+
 def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
     """Geometry is written with its row; a store of schema 1 (no geometry column) opens,
     gains the column in one step, keeps its rows, and reads as having no geometry."""

@@ -140,6 +140,7 @@ class Store:
         self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
         self._closed = False
         self._write_lock = threading.Lock()
+        self._pool_lock = threading.Lock()  # a reader's return against close()
         if readonly:
             if not self.path.is_file():
                 raise StoreError(f"{path} does not exist")
@@ -196,6 +197,8 @@ class Store:
 
     @contextlib.contextmanager
     def _reading(self) -> Iterator[sqlite3.Connection]:
+        if self._closed:
+            raise StoreError(f"{self.path} is closed")
         try:
             con = self._pool.get_nowait()
         except queue.Empty:
@@ -203,17 +206,20 @@ class Store:
         try:
             yield con
         finally:
-            if self._closed:
-                con.close()
-            else:
-                self._pool.put(con)
+            # checked and returned as one step: a close() between them would leave this
+            # connection pooled after it, open on a file its map may have deleted
+            with self._pool_lock:
+                if self._closed:
+                    con.close()
+                else:
+                    self._pool.put(con)
 
     def _rows(self, sql: str, args: Sequence[Any] = ()) -> list[Any]:
         with self._reading() as con:
             return con.execute(sql, args).fetchall()
 
     def close(self) -> None:
-        with self._write_lock:
+        with self._write_lock, self._pool_lock:
             self._closed = True
             while True:
                 try:
