@@ -19,7 +19,7 @@ from overlapmamba.client import (
     ServerError,
     TransportError,
 )
-from overlapmamba.client._base import stream_result
+from overlapmamba.client._stream import stream_result
 
 
 def _answers(plan: list[httpx.Response], calls: list[float]) -> httpx.MockTransport:
@@ -154,3 +154,60 @@ def test_a_stream_the_server_closes_is_a_client_error_naming_what_went_unanswere
     ):
         list(pr.stream("town", obs, robot_id="r1", window=2))
     assert e.value.unanswered == [0, 1]  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("kind", ["sync", "async"])
+def test_a_stream_whose_server_takes_no_data_gives_up_after_the_write_timeout(kind):
+    """A half-open link (the server's machine gone) takes no more data: the socket's buffers
+    fill and a send would wait until TCP gives up, many minutes on. Here a real WebSocket
+    server stops reading after the handshake; either client's stream raises the library's
+    Timeout, naming timeout.write and what went unanswered, within the write timeout."""
+    import asyncio
+    import threading
+
+    import numpy as np
+    from websockets.sync.server import serve
+
+    from overlapmamba.client import AsyncPlaceRecognitionClient, Observation, Timeout, Timeouts
+
+    release = threading.Event()
+    scan = np.random.default_rng(0).normal(size=(400_000, 4)).astype(np.float32)  # 6.4 MB
+    obs = [Observation(scan=scan, timestamp=float(t)) for t in range(4)]
+    timeouts = Timeouts(write=0.5, read=30.0)
+    outcome: list[BaseException | None] = []
+
+    async def async_robot(url: str) -> None:
+        async with AsyncPlaceRecognitionClient(url, timeout=timeouts) as pr:
+            async for _ in pr.stream("town", obs, robot_id="r1", window=4):
+                pass
+
+    def robot(url: str) -> None:
+        try:
+            if kind == "sync":
+                with PlaceRecognitionClient(url, timeout=timeouts) as pr:
+                    list(pr.stream("town", obs, robot_id="r1", window=4))
+            else:
+                asyncio.run(async_robot(url))
+            outcome.append(None)
+        except BaseException as err:
+            outcome.append(err)
+
+    handler = lambda ws: release.wait(20)  # noqa: E731 — reads nothing after the handshake
+    with serve(handler, "127.0.0.1", 0, max_queue=1, max_size=None, close_timeout=1) as srv:
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        url = f"http://127.0.0.1:{srv.socket.getsockname()[1]}"
+        t0 = time.monotonic()
+        worker = threading.Thread(target=robot, args=(url,), daemon=True)
+        worker.start()
+        worker.join(10)
+        stuck, took = worker.is_alive(), time.monotonic() - t0
+        release.set()
+        srv.shutdown()
+    assert not stuck and took < 10, "the stream's send still waits on a server taking no data"
+    err = outcome[0]
+    assert isinstance(err, Timeout), err
+    assert "took no data for 0.5 s (timeout.write)" in str(err)
+    # those sent in full before the stall (none when the first scan already filled the
+    # buffers: how much a socket takes is the kernel's to size)
+    sent = err.unanswered  # type: ignore[attr-defined]
+    assert sent == list(range(len(sent))) and len(sent) < len(obs)

@@ -17,14 +17,9 @@ from overlapmamba.client._base import (
     Retry,
     Timeouts,
     check_mount,
-    check_window,
-    observation_frames,
     raise_for,
     retryable,
-    stream_failure,
-    stream_result,
     transport_error,
-    ws_url,
 )
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._models import (
@@ -37,6 +32,14 @@ from overlapmamba.client._models import (
     QueryResult,
 )
 from overlapmamba.client._scans import Scan
+from overlapmamba.client._stream import (
+    check_window,
+    observation_frames,
+    send_timeout,
+    stream_failure,
+    stream_result,
+    ws_url,
+)
 
 
 class AsyncPlaceRecognitionClient:
@@ -257,7 +260,10 @@ class AsyncPlaceRecognitionClient:
         pending: deque[int] = deque()
         try:
             async with connect(
-                url, additional_headers=headers, open_timeout=self.timeout.connect
+                url,
+                additional_headers=headers,
+                open_timeout=self.timeout.connect,
+                close_timeout=self.timeout.write,  # closing writes a frame and waits for one
             ) as ws:
                 async for result in self._exchange(ws, items(), window, errors, pending):
                     yield result
@@ -279,8 +285,13 @@ class AsyncPlaceRecognitionClient:
         i = 0
         async for obs in observations:
             meta, body = observation_frames(obs, i, compress)
-            await ws.send(meta)
-            await ws.send(body)
+            try:  # a half-open link takes no data: give up after timeout.write
+                await asyncio.wait_for(ws.send(meta), self.timeout.write)
+                await asyncio.wait_for(ws.send(body), self.timeout.write)
+            except TimeoutError:
+                # closing would wait, without a deadline, for the same buffers to drain
+                ws.transport.abort()
+                raise send_timeout(self.timeout.write) from None
             pending.append(i)
             i += 1
             while len(pending) >= window:

@@ -3,12 +3,10 @@ and the retry rules. The two clients only differ in how they send (``_sync``, ``
 
 from __future__ import annotations
 
-import errno
 import json
 import math
 import random
-import socket
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import quote
@@ -19,7 +17,6 @@ from pydantic import ValidationError
 
 from overlapmamba.client._exceptions import (
     APIError,
-    ClientError,
     ConnectError,
     Timeout,
     TransportError,
@@ -30,7 +27,6 @@ from overlapmamba.client._models import (
     Descriptor,
     Keyframe,
     MapInfo,
-    Observation,
     ObserveResult,
     QueryResult,
 )
@@ -389,80 +385,6 @@ class Calls:
         return Call("GET", path, _json)
 
 
-def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str, bytes]:
-    """The two WebSocket frames of one observation at place ``seq`` in its stream (see the
-    service's stream protocol); its ``sensor`` is sent when it is not the stream's."""
-    body, headers = encode(obs.scan, compress=compress)
-    meta = {
-        "seq": seq,
-        "timestamp": float(obs.timestamp),
-        "pose": _pose(obs.pose),
-        "insert": obs.insert,
-        "verify": obs.verify,
-        "content_type": headers["content-type"],
-        "fields": headers["x-point-fields"],
-        "encoding": headers.get("content-encoding", "identity"),
-    }
-    if obs.sensor is not None:
-        meta["sensor"] = obs.sensor
-    return json.dumps(meta), body
-
-
-_NETWORK_ERRNOS = {errno.ENETUNREACH, errno.EHOSTUNREACH, errno.ETIMEDOUT, errno.ENETDOWN}
-
-
-def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | None:
-    """A stream's socket failure → the library's error (ConnectError, Timeout or
-    TransportError) naming the observations, by their place in the stream, that were sent
-    and never answered (``unanswered`` on the error too); None for any other error."""
-    from websockets.exceptions import ConnectionClosed, InvalidHandshake
-
-    left = list(unanswered)
-    lost = f"; observations {left} were sent and not answered" if left else ""
-    out: ClientError
-    if isinstance(err, ConnectionClosed):
-        got = err.rcvd
-        why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
-        out = TransportError(f"the stream closed ({why}){lost}")
-    elif isinstance(err, InvalidHandshake):
-        out = ConnectError(f"the server refused the stream: {err}{lost}")
-    elif isinstance(err, TimeoutError):
-        out = Timeout(f"no answer in time on the stream{lost}")
-    elif isinstance(err, (ConnectionError, socket.gaierror, socket.herror)) or (
-        isinstance(err, OSError) and err.errno in _NETWORK_ERRNOS
-    ):  # not any OSError: a drive's missing scan file is the caller's own error
-        out = ConnectError(f"cannot connect the stream: {err}{lost}")
-    else:
-        return None
-    out.unanswered = left  # type: ignore[attr-defined]
-    return out
-
-
-def check_window(window: int) -> int:
-    """A stream's ``window``: how many observations may be in flight, at least 1."""
-    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
-        raise ValueError(
-            f"window must be a whole number ≥ 1 (observations in flight); got {window!r}"
-        )
-    return window
-
-
-def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
-    """One result frame of the stream → its result; a refused observation's APIError is
-    raised, or returned with ``errors="return"``."""
-    d = json.loads(text)
-    if d.get("ok"):
-        return ObserveResult.from_json(d)
-    e = d.get("error", {})
-    status = int(d.get("status") or 400)  # the HTTP status of that error (servers before: none)
-    code, message = e.get("code", "stream_error"), e.get("message", "")
-    err = error_for(status)(status, code, message, e.get("detail"))
-    err.detail.setdefault("seq", d.get("seq"))
-    if errors == "raise":
-        raise err
-    return err
-
-
 def check_mount(mount: str | tuple[float, ...] | None) -> str | None:
     """A client's ``mount``: ``"HEIGHT[,PITCH[,ROLL]]"`` or a tuple of those numbers (metres,
     degrees), checked here so a robot learns of a typo at start, not at its first scan."""
@@ -475,11 +397,3 @@ def check_mount(mount: str | tuple[float, ...] | None) -> str | None:
         first = err.errors()[0]
         raise ValueError(f"mount {text!r}: {first['loc'][0]} {first['msg'].lower()}") from None
     return text
-
-
-def ws_url(base_url: str, map_id: str, **params: Any) -> str:
-    url = httpx.URL(base_url)
-    scheme = "wss" if url.scheme == "https" else "ws"
-    query = "&".join(f"{k}={quote(str(v), safe='')}" for k, v in params.items() if v is not None)
-    path = url.path.rstrip("/") + f"/v1/maps/{_m(map_id)}/stream"
-    return f"{scheme}://{url.netloc.decode()}{path}?{query}"

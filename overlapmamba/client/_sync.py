@@ -16,14 +16,9 @@ from overlapmamba.client._base import (
     Retry,
     Timeouts,
     check_mount,
-    check_window,
-    observation_frames,
     raise_for,
     retryable,
-    stream_failure,
-    stream_result,
     transport_error,
-    ws_url,
 )
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._models import (
@@ -36,6 +31,14 @@ from overlapmamba.client._models import (
     QueryResult,
 )
 from overlapmamba.client._scans import Scan
+from overlapmamba.client._stream import (
+    check_window,
+    observation_frames,
+    send_within,
+    stream_failure,
+    stream_result,
+    ws_url,
+)
 
 
 class PlaceRecognitionClient:
@@ -262,11 +265,14 @@ class PlaceRecognitionClient:
         pending: deque[int],
     ) -> Iterator[ObserveResult | APIError]:
         compress = self._calls.compress
-        with connect(url, additional_headers=headers, open_timeout=self.timeout.connect) as ws:
+        with connect(
+            url,
+            additional_headers=headers,
+            open_timeout=self.timeout.connect,
+            close_timeout=self.timeout.write,  # closing writes a frame and waits for one
+        ) as ws:
             for i, obs in enumerate(observations):
-                meta, body = observation_frames(obs, i, compress)
-                ws.send(meta)
-                ws.send(body)
+                send_within(ws, observation_frames(obs, i, compress), self.timeout.write)
                 pending.append(i)
                 while len(pending) >= window:
                     yield stream_result(ws.recv(timeout=self.timeout.read), errors)

@@ -1,0 +1,145 @@
+"""The observe stream over one WebSocket, shared by both clients: its URL, an observation's
+two frames, a result frame, a deadline on a send, and the socket's failures as the
+library's errors."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import socket
+import threading
+from collections.abc import Iterable
+from typing import Any
+from urllib.parse import quote
+
+import httpx
+
+from overlapmamba.client._base import _m, _pose
+from overlapmamba.client._exceptions import (
+    APIError,
+    ClientError,
+    ConnectError,
+    Timeout,
+    TransportError,
+    error_for,
+)
+from overlapmamba.client._models import Observation, ObserveResult
+from overlapmamba.client._scans import encode
+
+
+def ws_url(base_url: str, map_id: str, **params: Any) -> str:
+    url = httpx.URL(base_url)
+    scheme = "wss" if url.scheme == "https" else "ws"
+    query = "&".join(f"{k}={quote(str(v), safe='')}" for k, v in params.items() if v is not None)
+    path = url.path.rstrip("/") + f"/v1/maps/{_m(map_id)}/stream"
+    return f"{scheme}://{url.netloc.decode()}{path}?{query}"
+
+
+def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str, bytes]:
+    """The two WebSocket frames of one observation at place ``seq`` in its stream (see the
+    service's stream protocol); its ``sensor`` is sent when it is not the stream's."""
+    body, headers = encode(obs.scan, compress=compress)
+    meta = {
+        "seq": seq,
+        "timestamp": float(obs.timestamp),
+        "pose": _pose(obs.pose),
+        "insert": obs.insert,
+        "verify": obs.verify,
+        "content_type": headers["content-type"],
+        "fields": headers["x-point-fields"],
+        "encoding": headers.get("content-encoding", "identity"),
+    }
+    if obs.sensor is not None:
+        meta["sensor"] = obs.sensor
+    return json.dumps(meta), body
+
+
+_NETWORK_ERRNOS = {errno.ENETUNREACH, errno.EHOSTUNREACH, errno.ETIMEDOUT, errno.ENETDOWN}
+
+
+def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | None:
+    """A stream's socket failure → the library's error (ConnectError, Timeout or
+    TransportError) naming the observations, by their place in the stream, that were sent
+    and never answered (``unanswered`` on the error too); None for any other error."""
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
+    left = list(unanswered)
+    lost = f"; observations {left} were sent and not answered" if left else ""
+    out: ClientError
+    if isinstance(err, ConnectionClosed):
+        got = err.rcvd
+        why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
+        out = TransportError(f"the stream closed ({why}){lost}")
+    elif isinstance(err, InvalidHandshake):
+        out = ConnectError(f"the server refused the stream: {err}{lost}")
+    elif isinstance(err, TimeoutError):
+        out = Timeout(f"{err or 'no answer in time'} on the stream{lost}")
+    elif isinstance(err, (ConnectionError, socket.gaierror, socket.herror)) or (
+        isinstance(err, OSError) and err.errno in _NETWORK_ERRNOS
+    ):  # not any OSError: a drive's missing scan file is the caller's own error
+        out = ConnectError(f"cannot connect the stream: {err}{lost}")
+    else:
+        return None
+    out.unanswered = left  # type: ignore[attr-defined]
+    return out
+
+
+def send_timeout(seconds: float) -> TimeoutError:
+    """What a stream raises when the server took no data for ``seconds`` (``timeout.write``):
+    a link gone half-open fills the socket's buffers and would hold the send until TCP
+    gives up, many minutes later."""
+    return TimeoutError(f"the server took no data for {seconds:g} s (timeout.write)")
+
+
+def check_window(window: int) -> int:
+    """A stream's ``window``: how many observations may be in flight, at least 1."""
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+        raise ValueError(
+            f"window must be a whole number ≥ 1 (observations in flight); got {window!r}"
+        )
+    return window
+
+
+def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
+    """One result frame of the stream → its result; a refused observation's APIError is
+    raised, or returned with ``errors="return"``."""
+    d = json.loads(text)
+    if d.get("ok"):
+        return ObserveResult.from_json(d)
+    e = d.get("error", {})
+    status = int(d.get("status") or 400)  # the HTTP status of that error (servers before: none)
+    code, message = e.get("code", "stream_error"), e.get("message", "")
+    err = error_for(status)(status, code, message, e.get("detail"))
+    err.detail.setdefault("seq", d.get("seq"))
+    if errors == "raise":
+        raise err
+    return err
+
+
+def send_within(ws: Any, frames: Iterable[str | bytes], seconds: float) -> None:
+    """Send ``frames`` on a websockets sync connection, or raise ``TimeoutError`` after
+    ``seconds``: its send has no deadline of its own, and a half-open link (the server's
+    machine gone) fills the socket's buffers and holds it until TCP gives up. At the
+    deadline the socket is shut down, which ends the send; the stream is over."""
+    late = threading.Event()
+
+    def abort() -> None:
+        late.set()
+        with contextlib.suppress(OSError):
+            ws.socket.shutdown(socket.SHUT_RDWR)
+
+    timer = threading.Timer(seconds, abort)
+    timer.daemon = True
+    timer.start()
+    try:
+        for frame in frames:
+            ws.send(frame)
+    except Exception:
+        if late.is_set():
+            raise send_timeout(seconds) from None
+        raise
+    finally:
+        timer.cancel()
+    if late.is_set():  # shut down as the last frame went out: the stream cannot go on
+        raise send_timeout(seconds)
