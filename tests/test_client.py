@@ -394,6 +394,35 @@ def test_a_recording_holds_poses_keyframes_and_closure_edges(tmp_path):
     assert lines[0]["points"] == [{"x": 5, "y": 1, "z": 0}, {"x": 0, "y": 0, "z": 0}]
 
 
+def test_a_robot_that_cannot_read_its_scan_stops_the_fleet_with_that_error(live, tiny_seq):
+    """One robot's own failure (a scan file it cannot read) ends the simulation with that
+    error at once and leaves no other robot running on the loop; before, the others went on
+    after the call had raised, against a client already closed."""
+    import dataclasses
+
+    from overlapmamba.client._replay import Drive, open_drive
+    from overlapmamba.client.fleet import simulate
+
+    @dataclasses.dataclass
+    class Broken(Drive):
+        def scan(self, i: int) -> np.ndarray:
+            if i == 2:
+                raise OSError(f"scan {i} is unreadable")
+            return super().scan(i)
+
+    plain = open_drive(tiny_seq)
+    drive = Broken(**{f.name: getattr(plain, f.name) for f in dataclasses.fields(Drive)})
+
+    async def run() -> list[asyncio.Task]:
+        with pytest.raises(OSError, match="scan 2 is unreadable"):
+            await simulate(live, "fleet-broken", [drive], robots=2, duration_s=60, rate_hz=5.0)
+        return [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+
+    t0 = time.monotonic()
+    assert asyncio.run(run()) == []
+    assert time.monotonic() - t0 < 30
+
+
 def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
     from overlapmamba.client._replay import open_drive
     from overlapmamba.client.fleet import simulate

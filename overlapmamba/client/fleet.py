@@ -178,7 +178,12 @@ async def simulate(
                     )
                 )
 
-        await asyncio.gather(*(robot(r) for r in range(robots)))
+        try:  # one robot's failure (a scan that cannot be read) stops the others with it
+            async with asyncio.TaskGroup() as tg:
+                for r in range(robots):
+                    tg.create_task(robot(r))
+        except ExceptionGroup as group:
+            raise group.exceptions[0] from None  # the caller's own error, as one robot hit it
     elapsed = time.monotonic() - start
     report = _report(samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start)
     report.server, report.drives = server, [d.name for d in drives]
