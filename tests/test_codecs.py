@@ -163,6 +163,26 @@ def _pcd(points: int = 3, data: str = "binary", fields: str = "x y z") -> bytes:
     ).encode()
 
 
+def test_an_organised_pcds_nan_points_are_missing_returns_an_unorganised_ones_an_error():
+    """PCL saves a driver's organised cloud (HEIGHT > 1, a row a beam) with NaN where a beam
+    had no return, as a non-dense PointCloud2 carries it: those points are dropped. In an
+    unorganised cloud a NaN is a fault, and an infinity is one in either: 400 naming it."""
+    rows = np.random.default_rng(1).uniform(-20, 20, (4, 8, 4)).astype(np.float32)
+    rows[1, 3, :3] = np.nan
+    rows[2, 5, 0] = np.nan
+    head = _pcd(32, fields="x y z intensity").replace(b"WIDTH 32\nHEIGHT 1", b"WIDTH 8\nHEIGHT 4")
+    pc = decode_pcd(head + rows.reshape(-1, 4).tobytes())
+    keep = ~np.isnan(rows.reshape(-1, 4)[:, :3]).any(axis=1)
+    assert len(pc) == 30
+    np.testing.assert_array_equal(pc.xyz, rows.reshape(-1, 4)[keep, :3])
+    np.testing.assert_array_equal(pc.intensity, rows.reshape(-1, 4)[keep, 3])
+    with pytest.raises(NonFiniteError, match="2 points with NaN"):
+        decode_pcd(_pcd(32, fields="x y z intensity") + rows.reshape(-1, 4).tobytes())
+    rows[0, 0, 2] = np.inf
+    with pytest.raises(NonFiniteError, match="1 points with NaN or infinite"):
+        decode_pcd(head + rows.reshape(-1, 4).tobytes())
+
+
 def test_pcd_malformed_inputs_are_rejected():
     body = np.ones((3, 3), "<f4").tobytes()
     assert len(decode_pcd(_pcd() + body)) == 3

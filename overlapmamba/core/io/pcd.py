@@ -144,4 +144,9 @@ def decode_pcd(
         xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
         field = next((f for f in INTENSITY_FIELDS if f in meta.fields), None)
         intensity = None if field is None else np.asarray(arr[field], dtype=np.float32)
+    if meta.height > 1:  # organised (a driver's image of rows): NaN points are missing returns
+        keep = ~np.isnan(xyz).any(axis=1)
+        if not keep.all():
+            xyz = xyz[keep]
+            intensity = None if intensity is None else intensity[keep]
     return validate(xyz, intensity, limits=limits, source=source)
