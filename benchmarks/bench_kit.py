@@ -168,9 +168,7 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
     """Record thresholds this benchmark chose in the model file itself
     (``overlapmamba.core.calibration``): the service takes them from there."""
     from overlapmamba.core.calibration import calibrated
-    from overlapmamba.train.modelfile import with_calibration
-
-    from overlapmamba.train.modelfile import read_metadata
+    from overlapmamba.train.modelfile import read_metadata, with_calibration
 
     data = data.replace(f"{ROOT}/", "")  # paths inside the checkout, as a clone has them
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)

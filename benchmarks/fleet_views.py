@@ -23,6 +23,11 @@ observation), the ``ceiling`` column.
 
     python benchmarks/fleet_views.py [--rounds 2] [--robots 8] [--sequence data/synth/val]
 
+``--model NAME`` (repeated) runs those models instead, e.g. the shipped file against the
+every-sensor option (``models/overlapmamba-any-sensor.onnx``, one pass a scan, calibrated
+on the validation towns of every sensor): ``--model "descriptors (shipped)" --model "every
+sensor (the option)" --out reports/client/fleet-any-sensor.json``.
+
 Writes JSON (default reports/client/fleet-views.json).
 """
 
@@ -57,7 +62,10 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
         SHIPPED,
         {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},
     ),
+    "every sensor (the option)": (ROOT / "models" / "overlapmamba-any-sensor.onnx", {}),
 }
+# the models a plain run compares (--model picks others)
+DEFAULT_MODELS = tuple(k for k in MODELS if k != "every sensor (the option)")
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
 KEPT += ("verified_closures", "loop_closures")
@@ -118,21 +126,28 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=10.0, help="scans a second asked per robot")
     ap.add_argument("--out", type=Path, default=REPORTS / "client" / "fleet-views.json")
+    ap.add_argument(
+        "--model",
+        action="append",
+        choices=list(MODELS),
+        help=f"a model to run (repeat; default: {', '.join(DEFAULT_MODELS)})",
+    )
     args = ap.parse_args()
     console = Console()
-    for name, (path, _) in MODELS.items():
+    models = {k: MODELS[k] for k in (args.model or DEFAULT_MODELS)}
+    for name, (path, _) in models.items():
         if not path.is_file():
             raise SystemExit(f"{path} ({name}) is missing: see this script's docstring")
     if not (args.sequence / "manifest.json").is_file():
         raise SystemExit(f"{args.sequence} is not a generated town: run `make data`")
 
-    runs: dict[str, list[dict[str, Any]]] = {k: [] for k in MODELS}
+    runs: dict[str, list[dict[str, Any]]] = {k: [] for k in models}
     watch = OtherLoad()
     with tempfile.TemporaryDirectory(prefix="om-fleet-views-") as tmp:
-        meta = {k: _meta(p) for k, (p, _) in MODELS.items()}
+        meta = {k: _meta(p) for k, (p, _) in models.items()}
         i = 0
         for r in range(args.rounds):
-            for name, (path, env) in MODELS.items():
+            for name, (path, env) in models.items():
                 runs[name].append(round_of(path, args, Path(tmp), i, env))
                 i += 1
                 got = runs[name][-1]
@@ -159,7 +174,7 @@ def main() -> None:
                 "settings": env,  # the server's environment beside defaults
                 "runs": runs[k],
             }
-            for k, (p, env) in MODELS.items()
+            for k, (p, env) in models.items()
         },
     }
     write_report(args.out, result)

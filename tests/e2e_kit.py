@@ -131,6 +131,7 @@ class Mapper(Worker):
 
     map_id: str = "built"
     model_id: str = ""
+    dim: int = 256  # the served model's descriptor length
     batch: int = 5
     seed: int = 0
     _n: int = 0
@@ -145,7 +146,7 @@ class Mapper(Worker):
                     "timestamp": float(self._n),
                     "robot_id": "mapper",
                     "session_id": "build",
-                    "descriptor": unit(rng),
+                    "descriptor": unit(rng, self.dim),
                 }
             )
             self._n += 1

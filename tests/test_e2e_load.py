@@ -34,6 +34,7 @@ from service_kit import MODEL, server
 from overlapmamba.client import NO_RETRY
 from overlapmamba.client._replay import open_drive
 from overlapmamba.client.fleet import simulate
+from overlapmamba.service.calibration import read_model_metadata
 
 pytestmark = pytest.mark.e2e
 
@@ -54,7 +55,8 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         model_id = c.get("/readyz").json()["detail"]["model_id"]
         assert c.put("/v1/maps/built").status_code == 201
         resident_ready = resident_mb(c)
-        mapper = Mapper(url, model_id=model_id).start()
+        dim = read_model_metadata(model).descriptor_dim  # e.g. 768 for a first stage's
+        mapper = Mapper(url, model_id=model_id, dim=dim).start()
         poller = Poller(url).start()
         t0 = time.monotonic()
         # No retries: an overload (503) or a timeout counts as an error, not a slow success.
