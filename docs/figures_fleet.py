@@ -306,12 +306,14 @@ def fleet() -> str:
 
 
 FLEET_VIEWS = "reports/client/fleet-views.json"
+FLEET_ANY_SENSOR = "reports/client/fleet-any-sensor.json"  # the shipped file and the option
 
 
-def fleet_views() -> str:
-    """The fleet simulator against each way of meeting the views, alternating rounds, and
-    where an observation's CPU time goes."""
-    r = load(FLEET_VIEWS)
+def fleet_views(path: str = FLEET_VIEWS) -> str:
+    """The fleet simulator against each model of a ``benchmarks/fleet_views.py`` report
+    (each way of meeting the views, by default), alternating rounds, and where an
+    observation's CPU time goes."""
+    r = load(path)
     rows = []
     for name, m in r["models"].items():
         runs = m["runs"]
@@ -329,7 +331,7 @@ def fleet_views() -> str:
                 ", ".join(ms(x["stage_p50_ms"]["verify"]) for x in runs),
             ]
         )
-    out = source(FLEET_VIEWS, r.get("command") or "python benchmarks/fleet_views.py", when(r))
+    out = source(path, r.get("command") or "python benchmarks/fleet_views.py", when(r))
     busy = r.get("other_load")
     note = (
         f"; other processes used {100 * busy:.0f}% of the CPU meanwhile" if busy is not None else ""
@@ -431,5 +433,6 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sizing": sizing,
     "fleet": fleet,
     "fleet-views": fleet_views,
+    "fleet-any-sensor": lambda: fleet_views(FLEET_ANY_SENSOR),
     "e2e": e2e,
 }

@@ -112,6 +112,10 @@ def across_pairs_candidates() -> str:
 RERANK = "reports/model/rerank-across-bev-span-thin.json"
 RERANK_PAIRS = "reports/model/across-pairs-bev-span-thin.json"  # its Scan Context, same drives
 RERANK_OTHERS = ("reports/model/rerank-across-bev-long.json",)
+# the every-sensor option's calibration (models/overlapmamba-any-sensor.onnx), and Scan Context
+# on the same test drives from its weights' across-pairs run (the same model id)
+RERANK_ANY = "reports/model/rerank-across-any-sensor.json"
+RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-e10-still.json"
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -143,12 +147,14 @@ def sweep_test_rows(r: dict[str, Any], own: str = "its own") -> list[list[str]]:
     ]
 
 
-def rerank_across() -> str:
-    """The second stage's shortlist and weight across sensors, chosen on val, on test."""
-    r, sc_report = load(RERANK), load(RERANK_PAIRS)
-    out = source(RERANK, r["command"], when(r)) + source(
-        RERANK_PAIRS, sc_report["command"], when(sc_report)
-    )
+def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
+    """The second stage's shortlist and weight across sensors, chosen on val, on test, for
+    the file of ``path`` (Scan Context from ``pairs``, an across-pairs report of the same
+    file on the same drives)."""
+    r, sc_report = load(path), load(pairs)
+    if r["model_id"] != sc_report["model_id"]:
+        raise ValueError(f"{path} and {pairs} measured different files")
+    out = source(path, r["command"], when(r)) + source(pairs, sc_report["command"], when(sc_report))
     own = r["own"]
     out += (
         f"\n{_label(r)}; its own setting: shortlist {own['shortlist']}, weight "
@@ -172,8 +178,9 @@ def rerank_across() -> str:
     out += f"\nChosen: {_setting(chosen)}.\n\ntest (the sensor test town: reported):\n\n"
     out += table(head[:-1], sweep_test_rows(r))
     best = {(p["queries"], p["map"]): p["ar@1"] for p in r["test"]["chosen"]["pairs"]}
-    out += against_scan_context(sc_report, best, "the setting chosen on val, pair by pair: AR@1")
-    return out + _other_networks()
+    return out + against_scan_context(
+        sc_report, best, "the setting chosen on val, pair by pair: AR@1"
+    )
 
 
 def against_scan_context(
@@ -209,5 +216,6 @@ def _other_networks() -> str:
 RENDERERS = {
     "across-pairs": across_pairs,
     "across-pairs-candidates": across_pairs_candidates,
-    "rerank-across": rerank_across,
+    "rerank-across": lambda: rerank_across() + _other_networks(),
+    "rerank-across-any-sensor": lambda: rerank_across(RERANK_ANY, RERANK_ANY_PAIRS),
 }

@@ -188,83 +188,9 @@ def headline_one_view() -> str:
     return out + table(head, rows)
 
 
-# the sensors baseline (benchmarks/sensors.py) of the default file and of its twins
-SENSOR_RUNS = (
-    ("three views (the default file)", "reports/model/sensors.json"),
-    ("one view, aligned columns", "reports/model/sensors-one-view.json"),
-    ("three views met at the tokens", "reports/model/sensors-tokens.json"),
-)
-
-
-def _fr(m: dict) -> str:
-    return f"{m['f1max']:.3f} / {m['recall@1']:.3f}"
-
-
-def sensors_twins() -> str:
-    """The sensors baseline for the default file and for its twins on the same drives, town
-    by town and pair by pair, a row per file."""
-    runs = [(label, path, load(path)) for label, path in SENSOR_RUNS]
-    out = "".join(
-        source(path, r.get("command", "python benchmarks/sensors.py"), when(r))
-        for _, path, r in runs
-    )
-    towns = [{Path(x["town"]).name: x for x in r["same_sensor"]} for _, _, r in runs]
-    common = [t for t in towns[0] if all(t in other for other in towns[1:])]
-    same = all(tw[t]["scan_context"] == towns[0][t]["scan_context"] for tw in towns for t in common)
-    out += (
-        "\nSame sensor, F1max / Recall@1 (all revisits); verified precision / recall at each "
-        "file's own thresholds. Scan Context "
-        + (
-            "scored the same in every run on every town: the same drives."
-            if same
-            else "scored differently between the runs: not the same drives."
-        )
-        + "\n\n"
-    )
-    rows = []
-    for t in common:
-        for k, (label, _, _) in enumerate(runs):
-            x = towns[k][t]
-            v = x["verified"]
-            rows.append(
-                [
-                    f"{x['sensor']} ({x['mount']})" if k == 0 else "",
-                    label,
-                    _fr(x["descriptor"]),
-                    _fr(x["two_stage"]),
-                    _fr(x["scan_context"]) if k == 0 else "",
-                    f"{v['precision']:.3f} / {v['recall']:.3f}",
-                ]
-            )
-    head = ["sensor (mounting)", "file", "descriptor alone", "two stages (service)"]
-    out += table([*head, "Scan Context", "verified precision / recall"], rows)
-    out += "\nAcross sensors, AR@1 (a hit within 5 m):\n\n"
-    pairs = [
-        {(p["query_sensor"], p["map_sensor"]): p for p in r["across_sensors"]} for *_, r in runs
-    ]
-    rows = []
-    for key in pairs[0]:
-        if not all(key in other for other in pairs[1:]):
-            continue
-        for k, (label, _, _) in enumerate(runs):
-            p = pairs[k][key]
-            rows.append(
-                [
-                    f"{key[0]} against {key[1]}" if k == 0 else "",
-                    label,
-                    f"{p['descriptor']['ar@1']:.3f}",
-                    f"{p['two_stage']['ar@1']:.3f}",
-                    f"{p['scan_context']['ar@1']:.3f}" if k == 0 else "",
-                ]
-            )
-    head = ["queries against map", "file", "descriptor alone", "two stages (service)"]
-    return out + table([*head, "Scan Context"], rows)
-
-
 RENDERERS: dict[str, Callable[[], str]] = {
     "column-phase": column_phase,
     "revisit-phase": revisit_phase,
     "aligned-pilot": aligned_pilot,
-    "sensors-twins": sensors_twins,
     "headline-one-view": headline_one_view,
 }

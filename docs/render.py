@@ -42,6 +42,7 @@ import figures_model
 import figures_pairs
 import figures_phase
 import figures_scan
+import figures_sensors
 import figures_spectrum
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,6 +116,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_pairs.RENDERERS,
     **figures_phase.RENDERERS,
     **figures_scan.RENDERERS,
+    **figures_sensors.RENDERERS,
     **figures_spectrum.RENDERERS,
 }
 
