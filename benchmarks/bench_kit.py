@@ -172,11 +172,30 @@ def write_calibration(model: Path, section: str, values: dict[str, Any], data: s
 
     data = data.replace(f"{ROOT}/", "")  # paths inside the checkout, as a clone has them
     entry = calibrated(section, values, chosen_by=str(provenance()["command"]), data=data)
+    check_section(section, values)
     meta = read_metadata(model)
     # as the service will read it, before the file changes: a value it refuses is not written
     served_settings(meta.model_copy(update={"calibration": {**meta.calibration, section: entry}}))
     with_calibration(model, section, entry)
     print(f"{model}: calibration {section} = {values}")
+
+
+def check_section(section: str, values: dict[str, Any]) -> None:
+    """``values`` as the service's settings section ``section`` takes them, whatever this
+    process's OVERLAPMAMBA_* variables set (a variable's value would hide the file's from
+    ``served_settings``): ValueError naming the first value refused."""
+    from pydantic import ValidationError
+
+    from overlapmamba.service.settings import Settings
+
+    kind = Settings.model_fields[section].annotation
+    try:
+        kind.model_validate(values)  # type: ignore[union-attr]
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise ValueError(
+            f"the calibration of {section} is not valid ({first['loc']}: {first['msg']})"
+        ) from None
 
 
 def pct(ms: list[float] | np.ndarray, q: float) -> float:

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 from across_pairs import BAR_AR1, SENSORS, Drives, split_towns
-from bench_kit import model_record, served_settings, write_calibration
+from bench_kit import check_section, model_record, served_settings, write_calibration
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
@@ -44,7 +44,6 @@ from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
 from overlapmamba.core.rerank import aligned_correlation
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.settings import RerankSettings
 from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, ground_truth, town_positions
 
 SHORTLISTS = (1, 20, 50, 100, 200)  # 1: the descriptor alone
@@ -137,13 +136,15 @@ def main() -> None:
         help="record the setting chosen on val as the model's rerank.shortlist / rerank.weight",
     )
     args = ap.parse_args()
-    limit = RerankSettings.model_fields["shortlist"].metadata
-    most = min(m.le for m in limit if hasattr(m, "le"))
-    if args.write_calibration and max(args.shortlists) > most:
-        ap.error(
-            f"--write-calibration chooses what the service can answer with: its shortlist is "
-            f"at most {most}, so give --shortlists of at most {most} (e.g. 1,20,{most})"
-        )
+    if args.write_calibration:  # choose only among what the service can answer with
+        for k in args.shortlists:
+            try:
+                check_section("rerank", {"shortlist": k})
+            except ValueError as err:
+                ap.error(
+                    f"--write-calibration with shortlist {k}: {err}; give --shortlists "
+                    "the service accepts (e.g. 1,20,50)"
+                )
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
@@ -183,10 +184,7 @@ def main() -> None:
             chosen = choose(rows)
             record["val"] = {"settings": rows, "chosen": chosen}
             record["cost_ms"] = cost_ms(drives, towns[(SENSORS[0], 0)], args.shortlists)
-            if args.write_calibration:
-                values = {"shortlist": chosen["shortlist"], "weight": chosen["weight"]}
-                where = ", ".join(sorted({t.name for t in towns.values()}))
-                write_calibration(args.model, "rerank", values, where)
+            calibration_towns = ", ".join(sorted({t.name for t in towns.values()}))
         else:
             best = (chosen["shortlist"], chosen["weight"])
             record["test"] = {
@@ -204,6 +202,9 @@ def main() -> None:
     record["seconds"] = round(time.perf_counter() - t0, 1)
     write_report(args.out, record)
     console.print(f"wrote {args.out}")
+    if args.write_calibration:  # once the report that says why is written
+        values = {"shortlist": chosen["shortlist"], "weight": chosen["weight"]}
+        write_calibration(args.model, "rerank", values, calibration_towns)
 
 
 if __name__ == "__main__":

@@ -157,7 +157,7 @@ def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
     out = source(path, r["command"], when(r)) + source(pairs, sc_report["command"], when(sc_report))
     own = r["own"]
     out += (
-        f"\n{_label(r)}; its own setting: shortlist {own['shortlist']}, weight "
+        f"\n{_label(r)}; its own setting when measured: shortlist {own['shortlist']}, weight "
         f"{own['weight']:g} ({'its calibration' if own['calibrated'] else 'the service defaults'})"
         ". AR@1 over the 25 pairs (mean), over the 20 across sensors (mean, lowest, how many "
         f"reach {r['bar_ar@1']:g}) and over the five same-sensor pairs; the cost is the yaw "

@@ -90,7 +90,7 @@ def sensors_table(runs: tuple[tuple[str, str], ...]) -> str:
 def real_rows(runs: tuple[tuple[str, str], ...]) -> str:
     """Each file on the real scans of the same benchmark: KITTI 00 odd frames, turned, against
     the even ones, whole and thinned; nuScenes odd → even; the lowest cosine under turns."""
-    out, rows = "", []
+    out, rows, counts = "", [], ""
     for label, path in runs:
         r = load(path)
         kitti, nus = r.get("real_thinned"), r.get("real_hdl32")
@@ -107,6 +107,9 @@ def real_rows(runs: tuple[tuple[str, str], ...]) -> str:
             )
         n = nus["retrieval_odd_to_even"]
         cells.append(f"{n['recall@1']:.3f} / {n['reranked']['recall@1']:.3f}")
+        counts = f"{ret['queries']} KITTI 00 queries against {ret['database']} scans, " + (
+            f"{n['queries']} of nuScenes against {n['database']}"
+        )
         turns = (kitti["yaw_invariance"]["cosine_min"], nus["yaw_invariance"]["cosine_min"])
         cells.append(" / ".join(f"{c:.5f}" for c in turns))
         rows.append(cells)
@@ -116,7 +119,7 @@ def real_rows(runs: tuple[tuple[str, str], ...]) -> str:
         "\nReal scans (KITTI 00 odd frames, turned at random, against the even ones, a hit "
         "within 3 m; thinned queries keep every second or fourth ring, declared as the sensor "
         "they now are; nuScenes odd → even within 6 m; the lowest cosine of a scan to its turned "
-        "copy, KITTI 00 / nuScenes):\n\n"
+        f"copy, KITTI 00 / nuScenes; {counts}):\n\n"
     )
     return out + table(head, rows)
 

@@ -303,7 +303,7 @@ async def test_an_explicit_setting_overrides_the_models_calibration(tmp_path, ca
     assert "loop_closure.accept_distance=1.9 (model)" in caplog.text
 
 
-def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_path):
+def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_path, monkeypatch):
     """benchmarks/*.py --write-calibration: bench_kit.write_calibration stamps the section
     with the command that chose it; served_settings (what the service would answer with)
     reads it back; the other sections stay the defaults, the model id stays the same."""
@@ -328,7 +328,11 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     assert served.verify.min_fitness == Settings().verify.min_fitness
     with pytest.raises(ValueError, match="not calibrated here; allowed: shortlist, weight"):
         write_calibration(path, "rerank", {"gate": 1.0}, "x")
-    # a value the service would refuse at start-up is refused before the file is touched
+    # a value the service would refuse at start-up is refused before the file is touched,
+    # even where a variable of this process sets that value (and would hide the file's)
+    with pytest.raises(ValueError, match="calibration of rerank is not valid"):
+        write_calibration(path, "rerank", {"shortlist": 200, "weight": 2.0}, "data/synth/val")
+    monkeypatch.setenv("OVERLAPMAMBA_RERANK__SHORTLIST", "10")
     with pytest.raises(ValueError, match="calibration of rerank is not valid"):
         write_calibration(path, "rerank", {"shortlist": 200, "weight": 2.0}, "data/synth/val")
     assert read_metadata(path).calibration == meta.calibration

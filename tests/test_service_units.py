@@ -4,6 +4,7 @@ settings, micro-batcher."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import hashlib
 import os
@@ -268,6 +269,24 @@ def test_a_read_returning_its_connection_as_the_store_closes_leaves_none_open(tm
         returned[0].execute("SELECT 1")  # closed with the store, not left open
     with pytest.raises(StoreError, match="is closed"):
         store.get_meta("schema_version")
+
+
+def test_a_reader_never_creates_the_store_file_a_deletion_moved_away(tmp_path):
+    """Only the writer opened at start may create the store's file: a reader's new
+    connection to a store whose file went away (its map deleted under it) is an error, not
+    a new empty database at the old path."""
+    import queue
+    import sqlite3
+
+    store = Store(tmp_path / "s.sqlite")
+    with contextlib.suppress(queue.Empty):
+        while True:  # no pooled reader left: the next read opens a connection of its own
+            store._pool.get_nowait().close()
+    (tmp_path / "s.sqlite").rename(tmp_path / "moved.sqlite")
+    with pytest.raises(sqlite3.OperationalError, match="unable to open"):
+        store.get_meta("schema_version")
+    assert not (tmp_path / "s.sqlite").exists()
+    store.close()
 
 
 def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):

@@ -34,6 +34,7 @@ from overlapmamba.client._models import (
 from overlapmamba.client._scans import Scan
 from overlapmamba.client._stream import (
     check_window,
+    close_within,
     observation_frames,
     send_timeout,
     stream_failure,
@@ -263,7 +264,7 @@ class AsyncPlaceRecognitionClient:
                 url,
                 additional_headers=headers,
                 open_timeout=self.timeout.connect,
-                close_timeout=self.timeout.write,  # closing writes a frame and waits for one
+                close_timeout=close_within(self.timeout),
             ) as ws:
                 async for result in self._exchange(ws, items(), window, errors, pending):
                     yield result
@@ -286,8 +287,7 @@ class AsyncPlaceRecognitionClient:
         async for obs in observations:
             meta, body = observation_frames(obs, i, compress)
             try:  # a half-open link takes no data: give up after timeout.write
-                await asyncio.wait_for(ws.send(meta), self.timeout.write)
-                await asyncio.wait_for(ws.send(body), self.timeout.write)
+                await asyncio.wait_for(_send_both(ws, meta, body), self.timeout.write)
             except TimeoutError:
                 # closing would wait, without a deadline, for the same buffers to drain
                 ws.transport.abort()
@@ -302,3 +302,9 @@ class AsyncPlaceRecognitionClient:
             text = await asyncio.wait_for(ws.recv(), self.timeout.read)
             yield stream_result(text, errors)
             pending.popleft()
+
+
+async def _send_both(ws: Any, meta: str, body: bytes) -> None:
+    """One observation's two frames, under one deadline."""
+    await ws.send(meta)
+    await ws.send(body)

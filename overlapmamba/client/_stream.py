@@ -86,10 +86,16 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
 
 
 def send_timeout(seconds: float) -> TimeoutError:
-    """What a stream raises when the server took no data for ``seconds`` (``timeout.write``):
-    a link gone half-open fills the socket's buffers and would hold the send until TCP
-    gives up, many minutes later."""
-    return TimeoutError(f"the server took no data for {seconds:g} s (timeout.write)")
+    """What a stream raises when an observation could not be sent within ``seconds``
+    (``timeout.write``): a link gone half-open fills the socket's buffers and would hold the
+    send until TCP gives up, many minutes later."""
+    return TimeoutError(f"an observation could not be sent within {seconds:g} s (timeout.write)")
+
+
+def close_within(timeouts: Any) -> float:
+    """How long closing a stream waits for the server's close frame: websockets' own 10 s,
+    or less where ``timeout.write`` is shorter."""
+    return min(10.0, float(timeouts.write))
 
 
 def check_window(window: int) -> int:
@@ -118,14 +124,19 @@ def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | A
 
 
 def send_within(ws: Any, frames: Iterable[str | bytes], seconds: float) -> None:
-    """Send ``frames`` on a websockets sync connection, or raise ``TimeoutError`` after
-    ``seconds``: its send has no deadline of its own, and a half-open link (the server's
-    machine gone) fills the socket's buffers and holds it until TCP gives up. At the
-    deadline the socket is shut down, which ends the send; the stream is over."""
-    late = threading.Event()
+    """Send one observation's ``frames`` on a websockets sync connection, or raise
+    ``TimeoutError`` when they are not sent within ``seconds``: its send has no deadline of
+    its own, and a half-open link (the server's machine gone) fills the socket's buffers and
+    holds it until TCP gives up. At the deadline the socket is shut down, which ends the
+    send; the stream is over. A send that finished first is never cut."""
+    lock = threading.Lock()
+    state = {"done": False, "late": False}
 
     def abort() -> None:
-        late.set()
+        with lock:  # the send's end and the deadline decide once, in one order
+            if state["done"]:
+                return
+            state["late"] = True
         with contextlib.suppress(OSError):
             ws.socket.shutdown(socket.SHUT_RDWR)
 
@@ -136,10 +147,12 @@ def send_within(ws: Any, frames: Iterable[str | bytes], seconds: float) -> None:
         for frame in frames:
             ws.send(frame)
     except Exception:
-        if late.is_set():
+        if state["late"]:
             raise send_timeout(seconds) from None
         raise
     finally:
+        with lock:
+            state["done"] = True
         timer.cancel()
-    if late.is_set():  # shut down as the last frame went out: the stream cannot go on
+    if state["late"]:  # shut down as the last frame went out: the stream cannot go on
         raise send_timeout(seconds)

@@ -33,6 +33,7 @@ from overlapmamba.client._models import (
 from overlapmamba.client._scans import Scan
 from overlapmamba.client._stream import (
     check_window,
+    close_within,
     observation_frames,
     send_within,
     stream_failure,
@@ -269,7 +270,7 @@ class PlaceRecognitionClient:
             url,
             additional_headers=headers,
             open_timeout=self.timeout.connect,
-            close_timeout=self.timeout.write,  # closing writes a frame and waits for one
+            close_timeout=close_within(self.timeout),
         ) as ws:
             for i, obs in enumerate(observations):
                 send_within(ws, observation_frames(obs, i, compress), self.timeout.write)

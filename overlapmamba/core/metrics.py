@@ -323,7 +323,11 @@ def pooled(results: Sequence[LoopClosureResult]) -> LoopClosureResult:
     curves = [r.recall_curve for r, s in zip(results, some, strict=True) if s]
     if len({len(c) for c in curves}) > 1:
         raise ValueError("pooled() needs results scored with the same max_n")
-    curve = (np.stack(curves) * loops[some, None]).sum(0) / loops.sum() if curves else np.zeros(0)
+    curve = (
+        (np.stack(curves) * loops[some, None]).sum(0) / loops.sum()
+        if curves
+        else results[0].recall_curve.copy()  # no loops anywhere: as one sequence gives it
+    )
     return LoopClosureResult(
         auc=pr_auc(precision, recall) if defined else math.nan,
         f1max=f1_max(precision, recall) if defined else math.nan,

@@ -186,4 +186,5 @@ class FaissBackend:
             except Exception:  # the store is durable; a missing snapshot costs a replay
                 log.exception("map %s: final snapshot failed", m.map_id)
             finally:
-                m.close()
+                with m.retiring():  # once the reads, writes and rebuild under way have ended
+                    pass

@@ -151,7 +151,7 @@ class Store:
                     f"{path}: schema version {version}; this code reads {READABLE_VERSIONS}"
                 )
             return
-        self._write = self._connect()
+        self._write = self._connect(create=True)
         # Reader connections are pooled, not per thread: worker threads come and go, and a
         # connection per thread that ever read would leak file descriptors.
         with self._write:
@@ -183,13 +183,16 @@ class Store:
                 _undo(con, err)
                 raise
 
-    def _connect(self) -> sqlite3.Connection:
+    def _connect(self, *, create: bool = False) -> sqlite3.Connection:
+        """A connection to the store; only the writer opened at start may create the file (a
+        reader's never re-creates a store whose map was deleted under it)."""
         if self.readonly:
             uri = f"file:{self.path}?mode=ro"
             con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
             con.execute("PRAGMA busy_timeout=10000")
             return con
-        con = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        target = str(self.path) if create else f"file:{self.path}?mode=rw"
+        con = sqlite3.connect(target, uri=not create, check_same_thread=False, isolation_level=None)
         con.execute("PRAGMA journal_mode=WAL")
         con.execute("PRAGMA synchronous=FULL")
         con.execute("PRAGMA busy_timeout=10000")
@@ -197,11 +200,14 @@ class Store:
 
     @contextlib.contextmanager
     def _reading(self) -> Iterator[sqlite3.Connection]:
-        if self._closed:
-            raise StoreError(f"{self.path} is closed")
-        try:
-            con = self._pool.get_nowait()
-        except queue.Empty:
+        with self._pool_lock:
+            if self._closed:
+                raise StoreError(f"{self.path} is closed")
+            try:
+                con: sqlite3.Connection | None = self._pool.get_nowait()
+            except queue.Empty:
+                con = None
+        if con is None:  # a close() from here on closes it on its return, below
             con = self._connect()
         try:
             yield con
