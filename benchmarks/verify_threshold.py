@@ -229,8 +229,17 @@ def main() -> None:
     ap.add_argument(
         "--rerank", default=default_rerank, help="K,WEIGHT or off (default: the service's)"
     )
+    ap.add_argument(
+        "--across",
+        action="store_true",
+        help="with --calibrate: also the calibration town's pairs of drives by the issue's "
+        "five sensors, each query against another drive's map (benchmarks/verify_across.py), "
+        "so that the thresholds hold for a map by one sensor and a query by another",
+    )
     args = ap.parse_args()
     towns = args.town or [ROOT / "data" / "synth" / "val"]
+    if args.across and not args.calibrate:
+        ap.error("--across adds calibration data: give it with --calibrate")
     if args.calibrate and any(t.name.startswith("test") for t in towns):
         ap.error("calibrate on the validation town, never on a test town")
     if args.write_calibration and not args.calibrate:
@@ -252,6 +261,13 @@ def main() -> None:
     }
     if args.calibrate:
         queries = [q for r in results for q in r["queries"]]
+        pairs: list[str] = []
+        if args.across:  # the calibration town's drives, pair by pair, as the service answers
+            from verify_across import val_pair_queries
+
+            across, pairs = val_pair_queries(enc, v, rerank)
+            report["across"] = {"pairs": pairs, "queries": len(across)}
+            queries += across
         sweep = [
             score(queries, f, r)
             for f in np.round(np.arange(0.20, 0.99, 0.02), 2)
@@ -313,7 +329,8 @@ def main() -> None:
                     "max_rmse_m": chosen["max_rmse_m"],
                     "gate_distance": gate["gate_distance"],
                 }
-                write_calibration(args.model, "verify", values, ", ".join(map(str, towns)))
+                data = ", ".join([*map(str, towns), *pairs])
+                write_calibration(args.model, "verify", values, data)
     table = Table(title=f"verified loop closures ({enc.model_id}, candidates={args.candidates})")
     for col in (
         "town",

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from figures_kit import load, source, table, when
+from figures_kit import ROOT, load, source, table, when
 
 DEFAULT = "reports/model/sensors.json"
 # the default file and its twins: the same weights, other views
@@ -124,8 +124,65 @@ def real_rows(runs: tuple[tuple[str, str], ...]) -> str:
     return out + table(head, rows)
 
 
+VERIFY_ACROSS = "reports/service/verify-across-any-sensor.json"
+VERIFY_ACROSS_PLAIN = "reports/service/verify-across-any-sensor-no-view.json"
+
+
+def verify_across() -> str:
+    """Verified closures across sensors on the sensor test town, pair by pair: precision /
+    recall at the file's thresholds, scored within the keyframe sensor's field of view (as
+    the service does), and over all the query's points where that run is there."""
+    from figures_pairs import NAMES
+
+    r = load(VERIFY_ACROSS)
+    out = source(VERIFY_ACROSS, r["command"], when(r))
+    plain_path = ROOT / VERIFY_ACROSS_PLAIN
+    plain = load(VERIFY_ACROSS_PLAIN) if plain_path.is_file() else None
+    if plain is not None:
+        out += source(VERIFY_ACROSS_PLAIN, plain["command"], when(plain))
+    v = r["verify"]
+    out += (
+        f"\nTest (the sensor test town), every {r['every']}nd query of each second drive "
+        f"against each first drive's keyframes; the file's thresholds (fitness ≥ "
+        f"{v['min_fitness']:g}, rmse ≤ {v['max_rmse_m']:g} m, descriptor gate "
+        f"{v['gate_distance']}); a closure is right within 1 m and 2°; precision / recall"
+        + (", then the same scored over all the query's points" if plain else "")
+        + ":\n\n"
+    )
+    cells = {(p["queries_sensor"], p["map_sensor"]): p["verified"] for p in r["test"]["pairs"]}
+    old = (
+        {(p["queries_sensor"], p["map_sensor"]): p["verified"] for p in plain["test"]["pairs"]}
+        if plain
+        else {}
+    )
+
+    def cell(key: tuple[str, str]) -> str:
+        x = cells[key]
+        text = f"{x['precision']:.3f} / {x['recall']:.3f}"
+        if key in old and key[0] != key[1]:
+            text += f" ({old[key]['precision']:.3f} / {old[key]['recall']:.3f})"
+        return text
+
+    sensors = list(dict.fromkeys(q for q, _ in cells))
+    grid = [[NAMES[q], *(cell((q, m)) for m in sensors)] for q in sensors]
+    out += table(["queries ↓ map →", *(NAMES[m] for m in sensors)], grid)
+    rows = []
+    for name, x in r["test"]["summary"].items():
+        rows.append(
+            [
+                "across sensors (20 pairs)" if name == "across" else "same sensor (5 pairs)",
+                f"{x['precision']:.3f} ({x['correct']} of {x['accepted']})",
+                f"{x['precision_lowest']:.3f}",
+                f"{x['recall_mean']:.3f} / {x['recall_lowest']:.3f}",
+            ]
+        )
+    head = ["pairs", "precision", "lowest pair's precision", "recall: mean / lowest pair"]
+    return out + "\n" + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-twins": lambda: sensors_table(TWIN_RUNS),
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
     "real-any-sensor": lambda: real_rows(OPTION_RUNS),
+    "verify-across-any-sensor": lambda: verify_across(),
 }

@@ -108,6 +108,37 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
     assert wrong.fitness is not None and wrong.fitness < r.fitness - 0.3
 
 
+def test_a_keyframe_by_a_narrower_sensor_is_scored_within_its_field_of_view(kitti):
+    """KITTI 00 frame 11 against frame 12 as a sensor whose top beam looks 1° down would
+    have seen it (its returns above −1° cut): the query's walls above that find no partner,
+    so fitness over all its points falls though the pose is right. Scored within the
+    keyframe sensor's field of view (what the service does when the two sensors differ),
+    the same pose scores higher, and a wrong keyframe stays far below it."""
+    from overlapmamba.service.verify import FieldOfView, RegistrationParams, prepare, register
+
+    def seen_by_narrow(xyz: np.ndarray) -> np.ndarray:
+        el = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+        return xyz[el <= -1.0]
+
+    p = RegistrationParams()
+    view = FieldOfView.of((-1.0, -24.8), 120.0)
+    inside = view.inside(np.array([[10.0, 0, -1.0], [10.0, 0, 2.0], [200.0, 0, -10.0]]))
+    assert inside.tolist() == [True, False, False]  # in, above the top beam's margin, too far
+    q = prepare(kitti.points(11).xyz, p)
+    narrow = encode_geometry(seen_by_narrow(kitti.points(12).xyz))
+    truth = np.linalg.inv(kitti.poses[12]) @ kitti.poses[11]
+    whole = register(q, encode_geometry(kitti.points(12).xyz), 0.0, p)
+    plain = register(q, narrow, 0.0, p)
+    scoped = register(q, narrow, 0.0, p, view)
+    np.testing.assert_array_equal(plain.relative_pose, scoped.relative_pose)  # scored only
+    err = np.linalg.inv(truth) @ scoped.relative_pose
+    assert np.linalg.norm(err[:3, 3]) < 1.0 and abs(yaw_deg(err)) < 2.0, err  # a right pose
+    assert plain.fitness < whole.fitness - 0.3, (plain.fitness, whole.fitness)
+    assert scoped.fitness > plain.fitness + 0.1, (plain.fitness, scoped.fitness)
+    wrong = register(q, encode_geometry(seen_by_narrow(kitti.points(90).xyz)), 0.0, p, view)
+    assert wrong.fitness is None or wrong.fitness < scoped.fitness - 0.3
+
+
 def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
     from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""

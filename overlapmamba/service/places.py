@@ -52,6 +52,7 @@ from overlapmamba.service.settings import Settings
 from overlapmamba.service.stats import Stats
 from overlapmamba.service.threads import in_thread
 from overlapmamba.service.verify import (
+    FieldOfView,
     Prepared,
     RegistrationParams,
     keyframe_geometry,
@@ -257,7 +258,8 @@ class PlaceService:
         else:
             desc, yaw = check_descriptor(probe, m.dim), None
             timings = {"decode": (time.perf_counter() - t0) * 1e3}
-        answer = await self._search(m, desc, yaw, k, filters, timings, robot, prepared)
+        sensor = self._sensor(probe, m) if isinstance(probe, ScanBody) else None
+        answer = await self._search(m, desc, yaw, k, filters, timings, robot, prepared, sensor)
         self._done(timings, t0)
         return answer
 
@@ -283,9 +285,11 @@ class PlaceService:
         timings: dict[str, float],
         robot: str | None,
         prepared: Prepared | None = None,
+        sensor: str | None = None,
     ) -> Answer:
         """Search, verify the first ``verify.candidates`` candidates when the query is prepared
-        for it, and make the loop-closure call (see :class:`LoopClosure`)."""
+        for it (``sensor``: the query scan's), and make the loop-closure call (see
+        :class:`LoopClosure`)."""
         n_verify = self.settings.verify.candidates if prepared is not None else 0
         rerank = rerank_params(self.settings.rerank) if yaw is not None else OFF
 
@@ -297,7 +301,7 @@ class PlaceService:
             t1 = time.perf_counter()
             timings["search"] = (t1 - t0) * 1e3
             if n_verify and found and prepared is not None:
-                found[:n_verify] = self._verify(m, prepared, found[:n_verify])
+                found[:n_verify] = self._verify(m, prepared, found[:n_verify], sensor)
                 timings["verify"] = (time.perf_counter() - t1) * 1e3
             return found
 
@@ -330,14 +334,27 @@ class PlaceService:
         )
         return LoopClosure(accepted, threshold, margin, rule=rule)
 
-    def _verify(self, m: PlaceMap, prepared: Prepared, candidates: list[Match]) -> list[Match]:
+    def _verify(
+        self, m: PlaceMap, prepared: Prepared, candidates: list[Match], sensor: str | None
+    ) -> list[Match]:
         blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
         verdicts = verify_candidates(
             prepared,
             [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg, c.distance) for c in candidates],
             self.settings.verify,
+            [self._view(c.keyframe.sensor, sensor) for c in candidates],
         )
         return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]
+
+    def _view(self, keyframe_sensor: str | None, query_sensor: str | None) -> FieldOfView | None:
+        """The keyframe's sensor's field of view when the query came from another sensor
+        (fitness then scores what both could see: :class:`FieldOfView`), else None. A
+        keyframe that recorded no sensor came from the model's own (it predates the record)."""
+        kf = keyframe_sensor or self.sensors.model_sensor.name
+        if query_sensor is None or kf == query_sensor or kf not in self.sensors.known:
+            return None
+        s = self.sensors.known[kf]
+        return FieldOfView.of(s.elevations_deg, s.max_range)
 
     @staticmethod
     def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
@@ -442,6 +459,7 @@ class PlaceService:
             d.timings,
             obs.robot_id,
             d.prepared if verify else None,
+            sensor,
         )
         await self._draw(m, obs, answer)
         reason = await self._insert_due(m, obs)

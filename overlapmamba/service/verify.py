@@ -106,6 +106,31 @@ class Prepared:
 
 
 @dataclass(frozen=True)
+class FieldOfView:
+    """What a keyframe's sensor sees from where it stood: elevations from ``low_deg`` to
+    ``high_deg`` in its own frame, out to ``max_range_m``. Registering a query of another
+    sensor, fitness scores only the query's points inside it (aligned into the keyframe's
+    frame): a VLP-16's ±15° or an OS1-128's ±22.5° hold walls above what an HDL-64E's +3°
+    top beam reached, and those points find no partner however right the pose is."""
+
+    low_deg: float
+    high_deg: float
+    max_range_m: float
+    margin_deg: float = 2.0  # the 2 m grid's points are cell means: their angles blur
+
+    @classmethod
+    def of(cls, elevations_deg: tuple[float, ...], max_range_m: float) -> FieldOfView:
+        return cls(min(elevations_deg), max(elevations_deg), max_range_m)
+
+    def inside(self, pts: np.ndarray) -> np.ndarray:
+        """(N,) bool: points (N, 3) in the sensor's frame that it could have returned."""
+        r_xy = np.hypot(pts[:, 0], pts[:, 1])
+        el = np.degrees(np.arctan2(pts[:, 2], r_xy))
+        lo, hi = self.low_deg - self.margin_deg, self.high_deg + self.margin_deg
+        return (el >= lo) & (el <= hi) & (np.hypot(r_xy, pts[:, 2]) <= self.max_range_m)
+
+
+@dataclass(frozen=True)
 class Registration:
     relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query
     fitness: float | None
@@ -166,9 +191,15 @@ def keyframe_geometry(query: Prepared, p: RegistrationParams) -> bytes | None:
 
 
 def register(
-    query: Prepared, geometry: bytes, yaw_deg: float | None, p: RegistrationParams
+    query: Prepared,
+    geometry: bytes,
+    yaw_deg: float | None,
+    p: RegistrationParams,
+    view: FieldOfView | None = None,
 ) -> Registration:
-    """Align the prepared query to one keyframe's geometry (see the module notes)."""
+    """Align the prepared query to one keyframe's geometry (see the module notes).
+    ``view``: the keyframe's sensor's field of view, when it is another sensor than the
+    query's: fitness then scores only the query's points inside it."""
     t0 = time.perf_counter()
 
     def refused(reason: str) -> Registration:
@@ -204,6 +235,14 @@ def register(
     )
     T = np.asarray(res.T_target_source, dtype=np.float64)
     moved = query.scored @ T[:3, :3].T + T[:3, 3]
+    if view is not None:
+        seen = view.inside(moved)
+        if seen.sum() < p.min_points // 2:
+            return refused(
+                f"{int(seen.sum())} of the query's points lie in the keyframe sensor's field "
+                f"of view; fitness needs at least {p.min_points // 2}"
+            )
+        moved = moved[seen]
     _, sq = tree.batch_nearest_neighbor_search(moved, 1)
     d2 = np.asarray(sq, dtype=np.float64)
     close = d2 <= p.radius**2
@@ -265,16 +304,20 @@ def verify_candidates(
     query: Prepared,
     candidates: list[tuple[bytes | None, float | None, float]],
     v: VerifySettings,
+    views: list[FieldOfView | None] | None = None,
 ) -> list[Verdict]:
     """The prepared query and its candidates (geometry blob or None, the descriptor's
     relative yaw, the descriptor distance) → one verdict per candidate, in order. A
     candidate farther than ``v.gate_distance`` is not registered: on the validation town no
     true loop lay that far, and a robot in new territory then spends nothing on it. With
-    ``v.stop_at_first`` none is registered after the first that verifies."""
+    ``v.stop_at_first`` none is registered after the first that verifies. ``views``: each
+    candidate's keyframe sensor's field of view where it is not the query's sensor
+    (:class:`FieldOfView`), else None."""
     p = params_of(v)
     out: list[Verdict] = []
     first: int | None = None  # the first verified candidate, 1-based
-    for blob, yaw_deg, distance in candidates:
+    views = views or [None] * len(candidates)
+    for (blob, yaw_deg, distance), view in zip(candidates, views, strict=True):
         if v.stop_at_first and first is not None:
             reason = f"not registered: candidate {first} verified first (verify.stop_at_first)"
             out.append(Verdict(None, None, None, reason, None))
@@ -287,7 +330,7 @@ def verify_candidates(
             )
             out.append(Verdict(False, None, None, reason, None))
         else:
-            out.append(judge(register(query, blob, yaw_deg, p), v))
+            out.append(judge(register(query, blob, yaw_deg, p, view), v))
             if first is None and out[-1].verified:
                 first = len(out)
     return out

@@ -1,0 +1,266 @@
+"""Verified loop closures across sensors: a map made by one sensor, queries from another.
+
+``benchmarks/verify_threshold.py`` scores the service's geometric verification on loops
+within one drive, each sensor against itself. A mixed fleet also asks it to verify a VLP-16
+robot's scan against the keyframe geometry an HDL-64E car left in the map. This runs the
+service's path on the issue's five sensors' pairs (``across_pairs.SENSORS``; a second drive
+by the query sensor against a first drive's map by the map sensor, 20 pairs across sensors
+and the five same-sensor pairs): every scan encoded as the service encodes a scan that names
+its sensor and kept as a keyframe's compact geometry (``overlapmamba.core.geometry``); each
+query's top ``--candidates`` in the service's order (``overlapmamba.service.ranking``: the
+descriptor shortlist re-ranked by the yaw features) registered against them
+(``overlapmamba.service.verify``). A closure is **correct** when its relative pose is within
+1 m and 2° of the true one (T = P_keyframe⁻¹ · P_query, the drives' poses in the town's
+frame), as ``verify_threshold.py`` judges it; a query **has** a loop when a map scan lies
+within 5 m (``overlapmamba.train.sessions``). Scored at the model file's thresholds (its
+calibration, else the service's defaults), the first verified candidate in the answer's
+order (``verify.stop_at_first``, the default): precision, and recall over the queries with
+a loop, pair by pair.
+
+- ``val``: calibration town ``cal-x00`` (``--frames`` scans a drive);
+- ``test``: the sensor test town (``test-SENSOR`` maps, ``test-s1-SENSOR`` queries).
+
+    python benchmarks/verify_across.py [--model FILE] [--every 2] [--out …]
+
+Writes JSON (default reports/service/verify-across.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from across_pairs import SENSORS, split_towns
+from bench_kit import ROOT, model_record, served_input, served_settings
+from common_beams import drive_arguments
+from reports_kit import REPORTS, write_report
+from rich.console import Console
+from tqdm import tqdm
+from verify_threshold import score
+
+from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.poses import pose_error
+from overlapmamba.core.rerank import by_score
+from overlapmamba.core.sensors.catalogue import CATALOGUE
+from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.settings import VerifySettings
+from overlapmamba.service.verify import (
+    FieldOfView,
+    keyframe_geometry,
+    params_of,
+    prepare,
+    verify_candidates,
+)
+from overlapmamba.synth.generate import read_manifest
+from overlapmamba.train.sessions import check_sessions, ground_truth
+
+
+class Drive:
+    """One drive as the service holds it: descriptors, yaw features (float16, as a map keeps
+    them), each scan's keyframe geometry (``map``: a map drive's keyframes keep it), and
+    world poses. A query's registration grid is prepared when it is asked (``prepared``):
+    a drive's grids held at once take gigabytes."""
+
+    def __init__(
+        self, enc: Encoder, path: Path, v: VerifySettings, *, map: bool, batch: int = 8
+    ) -> None:
+        seq = open_sequence(path)
+        self.seq = seq
+        sensor = served_input(enc, seq.sensor)
+        self.params = params_of(v)
+        descs, yaws, self.blobs = [], [], []
+        for start in tqdm(range(0, len(seq), batch), desc=f"encode {path.name}", unit="batch"):
+            pts = [seq.points(i) for i in range(start, min(len(seq), start + batch))]
+            d, y = enc.describe(pts, sensor, batch=len(pts))
+            descs.append(d)
+            yaws.append(np.asarray(y, dtype=np.float16))
+            if map:
+                self.blobs += [
+                    keyframe_geometry(prepare(p.xyz, self.params), self.params) for p in pts
+                ]
+        self.desc, self.yaw = np.concatenate(descs), np.concatenate(yaws)
+        m = read_manifest(path)
+        world = np.asarray(m.get("world_from_sequence", np.eye(4)), dtype=np.float64)
+        self.poses = world @ seq.poses  # (N, 4, 4) in the town's frame
+
+    def prepared(self, i: int) -> Any:
+        return prepare(self.seq.points(i).xyz, self.params)
+
+
+def pair_queries(
+    db: Drive,
+    q: Drive,
+    k: int,
+    v: VerifySettings,
+    weight: float,
+    shortlist: int,
+    every: int,
+    view: FieldOfView | None,
+) -> list[dict[str, Any]]:
+    """Each ``every``-th query's candidates in the service's order, registered: what
+    ``verify_threshold.score`` reads (fitness, rmse, pose error, within the hit radius)."""
+    check_sessions(db.seq, q.seq)
+    within = ground_truth(db.poses[:, :3, 3], q.poses[:, :3, 3])
+    d2 = np.maximum(2.0 - 2.0 * q.desc @ db.desc.T, 0.0)
+    v = v.model_copy(update={"stop_at_first": False})  # every candidate: score() decides
+    out = []
+    for i in range(0, len(q.desc), every):
+        top = np.argsort(d2[i], kind="stable")[: max(k, shortlist)]
+        deg, conf = estimate_yaw(q.yaw[i].astype(np.float32), db.yaw[top].astype(np.float32))
+        if shortlist > 1 and weight > 0:  # as overlapmamba.service.ranking orders the answer
+            order, _ = by_score(d2[i, top], conf, weight)
+            top, deg = top[order], deg[order]
+        top, deg = top[:k], deg[:k]
+        verdicts = verify_candidates(
+            q.prepared(i),
+            [
+                (db.blobs[j], float(a), float(np.sqrt(d2[i, j])))
+                for j, a in zip(top, deg, strict=True)
+            ],
+            v,
+            [view] * len(top),
+        )
+        cands = []
+        for j, verdict in zip(top, verdicts, strict=True):
+            c: dict[str, Any] = {
+                "keyframe": int(j),
+                "distance": float(np.sqrt(d2[i, j])),
+                "loop": bool(within[i, j]),
+                "fitness": verdict.fitness,
+                "rmse": verdict.rmse,
+            }
+            if verdict.relative_pose is not None:
+                truth = np.linalg.inv(db.poses[j]) @ q.poses[i]
+                c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
+            cands.append(c)
+        out.append({"query": i, "has_loop": bool(within[i].any()), "candidates": cands})
+    return out
+
+
+def view_of(map_sensor: str, query_sensor: str) -> FieldOfView | None:
+    """The map sensor's field of view when the query's sensor is another, as the service
+    registers such a pair (``overlapmamba.service.places``)."""
+    if map_sensor == query_sensor:
+        return None
+    s = CATALOGUE[map_sensor]
+    return FieldOfView.of(s.elevations_deg, s.max_range)
+
+
+def val_pair_queries(
+    enc: Encoder, v: VerifySettings, rerank: Any, every: int = 2, frames: int = 500
+) -> tuple[list[dict[str, Any]], list[str]]:
+    """Every candidate of the calibration town's 25 pairs registered (no descriptor gate:
+    ``verify_threshold.py --calibrate --across`` sweeps it), and the drives' names."""
+    towns = split_towns("val", ROOT / "data" / "synth", ROOT / "data" / "common-beams", frames)
+    drives = {key: Drive(enc, path, v, map=key[1] == 0) for key, path in towns.items()}
+    v = v.model_copy(update={"gate_distance": None})
+    queries = []
+    for m, q in itertools.product(SENSORS, SENSORS):
+        queries += pair_queries(
+            drives[(m, 0)],
+            drives[(q, 1)],
+            v.candidates,
+            v,
+            rerank.weight if rerank.on else 0.0,
+            rerank.shortlist,
+            every,
+            view_of(m, q),
+        )
+    return queries, sorted(path.name for path in towns.values())
+
+
+def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Across sensors (the 20 pairs) and the same sensor (the diagonal): mean and lowest
+    recall, the lowest precision, and the closures accepted and correct over all."""
+    out: dict[str, Any] = {}
+    for name, keep in (
+        ("across", lambda r: r["queries_sensor"] != r["map_sensor"]),
+        ("same", lambda r: r["queries_sensor"] == r["map_sensor"]),
+    ):
+        sel = [r["verified"] for r in rows if keep(r)]
+        accepted = sum(x["accepted"] for x in sel)
+        out[name] = {
+            "pairs": len(sel),
+            "recall_mean": float(np.mean([x["recall"] for x in sel])),
+            "recall_lowest": float(np.min([x["recall"] for x in sel])),
+            "precision_lowest": float(np.min([x["precision"] for x in sel])),
+            "accepted": accepted,
+            "correct": sum(x["correct"] for x in sel),
+            "precision": sum(x["correct"] for x in sel) / accepted if accepted else 1.0,
+        }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    drive_arguments(ap, REPORTS / "service" / "verify-across.json")
+    ap.add_argument("--every", type=int, default=2, help="query every n-th scan of a drive")
+    ap.add_argument("--split", choices=("val", "test", "both"), default="both")
+    ap.add_argument(
+        "--no-view",
+        action="store_true",
+        help="score fitness over all the query's points, not only those inside the map "
+        "sensor's field of view (the service before it knew the two sensors apart)",
+    )
+    args = ap.parse_args()
+    console = Console(width=120)
+    t0 = time.perf_counter()
+    enc = Encoder(args.model)
+    served = served_settings(enc.meta)
+    v, rr = served.verify, served.rerank
+    record: dict[str, Any] = {
+        **model_record(args.model, enc),
+        "verify": v.model_dump(),
+        "rerank": {"shortlist": rr.shortlist, "weight": rr.weight},
+        "calibrated": sorted(enc.meta.calibration),
+        "every": args.every,
+        "field_of_view": not args.no_view,
+        "pose_ok": {"translation_m": 1.0, "yaw_deg": 2.0},
+    }
+    splits = ("val", "test") if args.split == "both" else (args.split,)
+    for split in splits:
+        towns = split_towns(split, args.data, args.scratch, args.frames)
+        drives = {key: Drive(enc, path, v, map=key[1] == 0) for key, path in towns.items()}
+        rows = []
+        for m, q in itertools.product(SENSORS, SENSORS):
+            view = None if args.no_view else view_of(m, q)
+            queries = pair_queries(
+                drives[(m, 0)],
+                drives[(q, 1)],
+                v.candidates,
+                v,
+                rr.weight,
+                rr.shortlist,
+                args.every,
+                view,
+            )
+            gate = v.gate_distance
+            got = score(queries, v.min_fitness, v.max_rmse_m, gate, stop_at_first=v.stop_at_first)
+            rows.append(
+                {
+                    "queries_sensor": q,
+                    "map_sensor": m,
+                    "queries": len(queries),
+                    "with_loop": sum(x["has_loop"] for x in queries),
+                    "verified": got,
+                }
+            )
+            console.print(
+                f"{split}: {q} queries against {m}'s map: precision {got['precision']:.3f}, "
+                f"recall {got['recall']:.3f} ({got['accepted']} accepted)",
+                highlight=False,
+            )
+        record[split] = {"pairs": rows, "summary": summary(rows)}
+        del drives
+    record["seconds"] = round(time.perf_counter() - t0, 1)
+    write_report(args.out, record)
+    console.print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
