@@ -138,7 +138,14 @@ def pair_queries(
                 truth = np.linalg.inv(db.poses[j]) @ q.poses[i]
                 c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
             cands.append(c)
-        out.append({"query": i, "has_loop": bool(within[i].any()), "candidates": cands})
+        out.append(
+            {
+                "query": i,
+                "has_loop": bool(within[i].any()),
+                "candidates": cands,
+                "group": f"{q.seq.name} against {db.seq.name}",
+            }
+        )
     return out
 
 
