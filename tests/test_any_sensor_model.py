@@ -113,7 +113,8 @@ async def test_a_map_by_one_sensor_recognises_another_sensors_scans(
     drive's scans (`?sensor=vlp16`) query it. The top answer lies within 5 m of the query for
     most queries that have a keyframe there (the shipped HDL-64E file's descriptor finds about
     half of these; `benchmarks/rerank_across.py` measures every sensor pair on the test town),
-    and every loop closure the service verifies carries the right relative pose (≤ 1 m, 2°)."""
+    most of them verify against the HDL-64E's keyframe geometry, and every loop closure the
+    service verifies carries the right relative pose (≤ 1 m, 2°)."""
     from overlapmamba.core.datasets import open_sequence
     from overlapmamba.core.poses import pose_error
     from overlapmamba.train.sessions import HIT_RADIUS
@@ -158,6 +159,6 @@ async def test_a_map_by_one_sensor_recognises_another_sensors_scans(
                     wrong.append((i, j, t_err, yaw_err))
     assert evaluated >= 50, evaluated
     assert hits / evaluated >= 0.8, (hits, evaluated)
-    # its verification thresholds were chosen on each sensor's own loops: across sensors
-    # fewer closures verify (about two in five here), and none of those may be wrong
-    assert verified >= evaluated // 4 and not wrong, (verified, evaluated, wrong)
+    # scored within the HDL-64E's field of view, most VLP-16 scans verify against its
+    # keyframes (about two in five did when every point of theirs was scored), none wrong
+    assert verified >= 0.8 * evaluated and not wrong, (verified, evaluated, wrong)
