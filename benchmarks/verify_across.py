@@ -40,10 +40,9 @@ from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from tqdm import tqdm
-from verify_threshold import score
+from verify_threshold import candidate, score
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.poses import pose_error
 from overlapmamba.core.rerank import by_score
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.yaw import estimate_yaw
@@ -125,19 +124,10 @@ def pair_queries(
             v,
             [view] * len(top),
         )
-        cands = []
-        for j, verdict in zip(top, verdicts, strict=True):
-            c: dict[str, Any] = {
-                "keyframe": int(j),
-                "distance": float(np.sqrt(d2[i, j])),
-                "loop": bool(within[i, j]),
-                "fitness": verdict.fitness,
-                "rmse": verdict.rmse,
-            }
-            if verdict.relative_pose is not None:
-                truth = np.linalg.inv(db.poses[j]) @ q.poses[i]
-                c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
-            cands.append(c)
+        cands = [
+            candidate(j, float(np.sqrt(d2[i, j])), within[i, j], verdict, db.poses[j], q.poses[i])
+            for j, verdict in zip(top, verdicts, strict=True)
+        ]
         out.append(
             {
                 "query": i,

@@ -104,19 +104,12 @@ def run_town(
         )
         ms.append((time.perf_counter() - t0) * 1e3)
         pos = set(positives[i].tolist())
-        cands = []
-        for j, verdict in zip(top, verdicts, strict=True):
-            c: dict[str, Any] = {
-                "keyframe": int(j),
-                "distance": float(np.sqrt(d2[i, j])),
-                "loop": int(j) in pos,
-                "fitness": verdict.fitness,
-                "rmse": verdict.rmse,
-            }
-            if verdict.relative_pose is not None:
-                T_gt = np.linalg.inv(seq.poses[j]) @ seq.poses[i]
-                c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, T_gt)
-            cands.append(c)
+        cands = [
+            candidate(
+                j, float(np.sqrt(d2[i, j])), int(j) in pos, verdict, seq.poses[j], seq.poses[i]
+            )
+            for j, verdict in zip(top, verdicts, strict=True)
+        ]
         queries.append(
             {"query": i, "has_loop": bool(len(pos)), "candidates": cands, "group": path.name}
         )
@@ -132,6 +125,25 @@ def run_town(
         "verify_ms": ms,
         "geometry_bytes": [len(b) for b in blobs if b is not None],
     }
+
+
+def candidate(
+    j: int, distance: float, loop: bool, verdict: Any, pose_kf: np.ndarray, pose_q: np.ndarray
+) -> dict[str, Any]:
+    """One registered candidate as :func:`score` reads it: keyframe ``j``, its descriptor
+    distance, whether it is a true loop, fitness, rmse, and its pose's errors against the
+    truth T = P_keyframe⁻¹ · P_query."""
+    c: dict[str, Any] = {
+        "keyframe": int(j),
+        "distance": distance,
+        "loop": bool(loop),
+        "fitness": verdict.fitness,
+        "rmse": verdict.rmse,
+    }
+    if verdict.relative_pose is not None:
+        truth = np.linalg.inv(pose_kf) @ pose_q
+        c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
+    return c
 
 
 POSE_OK = (1.0, 2.0)  # m, °: a closure whose pose is this close to the truth is correct
