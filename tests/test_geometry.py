@@ -130,7 +130,8 @@ def test_a_keyframe_by_a_narrower_sensor_is_scored_within_its_field_of_view(kitt
     whole = register(q, encode_geometry(kitti.points(12).xyz), 0.0, p)
     plain = register(q, narrow, 0.0, p)
     scoped = register(q, narrow, 0.0, p, view)
-    np.testing.assert_array_equal(plain.relative_pose, scoped.relative_pose)  # scored only
+    # the view scores a pose, it moves none (GICP's two threads sum in either order)
+    np.testing.assert_allclose(plain.relative_pose, scoped.relative_pose, atol=1e-9)
     err = np.linalg.inv(truth) @ scoped.relative_pose
     assert np.linalg.norm(err[:3, 3]) < 1.0 and abs(yaw_deg(err)) < 2.0, err  # a right pose
     assert plain.fitness < whole.fitness - 0.3, (plain.fitness, whole.fitness)
