@@ -128,18 +128,20 @@ VERIFY_ACROSS = "reports/service/verify-across-any-sensor.json"
 VERIFY_ACROSS_PLAIN = "reports/service/verify-across-any-sensor-no-view.json"
 
 
-def verify_across() -> str:
+def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACROSS_PLAIN) -> str:
     """Verified closures across sensors on the sensor test town, pair by pair: precision /
     recall at the file's thresholds, scored within the keyframe sensor's field of view (as
-    the service does), and over all the query's points where that run is there."""
+    the service does), and over all the query's points where that run (``plain_path``) is
+    there."""
     from figures_pairs import NAMES
 
-    r = load(VERIFY_ACROSS)
-    out = source(VERIFY_ACROSS, r["command"], when(r))
-    plain_path = ROOT / VERIFY_ACROSS_PLAIN
-    plain = load(VERIFY_ACROSS_PLAIN) if plain_path.is_file() else None
-    if plain is not None:
-        out += source(VERIFY_ACROSS_PLAIN, plain["command"], when(plain))
+    r = load(path)
+    out = source(path, r["command"], when(r))
+    plain = load(plain_path) if plain_path and (ROOT / plain_path).is_file() else None
+    if plain is not None and plain_path is not None:
+        if plain["model_id"] != r["model_id"]:
+            raise ValueError(f"{path} and {plain_path} measured different files")
+        out += source(plain_path, plain["command"], when(plain))
     v = r["verify"]
     out += (
         f"\nTest (the sensor test town), every {r['every']}nd query of each second drive "
@@ -185,4 +187,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
     "real-any-sensor": lambda: real_rows(OPTION_RUNS),
     "verify-across-any-sensor": lambda: verify_across(),
+    "verify-across": lambda: verify_across("reports/service/verify-across.json", None),
 }
