@@ -61,12 +61,12 @@ from overlapmamba.train.sessions import check_sessions, ground_truth
 
 class Drive:
     """One drive as the service holds it: descriptors, yaw features (float16, as a map keeps
-    them), each scan's keyframe geometry (``map``: a map drive's keyframes keep it), and
+    them), each scan's keyframe geometry (``keyframes``: a map drive's keep it), and
     world poses. A query's registration grid is prepared when it is asked (``prepared``):
     a drive's grids held at once take gigabytes."""
 
     def __init__(
-        self, enc: Encoder, path: Path, v: VerifySettings, *, map: bool, batch: int = 8
+        self, enc: Encoder, path: Path, v: VerifySettings, *, keyframes: bool, batch: int = 8
     ) -> None:
         seq = open_sequence(path)
         self.seq = seq
@@ -78,7 +78,7 @@ class Drive:
             d, y = enc.describe(pts, sensor, batch=len(pts))
             descs.append(d)
             yaws.append(np.asarray(y, dtype=np.float16))
-            if map:
+            if keyframes:
                 self.blobs += [
                     keyframe_geometry(prepare(p.xyz, self.params), self.params) for p in pts
                 ]
@@ -154,7 +154,7 @@ def val_pair_queries(
     """Every candidate of the calibration town's 25 pairs registered (no descriptor gate:
     ``verify_threshold.py --calibrate --across`` sweeps it), and the drives' names."""
     towns = split_towns("val", ROOT / "data" / "synth", ROOT / "data" / "common-beams", frames)
-    drives = {key: Drive(enc, path, v, map=key[1] == 0) for key, path in towns.items()}
+    drives = {key: Drive(enc, path, v, keyframes=key[1] == 0) for key, path in towns.items()}
     v = v.model_copy(update={"gate_distance": None})
     queries = []
     for m, q in itertools.product(SENSORS, SENSORS):
@@ -222,7 +222,7 @@ def main() -> None:
     splits = ("val", "test") if args.split == "both" else (args.split,)
     for split in splits:
         towns = split_towns(split, args.data, args.scratch, args.frames)
-        drives = {key: Drive(enc, path, v, map=key[1] == 0) for key, path in towns.items()}
+        drives = {key: Drive(enc, path, v, keyframes=key[1] == 0) for key, path in towns.items()}
         rows = []
         for m, q in itertools.product(SENSORS, SENSORS):
             view = None if args.no_view else view_of(m, q)

@@ -15,7 +15,7 @@ from urllib.parse import quote
 
 import httpx
 
-from overlapmamba.client._base import _m, _pose
+from overlapmamba.client._base import Timeouts, _m, _pose
 from overlapmamba.client._exceptions import (
     APIError,
     ClientError,
@@ -92,10 +92,10 @@ def send_timeout(seconds: float) -> TimeoutError:
     return TimeoutError(f"an observation could not be sent within {seconds:g} s (timeout.write)")
 
 
-def close_within(timeouts: Any) -> float:
+def close_within(timeouts: Timeouts) -> float:
     """How long closing a stream waits for the server's close frame: websockets' own 10 s,
     or less where ``timeout.write`` is shorter."""
-    return min(10.0, float(timeouts.write))
+    return min(10.0, timeouts.write)
 
 
 def check_window(window: int) -> int:
