@@ -22,11 +22,18 @@ test town is reported on only.
 
 ≈ 1 min an epoch on 2 cores (5,000 scans), ≈ 3 min with ``--test`` (25,000 scans): ≈ 32 min
 for a run of 11 epochs.
+
+A run continued in a copy of its folder (``overlapmamba train --out COPY --resume --epochs
+N``) shares its first epochs' checkpoints with the original: ``--reuse REPORT`` (that
+original's epoch-pairs report) takes the rows of those epochs from it instead of measuring
+them again, each only where the two folders' ``epoch-NNN.pt`` are the same bytes and the
+report measured every split asked for; the rest are measured.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import itertools
 import json
 import subprocess
@@ -66,6 +73,44 @@ def epoch_files(run: Path) -> dict[int, Path]:
     if not found:
         raise SystemExit(f"{run}: no epoch-NNN.pt checkpoints (a run's folder, as train writes)")
     return found
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def reusable_rows(
+    report: Path, files: dict[int, Path], splits: tuple[str, ...], frames: int = 500
+) -> dict[int, dict[str, Any]]:
+    """The rows of ``report`` (an epoch-pairs report of another run folder) that stand for
+    this run's epochs: those whose checkpoint in the report's run folder has the same bytes
+    as this run's and that measured every split in ``splits``. A report whose run folder is
+    gone is refused by name (nothing would show the checkpoints are the same), and so is one
+    measured on another number of scans a drive (reports before ``frames`` was recorded
+    used the default, 500)."""
+    r = json.loads(report.read_text())
+    if r.get("frames", 500) != frames:
+        raise SystemExit(
+            f"--reuse {report}: measured on {r.get('frames', 500)} scans a drive, this run on "
+            f"{frames} (--frames): its rows would not compare"
+        )
+    source = Path(r["run"])
+    source = source if source.is_absolute() else ROOT / source
+    if not source.is_dir():
+        raise SystemExit(f"--reuse {report}: its run folder {source} is not here to compare")
+    theirs = {int(p.stem.split("-")[1]): p for p in source.glob("epoch-[0-9][0-9][0-9].pt")}
+    rows = {}
+    for row in r["epochs"]:
+        epoch = row["epoch"]
+        if epoch not in files or epoch not in theirs or not all(s in row for s in splits):
+            continue
+        if _digest(files[epoch]) == _digest(theirs[epoch]):
+            rows[epoch] = {k: row[k] for k in ("epoch", "trainer_score", *splits)}
+    return rows
 
 
 def export(checkpoint: Path, out: Path) -> None:
@@ -129,6 +174,13 @@ def main() -> None:
     ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
     ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
     ap.add_argument("--out", type=Path, default=None, help="default reports/model/epoch-pairs-RUN")
+    ap.add_argument(
+        "--reuse",
+        type=Path,
+        default=None,
+        help="an epoch-pairs report of the run this one continues: its rows of the same "
+        "checkpoints are taken, not measured again",
+    )
     args = ap.parse_args()
     files = epoch_files(args.run)
     out = args.out or REPORTS / "model" / f"epoch-pairs-{args.run.name}.json"
@@ -137,8 +189,12 @@ def main() -> None:
     splits = ("val", "test") if args.test else ("val",)
     towns = {s: split_towns(s, args.data, args.scratch, args.frames) for s in splits}
     scores, trainer_best = trainer_scores(args.run)
+    reused = reusable_rows(args.reuse, files, splits, args.frames) if args.reuse else {}
     rows = []
     for epoch, ckpt in files.items():
+        if epoch in reused:
+            rows.append({**reused[epoch], "trainer_score": scores.get(epoch)})
+            continue
         onnx = args.scratch / "epochs" / f"{args.run.name}-{epoch:03d}.onnx"
         export(ckpt, onnx)
         row: dict[str, Any] = {"epoch": epoch, "trainer_score": scores.get(epoch)}
@@ -161,10 +217,13 @@ def main() -> None:
         "sensors": list(SENSORS),
         "chosen_by": "mean AR@1 of the descriptor over the 25 cal-x00 pairs",
         "radius_m": 5.0,
+        "frames": args.frames,
         "trainer_best": trainer_best,
         "chosen": chosen,
         "epochs": rows,
     }
+    if reused:
+        record["reused"] = {"report": shown_path(args.reuse), "epochs": sorted(reused)}
     if args.test:
         target = [r["test"]["across_mean_ar@1"] for r in rows]
         record["rank_correlation_with_test_across"] = {

@@ -31,6 +31,10 @@ BEV_CPU_REAL = {
         "bev-span-thin-cpu-s1-e9-real-kitti",
         "bev-span-thin-cpu-s1-e9-real-nuscenes",
     ),
+    "`bev-span-thin-cpu-more`, the pairs' pick (epoch 16)": (
+        "bev-span-thin-cpu-more-e16-real-kitti",
+        "bev-span-thin-cpu-more-e16-real-nuscenes",
+    ),
 }
 # the CPU run's pick across sensors on the test town, beside the GPU-trained bird's-eye files
 BEV_CPU_PAIRS = tuple(
@@ -39,6 +43,8 @@ BEV_CPU_PAIRS = tuple(
         "bev-span-thin-cpu",
         "bev-span-thin-cpu-e10",  # the calibration pairs' epoch (epoch_pairs.py)
         "bev-span-thin-cpu-e10-still",
+        "bev-span-thin-cpu-more-e16",  # the run continued to 16 epochs, its pairs' pick
+        "bev-span-thin-cpu-more-e16-still",
         "bev-span-thin-cpu-first",
         "bev-span-thin-cpu-still",
         "bev-span-thin-cpu-s1",
@@ -62,6 +68,9 @@ BEV_CPU_STILL = {  # each run's report → the across-pairs report of the file i
     ),
     "reports/model/yaw-spectrum-bev-span-thin-cpu-e10.json": (
         "reports/model/across-pairs-bev-span-thin-cpu-e10-still.json"
+    ),
+    "reports/model/yaw-spectrum-bev-span-thin-cpu-more-e16.json": (
+        "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
     ),
 }
 
@@ -223,7 +232,7 @@ def _pairs_summary(paths: tuple[str, ...]) -> str:
 # every epoch of a run measured across sensors: the calibration town's pairs, and test's
 EPOCH_PAIRS = tuple(
     f"reports/model/epoch-pairs-{n}.json"
-    for n in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1", "bev-span-cpu")
+    for n in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1", "bev-span-cpu", "bev-span-thin-cpu-more")
 )
 
 
@@ -273,6 +282,14 @@ def epoch_pairs() -> str:
                 "writes it) on the calibration town's pairs only (without `--test`: the two "
                 "picks are measured on the test town in the table of files across sensors "
                 "above):\n\n"
+            )
+        if "reused" in r:
+            first, last = r["reused"]["epochs"][0], r["reused"]["epochs"][-1]
+            said = said.replace(
+                ":\n\n",
+                f"; epochs {first} … {last} are the same checkpoints as the run it continues, "
+                f"their rows taken from `{r['reused']['report']}` (`--reuse`):\n\n",
+                1,
             )
         out += source(path, r["command"], when(r)) + said + table(head, rows)
     return out

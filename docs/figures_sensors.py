@@ -20,6 +20,18 @@ OPTION_RUNS = (
     ("the default file (HDL-64E, three views)", DEFAULT),
     ("every sensor, one view (the option)", "reports/model/sensors-any-sensor.json"),
 )
+# the every-sensor recipe's network at epoch 10 (the option's) and continued to epoch 16, each
+# with its first stage as chosen on cal-x00, as served with the service's defaults
+MORE_RUNS = (
+    (
+        "epoch 10 (`bev-span-thin-cpu-e10-still`)",
+        "reports/model/sensors-bev-span-thin-cpu-e10-still.json",
+    ),
+    (
+        "epoch 16 (`bev-span-thin-cpu-more-e16-still`)",
+        "reports/model/sensors-bev-span-thin-cpu-more-e16-still.json",
+    ),
+)
 
 
 def _fr(m: dict) -> str:
@@ -51,7 +63,7 @@ def sensors_table(runs: tuple[tuple[str, str], ...]) -> str:
     for t in common:
         for k, (label, _, _) in enumerate(loaded):
             x = towns[k][t]
-            v = x["verified"]
+            v = x.get("verified")
             rows.append(
                 [
                     f"{x['sensor']} ({x['mount']})" if k == 0 else "",
@@ -59,7 +71,7 @@ def sensors_table(runs: tuple[tuple[str, str], ...]) -> str:
                     _fr(x["descriptor"]),
                     _fr(x["two_stage"]),
                     _fr(x["scan_context"]) if k == 0 else "",
-                    f"{v['precision']:.3f} / {v['recall']:.3f}",
+                    f"{v['precision']:.3f} / {v['recall']:.3f}" if v else "not registered",
                 ]
             )
     head = ["sensor (mounting)", "file", "descriptor alone", "two stages (service)"]
@@ -185,6 +197,7 @@ def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACR
 RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-twins": lambda: sensors_table(TWIN_RUNS),
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
+    "sensors-more": lambda: sensors_table(MORE_RUNS),
     "real-any-sensor": lambda: real_rows(OPTION_RUNS),
     "verify-across-any-sensor": lambda: verify_across(),
     "verify-across": lambda: verify_across("reports/service/verify-across.json", None),

@@ -1,6 +1,7 @@
 """Choosing a run's epoch on the calibration town's pairs (benchmarks/epoch_pairs.py): the
 choice and its tie rule, the trainer's own scores read back as it chose by them, the rank
-correlation, and a folder without checkpoints refused by name."""
+correlation, a folder without checkpoints refused by name, and a continued run's first epochs
+taken from its original's report only where the checkpoints are the same bytes."""
 
 from __future__ import annotations
 
@@ -69,3 +70,46 @@ def test_epoch_checkpoints_are_found_by_number_and_a_folder_without_them_is_refu
     empty.mkdir()
     with pytest.raises(SystemExit, match="no epoch-NNN.pt"):
         bench.epoch_files(empty)
+
+
+def _run_folder(path: Path, checkpoints: dict[int, bytes]) -> dict[int, Path]:
+    path.mkdir()
+    for epoch, data in checkpoints.items():
+        (path / f"epoch-{epoch:03d}.pt").write_bytes(data)
+    return bench.epoch_files(path)
+
+
+def test_a_continued_runs_rows_are_reused_only_for_the_same_checkpoints_and_splits(tmp_path):
+    _run_folder(tmp_path / "first", {0: b"a", 1: b"b", 2: b"c"})
+    more = _run_folder(tmp_path / "more", {0: b"a", 1: b"B", 2: b"c", 3: b"d"})
+
+    def measured(epoch: int, splits: tuple[str, ...]) -> dict:
+        return {"epoch": epoch, "trainer_score": 0.5, **{s: {"mean_ar@1": 0.1} for s in splits}}
+
+    report = tmp_path / "epoch-pairs-first.json"
+    rows = [measured(0, ("val", "test")), measured(1, ("val", "test")), measured(2, ("val",))]
+    report.write_text(json.dumps({"run": str(tmp_path / "first"), "epochs": rows}))
+    # epoch 1 differs in bytes, epoch 2 lacks test, epoch 3 was never in the report
+    assert list(bench.reusable_rows(report, more, ("val", "test"))) == [0]
+    assert list(bench.reusable_rows(report, more, ("val",))) == [0, 2]
+    assert set(bench.reusable_rows(report, more, ("val",))[0]) == {"epoch", "trainer_score", "val"}
+
+
+def test_reuse_of_a_report_whose_run_folder_is_gone_is_refused(tmp_path):
+    more = _run_folder(tmp_path / "more", {0: b"a"})
+    report = tmp_path / "epoch-pairs-gone.json"
+    report.write_text(json.dumps({"run": str(tmp_path / "gone"), "epochs": []}))
+    with pytest.raises(SystemExit, match="not here to compare"):
+        bench.reusable_rows(report, more, ("val",))
+
+
+def test_reuse_of_a_report_measured_on_other_drives_lengths_is_refused(tmp_path):
+    _run_folder(tmp_path / "first", {0: b"a"})
+    more = _run_folder(tmp_path / "more", {0: b"a"})
+    report = tmp_path / "epoch-pairs-first.json"
+    rows = [{"epoch": 0, "trainer_score": 0.5, "val": {"mean_ar@1": 0.1}}]
+    record = {"run": str(tmp_path / "first"), "frames": 300, "epochs": rows}
+    report.write_text(json.dumps(record))
+    with pytest.raises(SystemExit, match="300 scans a drive"):
+        bench.reusable_rows(report, more, ("val",), frames=500)
+    assert list(bench.reusable_rows(report, more, ("val",), frames=300)) == [0]
