@@ -45,6 +45,8 @@ BEV_CPU_PAIRS = tuple(
         "bev-span-thin-cpu-e10-still",
         "bev-span-thin-cpu-more-e16",  # the run continued to 16 epochs, its pairs' pick
         "bev-span-thin-cpu-more-e16-still",
+        "bev-span-thin-cpu-s1-more-e14",  # the second seed continued to 16 epochs, its pick
+        "bev-span-thin-cpu-s1-more-e14-still",
         "bev-span-thin-cpu-first",
         "bev-span-thin-cpu-still",
         "bev-span-thin-cpu-s1",
@@ -71,6 +73,9 @@ BEV_CPU_STILL = {  # each run's report → the across-pairs report of the file i
     ),
     "reports/model/yaw-spectrum-bev-span-thin-cpu-more-e16.json": (
         "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
+    ),
+    "reports/model/yaw-spectrum-bev-span-thin-cpu-s1-more-e14.json": (
+        "reports/model/across-pairs-bev-span-thin-cpu-s1-more-e14-still.json"
     ),
 }
 
@@ -232,7 +237,13 @@ def _pairs_summary(paths: tuple[str, ...]) -> str:
 # every epoch of a run measured across sensors: the calibration town's pairs, and test's
 EPOCH_PAIRS = tuple(
     f"reports/model/epoch-pairs-{n}.json"
-    for n in ("bev-span-thin-cpu", "bev-span-thin-cpu-s1", "bev-span-cpu", "bev-span-thin-cpu-more")
+    for n in (
+        "bev-span-thin-cpu",
+        "bev-span-thin-cpu-s1",
+        "bev-span-cpu",
+        "bev-span-thin-cpu-more",
+        "bev-span-thin-cpu-s1-more",
+    )
 )
 
 
