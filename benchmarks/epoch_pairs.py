@@ -83,8 +83,11 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
+FRAMES = 500  # scans a val drive, the default (reports before it was recorded used it)
+
+
 def reusable_rows(
-    report: Path, files: dict[int, Path], splits: tuple[str, ...], frames: int = 500
+    report: Path, files: dict[int, Path], splits: tuple[str, ...], frames: int = FRAMES
 ) -> dict[int, dict[str, Any]]:
     """The rows of ``report`` (an epoch-pairs report of another run folder) that stand for
     this run's epochs: those whose checkpoint in the report's run folder has the same bytes
@@ -93,9 +96,10 @@ def reusable_rows(
     measured on another number of scans a drive (reports before ``frames`` was recorded
     used the default, 500)."""
     r = json.loads(report.read_text())
-    if r.get("frames", 500) != frames:
+    theirs_frames = r.get("frames", FRAMES)
+    if theirs_frames != frames:
         raise SystemExit(
-            f"--reuse {report}: measured on {r.get('frames', 500)} scans a drive, this run on "
+            f"--reuse {report}: measured on {theirs_frames} scans a drive, this run on "
             f"{frames} (--frames): its rows would not compare"
         )
     source = Path(r["run"])
@@ -172,7 +176,7 @@ def main() -> None:
     ap.add_argument("--test", action="store_true", help="also measure every epoch on test")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "synth")
     ap.add_argument("--scratch", type=Path, default=ROOT / "data" / "common-beams")
-    ap.add_argument("--frames", type=int, default=500, help="scans a val drive")
+    ap.add_argument("--frames", type=int, default=FRAMES, help="scans a val drive")
     ap.add_argument("--out", type=Path, default=None, help="default reports/model/epoch-pairs-RUN")
     ap.add_argument(
         "--reuse",

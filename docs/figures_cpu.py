@@ -277,6 +277,13 @@ def epoch_pairs() -> str:
         head = ["epoch", "trainer's score (`val` F1max, renderings' mean)"]
         head += ["cal-x00 AR@1: 25 pairs; across"]
         name = r["run"].split("/")[-1]
+        reused = (  # a continued run's first epochs, taken from its original's report
+            f"; epochs {r['reused']['epochs'][0]} … {r['reused']['epochs'][-1]} are the same "
+            "checkpoints as the run it continues, their rows taken from "
+            f"`{r['reused']['report']}` (`--reuse`)"
+            if "reused" in r
+            else ""
+        )
         if tested:
             rho = r["rank_correlation_with_test_across"]
             head += ["test AR@1: 25 pairs; across mean / lowest"]
@@ -285,22 +292,14 @@ def epoch_pairs() -> str:
                 "writes it) on the calibration town's pairs and on the test town's. Over its "
                 f"{len(rows)} epochs Spearman's rank correlation with the test town's mean AR@1 "
                 f"across sensors is {rho['trainer_score']:.2f} for the trainer's score and "
-                f"{rho['pairs_mean_ar@1']:.2f} for the calibration pairs' mean:\n\n"
+                f"{rho['pairs_mean_ar@1']:.2f} for the calibration pairs' mean{reused}:\n\n"
             )
         else:
             said = (
                 f"\n`{name}`, every epoch's descriptor (one view, as `overlapmamba export` "
                 "writes it) on the calibration town's pairs only (without `--test`: the two "
                 "picks are measured on the test town in the table of files across sensors "
-                "above):\n\n"
-            )
-        if "reused" in r:
-            first, last = r["reused"]["epochs"][0], r["reused"]["epochs"][-1]
-            said = said.replace(
-                ":\n\n",
-                f"; epochs {first} … {last} are the same checkpoints as the run it continues, "
-                f"their rows taken from `{r['reused']['report']}` (`--reuse`):\n\n",
-                1,
+                f"above){reused}:\n\n"
             )
         out += source(path, r["command"], when(r)) + said + table(head, rows)
     return out
