@@ -115,7 +115,7 @@ RERANK_OTHERS = ("reports/model/rerank-across-bev-long.json",)
 # the every-sensor option's calibration (models/overlapmamba-any-sensor.onnx), and Scan Context
 # on the same test drives from its weights' across-pairs run (the same model id)
 RERANK_ANY = "reports/model/rerank-across-any-sensor.json"
-RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-e10-still.json"
+RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
 
 
 def _setting(r: dict[str, Any]) -> str:

@@ -20,8 +20,9 @@ OPTION_RUNS = (
     ("the default file (HDL-64E, three views)", DEFAULT),
     ("every sensor, one view (the option)", "reports/model/sensors-any-sensor.json"),
 )
-# the every-sensor recipe's network at epoch 10 (the option's) and continued to epoch 16, each
-# with its first stage as chosen on cal-x00, as served with the service's defaults
+# the every-sensor recipe's network at epoch 10 (the option's first file) and continued to
+# epoch 16 (the option's now), each with its first stage as chosen on cal-x00, as served with
+# the service's defaults
 MORE_RUNS = (
     (
         "epoch 10 (`bev-span-thin-cpu-e10-still`)",
@@ -194,6 +195,40 @@ def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACR
     return out + "\n" + table(head, rows)
 
 
+TURN_FLOOR = "reports/model/turn-floor-any-sensor.json"
+
+
+def turn_floor(path: str = TURN_FLOOR) -> str:
+    """Each file's lowest cosine under random continuous turns of every real scan, over many
+    draws (``benchmarks/turn_floor.py``): the lowest of all, the median draw's, and how many
+    draws fell below the issue's bar."""
+    r = load(path)
+    out = source(path, r["command"], when(r))
+    sets = list(r["models"][0]["sets"])
+    out += (
+        f"\nThe lowest cosine between a real scan's descriptor and its turned copy's, as the "
+        f"service describes them (each file's own views, input and first stage), every scan "
+        f"of each set, {r['seeds']} draws of random continuous turns: the lowest over all "
+        f"draws / the median draw's lowest, and how many draws fell below the issue's bar "
+        f"({r['bar']}):\n\n"
+    )
+    rows = []
+    for m in r["models"]:
+        cells = [f"`{m['model']}` (`{m['model_id']}`, {m['views']} view{'s' * (m['views'] > 1)})"]
+        for name in sets:
+            x = m["sets"][name]
+            if "skipped" in x:
+                cells.append("not measured")
+                continue
+            cells.append(
+                f"{x['cosine_min']:.5f} / {x['cosine_min_median']:.5f}; "
+                f"{x['draws_below_bar']} of {len(x['cosine_min_per_seed'])}"
+            )
+        rows.append(cells)
+    head = ["file", *(f"{n} ({r['models'][0]['sets'][n].get('scans', '?')} scans)" for n in sets)]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-twins": lambda: sensors_table(TWIN_RUNS),
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
@@ -201,4 +236,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "real-any-sensor": lambda: real_rows(OPTION_RUNS),
     "verify-across-any-sensor": lambda: verify_across(),
     "verify-across": lambda: verify_across("reports/service/verify-across.json", None),
+    "turn-floor-any-sensor": lambda: turn_floor(),
 }
