@@ -33,7 +33,8 @@ def test_each_draw_is_the_lowest_cosine_of_that_seeds_turns_as_served(enc):
     declared = kit.served_input(enc, "vlp16")
     plain, _ = enc.describe(clouds, declared)
     theta = turns(len(clouds), 2)
-    turned, _ = enc.describe([turned_points(c, t) for c, t in zip(clouds, theta)], declared)
+    turned_clouds = [turned_points(c, t) for c, t in zip(clouds, theta, strict=True)]
+    turned, _ = enc.describe(turned_clouds, declared)
     want = float((plain * turned).sum(1).min())
     assert mins[2] == pytest.approx(want, abs=1e-6)
     # a one-pass bird's-eye file is nearly, not exactly, still under continuous turns
