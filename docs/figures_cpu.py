@@ -253,6 +253,7 @@ EPOCH_PAIRS = tuple(
         "bev-span-cpu",
         "bev-span-thin-cpu-more",
         "bev-span-thin-cpu-s1-more",
+        "bev-span-thin-cpu-more24",
     )
 )
 
