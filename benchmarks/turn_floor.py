@@ -21,14 +21,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import MODEL, REPORTS, ROOT, model_record, served_input, write_report
+from bench_kit import MODEL, REPORTS, model_record, served_input, write_report
+from views import REAL  # the real sets every turn benchmark reads: name → folder
 
-SHARED = ROOT.parent / "shared" / "data"
-# each real set and the sensor its scans are declared as (the service's ?sensor=)
-REAL = {
-    "kitti00": (SHARED / "kitti00_0000-0100", "kitti-hdl64"),
-    "nuscenes-hdl32": (SHARED / "nuscenes_scene0061", "hdl32"),
-}
+# the sensor each real set's scans are declared as (the service's ?sensor=)
+DECLARED = {"kitti00": "kitti-hdl64", "nuscenes-hdl32": "hdl32"}
 BAR = 0.999  # issue 40: minimum cosine under random continuous yaw, one pass a scan
 
 
@@ -48,18 +45,31 @@ def draw_minima(enc: Any, clouds: list[np.ndarray], sensor: str, seeds: int) -> 
     return out
 
 
-def measure(path: Path, seeds: int) -> dict[str, Any]:
+def real_clouds() -> dict[str, list[np.ndarray] | str]:
+    """Every scan of each real set, read once for all the files measured (a missing set:
+    why, instead of its scans)."""
     from overlapmamba.core.datasets import open_sequence
+
+    out: dict[str, list[np.ndarray] | str] = {}
+    for name, folder in REAL.items():
+        if not folder.is_dir():
+            out[name] = f"{folder} is missing"
+            continue
+        seq = open_sequence(folder)
+        out[name] = [seq.points(i).xyz for i in range(len(seq))]
+    return out
+
+
+def measure(path: Path, real: dict[str, list[np.ndarray] | str], seeds: int) -> dict[str, Any]:
     from overlapmamba.service.encoder import Encoder
 
     enc = Encoder(path, intra_op_threads=2)
     sets: dict[str, Any] = {}
-    for name, (folder, sensor) in REAL.items():
-        if not folder.is_dir():
-            sets[name] = {"skipped": f"{folder} is missing"}
+    for name, clouds in real.items():
+        if isinstance(clouds, str):
+            sets[name] = {"skipped": clouds}
             continue
-        seq = open_sequence(folder)
-        clouds = [seq.points(i).xyz for i in range(len(seq))]
+        sensor = DECLARED[name]
         mins = draw_minima(enc, clouds, sensor, seeds)
         sets[name] = {
             "scans": len(clouds),
@@ -89,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     for m in models:
         if not m.is_file():
             ap.error(f"--model {m}: no such file")
-    rows = [measure(m, args.seeds) for m in models]
+    real = real_clouds()
+    rows = [measure(m, real, args.seeds) for m in models]
     write_report(args.out, {"bar": BAR, "seeds": args.seeds, "models": rows})
     print(f"wrote {args.out}")
     return 0

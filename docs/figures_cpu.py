@@ -316,7 +316,7 @@ def epoch_pairs() -> str:
     return out
 
 
-def _val_only(path: str, name: str = "mixed:0.5:8:none", who: str = "the option's") -> str:
+def _val_only(path: str, name: str, who: str) -> str:
     """One variant of a yaw-spectrum report on the calibration town only (no test row)."""
     x = {r["first"]: r for r in load(path)["val"]["rows"]}[name]
     return (
@@ -332,5 +332,8 @@ STILL_DRAWS = "reports/model/yaw-spectrum-bev-span-thin-cpu-more-e16-draws20.jso
 RENDERERS = {
     "bev-cpu": bev_cpu,
     "epoch-pairs": epoch_pairs,
-    "spectrum-draws": lambda: _still_choice(STILL_DRAWS, None) + _val_only(STILL_DRAWS),
+    "spectrum-draws": lambda: (
+        _still_choice(STILL_DRAWS, None)
+        + _val_only(STILL_DRAWS, "mixed:0.5:8:none", "the option's")
+    ),
 }
