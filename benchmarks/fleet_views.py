@@ -26,7 +26,11 @@ observation), the ``ceiling`` column.
 ``--model NAME`` (repeated) runs those models instead, e.g. the shipped file against the
 every-sensor option (``models/overlapmamba-any-sensor.onnx``, one pass a scan, calibrated
 on the validation towns of every sensor): ``--model "descriptors (shipped)" --model "every
-sensor (the option)" --out reports/client/fleet-any-sensor.json``.
+sensor (the option)" --out reports/client/fleet-any-sensor.json``; or the shipped file under
+the service's settings before encoder lanes and one-thread registration, and each change
+alone: ``--model "descriptors (shipped)" --model "descriptors (shipped), settings before
+lanes" --model "descriptors (shipped), one lane" --model "descriptors (shipped), GICP on 2
+threads" --out reports/client/fleet-lanes.json``.
 
 Writes JSON (default reports/client/fleet-views.json).
 """
@@ -63,9 +67,17 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
         {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},
     ),
     "every sensor (the option)": (ROOT / "models" / "overlapmamba-any-sensor.onnx", {}),
+    # the service's threads as they were before encoder lanes (batching.lanes) and one-thread
+    # registration (verify.threads) became the defaults, and each change alone
+    "descriptors (shipped), settings before lanes": (
+        SHIPPED,
+        {"OVERLAPMAMBA_BATCHING__LANES": "1", "OVERLAPMAMBA_VERIFY__THREADS": "2"},
+    ),
+    "descriptors (shipped), one lane": (SHIPPED, {"OVERLAPMAMBA_BATCHING__LANES": "1"}),
+    "descriptors (shipped), GICP on 2 threads": (SHIPPED, {"OVERLAPMAMBA_VERIFY__THREADS": "2"}),
 }
 # the models a plain run compares (--model picks others)
-DEFAULT_MODELS = tuple(k for k in MODELS if k != "every sensor (the option)")
+DEFAULT_MODELS = tuple(list(MODELS)[:4])
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
 KEPT += ("verified_closures", "loop_closures")

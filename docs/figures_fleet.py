@@ -307,6 +307,7 @@ def fleet() -> str:
 
 FLEET_VIEWS = "reports/client/fleet-views.json"
 FLEET_ANY_SENSOR = "reports/client/fleet-any-sensor.json"  # the shipped file and the option
+FLEET_LANES = "reports/client/fleet-lanes.json"  # the service's threads, before and now
 
 
 def fleet_views(path: str = FLEET_VIEWS) -> str:
@@ -434,5 +435,6 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "fleet": fleet,
     "fleet-views": fleet_views,
     "fleet-any-sensor": lambda: fleet_views(FLEET_ANY_SENSOR),
+    "fleet-lanes": lambda: fleet_views(FLEET_LANES),
     "e2e": e2e,
 }

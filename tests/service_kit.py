@@ -70,9 +70,9 @@ def server(
 ) -> Iterator[tuple[str, subprocess.Popen]]:
     """A real `overlapmamba serve` process of ``model`` (default: the shipped file) on a free
     loopback port, ready when yielded (:func:`overlapmamba.service.process.serve_process`);
-    its log: ``server_log(proc)``."""
-    env = {"OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2", **(env or {})}
-    with serve_process(data_dir, model=model, env=env, cwd=ROOT) as srv:
+    its log: ``server_log(proc)``. It encodes as the defaults say (a lane a core) unless
+    ``env`` says otherwise."""
+    with serve_process(data_dir, model=model, env=env or {}, cwd=ROOT) as srv:
         srv.proc.log_path = srv.log_path  # type: ignore[attr-defined]
         yield srv.url, srv.proc
 

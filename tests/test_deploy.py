@@ -171,7 +171,6 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
             **{k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")},
             "OVERLAPMAMBA_MODEL": str(MODEL),
             "OVERLAPMAMBA_DATA_DIR": str(tmp_path / "data"),
-            "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "2",
         },
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

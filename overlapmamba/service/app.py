@@ -41,7 +41,7 @@ from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.places import PlaceService
 from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn
 from overlapmamba.service.settings import Settings
-from overlapmamba.service.threads import in_thread
+from overlapmamba.service.threads import encoder_threads, in_thread
 
 log = logging.getLogger("overlapmamba.service")
 access = logging.getLogger("overlapmamba.access")
@@ -229,7 +229,9 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             app.state.stage = "loading model"
             enc = encoder
             if enc is None:
-                threads = settings.batching.intra_op_threads
+                _, threads = encoder_threads(
+                    settings.batching.lanes, settings.batching.intra_op_threads
+                )
                 kernel = settings.scan_kernel
                 enc = await in_thread(
                     lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
@@ -244,6 +246,9 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 enc.path,
                 enc.scan_path,
             )
+            b = settings.batching
+            lanes, _ = encoder_threads(b.lanes, b.intra_op_threads)
+            log.info("encoder: %d lane(s), %d onnxruntime thread(s) each", lanes, enc.threads)
             # The model's own calibration, unless a setting overrides
             # (overlapmamba.service.calibration).
             serving, thresholds = resolve(settings, enc.meta)

@@ -1,12 +1,20 @@
 """Dynamic micro-batching of encoder calls, as Triton's dynamic batcher does.
 
-Requests put one range image each on a bounded queue and await a future. One worker takes
+Requests put one range image each on a bounded queue and await a future. A worker takes
 the first waiting image and everything queued behind it, up to ``max_batch``; it waits (at
 most ``max_wait_ms``) for more only while scans are on their way — announced by the caller
 with :meth:`MicroBatcher.incoming` while it decodes and projects them — so a lone scan is
 encoded at once instead of waiting for company that is not coming. The batch runs in a
 worker thread, off the event loop; while it encodes, the next one fills, so under load
 batches grow without any added wait.
+
+**Lanes.** ``lanes`` workers take batches from the one queue, each encoding in its own
+thread, concurrently (an onnxruntime session and the scan kernel serve concurrent calls).
+With as many lanes as cores and one onnxruntime thread each (the defaults), every core
+encodes scans of its own instead of splitting each call's operators across the cores, which
+on these small inputs spends CPU handing work between threads: on 2 cores a fleet got more
+observations a second from the same CPU (``python benchmarks/fleet_views.py``, the shipped
+file against one lane: ``reports/client/fleet-lanes.json``).
 
 A full queue answers at once with :class:`~overlapmamba.service.errors.Overloaded` (503 +
 Retry-After): queueing more work than can finish within a request timeout only turns 503s into 504s.
@@ -43,8 +51,11 @@ class MicroBatcher:
         max_batch: int = 8,
         max_wait_ms: float = 2.0,
         queue_size: int = 64,
+        lanes: int = 1,
         on_batch: Callable[[int, float], None] | None = None,
     ) -> None:
+        if lanes < 1:
+            raise ValueError(f"lanes must be at least 1; got {lanes}")
         self._encode = encode
         self.max_batch = max_batch
         self.max_wait_s = max_wait_ms / 1000.0
@@ -52,22 +63,27 @@ class MicroBatcher:
         self._on_batch = on_batch
         self._queue: asyncio.Queue[_Item] | None = None
         self._coming = 0  # scans announced by incoming() and not yet queued
-        self._worker: asyncio.Task[None] | None = None
-        self._batch: list[_Item] = []  # the batch being encoded
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="encoder")
+        self.lanes = lanes
+        self._workers: list[asyncio.Task[None]] = []
+        self._batches: list[list[_Item]] = [[] for _ in range(lanes)]  # each lane's, encoding
+        self._pool = ThreadPoolExecutor(max_workers=lanes, thread_name_prefix="encoder")
 
     async def start(self) -> None:
         self._queue = asyncio.Queue(maxsize=self.queue_size)
-        self._worker = asyncio.create_task(self._run(), name="micro-batcher")
+        self._workers = [
+            asyncio.create_task(self._run(lane), name=f"micro-batcher-{lane}")
+            for lane in range(self.lanes)
+        ]
 
     async def stop(self) -> None:
-        """Stop the worker; every scan still waiting, or in the batch cut off, is answered
+        """Stop the workers; every scan still waiting, or in a batch cut off, is answered
         Unavailable at once rather than left to its caller's timeout."""
-        if self._worker is not None:
-            self._worker.cancel()
+        for worker in self._workers:
+            worker.cancel()
+        for worker in self._workers:
             with contextlib.suppress(asyncio.CancelledError):
-                await self._worker
-        left = list(self._batch)
+                await worker
+        left = [item for batch in self._batches for item in batch]
         while self._queue is not None and not self._queue.empty():
             left.append(self._queue.get_nowait())
         for item in left:
@@ -112,7 +128,7 @@ class MicroBatcher:
         except TimeoutError:
             raise Timeout(f"encoding did not finish within {timeout_s} s") from None
 
-    async def _run(self) -> None:
+    async def _run(self, lane: int) -> None:
         assert self._queue is not None
         loop = asyncio.get_running_loop()
         while True:
@@ -131,14 +147,14 @@ class MicroBatcher:
                     batch.append(await asyncio.wait_for(self._queue.get(), left))
                 except TimeoutError:
                     break
-            self._batch = batch
+            self._batches[lane] = batch
             try:
                 await self._encode_batch(batch)
             except Exception as err:  # a failing batch fails its callers, not the worker
                 for item in batch:
                     if not item.future.done():
                         item.future.set_exception(err)
-            self._batch = []
+            self._batches[lane] = []
 
     async def _encode_batch(self, batch: list[_Item]) -> None:
         loop = asyncio.get_running_loop()

@@ -77,6 +77,7 @@ class Encoder:
             raise ModelLoadError(f"model file {path} does not exist")
         opts = ort.SessionOptions()
         threads = intra_op_threads or (os.cpu_count() or 1)
+        self.threads = threads  # onnxruntime's (and the scan kernel's) a call
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         t0 = time.perf_counter()

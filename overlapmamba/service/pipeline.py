@@ -34,7 +34,7 @@ from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import BadRequest
 from overlapmamba.service.scans import ScanBody, decode_scan
 from overlapmamba.service.settings import BatchSettings, LimitSettings
-from overlapmamba.service.threads import in_thread
+from overlapmamba.service.threads import encoder_threads, in_thread
 from overlapmamba.service.verify import Prepared, RegistrationParams, prepare
 
 
@@ -81,6 +81,7 @@ class ScanPipeline:
             max_batch=batching.max_batch,
             max_wait_ms=batching.max_wait_ms,
             queue_size=batching.queue_size,
+            lanes=encoder_threads(batching.lanes, batching.intra_op_threads)[0],
             on_batch=on_batch,
         )
 

@@ -84,7 +84,16 @@ class BatchSettings(_Section):
         description="how long a batch waits to fill while other scans are still being decoded",
     )
     queue_size: int = Field(64, ge=1, description="scans waiting to encode; beyond: 503")
-    intra_op_threads: int = Field(0, ge=0, description="onnxruntime threads (0: all cores)")
+    lanes: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description="encoder calls running at once, each on its own thread (0: one a core; "
+        "overlapmamba.service.batcher)",
+    )
+    intra_op_threads: int = Field(
+        0, ge=0, description="onnxruntime threads a call (0: the cores shared among the lanes)"
+    )
 
 
 class IndexSettings(_Section):
@@ -258,6 +267,13 @@ class VerifySettings(_RenamedSection):
         description="grid of the geometry kept per keyframe and of the query's registration",
     )
     max_iterations: int = Field(30, ge=1, le=200, description="GICP stops here (bounded time)")
+    threads: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="GICP's threads a registration (OpenMP). 1: under load the other cores "
+        "are encoding, and a registration on more threads waits for them (docs/deploy.md, sizing)",
+    )
 
 
 class SensorSettings(_Section):

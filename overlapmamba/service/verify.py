@@ -41,12 +41,19 @@ query (``thinned``: −45 % of its time at the same pose error) on 2 threads (�
 and stops at 5 mm / 0.2° steps (an iteration less than small_gicp's defaults, the same
 error). The seed's FFT is single precision, 90 cells a side: the smallest free of
 wrap-around within ``max_shift``.
+
+**One thread under load.** GICP on 2 threads is the faster alone, but the service registers
+while its other cores encode: an OpenMP region then waits for a thread the encoder holds,
+and small_gicp keeps Python's lock while it waits, which stalls the event loop and every
+other request's Python work. So the service registers on one thread (``verify.threads``);
+with encoder lanes a fleet's observations a second rose with it on 2 cores (``python
+benchmarks/fleet_views.py``, the shipped file against GICP on 2 threads:
+``reports/client/fleet-lanes.json``).
 """
 
 from __future__ import annotations
 
 import functools
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -73,7 +80,7 @@ class RegistrationParams:
     rotation_eps_deg: float = 0.2
     radius: float = 1.0  # m: fitness counts query points with a neighbour this close
     min_points: int = 50  # grid points each side needs
-    threads: int = 2  # GICP's (OpenMP); preparing a side, which runs beside the encoder, uses 1
+    threads: int = 1  # GICP's (OpenMP; the service's verify.threads); preparing a side uses 1
     ground_stride: int = 3  # GICP's source: every steep grid point, every 3rd of the others
     bev_cell: float = 2.0  # m: the bird's-eye grids that seed the translation
     max_shift: float = 40.0  # m: the farthest translation the seed looks for
@@ -279,13 +286,12 @@ class Verdict:
 
 
 def params_of(v: VerifySettings) -> RegistrationParams:
-    """The service's registration: its settings, GICP on 2 threads where 2 cores are ours."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    """The service's registration, from its settings (``verify.*``)."""
     return RegistrationParams(
         voxel=v.voxel_m,
         radius=v.radius_m,
         max_iterations=v.max_iterations,
-        threads=min(2, cores or 1),
+        threads=v.threads,
     )
 
 

@@ -59,6 +59,8 @@ async def readyz(request: Request) -> Response:
                 "model_id": svc.model_id,
                 "views": svc.encoder.views,
                 "scan": svc.encoder.scan_path,
+                "lanes": svc.pipeline.batcher.lanes,  # encoder calls at once
+                "threads_per_lane": svc.encoder.threads,
                 "sensor": svc.sensors.model_sensor.name,
                 "sensor_maps": {
                     name: {"how": m.how, "pairs": m.pairs, "data": m.data, "at": m.at}

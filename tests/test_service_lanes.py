@@ -1,0 +1,128 @@
+"""Encoder lanes (overlapmamba.service.batcher) and the threads the service's encoder and
+registration run on (overlapmamba.service.threads, verify.threads)."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from overlapmamba.service.batcher import MicroBatcher
+from overlapmamba.service.errors import Unavailable
+from overlapmamba.service.settings import Settings, VerifySettings
+from overlapmamba.service.verify import params_of
+
+
+def _encode(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    time.sleep(0.01)
+    b = images.shape[0]
+    return images.reshape(b, -1)[:, :4].copy(), images[:, 0, :2].copy()
+
+
+def test_batcher_lanes_encode_at_once():
+    """Two lanes run two encoder calls at the same time (each waits for the other at a
+    barrier); one lane runs them one after the other, and the barrier breaks."""
+
+    def run(lanes: int) -> list[BaseException | tuple[np.ndarray, np.ndarray]]:
+        barrier = threading.Barrier(2, timeout=1.0)
+
+        def meet(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            barrier.wait()
+            return _encode(images, offsets)
+
+        async def main() -> list[BaseException | tuple[np.ndarray, np.ndarray]]:
+            mb = MicroBatcher(meet, max_batch=1, max_wait_ms=0, lanes=lanes)
+            await mb.start()
+            images = [np.full((1, 2, 3), i, np.float32) for i in range(2)]
+            got = await asyncio.gather(*(mb.encode(x) for x in images), return_exceptions=True)
+            await mb.stop()
+            return got
+
+        return asyncio.run(main())
+
+    both = run(2)
+    assert [int(r[0][0]) for r in both if isinstance(r, tuple)] == [0, 1], both
+    alone = run(1)
+    assert any(isinstance(r, threading.BrokenBarrierError) for r in alone), alone
+    with pytest.raises(ValueError, match="lanes"):
+        MicroBatcher(_encode, lanes=0)
+
+
+def test_stopping_the_batcher_answers_every_lanes_batch():
+    """At shutdown each lane's batch under way is answered Unavailable, as one lane's is."""
+    release = threading.Event()
+
+    def slow(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        release.wait(5)
+        return _encode(images, offsets)
+
+    async def main() -> list[BaseException | tuple[np.ndarray, np.ndarray]]:
+        mb = MicroBatcher(slow, max_batch=1, max_wait_ms=1, lanes=2)
+        await mb.start()
+        image = np.zeros((1, 2, 3), np.float32)
+        calls = [asyncio.create_task(mb.encode(image, timeout_s=30)) for _ in range(3)]
+        await asyncio.sleep(0.1)  # a batch under way in each lane, one scan queued
+        stopping = asyncio.create_task(mb.stop())
+        await asyncio.sleep(0.1)
+        release.set()
+        await asyncio.wait_for(stopping, 10)
+        return await asyncio.wait_for(asyncio.gather(*calls, return_exceptions=True), 5)
+
+    answers = asyncio.run(main())
+    assert all(isinstance(a, Unavailable) for a in answers), answers
+
+
+def test_encoder_lanes_and_threads_share_the_cores(monkeypatch: pytest.MonkeyPatch):
+    from overlapmamba.service import threads
+
+    monkeypatch.setattr(threads, "cores", lambda: 4)
+    assert threads.encoder_threads(0, 0) == (4, 1)  # the default: a lane a core, one thread
+    assert threads.encoder_threads(1, 0) == (1, 4)  # one lane: every core in its calls
+    assert threads.encoder_threads(2, 0) == (2, 2)
+    assert threads.encoder_threads(8, 0) == (8, 1)  # more lanes than cores: still a thread
+    assert threads.encoder_threads(0, 3) == (4, 3)  # threads given: as given
+    monkeypatch.undo()
+    assert threads.cores() >= 1
+    with pytest.raises(ValueError):
+        Settings(batching={"lanes": -1})
+
+
+def test_registration_threads_come_from_the_settings():
+    assert params_of(VerifySettings()).threads == 1  # under load the other cores encode
+    assert params_of(VerifySettings(threads=2)).threads == 2
+    with pytest.raises(ValueError):
+        Settings(verify={"threads": 0})
+
+
+def test_a_real_server_with_two_lanes_answers_each_scan_its_own_descriptor(tmp_path: Path):
+    """Scans posted at once to a real server encoding in two lanes, one onnxruntime thread
+    each, get the descriptors the model gives each scan alone; /readyz says how it encodes."""
+    import concurrent.futures
+
+    import httpx
+    from service_kit import MODEL, OCTET, scan, server
+
+    from overlapmamba.core.points import PointCloud
+    from overlapmamba.service.encoder import Encoder
+
+    scans = [scan(seed) for seed in range(8)]
+    alone = Encoder(MODEL, intra_op_threads=1)
+    want = [alone.encode(alone.project(PointCloud(s[:, :3], s[:, 3]))[None])[0][0] for s in scans]
+    env = {"OVERLAPMAMBA_BATCHING__LANES": "2", "OVERLAPMAMBA_BATCHING__INTRA_OP_THREADS": "1"}
+    with server(tmp_path / "data", env) as (url, _):
+        ready = httpx.get(f"{url}/readyz", timeout=30).json()["detail"]
+        assert (ready["lanes"], ready["threads_per_lane"]) == (2, 1)
+
+        def post(s: np.ndarray) -> np.ndarray:
+            r = httpx.post(f"{url}/v1/descriptors", content=s.tobytes(), headers=OCTET, timeout=60)
+            assert r.status_code == 200, r.text
+            return np.array(r.json()["descriptor"], np.float32)
+
+        with concurrent.futures.ThreadPoolExecutor(8) as pool:
+            got = list(pool.map(post, scans * 2))  # each scan twice, all at once
+    for i, d in enumerate(got):
+        assert float(d @ want[i % len(scans)]) > 0.9999, i
