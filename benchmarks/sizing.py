@@ -2,8 +2,10 @@
 each map backend's operations, measured on this machine.
 
     encoder     the shipped model as the service runs it (project + encode, one scan per
-                call) with 1 and with 2 onnxruntime threads, on real KITTI scans when
-                ../shared/data is there (else synthetic ones)
+                call) with 1 and with 2 onnxruntime threads, and as many lanes as cores,
+                one thread each, encoding at once (the service's default,
+                batching.lanes), on real KITTI scans when ../shared/data is there (else
+                synthetic ones)
     storage     per keyframe with the model's real yaw-feature shape: the FAISS backend's
                 store (SQLite + WAL), its snapshot and the process's resident memory; the
                 Qdrant backend's point payload
@@ -89,7 +91,33 @@ def encoder_rate(model: Path, clouds: list, threads: int, reps: int) -> dict[str
         one(clouds[i % len(clouds)])
         times.append(time.perf_counter() - t0)
     med = float(np.median(times))
-    return {"threads": threads, "median_ms": med * 1e3, "scans_per_s": 1.0 / med}
+    return {"lanes": 1, "threads": threads, "median_ms": med * 1e3, "scans_per_s": 1.0 / med}
+
+
+def lanes_rate(model: Path, clouds: list, lanes: int, reps: int) -> dict[str, float]:
+    """``lanes`` threads describing scans at once on one encoder, one onnxruntime thread a
+    call (the service's default: ``batching.lanes``): the node's scans a second (wall) and
+    the median time of one scan in a lane."""
+    import concurrent.futures
+
+    enc = Encoder(model, intra_op_threads=1)
+
+    def one(cloud) -> float:
+        t0 = time.perf_counter()
+        image, offset = enc.project_offset(cloud)
+        enc.encode(image[None], np.array([offset]))
+        return time.perf_counter() - t0
+
+    def lane(k: int) -> list[float]:
+        return [one(clouds[(k + i) % len(clouds)]) for i in range(reps)]
+
+    one(clouds[0])  # warm-up
+    with concurrent.futures.ThreadPoolExecutor(lanes) as pool:
+        t0 = time.perf_counter()
+        times = [t for got in pool.map(lane, range(lanes)) for t in got]
+        wall = time.perf_counter() - t0
+    med = float(np.median(times))
+    return {"lanes": lanes, "threads": 1, "median_ms": med * 1e3, "scans_per_s": len(times) / wall}
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -272,6 +300,9 @@ def main() -> None:
 
     clouds, source = scans(16)
     enc_rates = [encoder_rate(args.model, clouds, t, args.reps) for t in (1, 2)]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if (cores or 1) > 1:  # the service's default: a lane a core, one thread each
+        enc_rates.append(lanes_rate(args.model, clouds, cores or 1, args.reps))
     enc = Encoder(args.model, intra_op_threads=1)
     image, offset = enc.project_offset(clouds[0])
     desc, yaw = enc.encode(image[None], np.array([offset]))
@@ -320,10 +351,12 @@ def main() -> None:
     write_report(args.out, result)
 
     t = Table(title=f"encoder, one scan per call ({source})")
-    for col in ("onnxruntime threads", "median ms / scan", "scans/s"):
+    for col in ("lanes", "onnxruntime threads a lane", "median ms / scan", "scans/s"):
         t.add_column(col, justify="right")
     for r in enc_rates:
-        t.add_row(str(r["threads"]), f"{r['median_ms']:.1f}", f"{r['scans_per_s']:.1f}")
+        t.add_row(
+            str(r["lanes"]), str(r["threads"]), f"{r['median_ms']:.1f}", f"{r['scans_per_s']:.1f}"
+        )
     console.print(t)
     t = Table(title=f"map backends, {args.keyframes} keyframes (dim {dim}, yaw {yaw_shape})")
     t.add_column("figure")
