@@ -57,24 +57,36 @@ from overlapmamba.service.process import serve_process
 from overlapmamba.train.modelfile import read_metadata
 
 SHIPPED = ROOT / "models" / "overlapmamba-hdl64.onnx"
+ONE_VIEW = ROOT / "models" / "overlapmamba-hdl64-one-view.onnx"
 # name → (model file, the server's environment beside the defaults)
 MODELS: dict[str, tuple[Path, dict[str, str]]] = {
     "descriptors (shipped)": (SHIPPED, {}),
     "tokens": (ROOT / "models" / "overlapmamba-hdl64-tokens.onnx", {}),
-    "one view, aligned columns": (ROOT / "models" / "overlapmamba-hdl64-one-view.onnx", {}),
+    "one view, aligned columns": (ONE_VIEW, {}),
     "descriptors (shipped), every candidate registered": (
         SHIPPED,
         {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},
     ),
     "every sensor (the option)": (ROOT / "models" / "overlapmamba-any-sensor.onnx", {}),
-    # the service's threads as they were before encoder lanes (batching.lanes) and one-thread
-    # registration (verify.threads) became the defaults, and each change alone
+    # the service's threads as they were before encoder lanes (batching.lanes), one-thread
+    # registration (verify.threads) and batches of 2 became the defaults, and each of the
+    # first two changes alone
     "descriptors (shipped), settings before lanes": (
         SHIPPED,
-        {"OVERLAPMAMBA_BATCHING__LANES": "1", "OVERLAPMAMBA_VERIFY__THREADS": "2"},
+        {
+            "OVERLAPMAMBA_BATCHING__LANES": "1",
+            "OVERLAPMAMBA_VERIFY__THREADS": "2",
+            "OVERLAPMAMBA_BATCHING__MAX_BATCH": "8",
+        },
     ),
     "descriptors (shipped), one lane": (SHIPPED, {"OVERLAPMAMBA_BATCHING__LANES": "1"}),
     "descriptors (shipped), GICP on 2 threads": (SHIPPED, {"OVERLAPMAMBA_VERIFY__THREADS": "2"}),
+    # encoder batches a lane (batching.max_batch): each lane holds its batch's working memory
+    "descriptors (shipped), batches of 8": (SHIPPED, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "8"}),
+    "descriptors (shipped), batches of 2": (SHIPPED, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "2"}),
+    "descriptors (shipped), batches of 1": (SHIPPED, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}),
+    "one view, batches of 8": (ONE_VIEW, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "8"}),
+    "one view, batches of 2": (ONE_VIEW, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "2"}),
 }
 # the models a plain run compares (--model picks others)
 DEFAULT_MODELS = tuple(list(MODELS)[:4])

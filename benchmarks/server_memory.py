@@ -4,12 +4,13 @@ reports it (``process_resident_memory_bytes``): when ready, then after each roun
     python benchmarks/server_memory.py [--rounds 12] [--per-round 96] [--clients 16]
 
 Each round sends ``--per-round`` scan queries (KITTI 00 frames, ``POST /v1/maps/m/query``)
-from ``--clients`` threads at once, so the encoder runs full batches (``batching.max_batch``,
-the shipped model's three views a scan). Measured twice, each on a fresh server: with the
-service's defaults, and with glibc's malloc held to two arenas (``MALLOC_ARENA_MAX=2``; by
-default glibc gives up to eight a core, one per thread that allocates, and memory freed in
-one arena is not reused by the others). What it answers: how much memory a node needs at the
-default batching, and whether it levels off (a leak would grow by the same amount every
+from ``--clients`` threads at once, so every encoder lane runs full batches
+(``batching.max_batch``, the shipped model's three views a scan). Measured three times, each
+on a fresh server: with the service's defaults, with glibc's malloc held to two arenas
+(``MALLOC_ARENA_MAX=2``; by default glibc gives up to eight a core, one per thread that
+allocates, and memory freed in one arena is not reused by the others), and with batches of
+8 scans (the default before it became 2). What it answers: how much memory a node needs at
+the default batching, and whether it levels off (a leak would grow by the same amount every
 round). Writes ``reports/service/server-memory.json``.
 """
 
@@ -31,7 +32,12 @@ from overlapmamba.service.settings import BatchSettings
 sys.path.insert(0, str(ROOT / "tests"))
 from e2e_kit import resident_mb
 
-CONFIGS = {"defaults": {}, "MALLOC_ARENA_MAX=2": {"MALLOC_ARENA_MAX": "2"}}
+CONFIGS = {
+    "defaults": {},
+    "MALLOC_ARENA_MAX=2": {"MALLOC_ARENA_MAX": "2"},
+    # the batches the service encoded before they became 2 a lane (batching.max_batch)
+    "OVERLAPMAMBA_BATCHING__MAX_BATCH=8": {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "8"},
+}
 
 
 def measure(env: dict[str, str], bodies: list[bytes], args: argparse.Namespace) -> dict[str, Any]:

@@ -318,6 +318,8 @@ def fleet() -> str:
 FLEET_VIEWS = "reports/client/fleet-views.json"
 FLEET_ANY_SENSOR = "reports/client/fleet-any-sensor.json"  # the shipped file and the option
 FLEET_LANES = "reports/client/fleet-lanes.json"  # the service's threads, before and now
+FLEET_BATCHES = "reports/client/fleet-batches.json"  # encoder batches of 8, 2 and 1 a lane
+FLEET_BATCHES_ONE_VIEW = "reports/client/fleet-batches-one-view.json"  # the same, one view
 
 
 def fleet_views(path: str = FLEET_VIEWS) -> str:
@@ -446,5 +448,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "fleet-views": fleet_views,
     "fleet-any-sensor": lambda: fleet_views(FLEET_ANY_SENSOR),
     "fleet-lanes": lambda: fleet_views(FLEET_LANES),
+    "fleet-batches": lambda: fleet_views(FLEET_BATCHES),
+    "fleet-batches-one-view": lambda: fleet_views(FLEET_BATCHES_ONE_VIEW),
     "e2e": e2e,
 }

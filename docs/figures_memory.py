@@ -18,9 +18,9 @@ def server_memory() -> str:
     out = source(SERVER_MEMORY, r["command"], when(r))
     out += (
         f"\n{r['scans']}; {r['rounds']} rounds of {r['per_round']} scan queries from "
-        f"{r['clients']} clients at once (full encoder batches of {r['max_batch']} scans, "
-        "three views each), on a fresh server for each configuration; resident memory from "
-        "its own `/metrics`:\n\n"
+        f"{r['clients']} clients at once (full encoder batches, by default of "
+        f"{r['max_batch']} scans a lane, three views each), on a fresh server for each "
+        "configuration; resident memory from its own `/metrics`:\n\n"
     )
     rows = []
     for name, c in r["configs"].items():
@@ -39,7 +39,7 @@ def server_memory() -> str:
                 sum(x["errors"] for x in c["rounds"]),
             ]
         )
-    head = ["malloc", "ready", "after round 1", f"after round {len(mb) // 2}"]
+    head = ["configuration", "ready", "after round 1", f"after round {len(mb) // 2}"]
     head += [f"after round {len(mb)}", "most", "queries/s (mean of rounds)", "errors"]
     return out + table(head, rows)
 

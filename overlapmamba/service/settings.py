@@ -77,7 +77,13 @@ class LimitSettings(_Section):
 
 
 class BatchSettings(_Section):
-    max_batch: int = Field(8, ge=1, le=256, description="scans per encoder call")
+    max_batch: int = Field(
+        2,
+        ge=1,
+        le=256,
+        description="scans per encoder call; each lane holds its batch's working memory "
+        "(docs/deploy.md, threads)",
+    )
     max_wait_ms: float = Field(
         2.0,
         ge=0,

@@ -45,10 +45,10 @@ wrap-around within ``max_shift``.
 **One thread under load.** GICP on 2 threads is the faster alone, but the service registers
 while its other cores encode: an OpenMP region then waits for a thread the encoder holds,
 and small_gicp keeps Python's lock while it waits, which stalls the event loop and every
-other request's Python work. So the service registers on one thread (``verify.threads``);
-with encoder lanes a fleet's observations a second rose with it on 2 cores (``python
-benchmarks/fleet_views.py``, the shipped file against GICP on 2 threads:
-``reports/client/fleet-lanes.json``).
+other request's Python work. So the service registers on one thread (``verify.threads``):
+with encoder lanes on 2 cores, a fleet got as many observations a second or more, and the
+verify stage took less time a query (``python benchmarks/fleet_views.py``, the shipped file
+against GICP on 2 threads: ``reports/client/fleet-lanes.json``).
 """
 
 from __future__ import annotations

@@ -155,8 +155,8 @@ async def describe_batch(
             fmt = value.strip().strip('"')
     body = await read_body(request, svc.settings.limits)
     scans = split_batch(body, svc.settings.limits.max_batch_scans)
-    # In waves of one encoder batch, so one big request cannot fill the shared queue.
-    step = svc.settings.batching.max_batch
+    # In waves of one encoder batch a lane, so one big request cannot fill the shared queue.
+    step = svc.settings.batching.max_batch * svc.pipeline.batcher.lanes
     results = []
     for start in range(0, len(scans), step):
         results += await asyncio.gather(
