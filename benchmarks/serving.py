@@ -12,8 +12,8 @@
    (bare + floor) ÷ bare the lowest ratio any server on this client and uvicorn could reach.
    A fourth block times a 1024×512 @ 512×900 float32 matrix product (0.47 GMAC, numpy's
    BLAS): HTTP ÷ sgemm says how the whole path compares with this machine's dense
-   arithmetic (goal ≤ 9). Servers: the defaults (micro-batching,
-   ``max_batch`` 8, ``max_wait_ms`` 2), ``max_wait_ms`` 0, and ``max_batch`` 1.
+   arithmetic (goal ≤ 9). Servers: the defaults (micro-batching, ``max_batch`` 2 a lane
+   since 2026-12-01, 8 before, ``max_wait_ms`` 2), ``max_wait_ms`` 0, and ``max_batch`` 1.
 2. **Throughput** — 1, 4 and 8 concurrent clients (tasks sharing one httpx AsyncClient)
    posting scans for a fixed time: scans/s, latency p50/p99 and the server's encoder batch
    sizes (the ``/v1/stats`` histogram, before/after difference), with micro-batching (the
