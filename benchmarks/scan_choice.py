@@ -6,7 +6,8 @@ A model file runs two ways (:mod:`overlapmamba.service.encoder`): the portable g
 kernel the model was trained with between the cuts). With ``scan_kernel = auto`` (the
 default) the encoder times both at load and serves with the kernel unless it costs more.
 For each model file (default: the shipped file and its one-view twin), at the service's
-default threads (every core):
+default onnxruntime threads a call (``batching``: every core before encoder lanes, one a
+lane since 2026-12-01, with a lane a core):
 
 - ``loads``: the file loaded ``--loads`` times as the service loads it: how often each path
   was picked, with the timing each load logged;
@@ -40,9 +41,13 @@ from bench_kit import REAL as KITTI
 from reports_kit import REPORTS, ROOT, shown_path, write_report
 
 from overlapmamba.service.encoder import Encoder, parity_image
+from overlapmamba.service.settings import BatchSettings
+from overlapmamba.service.threads import encoder_threads
 
 MODELS = [ROOT / "models" / "overlapmamba-hdl64.onnx"]
 MODELS.append(ROOT / "models" / "overlapmamba-hdl64-one-view.onnx")
+# onnxruntime threads a call, as the service runs its encoder by default
+THREADS = encoder_threads(BatchSettings().lanes, BatchSettings().intra_op_threads)[1]
 PAUSE_S = 0.05  # between blocks: longer than onnxruntime's workers spin after a run
 
 
@@ -77,10 +82,10 @@ def measure(path: Path, loads: int, reps: int) -> dict[str, Any]:
     picked: Counter[str] = Counter()
     lines = []
     for _ in range(loads):
-        enc = Encoder(path)
+        enc = Encoder(path, intra_op_threads=THREADS)
         picked["c-kernel" if enc.staged is not None else "portable"] += 1
         lines.append(enc.scan_path)
-    enc = Encoder(path, scan_kernel=True)
+    enc = Encoder(path, intra_op_threads=THREADS, scan_kernel=True)
     if enc.staged is None:
         raise SystemExit(f"{path}: the C-kernel path does not build here: {enc.scan_path}")
     cost: dict[str, Any] = {}
@@ -129,7 +134,8 @@ def main() -> None:
             )
     write_report(
         args.out,
-        {"threads": "every core (the service's default)", "models": models}
+        {"threads": f"{THREADS} onnxruntime thread(s) a call (the service's default)"}
+        | {"models": models}
         | {"seconds": time.perf_counter() - t0},
     )
     print(f"wrote {args.out}")
