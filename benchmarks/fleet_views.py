@@ -89,7 +89,12 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
     "one view, batches of 2": (ONE_VIEW, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "2"}),
 }
 # the models a plain run compares (--model picks others)
-DEFAULT_MODELS = tuple(list(MODELS)[:4])
+DEFAULT_MODELS = (
+    "descriptors (shipped)",
+    "tokens",
+    "one view, aligned columns",
+    "descriptors (shipped), every candidate registered",
+)
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
 KEPT += ("verified_closures", "loop_closures")

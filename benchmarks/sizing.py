@@ -46,6 +46,7 @@ from overlapmamba.service.domain import Filters, NewKeyframe, content_hash
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
 from overlapmamba.service.settings import RerankSettings, Settings
+from overlapmamba.service.threads import cores
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100" / "velodyne"
@@ -300,9 +301,8 @@ def main() -> None:
 
     clouds, source = scans(16)
     enc_rates = [encoder_rate(args.model, clouds, t, args.reps) for t in (1, 2)]
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    if (cores or 1) > 1:  # the service's default: a lane a core, one thread each
-        enc_rates.append(lanes_rate(args.model, clouds, cores or 1, args.reps))
+    if cores() > 1:  # the service's default: a lane a core, one thread each
+        enc_rates.append(lanes_rate(args.model, clouds, cores(), args.reps))
     enc = Encoder(args.model, intra_op_threads=1)
     image, offset = enc.project_offset(clouds[0])
     desc, yaw = enc.encode(image[None], np.array([offset]))

@@ -227,11 +227,11 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         owns_data = settings.index.backend == "faiss"
         with data_dir_lock(settings.data_dir) if owns_data else contextlib.nullcontext():
             app.state.stage = "loading model"
+            lanes, threads = encoder_threads(
+                settings.batching.lanes, settings.batching.intra_op_threads
+            )
             enc = encoder
             if enc is None:
-                _, threads = encoder_threads(
-                    settings.batching.lanes, settings.batching.intra_op_threads
-                )
                 kernel = settings.scan_kernel
                 enc = await in_thread(
                     lambda: Encoder(settings.model, intra_op_threads=threads, scan_kernel=kernel)
@@ -246,8 +246,6 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 enc.path,
                 enc.scan_path,
             )
-            b = settings.batching
-            lanes, _ = encoder_threads(b.lanes, b.intra_op_threads)
             log.info("encoder: %d lane(s), %d onnxruntime thread(s) each", lanes, enc.threads)
             # The model's own calibration, unless a setting overrides
             # (overlapmamba.service.calibration).

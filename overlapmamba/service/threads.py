@@ -31,5 +31,6 @@ def encoder_threads(lanes: int, intra_op_threads: int) -> tuple[int, int]:
     """The settings' ``batching.lanes`` and ``batching.intra_op_threads`` (0: automatic) →
     (encoder calls at once, onnxruntime threads a call): by default a lane a core, each call
     on one thread; lanes given and threads not, the cores shared among them."""
-    n = lanes or cores()
-    return n, intra_op_threads or max(1, cores() // n)
+    have = cores()
+    n = lanes or have
+    return n, intra_op_threads or max(1, have // n)
