@@ -84,7 +84,7 @@ def test_the_offset_is_within_half_a_column_and_follows_the_turn(seed, n, theta)
     assert min(abs(shift - round(shift)), 1 - abs(shift - round(shift))) < 1e-3 or n < 3
 
 
-def test_another_sensor_aligned_rolls_by_whole_columns_and_bev_refuses(kitti_seq_dir):
+def test_another_sensor_aligned_rolls_by_whole_columns(kitti_seq_dir):
     xyz = read_points(kitti_seq_dir / "velodyne" / "000020.bin").xyz
     vlp = SensorInput(KITTI, CATALOGUE["vlp16"], "elevation")
     plain, off = vlp.project_offset(xyz, aligned=True)
@@ -94,9 +94,32 @@ def test_another_sensor_aligned_rolls_by_whole_columns_and_bev_refuses(kitti_seq
     assert abs(shift - round(shift)) < 1e-3
     assert np.isclose(img, np.roll(plain, round(shift), axis=-1), atol=1e-3).mean() > 0.999
     np.testing.assert_array_equal(vlp.project(xyz, aligned=True), plain)
-    bev = SensorInput(KITTI, CATALOGUE["vlp16"], "bev")
-    with pytest.raises(ValueError, match="no aligned columns"):
-        bev.project(xyz, aligned=True)
+
+
+@pytest.mark.parametrize("mode", ["bev", "bev-soft", "bev-span"])
+def test_a_bev_scan_aligned_turned_by_any_angle_is_its_image_rolled_by_whole_columns(
+    kitti_seq_dir, mode
+):
+    """The bird's-eye inputs' columns are the returns' azimuths; aligned, they start at the
+    mean bearing of the returns the input keeps, so a turn rolls the image by whole columns,
+    where in the sensor's columns a continuous turn changes the cells."""
+    xyz = read_points(kitti_seq_dir / "velodyne" / "000030.bin").xyz
+    bev = SensorInput(KITTI, CATALOGUE["vlp16"], mode)  # type: ignore[arg-type]
+    plain, off = bev.project_offset(xyz, aligned=True)
+    assert -0.5 < off <= 0.5 and off != 0.0
+    np.testing.assert_array_equal(bev.project(xyz, aligned=True), plain)
+    sensor, zero = bev.project_offset(xyz)
+    assert zero == 0.0 and not np.array_equal(sensor, plain)
+    for theta in np.random.default_rng(5).uniform(-180, 180, 3):
+        img, off_t = bev.project_offset(turned(xyz, theta), aligned=True)
+        shift = roll_of(theta, off, off_t, KITTI.width)
+        assert abs(shift - round(shift)) < 1e-3, (theta, shift)
+        rolled = np.roll(plain, round(shift), axis=-1)
+        assert np.isclose(img, rolled, atol=1e-3).mean() > 0.999
+        if mode != "bev":  # occupancy changes only where a return crosses a column edge
+            raw = bev.project(turned(xyz, theta))
+            whole = round(theta * KITTI.width / 360)
+            assert np.isclose(raw, np.roll(sensor, whole, axis=-1), atol=1e-3).mean() < 0.999
 
 
 def test_unshifting_the_yaw_features_is_a_circular_shift_back():
@@ -130,17 +153,35 @@ def test_the_phase_names_the_model():
             identity("om-abc", 1, column_phase=bad)
 
 
-def test_metadata_refuses_aligned_bev_and_unknown_phases():
+def test_metadata_takes_aligned_for_every_input_and_refuses_unknown_phases():
     from overlapmamba.train.modelfile import read_metadata
 
     fields = read_metadata(ROOT / "models" / "overlapmamba-hdl64.onnx").model_dump(by_alias=True)
     assert EncoderMetadata.model_validate({**fields, "column_phase": "aligned"}).aligned
-    for update, says in (
-        ({"column_phase": "aligned", "sensor_input": "bev"}, "range-image inputs"),
-        ({"column_phase": "north"}, "sensor, aligned"),
-    ):
-        with pytest.raises(ValueError, match=says):
-            EncoderMetadata.model_validate({**fields, **update})
+    bev = {**fields, "column_phase": "aligned", "sensor_input": "bev-span"}
+    assert EncoderMetadata.model_validate(bev).aligned
+    with pytest.raises(ValueError, match="sensor, aligned"):
+        EncoderMetadata.model_validate({**fields, "column_phase": "north"})
+
+
+def test_another_phase_or_view_count_drops_the_calibration_chosen_on_the_old_descriptors(
+    tmp_path,
+):
+    import shutil
+
+    from overlapmamba.train.modelfile import read_metadata, with_column_phase, with_views
+
+    src = tmp_path / "shipped.onnx"
+    shutil.copy(ROOT / "models" / "overlapmamba-hdl64.onnx", src)
+    shipped = read_metadata(src)
+    assert shipped.calibration and shipped.column_phase == "sensor" and shipped.views == 3
+    assert with_column_phase(src, "sensor").calibration == shipped.calibration  # no change
+    assert with_views(src, tmp_path / "three.onnx", 3).calibration == shipped.calibration
+    one = with_views(src, tmp_path / "one.onnx", 1)
+    assert one.calibration == {} and one.model_id != shipped.model_id
+    aligned = with_column_phase(src, "aligned")
+    assert aligned.calibration == {} and aligned.model_id != shipped.model_id
+    assert read_metadata(src).calibration == {}  # what the file now says
 
 
 @pytest.mark.parametrize("harmonic", [1, 2, 4])

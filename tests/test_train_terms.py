@@ -135,8 +135,8 @@ def test_a_run_continues_an_aligned_encoder_on_aligned_images(
 ):
     """--init of a file with aligned columns: the run takes the file's column phase, trains
     and validates on aligned images (epoch 0 scores what evaluating the file scores), and its
-    export is aligned again; a config given alongside may set the phase, the turn term and a
-    bird's-eye input are refused with aligned columns."""
+    export is aligned again; a config given alongside may set the phase, the turn term is
+    refused with aligned columns, and a bird's-eye input takes them."""
     from overlapmamba.train.evaluate import describe_sequence, loop_closure, sequence_loops
     from overlapmamba.train.export import export_onnx
     from overlapmamba.train.modelfile import read_metadata, with_column_phase
@@ -173,8 +173,8 @@ def test_a_run_continues_an_aligned_encoder_on_aligned_images(
             small_run(**run, turn_weight=1.0, turn_scans=2),
             progress=False,
         )
-    with pytest.raises(ValueError, match="nothing to align"):
-        OverlapMambaConfig(**{**SMALL, "column_phase": "aligned", "sensor_input": "bev"})
+    bev = OverlapMambaConfig(**{**SMALL, "column_phase": "aligned", "sensor_input": "bev-span"})
+    assert bev.column_phase == "aligned"
     with pytest.raises(ValueError, match="column_phase 'diagonal' is unknown"):
         OverlapMambaConfig(**{**SMALL, "column_phase": "diagonal"})
 

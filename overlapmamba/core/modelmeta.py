@@ -35,7 +35,7 @@ from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibrat
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors import SensorProfile
-from overlapmamba.core.sensors.input import BEV_MODES, Mode
+from overlapmamba.core.sensors.input import Mode
 from overlapmamba.core.views import MAX_VIEWS, check_column_phase
 
 FORMAT = "overlapmamba-encoder"
@@ -139,11 +139,6 @@ class EncoderMetadata(BaseModel):
     @model_validator(mode="after")
     def _known_phase(self) -> EncoderMetadata:
         check_column_phase(self.column_phase)
-        if self.column_phase != "sensor" and self.sensor_input in BEV_MODES:
-            raise ValueError(
-                f"column_phase {self.column_phase} applies to the range-image inputs; the "
-                f"{self.sensor_input} input has none"
-            )
         return self
 
     @property

@@ -37,7 +37,7 @@ from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from overlapmamba.core.configs import Config
-from overlapmamba.core.sensors.input import BEV_MODES, MODES
+from overlapmamba.core.sensors.input import MODES
 from overlapmamba.core.views import COLUMN_PHASES, MAX_VIEWS
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.scan_backends import BACKENDS, scan
@@ -112,11 +112,6 @@ class OverlapMambaConfig(Config):
         if self.column_phase not in COLUMN_PHASES:
             allowed = ", ".join(COLUMN_PHASES)
             raise ValueError(f"column_phase {self.column_phase!r} is unknown; allowed: {allowed}")
-        if self.column_phase == "aligned" and self.sensor_input in BEV_MODES:
-            raise ValueError(
-                f"column_phase aligned: the {self.sensor_input} input's columns are not the "
-                "sensor's azimuth, so there is nothing to align; use column_phase sensor"
-            )
         if self.backbone not in BACKBONES:
             raise ValueError(
                 f"backbone {self.backbone!r} is unknown; allowed: {', '.join(BACKBONES)}"

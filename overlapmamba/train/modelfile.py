@@ -42,7 +42,8 @@ def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
 
     def update(meta: EncoderMetadata) -> dict[str, Any]:
         _maps_stay_valid(meta, "views", meta.views, views)
-        return identity(meta.graph, views, meta.sensor_input, meta.maps_digest, meta.column_phase)
+        ids = identity(meta.graph, views, meta.sensor_input, meta.maps_digest, meta.column_phase)
+        return ids | _calibration_of(meta, meta.views, views)
 
     return rewrite_metadata(src, out, update)
 
@@ -58,7 +59,8 @@ def with_sensor_input(path: Path | str, mode: Mode) -> EncoderMetadata:
 
     def update(meta: EncoderMetadata) -> dict[str, Any]:
         _maps_stay_valid(meta, "sensor_input", meta.sensor_input, mode)
-        return identity(meta.graph, meta.views, mode, meta.maps_digest, meta.column_phase)
+        ids = identity(meta.graph, meta.views, mode, meta.maps_digest, meta.column_phase)
+        return ids | _calibration_of(meta, meta.sensor_input, mode)
 
     return rewrite_metadata(path, path, update)
 
@@ -97,9 +99,17 @@ def with_column_phase(path: Path | str, phase: str) -> EncoderMetadata:
 
     def update(meta: EncoderMetadata) -> dict[str, Any]:
         _maps_stay_valid(meta, "column_phase", meta.column_phase, phase)
-        return identity(meta.graph, meta.views, meta.sensor_input, meta.maps_digest, phase)
+        ids = identity(meta.graph, meta.views, meta.sensor_input, meta.maps_digest, phase)
+        return ids | _calibration_of(meta, meta.column_phase, phase)
 
     return rewrite_metadata(path, path, update)
+
+
+def _calibration_of(meta: EncoderMetadata, old: object, new: object) -> dict[str, Any]:
+    """The calibration the rewritten file keeps: none where the value changes, since its
+    thresholds and re-rank setting were chosen on the old descriptors (the benchmarks choose
+    them again for the new file, as for a file recovered with other token views)."""
+    return {"calibration": {}} if old != new and meta.calibration else {}
 
 
 def _maps_stay_valid(meta: EncoderMetadata, field: str, old: object, new: object) -> None:

@@ -267,15 +267,10 @@ class SensorInput:
             images, offset = self._elevation.project_offset(points, views, aligned=aligned)
             filled = images if self.own_sensor else fill_gaps(images, self.model.empty_value)
             return filled, offset
-        if aligned and self.mode in BEV_MODES:
-            raise ValueError(
-                f"the {self.mode} input has no aligned columns: column_phase aligned applies "
-                "to the range-image inputs (elevation, elevation-lerp, rows, common, structure)"
-            )
         if self.mode in BEV_MODES:
             xyz = _xyz(points)
             xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
-            return project_bev(xyz, self.model, views, mode=self.mode), 0.0
+            return project_bev_offset(xyz, self.model, views, mode=self.mode, aligned=aligned)
         if self.mount is not None or self.mode in COMMON_MODES:
             xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
             if xyz.ndim != 2 or xyz.shape[1] < 3:
@@ -327,6 +322,23 @@ def project_bev(
     """(N, 3) levelled points at the reference height → (views, H, W) images of the
     bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
     measures others)."""
+    return project_bev_offset(xyz, model, views, bands, rings, mode)[0]
+
+
+def project_bev_offset(
+    xyz: np.ndarray,
+    model: SensorProfile,
+    views: int,
+    bands: tuple[float, ...] = BEV_BANDS,
+    rings: int = BEV_RINGS,
+    mode: str = "bev",
+    *,
+    aligned: bool = False,
+) -> tuple[np.ndarray, float]:
+    """:func:`project_bev` and the column offset it added: 0 unless ``aligned``, where the
+    columns start at the mean bearing of the returns the input keeps
+    (:func:`overlapmamba.core.views.scan_offset`), so that a scan turned about the vertical
+    gives the plain image rolled by whole columns."""
     views = check_views(views)
     bev_rows(model, bands, rings)
     xyz = np.asarray(xyz, np.float32)
@@ -342,7 +354,11 @@ def project_bev(
     band = np.searchsorted(edges, z, side="right") - 1
     row = ring.astype(np.int64) * (len(edges) - 1) + band
     u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-    return bev_cells(u, row, model, views, mode)
+    offset = 0.0
+    if aligned:
+        offset = scan_offset(x, y, depth[keep], model.width)
+        u = np.mod(u + np.float32(offset), np.float32(model.width))
+    return bev_cells(u, row, model, views, mode), offset
 
 
 def _project_beams(
