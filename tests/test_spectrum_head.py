@@ -116,3 +116,45 @@ def test_the_cli_refuses_a_file_before_writing_anything(plain, tmp_path):
     )
     assert r.exit_code == 0, r.output
     assert read_metadata(out).first_stage == "spectrum:8:sqrt"
+
+
+@pytest.mark.parametrize("text", ["mixed:0.5:8:none", "spectrum:16:sqrt"])
+def test_taking_the_first_stage_out_gives_the_network_back(plain, tmp_path, text):
+    """``without_first_stage``: the network's descriptor again, 256-d, uncalibrated; the same
+    stage written in again gives the same file (graph and model id); the CLI does it with
+    ``--first-stage descriptor``; a file without a stage is refused."""
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+    from overlapmamba.core.calibration import Calibrated
+    from overlapmamba.train.modelfile import with_calibration
+    from overlapmamba.train.spectrum_head import without_first_stage
+
+    staged = tmp_path / "staged.onnx"
+    meta = with_first_stage(plain, staged, FirstStage.parse(text))
+    entry = Calibrated(
+        values={"shortlist": 50, "weight": 8.0}, chosen_by="a test", data="none", at="2026"
+    )
+    with_calibration(staged, "rerank", entry)
+    back = without_first_stage(staged, tmp_path / "back.onnx")
+    before = read_metadata(plain)
+    assert back.first_stage == "descriptor" and back.descriptor_dim == before.descriptor_dim
+    assert back.calibration == {} and back.model_id != meta.model_id
+    images = np.random.default_rng(2).uniform(0, 1, size=(2, 1, 64, 900)).astype(np.float32)
+    d0, y0 = run_onnx(plain, images)
+    d1, y1 = run_onnx(tmp_path / "back.onnx", images)
+    np.testing.assert_allclose(d1, d0, atol=1e-6)
+    np.testing.assert_array_equal(y1, y0)
+    again = with_first_stage(
+        tmp_path / "back.onnx", tmp_path / "again.onnx", FirstStage.parse(text)
+    )
+    assert (again.graph, again.model_id) == (meta.graph, meta.model_id)
+    with pytest.raises(ExportError, match="carries no first stage"):
+        without_first_stage(tmp_path / "back.onnx", tmp_path / "x.onnx")
+    out = tmp_path / "cli.onnx"
+    r = CliRunner().invoke(
+        app,
+        ["export", str(staged), "--first-stage", "descriptor", "--views", "3", "--out", str(out)],
+    )
+    assert r.exit_code == 0, r.output
+    assert read_metadata(out).model_id == back.model_id

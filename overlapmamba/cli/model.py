@@ -237,6 +237,7 @@ def export_cmd(
             "(overlapmamba.core.yaw_spectrum): spectrum:BINS:COMPRESS (the yaw features' "
             "magnitude spectrum over azimuth) or mixed:A:BINS:COMPRESS (joined to the "
             "network's descriptor, A the spectrum's share of a squared distance); "
+            "'descriptor' on an .onnx carrying a first stage takes it out again; "
             "default: the network's descriptor",
         ),
     ] = None,
@@ -253,7 +254,11 @@ def export_cmd(
         with_views,
     )
     from overlapmamba.train.recover import with_token_views
-    from overlapmamba.train.spectrum_head import check_source, with_first_stage
+    from overlapmamba.train.spectrum_head import (
+        check_source,
+        with_first_stage,
+        without_first_stage,
+    )
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
@@ -262,7 +267,7 @@ def export_cmd(
             f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"
         )
     token_views = views if meet == "tokens" else 1
-    stage = None
+    stage, strip = None, False
     if first_stage is not None:
         from overlapmamba.core.yaw_spectrum import FirstStage
 
@@ -271,7 +276,11 @@ def export_cmd(
         except ValueError as err:
             raise typer.BadParameter(str(err), param_hint="--first-stage") from None
         if checkpoint.suffix == ".onnx":  # refused before anything is written to --out
-            check_source(load_encoder(checkpoint)[1], checkpoint, stage)
+            source = load_encoder(checkpoint)[1]
+            if stage.mix == 0.0 and source.first_stage != "descriptor":
+                stage, strip = None, True  # back to the network's own descriptor
+            else:
+                check_source(source, checkpoint, stage)
     if sensor_input is not None and sensor_input not in MODES:
         raise typer.BadParameter(
             f"--sensor-input must be one of {', '.join(MODES)}, got {sensor_input!r}",
@@ -288,12 +297,14 @@ def export_cmd(
                 "an exported encoder keeps its weights as they are; --weights applies to a .pt",
                 param_hint="--weights",
             )
-        if token_views > 1 or load_encoder(checkpoint)[1].graph_views > 1:
-            # the graph itself changes: traced anew from the file's recovered weights
-            with_token_views(checkpoint, out_path, token_views)
+        src = checkpoint
+        if strip:
+            without_first_stage(checkpoint, out_path)
             src = out_path
-        else:
-            src = checkpoint
+        if token_views > 1 or load_encoder(src)[1].graph_views > 1:
+            # the graph itself changes: traced anew from the file's recovered weights
+            with_token_views(src, out_path, token_views)
+            src = out_path
         meta = with_views(src, out_path, views)
         # back to the sensor's columns first, so that a bird's-eye input may follow
         if column_phase == "sensor":

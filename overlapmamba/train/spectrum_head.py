@@ -51,7 +51,7 @@ def check_source(meta: EncoderMetadata, src: Path | str, stage: FirstStage) -> N
     if meta.first_stage != "descriptor":
         raise ExportError(
             f"{src} already carries first stage {meta.first_stage!r}; start from the file it "
-            "was written from"
+            "was written from (`export FILE --first-stage descriptor` takes it out)"
         )
     for field in ("sensor_maps", "calibration"):
         if getattr(meta, field):
@@ -140,3 +140,59 @@ def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> Enc
     )
     save_encoder(proto, new, out)
     return new
+
+
+def without_first_stage(src: Path | str, out: Path | str) -> EncoderMetadata:
+    """Write ``src``'s encoder to ``out`` with the network's own descriptor again: the first
+    stage :func:`with_first_stage` wrote is taken out of the graph (its nodes and constants,
+    the network's descriptor renamed back), so that writing the same stage into the result
+    gives the source's graph again, with its graph id and model id. The calibration goes (it
+    was chosen on the other vector); a file carrying sensor maps is refused, as with a new
+    stage."""
+    src, out = Path(src), Path(out)
+    proto, meta = load_encoder(src)
+    if meta.first_stage == "descriptor":
+        raise ExportError(f"{src} carries no first stage: its descriptor is the network's")
+    if meta.sensor_maps:
+        raise ExportError(
+            f"{src} carries sensor_maps ({', '.join(meta.sensor_maps)}) fitted on its first "
+            "stage; write the file without them first"
+        )
+    g = proto.graph
+    own = [n for n in g.node if not (set(n.output) & _stage_outputs(g))]
+    del g.node[:]
+    g.node.extend(own)
+    kept = [t for t in g.initializer if not t.name.startswith("fs_")]
+    del g.initializer[:]
+    g.initializer.extend(kept)
+    for node in g.node:
+        node.output[:] = ["descriptor" if o == NETWORK_DESCRIPTOR else o for o in node.output]
+        node.input[:] = ["descriptor" if i == NETWORK_DESCRIPTOR else i for i in node.input]
+    dim = int(meta.network["out_dim"])  # the network's own, as its config says
+    outputs = {o.name: o for o in g.output}
+    outputs["descriptor"].type.tensor_type.shape.dim[1].dim_value = dim
+    try:
+        onnx.checker.check_model(proto)
+    except onnx.checker.ValidationError as err:
+        raise ExportError(f"{src}: the graph without its first stage is invalid: {err}") from None
+    del proto.metadata_props[:]
+    new = EncoderMetadata.model_validate(
+        {
+            **meta.model_dump(by_alias=True),
+            "first_stage": "descriptor",
+            "descriptor_dim": dim,
+            "calibration": {},
+            **identity(graph_id(proto), meta.views, meta.sensor_input, "", meta.column_phase),
+        },
+        by_alias=True,
+    )
+    save_encoder(proto, new, out)
+    return new
+
+
+def _stage_outputs(g: onnx.GraphProto) -> set[str]:
+    """The tensors the first stage adds: its ``fs_`` tensors, the network descriptor's unit
+    length (``netvlad_descriptor_*``) and the ``descriptor`` it joins."""
+    added = ("fs_", f"{NETWORK_DESCRIPTOR}_")
+    names = {o for n in g.node for o in n.output if o.startswith(added)}
+    return names | {"descriptor"}
