@@ -141,14 +141,15 @@ def served_settings(meta: Any) -> Any:
 
 def model_record(path: Path, enc: Any) -> dict[str, Any]:
     """What a report says of the model file it measured (an ``Encoder``): where it lies,
-    its model id, the views and sensor input it is served with, and its first stage
-    (``overlapmamba.core.yaw_spectrum``; ``descriptor`` for the network's own)."""
+    its model id, the views, column phase and sensor input it is served with, and its first
+    stage (``overlapmamba.core.yaw_spectrum``; ``descriptor`` for the network's own)."""
     from reports_kit import shown_path
 
     return {
         "model": shown_path(path),
         "model_id": enc.model_id,
         "views": enc.meta.views,
+        "column_phase": enc.meta.column_phase,
         "sensor_input": enc.meta.sensor_input,
         "first_stage": enc.meta.first_stage,
     }

@@ -113,9 +113,11 @@ RERANK = "reports/model/rerank-across-bev-span-thin.json"
 RERANK_PAIRS = "reports/model/across-pairs-bev-span-thin.json"  # its Scan Context, same drives
 RERANK_OTHERS = ("reports/model/rerank-across-bev-long.json",)
 # the every-sensor option's calibration (models/overlapmamba-any-sensor.onnx), and Scan Context
-# on the same test drives from its weights' across-pairs run (the same model id)
+# on the same test drives from its weights' across-pairs run (in the sensor's columns: Scan
+# Context does not depend on the file); the same weights in the sensor's columns beside it
 RERANK_ANY = "reports/model/rerank-across-any-sensor.json"
 RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
+RERANK_ANY_SENSOR_COLUMNS = "reports/model/rerank-across-any-sensor-sensor-columns.json"
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -152,8 +154,8 @@ def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
     the file of ``path`` (Scan Context from ``pairs``, an across-pairs report of the same
     file on the same drives)."""
     r, sc_report = load(path), load(pairs)
-    if r["model_id"] != sc_report["model_id"]:
-        raise ValueError(f"{path} and {pairs} measured different files")
+    if r["sensors"] != sc_report["sensors"] or r["radius_m"] != sc_report["radius_m"]:
+        raise ValueError(f"{path} and {pairs} measured other pairs or another radius")
     out = source(path, r["command"], when(r)) + source(pairs, sc_report["command"], when(sc_report))
     own = r["own"]
     out += (
@@ -213,9 +215,43 @@ def _other_networks() -> str:
     return out + "\nThe same sweep for `bev-long`, on test:\n\n" + table(head, rows)
 
 
+def column_phases(
+    files: tuple[tuple[str, str], ...] = (
+        (RERANK_ANY_SENSOR_COLUMNS, "sensor"),
+        (RERANK_ANY, "aligned"),
+    ),
+) -> str:
+    """The same weights in the sensor's columns and aligned (``rerank_across`` reports of
+    both files, ``files`` with the column phase each was measured with, the same drives):
+    AR@1 of the descriptor alone and of the setting each chose on val, on val and on test."""
+    reports = [(load(p), phase) for p, phase in files]
+    out = "".join(source(p, load(p)["command"], when(load(p))) for p, _ in files)
+    out += (
+        "\nThe same weights, first stage and input, with the columns at the sensor's azimuth "
+        "or at each scan's mean bearing (aligned); AR@1 as above, of the descriptor alone and "
+        "of the setting each file chose on val:\n\n"
+    )
+    rows = []
+    for r, phase in reports:
+        if r.get("column_phase", phase) != phase:  # reports before 2026-12-01 do not say
+            raise ValueError(f"{r['model']} was measured with {r['column_phase']} columns")
+        alone = next(x for x in r["val"]["settings"] if x["shortlist"] == 1)
+        for split, answers in (
+            ("val", (alone, r["val"]["chosen"])),
+            ("test", (r["test"]["descriptor"], r["test"]["chosen"])),
+        ):
+            for x in answers:
+                what = _setting(x) + (" (chosen on val)" if x["shortlist"] > 1 else "")
+                rows.append([f"{_file_name(r)} (`{r['model_id']}`)", phase, split, what])
+                rows[-1] += _figures(x)
+    head = ["file", "columns", "split", "answer", "mean", "across: mean / lowest / at the bar"]
+    return out + table([*head, "same sensor"], rows)
+
+
 RENDERERS = {
     "across-pairs": across_pairs,
     "across-pairs-candidates": across_pairs_candidates,
     "rerank-across": lambda: rerank_across() + _other_networks(),
     "rerank-across-any-sensor": lambda: rerank_across(RERANK_ANY, RERANK_ANY_PAIRS),
+    "column-phase-any-sensor": column_phases,
 }
