@@ -125,4 +125,47 @@ def _sweep() -> str:
     return out + table(head, rows)
 
 
-RENDERERS = {"yaw-spectrum": yaw_spectrum}
+ALIGNED = "reports/model/yaw-spectrum-any-sensor-aligned.json"
+ALIGNED_FILES = (  # the option as shipped, then the candidates the choice above wrote
+    "reports/model/rerank-across-any-sensor.json",
+    "reports/model/rerank-across-any-sensor-aligned-spectrum-128-sqrt.json",
+    "reports/model/rerank-across-any-sensor-aligned-spectrum-32-sqrt.json",
+)
+
+
+def spectrum_aligned() -> str:
+    """The first stage chosen again for the option's network with aligned columns (every
+    stage still under a turn, so the floor no longer binds): the stages on val and the
+    choice on test, then the candidate files as the service answers beside the option."""
+    r = load(ALIGNED)
+    out = source(ALIGNED, r["command"], when(r))
+    out += (
+        f"\n{_label(r)}, columns aligned. R@1 as above; the stages on val by mean R@1, the "
+        "first eight:\n\n"
+    )
+    head = ["first stage", "R@1 mean", "R@1 across: mean / lowest", "R@20", "R@50"]
+    ranked = sorted(r["val"]["rows"], key=lambda x: -x["mean_r@1"])[:8]
+    out += table(head, [_recall_row(x) for x in ranked])
+    worst = min(v[k]["cosine_min"] for v in real_sets(r).values() for k in v if k != "scans")
+    out += (
+        f"\nChosen: {_first(r['val']['chosen'])} (the lowest cosine under turns of real scans, "
+        f"any stage measured: {worst:.5f}). On test:\n\n"
+    )
+    out += table(head, [_recall_row(x) for x in r["test"]["rows"]])
+    reports = [(p, load(p)) for p in ALIGNED_FILES]
+    out += "\n" + "".join(source(p, x["command"], when(x)) for p, x in reports)
+    out += (
+        "\nAs the service answers, each file's second stage chosen on val "
+        "(`benchmarks/rerank_across.py`), AR@1 on test:\n\n"
+    )
+    rows = []
+    for _, x in reports:
+        name = f"{_file_name(x)} (`{x['first_stage']}`)"
+        for row in sweep_test_rows(x):
+            if not row[0].startswith("its own"):
+                rows.append([name, *row])
+    head = ["file", "answer", "mean", "across: mean / lowest / at the bar", "same sensor"]
+    return out + table(head, rows)
+
+
+RENDERERS = {"yaw-spectrum": yaw_spectrum, "spectrum-aligned": spectrum_aligned}
