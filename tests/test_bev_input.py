@@ -18,7 +18,7 @@ from overlapmamba.core.sensors.input import (
     BEV_RINGS,
     COMMON_MAX_RANGE,
     SensorInput,
-    project_bev,
+    project_bev_offset,
     project_bev_reference,
 )
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
@@ -214,7 +214,7 @@ def test_a_turn_by_whole_columns_rolls_the_image():
     theta = -2 * np.pi * k / KITTI.width  # the columns grow clockwise
     c, s = np.cos(theta), np.sin(theta)
     turned = xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
-    a, b = project_bev(xyz, KITTI, 1)[0], project_bev(turned, KITTI, 1)[0]
+    a, b = project_bev_offset(xyz, KITTI, 1)[0][0], project_bev_offset(turned, KITTI, 1)[0][0]
     same = (np.roll(a, k, axis=1) == b).mean()
     assert same > 0.999  # points on a column edge may fall either side
 

@@ -1,7 +1,8 @@
 """The cells of the bird's-eye inputs: from each return's row (ring × band) and its column as a
-continuous number (column c spans [c, c + 1); :func:`overlapmamba.core.sensors.input.project_bev`
-finds both), what each cell of a (views, H, W) image shows. Sub-column view j moves every return
-j/views of a column on; empty cells are the profile's ``empty_value``, a full one 1.
+continuous number (column c spans [c, c + 1);
+:func:`overlapmamba.core.sensors.input.project_bev_offset` finds both), what each cell of a
+(views, H, W) image shows. Sub-column view j moves every return j/views of a column on; empty
+cells are the profile's ``empty_value``, a full one 1.
 
     bev        occupied: 1 where any return falls in the cell
     bev-soft   shared: each return gives the two columns whose centres lie either side of it

@@ -311,20 +311,6 @@ def bev_rows(
     return rows
 
 
-def project_bev(
-    xyz: np.ndarray,
-    model: SensorProfile,
-    views: int,
-    bands: tuple[float, ...] = BEV_BANDS,
-    rings: int = BEV_RINGS,
-    mode: str = "bev",
-) -> np.ndarray:
-    """(N, 3) levelled points at the reference height → (views, H, W) images of the
-    bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
-    measures others)."""
-    return project_bev_offset(xyz, model, views, bands, rings, mode)[0]
-
-
 def project_bev_offset(
     xyz: np.ndarray,
     model: SensorProfile,
@@ -335,7 +321,9 @@ def project_bev_offset(
     *,
     aligned: bool = False,
 ) -> tuple[np.ndarray, float]:
-    """:func:`project_bev` and the column offset it added: 0 unless ``aligned``, where the
+    """(N, 3) levelled points at the reference height → (views, H, W) images of the
+    bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
+    measures others), and the column offset it added: 0 unless ``aligned``, where the
     columns start at the mean bearing of the returns the input keeps
     (:func:`overlapmamba.core.views.scan_offset`), so that a scan turned about the vertical
     gives the plain image rolled by whole columns."""
