@@ -159,7 +159,8 @@ def without_first_stage(src: Path | str, out: Path | str) -> EncoderMetadata:
             "stage; write the file without them first"
         )
     g = proto.graph
-    own = [n for n in g.node if not (set(n.output) & _stage_outputs(g))]
+    added = _stage_outputs(g)
+    own = [n for n in g.node if not set(n.output) & added]
     del g.node[:]
     g.node.extend(own)
     kept = [t for t in g.initializer if not t.name.startswith("fs_")]
