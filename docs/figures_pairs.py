@@ -225,7 +225,9 @@ def column_phases(
     both files, ``files`` with the column phase each was measured with, the same drives):
     AR@1 of the descriptor alone and of the setting each chose on val, on val and on test."""
     reports = [(load(p), phase) for p, phase in files]
-    out = "".join(source(p, load(p)["command"], when(load(p))) for p, _ in files)
+    out = ""
+    for (path, _), (r, _) in zip(files, reports, strict=True):
+        out += source(path, r["command"], when(r))
     out += (
         "\nThe same weights, first stage and input, with the columns at the sensor's azimuth "
         "or at each scan's mean bearing (aligned); AR@1 as above, of the descriptor alone and "
