@@ -326,7 +326,7 @@ def _val_only(path: str, name: str, who: str) -> str:
 
 
 # the sixteen-epoch file's first stage chosen again with its turn floor over 20 draws of every
-# fifth scan (the shipped option's was chosen over 3): what the stricter rule would choose
+# fifth scan (the option's in the sensor's columns was chosen over 3): the stricter rule's pick
 STILL_DRAWS = "reports/model/yaw-spectrum-bev-span-thin-cpu-more-e16-draws20.json"
 
 RENDERERS = {
@@ -334,6 +334,6 @@ RENDERERS = {
     "epoch-pairs": epoch_pairs,
     "spectrum-draws": lambda: (
         _still_choice(STILL_DRAWS, None)
-        + _val_only(STILL_DRAWS, "mixed:0.5:8:none", "the option's")
+        + _val_only(STILL_DRAWS, "mixed:0.5:8:none", "the option's in the sensor's columns")
     ),
 }

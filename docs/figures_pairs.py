@@ -114,10 +114,12 @@ RERANK_PAIRS = "reports/model/across-pairs-bev-span-thin.json"  # its Scan Conte
 RERANK_OTHERS = ("reports/model/rerank-across-bev-long.json",)
 # the every-sensor option's calibration (models/overlapmamba-any-sensor.onnx), and Scan Context
 # on the same test drives from its weights' across-pairs run (in the sensor's columns: Scan
-# Context does not depend on the file); the same weights in the sensor's columns beside it
+# Context does not depend on the file); the column phase was chosen with the option's earlier
+# first stage (mixed:0.5:8:none): the same weights and stage in the sensor's columns and aligned
 RERANK_ANY = "reports/model/rerank-across-any-sensor.json"
 RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
 RERANK_ANY_SENSOR_COLUMNS = "reports/model/rerank-across-any-sensor-sensor-columns.json"
+RERANK_ANY_ALIGNED = "reports/model/rerank-across-any-sensor-aligned.json"
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -218,18 +220,22 @@ def _other_networks() -> str:
 def column_phases(
     files: tuple[tuple[str, str], ...] = (
         (RERANK_ANY_SENSOR_COLUMNS, "sensor"),
-        (RERANK_ANY, "aligned"),
+        (RERANK_ANY_ALIGNED, "aligned"),
     ),
 ) -> str:
     """The same weights in the sensor's columns and aligned (``rerank_across`` reports of
     both files, ``files`` with the column phase each was measured with, the same drives):
     AR@1 of the descriptor alone and of the setting each chose on val, on val and on test."""
     reports = [(load(p), phase) for p, phase in files]
+    stages = {r["first_stage"] for r, _ in reports}
+    if len(stages) != 1:
+        raise ValueError(f"the column phases were measured with other first stages: {stages}")
     out = ""
     for (path, _), (r, _) in zip(files, reports, strict=True):
         out += source(path, r["command"], when(r))
     out += (
-        "\nThe same weights, first stage and input, with the columns at the sensor's azimuth "
+        f"\nThe same weights, first stage (`{stages.pop()}`) and input, with the columns at the "
+        "sensor's azimuth "
         "or at each scan's mean bearing (aligned); AR@1 as above, of the descriptor alone and "
         "of the setting each file chose on val:\n\n"
     )

@@ -20,6 +20,12 @@ OPTION_RUNS = (
     ("the default file (HDL-64E, three views)", DEFAULT),
     ("every sensor, one view (the option)", "reports/model/sensors-any-sensor.json"),
 )
+# the every-sensor option's first stage before (mixed:0.5:8:none, runs/any-sensor-aligned) and
+# now (spectrum:32:sqrt), the same network and aligned columns, each with its own calibration
+FIRST_STAGE_RUNS = (
+    ("`mixed:0.5:8:none` (before)", "reports/model/sensors-any-sensor-aligned.json"),
+    ("`spectrum:32:sqrt` (the option)", "reports/model/sensors-any-sensor.json"),
+)
 # the every-sensor recipe's network at epoch 10 (the option's first file) and continued to
 # epoch 16 (the option's now), each with its first stage as chosen on cal-x00, as served with
 # the service's defaults
@@ -233,6 +239,8 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-twins": lambda: sensors_table(TWIN_RUNS),
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
     "sensors-more": lambda: sensors_table(MORE_RUNS),
+    "sensors-first-stage": lambda: sensors_table(FIRST_STAGE_RUNS),
+    "real-first-stage": lambda: real_rows(FIRST_STAGE_RUNS),
     "real-any-sensor": lambda: real_rows(OPTION_RUNS),
     "verify-across-any-sensor": lambda: verify_across(),
     "verify-across": lambda: verify_across("reports/service/verify-across.json", None),

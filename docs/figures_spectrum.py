@@ -7,7 +7,14 @@ from __future__ import annotations
 from typing import Any
 
 from figures_kit import f3, load, source, table, when
-from figures_pairs import _file_name, _label, _setting, against_scan_context, sweep_test_rows
+from figures_pairs import (
+    RERANK_ANY_ALIGNED,
+    _file_name,
+    _label,
+    _setting,
+    against_scan_context,
+    sweep_test_rows,
+)
 
 SPECTRUM = "reports/model/yaw-spectrum-bev-span-thin.json"
 SC_PAIRS = "reports/model/across-pairs-bev-span-thin.json"
@@ -126,8 +133,8 @@ def _sweep() -> str:
 
 
 ALIGNED = "reports/model/yaw-spectrum-any-sensor-aligned.json"
-ALIGNED_FILES = (  # the option as shipped, then the candidates the choice above wrote
-    "reports/model/rerank-across-any-sensor.json",
+ALIGNED_FILES = (  # the option before, then the candidates the choice above wrote
+    RERANK_ANY_ALIGNED,
     "reports/model/rerank-across-any-sensor-aligned-spectrum-128-sqrt.json",
     "reports/model/rerank-across-any-sensor-aligned-spectrum-32-sqrt.json",
 )
