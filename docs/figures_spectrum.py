@@ -175,4 +175,55 @@ def spectrum_aligned() -> str:
     return out + table(head, rows)
 
 
-RENDERERS = {"yaw-spectrum": yaw_spectrum, "spectrum-aligned": spectrum_aligned}
+# within one drive on the five val towns (benchmarks/loop_threshold.py, scored as one curve) for
+# the stages of the aligned choice above, each written into a file: (report, first stage)
+WITHIN = (
+    ("reports/service/loop_threshold-any-sensor-net-aligned.json", "descriptor"),
+    ("reports/service/loop_threshold-any-sensor-aligned.json", "mixed:0.5:8:none"),
+    (
+        "reports/service/loop_threshold-any-sensor-aligned-mixed-0.75-32-sqrt.json",
+        "mixed:0.75:32:sqrt",
+    ),
+    ("reports/service/loop_threshold-any-sensor.json", "spectrum:32:sqrt"),
+    (
+        "reports/service/loop_threshold-any-sensor-aligned-spectrum-128-sqrt.json",
+        "spectrum:128:sqrt",
+    ),
+)
+
+
+def within_and_across(within: tuple[tuple[str, str], ...] = WITHIN) -> str:
+    """Each first stage on val two ways: across sensors on the calibration town (the choice's
+    rows above) and within one drive on the five sensors' validation towns, the stage alone:
+    what a rule that weighs both would have to go on."""
+    across = {x["first"]: x for x in load(ALIGNED)["val"]["rows"]}
+    loaded = [(p, stage, load(p)) for p, stage in within]
+    ids = {r["model_id"] for _, _, r in loaded}
+    if len(ids) != len(loaded):
+        raise ValueError(f"two reports of one file among {[p for p, _, _ in loaded]}")
+    out = "".join(source(p, r["command"], when(r)) for p, _, r in loaded)
+    out += (
+        "\nOn val only. Across sensors: the calibration town's 25 pairs, R@1 mean and the 20 "
+        "across sensors' lowest (the choice above). Within one drive: the five validation "
+        "towns (HDL-64E, VLP-16, OS0-128, XT32, OS1-128) scored as one curve, the first stage "
+        "alone, F1max / Recall@1 (all revisits):\n\n"
+    )
+    rows = []
+    for _, stage, r in loaded:
+        x, m = across[stage], r["summary"]
+        rows.append(
+            [
+                f"{_first(stage)} (`{r['model_id']}`)",
+                f"{f3(x['mean_r@1'])} / {f3(x['across_min_r@1'])}",
+                f"{f3(m['f1max'])} / {f3(m['recall@1'])}",
+            ]
+        )
+    head = ["first stage", "across: R@1 mean / lowest", "within one drive: F1max / R@1"]
+    return out + table(head, rows)
+
+
+RENDERERS = {
+    "yaw-spectrum": yaw_spectrum,
+    "spectrum-aligned": spectrum_aligned,
+    "first-stage-within": within_and_across,
+}
