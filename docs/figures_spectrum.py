@@ -201,12 +201,15 @@ def within_and_across(within: tuple[tuple[str, str], ...] = WITHIN) -> str:
     ids = {r["model_id"] for _, _, r in loaded}
     if len(ids) != len(loaded):
         raise ValueError(f"two reports of one file among {[p for p, _, _ in loaded]}")
+    towns = {r["sequence"] for _, _, r in loaded}
+    if len(towns) != 1:
+        raise ValueError(f"the stages were scored on other towns: {towns}")
+    names = ", ".join(f"`{t.strip().rsplit('/', 1)[-1]}`" for t in towns.pop().split(","))
     out = "".join(source(p, r["command"], when(r)) for p, _, r in loaded)
     out += (
         "\nOn val only. Across sensors: the calibration town's 25 pairs, R@1 mean and the 20 "
-        "across sensors' lowest (the choice above). Within one drive: the five validation "
-        "towns (HDL-64E, VLP-16, OS0-128, XT32, OS1-128) scored as one curve, the first stage "
-        "alone, F1max / Recall@1 (all revisits):\n\n"
+        f"across sensors' lowest (the choice above). Within one drive: {names}, scored as one "
+        "curve, the first stage alone, F1max / Recall@1 (all revisits):\n\n"
     )
     rows = []
     for _, stage, r in loaded:
