@@ -29,7 +29,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from bench_kit import ROOT, provenance, served_input, served_settings, write_calibration
+from bench_kit import (
+    ROOT,
+    model_record,
+    provenance,
+    served_input,
+    served_settings,
+    write_calibration,
+)
 from reports_kit import REPORTS
 from rich.console import Console
 from rich.table import Table
@@ -118,7 +125,7 @@ def main() -> None:
         json.dumps(
             {
                 **provenance(),
-                "model_id": enc.model_id,
+                **model_record(args.model, enc),
                 "sequence": ", ".join(map(str, args.sequence)),
                 "towns": [
                     {"sequence": str(p), "summary": t[0].summary(), "reranked": t[2].summary()}

@@ -176,47 +176,43 @@ def spectrum_aligned() -> str:
 
 
 # within one drive on the five val towns (benchmarks/loop_threshold.py, scored as one curve) for
-# the stages of the aligned choice above, each written into a file: (report, first stage)
-WITHIN = (
-    ("reports/service/loop_threshold-any-sensor-net-aligned.json", "descriptor"),
-    ("reports/service/loop_threshold-any-sensor-aligned.json", "mixed:0.5:8:none"),
-    (
-        "reports/service/loop_threshold-any-sensor-aligned-mixed-0.75-32-sqrt.json",
-        "mixed:0.75:32:sqrt",
-    ),
-    ("reports/service/loop_threshold-any-sensor.json", "spectrum:32:sqrt"),
-    (
-        "reports/service/loop_threshold-any-sensor-aligned-spectrum-128-sqrt.json",
-        "spectrum:128:sqrt",
-    ),
+# the stages of the aligned choice above, each written into a file; each report names its stage
+WITHIN = tuple(
+    f"reports/service/loop_threshold-any-sensor-{name}.json"
+    for name in (
+        "net-aligned",
+        "aligned",
+        "aligned-mixed-0.75-32-sqrt",
+        "aligned-spectrum-32-sqrt",
+        "aligned-spectrum-128-sqrt",
+    )
 )
 
 
-def within_and_across(within: tuple[tuple[str, str], ...] = WITHIN) -> str:
+def within_and_across(within: tuple[str, ...] = WITHIN) -> str:
     """Each first stage on val two ways: across sensors on the calibration town (the choice's
     rows above) and within one drive on the five sensors' validation towns, the stage alone:
     what a rule that weighs both would have to go on."""
     across = {x["first"]: x for x in load(ALIGNED)["val"]["rows"]}
-    loaded = [(p, stage, load(p)) for p, stage in within]
-    ids = {r["model_id"] for _, _, r in loaded}
-    if len(ids) != len(loaded):
-        raise ValueError(f"two reports of one file among {[p for p, _, _ in loaded]}")
-    towns = {r["sequence"] for _, _, r in loaded}
+    loaded = [(p, load(p)) for p in within]
+    if len({r["model_id"] for _, r in loaded}) != len(loaded):
+        raise ValueError(f"two reports of one file among {list(within)}")
+    towns = {r["sequence"] for _, r in loaded}
     if len(towns) != 1:
         raise ValueError(f"the stages were scored on other towns: {towns}")
     names = ", ".join(f"`{t.strip().rsplit('/', 1)[-1]}`" for t in towns.pop().split(","))
-    out = "".join(source(p, r["command"], when(r)) for p, _, r in loaded)
+    out = "".join(source(p, r["command"], when(r)) for p, r in loaded)
     out += (
         "\nOn val only. Across sensors: the calibration town's 25 pairs, R@1 mean and the 20 "
         f"across sensors' lowest (the choice above). Within one drive: {names}, scored as one "
         "curve, the first stage alone, F1max / Recall@1 (all revisits):\n\n"
     )
     rows = []
-    for _, stage, r in loaded:
-        x, m = across[stage], r["summary"]
+    for _, r in loaded:
+        x, m = across[r["first_stage"]], r["summary"]
         rows.append(
             [
-                f"{_first(stage)} (`{r['model_id']}`)",
+                f"{_first(r['first_stage'])} (`{r['model_id']}`)",
                 f"{f3(x['mean_r@1'])} / {f3(x['across_min_r@1'])}",
                 f"{f3(m['f1max'])} / {f3(m['recall@1'])}",
             ]
