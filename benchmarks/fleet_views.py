@@ -97,7 +97,7 @@ DEFAULT_MODELS = (
 )
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 KEPT = ("observations", "throughput_per_s", "latency_ms", "errors", "precision", "recall")
-KEPT += ("verified_closures", "loop_closures")
+KEPT += ("verified_closures", "loop_closures", "verified_pose_right")
 
 
 def _children_cpu_s() -> float:

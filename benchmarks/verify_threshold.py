@@ -54,7 +54,7 @@ from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.overlap import LoopGroundTruth
-from overlapmamba.core.poses import pose_error
+from overlapmamba.core.poses import POSE_RIGHT, pose_error
 from overlapmamba.core.rerank import Rerank, by_score
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
@@ -146,9 +146,6 @@ def candidate(
     return c
 
 
-POSE_OK = (1.0, 2.0)  # m, °: a closure whose pose is this close to the truth is correct
-
-
 def score(
     queries: list[dict[str, Any]],
     min_fitness: float,
@@ -179,7 +176,7 @@ def score(
             continue
         best = ok[0] if stop_at_first else max(ok, key=lambda c: c["fitness"])
         accepted += 1
-        right = best["t_err"] <= POSE_OK[0] and best["yaw_err"] <= POSE_OK[1]
+        right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
         correct += right
         on_loop += best["loop"]
         found += right and best["loop"]

@@ -10,6 +10,8 @@ from typing import Any
 
 from figures_kit import ROOT, f3, load, ms, source, table, when
 
+from overlapmamba.core.poses import POSE_RIGHT
+
 # ---- verification --------------------------------------------------------------------------
 VERIFY = "reports/service/verify-test.json"
 VERIFY_ONE_VIEW = "reports/service/verify-test-one-view.json"
@@ -327,17 +329,26 @@ def fleet_views(path: str = FLEET_VIEWS) -> str:
     (each way of meeting the views, by default), alternating rounds, and where an
     observation's CPU time goes."""
     r = load(path)
+    # reports since the fleet judged verified closures by their pose too
+    every_run = [x for m in r["models"].values() for x in m["runs"]]
+    posed = all(x.get("verified_pose_right") is not None for x in every_run)
     rows = []
     for name, m in r["models"].items():
         runs = m["runs"]
         cpu = [x["cpu_ms_per_observation"] for x in runs]
+        row = [
+            f"{name} (`{m['model_id']}`)",
+            ", ".join(f"{x['throughput_per_s']:.1f}" for x in runs),
+            ", ".join(ms(x["latency_ms"]["p50"]) for x in runs),
+            sum(sum((x["errors"] or {}).values()) for x in runs),
+            ", ".join(f3(x["precision"]) for x in runs),
+        ]
+        if posed:
+            shares = [x["verified_pose_right"] / max(x["verified_closures"], 1) for x in runs]
+            row.append(", ".join(f3(v) for v in shares))
         rows.append(
             [
-                f"{name} (`{m['model_id']}`)",
-                ", ".join(f"{x['throughput_per_s']:.1f}" for x in runs),
-                ", ".join(ms(x["latency_ms"]["p50"]) for x in runs),
-                sum(sum((x["errors"] or {}).values()) for x in runs),
-                ", ".join(f3(x["precision"]) for x in runs),
+                *row,
                 ", ".join(f3(x["recall"]) for x in runs),
                 ", ".join(f"{c['server']:.0f} + {c['client']:.0f} ms" for c in cpu),
                 ", ".join(f"{x['ceiling_per_s']:.1f}" for x in runs),
@@ -355,9 +366,18 @@ def fleet_views(path: str = FLEET_VIEWS) -> str:
         "CPU an observation: the server's and the simulator's (its robots share the "
         f"{r['cores']} cores), over the observations answered; ceiling: "
         f"{r['cores']} cores ÷ their sum, observations a second; verify: the server's median "
-        "time in that stage a scan query.\n\n"
+        "time in that stage a scan query."
+        + (
+            " Precision counts a closure right when its keyframe lies within the drive's loop "
+            "radius; pose right: the share of verified closures whose relative pose is within "
+            f"{POSE_RIGHT[0]:g} m and {POSE_RIGHT[1]:g}° of the truth, wherever the keyframe lies."
+            if posed
+            else ""
+        )
+        + "\n\n"
     )
-    head = ["model", "observations/s", "p50", "errors", "precision", "recall"]
+    head = ["model", "observations/s", "p50", "errors", "precision"]
+    head += ["pose right"] * posed + ["recall"]
     return out + table([*head, "CPU an observation", "ceiling", "verify"], rows)
 
 

@@ -441,3 +441,45 @@ def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
     ready = httpx.get(f"{live}/readyz").json()["detail"]
     assert report.server["model_id"] == ready["model_id"] and report.server["views"] >= 1
     assert report.drives == [drive.name] and report.when.endswith("+00:00")
+
+
+def test_fleet_judges_verified_closures_by_their_pose_beyond_the_loop_radius():
+    """Precision counts a closure right when its keyframe lies within the loop radius; a
+    verified closure's pose is judged as well, wherever the keyframe lies: a right pose to
+    a keyframe 20 m away is an edge a pose graph can take, a wrong one is not."""
+    from types import SimpleNamespace
+
+    from overlapmamba.client._replay import Drive
+    from overlapmamba.client.fleet import _report, _Sample
+
+    n = 100
+    world = np.tile(np.eye(4), (n, 1, 1))
+    world[:, 0, 3] = np.arange(n, dtype=float)  # a straight drive, a metre a frame
+    xyzq = np.zeros((n, 7))
+    xyzq[:, 0], xyzq[:, 6] = world[:, 0, 3], 1.0
+    drive = Drive(
+        seq=SimpleNamespace(poses=world, name="line"),
+        times=np.arange(n, dtype=float),
+        poses=xyzq,
+        loop_radius=5.0,
+    )
+    keyframes = {f"kf{j}": (0, j, 0.0) for j in (10, 40, 48, 78)}
+
+    def sample(frame: int, kf: int, verified: bool, pose: np.ndarray | None) -> _Sample:
+        return _Sample(
+            robot="r", drive=0, frame=frame, sent=1.0, latency_ms=1.0, accepted=True,
+            top=f"kf{kf}", inserted=None, error=None, verified=verified, relative_pose=pose,
+        )  # fmt: skip
+
+    def truth(kf: int, frame: int) -> np.ndarray:
+        return np.linalg.inv(world[kf]) @ world[frame]
+
+    samples = [
+        sample(50, 48, True, truth(48, 50)),  # within the radius, pose right
+        sample(60, 40, True, truth(40, 60)),  # 20 m away, pose right
+        sample(70, 10, True, np.eye(4)),  # 60 m away, pose wrong
+        sample(80, 78, False, None),  # within the radius, not verified
+    ]
+    r = _report(samples, keyframes, [drive], 1, 1.0, 1.0, 0.0, 0.0)
+    assert (r.loop_closures, r.correct, r.verified_closures) == (4, 2, 3)
+    assert r.precision == 0.5 and r.verified_pose_right == 2

@@ -11,7 +11,11 @@ drive's loop radius of the query's. A query *has* a loop when such a keyframe ha
 acknowledged before the query was sent and the service's own-session recency filter
 (``exclude_recent_s``, the server default) did not hide it. Precision = correct / accepted,
 recall = correct / queries that had a loop. A verified closure's relative pose is scored
-against the drive's poses (T = P_keyframe⁻¹ · P_query): translation and yaw errors.
+against the drive's poses (T = P_keyframe⁻¹ · P_query): translation and yaw errors of the
+correct ones, and how many verified closures of all had a right pose (within
+``overlapmamba.core.poses.POSE_RIGHT``, wherever their keyframe lies on the same drive: an edge
+a pose graph can take, even beyond the loop radius; one to another drive's keyframe counts
+as not right, its truth unknown here).
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from overlapmamba.client._async import AsyncPlaceRecognitionClient
 from overlapmamba.client._base import Retry
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
-from overlapmamba.core.poses import pose_error
+from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
 
 @dataclass
@@ -66,6 +70,7 @@ class FleetReport:
     recall: float | None
     verified_closures: int = 0
     pose_error: dict[str, dict[str, float]] | None = None  # correct verified closures
+    verified_pose_right: int | None = None  # verified closures whose relative pose is right
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
     # what was measured: the service's model (its /readyz), the drives, when (UTC)
     server: dict[str, Any] = field(default_factory=dict)
@@ -266,6 +271,7 @@ def _report(
         precision=(correct / len(accepted)) if correct is not None and accepted else None,
         recall=(correct / with_loop) if correct is not None and with_loop else None,
         verified_closures=sum(bool(s.verified) for s in accepted),
+        verified_pose_right=_pose_right(accepted, keyframes, drives) if has_gt else None,
         pose_error=None
         if not t_err
         else {
@@ -280,6 +286,24 @@ def _report(
         },
         per_robot=per_robot,
     )
+
+
+def _pose_right(
+    accepted: list[_Sample], keyframes: dict[str, tuple[int, int, float]], drives: list[Drive]
+) -> int:
+    """How many verified closures name a keyframe of the query's own drive with a relative
+    pose within ``POSE_RIGHT`` of the truth, whether or not it lies within the loop radius."""
+    right = 0
+    for s in accepted:
+        if not s.verified or s.relative_pose is None or s.top not in keyframes:
+            continue
+        d, j, _ = keyframes[s.top]
+        poses = drives[s.drive].seq.poses
+        if d != s.drive or poses is None:
+            continue
+        t, y = pose_error(s.relative_pose, np.linalg.inv(poses[j]) @ poses[s.frame])
+        right += t <= POSE_RIGHT[0] and y <= POSE_RIGHT[1]
+    return right
 
 
 def write_outputs(

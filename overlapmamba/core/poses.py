@@ -95,6 +95,11 @@ def yaw_deg(transforms: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(t[..., 1, 0], t[..., 0, 0]))
 
 
+# a loop closure whose relative pose is this close to the truth is right (metres, degrees):
+# an edge a pose graph can take
+POSE_RIGHT = (1.0, 2.0)
+
+
 def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """How far a (4, 4) transform is from the true one: (translation in metres, |yaw| in
     degrees) of truth⁻¹ · estimate."""
