@@ -20,11 +20,13 @@ OPTION_RUNS = (
     ("the default file (HDL-64E, three views)", DEFAULT),
     ("every sensor, one view (the option)", "reports/model/sensors-any-sensor.json"),
 )
-# the every-sensor option's first stage before (mixed:0.5:8:none, runs/any-sensor-aligned) and
-# now (spectrum:32:sqrt), the same network and aligned columns, each with its own calibration
+# the every-sensor option's first stages, the same network and aligned columns, each file with
+# its own calibration: mixed:0.5:8:none (runs/any-sensor-aligned), spectrum:32:sqrt (the option
+# as shipped on 2026-12-01, runs/any-sensor-option-spectrum-32) and the option now
 FIRST_STAGE_RUNS = (
-    ("`mixed:0.5:8:none` (before)", "reports/model/sensors-any-sensor-aligned.json"),
-    ("`spectrum:32:sqrt` (the option)", "reports/model/sensors-any-sensor.json"),
+    ("`mixed:0.5:8:none`", "reports/model/sensors-any-sensor-aligned.json"),
+    ("`spectrum:32:sqrt`", "reports/model/sensors-any-sensor-spectrum-32.json"),
+    ("`mixed:0.75:32:sqrt` (the option)", "reports/model/sensors-any-sensor.json"),
 )
 # the every-sensor recipe's network at epoch 10 (the option's first file) and continued to
 # epoch 16 (the option's now), each with its first stage as chosen on cal-x00, as served with

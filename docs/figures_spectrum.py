@@ -189,10 +189,14 @@ WITHIN = tuple(
 )
 
 
+# the option as shipped: its first stage, as its calibration report records it
+OPTION_ACROSS = "reports/model/rerank-across-any-sensor.json"
+
+
 def within_and_across(within: tuple[str, ...] = WITHIN) -> str:
     """Each first stage on val two ways: across sensors on the calibration town (the choice's
-    rows above) and within one drive on the five sensors' validation towns, the stage alone:
-    what a rule that weighs both would have to go on."""
+    rows above) and within one drive on the five sensors' validation towns, the stage alone,
+    and the rule that weighs the four figures alike, beside the option's own stage."""
     across = {x["first"]: x for x in load(ALIGNED)["val"]["rows"]}
     loaded = [(p, load(p)) for p in within]
     if len({r["model_id"] for _, r in loaded}) != len(loaded):
@@ -207,18 +211,32 @@ def within_and_across(within: tuple[str, ...] = WITHIN) -> str:
         f"across sensors' lowest (the choice above). Within one drive: {names}, scored as one "
         "curve, the first stage alone, F1max / Recall@1 (all revisits):\n\n"
     )
-    rows = []
+    rows, scores = [], {}
     for _, r in loaded:
         x, m = across[r["first_stage"]], r["summary"]
+        four = (x["mean_r@1"], x["across_min_r@1"], m["f1max"], m["recall@1"])
+        scores[r["first_stage"]] = float(sum(four) / len(four))
         rows.append(
             [
                 f"{_first(r['first_stage'])} (`{r['model_id']}`)",
                 f"{f3(x['mean_r@1'])} / {f3(x['across_min_r@1'])}",
                 f"{f3(m['f1max'])} / {f3(m['recall@1'])}",
+                f3(scores[r["first_stage"]]),
             ]
         )
-    head = ["first stage", "across: R@1 mean / lowest", "within one drive: F1max / R@1"]
-    return out + table(head, rows)
+    head = [
+        "first stage",
+        "across: R@1 mean / lowest",
+        "within one drive: F1max / R@1",
+        "mean of the four",
+    ]
+    pick = max(scores, key=lambda k: scores[k])
+    option = load(OPTION_ACROSS)
+    out += table(head, rows)
+    return out + (
+        f"\nThe rule (the four val figures weighed alike) takes {_first(pick)}; the option "
+        f"(`{option['model_id']}`, `{OPTION_ACROSS}`) carries {_first(option['first_stage'])}.\n"
+    )
 
 
 RENDERERS = {
