@@ -787,8 +787,14 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
 
         stats = (await c.get("/v1/maps/town/stats")).json()["verification"]
         assert stats["verified"] >= 1 and stats["rejected"] >= 2
+        # registered to a fitness: the turned scan's k1 (and any tried before it verified);
+        # never the keyframe without geometry, the unregistered after the first, the sparse
+        # query's refusals
+        assert 1 <= stats["registered"] <= stats["verified"] + stats["rejected"] - 1
+        assert stats["registered_per_query"] > 0
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_verifications_total{map="town",outcome="verified"}' in metrics
+        assert 'overlapmamba_registrations_total{map="town"}' in metrics
 
 
 async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, encoder):

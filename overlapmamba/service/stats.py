@@ -39,7 +39,10 @@ class _Counts:
     queries: int = 0
     loop_closures: int = 0
     verified: int = 0  # candidates whose registration passed the thresholds
-    rejected: int = 0  # candidates registered (or tried) that did not
+    # candidates that did not: registered and below the thresholds, refused by registration
+    # (too few points), or kept from registering by the descriptor gate
+    rejected: int = 0
+    registered: int = 0  # candidates registered to a fitness: the verify stage's GICP work
     robots: OrderedDict[str, _Robot] = field(default_factory=OrderedDict)
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
 
@@ -52,7 +55,12 @@ class _Counts:
             "queries_per_s_1m": last_min / 60.0,
             "loop_closures": self.loop_closures,
             "loop_closure_rate": self.loop_closures / self.queries if self.queries else 0.0,
-            "verification": {"verified": self.verified, "rejected": self.rejected},
+            "verification": {
+                "verified": self.verified,
+                "rejected": self.rejected,
+                "registered": self.registered,
+                "registered_per_query": self.registered / self.queries if self.queries else 0.0,
+            },
             "robots": {
                 name: {
                     "last_seen": r.last_seen,
@@ -105,6 +113,12 @@ class Stats:
             ["map", "outcome"],
             registry=r,
         )
+        self.p_registered = PCounter(
+            "overlapmamba_registrations",
+            "Candidates registered to a fitness (GICP runs): the verify stage's work",
+            ["map"],
+            registry=r,
+        )
         self.p_batch = Histogram(
             "overlapmamba_encoder_batch_size",
             "Scans per encoder call",
@@ -146,22 +160,29 @@ class Stats:
     ) -> None:
         """One answered query; ``candidates``: its matches that went through verification
         (those whose keyframe had no geometry, or not registered after an earlier one verified
-        under ``verify.stop_at_first``, count as neither verified nor rejected)."""
+        under ``verify.stop_at_first``, count as neither verified nor rejected); those
+        registered to a fitness count as ``registered`` too, whatever their outcome."""
         self.p_queries.labels(map_id).inc()
         if accepted:
             self.p_loops.labels(map_id).inc()
         outcomes = [c.verification.verified for c in candidates if c.verification is not None]
         verified = sum(v is True for v in outcomes)
         rejected = sum(v is False for v in outcomes)
+        registered = sum(
+            c.verification.fitness is not None for c in candidates if c.verification is not None
+        )
         if verified:
             self.p_verify.labels(map_id, "verified").inc(verified)
         if rejected:
             self.p_verify.labels(map_id, "rejected").inc(rejected)
+        if registered:
+            self.p_registered.labels(map_id).inc(registered)
         with self._lock:
             for c in (self.total, self.by_map[map_id]):
                 c.queries += 1
                 c.verified += verified
                 c.rejected += rejected
+                c.registered += registered
                 c.recent.append(time.time())
                 c.loop_closures += accepted
                 rec = self._robot(c, robot)
@@ -184,7 +205,14 @@ class Stats:
         with self._lock:
             self.by_map.pop(map_id, None)
         labelled: list[tuple[Gauge | PCounter, tuple[str, ...]]] = [
-            (m, (map_id,)) for m in (self.p_keyframes, self.p_queries, self.p_inserts, self.p_loops)
+            (m, (map_id,))
+            for m in (
+                self.p_keyframes,
+                self.p_queries,
+                self.p_inserts,
+                self.p_loops,
+                self.p_registered,
+            )
         ]
         labelled += [(self.p_verify, (map_id, outcome)) for outcome in ("verified", "rejected")]
         for metric, labels in labelled:
