@@ -344,8 +344,13 @@ def fleet_views(path: str = FLEET_VIEWS) -> str:
             ", ".join(f3(x["precision"]) for x in runs),
         ]
         if posed:
-            shares = [x["verified_pose_right"] / max(x["verified_closures"], 1) for x in runs]
-            row.append(", ".join(f3(v) for v in shares))
+            shares = [
+                f3(x["verified_pose_right"] / x["verified_closures"])
+                if x["verified_closures"]
+                else "—"  # nothing verified: no pose to judge
+                for x in runs
+            ]
+            row.append(", ".join(shares))
         rows.append(
             [
                 *row,
