@@ -8,6 +8,7 @@ from typing import Any
 
 from figures_kit import f3, load, source, table, when
 from figures_pairs import (
+    RERANK_ANY,
     RERANK_ANY_ALIGNED,
     _file_name,
     _label,
@@ -189,10 +190,6 @@ WITHIN = tuple(
 )
 
 
-# the option as shipped: its first stage, as its calibration report records it
-OPTION_ACROSS = "reports/model/rerank-across-any-sensor.json"
-
-
 def within_and_across(within: tuple[str, ...] = WITHIN) -> str:
     """Each first stage on val two ways: across sensors on the calibration town (the choice's
     rows above) and within one drive on the five sensors' validation towns, the stage alone,
@@ -231,11 +228,11 @@ def within_and_across(within: tuple[str, ...] = WITHIN) -> str:
         "mean of the four",
     ]
     pick = max(scores, key=lambda k: scores[k])
-    option = load(OPTION_ACROSS)
+    option = load(RERANK_ANY)  # the option as shipped: its stage as its report records it
     out += table(head, rows)
     return out + (
         f"\nThe rule (the four val figures weighed alike) takes {_first(pick)}; the option "
-        f"(`{option['model_id']}`, `{OPTION_ACROSS}`) carries {_first(option['first_stage'])}.\n"
+        f"(`{option['model_id']}`, `{RERANK_ANY}`) carries {_first(option['first_stage'])}.\n"
     )
 
 

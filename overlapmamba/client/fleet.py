@@ -210,11 +210,11 @@ def _report(
     lat = np.array([s.latency_ms for s in ok]) if ok else np.zeros(1)
     accepted = [s for s in ok if s.accepted]
     has_gt = all(d.loop_radius is not None and d.poses is not None for d in drives)
-    correct = with_loop = None
+    correct = with_loop = pose_right = None
     t_err: list[float] = []
     yaw_err: list[float] = []
     if has_gt:
-        correct, with_loop = 0, 0
+        correct, with_loop, pose_right = 0, 0, 0
         kf_by_drive: dict[int, list[tuple[int, float, str]]] = {}
         for kid, (d, i, t) in keyframes.items():
             kf_by_drive.setdefault(d, []).append((i, t - start, kid))
@@ -235,16 +235,20 @@ def _report(
                 and np.linalg.norm(drive.poses[i, :3] - p) < radius
             ]
             with_loop += bool(cands)
-            if s.accepted and s.top in keyframes:
-                d, j, _ = keyframes[s.top]
-                if d == s.drive and np.linalg.norm(drive.poses[j, :3] - p) < radius:
-                    correct += 1
-                    if s.verified and s.relative_pose is not None:
-                        poses = drive.seq.poses
-                        truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
-                        t, y = pose_error(s.relative_pose, truth)
-                        t_err.append(t)
-                        yaw_err.append(y)
+            if not (s.accepted and s.top in keyframes):
+                continue
+            d, j, _ = keyframes[s.top]
+            near = bool(d == s.drive and np.linalg.norm(drive.poses[j, :3] - p) < radius)
+            correct += near
+            # a verified closure's pose, wherever its keyframe on this drive lies
+            if d == s.drive and s.verified and s.relative_pose is not None:
+                poses = drive.seq.poses
+                truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
+                t, y = pose_error(s.relative_pose, truth)
+                pose_right += t <= POSE_RIGHT[0] and y <= POSE_RIGHT[1]
+                if near:
+                    t_err.append(t)
+                    yaw_err.append(y)
     per_robot: dict[str, dict[str, Any]] = {}
     for s in samples:
         r = per_robot.setdefault(s.robot, {"observations": 0, "errors": 0, "loop_closures": 0})
@@ -271,7 +275,7 @@ def _report(
         precision=(correct / len(accepted)) if correct is not None and accepted else None,
         recall=(correct / with_loop) if correct is not None and with_loop else None,
         verified_closures=sum(bool(s.verified) for s in accepted),
-        verified_pose_right=_pose_right(accepted, keyframes, drives) if has_gt else None,
+        verified_pose_right=pose_right,
         pose_error=None
         if not t_err
         else {
@@ -286,24 +290,6 @@ def _report(
         },
         per_robot=per_robot,
     )
-
-
-def _pose_right(
-    accepted: list[_Sample], keyframes: dict[str, tuple[int, int, float]], drives: list[Drive]
-) -> int:
-    """How many verified closures name a keyframe of the query's own drive with a relative
-    pose within ``POSE_RIGHT`` of the truth, whether or not it lies within the loop radius."""
-    right = 0
-    for s in accepted:
-        if not s.verified or s.relative_pose is None or s.top not in keyframes:
-            continue
-        d, j, _ = keyframes[s.top]
-        poses = drives[s.drive].seq.poses
-        if d != s.drive or poses is None:
-            continue
-        t, y = pose_error(s.relative_pose, np.linalg.inv(poses[j]) @ poses[s.frame])
-        right += t <= POSE_RIGHT[0] and y <= POSE_RIGHT[1]
-    return right
 
 
 def write_outputs(

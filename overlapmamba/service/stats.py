@@ -165,12 +165,10 @@ class Stats:
         self.p_queries.labels(map_id).inc()
         if accepted:
             self.p_loops.labels(map_id).inc()
-        outcomes = [c.verification.verified for c in candidates if c.verification is not None]
-        verified = sum(v is True for v in outcomes)
-        rejected = sum(v is False for v in outcomes)
-        registered = sum(
-            c.verification.fitness is not None for c in candidates if c.verification is not None
-        )
+        verdicts = [c.verification for c in candidates if c.verification is not None]
+        verified = sum(v.verified is True for v in verdicts)
+        rejected = sum(v.verified is False for v in verdicts)
+        registered = sum(v.fitness is not None for v in verdicts)
         if verified:
             self.p_verify.labels(map_id, "verified").inc(verified)
         if rejected:
