@@ -12,6 +12,7 @@ from test_catalogue import _cloud
 
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import CATALOGUE, SensorProfile, get_profile
+from overlapmamba.core.sensors.bev import bev_cells, cells_reference
 from overlapmamba.core.sensors.input import (
     BEV_BANDS,
     BEV_MODES,
@@ -62,6 +63,28 @@ def test_fast_span_projection_matches_the_reference(seed):
     np.testing.assert_allclose(got, project_bev_reference(xyz, KITTI, "bev-span"), atol=1e-6)
     hard = project_bev_reference(xyz, KITTI)
     assert ((hard > 0) <= (got > KITTI.empty_value)).all() and got.max() == 1.0
+
+
+def test_every_sub_column_view_of_spans_matches_the_slow_cover():
+    """Each view j of ``bev-span`` covers what the returns moved j/views of a column on cover,
+    span by span (the fast cover keeps the longest piece reaching into a column from each
+    side): returns on column edges, on the seam and stacked in one cell included."""
+    rng = np.random.default_rng(5)
+    W = KITTI.width
+    u = np.concatenate(
+        [
+            rng.uniform(0.0, W, 2000),
+            [0.0, 0.5, 1.0, W - 0.5, W - 1e-4, 7.25, 7.25, 7.75, 8.0, 8.5],
+        ]
+    ).astype(np.float32)
+    row = rng.integers(0, 3, len(u))
+    got = bev_cells(u, row, KITTI, 3, "bev-span")
+    for j in range(3):
+        # the slow cover takes float32 columns: near 900 they step by 6e-5
+        moved = np.mod(u.astype(np.float64) + j / 3, W).astype(np.float32)
+        want = cells_reference(moved, row, KITTI, "bev-span")
+        np.testing.assert_allclose(got[j], want, atol=1.5e-4)
+        assert ((got[j] > KITTI.empty_value) == (want > KITTI.empty_value)).all()
 
 
 def _strip(step_deg: float, r: float = 20.0, z: float = 0.0) -> np.ndarray:

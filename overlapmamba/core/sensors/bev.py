@@ -71,50 +71,30 @@ def _shared(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) ->
 
 
 def _spanned(u: np.ndarray, row: np.ndarray, model: SensorProfile, views: int) -> np.ndarray:
-    """Per view and row, the union of the returns' spans [u − ½, u + ½) (a return within half a
-    column of the seam also spans the other side), and each column's share of it."""
+    """Per view, row and column, how much of the column the union of the returns' spans
+    [u − ½, u + ½) covers (the columns wrap round).
+
+    A span meets two columns: the one holding u + ½, from its left edge up to u + ½ (a share
+    f = frac(u + ½)), and the one before it, from u − ½ to its right edge (1 − f). Within a
+    column every span that reaches in from the left covers a piece starting at the left edge
+    and every other one a piece ending at the right edge, so the union is the longest piece
+    from each side, together, at most the whole column: one pass over the returns, two
+    per-cell maxima, no sort of the returns (it replaced a union of sorted spans: on KITTI 00
+    the same cells to the last bit, in about a fifth of the time)."""
     H, W = model.height, model.width
-    row = np.asarray(row, np.int64)
-    cover = np.zeros((views, H, W), np.float64)
+    row = np.asarray(row, np.int64) * W
+    cover = np.zeros((views, H * W), np.float64)
     for j in range(views):
-        at = (np.asarray(u, np.float64) + j / views) % W
-        seam_lo, seam_hi = at < 0.5, at > W - 0.5
-        at = np.concatenate([at, at[seam_lo] + W, at[seam_hi] - W])
-        rows = np.concatenate([row, row[seam_lo], row[seam_hi]])
-        if not len(at):
-            continue
-        # the rows laid end to end on one line, far enough apart that no span joins two
-        line = at + rows * (W + 4.0)
-        order = np.argsort(line, kind="stable")
-        line, rows = line[order], rows[order]
-        reach = np.maximum.accumulate(line + 0.5)  # the furthest any span so far ends
-        first = np.ones(len(line), bool)
-        first[1:] = line[1:] - 0.5 > reach[:-1]  # a span that starts past every earlier end
-        starts = np.flatnonzero(first)
-        ends = np.append(starts[1:], len(line)) - 1
-        offset = rows[starts] * (W + 4.0)
-        lo = np.clip(line[starts] - 0.5 - offset, 0.0, W)
-        hi = np.clip(reach[ends] - offset, 0.0, W)
-        _add_spans(cover[j], rows[starts], lo, hi)
-    return np.minimum(cover, 1.0)
-
-
-def _add_spans(cover: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
-    """Add to ``cover`` (H, W) how much of each column the disjoint spans [lo, hi) of ``rows``
-    cover: the partial columns at each end, and 1 for every column between."""
-    H, W = cover.shape
-    c0 = np.minimum(np.floor(lo).astype(np.int64), W - 1)
-    c1 = np.floor(hi).astype(np.int64)
-    one = c0 == c1
-    np.add.at(cover, (rows[one], c0[one]), hi[one] - lo[one])
-    many = ~one
-    np.add.at(cover, (rows[many], c0[many]), c0[many] + 1 - lo[many])
-    tail = many & (c1 < W)
-    np.add.at(cover, (rows[tail], c1[tail]), hi[tail] - c1[tail])
-    between = np.zeros((H, W + 1), np.float64)
-    np.add.at(between, (rows[many], c0[many] + 1), 1.0)
-    np.add.at(between, (rows[many], c1[many]), -1.0)
-    cover += np.cumsum(between, axis=1)[:, :W]
+        at = np.asarray(u, np.float64) + (j / views + 0.5)
+        col = np.floor(at)
+        f = at - col
+        col = col.astype(np.int64) % W
+        from_left = np.zeros(H * W, np.float64)
+        from_right = np.zeros(H * W, np.float64)
+        np.maximum.at(from_left, row + col, f)
+        np.maximum.at(from_right, row + (col - 1) % W, 1.0 - f)
+        cover[j] = np.minimum(from_left + from_right, 1.0)
+    return cover.reshape(views, H, W)
 
 
 def cells_reference(u: np.ndarray, row: np.ndarray, model: SensorProfile, mode: str) -> np.ndarray:
