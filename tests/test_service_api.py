@@ -795,6 +795,13 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_verifications_total{map="town",outcome="verified"}' in metrics
         assert 'overlapmamba_registrations_total{map="town"}' in metrics
+        # the faiss backend keeps the keyframes these scan queries re-ranked (Qdrant: none)
+        cache = (await c.get("/v1/stats")).json()["row_cache"]
+        if any_backend.index.backend == "faiss":
+            assert cache["rows"] >= 1 and cache["hits"] >= 1 and cache["bytes"] > 0
+            assert cache["bytes"] <= cache["max_bytes"] == 64 * 2**20
+        else:
+            assert cache is None
 
 
 async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, encoder):

@@ -13,50 +13,116 @@ through the peak and its neighbours refines it below one column (0.4° at W = 90
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
 
-def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
-    """query (C, W), refs (K, C, W) → (K, W): cosine similarity of the query with each
+@dataclass(frozen=True)
+class Spectrum:
+    """A reference's yaw features as :func:`correlate` takes them: each channel's spectrum
+    (C, W // 2 + 1) complex128, the features' norm once each channel's mean is taken out, and
+    the width W. A map's keyframe gives the same one to every query, so a service keeps the
+    spectra of the keyframes searched last (``overlapmamba.service.backends.rows``)."""
+
+    bins: np.ndarray
+    norm: float
+    width: int
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.bins.nbytes)
+
+
+def _spectra(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, C, W) float64 → spectra (K, C, F) and centred norms (K,). The norms come from sums
+    and the DC bins (‖r − r̄‖² = Σ r² − Σ_c DC_c² / W), so no centred copy is made."""
+    W = x.shape[-1]
+    bins = np.fft.rfft(x, axis=-1)
+    # einsum, not vdot: BLAS would wake its own thread pool on cores the encoder is using
+    centred = np.einsum("kcw,kcw->k", x, x) - (bins[..., 0].real ** 2).sum(-1) / W
+    return bins, np.sqrt(np.maximum(centred, 0.0))
+
+
+def spectra(refs: np.ndarray) -> list[Spectrum]:
+    """refs (K, C, W) or (C, W), of any float type (stored: float16) → one
+    :class:`Spectrum` each, from one FFT call in float64."""
+    r = np.asarray(refs)
+    if r.ndim == 2:
+        r = r[None]
+    if r.ndim != 3:
+        raise ValueError(f"yaw features must have shape (K, C, W) or (C, W); got {r.shape}")
+    bins, norms = _spectra(r.astype(np.float64))
+    W = r.shape[-1]
+    return [Spectrum(b, float(n), W) for b, n in zip(bins, norms, strict=True)]
+
+
+def as_spectra(refs: Sequence[np.ndarray | Spectrum]) -> list[Spectrum]:
+    """Yaw features (C, W) and spectra, mixed → spectra; the features transformed in one FFT
+    call."""
+    arrays = [(j, r) for j, r in enumerate(refs) if not isinstance(r, Spectrum)]
+    out = {j: r for j, r in enumerate(refs) if isinstance(r, Spectrum)}
+    if arrays:
+        made = spectra(np.stack([r for _, r in arrays]))
+        out.update({j: sp for (j, _), sp in zip(arrays, made, strict=True)})
+    return [out[j] for j in range(len(refs))]
+
+
+def correlate(query: np.ndarray, refs: Sequence[Spectrum]) -> np.ndarray:
+    """query (C, W), K reference spectra → (K, W): cosine similarity of the query with each
     reference rolled back by k columns, for every k, each map taken zero-mean per channel.
 
-    Computed from spectra, in float64 (refs may come as stored, float16), the query and the
-    references in one array and one FFT call: the query's spectrum without its DC bins is
-    the zero-mean query, which makes the references' means drop out of every product; the
-    norms come from sums and the DC bins (‖r − r̄‖² = Σ r² − Σ_c DC_c² / W), and the products
-    are taken in place in the references' spectra, so no centred or normalised copy of a map
-    is made. (One array and one FFT call instead of a cast and an FFT per side: estimate_yaw
-    on five 16 × 900 references, old and new timed in turn, 0.39 → 0.37 ms p50 in one run
-    and 0.73 → 0.54 ms in another, at the machine's slower speed.)"""
+    The query's spectrum without its DC bins is the zero-mean query, which makes the
+    references' means drop out of every product; corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k] is
+    one inverse FFT of the channels' summed products per reference."""
+    q = np.asarray(query, dtype=np.float64)
+    if q.ndim != 2:
+        raise ValueError(f"the query's yaw features must have shape (C, W); got {q.shape}")
+    C, W = q.shape
+    F = W // 2 + 1
+    for r in refs:
+        if r.width != W or r.bins.shape != (C, F):
+            raise ValueError(
+                f"feature shapes differ: query {q.shape}, reference {(r.bins.shape[0], r.width)}"
+            )
+    if not refs:
+        return np.zeros((0, W))
+    qbins, qnorm = _spectra(q[None])
+    qs = qbins[0].conj()
+    qs[:, 0] = 0.0  # the query's channel means
+    products = np.stack([r.bins for r in refs])  # (K, C, F): a copy, so the cached stay whole
+    products *= qs
+    num = np.fft.irfft(products.sum(axis=1), n=W, axis=-1)
+    norms = np.array([r.norm for r in refs])
+    return num / np.maximum(qnorm[0] * norms, 1e-12)[:, None]
+
+
+def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
+    """query (C, W), refs (K, C, W) or (C, W) → (K, W): :func:`correlate` of the query with
+    the references' :func:`spectra`, computed in float64 (refs may come as stored, float16)."""
     q = np.asarray(query)
     r = np.asarray(refs)
     if r.ndim == 2:
         r = r[None]
     if q.ndim != 2 or q.shape != r.shape[1:]:
         raise ValueError(f"feature shapes differ: query {q.shape}, references {r.shape[1:]}")
-    K, C, W = r.shape
-    x = np.empty((K + 1, C, W), dtype=np.float64)
-    x[0] = q
-    x[1:] = r
-    spectra = np.fft.rfft(x, axis=-1)  # (K + 1, C, F)
-    # einsum, not vdot: BLAS would wake its own thread pool on cores the encoder is using
-    centred = np.einsum("kcw,kcw->k", x, x) - (spectra[..., 0].real ** 2).sum(-1) / W
-    norms = np.sqrt(np.maximum(centred, 0.0))
-    qs = spectra[0].conj()
-    qs[:, 0] = 0.0  # the query's channel means
-    rs = spectra[1:]
-    rs *= qs  # corr[k] = Σ_c Σ_w q[c, w] · r[c, w + k]
-    num = np.fft.irfft(rs.sum(axis=1), n=W, axis=-1)
-    return num / np.maximum(norms[0] * norms[1:], 1e-12)[:, None]
+    return correlate(q, spectra(r))
 
 
-def estimate_yaw(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def estimate_yaw(
+    query: np.ndarray, refs: np.ndarray | Sequence[Spectrum]
+) -> tuple[np.ndarray, np.ndarray]:
     """Yaw (degrees, (−180, 180]) of each reference relative to the query, and a confidence:
     the cosine similarity of the features at the best roll, in [−1, 1].
 
-    query: (C, W); refs: (K, C, W) or (C, W) → yaw (K,), confidence (K,)
+    query: (C, W); refs: (K, C, W) or (C, W), or K :class:`Spectrum` → yaw (K,),
+    confidence (K,)
     """
-    corr = circular_correlation(query, refs)
+    if isinstance(refs, np.ndarray):
+        corr = circular_correlation(query, refs)
+    else:
+        corr = correlate(query, list(refs))
     K, W = corr.shape
     k = corr.argmax(axis=1)
     rows = np.arange(K)

@@ -122,6 +122,15 @@ class IndexSettings(_Section):
         "search over 10k keyframes is a fraction of a millisecond on one thread, and more "
         "threads spin against the encoder's on a small machine (docs/deploy.md, sizing)",
     )
+    row_cache_mb: int = Field(
+        64,
+        ge=0,
+        le=65_536,
+        description="faiss: memory for the keyframes searched last, with their yaw features' "
+        "spectra (≈ 115 kB a keyframe at 16 × 900 features), shared by every map: a robot's "
+        "next query re-ranks mostly the same candidates without reading or transforming them "
+        "again. 0: keep none",
+    )
 
 
 class QdrantSettings(_Section):

@@ -77,9 +77,15 @@ async def readyz(request: Request) -> Response:
 @router.get("/v1/stats", responses=error_responses(401, 403), summary="Recognition statistics")
 async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
-    2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes."""
+    2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes, and the
+    faiss backend's row cache (the keyframes searched last: bytes, rows, hits, misses)."""
     maps = await in_thread(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
-    return {**svc.stats.public(), "maps": maps, "encoder_queue": svc.pipeline.pending}
+    return {
+        **svc.stats.public(),
+        "maps": maps,
+        "encoder_queue": svc.pipeline.pending,
+        "row_cache": svc.registry.describe().get("row_cache"),
+    }
 
 
 @router.get(

@@ -16,7 +16,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 
 from overlapmamba.core.sensors.mount import Mount
-from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.core.yaw import Spectrum, as_spectra, estimate_yaw
 from overlapmamba.service.domain import Filters, InsertResult, Keyframe, Match, NewKeyframe
 from overlapmamba.service.errors import Conflict, NotFound
 
@@ -108,21 +108,23 @@ def insert_results(
 
 
 def build_matches(
-    found: Iterable[tuple[float, Keyframe, np.ndarray | None]],
+    found: Iterable[tuple[float, Keyframe, np.ndarray | Spectrum | None]],
     yaw: np.ndarray | None,
     max_match_distance: float | None,
     yaw_k: int | None = None,
 ) -> list[Match]:
-    """Hits (L2 distance, keyframe, its yaw features (C, W) or None), nearest first → matches,
-    with the relative yaw for those of the first ``yaw_k`` (all when None) whose features the
-    query's can be correlated with. (A caller that fetches a runner-up only for its distance
-    saves its correlation: a sixth of the search stage at k = 5.)"""
+    """Hits (L2 distance, keyframe, its yaw features (C, W) — or their :class:`Spectrum`, as
+    a row cache keeps them — or None), nearest first → matches, with the relative yaw for
+    those of the first ``yaw_k`` (all when None) whose features the query's can be
+    correlated with. (A caller that fetches a runner-up only for its distance saves its
+    correlation: a sixth of the search stage at k = 5.)"""
     hits = [h for h in found if max_match_distance is None or h[0] <= max_match_distance]
     yaws: dict[int, tuple[float, float]] = {}
     with_yaw = [j for j, h in enumerate(hits[:yaw_k]) if h[2] is not None]
     if yaw is not None and with_yaw:
-        refs = np.stack([hits[j][2] for j in with_yaw])  # type: ignore[misc]  # (K, C, W)
-        if refs.shape[1:] == yaw.shape:
+        refs = as_spectra([r for j in with_yaw if (r := hits[j][2]) is not None])
+        C, W = yaw.shape
+        if all(r.width == W and r.bins.shape[0] == C for r in refs):
             deg, conf = estimate_yaw(yaw, refs)
             yaws = {j: (float(d), float(c)) for j, d, c in zip(with_yaw, deg, conf, strict=True)}
     out = []

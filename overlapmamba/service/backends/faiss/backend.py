@@ -26,6 +26,7 @@ from overlapmamba.service.backends.base import check_same_settings, map_not_foun
 from overlapmamba.service.backends.faiss.index import set_threads
 from overlapmamba.service.backends.faiss.map import FaissMap
 from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, fsync_dir
+from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import MAP_ID, check_map_id
 from overlapmamba.service.errors import Unavailable
 from overlapmamba.service.settings import IndexSettings
@@ -53,6 +54,8 @@ class FaissBackend:
         # the same id waits, or it would take the folder the deletion is about to move
         self._deleting: dict[str, threading.Event] = {}
         set_threads(settings.threads)
+        # the keyframes searched last, with their yaw spectra, for every map (rows.py)
+        self.row_cache = RowCache(settings.row_cache_mb * 2**20)
 
     def load_all(self) -> None:
         """Open every map. One that cannot be opened (a damaged store) is logged and listed
@@ -64,7 +67,9 @@ class FaissBackend:
                 if not (folder / "store.sqlite").exists():
                     continue
                 try:
-                    self.maps[folder.name] = FaissMap.open(folder.name, folder, self.settings)
+                    self.maps[folder.name] = FaissMap.open(
+                        folder.name, folder, self.settings, rows=self.row_cache
+                    )
                 except Exception as err:
                     log.exception("map %s cannot be opened; it is not served", folder.name)
                     self.failed[folder.name] = f"{type(err).__name__}: {err}"
@@ -85,7 +90,12 @@ class FaissBackend:
                 log.warning("map %s: finished an import cut off at start-up", map_id)
 
     def describe(self) -> dict[str, Any]:
-        return {"backend": self.name, "data_dir": str(self.root.parent), "maps": len(self.maps)}
+        return {
+            "backend": self.name,
+            "data_dir": str(self.root.parent),
+            "maps": len(self.maps),
+            "row_cache": self.row_cache.info(),
+        }
 
     def get(self, map_id: str) -> FaissMap:
         check_map_id(map_id)
@@ -154,6 +164,7 @@ class FaissBackend:
             sensor=sensor,
             mount=mount,
             settings=self.settings,
+            rows=self.row_cache,
         )
         self.maps[map_id] = m
         return m, True

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.core.sensors.mount import Mount
+from overlapmamba.core.yaw import Spectrum
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.faiss.columns import FilterColumns
 from overlapmamba.service.backends.faiss.index import VectorIndex, ivf_lists
@@ -39,6 +40,7 @@ from overlapmamba.service.backends.faiss.snapshot import (
     write_snapshot,
 )
 from overlapmamba.service.backends.faiss.store import Store, fsync_dir
+from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import (
     Filters,
     InsertResult,
@@ -66,6 +68,7 @@ class FaissMap:
         *,
         applied_seq: int,
         snapshot_seq: int,
+        rows: RowCache | None = None,
     ) -> None:
         self.map_id = map_id
         self.folder = folder
@@ -76,6 +79,9 @@ class FaissMap:
         self.snapshot_seq = snapshot_seq
         self.lock = RWLock()
         self.columns = FilterColumns()
+        # the keyframes searched last (shared by the backend's maps; none: keeps nothing)
+        self.row_cache = rows or RowCache(0)
+        self.token = self.row_cache.token()
         self._snapshot_lock = threading.Lock()
         self._maintenance = threading.Lock()
         self.closed = False
@@ -109,6 +115,7 @@ class FaissMap:
         keep_geometry: bool = True,
         sensor: str | None = None,
         mount: Mount | None = None,
+        rows: RowCache | None = None,
     ) -> FaissMap:
         # Built in a temporary folder and renamed into place: a crash leaves either no map
         # or a whole one (load_all removes the debris), never a store without its metadata.
@@ -129,10 +136,12 @@ class FaissMap:
         store.close()  # a lingering connection would checkpoint into the file later
         os.replace(tmp, folder)
         fsync_dir(folder.parent)
-        return cls.open(map_id, folder, settings)
+        return cls.open(map_id, folder, settings, rows=rows)
 
     @classmethod
-    def open(cls, map_id: str, folder: Path, settings: IndexSettings) -> FaissMap:
+    def open(
+        cls, map_id: str, folder: Path, settings: IndexSettings, *, rows: RowCache | None = None
+    ) -> FaissMap:
         """Load the snapshot (if any, and sound) and replay the store's newer changes."""
         store = Store(folder / "store.sqlite")
         dim = int(store.get_meta("dim") or 0)
@@ -150,7 +159,9 @@ class FaissMap:
         replay_from = seq
         if index is None:
             index, replay_from = VectorIndex.flat(dim), 0
-        m = cls(map_id, folder, store, index, settings, applied_seq=seq, snapshot_seq=seq)
+        m = cls(
+            map_id, folder, store, index, settings, applied_seq=seq, snapshot_seq=seq, rows=rows
+        )
         with m.lock.write():
             for ids, meta in store.live_meta():  # filter columns for every live row
                 m.columns.add(ids, meta)
@@ -270,6 +281,7 @@ class FaissMap:
         """Under the write lock: requests that still hold this map then see it gone."""
         self.closed = True
         self.store.close()
+        self.row_cache.drop(self.token)
 
     def check_open(self) -> None:
         if self.closed:
@@ -307,6 +319,7 @@ class FaissMap:
                     f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
                     code="keyframe_not_found",
                 )
+            self.row_cache.discard(self.token, [row_id])
             ids = np.array([row_id], dtype=np.int64)
             with self._behind_on_failure():
                 self.index.remove(ids)
@@ -369,7 +382,12 @@ class FaissMap:
             self.check_open()
             mask = self.allowed(filters)
             dists, ids = self.index.search(q, k, mask)
-            rows = self.store.by_ids([int(i) for i in ids])
+            wanted = [int(i) for i in ids]
+            rows: dict[int, tuple[Keyframe, np.ndarray | Spectrum | None]]
+            if yaw is None:
+                rows = dict(self.store.by_ids(wanted))
+            else:  # the correlated first yaw_k from the row cache, with their spectra
+                rows = self.row_cache.read(self.token, wanted, yaw_k, self.store.by_ids)
         found = [
             (float(d), *rows[int(i)]) for d, i in zip(dists, ids, strict=True) if int(i) in rows
         ]
