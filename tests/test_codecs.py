@@ -16,7 +16,14 @@ from pypcd4 import Encoding
 from pypcd4 import PointCloud as PcdCloud
 
 from overlapmamba.core.errors import DecodeError, NonFiniteError, PointCloudError, PointCountError
-from overlapmamba.core.io import decode, decode_npy, decode_pcd, decode_raw, read_points
+from overlapmamba.core.io import (
+    decode,
+    decode_npy,
+    decode_pcd,
+    decode_raw,
+    read_points,
+    read_xyzi,
+)
 from overlapmamba.core.points import PointLimits, validate
 
 finite32 = st.floats(-1e4, 1e4, allow_nan=False, width=32)
@@ -213,6 +220,32 @@ def test_read_real_scans(kitti_reference_dir, nuscenes_dir):
     assert pc.intensity.min() >= 0 and pc.intensity.max() < 1
     nu = read_points(nuscenes_dir / "clouds" / "0.pcd")
     assert len(nu) == 34688 and nu.intensity is None
+
+
+def test_read_xyzi_gives_what_read_points_gives_and_refuses_alike(tmp_path, kitti_reference_dir):
+    """The replay's fast path: a .bin is its own buffer, checked in one pass; any other file,
+    and any .bin that pass finds wrong, goes through read_points and its named errors."""
+    real = kitti_reference_dir / "000000.bin"
+    got = read_xyzi(real)
+    np.testing.assert_array_equal(got, read_points(real).as_xyzi())
+    assert got.dtype == np.float32 and got.shape[1] == 4
+    xyz = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32)
+    np.save(tmp_path / "s.npy", xyz)  # no intensity: 0, as read_points' as_xyzi
+    np.testing.assert_array_equal(read_xyzi(tmp_path / "s.npy")[:, :3], xyz)
+    assert (read_xyzi(tmp_path / "s.npy")[:, 3] == 0).all()
+    bad = np.ones((200, 4), "<f4")
+    bad[7, 3] = np.nan  # an intensity too
+    (tmp_path / "nan.bin").write_bytes(bad.tobytes())
+    (tmp_path / "cut.bin").write_bytes(bad.tobytes()[:-3])
+    (tmp_path / "few.bin").write_bytes(b"")  # no point: fewer than min_points
+    for name, error in (("nan", NonFiniteError), ("cut", DecodeError), ("few", PointCountError)):
+        with pytest.raises(error) as fast:
+            read_xyzi(tmp_path / f"{name}.bin")
+        with pytest.raises(error) as full:
+            read_points(tmp_path / f"{name}.bin")
+        assert str(fast.value) == str(full.value)
+    with pytest.raises(DecodeError, match="cannot read"):
+        read_xyzi(tmp_path / "absent.bin")
 
 
 def test_read_points_rejects_unknown_suffix(tmp_path):

@@ -41,7 +41,7 @@ class Drive:
         return len(self.seq)
 
     def scan(self, i: int) -> np.ndarray:
-        return self.seq.points(i).as_xyzi()
+        return self.seq.xyzi(i)
 
     def pose(self, i: int) -> np.ndarray | None:
         return None if self.poses is None else self.poses[i]

@@ -13,14 +13,14 @@ from typing import Union
 import numpy as np
 import zstandard
 
-from overlapmamba.core.io import read_points
+from overlapmamba.core.io import read_xyzi
 
 Scan = Union[np.ndarray, str, Path]  # noqa: UP007 — the public alias reads better this way
 
 
 def to_array(scan: Scan) -> np.ndarray:
     if isinstance(scan, str | Path):
-        return read_points(scan).as_xyzi()
+        return read_xyzi(scan)
     arr = np.asarray(scan)
     if arr.ndim != 2 or arr.shape[1] not in (3, 4):
         raise ValueError(f"a scan array must have shape (N, 3) or (N, 4); got {arr.shape}")

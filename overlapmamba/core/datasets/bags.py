@@ -113,6 +113,10 @@ class Bag:
     def __len__(self) -> int:
         return len(self.stamps_ns)
 
+    def xyzi(self, i: int) -> np.ndarray:
+        """Scan ``i`` as (N, 4) float32 ``xyzi``, as a service takes it."""
+        return self.points(i).as_xyzi()
+
     def points(self, i: int) -> PointCloud:
         """Scan ``i``. Random access: the reader seeks to its time and decodes it and the
         next ``PREFETCH`` - 1 (a replay reads on in order); the latest ``CACHED`` are kept.

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from overlapmamba.core.errors import DatasetError
-from overlapmamba.core.io import read_points
+from overlapmamba.core.io import read_points, read_xyzi
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.mount import Mount
 
@@ -52,6 +52,10 @@ class Sequence:
 
     def points(self, i: int) -> PointCloud:
         return read_points(self.scan_paths[i])
+
+    def xyzi(self, i: int) -> np.ndarray:
+        """Scan ``i`` as (N, 4) float32 ``xyzi``, as a service takes it (:func:`read_xyzi`)."""
+        return read_xyzi(self.scan_paths[i])
 
     def __iter__(self) -> Iterator[PointCloud]:
         for i in range(len(self)):

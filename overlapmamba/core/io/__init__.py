@@ -11,6 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from overlapmamba.core.errors import DecodeError
 from overlapmamba.core.io.npy import decode_npy
 from overlapmamba.core.io.pcd import decode_pcd
@@ -33,6 +35,7 @@ __all__ = [
     "decode_raw",
     "format_for_path",
     "read_points",
+    "read_xyzi",
 ]
 
 
@@ -80,3 +83,25 @@ def read_points(
     except OSError as err:
         raise DecodeError(f"cannot read {path}: {err.strerror}", path=str(path)) from err
     return decode(data, fmt, fields=fields, limits=limits, source=path.name)
+
+
+def read_xyzi(path: str | Path, *, limits: PointLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """A scan file as (N, 4) float32 ``xyzi`` (missing intensity 0), the layout a service
+    takes, checked as :func:`read_points` checks it. A KITTI ``.bin`` already is that layout:
+    it is checked in one pass over the file's own buffer and returned without a copy (a
+    replayed drive reads a scan an observation; split into a cloud and joined again it cost
+    several passes over every point). Whatever that pass finds wrong, :func:`read_points`
+    reads the file again and names."""
+    path = Path(path)
+    if format_for_path(path) == "raw":
+        try:
+            data = path.read_bytes()
+        except OSError as err:
+            raise DecodeError(f"cannot read {path}: {err.strerror}", path=str(path)) from err
+        record = 4 * FIELD_LAYOUTS["xyzi"]
+        n = len(data) // record
+        if len(data) % record == 0 and limits.min_points <= n <= limits.max_points:
+            arr = np.frombuffer(data, dtype="<f4").reshape(n, 4)
+            if np.isfinite(arr).all():
+                return arr
+    return read_points(path, limits=limits).as_xyzi()
