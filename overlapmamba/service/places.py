@@ -80,6 +80,7 @@ class PlaceService:
         self.sensors = Sensors(encoder.meta, settings.sensors.files)
         self.thresholds = thresholds or {}  # where each calibrated threshold came from
         self.stats = Stats(encoder.model_id)
+        self.stats.watch_row_cache(registry.row_cache_info)
         self.overview = Overview()
         self.pipeline = ScanPipeline(
             encoder, settings.batching, settings.limits, on_batch=self.stats.batch

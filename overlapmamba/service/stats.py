@@ -11,13 +11,15 @@ import contextlib
 import threading
 import time
 from collections import Counter, OrderedDict, defaultdict, deque
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from prometheus_client import CollectorRegistry, Gauge, Histogram, ProcessCollector
 from prometheus_client import Counter as PCounter
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
 
 WINDOW = 2048
 MAX_ROBOTS = 1000  # per-robot rows kept (least recently seen dropped): ids come from clients
@@ -130,6 +132,13 @@ class Stats:
         )
         self.p_queue = Gauge("overlapmamba_encoder_queue", "Scans waiting to encode", registry=r)
 
+    def watch_row_cache(self, info: Callable[[], dict[str, int] | None]) -> None:
+        """Put the faiss backend's row cache on ``/metrics``, read at each scrape from
+        ``info`` (its ``RowCache.info``; None: the backend keeps none, no series):
+        ``overlapmamba_row_cache_bytes`` of ``_max_bytes``, ``_rows``, and
+        ``overlapmamba_row_cache_lookups_total`` by outcome (hit, miss)."""
+        self.registry.register(_RowCacheCollector(info))
+
     def timings(self, ms: dict[str, float]) -> None:
         with self._lock:
             for stage, v in ms.items():
@@ -240,3 +249,31 @@ class Stats:
             "latency_ms": self.percentiles(),
             "batch_size_histogram": hist,
         }
+
+
+class _RowCacheCollector(Collector):
+    def __init__(self, info: Callable[[], dict[str, int] | None]) -> None:
+        self.info = info
+
+    def collect(self) -> Iterator[Metric]:
+        got = self.info()
+        if got is None:
+            return
+        for name, key, doc in (
+            (
+                "bytes",
+                "bytes",
+                "Bytes the row cache holds (yaw spectra of keyframes searched last)",
+            ),
+            ("max_bytes", "max_bytes", "The row cache's budget (index.row_cache_mb)"),
+            ("rows", "rows", "Keyframes the row cache holds"),
+        ):
+            yield GaugeMetricFamily(f"overlapmamba_row_cache_{name}", doc, value=got[key])
+        lookups = CounterMetricFamily(
+            "overlapmamba_row_cache_lookups",
+            "Shortlisted keyframes looked up in the row cache, by outcome",
+            labels=["outcome"],
+        )
+        lookups.add_metric(["hit"], got["hits"])
+        lookups.add_metric(["miss"], got["misses"])
+        yield lookups

@@ -84,7 +84,7 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
         **svc.stats.public(),
         "maps": maps,
         "encoder_queue": svc.pipeline.pending,
-        "row_cache": svc.registry.describe().get("row_cache"),
+        "row_cache": svc.registry.row_cache_info(),
     }
 
 

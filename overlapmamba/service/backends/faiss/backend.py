@@ -90,12 +90,10 @@ class FaissBackend:
                 log.warning("map %s: finished an import cut off at start-up", map_id)
 
     def describe(self) -> dict[str, Any]:
-        return {
-            "backend": self.name,
-            "data_dir": str(self.root.parent),
-            "maps": len(self.maps),
-            "row_cache": self.row_cache.info(),
-        }
+        return {"backend": self.name, "data_dir": str(self.root.parent), "maps": len(self.maps)}
+
+    def row_cache_info(self) -> dict[str, int] | None:
+        return self.row_cache.info()
 
     def get(self, map_id: str) -> FaissMap:
         check_map_id(map_id)

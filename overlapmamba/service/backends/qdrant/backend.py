@@ -311,6 +311,10 @@ class QdrantBackend:
         """One cheap call (readiness probes ask every few seconds)."""
         return {"backend": self.name, "qdrant": self.where, "maps": len(self._names())}
 
+    def row_cache_info(self) -> dict[str, int] | None:
+        """None: this backend keeps no row cache (the faiss backend's, rows.py)."""
+        return None
+
     def close(self, *, snapshot: bool = True) -> None:
         """Nothing of ours to flush: every acknowledged write is already in Qdrant."""
         with self._guard(None):
