@@ -15,11 +15,11 @@ from overlapmamba.service.domain import Filters, Keyframe
 from overlapmamba.service.settings import Settings
 
 
-def _backend(tmp_path, mb: int):
+def _backend(tmp_path, mb: int, kind: str = "faiss"):
+    index = {"row_cache_mb": mb, "backend": kind}
+    extra = {"qdrant": {"path": tmp_path / "q"}} if kind == "qdrant" else {}
     b = open_backend(
-        Settings(data_dir=tmp_path / "data", index={"row_cache_mb": mb}),
-        model_id=MODEL_ID,
-        dim=DIM,
+        Settings(data_dir=tmp_path / "data", index=index, **extra), model_id=MODEL_ID, dim=DIM
     )
     b.load_all()
     return b
@@ -36,22 +36,28 @@ def _keyframe(i: int) -> Keyframe:
     return Keyframe(i, f"kf-{i}", "r", "s", 0.0, None, "h", i, 0.0)
 
 
-def test_answers_are_the_same_from_the_cache_and_from_the_store(tmp_path):
+@pytest.mark.parametrize("kind", ["faiss", "qdrant"])
+def test_answers_are_the_same_from_the_cache_and_from_the_store(tmp_path, kind):
     rng = np.random.default_rng(0)
     rows = [row(i, rng, yaw=i % 7 != 0) for i in range(60)]  # some keyframes without yaw
     queries = [(r.descriptor, rng.normal(size=(4, 36)).astype(np.float32)) for r in rows[:12]]
     got = {}
     for mb in (0, 64):
-        b = _backend(tmp_path / str(mb), mb)
+        b = _backend(tmp_path / str(mb), mb, kind)
         try:
             m, _ = b.create("town", "flat")
             m.insert(rows)
             # twice: the second time the first yaw_k of each query come from the cache
             got[mb] = [[_answer(m, q, y) for q, y in queries] for _ in range(2)]
-            info = b.row_cache.info()
+            info = b.row_cache_info()
         finally:
             b.close()
-    assert got[0][0] == got[0][1] == got[64][0] == got[64][1]
+    for a, b in zip(got[0][0], got[64][1], strict=True):  # Qdrant's scores: float32
+        assert [x[0] for x in a] == [x[0] for x in b]
+        np.testing.assert_allclose(
+            [x[1:] for x in a if x[2] is not None], [x[1:] for x in b if x[2] is not None]
+        )
+    assert got[0][0] == got[0][1] and got[64][0] == got[64][1]
     assert any(a[2] is not None for a in got[64][1][0])  # yaw was estimated
     assert info["hits"] >= 12 * 5 and info["rows"] > 0 and info["bytes"] <= 64 * 2**20
 

@@ -795,18 +795,13 @@ async def test_scan_queries_are_verified_with_a_relative_pose(any_backend, encod
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_verifications_total{map="town",outcome="verified"}' in metrics
         assert 'overlapmamba_registrations_total{map="town"}' in metrics
-        # the faiss backend keeps the keyframes these scan queries re-ranked (Qdrant: none)
+        # the backend keeps the keyframes these scan queries re-ranked, with their spectra
         cache = (await c.get("/v1/stats")).json()["row_cache"]
         metrics = (await c.get("/metrics")).text
-        if any_backend.index.backend == "faiss":
-            assert cache["rows"] >= 1 and cache["hits"] >= 1 and cache["bytes"] > 0
-            assert cache["bytes"] <= cache["max_bytes"] == 64 * 2**20
-            hits = f'overlapmamba_row_cache_lookups_total{{outcome="hit"}} {float(cache["hits"])}'
-            assert (
-                hits in metrics and f"overlapmamba_row_cache_rows {float(cache['rows'])}" in metrics
-            )
-        else:
-            assert cache is None and "overlapmamba_row_cache" not in metrics
+        assert cache["rows"] >= 1 and cache["hits"] >= 1 and cache["bytes"] > 0
+        assert cache["bytes"] <= cache["max_bytes"] == 64 * 2**20
+        hits = f'overlapmamba_row_cache_lookups_total{{outcome="hit"}} {float(cache["hits"])}'
+        assert hits in metrics and f"overlapmamba_row_cache_rows {float(cache['rows'])}" in metrics
 
 
 async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, encoder):

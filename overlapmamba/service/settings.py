@@ -126,7 +126,7 @@ class IndexSettings(_Section):
         64,
         ge=0,
         le=65_536,
-        description="faiss: memory for the keyframes searched last, with their yaw features' "
+        description="memory for the keyframes searched last, with their yaw features' "
         "spectra (≈ 115 kB a keyframe at 16 × 900 features), shared by every map: a robot's "
         "next query re-ranks mostly the same candidates without reading or transforming them "
         "again. 0: keep none",

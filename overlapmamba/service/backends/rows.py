@@ -9,10 +9,12 @@ mostly the same keyframes; from kept spectra a correlation is a product, a sum a
 inverse FFT a candidate. ``/v1/stats`` reports its hits and misses (``row_cache``), and
 ``python benchmarks/fleet_views.py`` the fleet's rate with it.
 
-Keys are (map token, row id): a map instance takes a fresh token (:meth:`RowCache.token`), and
-row ids are never reused, so an entry cannot outlive what it describes. A map drops a
-deleted keyframe's entry under its write lock and puts entries under its read lock, so a
-search never meets a deleted keyframe here.
+Keys are (token, key). The faiss backend gives each map instance a fresh token
+(:meth:`RowCache.token`) and keys its rows by row id, which is never reused, so an entry
+cannot outlive what it describes; a map drops a deleted keyframe's entry under its write lock
+and puts entries under its read lock, so a search never meets a deleted keyframe here. The
+qdrant backend keys spectra by (collection, keyframe id, content hash): the same content has
+the same features, and the keyframe itself always comes from the search's answer.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from __future__ import annotations
 import itertools
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Mapping, Sequence
+from typing import TypeVar
 
 import numpy as np
 
@@ -30,17 +33,18 @@ from overlapmamba.service.domain import Keyframe
 ENTRY_OVERHEAD = 1024  # bytes an entry costs besides its spectrum: the record, the key, links
 
 Row = tuple[Keyframe, Spectrum | None]  # None: the keyframe has no yaw features
+K = TypeVar("K", bound=Hashable)
 
 
 class RowCache:
-    """Thread-safe LRU of :data:`Row` by (map token, row id), at most ``max_bytes`` (0: keeps
+    """Thread-safe LRU of :data:`Row` by (token, key), at most ``max_bytes`` (0: keeps
     nothing)."""
 
     def __init__(self, max_bytes: int) -> None:
         if max_bytes < 0:
             raise ValueError(f"max_bytes must be 0 or more; got {max_bytes}")
         self.max_bytes = max_bytes
-        self._rows: OrderedDict[tuple[int, int], tuple[Row, int]] = OrderedDict()
+        self._rows: OrderedDict[tuple[int, Hashable], tuple[Row, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
         self._tokens = itertools.count(1)
@@ -52,9 +56,9 @@ class RowCache:
         with self._lock:
             return next(self._tokens)
 
-    def get(self, token: int, ids: list[int]) -> dict[int, Row]:
+    def get(self, token: int, ids: Sequence[K]) -> dict[K, Row]:
         """The rows of ``ids`` held, each marked as used now."""
-        out: dict[int, Row] = {}
+        out: dict[K, Row] = {}
         if not self.max_bytes:
             return out
         with self._lock:
@@ -68,7 +72,7 @@ class RowCache:
             self.misses += len(ids) - len(out)
         return out
 
-    def put(self, token: int, rows: dict[int, Row]) -> None:
+    def put(self, token: int, rows: Mapping[K, Row]) -> None:
         """Hold ``rows``, letting the least recently used go beyond the budget (a row larger
         than the whole budget is not held)."""
         if not self.max_bytes:
@@ -112,7 +116,7 @@ class RowCache:
         self.put(token, made)
         return out
 
-    def discard(self, token: int, ids: list[int]) -> None:
+    def discard(self, token: int, ids: Sequence[Hashable]) -> None:
         with self._lock:
             for i in ids:
                 old = self._rows.pop((token, i), None)

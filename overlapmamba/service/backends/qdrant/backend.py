@@ -45,6 +45,7 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import check_same_settings, map_not_found
 from overlapmamba.service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
 from overlapmamba.service.backends.qdrant.map import QdrantMap
+from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import check_map_id
 from overlapmamba.service.errors import (
     BadRequest,
@@ -81,6 +82,9 @@ class QdrantBackend:
         self.model_id = model_id
         self.dim = dim
         self.failed: dict[str, str] = {}  # a stateless replica has no maps of its own to fail
+        # the yaw spectra of the keyframes searched last, by content (rows.py; QdrantMap.search)
+        self.row_cache = RowCache(index.row_cache_mb * 2**20)
+        self.row_token = self.row_cache.token()
         self.local = qs.path is not None
         self.ef = qs.hnsw_ef
         self.ordering = None if self.local else models.WriteOrdering.STRONG
@@ -312,8 +316,7 @@ class QdrantBackend:
         return {"backend": self.name, "qdrant": self.where, "maps": len(self._names())}
 
     def row_cache_info(self) -> dict[str, int] | None:
-        """None: this backend keeps no row cache (the faiss backend's, rows.py)."""
-        return None
+        return self.row_cache.info()
 
     def close(self, *, snapshot: bool = True) -> None:
         """Nothing of ours to flush: every acknowledged write is already in Qdrant."""

@@ -12,6 +12,7 @@ import numpy as np
 from qdrant_client import QdrantClient, models
 
 from overlapmamba.core.sensors.mount import Mount
+from overlapmamba.core.yaw import Spectrum, as_spectra
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.qdrant.codec import (
     CHUNK,
@@ -25,6 +26,7 @@ from overlapmamba.service.backends.qdrant.codec import (
     point_payload,
     yaw_of,
 )
+from overlapmamba.service.backends.rows import Row
 from overlapmamba.service.domain import (
     Filters,
     InsertResult,
@@ -211,6 +213,7 @@ class QdrantMap:
         yaw_k: int | None = None,
     ) -> list[Match]:
         q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
+        cache = self.backend.row_cache  # with it the yaw features come in a second, smaller call
         params = None
         if not self.backend.local:  # local mode is exact and warns about any parameter
             exact = self.kind == "flat"
@@ -222,15 +225,60 @@ class QdrantMap:
                 limit=k,
                 query_filter=filter_of(filters),
                 search_params=params,
-                with_payload=NO_GEOMETRY if yaw is not None else LEAN,
+                with_payload=NO_GEOMETRY if yaw is not None and not cache.max_bytes else LEAN,
                 consistency=self.backend.consistency,
             )
         )
-        found = [
-            (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
-            for p in result.points
-        ]
+        found: list[tuple[float, Keyframe, np.ndarray | Spectrum | None]]
+        if yaw is None or not cache.max_bytes:
+            found = [
+                (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
+                for p in result.points
+            ]
+        else:
+            found = self._with_spectra(result.points, yaw_k)
         return build_matches(found, yaw, filters.max_match_distance, yaw_k)
+
+    def _with_spectra(
+        self, points: list[models.ScoredPoint], yaw_k: int | None
+    ) -> list[tuple[float, Keyframe, np.ndarray | Spectrum | None]]:
+        """Hits found without their yaw features: those of the first ``yaw_k`` whose spectra
+        the row cache holds (by collection, keyframe id and content hash: the same content has
+        the same features) take them from there; the others' features are fetched in one call,
+        transformed and kept. A point deleted or written again between the two calls is
+        answered without yaw this once and not kept."""
+        cache, token = self.backend.row_cache, self.backend.row_token
+        kfs = [keyframe_of(p.payload or {}) for p in points]
+        keys = [(self.collection, kf.keyframe_id, kf.content_hash) for kf in kfs]
+        head = range(len(points) if yaw_k is None else min(yaw_k, len(points)))
+        held = cache.get(token, [keys[j] for j in head])
+        missing = [j for j in head if keys[j] not in held]
+        made: dict[tuple[str, str, str], Row] = {}
+        if missing:
+            records = self._call(
+                lambda c: c.retrieve(
+                    self.collection,
+                    [points[j].id for j in missing],
+                    with_payload=["content_hash", "yaw", "yaw_shape"],
+                    consistency=self.backend.consistency,
+                )
+            )
+            got = {str(r.id): r.payload or {} for r in records}
+            same = [
+                j
+                for j in missing
+                if got.get(str(points[j].id), {}).get("content_hash") == kfs[j].content_hash
+            ]
+            features = [(j, f) for j in same if (f := yaw_of(got[str(points[j].id)])) is not None]
+            for (j, _), sp in zip(features, as_spectra([f for _, f in features]), strict=True):
+                made[keys[j]] = (kfs[j], sp)
+            made.update({keys[j]: (kfs[j], None) for j in same if keys[j] not in made})
+            cache.put(token, made)
+        rows: dict[tuple[str, str, str], Row] = {**held, **made}
+        return [
+            (float(p.score), kf, rows[key][1] if key in rows else None)
+            for p, kf, key in zip(points, kfs, keys, strict=True)
+        ]
 
     def info(self) -> dict[str, Any]:
         n = self.count
