@@ -120,6 +120,8 @@ RERANK_ANY = "reports/model/rerank-across-any-sensor.json"
 RERANK_ANY_PAIRS = "reports/model/across-pairs-bev-span-thin-cpu-more-e16-still.json"
 RERANK_ANY_SENSOR_COLUMNS = "reports/model/rerank-across-any-sensor-sensor-columns.json"
 RERANK_ANY_ALIGNED = "reports/model/rerank-across-any-sensor-aligned.json"
+# the same file with shortlists past the 50 the service took before the row cache
+RERANK_ANY_LONG = "reports/model/rerank-across-any-sensor-long.json"
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -261,5 +263,6 @@ RENDERERS = {
     "across-pairs-candidates": across_pairs_candidates,
     "rerank-across": lambda: rerank_across() + _other_networks(),
     "rerank-across-any-sensor": lambda: rerank_across(RERANK_ANY, RERANK_ANY_PAIRS),
+    "rerank-across-any-sensor-long": lambda: rerank_across(RERANK_ANY_LONG, RERANK_ANY_PAIRS),
     "column-phase-any-sensor": column_phases,
 }

@@ -123,3 +123,14 @@ def test_the_services_answer_is_reranked_only_when_every_candidate_can_be_scored
     assert rerank_matches(mixed, p) == mixed
     assert rerank_matches(found, OFF) == found
     assert shortlist(5, p) == 5 and shortlist(2, p) == 3 and shortlist(2, OFF) == 2
+
+
+def test_the_service_takes_a_shortlist_up_to_200_and_names_the_bound_past_it():
+    """The row cache keeps a long shortlist's spectra, so the service takes up to 200."""
+    from pydantic import ValidationError
+
+    from overlapmamba.service.settings import Settings
+
+    assert Settings(rerank={"shortlist": 200}).rerank.shortlist == 200
+    with pytest.raises(ValidationError, match="less than or equal to 200"):
+        Settings(rerank={"shortlist": 201})

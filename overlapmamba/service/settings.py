@@ -221,9 +221,10 @@ class RerankSettings(_RenamedSection):
     shortlist: int = Field(
         Rerank().shortlist,
         ge=1,
-        le=50,
+        le=200,
         description="scan queries: re-rank this many nearest descriptors by d² − weight · "
-        "aligned yaw-feature correlation (1: descriptor order only)",
+        "aligned yaw-feature correlation (1: descriptor order only). A long shortlist wants "
+        "index.row_cache_mb to hold each busy robot's: about robots × shortlist × 115 kB",
     )
     weight: float = Field(
         Rerank().weight, ge=0, le=10, description="the correlation's weight in the score (0: off)"
