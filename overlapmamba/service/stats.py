@@ -133,8 +133,8 @@ class Stats:
         self.p_queue = Gauge("overlapmamba_encoder_queue", "Scans waiting to encode", registry=r)
 
     def watch_row_cache(self, info: Callable[[], dict[str, int] | None]) -> None:
-        """Put the faiss backend's row cache on ``/metrics``, read at each scrape from
-        ``info`` (its ``RowCache.info``; None: the backend keeps none, no series):
+        """Put the backend's row cache on ``/metrics``, read at each scrape from ``info``
+        (its ``RowCache.info``; None: no series):
         ``overlapmamba_row_cache_bytes`` of ``_max_bytes``, ``_rows``, and
         ``overlapmamba_row_cache_lookups_total`` by outcome (hit, miss)."""
         self.registry.register(_RowCacheCollector(info))

@@ -215,7 +215,7 @@ class MapBackend(Protocol):
     def snapshot_list(self) -> Sequence[PlaceMap]: ...
 
     def describe(self) -> dict[str, Any]: ...  # where the maps live, for logs and readyz
-    def row_cache_info(self) -> dict[str, int] | None: ...  # faiss: rows.py; else None
+    def row_cache_info(self) -> dict[str, int] | None: ...  # its row cache (rows.py), if any
 
     def close(self, *, snapshot: bool = True) -> None: ...
 
