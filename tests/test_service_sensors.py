@@ -331,10 +331,10 @@ def test_a_benchmark_records_its_pick_in_the_model_and_the_service_takes_it(tmp_
     # a value the service would refuse at start-up is refused before the file is touched,
     # even where a variable of this process sets that value (and would hide the file's)
     with pytest.raises(ValueError, match="calibration of rerank is not valid"):
-        write_calibration(path, "rerank", {"shortlist": 200, "weight": 2.0}, "data/synth/val")
+        write_calibration(path, "rerank", {"shortlist": 201, "weight": 2.0}, "data/synth/val")
     monkeypatch.setenv("OVERLAPMAMBA_RERANK__SHORTLIST", "10")
     with pytest.raises(ValueError, match="calibration of rerank is not valid"):
-        write_calibration(path, "rerank", {"shortlist": 200, "weight": 2.0}, "data/synth/val")
+        write_calibration(path, "rerank", {"shortlist": 201, "weight": 2.0}, "data/synth/val")
     assert read_metadata(path).calibration == meta.calibration
     assert isinstance(EncoderMetadata.from_props(meta.to_props()), EncoderMetadata)
 
