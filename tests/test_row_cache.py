@@ -115,3 +115,36 @@ def test_the_cache_keeps_to_its_budget_least_recently_used_out_first():
     assert none.info()["rows"] == 0
     with pytest.raises(ValueError, match="max_bytes"):
         RowCache(-1)
+
+
+def test_a_qdrant_point_written_again_between_the_two_calls_is_answered_without_yaw_once(
+    tmp_path, monkeypatch
+):
+    """The search's answer and the second call (the features the cache lacks) are two reads:
+    a keyframe deleted or written again with other content between them is answered without
+    yaw that once and not kept, so no spectrum is ever kept under the wrong content."""
+    rng = np.random.default_rng(3)
+    rows = [row(i, rng, yaw=True) for i in range(20)]
+    yaw = rng.normal(size=(4, 36)).astype(np.float32)
+    b = _backend(tmp_path, 64, "qdrant")
+    try:
+        m, _ = b.create("town", "flat")
+        m.insert(rows)
+        real = type(m)._call
+
+        def racing(self, fn):  # the second call finds other content behind every point
+            out = real(self, fn)
+            if isinstance(out, list) and out and "yaw" in (out[0].payload or {}):
+                for r in out:
+                    r.payload["content_hash"] = "written-again"
+            return out
+
+        monkeypatch.setattr(type(m), "_call", racing)
+        raced = _answer(m, rows[3].descriptor, yaw)
+        assert all(a[2] is None for a in raced) and b.row_cache_info()["rows"] == 0
+        monkeypatch.undo()
+        calm = _answer(m, rows[3].descriptor, yaw)
+        assert [a[0] for a in calm] == [a[0] for a in raced]
+        assert all(a[2] is not None for a in calm[:6]) and b.row_cache_info()["rows"] == 6
+    finally:
+        b.close()
