@@ -104,17 +104,10 @@ class RowCache:
         (one FFT call) and held. Rows ``read`` does not know (deleted) are left out."""
         head = ids if first is None else ids[:first]
         held = self.get(token, head)
-        out: dict[int, tuple[Keyframe, np.ndarray | Spectrum | None]] = dict(held)
-        out.update(read([i for i in ids if i not in held]))
-        todo = [i for i in head if i in out and i not in held]
-        made: dict[int, Row] = {}
-        features = [(i, f) for i in todo if (f := out[i][1]) is not None]
-        for (i, _), sp in zip(features, as_spectra([f for _, f in features]), strict=True):
-            made[i] = (out[i][0], sp)
-        made.update({i: (out[i][0], None) for i in todo if i not in made})
-        out.update(made)
+        fetched = read([i for i in ids if i not in held])
+        made = with_spectra({i: fetched[i] for i in head if i in fetched})
         self.put(token, made)
-        return out
+        return {**fetched, **held, **made}
 
     def discard(self, token: int, ids: Sequence[Hashable]) -> None:
         with self._lock:
@@ -138,3 +131,12 @@ class RowCache:
                 "hits": self.hits,
                 "misses": self.misses,
             }
+
+
+def with_spectra(rows: Mapping[K, tuple[Keyframe, np.ndarray | None]]) -> dict[K, Row]:
+    """Rows with their yaw features (or None) → the same rows with the features' spectra, all
+    transformed in one FFT call: what a backend puts in the cache."""
+    features = [(key, f) for key, (_, f) in rows.items() if f is not None]
+    made = as_spectra([f for _, f in features])
+    by_key = {key: sp for (key, _), sp in zip(features, made, strict=True)}
+    return {key: (kf, by_key.get(key)) for key, (kf, _) in rows.items()}

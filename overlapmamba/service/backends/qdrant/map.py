@@ -12,7 +12,7 @@ import numpy as np
 from qdrant_client import QdrantClient, models
 
 from overlapmamba.core.sensors.mount import Mount
-from overlapmamba.core.yaw import Spectrum, as_spectra
+from overlapmamba.core.yaw import Spectrum
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.qdrant.codec import (
     CHUNK,
@@ -26,7 +26,7 @@ from overlapmamba.service.backends.qdrant.codec import (
     point_payload,
     yaw_of,
 )
-from overlapmamba.service.backends.rows import Row
+from overlapmamba.service.backends.rows import Row, with_spectra
 from overlapmamba.service.domain import (
     Filters,
     InsertResult,
@@ -264,15 +264,14 @@ class QdrantMap:
                 )
             )
             got = {str(r.id): r.payload or {} for r in records}
-            same = [
-                j
-                for j in missing
-                if got.get(str(points[j].id), {}).get("content_hash") == kfs[j].content_hash
-            ]
-            features = [(j, f) for j in same if (f := yaw_of(got[str(points[j].id)])) is not None]
-            for (j, _), sp in zip(features, as_spectra([f for _, f in features]), strict=True):
-                made[keys[j]] = (kfs[j], sp)
-            made.update({keys[j]: (kfs[j], None) for j in same if keys[j] not in made})
+            made = with_spectra(
+                {
+                    keys[j]: (kfs[j], yaw_of(payload))
+                    for j in missing
+                    if (payload := got.get(str(points[j].id), {})).get("content_hash")
+                    == kfs[j].content_hash
+                }
+            )
             cache.put(token, made)
         rows: dict[tuple[str, str, str], Row] = {**held, **made}
         return [
