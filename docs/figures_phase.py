@@ -136,6 +136,12 @@ HEADLINES = (
         "overlapmamba report --runs EMPTY --model models/overlapmamba-hdl64-one-view.onnx "
         "--out reports/model/two-stage-one-view",
     ),
+    (
+        "one view, aligned columns, spectrum in the first stage (the one-pass file)",
+        "reports/model/two-stage-one-pass/report.json",
+        "overlapmamba report --runs EMPTY --model models/overlapmamba-hdl64-one-pass.onnx "
+        "--out reports/model/two-stage-one-pass",
+    ),
 )
 SHIPPED_ROW = "OverlapMamba narrow, mined hard negatives (shipped)"
 

@@ -39,6 +39,7 @@ import figures_input
 import figures_lerp
 import figures_memory
 import figures_model
+import figures_onepass
 import figures_pairs
 import figures_phase
 import figures_scan
@@ -104,6 +105,7 @@ def headline() -> str:
 RENDERERS: dict[str, Callable[[], str]] = {
     "headline": headline,
     **figures_model.RENDERERS,
+    **figures_onepass.RENDERERS,
     **figures_input.RENDERERS,
     **figures_bev.RENDERERS,
     **figures_lerp.RENDERERS,

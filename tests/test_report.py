@@ -366,3 +366,20 @@ def test_the_shipped_row_falls_back_to_the_exported_encoder(tmp_path):
     assert shipped_model(runs, onnx) == runs / SHIPPED / "best.pt"
     rows = {label: net for label, net, _ in _networks(runs, onnx)}
     assert not isinstance(rows[shipped], ExportedNetwork)
+
+
+def test_the_report_scores_the_service_answer_with_the_files_own_second_stage():
+    """The report's "as the service answers" rows re-rank with the second stage the service
+    applies with that file: its calibrated rerank (the one-pass file chose another than the
+    defaults on val), the defaults for a checkpoint or a file without one."""
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.report import SERVICE_RERANK, service_rerank
+
+    models = Path(__file__).resolve().parents[1] / "models"
+    for name in ("overlapmamba-hdl64.onnx", "overlapmamba-hdl64-one-pass.onnx"):
+        model, _, _ = load_model(models / name)
+        values = model.meta.calibration["rerank"].values
+        assert service_rerank(model) == Rerank(values["shortlist"], values["weight"]), name
+    one_pass, _, _ = load_model(models / "overlapmamba-hdl64-one-pass.onnx")
+    assert service_rerank(one_pass) != SERVICE_RERANK  # else this test checks nothing
+    assert service_rerank(object()) == SERVICE_RERANK  # a network without a file's metadata

@@ -185,6 +185,49 @@ def test_twins_are_the_shipped_weights_with_their_own_calibration(meta, name):
         assert entry.data.startswith("data/synth/val"), section  # never a test town
 
 
+ONE_PASS = ROOT / "models" / "overlapmamba-hdl64-one-pass.onnx"
+
+
+def test_the_one_pass_file_is_the_shipped_weights_once_a_scan_with_a_spectrum_first_stage(meta):
+    """The model card's one-pass file: the shipped network once a scan, columns aligned, its
+    descriptor joined to the yaw features' spectrum (chosen on val by
+    benchmarks/first_stage.py), calibrated on val by the commands naming that file."""
+    from overlapmamba.service.encoder import Encoder
+
+    enc = Encoder(ONE_PASS, intra_op_threads=2)
+    got = enc.meta
+    assert (enc.views, got.column_phase, got.first_stage) == (1, "aligned", "mixed:0.75:32:sqrt")
+    assert got.training_data == meta.training_data and got.metrics == meta.metrics
+    assert got.model_id != meta.model_id and got.model_id in CARD.read_text()
+    assert list(got.calibration) == list(meta.calibration)
+    for section, entry in got.calibration.items():
+        assert f"--model models/{ONE_PASS.name}" in entry.chosen_by, (section, entry.chosen_by)
+        assert "--write-calibration" in entry.chosen_by, section
+        assert entry.data.startswith("data/synth/val"), section  # never a test town
+    desc, yaw = enc.describe([np.random.default_rng(0).normal(0, 10, (4000, 3))])
+    assert desc.shape == (1, 256 + yaw.shape[1] * 32)  # NetVLAD + 32 frequencies a channel
+    assert abs(float(np.linalg.norm(desc)) - 1.0) < 1e-5
+
+
+@pytest.mark.real_data
+def test_the_one_pass_file_keeps_the_cosine_under_turns_of_real_scans(kitti_seq_dir):
+    """Issue 40's turn bar (0.999) in one pass with the spectrum in the descriptor, on a
+    sample of KITTI 00 (``benchmarks/first_stage.py`` turns every scan of both real sets)."""
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.poses import rotation_z, transform_points
+    from overlapmamba.service.encoder import Encoder
+
+    enc = Encoder(ONE_PASS, intra_op_threads=2)
+    seq = open_sequence(kitti_seq_dir)
+    theta = np.random.default_rng(1).uniform(-180, 180, len(seq))
+    frames = range(0, len(seq), 10)
+    plain = [seq.points(i).xyz for i in frames]
+    turned = [transform_points(plain[n], rotation_z(theta[i])) for n, i in enumerate(frames)]
+    desc, _ = enc.describe(plain + turned)
+    k = len(plain)
+    assert (desc[:k] * desc[k:]).sum(1).min() >= 0.999
+
+
 def test_shipped_model_is_served_by_the_c_kernel(meta):
     """Each block's scan (its forward, backward and shifted directions side by side) is one
     marked node of the shipped file, so the service's C-kernel path can bind it; where a C

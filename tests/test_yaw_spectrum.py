@@ -143,3 +143,39 @@ def test_turns_of_every_strideth_scan_are_those_scans_turns():
     assert len(some.turned) == len(some.theta) == 3
     with pytest.raises(ValueError, match="stride must be ≥ 1"):
         real_turns(drive, sensor, stride=0)
+
+
+def _drive_row(name: str, f1: float, r1: float, ar1: float, turn_min: float) -> dict:
+    one_sensor = benchmark_module("first_stage")
+    stage = FirstStage.parse(name)
+    row = {
+        "first_stage": name,
+        "mix": stage.mix,
+        "bins": stage.bins,
+        "compress": stage.compress,
+        "dimension": one_sensor.dimension(stage, 256, 16),
+        "drive": {"first": {"all": {"f1max": f1, "recall@1": r1}}},
+        "sessions_ar@1": ar1,
+        "turn_min": turn_min,
+    }
+    row["score"] = one_sensor.score(row)
+    return row
+
+
+def test_one_sensors_choice_weighs_the_drive_and_the_second_session_alike():
+    """benchmarks/first_stage.py: the first stage's F1max and Recall@1 within one drive and
+    its AR@1 across sessions, weighed alike, among the stages that keep still under a turn;
+    a tie goes to the shorter vector."""
+    one_sensor = benchmark_module("first_stage")
+    rows = [
+        _drive_row("descriptor", 0.85, 0.82, 0.69, 0.99999),
+        _drive_row("mixed:0.5:8:sqrt", 0.89, 0.88, 0.88, 0.99997),  # mean 0.8833
+        _drive_row("mixed:0.75:32:sqrt", 0.87, 0.89, 0.93, 0.99988),  # mean 0.8967: best
+        _drive_row("spectrum:32:sqrt", 0.95, 0.95, 0.95, 0.9985),  # best, but moves
+        _drive_row("mixed:0.75:8:sqrt", 0.87, 0.89, 0.93, 0.9999),  # the same, shorter
+    ]
+    assert [r["dimension"] for r in rows] == [256, 384, 768, 512, 384]
+    assert one_sensor.choose(rows, 0.999).name == "mixed:0.75:8:sqrt"
+    assert one_sensor.choose(rows[:3], 0.999).name == "mixed:0.75:32:sqrt"
+    assert one_sensor.choose(rows, 0.0).name == "spectrum:32:sqrt"
+    assert one_sensor.choose(rows, 1.0).name == "descriptor"  # none keeps still enough

@@ -107,14 +107,26 @@ ABLATIONS = {
 # The shipped encoder: Table I's shipped row and the real-scan checks read it when the run's
 # best.pt is not under runs/ (a fresh machine has the .onnx, not the checkpoint).
 SHIPPED_ONNX = Path(__file__).resolve().parents[2] / "models" / "overlapmamba-hdl64.onnx"
-# The service's second stage (overlapmamba.core.rerank's defaults): the shipped row also appears
-# with it (label + evaluate.RERANKED) in Table I, across sessions and in the real-scan checks.
+# The service's second stage where a model file carries none of its own
+# (overlapmamba.core.rerank's defaults): the shipped row also appears with the second stage
+# (label + evaluate.RERANKED) in Table I, across sessions and in the real-scan checks.
 SERVICE_RERANK = Rerank()
 REAL = {
     "kitti00": ("../shared/data/kitti00_0000-0100", None, 3.0),
     # nuScenes keyframes are ≈ 4.5 m apart at 2 Hz: a hit is the adjacent keyframe.
     "nuscenes-hdl32": ("../shared/data/nuscenes_scene0061", "hdl32", 6.0),  # its sensor
 }
+
+
+def service_rerank(model: Any) -> Rerank:
+    """The second stage the service applies with ``model``: an exported file's calibrated
+    ``rerank`` (chosen on val by ``benchmarks/rerank.py --write-calibration``), else the
+    defaults (a checkpoint, or a file calibrated without one)."""
+    calibration = getattr(getattr(model, "meta", None), "calibration", None) or {}
+    entry = calibration.get("rerank")
+    if entry is None:
+        return SERVICE_RERANK
+    return Rerank(int(entry.values["shortlist"]), float(entry.values["weight"]))
 
 
 def shipped_model(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> Path | None:
@@ -160,7 +172,7 @@ def table_one(
         if label.endswith(SHIPPED_SUFFIX):  # the service's answer: two stages
             if key + RERANKED not in by_weights:
                 desc, yaw = described[key]
-                by_weights[key + RERANKED] = loop_closure(desc, gt, yaw, SERVICE_RERANK)
+                by_weights[key + RERANKED] = loop_closure(desc, gt, yaw, service_rerank(model))
             results[label + RERANKED] = by_weights[key + RERANKED]
     if gt is None:
         raise FileNotFoundError(f"no trained run under {runs} (expected e.g. {runs}/default)")
@@ -198,11 +210,12 @@ def cross_sessions(
     Scan Context and every Table I network."""
     nets = list(_networks(runs, onnx))
     shipped = {label for label, _, _ in nets if label.endswith(SHIPPED_SUFFIX)}
+    models = [model for label, model, _ in nets if label in shipped]
     cross = cross_session(
         nets,
         open_sequence(database),
         open_sequence(queries),
-        rerank=SERVICE_RERANK,
+        rerank=service_rerank(models[0]) if models else SERVICE_RERANK,
         rerank_labels=shipped,
         progress=progress,
     )
@@ -318,7 +331,7 @@ def real_checks(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> dict[str, Any]:
             out[name] = {"skipped": f"{folder} is absent"}
             continue
         seq = open_sequence(folder, **({"sensor": sensor} if sensor else {}))
-        out[name] = eval_real(model, profile, seq, hit_radius=radius, rerank=SERVICE_RERANK)
+        out[name] = eval_real(model, profile, seq, hit_radius=radius, rerank=service_rerank(model))
     return out
 
 

@@ -1,0 +1,89 @@
+"""The HDL-64E network in one pass a scan with a first stage from its yaw features'
+spectrum (``benchmarks/first_stage.py``): the choice on val, and the test towns."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from figures_fleet import verify
+from figures_kit import f3, load, source, table, when
+from figures_spectrum import _first
+
+FIRST_STAGE = "reports/model/first-stage-one-view.json"
+VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"
+SUBSETS = ("all", "same", "reverse")
+
+
+def _pair(x: dict[str, float]) -> str:
+    return f"{f3(x['f1max'])} / {f3(x['recall@1'])}"
+
+
+def _turn(x: float) -> str:
+    return f"{x:.5f}"
+
+
+def first_stage_one_view() -> str:
+    """Every first stage on val (the choice), then the network's descriptor and the choice
+    on the test towns (mean of the three) and on real scans turned at random."""
+    r = load(FIRST_STAGE)
+    out = source(FIRST_STAGE, r["command"], when(r))
+    out += (
+        f"\n`{r['model']}` (`{r['model_id']}`, {r['views']} view, columns {r['column_phase']})"
+        ": F1max / Recall@1 within one drive (all revisits and the reverse ones), of the first "
+        "stage alone and with the second stage on top (shortlist "
+        f"{r['rerank']['shortlist']}, weight {r['rerank']['weight']:g}); AR@1 of the second "
+        "drive against the first, the first stage alone; the lowest cosine of a scan's vector "
+        f"to its turned copy's (every {r['turn_stride']}th val scan, {r['seeds']} draws of "
+        "random continuous turns).\n\nval (the choice: the mean of the first stage's F1max, "
+        "Recall@1 and AR@1, among the stages whose turned cosine reaches "
+        f"{r['turn_floor']:g}):\n\n"
+    )
+    head = ["first stage", "floats", "first stage: all", "reverse", "AR@1"]
+    head += ["two stages: all", "turned: lowest cosine"]
+    rows = [
+        [
+            _first(x["first_stage"]),
+            str(x["dimension"]),
+            _pair(x["drive"]["first"]["all"]),
+            _pair(x["drive"]["first"]["reverse"]),
+            f3(x["sessions_ar@1"]),
+            _pair(x["drive"]["two_stages"]["all"]),
+            _turn(x["turn_min"]),
+        ]
+        for x in r["val"]["rows"]
+    ]
+    out += table(head, rows)
+    towns = ", ".join(f"`{t.rsplit('/', 1)[-1]}`" for t in r["test"]["towns"])
+    out += (
+        f"\nChosen: {_first(r['chosen'])}.\n\ntest ({towns}, their mean; "
+        f"`{r['test']['second_drive'].rsplit('/', 1)[-1]}` against the first):\n\n"
+    )
+    head = ["first stage", "first stage: all", "same direction", "reverse", "AR@1"]
+    head += ["two stages: all", "same direction", "reverse"]
+    rows = [
+        [
+            _first(x["first_stage"]),
+            *(_pair(x["drive"]["first"][s]) for s in SUBSETS),
+            f3(x["sessions_ar@1"]),
+            *(_pair(x["drive"]["two_stages"][s]) for s in SUBSETS),
+        ]
+        for x in r["test"]["rows"]
+    ]
+    out += table(head, rows)
+    sets = {k: v for k, v in r["turns"].items() if isinstance(v, dict) and "scans" in v}
+    names = [x["first_stage"] for x in r["test"]["rows"]]
+    out += (
+        f"\nReal scans turned at random ({r['turns']['seeds']} draws, every scan), the lowest "
+        "cosine of a scan's vector to its turned copy's:\n\n"
+    )
+    rows = [
+        [name, str(v["scans"]), *(_turn(v[n]["cosine_min"]) for n in names)]
+        for name, v in sets.items()
+    ]
+    return out + table(["real scans", "scans", *(_first(n) for n in names)], rows)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "first-stage-one-view": first_stage_one_view,
+    "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
+}
