@@ -28,6 +28,13 @@ FIRST_STAGE_RUNS = (
     ("`spectrum:32:sqrt`", "reports/model/sensors-any-sensor-spectrum-32.json"),
     ("`mixed:0.75:32:sqrt` (the option)", "reports/model/sensors-any-sensor.json"),
 )
+# the default file, its one-view twin and the one-pass file (the one-view twin with the yaw
+# features' spectrum in its first stage: models/overlapmamba-hdl64-one-pass.onnx)
+ONE_PASS_RUNS = (
+    ("three views (the default file)", DEFAULT),
+    ("one view, aligned columns (the twin)", "reports/model/sensors-one-view.json"),
+    ("one pass, the spectrum in the first stage", "reports/model/sensors-one-pass.json"),
+)
 # the every-sensor recipe's network at epoch 10 (the option's first file) and continued to
 # epoch 16 (the option's now), each with its first stage as chosen on cal-x00, as served with
 # the service's defaults
@@ -240,6 +247,8 @@ def turn_floor(path: str = TURN_FLOOR) -> str:
 RENDERERS: dict[str, Callable[[], str]] = {
     "sensors-twins": lambda: sensors_table(TWIN_RUNS),
     "sensors-any-sensor": lambda: sensors_table(OPTION_RUNS),
+    "sensors-one-pass": lambda: sensors_table(ONE_PASS_RUNS),
+    "real-hdl64-one-pass": lambda: real_rows(ONE_PASS_RUNS),
     "sensors-more": lambda: sensors_table(MORE_RUNS),
     "sensors-first-stage": lambda: sensors_table(FIRST_STAGE_RUNS),
     "real-first-stage": lambda: real_rows(FIRST_STAGE_RUNS),
@@ -247,4 +256,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "verify-across-any-sensor": lambda: verify_across(),
     "verify-across": lambda: verify_across("reports/service/verify-across.json", None),
     "turn-floor-any-sensor": lambda: turn_floor(),
+    "turn-floor-one-pass": lambda: turn_floor("reports/model/turn-floor-one-pass.json"),
 }
