@@ -46,7 +46,7 @@ from rich.console import Console
 from yaw_spectrum import turn_cosines, val_turns
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.rerank import Rerank
+from overlapmamba.core.rerank import OFF, Rerank
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.train.checkpoint import load_model
@@ -84,7 +84,7 @@ class Towns:
         gt = sequence_loops(open_sequence(town), self.profile)
         vec = stage.vectors(desc, yaw)
         out: dict[str, Any] = {}
-        for name, p in (("first", Rerank(1, 0.0)), ("two_stages", rerank)):
+        for name, p in (("first", OFF), ("two_stages", rerank)):
             res = loop_closure(vec, gt, yaw.astype(np.float16), p)
             out[name] = {
                 sub: {"f1max": res[sub].f1max, "recall@1": res[sub].recall_at_1} for sub in SUBSETS

@@ -26,7 +26,9 @@ observation), the ``ceiling`` column.
 ``--model NAME`` (repeated) runs those models instead, e.g. the shipped file against the
 every-sensor option (``models/overlapmamba-any-sensor.onnx``, one pass a scan, calibrated
 on the validation towns of every sensor): ``--model "descriptors (shipped)" --model "every
-sensor (the option)" --out reports/client/fleet-any-sensor.json``; or the shipped file under
+sensor (the option)" --out reports/client/fleet-any-sensor.json``; the shipped file, the
+one-view twin and the one-pass file (``--model "one pass, spectrum in the first stage"``,
+``reports/client/fleet-one-pass.json``); or the shipped file under
 the service's settings before encoder lanes and one-thread registration, and each change
 alone: ``--model "descriptors (shipped)" --model "descriptors (shipped), settings before
 lanes" --model "descriptors (shipped), one lane" --model "descriptors (shipped), GICP on 2
@@ -68,6 +70,11 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
         {"OVERLAPMAMBA_VERIFY__STOP_AT_FIRST": "false"},
     ),
     "every sensor (the option)": (ROOT / "models" / "overlapmamba-any-sensor.onnx", {}),
+    # the one-view twin with the yaw features' spectrum in its first stage (768 floats)
+    "one pass, spectrum in the first stage": (
+        ROOT / "models" / "overlapmamba-hdl64-one-pass.onnx",
+        {},
+    ),
     # the service's threads as they were before encoder lanes (batching.lanes), one-thread
     # registration (verify.threads) and batches of 2 became the defaults, and each of the
     # first two changes alone

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from figures_fleet import verify
+from figures_fleet import fleet_views, verify
 from figures_kit import f3, load, source, table, when
 from figures_spectrum import _first
 
 FIRST_STAGE = "reports/model/first-stage-one-view.json"
 VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"
+FLEET_ONE_PASS = "reports/client/fleet-one-pass.json"
 SUBSETS = ("all", "same", "reverse")
 
 
@@ -86,4 +87,5 @@ def first_stage_one_view() -> str:
 RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
+    "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),
 }
