@@ -12,6 +12,8 @@ from figures_spectrum import _first
 FIRST_STAGE = "reports/model/first-stage-one-view.json"
 VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"
 FLEET_ONE_PASS = "reports/client/fleet-one-pass.json"
+SIZING = "reports/deploy/sizing.json"
+SIZING_ONE_PASS = "reports/deploy/sizing-one-pass.json"
 SUBSETS = ("all", "same", "reverse")
 
 
@@ -84,8 +86,43 @@ def first_stage_one_view() -> str:
     return out + table(["real scans", "scans", *(_first(n) for n in names)], rows)
 
 
+def sizing_one_pass() -> str:
+    """What a keyframe and a query cost with the default file's 256 floats and the one-pass
+    file's 768: the FAISS store and snapshot a keyframe, a query at the benchmark's map, and
+    the search stage at its large map (idle, one FAISS thread)."""
+    runs = [(load(SIZING), SIZING), (load(SIZING_ONE_PASS), SIZING_ONE_PASS)]
+    out = "".join(source(path, r["command"], when(r)) for r, path in runs)
+    rows = []
+    for r, _ in runs:
+        f = r["backends"]["faiss"]
+        stage = next(
+            x for x in r["search_stage"] if x["load"] == "idle" and x["faiss_threads"] == 1
+        )
+        two = stage["search_two_stage"]
+        rows.append(
+            [
+                f"`{r['model']['path'].rsplit('/', 1)[-1]}`",
+                str(r["descriptor_dim"]),
+                f"{f['store_bytes_per_keyframe'] / 1e3:.1f} KB / "
+                f"{f['snapshot_bytes_per_keyframe'] / 1e3:.1f} KB",
+                f"{f['query_p50_ms']:.2f} ms ({f['n']:,})",
+                f"{stage['index']['p50_ms']:.2f} ms",
+                f"{two['p50_ms']:.2f} ms (shortlist {two['shortlist']})",
+                str(stage["keyframes"]),
+            ]
+        )
+    head = ["file", "floats", "FAISS store / snapshot a keyframe", "query p50 (keyframes)"]
+    head += ["search stage: index p50", "two stages p50", "keyframes"]
+    out += (
+        "\nThe FAISS backend; the search stage idle, one FAISS thread (the deploy guide's "
+        "[Sizing](../docs/deploy.md#sizing) has every row of the default file's run):\n\n"
+    )
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),
+    "sizing-one-pass": sizing_one_pass,
 }
