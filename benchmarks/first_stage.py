@@ -163,23 +163,26 @@ def main() -> None:
     ap.add_argument("--turn-floor", type=float, default=TURN_FLOOR)
     ap.add_argument("--out", type=Path, default=REPORTS / "model" / "first-stage.json")
     args = ap.parse_args()
-    for town in (args.val, args.val_s1, *args.test, args.test_s1):
-        if not (town / "manifest.json").is_file():
-            ap.error(f"{town} is not a generated town (make data makes the presets)")
-    if any(not t.name.startswith("test") for t in args.test):
-        ap.error("--test takes the test towns, where the choice is reported, never chosen")
-    rerank = Rerank.parse(args.rerank)
-    console = Console(width=140)
-    t0 = time.perf_counter()
+    try:
+        rerank = Rerank.parse(args.rerank)
+    except ValueError as err:
+        ap.error(f"--rerank: {err}")
     if args.model.suffix != ".onnx" or not args.model.is_file():
         ap.error(f"--model {args.model} is not an exported .onnx file")
     enc = Encoder(args.model)
     if enc.meta.first_stage != "descriptor" or enc.meta.calibration:
         ap.error(
-            f"{args.model} carries first stage {enc.meta.first_stage!r} or a calibration "
+            f"{args.model} carries first stage {enc.meta.first_stage!r} and calibration "
             f"({', '.join(enc.meta.calibration) or 'none'}); give the file with the network's "
             "own descriptor and no calibration (see the module's text)"
         )
+    if any(not t.name.startswith("test") for t in args.test):
+        ap.error("--test takes the test towns, where the choice is reported, never chosen")
+    for town in (args.val, args.val_s1, *args.test, args.test_s1):
+        if not (town / "manifest.json").is_file():
+            ap.error(f"{town} is not a generated town (make data makes the presets)")
+    console = Console(width=140)
+    t0 = time.perf_counter()
     towns = Towns(args.model)
     desc, yaw = towns.features(args.val)
     dims = {s.name: dimension(s, desc.shape[1], yaw.shape[1]) for s in GRID}

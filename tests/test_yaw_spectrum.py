@@ -179,3 +179,32 @@ def test_one_sensors_choice_weighs_the_drive_and_the_second_session_alike():
     assert one_sensor.choose(rows[:3], 0.999).name == "mixed:0.75:32:sqrt"
     assert one_sensor.choose(rows, 0.0).name == "spectrum:32:sqrt"
     assert one_sensor.choose(rows, 1.0).name == "descriptor"  # none keeps still enough
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["--model", "models/overlapmamba-hdl64-one-view.onnx"], "no calibration"),
+        (["--model", "models/overlapmamba-hdl64-one-pass.onnx"], "'mixed:0.75:32:sqrt'"),
+        (["--model", "models/README.md"], "not an exported .onnx file"),
+        (["--model", "models/overlapmamba-hdl64.onnx", "--rerank", "20"], "K,WEIGHT"),
+    ],
+)
+def test_one_sensors_first_stage_benchmark_refuses_what_it_cannot_choose_for(args, says):
+    """benchmarks/first_stage.py chooses a stage for a file that carries its network's own
+    descriptor and no calibration (both would apply to the old vector); else it stops, saying
+    why, before any town is read."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run(
+        [sys.executable, "benchmarks/first_stage.py", *args],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 2, run.stderr
+    assert says in run.stderr, run.stderr
