@@ -49,8 +49,11 @@ def verify(path: str = VERIFY, both: bool = True) -> str:
         when(r),
     )
     out += (
-        f"\nModel {r['model_id']}; thresholds: fitness ≥ {th['min_fitness']}, rmse ≤ "
-        f"{th['max_rmse_m']} m, descriptor gate {gate}. A closure is correct when its pose is "
+        f"\nModel {r['model_id']}; thresholds: fitness ≥ {th['min_fitness']}, "
+        + (  # verify_threshold.py's grid holds 1e9 m for no bound on the rmse
+            "rmse unbounded" if th["max_rmse_m"] >= 1e9 else f"rmse ≤ {th['max_rmse_m']} m"
+        )
+        + f", descriptor gate {gate}. A closure is correct when its pose is "
         "within 1 m and 2° of the truth; recall counts queries with a loop. Verify p50: a "
         "query's registrations when every candidate under the gate is registered.\n\n"
     )
