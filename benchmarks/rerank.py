@@ -31,8 +31,10 @@ from rich.table import Table
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.rerank import OFF, Rerank
+from overlapmamba.core.yaw_spectrum import FirstStage, network_part
 from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
+from overlapmamba.train.modelfile import read_metadata
 from overlapmamba.train.sessions import check_sessions, descriptor_recall, town_positions
 
 KS = (5, 10, 20)
@@ -50,9 +52,19 @@ def main() -> None:
         action="store_true",
         help="record the winner as the model's rerank.shortlist / rerank.weight",
     )
+    ap.add_argument(
+        "--score",
+        choices=("first", "network"),
+        default="first",
+        help="the score's d²: from the file's descriptor, as the service scores (first), or "
+        "from the network's own descriptor inside a mixed first stage (network: a trial the "
+        "service does not apply, so it writes no calibration)",
+    )
     args = ap.parse_args()
     if args.write_calibration and args.val.name.startswith("test"):
         ap.error("calibrate on the validation town, never on a test town")
+    if args.write_calibration and args.score != "first":
+        ap.error("--score network is not what the service scores by: it writes no calibration")
 
     t0 = time.perf_counter()
     model, profile, _ = load_model(args.model)
@@ -62,11 +74,19 @@ def main() -> None:
     desc, yaw = describe_sequence(model, val, profile)
     desc_q, yaw_q = describe_sequence(model, second, profile)
     pos, pos_q = town_positions(val), town_positions(second)
+    scored = None
+    if args.score == "network":
+        meta = read_metadata(args.model)
+        stage = FirstStage.parse(meta.first_stage)
+        parts = [network_part(stage, d, meta.yaw_channels) for d in (desc, desc_q)]
+        if parts[0] is None or parts[1] is None or stage.mix == 0.0:
+            ap.error(f"{args.model}'s first stage {meta.first_stage!r} holds no other distance")
+        scored = (parts[0], parts[1])
 
     rows = []
     for p in [OFF] + [Rerank(k, w) for k in KS for w in WEIGHTS]:
-        res = loop_closure(desc, gt, yaw, p)
-        xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p)
+        res = loop_closure(desc, gt, yaw, p, scored[0] if scored else None)
+        xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p, scored=scored)
         row: dict = {"shortlist": p.shortlist, "weight": p.weight}
         for sub in SUBSETS:
             row[f"{sub}_f1max"] = res[sub].f1max
@@ -101,6 +121,7 @@ def main() -> None:
         "model": str(args.model),
         "val": str(args.val),
         "second_session": str(args.second_session),
+        "score": args.score,
         "grid": rows,
         "best": {"shortlist": best["shortlist"], "weight": best["weight"]},
     }

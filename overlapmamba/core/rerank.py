@@ -139,11 +139,30 @@ def rerank_ranked(
     return ranked, out
 
 
-def two_stage(desc: np.ndarray, yaw: np.ndarray, p: Rerank) -> Retriever:
+def scored_by(
+    scored: np.ndarray, queries: np.ndarray, ranked: np.ndarray, dist_sq: np.ndarray, k: int
+) -> np.ndarray:
+    """``dist_sq`` (Q, n) with its first ``k`` columns replaced by the squared distances
+    between the ``scored`` rows (N, D') of each query and of its ranked candidates (padding
+    stays +inf): the second stage's d² from other vectors than the shortlist's."""
+    out = np.array(dist_sq, dtype=np.float64, copy=True)
+    k = min(k, ranked.shape[1])
+    cand = ranked[:, :k]
+    ok = cand >= 0
+    diff = scored[np.clip(cand, 0, None)] - scored[queries][:, None, :]
+    out[:, :k] = np.where(ok, (diff.astype(np.float64) ** 2).sum(-1), np.inf)
+    return out
+
+
+def two_stage(
+    desc: np.ndarray, yaw: np.ndarray, p: Rerank, scored: np.ndarray | None = None
+) -> Retriever:
     """A retriever for :func:`overlapmamba.core.metrics.evaluate_retrieval` (query i searches frames
     0 … db_size − 1) in two stages: the ``p.shortlist`` nearest descriptors (desc (N, D)) re-ranked
-    by their yaw features (yaw (N, C, W)). Each query's answer is computed once, so the
-    direction subsets share their queries' shortlists."""
+    by their yaw features (yaw (N, C, W)). ``scored`` (N, D'): the score's d² from these rows
+    instead of ``desc`` (:func:`scored_by`); None: from ``desc``, as the service scores. Each
+    query's answer is computed once, so the direction subsets share their queries'
+    shortlists."""
     memo: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def retrieve(queries: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -154,6 +173,8 @@ def two_stage(desc: np.ndarray, yaw: np.ndarray, p: Rerank) -> Retriever:
             q, n = queries[todo], db_size[todo]
             allowed = np.arange(len(desc))[None, :] < n[:, None]
             ranked, dist = nearest(desc[q], desc, kk, allowed=allowed)
+            if scored is not None and p.on:
+                dist = scored_by(scored, q, ranked, dist, p.shortlist)
             ranked, score = rerank_ranked(yaw[q], yaw, ranked, dist, p)
             for j, i in enumerate(todo):
                 memo[keys[i]] = (ranked[j], score[j])

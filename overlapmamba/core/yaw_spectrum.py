@@ -82,6 +82,27 @@ class FirstStage:
         )
 
 
+def network_part(stage: FirstStage, vectors: np.ndarray, channels: int) -> np.ndarray | None:
+    """The network's own unit descriptor inside rows of ``stage``'s vectors
+    (:meth:`FirstStage.vectors` of a file with ``channels`` yaw channels): the rows themselves
+    for the descriptor, the leading part at unit length for a mixed stage, None for the
+    spectrum alone (it holds none).
+    A second stage can score a shortlist by this distance while the shortlist itself comes from
+    the stage's (``benchmarks/rerank.py --score network``)."""
+    vectors = np.asarray(vectors, np.float32)
+    if stage.mix == 0.0:
+        return vectors
+    if stage.mix == 1.0:
+        return None
+    d = vectors.shape[1] - channels * stage.bins
+    if d < 1:
+        raise ValueError(
+            f"{vectors.shape[1]} floats a row hold no descriptor beside {channels} channels × "
+            f"{stage.bins} bins of {stage.name}"
+        )
+    return unit(vectors[:, :d])
+
+
 def unit(x: np.ndarray) -> np.ndarray:
     """Rows of ``x`` at unit L2 length (float32; a zero row stays zero)."""
     x = np.asarray(x, np.float32)
