@@ -66,26 +66,41 @@ GRID = (
 
 
 class Towns:
-    """Each town's descriptors and yaw features, described once as the file describes a
-    scan (its views, column phase and input)."""
+    """Each town read once: its descriptors and yaw features as the file describes a scan
+    (its views, column phase and input), the yaw features as a map stores them (float16),
+    its loop table and its positions; every stage is scored from these."""
 
     def __init__(self, model_path: Path) -> None:
         self.model, self.profile, _ = load_model(model_path)
         self._cache: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
+        self._stored: dict[Path, np.ndarray] = {}
+        self._loops: dict[Path, Any] = {}
+        self._positions: dict[Path, np.ndarray] = {}
 
     def features(self, town: Path) -> tuple[np.ndarray, np.ndarray]:
         if town not in self._cache:
             self._cache[town] = describe_sequence(self.model, open_sequence(town), self.profile)
         return self._cache[town]
 
+    def _drive_truth(self, town: Path) -> tuple[Any, np.ndarray]:
+        if town not in self._loops:
+            self._loops[town] = sequence_loops(open_sequence(town), self.profile)
+            self._stored[town] = self.features(town)[1].astype(np.float16)
+        return self._loops[town], self._stored[town]
+
+    def positions(self, town: Path) -> np.ndarray:
+        if town not in self._positions:
+            self._positions[town] = town_positions(open_sequence(town))
+        return self._positions[town]
+
     def drive(self, stage: FirstStage, town: Path, rerank: Rerank) -> dict[str, Any]:
         """Within one drive: the stage alone and with the second stage, per subset."""
         desc, yaw = self.features(town)
-        gt = sequence_loops(open_sequence(town), self.profile)
+        gt, stored = self._drive_truth(town)
         vec = stage.vectors(desc, yaw)
         out: dict[str, Any] = {}
         for name, p in (("first", OFF), ("two_stages", rerank)):
-            res = loop_closure(vec, gt, yaw.astype(np.float16), p)
+            res = loop_closure(vec, gt, stored, p)
             out[name] = {
                 sub: {"f1max": res[sub].f1max, "recall@1": res[sub].recall_at_1} for sub in SUBSETS
             }
@@ -93,13 +108,12 @@ class Towns:
 
     def sessions(self, stage: FirstStage, db: Path, queries: Path) -> float:
         """AR@1 of a second drive's scans against the first's, the stage alone."""
-        check_sessions(open_sequence(db), open_sequence(queries))
         (d_db, y_db), (d_q, y_q) = self.features(db), self.features(queries)
         r = descriptor_recall(
             stage.vectors(d_db, y_db),
-            town_positions(open_sequence(db)),
+            self.positions(db),
             stage.vectors(d_q, y_q),
-            town_positions(open_sequence(queries)),
+            self.positions(queries),
         )
         return float(r["ar@1"])
 
@@ -181,6 +195,8 @@ def main() -> None:
     for town in (args.val, args.val_s1, *args.test, args.test_s1):
         if not (town / "manifest.json").is_file():
             ap.error(f"{town} is not a generated town (make data makes the presets)")
+    for first, second in ((args.val, args.val_s1), (args.test[0], args.test_s1)):
+        check_sessions(open_sequence(first), open_sequence(second))
     console = Console(width=140)
     t0 = time.perf_counter()
     towns = Towns(args.model)

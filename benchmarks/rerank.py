@@ -78,10 +78,11 @@ def main() -> None:
     if args.score == "network":
         meta = read_metadata(args.model)
         stage = FirstStage.parse(meta.first_stage)
-        parts = [network_part(stage, d, meta.yaw_channels) for d in (desc, desc_q)]
-        if parts[0] is None or parts[1] is None or stage.mix == 0.0:
+        db_part = network_part(stage, desc, meta.yaw_channels)
+        q_part = network_part(stage, desc_q, meta.yaw_channels)
+        if not 0.0 < stage.mix < 1.0 or db_part is None or q_part is None:  # not mixed
             ap.error(f"{args.model}'s first stage {meta.first_stage!r} holds no other distance")
-        scored = (parts[0], parts[1])
+        scored = (db_part, q_part)
 
     rows = []
     for p in [OFF] + [Rerank(k, w) for k in KS for w in WEIGHTS]:
