@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import model_record, served_input, served_settings
+from bench_kit import model_record, served_input, served_rerank
 from common_beams import drive, drive_arguments
 from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
@@ -171,8 +171,7 @@ def main() -> None:
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
-    served = served_settings(enc.meta)
-    rerank = Rerank(served.rerank.shortlist, served.rerank.weight)
+    rerank = served_rerank(enc.meta)
     splits = ("val", "test") if args.split == "both" else (args.split,)
     towns = {split: split_towns(split, args.data, args.scratch, args.frames) for split in splits}
     console.print(f"drives ready in {time.perf_counter() - t0:.0f} s")

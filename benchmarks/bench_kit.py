@@ -139,6 +139,22 @@ def served_settings(meta: Any) -> Any:
     return resolve(Settings(), meta)[0]
 
 
+def served_rerank(meta: Any, text: str | None = None) -> Any:
+    """The second stage the service runs for a model of metadata ``meta``
+    (``overlapmamba.service.ranking.rerank_params`` of :func:`served_settings`); ``text``
+    (``K,WEIGHT`` or ``off``) in place of its shortlist and weight, its score as served."""
+    from dataclasses import replace
+
+    from overlapmamba.core.rerank import Rerank
+    from overlapmamba.service.ranking import rerank_params
+
+    served = rerank_params(served_settings(meta).rerank, meta)
+    if text is None:
+        return served
+    asked = Rerank.parse(text)
+    return replace(asked, part=served.part) if asked.on else asked
+
+
 def model_record(path: Path, enc: Any) -> dict[str, Any]:
     """What a report says of the model file it measured (an ``Encoder``): where it lies,
     its model id, the views, column phase and sensor input it is served with, and its first

@@ -26,6 +26,7 @@ import argparse
 import json
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ from bench_kit import (
     model_record,
     provenance,
     served_input,
+    served_rerank,
     served_settings,
     write_calibration,
 )
@@ -84,7 +86,7 @@ def main() -> None:
     if args.write_calibration and any(p.name.startswith("test") for p in args.sequence):
         ap.error("calibrate on the validation town, never on a test town")
 
-    rerank = Rerank.parse(args.rerank)
+    rerank = served_rerank(enc.meta, args.rerank)  # its score as the service scores
     t0 = time.perf_counter()
     towns = [score_town(enc, path, args.batch, rerank) for path in args.sequence]
     res = pooled([t[0] for t in towns])
@@ -133,7 +135,7 @@ def main() -> None:
                 ],
                 "summary": res.summary(),
                 "operating_points": points,
-                "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
+                "rerank": asdict(rerank),
                 "summary_reranked": staged.summary(),
                 "operating_points_reranked": points_staged,
                 "float16": res16.summary(),

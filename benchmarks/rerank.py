@@ -7,7 +7,10 @@ direction) and ``data/synth/val-s1`` queried against ``val`` (AR@1 across sessio
 ranks them by the mean of those seven numbers. ``overlapmamba.core.rerank.Rerank``'s defaults (the
 service's ``rerank`` settings and ``overlapmamba eval --rerank``) are the winner for the
 shipped model; ``--write-calibration`` records the winner in the model file, which the
-service takes it from.
+service takes it from. ``--score network`` measures d² between the network's own descriptors
+inside a mixed first stage instead of between the vectors the shortlist is ranked by
+(``overlapmamba.core.yaw_spectrum.score_part``); the calibration records the score it was
+chosen with (``rerank.score``).
 
     python benchmarks/rerank.py [--model models/overlapmamba-hdl64.onnx]
 
@@ -31,7 +34,7 @@ from rich.table import Table
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.rerank import OFF, Rerank
-from overlapmamba.core.yaw_spectrum import FirstStage, network_part
+from overlapmamba.core.yaw_spectrum import SCORES, FirstStage, score_part
 from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
 from overlapmamba.train.modelfile import read_metadata
@@ -54,40 +57,42 @@ def main() -> None:
     )
     ap.add_argument(
         "--score",
-        choices=("first", "network"),
-        default="first",
-        help="the score's d²: from the file's descriptor, as the service scores (first), or "
-        "from the network's own descriptor inside a mixed first stage (network: a trial the "
-        "service does not apply, so it writes no calibration)",
+        choices=SCORES,
+        default="stage",
+        help="the score's d²: between the vectors the shortlist is ranked by (stage), or "
+        "between the network's own descriptors inside a mixed first stage (network); "
+        "--write-calibration records it as rerank.score",
     )
     args = ap.parse_args()
     if args.write_calibration and args.val.name.startswith("test"):
         ap.error("calibrate on the validation town, never on a test town")
-    if args.write_calibration and args.score != "first":
-        ap.error("--score network is not what the service scores by: it writes no calibration")
 
     t0 = time.perf_counter()
     model, profile, _ = load_model(args.model)
+    part = None
+    if args.score == "network":
+        meta = read_metadata(args.model)
+        try:
+            stage = FirstStage.parse(meta.first_stage)
+            part = score_part(stage, meta.descriptor_dim, meta.yaw_channels, args.score)
+        except ValueError as e:
+            ap.error(f"{args.model}: {e}")
+        if part is None:
+            ap.error(
+                f"{args.model}'s first stage {meta.first_stage!r} is the network's descriptor: "
+                "scoring by it is --score stage"
+            )
     val, second = open_sequence(args.val), open_sequence(args.second_session)
     check_sessions(val, second)
     gt = sequence_loops(val, profile)
     desc, yaw = describe_sequence(model, val, profile)
     desc_q, yaw_q = describe_sequence(model, second, profile)
     pos, pos_q = town_positions(val), town_positions(second)
-    scored = None
-    if args.score == "network":
-        meta = read_metadata(args.model)
-        stage = FirstStage.parse(meta.first_stage)
-        db_part = network_part(stage, desc, meta.yaw_channels)
-        q_part = network_part(stage, desc_q, meta.yaw_channels)
-        if not 0.0 < stage.mix < 1.0 or db_part is None or q_part is None:  # not mixed
-            ap.error(f"{args.model}'s first stage {meta.first_stage!r} holds no other distance")
-        scored = (db_part, q_part)
 
     rows = []
-    for p in [OFF] + [Rerank(k, w) for k in KS for w in WEIGHTS]:
-        res = loop_closure(desc, gt, yaw, p, scored[0] if scored else None)
-        xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p, scored=scored)
+    for p in [OFF] + [Rerank(k, w, part) for k in KS for w in WEIGHTS]:
+        res = loop_closure(desc, gt, yaw, p)
+        xs = descriptor_recall(desc, pos, desc_q, pos_q, yaw=(yaw, yaw_q), rerank=p)
         row: dict = {"shortlist": p.shortlist, "weight": p.weight}
         for sub in SUBSETS:
             row[f"{sub}_f1max"] = res[sub].f1max
@@ -129,7 +134,7 @@ def main() -> None:
     args.out.write_text(json.dumps(record, indent=2) + "\n")
     console.print(f"wrote {args.out}")
     if args.write_calibration:
-        values = {"shortlist": best["shortlist"], "weight": best["weight"]}
+        values = {"shortlist": best["shortlist"], "weight": best["weight"], "score": args.score}
         write_calibration(args.model, "rerank", values, f"{args.val} and {args.second_session}")
 
 

@@ -16,7 +16,9 @@ shorter shortlist, then the lighter weight. It is reported on ``test`` (the sens
 town), never chosen there, beside the descriptor alone and the file's own setting (its
 calibration, or the service's defaults where it has none). ``--write-calibration`` records
 the chosen setting in the file as its ``rerank`` calibration (the service reads it from
-there): the calibration of a file meant for a fleet of mixed sensors.
+there): the calibration of a file meant for a fleet of mixed sensors. ``--score network``
+scores a mixed first stage's shortlist by the network's own descriptors inside it
+(``benchmarks/rerank.py`` says more); the calibration records the score.
 
     python benchmarks/rerank_across.py --model runs/NAME/encoder.onnx \\
         --out reports/model/rerank-across-NAME.json
@@ -42,7 +44,8 @@ from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
-from overlapmamba.core.rerank import aligned_correlation
+from overlapmamba.core.rerank import Rerank, aligned_correlation, with_score
+from overlapmamba.core.yaw_spectrum import SCORES
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, ground_truth, town_positions
 
@@ -55,13 +58,23 @@ class Pair:
     distances, their yaw features' aligned correlations, and which lie within the hit
     radius, computed once for every setting of the grid."""
 
-    def __init__(self, drives: Drives, db_town: Path, q_town: Path, k: int) -> None:
+    def __init__(
+        self, drives: Drives, db_town: Path, q_town: Path, k: int, part: int | None = None
+    ) -> None:
         db_seq, q_seq = open_sequence(db_town), open_sequence(q_town)
         check_sessions(db_seq, q_seq)
         pos_db, pos_q = town_positions(db_seq), town_positions(q_seq)
         (d_db, y_db), (d_q, y_q) = drives.model(db_town), drives.model(q_town)
         k = min(k, len(d_db))
         self.ranked, self.dist = nearest(d_q, d_db, k)
+        # the score's d² by what it is measured between (core.rerank.Rerank.part): the first
+        # stage's vectors, and with a part the network's descriptors inside them
+        self.d2 = {"stage": self.dist}
+        if part is not None:
+            rows = Rerank(part=part).rows(np.concatenate([d_db, d_q]))
+            net_db, net_q = rows[: len(d_db)], rows[len(d_db) :]
+            diff = net_db[self.ranked] - net_q[:, None, :]
+            self.d2["network"] = (diff.astype(np.float64) ** 2).sum(-1)
         self.corr = np.stack(
             [aligned_correlation(y_q[i], y_db[self.ranked[i]]) for i in range(len(d_q))]
         )
@@ -69,10 +82,11 @@ class Pair:
         self.evaluated = within.any(1)  # queries with a place of the map within the radius
         self.near = np.take_along_axis(within, self.ranked, 1)
 
-    def ar1(self, shortlist: int, weight: float) -> float:
-        """AR@1 with the first ``shortlist`` re-ranked at ``weight`` (1: the descriptor)."""
+    def ar1(self, shortlist: int, weight: float, scored: str = "stage") -> float:
+        """AR@1 with the first ``shortlist`` re-ranked at ``weight`` (1: the descriptor), the
+        score's d² as ``scored`` says (stage, network)."""
         k = min(shortlist, self.dist.shape[1])
-        score = self.dist[:, :k] - weight * self.corr[:, :k]
+        score = self.d2[scored][:, :k] - weight * self.corr[:, :k]
         top = np.argmin(score, axis=1)
         hit = self.near[np.arange(len(top)), top]
         return float(hit[self.evaluated].mean())
@@ -83,13 +97,16 @@ def settings(shortlists: tuple[int, ...], weights: tuple[float, ...]) -> list[tu
     return [(1, 0.0)] * (1 in shortlists) + [(k, w) for k in shortlists if k > 1 for w in weights]
 
 
-def score(pairs: dict[tuple[str, str], Pair], setting: tuple[int, float]) -> dict[str, Any]:
-    ar = {key: p.ar1(*setting) for key, p in pairs.items()}
+def score(
+    pairs: dict[tuple[str, str], Pair], setting: tuple[int, float], scored: str = "stage"
+) -> dict[str, Any]:
+    ar = {key: p.ar1(*setting, scored) for key, p in pairs.items()}
     cross = [v for (q, m), v in ar.items() if q != m]
     same = [v for (q, m), v in ar.items() if q == m]
     return {
         "shortlist": setting[0],
         "weight": setting[1],
+        "score": scored,
         "mean_ar@1": float(np.mean(list(ar.values()))),
         "cross_mean_ar@1": float(np.mean(cross)) if cross else None,
         "cross_min_ar@1": float(np.min(cross)) if cross else None,
@@ -135,6 +152,13 @@ def main() -> None:
         action="store_true",
         help="record the setting chosen on val as the model's rerank.shortlist / rerank.weight",
     )
+    ap.add_argument(
+        "--score",
+        choices=SCORES,
+        default="stage",
+        help="the score's d²: between the first stage's vectors (stage) or the network's own "
+        "descriptors inside a mixed first stage (network); recorded with the calibration",
+    )
     args = ap.parse_args()
     if args.write_calibration:  # choose only among what the service can answer with
         for k in args.shortlists:
@@ -150,6 +174,13 @@ def main() -> None:
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
     own = (served.rerank.shortlist, served.rerank.weight)
+    try:
+        part = with_score(Rerank(), args.score, enc.meta).part
+        own_part = with_score(Rerank(), served.rerank.score, enc.meta).part
+    except ValueError as err:
+        ap.error(str(err))
+    if args.score == "network" and part is None:
+        ap.error(f"{args.model}'s first stage is the network's descriptor: score it by stage")
     grid = settings(args.shortlists, WEIGHTS)
     drives = Drives(enc, args.scratch)
     record: dict[str, Any] = {
@@ -157,10 +188,15 @@ def main() -> None:
         "own": {
             "shortlist": own[0],
             "weight": own[1],
+            "score": served.rerank.score,
             "calibrated": "rerank" in (enc.meta.calibration or {}),
         },
         "sensors": list(SENSORS),
-        "grid": {"shortlists": list(args.shortlists), "weights": list(WEIGHTS)},
+        "grid": {
+            "shortlists": list(args.shortlists),
+            "weights": list(WEIGHTS),
+            "score": args.score,
+        },
         "bar_ar@1": BAR_AR1,
         "radius_m": HIT_RADIUS,
     }
@@ -168,12 +204,12 @@ def main() -> None:
     for split in ("val", "test"):
         towns = split_towns(split, args.data, args.scratch, args.frames)
         pairs = {
-            (q, m): Pair(drives, towns[(m, 0)], towns[(q, 1)], kmax)
+            (q, m): Pair(drives, towns[(m, 0)], towns[(q, 1)], kmax, part or own_part)
             for m, q in itertools.product(SENSORS, SENSORS)
         }
         console.print(f"{split}: {len(pairs)} pairs ready at {time.perf_counter() - t0:.0f} s")
         if split == "val":
-            rows = [score(pairs, s) for s in grid]
+            rows = [score(pairs, s, args.score) for s in grid]
             for r in rows:
                 console.print(
                     f"shortlist {r['shortlist']:4d} weight {r['weight']:4.1f}: mean "
@@ -189,8 +225,8 @@ def main() -> None:
             best = (chosen["shortlist"], chosen["weight"])
             record["test"] = {
                 "descriptor": score(pairs, (1, 0.0)),
-                "own": score(pairs, own),
-                "chosen": score(pairs, best),
+                "own": score(pairs, own, served.rerank.score),
+                "chosen": score(pairs, best, args.score),
             }
             for name, r in record["test"].items():
                 console.print(
@@ -203,7 +239,7 @@ def main() -> None:
     write_report(args.out, record)
     console.print(f"wrote {args.out}")
     if args.write_calibration:  # once the report that says why is written
-        values = {"shortlist": chosen["shortlist"], "weight": chosen["weight"]}
+        values = {"shortlist": chosen["shortlist"], "weight": chosen["weight"], "score": args.score}
         write_calibration(args.model, "rerank", values, calibration_towns)
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import REAL, ROOT, provenance, served_input, served_settings
+from bench_kit import REAL, ROOT, provenance, served_input, served_rerank, served_settings
 from rich.console import Console
 from verify_threshold import descriptor_recall as verified_recall
 from verify_threshold import run_town, score
@@ -276,7 +276,7 @@ def main() -> None:
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
-    rerank, v = Rerank(served.rerank.shortlist, served.rerank.weight), served.verify
+    rerank, v = served_rerank(enc.meta), served.verify
     names = args.only or [f"test-{s}" for s in CATALOGUE] + list(MOUNTED)
     towns = [args.data / n for n in names if (args.data / n / "manifest.json").is_file()]
     missing = sorted(set(names) - {t.name for t in towns})

@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_kit import served_rerank
 from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
@@ -44,8 +45,8 @@ from overlapmamba.service.backends.factory import open_backend
 from overlapmamba.service.backends.qdrant.codec import point_payload
 from overlapmamba.service.domain import Filters, NewKeyframe, content_hash
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
-from overlapmamba.service.settings import RerankSettings, Settings
+from overlapmamba.service.ranking import rerank_matches, shortlist
+from overlapmamba.service.settings import Settings
 from overlapmamba.service.threads import cores
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -229,7 +230,7 @@ def search_stage(
     ]
     image, offset = enc.project_offset(cloud)
     image, offsets = image[None], np.array([offset])
-    p = rerank_params(RerankSettings())
+    p = served_rerank(enc.meta)  # as the service re-ranks
     n_short = shortlist(5, p)
     out = []
     for load in ("idle", "encoder busy"):
@@ -250,7 +251,7 @@ def search_stage(
                 m.search(q, 6, Filters(), qy, yaw_k=5)  # a query with k = 5, one stage
                 whole.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()  # the same query as served: two stages
-                rerank_matches(m.search(q, n_short + 1, Filters(), qy, yaw_k=n_short), p)
+                rerank_matches(m.search(q, n_short + 1, Filters(), qy, yaw_k=n_short), p, q)
                 staged.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 _, ids = m.index.search(q, 6, None)

@@ -30,12 +30,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from across_pairs import SENSORS, split_towns
-from bench_kit import ROOT, model_record, served_input, served_settings
+from bench_kit import ROOT, model_record, served_input, served_rerank, served_settings
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
@@ -43,7 +44,7 @@ from tqdm import tqdm
 from verify_threshold import candidate, score
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.rerank import by_score
+from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
@@ -96,8 +97,7 @@ def pair_queries(
     q: Drive,
     k: int,
     v: VerifySettings,
-    weight: float,
-    shortlist: int,
+    rerank: Rerank,
     every: int,
     view: FieldOfView | None,
 ) -> list[dict[str, Any]]:
@@ -106,13 +106,14 @@ def pair_queries(
     check_sessions(db.seq, q.seq)
     within = ground_truth(db.poses[:, :3, 3], q.poses[:, :3, 3])
     d2 = np.maximum(2.0 - 2.0 * q.desc @ db.desc.T, 0.0)
+    s2 = score_d2(rerank, q.desc, db.desc, d2)
     v = v.model_copy(update={"stop_at_first": False})  # every candidate: score() decides
     out = []
     for i in range(0, len(q.desc), every):
-        top = np.argsort(d2[i], kind="stable")[: max(k, shortlist)]
+        top = np.argsort(d2[i], kind="stable")[: max(k, rerank.shortlist)]
         deg, conf = estimate_yaw(q.yaw[i].astype(np.float32), db.yaw[top].astype(np.float32))
-        if shortlist > 1 and weight > 0:  # as overlapmamba.service.ranking orders the answer
-            order, _ = by_score(d2[i, top], conf, weight)
+        if rerank.on:  # as overlapmamba.service.ranking orders the answer
+            order, _ = by_score(s2[i, top], conf, rerank.weight)
             top, deg = top[order], deg[order]
         top, deg = top[:k], deg[:k]
         verdicts = verify_candidates(
@@ -149,7 +150,7 @@ def view_of(map_sensor: str, query_sensor: str) -> FieldOfView | None:
 
 
 def val_pair_queries(
-    enc: Encoder, v: VerifySettings, rerank: Any, every: int = 2, frames: int = 500
+    enc: Encoder, v: VerifySettings, rerank: Rerank, every: int = 2, frames: int = 500
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Every candidate of the calibration town's 25 pairs registered (no descriptor gate:
     ``verify_threshold.py --calibrate --across`` sweeps it), and the drives' names."""
@@ -163,8 +164,7 @@ def val_pair_queries(
             drives[(q, 1)],
             v.candidates,
             v,
-            rerank.weight if rerank.on else 0.0,
-            rerank.shortlist,
+            rerank,
             every,
             view_of(m, q),
         )
@@ -209,11 +209,11 @@ def main() -> None:
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
-    v, rr = served.verify, served.rerank
+    v, rr = served.verify, served_rerank(enc.meta)
     record: dict[str, Any] = {
         **model_record(args.model, enc),
         "verify": v.model_dump(),
-        "rerank": {"shortlist": rr.shortlist, "weight": rr.weight},
+        "rerank": asdict(rr),
         "calibrated": sorted(enc.meta.calibration),
         "every": args.every,
         "field_of_view": not args.no_view,
@@ -231,8 +231,7 @@ def main() -> None:
                 drives[(q, 1)],
                 v.candidates,
                 v,
-                rr.weight,
-                rr.shortlist,
+                rr,
                 args.every,
                 view,
             )

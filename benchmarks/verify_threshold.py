@@ -42,11 +42,19 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import ROOT, provenance, served_input, served_settings, write_calibration
+from bench_kit import (
+    ROOT,
+    provenance,
+    served_input,
+    served_rerank,
+    served_settings,
+    write_calibration,
+)
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -55,7 +63,7 @@ from tqdm import tqdm
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
-from overlapmamba.core.rerank import Rerank, by_score
+from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.settings import VerifySettings
@@ -87,13 +95,14 @@ def run_town(
     desc = np.concatenate(descs)
     yaw = np.concatenate(yaws)
     d2 = np.maximum(2.0 - 2.0 * desc @ desc.T, 0.0)
+    s2 = score_d2(rerank, desc, desc, d2)
     queries = []
     ms = []
     for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
         top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.shortlist)]
         deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
         if rerank.on:  # as overlapmamba.service.ranking orders the answer
-            order, _ = by_score(d2[i, top], conf, rerank.weight)
+            order, _ = by_score(s2[i, top], conf, rerank.weight)
             top, deg = top[order], deg[order]
         top, deg = top[:k], deg[:k]
         t0 = time.perf_counter()
@@ -274,13 +283,13 @@ def main() -> None:
     v = VerifySettings(
         candidates=args.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=register_within
     )
-    rerank = Rerank.parse(args.rerank)
+    rerank = served_rerank(enc.meta, args.rerank)  # its score as the service scores
     results = [run_town(enc, t, args.candidates, v, rerank) for t in towns]
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
         "candidates": args.candidates,
-        "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
+        "rerank": asdict(rerank),
         "towns": [],
     }
     if args.calibrate:

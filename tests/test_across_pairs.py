@@ -142,6 +142,14 @@ def test_the_sweep_answers_as_the_service_s_second_stage_at_every_setting(two_dr
         rr = Rerank(k, w) if k > 1 else OFF
         want = descriptor_recall(d_db, pos_db, d_q, pos_q, yaw=(y_db, y_q), rerank=rr)["ar@1"]
         assert pair.ar1(k, w) == pytest.approx(want), (k, w)
+    # scored by a leading part of each vector (a mixed first stage's network descriptor):
+    # what descriptor_recall gives with that part
+    part = rerank_across.Pair(drives, two_drives / "map", two_drives / "queries", 200, 64)
+    for k, w in [(5, 0.2), (20, 8.0)]:
+        rr = Rerank(k, w, part=64)
+        want = descriptor_recall(d_db, pos_db, d_q, pos_q, yaw=(y_db, y_q), rerank=rr)["ar@1"]
+        assert part.ar1(k, w, "network") == pytest.approx(want), (k, w)
+        assert part.ar1(k, w) == pair.ar1(k, w)
     row = rerank_across.score({("vlp16", "kitti-hdl64"): pair}, (20, 0.2))
     assert row["cross_mean_ar@1"] == row["mean_ar@1"] == pair.ar1(20, 0.2)
     assert row["same_mean_ar@1"] is None and row["pairs_at_bar"] == int(pair.ar1(20, 0.2) >= 0.85)

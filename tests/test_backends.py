@@ -291,6 +291,36 @@ def test_faiss_snapshot_still_reports_its_seq(tmp_path):
         assert snap["seq"] == 1 and snap["bytes"] > 0
 
 
+@pytest.mark.parametrize("cache_mb", [0, 8])
+@pytest.mark.parametrize("kind", ["faiss", "qdrant"])
+def test_a_scan_querys_matches_carry_their_stored_descriptors(kind, cache_mb, tmp_path):
+    """A second stage may score by part of each candidate's descriptor
+    (overlapmamba.service.ranking): every match of a query with yaw features carries the
+    descriptor it was inserted with, read from the store, the engine or the row cache alike."""
+    s = settings_for(kind, tmp_path)
+    s = s.model_copy(update={"index": s.index.model_copy(update={"row_cache_mb": cache_mb})})
+    b = open_backend(s, model_id=MODEL_ID, dim=DIM)
+    b.load_all()
+    try:
+        m, _ = b.create("town", "flat")
+        rows = {
+            r.keyframe_id: r
+            for r in (row(i, np.random.default_rng(i), yaw=True) for i in range(12))
+        }
+        m.insert(list(rows.values()))
+        q = rows["kf-3"]
+        for _ in range(2):  # the second time from the row cache, where there is one
+            found = m.search(q.descriptor, 6, Filters(), q.yaw, yaw_k=5)
+            assert len(found) == 6
+            for x in found:
+                assert x.keyframe.descriptor is not None, x.keyframe.keyframe_id
+                np.testing.assert_array_equal(
+                    x.keyframe.descriptor, rows[x.keyframe.keyframe_id].descriptor
+                )
+    finally:
+        b.close()
+
+
 @pytest.mark.parametrize("kind", ["faiss", "qdrant"])
 def test_a_maps_sensor_and_mount_are_kept_across_restarts_and_fixed(kind, tmp_path):
     from overlapmamba.core.sensors.mount import Mount

@@ -379,7 +379,11 @@ def test_the_report_scores_the_service_answer_with_the_files_own_second_stage():
     for name in ("overlapmamba-hdl64.onnx", "overlapmamba-hdl64-one-pass.onnx"):
         model, _, _ = load_model(models / name)
         values = model.meta.calibration["rerank"].values
-        assert service_rerank(model) == Rerank(values["shortlist"], values["weight"]), name
+        got = service_rerank(model)
+        assert (got.shortlist, got.weight) == (values["shortlist"], values["weight"]), name
     one_pass, _, _ = load_model(models / "overlapmamba-hdl64-one-pass.onnx")
     assert service_rerank(one_pass) != SERVICE_RERANK  # else this test checks nothing
+    # scored as calibrated: by the network's 256 floats ahead of 16 channels × 32 bins
+    assert one_pass.meta.calibration["rerank"].values["score"] == "network"
+    assert service_rerank(one_pass).part == 256
     assert service_rerank(object()) == SERVICE_RERANK  # a network without a file's metadata

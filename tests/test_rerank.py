@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -123,6 +124,76 @@ def test_the_services_answer_is_reranked_only_when_every_candidate_can_be_scored
     assert rerank_matches(mixed, p) == mixed
     assert rerank_matches(found, OFF) == found
     assert shortlist(5, p) == 5 and shortlist(2, p) == 3 and shortlist(2, OFF) == 2
+
+
+def test_the_services_answer_scored_by_the_network_part_uses_each_candidates_stored_descriptor():
+    """With ``part`` the score's d² is between the leading parts at unit length of the query's
+    descriptor and each candidate's stored one (not the match's distance); a candidate
+    whose descriptor was not read, or no query descriptor, leaves the answer unscored."""
+    from dataclasses import replace
+
+    from overlapmamba.service.domain import Keyframe, Match
+    from overlapmamba.service.ranking import rerank_matches
+
+    rng = np.random.default_rng(11)
+
+    def unit(x: np.ndarray) -> np.ndarray:
+        return (x / np.linalg.norm(x)).astype(np.float32)
+
+    query = unit(rng.normal(size=12))
+    stored = [unit(rng.normal(size=12)) for _ in range(3)]
+    conf = [0.2, 0.9, 0.5]
+    found = [
+        Match(
+            Keyframe(0, k, "r", "s", 0.0, None, "h", 0, 0.0, descriptor=d),
+            0.9,
+            0.1 + j / 100,
+            0.0,
+            c,
+        )
+        for j, (k, d, c) in enumerate(zip("abc", stored, conf, strict=True))
+    ]
+    p = Rerank(shortlist=3, weight=0.2, part=4)
+    out = rerank_matches(found, p, query)
+    want = [
+        float(((unit(d[:4]) - unit(query[:4])) ** 2).sum()) - 0.2 * c
+        for d, c in zip(stored, conf, strict=True)
+    ]
+    assert [m.score for m in out] == pytest.approx(sorted(want), abs=1e-6)
+    assert [m.keyframe.keyframe_id for m in out] == ["abc"[i] for i in np.argsort(want)]
+    whole = rerank_matches(found, replace(p, part=None), query)  # the match's own distance
+    assert whole[0].score == pytest.approx(
+        min(m.distance**2 - 0.2 * c for m, c in zip(found, conf, strict=True))
+    )
+    unread = [found[0], replace(found[1], keyframe=replace(found[1].keyframe, descriptor=None))]
+    assert rerank_matches(unread + found[2:], p, query) == unread + found[2:]
+    assert rerank_matches(found, p) == found  # no query descriptor
+
+
+def test_the_service_scores_by_the_network_only_where_the_models_first_stage_holds_it():
+    """rerank.score "network": a mixed first stage scores by its network part (the floats
+    ahead of channels × bins), a descriptor first stage by the whole vector, and a spectrum
+    alone stops the service naming the model and what is allowed."""
+    from types import SimpleNamespace
+
+    from overlapmamba.service.ranking import rerank_params
+    from overlapmamba.service.settings import RerankSettings
+
+    def meta(stage: str, dim: int) -> Any:
+        return SimpleNamespace(
+            model_id="om-x", first_stage=stage, descriptor_dim=dim, yaw_channels=16
+        )
+
+    network = RerankSettings(shortlist=10, weight=0.5, score="network")
+    assert rerank_params(network, meta("mixed:0.75:32:sqrt", 768)).part == 256
+    assert rerank_params(RerankSettings(), meta("mixed:0.75:32:sqrt", 768)).part is None
+    assert rerank_params(network, meta("descriptor", 256)).part is None
+    with pytest.raises(ValueError, match="om-x.*holds no network descriptor.*allowed"):
+        rerank_params(network, meta("spectrum:32:sqrt", 512))
+    with pytest.raises(ValueError, match="needs the model's first stage"):
+        rerank_params(network)
+    with pytest.raises(ValueError, match="score"):
+        RerankSettings(score="spectrum")
 
 
 def test_the_service_takes_a_shortlist_up_to_200_and_names_the_bound_past_it():

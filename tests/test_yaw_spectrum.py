@@ -211,69 +211,82 @@ def test_one_sensors_first_stage_benchmark_refuses_what_it_cannot_choose_for(arg
 
 
 def test_the_network_part_of_a_mixed_stage_is_the_descriptor_it_was_made_from():
-    """A mixed stage's rows lead with the network's descriptor (scaled); network_part gives it
-    back at unit length, the descriptor stage gives its rows, the spectrum alone gives none,
-    and rows too short to hold a descriptor are refused."""
-    from overlapmamba.core.yaw_spectrum import network_part
+    """A mixed stage's rows lead with the network's descriptor (scaled); score_part names
+    those floats and Rerank.rows gives them back at unit length. Scoring by the stage, or a
+    stage that is the descriptor, scores the whole rows; the spectrum alone holds no
+    descriptor, and rows too short to hold one, an unknown score or a part as wide as the
+    rows are refused."""
+    from overlapmamba.core.rerank import Rerank
+    from overlapmamba.core.yaw_spectrum import score_part
 
     rng = np.random.default_rng(4)
     desc, yaw = rng.normal(size=(6, 24)), _features(6, 4, 64)
     mixed = FirstStage.parse("mixed:0.75:8:sqrt")
-    got = network_part(mixed, mixed.vectors(desc, yaw), channels=4)
-    np.testing.assert_allclose(got, unit(desc), atol=1e-6)
-    plain = FirstStage()
-    np.testing.assert_allclose(network_part(plain, plain.vectors(desc, yaw), 4), unit(desc))
-    alone = FirstStage.parse("spectrum:8:sqrt")
-    assert network_part(alone, alone.vectors(desc, yaw), 4) is None
+    rows = mixed.vectors(desc, yaw)
+    part = score_part(mixed, rows.shape[1], 4, "network")
+    assert part == 24
+    np.testing.assert_allclose(Rerank(part=part).rows(rows), unit(desc), atol=1e-6)
+    assert score_part(mixed, rows.shape[1], 4, "stage") is None
+    assert Rerank().rows(rows) is rows
+    assert score_part(FirstStage(), 24, 4, "network") is None
+    with pytest.raises(ValueError, match="holds no network descriptor"):
+        score_part(FirstStage.parse("spectrum:8:sqrt"), 32, 4, "network")
     with pytest.raises(ValueError, match="hold no descriptor"):
-        network_part(mixed, np.zeros((2, 32)), channels=4)  # 4 × 8 floats: spectrum only
+        score_part(mixed, 32, 4, "network")  # 4 × 8 floats: spectrum only
+    with pytest.raises(ValueError, match="not one of stage, network"):
+        score_part(mixed, rows.shape[1], 4, "spectrum")
+    with pytest.raises(ValueError, match="not a leading part"):
+        Rerank(part=rows.shape[1]).rows(rows)
+    with pytest.raises(ValueError, match="part must be"):
+        Rerank(part=0)
 
 
-def test_a_second_stage_scored_by_other_rows_reorders_by_their_distance():
-    """core.rerank.two_stage with ``scored``: the shortlist is the descriptors' nearest, the
-    score's d² the scored rows'; scored by the descriptors themselves it answers as without."""
+def _two_part(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Unit rows whose leading floats are ``a`` (unit) and the rest ``b`` (unit), 1 : 3."""
+    return np.concatenate([a * 0.5, b * np.sqrt(0.75)], axis=1).astype(np.float32)
+
+
+def test_a_second_stage_scored_by_a_leading_part_reorders_by_its_distance():
+    """core.rerank.two_stage with ``part``: the shortlist is the whole vectors' nearest, the
+    score's d² the leading parts' at unit length; without a part it scores the whole."""
     from overlapmamba.core.rerank import Rerank, aligned_correlation, two_stage
 
     rng = np.random.default_rng(5)
-    desc, other = unit(rng.normal(size=(30, 8))), unit(rng.normal(size=(30, 8)))
+    net, other = unit(rng.normal(size=(30, 8))), unit(rng.normal(size=(30, 8)))
+    vec = _two_part(net, other)
     yaw = _features(30, 3, 32, seed=6)
-    p = Rerank(5, 0.3)
     q, n = np.array([29, 25]), np.array([20, 20])
-    plain = two_stage(desc, yaw, p)(q, n, 5)
-    same = two_stage(desc, yaw, p, scored=desc)(q, n, 5)
-    np.testing.assert_array_equal(plain[0], same[0])
-    np.testing.assert_allclose(plain[1], same[1], atol=1e-6)
-    ranked, score = two_stage(desc, yaw, p, scored=other)(q, n, 5)
-    for i, query in enumerate(q):
-        shortlist = np.argsort(((desc[:20] - desc[query]) ** 2).sum(1), kind="stable")[:5]
-        assert set(ranked[i]) == set(shortlist)  # the descriptors' shortlist
-        want = ((other[shortlist] - other[query]) ** 2).sum(1) - 0.3 * aligned_correlation(
-            yaw[query], yaw[shortlist]
-        )
-        np.testing.assert_allclose(score[i], np.sort(want), atol=1e-6)
-        assert ranked[i][0] == shortlist[np.argmin(want)]
+    for part in (None, 8):
+        ranked, score = two_stage(vec, yaw, Rerank(5, 0.3, part))(q, n, 5)
+        rows = vec if part is None else net
+        for i, query in enumerate(q):
+            shortlist = np.argsort(((vec[:20] - vec[query]) ** 2).sum(1), kind="stable")[:5]
+            assert set(ranked[i]) == set(shortlist)  # the whole vectors' shortlist
+            want = ((rows[shortlist] - rows[query]) ** 2).sum(1) - 0.3 * aligned_correlation(
+                yaw[query], yaw[shortlist]
+            )
+            np.testing.assert_allclose(score[i], np.sort(want), atol=1e-5)
+            assert ranked[i][0] == shortlist[np.argmin(want)]
 
 
-def test_across_sessions_a_second_stage_scored_by_other_rows_uses_both_drives_rows():
-    """sessions.descriptor_recall with ``scored``: scored by the descriptors themselves it
-    answers as without; by rows that put every query on the map scan at its own position, it
-    finds them all, whatever the shortlist's order."""
+def test_across_sessions_a_second_stage_scored_by_a_leading_part_uses_both_drives_parts():
+    """sessions.descriptor_recall with ``part``: with leading parts that put every query on the
+    map scan at its own position it finds them all, where the whole vectors (random beyond
+    the part) mostly fail."""
     from overlapmamba.core.rerank import Rerank
     from overlapmamba.train.sessions import descriptor_recall
 
     rng = np.random.default_rng(7)
     pos_db = np.c_[np.arange(40) * 10.0, np.zeros(40), np.zeros(40)]
     pos_q = pos_db[::4] + 0.5
-    desc_db, desc_q = unit(rng.normal(size=(40, 8))), unit(rng.normal(size=(10, 8)))
+    net_db = unit(rng.normal(size=(40, 8)))
+    desc_db = _two_part(net_db, unit(rng.normal(size=(40, 8))))
+    desc_q = _two_part(net_db[::4], unit(rng.normal(size=(10, 8))))
     yaw = (_features(40, 3, 32, seed=8), _features(10, 3, 32, seed=9))
-    p = Rerank(40, 0.01)
-    plain = descriptor_recall(desc_db, pos_db, desc_q, pos_q, yaw=yaw, rerank=p)
-    same = descriptor_recall(
-        desc_db, pos_db, desc_q, pos_q, yaw=yaw, rerank=p, scored=(desc_db, desc_q)
-    )
-    assert plain["ar@1"] == same["ar@1"] < 0.5  # random descriptors: mostly wrong
-    rows_db = unit(rng.normal(size=(40, 8)))
+    whole = descriptor_recall(desc_db, pos_db, desc_q, pos_q, yaw=yaw, rerank=Rerank(40, 0.01))
+    assert whole["ar@1"] < 0.5
     right = descriptor_recall(
-        desc_db, pos_db, desc_q, pos_q, yaw=yaw, rerank=p, scored=(rows_db, rows_db[::4])
+        desc_db, pos_db, desc_q, pos_q, yaw=yaw, rerank=Rerank(40, 0.01, part=8)
     )
     assert right["ar@1"] == 1.0
+    assert right["rerank"]["part"] == 8

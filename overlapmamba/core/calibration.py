@@ -8,7 +8,7 @@ takes them from the model it loads: a threshold calibrated for one model never s
 serves another.
 
     section        values                               chosen by
-    rerank         shortlist, weight                     benchmarks/rerank.py
+    rerank         shortlist, weight, score              benchmarks/rerank.py
     loop_closure   accept_distance, max_score            benchmarks/loop_threshold.py
     verify         min_fitness, max_rmse_m, gate_distance  benchmarks/verify_threshold.py
 
@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from overlapmamba.core.renamed import RENAMED, renamed
 
 CALIBRATED: dict[str, tuple[str, ...]] = {
-    "rerank": ("shortlist", "weight"),
+    "rerank": ("shortlist", "weight", "score"),
     "loop_closure": ("accept_distance", "max_score"),
     "verify": ("min_fitness", "max_rmse_m", "gate_distance"),
 }
@@ -39,7 +39,7 @@ class Calibrated(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    values: dict[str, float | int | None] = Field(min_length=1)
+    values: dict[str, float | int | str | None] = Field(min_length=1)
     chosen_by: str = Field(min_length=1, description="the command that chose them")
     data: str = Field(min_length=1, description="what they were chosen on")
     at: str = Field(description="UTC time, ISO 8601")
@@ -67,7 +67,7 @@ def check_calibration(calibration: dict[str, Any]) -> dict[str, Calibrated]:
 
 
 def calibrated(
-    section: str, values: dict[str, float | int | None], chosen_by: str, data: str
+    section: str, values: dict[str, float | int | str | None], chosen_by: str, data: str
 ) -> Calibrated:
     """A section's entry, stamped now (checked as :func:`check_calibration` does)."""
     entry = Calibrated(

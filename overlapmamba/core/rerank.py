@@ -19,25 +19,39 @@ column-aligned distance).
 ``shortlist`` and ``weight`` were chosen on the ``val`` town and its second session ``val-s1``,
 never on a test town (``benchmarks/rerank.py``: the mean of F1max and Recall@1 on the three
 subsets and AR@1 across sessions).
+
+A file whose first stage joins the network's descriptor to the yaw features' spectrum
+(:mod:`overlapmamba.core.yaw_spectrum`, ``mixed``) can have its shortlist scored by the
+network's own distance instead: ``part`` names the leading floats of each vector that hold
+that descriptor, and d² is then the squared distance between those parts at unit length. The
+spectrum still picks the shortlist (it does not turn with the scan); the correlation already
+weighs the yaw features, so the score does not count them twice.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from overlapmamba.core.metrics import Retriever, nearest
 from overlapmamba.core.yaw import circular_correlation
+from overlapmamba.core.yaw_spectrum import FirstStage, score_part
+
+if TYPE_CHECKING:
+    from overlapmamba.core.modelmeta import EncoderMetadata
 
 
 @dataclass(frozen=True)
 class Rerank:
     """The second stage: re-rank the ``shortlist`` nearest descriptors (1: off) by
-    d² − ``weight`` · aligned yaw-feature correlation."""
+    d² − ``weight`` · aligned yaw-feature correlation; d² between the leading ``part`` floats
+    of the two vectors at unit length (None: the whole vectors, as the shortlist ranks)."""
 
     shortlist: int = 20
     weight: float = 0.2
+    part: int | None = None
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:
@@ -46,10 +60,26 @@ class Rerank:
             )
         if not (self.weight >= 0 and np.isfinite(self.weight)):
             raise ValueError(f"rerank weight must be a finite number ≥ 0; got {self.weight}")
+        if self.part is not None and self.part < 1:
+            raise ValueError(
+                f"rerank part must be ≥ 1 float (None: the whole vector); got {self.part}"
+            )
 
     @property
     def on(self) -> bool:
         return self.shortlist > 1 and self.weight > 0
+
+    def rows(self, vectors: np.ndarray) -> np.ndarray:
+        """What the score's d² is measured between: ``vectors`` (N, D) themselves, or their
+        leading ``part`` floats at unit length (a zero row stays zero)."""
+        if self.part is None:
+            return vectors
+        if self.part >= vectors.shape[1]:
+            raise ValueError(
+                f"rerank part {self.part} is not a leading part of {vectors.shape[1]}-float vectors"
+            )
+        x = np.asarray(vectors[:, : self.part], np.float32)
+        return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
     @classmethod
     def parse(cls, text: str) -> Rerank:
@@ -70,6 +100,19 @@ class Rerank:
 
 
 OFF = Rerank(shortlist=1, weight=0.0)
+
+
+def with_score(p: Rerank, score: str, meta: EncoderMetadata) -> Rerank:
+    """``p`` with the score's d² measured as ``score`` (``stage`` or ``network``) says for the
+    model of ``meta``, whose first stage decides where its network's descriptor lies
+    (:func:`overlapmamba.core.yaw_spectrum.score_part`); a ValueError names a score that
+    model cannot give."""
+    try:
+        stage = FirstStage.parse(meta.first_stage)
+        part = score_part(stage, meta.descriptor_dim, meta.yaw_channels, score)
+    except ValueError as e:
+        raise ValueError(f"model {meta.model_id}: second-stage score {score!r}: {e}") from None
+    return replace(p, part=part)
 
 
 def aligned_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
@@ -115,17 +158,25 @@ def rerank_ranked(
     ranked: np.ndarray,
     dist_sq: np.ndarray,
     p: Rerank,
+    desc: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Re-rank the first ``p.shortlist`` columns of a whole result table.
 
     query_yaw (Q, C, W) the queries' features; yaw (M, C, W) the database's; ranked (Q, n)
     database indices nearest first, padded with −1; dist_sq (Q, n) their squared distances
     (+inf where padded) → (ranked, scores) of the same shape: the first ``min(shortlist, n)``
-    columns re-ordered and holding scores, the rest untouched (descriptor distances)."""
+    columns re-ordered and holding scores, the rest untouched (descriptor distances).
+    ``desc`` = (queries' (Q, D), database's (M, D)) descriptors: with ``p.part`` the score's
+    d² is between ``p.rows`` of them, and they are required."""
     ranked = np.array(ranked, dtype=np.int64, copy=True)
     out = np.array(dist_sq, dtype=np.float64, copy=True)
     if not p.on:
         return ranked, out
+    if p.part is not None:
+        if desc is None:
+            raise ValueError("a second stage scored by part of the descriptors needs them")
+        rows = p.rows(np.concatenate([desc[1], desc[0]]))
+        out = scored_by(rows, len(desc[1]) + np.arange(len(desc[0])), ranked, out, p.shortlist)
     k = min(p.shortlist, ranked.shape[1])
     for i in range(len(ranked)):
         cand = ranked[i, :k]
@@ -154,16 +205,24 @@ def scored_by(
     return out
 
 
-def two_stage(
-    desc: np.ndarray, yaw: np.ndarray, p: Rerank, scored: np.ndarray | None = None
-) -> Retriever:
+def score_d2(p: Rerank, desc_q: np.ndarray, desc_db: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """The score's d² between every query (desc_q (Q, D)) and every database row (desc_db
+    (M, D)): ``d2`` (Q, M), their squared distances, as it is without ``p.part``, else
+    between ``p.rows`` of them (unit rows: 2 − 2 · cosine)."""
+    if p.part is None:
+        return d2
+    q, db = p.rows(desc_q), p.rows(desc_db)
+    return np.maximum(2.0 - 2.0 * (q @ db.T), 0.0)
+
+
+def two_stage(desc: np.ndarray, yaw: np.ndarray, p: Rerank) -> Retriever:
     """A retriever for :func:`overlapmamba.core.metrics.evaluate_retrieval` (query i searches frames
     0 … db_size − 1) in two stages: the ``p.shortlist`` nearest descriptors (desc (N, D)) re-ranked
-    by their yaw features (yaw (N, C, W)). ``scored`` (N, D'): the score's d² from these rows
-    instead of ``desc`` (:func:`scored_by`); None: from ``desc``, as the service scores. Each
+    by their yaw features (yaw (N, C, W)), the score's d² between ``p.rows`` of them. Each
     query's answer is computed once, so the direction subsets share their queries'
     shortlists."""
     memo: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+    scored = p.rows(desc) if p.part is not None and p.on else None
 
     def retrieve(queries: np.ndarray, db_size: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         kk = max(k, p.shortlist)
@@ -173,9 +232,9 @@ def two_stage(
             q, n = queries[todo], db_size[todo]
             allowed = np.arange(len(desc))[None, :] < n[:, None]
             ranked, dist = nearest(desc[q], desc, kk, allowed=allowed)
-            if scored is not None and p.on:
+            if scored is not None:  # the score's d² in place, from rows computed once
                 dist = scored_by(scored, q, ranked, dist, p.shortlist)
-            ranked, score = rerank_ranked(yaw[q], yaw, ranked, dist, p)
+            ranked, score = rerank_ranked(yaw[q], yaw, ranked, dist, replace(p, part=None))
             for j, i in enumerate(todo):
                 memo[keys[i]] = (ranked[j], score[j])
         rows = [memo[key] for key in keys]

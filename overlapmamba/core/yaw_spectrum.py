@@ -82,25 +82,32 @@ class FirstStage:
         )
 
 
-def network_part(stage: FirstStage, vectors: np.ndarray, channels: int) -> np.ndarray | None:
-    """The network's own unit descriptor inside rows of ``stage``'s vectors
-    (:meth:`FirstStage.vectors` of a file with ``channels`` yaw channels): the rows themselves
-    for the descriptor, the leading part at unit length for a mixed stage, None for the
-    spectrum alone (it holds none).
-    A second stage can score a shortlist by this distance while the shortlist itself comes from
-    the stage's (``benchmarks/rerank.py --score network``)."""
-    vectors = np.asarray(vectors, np.float32)
-    if stage.mix == 0.0:
-        return vectors
-    if stage.mix == 1.0:
+SCORES = ("stage", "network")  # what a second stage's d² is measured between (score_part)
+
+
+def score_part(stage: FirstStage, dim: int, channels: int, score: str) -> int | None:
+    """How many leading floats of ``stage``'s ``dim``-float vectors (:meth:`FirstStage.vectors`
+    of a file with ``channels`` yaw channels) a second stage scores by
+    (:attr:`overlapmamba.core.rerank.Rerank.part`): None — the whole vector — for ``stage``
+    and for a stage that is the network's descriptor; for ``network`` and a mixed stage, the
+    network's descriptor ahead of the spectrum. A spectrum alone holds no network descriptor.
+    ``benchmarks/rerank.py --score network`` measures it."""
+    if score not in SCORES:
+        raise ValueError(f"second-stage score {score!r} is not one of {', '.join(SCORES)}")
+    if score == "stage" or stage.mix == 0.0:
         return None
-    d = vectors.shape[1] - channels * stage.bins
+    if stage.mix == 1.0:
+        raise ValueError(
+            f"first stage {stage.name} holds no network descriptor to score by; allowed: "
+            "score 'stage' (or a file whose first stage is descriptor or mixed)"
+        )
+    d = dim - channels * stage.bins
     if d < 1:
         raise ValueError(
-            f"{vectors.shape[1]} floats a row hold no descriptor beside {channels} channels × "
+            f"{dim} floats a row hold no descriptor beside {channels} channels × "
             f"{stage.bins} bins of {stage.name}"
         )
-    return unit(vectors[:, :d])
+    return d
 
 
 def unit(x: np.ndarray) -> np.ndarray:

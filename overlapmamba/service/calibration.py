@@ -24,6 +24,7 @@ from pydantic import ValidationError
 
 from overlapmamba.core.calibration import CALIBRATED
 from overlapmamba.core.modelmeta import EncoderMetadata
+from overlapmamba.service.ranking import rerank_params
 from overlapmamba.service.settings import Settings
 
 log = logging.getLogger("overlapmamba.service")
@@ -73,7 +74,9 @@ def resolve(settings: Settings, meta: EncoderMetadata) -> tuple[Settings, dict[s
                 f"({err.errors()[0]['loc']}: {err.errors()[0]['msg']}); recalibrate it, or set "
                 f"[{section}] explicitly"
             ) from None
-    return settings.model_copy(update=sections), used
+    out = settings.model_copy(update=sections)
+    rerank_params(out.rerank, meta)  # a second-stage score this model cannot give stops here
+    return out, used
 
 
 def read_model_metadata(path: Path) -> EncoderMetadata:

@@ -13,7 +13,7 @@ import json
 import math
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -57,7 +57,9 @@ class NewKeyframe:
 @dataclass(frozen=True)
 class Keyframe:
     """A keyframe as a backend holds it (``id`` and ``seq``: the FAISS backend's row id and
-    write sequence; 0 in Qdrant)."""
+    write sequence; 0 in Qdrant). ``descriptor``: the stored descriptor, on a search's
+    matches (a second stage may score by part of it: :mod:`overlapmamba.service.ranking`);
+    None elsewhere."""
 
     id: int
     keyframe_id: str
@@ -69,6 +71,7 @@ class Keyframe:
     seq: int
     created_at: float
     sensor: str | None = None  # the scan's sensor; None: not recorded (a descriptor, or older)
+    descriptor: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def public(self) -> dict[str, Any]:
         return {

@@ -79,6 +79,8 @@ class PlaceService:
         self.registry = registry
         self.sensors = Sensors(encoder.meta, settings.sensors.files)
         self.thresholds = thresholds or {}  # where each calibrated threshold came from
+        # the second stage, for this model's first stage (a score it cannot give stops here)
+        self.rerank = rerank_params(settings.rerank, encoder.meta)
         self.stats = Stats(encoder.model_id)
         self.stats.watch_row_cache(registry.row_cache_info)
         self.overview = Overview()
@@ -292,13 +294,14 @@ class PlaceService:
         for it (``sensor``: the query scan's), and make the loop-closure call (see
         :class:`LoopClosure`)."""
         n_verify = self.settings.verify.candidates if prepared is not None else 0
-        rerank = rerank_params(self.settings.rerank) if yaw is not None else OFF
+        rerank = self.rerank if yaw is not None else OFF
 
         def search_and_verify() -> list[Match]:  # one thread hop for all stages
             t0 = time.perf_counter()
             # One more than asked: the runner-up gives the loop-closure margin (no yaw).
             n = max(shortlist(k, rerank), n_verify)
-            found = rerank_matches(m.search(descriptor, n + 1, filters, yaw, yaw_k=n), rerank)
+            found = m.search(descriptor, n + 1, filters, yaw, yaw_k=n)
+            found = rerank_matches(found, rerank, descriptor)
             t1 = time.perf_counter()
             timings["search"] = (t1 - t0) * 1e3
             if n_verify and found and prepared is not None:

@@ -229,6 +229,12 @@ class RerankSettings(_RenamedSection):
     weight: float = Field(
         Rerank().weight, ge=0, le=10, description="the correlation's weight in the score (0: off)"
     )
+    score: Literal["stage", "network"] = Field(
+        "stage",
+        description="what the score's d² is measured between: 'stage', the vectors the "
+        "shortlist was ranked by; 'network', the network's own descriptor inside a mixed first "
+        "stage (the model's first_stage mixed:…; overlapmamba.core.yaw_spectrum.score_part)",
+    )
 
 
 class VerifySettings(_RenamedSection):

@@ -163,7 +163,6 @@ def loop_closure(
     gt: LoopGroundTruth,
     yaw: np.ndarray | None = None,
     rerank: Rerank = OFF,
-    scored: np.ndarray | None = None,
 ) -> dict[str, LoopClosureResult]:
     """Loop-closure results over all queries and over same-/reverse-direction revisits.
 
@@ -173,13 +172,13 @@ def loop_closure(
     With ``rerank`` on, retrieval has two stages (:mod:`overlapmamba.core.rerank`): each query's
     ``rerank.shortlist`` nearest descriptors are re-ordered by the score d² − weight · aligned
     yaw-feature correlation (``yaw``: (N, C, W)), and the top-1's score is what the PR curve
-    thresholds. ``scored``: the score's d² from these rows instead (``core.rerank.two_stage``).
+    thresholds.
     """
     if not rerank.on:
         return _by_direction(gt, lambda pos, **kw: evaluate_loop_closure(desc, pos, **kw))
     if yaw is None or len(yaw) != len(desc):
         raise ValueError("re-ranking needs the yaw features of every scan")
-    retrieve = two_stage(desc, yaw, rerank, scored)
+    retrieve = two_stage(desc, yaw, rerank)
     return _by_direction(gt, lambda pos, **kw: evaluate_retrieval(retrieve, len(desc), pos, **kw))
 
 

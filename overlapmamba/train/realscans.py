@@ -188,7 +188,9 @@ def eval_real(
     close = _hits(pos, odd, even, ranked[:, :k], hit_radius)
     staged: dict[str, Any] = {}
     if rerank.on:  # the service's two stages: the nearest re-ranked by their yaw features
-        r2, _ = rerank_ranked(feats_t[odd], feats[even], ranked, dist, rerank)
+        r2, _ = rerank_ranked(
+            feats_t[odd], feats[even], ranked, dist, rerank, (desc_t[odd], desc[even])
+        )
         near2 = _hits(pos, odd, even, r2[:, :k], hit_radius)
         staged = {
             "reranked": {
@@ -313,7 +315,7 @@ def thinned(
             "recall@5": float(close.any(1).mean()),
         }
         if rerank.on:
-            r2, _ = rerank_ranked(f_q, feats[even], ranked, dist, rerank)
+            r2, _ = rerank_ranked(f_q, feats[even], ranked, dist, rerank, (d_q, desc[even]))
             near2 = _hits(pos, odd, even, r2[:, :k], hit_radius)
             row["reranked"] = {
                 "recall@1": float(near2[:, 0].mean()),

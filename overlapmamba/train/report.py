@@ -27,7 +27,7 @@ import torch
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import LoopClosureResult
-from overlapmamba.core.rerank import Rerank
+from overlapmamba.core.rerank import Rerank, with_score
 from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import (
     RERANKED,
@@ -120,13 +120,15 @@ REAL = {
 
 def service_rerank(model: Any) -> Rerank:
     """The second stage the service applies with ``model``: an exported file's calibrated
-    ``rerank`` (chosen on val by ``benchmarks/rerank.py --write-calibration``), else the
-    defaults (a checkpoint, or a file calibrated without one)."""
-    calibration = getattr(getattr(model, "meta", None), "calibration", None) or {}
+    ``rerank`` (chosen on val by ``benchmarks/rerank.py --write-calibration``, its score
+    included), else the defaults (a checkpoint, or a file calibrated without one)."""
+    meta = getattr(model, "meta", None)
+    calibration = getattr(meta, "calibration", None) or {}
     entry = calibration.get("rerank")
-    if entry is None:
+    if meta is None or entry is None:
         return SERVICE_RERANK
-    return Rerank(int(entry.values["shortlist"]), float(entry.values["weight"]))
+    p = Rerank(int(entry.values["shortlist"]), float(entry.values["weight"]))
+    return with_score(p, str(entry.values.get("score", "stage")), meta)
 
 
 def shipped_model(runs: Path, onnx: Path | None = SHIPPED_ONNX) -> Path | None:

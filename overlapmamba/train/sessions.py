@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.metrics import nearest
-from overlapmamba.core.rerank import OFF, Rerank, rerank_ranked, scored_by
+from overlapmamba.core.rerank import OFF, Rerank, rerank_ranked
 from overlapmamba.core.scancontext import ScanContextParams
 from overlapmamba.core.scancontext import retrieve as sc_retrieve
 
@@ -152,22 +152,17 @@ def descriptor_recall(
     *,
     yaw: tuple[np.ndarray, np.ndarray] | None = None,
     rerank: Rerank = OFF,
-    scored: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """AR@1/5/20 of queries (descriptors, positions) against a database, by squared L2; with
     ``rerank`` on, each query's ``rerank.shortlist`` nearest re-ranked by the yaw features ``yaw``
-    = (database's (M, C, W), queries' (Q, C, W)): :mod:`overlapmamba.core.rerank`; ``scored``
-    = (database's, queries' rows): the score's d² from these instead of the descriptors."""
+    = (database's (M, C, W), queries' (Q, C, W)): :mod:`overlapmamba.core.rerank` (the score's
+    d² between ``rerank.rows`` of the descriptors)."""
     k = min(max(max(RECALL_AT), rerank.shortlist), len(desc_db))
     ranked, dist = nearest(desc_q, desc_db, k)
     if rerank.on:
         if yaw is None:
             raise ValueError("re-ranking needs the yaw features of both sessions")
-        if scored is not None:
-            rows = np.concatenate([scored[0], scored[1]])
-            queries = len(scored[0]) + np.arange(len(scored[1]))
-            dist = scored_by(rows, queries, ranked, dist, rerank.shortlist)
-        ranked, _ = rerank_ranked(yaw[1], yaw[0], ranked, dist, rerank)
+        ranked, _ = rerank_ranked(yaw[1], yaw[0], ranked, dist, rerank, (desc_q, desc_db))
     near = ground_truth(pos_db, pos_q, radius)
     out = _recalls(ranked[:, : max(RECALL_AT)], near, pos_db, pos_q, radius)
     return {"radius_m": radius, **out, **({"rerank": asdict(rerank)} if rerank.on else {})}

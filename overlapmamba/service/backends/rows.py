@@ -1,6 +1,7 @@
-"""The keyframes searched last, kept for the next queries: each one's record and the spectrum
-of its yaw features (:class:`overlapmamba.core.yaw.Spectrum`), least recently used out first,
-within a budget of bytes shared by every map of the service (``index.row_cache_mb``).
+"""The keyframes searched last, kept for the next queries: each one's record (with its
+descriptor, when the backend read it) and the spectrum of its yaw features
+(:class:`overlapmamba.core.yaw.Spectrum`), least recently used out first, within a budget of
+bytes shared by every map of the service (``index.row_cache_mb``).
 
 A query re-ranks its shortlist by correlating its yaw features with every candidate's
 (:mod:`overlapmamba.service.ranking`). Without this, each candidate's features are read from
@@ -80,6 +81,7 @@ class RowCache:
         with self._lock:
             for i, row in rows.items():
                 size = ENTRY_OVERHEAD + (row[1].nbytes if row[1] is not None else 0)
+                size += row[0].descriptor.nbytes if row[0].descriptor is not None else 0
                 if size > self.max_bytes:
                     continue
                 old = self._rows.pop((token, i), None)

@@ -34,6 +34,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -375,17 +376,18 @@ class Store:
         return out
 
     def by_ids(self, ids: list[int]) -> dict[int, tuple[Keyframe, np.ndarray | None]]:
-        """Live keyframes and their yaw features (C, W) as stored (float16), by row id."""
+        """Live keyframes, each with its descriptor (``Keyframe.descriptor``), and their yaw
+        features (C, W) as stored (float16), by row id."""
         if not ids:
             return {}
         marks = ",".join("?" * len(ids))
         out = {}
         for row in self._rows(
-            f"SELECT {_KF_COLUMNS}, yaw, yaw_shape FROM keyframes "
+            f"SELECT {_KF_COLUMNS}, yaw, yaw_shape, descriptor FROM keyframes "
             f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
             ids,
         ):
-            kf = _keyframe(row[:_KF_WIDTH])
+            kf = replace(_keyframe(row[:_KF_WIDTH]), descriptor=index_vector(row[_KF_WIDTH + 2]))
             yaw = None
             blob, shape_text = row[_KF_WIDTH], row[_KF_WIDTH + 1]
             if blob is not None:

@@ -46,7 +46,9 @@ def point_payload(r: NewKeyframe, created_at: float) -> dict[str, Any]:
     }
 
 
-def keyframe_of(p: dict[str, Any]) -> Keyframe:
+def keyframe_of(p: dict[str, Any], vector: Any = None) -> Keyframe:
+    """The keyframe of a payload; with the point's ``vector`` (a search asked for it), its
+    descriptor too."""
     # Qdrant has no row ids or sequence numbers: both are the FAISS backend's bookkeeping.
     return Keyframe(
         id=0,
@@ -59,6 +61,7 @@ def keyframe_of(p: dict[str, Any]) -> Keyframe:
         seq=0,
         created_at=float(p.get("created_at") or 0.0),
         sensor=p.get("sensor"),
+        descriptor=np.asarray(vector, np.float32) if isinstance(vector, list) else None,
     )
 
 

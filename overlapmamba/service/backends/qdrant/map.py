@@ -226,13 +226,14 @@ class QdrantMap:
                 query_filter=filter_of(filters),
                 search_params=params,
                 with_payload=NO_GEOMETRY if yaw is not None and not cache.max_bytes else LEAN,
+                with_vectors=yaw is not None,  # a second stage may score by the descriptors
                 consistency=self.backend.consistency,
             )
         )
         found: list[tuple[float, Keyframe, np.ndarray | Spectrum | None]]
         if yaw is None or not cache.max_bytes:
             found = [
-                (float(p.score), keyframe_of(p.payload or {}), yaw_of(p.payload or {}))
+                (float(p.score), keyframe_of(p.payload or {}, p.vector), yaw_of(p.payload or {}))
                 for p in result.points
             ]
         else:
@@ -248,7 +249,7 @@ class QdrantMap:
         transformed and kept. A point deleted or written again between the two calls is
         answered without yaw this once and not kept."""
         cache, token = self.backend.row_cache, self.backend.row_token
-        kfs = [keyframe_of(p.payload or {}) for p in points]
+        kfs = [keyframe_of(p.payload or {}, p.vector) for p in points]
         keys = [(self.collection, kf.keyframe_id, kf.content_hash) for kf in kfs]
         head = range(len(points) if yaw_k is None else min(yaw_k, len(points)))
         held = cache.get(token, [keys[j] for j in head])
