@@ -251,7 +251,10 @@ def search_stage(
                 m.search(q, 6, Filters(), qy, yaw_k=5)  # a query with k = 5, one stage
                 whole.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()  # the same query as served: two stages
-                rerank_matches(m.search(q, n_short + 1, Filters(), qy, yaw_k=n_short), p, q)
+                found = m.search(
+                    q, n_short + 1, Filters(), qy, yaw_k=n_short, descriptors=p.part is not None
+                )
+                rerank_matches(found, p, q)
                 staged.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 _, ids = m.index.search(q, 6, None)

@@ -310,7 +310,7 @@ def test_a_scan_querys_matches_carry_their_stored_descriptors(kind, cache_mb, tm
         m.insert(list(rows.values()))
         q = rows["kf-3"]
         for _ in range(2):  # the second time from the row cache, where there is one
-            found = m.search(q.descriptor, 6, Filters(), q.yaw, yaw_k=5)
+            found = m.search(q.descriptor, 6, Filters(), q.yaw, yaw_k=5, descriptors=True)
             assert len(found) == 6
             for x in found:
                 assert x.keyframe.descriptor is not None, x.keyframe.keyframe_id

@@ -300,7 +300,9 @@ class PlaceService:
             t0 = time.perf_counter()
             # One more than asked: the runner-up gives the loop-closure margin (no yaw).
             n = max(shortlist(k, rerank), n_verify)
-            found = m.search(descriptor, n + 1, filters, yaw, yaw_k=n)
+            found = m.search(
+                descriptor, n + 1, filters, yaw, yaw_k=n, descriptors=rerank.part is not None
+            )
             found = rerank_matches(found, rerank, descriptor)
             t1 = time.perf_counter()
             timings["search"] = (t1 - t0) * 1e3

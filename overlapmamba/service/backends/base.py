@@ -178,7 +178,11 @@ class PlaceMap(Protocol):
         yaw: np.ndarray | None = None,
         *,
         yaw_k: int | None = None,
-    ) -> list[Match]: ...  # relative yaw for the first yaw_k matches (all when None)
+        descriptors: bool = False,
+    ) -> list[Match]: ...  # relative yaw for the first yaw_k matches (all when None); with
+
+    # descriptors, each match's keyframe carries its stored descriptor (a second stage may
+    # score by part of it: overlapmamba.service.ranking)
 
     def info(self) -> dict[str, Any]: ...
 

@@ -376,6 +376,7 @@ class FaissMap:
         yaw: np.ndarray | None = None,
         *,
         yaw_k: int | None = None,
+        descriptors: bool = False,  # the store gives them always: a local read, ≈1 KB a row
     ) -> list[Match]:
         q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
         with self.lock.read():

@@ -211,6 +211,7 @@ class QdrantMap:
         yaw: np.ndarray | None = None,
         *,
         yaw_k: int | None = None,
+        descriptors: bool = False,
     ) -> list[Match]:
         q = np.asarray(descriptor, dtype=np.float32).tolist()  # unit norm (see check_rows)
         cache = self.backend.row_cache  # with it the yaw features come in a second, smaller call
@@ -226,7 +227,7 @@ class QdrantMap:
                 query_filter=filter_of(filters),
                 search_params=params,
                 with_payload=NO_GEOMETRY if yaw is not None and not cache.max_bytes else LEAN,
-                with_vectors=yaw is not None,  # a second stage may score by the descriptors
+                with_vectors=descriptors,  # only when asked: hundreds of floats a point
                 consistency=self.backend.consistency,
             )
         )
