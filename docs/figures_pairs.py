@@ -122,6 +122,8 @@ RERANK_ANY_SENSOR_COLUMNS = "reports/model/rerank-across-any-sensor-sensor-colum
 RERANK_ANY_ALIGNED = "reports/model/rerank-across-any-sensor-aligned.json"
 # the same file with shortlists past the 50 the service took before the row cache
 RERANK_ANY_LONG = "reports/model/rerank-across-any-sensor-long.json"
+# the same file's grid scored by the network's own descriptors inside its first stage
+RERANK_ANY_NETWORK = "reports/model/rerank-across-any-sensor-network-score.json"
 
 
 def _setting(r: dict[str, Any]) -> str:
@@ -153,6 +155,16 @@ def sweep_test_rows(r: dict[str, Any], own: str = "its own") -> list[list[str]]:
     ]
 
 
+def _scored(r: dict[str, Any]) -> str:
+    """What the grid's score measures d² between, where it is not the first stage's vectors."""
+    if r["grid"].get("score", "stage") == "stage":
+        return ""
+    return (
+        "; the grid (and its choice) scores by d² between the network's own descriptors inside "
+        "the first stage (`--score network`)"
+    )
+
+
 def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
     """The second stage's shortlist and weight across sensors, chosen on val, on test, for
     the file of ``path`` (Scan Context from ``pairs``, an across-pairs report of the same
@@ -164,8 +176,9 @@ def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
     own = r["own"]
     out += (
         f"\n{_label(r)}; its own setting when measured: shortlist {own['shortlist']}, weight "
-        f"{own['weight']:g} ({'its calibration' if own['calibrated'] else 'the service defaults'})"
-        ". AR@1 over the 25 pairs (mean), over the 20 across sensors (mean, lowest, how many "
+        f"{own['weight']:g} ({'its calibration' if own['calibrated'] else 'the service defaults'}"
+        f"{', scored by ' + own['score'] if own.get('score', 'stage') != 'stage' else ''})"
+        f"{_scored(r)}. AR@1 over the 25 pairs (mean), over the 20 across sensors (mean, lowest, how many "
         f"reach {r['bar_ar@1']:g}) and over the five same-sensor pairs; the cost is the yaw "
         "correlations of the shortlist, a query, one thread (median).\n\nval (calibration "
         "town `cal-x00`: the choice):\n\n"
@@ -264,5 +277,8 @@ RENDERERS = {
     "rerank-across": lambda: rerank_across() + _other_networks(),
     "rerank-across-any-sensor": lambda: rerank_across(RERANK_ANY, RERANK_ANY_PAIRS),
     "rerank-across-any-sensor-long": lambda: rerank_across(RERANK_ANY_LONG, RERANK_ANY_PAIRS),
+    "rerank-across-any-sensor-network-score": lambda: rerank_across(
+        RERANK_ANY_NETWORK, RERANK_ANY_PAIRS
+    ),
     "column-phase-any-sensor": column_phases,
 }
