@@ -180,8 +180,8 @@ def rerank_across(path: str = RERANK, pairs: str = RERANK_PAIRS) -> str:
         f"{', scored by ' + own['score'] if own.get('score', 'stage') != 'stage' else ''})"
         f"{_scored(r)}. AR@1 over the 25 pairs (mean), over the 20 across sensors (mean, "
         f"lowest, how many reach {r['bar_ar@1']:g}) and over the five same-sensor pairs; the "
-        "cost is the yaw correlations of the shortlist, a query, one thread (median).\n\nval (calibration "
-        "town `cal-x00`: the choice):\n\n"
+        "cost is the yaw correlations of the shortlist, a query, one thread (median).\n\n"
+        "val (calibration town `cal-x00`: the choice):\n\n"
     )
     rows = [
         [
