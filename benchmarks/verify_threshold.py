@@ -71,10 +71,18 @@ from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, v
 
 
 def run_town(
-    enc: Encoder, path: Path, k: int, v: VerifySettings, rerank: Rerank, batch: int = 8
+    enc: Encoder,
+    path: Path,
+    k: int,
+    v: VerifySettings,
+    rerank: Rerank,
+    batch: int = 8,
+    keep: bool = False,
 ) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors. Each is
-    registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them."""
+    registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them.
+    ``keep``: the scans' prepared queries and keyframe geometry come back too (``prepared``,
+    ``blobs``), for a caller that registers pairs again."""
     v = v.model_copy(update={"stop_at_first": False})
     seq = open_sequence(path)
     sensor = served_input(enc, seq.sensor)
@@ -117,7 +125,8 @@ def run_town(
             candidate(
                 j, float(np.sqrt(d2[i, j])), int(j) in pos, verdict, seq.poses[j], seq.poses[i]
             )
-            for j, verdict in zip(top, verdicts, strict=True)
+            | {"seed_deg": float(a)}
+            for j, verdict, a in zip(top, verdicts, deg, strict=True)
         ]
         queries.append(
             {"query": i, "has_loop": bool(len(pos)), "candidates": cands, "group": path.name}
@@ -133,6 +142,7 @@ def run_town(
         "queries": queries,
         "verify_ms": ms,
         "geometry_bytes": [len(b) for b in blobs if b is not None],
+        **({"prepared": prepared, "blobs": blobs} if keep else {}),
     }
 
 
@@ -152,7 +162,32 @@ def candidate(
     if verdict.relative_pose is not None:
         truth = np.linalg.inv(pose_kf) @ pose_q
         c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
+        c["pose_yaw_deg"] = float(np.degrees(np.arctan2(*verdict.relative_pose[[1, 0], 0])))
     return c
+
+
+def closure(
+    q: dict[str, Any],
+    min_fitness: float,
+    max_rmse: float,
+    gate_distance: float | None = None,
+    stop_at_first: bool = False,
+) -> tuple[dict[str, Any] | None, int]:
+    """One query's closure as the service calls it at these thresholds (see :func:`score`):
+    the accepted candidate or None, and how many candidates were registered."""
+    gated = [c for c in q["candidates"] if gate_distance is None or c["distance"] <= gate_distance]
+    ok = [
+        c
+        for c in gated
+        if c["fitness"] is not None
+        and c["fitness"] >= min_fitness
+        and c["rmse"] is not None
+        and c["rmse"] <= max_rmse
+    ]
+    registered = gated.index(ok[0]) + 1 if stop_at_first and ok else len(gated)
+    if not ok:
+        return None, registered
+    return (ok[0] if stop_at_first else max(ok, key=lambda c: c["fitness"])), registered
 
 
 def score(
@@ -169,21 +204,10 @@ def score(
     accepted = correct = on_loop = found = registered = 0
     t_err, yaw_err = [], []
     for q in queries:
-        gated = [
-            c for c in q["candidates"] if gate_distance is None or c["distance"] <= gate_distance
-        ]
-        ok = [
-            c
-            for c in gated
-            if c["fitness"] is not None
-            and c["fitness"] >= min_fitness
-            and c["rmse"] is not None
-            and c["rmse"] <= max_rmse
-        ]
-        registered += gated.index(ok[0]) + 1 if stop_at_first and ok else len(gated)
-        if not ok:
+        best, n = closure(q, min_fitness, max_rmse, gate_distance, stop_at_first)
+        registered += n
+        if best is None:
             continue
-        best = ok[0] if stop_at_first else max(ok, key=lambda c: c["fitness"])
         accepted += 1
         right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
         correct += right

@@ -14,6 +14,7 @@ VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"
 FLEET_ONE_PASS = "reports/client/fleet-one-pass.json"
 SIZING = "reports/deploy/sizing.json"
 SIZING_ONE_PASS = "reports/deploy/sizing-one-pass.json"
+AMBIGUITY = "reports/service/verify-ambiguity-one-pass.json"
 SUBSETS = ("all", "same", "reverse")
 
 
@@ -120,9 +121,40 @@ def sizing_one_pass() -> str:
     return out + table(head, rows)
 
 
+def verify_ambiguity() -> str:
+    """Accepted closures' fitness against the best other quarter turn's, right and wrong,
+    and what each margin would keep (``benchmarks/verify_ambiguity.py``)."""
+    r = load(AMBIGUITY)
+    out = source(AMBIGUITY, r["command"], when(r))
+    out += (
+        f"\n`{r['model_id']}` at its own thresholds (fitness ≥ {r['verify']['min_fitness']:g}):"
+        " each accepted closure registered again from its seed turned by "
+        f"{', '.join(f'{t:g}°' for t in r['turns_deg'])}; the margin is its fitness less the "
+        f"best other fit (a pose more than {r['turn_apart_deg']:g}° apart). Right: pose "
+        "within 1 m and 2°. Kept: right / wrong closures whose margin reaches it.\n\n"
+    )
+    margins = [k["margin"] for k in next(iter(r["towns"].values()))["kept"]]
+    head = ["town", "accepted", "wrong", "right: margin p1 / p5", "wrong: margin median"]
+    rows = []
+    for name, t in r["towns"].items():
+        mr, mw = t["margin_right"], t["margin_wrong"]
+        rows.append(
+            [
+                f"`{name}`",
+                str(t["accepted"]),
+                str(t["wrong"]),
+                f"{f3(mr['p1'])} / {f3(mr['p5'])}" if mr else "—",
+                f3(mw["p50"]) if mw else "—",
+                *(f"{k['right']} / {k['wrong']}" for k in t["kept"]),
+            ]
+        )
+    return out + table([*head, *(f"kept at {m:g}" for m in margins)], rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),
     "sizing-one-pass": sizing_one_pass,
+    "verify-ambiguity-one-pass": verify_ambiguity,
 }

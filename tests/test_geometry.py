@@ -277,3 +277,47 @@ def test_verify_threshold_scores_stop_at_first_as_the_service_answers():
     assert (
         best["registered_per_query"] == (3 + 1) / 2 and first["registered_per_query"] == (2 + 1) / 2
     )
+
+
+def test_verify_ambiguity_summarises_margins_and_what_each_margin_keeps():
+    """benchmarks/verify_ambiguity.py: each accepted closure's fitness less the best other
+    turn's; per margin, how many right and wrong closures it keeps."""
+    from conftest import benchmark_module
+
+    amb = benchmark_module("verify_ambiguity")
+    rows = [(True, 0.8, 0.2), (True, 0.7, 0.6), (False, 0.55, 0.52), (False, 0.6, 0.1)]
+    s = amb.summary(rows)
+    assert (s["accepted"], s["wrong"]) == (4, 2)
+    kept = {k["margin"]: (k["right"], k["wrong"]) for k in s["kept"]}
+    assert kept[0.05] == (2, 1) and kept[0.2] == (1, 1) and kept[0.4] == (1, 1)
+    assert s["margin_wrong"]["max"] == pytest.approx(0.5)
+    assert amb.summary([])["accepted"] == 0 and amb.summary([])["margin_right"] is None
+
+
+def test_a_real_closure_fits_far_worse_from_the_other_quarter_turns(kitti):
+    """A closure between two neighbouring real KITTI scans, registered again from the seed
+    turned by 90°, 180° and 270°: no other turn fits nearly as well (a street is not a
+    crossing that a quarter turn maps onto itself)."""
+    from conftest import benchmark_module
+
+    from overlapmamba.service.settings import VerifySettings
+    from overlapmamba.service.verify import (
+        keyframe_geometry,
+        params_of,
+        prepare,
+        verify_candidates,
+    )
+
+    amb = benchmark_module("verify_ambiguity")
+    candidate = benchmark_module("verify_threshold").candidate
+    v = VerifySettings(gate_distance=None)
+    p = params_of(v)
+    prepared = [prepare(kitti.points(i).xyz, p) for i in (0, 2)]
+    blobs = [keyframe_geometry(q, p) for q in prepared]
+    verdict = verify_candidates(prepared[1], [(blobs[0], 0.0, 0.1)], v)[0]
+    assert verdict.verified
+    c = candidate(0, 0.1, True, verdict, kitti.poses[0], kitti.poses[2]) | {"seed_deg": 0.0}
+    r = {"queries": [{"query": 1, "candidates": [c]}], "prepared": prepared, "blobs": blobs}
+    [(right, fitness, alt)] = amb.alternatives(r, p, v)
+    assert right and fitness == verdict.fitness
+    assert fitness - alt > 0.2, (fitness, alt)

@@ -1,0 +1,141 @@
+"""How ambiguous a verified closure's registration is: the same pair registered from the other
+quarter turns.
+
+A verified closure is a registration whose fitness clears ``verify.min_fitness``. Where a place
+looks like another one turned by a quarter (a crossing of a grid town, seen by a sensor whose
+range ends at the crossing), a registration can fit the wrong place about as well as a right
+closure fits the right one, and fitness alone cannot tell them apart. This measures, for each
+closure the service accepts at a file's own thresholds (``verify_threshold.run_town`` and
+``closure``: the service's order and call), the best fitness of the same pair registered again
+from the seed yaw + 90°, 180° and 270° whose pose turns more than ``TURN_APART`` from the
+accepted one, and the margin between the two, for right closures (pose within 1 m and 2°) and
+wrong ones. A margin threshold would refuse the ambiguous; its cost in right closures is the
+table's ``kept`` column.
+
+Nothing is chosen here: a margin for the service would be chosen on validation towns, and the
+test towns are reported beside them to show the failure it addresses.
+
+    python benchmarks/verify_ambiguity.py --model models/overlapmamba-hdl64-one-pass.onnx \\
+        --town data/synth/val --town data/synth/test-os0-128 \\
+        --out reports/service/verify-ambiguity-one-pass.json
+
+≈ 3 min a 2,000-scan town on 2 cores (three more registrations for each accepted closure).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from bench_kit import ROOT, model_record, served_rerank, served_settings
+from reports_kit import REPORTS, write_report
+from rich.console import Console
+from rich.table import Table
+from verify_threshold import closure, run_town
+
+from overlapmamba.core.poses import POSE_RIGHT
+from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.verify import params_of, register
+
+TURNS = (90.0, 180.0, 270.0)  # the other seeds: a grid town's crossings alias by quarter turns
+TURN_APART = 20.0  # degrees: an alternative pose this far from the accepted one is another fit
+MARGINS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)
+
+
+def summary(rows: list[tuple[bool, float, float]]) -> dict[str, Any]:
+    """(right, fitness, best alternative fitness) of each accepted closure → counts, margin
+    percentiles of right and wrong closures, and what each margin of ``MARGINS`` keeps."""
+    a = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    right = a[:, 0] == 1
+    margin = a[:, 1] - a[:, 2]
+
+    def spread(m: np.ndarray) -> dict[str, float] | None:
+        if not len(m):
+            return None
+        return {f"p{q}": float(np.percentile(m, q)) for q in (1, 5, 50)} | {"max": float(m.max())}
+
+    return {
+        "accepted": len(a),
+        "wrong": int((~right).sum()),
+        "margin_right": spread(margin[right]),
+        "margin_wrong": spread(margin[~right]),
+        "fitness_right_median": float(np.median(a[right, 1])) if right.any() else None,
+        "fitness_wrong_median": float(np.median(a[~right, 1])) if (~right).any() else None,
+        "kept": [
+            {
+                "margin": t,
+                "right": int((right & (margin >= t)).sum()),
+                "wrong": int((~right & (margin >= t)).sum()),
+            }
+            for t in MARGINS
+        ],
+    }
+
+
+def alternatives(r: dict[str, Any], params: Any, v: Any) -> list[tuple[bool, float, float]]:
+    """Each accepted closure of one town (``run_town(..., keep=True)``) at the served
+    thresholds: whether it is right, its fitness, and the best fitness of the other turns."""
+    out = []
+    for q in r["queries"]:
+        best, _ = closure(q, v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first)
+        if best is None:
+            continue
+        i, j = q["query"], best["keyframe"]
+        alt = 0.0
+        for turn in TURNS:
+            reg = register(r["prepared"][i], r["blobs"][j], best["seed_deg"] + turn, params)
+            if reg.relative_pose is None or reg.fitness is None:
+                continue
+            yaw = float(np.degrees(np.arctan2(reg.relative_pose[1, 0], reg.relative_pose[0, 0])))
+            if abs((yaw - best["pose_yaw_deg"] + 180.0) % 360.0 - 180.0) > TURN_APART:
+                alt = max(alt, reg.fitness)
+        right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
+        out.append((bool(right), float(best["fitness"]), alt))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ap.add_argument("--town", type=Path, action="append", required=True)
+    ap.add_argument("--out", type=Path, default=REPORTS / "service" / "verify-ambiguity.json")
+    args = ap.parse_args()
+    enc = Encoder(args.model)
+    served = served_settings(enc.meta)
+    v, rerank = served.verify, served_rerank(enc.meta)
+    record = v.model_copy(update={"min_fitness": 0.0, "max_rmse_m": 1e9})  # every verdict kept
+    towns = {}
+    for town in args.town:
+        r = run_town(enc, town, v.candidates, record, rerank, keep=True)
+        towns[town.name] = summary(alternatives(r, params_of(v), v))
+    report = {
+        **model_record(args.model, enc),
+        "verify": v.model_dump(),
+        "turns_deg": list(TURNS),
+        "turn_apart_deg": TURN_APART,
+        "towns": towns,
+    }
+    write_report(args.out, report)
+    table = Table(title=f"ambiguity of accepted closures ({enc.model_id})")
+    for col in ("town", "accepted", "wrong", "margin right p1 / p5", "margin wrong p50"):
+        table.add_column(col, justify="right")
+    for t in MARGINS:
+        table.add_column(f"≥ {t:g} keeps right / wrong", justify="right")
+    for name, s in towns.items():
+        mr, mw = s["margin_right"] or {}, s["margin_wrong"] or {}
+        table.add_row(
+            name,
+            str(s["accepted"]),
+            str(s["wrong"]),
+            f"{mr.get('p1', float('nan')):.3f} / {mr.get('p5', float('nan')):.3f}",
+            f"{mw['p50']:.3f}" if mw else "—",
+            *(f"{k['right']} / {k['wrong']}" for k in s["kept"]),
+        )
+    Console(width=200).print(table)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
