@@ -33,8 +33,8 @@ from rich.console import Console
 from rich.table import Table
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.rerank import OFF, Rerank
-from overlapmamba.core.yaw_spectrum import SCORES, FirstStage, score_part
+from overlapmamba.core.rerank import OFF, Rerank, with_score
+from overlapmamba.core.yaw_spectrum import SCORES
 from overlapmamba.train.checkpoint import load_model
 from overlapmamba.train.evaluate import SUBSETS, describe_sequence, loop_closure, sequence_loops
 from overlapmamba.train.modelfile import read_metadata
@@ -73,8 +73,7 @@ def main() -> None:
     if args.score == "network":
         meta = read_metadata(args.model)
         try:
-            stage = FirstStage.parse(meta.first_stage)
-            part = score_part(stage, meta.descriptor_dim, meta.yaw_channels, args.score)
+            part = with_score(Rerank(), args.score, meta).part
         except ValueError as e:
             ap.error(f"{args.model}: {e}")
         if part is None:

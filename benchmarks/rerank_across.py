@@ -44,7 +44,7 @@ from rich.console import Console
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import nearest
-from overlapmamba.core.rerank import Rerank, aligned_correlation, with_score
+from overlapmamba.core.rerank import Rerank, aligned_correlation, scored_by, with_score
 from overlapmamba.core.yaw_spectrum import SCORES
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.train.sessions import HIT_RADIUS, check_sessions, ground_truth, town_positions
@@ -72,9 +72,8 @@ class Pair:
         self.d2 = {"stage": self.dist}
         if part is not None:
             rows = Rerank(part=part).rows(np.concatenate([d_db, d_q]))
-            net_db, net_q = rows[: len(d_db)], rows[len(d_db) :]
-            diff = net_db[self.ranked] - net_q[:, None, :]
-            self.d2["network"] = (diff.astype(np.float64) ** 2).sum(-1)
+            queries = len(d_db) + np.arange(len(d_q))
+            self.d2["network"] = scored_by(rows, queries, self.ranked, self.dist, k)
         self.corr = np.stack(
             [aligned_correlation(y_q[i], y_db[self.ranked[i]]) for i in range(len(d_q))]
         )

@@ -35,7 +35,7 @@ from rich.console import Console
 from rich.table import Table
 from verify_threshold import closure, run_town
 
-from overlapmamba.core.poses import POSE_RIGHT
+from overlapmamba.core.poses import POSE_RIGHT, yaw_deg
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.verify import params_of, register
 
@@ -88,7 +88,7 @@ def alternatives(r: dict[str, Any], params: Any, v: Any) -> list[tuple[bool, flo
             reg = register(r["prepared"][i], r["blobs"][j], best["seed_deg"] + turn, params)
             if reg.relative_pose is None or reg.fitness is None:
                 continue
-            yaw = float(np.degrees(np.arctan2(reg.relative_pose[1, 0], reg.relative_pose[0, 0])))
+            yaw = float(yaw_deg(reg.relative_pose))
             if abs((yaw - best["pose_yaw_deg"] + 180.0) % 360.0 - 180.0) > TURN_APART:
                 alt = max(alt, reg.fitness)
         right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]

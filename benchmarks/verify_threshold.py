@@ -62,7 +62,7 @@ from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.overlap import LoopGroundTruth
-from overlapmamba.core.poses import POSE_RIGHT, pose_error
+from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
 from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
@@ -162,7 +162,7 @@ def candidate(
     if verdict.relative_pose is not None:
         truth = np.linalg.inv(pose_kf) @ pose_q
         c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
-        c["pose_yaw_deg"] = float(np.degrees(np.arctan2(*verdict.relative_pose[[1, 0], 0])))
+        c["pose_yaw_deg"] = float(yaw_deg(verdict.relative_pose))
     return c
 
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from overlapmamba.core.metrics import Retriever, nearest
 from overlapmamba.core.yaw import circular_correlation
-from overlapmamba.core.yaw_spectrum import FirstStage, score_part
+from overlapmamba.core.yaw_spectrum import FirstStage, score_part, unit
 
 if TYPE_CHECKING:
     from overlapmamba.core.modelmeta import EncoderMetadata
@@ -78,8 +78,7 @@ class Rerank:
             raise ValueError(
                 f"rerank part {self.part} is not a leading part of {vectors.shape[1]}-float vectors"
             )
-        x = np.asarray(vectors[:, : self.part], np.float32)
-        return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+        return unit(vectors[:, : self.part])
 
     @classmethod
     def parse(cls, text: str) -> Rerank:
