@@ -38,9 +38,10 @@ from typing import Any
 
 import numpy as np
 from bench_kit import REAL, ROOT, provenance, served_input, served_rerank, served_settings
+from closure_kit import descriptor_recall as verified_recall
+from closure_kit import score
 from rich.console import Console
-from verify_threshold import descriptor_recall as verified_recall
-from verify_threshold import run_town, score
+from verify_threshold import run_town
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.metrics import evaluate_retrieval

@@ -37,11 +37,11 @@ from typing import Any
 import numpy as np
 from across_pairs import SENSORS, split_towns
 from bench_kit import ROOT, model_record, served_input, served_rerank, served_settings
+from closure_kit import candidate, score
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from tqdm import tqdm
-from verify_threshold import candidate, score
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.rerank import Rerank, by_score, score_d2

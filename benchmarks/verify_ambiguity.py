@@ -5,15 +5,16 @@ A verified closure is a registration whose fitness clears ``verify.min_fitness``
 looks like another one turned by a quarter (a crossing of a grid town, seen by a sensor whose
 range ends at the crossing), a registration can fit the wrong place about as well as a right
 closure fits the right one, and fitness alone cannot tell them apart. This measures, for each
-closure the service accepts at a file's own thresholds (``verify_threshold.run_town`` and
-``closure``: the service's order and call), the best fitness of the same pair registered again
-from the seed yaw + 90°, 180° and 270° whose pose turns more than ``TURN_APART`` from the
-accepted one, and the margin between the two, for right closures (pose within 1 m and 2°) and
-wrong ones. A margin threshold would refuse the ambiguous; its cost in right closures is the
-table's ``kept`` column.
+closure the service would accept at a file's own thresholds without the check
+(``verify_threshold.run_town`` and ``closure_kit.closure``: the service's order and call), the
+best fitness of the same pair registered again from the seed yaw + 90°, 180° and 270° whose
+pose turns more than ``TURN_APART_DEG`` from the accepted one (the service's
+``overlapmamba.service.verify.rival_fitness``), and the margin between the two, for right
+closures (pose within 1 m and 2°) and wrong ones. The service refuses a closure whose margin
+is below ``verify.ambiguity_margin``; its cost in right closures is the table's ``kept`` column.
 
-Nothing is chosen here: a margin for the service would be chosen on validation towns, and the
-test towns are reported beside them to show the failure it addresses.
+Nothing is chosen here: ``verify_threshold.py --calibrate`` chooses the margin on validation
+towns; the test towns are reported beside them to show the failure it addresses.
 
     python benchmarks/verify_ambiguity.py --model models/overlapmamba-hdl64-one-pass.onnx \\
         --town data/synth/val --town data/synth/test-os0-128 \\
@@ -33,14 +34,13 @@ from bench_kit import ROOT, model_record, served_rerank, served_settings
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
-from verify_threshold import closure, run_town
+from closure_kit import closure
+from verify_threshold import run_town
 
-from overlapmamba.core.poses import POSE_RIGHT, yaw_deg
+from overlapmamba.core.poses import POSE_RIGHT
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.verify import params_of, register
+from overlapmamba.service.verify import QUARTER_TURNS, TURN_APART_DEG, params_of, rival_fitness
 
-TURNS = (90.0, 180.0, 270.0)  # the other seeds: a grid town's crossings alias by quarter turns
-TURN_APART = 20.0  # degrees: an alternative pose this far from the accepted one is another fit
 MARGINS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)
 
 
@@ -83,14 +83,8 @@ def alternatives(r: dict[str, Any], params: Any, v: Any) -> list[tuple[bool, flo
         if best is None:
             continue
         i, j = q["query"], best["keyframe"]
-        alt = 0.0
-        for turn in TURNS:
-            reg = register(r["prepared"][i], r["blobs"][j], best["seed_deg"] + turn, params)
-            if reg.relative_pose is None or reg.fitness is None:
-                continue
-            yaw = float(yaw_deg(reg.relative_pose))
-            if abs((yaw - best["pose_yaw_deg"] + 180.0) % 360.0 - 180.0) > TURN_APART:
-                alt = max(alt, reg.fitness)
+        prepared, blob = r["prepared"][i], r["blobs"][j]
+        alt = rival_fitness(prepared, blob, best["seed_deg"], best["pose_yaw_deg"], params)
         right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
         out.append((bool(right), float(best["fitness"]), alt))
     return out
@@ -113,8 +107,8 @@ def main() -> None:
     report = {
         **model_record(args.model, enc),
         "verify": v.model_dump(),
-        "turns_deg": list(TURNS),
-        "turn_apart_deg": TURN_APART,
+        "turns_deg": list(QUARTER_TURNS),
+        "turn_apart_deg": TURN_APART_DEG,
         "towns": towns,
     }
     write_report(args.out, report)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,7 @@ from bench_kit import (
     served_settings,
     write_calibration,
 )
+from closure_kit import add_rivals, candidate, descriptor_recall, score
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -62,7 +64,6 @@ from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.overlap import LoopGroundTruth
-from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
 from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
@@ -146,107 +147,30 @@ def run_town(
     }
 
 
-def candidate(
-    j: int, distance: float, loop: bool, verdict: Any, pose_kf: np.ndarray, pose_q: np.ndarray
-) -> dict[str, Any]:
-    """One registered candidate as :func:`score` reads it: keyframe ``j``, its descriptor
-    distance, whether it is a true loop, fitness, rmse, and its pose's errors against the
-    truth T = P_keyframe⁻¹ · P_query."""
-    c: dict[str, Any] = {
-        "keyframe": int(j),
-        "distance": distance,
-        "loop": bool(loop),
-        "fitness": verdict.fitness,
-        "rmse": verdict.rmse,
-    }
-    if verdict.relative_pose is not None:
-        truth = np.linalg.inv(pose_kf) @ pose_q
-        c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
-        c["pose_yaw_deg"] = float(yaw_deg(verdict.relative_pose))
-    return c
-
-
-def closure(
-    q: dict[str, Any],
-    min_fitness: float,
-    max_rmse: float,
-    gate_distance: float | None = None,
-    stop_at_first: bool = False,
-) -> tuple[dict[str, Any] | None, int]:
-    """One query's closure as the service calls it at these thresholds (see :func:`score`):
-    the accepted candidate or None, and how many candidates were registered."""
-    gated = [c for c in q["candidates"] if gate_distance is None or c["distance"] <= gate_distance]
-    ok = [
-        c
-        for c in gated
-        if c["fitness"] is not None
-        and c["fitness"] >= min_fitness
-        and c["rmse"] is not None
-        and c["rmse"] <= max_rmse
+def ambiguity_margin(
+    results: list[dict[str, Any]],
+    params: Any,
+    gate: dict[str, Any],
+    holds: Callable[..., bool],
+) -> dict[str, Any] | None:
+    """``verify.ambiguity_margin``, after the thresholds and the gate: each candidate that
+    passes them is registered from the other quarter turns (``closure_kit.add_rivals``), and
+    the margin is the largest of 0, 0.02, … 0.6 that costs at most 0.005 of the gate's recall,
+    precision at the target both ways (None: none does). The calibration towns' queries only
+    (``--across`` pairs keep no registration inputs: the margin is not calibrated with them)."""
+    f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
+    for r in results:
+        add_rivals(r, params, f, rmse, d)
+    queries = [q for r in results for q in r["queries"]]
+    sweep = [
+        score(queries, f, rmse, d, margin=float(m)) for m in np.round(np.arange(0, 0.61, 0.02), 2)
     ]
-    registered = gated.index(ok[0]) + 1 if stop_at_first and ok else len(gated)
-    if not ok:
-        return None, registered
-    return (ok[0] if stop_at_first else max(ok, key=lambda c: c["fitness"])), registered
-
-
-def score(
-    queries: list[dict[str, Any]],
-    min_fitness: float,
-    max_rmse: float,
-    gate_distance: float | None = None,
-    stop_at_first: bool = False,
-) -> dict[str, Any]:
-    """The service's call at these thresholds, over every query (a candidate beyond
-    ``gate_distance`` is not registered, as in the service): the verified candidate of
-    highest fitness, or with ``stop_at_first`` (``verify.stop_at_first``) the first verified
-    in the answer's order, none registered after it."""
-    accepted = correct = on_loop = found = registered = 0
-    t_err, yaw_err = [], []
-    for q in queries:
-        best, n = closure(q, min_fitness, max_rmse, gate_distance, stop_at_first)
-        registered += n
-        if best is None:
-            continue
-        accepted += 1
-        right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
-        correct += right
-        on_loop += best["loop"]
-        found += right and best["loop"]
-        if best["loop"]:
-            t_err.append(best["t_err"])
-            yaw_err.append(best["yaw_err"])
-    loops = sum(q["has_loop"] for q in queries)
-    out: dict[str, Any] = {
-        "min_fitness": min_fitness,
-        "max_rmse_m": max_rmse,
-        "gate_distance": gate_distance,
-        "registered_per_query": registered / len(queries) if queries else 0.0,
-        "accepted": accepted,
-        "correct": correct,
-        "precision": correct / accepted if accepted else 1.0,
-        "precision_ground_truth_loops": on_loop / accepted if accepted else 1.0,
-        "recall": found / loops if loops else 0.0,
-    }
-    if t_err:
-        out["translation_error_m"] = {
-            "median": float(np.median(t_err)),
-            "p90": float(np.percentile(t_err, 90)),
-        }
-        out["yaw_error_deg"] = {
-            "median": float(np.median(yaw_err)),
-            "p90": float(np.percentile(yaw_err, 90)),
-        }
-    return out
-
-
-def descriptor_recall(queries: list[dict[str, Any]]) -> dict[str, float]:
-    loops = [q for q in queries if q["has_loop"]]
-    at = {}
-    for n in (1, 5):
-        hit = sum(any(c["loop"] for c in q["candidates"][:n]) for q in loops)
-        at[f"recall@{n}"] = hit / len(loops) if loops else 0.0
-    return at
+    fine = [
+        s
+        for s in sweep
+        if holds(s, d, s["ambiguity_margin"]) and s["recall"] >= gate["recall"] - 0.005
+    ]
+    return max(fine, key=lambda s: s["ambiguity_margin"]) if fine else None
 
 
 def main() -> None:
@@ -269,6 +193,12 @@ def main() -> None:
     ap.add_argument("--min-fitness", type=float, default=served.verify.min_fitness)
     ap.add_argument("--max-rmse", type=float, default=served.verify.max_rmse_m)
     ap.add_argument("--gate-distance", type=float, default=served.verify.gate_distance)
+    ap.add_argument(
+        "--ambiguity-margin",
+        type=lambda s: None if s == "off" else float(s),
+        default=served.verify.ambiguity_margin,
+        help="MARGIN or off (default: the service's verify.ambiguity_margin)",
+    )
     ap.add_argument(
         "--json",
         type=Path,
@@ -308,7 +238,13 @@ def main() -> None:
         candidates=args.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=register_within
     )
     rerank = served_rerank(enc.meta, args.rerank)  # its score as the service scores
-    results = [run_town(enc, t, args.candidates, v, rerank) for t in towns]
+    keep = args.calibrate or args.ambiguity_margin is not None  # to register rivals after
+    results = [run_town(enc, t, args.candidates, v, rerank, keep=keep) for t in towns]
+    params = params_of(v)
+    if args.ambiguity_margin is not None:  # the served check: its registrations are timed too
+        for r in results:
+            extra = add_rivals(r, params, args.min_fitness, args.max_rmse, args.gate_distance)
+            r["verify_ms"] = [a + b for a, b in zip(r["verify_ms"], extra, strict=True)]
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
@@ -337,14 +273,17 @@ def main() -> None:
         for q in queries:  # each town, and each pair of drives with --across
             groups.setdefault(q["group"], []).append(q)
 
-        def holds(s: dict[str, Any], gate: float | None = None) -> bool:
-            first = score(queries, s["min_fitness"], s["max_rmse_m"], gate, stop_at_first=True)
+        def holds(
+            s: dict[str, Any], gate: float | None = None, margin: float | None = None
+        ) -> bool:
+            f, rmse = s["min_fitness"], s["max_rmse_m"]
+            first = score(queries, f, rmse, gate, stop_at_first=True, margin=margin)
             if s["precision"] < args.target or first["precision"] < args.target:
                 return False
             if not args.each:
                 return True
             return all(
-                score(g, s["min_fitness"], s["max_rmse_m"], gate, stop_at_first=first_)["precision"]
+                score(g, f, rmse, gate, stop_at_first=first_, margin=margin)["precision"]
                 >= args.target
                 for g in groups.values()
                 for first_ in (False, True)
@@ -397,11 +336,17 @@ def main() -> None:
             report["calibration"]["gate"] = gate
             report["gates"] = gates
             console.print(f"descriptor gate: {gate}")
+            margin = None
+            if gate is not None and not args.across:
+                margin = ambiguity_margin(results, params, gate, holds)
+                report["calibration"]["ambiguity"] = margin
+                console.print(f"ambiguity margin: {margin}")
             if args.write_calibration and gate is not None:
                 values = {
                     "min_fitness": chosen["min_fitness"],
                     "max_rmse_m": chosen["max_rmse_m"],
                     "gate_distance": gate["gate_distance"],
+                    "ambiguity_margin": None if margin is None else margin["ambiguity_margin"],
                 }
                 data = ", ".join([*map(str, towns), *pairs])
                 write_calibration(args.model, "verify", values, data)
@@ -422,8 +367,9 @@ def main() -> None:
         "registered/query",
     ):
         table.add_column(col, justify="right")
+    served_at = (args.min_fitness, args.max_rmse, args.gate_distance)
     for r in results:
-        s = score(r["queries"], args.min_fitness, args.max_rmse, args.gate_distance)
+        s = score(r["queries"], *served_at, margin=args.ambiguity_margin)
         rec = descriptor_recall(r["queries"])
         row = {
             "town": r["town"],
@@ -432,7 +378,7 @@ def main() -> None:
             "descriptor": rec,
             "verified": s,
             "verified_stop_at_first": score(
-                r["queries"], args.min_fitness, args.max_rmse, args.gate_distance, True
+                r["queries"], *served_at, True, margin=args.ambiguity_margin
             ),
             "verify_ms": {
                 "median": float(np.median(r["verify_ms"])),
@@ -464,6 +410,7 @@ def main() -> None:
         "min_fitness": args.min_fitness,
         "max_rmse_m": args.max_rmse,
         "gate_distance": args.gate_distance,
+        "ambiguity_margin": args.ambiguity_margin,
     }
     if args.json is None:
         name = "verify_threshold.json" if args.calibrate else "verify-test.json"

@@ -143,13 +143,8 @@ def test_a_keyframe_by_a_narrower_sensor_is_scored_within_its_field_of_view(kitt
 def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
     from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""
-    from overlapmamba.service.verify import (
-        RegistrationParams,
-        bev_spectrum,
-        prepare,
-        register,
-        seed_translation,
-    )
+    from overlapmamba.service.seed import bev_spectrum, seed_translation
+    from overlapmamba.service.verify import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     truth = np.linalg.inv(kitti.poses[0]) @ kitti.poses[30]
@@ -171,8 +166,8 @@ def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     rng = np.random.default_rng(0)
     pts = rng.uniform(-40, 40, (600, 3))
     for true in ([7.0, -11.0], [-38.0, 37.0]):  # the second near max_shift: no wrap-around
-        moved = bev_spectrum(pts + np.array([*true, 0.0]), p)
-        shift = seed_translation(bev_spectrum(pts, p), moved, p)
+        moved = bev_spectrum(pts + np.array([*true, 0.0]), p.bev)
+        shift = seed_translation(bev_spectrum(pts, p.bev), moved, p.bev)
         assert np.abs(shift - true).max() <= p.bev_cell, (true, shift)
 
 
@@ -254,7 +249,7 @@ def test_verify_threshold_scores_stop_at_first_as_the_service_answers():
     best-fitting verified candidate, or the first verified with none registered after it."""
     from conftest import benchmark_module
 
-    score = benchmark_module("verify_threshold").score
+    score = benchmark_module("closure_kit").score
 
     def cand(distance, fitness, t_err, loop=True):
         return dict(
@@ -309,7 +304,7 @@ def test_a_real_closure_fits_far_worse_from_the_other_quarter_turns(kitti):
     )
 
     amb = benchmark_module("verify_ambiguity")
-    candidate = benchmark_module("verify_threshold").candidate
+    candidate = benchmark_module("closure_kit").candidate
     v = VerifySettings(gate_distance=None)
     p = params_of(v)
     prepared = [prepare(kitti.points(i).xyz, p) for i in (0, 2)]

@@ -832,6 +832,7 @@ async def test_stop_at_first_answers_later_candidates_unregistered(any_backend, 
                 "fitness": None,
                 "rmse": None,
                 "reason": "not registered: candidate 1 verified first (verify.stop_at_first)",
+                "rival_fitness": None,
             }
 
 

@@ -115,10 +115,19 @@ class Verification:
     fitness: float | None
     rmse: float | None
     reason: str | None
+    # the best fit of the pair registered from the other quarter turns (the server's
+    # verify.ambiguity_margin); None: not checked, or a server that predates the check
+    rival_fitness: float | None = None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Verification:
-        return cls(d.get("verified"), d.get("fitness"), d.get("rmse"), d.get("reason"))
+        return cls(
+            d.get("verified"),
+            d.get("fitness"),
+            d.get("rmse"),
+            d.get("reason"),
+            d.get("rival_fitness"),
+        )
 
 
 @dataclass(frozen=True)

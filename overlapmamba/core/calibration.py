@@ -10,7 +10,8 @@ serves another.
     section        values                               chosen by
     rerank         shortlist, weight, score              benchmarks/rerank.py
     loop_closure   accept_distance, max_score            benchmarks/loop_threshold.py
-    verify         min_fitness, max_rmse_m, gate_distance  benchmarks/verify_threshold.py
+    verify         min_fitness, max_rmse_m, gate_distance,  benchmarks/verify_threshold.py
+                   ambiguity_margin
 
 Each section records what chose it (the command, the data, the date), so ``/readyz`` and
 the start-up log can say where every threshold came from. A calibration written under the
@@ -30,7 +31,7 @@ from overlapmamba.core.renamed import RENAMED, renamed
 CALIBRATED: dict[str, tuple[str, ...]] = {
     "rerank": ("shortlist", "weight", "score"),
     "loop_closure": ("accept_distance", "max_score"),
-    "verify": ("min_fitness", "max_rmse_m", "gate_distance"),
+    "verify": ("min_fitness", "max_rmse_m", "gate_distance", "ambiguity_margin"),
 }
 
 

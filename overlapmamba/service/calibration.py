@@ -96,7 +96,9 @@ def log_thresholds(model_id: str, used: dict[str, Threshold]) -> None:
         ", ".join(f"{k}={t.value} ({t.source})" for k, t in used.items()),
         extra={"thresholds": {k: t.public() for k, t in used.items()}},
     )
-    defaults = sorted(k for k, t in used.items() if t.source == "default")
+    # a default of null is a check left off (verify.ambiguity_margin), not another
+    # model's threshold: a file calibrated before the check serves as it did
+    defaults = sorted(k for k, t in used.items() if t.source == "default" and t.value is not None)
     if defaults:
         log.warning(
             "model %s carries no calibration for %s: the built-in defaults serve, which were "

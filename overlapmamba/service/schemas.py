@@ -269,6 +269,14 @@ class VerificationOut(BaseModel):
     )
     rmse: float | None = Field(description="rmse of those points' distances, metres")
     reason: str | None = Field(description="why it is not verified, when it is not")
+    rival_fitness: float | None = Field(
+        None,
+        description="the best fitness of the same pair registered from the seed yaw turned "
+        "by 90°, 180° and 270° (poses more than 20° from this one's); verified needs fitness "
+        "at least verify.ambiguity_margin above it. null: not checked (the candidate did not "
+        "pass the thresholds, or the margin is off); on a refusal it may stop at the first "
+        "turn that fits well enough",
+    )
 
 
 class LoopClosureOut(BaseModel):

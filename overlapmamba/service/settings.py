@@ -281,6 +281,15 @@ class VerifySettings(_RenamedSection):
         "query); "
         "false: register every candidate and close on the best-fitting verified one",
     )
+    ambiguity_margin: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="a candidate that verifies is registered again from its seed yaw turned "
+        "by 90°, 180° and 270°; if a pose more than 20° from its own fits within this much "
+        "of its fitness, it is refused as ambiguous (a place that looks like another turned "
+        "by a quarter: a crossing). null: not checked (a model file calibrated without it)",
+    )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
     voxel_m: float = Field(
         2.0,

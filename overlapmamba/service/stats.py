@@ -45,6 +45,9 @@ class _Counts:
     # (too few points), or kept from registering by the descriptor gate
     rejected: int = 0
     registered: int = 0  # candidates registered to a fitness: the verify stage's GICP work
+    # of the rejected, those that passed the thresholds and that a turned pose fits nearly as
+    # well (verify.ambiguity_margin)
+    ambiguous: int = 0
     robots: OrderedDict[str, _Robot] = field(default_factory=OrderedDict)
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
 
@@ -61,6 +64,7 @@ class _Counts:
                 "verified": self.verified,
                 "rejected": self.rejected,
                 "registered": self.registered,
+                "ambiguous": self.ambiguous,
                 "registered_per_query": self.registered / self.queries if self.queries else 0.0,
             },
             "robots": {
@@ -121,6 +125,13 @@ class Stats:
             ["map"],
             registry=r,
         )
+        self.p_ambiguous = PCounter(
+            "overlapmamba_ambiguous_closures",
+            "Candidates rejected as ambiguous: a pose turned by a quarter, a half or three "
+            "quarters fits nearly as well (verify.ambiguity_margin); counted in rejected too",
+            ["map"],
+            registry=r,
+        )
         self.p_batch = Histogram(
             "overlapmamba_encoder_batch_size",
             "Scans per encoder call",
@@ -178,18 +189,22 @@ class Stats:
         verified = sum(v.verified is True for v in verdicts)
         rejected = sum(v.verified is False for v in verdicts)
         registered = sum(v.fitness is not None for v in verdicts)
+        ambiguous = sum(v.verified is False and v.rival_fitness is not None for v in verdicts)
         if verified:
             self.p_verify.labels(map_id, "verified").inc(verified)
         if rejected:
             self.p_verify.labels(map_id, "rejected").inc(rejected)
         if registered:
             self.p_registered.labels(map_id).inc(registered)
+        if ambiguous:
+            self.p_ambiguous.labels(map_id).inc(ambiguous)
         with self._lock:
             for c in (self.total, self.by_map[map_id]):
                 c.queries += 1
                 c.verified += verified
                 c.rejected += rejected
                 c.registered += registered
+                c.ambiguous += ambiguous
                 c.recent.append(time.time())
                 c.loop_closures += accepted
                 rec = self._robot(c, robot)

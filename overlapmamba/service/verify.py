@@ -27,8 +27,10 @@ a query or keyframe too sparse to register is refused with the reason, never an 
 :func:`verify_candidates` is the query's stage: it registers each candidate that has
 geometry and lies within the descriptor gate, in order until one verifies when
 ``verify.stop_at_first`` (the default) says so, and judges each result against the calibrated
-thresholds (``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``:
-``benchmarks/verify_threshold.py``).
+thresholds (``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``,
+``verify.ambiguity_margin``: ``benchmarks/verify_threshold.py``). The last refuses a closure
+that a pose turned by a quarter, a half or three quarters fits nearly as well
+(:func:`rival_fitness`): a place that looks like another turned.
 
 **Cost and accuracy** (KITTI 00, turned odd frames against even ones,
 ``benchmarks/registration.py``; this 2-core machine, medians): ≈ 1,000 grid points a side
@@ -55,13 +57,15 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import small_gicp
 
+from overlapmamba.core import poses
 from overlapmamba.core.geometry import GeometryError, decode_geometry, pack_geometry
 from overlapmamba.core.poses import rotation_z
+from overlapmamba.service.seed import BevGrid, bev_spectrum, seed_translation
 from overlapmamba.service.settings import VerifySettings
 
 NO_GEOMETRY = "the keyframe keeps no geometry (inserted as a descriptor, or its map keeps none)"
@@ -86,6 +90,11 @@ class RegistrationParams:
     max_shift: float = 40.0  # m: the farthest translation the seed looks for
     bev_reach: float = 64.0  # m: the grids' half-width (structure farther out is left out)
 
+    @property
+    def bev(self) -> BevGrid:
+        """The translation seed's grid (:mod:`overlapmamba.service.seed`)."""
+        return BevGrid(self.bev_cell, self.max_shift, self.bev_reach)
+
 
 @dataclass(frozen=True)
 class Prepared:
@@ -108,7 +117,7 @@ class Prepared:
         key = round(yaw_deg or 0.0) % 360
         if key not in self.spectra:
             pts = self.cloud.points()[self.steep, :3] @ rotation_z(-key)[:3, :3].T
-            self.spectra[key] = bev_spectrum(pts, p)
+            self.spectra[key] = bev_spectrum(pts, p.bev)
         return self.spectra[key]
 
 
@@ -225,7 +234,7 @@ def register(
     init = rotation_z(-yaw_deg) if yaw_deg is not None else np.eye(4)
     turned = query.turned_spectrum(yaw_deg, p)
     if turned is not None:
-        init[:2, 3] = seed_translation(turned, target.spectrum, p)
+        init[:2, 3] = seed_translation(turned, target.spectrum, p.bev)
     tree = target.tree
     assert tree is not None  # a target with a cloud has its tree
     res = small_gicp.align(
@@ -275,6 +284,7 @@ class Verdict:
     rmse: float | None
     reason: str | None  # why it is not verified, when it is not
     relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query, when registration ran
+    rival_fitness: float | None = None  # the best other turn's fit (verify.ambiguity_margin)
 
     def public(self) -> dict[str, object]:
         return {
@@ -282,6 +292,7 @@ class Verdict:
             "fitness": self.fitness,
             "rmse": self.rmse,
             "reason": self.reason,
+            "rival_fitness": self.rival_fitness,
         }
 
 
@@ -306,6 +317,56 @@ def judge(reg: Registration, v: VerifySettings) -> Verdict:
     return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose)
 
 
+# A grid town's crossings look alike turned by a quarter: the other seeds a verified
+# candidate is registered from, and how far (degrees) a pose must turn from the verified one
+# to be another fit rather than the same one found again
+QUARTER_TURNS = (90.0, 180.0, 270.0)
+TURN_APART_DEG = 20.0
+
+
+def rival_fitness(
+    query: Prepared,
+    geometry: bytes,
+    yaw_deg: float | None,
+    pose_yaw_deg: float,
+    p: RegistrationParams,
+    view: FieldOfView | None = None,
+    enough: float | None = None,
+) -> float:
+    """The best fitness of the pair registered again from the seed yaw turned by each of
+    :data:`QUARTER_TURNS`, among the poses that turn more than :data:`TURN_APART_DEG` from the
+    verified one's yaw ``pose_yaw_deg`` (0.0 when none does); it stops once one reaches
+    ``enough``. A right
+    closure fits its place much better than any turned pose fits it; where a place looks
+    like another a quarter turn away (a crossing seen by a short-range sensor), a wrong
+    closure fits about as well as the turned one (``benchmarks/verify_ambiguity.py``)."""
+    best = 0.0
+    for turn in QUARTER_TURNS:
+        reg = register(query, geometry, (yaw_deg or 0.0) + turn, p, view)
+        if reg.relative_pose is None or reg.fitness is None:
+            continue
+        apart = abs((float(poses.yaw_deg(reg.relative_pose)) - pose_yaw_deg + 180) % 360 - 180)
+        if apart > TURN_APART_DEG:
+            best = max(best, reg.fitness)
+            if enough is not None and best >= enough:
+                break
+    return best
+
+
+def unambiguous(verdict: Verdict, rival: float, margin: float) -> Verdict:
+    """A verified candidate whose fitness is not at least ``margin`` above ``rival``'s
+    (:func:`rival_fitness`) is refused as ambiguous."""
+    assert verdict.fitness is not None
+    if verdict.fitness - rival >= margin:
+        return replace(verdict, rival_fitness=rival)
+    reason = (
+        f"ambiguous: registered from the seed turned by a quarter, a half or three quarters, "
+        f"another pose fits with fitness {rival:.3f}, within verify.ambiguity_margin {margin:g} "
+        f"of this one's {verdict.fitness:.3f}"
+    )
+    return replace(verdict, verified=False, reason=reason, rival_fitness=rival)
+
+
 def verify_candidates(
     query: Prepared,
     candidates: list[tuple[bytes | None, float | None, float]],
@@ -316,7 +377,9 @@ def verify_candidates(
     relative yaw, the descriptor distance) → one verdict per candidate, in order. A
     candidate farther than ``v.gate_distance`` is not registered: on the validation town no
     true loop lay that far, and a robot in new territory then spends nothing on it. With
-    ``v.stop_at_first`` none is registered after the first that verifies. ``views``: each
+    ``v.stop_at_first`` none is registered after the first that verifies. With
+    ``v.ambiguity_margin`` one that verifies is registered again from the other quarter turns
+    and refused when another pose fits nearly as well (:func:`unambiguous`). ``views``: each
     candidate's keyframe sensor's field of view where it is not the query's sensor
     (:class:`FieldOfView`), else None."""
     p = params_of(v)
@@ -336,7 +399,16 @@ def verify_candidates(
             )
             out.append(Verdict(False, None, None, reason, None))
         else:
-            out.append(judge(register(query, blob, yaw_deg, p, view), v))
+            reg = register(query, blob, yaw_deg, p, view)
+            verdict = judge(reg, v)
+            margin = v.ambiguity_margin
+            if verdict.verified and margin is not None:
+                assert verdict.fitness is not None and reg.relative_pose is not None
+                own = float(poses.yaw_deg(reg.relative_pose))
+                enough = verdict.fitness - margin + 1e-9  # a rival this good already refuses
+                rival = rival_fitness(query, blob, yaw_deg, own, p, view, enough)
+                verdict = unambiguous(verdict, rival, margin)
+            out.append(verdict)
             if first is None and out[-1].verified:
                 first = len(out)
     return out
@@ -353,63 +425,6 @@ def structure(cloud: small_gicp.PointCloud) -> np.ndarray:
     nz2 = np.asarray(cloud.normals(), dtype=np.float64)[:, 2] ** 2
     eps = 1e-3
     return 1.0 - (1.0 - eps) * nz2 >= 0.2 * (2.0 + eps)
-
-
-def _grid_size(p: RegistrationParams) -> tuple[int, int]:
-    """(cells across the bird's-eye grid, FFT size). The correlation is circular: a shift s
-    reads s − size too. Shifts beyond n − 1 cells overlap nothing, so a size of at least
-    n + max_shift cells keeps every shift the seed looks at free of wrap-around."""
-    n = 2 * int(np.ceil(p.bev_reach / p.bev_cell)) + 2
-    reach = int(np.ceil(p.max_shift / p.bev_cell))
-    size = n + reach + 1
-    while not _smooth(size):  # FFT sizes of 2, 3 and 5 only are the fast ones
-        size += 1
-    return n, size
-
-
-def _smooth(m: int) -> bool:
-    for f in (2, 3, 5):
-        while m % f == 0:
-            m //= f
-    return m == 1
-
-
-@functools.lru_cache(maxsize=8)
-def _shifts(p: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
-    """(signed shift of each FFT bin in metres, the bins within max_shift)."""
-    _, size = _grid_size(p)
-    steps = np.fft.fftfreq(size, 1.0 / size) * p.bev_cell
-    return steps, np.flatnonzero(np.abs(steps) <= p.max_shift)
-
-
-def bev_spectrum(xy: np.ndarray, p: RegistrationParams) -> np.ndarray:
-    """The spectrum of a bird's-eye occupancy grid of ``xy`` (metres, centred)."""
-    n, size = _grid_size(p)
-    ij = np.floor(xy[:, :2] / p.bev_cell).astype(np.int64) + n // 2
-    ij = ij[((ij >= 0) & (ij < n)).all(axis=1)]
-    grid = np.zeros((n, n), dtype=np.float32)
-    grid[ij[:, 0], ij[:, 1]] = 1.0
-    # each cell also counts half in its 4 neighbours: grids of 2 m voxel means are sparse
-    out = grid.copy()
-    out[1:] += 0.5 * grid[:-1]
-    out[:-1] += 0.5 * grid[1:]
-    out[:, 1:] += 0.5 * grid[:, :-1]
-    out[:, :-1] += 0.5 * grid[:, 1:]
-    return np.fft.rfft2(out, (size, size))  # single precision: an argmax needs no more
-
-
-def seed_translation(query: np.ndarray, target: np.ndarray, p: RegistrationParams) -> np.ndarray:
-    """The (x, y) shift that best overlays the query's steep points (turned by the seed
-    yaw) on the keyframe's, by cross-correlating their bird's-eye occupancy grids (FFT).
-    Both are ``bev_spectrum`` s: the query's made once per seed yaw, the keyframe's once per
-    keyframe. A revisit passes a place metres to the side or along the road from where the
-    keyframe was taken; GICP alone, with its 2 m correspondences, does not travel that far."""
-    _, size = _grid_size(p)
-    corr = np.fft.irfft2(target * np.conj(query), (size, size))
-    steps, near = _shifts(p)
-    corr = corr[np.ix_(near, near)]
-    i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    return np.array([steps[near[i]], steps[near[j]]])
 
 
 @dataclass(frozen=True)
@@ -433,4 +448,4 @@ def _target(geometry: bytes, p: RegistrationParams) -> _Target:
     cloud = small_gicp.PointCloud(pts)
     tree = small_gicp.KdTree(cloud, num_threads=1)
     small_gicp.estimate_normals_covariances(cloud, tree, p.neighbours, 1)
-    return _Target(len(pts), cloud, tree, bev_spectrum(pts[structure(cloud)], p))
+    return _Target(len(pts), cloud, tree, bev_spectrum(pts[structure(cloud)], p.bev))

@@ -1,0 +1,165 @@
+"""verify.ambiguity_margin: a closure that a pose turned by a quarter, a half or three quarters
+fits nearly as well is refused (overlapmamba.service.verify.rival_fitness), in the verify stage,
+in the benchmarks' scoring of recorded candidates, in the statistics and over HTTP."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from service_kit import OCTET, running
+
+from overlapmamba.service.settings import Settings, VerifySettings
+from overlapmamba.service.stats import Stats
+from overlapmamba.service.verify import (
+    Verdict,
+    keyframe_geometry,
+    params_of,
+    prepare,
+    verify_candidates,
+)
+
+# four blocks at the corners of a crossing: the same place turned by any quarter
+CROSSING = [(6, 30, 6, 30), (-30, -6, 6, 30), (-30, -6, -30, -6), (6, 30, -30, -6)]
+# blocks of different sizes along a street: no turned pose fits
+STREET = [
+    (6, 30, 6, 14),
+    (-30, -10, 8, 30),
+    (-20, -6, -30, -12),
+    (12, 18, -25, -6),
+    (25, 28, -10, 0),
+]
+
+
+def scene(blocks: list[tuple[int, int, int, int]], step: float = 0.25) -> np.ndarray:
+    """(N, 4) float32 xyzi: a ground plane 1.7 m below the sensor and 8 m walls around each
+    block (x0, x1, y0, y1)."""
+    g = np.arange(-40.0, 40.0, 0.5)
+    gx, gy = np.meshgrid(g, g)
+    parts = [np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, -1.7)]]
+    zs = np.arange(-1.7, 6.3, step)
+    for x0, x1, y0, y1 in blocks:
+        xs, ys = np.arange(x0, x1, step), np.arange(y0, y1, step)
+        for y in (y0, y1):
+            a, z = np.meshgrid(xs, zs)
+            parts.append(np.c_[a.ravel(), np.full(a.size, y), z.ravel()])
+        for x in (x0, x1):
+            a, z = np.meshgrid(ys, zs)
+            parts.append(np.c_[np.full(a.size, x), a.ravel(), z.ravel()])
+    xyz = np.concatenate(parts)
+    return np.c_[xyz, np.full(len(xyz), 0.5)].astype(np.float32)
+
+
+def verdicts(blocks, margin: float | None, n: int = 1) -> list[Verdict]:
+    v = VerifySettings(gate_distance=None, ambiguity_margin=margin)
+    p = params_of(v)
+    pts = scene(blocks)[:, :3]
+    blob = keyframe_geometry(prepare(pts, p), p)
+    return verify_candidates(prepare(pts, p), [(blob, 3.0, 0.1)] * n, v)
+
+
+def test_a_crossing_that_a_quarter_turn_maps_onto_itself_is_refused_as_ambiguous():
+    [crossing] = verdicts(CROSSING, 0.3)
+    assert crossing.verified is False and crossing.fitness is not None and crossing.fitness > 0.9
+    assert crossing.reason is not None and "ambiguous" in crossing.reason
+    assert "verify.ambiguity_margin 0.3" in crossing.reason
+    assert crossing.rival_fitness is not None and crossing.rival_fitness > crossing.fitness - 0.3
+    assert crossing.relative_pose is not None  # the pose it found, as for any refusal
+    [street] = verdicts(STREET, 0.3)
+    assert street.verified is True and street.reason is None
+    assert street.fitness is not None and street.rival_fitness is not None
+    assert street.fitness - street.rival_fitness >= 0.3
+    # off (null, a file calibrated before the check): the crossing verifies, nothing is checked
+    [unchecked] = verdicts(CROSSING, None)
+    assert unchecked.verified is True and unchecked.rival_fitness is None
+    assert unchecked.public()["rival_fitness"] is None
+
+
+def test_an_ambiguous_candidate_does_not_stop_the_later_ones_from_registering():
+    """verify.stop_at_first stops at the first that verifies; a refusal is not one."""
+    first, second = verdicts(CROSSING, 0.3, n=2)
+    assert first.verified is False and second.verified is False
+    assert second.fitness is not None and "ambiguous" in (second.reason or "")
+
+
+def test_a_margin_is_validated_like_every_setting():
+    with pytest.raises(ValueError, match="ambiguity_margin"):
+        VerifySettings(ambiguity_margin=1.5)
+    with pytest.raises(ValueError, match="ambiguity_margin"):
+        VerifySettings(ambiguity_margin=-0.1)
+
+
+def test_closure_kit_scores_the_margin_as_the_service_calls_it():
+    """benchmarks/closure_kit.py: a passing candidate whose rival fits within the margin is
+    skipped, the next passing one closes; a passing candidate without a recorded rival is an
+    error, not a silent pass."""
+    from conftest import benchmark_module
+
+    kit = benchmark_module("closure_kit")
+
+    def cand(keyframe, fitness, rival, t_err):
+        return dict(
+            keyframe=keyframe,
+            distance=0.1,
+            fitness=fitness,
+            rmse=0.5,
+            rival=rival,
+            t_err=t_err,
+            yaw_err=0.1,
+            loop=True,
+        )
+
+    q = {"has_loop": True, "candidates": [cand(1, 0.6, 0.55, 70.0), cand(2, 0.8, 0.3, 0.2)]}
+    off = kit.score([q], 0.5, 0.7, stop_at_first=True)
+    on = kit.score([q], 0.5, 0.7, stop_at_first=True, margin=0.3)
+    assert (off["correct"], off["precision"], off["registered_per_query"]) == (0, 0.0, 1.0)
+    assert (on["correct"], on["precision"], on["recall"]) == (1, 1.0, 1.0)
+    assert on["registered_per_query"] == 2.0 and on["ambiguity_margin"] == 0.3
+    del q["candidates"][0]["rival"]
+    with pytest.raises(KeyError, match="add_rivals"):
+        kit.score([q], 0.5, 0.7, margin=0.3)
+
+
+def test_statistics_count_ambiguous_refusals_among_the_rejected():
+    class M:
+        def __init__(self, v):
+            self.verification = v
+
+    s = Stats("m")
+    amb = Verdict(False, 0.9, 0.1, "ambiguous: …", np.eye(4), rival_fitness=0.85)
+    low = Verdict(False, 0.2, 0.5, "fitness 0.200 is below 0.5", np.eye(4))
+    ok = Verdict(True, 0.9, 0.1, None, np.eye(4), rival_fitness=0.2)
+    s.query("town", "r1", True, [M(amb), M(low), M(ok)])
+    v = s.total.public()["verification"]
+    assert (v["verified"], v["rejected"], v["ambiguous"], v["registered"]) == (1, 2, 1, 3)
+
+
+@pytest.mark.anyio
+async def test_an_ambiguous_closure_over_http(tmp_path, encoder):
+    """A crossing's keyframe queried by the same scan: registration fits, but so does a
+    quarter turn, and the answer says so; a street's closes, with the rival's fit beside it.
+    /v1/stats and /metrics count the refusal."""
+    verify = {"gate_distance": None, "ambiguity_margin": 0.3}
+    async with running(Settings(data_dir=tmp_path / "data", verify=verify), encoder) as c:
+        for name, blocks in (("crossing", CROSSING), ("street", STREET)):
+            assert (await c.put(f"/v1/maps/{name}")).status_code == 201
+            body = scene(blocks).tobytes()
+            params = {"keyframe_id": "k0", "timestamp": 1.0, "robot_id": "r1", "session_id": "s1"}
+            r = await c.post(
+                f"/v1/maps/{name}/keyframes", params=params, content=body, headers=OCTET
+            )
+            assert r.status_code == 201, r.text
+            q = await c.post(f"/v1/maps/{name}/query", content=body, headers=OCTET)
+            assert q.status_code == 200, q.text
+            v, lc = q.json()["matches"][0]["verification"], q.json()["loop_closure"]
+            if name == "crossing":
+                assert v["verified"] is False and "ambiguous" in v["reason"]
+                assert v["rival_fitness"] > v["fitness"] - 0.3
+                assert lc["accepted"] is False and lc["verified"] is False
+            else:
+                assert v["verified"] is True and v["fitness"] - v["rival_fitness"] >= 0.3
+                assert lc["accepted"] is True and lc["keyframe_id"] == "k0"
+        stats = (await c.get("/v1/maps/crossing/stats")).json()["verification"]
+        assert stats["ambiguous"] == 1 and stats["rejected"] >= 1
+        assert (await c.get("/v1/maps/street/stats")).json()["verification"]["ambiguous"] == 0
+        metrics = (await c.get("/metrics")).text
+        assert 'overlapmamba_ambiguous_closures_total{map="crossing"} 1.0' in metrics
