@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 from bench_kit import ROOT, model_record, served_rerank, served_settings
+from closure_kit import closure
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
-from closure_kit import closure
 from verify_threshold import run_town
 
 from overlapmamba.core.poses import POSE_RIGHT
