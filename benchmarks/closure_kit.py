@@ -7,21 +7,17 @@ ground truth calls it a loop, the registration's fitness and rmse, its pose's er
 the truth, and the seed and pose yaws. :func:`closure` and :func:`score` apply
 ``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``,
 ``verify.stop_at_first`` and ``verify.ambiguity_margin``; the last needs each passing
-candidate's rival fit, which :func:`add_rivals` registers (the service's
-``overlapmamba.service.verify.rival_fitness``).
+candidate's rival fit (``rival``: ``verify_threshold.run_town(rivals_from=)``, or the
+service's verdict when it registered with the margin on).
 """
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
-from overlapmamba.service.verify import RegistrationParams, rival_fitness
 
 
 def candidate(
@@ -37,6 +33,8 @@ def candidate(
         "fitness": verdict.fitness,
         "rmse": verdict.rmse,
     }
+    if verdict.rival_fitness is not None:  # registered with verify.ambiguity_margin on
+        c["rival"] = verdict.rival_fitness
     if verdict.relative_pose is not None:
         truth = np.linalg.inv(pose_kf) @ pose_q
         c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
@@ -143,36 +141,6 @@ def _rival(c: dict[str, Any]) -> float:
     if "rival" not in c:
         raise KeyError(
             f"candidate keyframe {c['keyframe']} passed the thresholds but has no rival fit: "
-            "run add_rivals at thresholds no stricter than the ones scored"
+            "register rivals from a fitness no higher than the one scored (run_town's rivals_from)"
         )
     return float(c["rival"])
-
-
-def add_rivals(
-    r: dict[str, Any],
-    params: RegistrationParams,
-    min_fitness: float,
-    max_rmse: float,
-    gate_distance: float | None = None,
-) -> list[float]:
-    """Each candidate of a town (``run_town(..., keep=True)``) that passes these thresholds
-    gets ``rival``: the best fit of the pair registered from its seed turned by a quarter, a
-    half and three quarters (``rival_fitness``, every turn, as the service registers an
-    accepted candidate). Returns the time each query spent on it, in ms."""
-    ms = []
-    for q in tqdm(r["queries"], desc=f"rivals {Path(r['town']).name}", unit="query"):
-        t0 = time.perf_counter()
-        for c in q["candidates"]:
-            if gate_distance is not None and c["distance"] > gate_distance:
-                continue
-            if "rival" in c or not passes(c, min_fitness, max_rmse):
-                continue
-            c["rival"] = rival_fitness(
-                r["prepared"][q["query"]],
-                r["blobs"][c["keyframe"]],
-                c["seed_deg"],
-                c["pose_yaw_deg"],
-                params,
-            )
-        ms.append((time.perf_counter() - t0) * 1e3)
-    return ms

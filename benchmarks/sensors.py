@@ -10,7 +10,8 @@ Rows, all on test data (never chosen on):
   Recall@1 of the descriptor alone, of the service's two stages (the descriptor shortlist
   re-ranked by the yaw features) and of Scan Context; and the service's verified loop
   closures (``benchmarks/verify_threshold.py``: registration of the first ``verify.candidates``
-  candidates, the thresholds the model file carries): precision (a closure is right when
+  candidates, the thresholds the model file carries, ``verify.ambiguity_margin`` among them
+  when it has one): precision (a closure is right when
   its relative pose is within 1 m and 2°) and recall. Every scan enters the model as its
   sensor's, as the service projects a scan that names its sensor.
 - **across sensors** (``test-s1-SENSOR`` queried against ``test-SENSOR``): a second drive
@@ -93,7 +94,9 @@ def same_sensor(
     record = VerifySettings(
         candidates=v.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=v.gate_distance
     )
-    r = run_town(enc, town, v.candidates if verify else 0, record, rerank)
+    margin = v.ambiguity_margin if verify else None
+    rivals_from = None if margin is None else v.min_fitness  # the served check's registrations
+    r = run_town(enc, town, v.candidates if verify else 0, record, rerank, rivals_from=rivals_from)
     desc, yaw = r["descriptors"], r["yaw_features"]
     contexts = scan_contexts(seq)
     alone = summary(loop_closure(desc, gt))
@@ -104,7 +107,8 @@ def same_sensor(
         exclude_recent_frames=int(gt.params.get("exclude_recent", 100)),
     ).summary()
     # as the service answers: the first verified candidate unless v.stop_at_first is off
-    verified = score(r["queries"], v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first)
+    at = (v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first)
+    verified = score(r["queries"], *at, margin=margin)
     row = {
         "town": str(town),
         "sensor": r["sensor"],
@@ -119,6 +123,7 @@ def same_sensor(
         "verified": {
             **{k: verified[k] for k in ("accepted", "correct", "precision", "recall")},
             "stop_at_first": v.stop_at_first,
+            "ambiguity_margin": margin,
         }
         if verify
         else None,  # --no-verify: nothing registered

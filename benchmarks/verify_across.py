@@ -236,7 +236,15 @@ def main() -> None:
                 view,
             )
             gate = v.gate_distance
-            got = score(queries, v.min_fitness, v.max_rmse_m, gate, stop_at_first=v.stop_at_first)
+            # the service's call: a candidate refused as ambiguous carries its rival's fit
+            got = score(
+                queries,
+                v.min_fitness,
+                v.max_rmse_m,
+                gate,
+                stop_at_first=v.stop_at_first,
+                margin=v.ambiguity_margin,
+            )
             rows.append(
                 {
                     "queries_sensor": q,

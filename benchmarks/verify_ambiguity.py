@@ -5,7 +5,7 @@ A verified closure is a registration whose fitness clears ``verify.min_fitness``
 looks like another one turned by a quarter (a crossing of a grid town, seen by a sensor whose
 range ends at the crossing), a registration can fit the wrong place about as well as a right
 closure fits the right one, and fitness alone cannot tell them apart. This measures, for each
-closure the service would accept at a file's own thresholds without the check
+closure the service would accept at a file's own thresholds without the margin
 (``verify_threshold.run_town`` and ``closure_kit.closure``: the service's order and call), the
 best fitness of the same pair registered again from the seed yaw + 90°, 180° and 270° whose
 pose turns more than ``TURN_APART_DEG`` from the accepted one (the service's
@@ -39,7 +39,7 @@ from verify_threshold import run_town
 
 from overlapmamba.core.poses import POSE_RIGHT
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.verify import QUARTER_TURNS, TURN_APART_DEG, params_of, rival_fitness
+from overlapmamba.service.verify import QUARTER_TURNS, TURN_APART_DEG
 
 MARGINS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)
 
@@ -74,19 +74,17 @@ def summary(rows: list[tuple[bool, float, float]]) -> dict[str, Any]:
     }
 
 
-def alternatives(r: dict[str, Any], params: Any, v: Any) -> list[tuple[bool, float, float]]:
-    """Each accepted closure of one town (``run_town(..., keep=True)``) at the served
-    thresholds: whether it is right, its fitness, and the best fitness of the other turns."""
+def alternatives(r: dict[str, Any], v: Any) -> list[tuple[bool, float, float]]:
+    """Each closure of one town that the served thresholds accept without the margin
+    (``run_town(..., rivals_from=v.min_fitness)``): whether it is right, its fitness, and the
+    best fitness of the other turns."""
     out = []
     for q in r["queries"]:
         best, _ = closure(q, v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first)
         if best is None:
             continue
-        i, j = q["query"], best["keyframe"]
-        prepared, blob = r["prepared"][i], r["blobs"][j]
-        alt = rival_fitness(prepared, blob, best["seed_deg"], best["pose_yaw_deg"], params)
         right = best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]
-        out.append((bool(right), float(best["fitness"]), alt))
+        out.append((bool(right), float(best["fitness"]), float(best["rival"])))
     return out
 
 
@@ -102,8 +100,8 @@ def main() -> None:
     record = v.model_copy(update={"min_fitness": 0.0, "max_rmse_m": 1e9})  # every verdict kept
     towns = {}
     for town in args.town:
-        r = run_town(enc, town, v.candidates, record, rerank, keep=True)
-        towns[town.name] = summary(alternatives(r, params_of(v), v))
+        r = run_town(enc, town, v.candidates, record, rerank, rivals_from=v.min_fitness)
+        towns[town.name] = summary(alternatives(r, v))
     report = {
         **model_record(args.model, enc),
         "verify": v.model_dump(),

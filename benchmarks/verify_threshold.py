@@ -56,7 +56,7 @@ from bench_kit import (
     served_settings,
     write_calibration,
 )
-from closure_kit import add_rivals, candidate, descriptor_recall, score
+from closure_kit import candidate, descriptor_recall, score
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -64,11 +64,20 @@ from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.overlap import LoopGroundTruth
+from overlapmamba.core.poses import yaw_deg
 from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+from overlapmamba.service.verify import (
+    keyframe_geometry,
+    params_of,
+    prepare,
+    rival_fitness,
+    verify_candidates,
+)
+
+FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
 
 
 def run_town(
@@ -79,11 +88,15 @@ def run_town(
     rerank: Rerank,
     batch: int = 8,
     keep: bool = False,
+    rivals_from: float | None = None,
 ) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors. Each is
     registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them.
-    ``keep``: the scans' prepared queries and keyframe geometry come back too (``prepared``,
-    ``blobs``), for a caller that registers pairs again."""
+    ``rivals_from``: each candidate whose fitness reaches it is registered again from the other
+    quarter turns too, as the service does one that passes its thresholds with
+    ``verify.ambiguity_margin`` (its ``rival``, every turn; timed with the query). ``keep``:
+    the scans' prepared queries and keyframe geometry come back too (``prepared``, ``blobs``),
+    for a caller that registers pairs again."""
     v = v.model_copy(update={"stop_at_first": False})
     seq = open_sequence(path)
     sensor = served_input(enc, seq.sensor)
@@ -120,14 +133,27 @@ def run_town(
             [(blobs[j], float(a), float(np.sqrt(d2[i, j]))) for j, a in zip(top, deg, strict=True)],
             v,
         )
+        rivals = [
+            rival_fitness(prepared[i], blobs[j], float(a), float(yaw_deg(x.relative_pose)), params)
+            if rivals_from is not None
+            and x.fitness is not None
+            and x.fitness >= rivals_from
+            and x.relative_pose is not None
+            and blobs[j] is not None
+            else None
+            for j, a, x in zip(top, deg, verdicts, strict=True)
+        ]
         ms.append((time.perf_counter() - t0) * 1e3)
+        if not keep:  # the query's turned spectra serve its own registrations only
+            prepared[i].spectra.clear()
         pos = set(positives[i].tolist())
         cands = [
             candidate(
                 j, float(np.sqrt(d2[i, j])), int(j) in pos, verdict, seq.poses[j], seq.poses[i]
             )
             | {"seed_deg": float(a)}
-            for j, verdict, a in zip(top, verdicts, deg, strict=True)
+            | ({} if rival is None else {"rival": rival})
+            for j, verdict, a, rival in zip(top, verdicts, deg, rivals, strict=True)
         ]
         queries.append(
             {"query": i, "has_loop": bool(len(pos)), "candidates": cands, "group": path.name}
@@ -148,20 +174,14 @@ def run_town(
 
 
 def ambiguity_margin(
-    results: list[dict[str, Any]],
-    params: Any,
-    gate: dict[str, Any],
-    holds: Callable[..., bool],
-) -> dict[str, Any] | None:
-    """``verify.ambiguity_margin``, after the thresholds and the gate: each candidate that
-    passes them is registered from the other quarter turns (``closure_kit.add_rivals``), and
-    the margin is the largest of 0, 0.02, … 0.6 that costs at most 0.005 of the gate's recall,
-    precision at the target both ways (None: none does). The calibration towns' queries only
-    (``--across`` pairs keep no registration inputs: the margin is not calibrated with them)."""
+    queries: list[dict[str, Any]], gate: dict[str, Any], holds: Callable[..., bool]
+) -> dict[str, Any]:
+    """``verify.ambiguity_margin``, after the thresholds and the gate (each candidate that may
+    pass them carries its rival's fit: ``run_town(rivals_from=)``): the largest of 0, 0.02, …
+    0.6 that costs at most 0.005 of the gate's recall, precision at the target both ways
+    (``chosen``; None: none does), and the ``sweep``. Not with ``--across``: its pairs'
+    candidates are registered without rivals."""
     f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
-    for r in results:
-        add_rivals(r, params, f, rmse, d)
-    queries = [q for r in results for q in r["queries"]]
     sweep = [
         score(queries, f, rmse, d, margin=float(m)) for m in np.round(np.arange(0, 0.61, 0.02), 2)
     ]
@@ -170,7 +190,8 @@ def ambiguity_margin(
         for s in sweep
         if holds(s, d, s["ambiguity_margin"]) and s["recall"] >= gate["recall"] - 0.005
     ]
-    return max(fine, key=lambda s: s["ambiguity_margin"]) if fine else None
+    chosen = max(fine, key=lambda s: s["ambiguity_margin"]) if fine else None
+    return {"chosen": chosen, "sweep": sweep}
 
 
 def main() -> None:
@@ -238,13 +259,12 @@ def main() -> None:
         candidates=args.candidates, min_fitness=0.0, max_rmse_m=1e9, gate_distance=register_within
     )
     rerank = served_rerank(enc.meta, args.rerank)  # its score as the service scores
-    keep = args.calibrate or args.ambiguity_margin is not None  # to register rivals after
-    results = [run_town(enc, t, args.candidates, v, rerank, keep=keep) for t in towns]
-    params = params_of(v)
-    if args.ambiguity_margin is not None:  # the served check: its registrations are timed too
-        for r in results:
-            extra = add_rivals(r, params, args.min_fitness, args.max_rmse, args.gate_distance)
-            r["verify_ms"] = [a + b for a, b in zip(r["verify_ms"], extra, strict=True)]
+    # each candidate that may pass is registered against its rivals too: calibrating, every one
+    # the fitness sweep may accept; measuring, those the served thresholds do, with the margin
+    rivals_from = FITNESS[0] if args.calibrate else None
+    if not args.calibrate and args.ambiguity_margin is not None:
+        rivals_from = args.min_fitness
+    results = [run_town(enc, t, args.candidates, v, rerank, rivals_from=rivals_from) for t in towns]
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
@@ -261,11 +281,7 @@ def main() -> None:
             across, pairs = val_pair_queries(enc, v, rerank)
             report["across"] = {"pairs": pairs, "queries": len(across)}
             queries += across
-        sweep = [
-            score(queries, f, r)
-            for f in np.round(np.arange(0.20, 0.99, 0.02), 2)
-            for r in (0.5, 0.6, 0.7, 1e9)
-        ]
+        sweep = [score(queries, f, r) for f in FITNESS for r in (0.5, 0.6, 0.7, 1e9)]
 
         # highest recall at the target, whichever way the service chooses the closure; among
         # equals the strictest thresholds (a margin)
@@ -338,8 +354,10 @@ def main() -> None:
             console.print(f"descriptor gate: {gate}")
             margin = None
             if gate is not None and not args.across:
-                margin = ambiguity_margin(results, params, gate, holds)
+                margins = ambiguity_margin(queries, gate, holds)
+                margin = margins["chosen"]
                 report["calibration"]["ambiguity"] = margin
+                report["ambiguity_sweep"] = margins["sweep"]
                 console.print(f"ambiguity margin: {margin}")
             if args.write_calibration and gate is not None:
                 values = {

@@ -53,9 +53,16 @@ def verify(path: str = VERIFY, both: bool = True) -> str:
         + (  # verify_threshold.py's grid holds 1e9 m for no bound on the rmse
             "rmse unbounded" if th["max_rmse_m"] >= 1e9 else f"rmse ≤ {th['max_rmse_m']} m"
         )
-        + f", descriptor gate {gate}. A closure is correct when its pose is "
+        + f", descriptor gate {gate}"
+        + (
+            f", ambiguity margin {th['ambiguity_margin']:g}"
+            if th.get("ambiguity_margin") is not None
+            else ""
+        )
+        + ". A closure is correct when its pose is "
         "within 1 m and 2° of the truth; recall counts queries with a loop. Verify p50: a "
-        "query's registrations when every candidate under the gate is registered.\n\n"
+        "query's registrations when every candidate under the gate is registered (with the "
+        "margin, and the three more of each candidate that passes).\n\n"
     )
     out += table(
         [

@@ -195,6 +195,7 @@ def calibration() -> str:
             f"{g['precision']:.3f}",
             f"{g['recall']:.3f} ({g['registered_per_query']:.1f} registered a query)",
         ],
+        *ambiguity_row(vt["calibration"].get("ambiguity")),
         [
             "unverified, re-ranked (F1max)",
             "`loop_closure.max_score`",
@@ -224,6 +225,21 @@ def calibration() -> str:
     if stricter:
         out += "\nStricter descriptor-order points: " + "; ".join(stricter) + ".\n"
     return out
+
+
+def ambiguity_row(m: dict | None) -> list[list[str]]:
+    """``verify.ambiguity_margin``'s row, when the calibration chose one."""
+    if m is None:
+        return []
+    return [
+        [
+            "… refusing the ambiguous",
+            "`verify.ambiguity_margin`",
+            f"{m['ambiguity_margin']}",
+            f"{m['precision']:.3f} ({m['correct']} of {m['accepted']} poses right)",
+            f"{m['recall']:.3f}",
+        ]
+    ]
 
 
 MODEL_TABLES = "reports/model/tables.md"

@@ -151,10 +151,53 @@ def verify_ambiguity() -> str:
     return out + table([*head, *(f"kept at {m:g}" for m in margins)], rows)
 
 
+# each file's verify calibration on its validation towns (benchmarks/verify_threshold.py)
+CALIBRATIONS = {
+    "overlapmamba-hdl64.onnx (default)": "reports/service/verify_threshold.json",
+    "overlapmamba-hdl64-one-pass.onnx": "reports/service/verify_threshold-one-pass.json",
+    "overlapmamba-hdl64-one-view.onnx": "reports/service/verify_threshold-one-view.json",
+    "overlapmamba-hdl64-tokens.onnx": "reports/service/verify_threshold-tokens.json",
+    "overlapmamba-any-sensor.onnx": "reports/service/verify_threshold-any-sensor.json",
+}
+
+
+def ambiguity_margins() -> str:
+    """``verify.ambiguity_margin`` as each file's calibration chose it on its validation
+    towns, after its fitness, rmse and gate: what the margin cost there."""
+    out, rows = "", []
+    for name, rel in CALIBRATIONS.items():
+        r = load(rel)
+        out += source(rel, r["command"], when(r))
+        cal = r["calibration"]
+        g, m = cal["gate"], cal.get("ambiguity")
+        towns = ", ".join(f"`{t['town'].rsplit('/', 1)[-1]}`" for t in r["towns"])
+        rmse = "—" if g["max_rmse_m"] >= 1e9 else f"{g['max_rmse_m']:g}"
+        rows.append(
+            [
+                f"`{name}`",
+                towns,
+                f"{g['min_fitness']:g} / {rmse} / {g['gate_distance']:g}",
+                "not calibrated" if m is None else f"{m['ambiguity_margin']:g}",
+                f"{g['correct']} of {g['accepted']}, {f3(g['recall'])}",
+                "—" if m is None else f"{m['correct']} of {m['accepted']}, {f3(m['recall'])}",
+            ]
+        )
+    head = [
+        "file",
+        "calibrated on",
+        "fitness / rmse / gate",
+        "ambiguity margin",
+        "closures right, recall: without the margin",
+        "with it",
+    ]
+    return out + "\n" + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),
     "sizing-one-pass": sizing_one_pass,
     "verify-ambiguity-one-pass": verify_ambiguity,
+    "ambiguity-margins": ambiguity_margins,
 }

@@ -115,7 +115,7 @@ def test_closure_kit_scores_the_margin_as_the_service_calls_it():
     assert (on["correct"], on["precision"], on["recall"]) == (1, 1.0, 1.0)
     assert on["registered_per_query"] == 2.0 and on["ambiguity_margin"] == 0.3
     del q["candidates"][0]["rival"]
-    with pytest.raises(KeyError, match="add_rivals"):
+    with pytest.raises(KeyError, match="rivals_from"):
         kit.score([q], 0.5, 0.7, margin=0.3)
 
 
@@ -163,3 +163,26 @@ async def test_an_ambiguous_closure_over_http(tmp_path, encoder):
         assert (await c.get("/v1/maps/street/stats")).json()["verification"]["ambiguous"] == 0
         metrics = (await c.get("/metrics")).text
         assert 'overlapmamba_ambiguous_closures_total{map="crossing"} 1.0' in metrics
+
+
+def test_a_file_calibrated_before_the_margin_serves_with_the_check_off(caplog):
+    """A calibration without ``ambiguity_margin`` leaves it at its default, null: the start-up
+    log names its source, and does not warn that another model's threshold serves."""
+    import logging
+
+    from overlapmamba.service.calibration import Threshold, log_thresholds
+
+    used = {
+        "verify.min_fitness": Threshold(0.5, "model", "verify_threshold.py on val"),
+        "verify.ambiguity_margin": Threshold(None, "default"),
+    }
+    with caplog.at_level(logging.INFO, logger="overlapmamba.service"):
+        log_thresholds("om-x", used)
+    assert "verify.ambiguity_margin=None (default)" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    used["verify.gate_distance"] = Threshold(0.29, "default")
+    with caplog.at_level(logging.INFO, logger="overlapmamba.service"):
+        log_thresholds("om-x", used)
+    [warning] = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert "verify.gate_distance" in warning.getMessage()
+    assert "ambiguity_margin" not in warning.getMessage()

@@ -291,28 +291,25 @@ def test_verify_ambiguity_summarises_margins_and_what_each_margin_keeps():
 
 def test_a_real_closure_fits_far_worse_from_the_other_quarter_turns(kitti):
     """A closure between two neighbouring real KITTI scans, registered again from the seed
-    turned by 90°, 180° and 270°: no other turn fits nearly as well (a street is not a
-    crossing that a quarter turn maps onto itself)."""
-    from conftest import benchmark_module
-
+    turned by 90°, 180° and 270° (the service's rival_fitness): no other turn fits nearly as
+    well (a street is not a crossing that a quarter turn maps onto itself)."""
     from overlapmamba.service.settings import VerifySettings
     from overlapmamba.service.verify import (
         keyframe_geometry,
         params_of,
         prepare,
+        rival_fitness,
         verify_candidates,
     )
 
-    amb = benchmark_module("verify_ambiguity")
-    candidate = benchmark_module("closure_kit").candidate
-    v = VerifySettings(gate_distance=None)
+    v = VerifySettings(gate_distance=None, ambiguity_margin=0.2)
     p = params_of(v)
     prepared = [prepare(kitti.points(i).xyz, p) for i in (0, 2)]
     blobs = [keyframe_geometry(q, p) for q in prepared]
+    assert blobs[0] is not None
     verdict = verify_candidates(prepared[1], [(blobs[0], 0.0, 0.1)], v)[0]
-    assert verdict.verified
-    c = candidate(0, 0.1, True, verdict, kitti.poses[0], kitti.poses[2]) | {"seed_deg": 0.0}
-    r = {"queries": [{"query": 1, "candidates": [c]}], "prepared": prepared, "blobs": blobs}
-    [(right, fitness, alt)] = amb.alternatives(r, p, v)
-    assert right and fitness == verdict.fitness
-    assert fitness - alt > 0.2, (fitness, alt)
+    assert verdict.verified and verdict.fitness is not None and verdict.rival_fitness is not None
+    assert verdict.fitness - verdict.rival_fitness > 0.2, verdict
+    assert verdict.relative_pose is not None
+    own = float(yaw_deg(verdict.relative_pose))
+    assert rival_fitness(prepared[1], blobs[0], 0.0, own, p) == verdict.rival_fitness
