@@ -313,7 +313,14 @@ def main() -> None:
         "model_id": enc.model_id,
         "rerank": {"shortlist": rerank.shortlist, "weight": rerank.weight},
         "verify": v.model_dump(
-            include={"candidates", "min_fitness", "max_rmse_m", "gate_distance", "stop_at_first"}
+            include={
+                "candidates",
+                "min_fitness",
+                "max_rmse_m",
+                "gate_distance",
+                "stop_at_first",
+                "ambiguity_margin",
+            }
         ),
         "missing": missing,
         "same_sensor": [d["row"] for d in done.values()],

@@ -27,15 +27,18 @@ together: a fleet whose every sensor pair must be safe.
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
 the pair of highest recall whose precision is at least ``--target`` (0.99) under both ways
 of choosing the closure, then the nearest descriptor gate that costs at most 0.005 of that
-recall (precision at the target both ways too): the service's
-``verify.min_fitness``, ``verify.max_rmse_m`` and ``verify.gate_distance``; with
-``--write-calibration`` they are recorded in the model file, which the service takes them
-from. Without it, the thresholds in force (``--min-fitness``, ``--max-rmse``,
-``--gate-distance``, default the ones the service answers with for ``--model``: its file's
-calibration) are scored on each town given: precision, recall against the answer's Recall@1
-and Recall@5 on the same queries (the candidates in the service's order), pose errors, and
-the time per query. Each town's scans enter the model as its sensor's (its manifest's), as
-the service projects a scan that names its sensor. Prints tables, writes JSON.
+recall (precision at the target both ways too), then the largest ambiguity margin that
+costs at most 0.005 more (each candidate the sweep may accept registered from the other
+quarter turns too: ``overlapmamba.service.verify.rival_fitness``): the service's
+``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance`` and
+``verify.ambiguity_margin``; with ``--write-calibration`` they are recorded in the model
+file, which the service takes them from. Without it, the thresholds in force
+(``--min-fitness``, ``--max-rmse``, ``--gate-distance``, ``--ambiguity-margin``, default
+the ones the service answers with for ``--model``: its file's calibration) are scored on
+each town given: precision, recall against the answer's Recall@1 and Recall@5 on the same
+queries (the candidates in the service's order), pose errors, and the time per query. Each
+town's scans enter the model as its sensor's (its manifest's), as the service projects a
+scan that names its sensor. Prints tables, writes JSON.
 """
 
 from __future__ import annotations

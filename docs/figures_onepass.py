@@ -4,6 +4,7 @@ spectrum (``benchmarks/first_stage.py``): the choice on val, and the test towns.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 from figures_fleet import fleet_views, verify
 from figures_kit import f3, load, source, table, when
@@ -15,6 +16,7 @@ FLEET_ONE_PASS = "reports/client/fleet-one-pass.json"
 SIZING = "reports/deploy/sizing.json"
 SIZING_ONE_PASS = "reports/deploy/sizing-one-pass.json"
 AMBIGUITY = "reports/service/verify-ambiguity-one-pass.json"
+VERIFY_OS0 = "reports/service/verify-os0-128.json"  # the default file on the OS0-128 towns
 SUBSETS = ("all", "same", "reverse")
 
 
@@ -153,7 +155,7 @@ def verify_ambiguity() -> str:
 
 # each file's verify calibration on its validation towns (benchmarks/verify_threshold.py)
 CALIBRATIONS = {
-    "overlapmamba-hdl64.onnx (default)": "reports/service/verify_threshold.json",
+    "overlapmamba-hdl64.onnx": "reports/service/verify_threshold.json",
     "overlapmamba-hdl64-one-pass.onnx": "reports/service/verify_threshold-one-pass.json",
     "overlapmamba-hdl64-one-view.onnx": "reports/service/verify_threshold-one-view.json",
     "overlapmamba-hdl64-tokens.onnx": "reports/service/verify_threshold-tokens.json",
@@ -174,7 +176,7 @@ def ambiguity_margins() -> str:
         rmse = "—" if g["max_rmse_m"] >= 1e9 else f"{g['max_rmse_m']:g}"
         rows.append(
             [
-                f"`{name}`",
+                f"`{name}`" + (" (default)" if rel.endswith("verify_threshold.json") else ""),
                 towns,
                 f"{g['min_fitness']:g} / {rmse} / {g['gate_distance']:g}",
                 "not calibrated" if m is None else f"{m['ambiguity_margin']:g}",
@@ -193,6 +195,31 @@ def ambiguity_margins() -> str:
     return out + "\n" + table(head, rows)
 
 
+SENSORS = "reports/model/sensors.json"  # the default file on every sensor, before the margin
+
+
+def verify_os0_128() -> str:
+    """The default file's verified closures on the OS0-128's test towns with its margin, and
+    the same towns' precision and recall in the sensor table, measured before it."""
+    s = load(SENSORS)
+    before = {Path(row["town"]).name: row["verified"] for row in s["same_sensor"]}
+    rows = []
+    for t in load(VERIFY_OS0)["towns"]:
+        name, v = Path(t["town"]).name, t["verified_stop_at_first"]
+        b = before[name]
+        rows.append(
+            [
+                f"`{name}`",
+                f"{f3(b['precision'])} ({b['correct']} of {b['accepted']}), {f3(b['recall'])}",
+                f"{f3(v['precision'])} ({v['correct']} of {v['accepted']}), {f3(v['recall'])}",
+            ]
+        )
+    out = verify(VERIFY_OS0, both=False) + source(SENSORS, s["command"], when(s))
+    out += "\nPrecision (closures right of accepted) and recall, before and with the margin:\n\n"
+    head = ["town", "before (the sensor table, no margin)", "with the margin"]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
@@ -200,4 +227,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "sizing-one-pass": sizing_one_pass,
     "verify-ambiguity-one-pass": verify_ambiguity,
     "ambiguity-margins": ambiguity_margins,
+    "verify-os0-128": verify_os0_128,
 }

@@ -336,10 +336,10 @@ def rival_fitness(
     """The best fitness of the pair registered again from the seed yaw turned by each of
     :data:`QUARTER_TURNS`, among the poses that turn more than :data:`TURN_APART_DEG` from the
     verified one's yaw ``pose_yaw_deg`` (0.0 when none does); it stops once one reaches
-    ``enough``. A right
-    closure fits its place much better than any turned pose fits it; where a place looks
-    like another a quarter turn away (a crossing seen by a short-range sensor), a wrong
-    closure fits about as well as the turned one (``benchmarks/verify_ambiguity.py``)."""
+    ``enough``. A right closure fits its place much better than any turned pose fits it;
+    where a place looks like another a quarter turn away (a crossing seen by a short-range
+    sensor), a wrong closure fits about as well as the turned one
+    (``benchmarks/verify_ambiguity.py``)."""
     best = 0.0
     for turn in QUARTER_TURNS:
         reg = register(query, geometry, (yaw_deg or 0.0) + turn, p, view)
