@@ -75,7 +75,8 @@ def test_the_shipped_model_carries_the_new_names():
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecatedName)
         meta = Encoder(MODEL).meta
-    assert set(meta.calibration["verify"].values) == {"min_fitness", "max_rmse_m", "gate_distance"}
+    verify = {"min_fitness", "max_rmse_m", "gate_distance", "ambiguity_margin"}
+    assert set(meta.calibration["verify"].values) == verify
 
 
 def test_a_loop_tables_saved_key_stays_and_means_frames():
