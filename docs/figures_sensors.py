@@ -65,9 +65,17 @@ def sensors_table(runs: tuple[tuple[str, str], ...]) -> str:
     towns = [{Path(x["town"]).name: x for x in r["same_sensor"]} for _, _, r in loaded]
     common = [t for t in towns[0] if all(t in other for other in towns[1:])]
     same = all(tw[t]["scan_context"] == towns[0][t]["scan_context"] for tw in towns for t in common)
+    margins = [r.get("verify", {}).get("ambiguity_margin") for *_, r in loaded]
     out += (
         "\nSame sensor, F1max / Recall@1 (all revisits); verified precision / recall at each "
-        "file's own thresholds. Scan Context "
+        "file's own thresholds ("
+        + "; ".join(
+            f"{label}: ambiguity margin {m:g}"
+            if m is not None
+            else f"{label}: without an ambiguity margin (measured before the check)"
+            for (label, *_), m in zip(loaded, margins, strict=True)
+        )
+        + "). Scan Context "
         + (
             "scored the same in every run on every town: the same drives."
             if same
