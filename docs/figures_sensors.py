@@ -183,8 +183,19 @@ def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACR
         f"\nTest (the sensor test town), every {r['every']}nd query of each second drive "
         f"against each first drive's keyframes; the file's thresholds (fitness ≥ "
         f"{v['min_fitness']:g}, rmse ≤ {v['max_rmse_m']:g} m, descriptor gate "
-        f"{v['gate_distance']}); a closure is right within 1 m and 2°; precision / recall"
+        f"{v['gate_distance']}"
+        + (
+            f", ambiguity margin {v['ambiguity_margin']:g}"
+            if v.get("ambiguity_margin") is not None
+            else ""
+        )
+        + "); a closure is right within 1 m and 2°; precision / recall"
         + (", then the same scored over all the query's points" if plain else "")
+        + (
+            " (measured before the ambiguity margin)"
+            if plain and plain["verify"].get("ambiguity_margin") != v.get("ambiguity_margin")
+            else ""
+        )
         + ":\n\n"
     )
     cells = {(p["queries_sensor"], p["map_sensor"]): p["verified"] for p in r["test"]["pairs"]}
