@@ -427,7 +427,13 @@ def e2e() -> str:
     rows = [_load_row("reports/e2e/load.json", "load (`tests/test_e2e_load.py`)")]
     for twin in sorted((ROOT / "reports" / "e2e").glob("load-*.json")):
         stem = twin.stem.removeprefix("load-")
+        # a run with the ambiguity margin set by a variable: load[-MODEL]-margin-VALUE
+        if stem.startswith("margin-"):  # the default file's
+            stem = "overlapmamba-hdl64-" + stem
+        stem, _, margin = stem.partition("-margin-")
         label = f"load, `OVERLAPMAMBA_E2E_MODEL=models/{stem}.onnx`"
+        if margin:
+            label += f", `OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN={margin}`"
         rows.append(_load_row(f"reports/e2e/{twin.name}", label))
     crash = load("reports/e2e/crash.json")
     rows.append(

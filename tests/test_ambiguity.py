@@ -81,11 +81,20 @@ def test_an_ambiguous_candidate_does_not_stop_the_later_ones_from_registering():
     assert second.fitness is not None and "ambiguous" in (second.reason or "")
 
 
-def test_a_margin_is_validated_like_every_setting():
+def test_a_margin_is_validated_like_every_setting(monkeypatch):
     with pytest.raises(ValueError, match="ambiguity_margin"):
         VerifySettings(ambiguity_margin=1.5)
     with pytest.raises(ValueError, match="ambiguity_margin"):
         VerifySettings(ambiguity_margin=-0.1)
+    with pytest.raises(ValueError, match="ambiguity_margin"):
+        VerifySettings(ambiguity_margin="sometimes")
+    # "off" where null cannot be written (TOML, a variable): set, and off
+    assert VerifySettings(ambiguity_margin="off").ambiguity_margin is None
+    monkeypatch.setenv("OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN", "off")
+    v = Settings().verify
+    assert v.ambiguity_margin is None and "ambiguity_margin" in v.model_fields_set
+    monkeypatch.setenv("OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN", "0.25")
+    assert Settings().verify.ambiguity_margin == 0.25
 
 
 def test_closure_kit_scores_the_margin_as_the_service_calls_it():

@@ -48,11 +48,17 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     if not model.is_file():
         pytest.fail(f"OVERLAPMAMBA_E2E_MODEL={model} is not a file")
     name = "load" if model.resolve() == MODEL.resolve() else f"load-{model.stem}"
+    # the served check's cost, measured beside the file's own margin: e.g. "off"
+    margin = os.environ.get("OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN")
+    if margin:
+        name += f"-margin-{margin}"
     with (
         server(tmp_path / "data", env, model) as (url, _),
         httpx.Client(base_url=url, timeout=60) as c,
     ):
-        model_id = c.get("/readyz").json()["detail"]["model_id"]
+        ready = c.get("/readyz").json()["detail"]
+        model_id = ready["model_id"]
+        served_margin = ready["thresholds"]["verify.ambiguity_margin"]
         assert c.put("/v1/maps/built").status_code == 201
         resident_ready = resident_mb(c)
         dim = read_model_metadata(model).descriptor_dim  # e.g. 768 for a first stage's
@@ -88,8 +94,10 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     body = {
         "command": "make e2e (tests/test_e2e_load.py)"
         if name == "load"
-        else f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={model} "
+        else (f"OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN={margin} " if margin else "")
+        + f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={model} "
         "python -m pytest -m e2e tests/test_e2e_load.py",
+        "verify_ambiguity_margin": served_margin,  # value and source, as /readyz says
         "model": report.server,  # the service's model id, views and scan path (its /readyz)
         "drive": drive.name,
         "robots": robots,

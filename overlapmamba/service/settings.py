@@ -288,9 +288,19 @@ class VerifySettings(_RenamedSection):
         description="a candidate that verifies is registered again from its seed yaw turned "
         "by 90°, 180° and 270°; if a pose more than 20° from its own fits within this much "
         "of its fitness, it is refused as ambiguous (a place that looks like another turned "
-        "by a quarter: a crossing). null: not checked (a model file calibrated without it)",
+        "by a quarter: a crossing). null or \"off\": not checked (a model file calibrated "
+        "without it, or an operator who spends no more registrations on it)",
     )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
+
+    @field_validator("ambiguity_margin", mode="before")
+    @classmethod
+    def _margin_off(cls, value: Any) -> Any:
+        """``"off"`` (or ``"null"``, ``"none"``): the check off, where null cannot be written
+        (TOML, an ``OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN`` variable)."""
+        if isinstance(value, str) and value.strip().lower() in ("off", "null", "none"):
+            return None
+        return value
     voxel_m: float = Field(
         2.0,
         ge=0.5,
