@@ -62,7 +62,7 @@ def closure(
     """One query's closure as the service calls it at these thresholds (see :func:`score`):
     the accepted candidate or None, and how many candidates were registered. ``margin``
     (``verify.ambiguity_margin``): a passing candidate must also fit at least this much
-    better than its rival (``add_rivals`` recorded it)."""
+    better than its rival (its recorded ``rival``)."""
     gated = [c for c in q["candidates"] if gate_distance is None or c["distance"] <= gate_distance]
     ok = [
         c
