@@ -90,16 +90,13 @@ def run_town(
     v: VerifySettings,
     rerank: Rerank,
     batch: int = 8,
-    keep: bool = False,
     rivals_from: float | None = None,
 ) -> dict[str, Any]:
     """Every query's candidates: rank, correctness, fitness, rmse, pose errors. Each is
     registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them.
     ``rivals_from``: each candidate whose fitness reaches it is registered again from the other
     quarter turns too, as the service does one that passes its thresholds with
-    ``verify.ambiguity_margin`` (its ``rival``, every turn; timed with the query). ``keep``:
-    the scans' prepared queries and keyframe geometry come back too (``prepared``, ``blobs``),
-    for a caller that registers pairs again."""
+    ``verify.ambiguity_margin`` (its ``rival``, every turn; timed with the query)."""
     v = v.model_copy(update={"stop_at_first": False})
     seq = open_sequence(path)
     sensor = served_input(enc, seq.sensor)
@@ -147,8 +144,7 @@ def run_town(
             for j, a, x in zip(top, deg, verdicts, strict=True)
         ]
         ms.append((time.perf_counter() - t0) * 1e3)
-        if not keep:  # the query's turned spectra serve its own registrations only
-            prepared[i].spectra.clear()
+        prepared[i].spectra.clear()  # the query's turned spectra serve its own registrations
         pos = set(positives[i].tolist())
         cands = [
             candidate(
@@ -172,7 +168,6 @@ def run_town(
         "queries": queries,
         "verify_ms": ms,
         "geometry_bytes": [len(b) for b in blobs if b is not None],
-        **({"prepared": prepared, "blobs": blobs} if keep else {}),
     }
 
 

@@ -189,7 +189,7 @@ class Stats:
         verified = sum(v.verified is True for v in verdicts)
         rejected = sum(v.verified is False for v in verdicts)
         registered = sum(v.fitness is not None for v in verdicts)
-        ambiguous = sum(v.verified is False and v.rival_fitness is not None for v in verdicts)
+        ambiguous = sum(v.ambiguous for v in verdicts)
         if verified:
             self.p_verify.labels(map_id, "verified").inc(verified)
         if rejected:

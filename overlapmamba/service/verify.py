@@ -286,6 +286,12 @@ class Verdict:
     relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query, when registration ran
     rival_fitness: float | None = None  # the best other turn's fit (verify.ambiguity_margin)
 
+    @property
+    def ambiguous(self) -> bool:
+        """Refused because a turned pose fits nearly as well (:func:`unambiguous`): the only
+        refusal that checked a rival."""
+        return self.verified is False and self.rival_fitness is not None
+
     def public(self) -> dict[str, object]:
         return {
             "verified": self.verified,
