@@ -1,14 +1,19 @@
 """Geometric verification on real scans: pose accuracy, separation and cost of
-:mod:`overlapmamba.service.verify` (small_gicp GICP against a keyframe's compact geometry).
+:mod:`overlapmamba.service.registration` (small_gicp GICP against a keyframe's compact
+geometry).
 
 Protocol: KITTI 00 frames 0–100 from ../shared/data. Each odd frame is turned
 in place by a random yaw and registered against the nearest even frame, as a keyframe
-stored by the service (``overlapmamba.service.verify.keyframe_geometry``: the scan's registration
-grid). The seed is the relative yaw the shipped model's yaw features give
+stored by the service (``overlapmamba.service.registration.keyframe_geometry``: the scan's
+registration grid). The seed is the relative yaw the shipped model's yaw features give
 (``estimate_yaw``), as the service would use it. Ground truth: T_even←odd from the poses
 file, times the turn. Reports the translation and yaw errors, fitness and rmse, and the
 same against a frame at least 30 m away (what a wrong candidate looks like), the time to
-prepare a query and to register one candidate, and the bytes of geometry per keyframe.
+prepare a query and to register one candidate, and the bytes of geometry per keyframe. And
+what ``verify.ambiguity_margin`` (the ``--model`` file's) adds to each such true closure, as
+the service runs it (``overlapmamba.service.verify.rival_fitness``, a turn registered only
+where its seed could rival) and with every turn registered: the time of each, the turns
+registered, and whether the two decide alike.
 
 Then the cost in the service (``--no-http`` skips it): a real ``overlapmamba serve`` (the
 defaults, but every candidate registered: ``verify.stop_at_first = false``, since the bar is
@@ -27,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_kit import served_settings
 from reports_kit import REPORTS, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
@@ -36,7 +42,14 @@ from overlapmamba.core.points import PointCloud
 from overlapmamba.core.poses import pose_error, rotation_z, translations, yaw_deg
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.verify import RegistrationParams, keyframe_geometry, prepare, register
+from overlapmamba.service.registration import (
+    RegistrationParams,
+    keyframe_geometry,
+    prepare,
+    register,
+)
+from overlapmamba.service.verify import rival_fitness
+from overlapmamba.service.verify import turned as turned_registrations
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI = ROOT.parent / "shared" / "data" / "kitti00_0000-0100"
@@ -90,8 +103,13 @@ def main() -> None:
             "wrong_fitness",
             "wrong_rmse",
             "seed_yaw_err",
+            "check_screened_ms",
+            "check_every_turn_ms",
+            "check_turns_registered",
         )
     }
+    margin = served_settings(enc.meta).verify.ambiguity_margin
+    differ = 0  # closures the screened check and the every-turn one decide differently
     for i in range(1, n, 2):
         turn = float(rng.uniform(-180, 180))
         R = rotation_z(turn)
@@ -119,6 +137,16 @@ def main() -> None:
         rows["fitness"].append(float(r.fitness or 0.0))
         rows["rmse"].append(float(r.rmse or np.nan))
         rows["iterations"].append(r.iterations)
+        if margin is not None and r.fitness is not None:  # the check, as the service runs it
+            own, enough = float(yaw_deg(r.relative_pose)), r.fitness - margin + 1e-9
+            timed = {}
+            for name, screen in (("screened", enough), ("every_turn", None)):
+                t0 = time.perf_counter()
+                timed[name] = rival_fitness(q, blob, seed, own, p, None, enough, screen)
+                rows[f"check_{name}_ms"].append((time.perf_counter() - t0) * 1e3)
+            differ += (timed["screened"] >= enough) != (timed["every_turn"] >= enough)
+            regs = turned_registrations(q, blob, seed, p, screen=enough)
+            rows["check_turns_registered"].append(sum(x.iterations > 0 for x in regs))
         if len(far):
             k = int(rng.choice(far))
             wrong = blobs[k]
@@ -133,6 +161,8 @@ def main() -> None:
         "model": {"path": shown_path(args.model), "model_id": enc.model_id, "views": enc.views},
         "params": p.__dict__,
         "geometry_bytes": _stats(sizes),
+        "ambiguity_margin": margin,
+        "check_decisions_differ": differ,
         **{k: _stats(v) for k, v in rows.items() if v},
     }
     write_report(args.json, record, default=float)

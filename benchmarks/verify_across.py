@@ -48,14 +48,10 @@ from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.yaw import estimate_yaw
 from overlapmamba.service.encoder import Encoder
+from overlapmamba.service.registration import keyframe_geometry, prepare
+from overlapmamba.service.sensors import FieldOfView
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import (
-    FieldOfView,
-    keyframe_geometry,
-    params_of,
-    prepare,
-    verify_candidates,
-)
+from overlapmamba.service.verify import params_of, verify_candidates
 from overlapmamba.synth.generate import read_manifest
 from overlapmamba.train.sessions import check_sessions, ground_truth
 

@@ -13,11 +13,18 @@ pose turns more than ``TURN_APART_DEG`` from the accepted one (the service's
 closures (pose within 1 m and 2°) and wrong ones. The service refuses a closure whose margin
 is below ``verify.ambiguity_margin``; its cost in right closures is the table's ``kept`` column.
 
+It also checks the screen the service's check relies on (:func:`screen`): each turn of
+every candidate that passes the served fitness is registered in full, and counted when it
+ends with a fitness above the share of its points that were within GICP's reach at its
+seed pose (the service does not register a turn whose share is below the fit that would
+refuse); and how many turns the screen registers at the file's margin.
+
 Nothing is chosen here: ``verify_threshold.py --calibrate`` chooses the margin on validation
 towns; the test towns are reported beside them to show the failure it addresses.
 
     python benchmarks/verify_ambiguity.py --model models/overlapmamba-hdl64-one-pass.onnx \\
-        --town data/synth/val --town data/synth/test-os0-128 \\
+        --town data/synth/val --town data/synth/val-os0-128 --town data/synth/val-vlp16 \\
+        --town data/synth/val-xt32 --town data/synth/test-os0-128 \\
         --out reports/service/verify-ambiguity-one-pass.json
 
 ≈ 3 min a 2,000-scan town on 2 cores (three more registrations for each accepted closure).
@@ -88,6 +95,40 @@ def alternatives(r: dict[str, Any], v: Any) -> list[tuple[bool, float, float]]:
     return out
 
 
+def screen(r: dict[str, Any], margin: float | None) -> dict[str, Any]:
+    """How the service's screen (``overlapmamba.service.verify.rival_fitness``) fares on one
+    town's turned registrations: every candidate that passed the served fitness carries each
+    turn registered in full, with the share of its points within GICP's reach at the seed
+    (``turns``: reach, fitness, whether it counts as a rival). ``above_reach``: turns that
+    ended with a fitness above that share (what the screen assumes does not happen);
+    ``registered``: turns the screen registers at ``margin`` (a seed within reach of the fit
+    that would refuse); ``changed``: candidates whose check the screen decides otherwise
+    than registering every turn would (a turn left out that would have refused)."""
+    turns, changed = [], 0
+    for q in r["queries"]:
+        for c in q["candidates"]:
+            if "turns" not in c:
+                continue
+            turns += [(c["fitness"], reach, fit) for reach, fit, _ in c["turns"]]
+            if margin is not None:
+                need = c["fitness"] - margin
+                counted = [(reach, fit) for reach, fit, counts in c["turns"] if counts]
+                every = any(fit >= need for _, fit in counted)
+                screened = any(min(fit, reach) >= need for reach, fit in counted)
+                changed += every != screened
+    a = np.array(turns, dtype=np.float64).reshape(-1, 3)
+    excess = a[:, 2] - a[:, 1]
+    return {
+        "turns": len(a),
+        "above_reach": int((excess > 0).sum()),
+        "largest_excess": float(excess.max()) if len(a) else None,
+        "registered": None if margin is None else int((a[:, 1] >= a[:, 0] - margin).sum()),
+        "checked": sum("turns" in c for q in r["queries"] for c in q["candidates"]),
+        "changed": None if margin is None else changed,
+        "margin": margin,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
@@ -101,7 +142,7 @@ def main() -> None:
     towns = {}
     for town in args.town:
         r = run_town(enc, town, v.candidates, record, rerank, rivals_from=v.min_fitness)
-        towns[town.name] = summary(alternatives(r, v))
+        towns[town.name] = summary(alternatives(r, v)) | {"screen": screen(r, v.ambiguity_margin)}
     report = {
         **model_record(args.model, enc),
         "verify": v.model_dump(),
@@ -111,7 +152,8 @@ def main() -> None:
     }
     write_report(args.out, report)
     table = Table(title=f"ambiguity of accepted closures ({enc.model_id})")
-    for col in ("town", "accepted", "wrong", "margin right p1 / p5", "margin wrong p50"):
+    cols = ("town", "accepted", "wrong", "margin right p1 / p5", "margin wrong p50")
+    for col in (*cols, "turns above reach", "turns the screen registers", "checks changed"):
         table.add_column(col, justify="right")
     for t in MARGINS:
         table.add_column(f"≥ {t:g} keeps right / wrong", justify="right")
@@ -123,6 +165,9 @@ def main() -> None:
             str(s["wrong"]),
             f"{mr.get('p1', float('nan')):.3f} / {mr.get('p5', float('nan')):.3f}",
             f"{mw['p50']:.3f}" if mw else "—",
+            f"{s['screen']['above_reach']} of {s['screen']['turns']}",
+            f"{s['screen']['registered']} of {s['screen']['turns']}",
+            f"{s['screen']['changed']} of {s['screen']['checked']}",
             *(f"{k['right']} / {k['wrong']}" for k in s["kept"]),
         )
     Console(width=200).print(table)

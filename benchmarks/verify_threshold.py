@@ -54,7 +54,6 @@ import numpy as np
 from bench_kit import (
     ROOT,
     provenance,
-    served_input,
     served_rerank,
     served_settings,
     write_calibration,
@@ -63,22 +62,17 @@ from closure_kit import candidate, descriptor_recall, score
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
+from town_kit import encode_town
 from tqdm import tqdm
 
-from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import yaw_deg
-from overlapmamba.core.rerank import Rerank, by_score, score_d2
-from overlapmamba.core.yaw import estimate_yaw
+from overlapmamba.core.rerank import Rerank
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import (
-    keyframe_geometry,
-    params_of,
-    prepare,
-    rival_fitness,
-    verify_candidates,
+from overlapmamba.service.registration import (
+    Registration,
 )
+from overlapmamba.service.settings import VerifySettings
+from overlapmamba.service.verify import params_of, rival_of, turned, verify_candidates
 
 FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
 
@@ -96,37 +90,16 @@ def run_town(
     registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them.
     ``rivals_from``: each candidate whose fitness reaches it is registered again from the other
     quarter turns too, as the service does one that passes its thresholds with
-    ``verify.ambiguity_margin`` (its ``rival``, every turn; timed with the query)."""
+    ``verify.ambiguity_margin`` (:func:`rivals_of`: its ``rival`` and ``turns``; every turn,
+    where the service screens those that cannot rival; timed with the query)."""
     v = v.model_copy(update={"stop_at_first": False})
-    seq = open_sequence(path)
-    sensor = served_input(enc, seq.sensor)
-    gt = LoopGroundTruth.load(path / "ground_truth" / "loops.npz")
-    positives = gt.positives()
-    recent = int(gt.params.get("exclude_recent", 100))
-    n = len(seq)
-    descs, yaws, blobs, prepared = [], [], [], []
-    params = params_of(v)
-    for start in tqdm(range(0, n, batch), desc=f"encode {path.name}", unit="batch"):
-        pts = [seq.points(i) for i in range(start, min(n, start + batch))]
-        d, y = enc.describe(pts, sensor, batch=len(pts))  # as the service answers
-        descs.append(d)
-        yaws.append(np.asarray(y, dtype=np.float16))  # as the store keeps them
-        # as the service does: one registration grid per scan, the keyframe keeps it
-        prepared += [prepare(p.xyz, params) for p in pts]
-        blobs += [keyframe_geometry(q, params) for q in prepared[-len(pts) :]]
-    desc = np.concatenate(descs)
-    yaw = np.concatenate(yaws)
-    d2 = np.maximum(2.0 - 2.0 * desc @ desc.T, 0.0)
-    s2 = score_d2(rerank, desc, desc, d2)
+    t = encode_town(enc, path, params_of(v), rerank, batch)
+    seq, prepared, blobs, d2, params = t.seq, t.prepared, t.blobs, t.d2, params_of(v)
+    positives = t.truth.positives()
     queries = []
     ms = []
-    for i in tqdm(range(recent + 1, n), desc=f"verify {path.name}", unit="query"):
-        top = np.argsort(d2[i, : i - recent], kind="stable")[: max(k, rerank.shortlist)]
-        deg, conf = estimate_yaw(yaw[i].astype(np.float32), yaw[top].astype(np.float32))
-        if rerank.on:  # as overlapmamba.service.ranking orders the answer
-            order, _ = by_score(s2[i, top], conf, rerank.weight)
-            top, deg = top[order], deg[order]
-        top, deg = top[:k], deg[:k]
+    for i in tqdm(range(t.recent + 1, len(seq)), desc=f"verify {path.name}", unit="query"):
+        top, deg = t.order(i, k)
         t0 = time.perf_counter()
         verdicts = verify_candidates(
             prepared[i],
@@ -134,7 +107,7 @@ def run_town(
             v,
         )
         rivals = [
-            rival_fitness(prepared[i], blobs[j], float(a), float(yaw_deg(x.relative_pose)), params)
+            rivals_of(list(turned(prepared[i], blobs[j], float(a), params, screen=0.0)), x)
             if rivals_from is not None
             and x.fitness is not None
             and x.fitness >= rivals_from
@@ -151,7 +124,7 @@ def run_town(
                 j, float(np.sqrt(d2[i, j])), int(j) in pos, verdict, seq.poses[j], seq.poses[i]
             )
             | {"seed_deg": float(a)}
-            | ({} if rival is None else {"rival": rival})
+            | ({} if rival is None else rival)
             for j, verdict, a, rival in zip(top, verdicts, deg, rivals, strict=True)
         ]
         queries.append(
@@ -159,16 +132,30 @@ def run_town(
         )
     return {
         "town": str(path),
-        "descriptors": desc,  # (N, D): the loop-closure metrics of the same answers
-        "yaw_features": yaw,  # (N, C, W) float16, as the store keeps them
-        "sensor": sensor.sensor.name,
-        "input": sensor.kind,
-        "frames": n,
-        "exclude_recent": recent,
+        "descriptors": t.desc,  # (N, D): the loop-closure metrics of the same answers
+        "yaw_features": t.yaw,  # (N, C, W) float16, as the store keeps them
+        "sensor": t.sensor.sensor.name,
+        "input": t.sensor.kind,
+        "frames": len(seq),
+        "exclude_recent": t.recent,
         "queries": queries,
         "verify_ms": ms,
         "geometry_bytes": [len(b) for b in blobs if b is not None],
     }
+
+
+def rivals_of(regs: list[Registration], verdict: Any) -> dict[str, Any]:
+    """A candidate's rival as ``closure_kit`` scores it: every turn registered (``screen``
+    0), so the best rival (``rival_of``) decides at any margin as the service's screened
+    check does; and each turn's ``reach``, fitness and whether it counts as a rival
+    (``verify_ambiguity.py`` counts the turns that ended with a fitness above their reach,
+    and the decisions registering every turn would change)."""
+    own = float(yaw_deg(verdict.relative_pose))
+    fits = [f for f in (rival_of(r, own) for r in regs) if f is not None]
+    turns = [
+        (r.reach, r.fitness, rival_of(r, own) is not None) for r in regs if r.fitness is not None
+    ]
+    return {"rival": max(fits, default=0.0), "turns": turns}
 
 
 def ambiguity_margin(

@@ -144,6 +144,19 @@ def registration() -> str:
             ms(r["register_ms"]["p90"]),
             ms(r["register_ms"]["max"]),
         ],
+        *(
+            [
+                label,
+                ms(r[key]["median"]),
+                ms(r[key]["p90"]),
+                ms(r[key]["max"]),
+            ]
+            for key, label in (
+                ("check_screened_ms", "ambiguity check, as served"),
+                ("check_every_turn_ms", "ambiguity check, every turn registered"),
+            )
+            if key in r
+        ),
         [
             "geometry a keyframe",
             f"{r['geometry_bytes']['median'] / 1e3:.1f} KB",
@@ -160,6 +173,15 @@ def registration() -> str:
         else ""
     )
     out += f"\n{r['scans']}.{served}\n\n" + table(["", "median", "p90", "max"], rows)
+    if "check_turns_registered" in r:
+        turns = r["check_turns_registered"]
+        out += (
+            f"\nThe ambiguity check (`verify.ambiguity_margin` {r['ambiguity_margin']:g}) on each "
+            "of these true closures: as served, a turn is registered only where its seed could "
+            f"rival; it registered {turns['median']:g} of the 3 turns at the median "
+            f"({turns['max']:g} at most), and decided differently from registering every "
+            f"turn on {r['check_decisions_differ']} closures.\n"
+        )
     out += (
         f"\nOver HTTP ({h['queries']} queries, up to {h['candidates']} candidates registered, "
         f"{h.get('registered_per_query', h['candidates']):.1f} a query): a "

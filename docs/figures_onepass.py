@@ -150,7 +150,30 @@ def verify_ambiguity() -> str:
                 *(f"{k['right']} / {k['wrong']}" for k in t["kept"]),
             ]
         )
-    return out + table([*head, *(f"kept at {m:g}" for m in margins)], rows)
+    out += table([*head, *(f"kept at {m:g}" for m in margins)], rows)
+    screens = {n: t["screen"] for n, t in r["towns"].items() if "screen" in t}
+    if not screens:
+        return out
+    m = next(iter(screens.values()))["margin"]
+    out += (
+        "\nThe screen (every candidate that passes the fitness threshold, each turn registered "
+        "in full): turns that ended with a fitness above the share of their points within "
+        "GICP's reach at their seed, the largest such excess (negative: none did), and the "
+        f"turns the served check registers at the file's margin {m:g} (a seed within reach "
+        "of the fit that would refuse; the others cost a nearest-neighbour search):\n\n"
+    )
+    rows = [
+        [
+            f"`{name}`",
+            str(t["turns"]),
+            str(t["above_reach"]),
+            f3(t["largest_excess"]) if t["largest_excess"] is not None else "—",
+            f"{t['registered']} ({t['registered'] / max(t['turns'], 1):.0%})",
+        ]
+        for name, t in screens.items()
+    ]
+    head = ["town", "turns", "above their reach", "largest excess", "registered as served"]
+    return out + table(head, rows)
 
 
 # each file's verify calibration on its validation towns (benchmarks/verify_threshold.py)
@@ -220,7 +243,47 @@ def verify_os0_128() -> str:
     return out + table(head, rows)
 
 
+COSTS = ("reports/service/ambiguity-cost.json", "reports/service/ambiguity-cost-one-pass.json")
+WAYS = {
+    "off": "no check",
+    "served": "the check as served",
+    "every_turn": "the check, every turn registered",
+}
+
+
+def ambiguity_cost() -> str:
+    """The verify stage a query without the ambiguity check, with it as served (a turn
+    registered only where its seed could rival) and registering every turn
+    (``benchmarks/ambiguity_cost.py``)."""
+    out, rows = "", []
+    for path in COSTS:
+        r = load(path)
+        out += source(path, r["command"], when(r))
+        for t in r["towns"]:
+            for way, x in t["ways"].items():
+                rows.append(
+                    [
+                        f"`{r['model_id']}` (margin {r['verify']['ambiguity_margin']:g})",
+                        f"`{t['town']}`",
+                        WAYS[way],
+                        f"{x['ms_mean']:.2f} / {x['ms_p50']:.2f} / {x['ms_p90']:.2f} ms",
+                        f"{x['gicp_per_query']:.2f}",
+                        str(x["accepted"]),
+                        f"{t['decided_differently']} of {t['queries']}" if way == "served" else "",
+                    ]
+                )
+    out += (
+        "\nThe verify stage a query (every 2nd query of the town, its candidates in the "
+        "service's order, the file's own settings; one thread, in-process), the three ways on "
+        "the same queries in turn; GICP runs a query; closures accepted; and the queries "
+        "the served check decided otherwise than registering every turn:\n\n"
+    )
+    head = ["file", "town", "way", "mean / p50 / p90", "GICP a query", "accepted", "differ"]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
+    "ambiguity-cost": ambiguity_cost,
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),

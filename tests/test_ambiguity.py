@@ -8,15 +8,10 @@ import numpy as np
 import pytest
 from service_kit import OCTET, running
 
+from overlapmamba.service.registration import keyframe_geometry, prepare
 from overlapmamba.service.settings import Settings, VerifySettings
 from overlapmamba.service.stats import Stats
-from overlapmamba.service.verify import (
-    Verdict,
-    keyframe_geometry,
-    params_of,
-    prepare,
-    verify_candidates,
-)
+from overlapmamba.service.verify import Verdict, params_of, verify_candidates
 
 # four blocks at the corners of a crossing: the same place turned by any quarter
 CROSSING = [(6, 30, 6, 30), (-30, -6, 6, 30), (-30, -6, -30, -6), (6, 30, -30, -6)]
@@ -79,6 +74,59 @@ def test_an_ambiguous_candidate_does_not_stop_the_later_ones_from_registering():
     first, second = verdicts(CROSSING, 0.3, n=2)
     assert first.verified is False and second.verified is False
     assert second.fitness is not None and "ambiguous" in (second.reason or "")
+
+
+def test_a_turn_whose_seed_cannot_rival_is_not_registered(monkeypatch):
+    """register's screen: below it the seed pose is the answer, GICP never runs; at or above it
+    the registration is the unscreened one. The service screens its rivals at the fit that
+    would refuse: the street's turns cost no registration, and the verdict is the one every
+    turn registered gives, at each margin (crossing and street)."""
+    import overlapmamba.service.registration as registration
+    from overlapmamba.core.poses import yaw_deg
+    from overlapmamba.service.verify import rival_fitness, unambiguous
+
+    v = VerifySettings(gate_distance=None)
+    p = params_of(v)
+    pts = scene(STREET)[:, :3]
+    q = prepare(pts, p)
+    blob = keyframe_geometry(q, p)
+    assert blob is not None
+    seed = registration.register(q, blob, 93.0, p, screen=1.01)
+    assert seed.iterations == 0 and seed.reach is not None and seed.reach < 1.01
+    assert seed.relative_pose is not None and seed.fitness is not None
+    assert abs(float(yaw_deg(seed.relative_pose)) - -93.0) < 1e-6  # the seed's rotation
+    assert seed.fitness <= seed.reach  # within 1 m is within GICP's 2 m reach
+    plain, screened = (
+        registration.register(q, blob, 3.0, p),
+        registration.register(q, blob, 3.0, p, screen=0.0),
+    )
+    assert screened.iterations == plain.iterations > 0 and screened.fitness == plain.fitness
+    assert plain.reach is None and screened.reach is not None
+
+    calls = []
+    align = registration.small_gicp.align
+    monkeypatch.setattr(
+        registration.small_gicp, "align", lambda *a, **k: calls.append(1) or align(*a, **k)
+    )
+    for blocks in (CROSSING, STREET):
+        q = prepare(scene(blocks)[:, :3], p)
+        blob = keyframe_geometry(q, p)
+        assert blob is not None
+        for margin in (0.1, 0.3, 0.5):
+            calls.clear()
+            [served] = verdicts(blocks, margin)
+            assert served.verified is not None and served.fitness is not None
+            assert served.relative_pose is not None
+            if blocks is STREET:  # the verifying registration, no turn
+                assert len(calls) == 1, (margin, len(calls))
+                calls.clear()  # unscreened (benchmarks/ambiguity_cost.py): every turn
+                v = VerifySettings(gate_distance=None, ambiguity_margin=margin)
+                assert verify_candidates(q, [(blob, 3.0, 0.1)], v, screen=False)[0].verified
+                assert len(calls) == 4, (margin, len(calls))
+            own = float(yaw_deg(served.relative_pose))
+            every = rival_fitness(q, blob, 3.0, own, p, screen=0.0)
+            judged = verdicts(blocks, None)[0]
+            assert unambiguous(judged, every, margin).verified == served.verified, margin
 
 
 def test_a_margin_is_validated_like_every_setting(monkeypatch):

@@ -90,7 +90,7 @@ def test_a_turned_real_scan_registers_to_its_neighbour_with_its_true_pose(kitti)
     give it) 3° off: the pose comes back within 20 cm and 0.3° of the poses file (issue 22's
     bar for the median), with most grid points matched; against a frame ~60 m away the fit
     is poor."""
-    from overlapmamba.service.verify import RegistrationParams, prepare, register
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     turn = rotation_z(130.0)
@@ -114,7 +114,8 @@ def test_a_keyframe_by_a_narrower_sensor_is_scored_within_its_field_of_view(kitt
     so fitness over all its points falls though the pose is right. Scored within the
     keyframe sensor's field of view (what the service does when the two sensors differ),
     the same pose scores higher, and a wrong keyframe stays far below it."""
-    from overlapmamba.service.verify import FieldOfView, RegistrationParams, prepare, register
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
+    from overlapmamba.service.sensors import FieldOfView
 
     def seen_by_narrow(xyz: np.ndarray) -> np.ndarray:
         el = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
@@ -143,8 +144,8 @@ def test_a_keyframe_by_a_narrower_sensor_is_scored_within_its_field_of_view(kitt
 def test_a_revisit_metres_away_registers_through_the_translation_seed(kitti):
     """KITTI 00 frame 30 against frame 0's geometry, ≈ 12 m apart along the road: GICP
     from a zero translation stays in the wrong place; the bird's-eye seed brings it home."""
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
     from overlapmamba.service.seed import bev_spectrum, seed_translation
-    from overlapmamba.service.verify import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     truth = np.linalg.inv(kitti.poses[0]) @ kitti.poses[30]
@@ -176,7 +177,7 @@ def test_gicp_moves_a_thinned_query_and_steepness_comes_from_the_normals(kitti):
     on the normals is the one on small_gicp's regularised covariances (z share ≥ 1/5)."""
     import small_gicp
 
-    from overlapmamba.service.verify import RegistrationParams, prepare, structure
+    from overlapmamba.service.registration import RegistrationParams, prepare, structure
 
     p = RegistrationParams()
     q = prepare(kitti.points(11).xyz, p)
@@ -195,8 +196,9 @@ def test_gicp_moves_a_thinned_query_and_steepness_comes_from_the_normals(kitti):
 
 
 def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
+    from overlapmamba.service.registration import keyframe_geometry, prepare
     from overlapmamba.service.settings import VerifySettings
-    from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+    from overlapmamba.service.verify import params_of, verify_candidates
 
     v = VerifySettings(gate_distance=0.3)
     p = params_of(v)
@@ -211,8 +213,9 @@ def test_candidates_beyond_the_descriptor_gate_are_not_registered(kitti):
 def test_stop_at_first_registers_no_candidate_after_one_verifies(kitti):
     """verify.stop_at_first (the default): candidates are registered in order until one
     verifies; the rest answer verified None with the reason. Off, every candidate is."""
+    from overlapmamba.service.registration import keyframe_geometry, prepare
     from overlapmamba.service.settings import VerifySettings
-    from overlapmamba.service.verify import keyframe_geometry, params_of, prepare, verify_candidates
+    from overlapmamba.service.verify import params_of, verify_candidates
 
     p = params_of(VerifySettings())
     q = prepare(kitti.points(11).xyz, p)
@@ -230,7 +233,7 @@ def test_stop_at_first_registers_no_candidate_after_one_verifies(kitti):
 
 
 def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
-    from overlapmamba.service.verify import RegistrationParams, prepare, register
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
 
     p = RegistrationParams()
     sparse = prepare(kitti.points(0).xyz[:50], p)
@@ -289,18 +292,60 @@ def test_verify_ambiguity_summarises_margins_and_what_each_margin_keeps():
     assert amb.summary([])["accepted"] == 0 and amb.summary([])["margin_right"] is None
 
 
+def test_recorded_rivals_decide_as_the_screened_check_at_any_margin():
+    """benchmarks/verify_threshold.py records each turn registered in full; a turn counts no
+    more than its share within reach, so the recorded rival refuses exactly where the
+    service's screened check would. verify_ambiguity.screen counts the turns that ended above
+    their reach and those the screen registers at a margin."""
+    from conftest import benchmark_module
+
+    from overlapmamba.service.registration import Registration
+    from overlapmamba.service.verify import Verdict
+
+    vt = benchmark_module("verify_threshold")
+    amb = benchmark_module("verify_ambiguity")
+
+    def reg(yaw: float, fitness: float, reach: float) -> Registration:
+        return Registration(rotation_z(yaw), fitness, 0.3, 5, True, None, 1.0, reach)
+
+    verdict = Verdict(True, 0.9, 0.2, None, rotation_z(10.0))
+    regs = [reg(100.0, 0.6, 0.5), reg(15.0, 0.95, 0.99), reg(190.0, 0.3, 0.45)]
+    r = vt.rivals_of(regs, verdict)
+    # the turn within 20° of the verified pose is the same fit found again; the first counts
+    # no more than its reach
+    assert r["rival"] == pytest.approx(0.5)
+    assert r["turns"] == [(0.5, 0.6, True), (0.99, 0.95, False), (0.45, 0.3, True)]
+    town = {
+        "queries": [
+            {"candidates": [{"fitness": 0.9, **r}, {"fitness": 0.4}]},
+            {"candidates": [{"fitness": 0.8, "rival": 0.0, "turns": [(0.1, 0.05, True)]}]},
+        ]
+    }
+    sc = amb.screen(town, margin=0.4)
+    assert (sc["turns"], sc["above_reach"], sc["checked"]) == (4, 1, 2)
+    assert sc["largest_excess"] == pytest.approx(0.1)
+    assert sc["registered"] == 2  # reaches 0.5 and 0.99 clear 0.9 − 0.4; 0.45 and 0.1 do not
+    assert sc["changed"] == 0  # the turn above its reach (0.6 > 0.5): its reach refuses too
+    # at a margin of 0.35 (refusing from 0.55) its fit would refuse and its reach would not
+    assert amb.screen(town, margin=0.35)["changed"] == 1
+    assert amb.screen({"queries": []}, None) == {
+        "turns": 0,
+        "above_reach": 0,
+        "largest_excess": None,
+        "registered": None,
+        "checked": 0,
+        "changed": None,
+        "margin": None,
+    }
+
+
 def test_a_real_closure_fits_far_worse_from_the_other_quarter_turns(kitti):
     """A closure between two neighbouring real KITTI scans, registered again from the seed
     turned by 90°, 180° and 270° (the service's rival_fitness): no other turn fits nearly as
     well (a street is not a crossing that a quarter turn maps onto itself)."""
+    from overlapmamba.service.registration import keyframe_geometry, prepare
     from overlapmamba.service.settings import VerifySettings
-    from overlapmamba.service.verify import (
-        keyframe_geometry,
-        params_of,
-        prepare,
-        rival_fitness,
-        verify_candidates,
-    )
+    from overlapmamba.service.verify import params_of, rival_fitness, verify_candidates
 
     v = VerifySettings(gate_distance=None, ambiguity_margin=0.2)
     p = params_of(v)
@@ -312,4 +357,9 @@ def test_a_real_closure_fits_far_worse_from_the_other_quarter_turns(kitti):
     assert verdict.fitness - verdict.rival_fitness > 0.2, verdict
     assert verdict.relative_pose is not None
     own = float(yaw_deg(verdict.relative_pose))
-    assert rival_fitness(prepared[1], blobs[0], 0.0, own, p) == verdict.rival_fitness
+    screen = verdict.fitness - 0.2 + 1e-9  # the service's: the fit that would refuse
+    assert rival_fitness(prepared[1], blobs[0], 0.0, own, p, screen=screen) == (
+        verdict.rival_fitness
+    )
+    every = rival_fitness(prepared[1], blobs[0], 0.0, own, p, screen=0.0)  # every turn registered
+    assert verdict.fitness - every > 0.2, (every, verdict)

@@ -419,3 +419,22 @@ async def test_a_clouds_ring_field_must_fit_the_sensor_it_is_projected_as(settin
         ).status_code == 200
         # the model's own sensor (64 beams) fits too: a scan that names none is not refused
         assert (await c.post("/v1/descriptors", content=body, headers=ros)).status_code == 200
+
+
+def test_a_keyframe_of_another_sensor_is_scored_within_its_field_of_view():
+    """Sensors.view: the keyframe's sensor's field of view when the query's sensor is another
+    (a keyframe that recorded none is the model's own), else None; FieldOfView keeps what
+    that sensor could have returned."""
+    from overlapmamba.service.sensors import FieldOfView, Sensors
+
+    sensors = Sensors(Encoder(MODEL).meta)
+    assert sensors.view("vlp16", "vlp16") is None and sensors.view("vlp16", None) is None
+    assert sensors.view(None, "kitti-hdl64") is None  # the model's own, both sides
+    assert sensors.view("gone", "vlp16") is None  # not known: scored as before, in full
+    vlp = CATALOGUE["vlp16"]
+    view = sensors.view("vlp16", "kitti-hdl64")
+    assert view == FieldOfView.of(vlp.elevations_deg, vlp.max_range)
+    hdl = sensors.view(None, "vlp16")  # the model's HDL-64E keyframe, a VLP-16 query
+    assert hdl is not None and hdl.high_deg < 5.0 < view.high_deg
+    pts = np.array([[10.0, 0.0, 0.0], [10.0, 0.0, 2.0], [500.0, 0.0, 0.0]])
+    assert hdl.inside(pts).tolist() == [True, False, False]  # 11° up is above its top beam

@@ -13,7 +13,7 @@ A scan of 120k points is ≈ 2 MB; a map keeps one small copy per keyframe inste
 
 :func:`encode_geometry` makes the grid here (numpy: one sort of the points' voxel keys);
 :func:`pack_geometry` takes a grid already made — the service keeps the grid its
-registration prepared for the scan anyway (``overlapmamba.service.verify.keyframe_geometry``).
+registration prepared for the scan anyway (``overlapmamba.service.registration.keyframe_geometry``).
 
 Format, little-endian: ``b"OMG1"``, the voxel size (float32), the point count (uint32), then
 count × 3 int16 (x, y, z in cm). At the cap that is 12 + 49,152 bytes: under the 64 KB a

@@ -7,7 +7,7 @@
       ─ MicroBatcher ── waits at most batching.max_wait_ms for scans still being decoded
       ─ encoder thread  encode: Encoder.encode on the stacked batch
         (meanwhile, when the caller will verify: a worker thread prepares the points for
-        registration, overlapmamba.service.verify.prepare — hidden behind the encoder's wait)
+        registration, overlapmamba.service.registration.prepare — hidden behind the encoder's wait)
       → Description (unit descriptor, yaw features, the points, the prepared query, stage
         timings)
 
@@ -32,10 +32,10 @@ from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.service.batcher import MicroBatcher
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import BadRequest
+from overlapmamba.service.registration import Prepared, RegistrationParams, prepare
 from overlapmamba.service.scans import ScanBody, decode_scan
 from overlapmamba.service.settings import BatchSettings, LimitSettings
 from overlapmamba.service.threads import encoder_threads, in_thread
-from overlapmamba.service.verify import Prepared, RegistrationParams, prepare
 
 
 @dataclass(frozen=True)

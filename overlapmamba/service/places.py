@@ -46,19 +46,13 @@ from overlapmamba.service.errors import BadRequest, Conflict
 from overlapmamba.service.overview import Overview
 from overlapmamba.service.pipeline import Description, ScanPipeline
 from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
+from overlapmamba.service.registration import Prepared, RegistrationParams, keyframe_geometry
 from overlapmamba.service.scans import ScanBody
 from overlapmamba.service.sensors import Sensors
 from overlapmamba.service.settings import Settings
 from overlapmamba.service.stats import Stats
 from overlapmamba.service.threads import in_thread
-from overlapmamba.service.verify import (
-    FieldOfView,
-    Prepared,
-    RegistrationParams,
-    keyframe_geometry,
-    params_of,
-    verify_candidates,
-)
+from overlapmamba.service.verify import params_of, verify_candidates
 
 
 class PlaceService:
@@ -348,19 +342,9 @@ class PlaceService:
             prepared,
             [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg, c.distance) for c in candidates],
             self.settings.verify,
-            [self._view(c.keyframe.sensor, sensor) for c in candidates],
+            [self.sensors.view(c.keyframe.sensor, sensor) for c in candidates],
         )
         return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]
-
-    def _view(self, keyframe_sensor: str | None, query_sensor: str | None) -> FieldOfView | None:
-        """The keyframe's sensor's field of view when the query came from another sensor
-        (fitness then scores what both could see: :class:`FieldOfView`), else None. A
-        keyframe that recorded no sensor came from the model's own (it predates the record)."""
-        kf = keyframe_sensor or self.sensors.model_sensor.name
-        if query_sensor is None or kf == query_sensor or kf not in self.sensors.known:
-            return None
-        s = self.sensors.known[kf]
-        return FieldOfView.of(s.elevations_deg, s.max_range)
 
     @staticmethod
     def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:

@@ -3,7 +3,7 @@ keyframe's from above.
 
 A revisit passes a place metres to the side or along the road from where the keyframe was
 taken; GICP alone, with its 2 m correspondences, does not travel that far. Each side's steep
-points (:func:`overlapmamba.service.verify.structure`) make a bird's-eye occupancy grid
+points (:func:`overlapmamba.service.registration.structure`) make a bird's-eye occupancy grid
 (:func:`bev_spectrum`, kept as its spectrum: the query's once per seed yaw, the keyframe's once
 per keyframe); their FFT cross-correlation's peak within ``max_shift`` is the seed
 (:func:`seed_translation`). Single precision, 90 cells a side on the service's grid: the

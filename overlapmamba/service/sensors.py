@@ -8,12 +8,17 @@ catalogue (:mod:`overlapmamba.core.sensors.catalogue`) and from the operator's o
 from the points.
 
 The projection is the model's (:class:`overlapmamba.core.sensors.input.SensorInput`: the model's
-profile, views and ``sensor_input`` mode, the scan's beam table), made once per sensor.
+profile, views and ``sensor_input`` mode, the scan's beam table), made once per sensor. A
+keyframe's sensor's field of view (:class:`FieldOfView`, :meth:`Sensors.view`) is what
+verification scores a query from another sensor within.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.modelmeta import EncoderMetadata
@@ -21,6 +26,31 @@ from overlapmamba.core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_
 from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, Conflict
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """What a keyframe's sensor sees from where it stood: elevations from ``low_deg`` to
+    ``high_deg`` in its own frame, out to ``max_range_m``. Registering a query of another
+    sensor, fitness scores only the query's points inside it (aligned into the keyframe's
+    frame): a VLP-16's ±15° or an OS1-128's ±22.5° hold walls above what an HDL-64E's +3°
+    top beam reached, and those points find no partner however right the pose is."""
+
+    low_deg: float
+    high_deg: float
+    max_range_m: float
+    margin_deg: float = 2.0  # the 2 m grid's points are cell means: their angles blur
+
+    @classmethod
+    def of(cls, elevations_deg: tuple[float, ...], max_range_m: float) -> FieldOfView:
+        return cls(min(elevations_deg), max(elevations_deg), max_range_m)
+
+    def inside(self, pts: np.ndarray) -> np.ndarray:
+        """(N,) bool: points (N, 3) in the sensor's frame that it could have returned."""
+        r_xy = np.hypot(pts[:, 0], pts[:, 1])
+        el = np.degrees(np.arctan2(pts[:, 2], r_xy))
+        lo, hi = self.low_deg - self.margin_deg, self.high_deg + self.margin_deg
+        return (el >= lo) & (el <= hi) & (np.hypot(r_xy, pts[:, 2]) <= self.max_range_m)
 
 
 class Sensors:
@@ -97,3 +127,13 @@ class Sensors:
 
     def is_model_sensor(self, name: str) -> bool:
         return name == self.model_sensor.name
+
+    def view(self, keyframe_sensor: str | None, query_sensor: str | None) -> FieldOfView | None:
+        """The keyframe's sensor's field of view when the query came from another sensor
+        (fitness then scores what both could see: :class:`FieldOfView`), else None. A
+        keyframe that recorded no sensor came from the model's own (it predates the record)."""
+        kf = keyframe_sensor or self.model_sensor.name
+        if query_sensor is None or kf == query_sensor or kf not in self.known:
+            return None
+        s = self.known[kf]
+        return FieldOfView.of(s.elevations_deg, s.max_range)
