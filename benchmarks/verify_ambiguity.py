@@ -27,7 +27,8 @@ towns; the test towns are reported beside them to show the failure it addresses.
         --town data/synth/val-xt32 --town data/synth/test-os0-128 \\
         --out reports/service/verify-ambiguity-one-pass.json
 
-≈ 3 min a 2,000-scan town on 2 cores (three more registrations for each accepted closure).
+≈ 3 min a 2,000-scan town on 2 cores (three more registrations for each candidate that passes
+the fitness threshold).
 """
 
 from __future__ import annotations

@@ -184,7 +184,9 @@ def registration() -> str:
         )
     out += (
         f"\nOver HTTP ({h['queries']} queries, up to {h['candidates']} candidates registered, "
-        f"{h.get('registered_per_query', h['candidates']):.1f} a query): a "
+        f"{h.get('registered_per_query', h['candidates']):.1f} a query"
+        + (", each that verifies checked for ambiguity too" if r.get("ambiguity_margin") else "")
+        + "): a "
         f"query's client time {ms(h['verify_true']['client_ms'])} with verification against "
         f"{ms(h['verify_false']['client_ms'])} without (+{h['added_share'] * 100:.0f} %), the "
         f"verify stage {ms(h['verify_true']['server_verify_ms'])}.\n"

@@ -150,29 +150,46 @@ def verify_ambiguity() -> str:
                 *(f"{k['right']} / {k['wrong']}" for k in t["kept"]),
             ]
         )
-    out += table([*head, *(f"kept at {m:g}" for m in margins)], rows)
-    screens = {n: t["screen"] for n, t in r["towns"].items() if "screen" in t}
-    if not screens:
-        return out
-    m = next(iter(screens.values()))["margin"]
+    return out + table([*head, *(f"kept at {m:g}" for m in margins)], rows)
+
+
+SCREENS = (
+    "reports/service/verify-ambiguity.json",
+    AMBIGUITY,
+    "reports/service/verify-ambiguity-any-sensor.json",
+)
+
+
+def ambiguity_screen() -> str:
+    """The screen of the ambiguity check, per file and town: turns that ended above their
+    seed's share within reach, and the checks it decided otherwise
+    (``benchmarks/verify_ambiguity.py``)."""
+    out, rows = "", []
+    for path in SCREENS:
+        r = load(path)
+        out += source(path, r["command"], when(r))
+        for name, t in r["towns"].items():
+            x = t["screen"]
+            rows.append(
+                [
+                    f"`{r['model_id']}` (margin {x['margin']:g})",
+                    f"`{name}`",
+                    str(x["turns"]),
+                    str(x["above_reach"]),
+                    f3(x["largest_excess"]) if x["largest_excess"] is not None else "—",
+                    f"{x['registered']} ({x['registered'] / max(x['turns'], 1):.0%})",
+                    f"{x['changed']} of {x['checked']}",
+                ]
+            )
     out += (
-        "\nThe screen (every candidate that passes the fitness threshold, each turn registered "
-        "in full): turns that ended with a fitness above the share of their points within "
-        "GICP's reach at their seed, the largest such excess (negative: none did), and the "
-        f"turns the served check registers at the file's margin {m:g} (a seed within reach "
-        "of the fit that would refuse; the others cost a nearest-neighbour search):\n\n"
+        "\nEvery candidate that passes the file's fitness threshold, each of its turns "
+        "registered in full: the turns that ended with a fitness above the share of their "
+        "points within GICP's reach at their seed, the largest such excess (negative: none "
+        "did), the turns the served check registers at the file's margin (a seed within reach "
+        "of the fit that would refuse; the others cost a nearest-neighbour search), and the "
+        "checks whose verdict the screen changes (a turn it leaves out would have refused):\n\n"
     )
-    rows = [
-        [
-            f"`{name}`",
-            str(t["turns"]),
-            str(t["above_reach"]),
-            f3(t["largest_excess"]) if t["largest_excess"] is not None else "—",
-            f"{t['registered']} ({t['registered'] / max(t['turns'], 1):.0%})",
-        ]
-        for name, t in screens.items()
-    ]
-    head = ["town", "turns", "above their reach", "largest excess", "registered as served"]
+    head = ["file", "town", "turns", "above their reach", "largest excess", "registered", "changed"]
     return out + table(head, rows)
 
 
@@ -244,6 +261,12 @@ def verify_os0_128() -> str:
 
 
 COSTS = ("reports/service/ambiguity-cost.json", "reports/service/ambiguity-cost-one-pass.json")
+COST_CAPTION = (
+    "\nThe verify stage a query (every 2nd query of the town, its candidates in the "
+    "service's order, the file's own settings; one thread, in-process), the three ways on "
+    "the same queries in turn; GICP runs a query; closures accepted; and the queries "
+    "the served check decided otherwise than registering every turn:\n\n"
+)
 WAYS = {
     "off": "no check",
     "served": "the check as served",
@@ -272,18 +295,13 @@ def ambiguity_cost() -> str:
                         f"{t['decided_differently']} of {t['queries']}" if way == "served" else "",
                     ]
                 )
-    out += (
-        "\nThe verify stage a query (every 2nd query of the town, its candidates in the "
-        "service's order, the file's own settings; one thread, in-process), the three ways on "
-        "the same queries in turn; GICP runs a query; closures accepted; and the queries "
-        "the served check decided otherwise than registering every turn:\n\n"
-    )
     head = ["file", "town", "way", "mean / p50 / p90", "GICP a query", "accepted", "differ"]
-    return out + table(head, rows)
+    return out + COST_CAPTION + table(head, rows)
 
 
 RENDERERS: dict[str, Callable[[], str]] = {
     "ambiguity-cost": ambiguity_cost,
+    "ambiguity-screen": ambiguity_screen,
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),

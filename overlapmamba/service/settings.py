@@ -285,11 +285,12 @@ class VerifySettings(_RenamedSection):
         None,
         ge=0,
         le=1,
-        description="a candidate that verifies is registered again from its seed yaw turned "
-        "by 90°, 180° and 270°; if a pose more than 20° from its own fits within this much "
-        "of its fitness, it is refused as ambiguous (a place that looks like another turned "
-        'by a quarter: a crossing). null or "off": not checked (a model file calibrated '
-        "without it, or an operator who spends no more registrations on it)",
+        description="a candidate that verifies is seeded again from its seed yaw turned by "
+        "90°, 180° and 270° (registered where the seed could rival); if a pose more than 20° "
+        "from its own fits within this much of its fitness, it is refused as ambiguous (a "
+        'place that looks like another turned by a quarter: a crossing). null or "off": not '
+        "checked (a model file calibrated without it, or an operator who spends no more "
+        "registrations on it)",
     )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
 

@@ -14,7 +14,8 @@ A turn is registered only when its seed pose could rival (``rival_fitness``'s ``
 GICP pairs nothing beyond its reach, so a seed that leaves fewer points within reach than
 would refuse the closure seldom ends with a fit that does. ``benchmarks/verify_ambiguity.py``
 counts the turns that ended above their reach and the checks the screen decided otherwise
-(none on the validation towns); ``benchmarks/ambiguity_cost.py`` times the check both ways.
+(almost none on the validation towns); ``benchmarks/ambiguity_cost.py`` times the check both
+ways.
 """
 
 from __future__ import annotations
@@ -169,8 +170,9 @@ def verify_candidates(
     candidate farther than ``v.gate_distance`` is not registered: on the validation town no
     true loop lay that far, and a robot in new territory then spends nothing on it. With
     ``v.stop_at_first`` none is registered after the first that verifies. With
-    ``v.ambiguity_margin`` one that verifies is registered again from the other quarter turns
-    and refused when another pose fits nearly as well (:func:`unambiguous`). ``views``: each
+    ``v.ambiguity_margin`` one that verifies is seeded again from the other quarter turns
+    (each registered where its seed could rival) and refused when another pose fits nearly
+    as well (:func:`unambiguous`). ``views``: each
     candidate's keyframe sensor's field of view where it is not the query's sensor
     (:class:`FieldOfView`), else None. ``screen``: the check registers only the turns that
     could rival (:func:`rival_fitness`); False registers every turn, the check it stands for
