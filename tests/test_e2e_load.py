@@ -133,6 +133,10 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "acknowledged_missing": len(missing),
         "index_equals_store": {k: m["index"]["vectors"] == m["keyframes"] for k, m in maps.items()},
         "server_encode_ms": stats["latency_ms"].get("encode"),
+        # every stage's time and the verify stage's work (registrations, ambiguous refusals),
+        # as /v1/stats gives them: what a throughput difference between two runs came from
+        "server_stages_ms": stats["latency_ms"],
+        "server_verification": stats.get("verification"),
         # the server's own /metrics (process_resident_memory_bytes): ready, and after the load
         "server_resident_mb": {"ready": resident_ready, "after": resident_after},
     }
