@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
+from overlapmamba.service.registration import Registration
+from overlapmamba.service.verify import rival_of
 
 
 def candidate(
@@ -40,6 +42,21 @@ def candidate(
         c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
         c["pose_yaw_deg"] = float(yaw_deg(verdict.relative_pose))
     return c
+
+
+def rivals_of(regs: list[Registration], verdict: Any) -> dict[str, Any]:
+    """A candidate's rival as ``closure_kit`` scores it: every turn registered (``screen``
+    0), so the best rival (``rival_of``) decides at any margin as the service's screened
+    check does; and each turn's ``reach``, fitness and whether it counts as a rival
+    (``verify_ambiguity.py`` counts the turns that ended with a fitness above their reach,
+    and the decisions registering every turn would change). ``regs``: the candidate's
+    ``overlapmamba.service.verify.turned`` registrations, every turn (``screen`` 0)."""
+    own = float(yaw_deg(verdict.relative_pose))
+    fits = [f for f in (rival_of(r, own) for r in regs) if f is not None]
+    turns = [
+        (r.reach, r.fitness, rival_of(r, own) is not None) for r in regs if r.fitness is not None
+    ]
+    return {"rival": max(fits, default=0.0), "turns": turns}
 
 
 def passes(c: dict[str, Any], min_fitness: float, max_rmse: float) -> bool:

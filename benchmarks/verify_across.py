@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from across_pairs import SENSORS, split_towns
 from bench_kit import ROOT, model_record, served_input, served_rerank, served_settings
-from closure_kit import candidate, score
+from closure_kit import candidate, rivals_of, score
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
@@ -51,7 +51,7 @@ from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.registration import keyframe_geometry, prepare
 from overlapmamba.service.sensors import FieldOfView
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import params_of, verify_candidates
+from overlapmamba.service.verify import params_of, turned, verify_candidates
 from overlapmamba.synth.generate import read_manifest
 from overlapmamba.train.sessions import check_sessions, ground_truth
 
@@ -96,9 +96,13 @@ def pair_queries(
     rerank: Rerank,
     every: int,
     view: FieldOfView | None,
+    rivals_from: float | None = None,
 ) -> list[dict[str, Any]]:
     """Each ``every``-th query's candidates in the service's order, registered: what
-    ``verify_threshold.score`` reads (fitness, rmse, pose error, within the hit radius)."""
+    ``verify_threshold.score`` reads (fitness, rmse, pose error, within the hit radius).
+    ``rivals_from``: each candidate whose fitness reaches it is registered again from the
+    other quarter turns too (``closure_kit.rivals_of``), so that the ambiguity margin can be
+    chosen on the pairs."""
     check_sessions(db.seq, q.seq)
     within = ground_truth(db.poses[:, :3, 3], q.poses[:, :3, 3])
     d2 = np.maximum(2.0 - 2.0 * q.desc @ db.desc.T, 0.0)
@@ -112,8 +116,9 @@ def pair_queries(
             order, _ = by_score(s2[i, top], conf, rerank.weight)
             top, deg = top[order], deg[order]
         top, deg = top[:k], deg[:k]
+        prepared = q.prepared(i)
         verdicts = verify_candidates(
-            q.prepared(i),
+            prepared,
             [
                 (db.blobs[j], float(a), float(np.sqrt(d2[i, j])))
                 for j, a in zip(top, deg, strict=True)
@@ -123,7 +128,18 @@ def pair_queries(
         )
         cands = [
             candidate(j, float(np.sqrt(d2[i, j])), within[i, j], verdict, db.poses[j], q.poses[i])
-            for j, verdict in zip(top, verdicts, strict=True)
+            | (
+                rivals_of(
+                    list(turned(prepared, blob, float(a), q.params, view=view, screen=0.0)), verdict
+                )
+                if rivals_from is not None
+                and verdict.fitness is not None
+                and verdict.fitness >= rivals_from
+                and verdict.relative_pose is not None
+                and (blob := db.blobs[j]) is not None
+                else {}
+            )
+            for j, a, verdict in zip(top, deg, verdicts, strict=True)
         ]
         out.append(
             {
@@ -146,10 +162,16 @@ def view_of(map_sensor: str, query_sensor: str) -> FieldOfView | None:
 
 
 def val_pair_queries(
-    enc: Encoder, v: VerifySettings, rerank: Rerank, every: int = 2, frames: int = 500
+    enc: Encoder,
+    v: VerifySettings,
+    rerank: Rerank,
+    every: int = 2,
+    frames: int = 500,
+    rivals_from: float | None = None,
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Every candidate of the calibration town's 25 pairs registered (no descriptor gate:
-    ``verify_threshold.py --calibrate --across`` sweeps it), and the drives' names."""
+    ``verify_threshold.py --calibrate --across`` sweeps it; ``rivals_from``: as
+    :func:`pair_queries`), and the drives' names."""
     towns = split_towns("val", ROOT / "data" / "synth", ROOT / "data" / "common-beams", frames)
     drives = {key: Drive(enc, path, v, keyframes=key[1] == 0) for key, path in towns.items()}
     v = v.model_copy(update={"gate_distance": None})
@@ -163,6 +185,7 @@ def val_pair_queries(
             rerank,
             every,
             view_of(m, q),
+            rivals_from,
         )
     return queries, sorted(path.name for path in towns.values())
 

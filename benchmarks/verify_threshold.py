@@ -58,21 +58,17 @@ from bench_kit import (
     served_settings,
     write_calibration,
 )
-from closure_kit import candidate, descriptor_recall, score
+from closure_kit import candidate, descriptor_recall, rivals_of, score
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 from town_kit import encode_town
 from tqdm import tqdm
 
-from overlapmamba.core.poses import yaw_deg
 from overlapmamba.core.rerank import Rerank
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.registration import (
-    Registration,
-)
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import params_of, rival_of, turned, verify_candidates
+from overlapmamba.service.verify import params_of, turned, verify_candidates
 
 FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
 
@@ -144,28 +140,15 @@ def run_town(
     }
 
 
-def rivals_of(regs: list[Registration], verdict: Any) -> dict[str, Any]:
-    """A candidate's rival as ``closure_kit`` scores it: every turn registered (``screen``
-    0), so the best rival (``rival_of``) decides at any margin as the service's screened
-    check does; and each turn's ``reach``, fitness and whether it counts as a rival
-    (``verify_ambiguity.py`` counts the turns that ended with a fitness above their reach,
-    and the decisions registering every turn would change)."""
-    own = float(yaw_deg(verdict.relative_pose))
-    fits = [f for f in (rival_of(r, own) for r in regs) if f is not None]
-    turns = [
-        (r.reach, r.fitness, rival_of(r, own) is not None) for r in regs if r.fitness is not None
-    ]
-    return {"rival": max(fits, default=0.0), "turns": turns}
-
-
 def ambiguity_margin(
     queries: list[dict[str, Any]], gate: dict[str, Any], holds: Callable[..., bool]
 ) -> dict[str, Any]:
     """``verify.ambiguity_margin``, after the thresholds and the gate (each candidate that may
     pass them carries its rival's fit: ``run_town(rivals_from=)``): the largest of 0, 0.02, …
     0.6 that costs at most 0.005 of the gate's recall, precision at the target both ways
-    (``chosen``; None: none does), and the ``sweep``. Not with ``--across``: its pairs'
-    candidates are registered without rivals."""
+    (``chosen``; None: none does), and the ``sweep``. With ``--across`` the pairs' candidates
+    carry their rivals too (``verify_across.pair_queries(rivals_from=)``), so the margin
+    holds for a map by one sensor and a query by another as well."""
     f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
     sweep = [
         score(queries, f, rmse, d, margin=float(m)) for m in np.round(np.arange(0, 0.61, 0.02), 2)
@@ -263,7 +246,7 @@ def main() -> None:
         if args.across:  # the calibration town's drives, pair by pair, as the service answers
             from verify_across import val_pair_queries
 
-            across, pairs = val_pair_queries(enc, v, rerank)
+            across, pairs = val_pair_queries(enc, v, rerank, rivals_from=rivals_from)
             report["across"] = {"pairs": pairs, "queries": len(across)}
             queries += across
         sweep = [score(queries, f, r) for f in FITNESS for r in (0.5, 0.6, 0.7, 1e9)]
@@ -338,7 +321,7 @@ def main() -> None:
             report["gates"] = gates
             console.print(f"descriptor gate: {gate}")
             margin = None
-            if gate is not None and not args.across:
+            if gate is not None:
                 margins = ambiguity_margin(queries, gate, holds)
                 margin = margins["chosen"]
                 report["calibration"]["ambiguity"] = margin

@@ -293,16 +293,17 @@ def test_verify_ambiguity_summarises_margins_and_what_each_margin_keeps():
 
 
 def test_recorded_rivals_decide_as_the_screened_check_at_any_margin():
-    """benchmarks/verify_threshold.py records each turn registered in full; a turn counts no
-    more than its share within reach, so the recorded rival refuses exactly where the
-    service's screened check would. verify_ambiguity.screen counts the turns that ended above
-    their reach and those the screen registers at a margin."""
+    """closure_kit.rivals_of (what verify_threshold.py and verify_across.py record): each
+    turn registered in full; a turn counts no more than its share within reach, so the
+    recorded rival refuses exactly where the service's screened check would.
+    verify_ambiguity.screen counts the turns that ended above their reach and those the
+    screen registers at a margin."""
     from conftest import benchmark_module
 
     from overlapmamba.service.registration import Registration
     from overlapmamba.service.verify import Verdict
 
-    vt = benchmark_module("verify_threshold")
+    kit = benchmark_module("closure_kit")
     amb = benchmark_module("verify_ambiguity")
 
     def reg(yaw: float, fitness: float, reach: float) -> Registration:
@@ -310,7 +311,7 @@ def test_recorded_rivals_decide_as_the_screened_check_at_any_margin():
 
     verdict = Verdict(True, 0.9, 0.2, None, rotation_z(10.0))
     regs = [reg(100.0, 0.6, 0.5), reg(15.0, 0.95, 0.99), reg(190.0, 0.3, 0.45)]
-    r = vt.rivals_of(regs, verdict)
+    r = kit.rivals_of(regs, verdict)
     # the turn within 20° of the verified pose is the same fit found again; the first counts
     # no more than its reach
     assert r["rival"] == pytest.approx(0.5)
