@@ -31,37 +31,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import ROOT, model_record, served_rerank, served_settings
+from bench_kit import ROOT, AlignCounter, model_record, served_rerank, served_settings
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
 from town_kit import encode_town
 from tqdm import tqdm
 
-from overlapmamba.service import registration
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.verify import params_of, verify_candidates
 
 WAYS = ("off", "served", "every_turn")
-
-
-class AlignCounter:
-    """``small_gicp.align`` as the registration module calls it, counted."""
-
-    def __init__(self) -> None:
-        self.calls = 0
-        self._align = registration.small_gicp.align
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        self.calls += 1
-        return self._align(*args, **kwargs)
-
-    def __enter__(self) -> AlignCounter:
-        registration.small_gicp.align = self
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        registration.small_gicp.align = self._align
 
 
 def run_town(enc: Encoder, path: Path, every: int) -> dict[str, Any]:

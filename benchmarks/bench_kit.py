@@ -129,6 +129,29 @@ def server(
 # ---- a model's calibration ------------------------------------------------------------------
 
 
+class AlignCounter:
+    """``small_gicp.align`` as ``overlapmamba.service.registration`` calls it, counted
+    while the context is open (each call is one GICP run)."""
+
+    def __init__(self) -> None:
+        from overlapmamba.service import registration
+
+        self._module = registration.small_gicp
+        self._align = self._module.align
+        self.calls = 0
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        self.calls += 1
+        return self._align(*args, **kwargs)
+
+    def __enter__(self) -> AlignCounter:
+        self._module.align = self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._module.align = self._align
+
+
 def served_settings(meta: Any) -> Any:
     """The settings the service answers with for a model of metadata ``meta``: its file's
     calibration where it has one, else the defaults (or OVERLAPMAMBA_* variables), as

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
-from overlapmamba.service.registration import Registration
-from overlapmamba.service.verify import rival_of
+from overlapmamba.service.registration import Prepared, Registration, RegistrationParams
+from overlapmamba.service.sensors import FieldOfView
+from overlapmamba.service.verify import rival_of, turned
 
 
 def candidate(
@@ -52,11 +53,33 @@ def rivals_of(regs: list[Registration], verdict: Any) -> dict[str, Any]:
     and the decisions registering every turn would change). ``regs``: the candidate's
     ``overlapmamba.service.verify.turned`` registrations, every turn (``screen`` 0)."""
     own = float(yaw_deg(verdict.relative_pose))
-    fits = [f for f in (rival_of(r, own) for r in regs) if f is not None]
-    turns = [
-        (r.reach, r.fitness, rival_of(r, own) is not None) for r in regs if r.fitness is not None
-    ]
+    rivals = [(r, rival_of(r, own)) for r in regs if r.fitness is not None]
+    fits = [f for _, f in rivals if f is not None]
+    turns = [(r.reach, r.fitness, f is not None) for r, f in rivals]
     return {"rival": max(fits, default=0.0), "turns": turns}
+
+
+def recorded_rival(
+    query: Prepared,
+    blob: bytes | None,
+    seed_deg: float,
+    verdict: Any,
+    p: RegistrationParams,
+    rivals_from: float | None,
+    view: FieldOfView | None = None,
+) -> dict[str, Any]:
+    """:func:`rivals_of` for a candidate whose fitness reaches ``rivals_from`` (the pair
+    registered again from the other quarter turns, every turn), else nothing: what a
+    benchmark adds to the candidate's record."""
+    if (
+        rivals_from is None
+        or blob is None
+        or verdict.fitness is None
+        or verdict.fitness < rivals_from
+        or verdict.relative_pose is None
+    ):
+        return {}
+    return rivals_of(list(turned(query, blob, seed_deg, p, view=view, screen=0.0)), verdict)
 
 
 def passes(c: dict[str, Any], min_fitness: float, max_rmse: float) -> bool:

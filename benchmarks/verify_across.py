@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from across_pairs import SENSORS, split_towns
 from bench_kit import ROOT, model_record, served_input, served_rerank, served_settings
-from closure_kit import candidate, rivals_of, score
+from closure_kit import candidate, recorded_rival, score
 from common_beams import drive_arguments
 from reports_kit import REPORTS, write_report
 from rich.console import Console
@@ -51,7 +51,7 @@ from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.registration import keyframe_geometry, prepare
 from overlapmamba.service.sensors import FieldOfView
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import params_of, turned, verify_candidates
+from overlapmamba.service.verify import params_of, verify_candidates
 from overlapmamba.synth.generate import read_manifest
 from overlapmamba.train.sessions import check_sessions, ground_truth
 
@@ -101,7 +101,7 @@ def pair_queries(
     """Each ``every``-th query's candidates in the service's order, registered: what
     ``verify_threshold.score`` reads (fitness, rmse, pose error, within the hit radius).
     ``rivals_from``: each candidate whose fitness reaches it is registered again from the
-    other quarter turns too (``closure_kit.rivals_of``), so that the ambiguity margin can be
+    other quarter turns too (``closure_kit.recorded_rival``), so that the ambiguity margin can be
     chosen on the pairs."""
     check_sessions(db.seq, q.seq)
     within = ground_truth(db.poses[:, :3, 3], q.poses[:, :3, 3])
@@ -128,17 +128,7 @@ def pair_queries(
         )
         cands = [
             candidate(j, float(np.sqrt(d2[i, j])), within[i, j], verdict, db.poses[j], q.poses[i])
-            | (
-                rivals_of(
-                    list(turned(prepared, blob, float(a), q.params, view=view, screen=0.0)), verdict
-                )
-                if rivals_from is not None
-                and verdict.fitness is not None
-                and verdict.fitness >= rivals_from
-                and verdict.relative_pose is not None
-                and (blob := db.blobs[j]) is not None
-                else {}
-            )
+            | recorded_rival(prepared, db.blobs[j], float(a), verdict, q.params, rivals_from, view)
             for j, a, verdict in zip(top, deg, verdicts, strict=True)
         ]
         out.append(

@@ -105,11 +105,12 @@ def screen(r: dict[str, Any], margin: float | None) -> dict[str, Any]:
     ``registered``: turns the screen registers at ``margin`` (a seed within reach of the fit
     that would refuse); ``changed``: candidates whose check the screen decides otherwise
     than registering every turn would (a turn left out that would have refused)."""
-    turns, changed = [], 0
+    turns, changed, checked = [], 0, 0
     for q in r["queries"]:
         for c in q["candidates"]:
             if "turns" not in c:
                 continue
+            checked += 1
             turns += [(c["fitness"], reach, fit) for reach, fit, _ in c["turns"]]
             if margin is not None:
                 need = c["fitness"] - margin
@@ -124,7 +125,7 @@ def screen(r: dict[str, Any], margin: float | None) -> dict[str, Any]:
         "above_reach": int((excess > 0).sum()),
         "largest_excess": float(excess.max()) if len(a) else None,
         "registered": None if margin is None else int((a[:, 1] >= a[:, 0] - margin).sum()),
-        "checked": sum("turns" in c for q in r["queries"] for c in q["candidates"]),
+        "checked": checked,
         "changed": None if margin is None else changed,
         "margin": margin,
     }

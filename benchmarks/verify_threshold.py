@@ -58,7 +58,7 @@ from bench_kit import (
     served_settings,
     write_calibration,
 )
-from closure_kit import candidate, descriptor_recall, rivals_of, score
+from closure_kit import candidate, descriptor_recall, recorded_rival, score
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -68,7 +68,7 @@ from tqdm import tqdm
 from overlapmamba.core.rerank import Rerank
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.settings import VerifySettings
-from overlapmamba.service.verify import params_of, turned, verify_candidates
+from overlapmamba.service.verify import params_of, verify_candidates
 
 FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
 
@@ -86,11 +86,13 @@ def run_town(
     registered whatever ``v.stop_at_first`` says: :func:`score` answers both ways from them.
     ``rivals_from``: each candidate whose fitness reaches it is registered again from the other
     quarter turns too, as the service does one that passes its thresholds with
-    ``verify.ambiguity_margin`` (:func:`rivals_of`: its ``rival`` and ``turns``; every turn,
-    where the service screens those that cannot rival; timed with the query)."""
+    ``verify.ambiguity_margin`` (``closure_kit.recorded_rival``: its ``rival`` and
+    ``turns``; every turn, where the service screens those that cannot rival; timed with the
+    query)."""
     v = v.model_copy(update={"stop_at_first": False})
-    t = encode_town(enc, path, params_of(v), rerank, batch)
-    seq, prepared, blobs, d2, params = t.seq, t.prepared, t.blobs, t.d2, params_of(v)
+    params = params_of(v)
+    t = encode_town(enc, path, params, rerank, batch)
+    seq, prepared, blobs, d2 = t.seq, t.prepared, t.blobs, t.d2
     positives = t.truth.positives()
     queries = []
     ms = []
@@ -103,13 +105,7 @@ def run_town(
             v,
         )
         rivals = [
-            rivals_of(list(turned(prepared[i], blobs[j], float(a), params, screen=0.0)), x)
-            if rivals_from is not None
-            and x.fitness is not None
-            and x.fitness >= rivals_from
-            and x.relative_pose is not None
-            and blobs[j] is not None
-            else None
+            recorded_rival(prepared[i], blobs[j], float(a), x, params, rivals_from)
             for j, a, x in zip(top, deg, verdicts, strict=True)
         ]
         ms.append((time.perf_counter() - t0) * 1e3)
@@ -120,7 +116,7 @@ def run_town(
                 j, float(np.sqrt(d2[i, j])), int(j) in pos, verdict, seq.poses[j], seq.poses[i]
             )
             | {"seed_deg": float(a)}
-            | ({} if rival is None else rival)
+            | rival
             for j, verdict, a, rival in zip(top, verdicts, deg, rivals, strict=True)
         ]
         queries.append(
