@@ -187,6 +187,67 @@ def resident_mb(c: httpx.Client) -> float | None:
     return float(found[1]) / 1e6 if found else None
 
 
+def server_cpu_s(c: httpx.Client) -> float | None:
+    """The server's CPU seconds so far (user + system), as its own ``/metrics`` says
+    (``process_cpu_seconds_total``; None where the platform has no such series)."""
+    r = c.get("/metrics")
+    r.raise_for_status()
+    found = re.search(r"^process_cpu_seconds_total (\S+)$", r.text, re.M)
+    return float(found[1]) if found else None
+
+
+@dataclass
+class CpuMeter:
+    """Where the CPU went during a run: the server's, this process's (the fleet, the mapper
+    and the dashboard), the whole machine's busy time, and the rest of it (the server's
+    registration processes, anything else), in cores (CPU seconds a second).
+    A server using well under the cores the machine has left idle is bound by something else
+    than CPU, e.g. Python's lock held by a native call; a machine busy on every core is
+    bound by CPU."""
+
+    c: httpx.Client
+    t0: float = 0.0
+    server0: float | None = None
+    own0: float = 0.0
+    busy0: tuple[float, float] | None = None
+
+    def start(self) -> CpuMeter:
+        self.t0, self.server0 = time.monotonic(), server_cpu_s(self.c)
+        self.own0, self.busy0 = time.process_time(), machine_busy()
+        return self
+
+    def cores(self) -> dict[str, Any]:
+        wall = time.monotonic() - self.t0
+        server, own, busy = server_cpu_s(self.c), time.process_time(), machine_busy()
+        out: dict[str, Any] = {"machine_cores": os.cpu_count(), "wall_s": wall}
+        out["server_cores"] = (
+            (server - self.server0) / wall
+            if server is not None and self.server0 is not None
+            else None
+        )
+        out["load_cores"] = (own - self.own0) / wall  # the fleet, mapper and dashboard
+        if busy is not None and self.busy0 is not None:
+            (b0, t0), (b1, t1) = self.busy0, busy
+            out["machine_busy_cores"] = (b1 - b0) / (t1 - t0) * (os.cpu_count() or 1)
+        else:
+            out["machine_busy_cores"] = None
+        parts = (out["machine_busy_cores"], out["server_cores"])
+        # the server's registration processes (verify.processes), and whatever else ran
+        out["other_cores"] = parts[0] - parts[1] - out["load_cores"] if None not in parts else None
+        return out
+
+
+def machine_busy() -> tuple[float, float] | None:
+    """(busy, total) jiffies of every core together, from ``/proc/stat`` (None elsewhere)."""
+    try:
+        first = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+    except OSError:
+        return None
+    ticks = [float(x) for x in first[1:]]
+    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0.0)  # idle + iowait
+    return sum(ticks) - idle, sum(ticks)
+
+
 def percentiles(values: list[float]) -> dict[str, float]:
     if not values:
         return {"p50": 0.0, "p95": 0.0, "p99": 0.0}

@@ -18,6 +18,7 @@ import httpx
 import pytest
 from e2e_kit import (
     FULL,
+    CpuMeter,
     PRECISION_BAR,
     RECALL_BAR,
     Mapper,
@@ -64,6 +65,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         dim = read_model_metadata(model).descriptor_dim  # e.g. 768 for a first stage's
         mapper = Mapper(url, model_id=model_id, dim=dim).start()
         poller = Poller(url).start()
+        meter = CpuMeter(c).start()
         t0 = time.monotonic()
         # No retries: an overload (503) or a timeout counts as an error, not a slow success.
         report, samples = asyncio.run(
@@ -78,6 +80,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
             )
         )
         elapsed = time.monotonic() - t0
+        cpu = meter.cores()
         assert mapper.alive and poller.alive, (mapper.errors[-3:], poller.errors[-3:])
         mapper.stop()
         poller.stop()
@@ -137,6 +140,9 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         # as /v1/stats gives them: what a throughput difference between two runs came from
         "server_stages_ms": stats["latency_ms"],
         "server_verification": stats.get("verification"),
+        # where the CPU went during the load, in cores: the server's, this process's (fleet,
+        # mapper, dashboard) and the machine's; a server short of the idle cores is not CPU-bound
+        "cpu": cpu,
         # the server's own /metrics (process_resident_memory_bytes): ready, and after the load
         "server_resident_mb": {"ready": resident_ready, "after": resident_after},
     }

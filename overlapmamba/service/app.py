@@ -255,6 +255,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             registry = open_backend(serving, model_id=enc.model_id, dim=enc.dim)
             svc = PlaceService(serving, enc, registry, thresholds)
             await svc.pipeline.start()
+            log.info("registration: in %s", svc.pipeline.registrar.where)
             app.state.service = svc
             # Maps load after start-up: /healthz answers meanwhile (a liveness probe must
             # not kill a process replaying a large map); /readyz says 503 until done.

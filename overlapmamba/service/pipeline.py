@@ -7,7 +7,8 @@
       ─ MicroBatcher ── waits at most batching.max_wait_ms for scans still being decoded
       ─ encoder thread  encode: Encoder.encode on the stacked batch
         (meanwhile, when the caller will verify: a worker thread prepares the points for
-        registration, overlapmamba.service.registration.prepare — hidden behind the encoder's wait)
+        registration — hidden behind the encoder's wait — in a registration process, or in
+        the thread itself with verify.processes 0: overlapmamba.service.registrar)
       → Description (unit descriptor, yaw features, the points, the prepared query, stage
         timings)
 
@@ -32,7 +33,8 @@ from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.service.batcher import MicroBatcher
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import BadRequest
-from overlapmamba.service.registration import Prepared, RegistrationParams, prepare
+from overlapmamba.service.registrar import Held, Registrar
+from overlapmamba.service.registration import RegistrationParams
 from overlapmamba.service.scans import ScanBody, decode_scan
 from overlapmamba.service.settings import BatchSettings, LimitSettings
 from overlapmamba.service.threads import encoder_threads, in_thread
@@ -44,7 +46,7 @@ class Description:
     yaw: np.ndarray  # (C, W) float32 yaw features
     points: PointCloud  # kept for the content hash and geometry of a keyframe
     timings: dict[str, float]  # ms: decode, project, encode
-    prepared: Prepared | None = None  # the query's side of registration, when asked for
+    prepared: Held | None = None  # the query's side of registration, when asked for
 
 
 def check_rings(points: PointCloud, sensor: Sensor | None) -> None:
@@ -73,9 +75,11 @@ class ScanPipeline:
         batching: BatchSettings,
         limits: LimitSettings,
         on_batch: Callable[[int, float], None] | None = None,
+        registrar: Registrar | None = None,
     ) -> None:
         self.encoder = encoder
         self.limits = limits
+        self.registrar = registrar or Registrar()  # where registration runs (verify.processes)
         self.batcher = MicroBatcher(
             encoder.encode,
             max_batch=batching.max_batch,
@@ -87,9 +91,11 @@ class ScanPipeline:
 
     async def start(self) -> None:
         await self.batcher.start()
+        self.registrar.start()
 
     async def stop(self) -> None:
         await self.batcher.stop()
+        await in_thread(self.registrar.stop)
 
     @property
     def pending(self) -> int:
@@ -123,7 +129,9 @@ class ScanPipeline:
         t0 = time.perf_counter()
         task = None
         if registration is not None:
-            task = asyncio.ensure_future(in_thread(prepare, points.xyz, registration))
+            task = asyncio.ensure_future(
+                in_thread(self.registrar.prepare, points.xyz, registration)
+            )
         try:
             desc, yaw = await self.batcher.encode(
                 image, offset, timeout_s=self.limits.request_timeout_s

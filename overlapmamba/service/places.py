@@ -46,13 +46,14 @@ from overlapmamba.service.errors import BadRequest, Conflict
 from overlapmamba.service.overview import Overview
 from overlapmamba.service.pipeline import Description, ScanPipeline
 from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
-from overlapmamba.service.registration import Prepared, RegistrationParams, keyframe_geometry
+from overlapmamba.service.registrar import Held, Registrar
+from overlapmamba.service.registration import RegistrationParams
 from overlapmamba.service.scans import ScanBody
 from overlapmamba.service.sensors import Sensors
 from overlapmamba.service.settings import Settings
 from overlapmamba.service.stats import Stats
 from overlapmamba.service.threads import in_thread
-from overlapmamba.service.verify import params_of, verify_candidates
+from overlapmamba.service.verify import params_of
 
 
 class PlaceService:
@@ -79,7 +80,11 @@ class PlaceService:
         self.stats.watch_row_cache(registry.row_cache_info)
         self.overview = Overview()
         self.pipeline = ScanPipeline(
-            encoder, settings.batching, settings.limits, on_batch=self.stats.batch
+            encoder,
+            settings.batching,
+            settings.limits,
+            on_batch=self.stats.batch,
+            registrar=Registrar(settings.verify.processes),
         )
         # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
         # (robot ids come from clients), a dropped entry is read back from the store
@@ -213,7 +218,7 @@ class PlaceService:
             digest = hashlib.sha256(d.points.as_xyzi().tobytes()).digest()
             if not m.keep_geometry or d.prepared is None:
                 return digest, None
-            return digest, keyframe_geometry(d.prepared, params)
+            return digest, self.pipeline.registrar.geometry(d.prepared, params)
 
         digest, geometry = await in_thread(digest_and_geometry)
         return NewKeyframe(
@@ -281,7 +286,7 @@ class PlaceService:
         filters: Filters,
         timings: dict[str, float],
         robot: str | None,
-        prepared: Prepared | None = None,
+        prepared: Held | None = None,
         sensor: str | None = None,
     ) -> Answer:
         """Search, verify the first ``verify.candidates`` candidates when the query is prepared
@@ -335,10 +340,10 @@ class PlaceService:
         return LoopClosure(accepted, threshold, margin, rule=rule)
 
     def _verify(
-        self, m: PlaceMap, prepared: Prepared, candidates: list[Match], sensor: str | None
+        self, m: PlaceMap, prepared: Held, candidates: list[Match], sensor: str | None
     ) -> list[Match]:
         blobs = m.geometry([c.keyframe.keyframe_id for c in candidates])
-        verdicts = verify_candidates(
+        verdicts = self.pipeline.registrar.verify(
             prepared,
             [(blobs.get(c.keyframe.keyframe_id), c.yaw_deg, c.distance) for c in candidates],
             self.settings.verify,

@@ -317,6 +317,15 @@ class VerifySettings(_RenamedSection):
         description="GICP's threads a registration (OpenMP). 1: under load the other cores "
         "are encoding, and a registration on more threads waits for them (docs/deploy.md, sizing)",
     )
+    processes: int = Field(
+        1,
+        ge=0,
+        le=64,
+        description="registration (preparing queries, packing keyframe geometry, GICP) in this "
+        "many child processes; 0: in the server's own threads, where small_gicp holds "
+        "Python's lock for each call and every other request's Python waits (docs/deploy.md, "
+        "sizing)",
+    )
 
 
 class SensorSettings(_Section):

@@ -61,6 +61,10 @@ async def readyz(request: Request) -> Response:
                 "scan": svc.encoder.scan_path,
                 "lanes": svc.pipeline.batcher.lanes,  # encoder calls at once
                 "threads_per_lane": svc.encoder.threads,
+                # registration's child processes (0: in the server's threads), and how
+                # many times one died and was started again
+                "registration_processes": svc.pipeline.registrar.processes,
+                "registration_restarts": svc.pipeline.registrar.restarts,
                 "sensor": svc.sensors.model_sensor.name,
                 "sensor_maps": {
                     name: {"how": m.how, "pairs": m.pairs, "data": m.data, "at": m.at}

@@ -1,0 +1,277 @@
+"""Where registration runs: in the server's own worker threads, or in child processes
+(``verify.processes``).
+
+small_gicp keeps Python's lock for the whole of each call (voxel grid, k-d tree, normals,
+GICP, nearest-neighbour search): while one request prepares or registers, no other
+request's Python runs, on any core. Under a fleet's load that lock, not the cores, bounded
+the server (``make e2e``'s ``cpu``: the server used about 1.3 of 2 cores with half a core
+idle, and registration held the lock two thirds of the time it was held:
+``docs/service.md``). With ``processes`` ≥ 1 the query's side is prepared, kept, packed into
+a keyframe's geometry and registered in a child process; this process sends the query's
+thinned points once and each candidate's blob, and gets verdicts back.
+
+    prepare(xyz)  → Held: the query's side, where it is kept (this process or a child's
+                    key), its grid size, and why it cannot be registered when it cannot
+    geometry(h)   → the keyframe's blob (``registration.keyframe_geometry``)
+    verify(h, …)  → one verdict per candidate (``verify.verify_candidates``)
+
+Each child keeps the ``HELD`` latest prepared queries; a query it no longer holds (evicted,
+or the child restarted) is prepared again from the points the Held keeps, so the results
+are the same either way. A child that dies is started again and the call tried once more;
+failing again, the query's candidates are refused with the reason, and a keyframe's
+geometry answers 503 (retry: nothing is stored without it).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import multiprocessing
+import signal
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from overlapmamba.service.errors import Unavailable
+from overlapmamba.service.registration import (
+    Prepared,
+    RegistrationParams,
+    keyframe_geometry,
+    prepare,
+)
+from overlapmamba.service.sensors import FieldOfView
+from overlapmamba.service.settings import VerifySettings
+from overlapmamba.service.verify import Verdict, params_of, verify_candidates
+
+log = logging.getLogger(__name__)
+
+HELD = 128  # prepared queries a child keeps (≈ 0.2 MB each): more than a server has in flight
+Candidates = list[tuple[bytes | None, float | None, float]]
+
+
+@dataclass(frozen=True)
+class Held:
+    """The query's side of registration, wherever it is kept."""
+
+    size: int  # its voxel grid's points
+    reason: str | None  # why it cannot be registered, when it cannot
+    local: Prepared | None = None  # kept in this process (``processes`` 0)
+    xyz: np.ndarray | None = None  # the thinned points: a child that lost it prepares again
+    key: int = -1  # its key in a child
+    child: int = -1  # which child
+
+    @property
+    def unregistrable(self) -> Prepared:
+        """What ``verify_candidates`` refuses every candidate of, with the reason."""
+        return Prepared(None, self.size, self.reason or "the query could not be prepared")
+
+
+class Registrar:
+    """Prepare, pack and register, in this process (``processes`` 0) or in ``processes``
+    children, a query kept by the child that prepared it (the next child in turn). The
+    methods block: they run in the service's worker threads (:func:`threads.in_thread`)."""
+
+    def __init__(self, processes: int = 0) -> None:
+        if processes < 0:
+            raise ValueError(f"verify.processes must be 0 or more, got {processes}")
+        self.processes = processes
+        self._children: list[ProcessPoolExecutor | None] = [None] * processes
+        self._lock = threading.Lock()  # starting and restarting children
+        self._keys = itertools.count()
+        self._turn = itertools.count()
+        self.restarts = 0
+
+    @property
+    def where(self) -> str:
+        if not self.processes:
+            return "the server's own threads (verify.processes 0)"
+        return f"{self.processes} child process{'es' if self.processes > 1 else ''}"
+
+    def __repr__(self) -> str:
+        return f"Registrar({self.where})"
+
+    def start(self) -> None:
+        """Start the children now (each imports small_gicp, ≈ 0.5 s, in the background)."""
+        for i in range(self.processes):
+            self._child(i).submit(_ping)
+
+    def stop(self) -> None:
+        with self._lock:
+            children, self._children = self._children, [None] * self.processes
+        for ex in children:
+            if ex is not None:
+                ex.shutdown(wait=True, cancel_futures=True)
+
+    # ---- the three operations ----------------------------------------------------------------
+
+    def prepare(self, xyz: np.ndarray, p: RegistrationParams) -> Held:
+        if not self.processes:
+            q = prepare(xyz, p)
+            return Held(q.size, q.reason, local=q)
+        # the child prepares every point it is sent: the same grid as ``prepare(xyz, p)``
+        thin = np.ascontiguousarray(xyz[:: max(1, p.stride), :3])
+        held = Held(
+            0, None, xyz=thin, key=next(self._keys), child=next(self._turn) % self.processes
+        )
+        try:
+            size, reason = self._call(held, _prepare, p, send=True)
+        except _Failed as err:
+            return replace(held, reason=f"the registration process failed: {err}")
+        return replace(held, size=size, reason=reason)
+
+    def geometry(self, held: Held, p: RegistrationParams) -> bytes | None:
+        """The keyframe's blob; raises :class:`Unavailable` (503, retry) when the
+        registration process fails twice: a keyframe is not stored without its geometry."""
+        if held.local is not None or held.xyz is None or held.reason is not None:
+            return keyframe_geometry(held.local or held.unregistrable, p)
+        try:
+            return self._call(held, _geometry, p)
+        except _Failed as err:
+            raise Unavailable(
+                f"the registration process failed twice packing the keyframe's geometry "
+                f"({err}); nothing was stored: retry",
+                code="registration_failed",
+            ) from err
+
+    def verify(
+        self,
+        held: Held,
+        candidates: Candidates,
+        v: VerifySettings,
+        views: list[FieldOfView | None] | None = None,
+    ) -> list[Verdict]:
+        if held.local is not None:
+            return verify_candidates(held.local, candidates, v, views)
+        if held.xyz is None or held.reason is not None:
+            return verify_candidates(held.unregistrable, candidates, v, views)
+        try:
+            return self._call(held, _verify, params_of(v), candidates, v, views)
+        except _Failed as err:
+            q = Prepared(None, held.size, f"the registration process failed twice: {err}")
+            return verify_candidates(q, candidates, v, views)
+
+    # ---- children ----------------------------------------------------------------------------
+
+    def pids(self) -> list[int]:
+        """The children's process ids (those started)."""
+        with self._lock:
+            children = [ex for ex in self._children if ex is not None]
+        return [pid for ex in children for pid in getattr(ex, "_processes", None) or {}]
+
+    def _child(self, i: int) -> ProcessPoolExecutor:
+        with self._lock:
+            ex = self._children[i]
+            if ex is None:
+                ex = self._children[i] = self._new_child()
+            return ex
+
+    @staticmethod
+    def _new_child() -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(
+            max_workers=1,
+            mp_context=multiprocessing.get_context("spawn"),  # never fork a threaded server
+            initializer=_child_init,
+        )
+
+    def _restart(self, i: int, dead: ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._children[i] is dead:  # another thread may have restarted it already
+                self._children[i] = None
+                self.restarts += 1
+                log.warning("registration process %d died; starting it again", i)
+        dead.shutdown(wait=False, cancel_futures=True)
+
+    def _call(
+        self,
+        held: Held,
+        fn: Callable[..., Any],
+        p: RegistrationParams,
+        *args: Any,
+        send: bool = False,
+    ) -> Any:
+        """``fn`` in the query's child. The query's points go along when ``send`` or when
+        the child no longer holds the query (it answers :class:`_Missing`); a child that
+        died is started again and asked once more, and :class:`_Failed` says it died twice."""
+        died: list[str] = []
+        xyz = held.xyz if send else None
+        while True:
+            ex = self._child(held.child)
+            try:
+                out = ex.submit(fn, held.key, xyz, p, *args).result()
+            except BrokenProcessPool as err:
+                died.append(str(err) or type(err).__name__)
+                self._restart(held.child, ex)
+                if len(died) == 2:
+                    raise _Failed("; ".join(died)) from err
+                xyz = held.xyz
+                continue
+            if not isinstance(out, _Missing):
+                return out
+            if xyz is not None:  # cannot happen: a child prepares what it is sent
+                raise RuntimeError("the registration process lost a query it was just sent")
+            xyz = held.xyz
+
+
+class _Failed(Exception):
+    """The registration process died twice on one call."""
+
+
+# ---- in the child ------------------------------------------------------------------------------
+
+
+class _Missing:
+    """The child no longer holds the query: send its points."""
+
+
+_HELD: OrderedDict[int, Prepared] = OrderedDict()
+
+
+def _child_init() -> None:
+    # Ctrl-C reaches the whole process group: the server drains, its child must not die
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _ping() -> bool:
+    return True
+
+
+def _held(key: int, xyz: np.ndarray | None, p: RegistrationParams) -> Prepared | None:
+    q = _HELD.get(key)
+    if q is not None:
+        _HELD.move_to_end(key)
+        return q
+    if xyz is None:
+        return None
+    q = prepare(xyz, replace(p, stride=1))  # the points came thinned
+    _HELD[key] = q
+    while len(_HELD) > HELD:
+        _HELD.popitem(last=False)
+    return q
+
+
+def _prepare(key: int, xyz: np.ndarray | None, p: RegistrationParams) -> Any:
+    q = _held(key, xyz, p)
+    return _Missing() if q is None else (q.size, q.reason)
+
+
+def _geometry(key: int, xyz: np.ndarray | None, p: RegistrationParams) -> Any:
+    q = _held(key, xyz, p)
+    return _Missing() if q is None else keyframe_geometry(q, p)
+
+
+def _verify(
+    key: int,
+    xyz: np.ndarray | None,
+    p: RegistrationParams,
+    candidates: Candidates,
+    v: VerifySettings,
+    views: list[FieldOfView | None] | None,
+) -> Any:
+    q = _held(key, xyz, p)
+    return _Missing() if q is None else verify_candidates(q, candidates, v, views)

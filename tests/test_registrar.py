@@ -1,0 +1,168 @@
+"""verify.processes: registration in child processes answers exactly as in the server's own
+threads; a child that lost a query prepares it again; a child that dies is started again; one
+that dies twice refuses the query's candidates with the reason and answers a keyframe's
+geometry with 503; the setting over HTTP and /readyz (overlapmamba.service.registrar)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from service_kit import OCTET, running, scan
+
+from overlapmamba.service.errors import Unavailable
+from overlapmamba.service.registrar import Registrar
+from overlapmamba.service.settings import Settings, VerifySettings
+from overlapmamba.service.verify import params_of
+
+V = VerifySettings(ambiguity_margin=0.3, stop_at_first=False)
+P = params_of(V)
+
+
+@pytest.fixture(scope="module")
+def scans() -> list[np.ndarray]:
+    # one place: the query, two keyframes of it (turned: the seed yaw is the opposite turn),
+    # one of another place
+    return [scan(1)[:, :3], scan(1, 30.0)[:, :3], scan(1, -60.0)[:, :3], scan(7)[:, :3]]
+
+
+@pytest.fixture(scope="module")
+def child():
+    r = Registrar(1)
+    r.start()
+    yield r
+    r.stop()
+
+
+def answers(r: Registrar, scans: list[np.ndarray]) -> tuple[list[bytes | None], list]:
+    blobs = [r.geometry(r.prepare(s, P), P) for s in scans[1:]]
+    cands = [(b, yaw, 0.1) for b, yaw in zip(blobs, (-30.0, 60.0, 0.0), strict=True)]
+    return blobs, r.verify(r.prepare(scans[0], P), cands, V)
+
+
+def test_a_child_answers_as_the_server_threads_do(child, scans):
+    local_blobs, local = answers(Registrar(0), scans)
+    blobs, remote = answers(child, scans)
+    assert blobs == local_blobs  # the same keyframe geometry, byte for byte
+    assert [v.verified for v in local][:2] == [True, True]  # the place, turned
+    assert local[2].verified is False  # another place
+    for a, b in zip(local, remote, strict=True):
+        assert (a.verified, a.fitness, a.rmse, a.reason) == (
+            b.verified,
+            b.fitness,
+            b.rmse,
+            b.reason,
+        )
+        assert a.rival_fitness == b.rival_fitness
+        assert (a.relative_pose is None) == (b.relative_pose is None)
+        if a.relative_pose is not None:
+            np.testing.assert_array_equal(a.relative_pose, b.relative_pose)
+    assert child.pids() and os.getpid() not in child.pids()
+
+
+def test_a_query_the_child_no_longer_holds_is_prepared_again(child, scans):
+    _, local = answers(Registrar(0), scans)
+    blob = child.geometry(child.prepare(scans[1], P), P)
+    held = child.prepare(scans[0], P)
+    lost = replace(held, key=-1)  # a key the child never held: evicted, or the child restarted
+    (v,) = child.verify(lost, [(blob, -30.0, 0.1)], V)
+    assert (v.verified, v.fitness) == (local[0].verified, local[0].fitness)
+
+
+def test_a_sparse_query_is_refused_without_the_child(child):
+    held = child.prepare(np.zeros((10, 3), np.float32), P)
+    assert held.size < P.min_points and "registration needs at least" in held.reason
+    (v,) = child.verify(held, [(b"x", 0.0, 0.1)], V)
+    assert v.verified is False and v.reason == held.reason
+    assert child.geometry(held, P) is None
+
+
+def test_a_killed_child_is_started_again(scans):
+    r = Registrar(1)
+    try:
+        blob = r.geometry(r.prepare(scans[1], P), P)
+        held = r.prepare(scans[0], P)
+        (before,) = r.verify(held, [(blob, -30.0, 0.1)], V)
+        (pid,) = r.pids()
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:  # reaped: the pool knows it is broken
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
+        (after,) = r.verify(held, [(blob, -30.0, 0.1)], V)  # prepared again in the new child
+        assert (after.verified, after.fitness) == (before.verified, before.fitness)
+        assert r.restarts == 1 and r.pids() and r.pids() != [pid]
+    finally:
+        r.stop()
+
+
+class _Dying:
+    """A child that is dead whenever it is asked (each call's pool breaks)."""
+
+    def submit(self, *args: object, **kwargs: object) -> Future:
+        f: Future = Future()
+        f.set_exception(BrokenProcessPool("the child was killed"))
+        return f
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        pass
+
+
+class _AlwaysDying(Registrar):
+    @staticmethod
+    def _new_child():  # type: ignore[override]
+        return _Dying()
+
+
+def test_a_child_that_dies_twice_refuses_and_never_stores_without_geometry(scans):
+    r = _AlwaysDying(1)
+    held = r.prepare(scans[0], P)  # it could not be prepared: the reason says why
+    assert held.reason and "registration process failed" in held.reason
+    (v,) = r.verify(held, [(b"x", 0.0, 0.1)], V)
+    assert v.verified is False and "registration process failed" in v.reason
+    prepared = replace(held, reason=None, size=1000)  # prepared, then the child died twice
+    with pytest.raises(Unavailable, match="failed twice") as err:
+        r.geometry(prepared, P)
+    assert err.value.status == 503
+    (v,) = r.verify(prepared, [(b"x", 0.0, 0.1)], V)
+    assert v.verified is False and "failed twice" in v.reason and "killed" in v.reason
+    assert r.restarts == 6  # each call: died, started again, died again
+
+
+def test_processes_must_not_be_negative():
+    with pytest.raises(ValidationError, match="processes"):
+        VerifySettings(processes=-1)
+    with pytest.raises(ValueError, match="0 or more"):
+        Registrar(-1)
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("processes", [0, 2])
+async def test_http_verifies_alike_in_threads_and_in_children(tmp_path, encoder, processes):
+    """The same keyframe and query over HTTP: verified alike with registration in the
+    server's threads and in two children; /readyz says where it runs."""
+    settings = Settings(data_dir=tmp_path / "data", verify={"processes": processes})
+    async with running(settings, encoder) as c:
+        ready = (await c.get("/readyz")).json()["detail"]
+        assert (ready["registration_processes"], ready["registration_restarts"]) == (processes, 0)
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        params = {"keyframe_id": "k0", "timestamp": 1.0, "robot_id": "r1", "session_id": "s1"}
+        body = scan(3).tobytes()
+        r = await c.post("/v1/maps/m/keyframes", params=params, content=body, headers=OCTET)
+        assert r.status_code == 201, r.text
+        q = await c.post("/v1/maps/m/query", content=body, headers=OCTET)
+        assert q.status_code == 200, q.text
+        v, lc = q.json()["matches"][0]["verification"], q.json()["loop_closure"]
+        assert v["verified"] is True and v["fitness"] > 0.9, v
+        assert lc["verified"] is True and lc["keyframe_id"] == "k0"
+        return v
