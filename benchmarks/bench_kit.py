@@ -57,8 +57,24 @@ def _machine_jiffies() -> tuple[int, int]:
 
 
 def _pid_cpu_s(pid: int) -> float:
+    """CPU seconds of process ``pid`` and its descendants: its own, its children's that it
+    waited for, and those still running (a server's registration processes,
+    ``verify.processes``)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+    ticks = sum(int(f) for f in fields[11:15])  # utime, stime, cutime, cstime
+    return ticks / os.sysconf("SC_CLK_TCK") + sum(_pid_cpu_s(c) for c in _children(pid))
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+        if ppid == pid:
+            out.append(int(stat.parent.name))
+    return out
 
 
 SERVER_CPU_S = [0.0]  # CPU seconds used by the benchmark's servers, added as each one stops

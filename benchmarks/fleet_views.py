@@ -32,7 +32,12 @@ one-view twin and the one-pass file (``--model "one pass, spectrum in the first 
 the service's settings before encoder lanes and one-thread registration, and each change
 alone: ``--model "descriptors (shipped)" --model "descriptors (shipped), settings before
 lanes" --model "descriptors (shipped), one lane" --model "descriptors (shipped), GICP on 2
-threads" --out reports/client/fleet-lanes.json``.
+threads" --out reports/client/fleet-lanes.json``; or registration in a child process (the
+default, ``verify.processes`` 1) against the server's own threads, for the one-pass file and
+the shipped one: ``--model "one pass, spectrum in the first stage" --model "one pass,
+registration in the server's threads" --model "descriptors (shipped)" --model "descriptors
+(shipped), registration in the server's threads" --out reports/client/fleet-registrar.json``.
+The server's CPU counts its registration processes.
 
 Writes JSON (default reports/client/fleet-views.json).
 """
@@ -94,6 +99,16 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
     "descriptors (shipped), batches of 1": (SHIPPED, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}),
     "one view, batches of 8": (ONE_VIEW, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "8"}),
     "one view, batches of 2": (ONE_VIEW, {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "2"}),
+    # registration in the server's own threads, as before verify.processes (small_gicp holds
+    # Python's lock for each call: overlapmamba.service.registrar)
+    "one pass, registration in the server's threads": (
+        ROOT / "models" / "overlapmamba-hdl64-one-pass.onnx",
+        {"OVERLAPMAMBA_VERIFY__PROCESSES": "0"},
+    ),
+    "descriptors (shipped), registration in the server's threads": (
+        SHIPPED,
+        {"OVERLAPMAMBA_VERIFY__PROCESSES": "0"},
+    ),
 }
 # the models a plain run compares (--model picks others)
 DEFAULT_MODELS = (
