@@ -356,6 +356,7 @@ FLEET_ANY_SENSOR = "reports/client/fleet-any-sensor.json"  # the shipped file an
 FLEET_LANES = "reports/client/fleet-lanes.json"  # the service's threads, before and now
 FLEET_BATCHES = "reports/client/fleet-batches.json"  # encoder batches of 8, 2 and 1 a lane
 FLEET_BATCHES_ONE_VIEW = "reports/client/fleet-batches-one-view.json"  # the same, one view
+FLEET_REGISTRAR = "reports/client/fleet-registrar.json"  # registration in a child or threads
 
 
 def fleet_views(path: str = FLEET_VIEWS) -> str:
@@ -434,6 +435,20 @@ def _load_row(rel: str, label: str) -> list[str]:
         if rss.get("ready") is not None and rss.get("after") is not None
         else ""
     )
+    cpu = lt.get("cpu") or {}  # recorded since 2026-12-02
+    if cpu.get("server_cores") is not None and cpu.get("machine_busy_cores") is not None:
+        n = lt.get("registration_processes")
+        where = (
+            "registration in the server's threads"
+            if n == 0
+            else f"registration in {n} child process{'es' * (n != 1)}"
+        )
+        memory += (
+            f"; {where}; CPU in use: the server {cpu['server_cores']:.2f} cores, its children "
+            f"and the rest {cpu['other_cores']:.2f}, the fleet, mapper and dashboard "
+            f"{cpu['load_cores']:.2f}: {cpu['machine_busy_cores']:.2f} of "
+            f"{cpu['machine_cores']} busy"
+        )
     return [
         label,
         lt["when"][:10],
@@ -451,13 +466,16 @@ def e2e() -> str:
     rows = [_load_row("reports/e2e/load.json", "load (`tests/test_e2e_load.py`)")]
     for twin in sorted((ROOT / "reports" / "e2e").glob("load-*.json")):
         stem = twin.stem.removeprefix("load-")
-        # a run with the ambiguity margin set by a variable: load[-MODEL]-margin-VALUE
-        if stem.startswith("margin-"):  # the default file's
+        # a run with settings given by variables: load[-MODEL][-margin-VALUE][-processes-N]
+        if stem.startswith(("margin-", "processes-")):  # the default file's
             stem = "overlapmamba-hdl64-" + stem
+        stem, _, processes = stem.partition("-processes-")
         stem, _, margin = stem.partition("-margin-")
         label = f"load, `OVERLAPMAMBA_E2E_MODEL=models/{stem}.onnx`"
         if margin:
             label += f", `OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN={margin}`"
+        if processes:
+            label += f", `OVERLAPMAMBA_VERIFY__PROCESSES={processes}`"
         rows.append(_load_row(f"reports/e2e/{twin.name}", label))
     crash = load("reports/e2e/crash.json")
     rows.append(
@@ -513,6 +531,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "fleet-views": fleet_views,
     "fleet-any-sensor": lambda: fleet_views(FLEET_ANY_SENSOR),
     "fleet-lanes": lambda: fleet_views(FLEET_LANES),
+    "fleet-registrar": lambda: fleet_views(FLEET_REGISTRAR),
     "fleet-batches": lambda: fleet_views(FLEET_BATCHES),
     "fleet-batches-one-view": lambda: fleet_views(FLEET_BATCHES_ONE_VIEW),
     "e2e": e2e,

@@ -18,9 +18,9 @@ import httpx
 import pytest
 from e2e_kit import (
     FULL,
-    CpuMeter,
     PRECISION_BAR,
     RECALL_BAR,
+    CpuMeter,
     Mapper,
     Poller,
     drive_dir,
@@ -53,6 +53,10 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
     margin = os.environ.get("OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN")
     if margin:
         name += f"-margin-{margin}"
+    # registration in the server's threads (0) or in more children than the default's one
+    processes = os.environ.get("OVERLAPMAMBA_VERIFY__PROCESSES")
+    if processes:
+        name += f"-processes-{processes}"
     with (
         server(tmp_path / "data", env, model) as (url, _),
         httpx.Client(base_url=url, timeout=60) as c,
@@ -98,9 +102,11 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "command": "make e2e (tests/test_e2e_load.py)"
         if name == "load"
         else (f"OVERLAPMAMBA_VERIFY__AMBIGUITY_MARGIN={margin} " if margin else "")
+        + (f"OVERLAPMAMBA_VERIFY__PROCESSES={processes} " if processes else "")
         + f"OVERLAPMAMBA_E2E=full OVERLAPMAMBA_E2E_MODEL={model} "
         "python -m pytest -m e2e tests/test_e2e_load.py",
         "verify_ambiguity_margin": served_margin,  # value and source, as /readyz says
+        "registration_processes": ready["registration_processes"],  # 0: the server's threads
         "model": report.server,  # the service's model id, views and scan path (its /readyz)
         "drive": drive.name,
         "robots": robots,
