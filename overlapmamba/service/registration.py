@@ -44,7 +44,9 @@ and small_gicp keeps Python's lock while it waits, which stalls the event loop a
 other request's Python work. So the service registers on one thread (``verify.threads``):
 with encoder lanes on 2 cores, a fleet got as many observations a second or more, and the
 verify stage took less time a query (``python benchmarks/fleet_views.py``, the shipped file
-against GICP on 2 threads: ``reports/client/fleet-lanes.json``).
+against GICP on 2 threads: ``reports/client/fleet-lanes.json``). small_gicp holds the lock
+for every call, not only while it waits: the service runs all of this module in a child
+process by default (:mod:`overlapmamba.service.registrar`, ``verify.processes``).
 """
 
 from __future__ import annotations
