@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -104,6 +107,38 @@ def test_a_killed_child_is_started_again(scans):
         assert r.restarts == 1 and r.pids() and r.pids() != [pid]
     finally:
         r.stop()
+
+
+def test_a_killed_server_leaves_no_child_behind():
+    """SIGKILL gives the server no chance to stop its child: the child leaves by itself."""
+    code = (
+        "import time\n"
+        "from overlapmamba.service.registrar import Registrar\n"
+        "if __name__ == '__main__':\n"
+        "    r = Registrar(1)\n"
+        "    r.start()\n"
+        "    while not r.pids():\n"
+        "        time.sleep(0.05)\n"
+        "    print(r.pids()[0], flush=True)\n"
+        "    time.sleep(120)\n"
+    )
+    with subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True) as srv:
+        assert srv.stdout is not None
+        child = int(srv.stdout.readline())
+        os.kill(srv.pid, signal.SIGKILL)
+        srv.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _alive(child):
+        time.sleep(0.1)
+    assert not _alive(child), f"registration process {child} outlived its server"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != "Z"  # a zombie has exited (its parent, init, reaps it)
 
 
 class _Dying:

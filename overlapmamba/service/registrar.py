@@ -27,8 +27,10 @@ from __future__ import annotations
 import itertools
 import logging
 import multiprocessing
+import os
 import signal
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -177,6 +179,7 @@ class Registrar:
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),  # never fork a threaded server
             initializer=_child_init,
+            initargs=(os.getpid(),),
         )
 
     def _restart(self, i: int, dead: ProcessPoolExecutor) -> None:
@@ -232,9 +235,19 @@ class _Missing:
 _HELD: OrderedDict[int, Prepared] = OrderedDict()
 
 
-def _child_init() -> None:
+def _child_init(server: int) -> None:
     # Ctrl-C reaches the whole process group: the server drains, its child must not die
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # a server that is killed (SIGKILL, the OOM killer) cannot stop its child: the child
+    # leaves as soon as its parent is another process (PR_SET_PDEATHSIG would fire when the
+    # thread that started it ends, and threads come and go in a server)
+    threading.Thread(target=_orphaned, args=(server,), daemon=True, name="parent").start()
+
+
+def _orphaned(server: int) -> None:
+    while os.getppid() == server:
+        time.sleep(0.5)
+    os._exit(0)
 
 
 def _ping() -> bool:
