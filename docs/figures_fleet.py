@@ -430,11 +430,16 @@ def _load_row(rel: str, label: str) -> list[str]:
     views = served.get("views", 0)
     model = f" (model `{served['model_id']}`, {views} view{'s' * (views != 1)})" if served else ""
     rss = lt.get("server_resident_mb") or {}  # recorded since 2026-12-01 (its /metrics)
-    memory = (
+    notes = (
         f"; the server's resident memory {rss['ready']:.0f} MB ready, {rss['after']:.0f} MB after"
         if rss.get("ready") is not None and rss.get("after") is not None
         else ""
     )
+    bars = fl.get("bars") or {}
+    for what in ("precision", "recall"):  # a run under its floor failed its test
+        got = fl.get(f"closure_{what}")
+        if bars.get("asserted") and got is not None and got < bars[what]:
+            notes += f" (under the run's {what} floor, {bars[what]:g}: the test failed)"
     cpu = lt.get("cpu") or {}  # recorded since 2026-12-02
     if cpu.get("server_cores") is not None and cpu.get("machine_busy_cores") is not None:
         n = lt.get("registration_processes")
@@ -443,7 +448,7 @@ def _load_row(rel: str, label: str) -> list[str]:
             if n == 0
             else f"registration in {n} child process{'es' * (n != 1)}"
         )
-        memory += (
+        notes += (
             f"; {where}; CPU in use: the server {cpu['server_cores']:.2f} cores, its children "
             f"and the rest {cpu['other_cores']:.2f}, the fleet, mapper and dashboard "
             f"{cpu['load_cores']:.2f}: {cpu['machine_busy_cores']:.2f} of "
@@ -457,7 +462,7 @@ def _load_row(rel: str, label: str) -> list[str]:
         f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
         f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "
         f"verified closures precision {fl['closure_precision']:.3f}, recall "
-        f"{fl['closure_recall']:.3f}{memory}",
+        f"{fl['closure_recall']:.3f}{notes}",
     ]
 
 
