@@ -165,13 +165,16 @@ def test_a_child_that_dies_twice_refuses_and_never_stores_without_geometry(scans
     assert held.reason and "registration process failed" in held.reason
     (v,) = r.verify(held, [(b"x", 0.0, 0.1)], V)
     assert v.verified is False and "registration process failed" in v.reason
-    prepared = replace(held, reason=None, size=1000)  # prepared, then the child died twice
+    with pytest.raises(Unavailable, match="nothing was stored") as err:
+        r.geometry(held, P)  # a keyframe is never stored without its geometry
+    assert err.value.status == 503 and err.value.code == "registration_failed"
+    prepared = replace(held, reason=None, size=1000, failed=False)  # then the child died twice
     with pytest.raises(Unavailable, match="failed twice") as err:
         r.geometry(prepared, P)
     assert err.value.status == 503
     (v,) = r.verify(prepared, [(b"x", 0.0, 0.1)], V)
     assert v.verified is False and "failed twice" in v.reason and "killed" in v.reason
-    assert r.restarts == 6  # each call: died, started again, died again
+    assert r.restarts == 6  # each call that reached a child: died, started again, died again
 
 
 def test_processes_must_not_be_negative():

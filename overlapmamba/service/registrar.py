@@ -67,6 +67,7 @@ class Held:
     xyz: np.ndarray | None = None  # the thinned points: a child that lost it prepares again
     key: int = -1  # its key in a child
     child: int = -1  # which child
+    failed: bool = False  # the child died twice preparing it: the reason says how
 
     @property
     def unregistrable(self) -> Prepared:
@@ -124,22 +125,27 @@ class Registrar:
         try:
             size, reason = self._call(held, _prepare, p, send=True)
         except _Failed as err:
-            return replace(held, reason=f"the registration process failed: {err}")
+            return replace(held, reason=f"the registration process failed: {err}", failed=True)
         return replace(held, size=size, reason=reason)
 
     def geometry(self, held: Held, p: RegistrationParams) -> bytes | None:
         """The keyframe's blob; raises :class:`Unavailable` (503, retry) when the
         registration process fails twice: a keyframe is not stored without its geometry."""
+        if held.failed:
+            raise self._unavailable(held.reason)
         if held.local is not None or held.xyz is None or held.reason is not None:
             return keyframe_geometry(held.local or held.unregistrable, p)
         try:
             return self._call(held, _geometry, p)
         except _Failed as err:
-            raise Unavailable(
-                f"the registration process failed twice packing the keyframe's geometry "
-                f"({err}); nothing was stored: retry",
-                code="registration_failed",
-            ) from err
+            raise self._unavailable(f"it failed twice packing the geometry: {err}") from err
+
+    @staticmethod
+    def _unavailable(why: str | None) -> Unavailable:
+        return Unavailable(
+            f"the keyframe's geometry could not be made ({why}); nothing was stored: retry",
+            code="registration_failed",
+        )
 
     def verify(
         self,
