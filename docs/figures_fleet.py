@@ -435,6 +435,9 @@ def _load_row(rel: str, label: str) -> list[str]:
         if rss.get("ready") is not None and rss.get("after") is not None
         else ""
     )
+    kids = lt.get("registration_resident_mb") or {}  # recorded since 2026-12-02
+    if kids.get("ready") is not None and kids.get("after") is not None:
+        notes += f", its registration process {kids['ready']:.0f} MB, {kids['after']:.0f} MB"
     bars = fl.get("bars") or {}
     for what in ("precision", "recall"):  # a run under its floor failed its test
         got = fl.get(f"closure_{what}")
@@ -448,9 +451,16 @@ def _load_row(rel: str, label: str) -> list[str]:
             if n == 0
             else f"registration in {n} child process{'es' * (n != 1)}"
         )
+        children = cpu.get("registration_cores")  # recorded apart since 2026-12-02
+        own = (
+            f"the server {cpu['server_cores']:.2f} cores, its registration {children:.2f}, "
+            f"the rest {cpu['other_cores']:.2f}"
+            if children is not None
+            else f"the server {cpu['server_cores']:.2f} cores, its children and the rest "
+            f"{cpu['other_cores']:.2f}"
+        )
         notes += (
-            f"; {where}; CPU in use: the server {cpu['server_cores']:.2f} cores, its children "
-            f"and the rest {cpu['other_cores']:.2f}, the fleet, mapper and dashboard "
+            f"; {where}; CPU in use: {own}, the fleet, mapper and dashboard "
             f"{cpu['load_cores']:.2f}: {cpu['machine_busy_cores']:.2f} of "
             f"{cpu['machine_cores']} busy"
         )

@@ -178,62 +178,70 @@ def missing_keyframes(c: httpx.Client, map_id: str, ids: list[str]) -> list[str]
     return [k for k in ids if c.get(f"/v1/maps/{map_id}/keyframes/{k}").status_code != 200]
 
 
+def metrics(c: httpx.Client) -> dict[str, float]:
+    """The server's own ``/metrics``: each unlabelled series' value by name."""
+    r = c.get("/metrics")
+    r.raise_for_status()
+    return {m[1]: float(m[2]) for m in re.finditer(r"^([a-z_]+) (\S+)$", r.text, re.M)}
+
+
 def resident_mb(c: httpx.Client) -> float | None:
     """The server's resident memory (MB) as its own ``/metrics`` says
     (``process_resident_memory_bytes``; None where the platform has no such series)."""
-    r = c.get("/metrics")
-    r.raise_for_status()
-    found = re.search(r"^process_resident_memory_bytes (\S+)$", r.text, re.M)
-    return float(found[1]) / 1e6 if found else None
+    own = metrics(c).get("process_resident_memory_bytes")
+    return own / 1e6 if own is not None else None
 
 
-def server_cpu_s(c: httpx.Client) -> float | None:
-    """The server's CPU seconds so far (user + system), as its own ``/metrics`` says
-    (``process_cpu_seconds_total``; None where the platform has no such series)."""
-    r = c.get("/metrics")
-    r.raise_for_status()
-    found = re.search(r"^process_cpu_seconds_total (\S+)$", r.text, re.M)
-    return float(found[1]) if found else None
+def registration_mb(c: httpx.Client) -> float | None:
+    """Its registration processes' resident memory together (MB), which the server's own
+    series leave out (``overlapmamba_registration_resident_bytes``; None: no such series)."""
+    children = metrics(c).get("overlapmamba_registration_resident_bytes")
+    return children / 1e6 if children is not None else None
 
 
 @dataclass
 class CpuMeter:
-    """Where the CPU went during a run: the server's, this process's (the fleet, the mapper
-    and the dashboard), the whole machine's busy time, and the rest of it (the server's
-    registration processes, anything else), in cores (CPU seconds a second).
+    """Where the CPU went during a run, in cores (CPU seconds a second): the server's own
+    process, its registration processes, this process's (the fleet, the mapper and the
+    dashboard), the whole machine's busy time, and the rest of it (anything else).
     A server using well under the cores the machine has left idle is bound by something else
     than CPU, e.g. Python's lock held by a native call; a machine busy on every core is
     bound by CPU."""
 
     c: httpx.Client
     t0: float = 0.0
-    server0: float | None = None
+    server0: dict[str, float] = field(default_factory=dict)
     own0: float = 0.0
     busy0: tuple[float, float] | None = None
 
     def start(self) -> CpuMeter:
-        self.t0, self.server0 = time.monotonic(), server_cpu_s(self.c)
+        self.t0, self.server0 = time.monotonic(), metrics(self.c)
         self.own0, self.busy0 = time.process_time(), machine_busy()
         return self
 
     def cores(self) -> dict[str, Any]:
         wall = time.monotonic() - self.t0
-        server, own, busy = server_cpu_s(self.c), time.process_time(), machine_busy()
+        server, own, busy = metrics(self.c), time.process_time(), machine_busy()
+
+        def rate(series: str) -> float | None:
+            if series not in server or series not in self.server0:
+                return None
+            return (server[series] - self.server0[series]) / wall
+
         out: dict[str, Any] = {"machine_cores": os.cpu_count(), "wall_s": wall}
-        out["server_cores"] = (
-            (server - self.server0) / wall
-            if server is not None and self.server0 is not None
-            else None
-        )
+        out["server_cores"] = rate("process_cpu_seconds_total")
+        out["registration_cores"] = rate("overlapmamba_registration_cpu_seconds_total")
         out["load_cores"] = (own - self.own0) / wall  # the fleet, mapper and dashboard
+        out["machine_busy_cores"] = None
         if busy is not None and self.busy0 is not None:
             (b0, t0), (b1, t1) = self.busy0, busy
             out["machine_busy_cores"] = (b1 - b0) / (t1 - t0) * (os.cpu_count() or 1)
-        else:
-            out["machine_busy_cores"] = None
-        parts = (out["machine_busy_cores"], out["server_cores"])
-        # the server's registration processes (verify.processes), and whatever else ran
-        out["other_cores"] = parts[0] - parts[1] - out["load_cores"] if None not in parts else None
+        parts = [out[k] for k in ("machine_busy_cores", "server_cores", "load_cores")]
+        out["other_cores"] = (
+            parts[0] - sum(parts[1:]) - (out["registration_cores"] or 0.0)
+            if None not in parts
+            else None
+        )
         return out
 
 

@@ -26,6 +26,7 @@ from e2e_kit import (
     drive_dir,
     missing_keyframes,
     percentiles,
+    registration_mb,
     resident_mb,
     size,
     write_report,
@@ -65,7 +66,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         model_id = ready["model_id"]
         served_margin = ready["thresholds"]["verify.ambiguity_margin"]
         assert c.put("/v1/maps/built").status_code == 201
-        resident_ready = resident_mb(c)
+        resident_ready, children_ready = resident_mb(c), registration_mb(c)
         dim = read_model_metadata(model).descriptor_dim  # e.g. 768 for a first stage's
         mapper = Mapper(url, model_id=model_id, dim=dim).start()
         poller = Poller(url).start()
@@ -95,7 +96,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         missing += missing_keyframes(c, "built", list(mapper.acked))
         maps = {m["map_id"]: m for m in c.get("/v1/maps").json()["maps"]}
         stats = c.get("/v1/stats").json()
-        resident_after = resident_mb(c)
+        resident_after, children_after = resident_mb(c), registration_mb(c)
 
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {
@@ -151,6 +152,8 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "cpu": cpu,
         # the server's own /metrics (process_resident_memory_bytes): ready, and after the load
         "server_resident_mb": {"ready": resident_ready, "after": resident_after},
+        # its registration processes' together (verify.processes), which that leaves out
+        "registration_resident_mb": {"ready": children_ready, "after": children_after},
     }
     path = write_report(name, body)
     assert errors == 0, (report.errors, mapper.errors[:3], poller.errors[:3], path)

@@ -6,6 +6,7 @@ geometry with 503; the setting over HTTP and /readyz (overlapmamba.service.regis
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -203,4 +204,15 @@ async def test_http_verifies_alike_in_threads_and_in_children(tmp_path, encoder,
         v, lc = q.json()["matches"][0]["verification"], q.json()["loop_closure"]
         assert v["verified"] is True and v["fitness"] > 0.9, v
         assert lc["verified"] is True and lc["keyframe_id"] == "k0"
+        # /metrics counts the children's memory and CPU, which the process's series leave out
+        text = (await c.get("/metrics")).text
+        assert f"overlapmamba_registration_processes {float(processes)}" in text
+        assert "overlapmamba_registration_restarts_total 0.0" in text
+        rss = re.search(r"^overlapmamba_registration_resident_bytes (\S+)$", text, re.M)
+        cpu = re.search(r"^overlapmamba_registration_cpu_seconds_total (\S+)$", text, re.M)
+        assert rss and cpu
+        if processes:  # two children, each holding numpy and small_gicp, that did the work
+            assert float(rss[1]) > processes * 20e6 and float(cpu[1]) > 0
+        else:
+            assert float(rss[1]) == 0 and float(cpu[1]) == 0
         return v

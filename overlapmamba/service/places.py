@@ -86,6 +86,7 @@ class PlaceService:
             on_batch=self.stats.batch,
             registrar=Registrar(settings.verify.processes),
         )
+        self.stats.watch_registration(self.pipeline.registrar.usage)
         # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
         # (robot ids come from clients), a dropped entry is read back from the store
         self._last_kf: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()

@@ -36,6 +36,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -165,6 +166,24 @@ class Registrar:
             return verify_candidates(q, candidates, v, views)
 
     # ---- children ----------------------------------------------------------------------------
+
+    def usage(self) -> dict[str, float]:
+        """The children's count, restarts, and (Linux) their resident memory and CPU time
+        together, from ``/proc``: what the server's own process series leave out."""
+        out: dict[str, float] = {"processes": self.processes, "restarts": self.restarts}
+        if not Path("/proc/self/stat").exists():
+            return out
+        rss = cpu = 0.0
+        for pid in self.pids():
+            try:
+                status = Path(f"/proc/{pid}/status").read_text()
+                stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:  # exited meanwhile
+                continue
+            kb = next((ln.split()[1] for ln in status.splitlines() if ln.startswith("VmRSS:")), 0)
+            rss += float(kb) * 1024
+            cpu += (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+        return out | {"resident_bytes": rss, "cpu_seconds": cpu}
 
     def pids(self) -> list[int]:
         """The children's process ids (those started)."""

@@ -150,6 +150,13 @@ class Stats:
         ``overlapmamba_row_cache_lookups_total`` by outcome (hit, miss)."""
         self.registry.register(_RowCacheCollector(info))
 
+    def watch_registration(self, usage: Callable[[], dict[str, float]]) -> None:
+        """Put the registration processes on ``/metrics``, read at each scrape from
+        ``usage`` (``Registrar.usage``): ``overlapmamba_registration_processes``,
+        ``_restarts_total``, and the children's ``_resident_bytes`` and
+        ``_cpu_seconds_total`` (Linux), which the process's own series leave out."""
+        self.registry.register(_RegistrationCollector(usage))
+
     def timings(self, ms: dict[str, float]) -> None:
         with self._lock:
             for stage, v in ms.items():
@@ -292,3 +299,32 @@ class _RowCacheCollector(Collector):
         lookups.add_metric(["hit"], got["hits"])
         lookups.add_metric(["miss"], got["misses"])
         yield lookups
+
+
+class _RegistrationCollector(Collector):
+    def __init__(self, usage: Callable[[], dict[str, float]]) -> None:
+        self.usage = usage
+
+    def collect(self) -> Iterator[Metric]:
+        got = self.usage()
+        yield GaugeMetricFamily(
+            "overlapmamba_registration_processes",
+            "Registration's child processes (verify.processes; 0: in the server's threads)",
+            value=got["processes"],
+        )
+        yield CounterMetricFamily(
+            "overlapmamba_registration_restarts",
+            "Registration processes that died and were started again",
+            value=got["restarts"],
+        )
+        if "resident_bytes" in got:  # Linux: the children's /proc
+            yield GaugeMetricFamily(
+                "overlapmamba_registration_resident_bytes",
+                "Resident memory of the registration processes together",
+                value=got["resident_bytes"],
+            )
+            yield CounterMetricFamily(
+                "overlapmamba_registration_cpu_seconds",
+                "CPU time (user + system) of the registration processes running now",
+                value=got["cpu_seconds"],
+            )
