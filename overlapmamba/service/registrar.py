@@ -24,6 +24,7 @@ geometry answers 503 (retry: nothing is stored without it).
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import logging
 import multiprocessing
@@ -54,7 +55,7 @@ from overlapmamba.service.verify import Verdict, params_of, verify_candidates
 
 log = logging.getLogger(__name__)
 
-HELD = 128  # prepared queries a child keeps (≈ 0.2 MB each): more than a server has in flight
+HELD = 32  # prepared queries a child keeps (≈ 0.4 MB each); one it dropped is prepared again
 Candidates = list[tuple[bytes | None, float | None, float]]
 
 
@@ -267,6 +268,19 @@ def _child_init(server: int) -> None:
     # leaves as soon as its parent is another process (PR_SET_PDEATHSIG would fire when the
     # thread that started it ends, and threads come and go in a server)
     threading.Thread(target=_orphaned, args=(server,), daemon=True, name="parent").start()
+    _fixed_mmap_threshold()
+
+
+def _fixed_mmap_threshold() -> None:
+    """glibc raises its mmap threshold each time a large block is freed, after which each
+    query's points (≈ 0.4 MB, unpickled) come from the heap, which fragments: a child grew
+    by about 75 kB a query without end. A fixed threshold (128 KiB, glibc's initial one)
+    keeps it flat (≈ 80 MB over 800 KITTI queries). Elsewhere than glibc: nothing to do."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 128 * 1024)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass
 
 
 def _orphaned(server: int) -> None:
@@ -312,4 +326,9 @@ def _verify(
     views: list[FieldOfView | None] | None,
 ) -> Any:
     q = _held(key, xyz, p)
-    return _Missing() if q is None else verify_candidates(q, candidates, v, views)
+    if q is None:
+        return _Missing()
+    try:
+        return verify_candidates(q, candidates, v, views)
+    finally:
+        q.spectra.clear()  # its turned seeds serve this call's registrations only
