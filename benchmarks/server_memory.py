@@ -1,5 +1,7 @@
 """A real server's resident memory under concurrent scan queries, as its own ``/metrics``
-reports it (``process_resident_memory_bytes``): when ready, then after each round of queries.
+reports it (``process_resident_memory_bytes``): when ready, then after each round of queries;
+and its registration processes' (``overlapmamba_registration_resident_bytes``), which that
+leaves out.
 
     python benchmarks/server_memory.py [--rounds 12] [--per-round 96] [--clients 16]
 
@@ -30,7 +32,7 @@ from rich.console import Console
 from overlapmamba.service.settings import BatchSettings
 
 sys.path.insert(0, str(ROOT / "tests"))
-from e2e_kit import resident_mb
+from e2e_kit import registration_mb, resident_mb
 
 CONFIGS = {
     "defaults": {},
@@ -65,6 +67,8 @@ def measure(env: dict[str, str], bodies: list[bytes], args: argparse.Namespace) 
                 rounds.append(
                     {
                         "resident_mb": resident_mb(c),
+                        # its registration processes' together (verify.processes)
+                        "registration_mb": registration_mb(c),
                         "queries_per_s": args.per_round / seconds,
                         "errors": sum(code != 200 for code in codes),
                     }
