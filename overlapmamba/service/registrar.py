@@ -4,11 +4,12 @@
 small_gicp keeps Python's lock for the whole of each call (voxel grid, k-d tree, normals,
 GICP, nearest-neighbour search): while one request prepares or registers, no other
 request's Python runs, on any core. Under a fleet's load that lock, not the cores, bounded
-the server (``make e2e``'s ``cpu``: the server used about 1.3 of 2 cores with half a core
-idle, and registration held the lock two thirds of the time it was held:
-``docs/service.md``). With ``processes`` ≥ 1 the query's side is prepared, kept, packed into
-a keyframe's geometry and registered in a child process; this process sends the query's
-thinned points once and each candidate's blob, and gets verdicts back.
+the server: with registration in its threads the machine had cores to spare while the
+server waited (the e2e report's ``cpu``, ``reports/e2e/load-*-processes-0.json``), and
+py-spy found registration in most of the time the lock was held. With ``processes`` ≥ 1
+the query's side is prepared, kept, packed into a keyframe's geometry and registered in a
+child process; this process sends the query's thinned points once and each candidate's
+blob, and gets verdicts back. What a fleet gets from it: ``docs/deploy.md``, sizing.
 
     prepare(xyz)  → Held: the query's side, where it is kept (this process or a child's
                     key), its grid size, and why it cannot be registered when it cannot
