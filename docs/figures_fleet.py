@@ -437,7 +437,9 @@ def _load_row(rel: str, label: str) -> list[str]:
     )
     kids = lt.get("registration_resident_mb") or {}  # recorded since 2026-12-02
     if kids.get("ready") is not None and kids.get("after") is not None:
-        notes += f", its registration process {kids['ready']:.0f} MB, {kids['after']:.0f} MB"
+        notes += (
+            f"; its registration process {kids['ready']:.0f} MB ready, {kids['after']:.0f} MB after"
+        )
     bars = fl.get("bars") or {}
     for what in ("precision", "recall"):  # a run under its floor failed its test
         got = fl.get(f"closure_{what}")
