@@ -37,6 +37,9 @@ from e2e_kit import registration_mb, resident_mb
 CONFIGS = {
     "defaults": {},
     "MALLOC_ARENA_MAX=2": {"MALLOC_ARENA_MAX": "2"},
+    # glibc's mmap threshold fixed at its initial 128 KiB: large blocks are never taken from
+    # the heap, which the registration process needed to stay flat (service/registrar.py)
+    "MALLOC_MMAP_THRESHOLD_=131072": {"MALLOC_MMAP_THRESHOLD_": "131072"},
     # the batches the service encoded before they became 2 a lane (batching.max_batch)
     "OVERLAPMAMBA_BATCHING__MAX_BATCH=8": {"OVERLAPMAMBA_BATCHING__MAX_BATCH": "8"},
 }
