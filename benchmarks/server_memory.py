@@ -32,7 +32,7 @@ from rich.console import Console
 from overlapmamba.service.settings import BatchSettings
 
 sys.path.insert(0, str(ROOT / "tests"))
-from e2e_kit import registration_mb, resident_mb
+from e2e_kit import resident_mb
 
 CONFIGS = {
     "defaults": {},
@@ -48,7 +48,7 @@ CONFIGS = {
 def measure(env: dict[str, str], bodies: list[bytes], args: argparse.Namespace) -> dict[str, Any]:
     with server(env) as url, httpx.Client(base_url=url, timeout=120) as c:
         assert c.put("/v1/maps/m").status_code == 201
-        ready = resident_mb(c)
+        ready, _ = resident_mb(c)
         if ready is None:
             raise SystemExit("the server's /metrics has no process_resident_memory_bytes (Linux)")
 
@@ -67,11 +67,11 @@ def measure(env: dict[str, str], bodies: list[bytes], args: argparse.Namespace) 
                 t0 = time.perf_counter()
                 codes = list(pool.map(query, range(n * args.per_round, (n + 1) * args.per_round)))
                 seconds = time.perf_counter() - t0
+                own, children = resident_mb(c)  # children: its registration processes'
                 rounds.append(
                     {
-                        "resident_mb": resident_mb(c),
-                        # its registration processes' together (verify.processes)
-                        "registration_mb": registration_mb(c),
+                        "resident_mb": own,
+                        "registration_mb": children,
                         "queries_per_s": args.per_round / seconds,
                         "errors": sum(code != 200 for code in codes),
                     }

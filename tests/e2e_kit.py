@@ -185,18 +185,18 @@ def metrics(c: httpx.Client) -> dict[str, float]:
     return {m[1]: float(m[2]) for m in re.finditer(r"^([a-z_]+) (\S+)$", r.text, re.M)}
 
 
-def resident_mb(c: httpx.Client) -> float | None:
-    """The server's resident memory (MB) as its own ``/metrics`` says
-    (``process_resident_memory_bytes``; None where the platform has no such series)."""
-    own = metrics(c).get("process_resident_memory_bytes")
-    return own / 1e6 if own is not None else None
-
-
-def registration_mb(c: httpx.Client) -> float | None:
-    """Its registration processes' resident memory together (MB), which the server's own
-    series leave out (``overlapmamba_registration_resident_bytes``; None: no such series)."""
-    children = metrics(c).get("overlapmamba_registration_resident_bytes")
-    return children / 1e6 if children is not None else None
+def resident_mb(c: httpx.Client) -> tuple[float | None, float | None]:
+    """The server's resident memory (MB) as its ``/metrics`` says, in one scrape: its own
+    process's (``process_resident_memory_bytes``) and its registration processes' together
+    (``overlapmamba_registration_resident_bytes``), which the first leaves out; None where
+    the platform has no such series."""
+    got = metrics(c)
+    own = got.get("process_resident_memory_bytes")
+    children = got.get("overlapmamba_registration_resident_bytes")
+    return (
+        own / 1e6 if own is not None else None,
+        children / 1e6 if children is not None else None,
+    )
 
 
 @dataclass
@@ -234,7 +234,7 @@ class CpuMeter:
         out["load_cores"] = (own - self.own0) / wall  # the fleet, mapper and dashboard
         out["machine_busy_cores"] = None
         if busy is not None and self.busy0 is not None:
-            (b0, t0), (b1, t1) = self.busy0, busy
+            (t0, b0), (t1, b1) = self.busy0, busy
             out["machine_busy_cores"] = (b1 - b0) / (t1 - t0) * (os.cpu_count() or 1)
         parts = [out[k] for k in ("machine_busy_cores", "server_cores", "load_cores")]
         out["other_cores"] = (
@@ -246,14 +246,14 @@ class CpuMeter:
 
 
 def machine_busy() -> tuple[float, float] | None:
-    """(busy, total) jiffies of every core together, from ``/proc/stat`` (None elsewhere)."""
+    """(total, busy) clock ticks of every core together, as the benchmarks read them
+    (``bench_kit._machine_jiffies``, ``/proc/stat``; None elsewhere)."""
+    from conftest import benchmark_module
+
     try:
-        first = Path("/proc/stat").read_text().split("\n", 1)[0].split()
-    except OSError:
+        return benchmark_module("bench_kit")._machine_jiffies()
+    except (OSError, ValueError, IndexError):
         return None
-    ticks = [float(x) for x in first[1:]]
-    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0.0)  # idle + iowait
-    return sum(ticks) - idle, sum(ticks)
 
 
 def percentiles(values: list[float]) -> dict[str, float]:

@@ -26,7 +26,6 @@ from e2e_kit import (
     drive_dir,
     missing_keyframes,
     percentiles,
-    registration_mb,
     resident_mb,
     size,
     write_report,
@@ -66,7 +65,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         model_id = ready["model_id"]
         served_margin = ready["thresholds"]["verify.ambiguity_margin"]
         assert c.put("/v1/maps/built").status_code == 201
-        resident_ready, children_ready = resident_mb(c), registration_mb(c)
+        resident_ready, children_ready = resident_mb(c)
         dim = read_model_metadata(model).descriptor_dim  # e.g. 768 for a first stage's
         mapper = Mapper(url, model_id=model_id, dim=dim).start()
         poller = Poller(url).start()
@@ -96,7 +95,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         missing += missing_keyframes(c, "built", list(mapper.acked))
         maps = {m["map_id"]: m for m in c.get("/v1/maps").json()["maps"]}
         stats = c.get("/v1/stats").json()
-        resident_after, children_after = resident_mb(c), registration_mb(c)
+        resident_after, children_after = resident_mb(c)
 
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {

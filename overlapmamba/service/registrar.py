@@ -243,8 +243,7 @@ class Registrar:
                 continue
             if not isinstance(out, _Missing):
                 return out
-            if xyz is not None:  # cannot happen: a child prepares what it is sent
-                raise RuntimeError("the registration process lost a query it was just sent")
+            assert xyz is None, "a child prepares the points it is sent"
             xyz = held.xyz
 
 
