@@ -1,12 +1,14 @@
 """The measured tables of the documentation, each rendered from the JSON a command wrote:
 what they share (reading a report, naming its source, formatting a table).
 
-One function per ``<!-- render NAME -->`` block lives in ``figures_model.py`` (the model,
-the encoder, the service's thresholds), ``figures_fleet.py`` (verification, sizing, the
-fleet, the end-to-end runs), ``figures_input.py``, ``figures_bev.py`` and ``figures_lerp.py``
-(the sensor inputs' experiments), ``figures_pairs.py`` (issue 40's bar across sensors,
-pair by pair), ``figures_phase.py`` (where a one-view scan's columns start) and
-``figures_scan.py`` (which scan path the service picks at load);
+One function per ``<!-- render NAME -->`` block lives in a ``figures_*.py`` beside this file:
+``figures_model.py`` (the model, the encoder, the service's thresholds), ``figures_verify.py``
+(verified closures, registration), ``figures_fleet.py`` (sizing, the fleet, the end-to-end
+runs), ``figures_runs.py`` (issue 40's training runs on several sensors, mountings),
+``figures_input.py``, ``figures_bev.py`` and ``figures_lerp.py`` (the sensor inputs'
+experiments), ``figures_pairs.py`` (issue 40's bar across sensors, pair by pair),
+``figures_phase.py`` (where a one-view scan's columns start), ``figures_scan.py`` (which scan
+path the service picks at load) and the others, each named for what it renders;
 ``docs/render.py`` pastes them, ``make docs`` rewrites them and
 ``tests/test_docs_figures.py`` fails on a stale one.
 Each table opens with the JSON it reads and the command that wrote it; nothing here types a

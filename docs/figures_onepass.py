@@ -6,9 +6,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from figures_fleet import fleet_views, verify
+from figures_fleet import fleet_views
 from figures_kit import f3, load, source, table, when
 from figures_spectrum import _first
+from figures_verify import verify
 
 FIRST_STAGE = "reports/model/first-stage-one-view.json"
 VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"

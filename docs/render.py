@@ -42,9 +42,11 @@ import figures_model
 import figures_onepass
 import figures_pairs
 import figures_phase
+import figures_runs
 import figures_scan
 import figures_sensors
 import figures_spectrum
+import figures_verify
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = (
@@ -116,10 +118,12 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_fleet.RENDERERS,
     **figures_memory.RENDERERS,
     **figures_pairs.RENDERERS,
+    **figures_runs.RENDERERS,
     **figures_phase.RENDERERS,
     **figures_scan.RENDERERS,
     **figures_sensors.RENDERERS,
     **figures_spectrum.RENDERERS,
+    **figures_verify.RENDERERS,
 }
 
 

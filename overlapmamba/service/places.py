@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Literal
@@ -24,7 +23,6 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.answers import (
     Answer,
     Inserted,
-    InsertReason,
     LoopClosure,
     Observation,
     Observed,
@@ -43,6 +41,7 @@ from overlapmamba.service.domain import (
 )
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import BadRequest, Conflict
+from overlapmamba.service.keyframing import KeyframeSchedule
 from overlapmamba.service.overview import Overview
 from overlapmamba.service.pipeline import Description, ScanPipeline
 from overlapmamba.service.ranking import rerank_matches, rerank_params, shortlist
@@ -87,9 +86,7 @@ class PlaceService:
             registrar=Registrar(settings.verify.processes),
         )
         self.stats.watch_registration(self.pipeline.registrar.usage)
-        # (map, robot) -> (timestamp, position) of its last keyframe, for insert=auto; bounded
-        # (robot ids come from clients), a dropped entry is read back from the store
-        self._last_kf: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()
+        self.keyframing = KeyframeSchedule(settings.observe)  # insert=auto
 
     @property
     def model_id(self) -> str:
@@ -98,8 +95,7 @@ class PlaceService:
     def forget_map(self, map_id: str) -> None:
         self.stats.forget_map(map_id)
         self.overview.forget(map_id)
-        for key in [k for k in self._last_kf if k[0] == map_id]:
-            del self._last_kf[key]
+        self.keyframing.forget(map_id)
 
     def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
         timings["total"] = (time.perf_counter() - t0) * 1e3
@@ -163,9 +159,8 @@ class PlaceService:
             self.stats.p_keyframes.labels(m.map_id).set(count)
             for r in results:
                 if r.created:
-                    self._remember(
-                        m.map_id, r.keyframe.robot_id, r.keyframe.timestamp, r.keyframe.pose
-                    )
+                    kf = r.keyframe
+                    self.keyframing.remember(m.map_id, kf.robot_id, kf.timestamp, kf.pose)
         m.maintain()
         return results
 
@@ -377,49 +372,6 @@ class PlaceService:
 
     # ---- the robot's round trip -------------------------------------------------------------
 
-    def _remember(
-        self, map_id: str, robot: str, timestamp: float, pose: list[float] | None
-    ) -> None:
-        pos = None if pose is None else np.array(pose[:3])
-        old = self._last_kf.pop((map_id, robot), None)
-        self._last_kf[(map_id, robot)] = old if old and old[0] > timestamp else (timestamp, pos)
-        while len(self._last_kf) > 10_000:
-            self._last_kf.popitem(last=False)
-
-    async def _last(self, m: PlaceMap, robot: str) -> tuple[float, np.ndarray | None] | None:
-        key = (m.map_id, robot)
-        if key not in self._last_kf:
-            kf = await in_thread(m.last_keyframe, robot)
-            if kf is None:
-                return None
-            self._remember(m.map_id, robot, kf.timestamp, kf.pose)
-        return self._last_kf.get(key)
-
-    async def _retried(self, m: PlaceMap, obs: Observation) -> bool:
-        """Whether this observation's own keyframe (``robot:session:timestamp``) is already
-        in the map: the robot's last keyframe is at its very timestamp, and it is there."""
-        last = self._last_kf.get((m.map_id, obs.robot_id))
-        if last is None or last[0] != obs.timestamp:
-            return False
-        return await in_thread(m.get, obs.keyframe_id) is not None
-
-    async def _insert_due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
-        """Why this observation becomes a keyframe, or None if it does not."""
-        if obs.insert == "always":
-            return "always"
-        if obs.insert == "never":
-            return None
-        last = await self._last(m, obs.robot_id)
-        if last is None:
-            return "first"
-        o = self.settings.observe
-        if abs(obs.timestamp - last[0]) >= o.insert_min_interval_s:
-            return "time"
-        if obs.pose is None or last[1] is None:
-            return None
-        moved = float(np.linalg.norm(np.array(obs.pose[:3]) - last[1]))
-        return "distance" if moved >= o.insert_min_distance_m else None
-
     async def _draw(self, m: PlaceMap, obs: Observation, answer: Answer) -> None:
         """The observation on the map's picture (:mod:`overlapmamba.service.overview`): the robot's
         position and, for a loop closure, the keyframe's."""
@@ -458,7 +410,7 @@ class PlaceService:
             sensor,
         )
         await self._draw(m, obs, answer)
-        reason = await self._insert_due(m, obs)
+        reason = await self.keyframing.due(m, obs)
         keyframe_id = None
         inserted = False
         if reason is not None:
@@ -468,7 +420,7 @@ class PlaceService:
             inserted = result.created
             if not inserted:
                 reason = "existing"
-        elif obs.insert == "auto" and await self._retried(m, obs):
+        elif obs.insert == "auto" and await self.keyframing.retried(m, obs):
             # a retry of an observation that was inserted but whose answer was lost: not due
             # now only because its own keyframe is the robot's last; say that it is there
             keyframe_id, reason = obs.keyframe_id, "existing"

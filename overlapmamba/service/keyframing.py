@@ -1,0 +1,77 @@
+"""When a robot's observation becomes a keyframe (``insert: "auto"``): the robot's last
+keyframe in each map, remembered as inserts happen and read back from the store when it is
+not, against ``observe.insert_min_interval_s`` and ``observe.insert_min_distance_m``.
+
+:class:`~overlapmamba.service.places.PlaceService` owns one :class:`KeyframeSchedule`; it
+tells the schedule of every keyframe inserted and asks it, per observation, why the scan is
+due (or that it is not), and whether a retried observation's keyframe is already there.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+from overlapmamba.service.answers import InsertReason, Observation
+from overlapmamba.service.backends.base import PlaceMap
+from overlapmamba.service.settings import ObserveSettings
+from overlapmamba.service.threads import in_thread
+
+# (map, robot) pairs remembered at most: robot ids come from clients, so the memory is
+# bounded; a pair dropped is read back from the store at its robot's next observation
+REMEMBERED = 10_000
+
+
+class KeyframeSchedule:
+    """The robots' last keyframes, (map, robot) → (timestamp, position or None)."""
+
+    def __init__(self, settings: ObserveSettings) -> None:
+        self.settings = settings
+        self._last: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()
+
+    def remember(self, map_id: str, robot: str, timestamp: float, pose: list[float] | None) -> None:
+        """A keyframe of ``robot`` went into ``map_id`` (one older than known changes nothing)."""
+        pos = None if pose is None else np.array(pose[:3])
+        old = self._last.pop((map_id, robot), None)
+        self._last[(map_id, robot)] = old if old and old[0] > timestamp else (timestamp, pos)
+        while len(self._last) > REMEMBERED:
+            self._last.popitem(last=False)
+
+    def forget(self, map_id: str) -> None:
+        """The map was deleted."""
+        for key in [k for k in self._last if k[0] == map_id]:
+            del self._last[key]
+
+    async def _last_of(self, m: PlaceMap, robot: str) -> tuple[float, np.ndarray | None] | None:
+        key = (m.map_id, robot)
+        if key not in self._last:
+            kf = await in_thread(m.last_keyframe, robot)
+            if kf is None:
+                return None
+            self.remember(m.map_id, robot, kf.timestamp, kf.pose)
+        return self._last.get(key)
+
+    async def retried(self, m: PlaceMap, obs: Observation) -> bool:
+        """Whether this observation's own keyframe (``robot:session:timestamp``) is already
+        in the map: the robot's last keyframe is at its very timestamp, and it is there."""
+        last = self._last.get((m.map_id, obs.robot_id))
+        if last is None or last[0] != obs.timestamp:
+            return False
+        return await in_thread(m.get, obs.keyframe_id) is not None
+
+    async def due(self, m: PlaceMap, obs: Observation) -> InsertReason | None:
+        """Why this observation becomes a keyframe, or None if it does not."""
+        if obs.insert == "always":
+            return "always"
+        if obs.insert == "never":
+            return None
+        last = await self._last_of(m, obs.robot_id)
+        if last is None:
+            return "first"
+        if abs(obs.timestamp - last[0]) >= self.settings.insert_min_interval_s:
+            return "time"
+        if obs.pose is None or last[1] is None:
+            return None
+        moved = float(np.linalg.norm(np.array(obs.pose[:3]) - last[1]))
+        return "distance" if moved >= self.settings.insert_min_distance_m else None
