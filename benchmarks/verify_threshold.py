@@ -22,7 +22,9 @@ loop, over all queries with a loop (what the descriptor's Recall@5 bounds).
 ``--across`` adds the calibration town's pairs of drives by the issue's five sensors (a query
 of one against another's map: ``benchmarks/verify_across.py``) to what is calibrated on;
 ``--each`` asks the precision target of each town and each pair, not only of all queries
-together: a fleet whose every sensor pair must be safe.
+together: a fleet whose every sensor pair must be safe. The fitness and rmse thresholds and
+the ambiguity margin are then chosen together (:func:`joint`): the triple of highest recall
+that holds the target everywhere; the gate and a larger margin follow as below.
 
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
 the pair of highest recall whose precision is at least ``--target`` (0.99) under both ways
@@ -71,6 +73,7 @@ from overlapmamba.service.settings import VerifySettings
 from overlapmamba.service.verify import params_of, verify_candidates
 
 FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
+MARGINS = np.round(np.arange(0, 0.61, 0.02), 2)  # and of verify.ambiguity_margin
 
 
 def run_town(
@@ -146,9 +149,7 @@ def ambiguity_margin(
     carry their rivals too (``verify_across.pair_queries(rivals_from=)``), so the margin
     holds for a map by one sensor and a query by another as well."""
     f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
-    sweep = [
-        score(queries, f, rmse, d, margin=float(m)) for m in np.round(np.arange(0, 0.61, 0.02), 2)
-    ]
+    sweep = [score(queries, f, rmse, d, margin=float(m)) for m in MARGINS]
     fine = [
         s
         for s in sweep
@@ -156,6 +157,30 @@ def ambiguity_margin(
     ]
     chosen = max(fine, key=lambda s: s["ambiguity_margin"]) if fine else None
     return {"chosen": chosen, "sweep": sweep}
+
+
+def joint(
+    queries: list[dict[str, Any]], sweep: list[dict[str, Any]], holds: Callable[..., bool]
+) -> dict[str, Any] | None:
+    """With ``--each``: the fitness and rmse thresholds and the ambiguity margin chosen
+    together, the triple of highest recall whose precision holds the target on each town and
+    pair of drives, both ways of choosing the closure (among equals the strictest); None
+    when none does. One after the other, the fitness alone would have to keep every pair at
+    the target, and the margin, which refuses a pair's closures that another turn fits
+    nearly as well, would come too late to spare recall."""
+    combos = [
+        score(queries, s["min_fitness"], s["max_rmse_m"], margin=float(m))
+        for s in sweep
+        if s["accepted"]
+        for m in MARGINS
+    ]
+    combos.sort(
+        key=lambda s: (s["recall"], s["min_fitness"], -s["max_rmse_m"], s["ambiguity_margin"]),
+        reverse=True,
+    )
+    return next(
+        (s for s in combos if s["accepted"] and holds(s, None, s["ambiguity_margin"])), None
+    )
 
 
 def main() -> None:
@@ -269,13 +294,16 @@ def main() -> None:
                 for first_ in (False, True)
             )
 
-        ok = [s for s in sweep if s["accepted"] and holds(s)]
-        chosen = (
-            max(ok, key=lambda s: (s["recall"], s["min_fitness"], -s["max_rmse_m"])) if ok else None
-        )
+        if args.each:  # the margin with the thresholds: joint()
+            chosen = joint(queries, sweep, holds)
+        else:
+            ok = [s for s in sweep if s["accepted"] and holds(s)]
+            key = lambda s: (s["recall"], s["min_fitness"], -s["max_rmse_m"])  # noqa: E731
+            chosen = max(ok, key=key) if ok else None
         report["calibration"] = {
             "target_precision": args.target,
             "target_on": "each town and pair" if args.each else "all queries",
+            "rule": "fitness, rmse and margin together" if args.each else "one after the other",
             "chosen": chosen,
         }
         report["sweep"] = sweep
@@ -303,14 +331,15 @@ def main() -> None:
         console.print(f"chosen for precision ≥ {args.target}: {chosen}")
         if chosen is not None:
             # the descriptor gate: the nearest distance that costs at most 0.005 of recall
+            m0 = chosen["ambiguity_margin"]  # None but with --each
             gates = [
-                score(queries, chosen["min_fitness"], chosen["max_rmse_m"], float(d))
+                score(queries, chosen["min_fitness"], chosen["max_rmse_m"], float(d), margin=m0)
                 for d in np.round(np.arange(0.10, 1.01, 0.01), 2)
             ]
             fine = [
                 g
                 for g in gates
-                if holds(g, g["gate_distance"]) and g["recall"] >= chosen["recall"] - 0.005
+                if holds(g, g["gate_distance"], m0) and g["recall"] >= chosen["recall"] - 0.005
             ]
             gate = min(fine, key=lambda g: g["gate_distance"]) if fine else None
             report["calibration"]["gate"] = gate
@@ -323,15 +352,42 @@ def main() -> None:
                 report["calibration"]["ambiguity"] = margin
                 report["ambiguity_sweep"] = margins["sweep"]
                 console.print(f"ambiguity margin: {margin}")
-            if args.write_calibration and gate is not None:
-                values = {
-                    "min_fitness": chosen["min_fitness"],
-                    "max_rmse_m": chosen["max_rmse_m"],
-                    "gate_distance": gate["gate_distance"],
-                    "ambiguity_margin": None if margin is None else margin["ambiguity_margin"],
-                }
-                data = ", ".join([*map(str, towns), *pairs])
-                write_calibration(args.model, "verify", values, data)
+        # what the file's thresholds in force and the ones chosen do on the same queries,
+        # all together and on the worst town or pair of drives (as the service answers)
+        final = report["calibration"].get("ambiguity") or report["calibration"].get("gate")
+        served = {
+            "min_fitness": args.min_fitness,
+            "max_rmse_m": args.max_rmse,
+            "gate_distance": args.gate_distance,
+            "ambiguity_margin": args.ambiguity_margin,
+        }
+        for name, t in (("in_force", served), ("calibrated", final)):
+            if t is None:
+                continue
+            at = (t["min_fitness"], t["max_rmse_m"], t["gate_distance"], True)
+            s = score(queries, *at, margin=t["ambiguity_margin"])
+            worst = min(
+                groups,
+                key=lambda g: score(groups[g], *at, margin=t["ambiguity_margin"])["precision"],
+            )
+            s["worst_group"] = {
+                "group": worst,
+                **score(groups[worst], *at, margin=t["ambiguity_margin"]),
+            }
+            report["calibration"][name] = s
+            console.print(
+                f"{name}: precision {s['precision']:.4f}, recall {s['recall']:.4f}, "
+                f"worst {worst}: {s['worst_group']['precision']:.4f}"
+            )
+        if chosen is not None and args.write_calibration and gate is not None:
+            values = {
+                "min_fitness": chosen["min_fitness"],
+                "max_rmse_m": chosen["max_rmse_m"],
+                "gate_distance": gate["gate_distance"],
+                "ambiguity_margin": None if margin is None else margin["ambiguity_margin"],
+            }
+            data = ", ".join([*map(str, towns), *pairs])
+            write_calibration(args.model, "verify", values, data)
     table = Table(title=f"verified loop closures ({enc.model_id}, candidates={args.candidates})")
     for col in (
         "town",

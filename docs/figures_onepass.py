@@ -214,6 +214,10 @@ def ambiguity_margins() -> str:
         cal = r["calibration"]
         g, m = cal["gate"], cal.get("ambiguity")
         towns = ", ".join(f"`{t['town'].rsplit('/', 1)[-1]}`" for t in r["towns"])
+        if "across" in r:  # --across: the calibration town's drives, map by one, query by another
+            drives = r["across"]["pairs"]  # two drives by each sensor: every (map, query) pair
+            town = drives[0].split("-s")[0]
+            towns += f" and the {(len(drives) // 2) ** 2} pairs of `{town}`'s two drives"
         rmse = "—" if g["max_rmse_m"] >= 1e9 else f"{g['max_rmse_m']:g}"
         rows.append(
             [
@@ -233,6 +237,48 @@ def ambiguity_margins() -> str:
         "closures right, recall: without the margin",
         "with it",
     ]
+    return out + "\n" + table(head, rows)
+
+
+EACH = "reports/service/verify_threshold-any-sensor-each.json"  # every pair at the target
+POOLED = "reports/service/verify_threshold-any-sensor-across.json"  # all queries at the target
+
+
+def _thresholds(t: dict) -> str:
+    rmse = "—" if t["max_rmse_m"] >= 1e9 else f"{t['max_rmse_m']:g}"
+    margin = "off" if t["ambiguity_margin"] is None else f"{t['ambiguity_margin']:g}"
+    return f"{t['min_fitness']:g} / {rmse} / {t['gate_distance']:g} / {margin}"
+
+
+def ambiguity_each() -> str:
+    """The every-sensor option's thresholds in force beside those chosen on the validation
+    towns and the calibration town's pairs of drives, with each town and pair at the
+    precision target (``--across --each``) or all their queries together (``--across``):
+    precision and recall over all those queries, and the lowest town or pair."""
+    each, pooled = load(EACH), load(POOLED)
+    target = each["calibration"]["target_precision"]
+    rows = []
+    for label, cal, key in (
+        ("in the file (chosen on the five towns)", each["calibration"], "in_force"),
+        (f"each town and pair at precision ≥ {target:g}", each["calibration"], "calibrated"),
+        (f"all together at precision ≥ {target:g}", pooled["calibration"], "calibrated"),
+    ):
+        t = cal[key]
+        w = t["worst_group"]
+        rows.append(
+            [
+                label,
+                _thresholds(t),
+                f"{t['correct']} of {t['accepted']} ({f3(t['precision'])})",
+                f3(t["recall"]),
+                f"{f3(w['precision'])} ({w['group']})",
+            ]
+        )
+    head = ["thresholds", "fitness / rmse / gate / margin", "right, all", "recall, all"]
+    head.append("lowest precision: town or pair")
+    out = source(EACH, each["command"], when(each)) + source(
+        POOLED, pooled["command"], when(pooled)
+    )
     return out + "\n" + table(head, rows)
 
 
@@ -310,4 +356,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "verify-ambiguity-one-pass": verify_ambiguity,
     "ambiguity-margins": ambiguity_margins,
     "verify-os0-128": verify_os0_128,
+    "ambiguity-each": ambiguity_each,
 }

@@ -176,6 +176,41 @@ def test_closure_kit_scores_the_margin_as_the_service_calls_it():
         kit.score([q], 0.5, 0.7, margin=0.3)
 
 
+def test_calibrating_each_pair_chooses_the_margin_with_the_fitness():
+    """verify_threshold.py --calibrate --each: where a pair of drives closes a loop a quarter
+    turn wrong with a fit above its right ones, the fitness alone must rise above every right
+    closure of that pair to keep it at the target; chosen together with the fitness, the
+    margin refuses the wrong one and keeps them (joint)."""
+    from conftest import benchmark_module
+
+    kit, vt = benchmark_module("closure_kit"), benchmark_module("verify_threshold")
+
+    def query(group, fitness, rival, t_err):
+        c = dict(keyframe=0, distance=0.1, fitness=fitness, rmse=0.5, rival=rival)
+        c |= dict(t_err=t_err, yaw_err=0.1, loop=True)
+        return {"has_loop": True, "candidates": [c], "group": group}
+
+    queries = [query("town", 0.8, 0.1, 0.2) for _ in range(50)]
+    queries += [query("pair", 0.5, 0.05, 0.2) for _ in range(50)]
+    queries += [query("pair", 0.55, 0.5, 70.0)]  # a quarter turn wrong, fitting better
+    groups = {g: [q for q in queries if q["group"] == g] for g in ("town", "pair")}
+
+    def holds(s, gate=None, margin=None):
+        f, rmse = s["min_fitness"], s["max_rmse_m"]
+        return all(
+            kit.score(qs, f, rmse, gate, stop_at_first=first, margin=margin)["precision"] >= 0.99
+            for qs in [queries, *groups.values()]
+            for first in (False, True)
+        )
+
+    sweep = [kit.score(queries, float(f), 0.7) for f in vt.FITNESS]
+    alone = max((s for s in sweep if s["accepted"] and holds(s)), key=lambda s: s["recall"])
+    assert alone["min_fitness"] > 0.55 and alone["recall"] == 50 / 101
+    both = vt.joint(queries, sweep, holds)
+    assert both["min_fitness"] == 0.5 and both["ambiguity_margin"] == 0.44
+    assert (both["precision"], both["recall"]) == (1.0, 100 / 101)
+
+
 def test_statistics_count_ambiguous_refusals_among_the_rejected():
     class M:
         def __init__(self, v):
