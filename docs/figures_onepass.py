@@ -214,10 +214,6 @@ def ambiguity_margins() -> str:
         cal = r["calibration"]
         g, m = cal["gate"], cal.get("ambiguity")
         towns = ", ".join(f"`{t['town'].rsplit('/', 1)[-1]}`" for t in r["towns"])
-        if "across" in r:  # --across: the calibration town's drives, map by one, query by another
-            drives = r["across"]["pairs"]  # two drives by each sensor: every (map, query) pair
-            town = drives[0].split("-s")[0]
-            towns += f" and the {(len(drives) // 2) ** 2} pairs of `{town}`'s two drives"
         rmse = "—" if g["max_rmse_m"] >= 1e9 else f"{g['max_rmse_m']:g}"
         rows.append(
             [
