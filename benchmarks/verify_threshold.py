@@ -159,6 +159,34 @@ def ambiguity_margin(
     return {"chosen": chosen, "sweep": sweep}
 
 
+def by_group(queries: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """The queries of each town and, with ``--across``, of each pair of drives."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for q in queries:
+        groups.setdefault(q["group"], []).append(q)
+    return groups
+
+
+def target_holds(queries: list[dict[str, Any]], target: float, each: bool) -> Callable[..., bool]:
+    """Whether thresholds scored on ``queries`` (``s``, from :func:`score`, with a ``gate``
+    and a ``margin`` to score them at) keep precision at ``target`` whichever way the service
+    chooses the closure, over all queries and with ``each`` on every town and pair too."""
+    groups = by_group(queries)
+
+    def holds(s: dict[str, Any], gate: float | None = None, margin: float | None = None) -> bool:
+        f, rmse = s["min_fitness"], s["max_rmse_m"]
+        first = score(queries, f, rmse, gate, stop_at_first=True, margin=margin)
+        if s["precision"] < target or first["precision"] < target:
+            return False
+        return not each or all(
+            score(g, f, rmse, gate, stop_at_first=first_, margin=margin)["precision"] >= target
+            for g in groups.values()
+            for first_ in (False, True)
+        )
+
+    return holds
+
+
 def joint(
     queries: list[dict[str, Any]], sweep: list[dict[str, Any]], holds: Callable[..., bool]
 ) -> dict[str, Any] | None:
@@ -254,6 +282,12 @@ def main() -> None:
     if not args.calibrate and args.ambiguity_margin is not None:
         rivals_from = args.min_fitness
     results = [run_town(enc, t, args.candidates, v, rerank, rivals_from=rivals_from) for t in towns]
+    in_force = {  # the thresholds scored: the file's calibration unless given
+        "min_fitness": args.min_fitness,
+        "max_rmse_m": args.max_rmse,
+        "gate_distance": args.gate_distance,
+        "ambiguity_margin": args.ambiguity_margin,
+    }
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
@@ -274,25 +308,8 @@ def main() -> None:
 
         # highest recall at the target, whichever way the service chooses the closure; among
         # equals the strictest thresholds (a margin)
-        groups: dict[str, list[dict[str, Any]]] = {}
-        for q in queries:  # each town, and each pair of drives with --across
-            groups.setdefault(q["group"], []).append(q)
-
-        def holds(
-            s: dict[str, Any], gate: float | None = None, margin: float | None = None
-        ) -> bool:
-            f, rmse = s["min_fitness"], s["max_rmse_m"]
-            first = score(queries, f, rmse, gate, stop_at_first=True, margin=margin)
-            if s["precision"] < args.target or first["precision"] < args.target:
-                return False
-            if not args.each:
-                return True
-            return all(
-                score(g, f, rmse, gate, stop_at_first=first_, margin=margin)["precision"]
-                >= args.target
-                for g in groups.values()
-                for first_ in (False, True)
-            )
+        groups = by_group(queries)  # each town, and each pair of drives with --across
+        holds = target_holds(queries, args.target, args.each)
 
         if args.each:  # the margin with the thresholds: joint()
             chosen = joint(queries, sweep, holds)
@@ -355,25 +372,14 @@ def main() -> None:
         # what the file's thresholds in force and the ones chosen do on the same queries,
         # all together and on the worst town or pair of drives (as the service answers)
         final = report["calibration"].get("ambiguity") or report["calibration"].get("gate")
-        served = {
-            "min_fitness": args.min_fitness,
-            "max_rmse_m": args.max_rmse,
-            "gate_distance": args.gate_distance,
-            "ambiguity_margin": args.ambiguity_margin,
-        }
-        for name, t in (("in_force", served), ("calibrated", final)):
+        for name, t in (("in_force", in_force), ("calibrated", final)):
             if t is None:
                 continue
             at = (t["min_fitness"], t["max_rmse_m"], t["gate_distance"], True)
             s = score(queries, *at, margin=t["ambiguity_margin"])
-            worst = min(
-                groups,
-                key=lambda g: score(groups[g], *at, margin=t["ambiguity_margin"])["precision"],
-            )
-            s["worst_group"] = {
-                "group": worst,
-                **score(groups[worst], *at, margin=t["ambiguity_margin"]),
-            }
+            each = {g: score(qs, *at, margin=t["ambiguity_margin"]) for g, qs in groups.items()}
+            worst = min(each, key=lambda g: each[g]["precision"])
+            s["worst_group"] = {"group": worst, **each[worst]}
             report["calibration"][name] = s
             console.print(
                 f"{name}: precision {s['precision']:.4f}, recall {s['recall']:.4f}, "
@@ -444,12 +450,7 @@ def main() -> None:
             f"{s['registered_per_query']:.2f}",
         )
     console.print(table)
-    report["thresholds"] = {
-        "min_fitness": args.min_fitness,
-        "max_rmse_m": args.max_rmse,
-        "gate_distance": args.gate_distance,
-        "ambiguity_margin": args.ambiguity_margin,
-    }
+    report["thresholds"] = in_force
     if args.json is None:
         name = "verify_threshold.json" if args.calibrate else "verify-test.json"
         args.json = REPORTS / "service" / name

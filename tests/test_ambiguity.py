@@ -193,15 +193,7 @@ def test_calibrating_each_pair_chooses_the_margin_with_the_fitness():
     queries = [query("town", 0.8, 0.1, 0.2) for _ in range(50)]
     queries += [query("pair", 0.5, 0.05, 0.2) for _ in range(50)]
     queries += [query("pair", 0.55, 0.5, 70.0)]  # a quarter turn wrong, fitting better
-    groups = {g: [q for q in queries if q["group"] == g] for g in ("town", "pair")}
-
-    def holds(s, gate=None, margin=None):
-        f, rmse = s["min_fitness"], s["max_rmse_m"]
-        return all(
-            kit.score(qs, f, rmse, gate, stop_at_first=first, margin=margin)["precision"] >= 0.99
-            for qs in [queries, *groups.values()]
-            for first in (False, True)
-        )
+    holds = vt.target_holds(queries, 0.99, each=True)
 
     sweep = [kit.score(queries, float(f), 0.7) for f in vt.FITNESS]
     alone = max((s for s in sweep if s["accepted"] and holds(s)), key=lambda s: s["recall"])
