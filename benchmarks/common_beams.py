@@ -40,6 +40,7 @@ cores with the three-view file, most of it describing.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import shutil
 import time
 from pathlib import Path
@@ -79,16 +80,26 @@ def describe(enc: Encoder, town: Path, way: str) -> tuple[np.ndarray, np.ndarray
 
 
 def drive(scratch: Path, data: Path, name: str, cfg_of: Any) -> Path:
-    """The drive ``name``: ``data/name`` when it is there, else generated into scratch."""
+    """The drive ``name``: ``data/name`` when it is there, else generated into scratch.
+
+    Runs that need the same drive at once (``verify_across.py``, ``verify_threshold.py
+    --across``, ``across_pairs.py`` …) generate it once: each takes a lock beside it
+    (``scratch/.name.lock``) before looking again, so a second run waits and reads what the
+    first wrote instead of removing its half-written folder as an interrupted one."""
     from overlapmamba.synth.generate import generate
 
     for root in (data, scratch):
         if (root / name / "manifest.json").is_file():
             return root / name
     out = scratch / name
-    if out.exists():  # an interrupted generation
-        shutil.rmtree(out)
-    generate(out, cfg_of(), workers=2, progress=False, ground_truth=False)
+    scratch.mkdir(parents=True, exist_ok=True)
+    with open(scratch / f".{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or its process dies
+        if (out / "manifest.json").is_file():  # made by a run that held the lock before
+            return out
+        if out.exists():  # an interrupted generation: nobody else holds the lock
+            shutil.rmtree(out)
+        generate(out, cfg_of(), workers=2, progress=False, ground_truth=False)
     return out
 
 
