@@ -1,5 +1,7 @@
 """Which way of running the selective scan the service picks at load, and what each way
-costs (``benchmarks/scan_choice.py``): the ``scan-choice`` block of docs/results.md."""
+costs (``benchmarks/scan_choice.py``), and what the kernel's flush of subnormals changed
+(``benchmarks/scan_subnormals.py``): the ``scan-choice`` and ``scan-subnormals`` blocks of
+docs/results.md."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ from figures_kit import load, ms, source, table, when
 
 AFTER = "reports/service/scan-choice.json"
 BEFORE = "reports/service/scan-choice-before.json"
+SUBNORMALS = "reports/service/scan-subnormals.json"
 
 
 def _picked(r: dict) -> dict[str, str]:
@@ -53,4 +56,38 @@ def scan_choice() -> str:
     return out + table([*head, "portable graph: wall / CPU a scan"], rows)
 
 
-RENDERERS = {"scan-choice": scan_choice}
+def scan_subnormals() -> str:
+    """CPU a scan by the kernel with and without its flush of subnormals, and by the
+    portable graph, per shipped file and real sequence; the path each load picked."""
+    r = load(SUBNORMALS)
+    p = r["processor"]
+    out = source(SUBNORMALS, "python benchmarks/scan_subnormals.py", when(r))
+    out += (
+        f"\nMachine: {r['machine']['cpu']} ({p.get('vendor_id', '?')}, family "
+        f"{p.get('cpu family', '?')} model {p.get('model', '?')}, AVX-512 "
+        f"{'yes' if p.get('avx512f') else 'no'}), {r['machine']['cores']} cores; one "
+        "onnxruntime thread and one kernel thread; the median of "
+        f"{next(iter(r['files'][0]['sequences'].values()))['scans_timed']} timed encodes a "
+        "sequence, the three ways interleaved scan by scan. In brackets, the kernel's own part:\n\n"
+    )
+    rows = []
+    for f in r["files"]:
+        label = f"`{f['model']}` ({f['views']} view{'s' * (f['views'] > 1)})"
+        for i, (seq, s) in enumerate(f["sequences"].items()):
+            rows.append(
+                [
+                    label if i == 0 else "",
+                    seq,
+                    f"{ms(s['no flush_cpu_ms'])} ({ms(s['no flush_scan_ms'])})",
+                    f"{ms(s['flush_cpu_ms'])} ({ms(s['flush_scan_ms'])})",
+                    ms(s["portable_cpu_ms"]),
+                    f"{f['max_abs_difference_flush_vs_not']:.1g}" if i == 0 else "",
+                    f["served_at_load"].split(" (")[0] if i == 0 else "",
+                ]
+            )
+    head = ["file", "real scans", "C kernel, subnormals kept", "C kernel, flushed"]
+    head += ["portable graph", "largest output difference", "served at load"]
+    return out + table(head, rows)
+
+
+RENDERERS = {"scan-choice": scan_choice, "scan-subnormals": scan_subnormals}

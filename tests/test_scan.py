@@ -210,6 +210,43 @@ def test_each_path_of_the_served_kernel_matches_float64(kind, circular):
     assert float(abs(y - ref).max()) <= 2e-6 * scale, (kind, float(abs(y - ref).max()), scale)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_ring_with_fast_and_slow_lanes_is_exact_and_leaves_the_callers_floats_alone(threads):
+    """A block of channels whose lanes decay slowly (carried around the whole ring) beside
+    lanes that decay fast, whose decayed start state then falls below float32's smallest
+    normal: the kernel flushes those subnormals to zero for its call (on some processors
+    each multiply with one costs a hundred cycles: benchmarks/scan_subnormals.py), gives the
+    float64 loop's numbers as before, and puts the calling threads' float mode back."""
+    import numpy as np
+
+    from overlapmamba.core.scan_kernel import _pools, load, scan_forward
+
+    u, delta, A, Bm, Cm, D = inputs(2, 16, 240, 16, seed=5, dtype=torch.float64)
+    delta[:, ::2] = 1e-4  # every other channel slow: each 8-lane block mixes both
+    delta[:, 1::2] = 2.0
+    args = (u, delta, A, Bm, Cm, D)
+    ref = selective_scan_ref(*args, circular=True).numpy()
+    lib = load()
+    try:
+        outs = {}
+        for flush in (1, 0):
+            lib.scan_set_flush(flush)
+            outs[flush] = scan_forward(*(x.float().numpy() for x in args), True, threads)
+    finally:
+        lib.scan_set_flush(1)
+    scale = float(abs(ref).max())
+    for y in outs.values():
+        assert float(abs(y - ref).max()) <= 2e-6 * scale
+    np.testing.assert_allclose(outs[1], outs[0], rtol=0, atol=1e-7 * scale)
+
+    def keeps_subnormals() -> bool:
+        return float(np.float32(1e-30) * np.float32(1e-10)) != 0.0
+
+    assert keeps_subnormals()  # the calling thread, after the kernel ran on it
+    for pool in list(_pools.values()):  # and the kernel's other threads
+        assert all(f.result() for f in [pool.submit(keeps_subnormals) for _ in range(4)])
+
+
 def test_the_served_kernel_for_older_processors_gives_the_same_numbers(tmp_path):
     """The Docker image builds for x86-64-v2 (4 lanes, SSE): the same scan as this machine's
     build, on every path."""

@@ -18,7 +18,9 @@ without one; where none is built and no compiler exists, :func:`load` raises
 Why these flags: ``-ffast-math`` lets gcc vectorise ``expf`` through glibc's libmvec (the
 scan's cost is one exponential per state element per step). It is passed when compiling
 only: linking with it would pull in ``crtfastmath.o``, which switches the *whole process*
-to flush-subnormals-to-zero at load time.
+to flush-subnormals-to-zero at load time. The kernel flushes subnormals itself instead, on
+the calling thread for the length of each float call (``csrc/selective_scan.c``, FLUSH_BEGIN:
+on some x86 processors a ring's fast-decaying lanes made it fifteen times slower).
 """
 
 from __future__ import annotations
@@ -136,6 +138,10 @@ def load() -> ctypes.CDLL:
         lib.scan_fwd_tokens_f.argtypes = [ptr] * 7 + [i32] * 5 + [ctypes.c_long] * 2
         lib.scan_tokens_lanes.restype = ctypes.c_int
         lib.scan_tokens_lanes.argtypes = []
+        lib.scan_set_flush.restype = None  # subnormals flushed in float calls (1, the default)
+        lib.scan_set_flush.argtypes = [ctypes.c_int]
+        lib.scan_flush_supported.restype = ctypes.c_int  # 0: not on this processor (not x86)
+        lib.scan_flush_supported.argtypes = []
         _lib = lib
         return lib
 

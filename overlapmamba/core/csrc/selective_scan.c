@@ -46,6 +46,33 @@
 
 #define RING_EPS ((REAL)1e-6)
 
+/* Subnormals flushed to zero for the length of a float call, on the calling thread only, and
+ * the caller's mode put back on return. A decay that has fallen below float32's smallest
+ * normal (1.2e−38) changes nothing a float32 output can hold, but on some x86 processors
+ * every multiply that reads or makes one costs a hundred cycles or more: the ring's
+ * correction carries a state while any of its 8 lanes still matters, and the lanes that
+ * decay fast go subnormal meanwhile. Measured on a cloud Xeon (AVX-512) on the shipped
+ * file's scans: 63 ms without, 4 ms with, the same outputs to the bit
+ * (python benchmarks/scan_subnormals.py, which turns it off with scan_set_flush(0) to time
+ * both). Not -ffast-math at link time (scan_kernel.py): that would switch the whole process.
+ * Double calls (gradcheck) keep IEEE subnormals; other processors than x86 run as before. */
+#if defined(__SSE__) && !defined(SCAN_DOUBLE)
+#include <xmmintrin.h>
+static int flush_subnormals = 1;
+void scan_set_flush(int on) { flush_subnormals = on; }
+int scan_flush_supported(void) { return 1; }
+#define FLUSH_BEGIN const unsigned int caller_csr = _mm_getcsr(); \
+    if (flush_subnormals) _mm_setcsr(caller_csr | 0x8040u); /* FTZ | DAZ */
+#define FLUSH_END _mm_setcsr(caller_csr);
+#else
+#define FLUSH_BEGIN
+#define FLUSH_END
+#ifndef SCAN_DOUBLE
+void scan_set_flush(int on) { (void)on; }
+int scan_flush_supported(void) { return 0; }
+#endif
+#endif
+
 /* a[t, n] = exp(Δ_t A_n) for every step, and the start state s (N,): the ring's periodic
  * state when circular, else 0. logp returns Σ_t Δ_t A (N,). */
 static void decays_and_start(const REAL *restrict u, const REAL *restrict delta,
@@ -75,6 +102,7 @@ void FN(scan_fwd_rows)(const REAL *u, const REAL *delta, const REAL *A, const RE
                        const REAL *Cm, const REAL *D, REAL *y, int B, int E, int L, int N,
                        int circular, long r0, long r1) {
     (void)B;
+    FLUSH_BEGIN
     REAL *a = malloc(sizeof(REAL) * (size_t)L * N);
     REAL *v = malloc(sizeof(REAL) * 2 * (size_t)N);
     REAL *restrict h = v, *restrict logp = v + N;
@@ -101,6 +129,7 @@ void FN(scan_fwd_rows)(const REAL *u, const REAL *delta, const REAL *A, const RE
     }
     free(a);
     free(v);
+    FLUSH_END
 }
 
 /* Forward over batch rows [b0, b1) (the training path splits a batch by rows). */
@@ -114,6 +143,7 @@ void FN(scan_fwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
 void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *Bm, const REAL *Cm,
                   const REAL *D, const REAL *dy, REAL *du, REAL *ddelta, REAL *dA, REAL *dB,
                   REAL *dC, int B, int E, int L, int N, int circular, int b0, int b1) {
+    FLUSH_BEGIN
     const size_t LN = (size_t)L * N;
     REAL *a = malloc(sizeof(REAL) * LN);  /* decays a_t */
     REAL *hs = malloc(sizeof(REAL) * LN); /* states h_t of the scan from s */
@@ -179,6 +209,7 @@ void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
     free(a);
     free(hs);
     free(v);
+    FLUSH_END
 }
 
 
@@ -200,8 +231,9 @@ void FN(scan_bwd)(const REAL *u, const REAL *delta, const REAL *A, const REAL *B
  * carrying g_t = Q_t ⊙ s; a state leaves once |g_t[n]| ≤ 2^−24 ‖s‖ / √N in every lane
  * (float32's unit roundoff; ‖s‖ over states, the largest lane's), so that all the dropped
  * terms together change y_t by less than 2^−24 ‖C_t‖ ‖s‖, the rounding of the s term itself.
- * Dropping them also keeps the decayed values out of float32's subnormal range, where every
- * multiply is many times slower (no flush-to-zero here: see scan_kernel.py on -ffast-math).
+ * Dropping them also keeps most decayed values out of float32's subnormal range, where a
+ * multiply is many times slower on some processors; the fast lanes of a state kept for a slow
+ * one still go there, and are flushed to zero (FLUSH_BEGIN, above).
  * Fast decays leave early; slow ones (small Δ Σ A) run the whole ring. The first pass keeps
  * its decays, (L, N) vectors a unit (460 KB at L = 900, N = 16, 8 lanes: they fit in one
  * core's L2 on this project's machine, 1 MB), and the correction reads them back instead of
@@ -387,9 +419,11 @@ void scan_fwd_tokens_f(const float *u, const float *delta, const float *A_t, con
                        const float *Cm, const float *D, float *y, int M, int L, int E, int N,
                        int circular, long k0, long k1) {
     (void)M;
+    FLUSH_BEGIN
     if (N == 16) /* Mamba's d_state: a constant lets the compiler unroll the state loops */
         tokens(u, delta, A_t, Bm, Cm, D, y, L, E, 16, circular, k0, k1);
     else
         tokens(u, delta, A_t, Bm, Cm, D, y, L, E, N, circular, k0, k1);
+    FLUSH_END
 }
 #endif
