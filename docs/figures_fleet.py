@@ -230,6 +230,8 @@ def _load_row(rel: str, label: str) -> list[str]:
         got = fl.get(f"closure_{what}")
         if bars.get("asserted") and got is not None and got < bars[what]:
             notes += f" (under the run's {what} floor, {bars[what]:g}: the test failed)"
+    if lt.get("machine", {}).get("cpu"):  # recorded since the subnormals fix, 2026-12-02
+        notes += f"; on {lt['machine']['cpu']}, {lt['machine']['cores']} cores"
     cpu = lt.get("cpu") or {}  # recorded since 2026-12-02
     if cpu.get("server_cores") is not None and cpu.get("machine_busy_cores") is not None:
         n = lt.get("registration_processes")

@@ -41,11 +41,27 @@ def size(small: Any, full: Any) -> Any:
     return full if FULL else small
 
 
+def cpu_name() -> str:
+    """The processor's model name (/proc/cpuinfo), with its family and model numbers, which
+    a cloud machine's generic name leaves out: the scan kernel's cost depends on them."""
+    fields: dict[str, str] = {}
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = (p.strip() for p in line.partition(":"))
+            fields.setdefault(key, value)
+    except OSError:
+        return platform.processor() or platform.machine()
+    name = fields.get("model name") or platform.machine()
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']} model {fields['model']})"
+    return name
+
+
 def write_report(name: str, body: dict[str, Any]) -> Path:
     OUT.mkdir(parents=True, exist_ok=True)
     body = {
         "mode": "full" if FULL else "quick",
-        "machine": {"platform": platform.platform(), "cores": os.cpu_count()},
+        "machine": {"platform": platform.platform(), "cores": os.cpu_count(), "cpu": cpu_name()},
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         **body,
     }
