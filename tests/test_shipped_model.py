@@ -336,3 +336,29 @@ def test_scan_choice_times_what_the_service_runs(kitti_seq_dir):
     for n in ("1_scans_a_call", "8_scans_a_call"):
         for way in ("c-kernel", "portable"):
             assert got["cost"][n][way]["wall_ms"] > 0 and got["cost"][n][way]["cpu_ms"] > 0
+
+
+def test_scan_subnormals_times_the_served_views_both_ways_and_restores_the_flush():
+    """benchmarks/scan_subnormals.py: one small run gives each real sequence the images the
+    service would encode, times the kernel with and without its flush and the portable
+    graph, finds the same outputs both ways, and leaves the kernel flushing."""
+    from conftest import benchmark_module
+
+    from overlapmamba.core.scan_kernel import KernelBuildError, load
+
+    try:
+        lib = load()
+    except KernelBuildError as err:
+        pytest.skip(f"no C kernel here: {err}")
+    if not lib.scan_flush_supported():
+        pytest.skip("the kernel flushes subnormals on x86 only")
+    bench = benchmark_module("scan_subnormals")
+    got = bench.measure(MODEL, scans=2, repeats=1, console=bench.Console(quiet=True))
+    assert got is not None and got["max_abs_difference_flush_vs_not"] <= 1e-6
+    assert got["served_at_load"].startswith(("c-kernel", "portable"))
+    assert "kitti00" in got["sequences"]
+    for row in got["sequences"].values():
+        assert row["scans_timed"] == 2
+        assert min(row[f"{w}_cpu_ms"] for w in ("flush", "no flush", "portable")) > 0
+        assert row["flush_scan_ms"] > 0 and row["no flush_scan_ms"] > 0
+    assert lib.scan_set_flush(1) == 1  # the run put the service's default back

@@ -20,7 +20,8 @@ scan's cost is one exponential per state element per step). It is passed when co
 only: linking with it would pull in ``crtfastmath.o``, which switches the *whole process*
 to flush-subnormals-to-zero at load time. The kernel flushes subnormals itself instead, on
 the calling thread for the length of each float call (``csrc/selective_scan.c``, FLUSH_BEGIN:
-on some x86 processors a ring's fast-decaying lanes made it fifteen times slower).
+on some x86 processors a ring's fast-decaying lanes made it nine to ten times slower:
+``benchmarks/scan_subnormals.py``).
 """
 
 from __future__ import annotations
@@ -138,7 +139,8 @@ def load() -> ctypes.CDLL:
         lib.scan_fwd_tokens_f.argtypes = [ptr] * 7 + [i32] * 5 + [ctypes.c_long] * 2
         lib.scan_tokens_lanes.restype = ctypes.c_int
         lib.scan_tokens_lanes.argtypes = []
-        lib.scan_set_flush.restype = None  # subnormals flushed in float calls (1, the default)
+        # subnormals flushed in float calls (1, the default); returns the setting replaced
+        lib.scan_set_flush.restype = ctypes.c_int
         lib.scan_set_flush.argtypes = [ctypes.c_int]
         lib.scan_flush_supported.restype = ctypes.c_int  # 0: not on this processor (not x86)
         lib.scan_flush_supported.argtypes = []

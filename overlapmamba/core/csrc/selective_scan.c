@@ -51,15 +51,19 @@
  * normal (1.2e−38) changes nothing a float32 output can hold, but on some x86 processors
  * every multiply that reads or makes one costs a hundred cycles or more: the ring's
  * correction carries a state while any of its 8 lanes still matters, and the lanes that
- * decay fast go subnormal meanwhile. Measured on a cloud Xeon (AVX-512) on the shipped
- * file's scans: 63 ms without, 4 ms with, the same outputs to the bit
+ * decay fast go subnormal meanwhile. On a cloud Xeon (AVX-512) the shipped files' scans took
+ * the kernel nine to ten times as long without it, with the same outputs to the bit
  * (python benchmarks/scan_subnormals.py, which turns it off with scan_set_flush(0) to time
- * both). Not -ffast-math at link time (scan_kernel.py): that would switch the whole process.
+ * both: reports/service/scan-subnormals.json). Not -ffast-math at link time (scan_kernel.py): that would switch the whole process.
  * Double calls (gradcheck) keep IEEE subnormals; other processors than x86 run as before. */
 #if defined(__SSE__) && !defined(SCAN_DOUBLE)
 #include <xmmintrin.h>
 static int flush_subnormals = 1;
-void scan_set_flush(int on) { flush_subnormals = on; }
+int scan_set_flush(int on) { /* returns the setting it replaces */
+    const int was = flush_subnormals;
+    flush_subnormals = on;
+    return was;
+}
 int scan_flush_supported(void) { return 1; }
 #define FLUSH_BEGIN const unsigned int caller_csr = _mm_getcsr(); \
     if (flush_subnormals) _mm_setcsr(caller_csr | 0x8040u); /* FTZ | DAZ */
@@ -68,7 +72,10 @@ int scan_flush_supported(void) { return 1; }
 #define FLUSH_BEGIN
 #define FLUSH_END
 #ifndef SCAN_DOUBLE
-void scan_set_flush(int on) { (void)on; }
+int scan_set_flush(int on) {
+    (void)on;
+    return 0;
+}
 int scan_flush_supported(void) { return 0; }
 #endif
 #endif
