@@ -48,23 +48,6 @@ SEQUENCES = {  # name → (folder, the sensor the service is told)
 WAYS = ("flush", "no flush", "portable")
 
 
-def processor() -> dict[str, Any]:
-    """The processor beyond its name (which a cloud machine may give as plain "Intel Xeon"):
-    /proc/cpuinfo's vendor, family and model numbers, and whether it has AVX-512."""
-    fields: dict[str, Any] = {}
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        return fields
-    for line in lines:
-        key, _, value = (p.strip() for p in line.partition(":"))
-        if key in ("vendor_id", "cpu family", "model") and key not in fields:
-            fields[key] = value
-        if key == "flags" and "avx512f" not in fields:
-            fields["avx512f"] = "avx512f" in value.split()
-    return fields
-
-
 def images(enc: Encoder, scans: int) -> dict[str, list[np.ndarray]]:
     """``scans`` scans of each real sequence (evenly spread) as the service gives them to
     the encoder: (1, V, H, W) images."""
@@ -177,7 +160,7 @@ def main() -> None:
             )
     console.print(table)
     record = {
-        "processor": processor(),
+        "processor": scan_kernel.processor(),
         "models": [shown_path(Path(r["model"])) for r in rows],
         "sequences": {k: shown_path(v[0]) for k, v in SEQUENCES.items() if v[0].is_dir()},
         "files": rows,

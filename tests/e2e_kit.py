@@ -42,19 +42,13 @@ def size(small: Any, full: Any) -> Any:
 
 
 def cpu_name() -> str:
-    """The processor's model name (/proc/cpuinfo), with its family and model numbers, which
-    a cloud machine's generic name leaves out: the scan kernel's cost depends on them."""
-    fields: dict[str, str] = {}
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = (p.strip() for p in line.partition(":"))
-            fields.setdefault(key, value)
-    except OSError:
-        return platform.processor() or platform.machine()
-    name = fields.get("model name") or platform.machine()
-    if "cpu family" in fields and "model" in fields:
-        name += f" (family {fields['cpu family']} model {fields['model']})"
-    return name
+    """The processor's name with its family and model numbers, which a cloud machine's
+    generic name leaves out: the scan kernel's cost depends on them."""
+    from overlapmamba.core.scan_kernel import processor
+
+    p = processor()
+    family = f" (family {p['cpu family']} model {p['model']})" if "model" in p else ""
+    return f"{p['name']}{family}"
 
 
 def write_report(name: str, body: dict[str, Any]) -> Path:

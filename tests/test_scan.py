@@ -356,3 +356,17 @@ def test_the_served_kernel_refuses_a_malformed_state_matrix():
     u, delta, A, Bm, Cm, D = (x.numpy() for x in inputs(1, 8, 5, 4, dtype=torch.float32))
     with pytest.raises(ValueError, match="A \\(E, N\\)"):
         scan_forward(u, delta, A[0], Bm, Cm, D, circular=True)
+
+
+def test_the_processor_is_named_with_its_family_and_model_where_linux_says():
+    """Reports name the processor beside their figures (the kernel's cost depends on it): a
+    cloud machine's generic name is completed by /proc/cpuinfo's vendor, family and model."""
+    import platform
+
+    from overlapmamba.core.scan_kernel import processor
+
+    p = processor()
+    assert isinstance(p["name"], str) and p["name"]
+    if PROC_STATM and platform.machine() == "x86_64":  # Linux on x86 gives all of them
+        assert {"vendor_id", "cpu family", "model"} <= p.keys()
+        assert isinstance(p["avx512f"], bool)

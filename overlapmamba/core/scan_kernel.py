@@ -62,6 +62,18 @@ class KernelBuildError(RuntimeError):
     """The C kernel could not be compiled or loaded; the message says why."""
 
 
+def _cpuinfo() -> dict[str, str]:
+    """The first processor's fields of /proc/cpuinfo (empty where there is none)."""
+    fields: dict[str, str] = {}
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = (part.strip() for part in line.partition(":"))
+            fields.setdefault(key, value)
+    except OSError:
+        pass
+    return fields
+
+
 def _cpu_tag() -> str:
     try:
         info = Path("/proc/cpuinfo").read_text()
@@ -69,6 +81,21 @@ def _cpu_tag() -> str:
     except OSError:
         flags = ""
     return f"{platform.machine()}:{flags}"
+
+
+def processor() -> dict[str, object]:
+    """The processor the kernel runs on, as reports record it: its name, and the vendor,
+    family and model numbers a cloud machine's generic name ("Intel Xeon Processor") leaves
+    out, and whether it has AVX-512. The kernel's cost depends on them (subnormals: see
+    ``csrc/selective_scan.c``)."""
+    info = _cpuinfo()
+    out: dict[str, object] = {"name": info.get("model name") or platform.machine()}
+    for key in ("vendor_id", "cpu family", "model"):
+        if key in info:
+            out[key] = info[key]
+    if "flags" in info:
+        out["avx512f"] = "avx512f" in info["flags"].split()
+    return out
 
 
 def _compiler() -> str | None:

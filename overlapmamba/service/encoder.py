@@ -149,10 +149,10 @@ class Encoder:
             n, k = staged.scan_count, len(staged.stages)
             return f"c-kernel ({n} scans, {k} sessions; max abs {gap:.1e} vs the portable graph)"
         # The cheaper on the processors measured since the kernel flushes subnormals itself;
-        # before, on one cloud Xeon it cost 1.4–1.8 × the portable graph (the ring's fast
-        # lanes went subnormal: benchmarks/scan_subnormals.py). Kept as a guard. Time both on
-        # one scan of the parity image (its views, as a scan is served; a start-up costs a
-        # few tenths of a second more) and serve with the cheaper.
+        # before, on one cloud Xeon it cost about 1.4–1.7 × the portable graph (the ring's
+        # fast lanes went subnormal: reports/service/scan-subnormals.json). Kept as a guard.
+        # Time both on one scan of the parity image (its views, as a scan is served; a
+        # start-up costs a few tenths of a second more) and serve with the cheaper.
         scan = np.concatenate([x] * self.meta.descriptors_per_scan)
         kernel_ms, portable_ms = _time_both(
             lambda: staged.run(scan), lambda: self._run_portable(scan)

@@ -54,8 +54,9 @@
  * decay fast go subnormal meanwhile. On a cloud Xeon (AVX-512) the shipped files' scans took
  * the kernel nine to ten times as long without it, with the same outputs to the bit
  * (python benchmarks/scan_subnormals.py, which turns it off with scan_set_flush(0) to time
- * both: reports/service/scan-subnormals.json). Not -ffast-math at link time (scan_kernel.py): that would switch the whole process.
- * Double calls (gradcheck) keep IEEE subnormals; other processors than x86 run as before. */
+ * both: reports/service/scan-subnormals.json). Not -ffast-math at link time (scan_kernel.py):
+ * that would switch the whole process. Double calls (gradcheck) keep IEEE subnormals; other
+ * processors than x86 run as before. */
 #if defined(__SSE__) && !defined(SCAN_DOUBLE)
 #include <xmmintrin.h>
 static int flush_subnormals = 1;
