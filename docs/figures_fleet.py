@@ -253,10 +253,12 @@ def _load_row(rel: str, label: str) -> list[str]:
             f"{cpu['load_cores']:.2f}: {cpu['machine_busy_cores']:.2f} of "
             f"{cpu['machine_cores']} busy"
         )
+    n = lt.get("scans_per_robot")  # a fixed count since 2026-12-02; before, 60 s
+    each = f", {n} scans each," if n else ""
     return [
         label,
         lt["when"][:10],
-        f"{lt['robots']} robots on `{lt['drive']}` for {lt['duration_s']:.0f} s{model}, "
+        f"{lt['robots']} robots on `{lt['drive']}`{each} for {lt['duration_s']:.0f} s{model}, "
         f"while a mapper inserted {lt['mapper']['keyframes_acknowledged']:,} keyframes: "
         f"{fl['throughput_per_s']:.1f} observations/s, p50 {ms(fl['latency_ms']['p50'])}, "
         f"{lt['errors_total']} errors, {lt['acknowledged_missing']} keyframes lost; "

@@ -354,11 +354,12 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     report, plot = tmp_path / "fleet.json", tmp_path / "fleet.png"
     out = run(
         "simulate-fleet", "--map", "cli-fleet", "--sequence", str(synthetic_seq_dir),
-        "--robots", "2", "--duration", "3", "--rate", "4", "--mount", "1.8,2",
+        "--robots", "2", "--duration", "30", "--scans", "3", "--rate", "4", "--mount", "1.8,2",
         "--out", str(report), "--plot", str(plot),
     )  # fmt: skip
     data = json.loads(report.read_text())
-    assert data["robots"] == 2 and data["observations"] >= 4 and data["errors"] == {}
+    assert data["robots"] == 2 and data["observations"] == 6 and data["errors"] == {}
+    assert data["scans_per_robot"] == 3 and data["duration_s"] < 30
     assert data["precision"] is None  # this sequence ships no ground truth
     assert plot.stat().st_size > 1000
     bad = ["simulate-fleet", "--map", "x", "--sequence", str(synthetic_seq_dir), "--mount", "0"]
@@ -441,6 +442,33 @@ def test_fleet_scores_loop_closures_against_ground_truth(live, tiny_seq):
     ready = httpx.get(f"{live}/readyz").json()["detail"]
     assert report.server["model_id"] == ready["model_id"] and report.server["views"] >= 1
     assert report.drives == [drive.name] and report.when.endswith("+00:00")
+
+
+def test_fleet_robots_stop_after_the_scans_asked_and_refuse_a_count_below_one(live, tiny_seq):
+    """``scans``: each robot observes that many scans and stops (the run ends before its
+    time bound), so the robots cover the same stretches of the drive on any machine."""
+    import time
+
+    from overlapmamba.client._replay import open_drive
+    from overlapmamba.client.fleet import simulate
+
+    drive = open_drive(tiny_seq)
+    t0 = time.monotonic()
+    report, samples = asyncio.run(
+        simulate(live, "fleet-n", [drive], robots=2, duration_s=120.0, rate_hz=20.0, scans=4)
+    )
+    assert time.monotonic() - t0 < 60.0  # ended by the count, not by the bound
+    assert report.errors == {} and report.scans_per_robot == 4
+    assert {r: v["observations"] for r, v in report.per_robot.items()} == {
+        "robot-00": 4,
+        "robot-01": 4,
+    }
+    half = len(drive) // 2  # the second robot starts halfway: its own four frames
+    assert sorted(s.frame for s in samples) == [0, 1, 2, 3, half, half + 1, half + 2, half + 3]
+    with pytest.raises(ValueError, match="scans must be at least 1"):
+        asyncio.run(
+            simulate(live, "fleet-n", [drive], robots=1, duration_s=1.0, rate_hz=1.0, scans=0)
+        )
 
 
 def test_fleet_judges_verified_closures_by_their_pose_beyond_the_loop_radius():

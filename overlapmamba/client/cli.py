@@ -364,6 +364,14 @@ def simulate_fleet(
     robots: Annotated[int, typer.Option(min=1, max=256)] = 4,
     duration: Annotated[float, typer.Option(min=0.1, help="seconds")] = 60.0,
     rate: Annotated[float, typer.Option(min=0.01, help="scans per second per robot")] = 10.0,
+    scans: Annotated[
+        int | None,
+        typer.Option(
+            min=1,
+            help="each robot stops after this many scans, --duration only bounds the run: "
+            "the same stretches of the drives on any machine, so recall compares",
+        ),
+    ] = None,
     k: Annotated[int, typer.Option("-k", min=1)] = 5,
     out_json: Annotated[Path, typer.Option("--out", help="report JSON")] = Path(
         "fleet-report.json"
@@ -390,6 +398,7 @@ def simulate_fleet(
             k=k,
             seed=seed,
             mount=mount,
+            scans=scans,
         )
     )
     write_outputs(report, samples, out_json, plot)

@@ -76,6 +76,7 @@ class FleetReport:
     server: dict[str, Any] = field(default_factory=dict)
     drives: list[str] = field(default_factory=list)
     when: str = ""
+    scans_per_robot: int | None = None  # asked of each robot (None: as many as the time let)
 
     def to_json(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -95,12 +96,23 @@ async def simulate(
     seed: int = 0,
     retry: Retry | None = None,
     mount: str | tuple[float, ...] | None = None,
+    scans: int | None = None,
 ) -> tuple[FleetReport, list[_Sample]]:
     """``retry``: how each robot retries (default: 3 attempts); ``NO_RETRY`` makes every
     overload or transport error count as an error, as load tests want. ``mount``: where
-    every robot's sensor sits (HEIGHT[,PITCH[,ROLL]]; None: the model's mount)."""
+    every robot's sensor sits (HEIGHT[,PITCH[,ROLL]]; None: the model's mount).
+
+    ``scans``: each robot stops after that many scans (or at its drive's end), and
+    ``duration_s`` only bounds the run. The robots then cover the same stretches of their
+    drives on any machine, so the closures' recall compares across machines and files: in
+    a fixed time a slower server's robots get less far, where the loops differ (measured:
+    the same server, robots asked for fewer scans a second, recall fell with them)."""
     if robots < 1 or duration_s <= 0 or rate_hz <= 0 or not drives:
         raise ValueError("need robots ≥ 1, duration > 0, rate > 0 and at least one drive")
+    if scans is not None and scans < 1:
+        raise ValueError(
+            f"scans must be at least 1 a robot (or None: until the deadline); got {scans}"
+        )
     samples: list[_Sample] = []
     # keyframe id -> (drive, frame, acknowledged at)
     keyframes: dict[str, tuple[int, int, float]] = {}
@@ -127,7 +139,8 @@ async def simulate(
             offset = (r // len(drives)) * len(drive) // sharing
             period = 1.0 / rate_hz
             next_t = time.monotonic()
-            for i in range(offset, len(drive)):
+            end = len(drive) if scans is None else min(len(drive), offset + scans)
+            for i in range(offset, end):
                 now = time.monotonic()
                 if now >= deadline:
                     return
@@ -192,6 +205,7 @@ async def simulate(
     elapsed = time.monotonic() - start
     report = _report(samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start)
     report.server, report.drives = server, [d.name for d in drives]
+    report.scans_per_robot = scans
     report.when = datetime.now(UTC).isoformat(timespec="seconds")
     return report, samples
 
