@@ -327,7 +327,36 @@ def e2e() -> str:
     return out + "\n" + table(["test", "run", "result"], rows)
 
 
+def fleet_reach() -> str:
+    """The same server and fleet, robots asking for fewer scans a second: how far they got
+    and the recall (``benchmarks/fleet_reach.py``)."""
+    rel = "reports/client/fleet-reach.json"
+    r = load(rel)
+    out = source(rel, "python benchmarks/fleet_reach.py", when(r))
+    out += (
+        f"\n{r['robots']} robots on `{r['drive']}`, `{r['model']}`, a fresh server each run "
+        "(machine: " + f"{r['machine']['cpu']}, {r['machine']['cores']} cores):\n\n"
+    )
+    rows = []
+    for run in r["runs"]:
+        n = run["scans_asked"]
+        asked = f"{run['rate_hz_asked']:g} Hz, " + (f"{n} scans a robot" if n else "for a minute")
+        rows.append(
+            [
+                asked,
+                f"{run['duration_s']:.0f} s",
+                f"{run['scans_per_robot']:.0f}",
+                f"{run['throughput_per_s']:.1f}",
+                f3(run["precision"]),
+                f3(run["recall"]),
+            ]
+        )
+    head = ["robots asked", "run", "scans a robot", "observations/s", "precision", "recall"]
+    return out + table(head, rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
+    "fleet-reach": fleet_reach,
     "sizing": sizing,
     "fleet": fleet,
     "fleet-views": fleet_views,
