@@ -6,7 +6,7 @@ Quick (``make test``): 2 robots for 8 s. Full (``make e2e``): 8 robots asked for
 scans each (``SCANS``), the run bounded at 300 s: every machine's robots cover the same
 stretches of the drive, so the closures' recall compares across machines and files (in a
 fixed 60 s, as before 2026-12-02, a slower server's robots got less far, where the loops
-are fewer and harder: the recall floor tested the machine's speed as well).
+differ: the recall floor tested the machine's speed as well, benchmarks/fleet_reach.py).
 ``OVERLAPMAMBA_E2E_MODEL=FILE`` serves another model file (a twin of the shipped one); its
 report is then ``reports/e2e/load-STEM.json`` beside the shipped file's ``load.json``.
 """
@@ -107,9 +107,6 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         stats = c.get("/v1/stats").json()
         resident_after, children_after = resident_mb(c)
 
-    # every robot got through its scans before the bound: the stretches the recall compares
-    done = {r: v["observations"] for r, v in report.per_robot.items()}
-    assert scans is None or set(done.values()) == {scans}, f"robots' scans {done}, {scans} asked"
     errors = sum(report.errors.values()) + len(mapper.errors) + len(poller.errors)
     body = {
         "command": "make e2e (tests/test_e2e_load.py)"
@@ -169,6 +166,9 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
         "registration_resident_mb": {"ready": children_ready, "after": children_after},
     }
     path = write_report(name, body)
+    # every robot got through its scans before the bound: the stretches the recall compares
+    done = {r: v["observations"] for r, v in report.per_robot.items()}
+    assert scans is None or set(done.values()) == {scans}, f"robots' scans {done}, {scans} asked"
     assert errors == 0, (report.errors, mapper.errors[:3], poller.errors[:3], path)
     assert not missing, missing[:10]
     assert all(body["index_equals_store"].values()), maps
