@@ -94,6 +94,36 @@ def test_point_limits_are_checked_before_decoding():
         PointLimits(min_points=10, max_points=2)
 
 
+@given(clouds(4), st.sampled_from(["C", "F", "strided", "float64", ">f4"]))
+def test_validate_splits_xyzi_alike_in_every_layout(xyzi, layout):
+    """The KITTI-layout fast path (a float32 C array) and the others give the same points,
+    C-contiguous float32; the fast path's are copies, not views of the caller's buffer."""
+    arr = {
+        "C": xyzi,
+        "F": np.asfortranarray(xyzi),
+        "strided": np.repeat(xyzi, 2, axis=0)[::2],
+        "float64": xyzi.astype(np.float64),
+        ">f4": xyzi.astype(">f4"),
+    }[layout]
+    pc = validate(arr)
+    np.testing.assert_array_equal(pc.xyz, xyzi[:, :3])
+    np.testing.assert_array_equal(pc.intensity, xyzi[:, 3])
+    for part in (pc.xyz, pc.intensity):
+        assert part.dtype == np.float32 and part.flags.c_contiguous
+        assert layout != "C" or not np.shares_memory(part, arr)
+    np.testing.assert_array_equal(pc.as_xyzi(), xyzi)
+
+
+def test_validate_refuses_a_nan_in_a_kitti_layout_scan():
+    xyzi = np.ones((5, 4), np.float32)
+    xyzi[2, 1] = np.nan
+    with pytest.raises(NonFiniteError, match="1 points with NaN"):
+        validate(xyzi)
+    xyzi[2, 1], xyzi[3, 3] = 1.0, np.inf
+    with pytest.raises(NonFiniteError, match="1 NaN or infinite intensities"):
+        validate(xyzi)
+
+
 def test_validate_rejects_wrong_shapes_and_dtypes():
     with pytest.raises(PointCloudError, match=r"shape \(10, 5\)"):
         validate(np.zeros((10, 5), np.float32))
