@@ -40,7 +40,9 @@ class Observer(Worker):
 
     def step(self, c: httpx.Client) -> None:
         self._n += 1
-        ts = float(self._n)
+        # a timestamp of its own in every cycle, so that check() finds each keyframe alone
+        # in its time window (a whole multiple of len(SCANS) apart: the same scan for it)
+        ts = float(self.cycle * CYCLE_TS + self._n)
         r = c.post(
             f"/v1/maps/{MAP}/observe",
             content=SCANS[self._n % len(SCANS)],
@@ -81,6 +83,7 @@ class Deleter(Worker):
 
 
 SCANS = [scan(i).tobytes() for i in range(4)]
+CYCLE_TS = 100_000  # a cycle's observations' timestamps start here × the cycle
 
 
 def check(
