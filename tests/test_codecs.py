@@ -24,7 +24,7 @@ from overlapmamba.core.io import (
     read_points,
     read_xyzi,
 )
-from overlapmamba.core.points import PointLimits, validate
+from overlapmamba.core.points import PointCloud, PointLimits, validate
 
 finite32 = st.floats(-1e4, 1e4, allow_nan=False, width=32)
 
@@ -106,12 +106,25 @@ def test_validate_splits_xyzi_alike_in_every_layout(xyzi, layout):
         ">f4": xyzi.astype(">f4"),
     }[layout]
     pc = validate(arr)
-    np.testing.assert_array_equal(pc.xyz, xyzi[:, :3])
-    np.testing.assert_array_equal(pc.intensity, xyzi[:, 3])
+    assert pc.xyz.tobytes() == np.ascontiguousarray(xyzi[:, :3]).tobytes()  # bit for bit
+    assert pc.intensity is not None
+    assert pc.intensity.tobytes() == np.ascontiguousarray(xyzi[:, 3]).tobytes()
     for part in (pc.xyz, pc.intensity):
         assert part.dtype == np.float32 and part.flags.c_contiguous
         assert layout != "C" or not np.shares_memory(part, arr)
-    np.testing.assert_array_equal(pc.as_xyzi(), xyzi)
+    assert pc.as_xyzi().tobytes() == xyzi.tobytes()
+
+
+def test_as_xyzi_of_a_cloud_built_directly_takes_any_layout():
+    """A PointCloud made without validate (float64, Fortran order, strided) still gives
+    the KITTI layout, and zero intensity where it has none."""
+    xyzi = np.arange(24, dtype=np.float32).reshape(6, 4) - 7.5
+    xyz64 = np.asfortranarray(xyzi[:, :3].astype(np.float64))
+    got = PointCloud(xyz=xyz64, intensity=xyzi[::1, 3]).as_xyzi()
+    assert got.dtype == np.float32 and got.tobytes() == xyzi.tobytes()
+    bare = PointCloud(xyz=xyzi[:, :3]).as_xyzi()
+    np.testing.assert_array_equal(bare[:, :3], xyzi[:, :3])
+    assert not bare[:, 3].any()
 
 
 def test_validate_refuses_a_nan_in_a_kitti_layout_scan():

@@ -93,7 +93,7 @@ def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
     # The drive's first scans, as many as the run asks of a robot: the second robot starts
     # half-way along them, and the first, reaching that half, revisits what the second mapped
     # within the run (the full run's held-out town revisits a place only after hundreds of
-    # scans, and half its drive is 240 s away at 5 Hz)
+    # scans, and half its drive, 1,250 scans, is 250 s away at 5 Hz)
     drive = head(open_drive(drive_dir()), int(duration * rate))
     errors: list[str] = []
     with server(tmp_path / "data") as (url, _):

@@ -40,9 +40,9 @@ class Observer(Worker):
 
     def step(self, c: httpx.Client) -> None:
         self._n += 1
-        # a timestamp of its own in every cycle, so that check() finds each keyframe alone
-        # in its time window (a whole multiple of len(SCANS) apart: the same scan for it)
-        ts = float(self.cycle * CYCLE_TS + self._n)
+        # a timestamp of its own in every cycle, above the mapper's, so that check() finds
+        # each observed keyframe alone among the scans of its time window
+        ts = float((self.cycle + 1) * CYCLE_TS + self._n)
         r = c.post(
             f"/v1/maps/{MAP}/observe",
             content=SCANS[self._n % len(SCANS)],
@@ -83,7 +83,8 @@ class Deleter(Worker):
 
 
 SCANS = [scan(i).tobytes() for i in range(4)]
-CYCLE_TS = 100_000  # a cycle's observations' timestamps start here × the cycle
+CYCLE_TS = 100_000  # cycle c's observations are stamped from (c + 1) × this on
+assert CYCLE_TS % len(SCANS) == 0  # check() takes a keyframe's scan from its timestamp
 
 
 def check(
@@ -110,7 +111,7 @@ def check(
         r = c.post(
             f"/v1/maps/{MAP}/query",
             params={"k": 5, "time_from": ts, "time_to": ts},
-            content=SCANS[int(ts) % len(SCANS)],
+            content=SCANS[int(ts) % CYCLE_TS % len(SCANS)],
             headers=OCTET,
         )
         verdicts = {m["keyframe_id"]: m["verification"] for m in r.json()["matches"]}
@@ -124,8 +125,6 @@ def test_sigkill_under_mixed_load_loses_no_acknowledged_write(tmp_path):
     rnd = random.Random(7)
     data = tmp_path / "data"
     env = {"OVERLAPMAMBA_INDEX__SNAPSHOT_EVERY": "20", "OVERLAPMAMBA_BATCHING__MAX_BATCH": "1"}
-    # check() registers each observed keyframe among others of the same scan: every candidate
-    env["OVERLAPMAMBA_VERIFY__STOP_AT_FIRST"] = "false"
     model_id = Encoder(MODEL).model_id
     alive: dict[str, list[float]] = {}  # acknowledged id -> its descriptor (observations: [])
     deleted: set[str] = set()

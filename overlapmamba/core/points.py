@@ -47,7 +47,7 @@ DEFAULT_LIMITS = PointLimits()
 
 # A KITTI-layout row (x, y, z, intensity float32) as two opaque fields: numpy copies a 12-byte
 # field of a 16-byte row as one item, where slicing [:, :3] copies float by float (on KITTI
-# 00 scans about 2 × faster, the values bit for bit the same: benchmarks/projection.py, decode)
+# 00 scans about 3 × faster, the values bit for bit the same: benchmarks/projection.py, decode)
 _XYZI = np.dtype([("xyz", "V12"), ("i", "V4")])
 
 
