@@ -22,6 +22,12 @@ bounds the throughput any fleet gets on this machine: cores ÷ (server + client 
 observation), the ``ceiling`` column.
 
     python benchmarks/fleet_views.py [--rounds 2] [--robots 8] [--sequence data/synth/val]
+        [--scans 250]
+
+``--scans N``: each robot observes N scans a round (``simulate-fleet --scans``, as the
+end-to-end load run asks), and ``--duration`` (then 300 s) only bounds a round; without it
+a round lasts ``--duration`` (60 s), in which a slower model's robots get less far along the
+drive, where the loops differ, so its recall is not the faster one's to compare.
 
 ``--model NAME`` (repeated) runs those models instead, e.g. the shipped file against the
 every-sensor option (``models/overlapmamba-any-sensor.onnx``, one pass a scan, calibrated
@@ -144,6 +150,8 @@ def round_of(
         cmd = [str(Path(sys.executable).parent / "overlapmamba-client"), "simulate-fleet"]
         cmd += ["--robots", str(args.robots), "--sequence", str(args.sequence)]
         cmd += ["--duration", str(args.duration), "--rate", str(args.rate)]
+        if args.scans is not None:
+            cmd += ["--scans", str(args.scans)]
         cmd += ["--map", "fleet", "--url", srv.url, "--out", str(out)]
         cmd += ["--plot", str(tmp / f"fleet-{i}.png")]
         server0 = _pid_cpu_s(srv.proc.pid)
@@ -174,7 +182,10 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2, help="runs of each model, alternating")
     ap.add_argument("--robots", type=int, default=8)
     ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
-    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument(
+        "--duration", type=float, help="seconds a round [60; with --scans, its bound: 300]"
+    )
+    ap.add_argument("--scans", type=int, help="scans each robot observes a round")
     ap.add_argument("--rate", type=float, default=10.0, help="scans a second asked per robot")
     ap.add_argument("--out", type=Path, default=REPORTS / "client" / "fleet-views.json")
     ap.add_argument(
@@ -184,6 +195,10 @@ def main() -> None:
         help=f"a model to run (repeat; default: {', '.join(DEFAULT_MODELS)})",
     )
     args = ap.parse_args()
+    if args.scans is not None and args.scans < 1:
+        raise SystemExit(f"--scans must be at least 1; got {args.scans}")
+    if args.duration is None:
+        args.duration = 60.0 if args.scans is None else 300.0
     console = Console()
     models = {k: MODELS[k] for k in (args.model or DEFAULT_MODELS)}
     for name, (path, _) in models.items():
@@ -214,6 +229,7 @@ def main() -> None:
             args.sequence.relative_to(ROOT) if args.sequence.is_absolute() else args.sequence
         ),
         "duration_s": args.duration,
+        "scans_per_robot": args.scans,
         "rate_hz": args.rate,
         "rounds": args.rounds,
         "other_load": busy,
@@ -229,7 +245,8 @@ def main() -> None:
         },
     }
     write_report(args.out, result)
-    t = Table(title=f"{args.robots} robots, {args.duration:.0f} s a round, alternating")
+    each = f"{args.duration:.0f} s" if args.scans is None else f"{args.scans} scans a robot"
+    t = Table(title=f"{args.robots} robots, {each} a round, alternating")
     cols = ("model", "observations/s per round", "median", "p50 latency", "errors")
     for col in (*cols, "CPU an observation: server + client", "ceiling"):
         t.add_column(col)

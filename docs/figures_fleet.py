@@ -144,6 +144,14 @@ FLEET_BATCHES_ONE_VIEW = "reports/client/fleet-batches-one-view.json"  # the sam
 FLEET_REGISTRAR = "reports/client/fleet-registrar.json"  # registration in a child or threads
 
 
+def _round(r: dict[str, Any]) -> str:
+    """What a round of a fleet_views report asked: a fixed time, or a count of scans."""
+    n = r.get("scans_per_robot")  # since 2026-12-03 where --scans; before, a fixed time
+    if n is None:
+        return f"{r['duration_s']:.0f} s a round"
+    return f"{n} scans a robot a round (at most {r['duration_s']:.0f} s)"
+
+
 def fleet_views(path: str = FLEET_VIEWS) -> str:
     """The fleet simulator against each model of a ``benchmarks/fleet_views.py`` report
     (each way of meeting the views, by default), alternating rounds, and where an
@@ -187,7 +195,7 @@ def fleet_views(path: str = FLEET_VIEWS) -> str:
     )
     out += (
         f"\n{r['robots']} robots on `{r['sequence']}`, {r['rate_hz']:g} Hz asked each, "
-        f"{r['duration_s']:.0f} s a round, {r['rounds']} rounds of each model in turn{note}. "
+        f"{_round(r)}, {r['rounds']} rounds of each model in turn{note}. "
         "CPU an observation: the server's and the simulator's (its robots share the "
         f"{r['cores']} cores), over the observations answered; ceiling: "
         f"{r['cores']} cores ÷ their sum, observations a second; verify: the server's median "
