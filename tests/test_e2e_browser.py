@@ -14,8 +14,7 @@ import re
 import shutil
 import threading
 import time
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import replace
 
 import pytest
 from e2e_kit import FULL, OUT, drive_dir, size, write_report
@@ -23,6 +22,7 @@ from service_kit import server
 
 from overlapmamba.client._replay import Drive, open_drive
 from overlapmamba.client.fleet import simulate
+from overlapmamba.core.datasets.base import Sequence
 
 pytestmark = pytest.mark.e2e
 
@@ -40,36 +40,14 @@ PIXELS = """(ids) => ids.map((id) => {
 })"""
 
 
-@dataclass(frozen=True)
-class _Head:
-    """A recording's first ``n`` scans (what :class:`Drive` and the fleet's report read of a
-    drive's ``seq``: its name, length, scans and world poses)."""
-
-    seq: Any
-    n: int
-
-    @property
-    def name(self) -> str:
-        return str(self.seq.name)
-
-    @property
-    def poses(self) -> Any:
-        return None if self.seq.poses is None else self.seq.poses[: self.n]
-
-    def __len__(self) -> int:
-        return self.n
-
-    def xyzi(self, i: int) -> Any:
-        if not 0 <= i < self.n:
-            raise IndexError(f"scan {i} is beyond the first {self.n}")
-        return self.seq.xyzi(i)
-
-
 def head(drive: Drive, n: int) -> Drive:
-    """The drive's first ``n`` scans (all of them when it has no more)."""
+    """The drive's first ``n`` scans (all of them when it has no more): its recording
+    (a :class:`Sequence`, whose scan files and poses are cut alike) and its times."""
+    assert isinstance(drive.seq, Sequence), drive.seq
     n = min(n, len(drive))
+    seq = replace(drive.seq, scan_paths=drive.seq.scan_paths[:n], poses=drive.seq.poses[:n])
     poses = None if drive.poses is None else drive.poses[:n]
-    return replace(drive, seq=_Head(drive.seq, n), times=drive.times[:n], poses=poses)
+    return replace(drive, seq=seq, times=drive.times[:n], poses=poses)
 
 
 def _browser() -> str:
