@@ -216,6 +216,14 @@ def test_statistics_count_ambiguous_refusals_among_the_rejected():
     v = s.total.public()["verification"]
     assert (v["verified"], v["rejected"], v["ambiguous"], v["registered"]) == (1, 2, 1, 3)
 
+    def towns() -> list[str]:  # the /metrics series of the ambiguous count labelled "town"
+        samples = [x for m in s.p_ambiguous.collect() for x in m.samples]
+        return [x.name for x in samples if x.labels.get("map") == "town"]
+
+    assert towns()
+    s.forget_map("town")  # the map was deleted: its series go, the ambiguous count's too
+    assert towns() == []
+
 
 @pytest.mark.anyio
 async def test_an_ambiguous_closure_over_http(tmp_path, encoder):

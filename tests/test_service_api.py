@@ -297,9 +297,18 @@ async def test_keyframe_batches_check_model_and_values(any_backend, encoder):
         ragged["keyframes"][0]["yaw_features"] = [[1.0, 2.0], [1.0]]
         r = await c.post("/v1/maps/m/keyframes:batch", json=ragged)
         assert r.status_code == 422 and err(r)["code"] == "bad_yaw_features"
+        big = batch()  # finite as float32, but past float16's range, as the store keeps them
+        shape = (encoder.meta.yaw_channels, encoder.meta.profile.width)
+        big["keyframes"][0]["yaw_features"] = np.full(shape, 7e4, np.float32).tolist()
+        r = await c.post("/v1/maps/m/keyframes:batch", json=big)
+        assert r.status_code == 422 and err(r)["code"] == "bad_yaw_features"
+        assert "float16" in err(r)["message"]
+        big["keyframes"][0]["yaw_features"] = np.full(shape, 6e4, np.float32).tolist()
+        big["keyframes"][0]["keyframe_id"] = "big-but-fine"
+        assert (await c.post("/v1/maps/m/keyframes:batch", json=big)).status_code == 200
         r = await c.post("/v1/maps/m/keyframes:batch", content=b"{not json")
         assert r.status_code == 422 and err(r)["code"] == "invalid_request"
-        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 5  # nothing partial
+        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 6  # nothing partial
 
 
 async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backend, encoder):
@@ -354,6 +363,27 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
         assert (await c.get("/v1/maps/w/overview", params={"limit": 0})).status_code == 422
         assert (await c.get("/v1/maps/nope/overview")).status_code == 404
         assert (await c.get("/v1/maps/w")).json()["keyframes"] == 3
+
+
+async def test_observations_sent_together_insert_one_keyframe(tmp_path, encoder):
+    """A robot's client that does not wait for each answer: three observations 0.5 s and
+    0 m apart arrive at once. One becomes the keyframe; the others are not due (each asks
+    whether it is due only after the one before was inserted); another robot's is its own."""
+    s0 = scan(0).tobytes()
+
+    async def observe(ts, robot="r1"):
+        params = {"robot_id": robot, "session_id": "s", "timestamp": ts, "pose": "0,0,0,0,0,0,1"}
+        r = await c.post("/v1/maps/w/observe", params=params, content=s0, headers=OCTET)
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    async with running(Settings(data_dir=tmp_path / "d"), encoder) as c:
+        await c.put("/v1/maps/w")
+        out = await asyncio.gather(observe(100.0), observe(100.5), observe(101.0), observe(1, "r2"))
+        assert sum(o["inserted"] for o in out[:3]) == 1, out
+        assert sorted(o["insert_reason"] for o in out[:3]) == ["first", "not_due", "not_due"]
+        assert out[3]["inserted"] and out[3]["insert_reason"] == "first"
+        assert (await c.get("/v1/maps/w")).json()["keyframes"] == 2
 
 
 async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):

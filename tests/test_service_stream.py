@@ -75,3 +75,21 @@ async def test_an_unforeseen_error_is_answered_and_the_stream_goes_on(tmp_path, 
     assert second["seq"] == 2 and second["ok"] is True, second
     assert calls == [1.0, 2.0]
     assert any("observation 1 failed" in r.getMessage() for r in caplog.records)
+
+
+async def test_a_metadata_frame_whose_scan_never_came_is_answered(tmp_path, encoder):
+    """Two metadata frames in a row: the first's observation was not made, and its seq is
+    answered so (a robot waiting on it does not wait for ever); the second goes on."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        meta = [
+            {"type": "websocket.receive", "text": json.dumps({"seq": s, "timestamp": s})}
+            for s in (1.0, 2.0)
+        ]
+        frames = [*meta, {"type": "websocket.receive", "bytes": scan(0).tobytes()}]
+        app = c.app  # type: ignore[attr-defined]
+        first, second = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+    assert first["seq"] == 1 and first["ok"] is False and first["status"] == 400
+    assert first["error"]["code"] == "bad_stream_frame"
+    assert "not its scan" in first["error"]["message"]
+    assert second["seq"] == 2 and second["ok"] is True, second

@@ -165,6 +165,7 @@ def content_hash(kind: str, payload: bytes, meta: dict[str, Any]) -> str:
     return h.hexdigest()
 
 
+YAW_LIMIT = float(np.finfo(np.float16).max)  # yaw features are stored as float16
 UNIT_TOLERANCE = 1e-3  # float32 descriptors from the encoder are unit to ~1e-7
 
 
@@ -267,9 +268,14 @@ def descriptor_keyframe(
             yaw = np.asarray(k.yaw_features, dtype=np.float32)
         except ValueError:  # ragged rows
             yaw = np.zeros(0, np.float32)
-        if yaw.shape != yaw_shape or not np.isfinite(yaw).all():
+        # the store keeps them as float16: a value past its range (±65504) would come back
+        # infinite and make every re-ranked score with this keyframe NaN (no closure, ever)
+        with np.errstate(over="ignore"):
+            stored = yaw.astype(np.float16)
+        if yaw.shape != yaw_shape or not np.isfinite(stored).all():
             raise Unprocessable(
-                f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {yaw_shape}, finite",
+                f"keyframes[{i}].yaw_features has shape {yaw.shape}; allowed: {yaw_shape}, "
+                f"finite and within ±{YAW_LIMIT:g} (they are stored as float16)",
                 code="bad_yaw_features",
             )
     meta: dict[str, Any] = {

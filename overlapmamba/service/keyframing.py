@@ -9,7 +9,11 @@ due (or that it is not), and whether a retried observation's keyframe is already
 
 from __future__ import annotations
 
+import asyncio
+import weakref
 from collections import OrderedDict
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 
 import numpy as np
 
@@ -29,6 +33,22 @@ class KeyframeSchedule:
     def __init__(self, settings: ObserveSettings) -> None:
         self.settings = settings
         self._last: OrderedDict[tuple[str, str], tuple[float, np.ndarray | None]] = OrderedDict()
+        # one decision at a time per (map, robot); a lock nobody holds or waits for goes
+        self._deciding: weakref.WeakValueDictionary[tuple[str, str], asyncio.Lock] = (
+            weakref.WeakValueDictionary()
+        )
+
+    @asynccontextmanager
+    async def deciding(self, map_id: str, robot: str) -> AsyncIterator[None]:
+        """Hold while asking :meth:`due` and inserting what it said: a robot whose
+        observations arrive together (a client that does not wait for each answer) would
+        otherwise see them all due against the same last keyframe, and insert each."""
+        key = (map_id, robot)
+        lock = self._deciding.get(key)
+        if lock is None:
+            lock = self._deciding[key] = asyncio.Lock()
+        async with lock:
+            yield
 
     def remember(self, map_id: str, robot: str, timestamp: float, pose: list[float] | None) -> None:
         """A keyframe of ``robot`` went into ``map_id`` (one older than known changes nothing)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import replace
 from typing import Literal
 
@@ -410,20 +411,22 @@ class PlaceService:
             sensor,
         )
         await self._draw(m, obs, answer)
-        reason = await self.keyframing.due(m, obs)
         keyframe_id = None
         inserted = False
-        if reason is not None:
-            keyframe_id = obs.keyframe_id
-            row = await self._row(m, d, keyframe_id, obs, sensor)
-            (result,) = await self.insert(m, [row], obs.robot_id)
-            inserted = result.created
-            if not inserted:
-                reason = "existing"
-        elif obs.insert == "auto" and await self.keyframing.retried(m, obs):
-            # a retry of an observation that was inserted but whose answer was lost: not due
-            # now only because its own keyframe is the robot's last; say that it is there
-            keyframe_id, reason = obs.keyframe_id, "existing"
+        auto = obs.insert == "auto"
+        async with self.keyframing.deciding(m.map_id, obs.robot_id) if auto else nullcontext():
+            reason = await self.keyframing.due(m, obs)
+            if reason is not None:
+                keyframe_id = obs.keyframe_id
+                row = await self._row(m, d, keyframe_id, obs, sensor)
+                (result,) = await self.insert(m, [row], obs.robot_id)
+                inserted = result.created
+                if not inserted:
+                    reason = "existing"
+            elif auto and await self.keyframing.retried(m, obs):
+                # a retry of an observation that was inserted but whose answer was lost: not
+                # due now only because its own keyframe is the robot's last; say it is there
+                keyframe_id, reason = obs.keyframe_id, "existing"
         self._done(answer.timings, t0)
         return Observed(
             answer.matches,

@@ -241,6 +241,7 @@ class Stats:
                 self.p_inserts,
                 self.p_loops,
                 self.p_registered,
+                self.p_ambiguous,
             )
         ]
         labelled += [(self.p_verify, (map_id, outcome)) for outcome in ("verified", "rejected")]

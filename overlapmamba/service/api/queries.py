@@ -336,30 +336,30 @@ async def stream(
                 break
             if worker.done():  # the sender failed (client gone)
                 break
+            items: list[tuple[Any, bytes | None, str | None]] = []
             if frame.get("text") is not None:
+                if isinstance(pending, StreamMeta):  # its scan never came: answer its seq
+                    problem = "metadata frame followed by another metadata frame, not its scan"
+                    items.append((pending.seq, None, f"{problem}: this observation was not made"))
                 try:
                     pending = StreamMeta.model_validate_json(frame["text"])
                 except ValidationError as err:
-                    item: tuple[Any, bytes | None, str | None] = (
-                        None,
-                        None,
-                        f"metadata frame is not valid: {err.errors(include_url=False)[0]['msg']}",
-                    )
+                    why = err.errors(include_url=False)[0]["msg"]
+                    items.append((None, None, f"metadata frame is not valid: {why}"))
                     pending = None
-                else:
-                    continue
             elif pending is None:
-                item = (None, None, "binary frame without a metadata frame before it")
+                items.append((None, None, "binary frame without a metadata frame before it"))
             else:
-                item = (pending, frame.get("bytes") or b"", None)
+                items.append((pending, frame.get("bytes") or b"", None))
                 pending = None
-            if queue.qsize() >= limit:
+            if items and queue.qsize() + len(items) > limit:
                 await websocket.close(
                     code=1013,
                     reason=f"client outran the server: {limit} observations pending",
                 )
                 break
-            queue.put_nowait(item)
+            for item in items:
+                queue.put_nowait(item)
     except WebSocketDisconnect:
         pass
     finally:
