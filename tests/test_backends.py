@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -428,6 +429,30 @@ def test_a_failed_or_foreign_snapshot_costs_a_rebuild_never_keyframes(tmp_path, 
     with opened("faiss", tmp_path) as b:
         assert b.get("town").count == 3
         assert not list(folder.glob("*.tmp"))
+
+
+def test_an_export_counts_what_its_file_holds_while_a_service_writes(tmp_path, monkeypatch):
+    """Keyframes written after the copy was taken are not in the file: the count the export
+    reports is the file's."""
+    from overlapmamba.service import backup
+
+    data = tmp_path / "data"
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+        real_replace = backup.os.replace
+
+        def written_meanwhile(src, dst):  # the service inserts between the copy and its rename
+            m.insert([row(i, np.random.default_rng(i)) for i in range(3, 5)])
+            real_replace(src, dst)
+
+        monkeypatch.setattr(backup.os, "replace", written_meanwhile)
+        out = backup.export_map(data, "town", tmp_path / "town.sqlite")
+        monkeypatch.undo()
+        assert m.count == 5 and out["keyframes"] == 3
+    with sqlite3.connect(tmp_path / "town.sqlite") as con:
+        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+        assert con.execute(sql).fetchone()[0] == 3
 
 
 def test_an_import_cut_off_between_its_renames_is_finished_at_start_up(tmp_path, monkeypatch):

@@ -65,9 +65,9 @@ def export_map(data_dir: Path, map_id: str, out: Path) -> dict[str, Any]:
     store = Store(folder / "store.sqlite")
     try:
         tmp = out.with_name(out.name + ".tmp")
-        store.backup(tmp)
+        copied = store.backup(tmp)  # what the file holds, whatever a service writes meanwhile
         os.replace(tmp, out)
-        return {"map_id": map_id, "keyframes": store.count(), "bytes": out.stat().st_size}
+        return {"map_id": map_id, "keyframes": copied, "bytes": out.stat().st_size}
     finally:
         store.close()
 

@@ -474,11 +474,14 @@ class Store:
             out.append((str(robot), float(xyz[0]), float(xyz[1])))
         return out
 
-    def backup(self, dest: Path) -> None:
-        """A consistent copy, safe while the service writes (SQLite's online backup)."""
+    def backup(self, dest: Path) -> int:
+        """A consistent copy, safe while the service writes (SQLite's online backup); the
+        live keyframes the copy holds (not the store's by then)."""
         target = sqlite3.connect(dest)
         try:
             with self._reading() as con:
                 con.backup(target)
+            sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+            return int(target.execute(sql).fetchone()[0])
         finally:
             target.close()
