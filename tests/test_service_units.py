@@ -667,6 +667,23 @@ def test_stopping_the_batcher_answers_every_scan_still_waiting():
     assert time.monotonic() - t0 < 10
 
 
+def test_stopping_the_batcher_answers_a_scan_whose_batch_is_still_filling():
+    """A lane holds a scan while it waits (max_wait_ms) for another announced one: stopping
+    then answers that scan Unavailable too, not after its caller's timeout."""
+    from overlapmamba.service.errors import Unavailable
+
+    async def main() -> BaseException | tuple[np.ndarray, np.ndarray]:
+        mb = MicroBatcher(_encode, max_batch=4, max_wait_ms=20_000)
+        await mb.start()
+        with mb.incoming():  # another scan on its way: the lane's batch waits to fill
+            call = asyncio.create_task(mb.encode(np.zeros((1, 2, 3), np.float32), timeout_s=30))
+            await asyncio.sleep(0.1)
+            await asyncio.wait_for(mb.stop(), 10)
+        return (await asyncio.wait_for(asyncio.gather(call, return_exceptions=True), 5))[0]
+
+    assert isinstance(asyncio.run(main()), Unavailable)
+
+
 def test_batcher_waits_only_for_scans_on_their_way():
     """A lone scan is encoded at once; a batch waits (up to max_wait_ms) for a scan that
     another caller is still decoding, announced with incoming()."""

@@ -133,6 +133,7 @@ class MicroBatcher:
         loop = asyncio.get_running_loop()
         while True:
             batch = [await self._queue.get()]
+            self._batches[lane] = batch  # filled in place: stop() answers what it holds
             deadline = loop.time() + self.max_wait_s
             while len(batch) < self.max_batch:
                 try:
@@ -147,7 +148,6 @@ class MicroBatcher:
                     batch.append(await asyncio.wait_for(self._queue.get(), left))
                 except TimeoutError:
                     break
-            self._batches[lane] = batch
             try:
                 await self._encode_batch(batch)
             except Exception as err:  # a failing batch fails its callers, not the worker
