@@ -178,6 +178,31 @@ def test_a_child_that_dies_twice_refuses_and_never_stores_without_geometry(scans
     assert r.restarts == 6  # each call that reached a child: died, started again, died again
 
 
+def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
+    """A call that waited in its child's queue longer than ``stale_s`` belongs to a request
+    answered already (504): the child skips it, its candidates are refused with the reason,
+    a keyframe's geometry answers 503; the calls after it are served as before."""
+    r = Registrar(1, stale_s=0.3)
+    try:
+        blob = r.geometry(r.prepare(scans[1], P), P)
+        held = r.prepare(scans[0], P)
+        busy = r._child(0).submit(time.sleep, 1.0)  # the child is busy with a long call
+        (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)
+        assert v.verified is False and "had not started it after 0.3 s" in v.reason
+        busy.result()
+        r._child(0).submit(time.sleep, 1.0)
+        with pytest.raises(Unavailable, match="had not started it") as err:
+            r.geometry(held, P)
+        assert err.value.status == 503
+        (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)  # nothing queued ahead of it now
+        assert v.verified is True
+        assert r.usage()["stale"] == 2 and r.restarts == 0
+    finally:
+        r.stop()
+    with pytest.raises(ValueError, match="stale_s"):
+        Registrar(1, stale_s=0)
+
+
 def test_processes_must_not_be_negative():
     with pytest.raises(ValidationError, match="processes"):
         VerifySettings(processes=-1)
@@ -208,6 +233,7 @@ async def test_http_verifies_alike_in_threads_and_in_children(tmp_path, encoder,
         text = (await c.get("/metrics")).text
         assert f"overlapmamba_registration_processes {float(processes)}" in text
         assert "overlapmamba_registration_restarts_total 0.0" in text
+        assert "overlapmamba_registration_stale_total 0.0" in text
         rss = re.search(r"^overlapmamba_registration_resident_bytes (\S+)$", text, re.M)
         cpu = re.search(r"^overlapmamba_registration_cpu_seconds_total (\S+)$", text, re.M)
         assert rss and cpu

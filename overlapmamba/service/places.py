@@ -84,7 +84,9 @@ class PlaceService:
             settings.batching,
             settings.limits,
             on_batch=self.stats.batch,
-            registrar=Registrar(settings.verify.processes),
+            registrar=Registrar(
+                settings.verify.processes, stale_s=settings.limits.request_timeout_s
+            ),
         )
         self.stats.watch_registration(self.pipeline.registrar.usage)
         self.keyframing = KeyframeSchedule(settings.observe)  # insert=auto

@@ -21,6 +21,12 @@ or the child restarted) is prepared again from the points the Held keeps, so the
 are the same either way. A child that dies is started again and the call tried once more;
 failing again, the query's candidates are refused with the reason, and a keyframe's
 geometry answers 503 (retry: nothing is stored without it).
+
+A call that waited in its child's queue longer than ``stale_s`` (the service's request
+timeout) is skipped there: its request has been answered already (504), and registering it
+would only delay the calls queued behind it, whose requests would time out in turn. The
+query's candidates are then refused with the reason and a keyframe's geometry answers 503,
+as above; ``usage()["stale"]`` counts them (``overlapmamba_registration_stale_total``).
 """
 
 from __future__ import annotations
@@ -83,10 +89,14 @@ class Registrar:
     children, a query kept by the child that prepared it (the next child in turn). The
     methods block: they run in the service's worker threads (:func:`threads.in_thread`)."""
 
-    def __init__(self, processes: int = 0) -> None:
+    def __init__(self, processes: int = 0, stale_s: float | None = None) -> None:
         if processes < 0:
             raise ValueError(f"verify.processes must be 0 or more, got {processes}")
+        if stale_s is not None and stale_s <= 0:
+            raise ValueError(f"stale_s must be above 0 s, got {stale_s}")
         self.processes = processes
+        self.stale_s = stale_s  # a call queued longer in its child is skipped there
+        self.stale = 0  # calls skipped so
         self._children: list[ProcessPoolExecutor | None] = [None] * processes
         self._lock = threading.Lock()  # starting and restarting children
         self._keys = itertools.count()
@@ -127,6 +137,8 @@ class Registrar:
         )
         try:
             size, reason = self._call(held, _prepare, p, send=True)
+        except _Stale as err:
+            return replace(held, reason=str(err), failed=True)
         except _Failed as err:
             return replace(held, reason=f"the registration process failed: {err}", failed=True)
         return replace(held, size=size, reason=reason)
@@ -140,6 +152,8 @@ class Registrar:
             return keyframe_geometry(held.local or held.unregistrable, p)
         try:
             return self._call(held, _geometry, p)
+        except _Stale as err:
+            raise self._unavailable(str(err)) from err
         except _Failed as err:
             raise self._unavailable(f"it failed twice packing the geometry: {err}") from err
 
@@ -163,6 +177,8 @@ class Registrar:
             return verify_candidates(held.unregistrable, candidates, v, views)
         try:
             return self._call(held, _verify, params_of(v), candidates, v, views)
+        except _Stale as err:
+            return verify_candidates(Prepared(None, held.size, str(err)), candidates, v, views)
         except _Failed as err:
             q = Prepared(None, held.size, f"the registration process failed twice: {err}")
             return verify_candidates(q, candidates, v, views)
@@ -172,7 +188,11 @@ class Registrar:
     def usage(self) -> dict[str, float]:
         """The children's count, restarts, and (Linux) their resident memory and CPU time
         together, from ``/proc``: what the server's own process series leave out."""
-        out: dict[str, float] = {"processes": self.processes, "restarts": self.restarts}
+        out: dict[str, float] = {
+            "processes": self.processes,
+            "restarts": self.restarts,
+            "stale": self.stale,
+        }
         if not Path("/proc/self/stat").exists():
             return out
         rss = cpu = 0.0
@@ -230,10 +250,11 @@ class Registrar:
         died is started again and asked once more, and :class:`_Failed` says it died twice."""
         died: list[str] = []
         xyz = held.xyz if send else None
+        expires = None if self.stale_s is None else time.monotonic() + self.stale_s
         while True:
             ex = self._child(held.child)
             try:
-                out = ex.submit(fn, held.key, xyz, p, *args).result()
+                out = ex.submit(_timely, expires, fn, held.key, xyz, p, *args).result()
             except BrokenProcessPool as err:
                 died.append(str(err) or type(err).__name__)
                 self._restart(held.child, ex)
@@ -241,6 +262,13 @@ class Registrar:
                     raise _Failed("; ".join(died)) from err
                 xyz = held.xyz
                 continue
+            if isinstance(out, _Late):
+                with self._lock:
+                    self.stale += 1
+                raise _Stale(
+                    f"the registration process had not started it after {self.stale_s:g} s "
+                    "(the request's timeout): skipped"
+                )
             if not isinstance(out, _Missing):
                 return out
             assert xyz is None, "a child prepares the points it is sent"
@@ -251,11 +279,26 @@ class _Failed(Exception):
     """The registration process died twice on one call."""
 
 
+class _Stale(Exception):
+    """The call waited in its child's queue past ``stale_s``: skipped (the message says so)."""
+
+
 # ---- in the child ------------------------------------------------------------------------------
 
 
 class _Missing:
     """The child no longer holds the query: send its points."""
+
+
+class _Late:
+    """The call came off the child's queue after it expired: not done."""
+
+
+def _timely(expires: float | None, fn: Callable[..., Any], *args: Any) -> Any:
+    # CLOCK_MONOTONIC is one clock for every process of the machine (Linux, macOS)
+    if expires is not None and time.monotonic() > expires:
+        return _Late()
+    return fn(*args)
 
 
 _HELD: OrderedDict[int, Prepared] = OrderedDict()

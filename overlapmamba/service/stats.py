@@ -318,6 +318,11 @@ class _RegistrationCollector(Collector):
             "Registration processes that died and were started again",
             value=got["restarts"],
         )
+        yield CounterMetricFamily(
+            "overlapmamba_registration_stale",
+            "Registration calls skipped: queued in a child past the request timeout",
+            value=got.get("stale", 0),
+        )
         if "resident_bytes" in got:  # Linux: the children's /proc
             yield GaugeMetricFamily(
                 "overlapmamba_registration_resident_bytes",
