@@ -96,7 +96,7 @@ class Registrar:
             raise ValueError(f"stale_s must be above 0 s, got {stale_s}")
         self.processes = processes
         self.stale_s = stale_s  # a call queued longer in its child is skipped there
-        self.stale = 0  # calls skipped so
+        self.stale = 0  # calls skipped so far
         self._children: list[ProcessPoolExecutor | None] = [None] * processes
         self._lock = threading.Lock()  # starting and restarting children
         self._keys = itertools.count()
