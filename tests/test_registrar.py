@@ -182,15 +182,15 @@ def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
     """A call that waited in its child's queue longer than ``stale_s`` belongs to a request
     answered already (504): the child skips it, its candidates are refused with the reason,
     a keyframe's geometry answers 503; the calls after it are served as before."""
-    r = Registrar(1, stale_s=0.3)
+    r = Registrar(1, stale_s=1.0)  # a call waiting 2 s: the child hangs
     try:
         blob = r.geometry(r.prepare(scans[1], P), P)
         held = r.prepare(scans[0], P)
-        busy = r._child(0).submit(time.sleep, 1.0)  # the child is busy with a long call
+        busy = r._child(0).submit(time.sleep, 1.4)  # busy with a long call, not hung
         (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)
-        assert v.verified is False and "had not started it after 0.3 s" in v.reason
+        assert v.verified is False and "had not started it after 1 s" in v.reason
         busy.result()
-        r._child(0).submit(time.sleep, 1.0)
+        r._child(0).submit(time.sleep, 1.4)
         with pytest.raises(Unavailable, match="had not started it") as err:
             r.geometry(held, P)
         assert err.value.status == 503
@@ -201,6 +201,27 @@ def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
         r.stop()
     with pytest.raises(ValueError, match="stale_s"):
         Registrar(1, stale_s=0)
+
+
+def test_a_child_that_hangs_is_killed_and_started_again(scans):
+    """A call that answers nothing in twice ``stale_s`` (here the child sleeps in a call
+    ahead of it, as a hung one would): the child is killed and started again, the waiting
+    call is refused with the reason, and the next one is served by the new child."""
+    r = Registrar(1, stale_s=0.3)
+    try:
+        blob = r.geometry(r.prepare(scans[1], P), P)
+        held = r.prepare(scans[0], P)
+        (pid,) = r.pids()
+        r._child(0).submit(time.sleep, 60)  # hangs
+        t0 = time.monotonic()
+        (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)
+        assert time.monotonic() - t0 < 10
+        assert v.verified is False and "had not started it" in v.reason  # stale when retried
+        assert r.restarts == 1 and pid not in r.pids()
+        (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)  # prepared again in the new child
+        assert v.verified is True
+    finally:
+        r.stop()
 
 
 def test_processes_must_not_be_negative():

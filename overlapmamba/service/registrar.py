@@ -27,10 +27,14 @@ timeout) is skipped there: its request has been answered already (504), and regi
 would only delay the calls queued behind it, whose requests would time out in turn. The
 query's candidates are then refused with the reason and a keyframe's geometry answers 503,
 as above; ``usage()["stale"]`` counts them (``overlapmamba_registration_stale_total``).
+With stale calls skipped, no call waits for its answer much past ``stale_s``: one that waits
+twice as long is taken for a child that hangs, which is killed and then started again as a
+dead one is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import itertools
 import logging
@@ -254,7 +258,7 @@ class Registrar:
         while True:
             ex = self._child(held.child)
             try:
-                out = ex.submit(_timely, expires, fn, held.key, xyz, p, *args).result()
+                out = self._answer(ex, held.child, _timely, expires, fn, held.key, xyz, p, *args)
             except BrokenProcessPool as err:
                 died.append(str(err) or type(err).__name__)
                 self._restart(held.child, ex)
@@ -273,6 +277,26 @@ class Registrar:
                 return out
             assert xyz is None, "a child prepares the points it is sent"
             xyz = held.xyz
+
+    def _answer(self, ex: ProcessPoolExecutor, i: int, *call: Any) -> Any:
+        """``call`` in child ``i``; one that answers nothing in twice ``stale_s`` hangs: it
+        is killed, and the call raises BrokenProcessPool like any call to a dead child."""
+        fut = ex.submit(*call)
+        if self.stale_s is None:
+            return fut.result()
+        try:
+            return fut.result(timeout=2 * self.stale_s)
+        except TimeoutError:
+            log.error(
+                "registration process %d answered nothing in %g s: killing it", i, 2 * self.stale_s
+            )
+            for pid in getattr(ex, "_processes", None) or {}:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        try:
+            return fut.result(timeout=10)  # the pool sees its child dead: BrokenProcessPool
+        except TimeoutError:
+            raise _Failed(f"it hung for {2 * self.stale_s:g} s and did not die") from None
 
 
 class _Failed(Exception):
