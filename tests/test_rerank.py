@@ -179,9 +179,13 @@ def test_the_service_scores_by_the_network_only_where_the_models_first_stage_hol
     from overlapmamba.service.ranking import rerank_params
     from overlapmamba.service.settings import RerankSettings
 
-    def meta(stage: str, dim: int) -> Any:
+    def meta(stage: str, dim: int, reduction: dict[str, Any] | None = None) -> Any:
         return SimpleNamespace(
-            model_id="om-x", first_stage=stage, descriptor_dim=dim, yaw_channels=16
+            model_id="om-x",
+            first_stage=stage,
+            descriptor_dim=dim,
+            yaw_channels=16,
+            reduction=reduction or {},
         )
 
     network = RerankSettings(shortlist=10, weight=0.5, score="network")
@@ -190,6 +194,12 @@ def test_the_service_scores_by_the_network_only_where_the_models_first_stage_hol
     assert rerank_params(network, meta("descriptor", 256)).part is None
     with pytest.raises(ValueError, match="om-x.*holds no network descriptor.*allowed"):
         rerank_params(network, meta("spectrum:32:sqrt", 512))
+    # a reduced first stage (overlapmamba.train.reduce_head): its network part, if split
+    split = meta("mixed:0.75:32:sqrt", 256, {"dim": 256, "network_part": 96})
+    assert rerank_params(network, split).part == 96
+    assert rerank_params(RerankSettings(), split).part is None
+    with pytest.raises(ValueError, match="om-x.*no longer hold the network's own.*allowed"):
+        rerank_params(network, meta("mixed:0.75:32:sqrt", 256, {"dim": 256}))
     with pytest.raises(ValueError, match="needs the model's first stage"):
         rerank_params(network)
     with pytest.raises(ValueError, match="score"):

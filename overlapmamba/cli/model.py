@@ -241,6 +241,19 @@ def export_cmd(
             "default: the network's descriptor",
         ),
     ] = None,
+    reduce: Annotated[
+        str | None,
+        typer.Option(
+            "--reduce",
+            help="reduce the descriptor (a first stage's vector) to K floats by its principal "
+            "directions fitted on --fit-on towns, or to K1+K2: a mixed stage's network "
+            "descriptor to K1 and its spectrum to K2 (overlapmamba.train.reduce_head)",
+        ),
+    ] = None,
+    fit_on: Annotated[
+        list[Path] | None,
+        typer.Option("--fit-on", help="validation town --reduce is fitted on (repeat for more)"),
+    ] = None,
 ) -> None:
     """ONNX encoder (scan as Scan loops) with its metadata, verified against PyTorch."""
     check_torch()
@@ -291,6 +304,19 @@ def export_cmd(
             f"--column-phase must be one of {', '.join(COLUMN_PHASES)}, got {column_phase!r}",
             param_hint="--column-phase",
         )
+    if (reduce is None) != (not fit_on):
+        raise typer.BadParameter(
+            "--reduce and --fit-on go together: the floats to keep and the validation towns "
+            "their directions are fitted on",
+            param_hint="--reduce",
+        )
+    if reduce is not None:
+        from overlapmamba.train.reduce_head import parse_reduction
+
+        try:
+            parse_reduction(reduce)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="--reduce") from None
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
@@ -315,6 +341,10 @@ def export_cmd(
             meta = with_column_phase(out_path, column_phase)
         if stage is not None:
             meta = with_first_stage(out_path, out_path, stage)
+        if reduce is not None:
+            from overlapmamba.train.reduce_head import reduce_file
+
+            meta = reduce_file(out_path, out_path, reduce, fit_on or [])
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
@@ -334,6 +364,10 @@ def export_cmd(
         meta = with_column_phase(out_path, column_phase)
     if stage is not None:
         meta = with_first_stage(out_path, out_path, stage)
+    if reduce is not None:
+        from overlapmamba.train.reduce_head import reduce_file
+
+        meta = reduce_file(out_path, out_path, reduce, fit_on or [])
     table = Table(title=f"exported {res.path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),

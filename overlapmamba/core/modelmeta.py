@@ -113,6 +113,12 @@ class EncoderMetadata(BaseModel):
         "first stage of overlapmamba.core.yaw_spectrum written into the graph "
         "(spectrum:BINS:COMPRESS, mixed:A:BINS:COMPRESS; overlapmamba.train.spectrum_head)",
     )
+    reduction: dict[str, Any] = Field(
+        default_factory=dict,
+        description="empty, or how the descriptor was reduced from its first stage's vector "
+        "by a linear map in the graph (overlapmamba.train.reduce_head): from_dim, dim, "
+        "variance_kept, fitted_on, source_model_id",
+    )
     weights: str = Field(description="'trained' or 'random' (an untrained network)")
     weight_format: str = Field(description="storage of the large matrices: float32 or int8")
     training_data: dict[str, Any] = Field(default_factory=dict, description="data fingerprints")

@@ -37,7 +37,7 @@ import numpy as np
 
 from overlapmamba.core.metrics import Retriever, nearest
 from overlapmamba.core.yaw import circular_correlation
-from overlapmamba.core.yaw_spectrum import FirstStage, score_part, unit
+from overlapmamba.core.yaw_spectrum import SCORES, FirstStage, score_part, unit
 
 if TYPE_CHECKING:
     from overlapmamba.core.modelmeta import EncoderMetadata
@@ -106,6 +106,17 @@ def with_score(p: Rerank, score: str, meta: EncoderMetadata) -> Rerank:
     model of ``meta``, whose first stage decides where its network's descriptor lies
     (:func:`overlapmamba.core.yaw_spectrum.score_part`); a ValueError names a score that
     model cannot give."""
+    if meta.reduction:  # a first stage reduced (overlapmamba.train.reduce_head)
+        lead = meta.reduction.get("network_part")
+        if score == "network" and not lead:
+            raise ValueError(
+                f"model {meta.model_id}: second-stage score 'network': its descriptor is its "
+                f"first stage {meta.first_stage} reduced to {meta.descriptor_dim} floats, which "
+                "no longer hold the network's own descriptor; allowed: score 'stage'"
+            )
+        if score not in SCORES:
+            raise ValueError(f"second-stage score {score!r} is not one of {', '.join(SCORES)}")
+        return replace(p, part=int(lead) if score == "network" and lead else None)
     try:
         stage = FirstStage.parse(meta.first_stage)
         part = score_part(stage, meta.descriptor_dim, meta.yaw_channels, score)

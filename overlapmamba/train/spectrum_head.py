@@ -31,6 +31,7 @@ from overlapmamba.core.modelmeta import EncoderMetadata, identity
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.train.errors import ExportError
 from overlapmamba.train.modelfile import graph_id, load_encoder, save_encoder
+from overlapmamba.train.reduce_head import strip_reduction
 
 NETWORK_DESCRIPTOR = "netvlad_descriptor"  # the network's own descriptor, renamed
 
@@ -145,7 +146,8 @@ def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> Enc
 def without_first_stage(src: Path | str, out: Path | str) -> EncoderMetadata:
     """Write ``src``'s encoder to ``out`` with the network's own descriptor again: the first
     stage :func:`with_first_stage` wrote is taken out of the graph (its nodes and constants,
-    the network's descriptor renamed back), so that writing the same stage into the result
+    a reduction of it too (:mod:`overlapmamba.train.reduce_head`), the network's descriptor
+    renamed back), so that writing the same stage into the result
     gives the source's graph again, with its graph id and model id. The calibration goes (it
     was chosen on the other vector); a file carrying sensor maps is refused, as with a new
     stage."""
@@ -159,6 +161,7 @@ def without_first_stage(src: Path | str, out: Path | str) -> EncoderMetadata:
             "stage; write the file without them first"
         )
     g = proto.graph
+    strip_reduction(g)  # a reduction of the stage goes with it
     added = _stage_outputs(g)
     own = [n for n in g.node if not set(n.output) & added]
     del g.node[:]
@@ -183,6 +186,7 @@ def without_first_stage(src: Path | str, out: Path | str) -> EncoderMetadata:
             "first_stage": "descriptor",
             "descriptor_dim": dim,
             "calibration": {},
+            "reduction": {},
             **identity(graph_id(proto), meta.views, meta.sensor_input, "", meta.column_phase),
         },
         by_alias=True,
