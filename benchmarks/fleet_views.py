@@ -86,6 +86,9 @@ MODELS: dict[str, tuple[Path, dict[str, str]]] = {
         ROOT / "models" / "overlapmamba-hdl64-one-pass.onnx",
         {},
     ),
+    # the same first stage reduced to 256 floats by its principal directions on val
+    # (overlapmamba.train.reduce_head)
+    "one pass, 256 floats": (ROOT / "models" / "overlapmamba-hdl64-one-pass-256.onnx", {}),
     # the service's threads as they were before encoder lanes (batching.lanes), one-thread
     # registration (verify.threads) and batches of 2 became the defaults, and each of the
     # first two changes alone

@@ -14,6 +14,8 @@ from figures_verify import verify
 FIRST_STAGE = "reports/model/first-stage-one-view.json"
 VERIFY_ONE_PASS = "reports/service/verify-test-one-pass.json"
 FLEET_ONE_PASS = "reports/client/fleet-one-pass.json"
+VERIFY_ONE_PASS_256 = "reports/service/verify-test-one-pass-256.json"
+FLEET_ONE_PASS_256 = "reports/client/fleet-one-pass-256.json"
 SIZING = "reports/deploy/sizing.json"
 SIZING_ONE_PASS = "reports/deploy/sizing-one-pass.json"
 AMBIGUITY = "reports/service/verify-ambiguity-one-pass.json"
@@ -348,6 +350,8 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "first-stage-one-view": first_stage_one_view,
     "verify-one-pass": lambda: verify(VERIFY_ONE_PASS, both=False),
     "fleet-one-pass": lambda: fleet_views(FLEET_ONE_PASS),
+    "verify-one-pass-256": lambda: verify(VERIFY_ONE_PASS_256, both=False),
+    "fleet-one-pass-256": lambda: fleet_views(FLEET_ONE_PASS_256),
     "sizing-one-pass": sizing_one_pass,
     "verify-ambiguity-one-pass": verify_ambiguity,
     "ambiguity-margins": ambiguity_margins,

@@ -142,7 +142,47 @@ HEADLINES = (
         "overlapmamba report --runs EMPTY --model models/overlapmamba-hdl64-one-pass.onnx "
         "--out reports/model/two-stage-one-pass",
     ),
+    (
+        "the one-pass file's first stage reduced to 256 floats (its 256-float twin)",
+        "reports/model/two-stage-one-pass-256/report.json",
+        "overlapmamba report --runs EMPTY --model models/overlapmamba-hdl64-one-pass-256.onnx "
+        "--out reports/model/two-stage-one-pass-256",
+    ),
 )
+REDUCE_STAGE = "reports/model/reduce-stage.json"
+
+
+def reduce_stage() -> str:
+    """A first stage reduced by its principal directions, on the validation town's second
+    drive, which the fit did not see: as it is, projected uncentred (the export's way) and
+    centred."""
+    r = load(REDUCE_STAGE)
+    out = source(REDUCE_STAGE, r["command"], when(r))
+    out += (
+        f"\n`{r['model']}` (`{r['model_id']}`), its first stage `{r['stage']}`; the "
+        f"directions fitted on `{r['fit']}`, every figure on `{r['held_out']}`, which the fit "
+        "did not see: F1max / Recall@1 within that drive (all revisits and the reverse ones), "
+        f"the vector alone, and its AR@1 queried against `{r['fit']}`.\n\n"
+    )
+    rows = []
+    for row in r["rows"]:
+        d = row["drive"]
+        how = {None: "", False: "uncentred (the export's)", True: "centred"}[row["centred"]]
+        kept = f"{row['variance_kept']:.3f}" if "variance_kept" in row else ""
+        rows.append(
+            [
+                row["vector"],
+                str(row["floats"]),
+                how,
+                kept,
+                *(f"{f3(d[s]['f1max'])} / {f3(d[s]['recall@1'])}" for s in ("all", "reverse")),
+                f3(row["sessions_ar@1"]),
+            ]
+        )
+    head = ["vector", "floats", "projected", "variance kept", "all", "reverse", "AR@1"]
+    return out + table(head, rows)
+
+
 SHIPPED_ROW = "OverlapMamba narrow, mined hard negatives (shipped)"
 
 
@@ -199,4 +239,5 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "revisit-phase": revisit_phase,
     "aligned-pilot": aligned_pilot,
     "headline-one-view": headline_one_view,
+    "reduce-stage": reduce_stage,
 }

@@ -362,3 +362,53 @@ def test_scan_subnormals_times_the_served_views_both_ways_and_restores_the_flush
         assert min(row[f"{w}_cpu_ms"] for w in ("flush", "no flush", "portable")) > 0
         assert row["flush_scan_ms"] > 0 and row["no flush_scan_ms"] > 0
     assert lib.scan_set_flush(1) == 1  # the run put the service's default back
+
+
+ONE_PASS_256 = ROOT / "models" / "overlapmamba-hdl64-one-pass-256.onnx"
+
+
+def test_the_256_float_one_pass_file_is_the_one_pass_first_stage_reduced_on_val(meta):
+    """The model card's 256-float one-pass file: the one-pass file's first stage times the
+    principal directions fitted on val's vectors (overlapmamba.train.reduce_head: the
+    network descriptor's 96 ahead of the spectrum's 160), at unit length; calibrated on val by
+    the commands naming that file, its second stage scoring by the network's part."""
+    import onnx
+    from onnx import numpy_helper
+
+    from overlapmamba.service.encoder import Encoder
+    from overlapmamba.train.reduce_head import PREFIX, reduce_vectors
+
+    enc, full = Encoder(ONE_PASS_256, intra_op_threads=2), Encoder(ONE_PASS, intra_op_threads=2)
+    got = enc.meta
+    assert (enc.views, got.column_phase, got.first_stage) == (1, "aligned", "mixed:0.75:32:sqrt")
+    assert got.descriptor_dim == 256 and got.reduction["from_dim"] == 256 + 16 * 32
+    assert list(got.reduction["fitted_on"]) == ["val"]  # never a test town
+    assert got.training_data == meta.training_data and got.model_id in CARD.read_text()
+    assert got.reduction["network_part"] == 96
+    assert got.calibration["rerank"].values["score"] == "network"
+    for section, entry in got.calibration.items():
+        assert f"--model models/{ONE_PASS_256.name}" in entry.chosen_by, (section, entry.chosen_by)
+        assert "--write-calibration" in entry.chosen_by, section
+        assert entry.data.startswith("data/synth/val"), section
+    inits = onnx.load(str(ONE_PASS_256)).graph.initializer
+    directions = next(numpy_helper.to_array(t) for t in inits if t.name == PREFIX + "directions")
+    points = [np.random.default_rng(s).normal(0, 10, (4000, 3)) for s in range(2)]
+    want = reduce_vectors(full.describe(points)[0], directions)
+    np.testing.assert_allclose(enc.describe(points)[0], want, atol=1e-5)
+
+
+@pytest.mark.real_data
+def test_the_256_float_one_pass_file_keeps_the_cosine_under_turns_of_real_scans(kitti_seq_dir):
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.poses import rotation_z, transform_points
+    from overlapmamba.service.encoder import Encoder
+
+    enc = Encoder(ONE_PASS_256, intra_op_threads=2)
+    seq = open_sequence(kitti_seq_dir)
+    theta = np.random.default_rng(2).uniform(-180, 180, len(seq))
+    frames = range(0, len(seq), 10)
+    plain = [seq.points(i).xyz for i in frames]
+    turned = [transform_points(plain[n], rotation_z(theta[i])) for n, i in enumerate(frames)]
+    desc, _ = enc.describe(plain + turned)
+    k = len(plain)
+    assert (desc[:k] * desc[k:]).sum(1).min() >= 0.999
