@@ -64,6 +64,30 @@ async def running(settings: Settings, encoder: Encoder) -> AsyncIterator[httpx.A
             yield client
 
 
+async def three_keyframes_then_a_turned_query(
+    c: httpx.AsyncClient,
+) -> tuple[dict, dict]:
+    """A new map of three keyframes (scans 0–2), then scan 2 turned by 40° queried: its best
+    match and the descriptor of scan 2 (``/v1/descriptors``), for a test to check a model
+    file's descriptor end to end."""
+    assert (await c.put("/v1/maps/town", json={"index": "flat"})).status_code == 201
+    for i in range(3):
+        r = await c.post(
+            "/v1/maps/town/keyframes",
+            params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i, "robot_id": "r1"},
+            content=scan(i).tobytes(),
+            headers=OCTET,
+        )
+        assert r.status_code == 201, r.text
+    r = await c.post(
+        "/v1/maps/town/query", params={"k": 2}, content=scan(2, 40.0).tobytes(), headers=OCTET
+    )
+    assert r.status_code == 200, r.text
+    d = await c.post("/v1/descriptors", content=scan(2).tobytes(), headers=OCTET)
+    assert d.status_code == 200, d.text
+    return r.json()["matches"][0], d.json()
+
+
 @contextlib.contextmanager
 def server(
     data_dir: Path, env: dict[str, str] | None = None, model: Path = MODEL

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_kit import MODEL, OCTET, running, scan
+from service_kit import MODEL, running, three_keyframes_then_a_turned_query
 
 from overlapmamba.core.rerank import Rerank, with_score
 from overlapmamba.core.yaw_spectrum import FirstStage, unit
@@ -196,19 +196,6 @@ async def test_the_service_serves_the_reduced_descriptor(staged, tmp_path):
     enc = Encoder(out, intra_op_threads=2)
     assert enc.dim == meta.descriptor_dim == 16
     async with running(Settings(data_dir=tmp_path / "data"), enc) as c:
-        assert (await c.put("/v1/maps/town", json={"index": "flat"})).status_code == 201
-        for i in range(3):
-            r = await c.post(
-                "/v1/maps/town/keyframes",
-                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i, "robot_id": "r1"},
-                content=scan(i).tobytes(),
-                headers=OCTET,
-            )
-            assert r.status_code == 201, r.text
-        r = await c.post(
-            "/v1/maps/town/query", params={"k": 2}, content=scan(2, 40.0).tobytes(), headers=OCTET
-        )
-        assert r.status_code == 200, r.text
-        assert r.json()["matches"][0]["keyframe_id"] == "k2"
-        d = (await c.post("/v1/descriptors", content=scan(2).tobytes(), headers=OCTET)).json()
+        best, d = await three_keyframes_then_a_turned_query(c)
+        assert best["keyframe_id"] == "k2"
         assert len(d["descriptor"]) == 16 and d["model_id"] == meta.model_id

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_kit import MODEL, OCTET, running, scan
+from service_kit import MODEL, running, three_keyframes_then_a_turned_query
 
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.service.encoder import Encoder
@@ -69,22 +69,8 @@ async def test_the_service_serves_the_first_stage_as_its_descriptor(plain, tmp_p
     enc = Encoder(out, intra_op_threads=2)
     assert enc.dim == meta.descriptor_dim == 256 + 16 * 32
     async with running(Settings(data_dir=tmp_path / "data"), enc) as c:
-        assert (await c.put("/v1/maps/town", json={"index": "flat"})).status_code == 201
-        for i in range(3):
-            r = await c.post(
-                "/v1/maps/town/keyframes",
-                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i, "robot_id": "r1"},
-                content=scan(i).tobytes(),
-                headers=OCTET,
-            )
-            assert r.status_code == 201, r.text
-        r = await c.post(
-            "/v1/maps/town/query", params={"k": 2}, content=scan(2, 40.0).tobytes(), headers=OCTET
-        )
-        assert r.status_code == 200, r.text
-        best = r.json()["matches"][0]
+        best, d = await three_keyframes_then_a_turned_query(c)
         assert best["keyframe_id"] == "k2" and abs(best["yaw_deg"] - 40.0) < 1.5
-        d = (await c.post("/v1/descriptors", content=scan(2).tobytes(), headers=OCTET)).json()
         assert len(d["descriptor"]) == meta.descriptor_dim and d["model_id"] == meta.model_id
 
 

@@ -115,6 +115,19 @@ def split_directions(
     return out, kept
 
 
+def refuse_fitted(meta: EncoderMetadata, src: Path | str, instead: str) -> None:
+    """:class:`ExportError` for a file carrying sensor maps or calibration: they were fitted
+    on its own descriptor and would apply to another vector. ``instead``: what to do to a
+    file without them (then fit or calibrate it)."""
+    for field in ("sensor_maps", "calibration"):
+        if getattr(meta, field):
+            raise ExportError(
+                f"{src} carries {field} ({', '.join(getattr(meta, field))}) fitted on its own "
+                f"descriptor; they would apply to another vector: {instead} without them, "
+                "then fit or calibrate that file"
+            )
+
+
 def check_reducible(meta: EncoderMetadata, src: Path | str, dim: int) -> None:
     """Refuse (:class:`ExportError`, saying why) a file that cannot be reduced to ``dim``."""
     if meta.reduction:
@@ -122,13 +135,7 @@ def check_reducible(meta: EncoderMetadata, src: Path | str, dim: int) -> None:
             f"{src} is reduced already ({meta.reduction.get('from_dim')} → "
             f"{meta.descriptor_dim} floats); start from the file it was written from"
         )
-    for field in ("sensor_maps", "calibration"):
-        if getattr(meta, field):
-            raise ExportError(
-                f"{src} carries {field} ({', '.join(getattr(meta, field))}) fitted on its own "
-                "descriptor; they would apply to another vector: reduce a file without them, "
-                "then fit or calibrate that file"
-            )
+    refuse_fitted(meta, src, "reduce a file")
     if not 1 <= dim < meta.descriptor_dim:
         raise ExportError(
             f"--reduce {dim}: {src}'s descriptor has {meta.descriptor_dim} floats; allowed: "

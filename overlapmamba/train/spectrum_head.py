@@ -31,7 +31,7 @@ from overlapmamba.core.modelmeta import EncoderMetadata, identity
 from overlapmamba.core.yaw_spectrum import FirstStage
 from overlapmamba.train.errors import ExportError
 from overlapmamba.train.modelfile import graph_id, load_encoder, save_encoder
-from overlapmamba.train.reduce_head import strip_reduction
+from overlapmamba.train.reduce_head import refuse_fitted, strip_reduction
 
 NETWORK_DESCRIPTOR = "netvlad_descriptor"  # the network's own descriptor, renamed
 
@@ -54,13 +54,7 @@ def check_source(meta: EncoderMetadata, src: Path | str, stage: FirstStage) -> N
             f"{src} already carries first stage {meta.first_stage!r}; start from the file it "
             "was written from (`export FILE --first-stage descriptor` takes it out)"
         )
-    for field in ("sensor_maps", "calibration"):
-        if getattr(meta, field):
-            raise ExportError(
-                f"{src} carries {field} ({', '.join(getattr(meta, field))}) fitted on its own "
-                "descriptor; they would apply to another vector: write the first stage into a "
-                "file without them, then fit or calibrate that file"
-            )
+    refuse_fitted(meta, src, "write the first stage into a file")
 
 
 def with_first_stage(src: Path | str, out: Path | str, stage: FirstStage) -> EncoderMetadata:
