@@ -13,6 +13,7 @@ import time
 
 import httpx
 import numpy as np
+import onnx
 import pytest
 from service_kit import MODEL, OCTET, ROOT, scan, server
 from websockets.exceptions import ConnectionClosed
@@ -187,6 +188,34 @@ def test_serve_refuses_an_open_host_without_keys(tmp_path):
         timeout=60,
     )
     assert res.returncode == 2 and "without API keys" in res.stderr and "--insecure" in res.stderr
+
+
+def test_serve_refuses_a_file_that_is_not_an_encoder_in_one_line(tmp_path):
+    # a truncated download, and an ONNX graph that is not one of ours: each refused before
+    # uvicorn starts (exit 2, one line naming the file and what is expected), not a traceback
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(MODEL.read_bytes()[:4096])
+    plain = tmp_path / "plain.onnx"
+    graph = onnx.helper.make_graph(
+        [onnx.helper.make_node("Identity", ["x"], ["y"])],
+        "g",
+        [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+        [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])],
+    )
+    onnx.save(onnx.helper.make_model(graph), plain)
+    for path, why in ((truncated, "DecodeError"), (plain, "overlapmamba-encoder")):
+        args = ["serve", "--port", "1", "--data-dir", str(tmp_path / "data"), "--model", str(path)]
+        res = subprocess.run(
+            [sys.executable, "-m", "overlapmamba", *args],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=60,
+        )
+        assert res.returncode == 2, res.stderr
+        out = " ".join((res.stdout + res.stderr).split())  # rich wraps long lines
+        assert str(path.name) in out and why in out and "overlapmamba export" in out, out
+        assert "Traceback" not in res.stdout + res.stderr
 
 
 def test_dump_config_and_hash_key(tmp_path):

@@ -108,7 +108,25 @@ def serve_cmd(
     if not settings.model.is_file():
         console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
         raise typer.Exit(2)
+    _check_model_file(settings.model)
     run(settings)
+
+
+def _check_model_file(path: Path) -> None:
+    """Refuse, in one line and before uvicorn starts, a model file the service cannot
+    serve (not ONNX, truncated, or an ONNX graph without an encoder's metadata), where the
+    start-up would otherwise end in a traceback."""
+    from overlapmamba.service.calibration import read_model_metadata
+
+    try:
+        read_model_metadata(path)
+    except Exception as err:
+        console.print(
+            f"[bold red]error:[/] {path} is not an encoder the service can serve "
+            f"({type(err).__name__}: {err}); expected an .onnx file written by "
+            "`overlapmamba export`, e.g. models/overlapmamba-hdl64.onnx"
+        )
+        raise typer.Exit(2) from None
 
 
 @command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")
