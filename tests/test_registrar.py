@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from service_kit import OCTET, running, scan
 
 from overlapmamba.service.errors import Unavailable
-from overlapmamba.service.registrar import Registrar
+from overlapmamba.service.registrar import Registrar, _ping
 from overlapmamba.service.settings import Settings, VerifySettings
 from overlapmamba.service.verify import params_of
 
@@ -178,12 +178,20 @@ def test_a_child_that_dies_twice_refuses_and_never_stores_without_geometry(scans
     assert r.restarts == 6  # each call that reached a child: died, started again, died again
 
 
+def _warm(r: Registrar) -> None:
+    """Start child 0 and wait until it answers: a cold start (spawn, imports) on a loaded
+    machine can take longer than the short ``stale_s`` these tests use, which would make
+    the first call stale for a reason the test is not about."""
+    assert r._child(0).submit(_ping).result(timeout=60) is True
+
+
 def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
     """A call that waited in its child's queue longer than ``stale_s`` belongs to a request
     answered already (504): the child skips it, its candidates are refused with the reason,
     a keyframe's geometry answers 503; the calls after it are served as before."""
     r = Registrar(1, stale_s=1.0)  # a call waiting 2 s: the child hangs
     try:
+        _warm(r)
         blob = r.geometry(r.prepare(scans[1], P), P)
         held = r.prepare(scans[0], P)
         busy = r._child(0).submit(time.sleep, 1.4)  # busy with a long call, not hung
@@ -206,9 +214,12 @@ def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
 def test_a_child_that_hangs_is_killed_and_started_again(scans):
     """A call that answers nothing in twice ``stale_s`` (here the child sleeps in a call
     ahead of it, as a hung one would): the child is killed and started again, the waiting
-    call is refused with the reason, and the next one is served by the new child."""
-    r = Registrar(1, stale_s=0.3)
+    call is refused with the reason, and the next one is served by the new child. The
+    retried call waits 2 ``stale_s`` plus the new child's cold start (≈ 0.7 s here), which
+    must stay under the 2 ``stale_s`` that would judge the new child hung as well."""
+    r = Registrar(1, stale_s=1.5)
     try:
+        _warm(r)
         blob = r.geometry(r.prepare(scans[1], P), P)
         held = r.prepare(scans[0], P)
         (pid,) = r.pids()
@@ -218,6 +229,7 @@ def test_a_child_that_hangs_is_killed_and_started_again(scans):
         assert time.monotonic() - t0 < 10
         assert v.verified is False and "had not started it" in v.reason  # stale when retried
         assert r.restarts == 1 and pid not in r.pids()
+        _warm(r)
         (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)  # prepared again in the new child
         assert v.verified is True
     finally:
