@@ -29,6 +29,23 @@ def test_correlation_of_unrelated_features_is_low():
         circular_correlation(np.zeros((8, 900)), np.zeros((2, 4, 900)))
 
 
+def test_features_that_are_constant_have_no_yaw_confidence():
+    """A feature map with no variance (a reference sent as 2047 everywhere, a dead frame's
+    query) has nothing to align: its confidence is 0, never the ratio of two rounding
+    errors (it was ≈ 15.6 and 6.7e6, which ranked such a keyframe first). Every
+    confidence is a cosine, in [−1, 1]."""
+    rng = np.random.default_rng(3)
+    f = rng.normal(size=(8, 900)) * 40 + 900
+    flat = np.full((8, 900), 2047.0)
+    for query, refs in [(f, flat[None]), (flat, f[None]), (np.zeros((8, 900)), f[None])]:
+        for stored in (np.float64, np.float32, np.float16):
+            _, conf = estimate_yaw(query.astype(stored), refs.astype(stored))
+            np.testing.assert_array_equal(conf, 0.0)
+    tiny = f[None] * 1e-200  # tiny but not constant: still a cosine
+    corr = circular_correlation(f, np.concatenate([tiny, f[None] + 1e9]))
+    assert np.all(np.abs(corr) <= 1.0)
+
+
 def test_correlation_is_the_cosine_of_centred_maps_at_every_roll():
     """Against the definition, roll by roll: stored float16 references with channel means
     far from zero, a float32 query, one reference given as (C, W)."""

@@ -37,12 +37,21 @@ class Spectrum:
 
 def _spectra(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, C, W) float64 → spectra (K, C, F) and centred norms (K,). The norms come from sums
-    and the DC bins (‖r − r̄‖² = Σ r² − Σ_c DC_c² / W), so no centred copy is made."""
+    and the DC bins (‖r − r̄‖² = Σ r² − Σ_c DC_c² / W), so no centred copy is made.
+
+    The difference cancels where the maps are (nearly) constant: what is left of it is
+    rounding, not variance, and such a map's norm is 0 (it correlates with nothing)."""
     W = x.shape[-1]
     bins = np.fft.rfft(x, axis=-1)
     # einsum, not vdot: BLAS would wake its own thread pool on cores the encoder is using
-    centred = np.einsum("kcw,kcw->k", x, x) - (bins[..., 0].real ** 2).sum(-1) / W
-    return bins, np.sqrt(np.maximum(centred, 0.0))
+    total = np.einsum("kcw,kcw->k", x, x)
+    centred = total - (bins[..., 0].real ** 2).sum(-1) / W
+    centred = np.where(centred > _CANCELLED * total, centred, 0.0)
+    return bins, np.sqrt(centred)
+
+
+# rounding leaves about W·ε (≈ 1e-13 at W = 900) of Σ r² in the difference
+_CANCELLED = 1e-9
 
 
 def spectra(refs: np.ndarray) -> list[Spectrum]:
@@ -94,8 +103,10 @@ def correlate(query: np.ndarray, refs: Sequence[Spectrum]) -> np.ndarray:
     products = np.stack([r.bins for r in refs])  # (K, C, F): a copy, so the cached stay whole
     products *= qs
     num = np.fft.irfft(products.sum(axis=1), n=W, axis=-1)
-    norms = np.array([r.norm for r in refs])
-    return num / np.maximum(qnorm[0] * norms, 1e-12)[:, None]
+    denom = qnorm[0] * np.array([r.norm for r in refs])
+    # a constant map (norm 0) correlates with nothing: 0, never rounding over rounding
+    cos = np.divide(num, denom[:, None], out=np.zeros_like(num), where=denom[:, None] > 0)
+    return np.clip(cos, -1.0, 1.0)
 
 
 def circular_correlation(query: np.ndarray, refs: np.ndarray) -> np.ndarray:
