@@ -402,6 +402,8 @@ async def test_bad_input_gets_a_named_4xx_and_writes_nothing(tmp_path, encoder):
         ("empty", b"", OCTET, {}, 422, "allowed: 100 to"),
         ("few", good[:10].tobytes(), OCTET, {}, 422, "allowed: 100 to"),
         ("many", np.zeros((60_000, 4), np.float32).tobytes(), OCTET, {}, 413, "50000"),
+        ("origin", np.zeros((500, 4), np.float32).tobytes(), OCTET, {}, 422, "no point"),
+        ("far", (good * [1000, 1000, 1, 1]).astype(np.float32).tobytes(), OCTET, {}, 422, "m)"),
         ("length", good.tobytes()[:-3], OCTET, {}, 400, "truncated"),
         ("fields", good.tobytes(), {**OCTET, "x-point-fields": "xyzrgb"}, {}, 400, "allowed: xyz"),
         ("type", good.tobytes(), {"content-type": "text/csv"}, {}, 415, "allowed"),

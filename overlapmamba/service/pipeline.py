@@ -30,9 +30,10 @@ import numpy as np
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import Sensor
 from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.service.batcher import MicroBatcher
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.errors import BadRequest
+from overlapmamba.service.errors import BadRequest, Unprocessable
 from overlapmamba.service.registrar import Held, Registrar
 from overlapmamba.service.registration import RegistrationParams
 from overlapmamba.service.scans import ScanBody, decode_scan
@@ -66,6 +67,26 @@ def check_rings(points: PointCloud, sensor: Sensor | None) -> None:
             beams=sensor.beams,
             rings=[low, high],
         )
+
+
+def check_in_range(
+    image: np.ndarray, model: SensorProfile, sensor: SensorInput | None, points: int
+) -> None:
+    """A scan none of whose points lies within the sensor's range (all at the origin, or
+    all beyond ``max_range``) projects to an image with no point: its descriptor would be
+    the empty image's, which matches every other empty scan, and is refused (422)."""
+    if np.any(image != np.float32(model.empty_value)):
+        return
+    prof: Sensor | SensorProfile = sensor.sensor if sensor is not None else model
+    raise Unprocessable(
+        f"no point of the scan's {points} lies within sensor {prof.name!r}'s range "
+        f"({prof.min_range:g} m < range < {prof.max_range:g} m): the scan holds no geometry "
+        "to describe (are the coordinates in metres, in the sensor's frame?)",
+        code="no_points_in_range",
+        sensor=prof.name,
+        min_range=prof.min_range,
+        max_range=prof.max_range,
+    )
 
 
 class ScanPipeline:
@@ -110,6 +131,7 @@ class ScanPipeline:
         check_rings(points, sensor.sensor if sensor is not None else None)
         t1 = time.perf_counter()
         image, offset = self.encoder.project_offset(points, sensor)
+        check_in_range(image, self.encoder.meta.profile, sensor, len(points.xyz))
         t2 = time.perf_counter()
         return image, offset, points, {"decode": (t1 - t0) * 1e3, "project": (t2 - t1) * 1e3}
 
