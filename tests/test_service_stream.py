@@ -93,3 +93,28 @@ async def test_a_metadata_frame_whose_scan_never_came_is_answered(tmp_path, enco
     assert first["error"]["code"] == "bad_stream_frame"
     assert "not its scan" in first["error"]["message"]
     assert second["seq"] == 2 and second["ok"] is True, second
+
+
+async def test_an_invalid_metadata_frame_is_answered_once_under_its_seq(tmp_path, encoder):
+    """A metadata frame that does not validate (a NaN timestamp) is answered under its own
+    seq, naming the field; the scan that follows it belongs to it and is dropped, not
+    answered a second time as a scan without metadata. The next pair is served."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        body = scan(0).tobytes()
+        frames = [
+            {"type": "websocket.receive", "text": '{"seq": 7, "timestamp": NaN}'},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": "not json"},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": json.dumps({"seq": 8, "timestamp": 8.0})},
+            {"type": "websocket.receive", "bytes": body},
+        ]
+        app = c.app  # type: ignore[attr-defined]
+        bad, garbled, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 3)
+    assert bad["seq"] == 7 and bad["ok"] is False and bad["status"] == 400, bad
+    assert bad["error"]["code"] == "bad_stream_frame"
+    assert "timestamp" in bad["error"]["message"], bad
+    assert garbled["seq"] is None and garbled["ok"] is False
+    assert "not valid" in garbled["error"]["message"]
+    assert good["seq"] == 8 and good["ok"] is True, good

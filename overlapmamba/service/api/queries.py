@@ -15,7 +15,9 @@ each observation is two frames from the client —
 For each observation the server sends one text frame, in the order received:
 ``{"seq", "ok": true, ...the observe answer}`` or ``{"seq", "ok": false, "status": the HTTP
 status the same error would have, "error": {...}}``.
-A bad observation gets an error frame and the stream goes on. Backpressure: at most
+A bad observation gets an error frame and the stream goes on; a metadata frame that does
+not validate is answered under its ``seq`` (where it can be read), and the scan after it
+is dropped unanswered, so each observation gets one answer. Backpressure: at most
 ``observe.stream_queue`` observations may wait; a client that sends more before reading
 its results is closed with code 1013 (try again later) and a reason. Authentication uses
 the same headers as HTTP; a refused key closes the handshake with 1008.
@@ -27,6 +29,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
@@ -258,6 +261,31 @@ class StreamMeta(BaseModel):
     mount: str | None = Field(None, max_length=64)
 
 
+@dataclass(frozen=True)
+class _Refused:
+    """A metadata frame that did not validate, answered already under its ``seq``: the
+    binary frame after it is its scan, dropped without a second answer."""
+
+    seq: Any
+
+
+def _seq_of(text: str) -> Any:
+    """The ``seq`` of a metadata frame that did not validate, where it can be read (so the
+    robot's answer carries it); None where the frame is not a JSON object."""
+    try:
+        frame = json.loads(text)
+    except ValueError:
+        return None
+    return frame.get("seq") if isinstance(frame, dict) else None
+
+
+def _invalid(err: ValidationError) -> str:
+    first = err.errors(include_url=False)[0]
+    where = ".".join(str(p) for p in first["loc"])
+    field = f" (field {where!r})" if where else ""
+    return f"metadata frame is not valid{field}: {first['msg']}: this observation was not made"
+
+
 @router.websocket("/stream")
 async def stream(
     websocket: WebSocket,
@@ -328,7 +356,7 @@ async def stream(
             await websocket.send_text(json.dumps(msg))
 
     worker = asyncio.create_task(process())
-    pending: StreamMeta | str | None = None
+    pending: StreamMeta | _Refused | None = None
     try:
         while True:
             frame = await websocket.receive()
@@ -344,11 +372,13 @@ async def stream(
                 try:
                     pending = StreamMeta.model_validate_json(frame["text"])
                 except ValidationError as err:
-                    why = err.errors(include_url=False)[0]["msg"]
-                    items.append((None, None, f"metadata frame is not valid: {why}"))
-                    pending = None
+                    refused = _Refused(_seq_of(frame["text"]))
+                    items.append((refused.seq, None, _invalid(err)))
+                    pending = refused  # its scan follows: answered already, dropped
             elif pending is None:
                 items.append((None, None, "binary frame without a metadata frame before it"))
+            elif isinstance(pending, _Refused):
+                pending = None
             else:
                 items.append((pending, frame.get("bytes") or b"", None))
                 pending = None
