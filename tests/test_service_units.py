@@ -209,7 +209,7 @@ def test_filtered_search_returns_k_whenever_k_are_eligible(kind):
 
 def test_store_sequences_tombstones_and_replay_queries(tmp_path):
     rng = np.random.default_rng(3)
-    store = Store(tmp_path / "s.sqlite")
+    store = Store(tmp_path / "s.sqlite", new=True)
     vecs = unit(rng, 6)
     ids, seq = store.insert([row(i, vecs[i]) for i in range(4)])
     assert seq == 1 and len(set(ids)) == 4
@@ -241,7 +241,7 @@ def test_a_read_returning_its_connection_as_the_store_closes_leaves_none_open(tm
 
     from overlapmamba.service.backends.faiss.store import StoreError
 
-    store = Store(tmp_path / "s.sqlite")
+    store = Store(tmp_path / "s.sqlite", new=True)
     returned: list[sqlite3.Connection] = []
     closing = threading.Thread(target=store.close)
 
@@ -278,7 +278,7 @@ def test_a_reader_never_creates_the_store_file_a_deletion_moved_away(tmp_path):
     import queue
     import sqlite3
 
-    store = Store(tmp_path / "s.sqlite")
+    store = Store(tmp_path / "s.sqlite", new=True)
     with contextlib.suppress(queue.Empty):
         while True:  # no pooled reader left: the next read opens a connection of its own
             store._pool.get_nowait().close()
@@ -299,7 +299,7 @@ def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
 
     rng = np.random.default_rng(4)
     vecs = unit(rng, 3)
-    store = Store(tmp_path / "s.sqlite")
+    store = Store(tmp_path / "s.sqlite", new=True)
     store.insert([dataclasses.replace(row(0, vecs[0]), geometry=b"OMG1-blob"), row(1, vecs[1])])
     assert store.geometry(["kf0", "kf1", "nope"]) == {"kf0": b"OMG1-blob"}
     store.close()
@@ -465,7 +465,7 @@ def test_a_deleted_map_refuses_requests_that_still_hold_it(tmp_path):
 def test_store_reader_connections_are_pooled_not_per_thread(tmp_path):
     import threading
 
-    store = Store(tmp_path / "s.sqlite")
+    store = Store(tmp_path / "s.sqlite", new=True)
     for _ in range(30):  # short-lived threads, as a thread pool makes them
         t = threading.Thread(target=store.count)
         t.start()

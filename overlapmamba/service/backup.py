@@ -21,6 +21,7 @@ from overlapmamba.service.backends.faiss.store import (
     IMPORTED_MARK,
     READABLE_VERSIONS,
     Store,
+    StoreError,
     fsync_dir,
 )
 from overlapmamba.service.domain import check_map_id
@@ -56,42 +57,64 @@ def _map_folder(data_dir: Path, map_id: str) -> Path:
 
 
 def export_map(data_dir: Path, map_id: str, out: Path) -> dict[str, Any]:
+    """Copy map ``map_id``'s store to ``out`` (a new file), read-only on the map: a copy
+    killed halfway leaves ``<out>.tmp``, which the next export clears."""
     folder = _map_folder(data_dir, map_id)
     if not (folder / "store.sqlite").is_file():
         raise BackupError(f"no map {map_id!r} under {data_dir}")
     if out.exists():
         raise BackupError(f"{out} exists; choose a new file")
     out.parent.mkdir(parents=True, exist_ok=True)
-    store = Store(folder / "store.sqlite")
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.unlink(missing_ok=True)  # a cut-short export's: never a file anyone acknowledged
     try:
-        tmp = out.with_name(out.name + ".tmp")
+        store = Store(folder / "store.sqlite", readonly=True)
+    except (StoreError, sqlite3.DatabaseError) as err:
+        raise BackupError(
+            f"map {map_id!r}'s store {folder / 'store.sqlite'} cannot be read: {err}; "
+            "`overlapmamba doctor` says what is wrong with it"
+        ) from None
+    try:
         copied = store.backup(tmp)  # what the file holds, whatever a service writes meanwhile
         os.replace(tmp, out)
-        return {"map_id": map_id, "keyframes": copied, "bytes": out.stat().st_size}
+    except (OSError, sqlite3.Error) as err:
+        tmp.unlink(missing_ok=True)
+        raise BackupError(f"the copy of map {map_id!r} to {out} failed: {err}") from None
     finally:
         store.close()
+    return {"map_id": map_id, "keyframes": copied, "bytes": out.stat().st_size}
 
 
-def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False) -> dict[str, Any]:
-    folder = _map_folder(data_dir, map_id)
-    if not src.is_file():
-        raise BackupError(f"{src} does not exist")
+def _check_backup(src: Path) -> dict[str, str]:
+    """``src``'s metadata, once SQLite finds the whole file sound (``quick_check``: a
+    truncated or partly overwritten copy can still count its keyframes)."""
     try:
-        con = sqlite3.connect(f"file:{src}?mode=ro", uri=True)
-        try:
+        with contextlib.closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True)) as con:
+            problems = [r[0] for r in con.execute("PRAGMA quick_check(5)").fetchall()]
+            if problems != ["ok"]:
+                raise BackupError(
+                    f"{src} is damaged (SQLite's quick_check: {'; '.join(problems)[:300]}); "
+                    "nothing was imported: export the map again"
+                )
             meta = dict(con.execute("SELECT key, value FROM meta").fetchall())
-            count = con.execute(
-                "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
-            ).fetchone()[0]
-        finally:
-            con.close()
     except sqlite3.DatabaseError as err:
-        raise BackupError(f"{src} is not a map export: {err}") from None
+        raise BackupError(f"{src} is damaged or not a map export: {err}") from None
     if int(meta.get("schema_version", -1)) not in READABLE_VERSIONS:
         raise BackupError(
             f"{src} has store schema {meta.get('schema_version')}; this code reads "
             f"{READABLE_VERSIONS} (an older one is upgraded on import)"
         )
+    return meta
+
+
+def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False) -> dict[str, Any]:
+    """Install the export ``src`` as map ``map_id`` (the service stopped). The copy is
+    SQLite's own, so writes still in ``src``'s write-ahead log come along; the count
+    reported is the copy's."""
+    folder = _map_folder(data_dir, map_id)
+    if not src.is_file():
+        raise BackupError(f"{src} does not exist")
+    meta = _check_backup(src)
     with data_dir_lock(data_dir):
         if folder.exists() and not replace:
             raise BackupError(f"map {map_id!r} exists under {data_dir}; pass --replace")
@@ -101,12 +124,16 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         tmp = folder.with_name(f".import-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        shutil.copyfile(src, tmp / "store.sqlite")
-        store = Store(tmp / "store.sqlite")
-        store.set_meta(map_id=map_id)
-        store.close()
-        with open(tmp / "store.sqlite", "rb+") as f:
-            os.fsync(f.fileno())
+        try:
+            count = _copy(src, tmp / "store.sqlite")
+            store = Store(tmp / "store.sqlite")
+            store.set_meta(map_id=map_id)
+            store.close()
+            with open(tmp / "store.sqlite", "rb+") as f:
+                os.fsync(f.fileno())
+        except (OSError, sqlite3.Error, StoreError) as err:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise BackupError(f"the import of {src} as map {map_id!r} failed: {err}") from None
         (tmp / IMPORTED_MARK).touch()
         fsync_dir(tmp)
         trash = folder.with_name(f".trash-{map_id}-{time.time_ns()}")
@@ -117,3 +144,15 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         (folder / IMPORTED_MARK).unlink()
         shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}
+
+
+def _copy(src: Path, dest: Path) -> int:
+    """SQLite's online backup of ``src`` into ``dest`` (its ``-wal`` included), then the
+    copy's live keyframes."""
+    with (
+        contextlib.closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True)) as source,
+        contextlib.closing(sqlite3.connect(dest)) as target,
+    ):
+        source.backup(target)
+        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+        return int(target.execute(sql).fetchone()[0])

@@ -99,8 +99,12 @@ class FaissBackend:
         check_map_id(map_id)
         m = self.maps.get(map_id)
         if m is None and map_id in self.failed:
+            store = self.root / map_id / "store.sqlite"
             raise Unavailable(
-                f"map {map_id!r} exists but could not be opened: {self.failed[map_id]}",
+                f"map {map_id!r} exists but could not be opened: {self.failed[map_id]}. "
+                f"Its store is {store}: `overlapmamba doctor` checks it; restore it from a "
+                f"backup with `overlapmamba import-map {map_id} BACKUP --replace` (the service "
+                "stopped)",
                 code="map_unavailable",
             )
         if m is None:

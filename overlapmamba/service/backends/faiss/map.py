@@ -122,7 +122,7 @@ class FaissMap:
         tmp = folder.with_name(f".create-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        store = Store(tmp / "store.sqlite")
+        store = Store(tmp / "store.sqlite", new=True)
         store.set_meta(
             map_id=map_id,
             model_id=model_id,

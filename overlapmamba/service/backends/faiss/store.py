@@ -134,8 +134,11 @@ def _undo(con: sqlite3.Connection, err: BaseException) -> None:
 
 
 class Store:
-    def __init__(self, path: Path, *, readonly: bool = False) -> None:
-        """``readonly``: only read (no schema script, no writes; `overlapmamba doctor`)."""
+    def __init__(self, path: Path, *, readonly: bool = False, new: bool = False) -> None:
+        """``readonly``: only read (no schema script, no writes; `overlapmamba doctor`).
+        ``new``: create the store (only a map being created does); any other opening
+        refuses a file that is missing or holds no store (emptied, overwritten) rather
+        than write a new schema over what is left of it."""
         self.path = Path(path)
         self.readonly = readonly
         self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
@@ -152,7 +155,9 @@ class Store:
                     f"{path}: schema version {version}; this code reads {READABLE_VERSIONS}"
                 )
             return
-        self._write = self._connect(create=True)
+        if not new:
+            self._check_exists()
+        self._write = self._connect(create=new)
         # Reader connections are pooled, not per thread: worker threads come and go, and a
         # connection per thread that ever read would leak file descriptors.
         with self._write:
@@ -164,6 +169,24 @@ class Store:
             self._migrate(int(version))
         elif int(version) != SCHEMA_VERSION:
             raise StoreError(f"{path}: schema version {version}; this code reads {SCHEMA_VERSION}")
+
+    def _check_exists(self) -> None:
+        if not self.path.is_file():
+            raise StoreError(f"{self.path} does not exist")
+        uri = f"file:{self.path}?mode=ro"
+        try:
+            with contextlib.closing(sqlite3.connect(uri, uri=True)) as con:
+                sql = "SELECT value FROM meta WHERE key = 'schema_version'"
+                found = con.execute(sql).fetchall()
+        except sqlite3.OperationalError as err:
+            if "no such table" not in str(err):
+                raise
+            found = []
+        if not found:
+            raise StoreError(
+                f"{self.path} holds no map store (no schema version: emptied or overwritten); "
+                "nothing was written to it"
+            )
 
     def _migrate(self, version: int) -> None:
         """Add the columns later schemas have (NULL for every existing keyframe), in one

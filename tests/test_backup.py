@@ -1,0 +1,114 @@
+"""Backups of a map's store (``export-map``, ``import-map``) and stores that are not whole:
+what a copy holds is what it reports, a damaged file is refused and never served as a map."""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+
+import numpy as np
+import pytest
+from test_backends import opened, row
+
+from overlapmamba.service import backup
+from overlapmamba.service.backends.faiss.store import Store, StoreError
+from overlapmamba.service.errors import Unavailable
+
+
+def _live(path) -> int:
+    with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as con:
+        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
+        return int(con.execute(sql).fetchone()[0])
+
+
+def test_an_import_takes_the_keyframes_still_in_the_sources_write_ahead_log(tmp_path):
+    """A store whose last writes sit in its ``-wal`` (its service still runs, or was killed):
+    the import holds them, and says how many it holds."""
+    with opened("faiss", tmp_path / "a") as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(20)])
+        src = tmp_path / "a" / "data" / "maps" / "town" / "store.sqlite"
+        assert (src.parent / "store.sqlite-wal").stat().st_size > 0  # not checkpointed
+        out = backup.import_map(tmp_path / "b" / "data", "copy", src)
+    assert out["keyframes"] == 20
+    with opened("faiss", tmp_path / "b") as b:
+        assert b.get("copy").count == 20
+
+
+def test_an_import_refuses_a_truncated_backup_and_leaves_the_map_as_it_was(tmp_path):
+    data = tmp_path / "data"
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i), yaw=True) for i in range(300)])
+    backup.export_map(data, "town", tmp_path / "town.sqlite")
+    whole = (tmp_path / "town.sqlite").read_bytes()
+    (tmp_path / "cut.sqlite").write_bytes(whole[: len(whole) * 3 // 4])
+    with pytest.raises(backup.BackupError, match="damaged") as err:
+        backup.import_map(data, "town", tmp_path / "cut.sqlite", replace=True)
+    assert "cut.sqlite" in str(err.value)
+    # a page lost inside the file: the keyframes still count, the file is not whole
+    for page in range(2, len(whole) // 4096):
+        hole = whole[: page * 4096] + bytes(4096) + whole[(page + 1) * 4096 :]
+        (tmp_path / "hole.sqlite").write_bytes(hole)
+        with contextlib.suppress(sqlite3.DatabaseError):
+            if _live(tmp_path / "hole.sqlite") == 300:
+                break
+    else:
+        pytest.fail("no page whose loss leaves the count whole")
+    with pytest.raises(backup.BackupError, match="damaged .*quick_check"):
+        backup.import_map(data, "town", tmp_path / "hole.sqlite", replace=True)
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 300
+    assert not list((data / "maps").glob(".import-*"))
+
+
+def test_a_zero_byte_store_is_a_failed_map_never_an_empty_one(tmp_path):
+    """The schema is never written over a store that lost its content: the map is listed as
+    failed (503 naming the file and the way back) and its file is left as it was."""
+    with opened("faiss", tmp_path) as b:
+        b.create("town", "flat")[0].insert([row(0, np.random.default_rng(0))])
+    folder = tmp_path / "data" / "maps" / "town"
+    for f in folder.iterdir():
+        f.unlink() if f.name != "store.sqlite" else f.write_bytes(b"")
+    with opened("faiss", tmp_path) as b:
+        assert "town" in b.failed
+        with pytest.raises(Unavailable) as err:
+            b.get("town")
+    message = str(err.value)
+    assert "store.sqlite" in message and "import-map" in message and "doctor" in message
+    assert (folder / "store.sqlite").stat().st_size == 0
+    with pytest.raises(StoreError, match="no map store"):
+        Store(folder / "store.sqlite")
+    with pytest.raises(StoreError, match="does not exist"):
+        Store(tmp_path / "nothing.sqlite")
+
+
+def test_an_export_only_reads_its_map_and_names_a_damaged_one(tmp_path):
+    with opened("faiss", tmp_path) as b:
+        b.create("town", "flat")[0].insert([row(0, np.random.default_rng(0))])
+    store = tmp_path / "data" / "maps" / "town" / "store.sqlite"
+    store.write_bytes(b"")
+    with pytest.raises(backup.BackupError, match="cannot be read"):
+        backup.export_map(tmp_path / "data", "town", tmp_path / "town.sqlite")
+    assert store.stat().st_size == 0  # nothing written into it
+    assert not (tmp_path / "town.sqlite").exists()
+    assert not (tmp_path / "town.sqlite.tmp").exists()
+
+
+def test_an_export_clears_the_debris_of_one_cut_short(tmp_path, monkeypatch):
+    data = tmp_path / "data"
+    with opened("faiss", tmp_path) as b:
+        b.create("town", "flat")[0].insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    out = tmp_path / "town.sqlite"
+    (tmp_path / "town.sqlite.tmp").write_bytes(b"half a copy")  # a killed export's
+    assert backup.export_map(data, "town", out)["keyframes"] == 3
+    assert _live(out) == 3 and not (tmp_path / "town.sqlite.tmp").exists()
+
+    def disk_full(self, dest):
+        dest.write_bytes(b"part")
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(Store, "backup", disk_full)
+    with pytest.raises(backup.BackupError, match="disk is full"):
+        backup.export_map(data, "town", tmp_path / "again.sqlite")
+    assert not list(tmp_path.glob("again.sqlite*"))
