@@ -12,6 +12,7 @@ from test_backends import opened, row
 
 from overlapmamba.service import backup
 from overlapmamba.service.backends.faiss.store import Store, StoreError
+from overlapmamba.service.domain import Filters
 from overlapmamba.service.errors import Unavailable
 
 
@@ -112,3 +113,38 @@ def test_an_export_clears_the_debris_of_one_cut_short(tmp_path, monkeypatch):
     with pytest.raises(backup.BackupError, match="disk is full"):
         backup.export_map(data, "town", tmp_path / "again.sqlite")
     assert not list(tmp_path.glob("again.sqlite*"))
+
+
+def test_a_full_disk_at_create_or_snapshot_is_named_and_leaves_no_debris(tmp_path, monkeypatch):
+    """503 storage_full, not a 500: a map whose creation hit a full disk leaves no
+    ``.create-`` folder and can be created once there is room; a snapshot that could not be
+    written leaves the map serving (the snapshot is derived)."""
+    import errno
+
+    from overlapmamba.service.backends.faiss import map as faiss_map
+
+    real_store = faiss_map.Store
+
+    def full_store(path, **kw):
+        raise sqlite3.OperationalError("database or disk is full")
+
+    def full_write(*args, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with opened("faiss", tmp_path) as b:
+        monkeypatch.setattr(faiss_map, "Store", full_store)
+        with pytest.raises(Unavailable, match="cannot be created.*free disk space") as err:
+            b.create("town", "flat")
+        assert err.value.code == "storage_full" and err.value.status == 503
+        assert not list((tmp_path / "data" / "maps").glob(".create-*"))
+        monkeypatch.setattr(faiss_map, "Store", real_store)
+        m, created = b.create("town", "flat")
+        assert created
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+        monkeypatch.setattr(faiss_map, "write_snapshot", full_write)
+        with pytest.raises(Unavailable, match="snapshot was not written") as err:
+            m.snapshot()
+        assert err.value.code == "storage_full"
+        assert m.count == 3
+        assert len(m.search(row(0, np.random.default_rng(0)).descriptor, 1, Filters())) == 1
+        monkeypatch.undo()

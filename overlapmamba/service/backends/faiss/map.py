@@ -39,7 +39,7 @@ from overlapmamba.service.backends.faiss.snapshot import (
     read_snapshot,
     write_snapshot,
 )
-from overlapmamba.service.backends.faiss.store import Store, fsync_dir
+from overlapmamba.service.backends.faiss.store import Store, fsync_dir, storage_full
 from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import (
     Filters,
@@ -121,21 +121,30 @@ class FaissMap:
         # or a whole one (load_all removes the debris), never a store without its metadata.
         tmp = folder.with_name(f".create-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        store = Store(tmp / "store.sqlite", new=True)
-        store.set_meta(
-            map_id=map_id,
-            model_id=model_id,
-            dim=dim,
-            index_kind=kind,
-            keep_geometry="true" if keep_geometry else "false",
-            created_at=time.time(),
-            **({} if sensor is None else {"sensor": sensor}),
-            **({} if mount is None else {"mount": json.dumps(mount.key())}),
-        )
-        store.close()  # a lingering connection would checkpoint into the file later
-        os.replace(tmp, folder)
-        fsync_dir(folder.parent)
+        try:
+            tmp.mkdir(parents=True)
+            store = Store(tmp / "store.sqlite", new=True)
+            try:
+                store.set_meta(
+                    map_id=map_id,
+                    model_id=model_id,
+                    dim=dim,
+                    index_kind=kind,
+                    keep_geometry="true" if keep_geometry else "false",
+                    created_at=time.time(),
+                    **({} if sensor is None else {"sensor": sensor}),
+                    **({} if mount is None else {"mount": json.dumps(mount.key())}),
+                )
+            finally:
+                store.close()  # a lingering connection would checkpoint into the file later
+            os.replace(tmp, folder)
+            fsync_dir(folder.parent)
+        except Exception as err:
+            shutil.rmtree(tmp, ignore_errors=True)
+            full = storage_full(err.__cause__ or err, f"map {map_id!r} cannot be created")
+            if full is not None:
+                raise full from err
+            raise
         return cls.open(map_id, folder, settings, rows=rows)
 
     @classmethod
@@ -263,7 +272,14 @@ class FaissMap:
                 seq = self.applied_seq
                 payload = self.index.serialize()
                 kind = self.index.kind
-            path = write_snapshot(self.folder / SNAPSHOT_NAME, payload, seq, kind, self.dim)
+            try:
+                path = write_snapshot(self.folder / SNAPSHOT_NAME, payload, seq, kind, self.dim)
+            except OSError as err:
+                what = f"map {self.map_id!r}'s snapshot was not written (the map serves on)"
+                full = storage_full(err, what)
+                if full is not None:
+                    raise full from err
+                raise
             self.snapshot_seq = seq
             purged = self.store.purge_tombstones(seq)
         return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}

@@ -27,6 +27,7 @@ opened for writing.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import queue
@@ -126,11 +127,20 @@ def _undo(con: sqlite3.Connection, err: BaseException) -> None:
     bare 500."""
     if con.in_transaction:
         con.execute("ROLLBACK")
-    if isinstance(err, sqlite3.OperationalError) and "full" in str(err):
-        raise Unavailable(
-            f"the map's store cannot grow: {err}; free disk space under the data folder",
-            code="storage_full",
-        ) from err
+    full = storage_full(err, "the map's store cannot grow")
+    if full is not None:
+        raise full from err
+
+
+def storage_full(err: BaseException, what: str) -> Unavailable | None:
+    """The 503 ``storage_full`` for an error that means the disk (or the quota) is full —
+    SQLite's or the file system's — else None."""
+    sqlite_full = isinstance(err, sqlite3.OperationalError) and "full" in str(err)
+    if not sqlite_full and not (
+        isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
+    ):
+        return None
+    return Unavailable(f"{what}: {err}; free disk space under the data folder", code="storage_full")
 
 
 class Store:
