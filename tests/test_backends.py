@@ -323,6 +323,18 @@ def test_a_scan_querys_matches_carry_their_stored_descriptors(kind, cache_mb, tm
 
 
 @pytest.mark.parametrize("kind", ["faiss", "qdrant"])
+def test_positions_are_the_latest_keyframes_that_have_a_pose(kind, tmp_path):
+    """The overview's ``limit`` counts keyframes with a pose: keyframes without one (every
+    other here, the newest among them) never crowd posed ones out of the answer."""
+    rng = np.random.default_rng(0)
+    with opened(kind, tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, rng) for i in range(12)])  # odd i have a pose; 11 is the newest
+        assert m.positions(3) == [("r2", 11.0, 0.0), ("r0", 9.0, 0.0), ("r1", 7.0, 0.0)]
+        assert len(m.positions(100)) == 6
+
+
+@pytest.mark.parametrize("kind", ["faiss", "qdrant"])
 def test_a_maps_sensor_and_mount_are_kept_across_restarts_and_fixed(kind, tmp_path):
     from overlapmamba.core.sensors.mount import Mount
 

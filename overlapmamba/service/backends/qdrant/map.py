@@ -189,6 +189,10 @@ class QdrantMap:
         records, _ = self._call(
             lambda c: c.scroll(
                 self.collection,
+                # the limit counts keyframes with a pose: those without one are filtered first
+                scroll_filter=models.Filter(
+                    must_not=[models.IsEmptyCondition(is_empty=models.PayloadField(key="pose"))]
+                ),
                 limit=int(limit),
                 order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
                 with_payload=models.PayloadSelectorInclude(include=["robot_id", "pose"]),
