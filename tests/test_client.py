@@ -511,3 +511,47 @@ def test_fleet_judges_verified_closures_by_their_pose_beyond_the_loop_radius():
     r = _report(samples, keyframes, [drive], 1, 1.0, 1.0, 0.0, 0.0)
     assert (r.loop_closures, r.correct, r.verified_closures) == (4, 2, 3)
     assert r.precision == 0.5 and r.verified_pose_right == 2
+
+
+@pytest.mark.parametrize(
+    "duration_s, rate_hz, says",
+    [
+        (float("nan"), 1.0, "duration_s nan"),
+        (1.0, float("nan"), "rate_hz nan"),
+        (1.0, float("inf"), "rate_hz inf"),
+        (0.0, 1.0, "duration_s 0.0"),
+    ],
+)
+def test_a_fleet_refuses_a_duration_or_rate_that_is_not_a_number_above_0(duration_s, rate_hz, says):
+    """Checked before anything connects: the port here has no server."""
+    from overlapmamba.client.fleet import simulate
+
+    with pytest.raises(ValueError, match=f"finite rate > 0 Hz.*{says}"):
+        asyncio.run(
+            simulate(
+                "http://127.0.0.1:9",
+                "m",
+                [object()],
+                robots=1,
+                duration_s=duration_s,  # type: ignore[list-item]
+                rate_hz=rate_hz,
+            )
+        )
+
+
+def test_times_txt_is_one_finite_time_a_line_and_a_bad_one_is_named(tmp_path):
+    from overlapmamba.client._replay import read_times
+
+    f = tmp_path / "times.txt"
+    f.write_text("0.0\n0.1\n0.2\n")
+    np.testing.assert_array_equal(read_times(f, 3), [0.0, 0.1, 0.2])
+    for text, says in [
+        ("0.0 1\n0.1 2\n0.2 3\n", "has 2 columns"),
+        ("time\n0.0\n0.1\n", "cannot be read as times"),
+        ("0.0\nnan\n0.2\n", "line 2 is not a finite time"),
+        ("0.0\n0.1\n", "2 times for 3 scans"),
+    ]:
+        f.write_text(text)
+        with pytest.raises(ValueError, match=says) as err:
+            read_times(f, 3)
+        assert str(f) in str(err.value) and "one time in seconds a line" in str(err.value)

@@ -70,9 +70,7 @@ def open_drive(
         return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor)
     n = len(seq)
     times_file = root / "times.txt"
-    times = np.loadtxt(times_file, ndmin=1) if times_file.is_file() else np.arange(n) * 0.1
-    if len(times) != n:
-        raise ValueError(f"{times_file}: {len(times)} times for {n} scans")
+    times = read_times(times_file, n) if times_file.is_file() else np.arange(n) * 0.1
     radius = None
     gt = root / "ground_truth" / "loops.npz"
     if gt.is_file():
@@ -84,6 +82,23 @@ def open_drive(
         loop_radius=radius,
         sensor=sensor or _manifest_sensor(root),
     )
+
+
+def read_times(path: Path, n: int) -> np.ndarray:
+    """A KITTI ``times.txt``: one finite time (seconds) a line, one line a scan."""
+    allowed = f"allowed: one time in seconds a line, {n} lines (one a scan), no header"
+    try:
+        times = np.loadtxt(path, ndmin=1, dtype=np.float64)
+    except ValueError as err:
+        raise ValueError(f"{path} cannot be read as times: {err}; {allowed}") from None
+    if times.ndim != 1:
+        raise ValueError(f"{path} has {times.shape[1]} columns; {allowed}")
+    if not np.all(np.isfinite(times)):
+        line = int(np.flatnonzero(~np.isfinite(times))[0]) + 1
+        raise ValueError(f"{path}: line {line} is not a finite time; {allowed}")
+    if len(times) != n:
+        raise ValueError(f"{path}: {len(times)} times for {n} scans; {allowed}")
+    return times
 
 
 def _manifest_sensor(root: Path) -> str | None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -107,8 +108,13 @@ async def simulate(
     drives on any machine, so the closures' recall compares across machines and files: in
     a fixed time a slower server's robots get less far, where the loops differ (measured:
     the same server, robots asked for fewer scans a second, recall fell with them)."""
-    if robots < 1 or duration_s <= 0 or rate_hz <= 0 or not drives:
-        raise ValueError("need robots ≥ 1, duration > 0, rate > 0 and at least one drive")
+    # `not x > 0`: NaN is no duration and no rate either
+    if robots < 1 or not duration_s > 0 or not 0 < rate_hz < math.inf or not drives:
+        raise ValueError(
+            "need robots ≥ 1, duration > 0 s, a finite rate > 0 Hz and at least one drive; "
+            f"got robots {robots}, duration_s {duration_s}, rate_hz {rate_hz}, "
+            f"{len(drives)} drives"
+        )
     if scans is not None and scans < 1:
         raise ValueError(
             f"scans must be at least 1 a robot (or None: until the deadline); got {scans}"
