@@ -28,6 +28,7 @@ from overlapmamba.client import (
     Observation,
     OverloadedError,
     PlaceRecognitionClient,
+    ResponseError,
     Retry,
 )
 from overlapmamba.client.cli import app as cli_app
@@ -52,8 +53,8 @@ def test_public_names():
             "BadRequestError", "BatchInsertResult", "ClientError", "ConflictError",
             "ConnectError", "Descriptor", "Keyframe", "LoopClosure", "MapInfo", "Match",
             "NotFoundError", "Observation", "ObserveResult", "OverloadedError",
-            "PayloadTooLargeError", "PlaceRecognitionClient", "QueryResult", "Retry",
-            "ServerError", "Timeout", "Timeouts", "TransportError",
+            "PayloadTooLargeError", "PlaceRecognitionClient", "QueryResult", "ResponseError",
+            "Retry", "ServerError", "Timeout", "Timeouts", "TransportError",
         ]
     )  # fmt: skip
     for name in client.__all__:
@@ -555,3 +556,70 @@ def test_times_txt_is_one_finite_time_a_line_and_a_bad_one_is_named(tmp_path):
         with pytest.raises(ValueError, match=says) as err:
             read_times(f, 3)
         assert str(f) in str(err.value) and "one time in seconds a line" in str(err.value)
+
+
+def _answering(plan: list[object]):
+    """A transport answering from ``plan``: an exception to raise, or (status, body, type)."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        step = plan.pop(0)
+        if isinstance(step, Exception):
+            raise step
+        status, body, kind = step  # type: ignore[misc]
+        return httpx.Response(status, content=body, headers={"content-type": kind})
+
+    return httpx.MockTransport(handler)
+
+
+HTML = (200, b"<html><body>Welcome to nginx!</body></html>", "text/html")
+EMPTY = (200, b"{}", "application/json")
+GONE = (404, b'{"error": {"code": "map_not_found", "message": "no map"}}', "application/json")
+DELETED = (204, b"", "application/json")
+
+
+def test_a_success_that_is_not_this_apis_answer_is_a_response_error():
+    """A proxy's page or an empty object under 200: ResponseError naming the route, the
+    status, the type and the body's head, never a JSONDecodeError or KeyError (a
+    ClientError: the CLI prints it in one line and exits 2)."""
+    for plan, says in [([HTML], "text/html"), ([EMPTY], "KeyError")]:
+        with (
+            PlaceRecognitionClient(transport=_answering(plan), retry=NO_RETRY) as pr,
+            pytest.raises(ResponseError, match=says) as err,
+        ):
+            pr.describe(scan(0))
+        assert "POST /v1/descriptors answered 200" in str(err.value)
+
+    async def run() -> None:
+        async with AsyncPlaceRecognitionClient(transport=_answering([HTML]), retry=NO_RETRY) as pr:
+            with pytest.raises(ResponseError, match="Welcome to nginx"):
+                await pr.describe(scan(0))
+
+    asyncio.run(run())
+    from overlapmamba.client._stream import stream_result
+
+    for frame in ("<html>", "[1, 2]", '{"ok": true}'):
+        with pytest.raises(ResponseError, match="not this API's result"):
+            stream_result(frame)
+
+
+def test_a_delete_whose_answer_was_lost_is_done_when_its_retry_finds_nothing():
+    """The first DELETE was carried out and its answer lost (a read timeout): the retry's
+    404 means deleted. A 404 at the first try, or after a 503 (refused, nothing done), is
+    still NotFoundError."""
+    retry = Retry(attempts=3, backoff_s=0.01)
+    lost = [httpx.ReadTimeout("no answer"), GONE]
+    with PlaceRecognitionClient(transport=_answering(lost), retry=retry) as pr:
+        assert pr.delete_map("town") is None
+    for plan in ([GONE], [(503, b"{}", "application/json"), GONE]):
+        with (
+            PlaceRecognitionClient(transport=_answering(plan), retry=retry) as pr,
+            pytest.raises(NotFoundError),
+        ):
+            pr.delete_keyframe("town", "kf-1")
+
+    async def run() -> None:
+        lost = [httpx.ReadTimeout("no answer"), GONE]
+        async with AsyncPlaceRecognitionClient(transport=_answering(lost), retry=retry) as pr:
+            assert await pr.delete_keyframe("town", "kf-1") is None
+
+    asyncio.run(run())

@@ -17,7 +17,10 @@ from pydantic import ValidationError
 
 from overlapmamba.client._exceptions import (
     APIError,
+    ClientError,
     ConnectError,
+    NotFoundError,
+    ResponseError,
     Timeout,
     TransportError,
     error_for,
@@ -136,6 +139,43 @@ def transport_error(err: httpx.TransportError) -> TransportError:
     if isinstance(err, httpx.ConnectError):
         return ConnectError(f"cannot connect: {err}")
     return TransportError(f"transport failed: {err!r}")
+
+
+def read_answer(call: Call, resp: httpx.Response) -> Any:
+    """``call.parse(resp)``; a 2xx body that is not this API's answer (an HTML page from a
+    proxy, ``{}``, a body cut short) raises :class:`ResponseError` naming what came."""
+    try:
+        return call.parse(resp)
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as err:
+        raise not_this_api(call, resp, err) from err
+
+
+def not_this_api(call: Call, resp: httpx.Response | None, err: Exception) -> ResponseError:
+    where = f"{call.method} {call.path}"
+    if resp is None:  # the body could not even be decoded (a bad content-encoding)
+        return ResponseError(f"{where}: the answer's body could not be decoded: {err}")
+    kind = resp.headers.get("content-type", "no content-type")
+    head = resp.content[:200].decode("utf-8", "replace")
+    return ResponseError(
+        f"{where} answered {resp.status_code} ({kind}) with a body that is not this API's "
+        f"answer ({type(err).__name__}: {err}); expected the service's JSON. Is the URL the "
+        f"place-recognition service's? The body began: {head!r}"
+    )
+
+
+def may_have_applied(err: ClientError) -> bool:
+    """Whether the request that failed so may have been carried out all the same: its answer
+    was lost (connected, then no answer), or the server failed after taking it (5xx but
+    503, which refuses before any work)."""
+    if isinstance(err, TransportError):
+        return not isinstance(err.__cause__, (httpx.ConnectError, httpx.ConnectTimeout))
+    return isinstance(err, APIError) and err.status >= 500 and err.status != 503
+
+
+def deleted_before(call: Call, err: ClientError, maybe_applied: bool) -> bool:
+    """A DELETE retried after a try that may have been carried out answers 404: that
+    earlier try deleted it, and the deletion the caller asked for has happened."""
+    return call.method == "DELETE" and maybe_applied and isinstance(err, NotFoundError)
 
 
 def retryable(err: Exception, retry: Retry) -> bool:

@@ -4,6 +4,8 @@ ClientError
  ├── TransportError          the request did not get an answer
  │    ├── ConnectError        could not connect
  │    └── Timeout             no answer in time (see ``Timeouts``)
+ ├── ResponseError           a 2xx answer that is not this API's (a proxy's or another
+ │                           service's page, a body cut short): what came is named
  └── APIError                the service answered with an error; ``status``, ``code``,
       │                      ``message`` and ``detail`` are the server's
       ├── BadRequestError     4xx not listed below
@@ -34,6 +36,10 @@ class ConnectError(TransportError):
 
 class Timeout(TransportError):
     pass
+
+
+class ResponseError(ClientError):
+    """A success status whose body is not what this API answers."""
 
 
 class APIError(ClientError):

@@ -20,6 +20,7 @@ from overlapmamba.client._exceptions import (
     APIError,
     ClientError,
     ConnectError,
+    ResponseError,
     Timeout,
     TransportError,
     error_for,
@@ -109,13 +110,23 @@ def check_window(window: int) -> int:
 
 def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
     """One result frame of the stream → its result; a refused observation's APIError is
-    raised, or returned with ``errors="return"``."""
-    d = json.loads(text)
-    if d.get("ok"):
-        return ObserveResult.from_json(d)
-    e = d.get("error", {})
-    status = int(d.get("status") or 400)  # the HTTP status of that error (servers before: none)
-    code, message = e.get("code", "stream_error"), e.get("message", "")
+    raised, or returned with ``errors="return"``. A frame that is not this API's raises
+    :class:`ResponseError`."""
+    try:
+        d = json.loads(text)
+        if not isinstance(d, dict):
+            raise TypeError(f"a JSON {type(d).__name__}, not an object")
+        if d.get("ok"):
+            return ObserveResult.from_json(d)
+        e = d.get("error", {})
+        status = int(d.get("status") or 400)  # that error's HTTP status (servers before: none)
+        code, message = e.get("code", "stream_error"), e.get("message", "")
+    except (ValueError, KeyError, TypeError, AttributeError) as bad:
+        head = text[:200] if isinstance(text, str) else text[:200].decode("utf-8", "replace")
+        raise ResponseError(
+            f"a stream frame that is not this API's result ({type(bad).__name__}: {bad}); "
+            f"expected the service's JSON result frame. The frame began: {head!r}"
+        ) from bad
     err = error_for(status)(status, code, message, e.get("detail"))
     err.detail.setdefault("seq", d.get("seq"))
     if errors == "raise":

@@ -16,7 +16,11 @@ from overlapmamba.client._base import (
     Retry,
     Timeouts,
     check_mount,
+    deleted_before,
+    may_have_applied,
+    not_this_api,
     raise_for,
+    read_answer,
     retryable,
     transport_error,
 )
@@ -85,6 +89,7 @@ class PlaceRecognitionClient:
 
     def _run(self, call: Call) -> Any:
         attempts = self.retry.attempts if call.idempotent else 1
+        maybe_applied = False  # an earlier try may have been carried out
         for attempt in range(1, attempts + 1):
             try:
                 try:
@@ -98,11 +103,16 @@ class PlaceRecognitionClient:
                     )
                 except httpx.TransportError as err:
                     raise transport_error(err) from err
+                except httpx.DecodingError as err:
+                    raise not_this_api(call, None, err) from err
                 raise_for(resp)
-                return call.parse(resp)
+                return read_answer(call, resp)
             except ClientError as err:
+                if deleted_before(call, err, maybe_applied):
+                    return None
                 if attempt == attempts or not retryable(err, self.retry):
                     raise
+                maybe_applied = maybe_applied or may_have_applied(err)
                 retry_after = err.retry_after if isinstance(err, APIError) else None
                 time.sleep(self.retry.delay(attempt, retry_after, self._rng))
         raise AssertionError("unreachable")
