@@ -150,3 +150,28 @@ def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tm
     np.testing.assert_allclose(seq.positions(), bag.positions(), atol=1e-5)
     res = runner.invoke(app, ["eval", "--checkpoint", str(ckpt), "--sequence", str(paths["mcap"])])
     assert res.exit_code != 0 and "--odometry" in res.output
+
+
+def test_a_damaged_scan_message_is_named_and_the_scans_before_it_still_read(recordings, tmp_path):
+    """A PointCloud2 message whose bytes are damaged: asking for it raises DatasetError
+    naming the message and the cause; the scans before it, read ahead together with it,
+    still read."""
+    import shutil
+    import sqlite3
+
+    paths, clouds, _ = recordings
+    bag = tmp_path / "damaged"
+    shutil.copytree(paths["rosbag2-sqlite"], bag)
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as con:
+        (topic,) = con.execute("SELECT id FROM topics WHERE name = '/points'").fetchone()
+        ids = [r[0] for r in con.execute(
+            "SELECT id FROM messages WHERE topic_id = ? ORDER BY timestamp", (topic,)
+        )]  # fmt: skip
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (b"\x00\x01\x00\x00\x07", ids[2]))
+    reader = open_bag(bag)
+    np.testing.assert_array_equal(reader.points(0).as_xyzi(), clouds[0])  # reads 0–2 ahead
+    np.testing.assert_array_equal(reader.points(1).as_xyzi(), clouds[1])
+    with pytest.raises(DatasetError, match=r"message 2 of /points .*cannot be read"):
+        reader.points(2)
+    np.testing.assert_array_equal(reader.points(3).as_xyzi(), clouds[3])

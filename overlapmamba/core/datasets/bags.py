@@ -129,17 +129,24 @@ class Bag:
         t = int(self.stamps_ns[i])
         j = i - self._nth(i)  # the index of the first message at scan i's time
         found: dict[int, PointCloud] = {}
+        failure: Exception | None = None
         with _reader(self.path) as r:
             cons = [c for c in r.connections if c.topic == self.topic]
-            for con, _, raw in r.messages(connections=cons, start=t):
-                if j >= i:
-                    msg = r.deserialize(raw, con.msgtype)
-                    found[j] = decode_message(msg, source=f"{self.topic} message {j}")
-                j += 1
-                if j >= min(i + PREFETCH, len(self)):
-                    break
+            try:
+                for con, _, raw in r.messages(connections=cons, start=t):
+                    if j >= i:
+                        msg = r.deserialize(raw, con.msgtype)
+                        found[j] = decode_message(msg, source=f"{self.topic} message {j}")
+                    j += 1
+                    if j >= min(i + PREFETCH, len(self)):
+                        break
+            except Exception as err:  # a damaged message, a file cut short: those read serve
+                failure = err
         if i not in found:
-            raise DatasetError(f"{self.path}: message {i} of {self.topic} is gone")
+            why = "is gone" if failure is None else f"cannot be read: {failure}"
+            raise DatasetError(
+                f"{self.path}: message {i} of {self.topic} (t = {t * 1e-9:.3f} s) {why}"
+            ) from failure
         with self._lock:
             self._cache.update(found)
             while len(self._cache) > CACHED:
