@@ -17,7 +17,7 @@ from overlapmamba.service.backends.base import MapBackend
 from overlapmamba.service.backends.factory import open_backend
 from overlapmamba.service.backends.faiss.index import search_reference
 from overlapmamba.service.domain import Filters, NewKeyframe, content_hash
-from overlapmamba.service.errors import BadRequest, Conflict, NotFound
+from overlapmamba.service.errors import BadRequest, Conflict, NotFound, Unavailable
 from overlapmamba.service.settings import Settings
 
 DIM = 32
@@ -431,8 +431,9 @@ def test_a_failed_or_foreign_snapshot_costs_a_rebuild_never_keyframes(tmp_path, 
             raise OSError(28, "No space left on device")
 
         monkeypatch.setattr(snap.os, "fsync", full)
-        with pytest.raises(OSError, match="No space left"):
+        with pytest.raises(Unavailable, match="No space left") as err:  # 503, not 500
             m.snapshot()
+        assert err.value.code == "storage_full"
         monkeypatch.undo()
         assert not list(folder.glob("*.tmp"))
     (folder / "index.snap.tmp").write_bytes(b"half a snapshot")
