@@ -125,7 +125,11 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         try:
-            count = _copy(src, tmp / "store.sqlite")
+            source = Store(src, readonly=True)  # SQLite's backup: the -wal's writes too
+            try:
+                count = source.backup(tmp / "store.sqlite")  # the copy's live keyframes
+            finally:
+                source.close()
             store = Store(tmp / "store.sqlite")
             store.set_meta(map_id=map_id)
             store.close()
@@ -144,15 +148,3 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         (folder / IMPORTED_MARK).unlink()
         shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}
-
-
-def _copy(src: Path, dest: Path) -> int:
-    """SQLite's online backup of ``src`` into ``dest`` (its ``-wal`` included), then the
-    copy's live keyframes."""
-    with (
-        contextlib.closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True)) as source,
-        contextlib.closing(sqlite3.connect(dest)) as target,
-    ):
-        source.backup(target)
-        sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
-        return int(target.execute(sql).fetchone()[0])
