@@ -287,6 +287,38 @@ async def test_keyframe_batches_check_model_and_values(any_backend, encoder):
         assert r.status_code == 422
         r = await c.post("/v1/maps/m/keyframes:batch", json=batch(pose=[0, 0, 0, 0, 0, 0, 0]))
         assert r.status_code == 400 and err(r)["code"] == "bad_pose"
+        one_bad = batch(pose=[0, 0, 0, 0, 0, 0, 1])
+        one_bad["keyframes"][3]["pose"] = [0, 0, 0, 0, 0, 0, 0]  # named by its row
+        r = await c.post("/v1/maps/m/keyframes:batch", json=one_bad)
+        assert r.status_code == 400 and err(r)["message"].startswith("keyframes[3]: "), r.text
+        assert err(r)["detail"]["index"] == 3
+        # k past limits.max_k (100): the same 422 as past the schema's bound, with the range
+        for k in (101, 5000):
+            r = await c.post(
+                "/v1/maps/m/query", params={"k": k}, json={"descriptor": vecs[3].tolist()}
+            )
+            assert r.status_code == 422 and err(r)["code"] == "invalid_request", (k, r.text)
+        assert (
+            "allowed: 1 to 100"
+            in err(
+                await c.post(
+                    "/v1/maps/m/query", params={"k": 101}, json={"descriptor": vecs[3].tolist()}
+                )
+            )["message"]
+        )
+        r = await c.post(
+            "/v1/maps/m/query",
+            params={"time_from": 5, "time_to": 1},
+            json={"descriptor": vecs[3].tolist()},
+        )
+        assert r.status_code == 400 and "time_from=5 is after time_to=1" in err(r)["message"]
+        r = await c.post(
+            "/v1/maps/m/query",
+            params={"max_match_distance": "nan"},
+            json={"descriptor": vecs[3].tolist()},
+        )
+        assert r.status_code == 422 and "max_match_distance" in err(r)["message"], r.text
+        assert "finite" in err(r)["message"], r.text
         r = await c.post("/v1/maps/m/query", params={"k": 1}, json={"descriptor": vecs[3].tolist()})
         assert r.json()["matches"][0]["keyframe_id"] == "b3"
         r = await c.post("/v1/maps/m/query", json={"descriptor": [1.0] * 12})
@@ -350,6 +382,22 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
         o = await observe(40.0, "6,0,0,0,0,0,1")  # a retry whose first answer was lost
         assert not o["inserted"] and o["insert_reason"] == "existing"
         assert o["keyframe_id"] == "r1:s:40.0"  # it is there: not "not_due" and no id
+        # another scan under that robot, session and time is not that keyframe: refused, as
+        # with insert=always, never told it is "existing"
+        for mode in ("auto", "always"):
+            r = await c.post(
+                "/v1/maps/w/observe",
+                params={
+                    "robot_id": "r1",
+                    "session_id": "s",
+                    "timestamp": 40.0,
+                    "pose": "6,0,0,0,0,0,1",
+                    "insert": mode,
+                },
+                content=scan(1).tobytes(),
+                headers=OCTET,
+            )
+            assert r.status_code == 409 and err(r)["code"] == "keyframe_conflict", (mode, r.text)
         o = await observe(41.0, "6,0,0,0,0,0,1", insert="never", robot="r2")
         assert not o["inserted"] and o["insert_reason"] == "never"
         # the map's picture: keyframes from their poses, tracks and closures from the traffic
@@ -363,6 +411,29 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
         assert (await c.get("/v1/maps/w/overview", params={"limit": 0})).status_code == 422
         assert (await c.get("/v1/maps/nope/overview")).status_code == 404
         assert (await c.get("/v1/maps/w")).json()["keyframes"] == 3
+        # the robot's last keyframe deleted: its next observation measures from the one
+        # before (r1:s:2.0, 39 s earlier: due by time), not from the deleted one
+        assert (await c.delete("/v1/maps/w/keyframes/r1:s:40.0")).status_code == 204
+        o = await observe(41.0, "6,0,0,0,0,0,1")
+        assert o["inserted"] and o["insert_reason"] == "time", o
+        # a time in nanoseconds makes an id with "1.7e+18": an id the API itself takes
+        o = await observe(1.7e18, "6,0,0,0,0,0,1", insert="always", robot="r3")
+        assert o["inserted"] and o["keyframe_id"] == "r3:s:1.7e+18", o
+        got = await c.get("/v1/maps/w/keyframes/r3:s:1.7e+18")
+        assert got.status_code == 200 and got.json()["timestamp"] == 1.7e18
+        r = await c.post(
+            "/v1/maps/w/keyframes",
+            params={
+                "keyframe_id": "r3:s:1.7e+18",
+                "timestamp": 1.7e18,
+                "robot_id": "r3",
+                "session_id": "s",
+                "pose": "6,0,0,0,0,0,1",
+            },
+            content=s0,
+            headers=OCTET,
+        )
+        assert r.status_code in (200, 201, 409), r.text  # the id is valid: never a 422
 
 
 async def test_observations_sent_together_insert_one_keyframe(tmp_path, encoder):

@@ -17,6 +17,11 @@ from overlapmamba.service.settings import Settings
 pytestmark = pytest.mark.anyio
 
 
+def _not_json(constant: str) -> None:
+    """An answer is JSON: NaN and Infinity, which Python's json module writes, are not."""
+    raise ValueError(f"the answer holds {constant}, which is not JSON")
+
+
 async def _stream(app, path: str, query: str, frames: list[dict], answers: int) -> list[dict]:
     """Open a WebSocket on the ASGI app, send ``frames`` (ASGI receive messages) and gather
     the server's first ``answers`` text frames, decoded."""
@@ -28,10 +33,11 @@ async def _stream(app, path: str, query: str, frames: list[dict], answers: int) 
 
     async def send(message: dict) -> None:
         if message["type"] == "websocket.send":
-            got.append(json.loads(message["text"]))
+            got.append(json.loads(message["text"], parse_constant=_not_json))
             if len(got) >= answers:
                 enough.set()
         elif message["type"] == "websocket.close":
+            got.append({"closed": message.get("code"), "reason": message.get("reason")})
             enough.set()
 
     task = asyncio.create_task(app(ws_scope(path, query), inbox.get, send))
@@ -118,3 +124,37 @@ async def test_an_invalid_metadata_frame_is_answered_once_under_its_seq(tmp_path
     assert garbled["seq"] is None and garbled["ok"] is False
     assert "not valid" in garbled["error"]["message"]
     assert good["seq"] == 8 and good["ok"] is True, good
+
+
+async def test_a_seq_that_json_cannot_echo_is_refused_and_answers_stay_json(tmp_path, encoder):
+    """``1e999`` is valid JSON that parses as infinity, and Python also reads NaN: echoed, the
+    answer would hold Infinity or NaN, which no strict JSON parser takes. The frame is refused
+    (its seq answered as null), its scan dropped, and the stream goes on."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        body = scan(0).tobytes()
+        frames = [
+            {"type": "websocket.receive", "text": '{"seq": 1e999, "timestamp": 1}'},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": '{"seq": [1, NaN], "timestamp": 2}'},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": '{"seq": {"n": 3.5}, "timestamp": 3}'},
+            {"type": "websocket.receive", "bytes": body},
+        ]
+        app = c.app  # type: ignore[attr-defined]
+        inf, nan, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 3)
+    for bad in (inf, nan):
+        assert bad["seq"] is None and bad["ok"] is False and bad["status"] == 400, bad
+        assert "seq" in bad["error"]["message"] and "finite" in bad["error"]["message"], bad
+    assert good["seq"] == {"n": 3.5} and good["ok"] is True, good
+
+
+async def test_a_k_past_the_servers_limit_closes_the_handshake(tmp_path, encoder):
+    """``k`` within the schema's bound (1000) but past ``limits.max_k`` (100): the handshake
+    is closed naming it, not accepted and then every observation refused."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+        (closed,) = await _stream(app, "/v1/maps/m/stream", "robot_id=r1&k=500", [], 1)
+    assert closed["closed"] == 1008, closed
+    assert "k=500" in closed["reason"] and "1 to 100" in closed["reason"], closed

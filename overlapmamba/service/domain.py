@@ -106,6 +106,13 @@ class Filters:
                 "exclude_recent_s needs the query's session_id and timestamp",
                 code="missing_parameter",
             )
+        start, end = self.time_from, self.time_to
+        if start is not None and end is not None and start > end:
+            raise BadRequest(
+                f"time_from={start:g} is after time_to={end:g}: the window holds no time; "
+                "allowed: time_from ≤ time_to",
+                code="bad_request",
+            )
 
     @property
     def restricts_rows(self) -> bool:
@@ -233,7 +240,8 @@ def check_descriptor(values: Sequence[float] | np.ndarray, dim: int) -> np.ndarr
     norm = float(np.linalg.norm(d))
     if not 1e-6 < norm < 1e6:
         raise Unprocessable(
-            f"descriptor has norm {norm:.3g}; allowed: a unit vector (norm near 1)",
+            f"descriptor has norm {norm:.3g}; allowed: a non-zero vector (norm within "
+            "1e-6 to 1e6), which is taken to unit length",
             code="bad_descriptor",
         )
     return (d / norm).astype(np.float32)
@@ -250,6 +258,18 @@ class DescriptorKeyframe(Protocol):
     descriptor: list[float]
     yaw_features: list[list[float]] | None
     sensor: str | None
+
+
+def _batch_pose(pose: list[float] | None, i: int) -> list[float] | None:
+    """A batch row's pose, checked; a bad one is named by its row (``keyframes[i]``)."""
+    if not pose:
+        return None
+    try:
+        return check_pose(pose)
+    except BadRequest as err:
+        err.message = f"keyframes[{i}]: {err.message}"
+        err.detail = {**err.detail, "index": i}
+        raise
 
 
 def descriptor_keyframe(
@@ -292,7 +312,7 @@ def descriptor_keyframe(
         robot_id=k.robot_id,
         session_id=k.session_id,
         timestamp=k.timestamp,
-        pose=check_pose(k.pose) if k.pose else None,
+        pose=_batch_pose(k.pose, i),
         descriptor=desc,
         yaw=yaw,
         content_hash=content_hash("descriptor", payload, meta),

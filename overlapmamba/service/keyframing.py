@@ -59,7 +59,8 @@ class KeyframeSchedule:
             self._last.popitem(last=False)
 
     def forget(self, map_id: str) -> None:
-        """The map was deleted."""
+        """The map was deleted, or a keyframe of it (perhaps a robot's last): its robots' last
+        keyframes are read back from the store at their next observations."""
         for key in [k for k in self._last if k[0] == map_id]:
             del self._last[key]
 

@@ -41,7 +41,7 @@ from overlapmamba.service.domain import (
     descriptor_keyframe,
 )
 from overlapmamba.service.encoder import Encoder
-from overlapmamba.service.errors import BadRequest, Conflict
+from overlapmamba.service.errors import Conflict, Unprocessable
 from overlapmamba.service.keyframing import KeyframeSchedule
 from overlapmamba.service.overview import Overview
 from overlapmamba.service.pipeline import Description, ScanPipeline
@@ -99,6 +99,15 @@ class PlaceService:
         self.stats.forget_map(map_id)
         self.overview.forget(map_id)
         self.keyframing.forget(map_id)
+
+    async def delete_keyframe(self, m: PlaceMap, keyframe_id: str) -> None:
+        """One keyframe out of an opened map (404 when it has none of that id). The map's
+        insert schedule is read back from the store afterwards: the deleted keyframe may have
+        been a robot's last, which ``insert=auto`` measures its next keyframe from."""
+        await in_thread(m.delete, keyframe_id)
+        self.keyframing.forget(m.map_id)
+        self.stats.p_keyframes.labels(m.map_id).set(await in_thread(lambda: m.count))
+        m.maintain()
 
     def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
         timings["total"] = (time.perf_counter() - t0) * 1e3
@@ -249,7 +258,7 @@ class PlaceService:
         normalised here; a descriptor has no yaw features, so its matches have no yaw, and
         no points, so they are not verified)."""
         t0 = time.perf_counter()
-        self._check_k(k)
+        self.check_k(k)
         prepared = None
         if isinstance(probe, ScanBody):
             d = await self.pipeline.describe(
@@ -272,9 +281,18 @@ class PlaceService:
         wanted = (verify and v.candidates > 0) or (m is not None and m.keep_geometry)
         return params_of(v) if wanted else None
 
-    def _check_k(self, k: int) -> None:
-        if not 1 <= k <= self.settings.limits.max_k:
-            raise BadRequest(f"k={k} is out of range; allowed: 1 to {self.settings.limits.max_k}")
+    def check_k(self, k: int) -> None:
+        """``k`` within ``limits.max_k``: refused as every other out-of-range parameter is
+        (422 ``invalid_request``, naming the parameter and its range)."""
+        top = self.settings.limits.max_k
+        if not 1 <= k <= top:
+            raise Unprocessable(
+                f"invalid request: query.k: k={k} is out of range; allowed: 1 to {top} "
+                "(limits.max_k)",
+                code="invalid_request",
+                parameter="k",
+                allowed=[1, top],
+            )
 
     async def _search(
         self,
@@ -392,7 +410,7 @@ class PlaceService:
         """Query an opened map excluding this session's recent keyframes, then insert the
         scan as keyframe ``robot:session:timestamp`` when due."""
         t0 = time.perf_counter()
-        self._check_k(obs.k)
+        self.check_k(obs.k)
         verify = obs.verify and self.settings.verify.candidates > 0
         sensor = self._sensor(scan, m)
         d = await self.pipeline.describe(scan, self._registration(verify, m), self._input(scan, m))
@@ -418,6 +436,11 @@ class PlaceService:
         auto = obs.insert == "auto"
         async with self.keyframing.deciding(m.map_id, obs.robot_id) if auto else nullcontext():
             reason = await self.keyframing.due(m, obs)
+            if reason is None and auto and await self.keyframing.retried(m, obs):
+                # not due only because its own id is the robot's last keyframe: a retry whose
+                # answer was lost. Inserted again, idempotently: the same scan is "existing",
+                # another scan under that id a 409, as with insert=always
+                reason = "existing"
             if reason is not None:
                 keyframe_id = obs.keyframe_id
                 row = await self._row(m, d, keyframe_id, obs, sensor)
@@ -425,10 +448,6 @@ class PlaceService:
                 inserted = result.created
                 if not inserted:
                     reason = "existing"
-            elif auto and await self.keyframing.retried(m, obs):
-                # a retry of an observation that was inserted but whose answer was lost: not
-                # due now only because its own keyframe is the robot's last; say it is there
-                keyframe_id, reason = obs.keyframe_id, "existing"
         self._done(answer.timings, t0)
         return Observed(
             answer.matches,

@@ -15,7 +15,8 @@ from overlapmamba.service.settings import IndexKind
 # No ":" in names: observe keyframes are named robot:session:timestamp, which stays unique
 # and within the 256 characters of a keyframe id.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}$"
-KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,255}$"
+# "+": observe's ids robot:session:timestamp write a large timestamp as 1.7e+18
+KEYFRAME_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:@+-]{0,255}$"
 SENSOR_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"  # overlapmamba.core.sensors.catalogue.NAME_PATTERN
 
 

@@ -146,8 +146,5 @@ async def get_keyframe(
 async def delete_keyframe(
     map_id: str, keyframe_id: str, svc: ServiceDep, _: CanWriteMaps
 ) -> Response:
-    m = await svc.map(map_id)
-    await in_thread(m.delete, keyframe_id)
-    svc.stats.p_keyframes.labels(map_id).set(await in_thread(lambda: m.count))
-    m.maintain()
+    await svc.delete_keyframe(await svc.map(map_id), keyframe_id)
     return Response(status_code=204)

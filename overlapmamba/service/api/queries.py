@@ -29,11 +29,12 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.renamed import REMOVED_IN
@@ -61,6 +62,11 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
 log = logging.getLogger("overlapmamba.service")
 ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503, 504)
 InsertMode = Literal["auto", "always", "never"]
+# 1000 bounds every server; the server's own limit (limits.max_k, 100 by default) is checked
+# before the scan is read, and on a stream before it is accepted
+KQuery = Annotated[
+    int, Query(ge=1, le=1000, description="matches to return, at most limits.max_k (100)")
+]
 VERIFY_HELP = (
     "register the first verify.candidates candidates against their keyframes' geometry (a "
     "relative pose and a verified loop closure); false: the descriptor alone, faster"
@@ -95,7 +101,7 @@ async def query(
     request: Request,
     svc: ServiceDep,
     who: CanEncode,
-    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    k: KQuery = 10,
     exclude_session: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
     exclude_robot: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None,
     exclude_recent_s: Annotated[
@@ -110,11 +116,22 @@ async def query(
     ] = None,
     max_match_distance: Annotated[
         float | None,
-        Query(ge=0, le=2, description="leave out matches farther than this (descriptor L2)"),
+        Query(
+            ge=0,
+            le=2,
+            allow_inf_nan=False,
+            description="leave out matches farther than this (descriptor L2)",
+        ),
     ] = None,
     max_distance: Annotated[
         float | None,
-        Query(ge=0, le=2, deprecated=True, description="the old name of max_match_distance"),
+        Query(
+            ge=0,
+            le=2,
+            allow_inf_nan=False,
+            deprecated=True,
+            description="the old name of max_match_distance",
+        ),
     ] = None,
     time_from: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     time_to: Annotated[float | None, Query(allow_inf_nan=False)] = None,
@@ -132,6 +149,7 @@ async def query(
     the margin to the runner-up is large enough). k results come back whenever k eligible
     keyframes exist."""
     svc.sensors.check(sensor)
+    svc.check_k(k)
     if max_distance is not None:
         max_match_distance = renamed_query_distance(max_match_distance, max_distance)
     m = await svc.open_map(map_id)
@@ -179,7 +197,7 @@ async def observe(
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
     pose: Annotated[str | None, Query(description=POSE_FORMAT)] = None,
     insert: InsertMode = "auto",
-    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    k: KQuery = 10,
     verify: Annotated[bool, Query(description=VERIFY_HELP)] = True,
     sensor: SensorQuery = None,
     mount: MountQuery = None,
@@ -192,6 +210,7 @@ async def observe(
     if insert != "never":
         request.app.state.auth.authorize(who, Action.INSERT, map_id)
     svc.sensors.check(sensor)
+    svc.check_k(k)
     m = await svc.open_map(map_id)
     obs = Observation(robot_id, session_id, timestamp, parse_pose(pose), insert, k, verify)
     scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
@@ -247,6 +266,18 @@ def observe_out(o: Observed) -> ObserveOut:
     )
 
 
+def _finite(value: Any) -> bool:
+    """Whether a JSON value holds no NaN or infinite number (``1e999`` parses as one), so
+    that it can be echoed in an answer that stays JSON."""
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, list):
+        return all(_finite(v) for v in value)
+    if isinstance(value, dict):
+        return all(_finite(v) for v in value.values())
+    return True
+
+
 class StreamMeta(BaseModel):
     model_config = ConfigDict(extra="forbid")
     seq: Any = None
@@ -259,6 +290,16 @@ class StreamMeta(BaseModel):
     encoding: str = "identity"
     sensor: str | None = Field(None, pattern=SENSOR_PATTERN)
     mount: str | None = Field(None, max_length=64)
+
+    @field_validator("seq")
+    @classmethod
+    def _echoable(cls, value: Any) -> Any:
+        if not _finite(value):
+            raise ValueError(
+                "seq holds a NaN or infinite number, which its answer could not echo as "
+                "JSON; allowed: any JSON value with finite numbers"
+            )
+        return value
 
 
 @dataclass(frozen=True)
@@ -276,7 +317,8 @@ def _seq_of(text: str) -> Any:
         frame = json.loads(text)
     except ValueError:
         return None
-    return frame.get("seq") if isinstance(frame, dict) else None
+    seq = frame.get("seq") if isinstance(frame, dict) else None
+    return seq if _finite(seq) else None
 
 
 def _invalid(err: ValidationError) -> str:
@@ -292,7 +334,7 @@ async def stream(
     map_id: str,
     robot_id: Annotated[str, Query(pattern=NAME_PATTERN)],
     session_id: Annotated[str, Query(pattern=NAME_PATTERN)] = "default",
-    k: Annotated[int, Query(ge=1, le=1000)] = 10,
+    k: KQuery = 10,
     sensor: SensorQuery = None,
     mount: MountQuery = None,
 ) -> None:
@@ -305,6 +347,7 @@ async def stream(
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
         svc.sensors.check(sensor)
+        svc.check_k(k)
         stream_mount = parse_mount(mount)
         m = await svc.open_map(map_id)
     except ServiceError as err:
