@@ -15,7 +15,13 @@ from hypothesis.extra.numpy import arrays
 from pypcd4 import Encoding
 from pypcd4 import PointCloud as PcdCloud
 
-from overlapmamba.core.errors import DecodeError, NonFiniteError, PointCloudError, PointCountError
+from overlapmamba.core.errors import (
+    DataTooLargeError,
+    DecodeError,
+    NonFiniteError,
+    PointCloudError,
+    PointCountError,
+)
 from overlapmamba.core.io import (
     decode,
     decode_npy,
@@ -349,3 +355,27 @@ def test_pcd_edge_cases_raise_typed_errors_without_warnings():
     big = _pcd(points=1).replace(b"SIZE 4 4 4", b"SIZE 8 8 8")
     with pytest.raises(NonFiniteError):
         decode_pcd(big + np.array([1e300, 0, 0], "<f8").tobytes())
+
+
+def test_pcd_headers_that_would_cost_gigabytes_or_seconds_are_refused_first():
+    """A few hundred bytes of header must not buy seconds of CPU or gigabytes of memory
+    (found in review, 2026-12-04): each is refused before pypcd4 builds anything."""
+    pad = _pcd(100, fields="x y z pad").replace(b"COUNT 1 1 1 1", b"COUNT 1 1 1 5000000")
+    with pytest.raises(DecodeError, match="5000003 values .* allowed: at most 256 values"):
+        decode_pcd(pad + b"\0" * 64)  # pypcd4 makes one numpy field per element
+    with pytest.raises(DecodeError, match="header runs past 65536 bytes"):
+        decode_pcd(b"\n" * (1 << 20) + _pcd() + b"\0" * 36)  # blank lines, read one by one
+    rows = b"0 0 0\n" * 100_000
+    with pytest.raises(DecodeError, match="declares 100 points but its data holds 100000 lines"):
+        decode_pcd(_pcd(100, data="ascii") + rows)
+    assert len(decode_pcd(_pcd(3, data="ascii") + b"1 2 3\n" * 3 + b"\n\n")) == 3
+    # binary_compressed: its uncompressed size consistent with the header, but past the
+    # bytes a decoder may build (the service's limits.max_decoded_bytes): 413, never inflated
+    big = _pcd(1_000_000, data="binary_compressed", fields="x y z pad")
+    big = big.replace(b"SIZE 4 4 4 4", b"SIZE 4 4 4 8").replace(
+        b"COUNT 1 1 1 1", b"COUNT 1 1 1 100"
+    )
+    record = 12 + 800
+    payload = struct.pack("<II", 10, 1_000_000 * record) + b"\0" * 10
+    with pytest.raises(DataTooLargeError, match="812000000 bytes once inflated"):
+        decode_pcd(big + payload, limits=PointLimits(max_bytes=128 << 20))

@@ -48,6 +48,19 @@ def test_nan_returns_of_a_cloud_that_is_not_dense_are_dropped(points):
     assert len(cloud.xyz) == len(pts) - len(pts[::10])
     with pytest.raises(NonFiniteError):  # a dense cloud may not hold them
         decode(message(pts, XYZI, 16, dense=True), "pointcloud2")
+    wide = points[:300].astype(np.float64)
+    wide[5, 0] = np.inf  # a missing return written as infinity: dropped too
+    cloud = decode(
+        message(wide, [("x", 0, F64), ("y", 8, F64), ("z", 16, F64)], 24, dense=False),
+        "pointcloud2",
+    )
+    assert len(cloud.xyz) == 299
+    wide[6, 1] = 1e300  # finite, but no float32: not a missing return, a fault (422)
+    with pytest.raises(NonFiniteError, match="within float32 range"):
+        decode(
+            message(wide, [("x", 0, F64), ("y", 8, F64), ("z", 16, F64)], 24, dense=False),
+            "pointcloud2",
+        )
 
 
 def _malformed(good: bytes) -> dict[str, tuple[bytes, str]]:
@@ -56,6 +69,18 @@ def _malformed(good: bytes) -> dict[str, tuple[bytes, str]]:
         np.zeros((300, 4), np.float32), [("x", 0, U16), ("y", 4, F32), ("z", 8, F32)], 12
     )
     beyond = message(np.zeros((300, 4), np.float32), XYZ, 12, declared=[*XYZ[:2], ("z", 10, F32)])
+    twice = message(np.zeros((300, 4), np.float32), XYZI, 16, declared=[*XYZI, ("x", 12, F32)])
+    stacked = message(
+        np.zeros((300, 4), np.float32),
+        XYZ,
+        12,
+        declared=[("x", 0, F32), ("y", 0, F32), ("z", 0, F32)],
+    )
+    # padding may repeat (PCL names every pad "_"): not refused
+    padded = message(
+        np.ones((300, 4), np.float32), XYZ, 16, declared=[*XYZ, ("_", 12, U8), ("_", 13, U8)]
+    )
+    assert len(decode(padded, "pointcloud2").xyz) == 300
     return {
         "empty": (b"", "encapsulation header"),
         "JSON": (b'{"points": []}', "encapsulation header"),
@@ -67,6 +92,8 @@ def _malformed(good: bytes) -> dict[str, tuple[bytes, str]]:
         "data shorter than declared": (patch_u32(good, "height", +1), "height × row_step"),
         "huge field count": (patch_u32(good, "fields", 10**6), "allowed: at most 64"),
         "huge frame_id": (patch_u32(good, "frame_id", 2**31), "allowed: at most 256"),
+        "x twice": (twice, "field x is declared twice"),
+        "x, y, z in one place": (stacked, "fields x (offset 0, 4 bytes) and y (offset 0"),
     }
 
 

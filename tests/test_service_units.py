@@ -8,6 +8,7 @@ import contextlib
 import gzip
 import hashlib
 import os
+import struct
 import time
 from collections import Counter
 from pathlib import Path
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 import zstandard
 
+from overlapmamba.core.errors import DataTooLargeError
 from overlapmamba.service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
 from overlapmamba.service.backends.faiss.backend import FaissBackend
 from overlapmamba.service.backends.faiss.index import VectorIndex, search_reference
@@ -32,8 +34,9 @@ from overlapmamba.service.errors import (
     PayloadTooLarge,
     Unauthorized,
     UnsupportedMediaType,
+    lidar_status,
 )
-from overlapmamba.service.scans import decompress, scan_format
+from overlapmamba.service.scans import ScanBody, decode_scan, decompress, scan_format
 from overlapmamba.service.settings import AuthSettings, IndexSettings, Settings, load_settings
 
 D = 32
@@ -741,3 +744,19 @@ def test_batcher_refuses_beyond_its_queue_and_reports_errors():
     overloaded = [r for r in res if isinstance(r, Overloaded)]
     assert overloaded and overloaded[0].headers["Retry-After"]
     assert any(isinstance(r, tuple) for r in res)
+
+
+def test_a_compressed_pcd_that_inflates_past_the_decoded_limit_is_a_413():
+    """The service's limits.max_decoded_bytes bounds what a PCD's own compression may build,
+    as it bounds Content-Encoding: refused from the header, before pypcd4 inflates anything."""
+    n, record = 200_000, 12 + 8 * 100
+    header = (
+        "VERSION 0.7\nFIELDS x y z pad\nSIZE 4 4 4 8\nTYPE F F F F\nCOUNT 1 1 1 100\n"
+        f"WIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA binary_compressed\n"
+    ).encode()
+    body = header + struct.pack("<II", 10, n * record) + b"\0" * 10
+    limits = Settings().limits.model_copy(update={"max_decoded_bytes": 64 << 20})
+    with pytest.raises(DataTooLargeError) as err:
+        decode_scan(ScanBody(body, "application/x-pcd"), limits)
+    assert lidar_status(err.value) == 413
+    assert "allowed: at most 67108864 bytes" in str(err.value)

@@ -3,6 +3,7 @@
     LidarCoreError
      ├── PointCloudError        a scan that cannot be used            (ValueError)
      │    ├── DecodeError        bytes/files that do not decode to points
+     │    │    └── DataTooLargeError  whose header declares more data than allowed
      │    ├── NonFiniteError     NaN or ±Inf in coordinates or intensity
      │    └── PointCountError    too few or too many points
      ├── ProfileError           an unknown or invalid sensor profile   (ValueError)
@@ -35,6 +36,13 @@ class PointCloudError(LidarCoreError, ValueError):
 
 class DecodeError(PointCloudError):
     code = "undecodable_point_cloud"
+
+
+class DataTooLargeError(DecodeError):
+    """A header (a compressed PCD's uncompressed size) that declares more bytes than a
+    decoder may build: refused before any of it is allocated."""
+
+    code = "decoded_too_large"
 
 
 class NonFiniteError(PointCloudError):

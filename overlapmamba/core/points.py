@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from overlapmamba.core.errors import NonFiniteError, PointCloudError, PointCountError
 
 DEFAULT_MAX_POINTS = 2_000_000
+DEFAULT_MAX_BYTES = 256 << 20
 
 
 class PointLimits(BaseModel):
@@ -24,6 +25,8 @@ class PointLimits(BaseModel):
 
     min_points: int = Field(default=1, ge=1)
     max_points: int = Field(default=DEFAULT_MAX_POINTS, ge=1)
+    # the most bytes a decoder may build from a body (a compressed PCD's data, inflated)
+    max_bytes: int = Field(default=DEFAULT_MAX_BYTES, ge=1)
 
     @model_validator(mode="after")
     def _ordered(self) -> PointLimits:

@@ -118,4 +118,6 @@ def lidar_status(err: LidarCoreError) -> int:
         "max_points", float("inf")
     ):
         return 413
+    if err.code == "decoded_too_large":
+        return 413
     return 422 if err.code in ("non_finite_points", "point_count_out_of_range") else 400

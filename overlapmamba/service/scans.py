@@ -135,5 +135,9 @@ def decode_scan(scan: ScanBody, limits: LimitSettings) -> PointCloud:
             allowed=list(FIELD_LAYOUTS),
         )
     body = decompress(scan.data, scan.encoding, limits.max_decoded_bytes)
-    point_limits = PointLimits(min_points=limits.min_points, max_points=limits.max_points)
+    point_limits = PointLimits(
+        min_points=limits.min_points,
+        max_points=limits.max_points,
+        max_bytes=limits.max_decoded_bytes,
+    )
     return decode(body, fmt, fields=layout, limits=point_limits, source=scan.source)

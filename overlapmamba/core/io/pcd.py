@@ -15,7 +15,7 @@ import numpy as np
 from pypcd4 import PointCloud as PcdCloud
 from pypcd4.pypcd4 import MetaData
 
-from overlapmamba.core.errors import DecodeError
+from overlapmamba.core.errors import DataTooLargeError, DecodeError
 from overlapmamba.core.points import DEFAULT_LIMITS, PointCloud, PointLimits, validate
 
 INTENSITY_FIELDS = ("intensity", "i")
@@ -23,6 +23,13 @@ DATA_ENCODINGS = ("ascii", "binary", "binary_compressed")
 # The PCD v0.7 header has at most 10 entries (VERSION … DATA); pypcd4 stops reading at 10.
 _MAX_HEADER_ENTRIES = 10
 _MAX_HEADER_BYTES = 4096
+# the whole header, blank and comment lines included (read line by line in Python)
+_MAX_HEADER_TOTAL = 64 << 10
+# a point's fields: pypcd4 makes one numpy field per element of a COUNT, in a Python loop
+_MAX_ELEMENTS = 256
+_MAX_RECORD_BYTES = 4096
+# ascii rows past POINTS that may still be blank (a trailing newline or two)
+_ASCII_SPARE_LINES = 16
 
 
 def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, list[str], int]:
@@ -37,6 +44,11 @@ def _read_header(buf: io.BytesIO, source: str) -> tuple[MetaData, list[str], int
             raise DecodeError(f"{source}: PCD header ends without a DATA line")
         if len(raw) > _MAX_HEADER_BYTES:
             raise DecodeError(f"{source}: PCD header line longer than {_MAX_HEADER_BYTES} bytes")
+        if buf.tell() > _MAX_HEADER_TOTAL:
+            raise DecodeError(
+                f"{source}: PCD header runs past {_MAX_HEADER_TOTAL} bytes (blank and comment "
+                "lines included) without a DATA line"
+            )
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError as err:
@@ -105,6 +117,14 @@ def decode_pcd(
         if (typ == "F" and size not in (4, 8)) or (typ in "UI" and size not in (1, 2, 4, 8)):
             raise DecodeError(f"{source}: PCD field {name} has unsupported SIZE {size}")
     limits.check_count(meta.points, source=source)
+    elements = sum(meta.count)
+    declared = sum(size * count for size, count in zip(meta.size, meta.count, strict=True))
+    if elements > _MAX_ELEMENTS or declared > _MAX_RECORD_BYTES:
+        raise DecodeError(
+            f"{source}: PCD point has {elements} values in {declared} bytes (COUNT "
+            f"{' '.join(map(str, meta.count))}); allowed: at most {_MAX_ELEMENTS} values and "
+            f"{_MAX_RECORD_BYTES} bytes a point"
+        )
     try:
         record = meta.build_dtype().itemsize
     except Exception as err:
@@ -116,6 +136,20 @@ def decode_pcd(
             f"{source}: PCD declares {meta.points} points ({meta.points * record} bytes) "
             f"but holds {body} bytes of data"
         )
+    if encoding == "binary_compressed" and meta.points * record > limits.max_bytes:
+        raise DataTooLargeError(
+            f"{source}: binary_compressed PCD declares {meta.points} points of {record} bytes "
+            f"({meta.points * record} bytes once inflated); allowed: at most "
+            f"{limits.max_bytes} bytes",
+            max_bytes=limits.max_bytes,
+        )
+    if encoding == "ascii":  # every row is parsed: count them first (in C), not after
+        rows = bytes(memoryview(data)[offset:]).count(b"\n")
+        if rows > meta.points + _ASCII_SPARE_LINES:
+            raise DecodeError(
+                f"{source}: ascii PCD declares {meta.points} points but its data holds {rows} "
+                "lines"
+            )
     if encoding == "binary_compressed":
         if body < 8:
             raise DecodeError(f"{source}: binary_compressed PCD lacks its size header")

@@ -15,8 +15,10 @@ Every layout robots send decodes: x/y/z as float32 or float64, intensity (``inte
 kept beside the points so a named sensor can be checked against it), padding between fields
 and at the end of a point or a row, organised or not, either byte order. Sizes are checked
 against the bytes present before anything is allocated. A cloud that is not dense
-(``is_dense`` false) may hold NaN points for missing returns: those are dropped; NaN in a
-cloud that says it is dense is an error.
+(``is_dense`` false) may hold NaN (or infinite) points for missing returns: those are
+dropped; a float64 coordinate past float32's range, or NaN in a cloud that says it is dense,
+is an error. The fields the points are read from may each be declared once, in bytes of
+their own.
 Parsed here, without ROS: the message's layout is fixed (CDR, XCDR1 as ROS 2's default
 middleware writes it), and a hand parser can name what is wrong with a malformed one.
 """
@@ -120,7 +122,7 @@ def decode_pointcloud2(
         offset = r.u32(f"fields[{k}].offset")
         datatype = r.u8(f"fields[{k}].datatype")
         count = r.u32(f"fields[{k}].count")
-        fields.setdefault(name, (offset, datatype, count))
+        _add_field(fields, name, (offset, datatype, count), source)
     big = r.u8("is_bigendian")
     point_step, row_step = r.u32("point_step"), r.u32("row_step")
     payload = r.octets("data")
@@ -142,7 +144,7 @@ def decode_message(
     bag reader returns it (ROS 1 or ROS 2) — checked and decoded as above."""
     fields: dict[str, tuple[int, int, int]] = {}
     for f in list(msg.fields)[:MAX_FIELDS]:
-        fields.setdefault(str(f.name), (int(f.offset), int(f.datatype), int(f.count)))
+        _add_field(fields, str(f.name), (int(f.offset), int(f.datatype), int(f.count)), source)
     return _points(
         np.ascontiguousarray(msg.data, dtype=np.uint8).data,  # a view: no copy
         fields,
@@ -155,6 +157,24 @@ def decode_message(
         limits,
         source,
     )
+
+
+_READ = ("x", "y", "z", *INTENSITY_FIELDS, "ring")
+
+
+def _add_field(
+    fields: dict[str, tuple[int, int, int]], name: str, field: tuple[int, int, int], source: str
+) -> None:
+    """A field of the message; one that the points are read from may be declared once (a
+    second ``x`` would leave which one is meant to chance). Others (padding) may repeat."""
+    if name in fields:
+        if name in _READ:
+            raise DecodeError(
+                f"{source}: PointCloud2 field {name} is declared twice; allowed: once",
+                field=name,
+            )
+        return
+    fields[name] = field
 
 
 def _points(
@@ -177,7 +197,7 @@ def _points(
             field="fields",
         )
     order = ">" if big else "<"
-    names, formats, offsets = [], [], []
+    names, formats, offsets, sizes = [], [], [], []
     intensity = next((f for f in INTENSITY_FIELDS if f in fields), None)
     ring = "ring" if "ring" in fields else None
     for name in ("x", "y", "z", *([intensity] if intensity else []), *([ring] if ring else [])):
@@ -210,9 +230,18 @@ def _points(
                 f"fit in point_step {point_step}",
                 field=name,
             )
+        for other, start, other_size in zip(names, offsets, sizes, strict=True):
+            if offset < start + other_size and start < offset + size:
+                raise DecodeError(
+                    f"{source}: PointCloud2 fields {other} (offset {start}, {other_size} bytes) "
+                    f"and {name} (offset {offset}, {size} bytes) overlap; allowed: each its "
+                    "own bytes",
+                    field=name,
+                )
         names.append(name)
         formats.append(order + kind)
         offsets.append(offset)
+        sizes.append(size)
     limits.check_count(height * width, source=source)
     if row_step < width * point_step:
         raise DecodeError(
@@ -232,11 +261,13 @@ def _points(
     rows = np.frombuffer(payload, np.uint8).reshape(height, row_step)[:, : width * point_step]
     arr = np.ascontiguousarray(rows).view(dtype).reshape(-1)
     with np.errstate(over="ignore", invalid="ignore"):
-        xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
+        wide = np.stack([arr["x"], arr["y"], arr["z"]], axis=1)
+        xyz = wide.astype(np.float32)
         value = None if intensity is None else arr[intensity].astype(np.float32)
     rings = None if ring is None else arr[ring].astype(np.int64)
-    if not dense:  # missing returns of an organised cloud: NaN by the message's convention
-        keep = np.isfinite(xyz).all(axis=1)
+    if not dense:  # missing returns, NaN (or ±inf) as the driver wrote them; a float64 value
+        # past float32's range is not a missing return: it stays, and validate() refuses it
+        keep = np.isfinite(wide).all(axis=1)
         if not keep.all():
             xyz = xyz[keep]
             value = None if value is None else value[keep]
