@@ -197,7 +197,10 @@ def _points(
             field="fields",
         )
     order = ">" if big else "<"
-    names, formats, offsets, sizes = [], [], [], []
+    names: list[str] = []
+    formats: list[str] = []
+    offsets: list[int] = []
+    sizes: list[int] = []
     intensity = next((f for f in INTENSITY_FIELDS if f in fields), None)
     ring = "ring" if "ring" in fields else None
     for name in ("x", "y", "z", *([intensity] if intensity else []), *([ring] if ring else [])):
