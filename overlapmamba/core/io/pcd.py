@@ -147,8 +147,7 @@ def decode_pcd(
         rows = bytes(memoryview(data)[offset:]).count(b"\n")
         if rows > meta.points + _ASCII_SPARE_LINES:
             raise DecodeError(
-                f"{source}: ascii PCD declares {meta.points} points but its data holds {rows} "
-                "lines"
+                f"{source}: ascii PCD declares {meta.points} points but its data holds {rows} lines"
             )
     if encoding == "binary_compressed":
         if body < 8:
