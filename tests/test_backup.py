@@ -148,3 +148,22 @@ def test_a_full_disk_at_create_or_snapshot_is_named_and_leaves_no_debris(tmp_pat
         assert m.count == 3
         assert len(m.search(row(0, np.random.default_rng(0)).descriptor, 1, Filters())) == 1
         monkeypatch.undo()
+
+
+def test_paths_with_uri_characters_are_files_not_uri_parts(tmp_path):
+    """A ``#`` or ``?`` in a folder or a backup's name: SQLite must open that file, not read
+    the rest as a URI fragment (and create a stray file at the cut). And a backup's folder
+    that cannot be made is a BackupError, one line in the CLI, not a traceback."""
+    root = tmp_path / "om#1?x"
+    with opened("faiss", root) as b:
+        b.create("town", "flat")[0].insert([row(i, np.random.default_rng(i)) for i in range(4)])
+    with opened("faiss", root) as b:  # its stores reopened read-write and read
+        assert b.get("town").count == 4
+    out = tmp_path / "bk" / "town#1.sqlite"
+    assert backup.export_map(root / "data", "town", out)["keyframes"] == 4
+    assert backup.import_map(tmp_path / "d2", "copy", out)["keyframes"] == 4
+    names = {p.name for p in out.parent.iterdir()}
+    assert "town" not in names and all(n.startswith("town#1.sqlite") for n in names), names
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(backup.BackupError, match="cannot write"):
+        backup.export_map(root / "data", "town", tmp_path / "a-file" / "town.sqlite")

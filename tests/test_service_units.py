@@ -560,6 +560,14 @@ def test_roles_and_keys():
     with pytest.raises(Forbidden, match="may insert into maps"):
         auth.authorize(auth.identify("key-robot"), Action.INSERT, "b")
     assert Authenticator(AuthSettings()).identify(None).role == "admin"
+    # one key under two names (and roles): which it gets would be the list's order
+    twice = [*keys, {"name": "night", "role": "viewer", "sha256": hash_key("key-admin")}]
+    with pytest.raises(ValueError, match="'admin' and 'night' have the same sha256"):
+        AuthSettings.model_validate({"keys": twice})
+    # maps on a mapper limits nothing: refused rather than trusted
+    mapper = {"name": "m", "role": "mapper", "sha256": hash_key("m"), "maps": ["town"]}
+    with pytest.raises(ValueError, match="maps applies to robot keys only"):
+        AuthSettings.model_validate({"keys": [mapper]})
 
 
 def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
@@ -602,6 +610,23 @@ def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
     Settings(host="::1").check_binding()
     with pytest.raises(ValueError):
         Settings(batching={"max_batch": 0})
+    # inf is a TOML literal: as a bound it would reach /readyz's JSON, as a timeout an int()
+    inf = tmp_path / "inf.toml"
+    inf.write_text("[verify]\nmax_rmse_m = inf\n")
+    with pytest.raises(ValueError, match="verify.max_rmse_m"):
+        load_settings(inf)
+    monkeypatch.setenv("OVERLAPMAMBA_LIMITS__REQUEST_TIMEOUT_S", "inf")
+    with pytest.raises(ValueError, match="limits.request_timeout_s"):
+        Settings()
+    monkeypatch.delenv("OVERLAPMAMBA_LIMITS__REQUEST_TIMEOUT_S")
+    # a config named by the environment that is not there is an error, not the defaults
+    monkeypatch.setenv("OVERLAPMAMBA_CONFIG", str(tmp_path / "typo.toml"))
+    with pytest.raises(ValueError, match="typo.toml .*cannot be read"):
+        Settings()
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[verify\nmin_fitness = 0.5\n")
+    with pytest.raises(ValueError, match="broken.toml is not valid TOML"):
+        load_settings(broken)
 
 
 # ---- micro-batcher ---------------------------------------------------------------------------

@@ -38,7 +38,7 @@ CALIBRATED: dict[str, tuple[str, ...]] = {
 class Calibrated(BaseModel):
     """One section's thresholds, as a benchmark chose them."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     values: dict[str, float | int | str | None] = Field(min_length=1)
     chosen_by: str = Field(min_length=1, description="the command that chose them")

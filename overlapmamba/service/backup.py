@@ -23,6 +23,7 @@ from overlapmamba.service.backends.faiss.store import (
     Store,
     StoreError,
     fsync_dir,
+    sqlite_uri,
 )
 from overlapmamba.service.domain import check_map_id
 
@@ -64,9 +65,12 @@ def export_map(data_dir: Path, map_id: str, out: Path) -> dict[str, Any]:
         raise BackupError(f"no map {map_id!r} under {data_dir}")
     if out.exists():
         raise BackupError(f"{out} exists; choose a new file")
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
-    tmp.unlink(missing_ok=True)  # a cut-short export's: never a file anyone acknowledged
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.unlink(missing_ok=True)  # a cut-short export's: never a file anyone acknowledged
+    except OSError as err:
+        raise BackupError(f"cannot write {out}: {err.strerror or err}") from None
     try:
         store = Store(folder / "store.sqlite", readonly=True)
     except (StoreError, sqlite3.DatabaseError) as err:
@@ -89,7 +93,7 @@ def _check_backup(src: Path) -> dict[str, str]:
     """``src``'s metadata, once SQLite finds the whole file sound (``quick_check``: a
     truncated or partly overwritten copy can still count its keyframes)."""
     try:
-        with contextlib.closing(sqlite3.connect(f"file:{src}?mode=ro", uri=True)) as con:
+        with contextlib.closing(sqlite3.connect(sqlite_uri(src, "ro"), uri=True)) as con:
             problems = [r[0] for r in con.execute("PRAGMA quick_check(5)").fetchall()]
             if problems != ["ok"]:
                 raise BackupError(

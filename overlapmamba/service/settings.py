@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import tomllib
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -40,7 +41,9 @@ _CONFIG_FILE: ContextVar[Path | None] = ContextVar("overlapmamba_config_file", d
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # inf is a TOML literal (and an env value): a bound of inf would reach /readyz's JSON,
+    # which cannot hold it, and timeouts that are cast to integers; refused at start-up
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class _RenamedSection(_Section):
@@ -343,6 +346,17 @@ class ApiKey(_Section):
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="hex SHA-256 of the key")
     maps: list[str] | None = Field(None, description="robot keys: maps it may insert into")
 
+    @model_validator(mode="after")
+    def _maps_for_robots(self) -> ApiKey:
+        """``maps`` limits a robot's inserts; on another role it would limit nothing, which
+        an operator who wrote it did not mean."""
+        if self.maps is not None and self.role != "robot":
+            raise ValueError(
+                f"key {self.name!r}: maps applies to robot keys only, and this key's role is "
+                f"{self.role!r}; allowed: maps on a robot key, or no maps"
+            )
+        return self
+
 
 class AuthSettings(_Section):
     keys: list[ApiKey] = Field(default_factory=list)
@@ -353,6 +367,14 @@ class AuthSettings(_Section):
         names = [k.name for k in keys]
         if len(set(names)) != len(names):
             raise ValueError("auth.keys: names must be unique")
+        seen: dict[str, str] = {}
+        for k in keys:  # one key, two entries: which role it gets would be the list's order
+            if k.sha256 in seen:
+                raise ValueError(
+                    f"auth.keys: {seen[k.sha256]!r} and {k.name!r} have the same sha256 (one "
+                    "key under two names and roles); allowed: each key once"
+                )
+            seen[k.sha256] = k.name
         return keys
 
 
@@ -416,6 +438,7 @@ class Settings(BaseSettings):
         sources = [init_settings, env_settings]
         config = _CONFIG_FILE.get() or os.environ.get("OVERLAPMAMBA_CONFIG")
         if config:
+            _check_toml(Path(config))
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(config)))
         return tuple(sources)
 
@@ -436,6 +459,22 @@ class Settings(BaseSettings):
                 f"refusing to listen on {self.host} without API keys: configure auth.keys "
                 "(see `overlapmamba hash-key`), bind to 127.0.0.1, or pass --insecure"
             )
+
+
+def _check_toml(path: Path) -> None:
+    """The settings file exists and is TOML, else a ValueError naming it (a missing file
+    would otherwise read as empty: the service on its defaults, without the file's keys)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ValueError(
+            f"config file {path} (--config or OVERLAPMAMBA_CONFIG) cannot be read: "
+            f"{err.strerror or err}"
+        ) from None
+    try:
+        tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"config file {path} is not valid TOML: {err}") from None
 
 
 def load_settings(config: Path | None = None, **overrides: Any) -> Settings:

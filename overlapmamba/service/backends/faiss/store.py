@@ -73,6 +73,13 @@ CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp
 """
 
 
+def sqlite_uri(path: Path, mode: str) -> str:
+    """SQLite's URI of ``path`` opened in ``mode`` (ro, rw): percent-encoded, so that a
+    ``#`` or ``?`` in a folder's name is part of the path, not the URI's fragment or query
+    (where SQLite would open, or create, another file)."""
+    return f"{Path(path).absolute().as_uri()}?mode={mode}"
+
+
 class StoreError(RuntimeError):
     """The store file is missing, of another schema, or of another model."""
 
@@ -183,7 +190,7 @@ class Store:
     def _check_exists(self) -> None:
         if not self.path.is_file():
             raise StoreError(f"{self.path} does not exist")
-        uri = f"file:{self.path}?mode=ro"
+        uri = sqlite_uri(self.path, "ro")
         try:
             with contextlib.closing(sqlite3.connect(uri, uri=True)) as con:
                 sql = "SELECT value FROM meta WHERE key = 'schema_version'"
@@ -221,11 +228,11 @@ class Store:
         """A connection to the store; only the writer opened at start may create the file (a
         reader's never re-creates a store whose map was deleted under it)."""
         if self.readonly:
-            uri = f"file:{self.path}?mode=ro"
+            uri = sqlite_uri(self.path, "ro")
             con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
             con.execute("PRAGMA busy_timeout=10000")
             return con
-        target = str(self.path) if create else f"file:{self.path}?mode=rw"
+        target = str(self.path) if create else sqlite_uri(self.path, "rw")
         con = sqlite3.connect(target, uri=not create, check_same_thread=False, isolation_level=None)
         con.execute("PRAGMA journal_mode=WAL")
         con.execute("PRAGMA synchronous=FULL")
