@@ -84,6 +84,43 @@ def test_a_user_defined_sensor_from_toml(tmp_path):
     f.write_text('base = "nope"\n')
     with pytest.raises(ProfileError, match="base 'nope' is not in the catalogue"):
         get_sensor(f)
+    # a dome (beams up to +90°, down to −90°): its own image ends at ±90°, so the service
+    # can list it and project its scans (it was accepted, then every use was a 500)
+    dome = [round(90 - 180 * k / 63, 3) for k in range(64)]
+    f.write_text(f'base = "os1-64"\nname = "dome"\nelevations_deg = {dome}\n')
+    p = get_sensor(f).profile()
+    assert (p.fov_up_deg, p.fov_down_deg, p.height) == (90.0, -90.0, 64)
+    f.write_text('base = "os1-64"\nname = "far"\nmin_range = 85.0\nmax_range = 200.0\n')
+    with pytest.raises(ProfileError, match="min_range .85.0. must be below 80 m"):
+        get_sensor(f)
+    # a key beside a [sensor] table would be dropped: named instead
+    f.write_text('max_rnge = 1\n[sensor]\nbase = "os1-64"\nname = "x"\n')
+    with pytest.raises(ProfileError, match=r"keys \['max_rnge'\] lie outside its \[sensor\]"):
+        get_sensor(f)
+
+
+def test_a_profile_with_more_rows_than_a_sensor_has_beams_is_named():
+    tall = get_profile("kitti-hdl64").replace(height=300)
+    with pytest.raises(ProfileError, match="300 rows.*at most 256"):
+        sensor_of_profile(tall)
+
+
+def test_profile_files_name_their_base_beside_them_and_never_in_a_loop(tmp_path):
+    (tmp_path / "rel").mkdir()
+    (tmp_path / "rel" / "parent.toml").write_text('base = "kitti-hdl64"\nwidth = 1024\n')
+    (tmp_path / "rel" / "child.toml").write_text('base = "parent.toml"\nmax_range = 40.0\n')
+    p = get_profile(str(tmp_path / "rel" / "child.toml"))  # from any working folder
+    assert (p.width, p.max_range) == (1024, 40.0)
+    (tmp_path / "a.toml").write_text('base = "b.toml"\n')
+    (tmp_path / "b.toml").write_text('base = "a.toml"\n')
+    with pytest.raises(ProfileError, match="in a loop: .*a.toml → .*b.toml → .*a.toml"):
+        get_profile(str(tmp_path / "a.toml"))
+    (tmp_path / "self.toml").write_text('base = "self.toml"\n')
+    with pytest.raises(ProfileError, match="in a loop"):
+        get_profile(str(tmp_path / "self.toml"))
+    (tmp_path / "bad.toml").write_text('base = "kitti-hdl64"\nfoo = 1\n')
+    with pytest.raises(ProfileError, match="bad.toml"):
+        get_profile(str(tmp_path / "bad.toml"))
 
 
 def test_a_model_profile_has_a_sensor():

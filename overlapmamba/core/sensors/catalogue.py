@@ -83,6 +83,15 @@ class Sensor(BaseModel):
             raise ValueError(
                 f"min_range ({self.min_range}) must be below max_range ({self.max_range})"
             )
+        if self.projection is None and self.min_range >= PROFILE_MAX_RANGE:
+            raise ValueError(
+                f"min_range ({self.min_range}) must be below {PROFILE_MAX_RANGE:g} m, where the "
+                "sensor's own range image ends (or give it a projection of its own)"
+            )
+        try:  # what the service builds for every sensor it lists: never a failure later
+            self.profile()
+        except ValueError as err:
+            raise ValueError(f"the sensor's own range image cannot be made: {err}") from None
         return self
 
     @property
@@ -102,10 +111,10 @@ class Sensor(BaseModel):
         el = np.asarray(self.elevations_deg, np.float64)
         top = float(el[0] - el[1]) / 2 if len(el) > 1 else 0.5
         bottom = float(el[-2] - el[-1]) / 2 if len(el) > 1 else 0.5
-        return SensorProfile(
+        return SensorProfile(  # a dome's outer beams at ±90°: its image ends there
             name=self.name,
-            fov_up_deg=round(float(el[0]) + top, 4),
-            fov_down_deg=round(float(el[-1]) - bottom, 4),
+            fov_up_deg=min(90.0, round(float(el[0]) + top, 4)),
+            fov_down_deg=max(-90.0, round(float(el[-1]) - bottom, 4)),
             height=self.beams,
             width=PROFILE_COLUMNS,
             max_range=min(self.max_range, PROFILE_MAX_RANGE),
@@ -295,9 +304,27 @@ def get_profile(name_or_path: str | Path | SensorProfile) -> SensorProfile:
     )
 
 
-def load_profile(path: str | Path) -> SensorProfile:
-    """Read a custom profile; a TOML file may hold it at top level or under ``[sensor]``."""
+def _sensor_table(data: Any, path: Path) -> Any:
+    """The fields a file holds: its ``[sensor]`` table when it has one, which must then be
+    all it holds (a key beside it would be dropped without a word)."""
+    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
+        beside = sorted(k for k in data if k != "sensor")
+        if beside:
+            raise ProfileError(
+                f"sensor file {path}: keys {beside} lie outside its [sensor] table, where they "
+                "would be ignored; put them inside [sensor]"
+            )
+        return data["sensor"]
+    return data
+
+
+def load_profile(path: str | Path, _chain: tuple[Path, ...] = ()) -> SensorProfile:
+    """Read a custom profile; a TOML file may hold it at top level or under ``[sensor]``.
+    A ``base`` that is a file is read beside this one (a relative path from its folder)."""
     path = Path(path)
+    if path.resolve() in _chain:
+        loop = " → ".join(str(p) for p in (*_chain, path.resolve()))
+        raise ProfileError(f"sensor profile files name each other as base in a loop: {loop}")
     try:
         text = path.read_text()
     except OSError as err:
@@ -306,11 +333,18 @@ def load_profile(path: str | Path) -> SensorProfile:
         data: Any = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
         raise ProfileError(f"sensor profile file {path} is not valid: {err}") from err
-    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
-        data = data["sensor"]
+    data = _sensor_table(data, path)
     if isinstance(data, dict) and "base" in data:
-        base = get_profile(str(data.pop("base")))
-        return base.replace(**data)
+        name = str(data.pop("base"))
+        if Path(name).suffix.lower() in {".json", ".toml"}:
+            beside = path.parent / name
+            base = load_profile(beside, (*_chain, path.resolve()))
+        else:
+            base = get_profile(name)
+        try:
+            return base.replace(**data)
+        except ProfileError as err:
+            raise ProfileError(f"sensor profile file {path}: {err}") from None
     try:
         return SensorProfile.model_validate(data)
     except ValidationError as err:
@@ -356,8 +390,7 @@ def load_sensor(path: str | Path) -> Sensor:
         data: Any = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
         raise ProfileError(f"sensor file {path} is not valid: {err}") from err
-    if isinstance(data, dict) and isinstance(data.get("sensor"), dict):
-        data = data["sensor"]
+    data = _sensor_table(data, path)
     if not isinstance(data, dict):
         raise ProfileError(f"sensor file {path} must hold a table of sensor fields")
     if "base" in data:
@@ -387,14 +420,20 @@ def sensor_of_profile(profile: SensorProfile) -> Sensor:
     name = re.sub(r"[^a-z0-9._-]", "-", profile.name.lower()).strip("-._")[:58] or "model"
     if name in CATALOGUE:  # another table under a catalogue name: keep both addressable
         name += "-model"
-    return Sensor(
-        name=name,
-        title=f"the sensor of profile {profile.name}",
-        source="a uniform beam per row of the model's own profile",
-        elevations_deg=_uniform(top, top - pitch * (profile.height - 1), profile.height),
-        columns=profile.width,
-        min_range=profile.min_range,
-        max_range=profile.max_range,
-        range_sigma=0.0,
-        projection=profile,
-    )
+    try:
+        return Sensor(
+            name=name,
+            title=f"the sensor of profile {profile.name}",
+            source="a uniform beam per row of the model's own profile",
+            elevations_deg=_uniform(top, top - pitch * (profile.height - 1), profile.height),
+            columns=profile.width,
+            min_range=profile.min_range,
+            max_range=profile.max_range,
+            range_sigma=0.0,
+            projection=profile,
+        )
+    except ValidationError as err:  # e.g. more rows than a sensor may have beams (256)
+        raise ProfileError(
+            f"profile {profile.name!r} ({profile.height} rows, {profile.width} columns) has no "
+            f"sensor a model could take as its own: {first_error(err)}"
+        ) from None
