@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 
 import httpx
 import numpy as np
@@ -18,6 +19,8 @@ import pytest
 from service_kit import MODEL, OCTET, ROOT, scan, server
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
+
+from overlapmamba.service import backup
 
 pytestmark = pytest.mark.slow
 
@@ -218,6 +221,33 @@ def test_serve_refuses_a_file_that_is_not_an_encoder_in_one_line(tmp_path):
         assert "Traceback" not in res.stdout + res.stderr
 
 
+def test_serve_refuses_what_its_start_up_would_meet_in_one_line(tmp_path):
+    """A data folder that is a file, a data folder another service holds, a sensor file that
+    is not there: each refused before uvicorn starts (exit 2, one line), where the start-up
+    would otherwise end in uvicorn's traceback (exit 3)."""
+    (tmp_path / "a-file").write_text("")
+    held = tmp_path / "held"
+    missing = tmp_path / "sensors.toml"
+    missing.write_text(f'[sensors]\nfiles = ["{tmp_path / "nope.toml"}"]\n')
+    cases = [
+        (["--data-dir", str(tmp_path / "a-file")], "cannot use"),
+        (["--data-dir", str(held)], "in use by a running service"),
+        (["--data-dir", str(tmp_path / "d"), "--config", str(missing)], "cannot read sensor"),
+    ]
+    with backup.data_dir_lock(held):  # another service's
+        for extra, why in cases:
+            res = subprocess.run(
+                [sys.executable, "-m", "overlapmamba", "serve", "--port", "1", *extra],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+                timeout=60,
+            )
+            out = " ".join((res.stdout + res.stderr).split())
+            assert res.returncode == 2 and why in out, (extra, out)
+            assert "Traceback" not in out, out
+
+
 def test_dump_config_and_hash_key(tmp_path):
     cfg = tmp_path / "s.toml"
     cfg.write_text("[batching]\nmax_batch = 5\n")
@@ -241,4 +271,12 @@ def test_dump_config_and_hash_key(tmp_path):
     )
     assert 'role = "viewer"' in res.stdout
     assert "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad" in res.stdout
+    odd = 'ops "night" \\ robot'  # what it prints is pasted into a TOML file: stays TOML
+    res = subprocess.run(
+        [sys.executable, "-m", "overlapmamba", "hash-key", "--name", odd, "--key", "abc"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert tomllib.loads(res.stdout)["auth"]["keys"][0]["name"] == odd, res.stdout
     _ = OCTET

@@ -3,10 +3,12 @@ folder's doctor. None imports PyTorch."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from overlapmamba.cli.common import (
@@ -108,18 +110,41 @@ def serve_cmd(
     if not settings.model.is_file():
         console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
         raise typer.Exit(2)
-    _check_model_file(settings.model)
+    _preflight(settings, _check_model_file(settings.model))
     run(settings)
 
 
-def _check_model_file(path: Path) -> None:
+def _preflight(settings: Any, meta: Any) -> None:
+    """What the service's start-up would otherwise meet only inside uvicorn (a traceback,
+    exit 3), refused here in one line with exit 2: the model's calibration against the
+    settings, the second stage it serves, the sensor files, and the data folder (made, and
+    not in use by another service)."""
+    from overlapmamba.core.errors import LidarCoreError
+    from overlapmamba.service.backup import BackupError, data_dir_lock
+    from overlapmamba.service.calibration import resolve
+    from overlapmamba.service.ranking import rerank_params
+    from overlapmamba.service.sensors import Sensors
+
+    try:
+        serving, _ = resolve(settings, meta)
+        rerank_params(serving.rerank, meta)
+        Sensors(meta, serving.sensors.files)
+        if serving.index.backend == "faiss":
+            with data_dir_lock(serving.data_dir):
+                pass
+    except (BackupError, LidarCoreError, ValueError) as err:
+        console.print(f"[bold red]error:[/] {escape(str(err))}")
+        raise typer.Exit(2) from None
+
+
+def _check_model_file(path: Path) -> Any:
     """Refuse, in one line and before uvicorn starts, a model file the service cannot
     serve (not ONNX, truncated, or an ONNX graph without an encoder's metadata), where the
-    start-up would otherwise end in a traceback."""
+    start-up would otherwise end in a traceback; else its metadata."""
     from overlapmamba.service.calibration import read_model_metadata
 
     try:
-        read_model_metadata(path)
+        return read_model_metadata(path)
     except Exception as err:
         console.print(
             f"[bold red]error:[/] {path} is not an encoder the service can serve "
@@ -142,7 +167,11 @@ def dump_config_cmd(config: ConfigOpt = None) -> None:
     except Exception as err:
         console.print(f"[yellow]note:[/] {settings.model}: {err}; its calibration is not shown")
     else:
-        settings, used = resolve(settings, meta)
+        try:
+            settings, used = resolve(settings, meta)
+        except ValueError as err:
+            console.print(f"[bold red]error:[/] {escape(str(err))}")
+            raise typer.Exit(2) from None
         for key, t in used.items():
             console.print(f"{key} = {t.value} ({t.source})", markup=False)
     out.print_json(settings.model_dump_json())
@@ -165,7 +194,8 @@ def hash_key_cmd(
     if key is None:
         console.print(f"key (shown once, give it to the client): [bold]{secret}[/]")
     out.print(
-        f'[[auth.keys]]\nname = "{name}"\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',
+        # a JSON string is a TOML basic string: a name with quotes or backslashes stays TOML
+        f'[[auth.keys]]\nname = {json.dumps(name)}\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',
         markup=False,
     )
 

@@ -37,8 +37,14 @@ class BackupError(RuntimeError):
 @contextlib.contextmanager
 def data_dir_lock(data_dir: Path) -> Iterator[None]:
     """Held by a running service: one process per data folder."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(data_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(data_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:  # a file where the folder should be, no permission, …
+        raise BackupError(
+            f"cannot use {data_dir} as the data folder: {err.strerror or err}; allowed: a "
+            "folder this process may write (--data-dir)"
+        ) from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
