@@ -162,6 +162,11 @@ def test_metadata_takes_aligned_for_every_input_and_refuses_unknown_phases():
     assert EncoderMetadata.model_validate(bev).aligned
     with pytest.raises(ValueError, match="sensor, aligned"):
         EncoderMetadata.model_validate({**fields, "column_phase": "north"})
+    # a damaged token_views is a ValueError naming it (a TypeError escaped every handler)
+    for bad in (None, [3], "x", 0, 2.5, True):
+        net = {**fields["model_config"], "token_views": bad}
+        with pytest.raises(ValueError, match="token_views is"):
+            EncoderMetadata.model_validate({**fields, "model_config": net})
 
 
 def test_another_phase_or_view_count_drops_the_calibration_chosen_on_the_old_descriptors(

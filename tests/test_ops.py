@@ -232,10 +232,16 @@ def test_doctor_cli_exit_code_and_json(tmp_path):
     body = json.loads(res.stdout)
     assert body["healthy"] is False
     assert any(f["check"] == "model" and f["status"] == "error" for f in body["findings"])
-    res = subprocess.run(
-        [*cmd, "--model", str(tmp_path / "none.onnx")], cwd=ROOT, capture_output=True, text=True
-    )
-    assert res.returncode == 0 and "ids not checked" in res.stdout, res.stdout + res.stderr
+    # a model named on the command line that is not there (a typo) or not an encoder: an
+    # error finding (exit 1), never a traceback and never "healthy"
+    (tmp_path / "text.onnx").write_text("not a model")
+    for name, says in (("none.onnx", "not found"), ("text.onnx", "cannot be loaded")):
+        res = subprocess.run(
+            [*cmd, "--model", str(tmp_path / name)], cwd=ROOT, capture_output=True, text=True
+        )
+        out = " ".join(res.stdout.split())
+        assert res.returncode == 1 and says in out and "ids not checked" in out, out
+        assert "Traceback" not in res.stdout + res.stderr, res.stderr
 
 
 # ---- Qdrant behind a real server --------------------------------------------------------------

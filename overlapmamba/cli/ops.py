@@ -267,11 +267,15 @@ def doctor_cmd(
 
     settings = _service_settings(config, data_dir=data_dir, model=model)
     model_id = dim = None
+    model_error = None
     if settings.model.is_file():
         from overlapmamba.service.encoder import Encoder
 
-        enc = Encoder(settings.model, intra_op_threads=1)
-        model_id, dim = enc.model_id, enc.dim
+        try:  # the kernel's timing at load is the service's business, not the doctor's
+            enc = Encoder(settings.model, intra_op_threads=1, scan_kernel=False)
+            model_id, dim = enc.model_id, enc.dim
+        except Exception as err:  # a file that is not an encoder: a finding, not a crash
+            model_error = f"model {settings.model} cannot be loaded: {err}"
     if settings.index.backend == "qdrant":
         from overlapmamba.service.backends.factory import open_backend
 
@@ -288,8 +292,11 @@ def doctor_cmd(
             max_snapshot_age_s=max_snapshot_age_h * 3600,
             settings=settings.index,
         )
-    if model_id is None:
-        report.add(None, "model", "warn", f"model {settings.model} not found: ids not checked")
+    if model_error is not None:
+        report.add(None, "model", "error", f"{model_error}: ids not checked")
+    elif model_id is None:  # asked for by name and absent is an error; the default, a warning
+        status = "warn" if model is None else "error"
+        report.add(None, "model", status, f"model {settings.model} not found: ids not checked")
     if as_json:
         out.print_json(report.to_json())
     else:

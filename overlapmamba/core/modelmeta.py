@@ -187,7 +187,12 @@ class EncoderMetadata(BaseModel):
         ``token_views``): it then takes that many images a scan, scan-major, and returns one
         descriptor a scan. 1: the graph describes every image and the reader averages the
         views' descriptors (:func:`overlapmamba.core.views.combine_views`)."""
-        return int(self.network.get("token_views", 1))
+        views = self.network.get("token_views", 1)
+        if isinstance(views, bool) or not isinstance(views, int | float) or views != int(views):
+            raise ValueError(f"model_config.token_views is {views!r}; allowed: an integer ≥ 1")
+        if views < 1:
+            raise ValueError(f"model_config.token_views is {views!r}; allowed: an integer ≥ 1")
+        return int(views)
 
     @property
     def descriptors_per_scan(self) -> int:
