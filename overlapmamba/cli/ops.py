@@ -295,8 +295,8 @@ def doctor_cmd(
     if model_error is not None:
         report.add(None, "model", "error", f"{model_error}: ids not checked")
     elif model_id is None:  # asked for by name and absent is an error; the default, a warning
-        status = "warn" if model is None else "error"
-        report.add(None, "model", status, f"model {settings.model} not found: ids not checked")
+        found = f"model {settings.model} not found: ids not checked"
+        report.add(None, "model", "warn" if model is None else "error", found)
     if as_json:
         out.print_json(report.to_json())
     else:
