@@ -438,3 +438,28 @@ def test_a_keyframe_of_another_sensor_is_scored_within_its_field_of_view():
     assert hdl is not None and hdl.high_deg < 5.0 < view.high_deg
     pts = np.array([[10.0, 0.0, 0.0], [10.0, 0.0, 2.0], [500.0, 0.0, 0.0]])
     assert hdl.inside(pts).tolist() == [True, False, False]  # 11° up is above its top beam
+
+
+def test_a_sensor_the_model_cannot_read_stops_the_start_and_an_empty_scan_names_the_real_range(
+    tmp_path,
+):
+    """A sensor file whose beams all miss the model's image (every scan of it would be an
+    empty image) is refused at start-up; and a scan with nothing in range is refused naming
+    the range the model's input takes (the model's 80 m), not the sensor's own (120 m)."""
+    from overlapmamba.core.errors import ProfileError
+    from overlapmamba.service.calibration import read_model_metadata
+    from overlapmamba.service.errors import Unprocessable
+    from overlapmamba.service.pipeline import check_in_range
+    from overlapmamba.service.sensors import Sensors
+
+    meta = read_model_metadata(MODEL)
+    up = tmp_path / "up.toml"
+    up.write_text('base = "os1-64"\nname = "up"\nelevations_deg = [60.0, 45.0, 30.0, 15.0]\n')
+    with pytest.raises(ProfileError, match="none of 'up''s beams .* falls in the model's image"):
+        Sensors(meta, [up])
+    taken = SensorInput(meta.profile, CATALOGUE["os1-64"], "elevation")
+    ring = 100.0 * np.stack([np.cos(np.arange(500)), np.sin(np.arange(500)), np.zeros(500)], 1)
+    image = taken.project(ring.astype(np.float32))[0]
+    with pytest.raises(Unprocessable, match=r"\(0 m < range < 80 m\)") as err:
+        check_in_range(image, meta.profile, taken, 500)
+    assert err.value.detail["max_range"] == 80.0 and CATALOGUE["os1-64"].max_range == 120.0

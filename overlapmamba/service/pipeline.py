@@ -77,15 +77,16 @@ def check_in_range(
     the empty image's, which matches every other empty scan, and is refused (422)."""
     if np.any(image != np.float32(model.empty_value)):
         return
-    prof: Sensor | SensorProfile = sensor.sensor if sensor is not None else model
+    name = sensor.sensor.name if sensor is not None else model.name
+    low, high = sensor.reach if sensor is not None else (model.min_range, model.max_range)
     raise Unprocessable(
-        f"no point of the scan's {points} lies within sensor {prof.name!r}'s range "
-        f"({prof.min_range:g} m < range < {prof.max_range:g} m): the scan holds no geometry "
-        "to describe (are the coordinates in metres, in the sensor's frame?)",
+        f"no point of the scan's {points} lies within the range the model takes from sensor "
+        f"{name!r} ({low:g} m < range < {high:g} m), in the rows of its beams: the scan holds "
+        "no geometry to describe (are the coordinates in metres, in the sensor's frame?)",
         code="no_points_in_range",
-        sensor=prof.name,
-        min_range=prof.min_range,
-        max_range=prof.max_range,
+        sensor=name,
+        min_range=low,
+        max_range=high,
     )
 
 

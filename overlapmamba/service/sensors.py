@@ -23,7 +23,7 @@ import numpy as np
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.modelmeta import EncoderMetadata
 from overlapmamba.core.sensors import CATALOGUE, Sensor, load_sensor, sensor_of_profile
-from overlapmamba.core.sensors.input import SensorInput
+from overlapmamba.core.sensors.input import BEV_MODES, SensorInput
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.errors import BadRequest, Conflict
 
@@ -69,9 +69,16 @@ class Sensors:
                     "a name of its own"
                 )
             try:  # a sensor this model's input cannot take (no common beam) stops the start
-                SensorInput(meta.profile, s, meta.sensor_input)
+                taken = SensorInput(meta.profile, s, meta.sensor_input)
             except ValueError as err:
                 raise ProfileError(f"sensor file {path}: {err}") from None
+            if meta.sensor_input not in BEV_MODES and not (taken.rows() >= 0).any():
+                raise ProfileError(  # every scan of it would be an empty image
+                    f"sensor file {path}: none of {s.name!r}'s beams "
+                    f"({s.elevations_deg[0]:g}° to {s.elevations_deg[-1]:g}°) falls in the "
+                    f"model's image ({meta.profile.fov_up_deg:g}° to "
+                    f"{meta.profile.fov_down_deg:g}°): the model cannot read its scans"
+                )
             known[s.name] = s
         self.known = known
         self._inputs: dict[tuple[str, Mount | None], SensorInput] = {}

@@ -198,6 +198,14 @@ class SensorInput:
         own = self.own_sensor and self.mode not in ALL_SCANS_MODES
         return ("native" if own else self.mode) + ("+mount" if self.mount is not None else "")
 
+    @property
+    def reach(self) -> tuple[float, float]:
+        """The ranges (m) whose returns enter the model's input: the model's own, cut at
+        :data:`COMMON_MAX_RANGE` in the modes that cut every sensor there."""
+        if self.mode in ("elevation-reach", "structure", *BEV_MODES):
+            return self.model.min_range, COMMON_MAX_RANGE
+        return self.model.min_range, self.model.max_range
+
     @classmethod
     def own(cls, model: SensorProfile, mode: Mode = "elevation") -> SensorInput:
         """The model's own sensor into it: the plain projection, unless the model takes every
