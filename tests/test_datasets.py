@@ -93,4 +93,16 @@ def test_bad_sequences_name_the_problem(tmp_path, synthetic_seq_dir):
     np.zeros((3, 4), "<f4").tofile(tmp_path / "velodyne" / "000000.bin")
     with pytest.raises(DatasetError, match="1 scans but 2 poses"):
         open_sequence(tmp_path)
+    # a calibration that would make every pose NaN, or that cannot be inverted: named
+    write_poses(tmp_path / "poses.txt", np.stack([np.eye(4)]))
+    (tmp_path / "calib.txt").write_text("Tr: nan 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DatasetError, match=r"calib.txt:1: calibration holds NaN"):
+        open_sequence(tmp_path)
+    (tmp_path / "calib.txt").write_text("Tr: " + " ".join(["0"] * 12) + "\n")
+    with pytest.raises(DatasetError, match="calib.txt, poses.txt.*Tr is singular"):
+        open_sequence(tmp_path)
+    (tmp_path / "calib.txt").write_text("Tr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (tmp_path / "poses.txt").write_text(" ".join(["0"] * 12) + "\n")
+    with pytest.raises(DatasetError, match="the first pose is singular"):
+        open_sequence(tmp_path)
     assert set(REGISTRY) == {"kitti", "pcd-folder"}

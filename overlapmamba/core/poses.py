@@ -62,6 +62,8 @@ def read_calib(path: str | Path) -> dict[str, np.ndarray]:
             values = np.array([float(v) for v in rest.split()], dtype=np.float64)
         except ValueError as err:
             raise DatasetError(f"{path}:{lineno}: calibration holds a non-number") from err
+        if not np.isfinite(values).all():
+            raise DatasetError(f"{path}:{lineno}: calibration holds NaN or infinite values")
         if values.size == 12:
             m = np.eye(4)
             m[:3, :] = values.reshape(3, 4)
@@ -77,6 +79,12 @@ def camera_to_lidar(poses_cam: np.ndarray, tr_velo_to_cam: np.ndarray) -> np.nda
     T_velo_i = Tr⁻¹ · P_0⁻¹ · P_i · Tr, so frame 0 is the identity and x points forward.
     """
     tr = np.asarray(tr_velo_to_cam, dtype=np.float64)
+    for name, m in (("the calibration's Tr", tr), ("the first pose", poses_cam[0])):
+        if abs(np.linalg.det(m[:3, :3])) < 1e-9:  # a rotation's is 1
+            raise DatasetError(
+                f"{name} is singular (its rotation's determinant is "
+                f"{np.linalg.det(m[:3, :3]):.3g}; a rotation's is 1): it cannot be inverted"
+            )
     first_inv = np.linalg.inv(poses_cam[0])
     return np.linalg.inv(tr) @ first_inv @ poses_cam @ tr
 

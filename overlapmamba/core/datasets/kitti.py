@@ -80,6 +80,9 @@ def open_kitti(root: str | Path, *, sensor: str | None = None) -> Sequence:
         if "Tr" not in calib or np.shape(calib["Tr"]) != (4, 4):
             raise DatasetError(f"{calib_file}: no 12-number 'Tr:' (velodyne→camera) entry")
         if len(poses):
-            poses = camera_to_lidar(poses, calib["Tr"])
+            try:
+                poses = camera_to_lidar(poses, calib["Tr"])
+            except DatasetError as err:
+                raise DatasetError(f"{root} ({calib_file.name}, {pose_file.name}): {err}") from None
     mount = _manifest_mount(root, manifest)
     return Sequence(root=root, scan_paths=scans, poses=poses, sensor=sensor, mount=mount)
