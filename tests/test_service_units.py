@@ -623,6 +623,11 @@ def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):
     monkeypatch.setenv("OVERLAPMAMBA_CONFIG", str(tmp_path / "typo.toml"))
     with pytest.raises(ValueError, match="typo.toml .*cannot be read"):
         Settings()
+    monkeypatch.delenv("OVERLAPMAMBA_CONFIG")
+    monkeypatch.setenv("OVERLAPMAMBA_SENSORS__FILES", "a.toml")  # not JSON: named, with how
+    with pytest.raises(ValueError, match=r"OVERLAPMAMBA_SENSORS__FILES cannot be read.*JSON"):
+        load_settings()
+    monkeypatch.delenv("OVERLAPMAMBA_SENSORS__FILES")
     broken = tmp_path / "broken.toml"
     broken.write_text("[verify\nmin_fitness = 0.5\n")
     with pytest.raises(ValueError, match="broken.toml is not valid TOML"):

@@ -25,6 +25,7 @@ from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
+    SettingsError,
     TomlConfigSettingsSource,
 )
 
@@ -480,14 +481,21 @@ def _check_toml(path: Path) -> None:
 def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
     """Settings from a TOML file (if given), the environment and explicit overrides."""
     values = {k: v for k, v in overrides.items() if v is not None}
-    if config is None:
-        return Settings(**values)
-    if not config.is_file():
+    if config is not None and not config.is_file():
         raise ValueError(f"config file {config} does not exist")
     # the file reaches settings_customise_sources through a context variable: the process
     # environment is never written (another thread's Settings() would read it)
     token = _CONFIG_FILE.set(config)
     try:
         return Settings(**values)
+    except SettingsError as err:  # says "field 'sensors'", not which variable nor what it takes
+        field = str(err).split('"')[1] if '"' in str(err) else ""
+        prefix = f"OVERLAPMAMBA_{field.upper()}"
+        named = sorted(k for k in os.environ if field and k.startswith(prefix))
+        raise ValueError(
+            f"{', '.join(named) or 'an OVERLAPMAMBA_ variable'} cannot be read: a list or a "
+            "table in a variable is JSON, e.g. OVERLAPMAMBA_SENSORS__FILES='[\"a.toml\"]' "
+            f"({err})"
+        ) from None
     finally:
         _CONFIG_FILE.reset(token)
