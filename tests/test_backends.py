@@ -152,6 +152,11 @@ def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
             other = row(3, rng)
             with pytest.raises(Conflict):  # same id, other content: refused whole
                 m.insert([batch[0], other])
+            # the same content as an earlier release hashed it (same_as): not a conflict
+            rehashed = dataclasses.replace(
+                batch[0], content_hash="new-hash", same_as=(batch[0].content_hash,)
+            )
+            assert [r.created for r in m.insert([rehashed])] == [False]
             with pytest.raises(BadRequest):
                 m.insert([dataclasses.replace(row(999, rng), descriptor=np.ones(DIM + 1))])
             # normalised once, before a backend: one that is not a unit vector is refused

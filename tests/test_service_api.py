@@ -287,6 +287,22 @@ async def test_keyframe_batches_check_model_and_values(any_backend, encoder):
         assert r.status_code == 422
         r = await c.post("/v1/maps/m/keyframes:batch", json=batch(pose=[0, 0, 0, 0, 0, 0, 0]))
         assert r.status_code == 400 and err(r)["code"] == "bad_pose"
+        # a row sent back with the pose the map returned (its quaternion taken to unit
+        # length) is the same keyframe; so is the row as first sent, as before
+        scaled = batch(pose=[1, 2, 3, 0, 0, 0, 2])
+        for kf in scaled["keyframes"]:
+            kf["keyframe_id"] = "s-" + kf["keyframe_id"]
+        assert (await c.post("/v1/maps/m/keyframes:batch", json=scaled)).status_code == 200
+        stored = (await c.get("/v1/maps/m/keyframes/s-b0")).json()["pose"]
+        assert stored == [1, 2, 3, 0, 0, 0, 1]
+        for kf in scaled["keyframes"]:
+            kf["pose"] = stored
+        r = await c.post("/v1/maps/m/keyframes:batch", json=scaled)
+        assert r.status_code == 200 and r.json()["existing"] == 5, r.text
+        for kf in scaled["keyframes"]:
+            kf["pose"] = [1, 2, 3, 0, 0, 0, 2]
+        r = await c.post("/v1/maps/m/keyframes:batch", json=scaled)
+        assert r.status_code == 200 and r.json()["existing"] == 5, r.text
         one_bad = batch(pose=[0, 0, 0, 0, 0, 0, 1])
         one_bad["keyframes"][3]["pose"] = [0, 0, 0, 0, 0, 0, 0]  # named by its row
         r = await c.post("/v1/maps/m/keyframes:batch", json=one_bad)
@@ -340,7 +356,8 @@ async def test_keyframe_batches_check_model_and_values(any_backend, encoder):
         assert (await c.post("/v1/maps/m/keyframes:batch", json=big)).status_code == 200
         r = await c.post("/v1/maps/m/keyframes:batch", content=b"{not json")
         assert r.status_code == 422 and err(r)["code"] == "invalid_request"
-        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 6  # nothing partial
+        # b0…b4, s-b0…s-b4 and big-but-fine: nothing partial
+        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 11
 
 
 async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backend, encoder):

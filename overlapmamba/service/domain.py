@@ -52,6 +52,9 @@ class NewKeyframe:
     content_hash: str
     geometry: bytes | None = None  # overlapmamba.core.geometry blob
     sensor: str | None = None  # the sensor of the scan it came from (None: not said)
+    # hashes of this same content as an earlier release hashed it: a row stored then and
+    # sent again is the same keyframe, not a conflict
+    same_as: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -298,23 +301,26 @@ def descriptor_keyframe(
                 f"finite and within ±{YAW_LIMIT:g} (they are stored as float16)",
                 code="bad_yaw_features",
             )
+    pose = _batch_pose(k.pose, i)
     meta: dict[str, Any] = {
         "robot": k.robot_id,
         "session": k.session_id,
         "timestamp": k.timestamp,
-        "pose": k.pose,
+        "pose": pose,  # as stored and returned, so that a row sent back as read is the same
     }
     if k.sensor is not None:  # a keyframe that names none keeps the hash it always had
         meta["sensor"] = k.sensor
     payload = desc.tobytes() + (b"" if yaw is None else yaw.astype(np.float16).tobytes())
+    sent = content_hash("descriptor", payload, {**meta, "pose": k.pose})  # before 2026-12-04
     return NewKeyframe(
         keyframe_id=k.keyframe_id,
         robot_id=k.robot_id,
         session_id=k.session_id,
         timestamp=k.timestamp,
-        pose=_batch_pose(k.pose, i),
+        pose=pose,
         descriptor=desc,
         yaw=yaw,
         content_hash=content_hash("descriptor", payload, meta),
         sensor=k.sensor,
+        same_as=(sent,),
     )

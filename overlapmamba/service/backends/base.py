@@ -76,7 +76,7 @@ def check_existing(rows: list[NewKeyframe], existing: dict[str, Keyframe]) -> li
     (409). → the rows still to write, each id once."""
     for r in rows:
         old = existing.get(r.keyframe_id)
-        if old is not None and old.content_hash != r.content_hash:
+        if old is not None and old.content_hash not in (r.content_hash, *r.same_as):
             raise Conflict(
                 f"keyframe {r.keyframe_id!r} already exists with different content; "
                 "keyframe ids are write-once (DELETE it first to replace it)",
