@@ -259,6 +259,23 @@ def test_qdrant_maps_are_shared_between_replicas_and_refuse_foreign_collections(
             held.count  # noqa: B018
         with pytest.raises(NotFound):
             b.get("yard")
+        # its own DELETE of the map the other replica deleted is 404, not 204
+        a.create("lot", None)
+        b.get("lot")
+        a.delete("lot")
+        with pytest.raises(NotFound):
+            b.delete("lot")
+        # a handle opened before its map was deleted (a write under way) writes nothing into
+        # the map made again under the id: 404, as the FAISS backend's retired map answers
+        stale, _ = a.create("lot", None)
+        a.delete("lot")
+        fresh, created = a.create("lot", None)
+        assert created
+        with pytest.raises(NotFound):
+            stale.insert([row(2, rng)])
+        with pytest.raises(NotFound):
+            stale.delete("kf-2")
+        assert fresh.count == 0 and fresh.insert([row(3, rng)])[0].created
 
 
 def test_get_nowait_answers_only_without_io(tmp_path):

@@ -46,7 +46,7 @@ from overlapmamba.service.backends.base import check_same_settings, map_not_foun
 from overlapmamba.service.backends.qdrant.codec import FRESH_S, INDEXES, MARK
 from overlapmamba.service.backends.qdrant.map import QdrantMap
 from overlapmamba.service.backends.rows import RowCache
-from overlapmamba.service.domain import check_map_id
+from overlapmamba.service.domain import MAP_ID, check_map_id
 from overlapmamba.service.errors import (
     BadRequest,
     Conflict,
@@ -108,6 +108,12 @@ class QdrantBackend:
         self._create = threading.Lock()
         self._locks: dict[str, threading.Lock] = {}
         self._locks_lock = threading.Lock()  # not _create: create() holds that while opening
+        # map id → how many times this replica deleted it: a handle opened before a deletion
+        # writes nothing after it (its writes would land in a map created again under the id)
+        self._deletions: dict[str, int] = {}
+
+    def deletions(self, map_id: str) -> int:
+        return self._deletions.get(map_id, 0)
 
     def write_lock(self, map_id: str) -> threading.Lock:
         with self._locks_lock:
@@ -153,6 +159,11 @@ class QdrantBackend:
             if map_id is not None and "not found" in str(err):
                 self._forget(map_id)
                 raise map_not_found(map_id) from err
+            if not self.local:  # a server's answer that is not Qdrant's JSON (a proxy's page)
+                raise Unavailable(
+                    f"Qdrant at {self.where} answered something that is not Qdrant's JSON: {err}",
+                    code="index_unavailable",
+                ) from err
             raise
         except (ResponseHandlingException, OSError) as err:
             raise Unavailable(
@@ -289,9 +300,18 @@ class QdrantBackend:
         )
 
     def delete(self, map_id: str) -> None:
-        self.get(map_id)  # 404 if it does not exist
-        self.call(lambda c: c.delete_collection(self.collection(map_id)), map_id)
-        self._forget(map_id)
+        """As the FAISS backend's: a PUT of the same id meanwhile waits (then makes a new
+        map), the writes under way in this replica end first, and a handle opened before
+        writes nothing after (404). A map already gone (another replica's delete, or a
+        second DELETE) is 404."""
+        with self._create:
+            self.get(map_id)  # 404 if it does not exist
+            with self.write_lock(map_id):
+                self._deletions[map_id] = self.deletions(map_id) + 1
+                self._forget(map_id)
+                dropped = self.call(lambda c: c.delete_collection(self.collection(map_id)), map_id)
+        if dropped is False:
+            raise map_not_found(map_id)
 
     def snapshot_list(self) -> list[QdrantMap]:
         prefix = self.settings.collection_prefix
@@ -313,7 +333,10 @@ class QdrantBackend:
 
     def describe(self) -> dict[str, Any]:
         """One cheap call (readiness probes ask every few seconds)."""
-        return {"backend": self.name, "qdrant": self.where, "maps": len(self._names())}
+        maps = [
+            n for n in self._names() if MAP_ID.fullmatch(n[len(self.settings.collection_prefix) :])
+        ]
+        return {"backend": self.name, "qdrant": self.where, "maps": len(maps)}
 
     def row_cache_info(self) -> dict[str, int] | None:
         return self.row_cache.info()

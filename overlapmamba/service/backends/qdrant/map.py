@@ -13,7 +13,12 @@ from qdrant_client import QdrantClient, models
 
 from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.core.yaw import Spectrum
-from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
+from overlapmamba.service.backends.base import (
+    build_matches,
+    check_existing,
+    insert_results,
+    map_not_found,
+)
 from overlapmamba.service.backends.qdrant.codec import (
     CHUNK,
     LEAN,
@@ -59,6 +64,13 @@ class QdrantMap:
         self.created_at = float(meta.get("created_at") or 0.0)
         self.checked = time.monotonic()
         self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
+        self._deletions = backend.deletions(map_id)  # as of this handle's opening
+
+    def _check_live(self) -> None:
+        """Under ``_write``: the map this handle opened was not deleted since (by this
+        replica); its writes would land in a map created again under the same id."""
+        if self.backend.deletions(self.map_id) != self._deletions:
+            raise map_not_found(self.map_id)
 
     def _call(self, fn: Callable[[QdrantClient], T]) -> T:
         return self.backend.call(fn, self.map_id)
@@ -68,6 +80,7 @@ class QdrantMap:
     def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]:
         wanted = check_rows(rows, self.dim)
         with self._write:
+            self._check_live()
             existing = self._get_many(wanted)
             new = check_existing(rows, existing)
             created: dict[str, Keyframe] = {}
@@ -104,6 +117,7 @@ class QdrantMap:
 
     def delete(self, keyframe_id: str) -> None:
         with self._write:
+            self._check_live()
             if self.get(keyframe_id) is None:
                 raise NotFound(
                     f"map {self.map_id!r} has no keyframe {keyframe_id!r}",
