@@ -136,6 +136,7 @@ def test_a_full_disk_at_create_or_snapshot_is_named_and_leaves_no_debris(tmp_pat
         with pytest.raises(Unavailable, match="cannot be created.*free disk space") as err:
             b.create("town", "flat")
         assert err.value.code == "storage_full" and err.value.status == 503
+        assert err.value.headers["Retry-After"] == "30"  # an operator must free disk first
         assert not list((tmp_path / "data" / "maps").glob(".create-*"))
         monkeypatch.setattr(faiss_map, "Store", real_store)
         m, created = b.create("town", "flat")

@@ -247,6 +247,21 @@ def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     assert tiny.relative_pose is None and "keeps" in (tiny.reason or "")
 
 
+def test_points_no_sensor_returns_are_left_out_of_registration_without_a_line_each(kitti, capfd):
+    """Finite points thousands of kilometres out (a scan in the wrong units) overflowed
+    small_gicp's voxel keys, which printed one warning line per point: half a million lines
+    a request at the point limit. They are left out; the rest registers as before."""
+    from overlapmamba.service.registration import RegistrationParams, prepare
+
+    p = RegistrationParams()
+    xyz = kitti.points(0).xyz.astype(np.float32)
+    far = np.concatenate([xyz, xyz[:20_000] * np.float32(1e8)])
+    capfd.readouterr()
+    q, plain = prepare(far, p), prepare(xyz, p)
+    assert "out of range" not in capfd.readouterr().err
+    assert q.size == plain.size
+
+
 def test_verify_threshold_scores_stop_at_first_as_the_service_answers():
     """benchmarks/verify_threshold.py scores the same registrations both ways: the
     best-fitting verified candidate, or the first verified with none registered after it."""

@@ -169,6 +169,7 @@ def test_a_child_that_dies_twice_refuses_and_never_stores_without_geometry(scans
     with pytest.raises(Unavailable, match="nothing was stored") as err:
         r.geometry(held, P)  # a keyframe is never stored without its geometry
     assert err.value.status == 503 and err.value.code == "registration_failed"
+    assert err.value.headers["Retry-After"] == "1"  # every 503 says when to come back
     prepared = replace(held, reason=None, size=1000, failed=False)  # then the child died twice
     with pytest.raises(Unavailable, match="failed twice") as err:
         r.geometry(prepared, P)

@@ -98,8 +98,15 @@ class NotReady(ServiceError):
 
 
 class Unavailable(ServiceError):
+    """503: a part the answer needs is down, full or busy. Every 503 says when to come back
+    (Retry-After), so a client backs off by the server's word, not its own guess."""
+
     status = 503
     code = "unavailable"
+
+    def __init__(self, message: str, *, retry_after_s: int = 1, **detail: Any) -> None:
+        super().__init__(message, **detail)
+        self.headers["Retry-After"] = str(retry_after_s)
 
 
 class Timeout(ServiceError):

@@ -126,11 +126,18 @@ class Registration:
     reach: float | None = None  # share within GICP's reach at the seed (``register``'s screen)
 
 
+# points farther than this (m) are no sensor's returns: left out of registration
+FAR_M = 10_000.0
+
+
 def prepare(xyz: np.ndarray, p: RegistrationParams) -> Prepared:
     """The query's side, once per query: its voxel grid with covariances."""
     pts = np.asarray(xyz[:: max(1, p.stride), :3], dtype=np.float64)
-    if not np.isfinite(pts).all():  # the common case checks in one flat pass
-        pts = pts[np.isfinite(pts).all(axis=1)]
+    with np.errstate(invalid="ignore"):  # the common case checks in one flat pass
+        ok = np.isfinite(pts).all() and (len(pts) == 0 or float(np.abs(pts).max()) < FAR_M)
+    if not ok:  # beyond any sensor's reach small_gicp's voxel keys overflow, one log line each
+        with np.errstate(invalid="ignore"):
+            pts = pts[np.isfinite(pts).all(axis=1) & (np.abs(pts).max(axis=1) < FAR_M)]
     cloud = small_gicp.voxelgrid_sampling(pts, p.voxel, 1)
     if cloud.size() < p.min_points:
         return Prepared(

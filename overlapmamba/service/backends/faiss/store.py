@@ -147,7 +147,11 @@ def storage_full(err: BaseException, what: str) -> Unavailable | None:
         isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
     ):
         return None
-    return Unavailable(f"{what}: {err}; free disk space under the data folder", code="storage_full")
+    return Unavailable(  # freeing disk takes an operator: not a retry within the second
+        f"{what}: {err}; free disk space under the data folder",
+        code="storage_full",
+        retry_after_s=30,
+    )
 
 
 class Store:
