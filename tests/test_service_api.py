@@ -11,6 +11,7 @@ import math
 import os
 import re
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -251,6 +252,34 @@ async def test_maps_keyframes_queries_and_stats(any_backend, encoder):
         assert (
             'map="town"' not in metrics and "town" not in (await c.get("/v1/stats")).json()["maps"]
         )
+
+
+async def test_a_query_under_way_when_its_map_is_deleted_brings_back_no_series(
+    any_backend, encoder, monkeypatch
+):
+    """The query's search has let go of the map when the DELETE takes it; the query then
+    finishes. Its counts must not bring back the deleted map's statistics and /metrics
+    series (maps made and deleted a mission each would grow them for ever)."""
+    from overlapmamba.service import places
+
+    slow = places.rerank_matches
+
+    def rerank_after_a_while(*args, **kwargs):  # in the worker thread, the map let go
+        time.sleep(0.4)
+        return slow(*args, **kwargs)
+
+    monkeypatch.setattr(places, "rerank_matches", rerank_after_a_while)
+    async with running(any_backend, encoder) as c:
+        assert (await c.put("/v1/maps/mission")).status_code == 201
+        desc = [1.0] + [0.0] * 255
+        query = asyncio.create_task(c.post("/v1/maps/mission/query", json={"descriptor": desc}))
+        await asyncio.sleep(0.15)
+        assert (await c.delete("/v1/maps/mission")).status_code == 204
+        assert (await query).status_code in (200, 404)
+        metrics = (await c.get("/metrics")).text
+        assert 'map="mission"' not in metrics, [x for x in metrics.splitlines() if "mission" in x]
+        assert "mission" not in (await c.get("/v1/stats")).json()["maps"]
+        assert "mission" not in c.app.state.service.stats.by_map  # type: ignore[attr-defined]
 
 
 async def test_keyframe_batches_check_model_and_values(any_backend, encoder):

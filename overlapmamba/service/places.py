@@ -106,7 +106,9 @@ class PlaceService:
         been a robot's last, which ``insert=auto`` measures its next keyframe from."""
         await in_thread(m.delete, keyframe_id)
         self.keyframing.forget(m.map_id)
-        self.stats.p_keyframes.labels(m.map_id).set(await in_thread(lambda: m.count))
+        count = await in_thread(lambda: m.count)
+        if not m.retired:
+            self.stats.p_keyframes.labels(m.map_id).set(count)
         m.maintain()
 
     def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
@@ -166,13 +168,14 @@ class PlaceService:
         results = await in_thread(m.insert, rows)
         created = sum(r.created for r in results)
         if created:
-            self.stats.insert(m.map_id, robot, created)
             count = await in_thread(lambda: m.count)
-            self.stats.p_keyframes.labels(m.map_id).set(count)
-            for r in results:
-                if r.created:
-                    kf = r.keyframe
-                    self.keyframing.remember(m.map_id, kf.robot_id, kf.timestamp, kf.pose)
+            if not m.retired:  # a map deleted meanwhile: its forgotten counts stay forgotten
+                self.stats.insert(m.map_id, robot, created)
+                self.stats.p_keyframes.labels(m.map_id).set(count)
+                for r in results:
+                    if r.created:
+                        kf = r.keyframe
+                        self.keyframing.remember(m.map_id, kf.robot_id, kf.timestamp, kf.pose)
         m.maintain()
         return results
 
@@ -333,7 +336,8 @@ class PlaceService:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
         if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
             closure = self._verified_closure(matches[:n_verify], closure)
-        self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
+        if not m.retired:  # a map deleted meanwhile: its forgotten counts stay forgotten
+            self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)
 
     def _unverified_call(self, matches: list[Match]) -> LoopClosure:
@@ -402,6 +406,8 @@ class PlaceService:
             hits = [x.keyframe for x in answer.matches if x.keyframe.keyframe_id == lc.keyframe_id]
             to = hits[0] if hits else await in_thread(m.get, lc.keyframe_id)  # below k
         closure = to.pose if to is not None else None
+        if m.retired:
+            return
         self.overview.observed(
             m.map_id, obs.robot_id, obs.pose, closure, lc.keyframe_id, lc.verified
         )

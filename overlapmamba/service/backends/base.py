@@ -157,6 +157,11 @@ class PlaceMap(Protocol):
     @property
     def count(self) -> int: ...  # live keyframes the index holds
 
+    # deleted (or closed) since this handle was opened, in this process: a request that
+    # ran on it records no statistics (they would bring back what its deletion forgot)
+    @property
+    def retired(self) -> bool: ...
+
     def insert(self, rows: list[NewKeyframe]) -> list[InsertResult]: ...
 
     def delete(self, keyframe_id: str) -> None: ...

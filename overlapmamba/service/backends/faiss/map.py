@@ -299,6 +299,10 @@ class FaissMap:
         self.store.close()
         self.row_cache.drop(self.token)
 
+    @property
+    def retired(self) -> bool:
+        return self.closed
+
     def check_open(self) -> None:
         if self.closed:
             raise NotFound(f"map {self.map_id!r} was deleted", code="map_not_found")

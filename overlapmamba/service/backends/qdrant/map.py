@@ -66,10 +66,14 @@ class QdrantMap:
         self._write = backend.write_lock(map_id)  # read-check-write atomic in this replica
         self._deletions = backend.deletions(map_id)  # as of this handle's opening
 
+    @property
+    def retired(self) -> bool:
+        return self.backend.deletions(self.map_id) != self._deletions
+
     def _check_live(self) -> None:
         """Under ``_write``: the map this handle opened was not deleted since (by this
         replica); its writes would land in a map created again under the same id."""
-        if self.backend.deletions(self.map_id) != self._deletions:
+        if self.retired:
             raise map_not_found(self.map_id)
 
     def _call(self, fn: Callable[[QdrantClient], T]) -> T:
