@@ -790,3 +790,26 @@ def test_a_compressed_pcd_that_inflates_past_the_decoded_limit_is_a_413():
         decode_scan(ScanBody(body, "application/x-pcd"), limits)
     assert lidar_status(err.value) == 413
     assert "allowed: at most 67108864 bytes" in str(err.value)
+
+
+def test_filter_columns_let_go_of_robot_and_session_ids_no_live_row_uses():
+    """A robot a mission, a session a run: ids that come and go must not grow the map's
+    memory for ever. A code is held while a live row uses it, then given to the next id,
+    and a filter on a gone id matches no live row."""
+    from overlapmamba.service.backends.faiss.columns import FilterColumns
+
+    c = FilterColumns()
+    for i in range(3000):  # each row its own robot and session, inserted then deleted
+        c.add(np.array([i]), [(f"robot-{i}", f"session-{i}", float(i))])
+        c.remove(np.array([i]))
+    assert c.codes == 0
+    c.add(np.array([3000, 3001]), [("b", "s", 1.0), ("b", "s", 2.0)])
+    assert c.lookup("robot-0") == -1 and c.codes == 2  # the recycled code is b's alone
+    c.remove(np.array([3000]))
+    assert c.lookup("b") >= 0  # row 3001 still uses it
+    c.remove(np.array([3001]))
+    c.remove(np.array([3001]))  # twice: let go once
+    assert c.codes == 0 and not c.alive.any()
+    c.add(np.array([5]), [("r", "s", 0.0)])
+    c.add(np.array([5]), [("q", "s", 0.0)])  # a row written again gives back its old codes
+    assert c.lookup("r") == -1 and c.codes == 2
