@@ -436,6 +436,16 @@ def test_cli_exports_a_checkpoint(tmp_path):
         res = runner.invoke(app, ["export", str(src), "--views", "2", "--out", str(two)])
         assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
     assert read_metadata(two) == meta  # a refused rewrite leaves the target as it was
+    # a chain whose late step fails (the towns a reduction is fitted on do not open): --out
+    # is left as it was, or not made, never a file of the steps before that looks whole
+    reduce = ["--views", "1", "--reduce", "8", "--fit-on", str(tmp_path / "nowhere")]
+    for target in (two, tmp_path / "new.onnx"):
+        res = runner.invoke(
+            app, ["export", str(tmp_path / "m.onnx"), "--out", str(target), *reduce]
+        )
+        assert res.exit_code == 2 and "does not exist" in res.output, res.output
+    assert read_metadata(two) == meta and not (tmp_path / "new.onnx").exists()
+    assert not list(tmp_path.glob("*.part.onnx")) and not list(tmp_path.glob(".*tmp*"))
 
 
 def test_an_exported_encoder_evaluates_like_its_network(exported, kitti_images, tmp_path):

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -317,34 +318,48 @@ def export_cmd(
             parse_reduction(reduce)
         except ValueError as err:
             raise typer.BadParameter(str(err), param_hint="--reduce") from None
+    # every step writes to one work file beside --out, renamed over it at the end: a step
+    # that fails (a town that does not open, a reduction the file cannot take) leaves --out
+    # as it was, never a file that looks whole
+    work = out_path.with_name(f"{out_path.stem}.part.onnx")
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
                 "an exported encoder keeps its weights as they are; --weights applies to a .pt",
                 param_hint="--weights",
             )
-        src = checkpoint
-        if strip:
-            without_first_stage(checkpoint, out_path)
-            src = out_path
-        if token_views > 1 or load_encoder(src)[1].graph_views > 1:
-            # the graph itself changes: traced anew from the file's recovered weights
-            with_token_views(src, out_path, token_views)
-            src = out_path
-        meta = with_views(src, out_path, views)
-        # back to the sensor's columns first, so that a bird's-eye input may follow
-        if column_phase == "sensor":
-            meta = with_column_phase(out_path, column_phase)
-        if sensor_input is not None:
-            meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
-        if column_phase == "aligned":
-            meta = with_column_phase(out_path, column_phase)
-        if stage is not None:
-            meta = with_first_stage(out_path, out_path, stage)
-        if reduce is not None:
-            from overlapmamba.train.reduce_head import reduce_file
+        try:
+            src = checkpoint
+            if strip:
+                without_first_stage(checkpoint, work)
+                src = work
+            if token_views > 1 or load_encoder(src)[1].graph_views > 1:
+                # the graph itself changes: traced anew from the file's recovered weights
+                with_token_views(src, work, token_views)
+                src = work
+            meta = with_views(src, work, views)
+            # back to the sensor's columns first, so that a bird's-eye input may follow
+            if column_phase == "sensor":
+                meta = with_column_phase(work, column_phase)
+            if sensor_input is not None:
+                meta = with_sensor_input(work, sensor_input)  # type: ignore[arg-type]
+            if column_phase == "aligned":
+                meta = with_column_phase(work, column_phase)
+            if stage is not None:
+                meta = with_first_stage(work, work, stage)
+            if reduce is not None:
+                from overlapmamba.train.reduce_head import reduce_file
 
-            meta = reduce_file(out_path, out_path, reduce, fit_on or [])
+                meta = reduce_file(
+                    work,
+                    work,
+                    reduce,
+                    fit_on or [],
+                    shown=f"{checkpoint} (as written for {out_path.name})",
+                )
+            os.replace(work, out_path)  # one rename: --out is whole or as it was
+        finally:
+            work.unlink(missing_ok=True)
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
@@ -356,19 +371,29 @@ def export_cmd(
     model, profile, ckpt = load_model(checkpoint)
     assert isinstance(model, OverlapMamba)  # load_model gives an encoder only for .onnx
     model = meeting_views(model, token_views)
-    res = export_onnx(model, profile, out_path, checkpoint=ckpt, weight_format=weights, views=views)
-    meta, v = res.metadata, res.verification
-    if sensor_input is not None and sensor_input != meta.sensor_input:
-        meta = with_sensor_input(out_path, sensor_input)  # type: ignore[arg-type]
-    if column_phase is not None and column_phase != meta.column_phase:
-        meta = with_column_phase(out_path, column_phase)
-    if stage is not None:
-        meta = with_first_stage(out_path, out_path, stage)
-    if reduce is not None:
-        from overlapmamba.train.reduce_head import reduce_file
+    try:
+        res = export_onnx(model, profile, work, checkpoint=ckpt, weight_format=weights, views=views)
+        meta, v = res.metadata, res.verification
+        if sensor_input is not None and sensor_input != meta.sensor_input:
+            meta = with_sensor_input(work, sensor_input)  # type: ignore[arg-type]
+        if column_phase is not None and column_phase != meta.column_phase:
+            meta = with_column_phase(work, column_phase)
+        if stage is not None:
+            meta = with_first_stage(work, work, stage)
+        if reduce is not None:
+            from overlapmamba.train.reduce_head import reduce_file
 
-        meta = reduce_file(out_path, out_path, reduce, fit_on or [])
-    table = Table(title=f"exported {res.path}", show_header=False)
+            meta = reduce_file(
+                work,
+                work,
+                reduce,
+                fit_on or [],
+                shown=f"{checkpoint} (as written for {out_path.name})",
+            )
+        os.replace(work, out_path)  # one rename: --out is whole or as it was
+    finally:
+        work.unlink(missing_ok=True)
+    table = Table(title=f"exported {out_path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),
         ("weights", f"{meta.weights}, large matrices {meta.weight_format}"),

@@ -251,7 +251,9 @@ def strip_reduction(g: onnx.GraphProto) -> None:
         node.input[:] = ["descriptor" if i == STAGE_OUTPUT else i for i in node.input]
 
 
-def reduce_file(src: Path | str, out: Path | str, spec: str, towns: list[Path]) -> EncoderMetadata:
+def reduce_file(
+    src: Path | str, out: Path | str, spec: str, towns: list[Path], *, shown: str | None = None
+) -> EncoderMetadata:
     """Fit the directions ``spec`` names (:func:`parse_reduction`: K, or K1+K2 split
     between a mixed first stage's network descriptor and its spectrum) on ``src``'s own
     descriptors of every scan of ``towns`` (as the file describes a scan: its views, columns
@@ -263,18 +265,24 @@ def reduce_file(src: Path | str, out: Path | str, spec: str, towns: list[Path]) 
     from overlapmamba.train.evaluate import describe_sequence
 
     src = Path(src)
+    name = shown or str(src)  # what messages call the file (the export's own work file is not)
     _, meta = load_encoder(src)
     try:
         dim, lead = parse_reduction(spec)
     except ValueError as err:
         raise ExportError(str(err)) from None
-    check_reducible(meta, src, dim)
+    check_reducible(meta, name, dim)
     if not towns:
         raise ExportError("a reduction is fitted on validation towns: give at least one")
+    if lead is not None and not FirstStage.parse(meta.first_stage).mix:
+        raise ExportError(  # said before any town is described
+            f"--reduce {spec}: a split reduction needs a mixed first stage; {name}'s "
+            f"descriptor is {meta.first_stage}"
+        )
+    sequences = [open_sequence(town) for town in towns]  # every town opens, before the work
     model, profile, _ = load_model(src)
     parts, fitted_on = [], {}
-    for town in towns:
-        seq = open_sequence(town)
+    for town, seq in zip(towns, sequences, strict=True):
         desc, _ = describe_sequence(model, seq, profile)
         parts.append(desc)
         fitted_on[Path(town).name] = {"scans": len(desc), "data_sha256": _fingerprint(town)}
@@ -282,11 +290,6 @@ def reduce_file(src: Path | str, out: Path | str, spec: str, towns: list[Path]) 
     if lead is None:
         directions, kept = fit_directions(vectors, dim)
     else:
-        if not FirstStage.parse(meta.first_stage).mix:
-            raise ExportError(
-                f"--reduce {spec}: a split reduction needs a mixed first stage; {src}'s "
-                f"descriptor is {meta.first_stage}"
-            )
         own = int(meta.network["out_dim"])
         directions, kept = split_directions(vectors, own, lead, dim - lead)
     return with_reduction(src, out, directions, fitted_on, kept, lead)
