@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("embreex")
 
-from conftest import SMALL_MODEL, kitti_head, save_random_checkpoint, small_run  # noqa: E402
+from conftest import ROOT, SMALL_MODEL, kitti_head, save_random_checkpoint, small_run  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from overlapmamba.cli import app  # noqa: E402
@@ -177,6 +177,10 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
         ({"look_weight": -1}, "use look_weight ≥ 0"),
         ({"look_scans": 0}, r"1 ≤ look_scans ≤ batch_size \(16\)"),
         ({"init": "model.bin"}, "allowed are a checkpoint"),
+        ({"lr": float("inf")}, "lr must be finite"),
+        ({"alpha": float("nan")}, "alpha must be finite"),  # NaN passed every `x < 0` test
+        ({"margin": -0.5}, "margin must be ≥ 0"),
+        ({"revisit_fraction": 5.0}, "revisit_fraction must be within 0 … 1"),
     ],
 )
 def test_recipe_settings_are_checked_with_the_allowed_values(fields, message):
@@ -198,6 +202,35 @@ def test_cli_errors_are_one_line(args, message, tmp_path, monkeypatch):
     result = runner.invoke(app, args)
     assert result.exit_code == 2
     assert message in result.output
+
+
+def test_bad_inputs_to_train_and_eval_are_named_before_the_work(tmp_path, kitti_seq_dir):
+    """A config file that does not parse, an --init that is not ONNX, an eval whose outputs
+    cannot be written or whose sequence has no loop to score: one line, exit 2, no
+    traceback, and (for eval) said before minutes of work rather than after."""
+    from overlapmamba.train.train_config import load_config_file
+
+    for name, text, says in (
+        ("bad.json", "{bad", "is not valid JSON"),
+        ("bad.toml", "[train\n", "is not valid TOML"),
+        ("m5.toml", "model = 5\n", "section 'model' is int"),
+    ):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ConfigError, match=says):
+            load_config_file(tmp_path / name)
+    (tmp_path / "junk.onnx").write_text("not onnx")
+    init = ["--data", ".", "--val", ".", "--out", str(tmp_path / "r"), "--init"]
+    res = runner.invoke(app, ["train", *init, str(tmp_path / "junk.onnx"), "-q"])
+    assert res.exit_code == 2 and "is not an ONNX file" in res.output, res.output
+    shipped = str(ROOT / "models" / "overlapmamba-hdl64.onnx")
+    ev = ["eval", "--checkpoint", shipped, "--sequence", str(kitti_seq_dir), "-q"]
+    res = runner.invoke(app, [*ev, "--plot", str(tmp_path / "pr.txt")])
+    assert res.exit_code == 2 and "allowed plot formats" in " ".join(res.output.split())
+    res = runner.invoke(app, [*ev, "--json", str(tmp_path)])
+    assert res.exit_code == 2 and "is a folder" in res.output, res.output
+    res = runner.invoke(app, [*ev, "--json", str(tmp_path / "e.json")])  # frames 0–100
+    assert res.exit_code == 2 and "has no loop closure" in " ".join(res.output.split())
+    assert not (tmp_path / "e.json").exists()
 
 
 def test_checkpoint_errors_name_the_problem(tmp_path):

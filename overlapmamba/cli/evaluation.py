@@ -110,7 +110,6 @@ def eval_cmd(
     A ROS recording is evaluated like a sequence: its odometry or /tf gives the poses, and the
     loop ground truth is computed from its scans and poses (the default protocol)."""
     check_torch()
-    import json
 
     from overlapmamba.core.datasets import open_recording
     from overlapmamba.train.evaluate import evaluate_checkpoint, plot_pr
@@ -122,6 +121,7 @@ def eval_cmd(
         )
 
     second = _second_stage(rerank)
+    _check_outputs(json_out, plot)  # before the evaluation's minutes, not after
     ev = evaluate_checkpoint(
         checkpoint,
         sequence,
@@ -192,12 +192,43 @@ def eval_cmd(
             tf=tf,
             json=json_out,
         )
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(ev.record, indent=2) + "\n")
+        _write_json(json_out, ev.record)
     if plot is not None and ev.results:
         plot_pr(ev.results, plot, f"{name}: loop closure" + (staged if second.on else ""))
     if json_out or plot:
         out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
+
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+def _check_outputs(json_out: Path | None, plot: Path | None) -> None:
+    """Where the results go, checked before the work that makes them."""
+    for path, hint in ((json_out, "--json"), (plot, "--plot")):
+        if path is not None and path.is_dir():
+            raise typer.BadParameter(f"{path} is a folder; give a file name", param_hint=hint)
+    if plot is not None and plot.suffix.lower() not in PLOT_SUFFIXES:
+        raise typer.BadParameter(
+            f"{plot.name}: allowed plot formats are {', '.join(PLOT_SUFFIXES)}",
+            param_hint="--plot",
+        )
+
+
+def _write_json(path: Path, record: dict[str, Any]) -> None:
+    """Strict JSON (never NaN), written whole or not at all (a killed run leaves no torn file
+    that a later reader takes for a result)."""
+    import json
+    import os
+
+    from overlapmamba.train.health import json_safe
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(json_safe(record), indent=2, allow_nan=False) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @command(
@@ -247,7 +278,6 @@ def eval_real_cmd(
     """Real scans: yaw invariance at random angles, odd→even retrieval, yaw-estimate error;
     with --beams, the same queries with fewer rings."""
     check_torch()
-    import json
 
     from overlapmamba.core.datasets import open_sequence
     from overlapmamba.train.checkpoint import load_model
@@ -257,6 +287,7 @@ def eval_real_cmd(
         counts = tuple(int(b) for b in beams.split(",")) if beams else ()
     except ValueError:
         raise typer.BadParameter(f"--beams {beams!r}: whole numbers, e.g. 32,16") from None
+    _check_outputs(json_out, None)
     model, profile, _ = load_model(checkpoint)
     seq = open_sequence(sequence, **({"sensor": _known_sensor(sensor)} if sensor else {}))
     second = _second_stage(rerank)
@@ -339,7 +370,7 @@ def eval_real_cmd(
             json=json_out,
         )
         record = {"command": cmd, "checkpoint": str(checkpoint), **r}
-        json_out.write_text(json.dumps(record, indent=2) + "\n")
+        _write_json(json_out, record)
         out.print(f"wrote {json_out}")
 
 

@@ -23,6 +23,7 @@ import torch
 
 from overlapmamba.core.anatomy import errors_at_f1max
 from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.metrics import (
     LoopClosureResult,
     evaluate_loop_closure,
@@ -384,6 +385,12 @@ def evaluate_checkpoint(
     results: dict[str, LoopClosureResult] = {}
     if db is None or (seq.root / "ground_truth" / "loops.npz").is_file():
         gt = sequence_loops(seq, profile, progress=progress)
+        if db is None and not gt.has_loop().any():  # every score would be NaN
+            raise DatasetError(
+                f"{seq.root} has no loop closure (no scan revisits a place seen earlier): "
+                "nothing to score; evaluate a sequence with revisits, or give --database "
+                "for places across sessions"
+            )
         desc, yaw = describe_sequence(model, seq, profile, progress=progress)
         results = loop_closure(desc, gt)
         record["metrics"] = summary(results)

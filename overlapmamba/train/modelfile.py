@@ -21,8 +21,15 @@ from overlapmamba.train.errors import ExportError
 
 
 def read_metadata(path: Path | str) -> EncoderMetadata:
-    """The metadata of an exported model, read without building an inference session."""
-    return metadata_of(onnx.load(str(path), load_external_data=False))
+    """The metadata of an exported model, read without building an inference session;
+    :class:`ExportError` when the file is not ONNX (a corrupt download, a .pt renamed)."""
+    try:
+        proto = onnx.load(str(path), load_external_data=False)
+    except FileNotFoundError:
+        raise ExportError(f"model {path} does not exist") from None
+    except Exception as err:  # protobuf raises its own classes
+        raise ExportError(f"{path} is not an ONNX file ({type(err).__name__}: {err})") from None
+    return metadata_of(proto)
 
 
 def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:

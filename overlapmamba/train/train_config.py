@@ -8,6 +8,7 @@ A config file has a ``[model]`` table (``OverlapMambaConfig`` fields), a ``[trai
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import ClassVar
@@ -121,6 +122,16 @@ class TrainConfig(Config):
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:
+        odd = [k for k, v in self.__dict__.items() if isinstance(v, float) and not math.isfinite(v)]
+        if odd:  # NaN passes every `x < 0` test below, and trains on NaN losses in silence
+            raise ConfigError(f"{', '.join(odd)} must be finite numbers, got NaN or infinity")
+        for name in ("alpha", "lam", "k_p", "k_n", "margin"):
+            value = getattr(self, name, None)
+            if isinstance(value, int | float) and value < 0:
+                raise ConfigError(f"{name} must be ≥ 0, got {value}")
+        fraction = getattr(self, "revisit_fraction", None)
+        if isinstance(fraction, int | float) and not 0 <= fraction <= 1:
+            raise ConfigError(f"revisit_fraction must be within 0 … 1, got {fraction}")
         if self.loss not in BATCH_LOSSES:
             raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
         names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")
@@ -244,16 +255,26 @@ def load_config_file(path: Path) -> tuple[dict, dict]:
     """``{"model": {...}, "train": {...}}`` from .json or .toml → (model dict, train dict)."""
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
-    text = path.read_text()
-    if path.suffix == ".json":
-        raw = json.loads(text)
-    elif path.suffix == ".toml":
-        import tomllib
+    import tomllib
 
-        raw = tomllib.loads(text)
-    else:
+    if path.suffix not in (".json", ".toml"):
         raise ConfigError(f"{path.name}: allowed config suffixes are .json and .toml")
+    try:
+        text = path.read_text(encoding="utf-8")
+        raw = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
+        raise ConfigError(
+            f"config file {path} is not valid {path.suffix[1:].upper()}: {err}"
+        ) from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config file {path} holds {type(raw).__name__}; allowed: a table")
     extra = sorted(set(raw) - {"model", "train"})
     if extra:
         raise ConfigError(f"{path}: unknown sections {extra}; allowed: model, train")
-    return dict(raw.get("model", {})), dict(raw.get("train", {}))
+    sections = {k: raw.get(k, {}) for k in ("model", "train")}
+    for key, value in sections.items():
+        if not isinstance(value, dict):
+            raise ConfigError(
+                f"{path}: section {key!r} is {type(value).__name__} {value!r}; allowed: a table"
+            )
+    return dict(sections["model"]), dict(sections["train"])
