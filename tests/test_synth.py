@@ -542,6 +542,7 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
     assert "Synthetic sequence" in res.output and "scans/s" in res.output
     assert len(open_sequence(out)) == 4
     assert read_manifest(out)["config"]["sensor"] == "hdl32"
+    assert not (out / ".incomplete").exists() and not (out / ".manifest.json.tmp").exists()
     again = CliRunner().invoke(app, [*args, "-q"])
     assert again.exit_code == 2 and "is not empty" in _plain(again.output)
 
@@ -575,6 +576,7 @@ def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
 
     import overlapmamba.synth.generate as gen
     from overlapmamba.cli import app
+    from overlapmamba.core.errors import DatasetError
     from overlapmamba.synth.workers import WorkerError
 
     def dies(*args, **kwargs):
@@ -588,6 +590,12 @@ def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):
     assert res.exit_code == 1
     assert "died while running scan 2" in _plain(res.output)
     assert "is incomplete: delete it" in _plain(res.output)
+    # what it left is never read as a sequence (its marker says it did not finish)
+    with pytest.raises(DatasetError, match="never finished"):
+        open_sequence(out)
+    (tmp_path / "a-file").write_text("")
+    res = CliRunner().invoke(app, ["gen-data", str(tmp_path / "a-file" / "seq"), *args[2:]])
+    assert res.exit_code == 2 and "Not a directory" in _plain(res.output), res.output
 
 
 def test_a_second_session_drives_the_same_town_with_other_cars_and_route():

@@ -346,6 +346,8 @@ def gen_data(
         )
     except FileExistsError as err:
         raise typer.BadParameter(str(err)) from None
+    except OSError as err:  # a file where a folder should be, no permission, a full disk
+        raise typer.BadParameter(f"{out_dir}: {err.strerror or err}") from None
     except WorkerError as err:
         console.print(f"[bold red]error:[/] {err} ({out_dir} is incomplete: delete it)")
         raise typer.Exit(1) from None

@@ -203,6 +203,10 @@ def _stats(world: World, drive: Drive, counts: np.ndarray, table, loops, cfg: Ge
     return stats
 
 
+# the marker of a sequence folder gen-data is still writing (or was killed writing)
+INCOMPLETE = ".incomplete"
+
+
 def data_fingerprint(out: Path) -> str:
     """sha256 over poses and every scan: identifies the data a model was trained on."""
     h = hashlib.sha256()
@@ -255,6 +259,9 @@ def generate(
     if out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} is not empty; choose a new folder for the sequence")
     out.mkdir(parents=True, exist_ok=True)
+    # until the manifest is whole, the folder says it is not (a run killed between the scans
+    # and the manifest leaves a folder every reader would otherwise take for a sequence)
+    (out / INCOMPLETE).write_text("gen-data under way; if no run is, delete this folder\n")
     t0 = time.perf_counter()
     world, drive, dynamics = build_scene(cfg)
     t_world = time.perf_counter() - t0
@@ -303,7 +310,10 @@ def generate(
         "counts": _stats(world, drive, counts, table, loops, cfg),
         "data_sha256": data_fingerprint(out),
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    tmp = out / ".manifest.json.tmp"
+    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, out / "manifest.json")
+    (out / INCOMPLETE).unlink()
     manifest["timing_s"] = {
         "world": t_world,
         "simulate": t_sim,

@@ -32,7 +32,7 @@ from overlapmamba.synth.workers import DEFAULT_STALL_TIMEOUT_S, run_jobs
 
 def _overlap_chunk(args) -> tuple[np.ndarray, np.ndarray]:
     root, sensor, pairs = args
-    seq = open_sequence(root, kind="kitti", sensor=sensor)
+    seq = open_sequence(root, kind="kitti", sensor=sensor, unfinished=True)
     return pair_overlaps(seq, pairs, get_profile(sensor), progress=False)
 
 
@@ -49,7 +49,7 @@ def compute_ground_truth(
     With ``pair_table="loops"`` only the loop table's candidates are computed (pairs more than
     ``loop_exclude`` frames apart): the same loop table, without the neighbouring frames that
     only training samples from."""
-    seq = open_sequence(out, kind="kitti", sensor=cfg.sensor)
+    seq = open_sequence(out, kind="kitti", sensor=cfg.sensor, unfinished=True)
     profile = get_profile(cfg.sensor)
     min_gap = 1 if cfg.pair_table == "all" else cfg.loop_exclude + 1
     pairs = candidate_pairs(seq.positions(), radius=cfg.gt_radius, min_gap=min_gap)

@@ -58,11 +58,19 @@ def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
     return None if level and abs(mount.height - REFERENCE_HEIGHT) < 1e-6 else mount
 
 
-def open_kitti(root: str | Path, *, sensor: str | None = None) -> Sequence:
+def open_kitti(
+    root: str | Path, *, sensor: str | None = None, unfinished: bool = False
+) -> Sequence:
     """``sensor``: the catalogue sensor the scans come from; None: what the folder's
     ``manifest.json`` says (a synthetic drive records its sensor), else KITTI's HDL-64E. The
     sequence's ``mount`` is the manifest's mounting where it is not the reference."""
     root = Path(root)
+    # overlapmamba.synth.generate.INCOMPLETE; ``unfinished``: the generator's own reads
+    if not unfinished and (root / ".incomplete").exists():
+        raise DatasetError(
+            f"{root} is a gen-data output that never finished (its .incomplete marker is "
+            "there: the run was killed, or is still going): delete it and generate again"
+        )
     manifest = _manifest(root)
     if sensor is None:
         sensor = _manifest_sensor(manifest) or "kitti-hdl64"
