@@ -156,6 +156,9 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
             small_run(),
             progress=False,
         )
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(ConfigError, match="is a file; a run is written into a folder"):
+        train([tiny_seq], tiny_val_seq, tmp_path / "a-file", cfg, small_run(), progress=False)
     with pytest.raises(ConfigError, match="unknown loss"):
         TrainConfig(loss="contrastive")
     with pytest.raises(ConfigError, match="unknown training fields"):

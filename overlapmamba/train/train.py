@@ -124,6 +124,8 @@ def train(
         train_cfg = TrainConfig.from_dict(state["train"]["config"])
     elif last.is_file():
         raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
+    if out.exists() and not out.is_dir():  # found at the first checkpoint, after the set-up
+        raise ConfigError(f"--out {out} is a file; a run is written into a folder")
     train_cfg = train_cfg or TrainConfig()
     if state is None and train_cfg.init:
         model_cfg = start_config(train_cfg, model_cfg)
