@@ -114,9 +114,8 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
 
 @pytest.mark.timeout(300)
 def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tmp_path):
-    """The same four scans and poses as a KITTI folder and as a ROS 1 bag: the same numbers."""
+    """The same four scans and poses as a KITTI folder and as a ROS 1 bag: read alike."""
     pytest.importorskip("torch")
-    import json
 
     from conftest import SMALL_MODEL, save_random_checkpoint
     from typer.testing import CliRunner
@@ -134,13 +133,16 @@ def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tm
     runner = CliRunner()
     base = ["eval", "--checkpoint", str(ckpt), "-q", "--json"]
     res = runner.invoke(app, [*base, str(tmp_path / "a.json"), "--sequence", str(folder)])
-    assert res.exit_code == 0, res.output
+    # 4 scans hold no loop: eval reads both to the loop table and says so alike (it used to
+    # report all-NaN metrics), so also what eval computed from each: the same range images,
+    # the same positions
+    flat = " ".join(res.output.split())
+    assert res.exit_code == 2 and "kitti4 has no loop closure" in flat, res.output
     bag = ["--sequence", str(paths["ros1.bag"]), "--tf", "map"]  # poses from /tf
     res = runner.invoke(app, [*base, str(tmp_path / "b.json"), *bag])
-    assert res.exit_code == 0, res.output
-    a, b = (json.loads((tmp_path / f"{n}.json").read_text())["metrics"] for n in "ab")
-    assert a == b and a["all"]["queries"] == 0  # 4 scans hold no loop: the numbers are thin,
-    # so also what eval computed from each: the same range images, the same positions
+    flat = " ".join(res.output.split())
+    assert res.exit_code == 2 and "has no loop closure" in flat, res.output
+    assert not list(tmp_path.glob("*.json"))
     from overlapmamba.train.checkpoint import load_model
     from overlapmamba.train.rangecache import range_images
 
