@@ -213,3 +213,20 @@ def test_a_stream_whose_server_takes_no_data_gives_up_after_the_write_timeout(ki
     # buffers: how much a socket takes is the kernel's to size)
     sent = err.unanswered  # type: ignore[attr-defined]
     assert sent == list(range(len(sent))) and len(sent) < len(obs)
+
+
+def test_a_refused_stream_handshake_says_the_servers_status_and_error():
+    """The server refuses a stream's handshake as a route answers (its status and JSON
+    error): the client's ConnectError carries both, not websockets' bare 'HTTP 404'."""
+    from websockets.datastructures import Headers
+    from websockets.exceptions import InvalidStatus
+    from websockets.http11 import Response
+
+    from overlapmamba.client._stream import stream_failure
+
+    body = b'{"error": {"code": "map_not_found", "message": "map \'x\' does not exist"}}'
+    err = stream_failure(InvalidStatus(Response(404, "Not Found", Headers(), body)), [])
+    assert isinstance(err, ConnectError)
+    assert "404 map_not_found: map 'x' does not exist" in str(err), err
+    bare = stream_failure(InvalidStatus(Response(403, "Forbidden", Headers(), b"")), [])
+    assert "403" in str(bare)

@@ -158,3 +158,65 @@ async def test_a_k_past_the_servers_limit_closes_the_handshake(tmp_path, encoder
         (closed,) = await _stream(app, "/v1/maps/m/stream", "robot_id=r1&k=500", [], 1)
     assert closed["closed"] == 1008, closed
     assert "k=500" in closed["reason"] and "1 to 100" in closed["reason"], closed
+
+
+async def test_a_frame_nested_past_the_parsers_depth_is_answered_and_the_stream_goes_on(
+    tmp_path, encoder
+):
+    """Thousands of nested brackets: pydantic refuses the frame, and reading its seq for the
+    answer hit Python's recursion limit, which killed the stream's handler (no answer, no
+    close frame, every later observation lost)."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        body = scan(0).tobytes()
+        deep = '{"seq": 2, "timestamp": 2, "pose": ' + "[" * 5000 + "]" * 5000 + "}"
+        frames = [
+            {"type": "websocket.receive", "text": deep},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": json.dumps({"seq": 3, "timestamp": 3.0})},
+            {"type": "websocket.receive", "bytes": body},
+        ]
+        app = c.app  # type: ignore[attr-defined]
+        bad, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+    assert bad["ok"] is False and bad["status"] == 400, bad
+    assert good["seq"] == 3 and good["ok"] is True, good
+
+
+async def test_a_map_deleted_and_made_again_under_an_open_stream_is_the_new_one(tmp_path, encoder):
+    """The stream looked its map up once: deleted, its observations were 404 for good, even
+    once a map of that id was made again. Each observation now takes the map of its id."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+        body = scan(0).tobytes()
+        inbox: asyncio.Queue[dict] = asyncio.Queue()
+        answers: asyncio.Queue[dict] = asyncio.Queue()
+
+        async def send(message: dict) -> None:
+            if message["type"] == "websocket.send":
+                answers.put_nowait(json.loads(message["text"]))
+
+        inbox.put_nowait({"type": "websocket.connect"})
+        task = asyncio.create_task(
+            app(ws_scope("/v1/maps/m/stream", "robot_id=r1"), inbox.get, send)
+        )
+
+        async def observe(seq: int) -> dict:
+            meta = {"seq": seq, "timestamp": float(seq), "insert": "always"}
+            inbox.put_nowait({"type": "websocket.receive", "text": json.dumps(meta)})
+            inbox.put_nowait({"type": "websocket.receive", "bytes": body})
+            return await asyncio.wait_for(answers.get(), timeout=60)
+
+        try:
+            assert (await observe(1))["ok"] is True
+            assert (await c.delete("/v1/maps/m")).status_code == 204
+            gone = await observe(2)
+            assert gone["ok"] is False and gone["status"] == 404, gone
+            assert (await c.put("/v1/maps/m")).status_code == 201
+            again = await observe(3)
+            assert again["ok"] is True and again["inserted"] is True, again
+            assert (await c.get("/v1/maps/m")).json()["keyframes"] == 1
+        finally:
+            inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(task, timeout=10)

@@ -73,7 +73,7 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
         why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
         out = TransportError(f"the stream closed ({why}){lost}")
     elif isinstance(err, InvalidHandshake):
-        out = ConnectError(f"the server refused the stream: {err}{lost}")
+        out = ConnectError(f"the server refused the stream: {_refusal(err)}{lost}")
     elif isinstance(err, TimeoutError):
         out = Timeout(f"{err or 'no answer in time'} on the stream{lost}")
     elif isinstance(err, (ConnectionError, socket.gaierror, socket.herror)) or (
@@ -84,6 +84,18 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
         return None
     out.unanswered = left  # type: ignore[attr-defined]
     return out
+
+
+def _refusal(err: Exception) -> str:
+    """A refused handshake as the server said it: its status and JSON error (code and
+    message), as an HTTP route's answer reads, where it sent one."""
+    response = getattr(err, "response", None)
+    status = getattr(response, "status_code", None)
+    try:
+        error = json.loads(getattr(response, "body", b"") or b"")["error"]
+        return f"{status} {error['code']}: {error['message']}"
+    except (ValueError, KeyError, TypeError):
+        return str(err)
 
 
 def send_timeout(seconds: float) -> TimeoutError:

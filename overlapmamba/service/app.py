@@ -403,5 +403,8 @@ def run(settings: Settings) -> None:
         access_log=False,  # GuardMiddleware writes the access lines, with request ids
         log_level=settings.log_level,
         timeout_graceful_shutdown=math.ceil(settings.limits.request_timeout_s),
+        # a stream's scan frame may be as large as an HTTP body (uvicorn's own cap, 16 MiB,
+        # closed the socket on a legal scan with 1009 and lost what was pending)
+        ws_max_size=settings.limits.max_body_bytes + (64 << 10),
     )
     _DrainingServer(config, app, settings.shutdown_delay_s).run()

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from overlapmamba.core.errors import LidarCoreError
@@ -43,7 +44,13 @@ from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount, read_scan
 from overlapmamba.service.deps import CanEncode, ServiceDep
 from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
-from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
+from overlapmamba.service.errors import (
+    BadRequest,
+    NotReady,
+    ServiceError,
+    error_body,
+    lidar_status,
+)
 from overlapmamba.service.places import Answer, Observation, Observed
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.schemas import (
@@ -315,7 +322,7 @@ def _seq_of(text: str) -> Any:
     robot's answer carries it); None where the frame is not a JSON object."""
     try:
         frame = json.loads(text)
-    except ValueError:
+    except (ValueError, RecursionError):  # a frame nested past the parser's depth
         return None
     seq = frame.get("seq") if isinstance(frame, dict) else None
     return seq if _finite(seq) else None
@@ -326,6 +333,21 @@ def _invalid(err: ValidationError) -> str:
     where = ".".join(str(p) for p in first["loc"])
     field = f" (field {where!r})" if where else ""
     return f"metadata frame is not valid{field}: {first['msg']}: this observation was not made"
+
+
+async def _refuse(websocket: WebSocket, err: ServiceError) -> None:
+    """The handshake refused as an HTTP route answers (status, JSON error, Retry-After),
+    where the server can send a response instead of the upgrade (uvicorn can: a close
+    before the accept reached a client as a bare 403); else closed with 1013 (try again
+    later) for a 503 and 1008 for the rest, the reason naming the code."""
+    if "websocket.http.response" in websocket.scope.get("extensions", {}):
+        body = error_body(err.code, err.message, err.detail)
+        await websocket.send_denial_response(
+            JSONResponse(body, status_code=err.status, headers=err.headers)
+        )
+        return
+    code = 1013 if err.status == 503 else 1008
+    await websocket.close(code=code, reason=f"{err.code}: {err.message}"[:120])
 
 
 @router.websocket("/stream")
@@ -343,7 +365,7 @@ async def stream(
     svc = getattr(app.state, "service", None)
     try:
         if svc is None or not app.state.ready:
-            raise ServiceError("the service is starting", code="not_ready")
+            raise NotReady("the service is starting: retry when /readyz says ready")
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
         svc.sensors.check(sensor)
@@ -351,13 +373,14 @@ async def stream(
         stream_mount = parse_mount(mount)
         m = await svc.open_map(map_id)
     except ServiceError as err:
-        await websocket.close(code=1008, reason=f"{err.code}: {err.message}"[:120])
+        await _refuse(websocket, err)
         return
     await websocket.accept()
     limit = svc.settings.observe.stream_queue
     queue: asyncio.Queue[tuple[Any, bytes | None, str | None] | None] = asyncio.Queue()
 
     async def process() -> None:
+        nonlocal m
         while (item := await queue.get()) is not None:
             meta, scan, problem = item
             seq = meta.seq if isinstance(meta, StreamMeta) else meta
@@ -381,6 +404,8 @@ async def stream(
                     sensor=svc.sensors.check(meta.sensor) or sensor,
                     mount=parse_mount(meta.mount) if meta.mount is not None else stream_mount,
                 )
+                if m.retired:  # deleted since the stream opened: the map of that id now,
+                    m = await svc.open_map(map_id)  # if it was made again (else 404)
                 o = await svc.observe(m, body, obs)
                 msg = {"seq": seq, "ok": True, **observe_out(o).model_dump(mode="json")}
             except ServiceError as err:
