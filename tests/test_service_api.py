@@ -1014,3 +1014,33 @@ async def test_a_file_with_aligned_columns_answers_a_turned_scan_with_its_turn(s
         best = r.json()["matches"][0]
         assert best["keyframe_id"] == "k2" and best["similarity"] > 0.9999
         assert abs(best["yaw_deg"] - turn) < 0.1, best
+
+
+async def test_a_start_up_that_failed_says_so_on_every_probe(tmp_path, encoder):
+    """Loading the maps failed (here: the maps folder is a file): /readyz said "loading"
+    with Retry-After for ever and /healthz 200, so nothing restarted the process. Now
+    /readyz says failed (no Retry-After: waiting will not help), /healthz 503 (a liveness
+    probe restarts it), and the routes name the failure."""
+    import httpx
+
+    from overlapmamba.service.app import create_app
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "maps").write_text("not a folder")
+    app = create_app(Settings(data_dir=data), encoder=encoder)
+    async with app.router.lifespan_context(app):
+        for _ in range(500):
+            if str(app.state.stage).startswith("failed"):
+                break
+            await asyncio.sleep(0.01)
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            ready = await c.get("/readyz")
+            assert ready.status_code == 503 and ready.json()["status"] == "failed", ready.text
+            assert "retry-after" not in ready.headers
+            health = await c.get("/healthz")
+            assert health.status_code == 503 and health.json()["status"] == "failed"
+            stats = await c.get("/v1/stats")
+            assert stats.status_code == 503 and err(stats)["code"] == "start_failed"
+            assert "restart" in err(stats)["message"]

@@ -13,14 +13,21 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from overlapmamba.service.auth import Action, Authenticator, Principal, presented_key
-from overlapmamba.service.errors import NotReady
+from overlapmamba.service.errors import NotReady, Unavailable
 from overlapmamba.service.places import PlaceService
 
 
 async def get_service(request: Request) -> PlaceService:
     svc: PlaceService | None = getattr(request.app.state, "service", None)
     if svc is None or not request.app.state.ready:
-        raise NotReady("the service is starting: the model or the map indexes are still loading")
+        stage = getattr(request.app.state, "stage", "starting")
+        if str(stage).startswith("failed"):
+            raise Unavailable(  # not NotReady: it will not be ready, however long one waits
+                f"the service's start-up {stage}; see its log, fix it and restart it",
+                code="start_failed",
+                retry_after_s=30,
+            )
+        raise NotReady(f"the service is starting ({stage}): retry when /readyz says ready")
     return svc
 
 

@@ -19,9 +19,28 @@ from overlapmamba.service.threads import in_thread
 router = APIRouter(tags=["system"])
 
 
-@router.get("/healthz", response_model=Health, summary="The process is alive")
-async def healthz() -> Health:
-    return Health(status="ok")
+def _failed(state: Any) -> str | None:
+    """Why the start-up failed for good (loading the maps raised), or None: the service
+    will not become ready by waiting, and its probes say so."""
+    stage = str(getattr(state, "stage", ""))
+    return stage if stage.startswith("failed") else None
+
+
+@router.get(
+    "/healthz",
+    response_model=Health,
+    responses={503: {"description": "the start-up failed: restart the process"}},
+    summary="The process is alive",
+)
+async def healthz(request: Request) -> Response:
+    """200 while the process can serve or is getting there; 503 once its start-up has
+    failed for good (a liveness probe then restarts it, rather than wait on a process
+    that will never be ready)."""
+    failed = _failed(request.app.state)
+    if failed is not None:
+        body = Health(status="failed", detail={"stage": failed}).model_dump()
+        return JSONResponse(body, status_code=503)
+    return JSONResponse(Health(status="ok").model_dump())
 
 
 @router.get(
@@ -36,6 +55,11 @@ async def readyz(request: Request) -> Response:
         return JSONResponse(
             Health(status="draining", detail={"stage": "shutting down"}).model_dump(),
             status_code=503,
+        )
+    failed = _failed(state)
+    if failed is not None:  # waiting will not help: no Retry-After
+        return JSONResponse(
+            Health(status="failed", detail={"stage": failed}).model_dump(), status_code=503
         )
     if not getattr(state, "ready", False):
         return JSONResponse(
