@@ -1044,3 +1044,44 @@ async def test_a_start_up_that_failed_says_so_on_every_probe(tmp_path, encoder):
             stats = await c.get("/v1/stats")
             assert stats.status_code == 503 and err(stats)["code"] == "start_failed"
             assert "restart" in err(stats)["message"]
+
+
+async def test_a_client_gone_before_its_body_is_in_is_no_server_error(settings, encoder, caplog):
+    """A robot whose link drops in the middle of its scan's body: the request was a 500
+    with an 'unhandled error' traceback in the log; it is the client's doing, logged at
+    info and counted as 499."""
+    import logging
+
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/q")).status_code == 201
+        chunks = iter([{"type": "http.request", "body": b"\0" * 1600, "more_body": True}])
+
+        async def receive() -> dict:
+            return next(chunks, {"type": "http.disconnect"})
+
+        sent: list[dict] = []
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        scope = {
+            "type": "http",
+            "asgi": {"version": "3.0"},
+            "http_version": "1.1",
+            "method": "POST",
+            "scheme": "http",
+            "path": "/v1/maps/q/observe",
+            "raw_path": b"/v1/maps/q/observe",
+            "query_string": b"robot_id=r1&timestamp=1",
+            "root_path": "",
+            "headers": [(b"content-type", b"application/octet-stream")],
+            "client": ("127.0.0.1", 5),
+            "server": ("test", 80),
+            "state": {},
+        }
+        with caplog.at_level(logging.INFO):
+            await c.app(scope, receive, send)  # type: ignore[attr-defined]
+        assert [m.get("status") for m in sent if m["type"] == "http.response.start"] == [499]
+        assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+        metrics = (await c.get("/metrics")).text
+        assert 'route="/v1/maps/{map_id}/observe",status="499"' in metrics

@@ -20,6 +20,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from overlapmamba.core.errors import LidarCoreError
@@ -313,6 +314,15 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
             err.status_code, "http_error"
         )
         return _error(err.status_code, code, str(err.detail), None, getattr(err, "headers", None))
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, _: ClientDisconnect) -> JSONResponse:
+        # the client closed the connection before its body was in: no fault of ours (it
+        # was a 500 with a traceback); nginx's 499, which no one will read
+        log.info(
+            "%s %s: the client went away before its body was read", request.method, request.url.path
+        )
+        return _error(499, "client_closed_request", "the client closed the connection")
 
     @app.exception_handler(Exception)
     async def internal_error(_: Request, err: Exception) -> JSONResponse:
