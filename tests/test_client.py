@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 import overlapmamba.client as client
 from overlapmamba.client import (
     NO_RETRY,
+    APIError,
     AsyncPlaceRecognitionClient,
     BadRequestError,
     ConflictError,
@@ -623,3 +624,144 @@ def test_a_delete_whose_answer_was_lost_is_done_when_its_retry_finds_nothing():
             assert await pr.delete_keyframe("town", "kf-1") is None
 
     asyncio.run(run())
+    # a pool timeout never sent the first try: its retry's 404 is a real "not there"
+    never = [httpx.PoolTimeout("no free connection"), GONE]
+    with (
+        PlaceRecognitionClient(transport=_answering(never), retry=retry) as pr,
+        pytest.raises(NotFoundError),
+    ):
+        pr.delete_keyframe("town", "kf-1")
+
+
+def test_an_insert_or_observation_retried_after_a_lost_answer_says_it_may_be_its_own():
+    """The first try inserted and its answer was lost (a read timeout); the retry is told
+    "existing". The answer says it was a retry's (``retried``), and an observation's
+    ``keyframe`` is the one that earlier try made: the fleet and the CLI count it as theirs."""
+    retry = Retry(attempts=3, backoff_s=0.01)
+    kf = {
+        "keyframe_id": "r1:s:5.0",
+        "robot_id": "r1",
+        "session_id": "s",
+        "timestamp": 5.0,
+        "pose": None,
+        "created": False,
+    }
+    observed = {
+        "matches": [],
+        "loop_closure": {"accepted": False, "threshold": 0.3},
+        "timings_ms": {},
+        "inserted": False,
+        "keyframe_id": "r1:s:5.0",
+        "insert_reason": "existing",
+    }
+    for call, body in (("insert", kf), ("observe", observed)):
+        plan = [
+            httpx.ReadTimeout("no answer"),
+            (200, json.dumps(body).encode(), "application/json"),
+        ]
+        with PlaceRecognitionClient(transport=_answering(plan), retry=retry) as pr:
+            if call == "insert":
+                got = pr.insert_keyframe("town", scan(0), keyframe_id="r1:s:5.0", timestamp=5.0)
+                assert got.retried and got.created is False
+            else:
+                o = pr.observe("town", scan(0), robot_id="r1", session_id="s", timestamp=5.0)
+                assert o.retried and o.keyframe == "r1:s:5.0" and not o.inserted
+    # answered at the first try, "existing" is someone else's: not ours
+    plan = [(200, json.dumps(observed).encode(), "application/json")]
+    with PlaceRecognitionClient(transport=_answering(plan), retry=retry) as pr:
+        o = pr.observe("town", scan(0), robot_id="r1", session_id="s", timestamp=5.0)
+        assert not o.retried and o.keyframe is None
+
+
+def test_a_refused_observation_raised_names_those_sent_after_it(monkeypatch):
+    """errors="raise": observation 0 refused while 1 was in flight (the server takes it and
+    may insert it); the error says 1 was sent and not answered, as a socket failure's does.
+    An ``errors`` that is neither "raise" nor "return" is refused (it returned errors)."""
+    import websockets.sync.client as ws_client
+
+    sent: list[int] = []
+
+    class Sock:
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            self.read = 0
+
+        def __enter__(self) -> Sock:
+            return self
+
+        def __exit__(self, *args: object) -> None:
+            return None
+
+        def send(self, frame: str | bytes) -> None:
+            if isinstance(frame, str):
+                sent.append(json.loads(frame)["seq"])
+
+        def recv(self, timeout: float | None = None) -> str:
+            seq = sent[self.read]
+            self.read += 1
+            refused = {"code": "bad_scan", "message": "too few points"}
+            return json.dumps({"seq": seq, "ok": False, "status": 400, "error": refused})
+
+    monkeypatch.setattr(ws_client, "connect", Sock)
+    obs = [Observation(scan=scan(0), timestamp=float(t)) for t in range(3)]
+    with PlaceRecognitionClient("http://test") as pr:
+        with pytest.raises(APIError) as err:
+            list(pr.stream("town", obs, robot_id="r1", window=2))
+        assert err.value.unanswered == [1]  # type: ignore[attr-defined]
+        with pytest.raises(ValueError, match="errors must be 'raise' or 'return'"):
+            list(pr.stream("town", obs, robot_id="r1", errors="rasie"))
+
+
+def test_a_fleet_run_ends_at_its_duration_even_when_a_call_hangs(monkeypatch):
+    """A server that takes connections and never answers: the run asked for 1 s lasted as
+    long as the client's read timeout and retries (minutes with the defaults). A call still
+    waiting at the duration is cut there and counted as "duration"."""
+    import contextlib
+    import functools
+    import socket
+    import threading
+    import time
+
+    from overlapmamba.client import Timeouts, fleet
+    from overlapmamba.client._replay import Drive
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                held.append(server.accept()[0])
+
+    threading.Thread(target=accept, daemon=True).start()
+
+    class Seq:
+        name = "still"
+
+        def __len__(self) -> int:
+            return 50
+
+        def xyzi(self, i: int) -> np.ndarray:
+            return scan(0)
+
+    drive = Drive(seq=Seq(), times=np.arange(50) * 0.1, poses=None, loop_radius=None)
+    client = functools.partial(AsyncPlaceRecognitionClient, timeout=Timeouts(read=30.0))
+    monkeypatch.setattr(fleet, "AsyncPlaceRecognitionClient", client)
+
+    async def nothing(self: object, *args: object, **kwargs: object) -> dict:
+        return {}
+
+    monkeypatch.setattr(AsyncPlaceRecognitionClient, "create_map", nothing)
+    monkeypatch.setattr(AsyncPlaceRecognitionClient, "health", nothing)
+    url = f"http://127.0.0.1:{server.getsockname()[1]}"
+    t0 = time.monotonic()
+    try:
+        report, _ = asyncio.run(
+            fleet.simulate(url, "m", [drive], robots=1, duration_s=1.0, rate_hz=10)
+        )
+    finally:
+        server.close()
+        for c in held:
+            c.close()
+    assert time.monotonic() - t0 < 10 and report.errors == {"duration": 1}, report.errors

@@ -18,6 +18,7 @@ from overlapmamba.client._base import (
     Timeouts,
     check_mount,
     deleted_before,
+    mark_retried,
     may_have_applied,
     not_this_api,
     raise_for,
@@ -37,6 +38,7 @@ from overlapmamba.client._models import (
 )
 from overlapmamba.client._scans import Scan
 from overlapmamba.client._stream import (
+    check_errors,
     check_window,
     close_within,
     observation_frames,
@@ -107,7 +109,7 @@ class AsyncPlaceRecognitionClient:
                 except httpx.DecodingError as err:
                     raise not_this_api(call, None, err) from err
                 raise_for(resp)
-                return read_answer(call, resp)
+                return mark_retried(read_answer(call, resp), maybe_applied)
             except ClientError as err:
                 if deleted_before(call, err, maybe_applied):
                     return None
@@ -249,6 +251,7 @@ class AsyncPlaceRecognitionClient:
         from websockets.asyncio.client import connect
 
         check_window(window)
+        check_errors(errors)
         url = ws_url(
             self.base_url,
             map_id,
@@ -278,6 +281,9 @@ class AsyncPlaceRecognitionClient:
             ) as ws:
                 async for result in self._exchange(ws, items(), window, errors, pending):
                     yield result
+        except APIError as err:  # refused, errors="raise": those sent after it go unanswered
+            err.unanswered = list(pending)[1:]  # type: ignore[attr-defined]
+            raise
         except Exception as err:
             failure = stream_failure(err, pending)
             if failure is None:

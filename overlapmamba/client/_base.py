@@ -3,6 +3,7 @@ and the retry rules. The two clients only differ in how they send (``_sync``, ``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import random
@@ -167,9 +168,24 @@ def may_have_applied(err: ClientError) -> bool:
     """Whether the request that failed so may have been carried out all the same: its answer
     was lost (connected, then no answer), or the server failed after taking it (5xx but
     503, which refuses before any work)."""
-    if isinstance(err, TransportError):
-        return not isinstance(err.__cause__, (httpx.ConnectError, httpx.ConnectTimeout))
+    if isinstance(err, TransportError):  # these never sent the request
+        never_sent = (
+            httpx.ConnectError,
+            httpx.ConnectTimeout,
+            httpx.PoolTimeout,
+            httpx.UnsupportedProtocol,
+        )
+        return not isinstance(err.__cause__, never_sent)
     return isinstance(err, APIError) and err.status >= 500 and err.status != 503
+
+
+def mark_retried(answer: Any, maybe_applied: bool) -> Any:
+    """An insert's or an observation's answer to a retry after a try that may have been
+    carried out (its answer lost): ``retried`` set, so "existing" is read as what it may be,
+    that earlier try's own insert."""
+    if maybe_applied and isinstance(answer, Keyframe | ObserveResult | BatchInsertResult):
+        return dataclasses.replace(answer, retried=True)
+    return answer
 
 
 def deleted_before(call: Call, err: ClientError, maybe_applied: bool) -> bool:

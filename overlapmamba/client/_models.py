@@ -51,6 +51,9 @@ class Keyframe:
     pose: list[float] | None
     created: bool | None = None
     sensor: str | None = None  # the sensor of the scan it came from; None: not recorded
+    # the answer is a retry's, after an earlier try's answer was lost: created False may be
+    # that earlier try's own insert (the client cannot tell it from a keyframe there before)
+    retried: bool = False
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Keyframe:
@@ -181,6 +184,16 @@ class ObserveResult(QueryResult):
     keyframe_id: str | None = None
     insert_reason: str = ""
     seq: Any = None  # the stream's correlation value
+    # the answer is a retry's, after an earlier try's answer was lost: an "existing"
+    # keyframe is then that earlier try's insert of this very observation
+    retried: bool = False
+
+    @property
+    def keyframe(self) -> str | None:
+        """The keyframe this observation became (inserted now, or by the earlier try of a
+        retry whose answer was lost), else None."""
+        made = self.inserted or (self.retried and self.insert_reason == "existing")
+        return self.keyframe_id if made else None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> ObserveResult:
@@ -201,6 +214,7 @@ class BatchInsertResult:
     inserted: int
     existing: int
     keyframes: list[Keyframe]
+    retried: bool = False  # as Keyframe.retried: "existing" may count an earlier try's
 
 
 @dataclass(frozen=True)

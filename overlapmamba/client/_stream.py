@@ -111,6 +111,13 @@ def close_within(timeouts: Timeouts) -> float:
     return min(10.0, timeouts.write)
 
 
+def check_errors(errors: str) -> str:
+    """A stream's ``errors``: "raise" a refused observation's APIError, or "return" it."""
+    if errors not in ("raise", "return"):
+        raise ValueError(f"errors must be 'raise' or 'return'; got {errors!r}")
+    return errors
+
+
 def check_window(window: int) -> int:
     """A stream's ``window``: how many observations may be in flight, at least 1."""
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:

@@ -17,6 +17,7 @@ from overlapmamba.client._base import (
     Timeouts,
     check_mount,
     deleted_before,
+    mark_retried,
     may_have_applied,
     not_this_api,
     raise_for,
@@ -36,6 +37,7 @@ from overlapmamba.client._models import (
 )
 from overlapmamba.client._scans import Scan
 from overlapmamba.client._stream import (
+    check_errors,
     check_window,
     close_within,
     observation_frames,
@@ -106,7 +108,7 @@ class PlaceRecognitionClient:
                 except httpx.DecodingError as err:
                     raise not_this_api(call, None, err) from err
                 raise_for(resp)
-                return read_answer(call, resp)
+                return mark_retried(read_answer(call, resp), maybe_applied)
             except ClientError as err:
                 if deleted_before(call, err, maybe_applied):
                     return None
@@ -246,6 +248,7 @@ class PlaceRecognitionClient:
         from websockets.sync.client import connect
 
         check_window(window)
+        check_errors(errors)
         url = ws_url(
             self.base_url,
             map_id,
@@ -259,6 +262,9 @@ class PlaceRecognitionClient:
         pending: deque[int] = deque()
         try:
             yield from self._stream(connect, url, headers, observations, window, errors, pending)
+        except APIError as err:  # refused, errors="raise": those sent after it go unanswered
+            err.unanswered = list(pending)[1:]  # type: ignore[attr-defined]
+            raise
         except Exception as err:
             failure = stream_failure(err, pending)
             if failure is None:

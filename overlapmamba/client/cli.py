@@ -145,7 +145,7 @@ def ingest(
     session = session or drive.name
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
-    created = 0
+    created = retried = 0
     with (
         PlaceRecognitionClient(url, api_key=api_key, compress=compress, mount=mount) as pr,
         progress(console) as bar,
@@ -165,11 +165,18 @@ def ingest(
                 sensor=drive.sensor,
             )
             created += bool(kf.created)
+            retried += bool(kf.retried and not kf.created)
             now = time.monotonic()
             bar.update(task, advance=1, rate=n / (now - t0), latency=(now - t) * 1e3)
+    lost = (
+        f" ({retried} of them answered after a retry whose first answer was lost: written by "
+        "that try, or before)"
+        if retried
+        else ""
+    )
     out.print(
         f"{len(frames)} scans → map {map_id}: {created} new keyframes, "
-        f"{len(frames) - created} already there; {time.monotonic() - t0:.1f} s"
+        f"{len(frames) - created} already there{lost}; {time.monotonic() - t0:.1f} s"
     )
 
 
@@ -275,14 +282,14 @@ def observe(
                 verify=verify,
                 sensor=drive.sensor,
             )
-            inserted += o.inserted
+            inserted += o.keyframe is not None
             lc = o.loop_closure
             if rec is not None:
                 rec.observation(
                     robot,
                     float(drive.times[i]),
                     _listed(drive.pose(i)),
-                    o.keyframe_id if o.inserted else None,
+                    o.keyframe,
                     _closure_end(pr, map_id, o),
                 )
             if lc.accepted and o.matches:

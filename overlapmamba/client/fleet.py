@@ -156,18 +156,27 @@ async def simulate(
                 scan = await asyncio.to_thread(drive.scan, i)
                 sent = time.monotonic()
                 try:
-                    o = await pr.observe(
-                        map_id,
-                        scan,
-                        robot_id=name,
-                        session_id=session,
-                        timestamp=float(drive.times[i]),
-                        pose=drive.pose(i),
-                        k=k,
-                        sensor=drive.sensor,
+                    # the run ends at its duration: a call still waiting then (a hung server,
+                    # retries) is cut there and counted, not waited out for minutes
+                    async with asyncio.timeout(max(0.0, deadline - sent)):
+                        o = await pr.observe(
+                            map_id,
+                            scan,
+                            robot_id=name,
+                            session_id=session,
+                            timestamp=float(drive.times[i]),
+                            pose=drive.pose(i),
+                            k=k,
+                            sensor=drive.sensor,
+                        )
+                except (ClientError, TimeoutError) as err:
+                    kind = (
+                        err.code
+                        if isinstance(err, APIError)
+                        else "duration"
+                        if isinstance(err, TimeoutError)
+                        else type(err).__name__
                     )
-                except ClientError as err:
-                    kind = err.code if isinstance(err, APIError) else type(err).__name__
                     samples.append(
                         _Sample(
                             name,
@@ -183,8 +192,8 @@ async def simulate(
                     )
                     continue
                 done = time.monotonic()
-                if o.inserted and o.keyframe_id:
-                    keyframes[o.keyframe_id] = (d, i, done)
+                if o.keyframe:  # inserted now, or by a retried try whose answer was lost
+                    keyframes[o.keyframe] = (d, i, done)
                 lc = o.loop_closure
                 samples.append(
                     _Sample(
@@ -195,7 +204,7 @@ async def simulate(
                         (done - sent) * 1e3,
                         lc.accepted,
                         lc.keyframe_id or (o.matches[0].keyframe_id if o.matches else None),
-                        o.keyframe_id if o.inserted else None,
+                        o.keyframe,
                         None,
                         lc.verified,
                         lc.relative_pose,
