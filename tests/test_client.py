@@ -714,7 +714,7 @@ def test_a_refused_observation_raised_names_those_sent_after_it(monkeypatch):
 def test_a_fleet_run_ends_at_its_duration_even_when_a_call_hangs(monkeypatch):
     """A server that takes connections and never answers: the run asked for 1 s lasted as
     long as the client's read timeout and retries (minutes with the defaults). A call still
-    waiting at the duration is cut there and counted as "duration"."""
+    waiting 5 s (GRACE_S) after the duration is cut there and counted as "duration"."""
     import contextlib
     import functools
     import socket

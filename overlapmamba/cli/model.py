@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -322,6 +322,20 @@ def export_cmd(
     # that fails (a town that does not open, a reduction the file cannot take) leaves --out
     # as it was, never a file that looks whole
     work = out_path.with_name(f"{out_path.stem}.part.onnx")
+
+    def finish(meta: Any) -> Any:
+        """The steps every source ends with (a first stage, a reduction), then --out
+        replaced by the work file in one rename: whole, or as it was."""
+        if stage is not None:
+            meta = with_first_stage(work, work, stage)
+        if reduce is not None:
+            from overlapmamba.train.reduce_head import reduce_file
+
+            shown = f"{checkpoint} (as written for {out_path.name})"
+            meta = reduce_file(work, work, reduce, fit_on or [], shown=shown)
+        os.replace(work, out_path)
+        return meta
+
     if checkpoint.suffix == ".onnx":
         if weights != "int8":
             raise typer.BadParameter(
@@ -345,19 +359,7 @@ def export_cmd(
                 meta = with_sensor_input(work, sensor_input)  # type: ignore[arg-type]
             if column_phase == "aligned":
                 meta = with_column_phase(work, column_phase)
-            if stage is not None:
-                meta = with_first_stage(work, work, stage)
-            if reduce is not None:
-                from overlapmamba.train.reduce_head import reduce_file
-
-                meta = reduce_file(
-                    work,
-                    work,
-                    reduce,
-                    fit_on or [],
-                    shown=f"{checkpoint} (as written for {out_path.name})",
-                )
-            os.replace(work, out_path)  # one rename: --out is whole or as it was
+            meta = finish(meta)
         finally:
             work.unlink(missing_ok=True)
         out.print(
@@ -378,19 +380,7 @@ def export_cmd(
             meta = with_sensor_input(work, sensor_input)  # type: ignore[arg-type]
         if column_phase is not None and column_phase != meta.column_phase:
             meta = with_column_phase(work, column_phase)
-        if stage is not None:
-            meta = with_first_stage(work, work, stage)
-        if reduce is not None:
-            from overlapmamba.train.reduce_head import reduce_file
-
-            meta = reduce_file(
-                work,
-                work,
-                reduce,
-                fit_on or [],
-                shown=f"{checkpoint} (as written for {out_path.name})",
-            )
-        os.replace(work, out_path)  # one rename: --out is whole or as it was
+        meta = finish(meta)
     finally:
         work.unlink(missing_ok=True)
     table = Table(title=f"exported {out_path}", show_header=False)

@@ -38,6 +38,9 @@ from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
+# a call started before the run's end may finish this long (s) after it; then it is cut
+GRACE_S = 5.0
+
 
 @dataclass
 class _Sample:
@@ -156,9 +159,9 @@ async def simulate(
                 scan = await asyncio.to_thread(drive.scan, i)
                 sent = time.monotonic()
                 try:
-                    # the run ends at its duration: a call still waiting then (a hung server,
-                    # retries) is cut there and counted, not waited out for minutes
-                    async with asyncio.timeout(max(0.0, deadline - sent)):
+                    # the run ends at its duration: a call still waiting GRACE_S after it
+                    # (a hung server, retries) is cut and counted, not waited out for minutes
+                    async with asyncio.timeout(max(0.0, deadline - sent) + GRACE_S):
                         o = await pr.observe(
                             map_id,
                             scan,
