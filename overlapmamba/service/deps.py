@@ -8,7 +8,7 @@ decode and encode the scans."""
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 
@@ -17,18 +17,32 @@ from overlapmamba.service.errors import NotReady, Unavailable
 from overlapmamba.service.places import PlaceService
 
 
+def start_failure(state: Any) -> str | None:
+    """Why the start-up failed for good (loading the maps raised), or None: such a service
+    will not become ready by waiting, and its probes and routes say so."""
+    stage = str(getattr(state, "stage", ""))
+    return stage if stage.startswith("failed") else None
+
+
+def serving(state: Any) -> PlaceService:
+    """The app's service once it is ready; else 503: ``not_ready`` while it starts,
+    ``start_failed`` once its start-up failed for good."""
+    svc: PlaceService | None = getattr(state, "service", None)
+    if svc is not None and state.ready:
+        return svc
+    failed = start_failure(state)
+    if failed is not None:
+        raise Unavailable(  # not NotReady: it will not be ready, however long one waits
+            f"the service's start-up {failed}; see its log, fix it and restart it",
+            code="start_failed",
+            retry_after_s=30,
+        )
+    stage = getattr(state, "stage", "starting")
+    raise NotReady(f"the service is starting ({stage}): retry when /readyz says ready")
+
+
 async def get_service(request: Request) -> PlaceService:
-    svc: PlaceService | None = getattr(request.app.state, "service", None)
-    if svc is None or not request.app.state.ready:
-        stage = getattr(request.app.state, "stage", "starting")
-        if str(stage).startswith("failed"):
-            raise Unavailable(  # not NotReady: it will not be ready, however long one waits
-                f"the service's start-up {stage}; see its log, fix it and restart it",
-                code="start_failed",
-                retry_after_s=30,
-            )
-        raise NotReady(f"the service is starting ({stage}): retry when /readyz says ready")
-    return svc
+    return serving(request.app.state)
 
 
 async def get_principal(request: Request) -> Principal:

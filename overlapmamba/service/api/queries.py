@@ -42,15 +42,9 @@ from overlapmamba.core.renamed import REMOVED_IN
 from overlapmamba.service.api.openapi import SCAN_BODY, MountQuery, SensorQuery, error_responses
 from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount, read_scan
-from overlapmamba.service.deps import CanEncode, ServiceDep
+from overlapmamba.service.deps import CanEncode, ServiceDep, serving
 from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
-from overlapmamba.service.errors import (
-    BadRequest,
-    NotReady,
-    ServiceError,
-    error_body,
-    lidar_status,
-)
+from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
 from overlapmamba.service.places import Answer, Observation, Observed
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.schemas import (
@@ -362,10 +356,8 @@ async def stream(
 ) -> None:
     """Observations over one WebSocket; see the module docstring for the frame format."""
     app = websocket.app
-    svc = getattr(app.state, "service", None)
     try:
-        if svc is None or not app.state.ready:
-            raise NotReady("the service is starting: retry when /readyz says ready")
+        svc = serving(app.state)
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE)
         svc.sensors.check(sensor)

@@ -11,19 +11,12 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import each_map
-from overlapmamba.service.deps import CanView, ServiceDep
+from overlapmamba.service.deps import CanView, ServiceDep, start_failure
 from overlapmamba.service.errors import ServiceError
 from overlapmamba.service.schemas import Health
 from overlapmamba.service.threads import in_thread
 
 router = APIRouter(tags=["system"])
-
-
-def _failed(state: Any) -> str | None:
-    """Why the start-up failed for good (loading the maps raised), or None: the service
-    will not become ready by waiting, and its probes say so."""
-    stage = str(getattr(state, "stage", ""))
-    return stage if stage.startswith("failed") else None
 
 
 @router.get(
@@ -36,7 +29,7 @@ async def healthz(request: Request) -> Response:
     """200 while the process can serve or is getting there; 503 once its start-up has
     failed for good (a liveness probe then restarts it, rather than wait on a process
     that will never be ready)."""
-    failed = _failed(request.app.state)
+    failed = start_failure(request.app.state)
     if failed is not None:
         body = Health(status="failed", detail={"stage": failed}).model_dump()
         return JSONResponse(body, status_code=503)
@@ -56,7 +49,7 @@ async def readyz(request: Request) -> Response:
             Health(status="draining", detail={"stage": "shutting down"}).model_dump(),
             status_code=503,
         )
-    failed = _failed(state)
+    failed = start_failure(state)
     if failed is not None:  # waiting will not help: no Retry-After
         return JSONResponse(
             Health(status="failed", detail={"stage": failed}).model_dump(), status_code=503
