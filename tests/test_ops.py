@@ -87,6 +87,36 @@ async def test_every_response_has_a_request_id_and_an_access_line(tmp_path):
     assert all(isinstance(x.duration_ms, float) for x in lines)  # type: ignore[attr-defined]
 
 
+@pytest.mark.anyio
+async def test_a_streamed_body_over_the_limit_is_a_413_on_every_route(tmp_path):
+    # a chunked body (no Content-Length) crosses the limit while it streams in; the routes
+    # that let FastAPI parse their JSON (PUT /v1/maps/{id}) used to answer 400 "error parsing
+    # the body", the routes that read their own body 413
+    from overlapmamba.service.settings import LimitSettings
+
+    settings = Settings(data_dir=tmp_path / "d", limits=LimitSettings(max_body_bytes=4096))
+
+    async def chunks(pad: int):  # type: ignore[no-untyped-def]
+        yield b'{"keep_geometry": false'
+        for _ in range(pad):  # JSON whitespace, so the body stays valid at any length
+            yield b" " * 1024
+        yield b"}"
+
+    json_type = {"content-type": "application/json"}
+    enc = Encoder(MODEL, intra_op_threads=2)
+    async with running(settings, enc) as c:
+        r = await c.put("/v1/maps/town", content=chunks(8), headers=json_type)
+        assert r.status_code == 413, r.text
+        assert r.json()["error"]["code"] == "payload_too_large" and r.headers["x-request-id"]
+        assert r.json()["error"]["detail"] == {"max_body_bytes": 4096}
+        r = await c.post("/v1/descriptors", content=chunks(8), headers=OCTET)
+        assert r.status_code == 413, r.text
+        assert (await c.get("/v1/maps/town")).status_code == 404  # nothing was made of it
+        # under the limit the same body, streamed the same way, creates the map
+        ok = await c.put("/v1/maps/town", content=chunks(2), headers=json_type)
+        assert ok.status_code == 201 and ok.json()["keep_geometry"] is False, ok.text
+
+
 # ---- graceful shutdown ----------------------------------------------------------------------
 
 

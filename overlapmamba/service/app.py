@@ -126,19 +126,38 @@ class GuardMiddleware:
                 await resp(scope, receive, send)
                 return 413
 
+        over = False  # the body crossed the limit while it streamed in
+        replaced = False  # ... and the app's own answer to that is dropped for a 413
+
         async def limited_receive() -> Message:
-            nonlocal received
+            nonlocal received, over
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_body:
+                    over = True
                     raise PayloadTooLarge(
                         f"body exceeds {self.max_body} bytes", max_body_bytes=self.max_body
                     )
             return message
 
         async def tracking_send(message: Message) -> None:
-            nonlocal started, status
+            nonlocal started, status, replaced
+            if replaced:
+                return
+            if over and message["type"] == "http.response.start" and message["status"] != 413:
+                # FastAPI answers an error raised while it parses a JSON body with a 400
+                # ("error parsing the body"): answer what happened instead
+                started, status, replaced = True, 413, True
+                resp = _error(
+                    413,
+                    "payload_too_large",
+                    f"body exceeds {self.max_body} bytes",
+                    {"max_body_bytes": self.max_body},
+                    headers={"x-request-id": rid},
+                )
+                await resp(scope, receive, send)
+                return
             if message["type"] == "http.response.start":
                 started = True
                 status = message["status"]

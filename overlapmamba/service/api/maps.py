@@ -19,7 +19,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
 @router.put(
     "/{map_id}",
     response_model=MapOut,
-    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409, 503)},
+    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409, 413, 503)},
     summary="Create a map (idempotent)",
 )
 async def create_map(
