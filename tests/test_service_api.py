@@ -1046,6 +1046,63 @@ async def test_a_start_up_that_failed_says_so_on_every_probe(tmp_path, encoder):
             assert "restart" in err(stats)["message"]
 
 
+async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
+    tmp_path, encoder, monkeypatch
+):
+    """A large map replays for minutes after a restart. /metrics answered 503 meanwhile, so
+    Prometheus saw the target down (up == 0) as if the process were dead, and lost its
+    memory and CPU series for the replay. It answers 200, with ``overlapmamba_ready`` 0
+    until the maps are in, then 1; once the start-up failed for good, 0 as well."""
+    import threading
+
+    import httpx
+
+    from overlapmamba.service.app import create_app
+    from overlapmamba.service.backends.faiss.backend import FaissBackend
+
+    release = threading.Event()
+    replay = FaissBackend.load_all
+
+    def slow_replay(self: FaissBackend) -> None:
+        release.wait(30)
+        replay(self)
+
+    monkeypatch.setattr(FaissBackend, "load_all", slow_replay)
+
+    def ready_gauge(text: str) -> float:
+        (line,) = [x for x in text.splitlines() if x.startswith("overlapmamba_ready ")]
+        return float(line.split()[1])
+
+    app = create_app(Settings(data_dir=tmp_path / "d"), encoder=encoder)
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            assert (await c.get("/readyz")).status_code == 503
+            m = await c.get("/metrics")
+            assert m.status_code == 200, m.text
+            assert ready_gauge(m.text) == 0 and "process_resident_memory_bytes" in m.text
+            assert (await c.get("/v1/stats")).status_code == 503  # the API still waits
+            release.set()
+            for _ in range(500):
+                if app.state.ready:
+                    break
+                await asyncio.sleep(0.01)
+            assert ready_gauge((await c.get("/metrics")).text) == 1
+    data = tmp_path / "broken"
+    data.mkdir()
+    (data / "maps").write_text("not a folder")
+    app = create_app(Settings(data_dir=data), encoder=encoder)
+    async with app.router.lifespan_context(app):
+        for _ in range(500):
+            if str(app.state.stage).startswith("failed"):
+                break
+            await asyncio.sleep(0.01)
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            m = await c.get("/metrics")
+            assert m.status_code == 200 and ready_gauge(m.text) == 0, m.text
+
+
 async def test_a_client_gone_before_its_body_is_in_is_no_server_error(settings, encoder, caplog):
     """A robot whose link drops in the middle of its scan's body: the request was a 500
     with an 'unhandled error' traceback in the log; it is the client's doing, logged at

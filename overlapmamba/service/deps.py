@@ -45,6 +45,13 @@ async def get_service(request: Request) -> PlaceService:
     return serving(request.app.state)
 
 
+async def get_loaded_service(request: Request) -> PlaceService:
+    """The app's service once its model is loaded, ready or not: ``/metrics`` answers while
+    the maps replay (a scrape that failed would read as a dead process); else as ``serving``."""
+    svc: PlaceService | None = getattr(request.app.state, "service", None)
+    return svc if svc is not None else serving(request.app.state)
+
+
 async def get_principal(request: Request) -> Principal:
     auth: Authenticator = request.app.state.auth
     return auth.identify(presented_key(request))
@@ -64,6 +71,7 @@ def require(action: Action) -> Callable[..., Awaitable[Principal]]:
 
 
 ServiceDep = Annotated[PlaceService, Depends(get_service)]
+LoadedServiceDep = Annotated[PlaceService, Depends(get_loaded_service)]
 CanEncode = Annotated[Principal, Depends(require(Action.ENCODE))]
 CanInsert = Annotated[Principal, Depends(require(Action.INSERT))]
 CanWriteMaps = Annotated[Principal, Depends(require(Action.MAP_WRITE))]

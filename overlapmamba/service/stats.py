@@ -142,6 +142,11 @@ class Stats:
             "overlapmamba_map_keyframes", "Keyframes per map", ["map"], registry=r
         )
         self.p_queue = Gauge("overlapmamba_encoder_queue", "Scans waiting to encode", registry=r)
+        self.p_ready = Gauge(
+            "overlapmamba_ready",
+            "1 once the model is loaded and every map replayed (/readyz 200), else 0",
+            registry=r,
+        )
 
     def watch_row_cache(self, info: Callable[[], dict[str, int] | None]) -> None:
         """Put the backend's row cache on ``/metrics``, read at each scrape from ``info``

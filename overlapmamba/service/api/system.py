@@ -11,7 +11,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import each_map
-from overlapmamba.service.deps import CanView, ServiceDep, start_failure
+from overlapmamba.service.deps import CanView, LoadedServiceDep, ServiceDep, start_failure
 from overlapmamba.service.errors import ServiceError
 from overlapmamba.service.schemas import Health
 from overlapmamba.service.threads import in_thread
@@ -121,7 +121,10 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
         **error_responses(401, 403),
     },
 )
-async def metrics(svc: ServiceDep, _: CanView) -> Response:
+async def metrics(request: Request, svc: LoadedServiceDep, _: CanView) -> Response:
+    """Answers from the moment the model is loaded, while the maps replay too:
+    ``overlapmamba_ready`` is 1 once /readyz says ready, else 0 (loading, or failed)."""
+    svc.stats.p_ready.set(1 if getattr(request.app.state, "ready", False) else 0)
     svc.stats.p_queue.set(svc.pipeline.pending)
     return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
 
