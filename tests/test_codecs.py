@@ -256,6 +256,19 @@ def test_pcd_malformed_inputs_are_rejected():
         decode_pcd(_pcd(points=5_000_000) + body)
 
 
+def test_a_binary_pcd_holding_more_points_than_it_declares_is_refused():
+    """A binary PCD whose data holds more whole points than POINTS said was read as its first
+    POINTS points: a writer that got WIDTH or POINTS wrong lost the rest of the scan without
+    a word. A stray byte or two after the data (a newline some writers add) is no point."""
+    body = np.ones((6, 3), "<f4").tobytes()
+    with pytest.raises(DecodeError, match=r"declares 3 points \(36 bytes\).*holds 72 bytes"):
+        decode_pcd(_pcd(3) + body)
+    with pytest.raises(DecodeError, match="holds 48 bytes"):
+        decode_pcd(_pcd(3) + body[:48])  # one point more
+    assert len(decode_pcd(_pcd(3) + body[:36] + b"\n")) == 3
+    assert len(decode_pcd(_pcd(3) + body[:47])) == 3  # less than a point more
+
+
 def test_pcd_decompression_bomb_is_refused():
     # Declares 3 points but claims 4 GB uncompressed: pypcd4 alone would allocate it.
     payload = struct.pack("<II", 10, 0xFFFFFFF0) + b"\0" * 10

@@ -131,10 +131,13 @@ def decode_pcd(
         raise DecodeError(f"{source}: PCD field types are invalid: {_short(err)}") from err
     body = len(data) - offset
     encoding = meta.data.value
-    if encoding == "binary" and body < meta.points * record:
+    # Short data is a cut body; a whole point or more past POINTS means POINTS (or
+    # WIDTH × HEIGHT) is wrong, and reading the first POINTS would lose the rest unseen.
+    if encoding == "binary" and not meta.points * record <= body < (meta.points + 1) * record:
         raise DecodeError(
             f"{source}: PCD declares {meta.points} points ({meta.points * record} bytes) "
             f"but holds {body} bytes of data"
+            + ("; is POINTS right?" if body > meta.points * record else "")
         )
     if encoding == "binary_compressed" and meta.points * record > limits.max_bytes:
         raise DataTooLargeError(
