@@ -220,3 +220,46 @@ async def test_a_map_deleted_and_made_again_under_an_open_stream_is_the_new_one(
             inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(task, timeout=10)
+
+
+async def test_the_access_log_says_how_each_stream_ended(tmp_path, encoder, caplog):
+    """Every WebSocket's access line said 101, a refused handshake too: the log could not
+    tell a robot streaming from one turned away. It now says 101 for an accepted stream, the
+    refusal's status for a handshake answered as a route (404 for a missing map), 403 for a
+    close before the accept, and the close code."""
+    import logging
+
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+        caplog.set_level(logging.INFO, logger="overlapmamba.access")
+        frames = [
+            {"type": "websocket.receive", "text": json.dumps({"seq": 1, "timestamp": 1.0})},
+            {"type": "websocket.receive", "bytes": scan(0).tobytes()},
+        ]
+        (ok,) = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 1)
+        assert ok["ok"] is True, ok
+        (closed,) = await _stream(app, "/v1/maps/m/stream", "robot_id=r1&k=500", [], 1)
+        assert closed["closed"] == 1008
+        denied: list[dict] = []
+
+        async def keep(message: dict) -> None:
+            denied.append(message)
+
+        scope = ws_scope("/v1/maps/gone/stream", "robot_id=r1")
+        scope["extensions"] = {"websocket.http.response": {}}
+        inbox: asyncio.Queue[dict] = asyncio.Queue()
+        inbox.put_nowait({"type": "websocket.connect"})
+        await asyncio.wait_for(app(scope, inbox.get, keep), timeout=30)
+        assert denied[0]["type"] == "websocket.http.response.start"
+    lines = [
+        (r.path, r.status, getattr(r, "close_code", None))  # type: ignore[attr-defined]
+        for r in caplog.records
+        if r.name == "overlapmamba.access" and "stream" in r.path  # type: ignore[attr-defined]
+    ]
+    assert lines == [
+        ("/v1/maps/m/stream", 101, 1000),
+        ("/v1/maps/m/stream", 403, 1008),
+        ("/v1/maps/gone/stream", denied[0]["status"], None),
+    ], lines
+    assert denied[0]["status"] == 404

@@ -85,30 +85,62 @@ class GuardMiddleware:
         token = request_id.set(rid)
         t0 = time.perf_counter()
         status = 500
+        closed: dict[str, int] = {}  # a WebSocket's close code, once either side sent one
         try:
             if scope["type"] == "websocket":
-                status = 101
-                await self.app(scope, receive, send)
+                status = await self._websocket(scope, receive, send, closed)
             else:
                 status = await self._http(scope, receive, send, rid)
         finally:
             client = scope.get("client")
             path = _printable(scope.get("path"))
+            extra: dict[str, Any] = {"close_code": closed["code"]} if closed else {}
             access.log(
                 logging.DEBUG if scope.get("path") in _PROBES else logging.INFO,
-                "%s %s %s",
+                "%s %s %s%s",
                 scope.get("method", "WS"),
                 path,
                 status,
+                f" (closed {closed['code']})" if closed else "",
                 extra={
                     "method": scope.get("method", "WEBSOCKET"),
                     "path": path,
                     "status": status,
                     "duration_ms": round((time.perf_counter() - t0) * 1e3, 2),
                     "client": client[0] if client else None,
+                    **extra,
                 },
             )
             request_id.reset(token)
+
+    async def _websocket(
+        self, scope: Scope, receive: Receive, send: Send, closed: dict[str, int]
+    ) -> int:
+        """Run a WebSocket; its status for the log: 101 once accepted, the denial's status
+        where the handshake was answered as a route (401, 404, …), 403 for a close before
+        the accept (what uvicorn sends the client), 500 if the handler raised first."""
+        status = 500
+
+        async def tracking_receive() -> Message:
+            message = await receive()
+            if message["type"] == "websocket.disconnect":
+                closed.setdefault("code", int(message.get("code", 1005)))
+            return message
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal status
+            kind = message["type"]
+            if kind == "websocket.accept":
+                status = 101
+            elif kind == "websocket.http.response.start":
+                status = int(message["status"])
+            elif kind == "websocket.close":
+                status = 403 if status == 500 else status
+                closed.setdefault("code", int(message.get("code", 1000)))
+            await send(message)
+
+        await self.app(scope, tracking_receive, tracking_send)
+        return status
 
     async def _http(self, scope: Scope, receive: Receive, send: Send, rid: str) -> int:
         received = 0
