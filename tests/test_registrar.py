@@ -110,6 +110,30 @@ def test_a_killed_child_is_started_again(scans):
         r.stop()
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="CPU time from /proc")
+def test_the_childrens_cpu_counter_never_goes_down_when_one_is_replaced():
+    """``cpu_seconds`` (``overlapmamba_registration_cpu_seconds_total``, a counter) summed
+    the children alive: one that died took its CPU with it and the counter fell, which
+    Prometheus reads as a reset (``increase()`` then counts the survivors' whole lives
+    again). The dead children's last CPU seen stays in the sum."""
+    r = Registrar(2)
+    try:
+        for i in (0, 1):
+            r._child(i).submit(sum, range(20_000_000)).result(timeout=60)  # CPU in each
+        before = r.usage()["cpu_seconds"]
+        pid = r.pids()[0]
+        os.kill(pid, signal.SIGKILL)
+        ex = r._children[0]
+        with pytest.raises(BrokenProcessPool):
+            ex.submit(_ping).result(timeout=30)  # type: ignore[union-attr]
+        r._restart(0, ex)  # type: ignore[arg-type]
+        r._child(0).submit(_ping).result(timeout=60)
+        after = r.usage()["cpu_seconds"]
+        assert pid not in r.pids() and after >= before > 0.1, (before, after)
+    finally:
+        r.stop()
+
+
 def test_a_killed_server_leaves_no_child_behind():
     """SIGKILL gives the server no chance to stop its child: the child leaves by itself."""
     code = (
@@ -197,7 +221,7 @@ def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
         held = r.prepare(scans[0], P)
         busy = r._child(0).submit(time.sleep, 1.4)  # busy with a long call, not hung
         (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)
-        assert v.verified is False and "had not started it after 1 s" in v.reason
+        assert v.verified is False and "had not started it by the request's deadline" in v.reason
         busy.result()
         r._child(0).submit(time.sleep, 1.4)
         with pytest.raises(Unavailable, match="had not started it") as err:
@@ -210,6 +234,32 @@ def test_a_call_queued_past_the_request_timeout_is_skipped_in_the_child(scans):
         r.stop()
     with pytest.raises(ValueError, match="stale_s"):
         Registrar(1, stale_s=0)
+
+
+def test_a_call_is_stale_at_its_requests_deadline_not_a_timeout_after_it_was_queued(scans):
+    """A query that spent most of its timeout waiting for the encoder queued its call near
+    its deadline: counted fresh for a whole timeout from there, the call ran in the child
+    after the client had its 504, delaying the calls behind it. The request's deadline (the
+    guard's, carried in its context) bounds it."""
+    from overlapmamba.service.threads import request_deadline
+
+    r = Registrar(1, stale_s=30.0)
+    try:
+        _warm(r)
+        blob = r.geometry(r.prepare(scans[1], P), P)
+        held = r.prepare(scans[0], P)
+        r._child(0).submit(time.sleep, 1.0)  # busy past the request's deadline
+        token = request_deadline.set(time.monotonic() + 0.3)
+        try:
+            (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)
+        finally:
+            request_deadline.reset(token)
+        assert v.verified is False and "request's deadline" in v.reason, v.reason
+        assert r.usage()["stale"] == 1
+        (v,) = r.verify(held, [(blob, -30.0, 0.1)], V)  # no deadline: stale_s from now
+        assert v.verified is True
+    finally:
+        r.stop()
 
 
 def test_a_child_that_hangs_is_killed_and_started_again(scans):
@@ -235,6 +285,27 @@ def test_a_child_that_hangs_is_killed_and_started_again(scans):
         assert v.verified is True
     finally:
         r.stop()
+
+
+def test_a_child_stuck_at_shutdown_is_killed_so_the_shutdown_goes_on():
+    """The stop waited without bound on a child busy in a call: a registration stuck at
+    SIGTERM kept the service from ever closing (and snapshotting) its maps, until the
+    orchestrator killed it. The call under way gets a few seconds, then the child is
+    killed; an idle child stops at once."""
+    r = Registrar(1, stale_s=30.0)
+    r._child(0).submit(_ping).result(timeout=60)
+    (pid,) = r.pids()
+    r._child(0).submit(time.sleep, 60)  # stuck
+    time.sleep(0.3)
+    t0 = time.monotonic()
+    r.stop(wait_s=1.0)
+    assert time.monotonic() - t0 < 8
+    assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text()
+    idle = Registrar(1)
+    idle._child(0).submit(_ping).result(timeout=60)
+    t0 = time.monotonic()
+    idle.stop(wait_s=30.0)
+    assert time.monotonic() - t0 < 5 and not idle.pids()
 
 
 def test_processes_must_not_be_negative():

@@ -22,8 +22,9 @@ are the same either way. A child that dies is started again and the call tried o
 failing again, the query's candidates are refused with the reason, and a keyframe's
 geometry answers 503 (retry: nothing is stored without it).
 
-A call that waited in its child's queue longer than ``stale_s`` (the service's request
-timeout) is skipped there: its request has been answered already (504), and registering it
+A call still in its child's queue at its request's deadline (the guard's timeout, carried
+in the request's context; ``stale_s``, the service's request timeout, after the call where
+there is none) is skipped there: its request has been answered already (504), and registering it
 would only delay the calls queued behind it, whose requests would time out in turn. The
 query's candidates are then refused with the reason and a keyframe's geometry answers 503,
 as above; ``usage()["stale"]`` counts them (``overlapmamba_registration_stale_total``).
@@ -62,10 +63,12 @@ from overlapmamba.service.registration import (
 )
 from overlapmamba.service.sensors import FieldOfView
 from overlapmamba.service.settings import VerifySettings
+from overlapmamba.service.threads import request_deadline
 from overlapmamba.service.verify import Verdict, params_of, verify_candidates
 
 log = logging.getLogger(__name__)
 
+STOP_WAIT_S = 5.0  # a child's call under way at shutdown: then it is killed
 HELD = 32  # prepared queries a child keeps (≈ 0.4 MB each); one it dropped is prepared again
 Candidates = list[tuple[bytes | None, float | None, float]]
 
@@ -106,6 +109,8 @@ class Registrar:
         self._keys = itertools.count()
         self._turn = itertools.count()
         self.restarts = 0
+        self._cpu_seen: dict[int, float] = {}  # each child's CPU seconds at the last usage()
+        self._cpu_gone = 0.0  # the last seen of children no longer running
 
     @property
     def where(self) -> str:
@@ -121,12 +126,28 @@ class Registrar:
         for i in range(self.processes):
             self._child(i).submit(_ping)
 
-    def stop(self) -> None:
+    def stop(self, wait_s: float = STOP_WAIT_S) -> None:
+        """Stop the children: the calls queued are cancelled, and one under way has
+        ``wait_s`` to finish; a child still busy then (a registration stuck) is killed, so
+        that the service's shutdown goes on to close its maps."""
         with self._lock:
             children, self._children = self._children, [None] * self.processes
+        procs = []
         for ex in children:
             if ex is not None:
-                ex.shutdown(wait=True, cancel_futures=True)
+                procs += list((getattr(ex, "_processes", None) or {}).values())
+                ex.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + wait_s
+        for proc in procs:
+            proc.join(max(0.0, deadline - time.monotonic()))
+            if proc.is_alive():
+                log.error(
+                    "registration process %d still busy %g s after the stop: killing it",
+                    proc.pid,
+                    wait_s,
+                )
+                proc.kill()
+                proc.join(5)
 
     # ---- the three operations ----------------------------------------------------------------
 
@@ -199,7 +220,8 @@ class Registrar:
         }
         if not Path("/proc/self/stat").exists():
             return out
-        rss = cpu = 0.0
+        rss = 0.0
+        alive: dict[int, float] = {}
         for pid in self.pids():
             try:
                 status = Path(f"/proc/{pid}/status").read_text()
@@ -208,7 +230,13 @@ class Registrar:
                 continue
             kb = next((ln.split()[1] for ln in status.splitlines() if ln.startswith("VmRSS:")), 0)
             rss += float(kb) * 1024
-            cpu += (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+            alive[pid] = (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+        with self._lock:  # a child gone keeps the CPU last seen of it: the counter never falls
+            for pid, seconds in self._cpu_seen.items():
+                if pid not in alive:
+                    self._cpu_gone += seconds
+            self._cpu_seen = alive
+            cpu = self._cpu_gone + sum(alive.values())
         return out | {"resident_bytes": rss, "cpu_seconds": cpu}
 
     def pids(self) -> list[int]:
@@ -254,7 +282,13 @@ class Registrar:
         died is started again and asked once more, and :class:`_Failed` says it died twice."""
         died: list[str] = []
         xyz = held.xyz if send else None
+        # stale once its request has been answered: at the request's own deadline where it
+        # has one (an HTTP request; it may have spent most of its time before this call),
+        # else ``stale_s`` from now (a stream's frame)
         expires = None if self.stale_s is None else time.monotonic() + self.stale_s
+        deadline = request_deadline.get()
+        if expires is not None and deadline is not None:
+            expires = min(expires, deadline)
         while True:
             ex = self._child(held.child)
             try:
@@ -270,8 +304,8 @@ class Registrar:
                 with self._lock:
                     self.stale += 1
                 raise _Stale(
-                    f"the registration process had not started it after {self.stale_s:g} s "
-                    "(the request's timeout): skipped"
+                    "the registration process had not started it by the request's deadline "
+                    f"(its timeout, {self.stale_s:g} s): skipped"
                 )
             if not isinstance(out, _Missing):
                 return out

@@ -6,12 +6,18 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable
+from contextvars import ContextVar
 from typing import ParamSpec, TypeVar
 
 import anyio.to_thread
 
 P = ParamSpec("P")
 T = TypeVar("T")
+
+# When the request under way must be answered by (time.monotonic(); the guard's timeout),
+# carried into the worker threads with the request's context: work queued for it past then
+# is not worth doing. None outside an HTTP request (the stream's frames, start-up).
+request_deadline: ContextVar[float | None] = ContextVar("request_deadline", default=None)
 
 
 async def in_thread(fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
