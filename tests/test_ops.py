@@ -115,6 +115,19 @@ async def test_a_streamed_body_over_the_limit_is_a_413_on_every_route(tmp_path):
         # under the limit the same body, streamed the same way, creates the map
         ok = await c.put("/v1/maps/town", content=chunks(2), headers=json_type)
         assert ok.status_code == 201 and ok.json()["keep_geometry"] is False, ok.text
+        # one refused by its Content-Length, before routing, is counted under its route too
+        big = await c.post("/v1/descriptors", content=bytes(5000), headers=OCTET)
+        assert big.status_code == 413
+        text = (await c.get("/metrics")).text
+    counted = {
+        line.rsplit(" ", 1)[0]: float(line.split()[-1])
+        for line in text.splitlines()
+        if line.startswith("overlapmamba_requests_total{")
+    }
+    key = 'overlapmamba_requests_total{{route="{}",status="413"}}'.format
+    assert counted[key("/v1/maps/{map_id}")] == 1, counted
+    assert counted[key("/v1/descriptors")] == 1, counted
+    assert counted[key("(before routing)")] == 1, counted  # its Content-Length said
 
 
 # ---- graceful shutdown ----------------------------------------------------------------------

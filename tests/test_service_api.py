@@ -20,7 +20,7 @@ from service_kit import OCTET, running, scan, ws_scope
 
 from overlapmamba.service.auth import hash_key
 from overlapmamba.service.calibration import resolve
-from overlapmamba.service.settings import Settings
+from overlapmamba.service.settings import LimitSettings, Settings
 
 pytestmark = pytest.mark.anyio
 
@@ -1101,6 +1101,52 @@ async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
             m = await c.get("/metrics")
             assert m.status_code == 200 and ready_gauge(m.text) == 0, m.text
+
+
+async def test_an_encoder_call_that_never_returns_fails_the_probes(tmp_path, encoder):
+    """Every lane wedged in one encoder call: every scan answered 504 while /readyz said
+    ready and /healthz ok, so nothing took the replica out or restarted it. /readyz says
+    stuck once a call outlasts the request timeout, /healthz once every lane's call has
+    outlasted two; both recover when the call returns."""
+    import threading
+
+    release = threading.Event()
+    settings = Settings(
+        data_dir=tmp_path / "d",
+        limits=LimitSettings(request_timeout_s=0.5),
+        batching={"lanes": 1},
+    )
+    async with running(settings, encoder) as c:
+        batcher = c.app.state.service.pipeline.batcher  # type: ignore[attr-defined]
+        real = batcher._encode
+
+        def wedged(images, offsets):  # type: ignore[no-untyped-def]
+            release.wait(30)
+            return real(images, offsets)
+
+        batcher._encode = wedged
+        try:
+            body = scan(3).tobytes()
+            r = await c.post("/v1/descriptors", content=body, headers=OCTET)
+            assert r.status_code == 504
+            await asyncio.sleep(0.1)  # the call has outlasted the timeout by now
+            ready = await c.get("/readyz")
+            assert ready.status_code == 503 and ready.json()["status"] == "stuck", ready.text
+            assert "lane 0" in ready.json()["detail"]["stage"]
+            await asyncio.sleep(0.6)  # two timeouts: every lane (one) stuck that long
+            health = await c.get("/healthz")
+            assert health.status_code == 503 and "restart" in health.json()["detail"]["stage"]
+            m = (await c.get("/metrics")).text
+            assert "overlapmamba_encoder_queue 0.0" in m  # the 504'd scan waits for nothing
+        finally:
+            release.set()
+        batcher._encode = real
+        for _ in range(100):
+            if (await c.get("/readyz")).status_code == 200:
+                break
+            await asyncio.sleep(0.05)
+        assert (await c.get("/readyz")).status_code == 200
+        assert (await c.get("/healthz")).status_code == 200
 
 
 async def test_a_client_gone_before_its_body_is_in_is_no_server_error(settings, encoder, caplog):

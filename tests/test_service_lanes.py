@@ -76,6 +76,43 @@ def test_stopping_the_batcher_answers_every_lanes_batch():
     assert all(isinstance(a, Unavailable) for a in answers), answers
 
 
+def test_scans_whose_requests_gave_up_are_not_waiting_and_a_stuck_lane_is_named():
+    """An encoder call that never returns: every scan behind it times out. Those scans still
+    counted as waiting (``overlapmamba_encoder_queue``) with no request left to answer, and
+    nothing named the lane; they no longer count, are skipped once a lane is free, and
+    ``stuck`` names the lane and for how long."""
+    release = threading.Event()
+    calls: list[int] = []
+
+    def wedged(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls.append(images.shape[0])
+        release.wait(10)
+        return _encode(images, offsets)
+
+    async def main() -> None:
+        mb = MicroBatcher(wedged, max_batch=4, max_wait_ms=0, lanes=1)
+        await mb.start()
+        image = np.zeros((1, 2, 3), np.float32)
+        first = asyncio.create_task(mb.encode(image, timeout_s=30))
+        await asyncio.sleep(0.1)  # the lane is in its call
+        gave_up = await asyncio.gather(
+            *(mb.encode(image, timeout_s=0.2) for _ in range(3)), return_exceptions=True
+        )
+        assert all(type(g).__name__ == "Timeout" for g in gave_up), gave_up
+        assert mb.pending == 0  # three on the queue, none waited for
+        assert mb.stuck(0.1) and mb.stuck(0.1)[0][0] == 0 and not mb.stuck(30)
+        waiting = asyncio.create_task(mb.encode(image, timeout_s=30))
+        await asyncio.sleep(0.05)
+        assert mb.pending == 1
+        release.set()
+        await asyncio.wait_for(asyncio.gather(first, waiting), 10)
+        assert calls == [1, 1]  # the three abandoned scans were never encoded
+        assert mb.pending == 0 and not mb.stuck(0)
+        await mb.stop()
+
+    asyncio.run(main())
+
+
 def test_encoder_lanes_and_threads_share_the_cores(monkeypatch: pytest.MonkeyPatch):
     from overlapmamba.service import threads
 

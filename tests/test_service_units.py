@@ -813,3 +813,24 @@ def test_filter_columns_let_go_of_robot_and_session_ids_no_live_row_uses():
     c.add(np.array([5]), [("r", "s", 0.0)])
     c.add(np.array([5]), [("q", "s", 0.0)])  # a row written again gives back its old codes
     assert c.lookup("r") == -1 and c.codes == 2
+
+
+def test_the_query_rate_over_the_last_minute_has_no_ceiling():
+    """``queries_per_s_1m`` counted a window of the last 2,048 query times: past 2,048
+    queries a minute it read 34.13 a second whatever the load, and the dashboard's rate
+    line disagreed with its Δqueries/Δt. It counts queries a second over the minute."""
+    import time
+
+    from overlapmamba.service.stats import Stats
+
+    s = Stats("m")
+    for _ in range(6000):
+        s.query("town", "r1", False)
+    assert s.total.public()["queries_per_s_1m"] == pytest.approx(100.0)
+    assert s.by_map["town"].public()["queries_per_s_1m"] == pytest.approx(100.0)
+    c = s.by_map["town"]
+    c.recent.clear()
+    c.queried(time.time() - 120)  # two minutes ago: out of the minute
+    c.queried(time.time() - 30)
+    assert c.public()["queries_per_s_1m"] == pytest.approx(1 / 60)
+    assert len(c.recent) == 1  # older seconds are dropped as newer ones come

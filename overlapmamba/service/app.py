@@ -42,7 +42,7 @@ from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.places import PlaceService
 from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn
 from overlapmamba.service.settings import Settings
-from overlapmamba.service.threads import encoder_threads, in_thread
+from overlapmamba.service.threads import encoder_threads, in_thread, request_deadline
 
 log = logging.getLogger("overlapmamba.service")
 access = logging.getLogger("overlapmamba.access")
@@ -156,6 +156,7 @@ class GuardMiddleware:
                     headers={"x-request-id": rid},
                 )
                 await resp(scope, receive, send)
+                _count(scope, 413, BEFORE_ROUTING)
                 return 413
 
         over = False  # the body crossed the limit while it streamed in
@@ -196,6 +197,7 @@ class GuardMiddleware:
                 message = {**message, "headers": [*message.get("headers", []), _rid(rid)]}
             await send(message)
 
+        deadline = request_deadline.set(time.monotonic() + self.timeout_s)
         try:
             async with asyncio.timeout(self.timeout_s):
                 await self.app(scope, limited_receive, tracking_send)
@@ -210,13 +212,20 @@ class GuardMiddleware:
                 )
                 await resp(scope, receive, send)
         finally:
-            svc = getattr(scope["app"].state, "service", None) if "app" in scope else None
-            route = scope.get("route")
-            if svc is not None:
-                svc.stats.request(getattr(route, "path", "unmatched"), status)
+            request_deadline.reset(deadline)
+            _count(scope, status)
         return status
 
 
+def _count(scope: Scope, status: int, route: str | None = None) -> None:
+    """One answered request on ``overlapmamba_requests_total``, by route and status."""
+    app = scope.get("app")
+    svc = getattr(app.state, "service", None) if app is not None else None
+    if svc is not None:
+        svc.stats.request(route or getattr(scope.get("route"), "path", "unmatched"), status)
+
+
+BEFORE_ROUTING = "(before routing)"  # the route label of a request refused by its headers
 _PROBES = {"/healthz", "/readyz", "/metrics"}  # polled every few seconds: debug level
 
 

@@ -18,12 +18,18 @@ file against one lane: ``reports/client/fleet-lanes.json``).
 
 A full queue answers at once with :class:`~overlapmamba.service.errors.Overloaded` (503 +
 Retry-After): queueing more work than can finish within a request timeout only turns 503s into 504s.
+A scan whose request gave up (504, or the client gone) while it waited is skipped when a
+lane takes it, and no longer counts as waiting (:attr:`MicroBatcher.pending`).
+:meth:`MicroBatcher.stuck` names the lanes busy on one call for longer than a time, which
+``/readyz`` and ``/healthz`` report: a call that never returns would otherwise leave the
+service answering 504 to every scan while its probes say all is well.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -41,6 +47,7 @@ class _Item:
     image: np.ndarray  # (V, H, W): one scan's views (Encoder.project_offset)
     offset: float  # its column offset (0 unless the model aligns columns)
     future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
+    taken: bool = False  # a lane took it off the queue
 
 
 class MicroBatcher:
@@ -66,6 +73,8 @@ class MicroBatcher:
         self.lanes = lanes
         self._workers: list[asyncio.Task[None]] = []
         self._batches: list[list[_Item]] = [[] for _ in range(lanes)]  # each lane's, encoding
+        self._busy_since: list[float | None] = [None] * lanes  # when its encoder call began
+        self._abandoned = 0  # scans on the queue whose requests gave up waiting
         self._pool = ThreadPoolExecutor(max_workers=lanes, thread_name_prefix="encoder")
 
     async def start(self) -> None:
@@ -85,7 +94,9 @@ class MicroBatcher:
                 await worker
         left = [item for batch in self._batches for item in batch]
         while self._queue is not None and not self._queue.empty():
-            left.append(self._queue.get_nowait())
+            item = self._queue.get_nowait()
+            item.taken = True
+            left.append(item)
         for item in left:
             if not item.future.done():
                 item.future.set_exception(
@@ -105,7 +116,17 @@ class MicroBatcher:
 
     @property
     def pending(self) -> int:
-        return self._queue.qsize() if self._queue is not None else 0
+        """Scans on the queue whose requests still wait for them."""
+        return max(0, self._queue.qsize() - self._abandoned) if self._queue is not None else 0
+
+    def stuck(self, after_s: float) -> list[tuple[int, float]]:
+        """(lane, seconds) of the lanes busy on one encoder call for longer than ``after_s``."""
+        now = time.monotonic()
+        return [
+            (lane, now - t0)
+            for lane, t0 in enumerate(self._busy_since)
+            if t0 is not None and now - t0 > after_s
+        ]
 
     async def encode(
         self, image: np.ndarray, offset: float = 0.0, *, timeout_s: float | None = None
@@ -116,8 +137,9 @@ class MicroBatcher:
         fut: asyncio.Future[tuple[np.ndarray, np.ndarray]] = (
             asyncio.get_running_loop().create_future()
         )
+        item = _Item(image, offset, fut)
         try:
-            self._queue.put_nowait(_Item(image, offset, fut))
+            self._queue.put_nowait(item)
         except asyncio.QueueFull:
             raise Overloaded(
                 f"the encoder queue is full ({self.queue_size} scans waiting); retry shortly",
@@ -127,17 +149,25 @@ class MicroBatcher:
             return await asyncio.wait_for(fut, timeout_s)
         except TimeoutError:
             raise Timeout(f"encoding did not finish within {timeout_s} s") from None
+        finally:
+            if not item.taken and fut.done():  # gave up (timeout, cancelled) while queued
+                self._abandoned += 1
 
     async def _run(self, lane: int) -> None:
         assert self._queue is not None
         loop = asyncio.get_running_loop()
         while True:
-            batch = [await self._queue.get()]
+            first = self._take(await self._queue.get())
+            if first is None:
+                continue
+            batch = [first]
             self._batches[lane] = batch  # filled in place: stop() answers what it holds
             deadline = loop.time() + self.max_wait_s
             while len(batch) < self.max_batch:
                 try:
-                    batch.append(self._queue.get_nowait())
+                    item = self._take(self._queue.get_nowait())
+                    if item is not None:
+                        batch.append(item)
                     continue
                 except asyncio.QueueEmpty:
                     pass
@@ -145,18 +175,28 @@ class MicroBatcher:
                 if left <= 0 or not self._coming:  # nothing on its way: do not wait for it
                     break
                 try:
-                    batch.append(await asyncio.wait_for(self._queue.get(), left))
+                    item = self._take(await asyncio.wait_for(self._queue.get(), left))
                 except TimeoutError:
                     break
+                if item is not None:
+                    batch.append(item)
             try:
-                await self._encode_batch(batch)
+                await self._encode_batch(batch, lane)
             except Exception as err:  # a failing batch fails its callers, not the worker
                 for item in batch:
                     if not item.future.done():
                         item.future.set_exception(err)
             self._batches[lane] = []
 
-    async def _encode_batch(self, batch: list[_Item]) -> None:
+    def _take(self, item: _Item) -> _Item | None:
+        """An item off the queue; None for one whose request gave up waiting."""
+        item.taken = True
+        if item.future.done():
+            self._abandoned -= 1
+            return None
+        return item
+
+    async def _encode_batch(self, batch: list[_Item], lane: int = 0) -> None:
         loop = asyncio.get_running_loop()
         live = [item for item in batch if not item.future.done()]  # drop timed-out ones
         if not live:
@@ -164,7 +204,11 @@ class MicroBatcher:
         images = np.stack([item.image for item in live])  # (B, V, H, W)
         offsets = np.array([item.offset for item in live], np.float64)
         t0 = loop.time()
-        desc, yaw = await loop.run_in_executor(self._pool, self._encode, images, offsets)
+        self._busy_since[lane] = time.monotonic()
+        try:
+            desc, yaw = await loop.run_in_executor(self._pool, self._encode, images, offsets)
+        finally:
+            self._busy_since[lane] = None
         elapsed = loop.time() - t0
         for i, item in enumerate(live):
             if not item.future.done():

@@ -49,11 +49,22 @@ class _Counts:
     # well (verify.ambiguity_margin)
     ambiguous: int = 0
     robots: OrderedDict[str, _Robot] = field(default_factory=OrderedDict)
-    recent: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # query times
+    # queries a second over the last minute, as [second, count] (a window of samples would
+    # cap the rate at WINDOW / 60 a second)
+    recent: deque[list[int]] = field(default_factory=deque)
+
+    def queried(self, now: float) -> None:
+        second = int(now)
+        if self.recent and self.recent[-1][0] == second:
+            self.recent[-1][1] += 1
+        else:
+            self.recent.append([second, 1])
+        while self.recent and self.recent[0][0] < second - 60:
+            self.recent.popleft()
 
     def public(self) -> dict[str, Any]:
         now = time.time()
-        last_min = sum(1 for t in self.recent if now - t <= 60.0)
+        last_min = sum(n for second, n in self.recent if now - second < 60.0)
         return {
             "inserts": self.inserts,
             "queries": self.queries,
@@ -141,7 +152,11 @@ class Stats:
         self.p_keyframes = Gauge(
             "overlapmamba_map_keyframes", "Keyframes per map", ["map"], registry=r
         )
-        self.p_queue = Gauge("overlapmamba_encoder_queue", "Scans waiting to encode", registry=r)
+        self.p_queue = Gauge(
+            "overlapmamba_encoder_queue",
+            "Scans waiting to encode whose requests still wait for them",
+            registry=r,
+        )
         self.p_ready = Gauge(
             "overlapmamba_ready",
             "1 once the model is loaded and every map replayed (/readyz 200), else 0",
@@ -210,6 +225,7 @@ class Stats:
             self.p_registered.labels(map_id).inc(registered)
         if ambiguous:
             self.p_ambiguous.labels(map_id).inc(ambiguous)
+        now = time.time()
         with self._lock:
             for c in (self.total, self.by_map[map_id]):
                 c.queries += 1
@@ -217,7 +233,7 @@ class Stats:
                 c.rejected += rejected
                 c.registered += registered
                 c.ambiguous += ambiguous
-                c.recent.append(time.time())
+                c.queried(now)
                 c.loop_closures += accepted
                 rec = self._robot(c, robot)
                 if rec is not None:

@@ -33,7 +33,25 @@ async def healthz(request: Request) -> Response:
     if failed is not None:
         body = Health(status="failed", detail={"stage": failed}).model_dump()
         return JSONResponse(body, status_code=503)
+    svc = getattr(request.app.state, "service", None)
+    lanes = _stuck(svc, 2)
+    if svc is not None and len(lanes) == svc.pipeline.batcher.lanes:  # it encodes nothing
+        body = Health(status="stuck", detail={"stage": _stuck_text(lanes)}).model_dump()
+        return JSONResponse(body, status_code=503)
     return JSONResponse(Health(status="ok").model_dump())
+
+
+def _stuck(svc: Any, timeouts: float) -> list[tuple[int, float]]:
+    """The encoder lanes busy on one call for longer than ``timeouts`` request timeouts:
+    every request waiting on them has been answered 504 long since."""
+    if svc is None:
+        return []
+    return svc.pipeline.batcher.stuck(timeouts * svc.settings.limits.request_timeout_s)
+
+
+def _stuck_text(lanes: list[tuple[int, float]]) -> str:
+    each = ", ".join(f"lane {lane} for {s:.0f} s" for lane, s in lanes)
+    return f"encoder calls have not returned ({each}): restart the process"
 
 
 @router.get(
@@ -61,6 +79,12 @@ async def readyz(request: Request) -> Response:
             headers={"Retry-After": "1"},
         )
     svc = state.service
+    lanes = _stuck(svc, 1)
+    if lanes:
+        return JSONResponse(
+            Health(status="stuck", detail={"stage": _stuck_text(lanes)}).model_dump(),
+            status_code=503,
+        )
     try:  # the Qdrant backend asks its server: unreachable means not ready
         where = await in_thread(svc.registry.describe)
     except ServiceError as err:
