@@ -112,6 +112,41 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
     assert res.exit_code == 2 and "no PointCloud2 topic '/x'" in res.output
 
 
+def test_a_recording_is_never_written_over_the_drive_it_replays(recordings, tmp_path):
+    """``observe drive.mcap --record drive.mcap`` truncated the user's drive to an empty
+    MCAP, then ended in a traceback reopening it. A --record that is the drive or inside it
+    is refused before anything is opened; a recording replaces its file only once whole,
+    and a run that fails before recording anything leaves the file there as it was."""
+    from typer.testing import CliRunner
+
+    from overlapmamba.client.cli import app
+    from overlapmamba.client.recording import MapRecording
+
+    paths, _, _ = recordings
+    runner = CliRunner()
+    for name in ("mcap", "rosbag2-sqlite"):
+        drive = paths[name]
+        into = drive / "out.mcap" if drive.is_dir() else drive
+        before = {f: f.read_bytes() for f in ([drive] if drive.is_file() else drive.iterdir())}
+        res = runner.invoke(app, ["observe", str(drive), "--map", "m", "--record", str(into)])
+        text = " ".join(res.output.replace("│", " ").split())
+        assert res.exit_code == 2 and "would overwrite what is being replayed" in text, text
+        assert {f: f.read_bytes() for f in before} == before
+    kept = tmp_path / "kept.mcap"
+    kept.write_bytes(b"an earlier recording")
+    res = runner.invoke(
+        app,
+        ["observe", str(paths["mcap"]), "--map", "m", "--record", str(kept)],
+        env={"OVERLAPMAMBA_URL": "http://127.0.0.1:9"},  # nothing listens: fails at once
+    )
+    assert res.exit_code == 2 and kept.read_bytes() == b"an earlier recording", res.output
+    assert [p.name for p in tmp_path.iterdir()] == ["kept.mcap"]  # no part left behind
+    with MapRecording(kept) as rec:
+        rec.observation("r1", 1.0, [0, 0, 0, 0, 0, 0, 1])
+        assert kept.read_bytes() == b"an earlier recording"  # until the recording is whole
+    assert kept.read_bytes()[:8] == b"\x89MCAP0\r\n"
+
+
 @pytest.mark.timeout(300)
 def test_eval_reads_a_recording_with_poses_as_it_reads_the_folder(recordings, tmp_path):
     """The same four scans and poses as a KITTI folder and as a ROS 1 bag: read alike."""

@@ -10,6 +10,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from overlapmamba.core.errors import LidarCoreError
@@ -26,7 +27,7 @@ def friendly_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except LidarCoreError as err:
-            console.print(f"[bold red]error:[/] {err.message}")
+            console.print(f"[bold red]error:[/] {escape(err.message)}")
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]

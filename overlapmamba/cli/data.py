@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from overlapmamba.cli.common import (
@@ -349,7 +350,8 @@ def gen_data(
     except OSError as err:  # a file where a folder should be, no permission, a full disk
         raise typer.BadParameter(f"{out_dir}: {err.strerror or err}") from None
     except WorkerError as err:
-        console.print(f"[bold red]error:[/] {err} ({out_dir} is incomplete: delete it)")
+        why = escape(f"{err} ({out_dir} is incomplete: delete it)")
+        console.print(f"[bold red]error:[/] {why}")
         raise typer.Exit(1) from None
     c, t = manifest["counts"], manifest["timing_s"]
     m = cfg.mounting()

@@ -105,10 +105,11 @@ def serve_cmd(
     try:
         settings.check_binding()
     except ValueError as err:
-        console.print(f"[bold red]error:[/] {err}")
+        console.print(f"[bold red]error:[/] {escape(str(err))}")
         raise typer.Exit(2) from None
     if not settings.model.is_file():
-        console.print(f"[bold red]error:[/] model file {settings.model} does not exist")
+        missing = escape(str(settings.model))
+        console.print(f"[bold red]error:[/] model file {missing} does not exist")
         raise typer.Exit(2)
     _preflight(settings, _check_model_file(settings.model))
     run(settings)
@@ -165,7 +166,10 @@ def dump_config_cmd(config: ConfigOpt = None) -> None:
     try:
         meta = read_model_metadata(settings.model)
     except Exception as err:
-        console.print(f"[yellow]note:[/] {settings.model}: {err}; its calibration is not shown")
+        console.print(
+            f"[yellow]note:[/] {escape(str(settings.model))}: {escape(str(err))}; "
+            "its calibration is not shown"
+        )
     else:
         try:
             settings, used = resolve(settings, meta)
@@ -216,7 +220,7 @@ def export_map_cmd(
     try:
         r = export_map(data_dir or Path("data"), map_id, out_file)
     except (BackupError, ServiceError) as err:
-        console.print(f"[bold red]error:[/] {err}")
+        console.print(f"[bold red]error:[/] {escape(str(err))}")
         raise typer.Exit(2) from None
     out.print(f"exported map {r['map_id']}: {r['keyframes']} keyframes, {r['bytes']} bytes")
 
@@ -238,7 +242,7 @@ def import_map_cmd(
     try:
         r = import_map(data_dir or Path("data"), map_id, src, replace=replace)
     except (BackupError, ServiceError) as err:
-        console.print(f"[bold red]error:[/] {err}")
+        console.print(f"[bold red]error:[/] {escape(str(err))}")
         raise typer.Exit(2) from None
     out.print(f"imported map {r['map_id']}: {r['keyframes']} keyframes (model {r['model_id']})")
 

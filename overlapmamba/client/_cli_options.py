@@ -7,10 +7,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import wraps
+from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from overlapmamba.client._base import Timeouts, check_mount
 from overlapmamba.client._exceptions import APIError, ClientError
@@ -88,16 +90,22 @@ def errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except APIError as err:
-            console.print(f"[bold red]error:[/] {err.status} {err.code}: {err.message}")
+            console.print(f"[bold red]error:[/] {err.status} {err.code}: {escape(err.message)}")
             raise typer.Exit(1) from None
         except ClientError as err:
-            console.print(f"[bold red]error:[/] {err}")
+            console.print(f"[bold red]error:[/] {escape(str(err))}")
             raise typer.Exit(2) from None
         except (ValueError, OSError) as err:
-            console.print(f"[bold red]error:[/] {err}")
+            console.print(f"[bold red]error:[/] {escape(str(err))}")
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def within(path: Path, folder: Path) -> bool:
+    """``path`` is ``folder`` or lies inside it (both resolved: links, ``..``)."""
+    p, f = path.resolve(), folder.resolve()
+    return p == f or f in p.parents
 
 
 def client(url: str, api_key: str | None, mount: str | None = None) -> PlaceRecognitionClient:

@@ -33,6 +33,7 @@ from overlapmamba.client._cli_options import (
     console,
     errors,
     out,
+    within,
 )
 from overlapmamba.client._display import matrix_text, pose_text, progress, stats_table
 from overlapmamba.client._replay import open_drive
@@ -258,6 +259,11 @@ def observe(
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
     closure as it is detected, with its relative pose when verified."""
+    if record is not None and within(record, seq_dir):
+        raise ValueError(
+            f"--record {record} is the drive {seq_dir} or inside it: the recording would "
+            "overwrite what is being replayed; write it elsewhere"
+        )
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
     session = session or drive.name
     closures = inserted = 0

@@ -19,6 +19,7 @@ Foxglove's message type; the schemas here list the fields written, not all of Fo
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import IO, Any
 
@@ -79,7 +80,12 @@ class MapRecording:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        if self.path.is_dir():
+            raise ValueError(f"--record {self.path} is a folder; give the MCAP file to write")
+        # written beside it and renamed over it when closed: what was at the path stays
+        # whole until a whole recording replaces it
+        self._part = self.path.with_name(f".{self.path.name}.part")
+        self._file: IO[bytes] = open(self._part, "wb")  # noqa: SIM115 - closed in close()
         self._writer = Writer(self._file)
         self._writer.start(profile="", library="overlapmamba-client")
         self._schemas = {
@@ -155,11 +161,19 @@ class MapRecording:
             )
 
     def close(self) -> None:
+        if self._file.closed:
+            return
         self._writer.finish()
         self._file.close()
+        os.replace(self._part, self.path)
 
     def __enter__(self) -> MapRecording:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, kind: object, *exc: object) -> None:
+        if kind is not None and not self.messages:  # failed before anything was recorded
+            self._writer.finish()
+            self._file.close()
+            self._part.unlink(missing_ok=True)
+            return
         self.close()

@@ -130,9 +130,9 @@ class Bag:
         j = i - self._nth(i)  # the index of the first message at scan i's time
         found: dict[int, PointCloud] = {}
         failure: Exception | None = None
-        with _reader(self.path) as r:
-            cons = [c for c in r.connections if c.topic == self.topic]
-            try:
+        try:  # the recording reopened: changed or gone since it was indexed, it says so
+            with _reader(self.path) as r:
+                cons = [c for c in r.connections if c.topic == self.topic]
                 for con, _, raw in r.messages(connections=cons, start=t):
                     if j >= i:
                         msg = r.deserialize(raw, con.msgtype)
@@ -140,8 +140,8 @@ class Bag:
                     j += 1
                     if j >= min(i + PREFETCH, len(self)):
                         break
-            except Exception as err:  # a damaged message, a file cut short: those read serve
-                failure = err
+        except Exception as err:  # a damaged message, a file cut short: those read serve
+            failure = err
         if i not in found:
             why = "is gone" if failure is None else f"cannot be read: {failure}"
             raise DatasetError(
