@@ -79,6 +79,19 @@ def test_pcd_folder_written(tmp_path):
     assert [float(seq.points(i).xyz[0, 0]) for i in range(4)] == [0, 1, 2, 10]
 
 
+def test_kitti_scans_named_without_zero_padding_keep_their_order(tmp_path):
+    """``0.bin … 11.bin`` sorted as text put 10.bin and 11.bin third and fourth: each scan
+    after them went out with another scan's pose and time, without a word. Ordered by the
+    number in the name, as the PCD folder's are."""
+    velodyne = tmp_path / "velodyne"
+    velodyne.mkdir()
+    for i in range(12):
+        np.full((5, 4), i, np.float32).tofile(velodyne / f"{i}.bin")
+    write_poses(tmp_path / "poses.txt", np.stack([np.eye(4)] * 12))
+    seq = open_sequence(tmp_path)
+    assert [float(seq.points(i).xyz[0, 0]) for i in range(12)] == list(range(12))
+
+
 def test_bad_sequences_name_the_problem(tmp_path, synthetic_seq_dir):
     with pytest.raises(DatasetError, match="does not exist"):
         open_sequence(tmp_path / "nope")

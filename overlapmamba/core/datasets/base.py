@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +14,15 @@ from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.io import read_points, read_xyzi
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.mount import Mount
+
+_NUMBER = re.compile(r"(\d+)")
+
+
+def scan_order(path: Path) -> tuple[int, str]:
+    """Sort key of scan files: by the first number in the name (``2.bin`` before
+    ``10.bin``, as ``000002.bin`` before ``000010.bin``), then by name."""
+    m = _NUMBER.search(path.stem)
+    return (int(m.group(1)) if m else -1, path.name)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.datasets.base import Sequence, scan_order
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import camera_to_lidar, read_calib, read_poses
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
@@ -77,7 +77,7 @@ def open_kitti(
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
         raise DatasetError(f"{root} is not a KITTI sequence: no velodyne/ folder")
-    scans = tuple(sorted(velodyne.glob("*.bin")))
+    scans = tuple(sorted(velodyne.glob("*.bin"), key=scan_order))  # 2.bin before 10.bin
     pose_file = root / "poses.txt"
     if not pose_file.is_file():
         raise DatasetError(f"{root}: poses.txt is missing (one 3×4 pose per scan)")

@@ -3,14 +3,11 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
-from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.datasets.base import Sequence, scan_order
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import read_poses
-
-_NUMBER = re.compile(r"(\d+)")
 
 
 def _scan_dir(root: Path) -> Path:
@@ -21,14 +18,9 @@ def looks_like(root: Path) -> bool:
     return (root / "poses.txt").is_file() and any(_scan_dir(root).glob("*.pcd"))
 
 
-def _natural_key(path: Path) -> tuple[int, str]:
-    m = _NUMBER.search(path.stem)
-    return (int(m.group(1)) if m else -1, path.name)
-
-
 def open_pcd_folder(root: str | Path, *, sensor: str | None = None) -> Sequence:
     root = Path(root)
-    scans = tuple(sorted(_scan_dir(root).glob("*.pcd"), key=_natural_key))
+    scans = tuple(sorted(_scan_dir(root).glob("*.pcd"), key=scan_order))
     if not scans:
         raise DatasetError(f"{root}: no .pcd files in {_scan_dir(root)}")
     pose_file = root / "poses.txt"
