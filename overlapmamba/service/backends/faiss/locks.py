@@ -8,19 +8,31 @@ from collections.abc import Iterator
 
 
 class RWLock:
-    """Many readers or one writer; a waiting writer blocks new readers (no starvation)."""
+    """Many readers or one writer, phase-fair: a waiting writer keeps new readers out (writes
+    are never starved by a stream of searches), and the readers that queued behind a write
+    go in together before the next write (a snapshot, a rebuild or a search is never held
+    off by writers that follow one another, each waiting while another writes)."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._readers = 0
         self._writer = False
         self._waiting_writers = 0
+        self._queued_readers = 0  # readers waiting for a write phase to end
+        self._entitled = 0  # of those, the ones a finished write let in before the next
+        self._phase = 0  # writes finished
 
     @contextlib.contextmanager
     def read(self) -> Iterator[None]:
         with self._cond:
-            while self._writer or self._waiting_writers:
-                self._cond.wait()
+            if self._writer or self._waiting_writers:
+                self._queued_readers += 1
+                phase = self._phase
+                while self._writer or (self._waiting_writers and self._phase == phase):
+                    self._cond.wait()
+                self._queued_readers -= 1
+                if self._phase != phase:
+                    self._entitled -= 1
             self._readers += 1
         try:
             yield
@@ -34,7 +46,7 @@ class RWLock:
     def write(self) -> Iterator[None]:
         with self._cond:
             self._waiting_writers += 1
-            while self._writer or self._readers:
+            while self._writer or self._readers or self._entitled:
                 self._cond.wait()
             self._waiting_writers -= 1
             self._writer = True
@@ -43,4 +55,6 @@ class RWLock:
         finally:
             with self._cond:
                 self._writer = False
+                self._phase += 1
+                self._entitled = self._queued_readers  # they go in before the next write
                 self._cond.notify_all()
