@@ -553,6 +553,71 @@ def test_a_write_stored_but_not_indexed_is_rebuilt_never_snapshotted_away(tmp_pa
         assert b.get("town").count == 4
 
 
+def test_a_write_that_fails_while_a_snapshot_or_rebuild_is_under_way_is_repaired(
+    tmp_path, monkeypatch
+):
+    """Two narrower timings of the failure above. A snapshot past its ``incomplete`` check
+    but not yet in its read lock, when a write failed and a later one succeeded, recorded
+    the later seq as applied: after a crash the failed keyframe was in the store and never
+    in the index. A rebuild that read ``incomplete`` before such a failure put the row in
+    its index but not in the filter columns, and cleared the flag: every filtered search
+    (observe always filters) skipped the keyframe for good."""
+    import threading
+
+    rng = np.random.default_rng(0)
+    rows = [row(i, rng) for i in range(6)]
+
+    def fail_one_write_while(m, gate_store_call: str, first: int, action) -> None:  # type: ignore[no-untyped-def]
+        at_gate, go = threading.Event(), threading.Event()
+        real = getattr(m.store, gate_store_call) if gate_store_call else m.lock.read
+
+        def gated(*a, **k):  # type: ignore[no-untyped-def]
+            if threading.current_thread() is worker and not at_gate.is_set():
+                at_gate.set()
+                go.wait(10)
+            return real(*a, **k)
+
+        if gate_store_call:
+            monkeypatch.setattr(m.store, gate_store_call, gated)
+        else:
+            monkeypatch.setattr(m.lock, "read", gated)
+        worker = threading.Thread(target=action)
+        worker.start()
+        assert at_gate.wait(10)
+        real_add = m.index.add
+
+        def out_of_memory(ids, vecs):  # type: ignore[no-untyped-def]
+            raise MemoryError("faiss could not grow its index")
+
+        monkeypatch.setattr(m.index, "add", out_of_memory)
+        with pytest.raises(MemoryError):
+            m.insert([rows[first]])
+        monkeypatch.setattr(m.index, "add", real_add)
+        m.insert([rows[first + 1]])  # a later write succeeds
+        go.set()
+        worker.join(10)
+        monkeypatch.undo()
+
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert(rows[:2])
+        m._maintenance.acquire()  # no background maintenance: the test's calls only
+        fail_one_write_while(m, "", 2, m.snapshot)  # between the check and the read lock
+        assert m.snapshot_seq == m.store.last_seq and not m.incomplete
+        fail_one_write_while(m, "live_rows", 4, m.rebuild)  # while the rebuild reads rows
+        m._maintenance.release()
+        for i in (2, 4):
+            only = Filters(time_from=float(i), time_to=float(i))  # the filter columns
+            found = [x.keyframe.keyframe_id for x in m.search(rows[i].descriptor, 1, only)]
+            assert found == [f"kf-{i}"], (i, found)
+        b.close(snapshot=False)  # a crash: the next start has the snapshot and the store
+    with opened("faiss", tmp_path) as b:
+        m = b.get("town")
+        assert m.count == 6
+        found = [x.keyframe.keyframe_id for x in m.search(rows[2].descriptor, 1, Filters())]
+        assert found == ["kf-2"]
+
+
 def test_a_full_disk_is_named_and_the_map_goes_on_afterwards(tmp_path):
     """SQLite rolls a transaction back itself when the disk fills: the error the operator
     sees must say the disk is full (503 storage_full), not that no transaction was active;

@@ -49,7 +49,7 @@ from overlapmamba.service.domain import (
     NewKeyframe,
     check_rows,
 )
-from overlapmamba.service.errors import NotFound
+from overlapmamba.service.errors import NotFound, Unavailable
 from overlapmamba.service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")
@@ -252,7 +252,9 @@ class FaissMap:
             for rows, v, _ in self.store.live_rows(seq):
                 new.add(rows, v)
             new.remove(self.store.deleted_after(seq))
-            if repair:  # the filter columns too, from every live row
+            if repair or self.incomplete:  # the filter columns too, from every live row
+                # (``incomplete`` again: a write that failed during the build may have left
+                # its row out of them, though the replay above put it in the index)
                 columns = FilterColumns()
                 for rows, meta in self.store.live_meta():
                     columns.add(rows, meta)
@@ -265,13 +267,24 @@ class FaissMap:
     def snapshot(self) -> dict[str, Any]:
         """Write the index and its seq atomically; then purge tombstones it reflects."""
         with self._snapshot_lock:
-            if self.incomplete:
-                self._rebuild()
-            with self.lock.read():
-                self.check_open()
-                seq = self.applied_seq
-                payload = self.index.serialize()
-                kind = self.index.kind
+            for _ in range(3):
+                if self.incomplete:
+                    self._rebuild()
+                with self.lock.read():
+                    self.check_open()
+                    # checked again under the lock: a write that failed since would leave its
+                    # row out of an index recorded as holding every write up to ``seq``
+                    if self.incomplete:
+                        continue
+                    seq = self.applied_seq
+                    payload = self.index.serialize()
+                    kind = self.index.kind
+                    break
+            else:
+                raise Unavailable(
+                    f"map {self.map_id!r}: its index update keeps failing, so no snapshot was "
+                    "written (the store holds every write; see the log)"
+                )
             try:
                 path = write_snapshot(self.folder / SNAPSHOT_NAME, payload, seq, kind, self.dim)
             except OSError as err:
