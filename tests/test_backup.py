@@ -4,6 +4,7 @@ what a copy holds is what it reports, a damaged file is refused and never served
 from __future__ import annotations
 
 import contextlib
+import os
 import sqlite3
 
 import numpy as np
@@ -168,3 +169,59 @@ def test_paths_with_uri_characters_are_files_not_uri_parts(tmp_path):
     (tmp_path / "a-file").write_text("")
     with pytest.raises(backup.BackupError, match="cannot write"):
         backup.export_map(root / "data", "town", tmp_path / "a-file" / "town.sqlite")
+
+
+@pytest.mark.skipif(not hasattr(os, "setuid") or os.geteuid() != 0, reason="needs root to drop")
+def test_an_account_that_may_only_read_exports_and_imports():
+    """A backup account that may read the data folder and the backups, not write beside
+    them. SQLite reads a WAL-mode file by making files next to it: an export (left in WAL
+    mode) was "damaged or not a map export" to such an account, a stopped service's store
+    "cannot be read", and where the account could write, an import left -shm and -wal
+    files beside the user's backup. An export is now a file of its own, and a store with
+    no write-ahead log left is read as the file it is."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    tmp_path = Path(tempfile.mkdtemp())  # pytest's own folder is the owner's alone
+    os.chmod(tmp_path, 0o755)
+    try:
+        _read_only_account(tmp_path)
+    finally:
+        shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def _read_only_account(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(5)])
+    out = tmp_path / "bk" / "town.sqlite"
+    backup.export_map(tmp_path / "data", "town", out)
+    assert out.read_bytes()[18:20] == b"\x01\x01"  # rollback journal, not WAL
+    backup.import_map(tmp_path / "again", "town", out)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["town.sqlite"]  # nothing beside
+    for folder in (out.parent, tmp_path / "data", tmp_path / "data" / "maps"):
+        os.chmod(folder, 0o555)
+    os.chmod(tmp_path / "data" / "maps" / "town", 0o555)
+    restore = tmp_path / "restore"
+    restore.mkdir(mode=0o777)
+    os.chmod(restore, 0o777)
+    pid = os.fork()
+    if pid == 0:  # the backup account: nobody
+        code = 1
+        try:
+            os.setgid(65534)
+            os.setuid(65534)
+            got = backup.import_map(restore / "data", "town", out)
+            made = backup.export_map(tmp_path / "data", "town", restore / "copy.sqlite")
+            code = 0 if got["keyframes"] == 5 and made["keyframes"] == 5 else 3
+        except Exception as err:  # reported through the exit code
+            print(err, flush=True)
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    for folder in (out.parent, tmp_path / "data", tmp_path / "data" / "maps"):
+        os.chmod(folder, 0o755)
+    os.chmod(tmp_path / "data" / "maps" / "town", 0o755)
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["town.sqlite"]

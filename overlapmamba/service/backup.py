@@ -86,7 +86,10 @@ def export_map(data_dir: Path, map_id: str, out: Path) -> dict[str, Any]:
         ) from None
     try:
         copied = store.backup(tmp)  # what the file holds, whatever a service writes meanwhile
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
         os.replace(tmp, out)
+        fsync_dir(out.parent)  # the rename too: after a power cut the export is there
     except (OSError, sqlite3.Error) as err:
         tmp.unlink(missing_ok=True)
         raise BackupError(f"the copy of map {map_id!r} to {out} failed: {err}") from None

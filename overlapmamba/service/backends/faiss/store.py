@@ -76,8 +76,20 @@ CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp
 def sqlite_uri(path: Path, mode: str) -> str:
     """SQLite's URI of ``path`` opened in ``mode`` (ro, rw): percent-encoded, so that a
     ``#`` or ``?`` in a folder's name is part of the path, not the URI's fragment or query
-    (where SQLite would open, or create, another file)."""
-    return f"{Path(path).absolute().as_uri()}?mode={mode}"
+    (where SQLite would open, or create, another file).
+
+    Read-only beside a folder this process may not write (a backup mount, another account's
+    data folder), SQLite cannot make the shared-memory file a WAL-mode file is read with:
+    such a file with no write-ahead log left (its writer closed, or an export) is opened
+    ``immutable``, as the file it then is; one with a log still holding writes is not, and
+    SQLite's error names it."""
+    path = Path(path).absolute()
+    uri = f"{path.as_uri()}?mode={mode}"
+    if mode == "ro" and not os.access(path.parent, os.W_OK):
+        wal = path.with_name(path.name + "-wal")
+        if not wal.exists() or wal.stat().st_size == 0:
+            uri += "&immutable=1"
+    return uri
 
 
 class StoreError(RuntimeError):
@@ -525,6 +537,9 @@ class Store:
         try:
             with self._reading() as con:
                 con.backup(target)
+            # a file of its own, not a write-ahead log's: it opens read-only anywhere (a
+            # store opened on it for writing goes back to WAL)
+            target.execute("PRAGMA journal_mode=DELETE")
             sql = "SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL"
             return int(target.execute(sql).fetchone()[0])
         finally:
