@@ -112,6 +112,53 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
     assert res.exit_code == 2 and "no PointCloud2 topic '/x'" in res.output
 
 
+def test_a_scan_that_cannot_be_read_is_left_out_and_the_drive_goes_on(
+    live_url, recordings, tmp_path
+):
+    """A driver's empty cloud while it starts (width 0): ingest, observe and the fleet
+    stopped there with an error, and every scan after it could never be sent. It is left
+    out and named at the end; the rest are sent. A drive with no readable scan is an error."""
+    from ros_messages import write_recordings
+    from typer.testing import CliRunner
+
+    from overlapmamba.client.cli import app
+
+    _, clouds, poses = recordings
+    gappy = [clouds[0], np.zeros((0, 4), np.float32), clouds[2], clouds[3]]
+    bag = write_recordings(tmp_path / "gappy", gappy, poses)["mcap"]
+    runner = CliRunner()
+    env = {"OVERLAPMAMBA_URL": live_url}
+    res = runner.invoke(app, ["ingest", str(bag), "--map", "gappy", "--session", "g"], env=env)
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 0, text
+    assert "3 scans → map gappy: 3 new keyframes" in text, text
+    assert "1 of 4 scans could not be read" in text and "message 1" in text, text
+    res = runner.invoke(
+        app, ["observe", str(bag), "--map", "gappy", "--session", "o", "-k", "1"], env=env
+    )
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 0 and "3 scans observed" in text, text
+    report = tmp_path / "fleet.json"
+    res = runner.invoke(
+        app,
+        [
+            *("simulate-fleet", "--map", "gappy", "-s", str(bag), "--robots", "1"),
+            *("--rate", "50", "--duration", "20", "--out", str(report)),
+            *("--plot", str(tmp_path / "f.png")),
+        ],
+        env=env,
+    )
+    assert res.exit_code == 0, res.output
+    import json
+
+    fleet = json.loads(report.read_text())
+    assert fleet["errors"] == {"unreadable_scan": 1} and fleet["observations"] == 4, fleet
+    empty = write_recordings(tmp_path / "empty", [np.zeros((0, 4), np.float32)], poses[:1])
+    res = runner.invoke(app, ["ingest", str(empty["mcap"]), "--map", "gappy"], env=env)
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "none of the 1 scans could be read" in text, text
+
+
 def test_a_recording_is_never_written_over_the_drive_it_replays(recordings, tmp_path):
     """``observe drive.mcap --record drive.mcap`` truncated the user's drive to an empty
     MCAP, then ended in a traceback reopening it. A --record that is the drive or inside it

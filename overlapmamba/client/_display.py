@@ -53,3 +53,20 @@ def stats_table(s: dict[str, Any]) -> Table:
     if "map" in s:
         table.add_row("map keyframes", str(s["map"].get("keyframes")))
     return table
+
+
+def report_skipped(skipped: list[str], frames: int) -> None:
+    """After a drive: the scans left out because they could not be read, on stderr (the
+    first few reasons); a drive none of whose scans could be read is an error (exit 2)."""
+    if not skipped:
+        return
+    if len(skipped) == frames:
+        raise ValueError(f"none of the {frames} scans could be read; the first: {skipped[0]}")
+    err = Console(stderr=True)
+    err.print(
+        f"[yellow]note:[/] {len(skipped)} of {frames} scans could not be read and were left out:",
+    )
+    for why in skipped[:5]:
+        err.print(f"  {why}", markup=False)
+    if len(skipped) > 5:
+        err.print(f"  … and {len(skipped) - 5} more")

@@ -13,6 +13,7 @@ synthetic drive's); otherwise none is sent, and the server takes the map's or th
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import numpy as np
 from overlapmamba.core.datasets import open_recording
 from overlapmamba.core.datasets.bags import Bag
 from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import quaternion
 
@@ -42,6 +44,18 @@ class Drive:
 
     def scan(self, i: int) -> np.ndarray:
         return self.seq.xyzi(i)
+
+    def scans(self, frames: Iterable[int], skipped: list[str]) -> Iterator[tuple[int, np.ndarray]]:
+        """(i, scan) of each of ``frames`` that can be read. One that cannot (an empty cloud
+        a driver sent while it started, a NaN in a cloud marked dense, a damaged message) is
+        left out, and why appended to ``skipped``: one bad message does not end a drive."""
+        for i in frames:
+            try:
+                points = self.scan(i)
+            except LidarCoreError as err:
+                skipped.append(str(err))
+                continue
+            yield i, points
 
     def pose(self, i: int) -> np.ndarray | None:
         return None if self.poses is None else self.poses[i]

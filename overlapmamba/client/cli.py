@@ -11,7 +11,7 @@ import asyncio
 import contextlib
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 from rich.live import Live
@@ -35,7 +35,13 @@ from overlapmamba.client._cli_options import (
     out,
     within,
 )
-from overlapmamba.client._display import matrix_text, pose_text, progress, stats_table
+from overlapmamba.client._display import (
+    matrix_text,
+    pose_text,
+    progress,
+    report_skipped,
+    stats_table,
+)
 from overlapmamba.client._replay import open_drive
 from overlapmamba.client._sync import PlaceRecognitionClient
 
@@ -147,17 +153,18 @@ def ingest(
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
     created = retried = 0
+    skipped: list[str] = []  # scans that could not be read: left out, named at the end
     with (
         PlaceRecognitionClient(url, api_key=api_key, compress=compress, mount=mount) as pr,
         progress(console) as bar,
     ):
         pr.create_map(map_id)
         task = bar.add_task(f"ingest {drive.name}", total=len(frames), rate=0.0, latency=0.0)
-        for n, i in enumerate(frames, start=1):
+        for n, (i, points) in enumerate(drive.scans(frames, skipped), start=1):
             t = time.monotonic()
             kf = pr.insert_keyframe(
                 map_id,
-                drive.scan(i),
+                points,
                 keyframe_id=f"{session}-{i:06d}",
                 timestamp=float(drive.times[i]),
                 robot_id=robot,
@@ -168,7 +175,9 @@ def ingest(
             created += bool(kf.created)
             retried += bool(kf.retried and not kf.created)
             now = time.monotonic()
-            bar.update(task, advance=1, rate=n / (now - t0), latency=(now - t) * 1e3)
+            done = n + len(skipped)
+            bar.update(task, completed=done, rate=n / (now - t0), latency=(now - t) * 1e3)
+    sent = len(frames) - len(skipped)
     lost = (
         f" ({retried} of them answered after a retry whose first answer was lost: written by "
         "that try, or before)"
@@ -176,9 +185,10 @@ def ingest(
         else ""
     )
     out.print(
-        f"{len(frames)} scans → map {map_id}: {created} new keyframes, "
-        f"{len(frames) - created} already there{lost}; {time.monotonic() - t0:.1f} s"
+        f"{sent} scans → map {map_id}: {created} new keyframes, "
+        f"{sent - created} already there{lost}; {time.monotonic() - t0:.1f} s"
     )
+    report_skipped(skipped, len(frames))
 
 
 @app.command("query", epilog="Example:\n\n  overlapmamba-client query scan.bin --map town -k 5")
@@ -268,6 +278,7 @@ def observe(
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)
+    skipped: list[str] = []
     with contextlib.ExitStack() as stack:
         pr = stack.enter_context(client(url, api_key, mount))
         rec = None
@@ -276,10 +287,10 @@ def observe(
 
             rec = stack.enter_context(MapRecording(record))
         pr.create_map(map_id)
-        for i in frames:
+        for i, points in drive.scans(frames, skipped):
             o = pr.observe(
                 map_id,
-                drive.scan(i),
+                points,
                 robot_id=robot,
                 session_id=session,
                 timestamp=float(drive.times[i]),
@@ -291,13 +302,7 @@ def observe(
             inserted += o.keyframe is not None
             lc = o.loop_closure
             if rec is not None:
-                rec.observation(
-                    robot,
-                    float(drive.times[i]),
-                    _listed(drive.pose(i)),
-                    o.keyframe,
-                    _closure_end(pr, map_id, o),
-                )
+                rec.observe(pr, map_id, robot, float(drive.times[i]), drive.pose(i), o)
             if lc.accepted and o.matches:
                 closures += 1
                 if lc.verified:
@@ -312,27 +317,11 @@ def observe(
                         f"frame {i}: loop closure with {m.keyframe_id} (descriptor only, "
                         f"distance {m.distance:.5f}{yaw})"
                     )
-    out.print(f"{len(frames)} scans observed: {inserted} inserted, {closures} loop closures")
+    sent = len(frames) - len(skipped)
+    out.print(f"{sent} scans observed: {inserted} inserted, {closures} loop closures")
     if record is not None:
         out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
-
-
-def _listed(pose: Any) -> list[float] | None:
-    return None if pose is None else [float(v) for v in pose]
-
-
-def _closure_end(
-    pr: PlaceRecognitionClient, map_id: str, o: Any
-) -> tuple[str, list[float], bool | None] | None:
-    """(keyframe id, its pose, verified) of an accepted loop closure whose keyframe has a
-    pose; the keyframe is fetched when it ranked below the answer's k."""
-    lc = o.loop_closure
-    if not lc.accepted or lc.keyframe_id is None:
-        return None
-    pose = next((m.pose for m in o.matches if m.keyframe_id == lc.keyframe_id), None)
-    if pose is None:
-        pose = pr.get_keyframe(map_id, lc.keyframe_id).pose
-    return None if pose is None else (lc.keyframe_id, list(pose), lc.verified)
+    report_skipped(skipped, len(frames))
 
 
 @app.command("stats")

@@ -36,6 +36,7 @@ from overlapmamba.client._async import AsyncPlaceRecognitionClient
 from overlapmamba.client._base import Retry
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
+from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
 # a call started before the run's end may finish this long (s) after it; then it is cut
@@ -156,7 +157,14 @@ async def simulate(
                 if next_t > now:
                     await asyncio.sleep(next_t - now)
                 next_t = max(next_t + period, time.monotonic())
-                scan = await asyncio.to_thread(drive.scan, i)
+                try:
+                    scan = await asyncio.to_thread(drive.scan, i)
+                except LidarCoreError:  # counted as the robot's error; the drive goes on
+                    at = time.monotonic() - start
+                    samples.append(
+                        _Sample(name, d, i, at, 0.0, False, None, None, "unreadable_scan")
+                    )
+                    continue
                 sent = time.monotonic()
                 try:
                     # the run ends at its duration: a call still waiting GRACE_S after it
@@ -214,7 +222,7 @@ async def simulate(
                     )
                 )
 
-        try:  # one robot's failure (a scan that cannot be read) stops the others with it
+        try:  # an unforeseen failure in one robot stops the others with it
             async with asyncio.TaskGroup() as tg:
                 for r in range(robots):
                     tg.create_task(robot(r))

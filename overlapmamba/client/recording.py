@@ -160,6 +160,22 @@ class MapRecording:
                 {"deletions": [], "entities": [entity]},
             )
 
+    def observe(
+        self, client: Any, map_id: str, robot: str, t: float, pose: Any, answer: Any
+    ) -> None:
+        """One observation as the CLI's ``observe`` answered it (``client``: the sync
+        client, to fetch a closed loop's keyframe when it ranked below the answer's k)."""
+        lc = answer.loop_closure
+        closure = None
+        if lc.accepted and lc.keyframe_id is not None:
+            to = next((m.pose for m in answer.matches if m.keyframe_id == lc.keyframe_id), None)
+            if to is None:
+                to = client.get_keyframe(map_id, lc.keyframe_id).pose
+            if to is not None:
+                closure = (lc.keyframe_id, [float(v) for v in to], lc.verified)
+        listed = None if pose is None else [float(v) for v in pose]
+        self.observation(robot, t, listed, answer.keyframe, closure)
+
     def close(self) -> None:
         if self._file.closed:
             return
