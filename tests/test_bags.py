@@ -259,3 +259,17 @@ def test_a_damaged_scan_message_is_named_and_the_scans_before_it_still_read(reco
     with pytest.raises(DatasetError, match=r"message 2 of /points .*cannot be read"):
         reader.points(2)
     np.testing.assert_array_equal(reader.points(3).as_xyzi(), clouds[3])
+
+
+def test_a_drive_sends_a_scan_without_a_pose_where_its_poses_have_a_gap():
+    """What ``open_drive`` makes of a recording's NaN poses (``pose_gaps="nan"``): those
+    scans are sent with no pose, counted in ``unposed`` (the CLI's note), the rest as read."""
+    from overlapmamba.client._replay import Drive
+
+    poses = np.zeros((3, 7))
+    poses[:, 6] = 1.0
+    poses[0] = np.nan
+    drive = Drive(seq=None, times=np.arange(3.0), poses=poses, loop_radius=None)  # type: ignore[arg-type]
+    assert drive.pose(0) is None and drive.unposed == 1
+    np.testing.assert_array_equal(drive.pose(1), poses[1])
+    assert Drive(seq=None, times=np.arange(3.0), poses=None, loop_radius=None).unposed == 0  # type: ignore[arg-type]

@@ -71,3 +71,27 @@ def test_trees_and_times_that_cannot_give_a_pose_are_refused_by_name():
     for parent, child, T in (("a", "a", np.eye(4)), ("", "b", np.eye(4)), ("a", "b", bad)):
         with pytest.raises(DatasetError, match="frames must be named and differ|finite 4×4"):
             tree.add(parent, child, 0, T)
+
+
+def test_times_without_a_pose_may_be_nan_and_are_an_error_when_no_time_has_one():
+    """Odometry that starts a second after the LiDAR (the usual recording): the whole drive
+    was refused. With ``gaps="nan"`` (what the client's drives ask for) those times' poses
+    are NaN and the rest are looked up as before; a link with no sample near any time is
+    still named, as is a chain whose links cover different times."""
+    tree = TransformTree()
+    tree.add("map", "odom", 0, np.eye(4), static=True)
+    for k in range(10, 31):  # 1.0 … 3.0 s
+        tree.add("odom", "base", k * S // 10, _T(0.0, k / 10))
+    at = np.arange(0, 31, 5) * S // 10  # 0.0 … 3.0 s: the first two before the odometry
+    with pytest.raises(DatasetError, match="within 0.1 s of time 0.000 s"):
+        tree.lookup("map", "base", at)
+    got = tree.lookup("map", "base", at, gaps="nan")
+    assert np.isnan(got[:2]).all() and not np.isnan(got[2:]).any()
+    np.testing.assert_allclose(got[2:, 0, 3], [1.0, 1.5, 2.0, 2.5, 3.0], atol=1e-12)
+    with pytest.raises(DatasetError, match="'odom' → 'base' within 0.1 s of time 6.000 s"):
+        tree.lookup("map", "base", np.array([5 * S, 6 * S]), gaps="nan")
+    tree.add("base", "lidar", 5 * S, np.eye(4))  # a timed link only at 5 s
+    with pytest.raises(DatasetError, match="within 0.1 s"):  # each time lacks one link
+        tree.lookup("map", "lidar", np.array([2 * S, 5 * S]), gaps="nan")
+    with pytest.raises(ValueError, match="gaps"):
+        tree.lookup("map", "base", at, gaps="skip")

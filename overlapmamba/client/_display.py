@@ -70,3 +70,13 @@ def report_skipped(skipped: list[str], frames: int) -> None:
         err.print(f"  {why}", markup=False)
     if len(skipped) > 5:
         err.print(f"  … and {len(skipped) - 5} more")
+
+
+def note_unposed(drive: Any) -> None:
+    """Before a drive: how many of its scans go without a pose (none near their stamps)."""
+    if drive.unposed:
+        Console(stderr=True).print(
+            f"[yellow]note:[/] {drive.unposed} of {len(drive)} scans have no pose sample "
+            "within 0.1 s of their stamp (the odometry or /tf started later, or paused): "
+            "they are sent without a pose",
+        )

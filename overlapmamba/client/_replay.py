@@ -58,7 +58,15 @@ class Drive:
             yield i, points
 
     def pose(self, i: int) -> np.ndarray | None:
-        return None if self.poses is None else self.poses[i]
+        """Scan i's pose; None where the drive has none, or none near scan i's stamp."""
+        if self.poses is None or np.isnan(self.poses[i]).any():
+            return None
+        return self.poses[i]
+
+    @property
+    def unposed(self) -> int:
+        """Scans with no pose though the drive has poses (none near their stamps)."""
+        return 0 if self.poses is None else int(np.isnan(self.poses).any(axis=1).sum())
 
 
 def _pose7(world: np.ndarray) -> np.ndarray:
@@ -78,7 +86,8 @@ def open_drive(
     ("map", or "map:velodyne" for another child frame than the scans') gives the poses.
     ``sensor``: the sensor that recorded it (default: its manifest's, if any)."""
     root = Path(root)
-    seq = open_recording(root, topic=topic, odometry=odometry, tf=tf)
+    # a scan with no pose near its stamp (odometry started late) goes without one
+    seq = open_recording(root, topic=topic, odometry=odometry, tf=tf, pose_gaps="nan")
     if isinstance(seq, Bag):
         poses = None if seq.poses is None else _pose7(seq.poses)
         return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor)

@@ -37,6 +37,7 @@ from overlapmamba.client._cli_options import (
 )
 from overlapmamba.client._display import (
     matrix_text,
+    note_unposed,
     pose_text,
     progress,
     report_skipped,
@@ -149,6 +150,7 @@ def ingest(
 ) -> None:
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    note_unposed(drive)
     session = session or drive.name
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
@@ -275,6 +277,7 @@ def observe(
             "overwrite what is being replayed; write it elsewhere"
         )
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    note_unposed(drive)
     session = session or drive.name
     closures = inserted = 0
     frames = range(0, len(drive), every)

@@ -63,11 +63,20 @@ class TransformTree:
         return sorted({*self._links, *(link.parent for link in self._links.values())})
 
     def lookup(
-        self, target: str, source: str, stamps_ns: np.ndarray, *, max_gap_s: float = 0.1
+        self,
+        target: str,
+        source: str,
+        stamps_ns: np.ndarray,
+        *,
+        max_gap_s: float = 0.1,
+        gaps: str = "raise",
     ) -> np.ndarray:
         """(N, 4, 4) T_target←source at each of ``stamps_ns`` (N,). Raises DatasetError
         naming an unknown frame, frames in different trees, or a link without a sample
-        within ``max_gap_s`` of a time."""
+        within ``max_gap_s`` of a time; with ``gaps="nan"`` such a time's transform is NaN
+        instead (a raise still when no time has one)."""
+        if gaps not in ("raise", "nan"):
+            raise ValueError(f"gaps must be 'raise' or 'nan', got {gaps!r}")
         stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
         for frame in (target, source):
             if frame not in self.frames:
@@ -83,9 +92,15 @@ class TransformTree:
                 f"frames {target!r} and {source!r} are not connected (their roots are "
                 f"{up_target[-1]!r} and {up_source[-1]!r})"
             )
-        root_source = self._compose(up_source[: up_source.index(common)], stamps, max_gap_s)
-        root_target = self._compose(up_target[: up_target.index(common)], stamps, max_gap_s)
-        out: np.ndarray = np.linalg.inv(root_target) @ root_source
+        nan = gaps == "nan"
+        root_source = self._compose(up_source[: up_source.index(common)], stamps, max_gap_s, nan)
+        root_target = self._compose(up_target[: up_target.index(common)], stamps, max_gap_s, nan)
+        missing = np.isnan(root_source).any(axis=(1, 2)) | np.isnan(root_target).any(axis=(1, 2))
+        out: np.ndarray = np.full((len(stamps), 4, 4), np.nan)
+        out[~missing] = np.linalg.inv(root_target[~missing]) @ root_source[~missing]
+        if len(stamps) and missing.all():  # no time has one: say which link lacks it
+            self._compose(up_source[: up_source.index(common)], stamps, max_gap_s, False)
+            self._compose(up_target[: up_target.index(common)], stamps, max_gap_s, False)
         return out
 
     def _chain(self, frame: str) -> list[str]:
@@ -98,14 +113,16 @@ class TransformTree:
             chain.append(parent)
         return chain
 
-    def _compose(self, frames: list[str], stamps: np.ndarray, max_gap_s: float) -> np.ndarray:
+    def _compose(
+        self, frames: list[str], stamps: np.ndarray, max_gap_s: float, nan: bool
+    ) -> np.ndarray:
         """T_ancestor←frames[0] for a chain of child frames below the ancestor."""
         out = np.tile(np.eye(4), (len(stamps), 1, 1))
         for child in frames:
-            out = self._at(child, stamps, max_gap_s) @ out
+            out = self._at(child, stamps, max_gap_s, nan) @ out
         return out
 
-    def _at(self, child: str, stamps: np.ndarray, max_gap_s: float) -> np.ndarray:
+    def _at(self, child: str, stamps: np.ndarray, max_gap_s: float, nan: bool) -> np.ndarray:
         link = self._links[child]
         if link.static is not None and not link.stamps:
             return np.broadcast_to(link.static, (len(stamps), 4, 4))
@@ -118,7 +135,7 @@ class TransformTree:
         lo = np.clip(after - 1, 0, None)  # before the first sample: the first
         hi = np.clip(after, None, len(t) - 1)  # past the last: the last
         gap = np.minimum(np.abs(t[lo] - stamps), np.abs(t[hi] - stamps)) / 1e9
-        if len(stamps) and gap.max() > max_gap_s:
+        if len(stamps) and gap.max() > max_gap_s and (not nan or (gap > max_gap_s).all()):
             i = int(gap.argmax())
             raise DatasetError(
                 f"no transform {link.parent!r} → {child!r} within {max_gap_s} s of time "
@@ -127,7 +144,9 @@ class TransformTree:
             )
         span = (t[hi] - t[lo]).astype(np.float64)
         a = np.divide(stamps - t[lo], span, out=np.zeros(len(stamps)), where=span > 0)
-        return interpolate(T[lo], T[hi], a)
+        out = interpolate(T[lo], T[hi], a)
+        out[gap > max_gap_s] = np.nan  # only with ``nan``: else raised above
+        return out
 
 
 def interpolate(T0: np.ndarray, T1: np.ndarray, a: np.ndarray) -> np.ndarray:

@@ -65,11 +65,12 @@ def open_recording(
     tf: str | None = None,
     need_poses: bool = False,
     sensor: str | None = None,
+    pose_gaps: str = "raise",
 ) -> Any:
     """A sequence folder (``open_sequence``) or a ROS recording (``bags.open_bag``: its
     PointCloud2 ``topic``, poses from its ``odometry`` topic or from /tf in the ``tf`` frame):
     a ``Sequence`` or a ``Bag``. ``need_poses``: a recording must then say where its poses
-    are. Raises DatasetError."""
+    are. ``pose_gaps``: as ``open_bag``'s. Raises DatasetError."""
     from overlapmamba.core.datasets.bags import is_bag, open_bag
 
     if not is_bag(path):
@@ -87,4 +88,4 @@ def open_recording(
             f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "
             "(--odometry) or the fixed frame of its /tf (--tf map)"
         )
-    return open_bag(path, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    return open_bag(path, topic=topic, odometry=odometry, tf=tf, sensor=sensor, pose_gaps=pose_gaps)

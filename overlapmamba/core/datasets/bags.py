@@ -165,13 +165,16 @@ def open_bag(
     odometry: str | None = None,
     tf: str | None = None,
     max_pose_gap_s: float = 0.1,
+    pose_gaps: str = "raise",
     sensor: str | None = None,
 ) -> Bag:
     """Index a recording's PointCloud2 topic (``topic``: which, when it holds several) and,
     when ``odometry`` names a topic or ``tf`` a frame ("FIXED" or "FIXED:CHILD"), each
-    scan's pose. ``sensor``: the catalogue sensor that recorded it (a recording does not
-    say; nothing is guessed). Raises DatasetError naming what is wrong and what the
-    recording holds, ProfileError for an unknown sensor."""
+    scan's pose. A scan with no pose sample within ``max_pose_gap_s`` is an error, or with
+    ``pose_gaps="nan"`` a NaN pose (the odometry started late, or paused; an error still
+    when no scan has one). ``sensor``: the catalogue sensor that recorded it (a recording
+    does not say; nothing is guessed). Raises DatasetError naming what is wrong and what
+    the recording holds, ProfileError for an unknown sensor."""
     if sensor is not None:
         from overlapmamba.core.sensors.catalogue import catalogue_name
 
@@ -201,7 +204,11 @@ def open_bag(
                 with _named(path):
                     tree = _odometry_tree(r, path, odometry)
                     poses = tree.lookup(
-                        odometry, "scan", _stamps(path, headers), max_gap_s=max_pose_gap_s
+                        odometry,
+                        "scan",
+                        _stamps(path, headers),
+                        max_gap_s=max_pose_gap_s,
+                        gaps=pose_gaps,
                     )
             elif tf is not None:
                 fixed, _, child = tf.partition(":")
@@ -213,6 +220,7 @@ def open_bag(
                         child.lstrip("/"),
                         _stamps(path, headers),
                         max_gap_s=max_pose_gap_s,
+                        gaps=pose_gaps,
                     )
     except DatasetError:
         raise
