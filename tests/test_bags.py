@@ -101,7 +101,7 @@ def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):
             res = runner.invoke(app, ["ingest", str(path), "--map", "bags", *where], env=env)
             assert res.exit_code == 0, res.output
             assert f"{len(FRAMES)} new keyframes" in res.output
-            session = open_drive(path).name
+            session = open_drive(path).session
             for i in (0, 3):
                 top = pr.query("bags", clouds[i], k=1, verify=False).matches[0]
                 assert top.distance < 1e-5 and top.keyframe_id.endswith(f"-{i:06d}"), name
@@ -273,3 +273,35 @@ def test_a_drive_sends_a_scan_without_a_pose_where_its_poses_have_a_gap():
     assert drive.pose(0) is None and drive.unposed == 1
     np.testing.assert_array_equal(drive.pose(1), poses[1])
     assert Drive(seq=None, times=np.arange(3.0), poses=None, loop_radius=None).unposed == 0  # type: ignore[arg-type]
+
+
+def test_the_default_session_is_a_valid_id_and_tells_a_recordings_topics_apart(tmp_path):
+    """``ingest .`` sent session '' and ``ingest "my drive 01"`` a name with spaces: every
+    request was refused (422) without a word about --session. Two PointCloud2 topics of one
+    recording gave both the same keyframe ids. Valid names are kept as they were."""
+    from overlapmamba.client._replay import Drive
+    from overlapmamba.core.datasets.bags import Bag
+
+    def session(seq) -> str:  # type: ignore[no-untyped-def]
+        return Drive(seq=seq, times=np.zeros(1), poses=None, loop_radius=None).session
+
+    class Folder:
+        def __init__(self, root) -> None:  # type: ignore[no-untyped-def]
+            self.root = root
+
+    spaced = tmp_path / "my drive 01"
+    spaced.mkdir()
+    assert session(Folder(spaced)) == "my-drive-01"
+    assert session(Folder(spaced / ".")) == "my-drive-01"
+    assert session(Folder(spaced / "sub" / "..")) == "my-drive-01"
+    assert session(Folder(tmp_path / "00")) == "00"  # KITTI's: as before
+    assert session(Folder(tmp_path / "_x")) == "x"  # an id starts with a letter or digit
+    bag = tmp_path / "drive_0.bag"
+    bag.write_bytes(b"")
+    one = Bag(bag, "/points", np.zeros(1, np.int64), None, clouds=("/points",))
+    assert session(one) == "drive_0"  # as before
+    two = [
+        Bag(bag, t, np.zeros(1, np.int64), None, clouds=("/front/points", "/rear/points"))
+        for t in ("/front/points", "/rear/points")
+    ]
+    assert [session(b) for b in two] == ["drive_0-front-points", "drive_0-rear-points"]

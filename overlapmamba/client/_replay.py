@@ -13,6 +13,8 @@ synthetic drive's); otherwise none is sent, and the server takes the map's or th
 from __future__ import annotations
 
 import json
+import os
+import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +28,8 @@ from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import quaternion
 
+_NOT_IN_IDS = re.compile(r"[^A-Za-z0-9_.@-]+")  # the service's robot and session ids
+
 
 @dataclass
 class Drive:
@@ -38,6 +42,19 @@ class Drive:
     @property
     def name(self) -> str:
         return self.seq.name
+
+    @property
+    def session(self) -> str:
+        """The session id its keyframes go under unless one is given: the folder's or
+        file's name (``.`` is the folder's own), with the topic where the recording holds
+        more than one PointCloud2 topic (each its own keyframes); a character an id may not
+        hold becomes ``-``. Names that are valid ids are kept as they are."""
+        root = Path(os.path.abspath(self.seq.root))
+        name = root.stem if root.is_file() else root.name
+        if isinstance(self.seq, Bag) and len(self.seq.clouds) > 1:
+            name = f"{name}-{self.seq.topic.strip('/')}"
+        clean = _NOT_IN_IDS.sub("-", name).lstrip("-_.@")[:100]
+        return clean or "drive"
 
     def __len__(self) -> int:
         return len(self.seq)

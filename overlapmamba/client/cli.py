@@ -137,7 +137,9 @@ def ingest(
     seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "mapper",
-    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    session: Annotated[
+        str | None, typer.Option(help="session [default: the drive's name, as an id]")
+    ] = None,
     every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
@@ -151,7 +153,7 @@ def ingest(
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
     note_unposed(drive)
-    session = session or drive.name
+    session = session or drive.session
     frames = range(0, len(drive), every)
     t0 = time.monotonic()
     created = retried = 0
@@ -253,7 +255,9 @@ def observe(
     seq_dir: Annotated[Path, typer.Argument(help=DRIVE_HELP)],
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "robot-1",
-    session: Annotated[str | None, typer.Option(help="session [default: the folder name]")] = None,
+    session: Annotated[
+        str | None, typer.Option(help="session [default: the drive's name, as an id]")
+    ] = None,
     every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
     topic: TopicOpt = None,
     odometry: OdometryOpt = None,
@@ -278,7 +282,7 @@ def observe(
         )
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
     note_unposed(drive)
-    session = session or drive.name
+    session = session or drive.session
     closures = inserted = 0
     frames = range(0, len(drive), every)
     skipped: list[str] = []

@@ -74,6 +74,7 @@ class Bag:
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
+    clouds: tuple[str, ...] = ()  # every PointCloud2 topic the recording holds
 
     @property
     def name(self) -> str:
@@ -190,6 +191,7 @@ def open_bag(
     try:
         with _reader(path) as r:
             topic = _cloud_topic(r, path, topic)
+            clouds = tuple(sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2}))
             cons = [c for c in r.connections if c.topic == topic]
             stamps, headers = [], []
             for con, t, raw in r.messages(connections=cons):
@@ -229,7 +231,7 @@ def open_bag(
     ns = np.asarray(stamps, dtype=np.int64)
     if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
         raise DatasetError(f"{path}: {topic} is not in time order")
-    return Bag(path, topic, ns, poses, sensor=sensor)
+    return Bag(path, topic, ns, poses, sensor=sensor, clouds=clouds)
 
 
 @contextmanager
