@@ -82,6 +82,14 @@ def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
     with pytest.raises(DatasetError, match="not a ROS recording"):
         open_bag(tmp_path)
     assert open_drive(bag).poses is None  # no odometry named: no poses
+    from ros_messages import STORE
+    from rosbags.rosbag2 import Writer
+
+    odometry_only = tmp_path / "odometry_only"
+    with Writer(odometry_only, version=8) as w:
+        w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=STORE)
+    with pytest.raises(DatasetError, match="no sensor_msgs/PointCloud2 topic.*/odom"):
+        open_bag(odometry_only)  # it said "name one with --topic", which cannot help
 
 
 def test_cli_ingests_recordings_as_the_bin_files_would(live_url, recordings):

@@ -93,7 +93,7 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     res = runner.invoke(app, [*args, "--exclude-recent", "12", "--exclude-recent-frames", "5"])
     assert res.exit_code == 2 and "--exclude-recent is its old name" in text(res)
     res = runner.invoke(app, ["ground-truth", str(tmp_path), "-q"])
-    assert res.exit_code == 2 and "matches no known sequence layout" in text(res)
+    assert res.exit_code == 2 and "matches no known layout" in text(res)
 
 
 def test_installed_console_script_runs():

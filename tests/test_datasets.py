@@ -95,8 +95,19 @@ def test_kitti_scans_named_without_zero_padding_keep_their_order(tmp_path):
 def test_bad_sequences_name_the_problem(tmp_path, synthetic_seq_dir):
     with pytest.raises(DatasetError, match="does not exist"):
         open_sequence(tmp_path / "nope")
-    with pytest.raises(DatasetError, match="matches no known sequence layout"):
+    with pytest.raises(DatasetError, match="matches no known layout"):
         open_sequence(tmp_path)
+    # what a ROS user gives by mistake is named as such, not "does not exist"
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / "cut_0.db3").write_bytes(b"")
+    with pytest.raises(DatasetError, match="no metadata.yaml.*ros2 bag reindex"):
+        open_sequence(cut)
+    with pytest.raises(DatasetError, match="storage file: give its folder"):
+        open_sequence(cut / "cut_0.db3")
+    (tmp_path / "drive.bag.active").write_bytes(b"")
+    with pytest.raises(DatasetError, match="still being written, or cut short"):
+        open_sequence(tmp_path / "drive.bag.active")
     with pytest.raises(DatasetError, match="unknown sequence kind 'rosbag'"):
         open_sequence(synthetic_seq_dir, kind="rosbag")
     (tmp_path / "velodyne").mkdir()

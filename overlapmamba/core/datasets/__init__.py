@@ -30,18 +30,37 @@ REGISTRY: dict[str, tuple[str, str]] = {
 __all__ = ["REGISTRY", "Sequence", "detect_kind", "open_recording", "open_sequence"]
 
 
+_LAYOUTS = (
+    "allowed: KITTI (velodyne/*.bin + poses.txt [+ calib.txt]), a PCD folder "
+    "(clouds/*.pcd or *.pcd + poses.txt), or a ROS recording (a .bag or .mcap file, or a "
+    "rosbag2 folder with its metadata.yaml)"
+)
+
+
 def detect_kind(root: str | Path) -> str:
     root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(f"sequence folder {root} does not exist")
+    if not root.exists():
+        raise DatasetError(f"{root} does not exist; {_LAYOUTS}")
+    if root.is_file():
+        hint = (
+            " (a rosbag2's storage file: give its folder, which holds metadata.yaml)"
+            if root.suffix == ".db3"
+            else " (a recording still being written, or cut short: `ros2 bag reindex` or "
+            "`rosbag reindex` mends one)"
+            if root.suffix == ".active"
+            else ""
+        )
+        raise DatasetError(f"{root} is a file of no known kind{hint}; {_LAYOUTS}")
     for kind, (module, _) in REGISTRY.items():
         if importlib.import_module(module).looks_like(root):
             return kind
-    raise DatasetError(
-        f"{root} matches no known sequence layout; allowed: KITTI (velodyne/*.bin + "
-        "poses.txt [+ calib.txt]) or a PCD folder (clouds/*.pcd or *.pcd + poses.txt)",
-        allowed=list(REGISTRY),
-    )
+    hint = ""
+    if any(root.glob("*.db3")) or any(root.glob("*.mcap")):
+        hint = (
+            " (it holds rosbag2 storage files but no metadata.yaml: a recording cut short; "
+            "`ros2 bag reindex` writes it)"
+        )
+    raise DatasetError(f"{root} matches no known layout{hint}; {_LAYOUTS}", allowed=list(REGISTRY))
 
 
 def open_sequence(root: str | Path, kind: str = "auto", **options: Any) -> Sequence:

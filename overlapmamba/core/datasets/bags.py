@@ -248,9 +248,16 @@ def _named(path: Path) -> Iterator[None]:
 def _cloud_topic(r: Any, path: Path, topic: str | None) -> str:
     clouds = sorted({c.topic for c in r.connections if c.msgtype in POINTCLOUD2})
     if topic is None:
+        if not clouds:
+            have = sorted({f"{c.topic} ({c.msgtype})" for c in r.connections})
+            raise DatasetError(
+                f"{path}: no sensor_msgs/PointCloud2 topic, which the scans are read from; "
+                f"it holds {', '.join(have) or 'no topics'}",
+                topics=clouds,
+            )
         if len(clouds) != 1:
             raise DatasetError(
-                f"{path}: {len(clouds)} PointCloud2 topics ({', '.join(clouds) or 'none'}); "
+                f"{path}: {len(clouds)} PointCloud2 topics ({', '.join(clouds)}); "
                 "name one with --topic",
                 topics=clouds,
             )
