@@ -62,6 +62,33 @@ def test_every_recording_reads_back_the_same_scans_times_and_poses(recordings):
         np.testing.assert_allclose(base, poses @ np.linalg.inv(MOUNT), atol=1e-5)
 
 
+def test_a_recording_is_opened_once_for_every_scan_read(recordings, monkeypatch):
+    """Each scan read past the prefetched ones reopened the recording: a ROS 1 bag's index
+    read again, a file-compressed rosbag2 inflated again whole, once per 8 scans (per scan
+    with --every 8), per robot. One reader is kept and shared."""
+    from overlapmamba.core.datasets import bags
+
+    opened: list[object] = []
+    real = bags._reader
+
+    def counting(path):  # type: ignore[no-untyped-def]
+        opened.append(path)
+        return real(path)
+
+    monkeypatch.setattr(bags, "_reader", counting)
+    paths, clouds, _ = recordings
+    for name, path in paths.items():
+        opened.clear()
+        bag = open_bag(path)
+        first = len(opened)  # the index
+        for _ in range(3):
+            for i in (3, 0, 2, 1):
+                bag._cache.clear()  # every read goes to the file
+                np.testing.assert_array_equal(bag.xyzi(i), clouds[i])
+        assert len(opened) - first == 1, (name, len(opened))
+        bag.close()
+
+
 def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
     paths, _, _ = recordings
     bag = paths["rosbag2-sqlite"]

@@ -20,7 +20,9 @@ A scan whose nearest pose sample is more than ``max_pose_gap_s`` away is refused
 
 from __future__ import annotations
 
+import contextlib
 import threading
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -62,6 +64,11 @@ def _reader(path: Path) -> Any:
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
 
 
+def _close_quietly(reader: Any) -> None:
+    with contextlib.suppress(Exception):  # closing one that failed halfway
+        reader.close()
+
+
 @dataclass
 class Bag:
     """One PointCloud2 topic of a recording: ``len``, ``points(i)``, ``times``, ``poses``."""
@@ -72,6 +79,11 @@ class Bag:
     poses: np.ndarray | None  # (N, 4, 4) from the odometry topic, or None
     _cache: dict[int, PointCloud] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    # one reader, opened at the first read and kept: opening a recording costs its index (a
+    # ROS 1 bag's), or all of it (a file-compressed rosbag2 is inflated into a temporary
+    # folder); reads through it take turns
+    _reader: Any = field(default=None, repr=False)
+    _reading: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
     clouds: tuple[str, ...] = ()  # every PointCloud2 topic the recording holds
@@ -131,8 +143,9 @@ class Bag:
         j = i - self._nth(i)  # the index of the first message at scan i's time
         found: dict[int, PointCloud] = {}
         failure: Exception | None = None
-        try:  # the recording reopened: changed or gone since it was indexed, it says so
-            with _reader(self.path) as r:
+        with self._reading:
+            try:  # changed or gone since it was indexed, the recording says so
+                r = self._opened()
                 cons = [c for c in r.connections if c.topic == self.topic]
                 for con, _, raw in r.messages(connections=cons, start=t):
                     if j >= i:
@@ -141,8 +154,9 @@ class Bag:
                     j += 1
                     if j >= min(i + PREFETCH, len(self)):
                         break
-        except Exception as err:  # a damaged message, a file cut short: those read serve
-            failure = err
+            except Exception as err:  # a damaged message, a file cut short: those read serve
+                failure = err
+                self.close()  # the next read opens it afresh
         if i not in found:
             why = "is gone" if failure is None else f"cannot be read: {failure}"
             raise DatasetError(
@@ -153,6 +167,20 @@ class Bag:
             while len(self._cache) > CACHED:
                 self._cache.pop(next(iter(self._cache)))
         return found[i]
+
+    def _opened(self) -> Any:
+        if self._reader is None:
+            r = _reader(self.path)
+            r.open()
+            self._reader = r
+            weakref.finalize(self, _close_quietly, r)  # and when the Bag is dropped
+        return self._reader
+
+    def close(self) -> None:
+        """Close the recording's reader (the next read opens it again)."""
+        r, self._reader = self._reader, None
+        if r is not None:
+            _close_quietly(r)
 
     def _nth(self, i: int) -> int:
         """Which of the messages sharing scan i's time stamp it is."""
