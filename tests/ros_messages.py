@@ -110,7 +110,13 @@ def patch_u32(msg: bytes, which: str, value: int) -> bytes:
 
 
 def write_recordings(
-    out: Path, clouds: list[np.ndarray], poses: np.ndarray, step_s: float = 0.1
+    out: Path,
+    clouds: list[np.ndarray],
+    poses: np.ndarray,
+    step_s: float = 0.1,
+    *,
+    start_s: float = 1.0,
+    static: bool = True,
 ) -> dict[str, Path]:
     """The same drive (x y z intensity scans on /points in frame "velodyne", their 4×4
     poses as nav_msgs/Odometry on /odom and as the tf chain map → odom → base_link →
@@ -120,7 +126,8 @@ def write_recordings(
     The tf chain makes the poses take every step of a lookup: map → odom is re-sent before
     each scan, odom → base_link is sent 20 ms before and after each scan, moved ∓ 0.2 m and
     ∓ 2° (so only interpolation gives the pose at the scan's stamp), and base_link →
-    velodyne (the LiDAR's mounting) is static."""
+    velodyne (the LiDAR's mounting) is static. ``start_s``: the first scan's time;
+    ``static``: whether /tf_static is written (a split recording's later parts lack it)."""
     import shutil
 
     from rosbags.rosbag1 import Writer as Writer1
@@ -150,12 +157,13 @@ def write_recordings(
             pc = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", **kw)
             od = w.add_connection("/odom", "nav_msgs/msg/Odometry", **kw)
             tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", **kw)
-            static = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", **kw)
+            fixed = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", **kw)
             ser = store.serialize_ros1 if plugin is None else store.serialize_cdr
 
-            _send(w, static, store, ser, 1, ("base_link", "velodyne", MOUNT))
+            if static:
+                _send(w, fixed, store, ser, 1, ("base_link", "velodyne", MOUNT))
             for i, (pts, T) in enumerate(zip(clouds, poses, strict=True)):
-                t = int((1.0 + i * step_s) * 1e9)
+                t = int((start_s + i * step_s) * 1e9)
                 base = np.linalg.inv(ODOM_IN_MAP) @ T @ np.linalg.inv(MOUNT)
                 _send(w, tf, store, ser, t - 30_000_000, ("map", "odom", ODOM_IN_MAP))
                 for s, dt in ((-1, -20_000_000), (1, 20_000_000)):

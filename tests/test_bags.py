@@ -89,6 +89,30 @@ def test_a_recording_is_opened_once_for_every_scan_read(recordings, monkeypatch)
         bag.close()
 
 
+def test_a_split_ros1_recording_is_read_as_one_drive(recordings, tmp_path):
+    """``rosbag record --split`` writes drive_0.bag, drive_1.bag, …, with the latched
+    /tf_static in the first part only: no part could be given on its own with --tf (its
+    frames unconnected), nor all of them. Their folder is one drive, read in order."""
+    from ros_messages import write_recordings
+
+    paths, clouds, poses = recordings
+    split = tmp_path / "split"
+    split.mkdir()
+    first = write_recordings(tmp_path / "a", clouds[:2], poses[:2])["ros1.bag"]
+    rest = write_recordings(tmp_path / "b", clouds[2:], poses[2:], start_s=1.2, static=False)
+    first.rename(split / "drive_2.bag")  # named so that text order would read them backwards
+    rest["ros1.bag"].rename(split / "drive_10.bag")
+    whole = open_bag(paths["ros1.bag"], tf="map")
+    bag = open_bag(split, tf="map")
+    assert len(bag) == 4 and bag.name == "split"
+    np.testing.assert_array_equal(bag.stamps_ns, whole.stamps_ns)
+    np.testing.assert_allclose(bag.poses, whole.poses, atol=1e-9)
+    for i in range(4):
+        np.testing.assert_array_equal(bag.xyzi(i), clouds[i])
+    with pytest.raises(DatasetError, match="frame 'velodyne' is in no transform"):
+        open_bag(split / "drive_10.bag", tf="map")  # a later part alone lacks /tf_static
+
+
 def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
     paths, _, _ = recordings
     bag = paths["rosbag2-sqlite"]

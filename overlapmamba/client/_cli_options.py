@@ -80,7 +80,10 @@ MountOpt = Annotated[
         "robot; the service levels the scans and moves them to the model's mount",
     ),
 ]
-DRIVE_HELP = "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, rosbag2, .mcap)"
+DRIVE_HELP = (
+    "sequence folder (KITTI layout, PCD folder) or ROS recording (.bag, a folder of a split "
+    "recording's .bag files, rosbag2, .mcap)"
+)
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from overlapmamba.core.datasets.base import scan_order
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.io.pointcloud2 import decode_message
 from overlapmamba.core.points import PointCloud
@@ -46,11 +47,20 @@ TF_TOPICS = {"/tf": False, "/tf_static": True}  # topic -> static
 
 
 def is_bag(path: str | Path) -> bool:
-    """A ROS 1 bag, a rosbag2 folder or a bare MCAP file."""
+    """A ROS 1 bag, a rosbag2 folder, a bare MCAP file, or a folder of ROS 1 bags (a
+    recording split by ``rosbag record --split``)."""
     p = Path(path)
     return (p.is_file() and p.suffix in (".bag", ".mcap")) or (
-        p.is_dir() and (p / "metadata.yaml").is_file()
+        p.is_dir() and ((p / "metadata.yaml").is_file() or any(p.glob("*.bag")))
     )
+
+
+def _parts(path: Path) -> list[Path]:
+    """The files of the recording: a folder of ROS 1 bags is read as one, its parts in the
+    order of the numbers in their names (``drive_2.bag`` before ``drive_10.bag``)."""
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        return sorted(path.glob("*.bag"), key=scan_order)
+    return [path]
 
 
 def _reader(path: Path) -> Any:
@@ -61,7 +71,7 @@ def _reader(path: Path) -> Any:
         raise DatasetError(
             f"{path}: reading ROS bags needs the rosbags package (pip install rosbags)"
         ) from err
-    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    return AnyReader(_parts(path), default_typestore=get_typestore(Stores.ROS2_HUMBLE))
 
 
 def _close_quietly(reader: Any) -> None:
@@ -212,7 +222,7 @@ def open_bag(
     if not is_bag(path):
         raise DatasetError(
             f"{path} is not a ROS recording; allowed: a .bag file, a rosbag2 folder "
-            "(metadata.yaml) or a .mcap file"
+            "(metadata.yaml), a .mcap file or a folder of a split recording's .bag files"
         )
     if odometry is not None and tf is not None:
         raise DatasetError("poses come from an odometry topic or from /tf, not both")
