@@ -879,3 +879,25 @@ def test_the_query_rate_over_the_last_minute_has_no_ceiling():
     c.queried(time.time() - 30)
     assert c.public()["queries_per_s_1m"] == pytest.approx(1 / 60)
     assert len(c.recent) == 1  # older seconds are dropped as newer ones come
+
+
+def test_a_maps_statistics_give_its_own_latency():
+    """``GET /v1/maps/{id}/stats`` gave the whole service's latency percentiles as if they
+    were the map's: a slow map could not be told from a fast one. Each map keeps its own
+    window; the service's holds every request, a map's only its own."""
+    from overlapmamba.service.stats import Stats
+
+    s = Stats("m")
+    for _ in range(3):
+        s.timings({"encode": 20.0, "total": 30.0}, "fast")
+    s.timings({"encode": 20.0, "total": 900.0}, "slow")
+    s.timings({"total": 10.0})  # a descriptor request: no map
+    assert s.public("fast")["latency_ms"]["total"] == {
+        "p50": 30.0,
+        "p90": 30.0,
+        "p99": 30.0,
+        "n": 3,
+    }
+    assert s.public("slow")["latency_ms"]["total"]["p50"] == 900.0
+    assert s.public()["latency_ms"]["total"]["n"] == 5
+    assert s.public("fast")["latency_ms"]["verify"]["n"] == 0

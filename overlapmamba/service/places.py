@@ -111,9 +111,13 @@ class PlaceService:
             self.stats.p_keyframes.labels(m.map_id).set(count)
         m.maintain()
 
-    def _done(self, timings: dict[str, float], t0: float) -> dict[str, float]:
+    def _done(
+        self, timings: dict[str, float], t0: float, m: PlaceMap | None = None
+    ) -> dict[str, float]:
+        """The request's total time, and its stage times in the statistics (the service's,
+        and its map's while that map has not been deleted)."""
         timings["total"] = (time.perf_counter() - t0) * 1e3
-        self.stats.timings(timings)
+        self.stats.timings(timings, None if m is None or m.retired else m.map_id)
         return timings
 
     # ---- scan → descriptor ------------------------------------------------------------------
@@ -210,7 +214,7 @@ class PlaceService:
         d = await self.pipeline.describe(scan, self._registration(False, m), self._input(scan, m))
         row = await self._row(m, d, keyframe_id, obs, sensor)
         (result,) = await self.insert(m, [row], obs.robot_id)
-        return Inserted(result, self._done(d.timings, t0))
+        return Inserted(result, self._done(d.timings, t0, m))
 
     async def _row(
         self, m: PlaceMap, d: Description, keyframe_id: str, obs: Observation, sensor: str
@@ -273,7 +277,7 @@ class PlaceService:
             timings = {"decode": (time.perf_counter() - t0) * 1e3}
         sensor = self._sensor(probe, m) if isinstance(probe, ScanBody) else None
         answer = await self._search(m, desc, yaw, k, filters, timings, robot, prepared, sensor)
-        self._done(timings, t0)
+        self._done(timings, t0, m)
         return answer
 
     def _registration(self, verify: bool, m: PlaceMap | None = None) -> RegistrationParams | None:
@@ -454,7 +458,7 @@ class PlaceService:
                 inserted = result.created
                 if not inserted:
                     reason = "existing"
-        self._done(answer.timings, t0)
+        self._done(answer.timings, t0, m)
         return Observed(
             answer.matches,
             answer.loop_closure,

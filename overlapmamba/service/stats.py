@@ -52,6 +52,10 @@ class _Counts:
     # queries a second over the last minute, as [second, count] (a window of samples would
     # cap the rate at WINDOW / 60 a second)
     recent: deque[list[int]] = field(default_factory=deque)
+    # each stage's latency (ms) of the last WINDOW requests
+    latency: dict[str, deque[float]] = field(
+        default_factory=lambda: {s: deque(maxlen=WINDOW) for s in STAGES}
+    )
 
     def queried(self, now: float) -> None:
         second = int(now)
@@ -97,7 +101,6 @@ class Stats:
         self._lock = threading.Lock()
         self.total = _Counts()
         self.by_map: dict[str, _Counts] = defaultdict(_Counts)
-        self.latency: dict[str, deque[float]] = {s: deque(maxlen=WINDOW) for s in STAGES}
         self.batch_sizes: Counter[int] = Counter()
         self.registry = CollectorRegistry()
         r = self.registry
@@ -177,11 +180,17 @@ class Stats:
         ``_cpu_seconds_total`` (Linux), which the process's own series leave out."""
         self.registry.register(_RegistrationCollector(usage))
 
-    def timings(self, ms: dict[str, float]) -> None:
+    def timings(self, ms: dict[str, float], map_id: str | None = None) -> None:
+        """One request's stage times, in the service's windows and in ``map_id``'s (the
+        map it was about, if any)."""
         with self._lock:
+            windows = [self.total.latency]
+            if map_id is not None:
+                windows.append(self.by_map[map_id].latency)
             for stage, v in ms.items():
-                if stage in self.latency:
-                    self.latency[stage].append(v)
+                if stage in STAGES:
+                    for w in windows:
+                        w[stage].append(v)
                     self.p_latency.labels(stage).observe(v / 1000.0)
 
     def batch(self, size: int, _seconds: float) -> None:
@@ -270,10 +279,13 @@ class Stats:
             with contextlib.suppress(KeyError):
                 metric.remove(*labels)
 
-    def percentiles(self) -> dict[str, dict[str, float | int]]:
+    def percentiles(self, map_id: str | None = None) -> dict[str, dict[str, float | int]]:
+        """Each stage's p50/p90/p99 over the last WINDOW requests (of ``map_id``'s, if
+        given)."""
         out: dict[str, dict[str, float | int]] = {}
         with self._lock:
-            for stage, window in self.latency.items():
+            counts = self.total if map_id is None else self.by_map[map_id]
+            for stage, window in counts.latency.items():
                 a = np.array(window, dtype=np.float64)
                 if a.size:
                     p50, p90, p99 = np.percentile(a, [50, 90, 99])
@@ -290,7 +302,8 @@ class Stats:
             "model_id": self.model_id,
             "uptime_s": time.time() - self.started,
             **counts,
-            "latency_ms": self.percentiles(),
+            "latency_ms": self.percentiles(map_id),
+            # encoder batches mix every map's scans: the service's, on a map's stats too
             "batch_size_histogram": hist,
         }
 
