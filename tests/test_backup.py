@@ -225,3 +225,24 @@ def _read_only_account(tmp_path) -> None:  # type: ignore[no-untyped-def]
     os.chmod(tmp_path / "data" / "maps" / "town", 0o755)
     assert os.waitstatus_to_exitcode(status) == 0
     assert sorted(p.name for p in out.parent.iterdir()) == ["town.sqlite"]
+
+
+def test_export_and_import_take_the_services_data_folder_from_its_settings(tmp_path):
+    """``export-map`` and ``import-map`` without --data-dir looked in ./data, whatever the
+    service's settings said: in the container image (OVERLAPMAMBA_DATA_DIR=/data) the
+    documented commands found no map. They read the settings, as doctor does."""
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    runner = CliRunner()
+    env = {"OVERLAPMAMBA_DATA_DIR": str(tmp_path / "data"), "COLUMNS": "200"}
+    out = tmp_path / "bk" / "town.sqlite"
+    res = runner.invoke(app, ["export-map", "town", str(out)], env=env)
+    assert res.exit_code == 0 and "3 keyframes" in res.output, res.output
+    res = runner.invoke(app, ["import-map", "copy", str(out)], env=env)
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "data" / "maps" / "copy" / "store.sqlite").is_file()

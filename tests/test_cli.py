@@ -117,3 +117,16 @@ def test_report_refuses_a_model_that_is_not_an_exported_encoder(tmp_path):
         res = runner.invoke(app, ["report", "--runs", str(tmp_path), "--model", str(model)])
         assert res.exit_code == 2, res.output
         assert "give an exported encoder (.onnx) that exists" in text(res)
+
+
+def test_help_shows_the_defaults_and_patterns_written_in_brackets():
+    """rich read "[default: 127.0.0.1]" or "[a-z0-9]" in a help text as markup and dropped
+    it: ``--help`` showed no default for serve's options and "{0,63}" for a map id."""
+    from overlapmamba.client.cli import app as client_app
+
+    serve = text(runner.invoke(app, ["serve", "--help"], env={"COLUMNS": "200"}))
+    assert "bind address [default: 127.0.0.1]" in serve and "[default: 8000]" in serve, serve
+    train = text(runner.invoke(app, ["train", "--help"], env={"COLUMNS": "200"}))
+    assert "with [model] and [train] sections" in train and "narrow-hn (the shipped" in train
+    maps = text(runner.invoke(client_app, ["maps", "create", "--help"], env={"COLUMNS": "200"}))
+    assert "[a-z0-9][a-z0-9_-]{0,63}" in maps and "[default: yes]" in maps, maps

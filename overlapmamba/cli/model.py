@@ -30,7 +30,7 @@ app, command = command_group("Model")
     epilog="Examples:\n\n  overlapmamba train --data data/synth/train --val data/synth/val "
     "--out runs/om\n\n  overlapmamba train --out runs/om --resume --epochs 20\n\n"
     "  overlapmamba train --data A --data B --val V --out runs/x --config cfg.toml\n\n"
-    "  overlapmamba train --preset default   (the shipped model; writes runs/default)",
+    "  overlapmamba train --preset narrow-hn   (the shipped model; writes runs/narrow-hn)",
 )
 @friendly_errors
 def train_cmd(
@@ -41,7 +41,7 @@ def train_cmd(
     preset: Annotated[
         str | None,
         typer.Option(
-            help="named recipe with its data and configs, e.g. default (the shipped model); "
+            help="named recipe with its data and configs, e.g. narrow-hn (the shipped model); "
             "the list is in overlapmamba/train/presets.py, and an unknown name prints it"
         ),
     ] = None,
@@ -55,7 +55,7 @@ def train_cmd(
     ] = None,
     val: Annotated[Path | None, typer.Option(help="validation sequence")] = None,
     config: Annotated[
-        Path | None, typer.Option(help=".json/.toml with [model] and [train] sections")
+        Path | None, typer.Option(help=".json/.toml with \\[model] and \\[train] sections")
     ] = None,
     epochs: Annotated[
         int | None, typer.Option(min=1, help="total epochs (extends on --resume)")

@@ -38,7 +38,7 @@ ConfigOpt = Annotated[
     ),
 ]
 DataDirOpt = Annotated[
-    Path | None, typer.Option("--data-dir", help="where maps live [default: ./data]")
+    Path | None, typer.Option("--data-dir", help="where maps live \\[default: ./data]")
 ]
 
 
@@ -49,12 +49,12 @@ DataDirOpt = Annotated[
     "  OVERLAPMAMBA_BATCHING__MAX_BATCH=4 overlapmamba serve --data-dir /var/lib/om",
 )
 def serve_cmd(
-    host: Annotated[str | None, typer.Option(help="bind address [default: 127.0.0.1]")] = None,
-    port: Annotated[int | None, typer.Option(min=0, max=65535, help="[default: 8000]")] = None,
+    host: Annotated[str | None, typer.Option(help="bind address \\[default: 127.0.0.1]")] = None,
+    port: Annotated[int | None, typer.Option(min=0, max=65535, help="\\[default: 8000]")] = None,
     data_dir: DataDirOpt = None,
     model: Annotated[
         Path | None,
-        typer.Option(help="exported .onnx encoder [default: models/overlapmamba-hdl64.onnx]"),
+        typer.Option(help="exported .onnx encoder \\[default: models/overlapmamba-hdl64.onnx]"),
     ] = None,
     config: ConfigOpt = None,
     insecure: Annotated[
@@ -63,7 +63,7 @@ def serve_cmd(
     index_backend: Annotated[
         str | None,
         typer.Option(
-            "--index-backend", help="faiss (embedded, in --data-dir) or qdrant [default: faiss]"
+            "--index-backend", help="faiss (embedded, in --data-dir) or qdrant \\[default: faiss]"
         ),
     ] = None,
     qdrant_url: Annotated[
@@ -212,13 +212,17 @@ def export_map_cmd(
     map_id: Annotated[str, typer.Argument(help="the map to back up")],
     out_file: Annotated[Path, typer.Argument(help="the backup file to write (new)")],
     data_dir: DataDirOpt = None,
+    config: ConfigOpt = None,
 ) -> None:
-    """Back up a map (its durable store), consistently, even while the service runs."""
+    """Back up a map (its durable store), consistently, even while the service runs. The
+    data folder is the service's (--data-dir, else its settings: OVERLAPMAMBA_DATA_DIR, the
+    config file)."""
     from overlapmamba.service.backup import BackupError, export_map
     from overlapmamba.service.errors import ServiceError
 
+    folder = _service_settings(config, data_dir=data_dir).data_dir
     try:
-        r = export_map(data_dir or Path("data"), map_id, out_file)
+        r = export_map(folder, map_id, out_file)
     except (BackupError, ServiceError) as err:
         console.print(f"[bold red]error:[/] {escape(str(err))}")
         raise typer.Exit(2) from None
@@ -234,13 +238,16 @@ def import_map_cmd(
     src: Annotated[Path, typer.Argument(help="a file written by export-map")],
     data_dir: DataDirOpt = None,
     replace: Annotated[bool, typer.Option("--replace", help="overwrite an existing map")] = False,
+    config: ConfigOpt = None,
 ) -> None:
-    """Restore a map from a backup. The service must be stopped; its next start indexes it."""
+    """Restore a map from a backup. The service must be stopped; its next start indexes it.
+    The data folder is the service's, as for export-map."""
     from overlapmamba.service.backup import BackupError, import_map
     from overlapmamba.service.errors import ServiceError
 
+    folder = _service_settings(config, data_dir=data_dir).data_dir
     try:
-        r = import_map(data_dir or Path("data"), map_id, src, replace=replace)
+        r = import_map(folder, map_id, src, replace=replace)
     except (BackupError, ServiceError) as err:
         console.print(f"[bold red]error:[/] {escape(str(err))}")
         raise typer.Exit(2) from None
@@ -256,7 +263,7 @@ def doctor_cmd(
     data_dir: DataDirOpt = None,
     model: Annotated[
         Path | None,
-        typer.Option(help="the model the service serves [default: the configured one]"),
+        typer.Option(help="the model the service serves \\[default: the configured one]"),
     ] = None,
     config: ConfigOpt = None,
     max_snapshot_age_h: Annotated[

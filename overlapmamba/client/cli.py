@@ -72,18 +72,18 @@ def maps_list(url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None) -> None:
 @maps_app.command("create")
 @errors
 def maps_create(
-    map_id: Annotated[str, typer.Argument(help="[a-z0-9][a-z0-9_-]{0,63}")],
+    map_id: Annotated[str, typer.Argument(help="\\[a-z0-9]\\[a-z0-9_-]{0,63}")],
     index: Annotated[str | None, typer.Option(help="flat, ivf or auto")] = None,
     geometry: Annotated[
         bool | None,
         typer.Option(
             "--geometry/--no-geometry",
-            help="keyframes keep their geometry for verified answers [default: yes]",
+            help="keyframes keep their geometry for verified answers \\[default: yes]",
         ),
     ] = None,
     sensor: Annotated[
         str | None,
-        typer.Option(help="the sensor of scans that name none [default: the model's own]"),
+        typer.Option(help="the sensor of scans that name none \\[default: the model's own]"),
     ] = None,
     mount: Annotated[
         str | None,
@@ -138,7 +138,7 @@ def ingest(
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "mapper",
     session: Annotated[
-        str | None, typer.Option(help="session [default: the drive's name, as an id]")
+        str | None, typer.Option(help="session \\[default: the drive's name, as an id]")
     ] = None,
     every: Annotated[int, typer.Option(min=1, help="insert every N-th scan")] = 1,
     topic: TopicOpt = None,
@@ -256,7 +256,7 @@ def observe(
     map_id: MapOpt,
     robot: Annotated[str, typer.Option(help="robot id")] = "robot-1",
     session: Annotated[
-        str | None, typer.Option(help="session [default: the drive's name, as an id]")
+        str | None, typer.Option(help="session \\[default: the drive's name, as an id]")
     ] = None,
     every: Annotated[int, typer.Option(min=1, help="use every N-th scan")] = 1,
     topic: TopicOpt = None,
