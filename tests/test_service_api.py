@@ -732,6 +732,39 @@ async def test_every_route_refuses_missing_and_wrong_keys(tmp_path, encoder):
         assert (await c.get("/openapi.json")).status_code == 200
 
 
+async def test_small_requests_cannot_make_the_service_parse_megabytes(tmp_path, encoder):
+    """Bodies parsed on the event loop, before their size was bounded: PUT /v1/maps took up
+    to 64 MiB of JSON and parsed it before it checked the key (1.9 s of every request held
+    up for 15 MiB, from a caller with no key); a JSON descriptor query of a kilobyte of
+    gzip built a list of six million numbers (450 MiB) before its length was checked. The
+    key is checked first; a map's settings may be 64 KiB, a descriptor query 1 MiB."""
+    keys = [{"name": r, "role": r, "sha256": hash_key(f"secret-{r}")} for r in ("mapper",)]
+    settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
+    mapper = {"authorization": "Bearer secret-mapper"}
+    huge = b'{"keep_geometry": true, "x": "' + b"y" * (2 << 20) + b'"}'
+    async with running(settings, encoder) as c:
+        t0 = time.monotonic()
+        r = await c.put("/v1/maps/m", content=huge, headers={"content-type": "application/json"})
+        assert r.status_code == 401, r.text  # before a byte of the body is parsed
+        r = await c.put("/v1/maps/m", content=huge, headers={**mapper, "content-type": "x/y"})
+        assert r.status_code == 413 and "65536" in err(r)["message"], r.text
+        assert time.monotonic() - t0 < 5
+        r = await c.put("/v1/maps/m", content=b'{"index": "nope"}', headers=mapper)
+        assert r.status_code == 422 and "index" in err(r)["message"], r.text
+        r = await c.put("/v1/maps/m", content=b'{"keep_geometry": false}', headers=mapper)
+        assert r.status_code == 201 and r.json()["keep_geometry"] is False, r.text
+        bomb = gzip.compress(b'{"descriptor": [' + b"0," * (3 << 20) + b"0]}")
+        assert len(bomb) < 20_000
+        headers = {**mapper, "content-type": "application/json", "content-encoding": "gzip"}
+        r = await c.post("/v1/maps/m/query", content=bomb, headers=headers)
+        assert r.status_code == 413 and "1048576" in err(r)["message"], r.text
+        one = json.dumps({"descriptor": [1.0] + [0.0] * 255}).encode()
+        r = await c.post(
+            "/v1/maps/m/query", content=one, headers={**headers, "content-encoding": "identity"}
+        )
+        assert r.status_code == 200, r.text
+
+
 async def _ws_handshake(app, path: str, query: str, headers: dict[str, str]) -> dict:
     """Open a WebSocket on the ASGI app directly → the server's first message."""
     sent: list[dict] = []

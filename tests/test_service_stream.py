@@ -263,3 +263,25 @@ async def test_the_access_log_says_how_each_stream_ended(tmp_path, encoder, capl
         ("/v1/maps/gone/stream", denied[0]["status"], None),
     ], lines
     assert denied[0]["status"] == 404
+
+
+async def test_a_metadata_frame_of_megabytes_is_refused_before_it_is_parsed(tmp_path, encoder):
+    """A metadata frame is parsed, and its seq echoed, on the event loop: a 7 MiB frame
+    held every other request up for 1.3 s and came back as an 11 MiB answer. A frame past
+    64 KiB is answered with an error naming the limit, unparsed; its scan is dropped, and
+    the stream goes on."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        body = scan(0).tobytes()
+        big = json.dumps({"seq": "x" * (1 << 20), "timestamp": 1.0})
+        frames = [
+            {"type": "websocket.receive", "text": big},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": json.dumps({"seq": 2, "timestamp": 2.0})},
+            {"type": "websocket.receive", "bytes": body},
+        ]
+        app = c.app  # type: ignore[attr-defined]
+        bad, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+    assert bad["ok"] is False and bad["seq"] is None and "at most 65536" in bad["error"]["message"]
+    assert len(json.dumps(bad)) < 1000
+    assert good["seq"] == 2 and good["ok"] is True, good

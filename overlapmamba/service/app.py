@@ -40,7 +40,7 @@ from overlapmamba.service.errors import (
 from overlapmamba.service.logs import configure as configure_logs
 from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.places import PlaceService
-from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn
+from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn, MapSettingsIn
 from overlapmamba.service.settings import Settings
 from overlapmamba.service.threads import encoder_threads, in_thread, request_deadline
 
@@ -400,7 +400,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
                 title=app.title, version=app.version, description=app.description, routes=app.routes
             )
             comps = schema.setdefault("components", {}).setdefault("schemas", {})
-            for model in (DescriptorQueryIn, KeyframeBatchIn):
+            for model in (DescriptorQueryIn, KeyframeBatchIn, MapSettingsIn):
                 js = model.model_json_schema(ref_template="#/components/schemas/{model}")
                 for name, sub in js.pop("$defs", {}).items():
                     comps.setdefault(name, sub)

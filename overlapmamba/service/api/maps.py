@@ -2,36 +2,53 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
-from fastapi import APIRouter, Body, Query, Response
+from fastapi import APIRouter, Query, Request, Response
+from pydantic import ValidationError
 
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import check_same_settings, each_map
-from overlapmamba.service.bodies import parse_mount
+from overlapmamba.service.bodies import parse_mount, read_body
 from overlapmamba.service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
+from overlapmamba.service.errors import Unprocessable
 from overlapmamba.service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
+from overlapmamba.service.settings import LimitSettings
 from overlapmamba.service.threads import in_thread
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
 
+# a map's settings are a few fields: a longer body is refused before it is parsed
+SETTINGS_BODY_BYTES = 64 << 10
+
+
 @router.put(
     "/{map_id}",
     response_model=MapOut,
-    responses={201: {"description": "created"}, **error_responses(400, 401, 403, 409, 413, 503)},
+    responses={
+        201: {"description": "created"},
+        **error_responses(400, 401, 403, 409, 413, 422, 503),
+    },
     summary="Create a map (idempotent)",
+    openapi_extra={
+        "requestBody": {
+            "required": False,
+            "content": {
+                "application/json": {"schema": {"$ref": "#/components/schemas/MapSettingsIn"}}
+            },
+        }
+    },
 )
 async def create_map(
-    map_id: str,
-    response: Response,
-    svc: ServiceDep,
-    _: CanWriteMaps,
-    settings: MapSettingsIn | None = Body(None),  # noqa: B008
+    map_id: str, request: Request, response: Response, svc: ServiceDep, _: CanWriteMaps
 ) -> MapOut:
     """Create the map, or return it unchanged if it exists with the same settings (200).
     Map ids: `[a-z0-9][a-z0-9_-]{0,63}`. While a map of that id is being deleted, the
-    creation waits for the deletion to finish (503 `map_busy` if it takes over a minute)."""
+    creation waits for the deletion to finish (503 `map_busy` if it takes over a minute).
+    The body (optional) is read only after the key is checked, and at most 64 KiB of it."""
+    settings = await _map_settings(request, svc.settings.limits)
     wanted = settings.sensor if settings else None
     sensor = svc.sensors.declared(wanted)  # the model's own is stored as None
     mount = parse_mount(settings.mount if settings else None)
@@ -120,3 +137,24 @@ async def map_overview(
     m = await svc.map(map_id)
     positions = await in_thread(m.positions, limit)
     return svc.overview.public(map_id, positions)
+
+
+async def _map_settings(request: Request, limits: LimitSettings) -> MapSettingsIn | None:
+    """The PUT's settings, or None for an empty body."""
+    small = limits.model_copy(
+        update={
+            "max_body_bytes": min(limits.max_body_bytes, SETTINGS_BODY_BYTES),
+            "max_decoded_bytes": min(limits.max_decoded_bytes, SETTINGS_BODY_BYTES),
+        }
+    )
+    body = await read_body(request, small)
+    if not body.strip():
+        return None
+    try:
+        return MapSettingsIn.model_validate_json(body)
+    except ValidationError as err:
+        errors = json.loads(err.json(include_url=False, include_input=False))
+        where = "; ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
+        raise Unprocessable(
+            f"invalid map settings: {where}", code="invalid_request", errors=errors
+        ) from None

@@ -44,7 +44,13 @@ from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount, read_scan
 from overlapmamba.service.deps import CanEncode, ServiceDep, serving
 from overlapmamba.service.domain import POSE_FORMAT, Filters, check_pose, parse_pose
-from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
+from overlapmamba.service.errors import (
+    BadRequest,
+    PayloadTooLarge,
+    ServiceError,
+    error_body,
+    lidar_status,
+)
 from overlapmamba.service.places import Answer, Observation, Observed
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.schemas import (
@@ -167,18 +173,32 @@ async def query(
     scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
     probe: ScanBody | list[float] = scan
     if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
-        body = await in_thread(
-            decompress, scan.data, scan.encoding, svc.settings.limits.max_decoded_bytes
-        )
-        try:
-            probe = DescriptorQueryIn.model_validate_json(body).descriptor
-        except ValidationError as err:
-            raise BadRequest(
-                'body is not {"descriptor": [numbers]}',
-                code="bad_descriptor",
-                errors=json.loads(err.json(include_url=False, include_input=False)),
-            ) from None
+        probe = await in_thread(_descriptor_of, scan.data, scan.encoding)
     return query_out(await svc.query(m, probe, k, filters, verify=verify))
+
+
+# a descriptor query's JSON: a few thousand numbers at most; a longer body would only build
+# a list of millions before the descriptor's length is checked
+DESCRIPTOR_QUERY_BYTES = 1 << 20
+
+
+def _descriptor_of(data: bytes, encoding: str | None) -> list[float]:
+    """The descriptor of a JSON query body, decoded and parsed (off the event loop)."""
+    body = decompress(data, encoding, DESCRIPTOR_QUERY_BYTES)
+    if len(body) > DESCRIPTOR_QUERY_BYTES:
+        raise PayloadTooLarge(
+            f"a descriptor query's JSON is {len(body)} bytes; allowed: at most "
+            f"{DESCRIPTOR_QUERY_BYTES}",
+            max_bytes=DESCRIPTOR_QUERY_BYTES,
+        )
+    try:
+        return DescriptorQueryIn.model_validate_json(body).descriptor
+    except ValidationError as err:
+        raise BadRequest(
+            'body is not {"descriptor": [numbers]}',
+            code="bad_descriptor",
+            errors=json.loads(err.json(include_url=False, include_input=False)),
+        ) from None
 
 
 @router.post(
@@ -322,6 +342,18 @@ def _seq_of(text: str) -> Any:
     return seq if _finite(seq) else None
 
 
+# a metadata frame is a few hundred characters; it is parsed, and its seq echoed, on the
+# event loop, so one of megabytes would hold every other request up meanwhile
+META_FRAME_CHARS = 64 << 10
+
+
+def _too_long(chars: int) -> str:
+    return (
+        f"metadata frame is {chars} characters; allowed: at most {META_FRAME_CHARS}: this "
+        "observation was not made"
+    )
+
+
 def _invalid(err: ValidationError) -> str:
     first = err.errors(include_url=False)[0]
     where = ".".join(str(p) for p in first["loc"])
@@ -429,12 +461,17 @@ async def stream(
                 if isinstance(pending, StreamMeta):  # its scan never came: answer its seq
                     problem = "metadata frame followed by another metadata frame, not its scan"
                     items.append((pending.seq, None, f"{problem}: this observation was not made"))
-                try:
-                    pending = StreamMeta.model_validate_json(frame["text"])
-                except ValidationError as err:
-                    refused = _Refused(_seq_of(frame["text"]))
-                    items.append((refused.seq, None, _invalid(err)))
-                    pending = refused  # its scan follows: answered already, dropped
+                text = frame["text"]
+                if len(text) > META_FRAME_CHARS:  # parsed on the event loop: bounded first
+                    items.append((None, None, _too_long(len(text))))
+                    pending = _Refused(None)  # its scan follows: answered already, dropped
+                else:
+                    try:
+                        pending = StreamMeta.model_validate_json(text)
+                    except ValidationError as err:
+                        refused = _Refused(_seq_of(text))
+                        items.append((refused.seq, None, _invalid(err)))
+                        pending = refused  # its scan follows: answered already, dropped
             elif pending is None:
                 items.append((None, None, "binary frame without a metadata frame before it"))
             elif isinstance(pending, _Refused):
