@@ -789,6 +789,32 @@ async def _ws_handshake(app, path: str, query: str, headers: dict[str, str]) -> 
     return sent[0]
 
 
+async def test_basic_credentials_read_but_never_write(tmp_path, encoder):
+    """A browser that gave the dashboard a mapper's key as its Basic login resends it by
+    itself with any page's request to this address: another site's page could post a
+    keyframe batch as text/plain, snapshot a map, or open the stream, and its writes
+    landed. Basic is taken for GETs (the dashboard's) only; writes and the stream need the
+    key as a header a page cannot make a browser send."""
+    import base64
+
+    keys = [{"name": "m", "role": "mapper", "sha256": hash_key("secret-m")}]
+    settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
+    basic = {"authorization": "Basic " + base64.b64encode(b"u:secret-m").decode()}
+    bearer = {"authorization": "Bearer secret-m"}
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/m", headers=bearer)).status_code == 201
+        assert (await c.get("/v1/maps/m", headers=basic)).status_code == 200
+        for method, path in (("PUT", "/v1/maps/n"), ("POST", "/v1/maps/m/snapshot")):
+            r = await c.request(method, path, headers=basic)
+            assert r.status_code == 401 and err(r)["code"] == "basic_not_allowed", r.text
+        assert (await c.post("/v1/maps/m/snapshot", headers=bearer)).status_code == 200
+        app = c.app  # type: ignore[attr-defined]
+        first = await _ws_handshake(app, "/v1/maps/m/stream", "robot_id=r", basic)
+        assert first["type"] != "websocket.accept", first
+    async with running(Settings(data_dir=tmp_path / "open"), encoder) as c:  # no keys
+        assert (await c.put("/v1/maps/m", headers=basic)).status_code == 201
+
+
 async def test_stream_refuses_missing_and_wrong_keys(tmp_path, encoder):
     roles = ("robot", "mapper", "viewer", "admin")
     keys = [{"name": r, "role": r, "sha256": hash_key(f"secret-{r}")} for r in roles]

@@ -60,14 +60,29 @@ class Principal:
 
 
 ANONYMOUS_ADMIN = Principal(name="anonymous", role="admin")
+_READS = ("GET", "HEAD")
 
 
 def presented_key(request: Request) -> str | None:
+    """The key a request presents: ``Authorization: Bearer``, ``X-API-Key``, or HTTP Basic's
+    password. Basic is what a browser resends by itself once the dashboard's login was
+    given, to any page's request to this address: it is taken only to read (GET, HEAD),
+    never for a write or a stream, which another site's page could make that browser send
+    (cross-site request forgery)."""
     header = request.headers.get("authorization", "")
     scheme, _, value = header.partition(" ")
     if scheme.lower() == "bearer" and value.strip():
         return value.strip()
     if scheme.lower() == "basic" and value.strip():
+        if request.scope.get("type") != "http" or request.scope.get("method") not in _READS:
+            auth = getattr(request.app.state, "auth", None)
+            if auth is None or not auth.enabled:  # no keys: nothing is checked anyway
+                return None
+            raise Unauthorized(
+                "HTTP Basic credentials are taken only to read (the dashboard's GETs); "
+                "send the key as 'Authorization: Bearer <key>' or 'X-API-Key'",
+                code="basic_not_allowed",
+            )
         try:
             decoded = base64.b64decode(value.strip(), validate=True).decode()
         except ValueError:  # binascii.Error, UnicodeDecodeError and non-ASCII input
