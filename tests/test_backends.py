@@ -666,3 +666,29 @@ def test_a_read_under_way_finishes_before_its_map_is_deleted(tmp_path, monkeypat
         assert got and got[0] is not None and got[0].keyframe_id == "kf-1"
         with pytest.raises(NotFound):
             m.get("kf-1")
+
+
+def test_a_qdrant_urls_credentials_never_reach_a_message(tmp_path):
+    """A ``qdrant.url`` with a proxy's ``user:password@`` was shown as is in every error
+    about Qdrant, in the log, and on /readyz, which answers without a key."""
+    from overlapmamba.service.errors import Unavailable
+
+    for url, shown in (
+        ("http://overlap:Hunter2@127.0.0.1:9", "http://***@127.0.0.1:9"),
+        ("https://token@[::1]:9/prefix", "https://***@[::1]:9/prefix"),
+        ("http://127.0.0.1:9", "http://127.0.0.1:9"),
+    ):
+        settings = Settings(
+            data_dir=tmp_path / "d",
+            index={"backend": "qdrant"},
+            qdrant={"url": url, "timeout_s": 1},
+        )
+        b = open_backend(settings, model_id=MODEL_ID, dim=DIM)
+        try:
+            assert b.where == shown
+            if "Hunter2" in url:
+                with pytest.raises(Unavailable) as err:
+                    b.load_all()
+                assert "Hunter2" not in err.value.message and shown in err.value.message
+        finally:
+            b.close()

@@ -36,6 +36,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
+from urllib.parse import urlsplit, urlunsplit
 
 from qdrant_client import QdrantClient, models
 from qdrant_client.common.client_exceptions import ResourceExhaustedResponse
@@ -89,7 +90,8 @@ class QdrantBackend:
         self.ef = qs.hnsw_ef
         self.ordering = None if self.local else models.WriteOrdering.STRONG
         self.consistency = None if self.local else models.ReadConsistencyType.MAJORITY
-        self.where = str(qs.path) if self.local else str(qs.url)
+        # where it is, for messages, logs and /readyz: never the credentials a URL may hold
+        self.where = str(qs.path) if self.local else _without_credentials(str(qs.url))
         if client is not None:
             self.client = client
         elif self.local:
@@ -345,3 +347,15 @@ class QdrantBackend:
         """Nothing of ours to flush: every acknowledged write is already in Qdrant."""
         with self._guard(None):
             self.client.close()
+
+
+def _without_credentials(url: str) -> str:
+    """``url`` with any ``user:password@`` replaced by ``***@``."""
+    parts = urlsplit(url)
+    if parts.username is None and parts.password is None:
+        return url
+    host = parts.hostname or ""
+    if ":" in host:  # an IPv6 address
+        host = f"[{host}]"
+    netloc = f"***@{host}" + (f":{parts.port}" if parts.port is not None else "")
+    return urlunsplit(parts._replace(netloc=netloc))
