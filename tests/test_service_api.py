@@ -815,6 +815,19 @@ async def test_basic_credentials_read_but_never_write(tmp_path, encoder):
         assert (await c.put("/v1/maps/m", headers=basic)).status_code == 201
 
 
+async def test_the_dashboard_may_not_be_framed_cached_or_load_anything_else(settings, encoder):
+    """The dashboard page came with no security headers: another site could frame it
+    (clickjacking) and a cache could keep it. (The browser test runs it under them.)"""
+    async with running(settings, encoder) as c:
+        r = await c.get("/dashboard")
+    assert r.status_code == 200
+    csp = r.headers["content-security-policy"]
+    assert "default-src 'none'" in csp and "frame-ancestors 'none'" in csp
+    assert "connect-src 'self'" in csp
+    assert r.headers["x-frame-options"] == "DENY" and r.headers["cache-control"] == "no-store"
+    assert r.headers["x-content-type-options"] == "nosniff"
+
+
 async def test_stream_refuses_missing_and_wrong_keys(tmp_path, encoder):
     roles = ("robot", "mapper", "viewer", "admin")
     keys = [{"name": r, "role": r, "sha256": hash_key(f"secret-{r}")} for r in roles]

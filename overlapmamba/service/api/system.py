@@ -158,4 +158,19 @@ async def dashboard(_: CanView) -> HTMLResponse:
     """A self-contained page that polls /v1/stats and draws live charts. With API keys
     configured, the browser asks for one (HTTP Basic; the key is the password)."""
     page = resources.files("overlapmamba.service").joinpath("static/dashboard.html").read_text()
-    return HTMLResponse(page)
+    return HTMLResponse(page, headers=DASHBOARD_HEADERS)
+
+
+# The page is one file, its script and style inline, reading this origin only: nothing else
+# may load into it, it may not be framed (clickjacking), and nothing caches it
+DASHBOARD_HEADERS = {
+    "Content-Security-Policy": (
+        "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; "
+        "connect-src 'self'; img-src data:; frame-ancestors 'none'; base-uri 'none'; "
+        "form-action 'none'"
+    ),
+    "X-Frame-Options": "DENY",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-store",
+}
