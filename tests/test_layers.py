@@ -18,6 +18,7 @@ LAYERS = [
     ["overlapmamba.service.app"],
     [
         "overlapmamba.service.api.queries",
+        "overlapmamba.service.api.stream",
         "overlapmamba.service.api.descriptors",
         "overlapmamba.service.api.keyframes",
         "overlapmamba.service.api.maps",

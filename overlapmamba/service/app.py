@@ -24,7 +24,7 @@ from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from overlapmamba.core.errors import LidarCoreError
-from overlapmamba.service.api import descriptors, keyframes, maps, queries, system
+from overlapmamba.service.api import descriptors, keyframes, maps, queries, stream, system
 from overlapmamba.service.auth import Authenticator
 from overlapmamba.service.backends.factory import open_backend
 from overlapmamba.service.backup import data_dir_lock
@@ -389,7 +389,8 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         log.exception("unhandled error")
         return _error(500, "internal_error", f"internal error: {type(err).__name__}")
 
-    for r in (system.router, descriptors.router, maps.router, keyframes.router, queries.router):
+    routers = (system, descriptors, maps, keyframes, queries, stream)
+    for r in (module.router for module in routers):
         app.include_router(r)
 
     def openapi() -> dict[str, Any]:
