@@ -38,6 +38,7 @@ EDGE = {
     "overlapmamba.service.deps",
     "overlapmamba.service.auth",
     "overlapmamba.service.bodies",
+    "overlapmamba.service.guard",
     "overlapmamba.service.schemas",
 }
 HTTP = ("fastapi", "starlette", "overlapmamba.service.schemas")

@@ -1,5 +1,5 @@
 """Assembles the FastAPI app: lifespan (model, maps, scan pipeline), routers, error mapping,
-and one ASGI middleware for body limits, request timeouts and request metrics."""
+and the ASGI middleware every request passes (:mod:`overlapmamba.service.guard`)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,6 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.service.api import descriptors, keyframes, maps, queries, stream, system
@@ -31,21 +30,18 @@ from overlapmamba.service.backup import data_dir_lock
 from overlapmamba.service.calibration import log_thresholds, resolve
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import (
-    PayloadTooLarge,
     ServiceError,
     Unavailable,
-    error_body,
     lidar_status,
 )
+from overlapmamba.service.guard import GuardMiddleware, error_response
 from overlapmamba.service.logs import configure as configure_logs
-from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.places import PlaceService
 from overlapmamba.service.schemas import DescriptorQueryIn, KeyframeBatchIn, MapSettingsIn
 from overlapmamba.service.settings import Settings
-from overlapmamba.service.threads import encoder_threads, in_thread, request_deadline
+from overlapmamba.service.threads import encoder_threads, in_thread
 
 log = logging.getLogger("overlapmamba.service")
-access = logging.getLogger("overlapmamba.access")
 
 DESCRIPTION = """
 LiDAR place recognition with OverlapMamba. Send a scan, get a 256-d descriptor; keep maps of
@@ -57,187 +53,6 @@ keyframes; ask which places a scan matches and whether it closes a loop.
 * Errors are `{"error": {"code", "message", "detail"}}`.
 * With API keys configured, send `Authorization: Bearer <key>` or `X-API-Key: <key>`.
 """
-
-
-def _error(
-    status: int, code: str, message: str, detail: Any = None, headers: Any = None
-) -> JSONResponse:
-    return JSONResponse(error_body(code, message, detail), status_code=status, headers=headers)
-
-
-class GuardMiddleware:
-    """Per HTTP request: give it a request id (logs, ``X-Request-ID``), refuse bodies over the
-    limit while they stream in (413), cancel a request that runs past its timeout (504),
-    count requests by route and status, and write one access log line."""
-
-    def __init__(self, app: ASGIApp, max_body_bytes: int, timeout_s: float) -> None:
-        self.app = app
-        self.max_body = max_body_bytes
-        self.timeout_s = timeout_s
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket"):
-            await self.app(scope, receive, send)
-            return
-        headers = dict(scope.get("headers", []))
-        given = headers.get(b"x-request-id", b"").decode("latin-1")
-        rid = new_request_id(given)
-        token = request_id.set(rid)
-        t0 = time.perf_counter()
-        status = 500
-        closed: dict[str, int] = {}  # a WebSocket's close code, once either side sent one
-        try:
-            if scope["type"] == "websocket":
-                status = await self._websocket(scope, receive, send, closed)
-            else:
-                status = await self._http(scope, receive, send, rid)
-        finally:
-            client = scope.get("client")
-            path = _printable(scope.get("path"))
-            extra: dict[str, Any] = {"close_code": closed["code"]} if closed else {}
-            access.log(
-                logging.DEBUG if scope.get("path") in _PROBES else logging.INFO,
-                "%s %s %s%s",
-                scope.get("method", "WS"),
-                path,
-                status,
-                f" (closed {closed['code']})" if closed else "",
-                extra={
-                    "method": scope.get("method", "WEBSOCKET"),
-                    "path": path,
-                    "status": status,
-                    "duration_ms": round((time.perf_counter() - t0) * 1e3, 2),
-                    "client": client[0] if client else None,
-                    **extra,
-                },
-            )
-            request_id.reset(token)
-
-    async def _websocket(
-        self, scope: Scope, receive: Receive, send: Send, closed: dict[str, int]
-    ) -> int:
-        """Run a WebSocket; its status for the log: 101 once accepted, the denial's status
-        where the handshake was answered as a route (401, 404, …), 403 for a close before
-        the accept (what uvicorn sends the client), 500 if the handler raised first."""
-        status = 500
-
-        async def tracking_receive() -> Message:
-            message = await receive()
-            if message["type"] == "websocket.disconnect":
-                closed.setdefault("code", int(message.get("code", 1005)))
-            return message
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal status
-            kind = message["type"]
-            if kind == "websocket.accept":
-                status = 101
-            elif kind == "websocket.http.response.start":
-                status = int(message["status"])
-            elif kind == "websocket.close":
-                status = 403 if status == 500 else status
-                closed.setdefault("code", int(message.get("code", 1000)))
-            await send(message)
-
-        await self.app(scope, tracking_receive, tracking_send)
-        return status
-
-    async def _http(self, scope: Scope, receive: Receive, send: Send, rid: str) -> int:
-        received = 0
-        started = False
-        status = 500
-        for name, value in scope.get("headers", []):
-            if name == b"content-length" and value.isdigit() and int(value) > self.max_body:
-                resp = _error(
-                    413,
-                    "payload_too_large",
-                    f"body is {int(value)} bytes; allowed: at most {self.max_body}",
-                    {"max_body_bytes": self.max_body},
-                    headers={"x-request-id": rid},
-                )
-                await resp(scope, receive, send)
-                _count(scope, 413, BEFORE_ROUTING)
-                return 413
-
-        over = False  # the body crossed the limit while it streamed in
-        replaced = False  # ... and the app's own answer to that is dropped for a 413
-
-        async def limited_receive() -> Message:
-            nonlocal received, over
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.max_body:
-                    over = True
-                    raise PayloadTooLarge(
-                        f"body exceeds {self.max_body} bytes", max_body_bytes=self.max_body
-                    )
-            return message
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal started, status, replaced
-            if replaced:
-                return
-            if over and message["type"] == "http.response.start" and message["status"] != 413:
-                # FastAPI answers an error raised while it parses a JSON body with a 400
-                # ("error parsing the body"): answer what happened instead
-                started, status, replaced = True, 413, True
-                resp = _error(
-                    413,
-                    "payload_too_large",
-                    f"body exceeds {self.max_body} bytes",
-                    {"max_body_bytes": self.max_body},
-                    headers={"x-request-id": rid},
-                )
-                await resp(scope, receive, send)
-                return
-            if message["type"] == "http.response.start":
-                started = True
-                status = message["status"]
-                message = {**message, "headers": [*message.get("headers", []), _rid(rid)]}
-            await send(message)
-
-        deadline = request_deadline.set(time.monotonic() + self.timeout_s)
-        try:
-            async with asyncio.timeout(self.timeout_s):
-                await self.app(scope, limited_receive, tracking_send)
-        except TimeoutError:
-            if not started:
-                status = 504
-                resp = _error(
-                    504,
-                    "timeout",
-                    f"request ran past its {self.timeout_s} s timeout",
-                    headers={"x-request-id": rid},
-                )
-                await resp(scope, receive, send)
-        finally:
-            request_deadline.reset(deadline)
-            _count(scope, status)
-        return status
-
-
-def _count(scope: Scope, status: int, route: str | None = None) -> None:
-    """One answered request on ``overlapmamba_requests_total``, by route and status."""
-    app = scope.get("app")
-    svc = getattr(app.state, "service", None) if app is not None else None
-    if svc is not None:
-        svc.stats.request(route or getattr(scope.get("route"), "path", "unmatched"), status)
-
-
-BEFORE_ROUTING = "(before routing)"  # the route label of a request refused by its headers
-_PROBES = {"/healthz", "/readyz", "/metrics"}  # polled every few seconds: debug level
-
-
-def _printable(path: str | None) -> str:
-    """A decoded path may hold control characters (%0A): escape them for text logs."""
-    if not path:
-        return ""
-    return path if path.isprintable() else path.encode("unicode_escape").decode("ascii")
-
-
-def _rid(rid: str) -> tuple[bytes, bytes]:
-    return (b"x-request-id", rid.encode())
 
 
 async def _load_maps(app: FastAPI, svc: PlaceService) -> None:
@@ -352,28 +167,32 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
     app.state.auth = Authenticator(settings.auth)
 
     @app.exception_handler(ServiceError)
-    async def service_error(request: Request, err: ServiceError) -> JSONResponse:
+    async def serviceerror_response(request: Request, err: ServiceError) -> JSONResponse:
         headers = dict(err.headers)
         if err.status == 401 and request.url.path == "/dashboard":
             headers["WWW-Authenticate"] = 'Basic realm="overlapmamba"'
-        return _error(err.status, err.code, err.message, err.detail, headers)
+        return error_response(err.status, err.code, err.message, err.detail, headers)
 
     @app.exception_handler(LidarCoreError)
-    async def lidar_error(_: Request, err: LidarCoreError) -> JSONResponse:
-        return _error(lidar_status(err), err.code, err.message, err.detail)
+    async def lidarerror_response(_: Request, err: LidarCoreError) -> JSONResponse:
+        return error_response(lidar_status(err), err.code, err.message, err.detail)
 
     @app.exception_handler(RequestValidationError)
-    async def validation_error(_: Request, err: RequestValidationError) -> JSONResponse:
+    async def validationerror_response(_: Request, err: RequestValidationError) -> JSONResponse:
         errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in err.errors()]
         where = ", ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
-        return _error(422, "invalid_request", f"invalid request: {where}", {"errors": errors})
+        return error_response(
+            422, "invalid_request", f"invalid request: {where}", {"errors": errors}
+        )
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(_: Request, err: StarletteHTTPException) -> JSONResponse:
+    async def httperror_response(_: Request, err: StarletteHTTPException) -> JSONResponse:
         code = {404: "route_not_found", 405: "method_not_allowed"}.get(
             err.status_code, "http_error"
         )
-        return _error(err.status_code, code, str(err.detail), None, getattr(err, "headers", None))
+        return error_response(
+            err.status_code, code, str(err.detail), None, getattr(err, "headers", None)
+        )
 
     @app.exception_handler(ClientDisconnect)
     async def client_gone(request: Request, _: ClientDisconnect) -> JSONResponse:
@@ -382,12 +201,12 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         log.info(
             "%s %s: the client went away before its body was read", request.method, request.url.path
         )
-        return _error(499, "client_closed_request", "the client closed the connection")
+        return error_response(499, "client_closed_request", "the client closed the connection")
 
     @app.exception_handler(Exception)
-    async def internal_error(_: Request, err: Exception) -> JSONResponse:
+    async def internalerror_response(_: Request, err: Exception) -> JSONResponse:
         log.exception("unhandled error")
-        return _error(500, "internal_error", f"internal error: {type(err).__name__}")
+        return error_response(500, "internal_error", f"internal error: {type(err).__name__}")
 
     routers = (system, descriptors, maps, keyframes, queries, stream)
     for r in (module.router for module in routers):

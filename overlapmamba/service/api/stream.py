@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
-from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from overlapmamba.core.errors import LidarCoreError
@@ -48,6 +47,7 @@ from overlapmamba.service.bodies import parse_mount
 from overlapmamba.service.deps import serving
 from overlapmamba.service.domain import check_pose, parse_pose
 from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
+from overlapmamba.service.guard import error_response
 from overlapmamba.service.places import Observation
 from overlapmamba.service.scans import ScanBody
 from overlapmamba.service.schemas import NAME_PATTERN, SENSOR_PATTERN
@@ -136,10 +136,8 @@ async def _refuse(websocket: WebSocket, err: ServiceError) -> None:
     before the accept reached a client as a bare 403); else closed with 1013 (try again
     later) for a 503 and 1008 for the rest, the reason naming the code."""
     if "websocket.http.response" in websocket.scope.get("extensions", {}):
-        body = error_body(err.code, err.message, err.detail)
-        await websocket.send_denial_response(
-            JSONResponse(body, status_code=err.status, headers=err.headers)
-        )
+        denial = error_response(err.status, err.code, err.message, err.detail, err.headers)
+        await websocket.send_denial_response(denial)
         return
     code = 1013 if err.status == 503 else 1008
     await websocket.close(code=code, reason=f"{err.code}: {err.message}"[:120])
