@@ -130,3 +130,30 @@ def test_bad_sequences_name_the_problem(tmp_path, synthetic_seq_dir):
     with pytest.raises(DatasetError, match="the first pose is singular"):
         open_sequence(tmp_path)
     assert set(REGISTRY) == {"kitti", "pcd-folder"}
+
+
+def test_a_folder_without_poses_is_a_drive_without_poses_for_the_client_only(tmp_path):
+    """KITTI's test sequences (11–21) and raw drives have no poses.txt: the client could not
+    send them at all, though a keyframe's pose is optional. ``open_drive`` opens them with
+    no poses; whatever needs the poses (evaluation, ground truth) still refuses by name."""
+    from pypcd4 import PointCloud as PcdCloud
+
+    from overlapmamba.client._replay import open_drive
+    from overlapmamba.core.datasets import open_recording
+
+    kitti = tmp_path / "11"
+    (kitti / "velodyne").mkdir(parents=True)
+    for i in range(3):
+        np.full((5, 4), i, np.float32).tofile(kitti / "velodyne" / f"{i:06d}.bin")
+    pcd = tmp_path / "scene"
+    (pcd / "clouds").mkdir(parents=True)
+    for i in range(2):
+        PcdCloud.from_xyz_points(np.full((5, 3), i, np.float32)).save(pcd / "clouds" / f"{i}.pcd")
+    for folder, n in ((kitti, 3), (pcd, 2)):
+        drive = open_drive(folder)
+        assert len(drive) == n and drive.poses is None and drive.pose(0) is None
+        assert drive.unposed == 0 and float(drive.scan(n - 1)[0, 0]) == n - 1
+        with pytest.raises(DatasetError, match="poses.txt is missing"):
+            open_sequence(folder)
+        with pytest.raises(DatasetError, match="poses.txt is missing"):
+            open_recording(folder, need_poses=True)

@@ -118,7 +118,7 @@ def open_drive(
     return Drive(
         seq=seq,
         times=np.asarray(times, dtype=np.float64),
-        poses=_pose7(seq.poses),
+        poses=None if np.isnan(seq.poses).all() else _pose7(seq.poses),  # no poses.txt: none
         loop_radius=radius,
         sensor=sensor or _manifest_sensor(root),
     )

@@ -89,7 +89,8 @@ def open_recording(
     """A sequence folder (``open_sequence``) or a ROS recording (``bags.open_bag``: its
     PointCloud2 ``topic``, poses from its ``odometry`` topic or from /tf in the ``tf`` frame):
     a ``Sequence`` or a ``Bag``. ``need_poses``: a recording must then say where its poses
-    are. ``pose_gaps``: as ``open_bag``'s. Raises DatasetError."""
+    are. ``pose_gaps``: as ``open_bag``'s; ``"nan"`` also opens a folder without a poses.txt
+    (NaN poses). Raises DatasetError."""
     from overlapmamba.core.datasets.bags import is_bag, open_bag
 
     if not is_bag(path):
@@ -97,11 +98,13 @@ def open_recording(
             raise DatasetError(
                 f"{path} is a sequence folder: --topic, --odometry and --tf are for ROS recordings"
             )
-        if sensor is None:
-            return open_sequence(path)
-        from overlapmamba.core.sensors.catalogue import catalogue_name
+        # ``pose_gaps="nan"``: a folder without poses.txt has NaN poses (sent as none)
+        options: dict[str, Any] = {"missing_poses": pose_gaps} if pose_gaps == "nan" else {}
+        if sensor is not None:
+            from overlapmamba.core.sensors.catalogue import catalogue_name
 
-        return open_sequence(path, sensor=catalogue_name(sensor))
+            options["sensor"] = catalogue_name(sensor)
+        return open_sequence(path, **options)
     if need_poses and odometry is None and tf is None:
         raise DatasetError(
             f"{path} is a ROS recording without poses: name its nav_msgs/Odometry topic "

@@ -59,11 +59,17 @@ def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
 
 
 def open_kitti(
-    root: str | Path, *, sensor: str | None = None, unfinished: bool = False
+    root: str | Path,
+    *,
+    sensor: str | None = None,
+    unfinished: bool = False,
+    missing_poses: str = "raise",
 ) -> Sequence:
     """``sensor``: the catalogue sensor the scans come from; None: what the folder's
     ``manifest.json`` says (a synthetic drive records its sensor), else KITTI's HDL-64E. The
-    sequence's ``mount`` is the manifest's mounting where it is not the reference."""
+    sequence's ``mount`` is the manifest's mounting where it is not the reference. Without
+    a ``poses.txt`` (KITTI's test sequences, a raw drive): an error, or with
+    ``missing_poses="nan"`` NaN poses (what the client's drives send as no pose)."""
     root = Path(root)
     # overlapmamba.synth.generate.INCOMPLETE; ``unfinished``: the generator's own reads
     if not unfinished and (root / ".incomplete").exists():
@@ -80,6 +86,14 @@ def open_kitti(
     scans = tuple(sorted(velodyne.glob("*.bin"), key=scan_order))  # 2.bin before 10.bin
     pose_file = root / "poses.txt"
     if not pose_file.is_file():
+        if missing_poses == "nan" and scans:
+            return Sequence(
+                root=root,
+                scan_paths=scans,
+                poses=np.full((len(scans), 4, 4), np.nan),
+                sensor=sensor,
+                mount=_manifest_mount(root, manifest),
+            )
         raise DatasetError(f"{root}: poses.txt is missing (one 3×4 pose per scan)")
     poses = read_poses(pose_file)
     calib_file = root / "calib.txt"
