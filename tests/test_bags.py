@@ -130,8 +130,11 @@ def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
     junk.write_bytes(b"#ROSBAG V2.0\n" + bytes(100))
     with pytest.raises(DatasetError, match="cannot be read"):
         open_bag(junk)
+    with pytest.raises(DatasetError, match="cannot be read"):
+        open_bag(tmp_path)  # a folder of .bag files is a split recording: this one's junk
+    (tmp_path / "none").mkdir()
     with pytest.raises(DatasetError, match="not a ROS recording"):
-        open_bag(tmp_path)
+        open_bag(tmp_path / "none")
     assert open_drive(bag).poses is None  # no odometry named: no poses
     from ros_messages import STORE
     from rosbags.rosbag2 import Writer
