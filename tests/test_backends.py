@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sqlite3
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -692,3 +693,23 @@ def test_a_qdrant_urls_credentials_never_reach_a_message(tmp_path):
                 assert "Hunter2" not in err.value.message and shown in err.value.message
         finally:
             b.close()
+
+
+@pytest.mark.parametrize("kind", ["faiss", "qdrant"])
+def test_a_robots_last_keyframe_is_the_same_on_either_backend_when_times_tie(kind, tmp_path):
+    """Keyframes of one robot at one time (a map-building batch): the FAISS store took
+    whichever SQLite met first, Qdrant whichever its order gave, so the robot's insert
+    schedule could differ by backend. Both take the one written last, then the greatest id."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(0)
+    tied = [replace(row(i, rng), robot_id="r", timestamp=5.0) for i in (11, 13, 12)]
+    with opened(kind, tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([replace(row(1, rng), robot_id="r", timestamp=1.0)])
+        m.insert(tied)  # one write: the greatest id
+        assert m.last_keyframe("r").keyframe_id == "kf-13"
+        time.sleep(0.01)
+        m.insert([replace(row(2, rng), robot_id="r", timestamp=5.0)])  # written last
+        assert m.last_keyframe("r").keyframe_id == "kf-2"
+        assert m.last_keyframe("nobody") is None

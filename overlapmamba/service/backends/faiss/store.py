@@ -511,8 +511,9 @@ class Store:
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
         rows = self._rows(
-            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND "
-            "keyframe_id IS NOT NULL ORDER BY timestamp DESC LIMIT 1",
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND keyframe_id IS NOT "
+            # of equal times, the one written last, then the greatest id: as Qdrant's map
+            "NULL ORDER BY timestamp DESC, created_at DESC, keyframe_id DESC LIMIT 1",
             (robot_id,),
         )
         return _keyframe(rows[0]) if rows else None

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("overlapmamba.service")
 T = TypeVar("T")
+TIES = 1000  # keyframes of one robot at one time read to break the tie (one a batch, at most)
 
 
 class QdrantMap:
@@ -191,17 +192,32 @@ class QdrantMap:
         return out
 
     def last_keyframe(self, robot_id: str) -> Keyframe | None:
-        records, _ = self._call(
-            lambda c: c.scroll(
-                self.collection,
-                scroll_filter=models.Filter(must=[match_of("robot_id", robot_id)]),
-                limit=1,
-                order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
-                with_payload=LEAN,
-                consistency=self.backend.consistency,
+        """The robot's latest keyframe; of equal times, the one written last, then the
+        greatest id (as the FAISS store's): Qdrant orders by the time alone."""
+        robot = match_of("robot_id", robot_id)
+
+        def latest(limit: int, at: float | None = None) -> list[Keyframe]:
+            must: list[Any] = [robot]
+            if at is not None:
+                must.append(
+                    models.FieldCondition(key="timestamp", range=models.Range(gte=at, lte=at))
+                )
+            records, _ = self._call(
+                lambda c: c.scroll(
+                    self.collection,
+                    scroll_filter=models.Filter(must=must),
+                    limit=limit,
+                    order_by=models.OrderBy(key="timestamp", direction=models.Direction.DESC),
+                    with_payload=LEAN,
+                    consistency=self.backend.consistency,
+                )
             )
-        )
-        return keyframe_of(records[0].payload or {}) if records else None
+            return [keyframe_of(r.payload or {}) for r in records]
+
+        top = latest(2)
+        if len(top) == 2 and top[0].timestamp == top[1].timestamp:  # a tie: all of that time
+            top = latest(TIES, top[0].timestamp)
+        return max(top, key=lambda k: (k.timestamp, k.created_at, k.keyframe_id), default=None)
 
     def positions(self, limit: int) -> list[tuple[str, float, float]]:
         records, _ = self._call(
