@@ -20,6 +20,7 @@ import json
 import logging
 import os
 import shutil
+import sqlite3
 import threading
 import time
 from collections.abc import Iterator
@@ -294,7 +295,13 @@ class FaissMap:
                     raise full from err
                 raise
             self.snapshot_seq = seq
-            purged = self.store.purge_tombstones(seq)
+            try:  # housekeeping: the snapshot is written whatever becomes of it
+                purged = self.store.purge_tombstones(seq)
+            except sqlite3.Error as err:  # e.g. a full disk: the next snapshot purges them
+                log.warning(
+                    "map %s: tombstones not purged after its snapshot: %s", self.map_id, err
+                )
+                purged = 0
         return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
 
     @contextlib.contextmanager
