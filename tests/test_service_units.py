@@ -901,3 +901,54 @@ def test_a_maps_statistics_give_its_own_latency():
     assert s.public("slow")["latency_ms"]["total"]["p50"] == 900.0
     assert s.public()["latency_ms"]["total"]["n"] == 5
     assert s.public("fast")["latency_ms"]["verify"]["n"] == 0
+
+
+def test_filter_columns_hold_the_live_rows_span_not_every_row_ever_written():
+    """Row ids only grow, and the columns were indexed by them from 0: a map keeping its
+    latest keyframes (insert new, delete old) grew 17 bytes a keyframe it ever held, for
+    good, and every filtered search built a mask that long. The rows below the first live
+    one are cut off; the masks a search gets still select the same rows."""
+    from overlapmamba.service.backends.faiss.columns import FilterColumns
+
+    c = FilterColumns()
+    live: list[int] = []
+    for cycle in range(60):  # 500 new rows a cycle, the oldest deleted: 1,000 kept
+        new = np.arange(cycle * 500, cycle * 500 + 500)
+        c.add(new, [(f"r{i % 3}", "s", float(i)) for i in new])
+        live += list(new)
+        if len(live) > 1000:
+            c.remove(np.array(live[:500]))
+            live = live[500:]
+    assert len(c.alive) <= 8 * 1024, len(c.alive)  # 30,000 rows written
+    assert c.base > 20_000 and c.base % 8 == 0
+    got = np.flatnonzero(c.alive) + c.base
+    np.testing.assert_array_equal(got, live)
+    c.add(np.array([7]), [("r0", "s", 7.0)])  # an id below the base (after a full wipe)
+    assert c.base <= 7 and c.alive[7 - c.base] and c.ts[7 - c.base] == 7.0
+    np.testing.assert_array_equal(np.flatnonzero(c.alive) + c.base, [7, *live])
+
+
+def test_a_filtered_search_selects_the_same_rows_whatever_the_columns_base():
+    from overlapmamba.service.backends.faiss.index import VectorIndex
+
+    rng = np.random.default_rng(0)
+    vecs = unit(rng, 200)
+    ids = np.arange(4000, 4200)
+    index = VectorIndex.flat(D)
+    index.add(ids, vecs)
+    q = vecs[17]
+    mask = np.zeros(208, bool)  # over ids 4000 … 4207
+    mask[[17, 50, 120]] = True
+    _, got = index.search(q, 3, mask, base=4000)
+    assert sorted(got.tolist()) == [4017, 4050, 4120] and got[0] == 4017
+    full = np.zeros(4208, bool)  # the same rows, from id 0
+    full[[4017, 4050, 4120]] = True
+    assert sorted(index.search(q, 3, full)[1].tolist()) == [4017, 4050, 4120]
+
+
+def test_filter_columns_opened_on_late_rows_start_at_them():
+    from overlapmamba.service.backends.faiss.columns import FilterColumns
+
+    c = FilterColumns()
+    c.add(np.array([90_001, 90_002]), [("r", "s", 1.0), ("r", "s", 2.0)])  # a map reopened
+    assert c.base == 90_000 and len(c.alive) <= 1024

@@ -97,10 +97,11 @@ class VectorIndex:
         return int(self.index.remove_ids(np.asarray(ids, dtype=np.int64)))
 
     def search(
-        self, query: np.ndarray, k: int, allowed: np.ndarray | None = None
+        self, query: np.ndarray, k: int, allowed: np.ndarray | None = None, base: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
         """query (D,) → L2 distances (≤k,), ids (≤k,), nearest first. ``allowed`` is a bool
-        mask over row ids (index = id); ids beyond it are not allowed."""
+        mask over the row ids from ``base`` (a multiple of 8: ``allowed[i]`` is row
+        ``base + i``); ids outside it are not allowed."""
         q = np.ascontiguousarray(query, dtype=np.float32).reshape(1, -1)
         k = min(k, self.ntotal)
         if k <= 0:
@@ -113,7 +114,9 @@ class VectorIndex:
         k = min(k, eligible)
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
-        bitmap = np.packbits(allowed, bitorder="little")
+        assert base % 8 == 0, base
+        bitmap = np.zeros(base // 8 + (len(allowed) + 7) // 8, np.uint8)  # the ids below: 0
+        bitmap[base // 8 :] = np.packbits(allowed, bitorder="little")
         selector = faiss.IDSelectorBitmap(len(bitmap), faiss.swig_ptr(bitmap))  # n: bytes
         d2, ids = self.index.search(q, k, params=self._params(selector, self.nprobe))
         dist, ids = _trim(d2[0], ids[0])

@@ -421,8 +421,8 @@ class FaissMap:
         q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
         with self.lock.read():
             self.check_open()
-            mask = self.allowed(filters)
-            dists, ids = self.index.search(q, k, mask)
+            mask = self.allowed(filters)  # over the columns' rows, from their base
+            dists, ids = self.index.search(q, k, mask, self.columns.base)
             wanted = [int(i) for i in ids]
             rows: dict[int, tuple[Keyframe, np.ndarray | Spectrum | None]]
             if yaw is None:
