@@ -4,6 +4,7 @@ registration run on (overlapmamba.service.threads, verify.threads)."""
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 from pathlib import Path
@@ -126,6 +127,37 @@ def test_encoder_lanes_and_threads_share_the_cores(monkeypatch: pytest.MonkeyPat
     assert threads.cores() >= 1
     with pytest.raises(ValueError):
         Settings(batching={"lanes": -1})
+
+
+def test_the_cores_a_container_may_use_count_its_cpu_quota(tmp_path: Path):
+    """``docker run --cpus 2`` on a 64-core host caps CPU time but leaves the affinity whole:
+    the service started 64 encoder lanes (≈ 235 MB each) and was throttled or killed. The
+    cgroup's quota bounds the count (v2's cpu.max, the tightest up the tree; v1's cfs)."""
+    from overlapmamba.service import threads
+
+    v2 = tmp_path / "v2"
+    (v2 / "kubepods" / "pod1").mkdir(parents=True)
+    (v2 / "cpu.max").write_text("max 100000\n")
+    (v2 / "kubepods" / "cpu.max").write_text("150000 100000\n")  # the tighter, above
+    (v2 / "kubepods" / "pod1" / "cpu.max").write_text("400000 100000\n")
+    assert threads.cpu_quota(v2, "/kubepods/pod1") == 1.5
+    assert threads.cpu_quota(v2, "/") is None  # the root: no limit
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("50000\n")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert threads.cpu_quota(v1, "/") == 0.5
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    assert threads.cpu_quota(v1, "/") is None
+    assert threads.cpu_quota(tmp_path / "none", "/") is None
+    real = threads.cpu_quota
+    have = len(os.sched_getaffinity(0))
+    try:
+        for quota, want in ((1.0, 1), (0.25, 1), (512.0, have)):  # a share of a core: one
+            threads.cpu_quota = lambda cgroup=None, own=None, q=quota: q  # type: ignore[assignment,misc]
+            assert threads.cores() == want, quota
+    finally:
+        threads.cpu_quota = real  # type: ignore[assignment]
 
 
 def test_registration_threads_come_from_the_settings():
