@@ -130,3 +130,39 @@ def test_help_shows_the_defaults_and_patterns_written_in_brackets():
     assert "with [model] and [train] sections" in train and "narrow-hn (the shipped" in train
     maps = text(runner.invoke(client_app, ["maps", "create", "--help"], env={"COLUMNS": "200"}))
     assert "[a-z0-9][a-z0-9_-]{0,63}" in maps and "[default: yes]" in maps, maps
+
+
+def test_serve_names_misspelt_variables_and_never_prints_a_key(tmp_path):
+    """``OVERLAPMAMBA_QDRANT_URL`` (one underscore) was ignored without a word, and the
+    settings error that followed printed the raw input, with the last 20 characters of the
+    Qdrant API key in it, into the container's log. The variable is named with the setting
+    it is nearest, and the error says where and why only."""
+    key = "K" * 20 + "the-secret-end-of-the-key"
+    env = {
+        "COLUMNS": "200",
+        "OVERLAPMAMBA_INDEX__BACKEND": "qdrant",
+        "OVERLAPMAMBA_QDRANT_URL": "http://qdrant:6333",
+        "OVERLAPMAMBA_QDRANT__API_KEY": key,
+        "OVERLAPMAMBA_BATCHNG__MAX_BATCH": "1",
+    }
+    res = runner.invoke(app, ["serve", "--data-dir", str(tmp_path)], env=env)
+    out = text(res)
+    assert res.exit_code == 2, out
+    assert "the-secret" not in out and "input_value" not in out, out
+    assert "needs qdrant.url" in out
+    assert "OVERLAPMAMBA_QDRANT_URL is not a setting" in out and "OVERLAPMAMBA_QDRANT__URL" in out
+    assert "did you mean OVERLAPMAMBA_BATCHING__MAX_BATCH" in out
+
+
+def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
+    import json
+
+    from overlapmamba.service.auth import hash_key
+    from overlapmamba.service.settings import Settings
+
+    res = runner.invoke(
+        app, ["hash-key", "--role", "robot", "--name", 'r "1"', "--key", "k1", "--json"]
+    )
+    entry = json.loads(res.stdout)
+    assert entry == {"name": 'r "1"', "role": "robot", "sha256": hash_key("k1")}
+    assert Settings(auth={"keys": [entry]}).auth.keys[0].name == 'r "1"'

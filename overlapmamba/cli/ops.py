@@ -4,6 +4,7 @@ folder's doctor. None imports PyTorch."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -27,7 +28,13 @@ def _service_settings(config: Path | None, **overrides: Any) -> Any:
 
     try:
         return load_settings(config, **overrides)
-    except (ValidationError, ValueError) as err:
+    except ValidationError as err:  # where and why, never the input: it may hold a key
+        where = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}"
+            for e in err.errors(include_url=False, include_input=False)
+        )
+        raise typer.BadParameter(f"invalid service settings: {where}") from None
+    except ValueError as err:
         raise typer.BadParameter(f"invalid service settings: {err}") from None
 
 
@@ -89,7 +96,11 @@ def serve_cmd(
     """Run the place-recognition HTTP service (uvicorn). SIGTERM drains requests in flight
     and snapshots the maps before it exits."""
     from overlapmamba.service.app import run
+    from overlapmamba.service.settings import unknown_variables
 
+    for var, near in unknown_variables(os.environ):  # a misspelt one would change nothing
+        hint = f"; did you mean {near}?" if near else ""
+        console.print(f"[yellow]warning:[/] {escape(var)} is not a setting and is ignored{hint}")
     qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
     settings = _service_settings(
         config,
@@ -188,8 +199,16 @@ def hash_key_cmd(
     key: Annotated[
         str | None, typer.Option(help="hash this key instead of generating a new one")
     ] = None,
+    as_json: Annotated[
+        bool,
+        typer.Option(
+            "--json",
+            help="print the entry as JSON, for OVERLAPMAMBA_AUTH__KEYS (a JSON list of them)",
+        ),
+    ] = False,
 ) -> None:
-    """Make an API key: prints the key once, and the TOML to put in the settings (its hash)."""
+    """Make an API key: prints the key once (on stderr), and its entry for the settings (its
+    hash): TOML for a config file, or with --json one item of OVERLAPMAMBA_AUTH__KEYS."""
     from overlapmamba.service.auth import ROLE_ACTIONS, hash_key, new_key
 
     if role not in ROLE_ACTIONS:
@@ -197,6 +216,10 @@ def hash_key_cmd(
     secret = key or new_key()
     if key is None:
         console.print(f"key (shown once, give it to the client): [bold]{secret}[/]")
+    if as_json:
+        entry = {"name": name, "role": role, "sha256": hash_key(secret)}
+        out.print(json.dumps(entry, separators=(",", ":")), markup=False, soft_wrap=True)
+        return
     out.print(
         # a JSON string is a TOML basic string: a name with quotes or backslashes stays TOML
         f'[[auth.keys]]\nname = {json.dumps(name)}\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',

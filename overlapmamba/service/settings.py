@@ -13,9 +13,11 @@ from the model file when it carries them; a value set here overrides it
 
 from __future__ import annotations
 
+import difflib
 import ipaddress
 import os
 import tomllib
+from collections.abc import Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -476,6 +478,42 @@ def _check_toml(path: Path) -> None:
         tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"config file {path} is not valid TOML: {err}") from None
+
+
+# OVERLAPMAMBA_ variables that are not settings: the config file, caches and build
+# options, the client's, and the test suite's
+NOT_SETTINGS = frozenset(
+    {
+        "CONFIG", "CACHE", "KERNEL_MARCH", "NO_REEXEC", "URL", "API_KEY", "SHARED_DATA",
+        "E2E", "E2E_MODEL", "E2E_DRIVE", "IMAGE_TEST",
+    }
+)  # fmt: skip
+
+
+def setting_variables() -> set[str]:
+    """Every OVERLAPMAMBA_ variable a setting reads (a section's fields, old names too)."""
+    names = set()
+    for name, field in Settings.model_fields.items():
+        names.add(f"OVERLAPMAMBA_{name.upper()}")
+        kind = field.annotation
+        if isinstance(kind, type) and issubclass(kind, BaseModel):
+            fields = {*kind.model_fields, *RENAMED.get(name, {})}
+            names.update(f"OVERLAPMAMBA_{name.upper()}__{f.upper()}" for f in fields)
+    return names
+
+
+def unknown_variables(environ: Mapping[str, str]) -> list[tuple[str, str | None]]:
+    """The OVERLAPMAMBA_ variables in ``environ`` that nothing reads (a misspelt one is
+    otherwise ignored without a word), each with the setting it is nearest, if any."""
+    known = setting_variables()
+    allowed = known | {f"OVERLAPMAMBA_{n}" for n in NOT_SETTINGS}
+    out = []
+    for var in sorted(environ):
+        upper = var.upper()
+        if upper.startswith("OVERLAPMAMBA_") and upper not in allowed:
+            near = difflib.get_close_matches(upper, sorted(known), n=1, cutoff=0.75)
+            out.append((var, near[0] if near else None))
+    return out
 
 
 def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
