@@ -151,6 +151,8 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
         check=True,
     ).stdout
     WHEELS.mkdir(parents=True, exist_ok=True)
+    for old in WHEELS.glob("*.whl"):  # an earlier venv's: pip would take the highest
+        old.unlink()
     with tempfile.TemporaryDirectory(prefix="om-wheels-") as tmp:
         req, pins = Path(tmp) / "requirements.txt", Path(tmp) / "constraints.txt"
         req.write_text("\n".join([*reqs, "setuptools>=69", "wheel"]) + "\n")

@@ -229,3 +229,57 @@ def test_the_image_script_copies_every_file_the_dockerfile_copies():
         assert any(line.strip() in let_in for line in allowed.splitlines()), (
             f"{src} is not let in by .dockerignore"
         )
+
+
+def test_the_healthcheck_probes_the_services_own_address_never_through_a_proxy():
+    """The HEALTHCHECK asked 127.0.0.1 whatever address the service listened on, and through
+    the container's HTTP_PROXY where one is set: a service bound to one address, or behind a
+    company proxy, read unhealthy for ever. It asks the address and port the settings name
+    (loopback for every address), directly."""
+    import http.server
+    import os
+    import subprocess
+    import sys
+    import threading
+
+    class Ready(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200 if self.path == "/readyz" else 404)
+            self.end_headers()
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    srv = http.server.HTTPServer(("127.0.0.1", 0), Ready)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        port = str(srv.server_address[1])
+        script = str(ROOT / "deploy" / "healthcheck.py")
+        base = {"PATH": os.environ.get("PATH", ""), "OVERLAPMAMBA_PORT": port}
+        proxy = {"HTTP_PROXY": "http://127.0.0.1:9", "http_proxy": "http://127.0.0.1:9"}
+        for host in ("0.0.0.0", "127.0.0.1", ""):
+            env = {**base, **proxy, "OVERLAPMAMBA_HOST": host}
+            res = subprocess.run([sys.executable, script], env=env, capture_output=True, timeout=30)
+            assert res.returncode == 0, (host, res.stderr)
+        env = {**base, "OVERLAPMAMBA_PORT": "9"}  # nothing there
+        assert subprocess.run([sys.executable, script], env=env, timeout=30).returncode == 1
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_the_images_x86_kernel_target_is_not_given_to_another_processors_compiler(monkeypatch):
+    """The image names OVERLAPMAMBA_KERNEL_MARCH=x86-64-v2 (a kernel that runs on any x86
+    host); built on arm64 (Apple silicon, Graviton) the compiler refused it and the build
+    failed. Another processor compiles for its own baseline."""
+    import platform
+
+    from overlapmamba.core import scan_kernel
+
+    monkeypatch.setenv("OVERLAPMAMBA_KERNEL_MARCH", "x86-64-v2")
+    monkeypatch.setattr(platform, "machine", lambda: "x86_64")
+    assert "-march=x86-64-v2" in scan_kernel.cflags()
+    monkeypatch.setattr(platform, "machine", lambda: "aarch64")
+    assert "-march=armv8-a" in scan_kernel.cflags()
+    monkeypatch.setenv("OVERLAPMAMBA_KERNEL_MARCH", "armv8.2-a")  # named for arm: as named
+    assert "-march=armv8.2-a" in scan_kernel.cflags()

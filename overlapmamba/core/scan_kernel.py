@@ -49,6 +49,11 @@ SOURCE = Path(__file__).with_name("csrc") / "selective_scan.c"
 
 def cflags() -> list[str]:
     march = os.environ.get("OVERLAPMAMBA_KERNEL_MARCH", "native")
+    machine = platform.machine().lower()
+    if march.startswith("x86-64") and machine not in ("x86_64", "amd64"):
+        # an x86 target named for an image built on another processor (arm64): the compiler
+        # would refuse it, and the build with it; that processor's baseline instead
+        march = "armv8-a" if machine in ("aarch64", "arm64") else "native"
     return ["-O3", "-ffast-math", f"-march={march}", "-fPIC", "-std=c11"]
 
 
