@@ -230,3 +230,148 @@ def test_a_refused_stream_handshake_says_the_servers_status_and_error():
     assert "404 map_not_found: map 'x' does not exist" in str(err), err
     bare = stream_failure(InvalidStatus(Response(403, "Forbidden", Headers(), b"")), [])
     assert "403" in str(bare)
+
+
+def test_ids_that_are_path_steps_are_refused_before_anything_is_sent():
+    """``delete_keyframe("town", "..")`` went out as ``DELETE /v1/maps/town`` (httpx reads
+    ``..`` as a step up): the whole map was deleted. ``.``, ``..`` and empty ids are refused."""
+    calls: list[float] = []
+    with PlaceRecognitionClient(transport=_answers([], calls)) as pr:
+        for call in (
+            lambda: pr.delete_keyframe("town", ".."),
+            lambda: pr.delete_keyframe("town", "."),
+            lambda: pr.get_keyframe("town", ".."),
+            lambda: pr.delete_map(".."),
+            lambda: pr.get_map(""),
+        ):
+            with pytest.raises(ValueError, match="is not an id"):
+                call()
+    assert calls == []
+
+
+def test_a_misspelt_query_filter_is_an_error_not_an_unfiltered_answer():
+    calls: list[float] = []
+    with (
+        PlaceRecognitionClient(transport=_answers([], calls)) as pr,
+        pytest.raises(TypeError, match="exclude_sessions.*allowed: exclude_recent_s"),
+    ):
+        pr.query("town", descriptor=[1.0] * 4, exclude_sessions="s1")
+    assert calls == []
+
+
+def test_a_503_an_operator_must_mend_and_an_http_date_past_the_cap_are_raised_at_once():
+    """``storage_full`` and ``start_failed`` say Retry-After 30: every call waited 3 × 30 s
+    for what only an operator mends. An HTTP-date Retry-After (a proxy's) was not read, and
+    the call retried at once however long it asked."""
+    from email.utils import format_datetime
+
+    calls: list[float] = []
+    full = httpx.Response(
+        503,
+        json={"error": {"code": "storage_full", "message": "disk full", "detail": {}}},
+        headers={"Retry-After": "30"},
+    )
+    with (
+        PlaceRecognitionClient(transport=_answers([full], calls)) as pr,
+        pytest.raises(OverloadedError) as e,
+    ):
+        pr.health()
+    assert len(calls) == 1 and e.value.code == "storage_full"
+    calls.clear()
+    later = format_datetime(
+        __import__("datetime").datetime.now(__import__("datetime").UTC)
+        + __import__("datetime").timedelta(hours=1),
+        usegmt=True,
+    )
+    with (
+        PlaceRecognitionClient(transport=_answers([_busy(later)], calls)) as pr,
+        pytest.raises(OverloadedError) as e,
+    ):
+        pr.health()
+    assert len(calls) == 1 and 3500 < (e.value.retry_after or 0) <= 3600
+
+
+def test_health_answers_a_service_that_is_not_ready_with_its_status():
+    """``/readyz`` says 503 with its status and stage while the maps load: ``health()``
+    retried it four times and raised an OverloadedError ``http_error`` with the stage lost."""
+    calls: list[float] = []
+    loading = httpx.Response(
+        503,
+        json={"status": "loading", "detail": {"stage": "loading maps"}},
+        headers={"Retry-After": "1"},
+    )
+    with PlaceRecognitionClient(transport=_answers([loading], calls)) as pr:
+        got = pr.health()
+    assert got == {"status": "loading", "detail": {"stage": "loading maps"}} and len(calls) == 1
+
+
+def test_a_url_or_key_that_can_never_be_sent_is_not_retried():
+    """A URL without its scheme, or a key read from a file with its newline, can never be
+    sent: each was tried four times, with backoff, as if the network had failed."""
+    import http.server
+    import threading
+
+    srv = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        here = f"http://127.0.0.1:{srv.server_address[1]}"
+        for url, key in (("localhost:8000", None), (here, "s3cret\n")):
+            with PlaceRecognitionClient(url, api_key=key, retry=Retry(backoff_s=0.5)) as pr:
+                t0 = time.monotonic()
+                with pytest.raises(TransportError):
+                    pr.health()
+                assert time.monotonic() - t0 < 0.4, url  # no backoff: one try
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_a_stream_checks_its_ids_and_k_before_it_connects(monkeypatch):
+    import websockets.sync.client as ws_client
+
+    def never(url: str, **_: object) -> None:
+        raise AssertionError("connected")
+
+    monkeypatch.setattr(ws_client, "connect", never)
+    with PlaceRecognitionClient("http://test") as pr:
+        with pytest.raises(ValueError, match="robot_id 'robot 1' is not allowed"):
+            list(pr.stream("town", [], robot_id="robot 1"))
+        with pytest.raises(ValueError, match="k=0"):
+            list(pr.stream("town", [], robot_id="r1", k=0))
+
+
+def test_a_pose_as_the_server_writes_it_and_a_numpy_timestamp_are_taken():
+    import numpy as np
+
+    sent: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        sent.append(request)
+        kf = {
+            "keyframe_id": "a",
+            "timestamp": 1.0,
+            "robot_id": "r",
+            "session_id": "s",
+            "pose": None,
+            "created": True,
+        }
+        return httpx.Response(200, json={"inserted": 1, "existing": 0, "keyframes": [kf]})
+
+    with PlaceRecognitionClient(transport=httpx.MockTransport(handler)) as pr:
+        row = {
+            "keyframe_id": "a",
+            "timestamp": np.float32(1.5),
+            "robot_id": "r",
+            "session_id": "s",
+            "pose": None,
+            "descriptor": np.ones(4),
+        }
+        pr.insert_descriptors("town", [row], model_id="m")
+        assert json.loads(sent[0].content)["keyframes"][0]["timestamp"] == 1.5
+        with pytest.raises(ValueError, match="pose must be 7 numbers"):
+            pr.observe(
+                "town", np.ones((10, 4), np.float32), robot_id="r", timestamp=1.0, pose="1,2"
+            )
+    from overlapmamba.client._base import _pose
+
+    assert _pose("1,2,3, 0,0,0,1") == "1.0,2.0,3.0,0.0,0.0,0.0,1.0"  # the server's own form

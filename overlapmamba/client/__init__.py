@@ -6,7 +6,7 @@ the fleet simulator (``overlapmamba.client.fleet``). No torch, onnxruntime or fa
 """
 
 from overlapmamba.client._async import AsyncPlaceRecognitionClient
-from overlapmamba.client._base import NO_RETRY, Retry, Timeouts
+from overlapmamba.client._base import Timeouts
 from overlapmamba.client._exceptions import (
     APIError,
     AuthError,
@@ -33,6 +33,7 @@ from overlapmamba.client._models import (
     ObserveResult,
     QueryResult,
 )
+from overlapmamba.client._retry import NO_RETRY, Retry
 from overlapmamba.client._sync import PlaceRecognitionClient
 
 __all__ = [

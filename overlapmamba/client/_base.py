@@ -1,12 +1,10 @@
-"""What the sync and async clients share: configuration, request building, response parsing
-and the retry rules. The two clients only differ in how they send (``_sync``, ``_async``)."""
+"""What the sync and async clients share: configuration and request building (how answers are
+read and calls retried: ``_retry``). The two clients only differ in how they send (``_sync``,
+``_async``)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
-import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,16 +14,6 @@ import httpx
 import numpy as np
 from pydantic import ValidationError
 
-from overlapmamba.client._exceptions import (
-    APIError,
-    ClientError,
-    ConnectError,
-    NotFoundError,
-    ResponseError,
-    Timeout,
-    TransportError,
-    error_for,
-)
 from overlapmamba.client._models import (
     BatchInsertResult,
     Descriptor,
@@ -52,42 +40,6 @@ class Timeouts:
         return httpx.Timeout(connect=self.connect, read=self.read, write=self.write, pool=self.pool)
 
 
-@dataclass(frozen=True)
-class Retry:
-    """Exponential backoff with jitter, for idempotent calls only (every call of these
-    clients is: reads, PUT/DELETE, and inserts keyed by ``keyframe_id``). A server's
-    ``Retry-After`` is honoured when it asks for longer, up to ``max_retry_after_s``: an
-    answer asking for more (a proxy's hour, or ``inf``) is raised to the caller at once,
-    rather than holding a robot's call that long."""
-
-    attempts: int = 4  # total tries, including the first
-    backoff_s: float = 0.25  # wait before the 2nd try; doubles each time
-    max_backoff_s: float = 8.0
-    jitter: float = 0.5  # ± this fraction of the wait, at random
-    statuses: tuple[int, ...] = (429, 502, 503, 504)
-    max_retry_after_s: float = 30.0
-
-    def __post_init__(self) -> None:
-        if self.attempts < 1:
-            raise ValueError(
-                f"Retry.attempts must be at least 1 (the first try); got {self.attempts}"
-            )
-        waits = {"backoff_s": self.backoff_s, "max_backoff_s": self.max_backoff_s}
-        waits |= {"max_retry_after_s": self.max_retry_after_s}
-        if bad := [f"{k}={v}" for k, v in waits.items() if not 0 <= v < math.inf]:
-            raise ValueError(f"Retry waits must be finite seconds ≥ 0; got {', '.join(bad)}")
-        if not 0 <= self.jitter <= 1:
-            raise ValueError(f"Retry.jitter must lie in [0, 1]; got {self.jitter}")
-
-    def delay(self, attempt: int, retry_after: float | None, rng: random.Random) -> float:
-        base = min(self.max_backoff_s, self.backoff_s * 2 ** (attempt - 1))
-        wait = base * (1 + self.jitter * (2 * rng.random() - 1))
-        return max(wait, retry_after or 0.0)
-
-
-NO_RETRY = Retry(attempts=1)
-
-
 @dataclass
 class Call:
     """One request and how to read its answer."""
@@ -100,106 +52,16 @@ class Call:
     json: Any = None
     headers: dict[str, str] = field(default_factory=dict)
     idempotent: bool = True
+    answers: tuple[int, ...] = ()  # error statuses whose body is the answer (readiness: 503)
 
 
-def _retry_after(resp: httpx.Response) -> float | None:
-    value = resp.headers.get("retry-after")
-    try:
-        seconds = float(value) if value is not None else None
-    except ValueError:
-        return None
-    return None if seconds is None or math.isnan(seconds) else max(seconds, 0.0)
-
-
-def raise_for(resp: httpx.Response) -> None:
-    """Raise the answer's error; a redirect (3xx: httpx does not follow one, e.g. a proxy
-    sending http to https) is an error too, naming where it points."""
-    if 300 <= resp.status_code < 400:
-        where = resp.headers.get("location", "nowhere given")
-        raise error_for(resp.status_code)(
-            resp.status_code,
-            "redirect",
-            f"the server redirects to {where}: point the client at that URL",
-            {"location": where},
-        )
-    if resp.status_code < 400:
-        return
-    try:
-        err = resp.json()["error"]
-        code, message, detail = err["code"], err["message"], err.get("detail") or {}
-    except (ValueError, KeyError, TypeError):
-        code, message, detail = "http_error", resp.text[:500] or resp.reason_phrase, {}
-    raise error_for(resp.status_code)(
-        resp.status_code, code, message, detail, retry_after=_retry_after(resp)
-    )
-
-
-def transport_error(err: httpx.TransportError) -> TransportError:
-    if isinstance(err, httpx.TimeoutException):
-        return Timeout(f"no answer in time: {err!r}")
-    if isinstance(err, httpx.ConnectError):
-        return ConnectError(f"cannot connect: {err}")
-    return TransportError(f"transport failed: {err!r}")
-
-
-def read_answer(call: Call, resp: httpx.Response) -> Any:
-    """``call.parse(resp)``; a 2xx body that is not this API's answer (an HTML page from a
-    proxy, ``{}``, a body cut short) raises :class:`ResponseError` naming what came."""
-    try:
-        return call.parse(resp)
-    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as err:
-        raise not_this_api(call, resp, err) from err
-
-
-def not_this_api(call: Call, resp: httpx.Response | None, err: Exception) -> ResponseError:
-    where = f"{call.method} {call.path}"
-    if resp is None:  # the body could not even be decoded (a bad content-encoding)
-        return ResponseError(f"{where}: the answer's body could not be decoded: {err}")
-    kind = resp.headers.get("content-type", "no content-type")
-    head = resp.content[:200].decode("utf-8", "replace")
-    return ResponseError(
-        f"{where} answered {resp.status_code} ({kind}) with a body that is not this API's "
-        f"answer ({type(err).__name__}: {err}); expected the service's JSON. Is the URL the "
-        f"place-recognition service's? The body began: {head!r}"
-    )
-
-
-def may_have_applied(err: ClientError) -> bool:
-    """Whether the request that failed so may have been carried out all the same: its answer
-    was lost (connected, then no answer), or the server failed after taking it (5xx but
-    503, which refuses before any work)."""
-    if isinstance(err, TransportError):  # these never sent the request
-        never_sent = (
-            httpx.ConnectError,
-            httpx.ConnectTimeout,
-            httpx.PoolTimeout,
-            httpx.UnsupportedProtocol,
-        )
-        return not isinstance(err.__cause__, never_sent)
-    return isinstance(err, APIError) and err.status >= 500 and err.status != 503
-
-
-def mark_retried(answer: Any, maybe_applied: bool) -> Any:
-    """An insert's or an observation's answer to a retry after a try that may have been
-    carried out (its answer lost): ``retried`` set, so "existing" is read as what it may be,
-    that earlier try's own insert."""
-    if maybe_applied and isinstance(answer, Keyframe | ObserveResult | BatchInsertResult):
-        return dataclasses.replace(answer, retried=True)
-    return answer
-
-
-def deleted_before(call: Call, err: ClientError, maybe_applied: bool) -> bool:
-    """A DELETE retried after a try that may have been carried out answers 404: that
-    earlier try deleted it, and the deletion the caller asked for has happened."""
-    return call.method == "DELETE" and maybe_applied and isinstance(err, NotFoundError)
-
-
-def retryable(err: Exception, retry: Retry) -> bool:
-    if isinstance(err, TransportError):
-        return True
-    if not (isinstance(err, APIError) and err.status in retry.statuses):
-        return False
-    return err.retry_after is None or err.retry_after <= retry.max_retry_after_s
+# what a query takes beside k and sensor (the server's query parameters)
+QUERY_FILTERS = frozenset(
+    {
+        "exclude_session", "exclude_robot", "exclude_recent_s", "session_id", "timestamp",
+        "time_from", "time_to", "max_match_distance", "max_distance", "verify",
+    }
+)  # fmt: skip
 
 
 def _filters(**values: Any) -> dict[str, Any]:
@@ -209,13 +71,26 @@ def _filters(**values: Any) -> dict[str, Any]:
 def _pose(pose: Any) -> str | None:
     if pose is None:
         return None
-    values = [float(v) for v in np.asarray(pose, dtype=float).ravel()]
+    if isinstance(pose, str):  # the server's own form, "x,y,z,qx,qy,qz,qw"
+        pose = pose.split(",")
+    try:
+        values = [float(v) for v in np.asarray(pose, dtype=float).ravel()]
+    except ValueError:
+        raise ValueError(f"pose must be 7 numbers x,y,z,qx,qy,qz,qw; got {pose!r}") from None
     if len(values) != 7:
         raise ValueError(f"pose must be 7 numbers x,y,z,qx,qy,qz,qw; got {len(values)}")
     return ",".join(repr(v) for v in values)
 
 
-def _m(map_id: str) -> str:
+def _m(map_id: str, what: str = "map id") -> str:
+    """An id as one segment of a path. ``.`` and ``..`` would be read as the path's own
+    steps (``keyframes/..`` is the map: a DELETE of it, the map's), and an empty one as
+    none: refused here, as the server refuses them."""
+    if map_id in ("", ".", ".."):
+        raise ValueError(
+            f"{what} {map_id!r} is not an id; allowed: a letter or digit first, then letters, "
+            "digits and _.:@+- (map ids: a-z, 0-9, _ and -)"
+        )
     return quote(map_id, safe="")
 
 
@@ -237,7 +112,8 @@ class Calls:
         return params if self.mount is None else {**params, "mount": self.mount}
 
     def health(self) -> Call:
-        return Call("GET", "/readyz", _json)
+        # 503 with {"status": "loading" | "failed" | "draining" | "stuck", "detail"}: an answer
+        return Call("GET", "/readyz", _json, answers=(503,))
 
     def sensors(self) -> Call:
         return Call("GET", "/v1/sensors", _json)
@@ -354,6 +230,8 @@ class Calls:
                 row["yaw_features"] = np.asarray(row["yaw_features"], dtype=float).tolist()
             if row.get("pose") is not None:
                 row["pose"] = [float(v) for v in np.asarray(row["pose"]).ravel()]
+            if isinstance(row.get("timestamp"), np.generic):  # np.float32: not JSON
+                row["timestamp"] = row["timestamp"].item()
             rows.append(row)
 
         def parse(r: httpx.Response) -> BatchInsertResult:
@@ -374,12 +252,12 @@ class Calls:
     def get_keyframe(self, map_id: str, keyframe_id: str) -> Call:
         return Call(
             "GET",
-            f"/v1/maps/{_m(map_id)}/keyframes/{quote(keyframe_id, safe='')}",
+            f"/v1/maps/{_m(map_id)}/keyframes/{_m(keyframe_id, 'keyframe id')}",
             lambda r: Keyframe.from_json(r.json()),
         )
 
     def delete_keyframe(self, map_id: str, keyframe_id: str) -> Call:
-        path = f"/v1/maps/{_m(map_id)}/keyframes/{quote(keyframe_id, safe='')}"
+        path = f"/v1/maps/{_m(map_id)}/keyframes/{_m(keyframe_id, 'keyframe id')}"
         return Call("DELETE", path, lambda r: None)
 
     def query(
@@ -393,6 +271,12 @@ class Calls:
     ) -> Call:
         if (scan is None) == (descriptor is None):
             raise ValueError("query needs exactly one of scan= or descriptor=")
+        unknown = sorted(set(filters) - QUERY_FILTERS)
+        if unknown:  # the server would ignore them: a filter misspelt would not filter
+            raise TypeError(
+                f"query() got unknown filter(s) {', '.join(unknown)}; allowed: "
+                f"{', '.join(sorted(QUERY_FILTERS - {'max_distance'}))}"
+            )
         filters = renamed(filters, "query", stacklevel=5)  # max_distance: deprecated
         params = _filters(k=k, **filters, **(self._sensor(sensor) if scan is not None else {}))
         path = f"/v1/maps/{_m(map_id)}/query"

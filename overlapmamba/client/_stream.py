@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import re
 import socket
 import threading
 from collections.abc import Iterable
@@ -28,8 +29,22 @@ from overlapmamba.client._exceptions import (
 from overlapmamba.client._models import Observation, ObserveResult
 from overlapmamba.client._scans import encode
 
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}")  # the server's robot and session ids
+
 
 def ws_url(base_url: str, map_id: str, **params: Any) -> str:
+    """The stream's URL; its ids and ``k`` checked first, as the server checks them (a
+    refused handshake reads as a bare 403 where the server cannot answer it as a route)."""
+    for name in ("robot_id", "session_id"):
+        value = params.get(name)
+        if value is not None and not _NAME.fullmatch(str(value)):
+            raise ValueError(
+                f"{name} {value!r} is not allowed; allowed: a letter or digit, then up to 99 "
+                "letters, digits and _.@-"
+            )
+    k = params.get("k")
+    if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise ValueError(f"k={k!r}; allowed: a whole number from 1 (the server's limits.max_k)")
     url = httpx.URL(base_url)
     scheme = "wss" if url.scheme == "https" else "ws"
     query = "&".join(f"{k}={quote(str(v), safe='')}" for k, v in params.items() if v is not None)
@@ -75,11 +90,13 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
     elif isinstance(err, InvalidHandshake):
         out = ConnectError(f"the server refused the stream: {_refusal(err)}{lost}")
     elif isinstance(err, TimeoutError):
-        out = Timeout(f"{err or 'no answer in time'} on the stream{lost}")
+        out = Timeout(f"{str(err) or 'no answer in time'} on the stream{lost}")
     elif isinstance(err, (ConnectionError, socket.gaierror, socket.herror)) or (
         isinstance(err, OSError) and err.errno in _NETWORK_ERRNOS
     ):  # not any OSError: a drive's missing scan file is the caller's own error
-        out = ConnectError(f"cannot connect the stream: {err}{lost}")
+        never = isinstance(err, ConnectionRefusedError | socket.gaierror | socket.herror)
+        what = "cannot connect the stream" if never else "the stream's connection failed"
+        out = ConnectError(f"{what}: {err}{lost}")
     else:
         return None
     out.unanswered = left  # type: ignore[attr-defined]

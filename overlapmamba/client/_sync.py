@@ -10,21 +10,7 @@ from typing import Any
 
 import httpx
 
-from overlapmamba.client._base import (
-    Call,
-    Calls,
-    Retry,
-    Timeouts,
-    check_mount,
-    deleted_before,
-    mark_retried,
-    may_have_applied,
-    not_this_api,
-    raise_for,
-    read_answer,
-    retryable,
-    transport_error,
-)
+from overlapmamba.client._base import Call, Calls, Timeouts, check_mount
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._models import (
     BatchInsertResult,
@@ -34,6 +20,18 @@ from overlapmamba.client._models import (
     Observation,
     ObserveResult,
     QueryResult,
+)
+from overlapmamba.client._retry import (
+    Retry,
+    answered,
+    deleted_before,
+    mark_retried,
+    may_have_applied,
+    not_this_api,
+    raise_for,
+    read_answer,
+    retryable,
+    transport_error,
 )
 from overlapmamba.client._scans import Scan
 from overlapmamba.client._stream import (
@@ -107,7 +105,8 @@ class PlaceRecognitionClient:
                     raise transport_error(err) from err
                 except httpx.DecodingError as err:
                     raise not_this_api(call, None, err) from err
-                raise_for(resp)
+                if not answered(call, resp):
+                    raise_for(resp)
                 return mark_retried(read_answer(call, resp), maybe_applied)
             except ClientError as err:
                 if deleted_before(call, err, maybe_applied):
@@ -122,6 +121,8 @@ class PlaceRecognitionClient:
     # ---- the API ----------------------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
+        """``/readyz``: ``{"status": "ready", "detail": {…}}``, or while the service is not
+        ready (loading, draining, failed, stuck) that status with its stage, not an error."""
         return self._run(self._calls.health())
 
     def sensors(self) -> dict[str, Any]:

@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.client._async import AsyncPlaceRecognitionClient
-from overlapmamba.client._base import Retry
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
+from overlapmamba.client._retry import Retry
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
