@@ -765,3 +765,25 @@ def test_a_fleet_run_ends_at_its_duration_even_when_a_call_hangs(monkeypatch):
         for c in held:
             c.close()
     assert time.monotonic() - t0 < 10 and report.errors == {"duration": 1}, report.errors
+
+
+async def test_observations_sent_again_on_a_stream_count_their_keyframes(live):
+    """After a stream failed, resending its unanswered observations (as the docs say) got
+    ``inserted=False, reason="existing", keyframe=None`` for those the server had carried
+    out: the robot lost the keyframes it had made. Sent with ``retry=True`` they come back
+    ``retried``, and their keyframe is counted, as an HTTP retry's is."""
+    import dataclasses
+
+    obs = [Observation(scan(i), 200.0 + 10 * i, insert="always") for i in range(2)]
+    with PlaceRecognitionClient(live) as pr:
+        pr.create_map("resend")
+        first = list(pr.stream("resend", obs, robot_id="rr"))
+        again = [dataclasses.replace(o, retry=True) for o in obs]
+        sync = list(pr.stream("resend", again, robot_id="rr"))
+    async with AsyncPlaceRecognitionClient(live) as apr:
+        asyn = [r async for r in apr.stream("resend", again, robot_id="rr")]
+    made = [r.keyframe for r in first]
+    assert all(made) and all(r.inserted for r in first)
+    for results in (sync, asyn):
+        assert [r.insert_reason for r in results] == ["existing", "existing"]
+        assert all(r.retried for r in results) and [r.keyframe for r in results] == made

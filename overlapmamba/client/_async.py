@@ -300,6 +300,7 @@ class AsyncPlaceRecognitionClient:
         pending: deque[int],
     ) -> AsyncIterator[ObserveResult | APIError]:
         compress = self._calls.compress
+        retries: set[int] = set()  # the observations sent again (``retry``)
         i = 0
         async for obs in observations:
             meta, body = observation_frames(obs, i, compress)
@@ -310,14 +311,16 @@ class AsyncPlaceRecognitionClient:
                 ws.transport.abort()
                 raise send_timeout(self.timeout.write) from None
             pending.append(i)
+            if obs.retry:
+                retries.add(i)
             i += 1
             while len(pending) >= window:
                 text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-                yield stream_result(text, errors)
+                yield stream_result(text, errors, pending[0] in retries)
                 pending.popleft()
         while pending:
             text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-            yield stream_result(text, errors)
+            yield stream_result(text, errors, pending[0] in retries)
             pending.popleft()
 
 

@@ -5,6 +5,7 @@ library's errors."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import json
 import re
@@ -144,16 +145,19 @@ def check_window(window: int) -> int:
     return window
 
 
-def stream_result(text: str | bytes, errors: str = "raise") -> ObserveResult | APIError:
+def stream_result(
+    text: str | bytes, errors: str = "raise", retried: bool = False
+) -> ObserveResult | APIError:
     """One result frame of the stream → its result; a refused observation's APIError is
     raised, or returned with ``errors="return"``. A frame that is not this API's raises
-    :class:`ResponseError`."""
+    :class:`ResponseError`. ``retried``: the observation was sent again (``retry``)."""
     try:
         d = json.loads(text)
         if not isinstance(d, dict):
             raise TypeError(f"a JSON {type(d).__name__}, not an object")
         if d.get("ok"):
-            return ObserveResult.from_json(d)
+            result = ObserveResult.from_json(d)
+            return dataclasses.replace(result, retried=True) if retried else result
         e = d.get("error", {})
         status = int(d.get("status") or 400)  # that error's HTTP status (servers before: none)
         code, message = e.get("code", "stream_error"), e.get("message", "")

@@ -283,6 +283,7 @@ class PlaceRecognitionClient:
         pending: deque[int],
     ) -> Iterator[ObserveResult | APIError]:
         compress = self._calls.compress
+        retries: set[int] = set()  # the observations sent again (``retry``)
         with connect(
             url,
             additional_headers=headers,
@@ -292,9 +293,15 @@ class PlaceRecognitionClient:
             for i, obs in enumerate(observations):
                 send_within(ws, observation_frames(obs, i, compress), self.timeout.write)
                 pending.append(i)
+                if obs.retry:
+                    retries.add(i)
                 while len(pending) >= window:
-                    yield stream_result(ws.recv(timeout=self.timeout.read), errors)
+                    yield stream_result(
+                        ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
+                    )
                     pending.popleft()
             while pending:
-                yield stream_result(ws.recv(timeout=self.timeout.read), errors)
+                yield stream_result(
+                    ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
+                )
                 pending.popleft()
