@@ -28,11 +28,14 @@ class RWLock:
             if self._writer or self._waiting_writers:
                 self._queued_readers += 1
                 phase = self._phase
-                while self._writer or (self._waiting_writers and self._phase == phase):
-                    self._cond.wait()
-                self._queued_readers -= 1
-                if self._phase != phase:
-                    self._entitled -= 1
+                try:
+                    while self._writer or (self._waiting_writers and self._phase == phase):
+                        self._cond.wait()
+                finally:  # a wait cut short (an exception in this thread) gives its place up
+                    self._queued_readers -= 1
+                    if self._phase != phase:
+                        self._entitled -= 1
+                        self._cond.notify_all()
             self._readers += 1
         try:
             yield
@@ -46,9 +49,12 @@ class RWLock:
     def write(self) -> Iterator[None]:
         with self._cond:
             self._waiting_writers += 1
-            while self._writer or self._readers or self._entitled:
-                self._cond.wait()
-            self._waiting_writers -= 1
+            try:
+                while self._writer or self._readers or self._entitled:
+                    self._cond.wait()
+            finally:  # acquired, or a wait cut short: either way it waits no more
+                self._waiting_writers -= 1
+                self._cond.notify_all()
             self._writer = True
         try:
             yield
