@@ -135,6 +135,12 @@ def test_recordings_that_cannot_be_read_say_why(recordings, tmp_path):
     (tmp_path / "none").mkdir()
     with pytest.raises(DatasetError, match="not a ROS recording"):
         open_bag(tmp_path / "none")
+    kitti = tmp_path / "kitti"  # a sequence folder with a stray bag in it stays a sequence
+    (kitti / "velodyne").mkdir(parents=True)
+    (kitti / "stray.bag").write_bytes(b"")
+    from overlapmamba.core.datasets.bags import is_bag
+
+    assert not is_bag(kitti) and is_bag(tmp_path)
     assert open_drive(bag).poses is None  # no odometry named: no poses
     from ros_messages import STORE
     from rosbags.rosbag2 import Writer

@@ -308,6 +308,30 @@ def test_a_child_stuck_at_shutdown_is_killed_so_the_shutdown_goes_on():
     assert time.monotonic() - t0 < 5 and not idle.pids()
 
 
+def test_a_call_under_way_at_the_stop_fails_and_starts_no_child(scans):
+    """The stop killed a stuck child; the call that ran on it then started a new child that
+    nothing would stop, and ran again there, holding the process's exit. After the stop the
+    call fails and no child starts."""
+    import threading
+
+    r = Registrar(1, stale_s=30.0)
+    _warm(r)
+    held = r.prepare(scans[0], P)
+    blob = r.geometry(r.prepare(scans[1], P), P)
+    r._child(0).submit(time.sleep, 60)  # stuck ahead of the call
+    got: dict[str, object] = {}
+    call = threading.Thread(target=lambda: got.update(v=r.verify(held, [(blob, -30.0, 0.1)], V)))
+    call.start()
+    time.sleep(0.3)
+    r.stop(wait_s=0.5)
+    call.join(20)
+    (v,) = got["v"]  # type: ignore[misc]
+    assert v.verified is False and "stopped" in v.reason
+    assert r.pids() == [] and r._children == [None]
+    with pytest.raises(Unavailable, match="stopped"):
+        r.geometry(held, P)
+
+
 def test_processes_must_not_be_negative():
     with pytest.raises(ValidationError, match="processes"):
         VerifySettings(processes=-1)

@@ -753,6 +753,8 @@ async def test_small_requests_cannot_make_the_service_parse_megabytes(tmp_path, 
         assert r.status_code == 422 and "index" in err(r)["message"], r.text
         r = await c.put("/v1/maps/m", content=b'{"keep_geometry": false}', headers=mapper)
         assert r.status_code == 201 and r.json()["keep_geometry"] is False, r.text
+        r = await c.put("/v1/maps/n", content=b"null", headers=mapper)  # JSON's none
+        assert r.status_code == 201, r.text
         bomb = gzip.compress(b'{"descriptor": [' + b"0," * (3 << 20) + b"0]}")
         assert len(bomb) < 20_000
         headers = {**mapper, "content-type": "application/json", "content-encoding": "gzip"}

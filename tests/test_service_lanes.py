@@ -114,6 +114,43 @@ def test_scans_whose_requests_gave_up_are_not_waiting_and_a_stuck_lane_is_named(
     asyncio.run(main())
 
 
+def test_the_count_of_scans_waiting_stays_true_under_timeouts_that_race_the_lanes():
+    """A request that gives up has its future cancelled at once, and its own count of an
+    abandoned scan a turn later: a lane taking the scan in between took one off the count
+    that had not been put on it, and the queue read as holding scans it did not. After a
+    storm of requests timing out against four lanes, nothing waits and the count is 0."""
+    import random
+
+    from overlapmamba.service.errors import Timeout
+
+    def fast(images: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        time.sleep(0.001)
+        return np.zeros((len(images), 4)), np.zeros((len(images), 2, 3))
+
+    async def main(seed: int) -> tuple[int, int, int]:
+        rng = random.Random(seed)
+        mb = MicroBatcher(fast, max_batch=2, max_wait_ms=0, queue_size=100_000, lanes=4)
+        await mb.start()
+
+        async def one() -> bool:
+            await asyncio.sleep(rng.random() * 0.3)
+            try:
+                await mb.encode(np.zeros((1, 2, 2), np.float32), timeout_s=rng.random() * 0.02)
+                return True
+            except Timeout:
+                return False
+
+        done = await asyncio.gather(*(one() for _ in range(2000)))
+        await asyncio.sleep(0.3)
+        got = (mb.pending, mb._abandoned, sum(not d for d in done))
+        await mb.stop()
+        return got
+
+    for seed in (2, 3):
+        pending, abandoned, timed_out = asyncio.run(main(seed))
+        assert timed_out > 0 and (pending, abandoned) == (0, 0), (seed, pending, abandoned)
+
+
 def test_encoder_lanes_and_threads_share_the_cores(monkeypatch: pytest.MonkeyPatch):
     from overlapmamba.service import threads
 

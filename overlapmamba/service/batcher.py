@@ -48,6 +48,7 @@ class _Item:
     offset: float  # its column offset (0 unless the model aligns columns)
     future: asyncio.Future[tuple[np.ndarray, np.ndarray]]
     taken: bool = False  # a lane took it off the queue
+    abandoned: bool = False  # its request gave up while it was queued: counted as such
 
 
 class MicroBatcher:
@@ -97,6 +98,7 @@ class MicroBatcher:
             item = self._queue.get_nowait()
             item.taken = True
             left.append(item)
+        self._abandoned = 0  # the queue is empty
         for item in left:
             if not item.future.done():
                 item.future.set_exception(
@@ -151,6 +153,7 @@ class MicroBatcher:
             raise Timeout(f"encoding did not finish within {timeout_s} s") from None
         finally:
             if not item.taken and fut.done():  # gave up (timeout, cancelled) while queued
+                item.abandoned = True
                 self._abandoned += 1
 
     async def _run(self, lane: int) -> None:
@@ -191,8 +194,9 @@ class MicroBatcher:
     def _take(self, item: _Item) -> _Item | None:
         """An item off the queue; None for one whose request gave up waiting."""
         item.taken = True
-        if item.future.done():
-            self._abandoned -= 1
+        if item.future.done():  # counted only once its encode() saw it: maybe not yet
+            if item.abandoned:
+                self._abandoned -= 1
             return None
         return item
 

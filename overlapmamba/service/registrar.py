@@ -109,6 +109,7 @@ class Registrar:
         self._keys = itertools.count()
         self._turn = itertools.count()
         self.restarts = 0
+        self._stopped = False
         self._cpu_seen: dict[int, float] = {}  # each child's CPU seconds at the last usage()
         self._cpu_gone = 0.0  # the last seen of children no longer running
 
@@ -129,8 +130,9 @@ class Registrar:
     def stop(self, wait_s: float = STOP_WAIT_S) -> None:
         """Stop the children: the calls queued are cancelled, and one under way has
         ``wait_s`` to finish; a child still busy then (a registration stuck) is killed, so
-        that the service's shutdown goes on to close its maps."""
+        that the service's shutdown goes on to close its maps. No child starts after."""
         with self._lock:
+            self._stopped = True
             children, self._children = self._children, [None] * self.processes
         procs = []
         for ex in children:
@@ -235,6 +237,8 @@ class Registrar:
             for pid, seconds in self._cpu_seen.items():
                 if pid not in alive:
                     self._cpu_gone += seconds
+                else:  # two scrapes at once: the later-read one may be stored first
+                    alive[pid] = max(alive[pid], seconds)
             self._cpu_seen = alive
             cpu = self._cpu_gone + sum(alive.values())
         return out | {"resident_bytes": rss, "cpu_seconds": cpu}
@@ -247,6 +251,8 @@ class Registrar:
 
     def _child(self, i: int) -> ProcessPoolExecutor:
         with self._lock:
+            if self._stopped:  # a call under way at the stop: it fails, nothing restarts
+                raise _Failed("the registration processes were stopped (the service stops)")
             ex = self._children[i]
             if ex is None:
                 ex = self._children[i] = self._new_child()

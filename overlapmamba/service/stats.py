@@ -22,6 +22,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 WINDOW = 2048
+MAP_WINDOW = 512  # a map's: ≈ 100 kB of latencies a map, not 400 (a service may hold hundreds)
 MAX_ROBOTS = 1000  # per-robot rows kept (least recently seen dropped): ids come from clients
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
@@ -33,6 +34,10 @@ class _Robot:
     observations: int = 0
     inserts: int = 0
     loop_closures: int = 0
+
+
+def _windows(n: int) -> dict[str, deque[float]]:
+    return {s: deque(maxlen=n) for s in STAGES}
 
 
 @dataclass
@@ -52,10 +57,8 @@ class _Counts:
     # queries a second over the last minute, as [second, count] (a window of samples would
     # cap the rate at WINDOW / 60 a second)
     recent: deque[list[int]] = field(default_factory=deque)
-    # each stage's latency (ms) of the last WINDOW requests
-    latency: dict[str, deque[float]] = field(
-        default_factory=lambda: {s: deque(maxlen=WINDOW) for s in STAGES}
-    )
+    # each stage's latency (ms) of the last WINDOW requests (a map's: MAP_WINDOW)
+    latency: dict[str, deque[float]] = field(default_factory=lambda: _windows(WINDOW))
 
     def queried(self, now: float) -> None:
         second = int(now)
@@ -100,7 +103,7 @@ class Stats:
         self.started = time.time()
         self._lock = threading.Lock()
         self.total = _Counts()
-        self.by_map: dict[str, _Counts] = defaultdict(_Counts)
+        self.by_map: dict[str, _Counts] = defaultdict(lambda: _Counts(latency=_windows(MAP_WINDOW)))
         self.batch_sizes: Counter[int] = Counter()
         self.registry = CollectorRegistry()
         r = self.registry
@@ -280,8 +283,8 @@ class Stats:
                 metric.remove(*labels)
 
     def percentiles(self, map_id: str | None = None) -> dict[str, dict[str, float | int]]:
-        """Each stage's p50/p90/p99 over the last WINDOW requests (of ``map_id``'s, if
-        given)."""
+        """Each stage's p50/p90/p99 over the last WINDOW requests (the last MAP_WINDOW of
+        ``map_id``'s, if given)."""
         out: dict[str, dict[str, float | int]] = {}
         with self._lock:
             counts = self.total if map_id is None else self.by_map[map_id]

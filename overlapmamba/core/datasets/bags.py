@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.core.datasets.base import scan_order
-from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.errors import DatasetError, LidarCoreError
 from overlapmamba.core.io.pointcloud2 import decode_message
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.poses import from_quaternion
@@ -50,9 +50,15 @@ def is_bag(path: str | Path) -> bool:
     """A ROS 1 bag, a rosbag2 folder, a bare MCAP file, or a folder of ROS 1 bags (a
     recording split by ``rosbag record --split``)."""
     p = Path(path)
-    return (p.is_file() and p.suffix in (".bag", ".mcap")) or (
-        p.is_dir() and ((p / "metadata.yaml").is_file() or any(p.glob("*.bag")))
-    )
+    if p.is_file():
+        return p.suffix in (".bag", ".mcap")
+    if not p.is_dir():
+        return False
+    if (p / "metadata.yaml").is_file():
+        return True
+    # a folder of .bag parts; not a sequence folder that holds a stray bag
+    sequence = (p / "velodyne").is_dir() or (p / "poses.txt").is_file() or any(p.glob("*.pcd"))
+    return not sequence and any(p.glob("*.bag"))
 
 
 def _parts(path: Path) -> list[Path]:
@@ -94,6 +100,7 @@ class Bag:
     # folder); reads through it take turns
     _reader: Any = field(default=None, repr=False)
     _reading: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _finalizer: Any = field(default=None, repr=False)
 
     sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
     clouds: tuple[str, ...] = ()  # every PointCloud2 topic the recording holds
@@ -164,7 +171,9 @@ class Bag:
                     j += 1
                     if j >= min(i + PREFETCH, len(self)):
                         break
-            except Exception as err:  # a damaged message, a file cut short: those read serve
+            except LidarCoreError as err:  # a message that does not decode: the reader is fine
+                failure = err
+            except Exception as err:  # a damaged file, cut short: those read serve
                 failure = err
                 self.close()  # the next read opens it afresh
         if i not in found:
@@ -183,12 +192,15 @@ class Bag:
             r = _reader(self.path)
             r.open()
             self._reader = r
-            weakref.finalize(self, _close_quietly, r)  # and when the Bag is dropped
+            self._finalizer = weakref.finalize(self, _close_quietly, r)  # when it is dropped
         return self._reader
 
     def close(self) -> None:
         """Close the recording's reader (the next read opens it again)."""
         r, self._reader = self._reader, None
+        if self._finalizer is not None:
+            self._finalizer.detach()
+            self._finalizer = None
         if r is not None:
             _close_quietly(r)
 

@@ -148,7 +148,7 @@ async def _map_settings(request: Request, limits: LimitSettings) -> MapSettingsI
         }
     )
     body = await read_body(request, small)
-    if not body.strip():
+    if not body.strip() or body.strip() == b"null":  # none, as JSON's null says too
         return None
     try:
         return MapSettingsIn.model_validate_json(body)

@@ -141,7 +141,8 @@ async def query(
     scan = await read_scan(request, svc.settings.limits, x_point_fields, sensor, mount)
     probe: ScanBody | list[float] = scan
     if (scan.content_type or "").split(";")[0].strip().lower() == "application/json":
-        probe = await in_thread(_descriptor_of, scan.data, scan.encoding)
+        cap = min(DESCRIPTOR_QUERY_BYTES, svc.settings.limits.max_decoded_bytes)
+        probe = await in_thread(_descriptor_of, scan.data, scan.encoding, cap)
     return query_out(await svc.query(m, probe, k, filters, verify=verify))
 
 
@@ -150,14 +151,14 @@ async def query(
 DESCRIPTOR_QUERY_BYTES = 1 << 20
 
 
-def _descriptor_of(data: bytes, encoding: str | None) -> list[float]:
-    """The descriptor of a JSON query body, decoded and parsed (off the event loop)."""
-    body = decompress(data, encoding, DESCRIPTOR_QUERY_BYTES)
-    if len(body) > DESCRIPTOR_QUERY_BYTES:
+def _descriptor_of(data: bytes, encoding: str | None, cap: int) -> list[float]:
+    """The descriptor of a JSON query body of at most ``cap`` bytes decoded, decoded and
+    parsed (off the event loop)."""
+    body = decompress(data, encoding, cap)
+    if len(body) > cap:
         raise PayloadTooLarge(
-            f"a descriptor query's JSON is {len(body)} bytes; allowed: at most "
-            f"{DESCRIPTOR_QUERY_BYTES}",
-            max_bytes=DESCRIPTOR_QUERY_BYTES,
+            f"a descriptor query's JSON is {len(body)} bytes; allowed: at most {cap}",
+            max_bytes=cap,
         )
     try:
         return DescriptorQueryIn.model_validate_json(body).descriptor

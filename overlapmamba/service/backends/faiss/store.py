@@ -80,14 +80,15 @@ def sqlite_uri(path: Path, mode: str) -> str:
 
     Read-only beside a folder this process may not write (a backup mount, another account's
     data folder), SQLite cannot make the shared-memory file a WAL-mode file is read with:
-    such a file with no write-ahead log left (its writer closed, or an export) is opened
-    ``immutable``, as the file it then is; one with a log still holding writes is not, and
-    SQLite's error names it."""
+    such a file with neither a write-ahead log nor its shared memory beside it (its writer
+    closed, or an export) is opened ``immutable``, as the file it then is; one a writer may
+    have open is not (it could change under the reader), and SQLite's error names it."""
     path = Path(path).absolute()
     uri = f"{path.as_uri()}?mode={mode}"
     if mode == "ro" and not os.access(path.parent, os.W_OK):
-        wal = path.with_name(path.name + "-wal")
-        if not wal.exists() or wal.stat().st_size == 0:
+        # no log and no shared memory: no writer has it open (a live service keeps both)
+        wal, shm = (path.with_name(path.name + suffix) for suffix in ("-wal", "-shm"))
+        if not wal.exists() and not shm.exists():
             uri += "&immutable=1"
     return uri
 
