@@ -3,6 +3,7 @@
 read_body(request, limits)        Content-Length and the streamed size against
                                   max_body_bytes (413), then Content-Encoding
                                   (gzip | zstd | identity) bounded by max_decoded_bytes
+parse_json(body, Model, what)     a JSON body as ``Model``, or 422 naming the fields wrong
 read_scan(request, limits, fields)
                                   the same size checks → a
                                   :class:`~overlapmamba.service.scans.ScanBody`,
@@ -12,11 +13,14 @@ read_scan(request, limits, fields)
 
 from __future__ import annotations
 
+import json
+from typing import TypeVar
+
 from fastapi import Request
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from overlapmamba.core.sensors.mount import Mount
-from overlapmamba.service.errors import BadRequest, PayloadTooLarge
+from overlapmamba.service.errors import BadRequest, PayloadTooLarge, Unprocessable
 from overlapmamba.service.scans import ScanBody, decompress
 from overlapmamba.service.settings import LimitSettings
 from overlapmamba.service.threads import in_thread
@@ -49,6 +53,22 @@ async def read_scan(
         sensor=sensor,
         mount=declared,
     )
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def parse_json(body: bytes, model: type[M], what: str) -> M:
+    """``body`` as ``model``; else 422 ``invalid_request`` naming the first fields wrong
+    (``what``: the body's name, "map settings")."""
+    try:
+        return model.model_validate_json(body)
+    except ValidationError as err:
+        errors = json.loads(err.json(include_url=False, include_input=False))
+        where = "; ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
+        raise Unprocessable(
+            f"invalid {what}: {where}", code="invalid_request", errors=errors
+        ) from None
 
 
 def parse_mount(text: str | None) -> Mount | None:

@@ -105,20 +105,18 @@ class GuardMiddleware:
         await self.app(scope, tracking_receive, tracking_send)
         return status
 
+    def _too_large(self, message: str, rid: str) -> JSONResponse:
+        detail = {"max_body_bytes": self.max_body}
+        return error_response(413, "payload_too_large", message, detail, {"x-request-id": rid})
+
     async def _http(self, scope: Scope, receive: Receive, send: Send, rid: str) -> int:
         received = 0
         started = False
         status = 500
         for name, value in scope.get("headers", []):
             if name == b"content-length" and value.isdigit() and int(value) > self.max_body:
-                resp = error_response(
-                    413,
-                    "payload_too_large",
-                    f"body is {int(value)} bytes; allowed: at most {self.max_body}",
-                    {"max_body_bytes": self.max_body},
-                    headers={"x-request-id": rid},
-                )
-                await resp(scope, receive, send)
+                why = f"body is {int(value)} bytes; allowed: at most {self.max_body}"
+                await self._too_large(why, rid)(scope, receive, send)
                 _count(scope, 413, BEFORE_ROUTING)
                 return 413
 
@@ -145,14 +143,8 @@ class GuardMiddleware:
                 # FastAPI answers an error raised while it parses a JSON body with a 400
                 # ("error parsing the body"): answer what happened instead
                 started, status, replaced = True, 413, True
-                resp = error_response(
-                    413,
-                    "payload_too_large",
-                    f"body exceeds {self.max_body} bytes",
-                    {"max_body_bytes": self.max_body},
-                    headers={"x-request-id": rid},
-                )
-                await resp(scope, receive, send)
+                why = f"body exceeds {self.max_body} bytes"
+                await self._too_large(why, rid)(scope, receive, send)
                 return
             if message["type"] == "http.response.start":
                 started = True

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from pydantic import ValidationError
 
 from overlapmamba.service.api.openapi import SCAN_BODY, MountQuery, SensorQuery, error_responses
 from overlapmamba.service.auth import Action
-from overlapmamba.service.bodies import read_body, read_scan
+from overlapmamba.service.bodies import parse_json, read_body, read_scan
 from overlapmamba.service.deps import CanInsert, CanReadMaps, CanWriteMaps, ServiceDep
 from overlapmamba.service.domain import POSE_FORMAT, parse_pose
-from overlapmamba.service.errors import NotFound, PayloadTooLarge, Unprocessable
+from overlapmamba.service.errors import NotFound, PayloadTooLarge
 from overlapmamba.service.places import Observation
 from overlapmamba.service.schemas import (
     KEYFRAME_ID_PATTERN,
@@ -105,14 +103,7 @@ async def insert_batch(
 
 
 def _parse_batch(body: bytes, limit: int) -> KeyframeBatchIn:
-    try:
-        batch = KeyframeBatchIn.model_validate_json(body)
-    except ValidationError as err:
-        errors = json.loads(err.json(include_url=False, include_input=False))
-        where = "; ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
-        raise Unprocessable(
-            f"invalid keyframe batch: {where}", code="invalid_request", errors=errors
-        ) from None
+    batch = parse_json(body, KeyframeBatchIn, "keyframe batch")
     if len(batch.keyframes) > limit:
         raise PayloadTooLarge(
             f"batch has {len(batch.keyframes)} keyframes; allowed: at most {limit}",

@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from fastapi import APIRouter, Query, Request, Response
-from pydantic import ValidationError
 
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import check_same_settings, each_map
-from overlapmamba.service.bodies import parse_mount, read_body
+from overlapmamba.service.bodies import parse_json, parse_mount, read_body
 from overlapmamba.service.deps import CanReadMaps, CanView, CanWriteMaps, ServiceDep
-from overlapmamba.service.errors import Unprocessable
 from overlapmamba.service.schemas import MapList, MapOut, MapSettingsIn, SnapshotOut
 from overlapmamba.service.settings import LimitSettings
 from overlapmamba.service.threads import in_thread
@@ -150,11 +147,4 @@ async def _map_settings(request: Request, limits: LimitSettings) -> MapSettingsI
     body = await read_body(request, small)
     if not body.strip() or body.strip() == b"null":  # none, as JSON's null says too
         return None
-    try:
-        return MapSettingsIn.model_validate_json(body)
-    except ValidationError as err:
-        errors = json.loads(err.json(include_url=False, include_input=False))
-        where = "; ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
-        raise Unprocessable(
-            f"invalid map settings: {where}", code="invalid_request", errors=errors
-        ) from None
+    return parse_json(body, MapSettingsIn, "map settings")
