@@ -1095,29 +1095,15 @@ async def test_a_start_up_that_failed_says_so_on_every_probe(tmp_path, encoder):
     with Retry-After for ever and /healthz 200, so nothing restarted the process. Now
     /readyz says failed (no Retry-After: waiting will not help), /healthz 503 (a liveness
     probe restarts it), and the routes name the failure."""
-    import httpx
-
-    from overlapmamba.service.app import create_app
-
-    data = tmp_path / "data"
-    data.mkdir()
-    (data / "maps").write_text("not a folder")
-    app = create_app(Settings(data_dir=data), encoder=encoder)
-    async with app.router.lifespan_context(app):
-        for _ in range(500):
-            if str(app.state.stage).startswith("failed"):
-                break
-            await asyncio.sleep(0.01)
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
-            ready = await c.get("/readyz")
-            assert ready.status_code == 503 and ready.json()["status"] == "failed", ready.text
-            assert "retry-after" not in ready.headers
-            health = await c.get("/healthz")
-            assert health.status_code == 503 and health.json()["status"] == "failed"
-            stats = await c.get("/v1/stats")
-            assert stats.status_code == 503 and err(stats)["code"] == "start_failed"
-            assert "restart" in err(stats)["message"]
+    async with _failed_start(tmp_path / "data", encoder) as c:
+        ready = await c.get("/readyz")
+        assert ready.status_code == 503 and ready.json()["status"] == "failed", ready.text
+        assert "retry-after" not in ready.headers
+        health = await c.get("/healthz")
+        assert health.status_code == 503 and health.json()["status"] == "failed"
+        stats = await c.get("/v1/stats")
+        assert stats.status_code == 503 and err(stats)["code"] == "start_failed"
+        assert "restart" in err(stats)["message"]
 
 
 async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
@@ -1162,7 +1148,18 @@ async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
                     break
                 await asyncio.sleep(0.01)
             assert ready_gauge((await c.get("/metrics")).text) == 1
-    data = tmp_path / "broken"
+    async with _failed_start(tmp_path / "broken", encoder) as c:
+        m = await c.get("/metrics")
+        assert m.status_code == 200 and ready_gauge(m.text) == 0, m.text
+
+
+@contextlib.asynccontextmanager
+async def _failed_start(data, encoder):  # type: ignore[no-untyped-def]
+    """A client of an app whose start-up failed for good (its maps folder is a file)."""
+    import httpx
+
+    from overlapmamba.service.app import create_app
+
     data.mkdir()
     (data / "maps").write_text("not a folder")
     app = create_app(Settings(data_dir=data), encoder=encoder)
@@ -1173,8 +1170,7 @@ async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
             await asyncio.sleep(0.01)
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
-            m = await c.get("/metrics")
-            assert m.status_code == 200 and ready_gauge(m.text) == 0, m.text
+            yield c
 
 
 async def test_an_encoder_call_that_never_returns_fails_the_probes(tmp_path, encoder):
