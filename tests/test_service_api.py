@@ -743,12 +743,15 @@ async def test_small_requests_cannot_make_the_service_parse_megabytes(tmp_path, 
     mapper = {"authorization": "Bearer secret-mapper"}
     huge = b'{"keep_geometry": true, "x": "' + b"y" * (2 << 20) + b'"}'
     async with running(settings, encoder) as c:
-        t0 = time.monotonic()
         r = await c.put("/v1/maps/m", content=huge, headers={"content-type": "application/json"})
-        assert r.status_code == 401, r.text  # before a byte of the body is parsed
+        assert r.status_code == 401, r.text
+        # a body that is not JSON: parsed first, it was a 422; the key is checked before
+        r = await c.put(
+            "/v1/maps/m", content=b"{not json", headers={"content-type": "application/json"}
+        )
+        assert r.status_code == 401, r.text
         r = await c.put("/v1/maps/m", content=huge, headers={**mapper, "content-type": "x/y"})
         assert r.status_code == 413 and "65536" in err(r)["message"], r.text
-        assert time.monotonic() - t0 < 5
         r = await c.put("/v1/maps/m", content=b'{"index": "nope"}', headers=mapper)
         assert r.status_code == 422 and "index" in err(r)["message"], r.text
         r = await c.put("/v1/maps/m", content=b'{"keep_geometry": false}', headers=mapper)
