@@ -5,6 +5,7 @@ read and calls retried: ``_retry``). The two clients only differ in how they sen
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -80,6 +81,11 @@ def _pose(pose: Any) -> str | None:
     if len(values) != 7:
         raise ValueError(f"pose must be 7 numbers x,y,z,qx,qy,qz,qw; got {len(values)}")
     return ",".join(repr(v) for v in values)
+
+
+# the characters of the service's robot and session ids, after a letter or digit
+NAME_CHARS = "A-Za-z0-9_.@-"
+NAME = re.compile(f"[A-Za-z0-9][{NAME_CHARS}]{{0,99}}")
 
 
 def _m(map_id: str, what: str = "map id") -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from overlapmamba.client._base import NAME_CHARS
 from overlapmamba.core.datasets import open_recording
 from overlapmamba.core.datasets.bags import Bag
 from overlapmamba.core.datasets.base import Sequence
@@ -28,7 +29,7 @@ from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import quaternion
 
-_NOT_IN_IDS = re.compile(r"[^A-Za-z0-9_.@-]+")  # the service's robot and session ids
+_NOT_IN_IDS = re.compile(f"[^{NAME_CHARS}]+")  # what the service's ids may not hold
 
 
 @dataclass

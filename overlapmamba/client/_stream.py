@@ -8,7 +8,6 @@ import contextlib
 import dataclasses
 import errno
 import json
-import re
 import socket
 import threading
 from collections.abc import Iterable
@@ -17,7 +16,7 @@ from urllib.parse import quote
 
 import httpx
 
-from overlapmamba.client._base import Timeouts, _m, _pose
+from overlapmamba.client._base import NAME, Timeouts, _m, _pose
 from overlapmamba.client._exceptions import (
     APIError,
     ClientError,
@@ -30,15 +29,13 @@ from overlapmamba.client._exceptions import (
 from overlapmamba.client._models import Observation, ObserveResult
 from overlapmamba.client._scans import encode
 
-_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.@-]{0,99}")  # the server's robot and session ids
-
 
 def ws_url(base_url: str, map_id: str, **params: Any) -> str:
     """The stream's URL; its ids and ``k`` checked first, as the server checks them (a
     refused handshake reads as a bare 403 where the server cannot answer it as a route)."""
     for name in ("robot_id", "session_id"):
         value = params.get(name)
-        if value is not None and not _NAME.fullmatch(str(value)):
+        if value is not None and not NAME.fullmatch(str(value)):
             raise ValueError(
                 f"{name} {value!r} is not allowed; allowed: a letter or digit, then up to 99 "
                 "letters, digits and _.@-"

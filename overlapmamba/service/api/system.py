@@ -31,14 +31,18 @@ async def healthz(request: Request) -> Response:
     that will never be ready)."""
     failed = start_failure(request.app.state)
     if failed is not None:
-        body = Health(status="failed", detail={"stage": failed}).model_dump()
-        return JSONResponse(body, status_code=503)
+        return _not_ready("failed", failed)
     svc = getattr(request.app.state, "service", None)
     lanes = _stuck(svc, 2)
     if svc is not None and len(lanes) == svc.pipeline.batcher.lanes:  # it encodes nothing
-        body = Health(status="stuck", detail={"stage": _stuck_text(lanes)}).model_dump()
-        return JSONResponse(body, status_code=503)
+        return _not_ready("stuck", _stuck_text(lanes))
     return JSONResponse(Health(status="ok").model_dump())
+
+
+def _not_ready(status: str, stage: str, *, retry: bool = False) -> JSONResponse:
+    """A probe's 503: the status and its stage; Retry-After where waiting will help."""
+    body = Health(status=status, detail={"stage": stage}).model_dump()
+    return JSONResponse(body, status_code=503, headers={"Retry-After": "1"} if retry else None)
 
 
 def _stuck(svc: Any, timeouts: float) -> list[tuple[int, float]]:
@@ -63,36 +67,20 @@ def _stuck_text(lanes: list[tuple[int, float]]) -> str:
 async def readyz(request: Request) -> Response:
     state = request.app.state
     if getattr(state, "draining", False):
-        return JSONResponse(
-            Health(status="draining", detail={"stage": "shutting down"}).model_dump(),
-            status_code=503,
-        )
+        return _not_ready("draining", "shutting down")
     failed = start_failure(state)
     if failed is not None:  # waiting will not help: no Retry-After
-        return JSONResponse(
-            Health(status="failed", detail={"stage": failed}).model_dump(), status_code=503
-        )
+        return _not_ready("failed", failed)
     if not getattr(state, "ready", False):
-        return JSONResponse(
-            Health(status="loading", detail={"stage": state.stage}).model_dump(),
-            status_code=503,
-            headers={"Retry-After": "1"},
-        )
+        return _not_ready("loading", state.stage, retry=True)
     svc = state.service
     lanes = _stuck(svc, 1)
     if lanes:
-        return JSONResponse(
-            Health(status="stuck", detail={"stage": _stuck_text(lanes)}).model_dump(),
-            status_code=503,
-        )
+        return _not_ready("stuck", _stuck_text(lanes))
     try:  # the Qdrant backend asks its server: unreachable means not ready
         where = await in_thread(svc.registry.describe)
     except ServiceError as err:
-        return JSONResponse(
-            Health(status="unavailable", detail={"stage": err.message}).model_dump(),
-            status_code=503,
-            headers={"Retry-After": "1"},
-        )
+        return _not_ready("unavailable", err.message, retry=True)
     return JSONResponse(
         Health(
             status="ready",
