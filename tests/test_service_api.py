@@ -730,6 +730,14 @@ async def test_every_route_refuses_missing_and_wrong_keys(tmp_path, encoder):
         assert (await c.get("/healthz")).status_code == 200
         assert (await c.get("/readyz")).status_code == 200
         assert (await c.get("/openapi.json")).status_code == 200
+        # but the probe's detail (the data folder, failed maps, model) is for a valid key
+        for headers in ({}, {"x-api-key": "wrong"}):
+            r = await c.get("/readyz", headers=headers)
+            assert r.json()["status"] == "ready" and list(r.json()["detail"]) == ["hidden"]
+            assert str(tmp_path) not in r.text
+        for role in roles:
+            r = await c.get("/readyz", headers={"authorization": f"Bearer secret-{role}"})
+            assert r.json()["detail"]["data_dir"] == str(tmp_path / "d"), (role, r.text)
 
 
 async def test_small_requests_cannot_make_the_service_parse_megabytes(tmp_path, encoder):
@@ -1109,6 +1117,20 @@ async def test_a_start_up_that_failed_says_so_on_every_probe(tmp_path, encoder):
         assert "restart" in err(stats)["message"]
 
 
+async def test_the_probes_tell_their_detail_to_a_key_only(tmp_path, encoder):
+    """The probes answer anyone, as a load balancer has no key: with keys configured, their
+    stage named the data folder and the failed maps to any caller. The status stays open;
+    the why is for a caller with a valid key."""
+    keys = [{"name": "robot", "role": "robot", "sha256": hash_key("secret-robot")}]
+    async with _failed_start(tmp_path / "data", encoder, auth={"keys": keys}) as c:
+        for probe in ("/readyz", "/healthz"):
+            r = await c.get(probe)
+            assert r.status_code == 503 and r.json()["status"] == "failed", r.text
+            assert list(r.json()["detail"]) == ["hidden"] and "data" not in r.text, r.text
+            r = await c.get(probe, headers={"authorization": "Bearer secret-robot"})
+            assert r.status_code == 503 and str(tmp_path) in r.json()["detail"]["stage"]
+
+
 async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
     tmp_path, encoder, monkeypatch
 ):
@@ -1157,7 +1179,7 @@ async def test_metrics_answer_while_the_maps_replay_and_say_whether_ready(
 
 
 @contextlib.asynccontextmanager
-async def _failed_start(data, encoder):  # type: ignore[no-untyped-def]
+async def _failed_start(data, encoder, **settings):  # type: ignore[no-untyped-def]
     """A client of an app whose start-up failed for good (its maps folder is a file)."""
     import httpx
 
@@ -1165,7 +1187,7 @@ async def _failed_start(data, encoder):  # type: ignore[no-untyped-def]
 
     data.mkdir()
     (data / "maps").write_text("not a folder")
-    app = create_app(Settings(data_dir=data), encoder=encoder)
+    app = create_app(Settings(data_dir=data, **settings), encoder=encoder)
     async with app.router.lifespan_context(app):
         for _ in range(500):
             if str(app.state.stage).startswith("failed"):

@@ -12,6 +12,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from overlapmamba.service.api.openapi import error_responses
 from overlapmamba.service.backends.base import each_map
 from overlapmamba.service.deps import CanView, LoadedServiceDep, ServiceDep, start_failure
+from overlapmamba.service.auth import presented_key
 from overlapmamba.service.errors import ServiceError
 from overlapmamba.service.schemas import Health
 from overlapmamba.service.threads import in_thread
@@ -31,17 +32,36 @@ async def healthz(request: Request) -> Response:
     that will never be ready)."""
     failed = start_failure(request.app.state)
     if failed is not None:
-        return _not_ready("failed", failed)
+        return _not_ready(request, "failed", failed)
     svc = getattr(request.app.state, "service", None)
     lanes = _stuck(svc, 2)
     if svc is not None and len(lanes) == svc.pipeline.batcher.lanes:  # it encodes nothing
-        return _not_ready("stuck", _stuck_text(lanes))
+        return _not_ready(request, "stuck", _stuck_text(lanes))
     return JSONResponse(Health(status="ok").model_dump())
 
 
-def _not_ready(status: str, stage: str, *, retry: bool = False) -> JSONResponse:
+def _shows_detail(request: Request) -> bool:
+    """Whether a probe's answer may carry its detail. The probes answer anyone (a load
+    balancer or kubelet has no key); with keys configured, what they say beyond the status
+    (the data folder, the failed maps and why, the model and its thresholds) is for a
+    caller that presents a valid key, of any role."""
+    auth = getattr(request.app.state, "auth", None)
+    if auth is None or not auth.enabled:
+        return True
+    try:
+        auth.identify(presented_key(request))
+    except ServiceError:
+        return False
+    return True
+
+
+HIDDEN = {"hidden": "send an API key (any role) to read the detail"}
+
+
+def _not_ready(request: Request, status: str, stage: str, *, retry: bool = False) -> JSONResponse:
     """A probe's 503: the status and its stage; Retry-After where waiting will help."""
-    body = Health(status=status, detail={"stage": stage}).model_dump()
+    detail = {"stage": stage} if _shows_detail(request) else HIDDEN
+    body = Health(status=status, detail=detail).model_dump()
     return JSONResponse(body, status_code=503, headers={"Retry-After": "1"} if retry else None)
 
 
@@ -67,20 +87,22 @@ def _stuck_text(lanes: list[tuple[int, float]]) -> str:
 async def readyz(request: Request) -> Response:
     state = request.app.state
     if getattr(state, "draining", False):
-        return _not_ready("draining", "shutting down")
+        return _not_ready(request, "draining", "shutting down")
     failed = start_failure(state)
     if failed is not None:  # waiting will not help: no Retry-After
-        return _not_ready("failed", failed)
+        return _not_ready(request, "failed", failed)
     if not getattr(state, "ready", False):
-        return _not_ready("loading", state.stage, retry=True)
+        return _not_ready(request, "loading", state.stage, retry=True)
     svc = state.service
     lanes = _stuck(svc, 1)
     if lanes:
-        return _not_ready("stuck", _stuck_text(lanes))
+        return _not_ready(request, "stuck", _stuck_text(lanes))
     try:  # the Qdrant backend asks its server: unreachable means not ready
         where = await in_thread(svc.registry.describe)
     except ServiceError as err:
-        return _not_ready("unavailable", err.message, retry=True)
+        return _not_ready(request, "unavailable", err.message, retry=True)
+    if not _shows_detail(request):
+        return JSONResponse(Health(status="ready", detail=HIDDEN).model_dump())
     return JSONResponse(
         Health(
             status="ready",
