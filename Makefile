@@ -12,7 +12,7 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 
-.PHONY: test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns data-drift docs docs-site clean
+.PHONY: lock test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns data-drift docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
 # measured 10 s against ≈100 s for the full set on 2 cores.
@@ -30,13 +30,23 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q uv
 
-$(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(UV) $(TORCH_SOURCE) -e '.[serve,train,client,dev]'
+# constraints.txt is the lock: the versions the suite passed with (deploy/lock.py). The
+# installs take them, so a fresh machine tests and serves what was tested, not whatever was
+# released since; `make lock` moves them to the newest releases pyproject.toml allows.
+$(VENV)/.installed-all: pyproject.toml constraints.txt | $(BIN)/python
+	$(UV) $(TORCH_SOURCE) -c constraints.txt -e '.[serve,train,client,dev]'
 	@touch $@
 
-$(VENV)/.installed-serve: pyproject.toml | $(BIN)/python
-	$(UV) -e '.[serve]'
+$(VENV)/.installed-serve: pyproject.toml constraints.txt | $(BIN)/python
+	$(UV) -c constraints.txt -e '.[serve]'
 	@touch $@
+
+# The newest releases pyproject.toml allows, into .venv, then their versions into
+# constraints.txt; run `make test` before committing it.
+lock: | $(BIN)/python
+	$(UV) $(TORCH_SOURCE) --upgrade -e '.[serve,train,client,dev]'
+	$(BIN)/python deploy/lock.py
+	@touch $(VENV)/.installed-all
 
 # The browser test drives Debian's chromium: installed first where this runs as root with apt.
 # Two pytest-xdist workers, a test file each at a time: on 2 cores they fill the time one

@@ -186,6 +186,7 @@ CONTEXT = (
     "Dockerfile",
     ".dockerignore",
     "pyproject.toml",
+    "constraints.txt",
     "README.md",
     "deploy/requirements.py",
     "deploy/healthcheck.py",

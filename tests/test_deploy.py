@@ -74,7 +74,8 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     assert dep < src
     runs = " ".join(a for w, a in ins if w == "RUN")
     assert "requirements.py serve" in runs and "--no-deps ." in runs
-    assert "torch" not in " ".join(copies) and "train" not in runs
+    assert "-c constraints.txt -r requirements.txt" in runs  # at the lock's versions
+    assert "torch" not in " ".join(copies) and not re.search(r"\btrain\b", runs)
     # the package's runtime parts, and nothing that trains, synthesises or is a client
     for part in (*RUNTIME_FILES, *RUNTIME_PACKAGES):
         assert part in " ".join(copies), part
@@ -144,7 +145,8 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
     else:
         pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
         pip_list = [str(py), "-m", "pip", "list", "--format=freeze"]
-    subprocess.run([*pip, "-r", str(tmp_path / "requirements.txt")], check=True)
+    constraints = ["-c", str(ROOT / "constraints.txt")]  # as the Dockerfile installs them
+    subprocess.run([*pip, *constraints, "-r", str(tmp_path / "requirements.txt")], check=True)
     # the source as the image copies it (no training, synthesis or client code, no tests)
     src = tmp_path / "src"
     (src / "overlapmamba").mkdir(parents=True)
@@ -283,3 +285,36 @@ def test_the_images_x86_kernel_target_is_not_given_to_another_processors_compile
     assert "-march=armv8-a" in scan_kernel.cflags()
     monkeypatch.setenv("OVERLAPMAMBA_KERNEL_MARCH", "armv8.2-a")  # named for arm: as named
     assert "-march=armv8.2-a" in scan_kernel.cflags()
+
+
+def test_the_lock_pins_every_requirement_within_what_pyproject_allows():
+    """constraints.txt is what a fresh machine and the image install: every requirement of
+    the project and its extras must be pinned there (one left out would take whatever was
+    released since), at a version pyproject.toml allows, and make's installs must take it."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    sys.path.insert(0, str(ROOT / "deploy"))
+    from lock import pins
+
+    pinned = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pinned[canonicalize_name(name)] = version
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"].values()
+    every = [*project["dependencies"], *(req for extra in extras for req in extra)]
+    for text in every:
+        req = Requirement(text)
+        name = canonicalize_name(req.name)
+        assert name in pinned, f"{req.name} is not in constraints.txt: run make lock"
+        version = pinned[name].split("+")[0]  # torch's local tag (+cpu)
+        assert req.specifier.contains(version, prereleases=True), (text, pinned[name])
+    make = (ROOT / "Makefile").read_text()
+    assert make.count("-c constraints.txt -e '.[") == 2  # the dev set and the serve set
+    # the freeze it is written from: installers, editables and URLs left out, sorted
+    frozen = "Zeta==1.0\n-e file:///src\npip==23.2\nuv==0.9\nalpha==2.0+cpu\nx @ file:///x.whl\n"
+    assert pins(frozen) == ["alpha==2.0+cpu", "Zeta==1.0"]
