@@ -141,6 +141,7 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
     ``python``'s environment (the tested venv), and the build backend."""
     t0 = time.perf_counter()
     sys.path.insert(0, str(ROOT / "deploy"))
+    from lock import pins  # deploy/lock.py
     from requirements import requirements  # deploy/requirements.py
 
     reqs = requirements(ROOT / "pyproject.toml", ["serve"])
@@ -154,9 +155,9 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
     for old in WHEELS.glob("*.whl"):  # an earlier venv's: pip would take the highest
         old.unlink()
     with tempfile.TemporaryDirectory(prefix="om-wheels-") as tmp:
-        req, pins = Path(tmp) / "requirements.txt", Path(tmp) / "constraints.txt"
+        req, constraints = Path(tmp) / "requirements.txt", Path(tmp) / "constraints.txt"
         req.write_text("\n".join([*reqs, "setuptools>=69", "wheel"]) + "\n")
-        pins.write_text("\n".join(line for line in frozen.splitlines() if "==" in line) + "\n")
+        constraints.write_text("\n".join(pins(frozen)) + "\n")
         subprocess.run(
             [
                 python,
@@ -167,7 +168,7 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
                 "-r",
                 str(req),
                 "-c",
-                str(pins),
+                str(constraints),
                 "-w",
                 str(WHEELS),
             ],
