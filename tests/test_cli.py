@@ -156,6 +156,7 @@ def test_serve_names_misspelt_variables_and_never_prints_a_key(tmp_path):
 
 def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
     import json
+    import tomllib
 
     from overlapmamba.service.auth import hash_key
     from overlapmamba.service.settings import Settings
@@ -166,3 +167,13 @@ def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
     entry = json.loads(res.stdout)
     assert entry == {"name": 'r "1"', "role": "robot", "sha256": hash_key("k1")}
     assert Settings(auth={"keys": [entry]}).auth.keys[0].name == 'r "1"'
+    # a robot limited to its site's maps, as TOML: serve reads it back
+    res = runner.invoke(
+        app,
+        ["hash-key", "--key", "k2", "--maps", "a-live", "--query-maps", "a-base, a-old"],
+    )
+    toml = tomllib.loads(res.stdout)["auth"]["keys"][0]
+    assert toml["maps"] == ["a-live"] and toml["query_maps"] == ["a-base", "a-old"]
+    assert Settings(auth={"keys": [toml]}).auth.keys[0].query_maps == ["a-base", "a-old"]
+    res = runner.invoke(app, ["hash-key", "--role", "mapper", "--key", "k", "--maps", "a"])
+    assert res.exit_code == 2 and "robot keys only" in text(res), text(res)

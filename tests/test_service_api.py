@@ -857,6 +857,37 @@ async def test_stream_refuses_missing_and_wrong_keys(tmp_path, encoder):
             assert msg["type"] == "websocket.accept", (role, msg)
 
 
+async def test_a_robot_key_with_query_maps_reaches_no_other_map(tmp_path, encoder):
+    """A robot key could query, observe and stream against any map, another site's
+    included (its keyframes' poses and ids come back). With ``query_maps`` it reaches those
+    and the maps it inserts into; every other map is 403 ``map_not_allowed``, the stream's
+    handshake refused (1008)."""
+    keys = [
+        {"name": "a", "role": "robot", "sha256": hash_key("k-a"), "query_maps": ["a"]},
+        {"name": "admin", "role": "admin", "sha256": hash_key("k-admin")},
+    ]
+    settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
+    robot = {"x-api-key": "k-a", **OCTET}
+    body = scan(0).tobytes()
+    async with running(settings, encoder) as c:
+        for m in ("a", "b"):
+            assert (
+                await c.put(f"/v1/maps/{m}", headers={"x-api-key": "k-admin"})
+            ).status_code == 201
+        observe = "/observe?robot_id=r&timestamp=1&insert=never"
+        for suffix in ("/query", observe):
+            r = await c.post(f"/v1/maps/a{suffix}", content=body, headers=robot)
+            assert r.status_code == 200, r.text
+            r = await c.post(f"/v1/maps/b{suffix}", content=body, headers=robot)
+            assert r.status_code == 403 and err(r)["code"] == "map_not_allowed", r.text
+            assert err(r)["detail"]["allowed_maps"] == ["a"]
+        app = c.app  # type: ignore[attr-defined]
+        msg = await _ws_handshake(app, "/v1/maps/b/stream", "robot_id=r", {"x-api-key": "k-a"})
+        assert msg["type"] != "websocket.accept", msg
+        msg = await _ws_handshake(app, "/v1/maps/a/stream", "robot_id=r", {"x-api-key": "k-a"})
+        assert msg["type"] == "websocket.accept", msg
+
+
 async def test_not_ready_before_the_lifespan(settings, encoder):
     import httpx
 

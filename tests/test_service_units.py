@@ -613,6 +613,37 @@ def test_roles_and_keys():
     mapper = {"name": "m", "role": "mapper", "sha256": hash_key("m"), "maps": ["town"]}
     with pytest.raises(ValueError, match="maps applies to robot keys only"):
         AuthSettings.model_validate({"keys": [mapper]})
+    mapper = {"name": "m", "role": "mapper", "sha256": hash_key("m"), "query_maps": ["town"]}
+    with pytest.raises(ValueError, match="query_maps applies to robot keys only"):
+        AuthSettings.model_validate({"keys": [mapper]})
+
+
+def test_a_robot_key_queries_only_its_maps_where_query_maps_says_so():
+    """Two sites on one service: ``maps`` limited a robot's inserts, but it could query,
+    observe and stream against any map (another site's keyframe poses). ``query_maps``
+    limits those to the maps named and the ones it may insert into; unset, any map."""
+    keys = [
+        {"name": "open", "role": "robot", "sha256": hash_key("k-open"), "maps": ["a-live"]},
+        {
+            "name": "site-a",
+            "role": "robot",
+            "sha256": hash_key("k-a"),
+            "maps": ["a-live"],
+            "query_maps": ["a-base"],
+        },
+        {"name": "m", "role": "mapper", "sha256": hash_key("k-m")},
+    ]
+    auth = Authenticator(AuthSettings.model_validate({"keys": keys}))
+    site_a, open_, mapper = (auth.identify(k) for k in ("k-a", "k-open", "k-m"))
+    for m in ("a-base", "a-live"):
+        auth.authorize(site_a, Action.ENCODE, m)
+    with pytest.raises(Forbidden, match=r"may query maps \['a-base', 'a-live'\], not 'b'"):
+        auth.authorize(site_a, Action.ENCODE, "b")
+    auth.authorize(site_a, Action.ENCODE)  # a descriptor names no map
+    for who in (open_, mapper):
+        auth.authorize(who, Action.ENCODE, "b")
+    with pytest.raises(Forbidden, match="may insert into maps"):
+        auth.authorize(site_a, Action.INSERT, "a-base")
 
 
 def test_settings_from_env_file_and_binding(tmp_path, monkeypatch):

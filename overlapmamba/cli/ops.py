@@ -206,25 +206,45 @@ def hash_key_cmd(
             help="print the entry as JSON, for OVERLAPMAMBA_AUTH__KEYS (a JSON list of them)",
         ),
     ] = False,
+    maps: Annotated[
+        str | None,
+        typer.Option(help="robot keys: the maps it may insert into, comma-separated"),
+    ] = None,
+    query_maps: Annotated[
+        str | None,
+        typer.Option(
+            help="robot keys: the maps it may query, observe and stream against besides "
+            "--maps, comma-separated (unset: any map)"
+        ),
+    ] = None,
 ) -> None:
     """Make an API key: prints the key once (on stderr), and its entry for the settings (its
     hash): TOML for a config file, or with --json one item of OVERLAPMAMBA_AUTH__KEYS."""
+    from pydantic import ValidationError
+
     from overlapmamba.service.auth import ROLE_ACTIONS, hash_key, new_key
+    from overlapmamba.service.settings import ApiKey
 
     if role not in ROLE_ACTIONS:
         raise typer.BadParameter(f"role {role!r}; allowed: {', '.join(ROLE_ACTIONS)}")
     secret = key or new_key()
+    entry: dict[str, object] = {"name": name, "role": role, "sha256": hash_key(secret)}
+    for field, value in (("maps", maps), ("query_maps", query_maps)):
+        if value is not None:
+            entry[field] = [m.strip() for m in value.split(",") if m.strip()]
+    try:
+        ApiKey.model_validate(entry)  # what serve would refuse (maps on a mapper key)
+    except ValidationError as err:
+        raise typer.BadParameter("; ".join(e["msg"] for e in err.errors())) from None
     if key is None:
         console.print(f"key (shown once, give it to the client): [bold]{secret}[/]")
     if as_json:
-        entry = {"name": name, "role": role, "sha256": hash_key(secret)}
         out.print(json.dumps(entry, separators=(",", ":")), markup=False, soft_wrap=True)
         return
-    out.print(
-        # a JSON string is a TOML basic string: a name with quotes or backslashes stays TOML
-        f'[[auth.keys]]\nname = {json.dumps(name)}\nrole = "{role}"\nsha256 = "{hash_key(secret)}"',
-        markup=False,
-    )
+    # a JSON string is a TOML basic string, a JSON list of them a TOML array: a name with
+    # quotes or backslashes stays TOML
+    lines = ["[[auth.keys]]", *(f"{k} = {json.dumps(v)}" for k, v in entry.items())]
+    out.print("\n".join(lines), markup=False)
 
 
 @command(

@@ -1,6 +1,7 @@
 """Optional API keys with one role each.
 
     robot    descriptors, query, observe, stream; keyframe inserts into its allowed maps
+             (``maps``); with ``query_maps``, it queries only those and its ``maps``
     mapper   robot's rights on every map, plus keyframe batches, reads, deletes, map management
     viewer   stats, metrics, dashboard (read-only)
     admin    everything
@@ -57,6 +58,14 @@ class Principal:
     name: str
     role: str
     maps: list[str] | None = None
+    query_maps: list[str] | None = None
+
+    def may_query(self, map_id: str) -> bool:
+        """A robot key with ``query_maps`` queries only those maps and the ones it may insert
+        into; any other key, any map."""
+        if self.role != "robot" or self.query_maps is None:
+            return True
+        return map_id in self.query_maps or map_id in (self.maps or ())
 
 
 ANONYMOUS_ADMIN = Principal(name="anonymous", role="admin")
@@ -115,7 +124,9 @@ class Authenticator:
                 found = k
         if found is None:
             raise Unauthorized("the API key is not valid", code="invalid_api_key")
-        return Principal(name=found.name, role=found.role, maps=found.maps)
+        return Principal(
+            name=found.name, role=found.role, maps=found.maps, query_maps=found.query_maps
+        )
 
     def authorize(self, who: Principal, action: Action, map_id: str | None = None) -> None:
         if action not in ROLE_ACTIONS[who.role]:
@@ -137,4 +148,11 @@ class Authenticator:
                 f"key {who.name!r} may insert into maps {who.maps}, not {map_id!r}",
                 code="map_not_allowed",
                 allowed_maps=who.maps,
+            )
+        if action is Action.ENCODE and map_id is not None and not who.may_query(map_id):
+            allowed = sorted({*(who.query_maps or ()), *(who.maps or ())})
+            raise Forbidden(
+                f"key {who.name!r} may query maps {allowed}, not {map_id!r}",
+                code="map_not_allowed",
+                allowed_maps=allowed,
             )

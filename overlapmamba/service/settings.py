@@ -348,16 +348,22 @@ class ApiKey(_Section):
     role: Role
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="hex SHA-256 of the key")
     maps: list[str] | None = Field(None, description="robot keys: maps it may insert into")
+    query_maps: list[str] | None = Field(
+        None,
+        description="robot keys: maps it may query, observe and stream against, beside those "
+        "in maps (unset: any map)",
+    )
 
     @model_validator(mode="after")
     def _maps_for_robots(self) -> ApiKey:
-        """``maps`` limits a robot's inserts; on another role it would limit nothing, which
-        an operator who wrote it did not mean."""
-        if self.maps is not None and self.role != "robot":
-            raise ValueError(
-                f"key {self.name!r}: maps applies to robot keys only, and this key's role is "
-                f"{self.role!r}; allowed: maps on a robot key, or no maps"
-            )
+        """``maps`` and ``query_maps`` limit a robot; on another role they would limit
+        nothing, which an operator who wrote them did not mean."""
+        for field, value in (("maps", self.maps), ("query_maps", self.query_maps)):
+            if value is not None and self.role != "robot":
+                raise ValueError(
+                    f"key {self.name!r}: {field} applies to robot keys only, and this key's "
+                    f"role is {self.role!r}; allowed: {field} on a robot key, or none"
+                )
         return self
 
 

@@ -158,7 +158,7 @@ async def stream(
     try:
         svc = serving(app.state)
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
-        app.state.auth.authorize(who, Action.ENCODE)
+        app.state.auth.authorize(who, Action.ENCODE, map_id)
         svc.sensors.check(sensor)
         svc.check_k(k)
         stream_mount = parse_mount(mount)

@@ -10,9 +10,9 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from overlapmamba.service.api.openapi import error_responses
+from overlapmamba.service.auth import presented_key
 from overlapmamba.service.backends.base import each_map
 from overlapmamba.service.deps import CanView, LoadedServiceDep, ServiceDep, start_failure
-from overlapmamba.service.auth import presented_key
 from overlapmamba.service.errors import ServiceError
 from overlapmamba.service.schemas import Health
 from overlapmamba.service.threads import in_thread
