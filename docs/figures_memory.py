@@ -1,7 +1,10 @@
-"""A node's memory under load (``benchmarks/server_memory.py``): a real server's resident
-memory when ready and after each round of concurrent scan queries, with the service's
-defaults and with glibc's malloc held to two arenas, rendered from the JSON the command wrote
-(``docs/render.py`` pastes it; nothing here types a measured number)."""
+"""Memory figures, rendered from the JSON their commands wrote (``docs/render.py`` pastes
+them; nothing here types a measured number):
+
+- a node's memory under load (``benchmarks/server_memory.py``): a real server's resident
+  memory when ready and after each round of concurrent scan queries, with the service's
+  defaults and with glibc's malloc held to two arenas;
+- a bag's transform tree (``benchmarks/tf_memory.py``): bytes a /tf sample, and an hour's."""
 
 from __future__ import annotations
 
@@ -50,4 +53,40 @@ def server_memory() -> str:
     return out + table(head, rows)
 
 
-RENDERERS: dict[str, Callable[[], str]] = {"server-memory": server_memory}
+TF_MEMORY = "reports/client/tf_memory.json"
+
+
+def tf_memory() -> str:
+    """What a bag's /tf takes in memory while it is replayed, the tree as shipped and as a
+    list of matrices a link."""
+    r = load(TF_MEMORY)
+    tf, hour = r["tf"], r["an_hour"]
+    diff = r["max_abs_pose_difference"]
+    same = "the same poses" if diff == 0 else f"poses within {diff:.0e}"
+    out = source(TF_MEMORY, r["command"], when(r))
+    out += (
+        f"\n{tf['links']} timed links at {tf['rate_hz']:.0f} Hz for {tf['minutes']:.0f} min "
+        f"({same}); an hour of it is "
+        f"{hour['samples']:,} samples:\n\n"
+    )
+    names = {
+        "shipped": "the tree (blocks of 3×4 rows)",
+        "list": "a list of 4×4 arrays a link (until 2026-12-04)",
+    }
+    rows = [
+        [
+            names[way],
+            f"{w['held_bytes_per_sample']:.0f} B",
+            f"{w['lookup_peak_above_held_bytes_per_sample']:.0f} B",
+            f"{hour['held_mb'][way]:.0f} MB",
+        ]
+        for way, w in sorted(r["ways"].items(), reverse=True)
+    ]
+    head = ["held as", "a sample", "more at the lookup, a sample", "an hour"]
+    return out + table(head, rows)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "server-memory": server_memory,
+    "tf-memory": tf_memory,
+}

@@ -53,6 +53,7 @@ def test_the_measured_tables_are_in_their_documents():
         ("docs/deploy.md", "sizing"),
         ("docs/service.md", "calibration"),
         ("docs/client.md", "fleet"),
+        ("docs/client.md", "tf-memory"),
     } <= rendered
     assert set(render.RENDERERS) == {name for _, name in rendered}, "a renderer nobody uses"
 

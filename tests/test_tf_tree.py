@@ -95,3 +95,29 @@ def test_times_without_a_pose_may_be_nan_and_are_an_error_when_no_time_has_one()
         tree.lookup("map", "lidar", np.array([2 * S, 5 * S]), gaps="nan")
     with pytest.raises(ValueError, match="gaps"):
         tree.lookup("map", "base", at, gaps="skip")
+
+
+def test_samples_past_one_block_and_out_of_order_are_looked_up_as_any():
+    """The samples are held in blocks of CHUNK (a list of 4×4 arrays took ≈ 300 bytes a
+    sample: an hour of a robot's /tf, gigabytes): a link of several blocks, its samples
+    arriving out of order across them, interpolates as one series."""
+    from overlapmamba.core.tf_tree import CHUNK
+
+    n = 2 * CHUNK + 7
+    stamps = np.arange(n) * (S // 100)
+    order = np.random.default_rng(0).permutation(n)  # the bag's order: not the clock's
+    tree = TransformTree()
+    for i in order:
+        tree.add("odom", "base", int(stamps[i]), _T(0.0, 0.01 * i))
+    at = stamps[[0, CHUNK, n - 1]] + S // 200  # half-way to the next sample (the last: past)
+    got = tree.lookup("odom", "base", at)[:, 0, 3]
+    np.testing.assert_allclose(got, [0.005, 0.01 * CHUNK + 0.005, 0.01 * (n - 1)], atol=1e-12)
+
+
+def test_a_transform_that_is_not_rigid_is_refused():
+    """Only the top three rows of a sample are kept: a last row other than [0, 0, 0, 1]
+    (a projective matrix, a stray scale) is named rather than dropped."""
+    T = _T(0.0, 1.0)
+    T[3, 3] = 2.0
+    with pytest.raises(DatasetError, match=r"not rigid: its last row is \[0.0, 0.0, 0.0, 2.0\]"):
+        TransformTree().add("odom", "base", 0, T)

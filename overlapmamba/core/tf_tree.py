@@ -23,13 +23,40 @@ import numpy as np
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import from_quaternion, quaternion
 
+CHUNK = 4096  # samples a block: appends never copy what is held, and a block is 416 kB
+
 
 @dataclass
 class _Link:
+    """One parent → child link: a static transform, or its samples in blocks of arrays (a
+    timestamp and the top 3×4 of the transform: 104 bytes a sample, where a list of 4×4
+    arrays took ≈ 300; an hour of a robot's /tf at 100 Hz on a dozen links is 4 million
+    samples: benchmarks/tf_memory.py)."""
+
     parent: str
     static: np.ndarray | None = None
-    stamps: list[int] = field(default_factory=list)
-    transforms: list[np.ndarray] = field(default_factory=list)
+    n: int = 0
+    _t: list[np.ndarray] = field(default_factory=list)
+    _T: list[np.ndarray] = field(default_factory=list)
+
+    def append(self, stamp_ns: int, T: np.ndarray) -> None:
+        i = self.n % CHUNK
+        if i == 0:
+            self._t.append(np.empty(CHUNK, np.int64))
+            self._T.append(np.empty((CHUNK, 3, 4)))
+        self._t[-1][i] = stamp_ns
+        self._T[-1][i] = T[:3]
+        self.n += 1
+
+    def samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """The samples in time order: (n,) int64 stamps and their (n, 3, 4) transforms'
+        top rows (sorted only where they arrived out of order)."""
+        t = np.concatenate(self._t)[: self.n]
+        T = np.concatenate(self._T)[: self.n]
+        if (np.diff(t) < 0).any():
+            order = np.argsort(t, kind="stable")
+            t, T = t[order], T[order]
+        return t, T
 
 
 class TransformTree:
@@ -46,7 +73,14 @@ class TransformTree:
         T = np.asarray(transform, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise DatasetError(f"transform {parent!r} → {child!r} is not a finite 4×4 matrix")
-        link = self._links.setdefault(child, _Link(parent))
+        if T[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+            raise DatasetError(
+                f"transform {parent!r} → {child!r} is not rigid: its last row is {T[3].tolist()}, "
+                "allowed: [0, 0, 0, 1]"
+            )
+        link = self._links.get(child)
+        if link is None:
+            link = self._links[child] = _Link(parent)
         if link.parent != parent:
             raise DatasetError(
                 f"frame {child!r} has two parents, {link.parent!r} and {parent!r}; "
@@ -55,8 +89,7 @@ class TransformTree:
         if static:
             link.static = T
         else:
-            link.stamps.append(int(stamp_ns))
-            link.transforms.append(T)
+            link.append(int(stamp_ns), T)
 
     @property
     def frames(self) -> list[str]:
@@ -124,13 +157,11 @@ class TransformTree:
 
     def _at(self, child: str, stamps: np.ndarray, max_gap_s: float, nan: bool) -> np.ndarray:
         link = self._links[child]
-        if link.static is not None and not link.stamps:
+        if link.static is not None and not link.n:
             return np.broadcast_to(link.static, (len(stamps), 4, 4))
         if link.static is not None:
             raise DatasetError(f"link {link.parent!r} → {child!r} is both static and timed")
-        t = np.asarray(link.stamps, dtype=np.int64)
-        order = np.argsort(t, kind="stable")
-        t, T = t[order], np.stack(link.transforms)[order]
+        t, top = link.samples()
         after = np.searchsorted(t, stamps, side="right")  # the first sample later
         lo = np.clip(after - 1, 0, None)  # before the first sample: the first
         hi = np.clip(after, None, len(t) - 1)  # past the last: the last
@@ -144,9 +175,17 @@ class TransformTree:
             )
         span = (t[hi] - t[lo]).astype(np.float64)
         a = np.divide(stamps - t[lo], span, out=np.zeros(len(stamps)), where=span > 0)
-        out = interpolate(T[lo], T[hi], a)
+        out = interpolate(_full(top[lo]), _full(top[hi]), a)
         out[gap > max_gap_s] = np.nan  # only with ``nan``: else raised above
         return out
+
+
+def _full(top: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) rigid transforms from their top (N, 3, 4) rows."""
+    out = np.zeros((len(top), 4, 4))
+    out[:, :3] = top
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def interpolate(T0: np.ndarray, T1: np.ndarray, a: np.ndarray) -> np.ndarray:
