@@ -144,3 +144,36 @@ def test_dashboard_renders_and_updates_while_the_fleet_runs(tmp_path):
     assert "c-qps" in changed and "c-lat" in changed, changed  # the time series moved
     assert int(q2.replace(",", "")) > int(q1.replace(",", "")), (q1, q2)
     assert shot.stat().st_size > 10_000
+
+
+@pytest.mark.timeout(120)
+def test_the_api_docs_render_with_no_network_beyond_the_service(tmp_path):
+    """FastAPI's /docs loads its script from a CDN: on a fleet's network with no way out it
+    was a blank page. It is served by the service itself; here every request to another
+    address is refused, and the page must render the API under its CSP."""
+    exe = _browser()
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    elsewhere: list[str] = []
+    with server(tmp_path / "data") as (url, _), sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+        page = browser.new_page()
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+
+        def only_here(route) -> None:  # type: ignore[no-untyped-def]
+            if route.request.url.startswith(url):
+                route.continue_()
+            else:
+                elsewhere.append(route.request.url)
+                route.abort()
+
+        page.route("**/*", only_here)
+        page.goto(f"{url}/docs", wait_until="load")
+        page.wait_for_selector(".swagger-ui .info .title", timeout=30_000)
+        assert "OverlapMamba" in page.inner_text(".swagger-ui .info .title")
+        page.wait_for_selector('[data-path="/v1/descriptors"]', timeout=30_000)  # listed
+        browser.close()
+    assert not elsewhere, elsewhere
+    assert not errors, errors

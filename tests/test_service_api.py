@@ -888,6 +888,31 @@ async def test_a_robot_key_with_query_maps_reaches_no_other_map(tmp_path, encode
         assert msg["type"] == "websocket.accept", msg
 
 
+async def test_the_api_docs_page_loads_nothing_from_elsewhere(settings, encoder):
+    """/docs named a CDN for its script and style (a blank page on a network with no way
+    out); it names this origin only, and its assets are served here, a fixed set."""
+    async with running(settings, encoder) as c:
+        r = await c.get("/docs")
+        assert r.status_code == 200 and "/openapi.json" in r.text
+        assert not re.search(r"(https?:)?//[a-z]", r.text), r.text  # no other origin
+        assert "default-src 'none'" in r.headers["content-security-policy"]
+        for src in re.findall(r"(?:src|href)=[\"'](/docs/assets/[^\"']+)", r.text):
+            asset = await c.get(src)
+            assert asset.status_code == 200 and len(asset.content) > 1000, src
+        assert len(re.findall(r"/docs/assets/", r.text)) == 3  # script, style, icon
+        r = await c.get("/docs/assets/app.py")
+        assert r.status_code == 404 and "swagger-ui-bundle.js" in err(r)["message"]
+        assert (await c.get("/redoc")).status_code == 404
+        app = c.app  # type: ignore[attr-defined]
+    # behind a proxy's prefix, the page names its assets and the schema under it
+    import httpx
+
+    transport = httpx.ASGITransport(app=app, root_path="/om")
+    async with httpx.AsyncClient(transport=transport, base_url="http://t") as prefixed:
+        page = (await prefixed.get("/docs")).text
+    assert "'/om/openapi.json'" in page and "/om/docs/assets/swagger-ui.css" in page, page
+
+
 async def test_not_ready_before_the_lifespan(settings, encoder):
     import httpx
 

@@ -23,7 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from overlapmamba.core.errors import LidarCoreError
-from overlapmamba.service.api import descriptors, keyframes, maps, queries, stream, system
+from overlapmamba.service.api import descriptors, docs, keyframes, maps, queries, stream, system
 from overlapmamba.service.auth import Authenticator
 from overlapmamba.service.backends.factory import open_backend
 from overlapmamba.service.backup import data_dir_lock
@@ -158,6 +158,8 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         version="1",
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # /docs and /redoc from this process, not a CDN: api/docs.py
+        redoc_url=None,
     )
     app.state.ready = False
     app.state.draining = False
@@ -208,7 +210,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         log.exception("unhandled error")
         return error_response(500, "internal_error", f"internal error: {type(err).__name__}")
 
-    routers = (system, descriptors, maps, keyframes, queries, stream)
+    routers = (system, docs, descriptors, maps, keyframes, queries, stream)
     for r in (module.router for module in routers):
         app.include_router(r)
 
