@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import signal
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -275,10 +276,19 @@ class _DrainingServer(uvicorn.Server):
             log.info("draining requests in flight")
         super().handle_exit(sig, frame)
 
+    async def _serve(self, sockets: Any = None) -> None:
+        await super()._serve(sockets)
+        # uvicorn raises the signals it caught again once it has shut down, so a SIGTERM's
+        # stop, drained and snapshotted, exited 143, as if killed: a supervisor or `docker
+        # ps` could not tell it from a crash. The stop asked for is done: exit 0. (SIGINT
+        # is still raised again: a Ctrl-C stops a shell script that ran serve.)
+        self._captured_signals = [s for s in self._captured_signals if s != signal.SIGTERM]
+
 
 def run(settings: Settings) -> None:
     """Serve until SIGTERM or SIGINT. Then: stop accepting, let requests in flight finish (up
-    to the request timeout), stop the encoder, snapshot every map, exit 0."""
+    to the request timeout), stop the encoder, snapshot every map, exit 0 (after SIGINT, by
+    SIGINT, as a shell expects of a Ctrl-C)."""
     configure_logs(settings.log_level, settings.log_format)
     if not settings.auth.keys and not settings.loopback:
         log.warning(
