@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from overlapmamba.core.datasets import open_sequence  # noqa: E402
 from overlapmamba.core.errors import DatasetError  # noqa: E402
 from overlapmamba.train.batches import GROUP, BatchPlan, BatchSampler, PairIndex  # noqa: E402
 from overlapmamba.train.checkpoint import load_model, read_checkpoint, save_checkpoint  # noqa: E402
-from overlapmamba.train.errors import CheckpointError, ConfigError  # noqa: E402
+from overlapmamba.train.errors import CheckpointError, ConfigError, DivergedError  # noqa: E402
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig  # noqa: E402
 from overlapmamba.train.train import TrainConfig, train  # noqa: E402
 
@@ -82,7 +83,9 @@ def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     # One epoch, then --resume to two: the same weights as the uninterrupted run.
     resumed = tmp_path / "resumed"
     train([tiny_seq], tiny_val_seq, resumed, cfg, small_run(epochs=1), progress=False)
-    result = runner.invoke(app, ["train", "--out", str(resumed), "--resume", "--epochs", "2", "-q"])
+    # (--device on a resume: a run may move between a GPU machine and a CPU one)
+    args = ["train", "--out", str(resumed), "--resume", "--epochs", "2", "--device", "cpu", "-q"]
+    result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     a, b = read_checkpoint(straight / "last.pt"), read_checkpoint(resumed / "last.pt")
     for k in a["state_dict"]:
@@ -104,7 +107,7 @@ def test_tiny_train_resume_and_eval(tiny_seq, tiny_val_seq, tiny_run, tmp_path):
     # The checkpoint describes itself: the model rebuilds from it alone.
     model, profile, ckpt = load_model(straight / "best.pt")
     assert model.cfg == cfg and profile.name == "kitti-hdl64"
-    assert ckpt["train"]["data"]["val"]["path"] == str(tiny_val_seq)
+    assert ckpt["train"]["data"]["val"]["path"] == str(tiny_val_seq.resolve())
 
     out_json, out_png = tmp_path / "eval.json", tmp_path / "pr.png"
     result = runner.invoke(
@@ -322,3 +325,78 @@ def test_eval_real_thins_the_queries_to_fewer_rings(kitti_seq_dir, tmp_path):
             assert 0 <= t[how]["recall@1"] <= 1 and t[how]["cosine_to_full"]["min"] <= 1.0
     bad = runner.invoke(app, [*args, str(kitti_seq_dir), "--beams", "48"])
     assert bad.exit_code == 2 and "whole divisor" in bad.output
+
+
+def test_a_diverging_run_stops_at_its_first_nan_loss(tiny_seq, tiny_val_seq, tmp_path, monkeypatch):
+    """A learning rate far too high made the loss NaN at the second step, and the run went on
+    for every remaining epoch on NaN weights (the collapse check compares a NaN spread, the
+    epoch means drop NaN steps), its last.pt NaN for --resume to carry on from. It stops at
+    that step, naming it; last.pt holds the last whole epoch. The data paths it records are
+    absolute, so a resume from another working directory finds them."""
+    monkeypatch.chdir(tiny_seq.parent)
+    cfg = OverlapMambaConfig(**SMALL)
+    run = small_run(lr=1e6, warmup_steps=0, real="")
+    with pytest.raises(DivergedError, match=r"epoch 1, step 2: the loss is nan .* lower lr"):
+        train(
+            [Path(tiny_seq.name)], Path(tiny_val_seq.name), tmp_path / "r", cfg, run, progress=False
+        )
+    last = read_checkpoint(tmp_path / "r" / "last.pt")
+    assert last["train"]["history"][-1]["epoch"] == 0
+    assert all(torch.isfinite(t).all() for t in last["state_dict"].values())
+    assert last["train"]["data"]["val"]["path"] == str(tiny_val_seq.resolve())
+
+
+def test_test_towns_never_select_a_checkpoint(tiny_val_seq, tmp_path):
+    """A test town was refused as training data but taken as validation data, where it
+    chooses best.pt: a run could be selected on the towns its results are reported on."""
+    from overlapmamba.train.train_inputs import open_split
+    from overlapmamba.train.valsensors import open_renderings
+
+    town = tmp_path / "test-town"
+    town.mkdir()
+    for item in tiny_val_seq.iterdir():
+        if item.name != "manifest.json":
+            (town / item.name).symlink_to(item)
+    manifest = json.loads((tiny_val_seq / "manifest.json").read_text())
+    manifest["config"]["split"] = "test"
+    (town / "manifest.json").write_text(json.dumps(manifest))
+    cfg = OverlapMambaConfig(**SMALL)
+    for role in ("training", "validation"):
+        with pytest.raises(DatasetError, match="is a test split: it is never"):
+            open_split(town, cfg, role)
+    val = open_sequence(tiny_val_seq)
+    with pytest.raises(DatasetError, match="is a test split"):
+        open_renderings([str(town)], val, None, False)  # type: ignore[arg-type]
+
+
+def test_one_run_folder_one_run_and_a_failed_write_keeps_the_last_checkpoint(tmp_path, monkeypatch):
+    """Two runs into one --out interleaved their checkpoints (best.pt of one seed, last.pt and
+    metrics of the other): the folder is locked. A checkpoint write that failed (a full disk)
+    left its temporary file, which kept the disk full, and a traceback: it is removed, the
+    previous checkpoint stands, and the error names the file."""
+    import errno
+
+    from overlapmamba.train import checkpoint
+
+    held = checkpoint.hold_run_folder(tmp_path / "run")
+    with pytest.raises(ConfigError, match="in use by another training run"):
+        checkpoint.hold_run_folder(tmp_path / "run")
+    held.close()
+    checkpoint.hold_run_folder(tmp_path / "run").close()  # free again
+
+    path = tmp_path / "run" / "last.pt"
+    save_checkpoint(path, {"epoch": 1})
+    real_save = torch.save
+
+    def full_disk(obj, f):  # type: ignore[no-untyped-def]
+        real_save(obj, f)  # most of it written, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(CheckpointError, match=r"could not write .*last.pt \(OSError"):
+        save_checkpoint(path, {"epoch": 2})
+    monkeypatch.undo()
+    assert read_checkpoint(path)["epoch"] == 1
+    assert sorted(p.name for p in path.parent.iterdir()) == [".lock", "last.pt"]
+    (path.parent / ".best.pt.tmp999").write_bytes(b"half")  # a killed run's
+    assert [p.name for p in checkpoint.remove_stale_writes(path.parent)] == [".best.pt.tmp999"]

@@ -122,9 +122,10 @@ def train_cmd(
         train_cfg = TrainConfig.from_dict({**recipe.train, **overrides})
         output = output or Path("runs") / preset
     elif resume:
-        if config is not None or overrides or data or val:
+        if config is not None or set(overrides) - {"device"} or data or val:
             raise typer.BadParameter(
-                "--resume continues the run as configured: give only --out and --epochs"
+                "--resume continues the run as configured: give only --out, --epochs and "
+                "--device (a run may move between a GPU machine and a CPU one)"
             )
     else:
         if not data or val is None:
@@ -151,6 +152,7 @@ def train_cmd(
         train_cfg,
         resume=resume,
         epochs=epochs,
+        move_to=device if resume else None,
         progress=not quiet,
     )
     if history:

@@ -4,8 +4,9 @@
      └── ModelError                 (ValueError)
           ├── CheckpointError        a file that is not a usable checkpoint
           ├── ExportError            an export, or a model file's metadata, that failed
-          └── ConfigError            a model or training configuration that is not allowed
-                                     (also a overlapmamba.core.errors.ConfigError)
+          ├── ConfigError            a model or training configuration that is not allowed
+          │                          (also a overlapmamba.core.errors.ConfigError)
+          └── DivergedError          a training step whose loss is not finite
 
 Like overlapmamba.core's errors each carries a stable ``code`` and a ``detail`` dict, and the CLI
 prints their message instead of a traceback.
@@ -31,3 +32,7 @@ class ExportError(ModelError):
 
 class ConfigError(ModelError, errors.ConfigError):
     code = "invalid_config"
+
+
+class DivergedError(ModelError):
+    code = "training_diverged"

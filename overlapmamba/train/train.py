@@ -62,9 +62,14 @@ from overlapmamba.core.sensors.input import BEV_MODES, check_mode
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.batches import BatchPlan, BatchSampler, PairIndex
 from overlapmamba.train.calibrate import recalibrate_batchnorm
-from overlapmamba.train.checkpoint import read_checkpoint, save_checkpoint
+from overlapmamba.train.checkpoint import (
+    hold_run_folder,
+    read_checkpoint,
+    remove_stale_writes,
+    save_checkpoint,
+)
 from overlapmamba.train.curves import plot_curves
-from overlapmamba.train.errors import ConfigError
+from overlapmamba.train.errors import ConfigError, DivergedError
 from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
 from overlapmamba.train.health import HealthLog, batch_distances, epoch_line, json_safe
 from overlapmamba.train.losses import batch_spread, consistency, pair_masks
@@ -99,12 +104,13 @@ def train(
     *,
     resume: bool = False,
     epochs: int | None = None,
+    move_to: str | None = None,
     progress: bool = True,
 ) -> list[dict[str, Any]]:
     """Train (or resume) a run in ``out``; returns the per-epoch history.
 
     Resuming reads the model and training config and the data paths from ``out/last.pt``;
-    ``epochs`` may extend the run."""
+    ``epochs`` may extend the run, ``move_to`` move it to another device (cpu, cuda)."""
     out = Path(out)
     last = out / "last.pt"
     state: dict[str, Any] | None = None
@@ -126,6 +132,9 @@ def train(
         raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
     if out.exists() and not out.is_dir():  # found at the first checkpoint, after the set-up
         raise ConfigError(f"--out {out} is a file; a run is written into a folder")
+    held = hold_run_folder(out)  # noqa: F841 (the lock lasts as long as this call)
+    if resume:
+        remove_stale_writes(out)  # a killed run's half-written checkpoints
     train_cfg = train_cfg or TrainConfig()
     if state is None and train_cfg.init:
         model_cfg = start_config(train_cfg, model_cfg)
@@ -138,6 +147,8 @@ def train(
         )
     if epochs is not None:
         train_cfg.epochs = epochs
+    if move_to is not None:  # checked as a config's device is
+        train_cfg = TrainConfig.from_dict({**train_cfg.to_dict(), "device": move_to})
     if train_cfg.device == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda: no CUDA device is visible to PyTorch here")
     device = torch.device(train_cfg.device)
@@ -161,11 +172,15 @@ def train(
     inputs = [training_input(profile, s, mode) for s in seqs]
     fingerprints = {
         "train": [
-            {"path": str(s.root), "key": cache_key(s, profile, sensor=inp, aligned=aligned)}
+            # resolved: a resume from another working directory finds them
+            {
+                "path": str(s.root.resolve()),
+                "key": cache_key(s, profile, sensor=inp, aligned=aligned),
+            }
             for s, inp in zip(seqs, inputs, strict=True)
         ],
         "val": {
-            "path": str(val_seq.root),
+            "path": str(val_seq.root.resolve()),
             "key": cache_key(val_seq, profile, sensor=val_input, aligned=aligned),
         },
     }
@@ -396,6 +411,12 @@ def train(
                     desc[looked_at], looked_d, batch_spread(desc)
                 )
                 d_look = float((desc[looked_at] - looked_d).detach().pow(2).sum(1).mean())
+            if not math.isfinite(loss := value.item()):  # else NaN weights, epoch after epoch
+                raise DivergedError(
+                    f"epoch {epoch}, step {health.step0 + len(health.steps) + 1}: the loss is "
+                    f"{loss} at learning rate {opt.param_groups[0]['lr']:.3g}; lower lr (or "
+                    f"warm up longer). {last.name} still holds the last whole epoch"
+                )
             opt.zero_grad(set_to_none=True)
             value.backward()
             opt.step()
@@ -403,7 +424,7 @@ def train(
             masks = pair_masks(overlap, train_cfg.positive_threshold, train_cfg.negative_threshold)
             health.add(
                 {
-                    "loss": value.item(),
+                    "loss": loss,
                     "d_turn": d_turn,
                     "d_look": d_look,
                     "active": out_loss.active,

@@ -132,6 +132,8 @@ class TrainConfig(Config):
         fraction = getattr(self, "revisit_fraction", None)
         if isinstance(fraction, int | float) and not 0 <= fraction <= 1:
             raise ConfigError(f"revisit_fraction must be within 0 … 1, got {fraction}")
+        if not 0 <= self.seed < 2**63:  # numpy's seed sequence and torch's manual_seed
+            raise ConfigError(f"seed must be within 0 … 2**63 − 1, got {self.seed}")
         if self.loss not in BATCH_LOSSES:
             raise ConfigError(f"unknown loss {self.loss!r}; allowed: {', '.join(BATCH_LOSSES)}")
         names = ("epochs", "epoch_scans", "batch_size", "step_size", "log_every")

@@ -128,6 +128,17 @@ def _sparser_beams(name: str) -> list[np.ndarray]:
     return list(found.values())
 
 
+def refuse_test_split(path: Path, meta: dict, role: str) -> None:
+    """A test town is never trained on, nor validated on: the validation scores choose the
+    checkpoint (best.pt), and a checkpoint chosen on a test town would report its own
+    selection data. ``meta``: the folder's manifest's ``config``."""
+    if meta.get("split") == "test":
+        use = "trained on" if role == "training" else f"used for {role} (it selects best.pt)"
+        raise DatasetError(
+            f"{path} is a test split: it is never {use}; allowed: a train or val split"
+        )
+
+
 def open_split(
     path: Path, cfg: OverlapMambaConfig, role: str, any_sensor: bool = False
 ) -> Sequence:
@@ -137,8 +148,7 @@ def open_split(
     manifest = path / "manifest.json"
     if manifest.is_file():
         meta = json.loads(manifest.read_text()).get("config", {})
-        if role == "training" and meta.get("split") == "test":
-            raise DatasetError(f"{path} is a test split: it is never trained on")
+        refuse_test_split(path, meta, role)
         sensor = meta.get("sensor", cfg.sensor)
         if sensor != cfg.sensor and not (any_sensor and role == "training"):
             hint = "" if role != "training" else " (train.any_sensor = true trains on any)"

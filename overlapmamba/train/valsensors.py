@@ -19,6 +19,7 @@ sequence's alone.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ from overlapmamba.train.checkpoint import Network
 from overlapmamba.train.drives import drive_key, group_drives
 from overlapmamba.train.evaluate import cross_loop_closure, describe, loop_closure, summary
 from overlapmamba.train.rangecache import cache_key, range_images
-from overlapmamba.train.train_inputs import training_input
+from overlapmamba.train.train_inputs import refuse_test_split, training_input
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,10 @@ def open_renderings(
     out: list[Rendering] = []
     for p in paths:
         seq = open_sequence(Path(p))
+        manifest = Path(p) / "manifest.json"
+        if manifest.is_file():
+            meta = json.loads(manifest.read_text()).get("config", {})
+            refuse_test_split(Path(p), meta, "validation across sensors")
         if seq.sensor is None:
             raise DatasetError(f"val_sensors: {p} names no sensor in its manifest")
         if drive_key(seq) != drive_key(val_seq):
