@@ -187,6 +187,8 @@ def test_training_refuses_bad_data_and_config(tiny_seq, tiny_val_seq, tmp_path, 
         ({"alpha": float("nan")}, "alpha must be finite"),  # NaN passed every `x < 0` test
         ({"margin": -0.5}, "margin must be ≥ 0"),
         ({"revisit_fraction": 5.0}, "revisit_fraction must be within 0 … 1"),
+        ({"seed": -1}, "seed must be within 0"),  # a traceback after the data had loaded
+        ({"seed": 2**70}, "seed must be within 0"),
     ],
 )
 def test_recipe_settings_are_checked_with_the_allowed_values(fields, message):
