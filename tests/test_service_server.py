@@ -231,6 +231,67 @@ def test_serve_refuses_a_file_that_is_not_an_encoder_in_one_line(tmp_path):
         assert "Traceback" not in res.stdout + res.stderr
 
 
+def _edited(tmp_path, name: str, props: dict[str, str], batch: int | None = None):  # type: ignore[no-untyped-def]
+    """The shipped file with metadata ``props`` replaced and, with ``batch``, its graph's
+    input fixed to that many images."""
+    proto = onnx.load(str(MODEL))
+    for prop in proto.metadata_props:
+        if prop.key in props:
+            prop.value = props[prop.key]
+    if batch is not None:
+        dim = proto.graph.input[0].type.tensor_type.shape.dim[0]
+        dim.ClearField("dim_param")
+        dim.dim_value = batch
+    path = tmp_path / name
+    onnx.save(proto, str(path))
+    return path
+
+
+def test_a_model_whose_graph_or_id_disagrees_with_its_metadata_is_refused(tmp_path):
+    """Only the input and output names were checked at load: a file declaring 128 floats a
+    descriptor whose graph gives 256 said ready, and then refused every insert as the
+    client's fault; one whose graph takes one image at a time (the service batches)
+    failed every scan, or ended serve in uvicorn's traceback; one whose views were changed
+    by hand, its id kept, served other descriptors into the maps of that id. Each is
+    refused at load, naming the disagreement, and `serve` says so in one line (exit 2)."""
+    from overlapmamba.service.encoder import Encoder, ModelLoadError
+
+    cases = {
+        "dim.onnx": (
+            {"overlapmamba.descriptor_dim": "128"},
+            None,
+            r"descriptors of shape \(2, 256\)",
+        ),
+        "batch.onnx": ({}, 1, "its graph does not run on the input its metadata describes"),
+        "views.onnx": ({"overlapmamba.views": "1"}, None, "is not the one its metadata gives"),
+    }
+    for name, (props, batch, says) in cases.items():
+        path = _edited(tmp_path, name, props, batch)
+        with pytest.raises(ModelLoadError, match=says):
+            Encoder(path, intra_op_threads=1, scan_kernel=False)
+    # (and a message holding ":a:" is printed as it is, not as rich's emoji for it)
+    _edited(tmp_path, "stage.onnx", {"overlapmamba.first_stage": "bogus"})
+    args = ["serve", "--port", "1", "--data-dir", str(tmp_path / "data"), "--model"]
+    for name, says in (("batch.onnx", "does not run on the input"), ("stage.onnx", "mixed:A:")):
+        res = subprocess.run(
+            [sys.executable, "-m", "overlapmamba", *args, str(tmp_path / name)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=60,
+        )
+        out = " ".join((res.stdout + res.stderr).split())
+        assert res.returncode == 2 and says in out and "Traceback" not in out, out
+    # export into a folder named like a file: refused before the work, not a traceback after
+    (tmp_path / "folder.onnx").mkdir()
+    args = ["export", str(MODEL), "--views", "1", "--out", str(tmp_path / "folder.onnx")]
+    res = subprocess.run(
+        [sys.executable, "-m", "overlapmamba", *args], capture_output=True, text=True, cwd=ROOT
+    )
+    out = " ".join((res.stdout + res.stderr).replace("│", " ").split())
+    assert res.returncode == 2 and "is a folder" in out and "Traceback" not in out, out
+
+
 def test_serve_refuses_what_its_start_up_would_meet_in_one_line(tmp_path):
     """A data folder that is a file, a data folder another service holds, a sensor file that
     is not there: each refused before uvicorn starts (exit 2, one line), where the start-up

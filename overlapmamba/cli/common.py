@@ -15,8 +15,9 @@ from rich.table import Table
 
 from overlapmamba.core.errors import LidarCoreError
 
-console = Console(stderr=True, soft_wrap=True)
-out = Console()
+# no emoji: rich reads ":a:" in a message (mixed:A:BINS) as one, and escape() does not stop it
+console = Console(stderr=True, soft_wrap=True, emoji=False)
+out = Console(emoji=False)
 
 F = TypeVar("F", bound=Callable[..., Any])
 

@@ -278,6 +278,8 @@ def export_cmd(
 
     if out_path.suffix != ".onnx":
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
+    if out_path.is_dir():  # found only at the end, after the work, as a traceback
+        raise typer.BadParameter(f"--out {out_path} is a folder; give the .onnx file to write")
     if meet not in MEET:
         raise typer.BadParameter(
             f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"

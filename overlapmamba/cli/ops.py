@@ -151,19 +151,27 @@ def _preflight(settings: Any, meta: Any) -> None:
 
 def _check_model_file(path: Path) -> Any:
     """Refuse, in one line and before uvicorn starts, a model file the service cannot
-    serve (not ONNX, truncated, or an ONNX graph without an encoder's metadata), where the
-    start-up would otherwise end in a traceback; else its metadata."""
+    serve (not ONNX, truncated, an ONNX graph without an encoder's metadata, or one whose
+    graph does not do what its metadata says), where the start-up would otherwise end in a
+    traceback, or say ready and fail every scan; else its metadata."""
     from overlapmamba.service.calibration import read_model_metadata
+    from overlapmamba.service.encoder import Encoder, ModelLoadError
 
     try:
-        return read_model_metadata(path)
+        meta = read_model_metadata(path)
     except Exception as err:
         console.print(
             f"[bold red]error:[/] {path} is not an encoder the service can serve "
-            f"({type(err).__name__}: {err}); expected an .onnx file written by "
+            f"({type(err).__name__}: {escape(str(err))}); expected an .onnx file written by "
             "`overlapmamba export`, e.g. models/overlapmamba-hdl64.onnx"
         )
         raise typer.Exit(2) from None
+    try:  # its graph against its metadata, once (the service's own load does it again)
+        Encoder(path, intra_op_threads=1, scan_kernel=False)
+    except ModelLoadError as err:
+        console.print(f"[bold red]error:[/] {escape(str(err))}")
+        raise typer.Exit(2) from None
+    return meta
 
 
 @command("dump-config", epilog="Example:\n\n  overlapmamba dump-config --config service.toml")

@@ -237,8 +237,13 @@ class EncoderMetadata(BaseModel):
             )
         try:
             return cls.model_validate(values)
-        except ValidationError as err:
-            raise ModelMetadataError(f"model metadata is incomplete or invalid: {err}") from None
+        except ValidationError as err:  # one line: the first problem, where and what
+            first = err.errors()[0]
+            where = ".".join(str(p) for p in first["loc"]) or "metadata"
+            more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+            raise ModelMetadataError(
+                f"model metadata is incomplete or invalid: {where}: {first['msg']}{more}"
+            ) from None
 
 
 DEFAULT_SENSOR_INPUT: Mode = "elevation"
@@ -273,3 +278,18 @@ def identity(
         key += f"+column_phase={column_phase}"
     model_id = "om-" + hashlib.sha256(key.encode()).hexdigest()[:16]
     return {**named, "model_id": model_id, "graph_id": graph_id}
+
+
+def check_identity(meta: EncoderMetadata) -> None:
+    """Refuse metadata whose ``model_id`` is not the one its identity fields give (views,
+    sensor input, sensor maps, column phase, over the graph's id): a file edited by hand,
+    its views changed and its id kept, would serve other descriptors into the maps made
+    under that id, and nothing would notice."""
+    want = identity(meta.graph, meta.views, meta.sensor_input, meta.maps_digest, meta.column_phase)
+    if want["model_id"] != meta.model_id:
+        raise ModelMetadataError(
+            f"model_id {meta.model_id} is not the one its metadata gives ({want['model_id']}, "
+            f"from graph {meta.graph}, views {meta.views}, sensor_input {meta.sensor_input}, "
+            f"column_phase {meta.column_phase}): the file was changed after it was exported; "
+            "write it again with `overlapmamba export`"
+        )

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import onnxruntime as ort
 
-from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
+from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata, check_identity
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors.input import ALL_SCANS_MODES, SensorInput
 from overlapmamba.core.views import combine_views, project_views_offset, unshift_features
@@ -87,17 +87,7 @@ class Encoder:
             )
         except Exception as err:  # onnxruntime raises its own unrelated classes
             raise ModelLoadError(f"onnxruntime cannot load {path}: {err}") from None
-        try:
-            self.meta = EncoderMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
-        except ValueError as err:
-            raise ModelLoadError(f"{path}: {err}") from None
-        inputs = [i.name for i in self.session.get_inputs()]
-        outputs = [o.name for o in self.session.get_outputs()]
-        if inputs != [INPUT] or tuple(outputs) != OUTPUTS:
-            raise ModelLoadError(
-                f"{path} has inputs {inputs} and outputs {outputs}; expected [{INPUT}] and "
-                f"{list(OUTPUTS)}"
-            )
+        self.meta = check_graph(self.session, path)
         self.path = Path(path)
         self.staged: StagedGraph | None = None  # the C-kernel path, when it serves
         self.scan_path = "portable (scan_kernel = false)"
@@ -124,7 +114,7 @@ class Encoder:
         try:
             import onnx
 
-            from overlapmamba.core.scan_kernel import KernelBuildError, load
+            from overlapmamba.core.scan_kernel import load
             from overlapmamba.service.fastscan import FastPathError, StagedGraph
 
             load()
@@ -137,7 +127,7 @@ class Encoder:
                 raise FastPathError(
                     f"it disagrees with the portable graph by {gap:.3g} (allowed ≤ {PARITY_TOL})"
                 )
-        except (ImportError, KernelBuildError, FastPathError, OSError, ValueError) as err:
+        except Exception as err:  # onnxruntime's and onnx's own classes too: never fatal here
             log.warning(
                 "model %s: the C scan kernel is not used, the portable graph serves (slower): %s",
                 self.meta.model_id,
@@ -296,6 +286,47 @@ def _time_both(kernel: Callable[[], object], portable: Callable[[], object]) -> 
         spent.append(1e3 * (time.process_time() - t) / TIMING_CALLS)
         time.sleep(TIMING_PAUSE_S)
     return spent[0], spent[1]
+
+
+def check_graph(session: ort.InferenceSession, path: Path | str) -> EncoderMetadata:
+    """The metadata of an encoder's session, checked against itself and against what the
+    graph does: its id against its identity fields, the graph's input and output names, and
+    one run on two scans of the metadata's own input (a batch of them, float32, H × W of its
+    profile) giving descriptors and yaw features of the declared sizes, finite. A file whose
+    graph and metadata disagree would load, say ready, and then fail (or mislabel) every
+    scan. Raises :class:`ModelLoadError` naming the disagreement."""
+    try:
+        meta = EncoderMetadata.from_props(session.get_modelmeta().custom_metadata_map)
+        check_identity(meta)
+    except ValueError as err:
+        raise ModelLoadError(f"{path}: {err}") from None
+    inputs = [i.name for i in session.get_inputs()]
+    outputs = [o.name for o in session.get_outputs()]
+    if inputs != [INPUT] or tuple(outputs) != OUTPUTS:
+        raise ModelLoadError(
+            f"{path} has inputs {inputs} and outputs {outputs}; expected [{INPUT}] and "
+            f"{list(OUTPUTS)}"
+        )
+    p = meta.profile
+    x = np.concatenate([parity_image(meta)] * 2)  # two scans: the batch must be free
+    try:
+        desc, yaw = session.run(list(OUTPUTS), {INPUT: x})
+    except Exception as err:  # onnxruntime's own classes
+        first = str(err).strip().splitlines()[0][:300] if str(err).strip() else ""
+        raise ModelLoadError(
+            f"{path}: its graph does not run on the input its metadata describes ({len(x)} "
+            f"float32 images of {p.height}×{p.width}, {p.name}): {type(err).__name__}: {first}"
+        ) from None
+    want = ((2, meta.descriptor_dim), (2, meta.yaw_channels, p.width))
+    got = (tuple(np.shape(desc)), tuple(np.shape(yaw)))
+    if got != want:
+        raise ModelLoadError(
+            f"{path}: for two scans its graph gives descriptors of shape {got[0]} and yaw "
+            f"features of {got[1]}; its metadata says {want[0]} and {want[1]}"
+        )
+    if not (np.isfinite(desc).all() and np.isfinite(yaw).all()):
+        raise ModelLoadError(f"{path}: its graph gives NaN or infinite outputs for a valid scan")
+    return meta
 
 
 def parity_image(meta: EncoderMetadata) -> np.ndarray:
