@@ -177,3 +177,29 @@ def test_the_api_docs_render_with_no_network_beyond_the_service(tmp_path):
         browser.close()
     assert not elsewhere, elsewhere
     assert not errors, errors
+
+
+@pytest.mark.timeout(120)
+def test_the_dashboard_says_when_the_server_stops_answering(tmp_path):
+    """A frozen server left the page green, its "Last update" minutes old, and its next poll
+    waiting for ever: a poll is given up after 5 s and the status turns red saying so. A
+    map called "constructor" (the API allows it) shared another map's colour."""
+    exe = _browser()
+    from playwright.sync_api import sync_playwright
+
+    with server(tmp_path / "data") as (url, _), sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+        page = browser.new_page()
+        page.goto(f"{url}/dashboard", wait_until="load")
+        page.wait_for_function(
+            "() => document.getElementById('status').textContent.startsWith('Last update')"
+        )
+        assert page.evaluate("() => mapColor('constructor') !== mapColor('town')")
+        assert page.evaluate("() => typeof mapColor('constructor') === 'string'")
+        page.route("**/v1/stats", lambda route: None)  # asked, never answered: frozen
+        page.wait_for_function(
+            "() => document.getElementById('status').className === 'err'", timeout=20_000
+        )
+        status = page.inner_text("#status")
+        browser.close()
+    assert "no answer within 5 s" in status, status

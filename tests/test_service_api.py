@@ -590,6 +590,13 @@ async def test_timeout_answers_504(tmp_path, encoder):
         r = await c.post("/v1/descriptors", content=scan(0).tobytes(), headers=OCTET)
         assert r.status_code == 504 and err(r)["code"] == "timeout"
         assert (await c.get("/healthz")).status_code == 200
+        # the request cut at its timeout is in the latency figures (its stage times were
+        # cancelled with it: the slowest requests were missing from p99 and the histogram)
+        total = (await c.get("/v1/stats")).json()["latency_ms"]["total"]
+        assert total["n"] == 1 and total["p50"] >= 10.0, total
+        metrics = (await c.get("/metrics")).text
+        assert 'overlapmamba_stage_seconds_count{stage="total"} 1.0' in metrics
+        assert 'overlapmamba_stage_seconds_bucket{le="30.0",stage="total"}' in metrics
 
 
 async def test_concurrent_queries_and_inserts(any_backend, encoder):

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zstandard
+from prometheus_client import generate_latest
 
 from overlapmamba.core.errors import DataTooLargeError
 from overlapmamba.service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
@@ -910,6 +911,39 @@ def test_the_query_rate_over_the_last_minute_has_no_ceiling():
     c.queried(time.time() - 30)
     assert c.public()["queries_per_s_1m"] == pytest.approx(1 / 60)
     assert len(c.recent) == 1  # older seconds are dropped as newer ones come
+
+
+def test_statistics_say_none_where_nothing_was_counted_and_follow_the_backend():
+    """An empty window gave p50 = p99 = 0 ms and no query a loop-closure rate of 0 (the
+    dashboard drew 0 ms lines, "0.0 %"); the first minute's query rate was divided by a
+    whole minute. A replica beside others on one Qdrant kept a map's series and counts after
+    another replica deleted it, and its keyframes gauge at its own last write."""
+    import time
+
+    from overlapmamba.service.stats import Stats
+
+    s = Stats("m")
+    fresh = s.public()
+    assert fresh["latency_ms"]["total"] == {"p50": None, "p90": None, "p99": None, "n": 0}
+    assert (
+        fresh["loop_closure_rate"] is None and fresh["verification"]["registered_per_query"] is None
+    )
+    s.started = time.time() - 10  # ten seconds up, 30 queries: 3 a second, not 0.5
+    for _ in range(30):
+        s.query("town", "r1", True)
+    assert s.public()["queries_per_s_1m"] == pytest.approx(3.0, rel=0.05)
+    assert s.public()["loop_closure_rate"] == 1.0
+    s.insert("gone", "r1")
+    s.p_keyframes.labels("town").set(3)
+    s.reconcile(s.known_maps(), {"town": 2})  # another replica deleted "gone" and a keyframe
+    assert set(s.by_map) == {"town"}
+    text = generate_latest(s.registry).decode()
+    assert 'map="gone"' not in text and 'overlapmamba_map_keyframes{map="town"} 2.0' in text
+    s.batch(256, 0.0)  # batching.max_batch allows 256: a bucket of its own, not +Inf only
+    assert (
+        'overlapmamba_encoder_batch_size_bucket{le="256.0"} 1.0'
+        in generate_latest(s.registry).decode()
+    )
 
 
 def test_a_maps_statistics_give_its_own_latency():

@@ -34,6 +34,11 @@ def matrix_text(T: np.ndarray | None) -> str:
     return "\n".join("  " + "  ".join(f"{x:9.4f}" for x in row) for row in T)
 
 
+def _fixed(x: float | None, digits: int) -> str:
+    """A figure, or – where the service has none yet (no query, no request)."""
+    return "–" if x is None else f"{x:.{digits}f}"
+
+
 def stats_table(s: dict[str, Any]) -> Table:
     table = Table(title=f"model {s.get('model_id')} · up {s.get('uptime_s', 0):.0f} s")
     table.add_column("metric")
@@ -41,13 +46,13 @@ def stats_table(s: dict[str, Any]) -> Table:
     for key in ("keyframes", "inserts", "queries", "loop_closures"):
         if key in s:
             table.add_row(key, str(s[key]))
-    table.add_row("loop-closure rate", f"{s.get('loop_closure_rate', 0):.3f}")
+    table.add_row("loop-closure rate", _fixed(s.get("loop_closure_rate"), 3))
     v = s.get("verification") or {}
     if v:
         table.add_row("candidates verified / rejected", f"{v['verified']} / {v['rejected']}")
-    table.add_row("queries/s (1 min)", f"{s.get('queries_per_s_1m', 0):.2f}")
+    table.add_row("queries/s (1 min)", _fixed(s.get("queries_per_s_1m"), 2))
     for stage, p in s.get("latency_ms", {}).items():
-        table.add_row(f"{stage} p50 / p99 ms", f"{p['p50']:.1f} / {p['p99']:.1f}")
+        table.add_row(f"{stage} p50 / p99 ms", f"{_fixed(p['p50'], 1)} / {_fixed(p['p99'], 1)}")
     for name, r in s.get("robots", {}).items():
         table.add_row(f"robot {name}", f"{r['observations']} obs, {r['loop_closures']} loops")
     if "map" in s:

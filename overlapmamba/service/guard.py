@@ -152,11 +152,15 @@ class GuardMiddleware:
                 message = {**message, "headers": [*message.get("headers", []), _rid(rid)]}
             await send(message)
 
-        deadline = request_deadline.set(time.monotonic() + self.timeout_s)
+        t0 = time.monotonic()
+        deadline = request_deadline.set(t0 + self.timeout_s)
         try:
             async with asyncio.timeout(self.timeout_s):
                 await self.app(scope, limited_receive, tracking_send)
         except TimeoutError:
+            # the route's own stage times were cancelled with it: without its total, the
+            # slowest requests would be missing from every latency figure
+            _timed_out(scope, (time.monotonic() - t0) * 1e3)
             if not started:
                 status = 504
                 resp = error_response(
@@ -170,6 +174,19 @@ class GuardMiddleware:
             request_deadline.reset(deadline)
             _count(scope, status)
         return status
+
+
+def _timed_out(scope: Scope, ms: float) -> None:
+    """A request cut at its timeout: its total time in the latency statistics (the
+    service's, and its map's where the route names one that is still there)."""
+    app = scope.get("app")
+    svc = getattr(app.state, "service", None) if app is not None else None
+    if svc is None or scope.get("route") is None:
+        return
+    map_id = scope.get("path_params", {}).get("map_id")
+    if map_id is not None and map_id not in svc.stats.by_map:
+        map_id = None  # a map this service has not counted (or that is gone): not made
+    svc.stats.timings({"total": ms}, map_id)
 
 
 def _count(scope: Scope, status: int, route: str | None = None) -> None:

@@ -25,7 +25,12 @@ WINDOW = 2048
 MAP_WINDOW = 512  # a map's: ≈ 100 kB of latencies a map, not 400 (a service may hold hundreds)
 MAX_ROBOTS = 1000  # per-robot rows kept (least recently seen dropped): ids come from clients
 STAGES = ("decode", "project", "encode", "search", "verify", "total")
-_LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+# up to the request timeout (30 s by default, 120 s at most): a slow request's quantile is
+# read from its bucket, not capped at the last one
+_LATENCY_BUCKETS = (
+    *(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0),
+    *(10.0, 20.0, 30.0, 60.0, 120.0),
+)
 
 
 @dataclass
@@ -69,21 +74,25 @@ class _Counts:
         while self.recent and self.recent[0][0] < second - 60:
             self.recent.popleft()
 
-    def public(self) -> dict[str, Any]:
+    def public(self, started: float | None = None) -> dict[str, Any]:
+        """The counts; rates are None where nothing was counted (a rate of 0 would say
+        every query failed to close a loop). ``started``: the service's start, so that the
+        first minute's query rate is over the time it has run, not a whole minute."""
         now = time.time()
         last_min = sum(n for second, n in self.recent if now - second < 60.0)
+        span = 60.0 if started is None else min(60.0, max(now - started, 1.0))
         return {
             "inserts": self.inserts,
             "queries": self.queries,
-            "queries_per_s_1m": last_min / 60.0,
+            "queries_per_s_1m": last_min / span,
             "loop_closures": self.loop_closures,
-            "loop_closure_rate": self.loop_closures / self.queries if self.queries else 0.0,
+            "loop_closure_rate": self.loop_closures / self.queries if self.queries else None,
             "verification": {
                 "verified": self.verified,
                 "rejected": self.rejected,
                 "registered": self.registered,
                 "ambiguous": self.ambiguous,
-                "registered_per_query": self.registered / self.queries if self.queries else 0.0,
+                "registered_per_query": self.registered / self.queries if self.queries else None,
             },
             "robots": {
                 name: {
@@ -152,7 +161,7 @@ class Stats:
         self.p_batch = Histogram(
             "overlapmamba_encoder_batch_size",
             "Scans per encoder call",
-            buckets=(1, 2, 4, 8, 16, 32, 64),
+            buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256),  # batching.max_batch: 256 at most
             registry=r,
         )
         self.p_keyframes = Gauge(
@@ -261,6 +270,23 @@ class Stats:
                 if rec is not None:
                     rec.inserts += n
 
+    def known_maps(self) -> set[str]:
+        """The maps with counts or series here."""
+        with self._lock:
+            known = set(self.by_map)
+        return known | _maps_of(self.p_keyframes, self.p_queries, self.p_inserts)
+
+    def reconcile(self, known: set[str], live: dict[str, int]) -> None:
+        """The maps the backend lists now (``live``, with their keyframe counts, listed
+        after ``known`` was taken, so that a map made in between is not lost): the keyframes
+        gauge set from them, and the counts and series of a known map no longer listed
+        forgotten. A replica beside others on one Qdrant learns of another's writes and
+        deletions only so (its own are counted as they happen)."""
+        for map_id, count in live.items():
+            self.p_keyframes.labels(map_id).set(count)
+        for map_id in known - set(live):
+            self.forget_map(map_id)
+
     def forget_map(self, map_id: str) -> None:
         """A deleted map's counts and every /metrics series labelled with it go: maps that
         come and go must not grow the service's memory and its scrapes for ever."""
@@ -282,10 +308,10 @@ class Stats:
             with contextlib.suppress(KeyError):
                 metric.remove(*labels)
 
-    def percentiles(self, map_id: str | None = None) -> dict[str, dict[str, float | int]]:
+    def percentiles(self, map_id: str | None = None) -> dict[str, dict[str, float | None]]:
         """Each stage's p50/p90/p99 over the last WINDOW requests (the last MAP_WINDOW of
         ``map_id``'s, if given)."""
-        out: dict[str, dict[str, float | int]] = {}
+        out: dict[str, dict[str, float | None]] = {}
         with self._lock:
             counts = self.total if map_id is None else self.by_map[map_id]
             for stage, window in counts.latency.items():
@@ -293,13 +319,15 @@ class Stats:
                 if a.size:
                     p50, p90, p99 = np.percentile(a, [50, 90, 99])
                     out[stage] = {"p50": p50, "p90": p90, "p99": p99, "n": int(a.size)}
-                else:
-                    out[stage] = {"p50": 0.0, "p90": 0.0, "p99": 0.0, "n": 0}
+                else:  # no request yet: no figure (a 0 ms line on the dashboard)
+                    out[stage] = {"p50": None, "p90": None, "p99": None, "n": 0}
         return out
 
     def public(self, map_id: str | None = None) -> dict[str, Any]:
         with self._lock:
-            counts = (self.by_map[map_id] if map_id is not None else self.total).public()
+            counts = (self.by_map[map_id] if map_id is not None else self.total).public(
+                self.started
+            )
             hist = {str(k): v for k, v in sorted(self.batch_sizes.items())}
         return {
             "model_id": self.model_id,
@@ -309,6 +337,17 @@ class Stats:
             # encoder batches mix every map's scans: the service's, on a map's stats too
             "batch_size_histogram": hist,
         }
+
+
+def _maps_of(*metrics: Gauge | PCounter) -> set[str]:
+    """The maps these metrics (labelled ``map``) have series for."""
+    return {
+        sample.labels["map"]
+        for metric in metrics
+        for family in metric.collect()
+        for sample in family.samples
+        if "map" in sample.labels
+    }
 
 
 class _RowCacheCollector(Collector):

@@ -134,13 +134,23 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
     """Counts, loop closures and their acceptance rate, latency percentiles per stage (last
     2048 requests), per-robot last seen and counts, encoder batch sizes, map sizes, and the
     faiss backend's row cache (the keyframes searched last: bytes, rows, hits, misses)."""
-    maps = await in_thread(lambda: each_map(svc.registry, lambda m: {"keyframes": m.count}))
+    live = await _reconcile(svc)
+    maps = {map_id: {"keyframes": n} for map_id, n in live.items()}
     return {
         **svc.stats.public(),
         "maps": maps,
         "encoder_queue": svc.pipeline.pending,
         "row_cache": svc.registry.row_cache_info(),
     }
+
+
+async def _reconcile(svc: Any) -> dict[str, int]:
+    """Every map's keyframe count, as the backend has it now, and the statistics brought
+    in line with it (another replica's writes and deletions on a shared Qdrant)."""
+    known = svc.stats.known_maps()
+    live = await in_thread(lambda: each_map(svc.registry, lambda m: m.count))
+    svc.stats.reconcile(known, live)
+    return live
 
 
 @router.get(
@@ -158,7 +168,10 @@ async def stats(svc: ServiceDep, _: CanView) -> dict[str, Any]:
 async def metrics(request: Request, svc: LoadedServiceDep, _: CanView) -> Response:
     """Answers from the moment the model is loaded, while the maps replay too:
     ``overlapmamba_ready`` is 1 once /readyz says ready, else 0 (loading, or failed)."""
-    svc.stats.p_ready.set(1 if getattr(request.app.state, "ready", False) else 0)
+    ready = getattr(request.app.state, "ready", False)
+    svc.stats.p_ready.set(1 if ready else 0)
+    if ready:  # (while the maps replay, those not yet loaded are not gone)
+        await _reconcile(svc)
     svc.stats.p_queue.set(svc.pipeline.pending)
     return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
 
