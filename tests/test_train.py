@@ -378,13 +378,13 @@ def test_one_run_folder_one_run_and_a_failed_write_keeps_the_last_checkpoint(tmp
     previous checkpoint stands, and the error names the file."""
     import errno
 
-    from overlapmamba.train import checkpoint
+    from overlapmamba.train import runfolder
 
-    held = checkpoint.hold_run_folder(tmp_path / "run")
+    held = runfolder.hold_run_folder(tmp_path / "run")
     with pytest.raises(ConfigError, match="in use by another training run"):
-        checkpoint.hold_run_folder(tmp_path / "run")
+        runfolder.hold_run_folder(tmp_path / "run")
     held.close()
-    checkpoint.hold_run_folder(tmp_path / "run").close()  # free again
+    runfolder.hold_run_folder(tmp_path / "run").close()  # free again
 
     path = tmp_path / "run" / "last.pt"
     save_checkpoint(path, {"epoch": 1})
@@ -401,4 +401,4 @@ def test_one_run_folder_one_run_and_a_failed_write_keeps_the_last_checkpoint(tmp
     assert read_checkpoint(path)["epoch"] == 1
     assert sorted(p.name for p in path.parent.iterdir()) == [".lock", "last.pt"]
     (path.parent / ".best.pt.tmp999").write_bytes(b"half")  # a killed run's
-    assert [p.name for p in checkpoint.remove_stale_writes(path.parent)] == [".best.pt.tmp999"]
+    assert [p.name for p in runfolder.remove_stale_writes(path.parent)] == [".best.pt.tmp999"]

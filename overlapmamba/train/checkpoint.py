@@ -29,7 +29,7 @@ from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.modelmeta import INPUT, OUTPUTS, EncoderMetadata
 from overlapmamba.core.sensors import SensorProfile, get_sensor, sensor_of_profile
 from overlapmamba.core.sensors.input import LEVELLED_MODES, Mode, SensorInput, check_mode
-from overlapmamba.train.errors import CheckpointError, ConfigError
+from overlapmamba.train.errors import CheckpointError
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 
 FORMAT = "overlapmamba-checkpoint"
@@ -63,48 +63,6 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
         os.fsync(folder)
     finally:
         os.close(folder)
-
-
-class RunLock:
-    """An exclusive lock on a run folder (``out/.lock``), held until :meth:`close` or until
-    the object is gone (a training call's local: the lock lasts as long as the call)."""
-
-    def __init__(self, out: Path) -> None:
-        import fcntl
-
-        out.mkdir(parents=True, exist_ok=True)
-        self.fd: int | None = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self.close()
-            raise ConfigError(
-                f"{out} is in use by another training run; wait for it or choose another --out"
-            ) from None
-
-    def close(self) -> None:
-        if self.fd is not None:
-            os.close(self.fd)  # and with it the lock
-            self.fd = None
-
-    def __del__(self) -> None:
-        self.close()
-
-
-def hold_run_folder(out: Path) -> RunLock:
-    """The run folder ``out``, locked for this process: a second run into the same
-    ``--out`` would interleave its checkpoints with this one's (best.pt of one seed, last.pt
-    and metrics of the other)."""
-    return RunLock(out)
-
-
-def remove_stale_writes(folder: Path) -> list[Path]:
-    """Temporary checkpoint files a killed run left in ``folder`` (``.NAME.tmpPID``), removed
-    (they are never read: a checkpoint is renamed in only once whole)."""
-    stale = [p for p in folder.glob(".*.pt.tmp*") if p.is_file()]
-    for p in stale:
-        p.unlink(missing_ok=True)
-    return stale
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -47,6 +47,7 @@ uninterrupted run would (tested).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -62,12 +63,7 @@ from overlapmamba.core.sensors.input import BEV_MODES, check_mode
 from overlapmamba.train.augment import Augmenter
 from overlapmamba.train.batches import BatchPlan, BatchSampler, PairIndex
 from overlapmamba.train.calibrate import recalibrate_batchnorm
-from overlapmamba.train.checkpoint import (
-    hold_run_folder,
-    read_checkpoint,
-    remove_stale_writes,
-    save_checkpoint,
-)
+from overlapmamba.train.checkpoint import save_checkpoint
 from overlapmamba.train.curves import plot_curves
 from overlapmamba.train.errors import ConfigError, DivergedError
 from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
@@ -79,6 +75,7 @@ from overlapmamba.train.rangecache import cache_key, range_images
 from overlapmamba.train.realscans import (
     invariance,
 )
+from overlapmamba.train.runfolder import hold_run_folder, read_run, remove_stale_writes
 from overlapmamba.train.train_config import SCHEDULE, TrainConfig, load_config_file
 from overlapmamba.train.train_inputs import (
     Images,
@@ -110,29 +107,28 @@ def train(
     """Train (or resume) a run in ``out``; returns the per-epoch history.
 
     Resuming reads the model and training config and the data paths from ``out/last.pt``;
-    ``epochs`` may extend the run, ``move_to`` move it to another device (cpu, cuda)."""
+    ``epochs`` may extend the run, ``move_to`` move it to another device (cpu, cuda). The
+    run folder is locked for the call (:class:`~overlapmamba.train.checkpoint.RunLock`)."""
+    with contextlib.ExitStack() as held:
+        return _train(held, data, val, out, model_cfg, train_cfg, resume, epochs, move_to, progress)
+
+
+def _train(
+    held: contextlib.ExitStack,
+    data: list[Path],
+    val: Path | None,
+    out: Path,
+    model_cfg: OverlapMambaConfig | None,
+    train_cfg: TrainConfig | None,
+    resume: bool,
+    epochs: int | None,
+    move_to: str | None,
+    progress: bool,
+) -> list[dict[str, Any]]:
     out = Path(out)
     last = out / "last.pt"
-    state: dict[str, Any] | None = None
-    if resume:
-        if not last.is_file():
-            raise ConfigError(f"nothing to resume: {last} does not exist")
-        state = read_checkpoint(last)
-        if state["train"].get("schedule") != SCHEDULE:
-            raise ConfigError(
-                f"{last} was written by an older trainer (learning rate stepped per epoch, no "
-                "warm-up); it cannot resume exactly here: start a new run"
-            )
-        recorded = state["train"]["data"]
-        data = data or [Path(d["path"]) for d in recorded["train"]]
-        val = val or Path(recorded["val"]["path"])
-        model_cfg = OverlapMambaConfig.from_dict(state["model_config"])
-        train_cfg = TrainConfig.from_dict(state["train"]["config"])
-    elif last.is_file():
-        raise ConfigError(f"{out} already holds a run; pass --resume or choose a new --out")
-    if out.exists() and not out.is_dir():  # found at the first checkpoint, after the set-up
-        raise ConfigError(f"--out {out} is a file; a run is written into a folder")
-    held = hold_run_folder(out)  # noqa: F841 (the lock lasts as long as this call)
+    state, data, val, model_cfg, train_cfg = read_run(out, resume, data, val, model_cfg, train_cfg)
+    held.enter_context(hold_run_folder(out))  # released when train() returns or raises
     if resume:
         remove_stale_writes(out)  # a killed run's half-written checkpoints
     train_cfg = train_cfg or TrainConfig()
