@@ -247,6 +247,22 @@ def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     assert tiny.relative_pose is None and "keeps" in (tiny.reason or "")
 
 
+def test_a_scan_of_open_ground_is_not_registered():
+    """Fewer than min_points / 2 steep grid points: fitness was scored on the ground, which
+    fits any x, y and yaw, and two unrelated ground-only scans "verified" at fitness 0.77
+    wherever no ambiguity margin was set. Such a query is refused, naming why."""
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-40, 40, (20_000, 2)), rng.normal(-1.7, 0.02, 20_000)]
+    p = RegistrationParams()
+    q = prepare(ground, p)
+    assert q.cloud is None and "steep surfaces" in (q.reason or ""), q.reason
+    other = ground + [3.0, -2.0, 0.0]
+    r = register(q, encode_geometry(other), 0.0, p)
+    assert r.relative_pose is None and "open ground fits any" in (r.reason or "")
+
+
 def test_points_no_sensor_returns_are_left_out_of_registration_without_a_line_each(kitti, capfd):
     """Finite points thousands of kilometres out (a scan in the wrong units) overflowed
     small_gicp's voxel keys, which printed one warning line per point: half a million lines

@@ -14,8 +14,8 @@ and fit that verification (:mod:`overlapmamba.service.verify`) judges.
     GICP from the seed
     → relative_pose T_keyframe←query (4 × 4, maps query points into the keyframe's frame),
       fitness (share of the query's steep grid points — walls, poles, trunks; the ground
-      fits anywhere — with a keyframe point within ``radius`` after alignment; all grid
-      points when fewer than ``min_points / 2`` are steep), rmse (of those distances),
+      fits anywhere — with a keyframe point within ``radius`` after alignment; a query with
+      fewer than ``min_points / 2`` steep points is refused), rmse (of those distances),
       iterations, converged
 
 On the validation town, the translation seed cut the true loops that GICP failed to reach
@@ -149,9 +149,19 @@ def prepare(xyz: np.ndarray, p: RegistrationParams) -> Prepared:
     tree = small_gicp.KdTree(cloud, num_threads=1)
     small_gicp.estimate_normals_covariances(cloud, tree, p.neighbours, 1)
     steep = structure(cloud)
+    if steep.sum() < p.min_points // 2:
+        # ground fits anywhere: scored on it, two unrelated scans of open ground "verified"
+        # at any x, y and yaw where no ambiguity margin was set
+        return Prepared(
+            None,
+            cloud.size(),
+            f"the scan has {int(steep.sum())} of its {cloud.size()} voxels on steep surfaces "
+            f"(walls, poles, trunks); a pose needs at least {p.min_points // 2}: open ground "
+            "fits any",
+        )
     grid = cloud.points()[:, :3]
-    # ground fits anywhere: fitness scores the structure, unless a scan has too little
-    scored = grid[steep] if steep.sum() >= p.min_points // 2 else grid
+    # ground fits anywhere: fitness scores the structure
+    scored = grid[steep]
     return Prepared(cloud, cloud.size(), None, steep, thinned(cloud, steep, p), scored)
 
 
