@@ -258,7 +258,7 @@ def test_a_scan_of_open_ground_is_not_registered():
     p = RegistrationParams()
     q = prepare(ground, p)
     assert q.cloud is None and "steep surfaces" in (q.reason or ""), q.reason
-    other = ground + [3.0, -2.0, 0.0]
+    other = ground + np.array([3.0, -2.0, 0.0])
     r = register(q, encode_geometry(other), 0.0, p)
     assert r.relative_pose is None and "open ground fits any" in (r.reason or "")
 
