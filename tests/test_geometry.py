@@ -247,6 +247,41 @@ def test_too_sparse_or_unreadable_gives_a_reason_not_an_exception(kitti):
     assert tiny.relative_pose is None and "keeps" in (tiny.reason or "")
 
 
+def test_a_corridor_that_slides_along_itself_is_measured_and_can_be_refused(kitti):
+    """A straight road cut (ground and a terraced rock face along x), the keyframe 15 m
+    farther along: GICP fits it at full fitness 15 m off, and fitness, rmse and the
+    ambiguity check (which turns the seed, never moves it) all pass it. The registration
+    says how firmly its geometry pins the translation (``constraint``); with
+    ``verify.min_constraint`` set, such a fit is refused, naming why; a real KITTI pair is
+    pinned well above the cut."""
+    from overlapmamba.service.registration import RegistrationParams, prepare, register
+    from overlapmamba.service.settings import VerifySettings
+    from overlapmamba.service.verify import judge
+
+    rng = np.random.default_rng(0)
+
+    def cut(x0: float, n: int = 60_000) -> np.ndarray:
+        x = rng.uniform(x0 - 50, x0 + 50, n)
+        k = rng.integers(0, 4, n)
+        y = np.select([k == 0, k == 1, k == 2], [3.0, 5.0, 7.0], rng.uniform(-6, 3, n))
+        z = np.select(
+            [k == 0, k == 1, k == 2],
+            [rng.uniform(-1.7, 1, n), rng.uniform(1, 4, n), rng.uniform(4, 7, n)],
+            -1.7,
+        )
+        return np.stack([x - x0, y, z], 1) + rng.normal(0, 0.02, (n, 3))
+
+    p = RegistrationParams()
+    r = register(prepare(cut(0.0), p), encode_geometry(cut(15.0)), 0.0, p)
+    assert r.relative_pose is not None and np.linalg.norm(r.relative_pose[:3, 3] + [15, 0, 0]) > 5
+    assert judge(r, VerifySettings()).verified  # fitness and rmse alone pass it
+    refused = judge(r, VerifySettings(min_constraint=0.01))
+    assert not refused.verified and "slides along one direction" in (refused.reason or "")
+    real = register(prepare(kitti.points(11).xyz, p), encode_geometry(kitti.points(12).xyz), 0.0, p)
+    assert r.constraint is not None and real.constraint is not None
+    assert r.constraint < 0.01 < real.constraint, (r.constraint, real.constraint)
+
+
 def test_a_scan_of_open_ground_is_not_registered():
     """Fewer than min_points / 2 steep grid points: fitness was scored on the ground, which
     fits any x, y and yaw, and two unrelated ground-only scans "verified" at fitness 0.77

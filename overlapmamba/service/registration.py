@@ -51,6 +51,7 @@ process by default (:mod:`overlapmamba.service.registrar`, ``verify.processes``)
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass, field
@@ -124,6 +125,20 @@ class Registration:
     reason: str | None  # why there is no pose, when there is none
     ms: float
     reach: float | None = None  # share within GICP's reach at the seed (``register``'s screen)
+    # how well the geometry pins the translation: the smallest over the largest eigenvalue
+    # of the translation block of GICP's final Hessian (:func:`constraint`); None where GICP
+    # did not run (a screened seed)
+    constraint: float | None = None
+
+
+def constraint(hessian: np.ndarray) -> float:
+    """How well a registration's geometry pins its translation in every direction: the
+    smallest eigenvalue of the translation block of GICP's final 6 × 6 Hessian (small_gicp
+    orders it rotation, translation) over its largest. Near 0: a direction along which the
+    scans slide without cost (a corridor, a road cut, a tunnel), where fitness stays high
+    at a wrong position."""
+    w = np.linalg.eigvalsh(np.asarray(hessian, dtype=np.float64)[3:, 3:])
+    return float(w[0] / w[-1]) if w[-1] > 0 else 0.0
 
 
 # points farther than this (m) are no sensor's returns: left out of registration
@@ -251,7 +266,8 @@ def register(
     d2 = _distances(query, tree, T, p, view)
     if isinstance(d2, str):
         return refused(d2)
-    return _scored(T, d2, p, int(res.iterations), bool(res.converged), reach, t0)
+    scored = _scored(T, d2, p, int(res.iterations), bool(res.converged), reach, t0)
+    return dataclasses.replace(scored, constraint=constraint(res.H))
 
 
 def _distances(

@@ -299,6 +299,15 @@ class VerifySettings(_RenamedSection):
         "registrations on it)",
     )
     radius_m: float = Field(1.0, gt=0, le=5, description="the fitness radius")
+    min_constraint: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="verified: and the geometry pins the translation in every direction, "
+        "the smallest over the largest eigenvalue of the translation block of GICP's final "
+        "Hessian at least this (a corridor, a road cut or a tunnel slides along itself at "
+        "full fitness: docs/service.md). null: not checked",
+    )
 
     @field_validator("ambiguity_margin", mode="before")
     @classmethod

@@ -79,6 +79,12 @@ def judge(reg: Registration, v: VerifySettings) -> Verdict:
         reason = f"fitness {reg.fitness:.3f} is below {v.min_fitness}"
     elif reg.rmse is None or reg.rmse > v.max_rmse_m:
         reason = f"rmse {reg.rmse} m is above {v.max_rmse_m}"
+    elif v.min_constraint is not None and (reg.constraint or 0.0) < v.min_constraint:
+        reason = (
+            f"the geometry pins the translation too weakly (constraint {reg.constraint or 0.0:.4f}"
+            f" below verify.min_constraint {v.min_constraint}): it slides along one direction"
+            " (a corridor, a road cut, a tunnel), so its position is not known"
+        )
     return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose)
 
 
