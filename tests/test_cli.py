@@ -177,3 +177,46 @@ def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
     assert Settings(auth={"keys": [toml]}).auth.keys[0].query_maps == ["a-base", "a-old"]
     res = runner.invoke(app, ["hash-key", "--role", "mapper", "--key", "k", "--maps", "a"])
     assert res.exit_code == 2 and "robot keys only" in text(res), text(res)
+
+
+def test_research_commands_refuse_what_they_cannot_do_in_one_line(
+    tmp_path, kitti_seq_dir, monkeypatch
+):
+    """Found in review: `ground-truth --radius 0` (allowed by the option, refused by the
+    loop parameters) ended in a pydantic traceback; `eval-real` on one scan in numpy's "need
+    at least one array to stack"; a gen-data run that ran out of disk half-way read as a
+    usage error, with no word that its folder is a dead partial run; `report` and `eval`
+    JSON holds null, never NaN (strict readers refuse it)."""
+    import errno
+    import json
+    import shutil
+
+    from overlapmamba.train.health import strict_json
+
+    res = runner.invoke(app, ["ground-truth", str(kitti_seq_dir), "--radius", "0", "-q"])
+    assert res.exit_code == 2 and "Traceback" not in text(res), text(res)
+    one = tmp_path / "one"
+    (one / "velodyne").mkdir(parents=True)
+    shutil.copy(next(iter(sorted((kitti_seq_dir / "velodyne").iterdir()))), one / "velodyne")
+    (one / "poses.txt").write_text((kitti_seq_dir / "poses.txt").read_text().splitlines()[0] + "\n")
+    shutil.copy(kitti_seq_dir / "calib.txt", one / "calib.txt")
+    res = runner.invoke(
+        app, ["eval-real", "--checkpoint", "models/overlapmamba-hdl64.onnx", "--sequence", str(one)]
+    )
+    assert res.exit_code != 0 and "needs at least 2 scans" in text(res), text(res)
+
+    def full_disk(out_dir, *args, **kwargs):  # type: ignore[no-untyped-def]
+        out_dir.mkdir(parents=True)
+        (out_dir / ".incomplete").write_text("")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("overlapmamba.synth.generate.generate", full_disk)
+    res = runner.invoke(
+        app, ["gen-data", str(tmp_path / "town"), "--seed", "7", "--frames", "3", "-q"]
+    )
+    out = text(res)
+    assert res.exit_code == 1 and "No space left" in out and "incomplete: delete it" in out, out
+    assert "Usage" not in out
+
+    record = {"f1max": float("nan"), "t": np.float32("-inf"), "n": np.int64(3), "ok": 0.5}
+    assert json.loads(strict_json(record)) == {"f1max": None, "t": None, "n": 3, "ok": 0.5}

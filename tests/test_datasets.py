@@ -31,6 +31,19 @@ def test_poses_round_trip_and_reject_junk(tmp_path):
         read_poses(tmp_path / "nan.txt")
 
 
+def test_files_saved_with_a_byte_order_mark_are_read(tmp_path):
+    """An editor on Windows saves poses.txt and calib.txt with a UTF-8 byte-order mark: the
+    first line was read as junk ("non-number '\\ufeff1'", "no 12-number 'Tr:' entry")."""
+    poses = np.stack([rotation_z(a) for a in (0, 30)])
+    write_poses(tmp_path / "poses.txt", poses)
+    text = (tmp_path / "poses.txt").read_text()
+    (tmp_path / "poses.txt").write_text(text, encoding="utf-8-sig")
+    np.testing.assert_allclose(read_poses(tmp_path / "poses.txt"), poses, atol=1e-9)
+    tr = " ".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"])
+    (tmp_path / "calib.txt").write_text(f"Tr: {tr}\n", encoding="utf-8-sig")
+    np.testing.assert_allclose(read_calib(tmp_path / "calib.txt")["Tr"], np.eye(4))
+
+
 def test_relative_yaw():
     a, b = rotation_z(10.0), rotation_z(-35.0)
     assert yaw_deg(relative_transform(a, b[None]))[0] == pytest.approx(-45.0)

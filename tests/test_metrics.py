@@ -29,6 +29,7 @@ from overlapmamba.core.metrics import (
 def test_pr_curve_matches_reference(seed, n):
     rng = np.random.default_rng(seed)
     d = rng.integers(0, 8, n).astype(float)  # many ties on purpose
+    d[rng.random(n) < 0.1] = np.nan  # no distance (a custom caller's): the worst, both ways
     has = rng.random(n) < 0.6
     ok = has & (rng.random(n) < 0.7)
     for fast, ref in zip(pr_curve(d, ok, has), pr_curve_reference(d, ok, has), strict=True):

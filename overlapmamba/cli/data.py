@@ -108,9 +108,9 @@ def ground_truth(
         int | None,
         typer.Option(min=0, hidden=True, help="deprecated: --exclude-recent-frames"),
     ] = None,
-    radius: Annotated[float, typer.Option(min=0.0, help="pre-filter distance (m)")] = 30.0,
+    radius: Annotated[float, typer.Option(min=0.0, help="pre-filter distance (m), > 0")] = 30.0,
     min_overlap: Annotated[float, typer.Option(min=0.0, max=1.0)] = 0.3,
-    threshold: Annotated[float, typer.Option(min=0.0, help="range agreement τ (m)")] = 1.0,
+    threshold: Annotated[float, typer.Option(min=0.0, help="range agreement τ (m), > 0")] = 1.0,
     cache: Annotated[
         Path | None, typer.Option("--out", "-o", help="cache file (.npz); default: automatic")
     ] = None,
@@ -130,9 +130,18 @@ def ground_truth(
             "give --exclude-recent-frames only; --exclude-recent is its old name (deprecated)"
         )
     frames = renamed(given, "loops").get("exclude_recent_frames", exclude_recent_frames)
-    loops = LoopParams(
-        exclude_recent_frames=frames, radius=radius, min_overlap=min_overlap, threshold=threshold
-    )
+    from pydantic import ValidationError
+
+    try:
+        loops = LoopParams(
+            exclude_recent_frames=frames,
+            radius=radius,
+            min_overlap=min_overlap,
+            threshold=threshold,
+        )
+    except ValidationError as err:  # --radius 0, --threshold 0
+        first = err.errors()[0]
+        raise typer.BadParameter(f"--{first['loc'][0]}: {first['msg']}") from None
     gt = loop_ground_truth(
         seq,
         profile,
@@ -348,6 +357,10 @@ def gen_data(
     except FileExistsError as err:
         raise typer.BadParameter(str(err)) from None
     except OSError as err:  # a file where a folder should be, no permission, a full disk
+        if (out_dir / ".incomplete").exists():  # it failed while writing: not a usage error
+            why = escape(f"{out_dir}: {err.strerror or err} ({out_dir} is incomplete: delete it)")
+            console.print(f"[bold red]error:[/] {why}")
+            raise typer.Exit(1) from None
         raise typer.BadParameter(f"{out_dir}: {err.strerror or err}") from None
     except WorkerError as err:
         why = escape(f"{err} ({out_dir} is incomplete: delete it)")

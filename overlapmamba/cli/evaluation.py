@@ -217,15 +217,14 @@ def _check_outputs(json_out: Path | None, plot: Path | None) -> None:
 def _write_json(path: Path, record: dict[str, Any]) -> None:
     """Strict JSON (never NaN), written whole or not at all (a killed run leaves no torn file
     that a later reader takes for a result)."""
-    import json
     import os
 
-    from overlapmamba.train.health import json_safe
+    from overlapmamba.train.health import strict_json
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        tmp.write_text(json.dumps(json_safe(record), indent=2, allow_nan=False) + "\n")
+        tmp.write_text(strict_json(record, indent=2) + "\n")
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

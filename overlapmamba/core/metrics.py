@@ -110,6 +110,7 @@ def pr_curve(
     Returns arrays of length T + 1: index 0 is t = −∞, then each distinct distance ascending.
     """
     d = np.asarray(top1_distance, dtype=np.float64)
+    d = np.where(np.isnan(d), np.inf, d)  # no distance: accepted at no threshold
     ok = np.asarray(top1_correct, dtype=bool)
     has = np.asarray(has_positive, dtype=bool)
     if d.size == 0:
@@ -137,12 +138,13 @@ def pr_curve_reference(
     top1_distance: np.ndarray, top1_correct: np.ndarray, has_positive: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Slow, obvious twin of :func:`pr_curve`, one threshold at a time. For tests."""
-    thresholds = [-math.inf, *sorted(set(float(x) for x in top1_distance))]
+    dist = [math.inf if math.isnan(float(x)) else float(x) for x in top1_distance]
+    thresholds = [-math.inf, *sorted(set(dist))]
     any_positive = any(bool(h) for h in has_positive)
     precision, recall = [], []
     for t in thresholds:
         tp = fp = fn = 0
-        for d, ok, has in zip(top1_distance, top1_correct, has_positive, strict=True):
+        for d, ok, has in zip(dist, top1_correct, has_positive, strict=True):
             if d <= t:
                 tp, fp = tp + bool(ok), fp + (not ok)
             elif has:

@@ -17,7 +17,7 @@ def read_poses(path: str | Path) -> np.ndarray:
     path = Path(path)
     rows = []
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a BOM is not data
     except OSError as err:
         raise DatasetError(f"cannot read pose file {path}: {err.strerror}") from err
     for lineno, line in enumerate(lines, 1):
@@ -51,7 +51,7 @@ def read_calib(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     out: dict[str, np.ndarray] = {}
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a BOM is not data
     except OSError as err:
         raise DatasetError(f"cannot read calibration file {path}: {err.strerror}") from err
     for lineno, line in enumerate(lines, 1):

@@ -27,6 +27,7 @@ quarter of where the epoch, or the run, started.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -140,6 +141,14 @@ def json_safe(obj: Any) -> Any:
     if isinstance(obj, list | tuple):
         return [json_safe(v) for v in obj]
     return obj
+
+
+def strict_json(obj: Any, indent: int = 1) -> str:
+    """``obj`` as strict JSON: NaN and infinities (numpy's scalars too) as null, never the
+    ``NaN`` Python writes and browsers, jq and other readers refuse."""
+    return json.dumps(
+        json_safe(obj), indent=indent, default=lambda x: json_safe(float(x)), allow_nan=False
+    )
 
 
 def epoch_line(entry: dict[str, Any], start: str) -> str:

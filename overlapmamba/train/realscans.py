@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.metrics import nearest, squared_distances
 from overlapmamba.core.poses import rotation_z, transform_points, yaw_deg
 from overlapmamba.core.rerank import OFF, Rerank, rerank_ranked
@@ -172,6 +173,11 @@ def eval_real(
     retrieval of the turned odd frames (Recall@1/@5 within ``hit_radius``, Scan Context
     beside; with ``rerank`` on, the two-stage answers too), the yaw estimate, and for each
     count in ``beams`` the same retrieval with thinned queries (:func:`thinned`)."""
+    if len(seq) < 2:  # odd → even retrieval needs one of each
+        raise DatasetError(
+            f"{seq.root}: eval-real needs at least 2 scans (odd frames query the even); "
+            f"it has {len(seq)}"
+        )
     inp = input_of(model, profile, seq)
     t = real_turns(seq, inp, seed, views_of(model), aligned_of(model))
     theta, pos, n = t.theta, t.positions, len(seq)

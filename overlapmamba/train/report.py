@@ -42,6 +42,7 @@ from overlapmamba.train.evaluate import (
     sequence_loops,
     summary,
 )
+from overlapmamba.train.health import strict_json
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig
 from overlapmamba.train.presets import SHIPPED
 from overlapmamba.train.report_tables import markdown
@@ -417,6 +418,7 @@ def build_report(
         "real": real_checks(runs, shipped_onnx),
         "torch_threads": torch.get_num_threads(),
     }
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    # strict JSON: a town without revisits one way scores NaN, and -inf thresholds
+    (out / "report.json").write_text(strict_json(report) + "\n")
     (out / "tables.md").write_text(markdown(report))
     return report
