@@ -141,16 +141,11 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
     ``python``'s environment (the tested venv), and the build backend."""
     t0 = time.perf_counter()
     sys.path.insert(0, str(ROOT / "deploy"))
-    from lock import pins  # deploy/lock.py
+    from lock import freeze, pins  # deploy/lock.py
     from requirements import requirements  # deploy/requirements.py
 
     reqs = requirements(ROOT / "pyproject.toml", ["serve"])
-    frozen = subprocess.run(
-        [python, "-m", "pip", "freeze", "--exclude-editable"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
+    frozen = freeze(python)
     WHEELS.mkdir(parents=True, exist_ok=True)
     for old in WHEELS.glob("*.whl"):  # an earlier venv's: pip would take the highest
         old.unlink()

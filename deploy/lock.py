@@ -36,14 +36,18 @@ def pins(frozen: str) -> list[str]:
     return sorted(out, key=str.lower)
 
 
-def main(python: str = sys.executable) -> None:
-    frozen = subprocess.run(
+def freeze(python: str = sys.executable) -> str:
+    """``pip freeze`` of ``python``'s environment, editables left out."""
+    return subprocess.run(
         [python, "-m", "pip", "freeze", "--exclude-editable"],
         capture_output=True,
         text=True,
         check=True,
     ).stdout
-    lines = pins(frozen)
+
+
+def main(python: str = sys.executable) -> None:
+    lines = pins(freeze(python))
     if not lines:
         raise SystemExit(f"{python} holds no packages: nothing to lock")
     target = ROOT / "constraints.txt"

@@ -254,25 +254,17 @@ def test_a_corridor_that_slides_along_itself_is_measured_and_can_be_refused(kitt
     says how firmly its geometry pins the translation (``constraint``); with
     ``verify.min_constraint`` set, such a fit is refused, naming why; a real KITTI pair is
     pinned well above the cut."""
+    from conftest import benchmark_module
+
     from overlapmamba.service.registration import RegistrationParams, prepare, register
     from overlapmamba.service.settings import VerifySettings
     from overlapmamba.service.verify import judge
 
+    road_cut = benchmark_module("verify_constraint").road_cut  # the benchmark's scene
     rng = np.random.default_rng(0)
 
-    def cut(x0: float, n: int = 60_000) -> np.ndarray:
-        x = rng.uniform(x0 - 50, x0 + 50, n)
-        k = rng.integers(0, 4, n)
-        y = np.select([k == 0, k == 1, k == 2], [3.0, 5.0, 7.0], rng.uniform(-6, 3, n))
-        z = np.select(
-            [k == 0, k == 1, k == 2],
-            [rng.uniform(-1.7, 1, n), rng.uniform(1, 4, n), rng.uniform(4, 7, n)],
-            -1.7,
-        )
-        return np.stack([x - x0, y, z], 1) + rng.normal(0, 0.02, (n, 3))
-
     p = RegistrationParams()
-    r = register(prepare(cut(0.0), p), encode_geometry(cut(15.0)), 0.0, p)
+    r = register(prepare(road_cut(0.0, rng), p), encode_geometry(road_cut(15.0, rng)), 0.0, p)
     assert r.relative_pose is not None and np.linalg.norm(r.relative_pose[:3, 3] + [15, 0, 0]) > 5
     assert judge(r, VerifySettings()).verified  # fitness and rmse alone pass it
     refused = judge(r, VerifySettings(min_constraint=0.01))
