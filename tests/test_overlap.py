@@ -133,3 +133,34 @@ def test_pair_overlaps_of_no_pairs_is_empty(synthetic_seq_dir):
     seq = open_sequence(synthetic_seq_dir)
     ov, yaw = pair_overlaps(seq, np.zeros((0, 2), np.int64), get_profile("kitti-hdl64"))
     assert ov.shape == yaw.shape == (0,)
+
+
+def test_a_scan_rewritten_in_place_makes_its_caches_again(synthetic_seq_dir, tmp_path, monkeypatch):
+    """The caches' keys read no scan (poses, names and sizes): a scan rewritten in place at
+    its size (de-skewed, filtered, simulated again) kept its stale loop table and range
+    images. Each records the scans' sampled content beside its key, and is made again when
+    that differs."""
+    import shutil
+
+    from overlapmamba.train.rangecache import range_images
+
+    monkeypatch.setenv("OVERLAPMAMBA_CACHE", str(tmp_path / "cache"))
+    folder = tmp_path / "seq"
+    shutil.copytree(synthetic_seq_dir, folder)
+    loops = LoopParams(exclude_recent_frames=12, radius=10.0, min_overlap=0.3)
+    seq = open_sequence(folder)
+    before = loop_ground_truth(seq, KITTI, loops, progress=False)
+    images = np.array(range_images(seq, KITTI, progress=False))
+    scan = seq.scan_paths[30]
+    xyzi = np.fromfile(scan, np.float32).reshape(-1, 4)
+    xyzi[:, 0] += 20.0  # moved 20 m: another scene, the same size
+    xyzi.tofile(scan)
+    seq = open_sequence(folder)
+    after = loop_ground_truth(seq, KITTI, loops, progress=False)
+    assert after.params["fingerprint"] == before.params["fingerprint"]  # the key is blind
+    assert after.params["content"] != before.params["content"]
+    mine = (after.query == 30) | (after.reference == 30)
+    was = (before.query == 30) | (before.reference == 30)
+    assert not np.array_equal(after.overlap[mine], before.overlap[was])
+    again = np.array(range_images(seq, KITTI, progress=False))
+    assert not np.array_equal(again[30], images[30]) and np.array_equal(again[0], images[0])

@@ -342,6 +342,7 @@ def loop_table_from_pairs(
     query, reference = np.asarray(query, np.int64), np.asarray(reference, np.int64)
     dist = np.linalg.norm(pos[query] - pos[reference], axis=1)
     keep = (query - reference > params["exclude_recent"]) & (dist < params["radius"])
+    content = _content(seq)  # beside the fingerprint, not in it: tables made before still match
     return LoopGroundTruth(
         n_frames=len(seq),
         query=query[keep],
@@ -349,18 +350,37 @@ def loop_table_from_pairs(
         overlap=np.asarray(overlap, np.float32)[keep],
         yaw_deg=np.asarray(yaw, np.float32)[keep],
         distance=dist[keep].astype(np.float32),
-        params=params,
+        params={**params, "content": content} if content else params,
     )
 
 
-def _load_matching(path: Path, fingerprint: str) -> LoopGroundTruth | None:
+def _content(seq: Sequence) -> str:
+    """The scans' sampled content digest (``Sequence.content_digest``; '' for a recording
+    that has none, a bag, whose digest holds its message times)."""
+    digest = getattr(seq, "content_digest", None)
+    return digest() if digest is not None else ""
+
+
+def _load_matching(path: Path, fingerprint: str, seq: Sequence) -> LoopGroundTruth | None:
+    """The table at ``path`` if it was made from this sequence with these parameters, and
+    (where it records one: tables since 2026-12-04) from these scans' content."""
     if not path.is_file():
         return None
     try:
         gt = LoopGroundTruth.load(path)
     except (OSError, ValueError, KeyError):
         return None  # unreadable or stale: recompute
-    return gt if gt.params.get("fingerprint") == fingerprint else None
+    return gt if table_matches(gt, fingerprint, seq) else None
+
+
+def table_matches(gt: LoopGroundTruth, fingerprint: str, seq: Sequence) -> bool:
+    """Whether a loop table stands for ``seq``: its parameters' fingerprint is the one given,
+    and the scans' content is the one it was made from (where it records it: tables made
+    since 2026-12-04; the fingerprint reads no scan)."""
+    if gt.params.get("fingerprint") != fingerprint:
+        return False
+    recorded = gt.params.get("content")
+    return not recorded or recorded == _content(seq)
 
 
 def loop_ground_truth(
@@ -384,11 +404,11 @@ def loop_ground_truth(
     path = None
     if cache is not False:
         if cache is True:
-            shipped = _load_matching(seq.root / "ground_truth" / "loops.npz", fp)
+            shipped = _load_matching(seq.root / "ground_truth" / "loops.npz", fp, seq)
             if shipped is not None:
                 return shipped
         path = default_cache_path(seq, fp) if cache is True else Path(cache)
-        cached = _load_matching(path, fp)
+        cached = _load_matching(path, fp, seq)
         if cached is not None:
             return cached
     pos = seq.positions()

@@ -30,7 +30,13 @@ from overlapmamba.core.metrics import (
     evaluate_retrieval,
     nearest,
 )
-from overlapmamba.core.overlap import LoopGroundTruth, LoopParams, loop_ground_truth, loop_params
+from overlapmamba.core.overlap import (
+    LoopGroundTruth,
+    LoopParams,
+    loop_ground_truth,
+    loop_params,
+    table_matches,
+)
 from overlapmamba.core.rerank import OFF, Rerank, two_stage
 from overlapmamba.core.scancontext import ScanContextParams, scan_context
 from overlapmamba.core.scancontext import retrieve as sc_retrieve
@@ -135,7 +141,7 @@ def sequence_loops(
     evaluated; a sequence that names no sensor in ``fallback`` (the model's profile, as its
     scans are then projected), else KITTI's."""
     shipped = shipped_loops(seq, fallback)
-    if shipped is not None and shipped[0].params.get("fingerprint") == shipped[1]:
+    if shipped is not None and table_matches(shipped[0], shipped[1], seq):
         return shipped[0]
     return loop_ground_truth(seq, _loop_profile(seq, fallback), progress=progress)
 

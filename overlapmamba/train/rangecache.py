@@ -71,10 +71,14 @@ def range_images(
     if views > 1:
         shape = (shape[0], views, *shape[1:])
     path = _cache_path(seq, profile, views, sensor, aligned)
+    content = seq.content_digest()  # the key reads no scan: a rewrite in place keeps it
+    recorded = _content_path(path)
     if path.is_file() and (not aligned or _offsets_path(path).is_file()):
         try:
             images = np.load(path, mmap_mode="r")
-            if images.shape == shape:
+            # caches made before 2026-12-04 record no content: taken as before
+            same = not recorded.is_file() or recorded.read_text().strip() == content
+            if images.shape == shape and same:
                 return images
         except (OSError, ValueError):
             pass  # torn or foreign file: rebuild it
@@ -97,8 +101,17 @@ def range_images(
         part = done.with_name(f"{done.stem}.tmp{os.getpid()}.npy")
         np.save(part, offsets)
         os.replace(part, done)
+    recorded.unlink(missing_ok=True)  # no stale record beside new images, even for a moment
     os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind
+    part = recorded.with_name(f"{recorded.name}.tmp{os.getpid()}")
+    part.write_text(content + "\n")
+    os.replace(part, recorded)
     return np.load(path, mmap_mode="r")
+
+
+def _content_path(path: Path) -> Path:
+    """Beside a cache: the content digest of the scans it was made from."""
+    return path.with_name(f"{path.stem}.content")
 
 
 def range_offsets(
