@@ -71,7 +71,10 @@ def range_images(
     if views > 1:
         shape = (shape[0], views, *shape[1:])
     path = _cache_path(seq, profile, views, sensor, aligned)
-    content = seq.content_digest()  # the key reads no scan: a rewrite in place keeps it
+    # the key reads no scan: a rewrite in place keeps it (a recording's, a bag's, holds its
+    # message times, and it has no content digest)
+    digest = getattr(seq, "content_digest", None)
+    content = digest() if digest is not None else ""
     recorded = _content_path(path)
     if path.is_file() and (not aligned or _offsets_path(path).is_file()):
         try:
@@ -103,9 +106,10 @@ def range_images(
         os.replace(part, done)
     recorded.unlink(missing_ok=True)  # no stale record beside new images, even for a moment
     os.replace(tmp, path)  # atomic: a crash mid-way leaves no half-written cache behind
-    part = recorded.with_name(f"{recorded.name}.tmp{os.getpid()}")
-    part.write_text(content + "\n")
-    os.replace(part, recorded)
+    if content:
+        part = recorded.with_name(f"{recorded.name}.tmp{os.getpid()}")
+        part.write_text(content + "\n")
+        os.replace(part, recorded)
     return np.load(path, mmap_mode="r")
 
 
