@@ -10,7 +10,9 @@ MODEL  ?= models/overlapmamba-hdl64.onnx
 
 # torch is pinned to the CPU build. Use the local wheel where this machine has it; elsewhere
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
-TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
+# (uv takes a package from the first index that has it; PyTorch's carries numpy, pillow and
+# others at a few versions only, which the lock's pins may not be: best match across both)
+TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu --index-strategy unsafe-best-match)
 
 .PHONY: lock test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns data-drift docs docs-site clean
 

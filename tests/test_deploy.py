@@ -315,6 +315,9 @@ def test_the_lock_pins_every_requirement_within_what_pyproject_allows():
         assert req.specifier.contains(version, prereleases=True), (text, pinned[name])
     make = (ROOT / "Makefile").read_text()
     assert make.count("-c constraints.txt -e '.[") == 2  # the dev set and the serve set
+    # uv takes a package from the first index that has it: with PyTorch's beside PyPI, the
+    # pins of numpy, pillow … must be matched across both
+    assert "whl/cpu --index-strategy unsafe-best-match" in make
     # the freeze it is written from: installers, editables and URLs left out, sorted
     frozen = "Zeta==1.0\n-e file:///src\npip==23.2\nuv==0.9\nalpha==2.0+cpu\nx @ file:///x.whl\n"
     assert pins(frozen) == ["alpha==2.0+cpu", "Zeta==1.0"]

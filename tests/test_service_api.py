@@ -870,7 +870,7 @@ async def test_a_robot_key_with_query_maps_reaches_no_other_map(tmp_path, encode
     and the maps it inserts into; every other map is 403 ``map_not_allowed``, the stream's
     handshake refused (1008)."""
     keys = [
-        {"name": "a", "role": "robot", "sha256": hash_key("k-a"), "query_maps": ["a"]},
+        {"name": "a", "role": "robot", "sha256": hash_key("k-a"), "maps": ["a"], "query_maps": []},
         {"name": "admin", "role": "admin", "sha256": hash_key("k-admin")},
     ]
     settings = Settings(data_dir=tmp_path / "d", auth={"keys": keys})
@@ -918,6 +918,25 @@ async def test_the_api_docs_page_loads_nothing_from_elsewhere(settings, encoder)
     async with httpx.AsyncClient(transport=transport, base_url="http://t") as prefixed:
         page = (await prefixed.get("/docs")).text
     assert "'/om/openapi.json'" in page and "/om/docs/assets/swagger-ui.css" in page, page
+
+
+async def test_metrics_answer_when_the_index_cannot_list_its_maps(settings, encoder, monkeypatch):
+    """/metrics follows the backend's maps at each scrape; with the index away (Qdrant
+    down) that scrape was a 503, and the ready gauge and every series went missing just
+    when they were wanted. It answers with the last values."""
+    from overlapmamba.service.errors import Unavailable
+
+    async with running(settings, encoder) as c:
+        assert (await c.get("/metrics")).status_code == 200
+        registry = c.app.state.service.registry  # type: ignore[attr-defined]
+
+        def down() -> list:
+            raise Unavailable("qdrant is not answering", code="index_unavailable")
+
+        monkeypatch.setattr(registry, "snapshot_list", down)
+        r = await c.get("/metrics")
+        monkeypatch.undo()  # (the shutdown lists the maps to close them)
+        assert r.status_code == 200 and "overlapmamba_ready 1.0" in r.text, r.text[:300]
 
 
 async def test_not_ready_before_the_lifespan(settings, encoder):

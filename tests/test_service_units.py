@@ -617,6 +617,10 @@ def test_roles_and_keys():
     mapper = {"name": "m", "role": "mapper", "sha256": hash_key("m"), "query_maps": ["town"]}
     with pytest.raises(ValueError, match="query_maps applies to robot keys only"):
         AuthSettings.model_validate({"keys": [mapper]})
+    # without maps a robot may insert into, and so query, any map: query_maps would be void
+    loose = {"name": "r", "role": "robot", "sha256": hash_key("r"), "query_maps": ["town"]}
+    with pytest.raises(ValueError, match="allowed: query_maps with maps"):
+        AuthSettings.model_validate({"keys": [loose]})
 
 
 def test_a_robot_key_queries_only_its_maps_where_query_maps_says_so():

@@ -402,3 +402,43 @@ def test_one_run_folder_one_run_and_a_failed_write_keeps_the_last_checkpoint(tmp
     assert sorted(p.name for p in path.parent.iterdir()) == [".lock", "last.pt"]
     (path.parent / ".best.pt.tmp999").write_bytes(b"half")  # a killed run's
     assert [p.name for p in runfolder.remove_stale_writes(path.parent)] == [".best.pt.tmp999"]
+
+
+def test_the_run_folder_holds_on_mounts_without_locks_or_folder_fsync(tmp_path, monkeypatch):
+    """Found in review of the lock and the fsync: a mount without flock (ENOLCK) was told
+    "in use by another training run", and one that cannot fsync a folder (CIFS, FUSE: EINVAL)
+    ended the run after its checkpoint was written; a run started before paths were recorded
+    absolute (data/synth/…) could not be resumed ("other data than the run was started on")."""
+    import errno
+    import fcntl
+    import os
+    import stat
+
+    from overlapmamba.train import runfolder
+    from overlapmamba.train.train import _resolved
+
+    def no_locks(fd, op):  # type: ignore[no-untyped-def]
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    runfolder.hold_run_folder(tmp_path / "run").close()  # a warning, not a refusal
+    monkeypatch.undo()
+    real_fsync = os.fsync
+
+    def no_folder_fsync(fd):  # type: ignore[no-untyped-def]
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "Invalid argument")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", no_folder_fsync)
+    save_checkpoint(tmp_path / "run" / "last.pt", {"epoch": 1})
+    assert read_checkpoint(tmp_path / "run" / "last.pt")["epoch"] == 1
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
+    old = {"train": [{"path": "tiny", "key": "k"}], "val": {"path": "v", "key": "j"}}
+    new = {
+        "train": [{"path": str(tmp_path / "tiny"), "key": "k"}],
+        "val": {"path": str(tmp_path / "v"), "key": "j"},
+    }
+    assert _resolved(old) == _resolved(new)
+    assert _resolved(old) != _resolved({**new, "val": {"path": str(tmp_path / "v"), "key": "x"}})

@@ -176,12 +176,27 @@ class GuardMiddleware:
         return status
 
 
+# the routes that record their stage times (overlapmamba.service.places: a scan described,
+# queried, observed or inserted): a snapshot or a map's settings that ran out of time are
+# not a scan's latency
+TIMED_ROUTES = frozenset(
+    {
+        "/v1/descriptors",
+        "/v1/descriptors:batch",
+        "/v1/maps/{map_id}/query",
+        "/v1/maps/{map_id}/observe",
+        "/v1/maps/{map_id}/keyframes",
+    }
+)
+
+
 def _timed_out(scope: Scope, ms: float) -> None:
     """A request cut at its timeout: its total time in the latency statistics (the
     service's, and its map's where the route names one that is still there)."""
     app = scope.get("app")
     svc = getattr(app.state, "service", None) if app is not None else None
-    if svc is None or scope.get("route") is None:
+    route = getattr(scope.get("route"), "path", None)
+    if svc is None or route not in TIMED_ROUTES:  # the routes whose stage times are kept
         return
     map_id = scope.get("path_params", {}).get("map_id")
     if map_id is not None and map_id not in svc.stats.by_map:

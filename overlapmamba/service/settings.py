@@ -373,6 +373,12 @@ class ApiKey(_Section):
                     f"key {self.name!r}: {field} applies to robot keys only, and this key's "
                     f"role is {self.role!r}; allowed: {field} on a robot key, or none"
                 )
+        if self.query_maps is not None and self.maps is None:
+            raise ValueError(
+                f"key {self.name!r}: query_maps limits the maps a robot queries besides those "
+                "in maps, and without maps it may insert into (and so query) any; allowed: "
+                "query_maps with maps"
+            )
         return self
 
 

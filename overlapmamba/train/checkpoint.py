@@ -58,11 +58,14 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
             "any, is kept",
             path=str(path),
         ) from None
-    folder = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(folder)
-    finally:
-        os.close(folder)
+    try:  # the rename itself to disk; some mounts (CIFS, FUSE) cannot fsync a folder
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
+    except OSError:
+        pass  # the checkpoint is written and renamed: only its durability is the mount's
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

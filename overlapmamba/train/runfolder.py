@@ -3,6 +3,8 @@ back from its ``last.pt``, and the partial files a killed run left."""
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -11,6 +13,8 @@ from overlapmamba.train.checkpoint import read_checkpoint
 from overlapmamba.train.errors import ConfigError
 from overlapmamba.train.model import OverlapMambaConfig
 from overlapmamba.train.train_config import SCHEDULE, TrainConfig
+
+log = logging.getLogger(__name__)
 
 
 class RunLock:
@@ -24,7 +28,12 @@ class RunLock:
         self.fd: int | None = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except OSError as err:
+            if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):  # a mount without locks
+                log.warning(
+                    "%s cannot be locked (%s): two runs into it are not prevented", out, err
+                )
+                return
             self.close()
             raise ConfigError(
                 f"{out} is in use by another training run; wait for it or choose another --out"

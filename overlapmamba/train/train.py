@@ -113,6 +113,16 @@ def train(
         return _train(held, data, val, out, model_cfg, train_cfg, resume, epochs, move_to, progress)
 
 
+def _resolved(data: Any) -> Any:
+    """Recorded data fingerprints with every path resolved: runs before 2026-12-04 recorded
+    them as given (data/synth/…), since then absolute."""
+    if isinstance(data, dict):
+        return {k: str(Path(v).resolve()) if k == "path" else _resolved(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_resolved(v) for v in data]
+    return data
+
+
 def _train(
     held: contextlib.ExitStack,
     data: list[Path],
@@ -197,7 +207,7 @@ def _train(
             raise ConfigError(f"{rendering.path} is both training data and a validation rendering")
     if renderings:  # runs without them keep their fingerprints (and --resume)
         fingerprints["val_sensors"] = [{"path": r.path, "key": r.key} for r in renderings]
-    if state is not None and state["train"]["data"] != fingerprints:
+    if state is not None and _resolved(state["train"]["data"]) != _resolved(fingerprints):
         raise ConfigError("--resume with other data than the run was started on")
     pairs = PairIndex.from_sequences(seqs)
     sampler = BatchSampler(

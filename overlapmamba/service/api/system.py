@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from importlib import resources
 from typing import Any
 
@@ -171,7 +172,8 @@ async def metrics(request: Request, svc: LoadedServiceDep, _: CanView) -> Respon
     ready = getattr(request.app.state, "ready", False)
     svc.stats.p_ready.set(1 if ready else 0)
     if ready:  # (while the maps replay, those not yet loaded are not gone)
-        await _reconcile(svc)
+        with contextlib.suppress(ServiceError):  # the index away: the last values, not a 503
+            await _reconcile(svc)
     svc.stats.p_queue.set(svc.pipeline.pending)
     return Response(generate_latest(svc.stats.registry), media_type=CONTENT_TYPE_LATEST)
 
