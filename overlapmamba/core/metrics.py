@@ -110,7 +110,7 @@ def pr_curve(
     Returns arrays of length T + 1: index 0 is t = −∞, then each distinct distance ascending.
     """
     d = np.asarray(top1_distance, dtype=np.float64)
-    d = np.where(np.isnan(d), np.inf, d)  # no distance: accepted at no threshold
+    d = np.where(np.isnan(d), np.inf, d)  # no distance: the worst, accepted only at +inf
     ok = np.asarray(top1_correct, dtype=bool)
     has = np.asarray(has_positive, dtype=bool)
     if d.size == 0:
