@@ -380,11 +380,11 @@ def test_one_run_folder_one_run_and_a_failed_write_keeps_the_last_checkpoint(tmp
 
     from overlapmamba.train import runfolder
 
-    held = runfolder.hold_run_folder(tmp_path / "run")
+    held = runfolder.RunLock(tmp_path / "run")
     with pytest.raises(ConfigError, match="in use by another training run"):
-        runfolder.hold_run_folder(tmp_path / "run")
+        runfolder.RunLock(tmp_path / "run")
     held.close()
-    runfolder.hold_run_folder(tmp_path / "run").close()  # free again
+    runfolder.RunLock(tmp_path / "run").close()  # free again
 
     path = tmp_path / "run" / "last.pt"
     save_checkpoint(path, {"epoch": 1})
@@ -415,13 +415,13 @@ def test_the_run_folder_holds_on_mounts_without_locks_or_folder_fsync(tmp_path, 
     import stat
 
     from overlapmamba.train import runfolder
-    from overlapmamba.train.train import _resolved
+    from overlapmamba.train.runfolder import same_data
 
     def no_locks(fd, op):  # type: ignore[no-untyped-def]
         raise OSError(errno.ENOLCK, "No locks available")
 
     monkeypatch.setattr(fcntl, "flock", no_locks)
-    runfolder.hold_run_folder(tmp_path / "run").close()  # a warning, not a refusal
+    runfolder.RunLock(tmp_path / "run").close()  # a warning, not a refusal
     monkeypatch.undo()
     real_fsync = os.fsync
 
@@ -440,5 +440,5 @@ def test_the_run_folder_holds_on_mounts_without_locks_or_folder_fsync(tmp_path, 
         "train": [{"path": str(tmp_path / "tiny"), "key": "k"}],
         "val": {"path": str(tmp_path / "v"), "key": "j"},
     }
-    assert _resolved(old) == _resolved(new)
-    assert _resolved(old) != _resolved({**new, "val": {"path": str(tmp_path / "v"), "key": "x"}})
+    assert same_data(old, new)
+    assert not same_data(old, {**new, "val": {"path": str(tmp_path / "v"), "key": "x"}})

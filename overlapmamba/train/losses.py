@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -208,6 +209,29 @@ def consistency(desc: Tensor, moved: Tensor, spread: Tensor, allowance: float = 
     column re-bins every point, and training alone let that move grow."""
     away = (desc - moved).pow(2).sum(1) / spread.clamp_min(1e-12)
     return torch.relu(away - allowance).mean()
+
+
+def with_copy_terms(
+    value: Tensor,
+    desc: Tensor,
+    turned: Tensor,
+    looked_at: Any,  # (L,) indices into the batch, an index array or a list
+    looked: Tensor,
+    turn: tuple[float, float],
+    look_weight: float,
+) -> tuple[Tensor, float, float]:
+    """The consistency terms of a batch's copies: ``turned`` (T, D) of its first T scans,
+    ``looked`` of the scans ``looked_at`` seen as another sensor; ``turn`` is the turn
+    term's (weight, allowance). → (the loss ``value`` with those terms added; the mean
+    squared distance of a turned copy and of a sensor copy to its scan, NaN without)."""
+    d_turn = d_look = math.nan
+    if T := len(turned):
+        value = value + turn[0] * consistency(desc[:T], turned, batch_spread(desc), turn[1])
+        d_turn = float((desc[:T] - turned).detach().pow(2).sum(1).mean())
+    if len(looked_at):
+        value = value + look_weight * consistency(desc[looked_at], looked, batch_spread(desc))
+        d_look = float((desc[looked_at] - looked).detach().pow(2).sum(1).mean())
+    return value, d_turn, d_look
 
 
 SCALES = ("absolute", "relative", "normalised")

@@ -115,6 +115,16 @@ def real_turns(
     )
 
 
+def turn_check(model: Network, turns: RealTurns | None, device: str) -> dict[str, Any] | None:
+    """An epoch's check on real scans (``real``): :func:`invariance` of the model's
+    descriptors of ``turns``; None when the check is off."""
+    if turns is None:
+        return None
+    desc, _ = describe(model, turns.plain, device=device)
+    desc_t, _ = describe(model, turns.turned, device=device)
+    return invariance(desc, desc_t, turns.positions)
+
+
 def invariance(desc: np.ndarray, desc_t: np.ndarray, positions: np.ndarray) -> dict[str, Any]:
     """How far a turned copy moves, against how far scans 1 m apart (0.8–1.2 m) and any two
     different scans are: squared distances between descriptors, medians."""

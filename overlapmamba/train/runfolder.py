@@ -19,7 +19,9 @@ log = logging.getLogger(__name__)
 
 class RunLock:
     """An exclusive lock on a run folder (``out/.lock``), held until :meth:`close` (or the
-    end of a ``with``, or the object is gone)."""
+    end of a ``with``, or the object is gone): a second run into the same ``--out`` would
+    interleave its checkpoints with this one's (best.pt of one seed, last.pt and metrics of
+    the other)."""
 
     def __init__(self, out: Path) -> None:
         import fcntl
@@ -52,13 +54,6 @@ class RunLock:
 
     def __del__(self) -> None:
         self.close()
-
-
-def hold_run_folder(out: Path) -> RunLock:
-    """The run folder ``out``, locked for this process: a second run into the same
-    ``--out`` would interleave its checkpoints with this one's (best.pt of one seed, last.pt
-    and metrics of the other)."""
-    return RunLock(out)
 
 
 def remove_stale_writes(folder: Path) -> list[Path]:
@@ -103,3 +98,29 @@ def read_run(
     if out.exists() and not out.is_dir():  # found at the first checkpoint, after the set-up
         raise ConfigError(f"--out {out} is a file; a run is written into a folder")
     return state, data, val, model_cfg, train_cfg
+
+
+def data_record(seqs: list[Any], keys: list[str], val_seq: Any, val_key: str) -> dict[str, Any]:
+    """What a run records of its data (``last.pt``'s ``train.data``): each training
+    sequence's and the validation one's folder, resolved (a resume from another working
+    directory finds them), with its range-image cache key."""
+    return {
+        "train": [
+            {"path": str(s.root.resolve()), "key": k} for s, k in zip(seqs, keys, strict=True)
+        ],
+        "val": {"path": str(val_seq.root.resolve()), "key": val_key},
+    }
+
+
+def same_data(recorded: Any, now: Any) -> bool:
+    """Whether a run's recorded data is the data given now, paths compared resolved: runs
+    before 2026-12-04 recorded them as given (data/synth/…), since then absolute."""
+    return bool(_resolved(recorded) == _resolved(now))
+
+
+def _resolved(data: Any) -> Any:
+    if isinstance(data, dict):
+        return {k: str(Path(v).resolve()) if k == "path" else _resolved(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_resolved(v) for v in data]
+    return data

@@ -66,16 +66,20 @@ from overlapmamba.train.calibrate import recalibrate_batchnorm
 from overlapmamba.train.checkpoint import save_checkpoint
 from overlapmamba.train.curves import plot_curves
 from overlapmamba.train.errors import ConfigError, DivergedError
-from overlapmamba.train.evaluate import describe, loop_closure, sequence_loops, summary
+from overlapmamba.train.evaluate import describe, sequence_loops
 from overlapmamba.train.health import HealthLog, batch_distances, epoch_line, json_safe
-from overlapmamba.train.losses import batch_spread, consistency, pair_masks
+from overlapmamba.train.losses import pair_masks, with_copy_terms
 from overlapmamba.train.mining import HardNegatives, mine
 from overlapmamba.train.model import OverlapMamba, OverlapMambaConfig, channels_last
 from overlapmamba.train.rangecache import cache_key, range_images
-from overlapmamba.train.realscans import (
-    invariance,
+from overlapmamba.train.realscans import turn_check
+from overlapmamba.train.runfolder import (
+    RunLock,
+    data_record,
+    read_run,
+    remove_stale_writes,
+    same_data,
 )
-from overlapmamba.train.runfolder import hold_run_folder, read_run, remove_stale_writes
 from overlapmamba.train.train_config import SCHEDULE, TrainConfig, load_config_file
 from overlapmamba.train.train_inputs import (
     Images,
@@ -87,7 +91,7 @@ from overlapmamba.train.train_inputs import (
     start_weights,
     training_input,
 )
-from overlapmamba.train.valsensors import open_renderings, selection_score, validate_renderings
+from overlapmamba.train.valsensors import open_renderings, selection_score, validation_fields
 
 __all__ = ["TrainConfig", "load_config_file", "train"]
 
@@ -108,19 +112,9 @@ def train(
 
     Resuming reads the model and training config and the data paths from ``out/last.pt``;
     ``epochs`` may extend the run, ``move_to`` move it to another device (cpu, cuda). The
-    run folder is locked for the call (:class:`~overlapmamba.train.checkpoint.RunLock`)."""
+    run folder is locked for the call (:class:`~overlapmamba.train.runfolder.RunLock`)."""
     with contextlib.ExitStack() as held:
         return _train(held, data, val, out, model_cfg, train_cfg, resume, epochs, move_to, progress)
-
-
-def _resolved(data: Any) -> Any:
-    """Recorded data fingerprints with every path resolved: runs before 2026-12-04 recorded
-    them as given (data/synth/…), since then absolute."""
-    if isinstance(data, dict):
-        return {k: str(Path(v).resolve()) if k == "path" else _resolved(v) for k, v in data.items()}
-    if isinstance(data, list):
-        return [_resolved(v) for v in data]
-    return data
 
 
 def _train(
@@ -138,7 +132,7 @@ def _train(
     out = Path(out)
     last = out / "last.pt"
     state, data, val, model_cfg, train_cfg = read_run(out, resume, data, val, model_cfg, train_cfg)
-    held.enter_context(hold_run_folder(out))  # released when train() returns or raises
+    held.enter_context(RunLock(out))  # released when train() returns or raises
     if resume:
         remove_stale_writes(out)  # a killed run's half-written checkpoints
     train_cfg = train_cfg or TrainConfig()
@@ -176,20 +170,15 @@ def _train(
         )
     val_input = training_input(profile, val_seq, mode)
     inputs = [training_input(profile, s, mode) for s in seqs]
-    fingerprints = {
-        "train": [
-            # resolved: a resume from another working directory finds them
-            {
-                "path": str(s.root.resolve()),
-                "key": cache_key(s, profile, sensor=inp, aligned=aligned),
-            }
+    fingerprints = data_record(
+        seqs,
+        [
+            cache_key(s, profile, sensor=inp, aligned=aligned)
             for s, inp in zip(seqs, inputs, strict=True)
         ],
-        "val": {
-            "path": str(val_seq.root.resolve()),
-            "key": cache_key(val_seq, profile, sensor=val_input, aligned=aligned),
-        },
-    }
+        val_seq,
+        cache_key(val_seq, profile, sensor=val_input, aligned=aligned),
+    )
     images = Images(seqs, profile, progress, mode, aligned)
     val_images = range_images(
         val_seq, profile, progress=progress, sensor=val_input, aligned=aligned
@@ -207,7 +196,7 @@ def _train(
             raise ConfigError(f"{rendering.path} is both training data and a validation rendering")
     if renderings:  # runs without them keep their fingerprints (and --resume)
         fingerprints["val_sensors"] = [{"path": r.path, "key": r.key} for r in renderings]
-    if state is not None and _resolved(state["train"]["data"]) != _resolved(fingerprints):
+    if state is not None and not same_data(state["train"]["data"], fingerprints):
         raise ConfigError("--resume with other data than the run was started on")
     pairs = PairIndex.from_sequences(seqs)
     sampler = BatchSampler(
@@ -267,25 +256,6 @@ def _train(
         }
 
     turns = real_turn_scans(train_cfg.real_path(), profile, progress, mode, aligned)
-
-    def validate() -> dict[str, Any]:
-        """The entry's validation fields: val, val_sensors (with renderings), val_s."""
-        t = time.perf_counter()
-        desc_val, _ = describe(model, val_images, device=str(device))
-        out: dict[str, Any] = {"val": summary(loop_closure(desc_val, val_gt))}
-        if renderings:
-            out["val_sensors"] = validate_renderings(
-                model, renderings, desc_val, val_gt, str(device)
-            )
-        out["val_s"] = time.perf_counter() - t
-        return out
-
-    def real_check() -> dict[str, Any] | None:
-        if turns is None:
-            return None
-        desc, _ = describe(model, turns.plain, device=str(device))
-        desc_t, _ = describe(model, turns.turned, device=str(device))
-        return invariance(desc, desc_t, turns.positions)
 
     start = (
         f"{train_cfg.init}'s weights"
@@ -352,8 +322,8 @@ def _train(
                 "loss": None,
                 "lr": 0.0,
                 "calibrate_s": calib_s,
-                **validate(),
-                "real": real_check(),
+                **validation_fields(model, val_images, val_gt, renderings, str(device)),
+                "real": turn_check(model, turns, str(device)),
             }
         )
 
@@ -405,18 +375,15 @@ def _train(
             desc, turned_d, looked_d = desc[:B], desc[B : B + T], desc[B + T :]
             overlap = torch.from_numpy(pairs.submatrix(idx)).to(device)
             out_loss = loss_fn(desc, overlap)
-            value = out_loss.value
-            d_turn = d_look = math.nan
-            if T:
-                value = value + train_cfg.turn_weight * consistency(
-                    desc[:T], turned_d, batch_spread(desc), train_cfg.turn_allowance
-                )
-                d_turn = float((desc[:T] - turned_d).detach().pow(2).sum(1).mean())
-            if len(looked_at):
-                value = value + train_cfg.look_weight * consistency(
-                    desc[looked_at], looked_d, batch_spread(desc)
-                )
-                d_look = float((desc[looked_at] - looked_d).detach().pow(2).sum(1).mean())
+            value, d_turn, d_look = with_copy_terms(
+                out_loss.value,
+                desc,
+                turned_d,
+                looked_at,
+                looked_d,
+                (train_cfg.turn_weight, train_cfg.turn_allowance),
+                train_cfg.look_weight,
+            )
             if not math.isfinite(loss := value.item()):  # else NaN weights, epoch after epoch
                 raise DivergedError(
                     f"epoch {epoch}, step {health.step0 + len(health.steps) + 1}: the loss is "
@@ -472,8 +439,8 @@ def _train(
                 "data_s": data_s,
                 "mining": None if hard is None else {**hard.stats, "mine_s": mine_s},
                 "scans_per_s": len(steps) * train_cfg.batch_size / train_s,
-                **validate(),
-                "real": real_check(),
+                **validation_fields(model, val_images, val_gt, renderings, str(device)),
+                "real": turn_check(model, turns, str(device)),
             }
         )
     return history

@@ -20,6 +20,7 @@ sequence's alone.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,24 @@ def open_renderings(
         images = range_images(seq, profile, sensor=sensor, progress=progress, aligned=aligned)
         key = cache_key(seq, profile, sensor=sensor, aligned=aligned)
         out.append(Rendering(seq.sensor, str(seq.root), key, images))
+    return out
+
+
+def validation_fields(
+    model: Network,
+    val_images: np.ndarray,
+    gt: LoopGroundTruth,
+    renderings: list[Rendering],
+    device: str,
+) -> dict[str, Any]:
+    """An epoch's validation fields: ``val`` (the validation sequence's loop-closure
+    summary), ``val_sensors`` (with renderings) and ``val_s`` (the seconds it took)."""
+    t = time.perf_counter()
+    desc_val, _ = describe(model, val_images, device=device)
+    out: dict[str, Any] = {"val": summary(loop_closure(desc_val, gt))}
+    if renderings:
+        out["val_sensors"] = validate_renderings(model, renderings, desc_val, gt, device)
+    out["val_s"] = time.perf_counter() - t
     return out
 
 
