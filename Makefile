@@ -3,10 +3,15 @@
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-HOST   ?= 127.0.0.1
-PORT   ?= 8000
-# The bundled default model (its card: models/README.md).
-MODEL  ?= models/overlapmamba-hdl64.onnx
+# `make serve HOST=… PORT=… MODEL=… CONFIG=…` passes those given as options (which outrank
+# OVERLAPMAMBA_* variables and a config file); those not given come from the settings, whose
+# defaults are 127.0.0.1:8000 and the bundled default model (its card: models/README.md).
+HOST   ?=
+PORT   ?=
+MODEL  ?=
+CONFIG ?=
+SERVE_OPTIONS = $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT)) \
+	$(if $(MODEL),--model $(MODEL)) $(if $(CONFIG),--config $(CONFIG))
 
 # torch is pinned to the CPU build. Use the local wheel where this machine has it; elsewhere
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.
@@ -100,12 +105,13 @@ format: $(VENV)/.installed-all
 	$(BIN)/ruff format .
 	$(BIN)/ruff check --fix .
 
-# Maps live under ./data/maps; settings: `overlapmamba dump-config`, OVERLAPMAMBA_* variables.
+# Maps live under ./data/maps; settings: `overlapmamba dump-config`, OVERLAPMAMBA_* variables,
+# OVERLAPMAMBA_CONFIG or CONFIG=service.toml (HOST, PORT, MODEL: above).
 # The selective-scan kernel is compiled here, at install, never at a request; without a
 # compiler the service says so at start and serves the model's portable graph.
 serve: $(VENV)/.installed-serve
 	-$(BIN)/python -m overlapmamba.core.scan_kernel
-	$(BIN)/overlapmamba serve --host $(HOST) --port $(PORT) --model $(MODEL)
+	$(BIN)/overlapmamba serve $(SERVE_OPTIONS)
 
 bench: $(VENV)/.installed-all
 	$(BIN)/python benchmarks/projection.py

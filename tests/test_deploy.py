@@ -321,3 +321,37 @@ def test_the_lock_pins_every_requirement_within_what_pyproject_allows():
     # the freeze it is written from: installers, editables and URLs left out, sorted
     frozen = "Zeta==1.0\n-e file:///src\npip==23.2\nuv==0.9\nalpha==2.0+cpu\nx @ file:///x.whl\n"
     assert pins(frozen) == ["alpha==2.0+cpu", "Zeta==1.0"]
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_make_serve_leaves_unset_options_to_the_settings():
+    """Found in review: `make serve` always passed --host, --port and --model, which outrank
+    OVERLAPMAMBA_* variables and a config file, so OVERLAPMAMBA_PORT=9001 make serve served on
+    8000. It now passes only those given on make's command line."""
+
+    def serve_line(*args: str, **env: str) -> str:
+        clean = {
+            k: v for k, v in os.environ.items() if k not in ("HOST", "PORT", "MODEL", "CONFIG")
+        }
+        done = subprocess.run(
+            ["make", "-n", "-s", "serve", *args],
+            cwd=ROOT,
+            env={**clean, **env},
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return next(ln for ln in done.stdout.splitlines() if "overlapmamba serve" in ln)
+
+    assert serve_line(OVERLAPMAMBA_PORT="9001").split()[-1] == "serve"  # nothing outranks it
+    given = serve_line(
+        "PORT=9002", "MODEL=models/overlapmamba-hdl64-one-pass.onnx", "CONFIG=s.toml"
+    )
+    assert given.split("serve", 1)[1].split() == [
+        "--port",
+        "9002",
+        "--model",
+        "models/overlapmamba-hdl64-one-pass.onnx",
+        "--config",
+        "s.toml",
+    ]
