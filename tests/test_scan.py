@@ -247,6 +247,30 @@ def test_a_ring_with_fast_and_slow_lanes_is_exact_and_leaves_the_callers_floats_
         assert all(f.result() for f in [pool.submit(keeps_subnormals) for _ in range(4)])
 
 
+@pytest.mark.parametrize("loud", [1e3, 1e5])
+def test_each_channels_ring_correction_is_exact_to_its_own_scale(loud):
+    """Found in review: the ring's correction left a state once it was small against the
+    largest start state of its block of 8 channels, so a quiet, slowly decaying channel beside
+    a loud, fast one lost its correction while it still mattered (2e-3 of its scale with a
+    neighbour 1e3× louder, 0.26 at 1e5×); and a start state past √FLT_MAX squared to inf and
+    dropped every correction (the wrong sign). Each channel is now held to its own scale."""
+    from overlapmamba.core.scan_kernel import scan_forward
+
+    u, delta, A, Bm, Cm, D = inputs(1, 8, 600, 16, seed=3, dtype=torch.float64)
+    delta = torch.full_like(delta, 0.05)
+    u[..., 0] *= loud  # channel 0 loud and fast, channel 1 quiet and slow, one block
+    delta[..., 0] = 2.0
+    delta[..., 1] = 1e-3
+    huge = (u / loud * 1e21, torch.full_like(delta, 1e-3))  # a start state ≈ 1e21
+    for uu, dd in ((u, delta), huge):
+        args = (uu, dd, A, Bm, Cm, D)
+        ref = selective_scan_ref(*args, circular=True).numpy()
+        y = scan_forward(*(x.float().numpy() for x in args), True, 1)
+        for c in range(8):
+            scale = float(abs(ref[..., c]).max())
+            assert float(abs(y[..., c] - ref[..., c]).max()) <= 2e-5 * scale, (loud, c)
+
+
 def test_the_served_kernel_for_older_processors_gives_the_same_numbers(tmp_path):
     """The Docker image builds for x86-64-v2 (4 lanes, SSE): the same scan as this machine's
     build, on every path."""

@@ -333,6 +333,13 @@ static inline float lane_max(vf v) {
     return m;
 }
 
+/* whether |x| passes the tail in any lane (a NaN passes none) */
+static inline int any_above(vf x, vf tail) {
+    for (int j = 0; j < VL; j++)
+        if (fabsf(x[j]) > tail[j]) return 1;
+    return 0;
+}
+
 /* Channels per work unit (the caller pads E to a multiple of 8, which both widths divide). */
 int scan_tokens_lanes(void) { return VL; }
 
@@ -382,18 +389,21 @@ tokens(const float *u, const float *delta, const float *A_t, const float *Bm, co
         if (!circular) continue;
         /* the start state s = z / (1 − P), then y_t += C_t · (Q_t ⊙ s) while it matters */
         vf *restrict g = h; /* g_t = Q_t ⊙ s, in place of z */
-        vf start = (vf){0};
+        double start[VL] = {0}; /* ‖s‖² per channel: double, as a float's square may overflow */
         for (int n = 0; n < N; n++) {
             const vf log2p = A2[n] * sum_dt;
             for (int j = 0; j < VL; j++) {
                 const float one_minus_p = -expm1f(log2p[j] / LOG2E);
                 g[n][j] /= one_minus_p > RING_EPS ? one_minus_p : RING_EPS;
+                start[j] += (double)g[n][j] * g[n][j];
             }
-            start = start + g[n] * g[n];
             live[n] = n;
         }
-        /* a state leaves once its |g| is below 2^-24 ‖s‖ / √N in every lane */
-        const float tail = RING_TAIL * RING_TAIL * lane_max(start) / (float)N;
+        /* a state leaves once its |g| is below 2^-24 ‖s‖ / √N in every lane, each lane (a
+           channel) against its own start state: a loud channel beside it must not cut a
+           quiet one's correction short */
+        vf tail;
+        for (int j = 0; j < VL; j++) tail[j] = (float)(RING_TAIL * sqrt(start[j] / N));
         int n_live = N;
         for (int t0 = 0; t0 < L && n_live; t0 += RING_CHECK) {
             const int t1 = t0 + RING_CHECK < L ? t0 + RING_CHECK : L;
@@ -414,7 +424,7 @@ tokens(const float *u, const float *delta, const float *A_t, const float *Bm, co
             }
             int kept = 0;
             for (int i = 0; i < n_live; i++)
-                if (lane_max(g[live[i]] * g[live[i]]) > tail) live[kept++] = live[i];
+                if (any_above(g[live[i]], tail)) live[kept++] = live[i];
             n_live = kept;
         }
     }
