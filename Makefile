@@ -134,7 +134,7 @@ data: $(VENV)/.installed-all
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \
 	done
 
-# The sensor towns (overlapmamba.synth.presets, ≈ 45 min on 2 cores): one validation and one test
+# The sensor towns (overlapmamba.synth.presets, the longest data target): one validation and one test
 # town rendered by every catalogue sensor on a car, the test town from a robot's, an AMR's
 # and a backpack's sensor, and five second drives of it by other sensors. Resumable, as above.
 data-sensors: $(VENV)/.installed-all

@@ -127,8 +127,8 @@ def fleet() -> str:
         )
     out = source(
         "reports/client/fleet-{1,4,8}.json",
-        "overlapmamba-client simulate-fleet --robots N --sequence data/synth/val --duration 60 "
-        "--rate 10 --out reports/client/fleet-N.json",
+        "overlapmamba-client simulate-fleet --robots N --map fleet --sequence data/synth/val "
+        "--duration 60 --rate 10 --out reports/client/fleet-N.json",
     )
     models = "; ".join(sorted(said))
     out += f"\nEach against a fresh `overlapmamba serve` with default settings: model {models}.\n"
