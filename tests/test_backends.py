@@ -64,6 +64,7 @@ FILTERS = [
     Filters(exclude_session="s1"),
     Filters(exclude_robot="r2"),
     Filters(exclude_recent_s=40.0, session_id="s3", timestamp=150.0),
+    Filters(exclude_recent_s=40.0, session_id="s3", robot_id="r0", timestamp=150.0),
     Filters(time_from=20.0, time_to=90.5),
     Filters(exclude_robot="r0", time_from=50.0),
     Filters(max_match_distance=7.0),
@@ -81,7 +82,8 @@ def allowed(rows: dict[str, NewKeyframe], f: Filters) -> list[NewKeyframe]:
             continue
         if f.exclude_recent_s is not None:
             assert f.timestamp is not None
-            if r.session_id == f.session_id and r.timestamp > f.timestamp - f.exclude_recent_s:
+            own = r.session_id == f.session_id and f.robot_id in (None, r.robot_id)
+            if own and r.timestamp > f.timestamp - f.exclude_recent_s:
                 continue
         if f.time_from is not None and r.timestamp < f.time_from:
             continue

@@ -97,6 +97,10 @@ async def test_async_client_in_process(tmp_path, encoder):
             assert q.matches[0].keyframe_id == "b1"
             q = await pr.query("town", descriptor=d.vector, k=1, exclude_robot="nobody")
             assert q.matches[0].keyframe_id == "k0" and q.matches[0].distance < 1e-3
+            recent = {"exclude_recent_s": 5.0, "session_id": "default", "timestamp": 3.0}
+            for robot, left in ((None, set()), ("r", {"b1"}), ("r9", {"k0", "b1"})):
+                q = await pr.query("town", descriptor=d.vector, k=2, robot_id=robot, **recent)
+                assert {x.keyframe_id for x in q.matches} == left, robot
             o = await pr.observe("town", s1, robot_id="r2", timestamp=10.0, insert="never")
             assert not o.inserted and o.insert_reason == "never"
             assert (await pr.get_keyframe("town", "b1")).timestamp == 2.0

@@ -446,6 +446,9 @@ async def test_observe_inserts_when_due_and_excludes_own_recent_frames(any_backe
             assert r.status_code == 409 and err(r)["code"] == "keyframe_conflict", (mode, r.text)
         o = await observe(41.0, "6,0,0,0,0,0,1", insert="never", robot="r2")
         assert not o["inserted"] and o["insert_reason"] == "never"
+        # r1's keyframe of a second ago, in a session of the same name, is not r2's own: found
+        # in review, robots that share a session name (the default "default") hid each other's
+        assert "r1:s:40.0" in {m["keyframe_id"] for m in o["matches"]}
         # the map's picture: keyframes from their poses, tracks and closures from the traffic
         v = (await c.get("/v1/maps/w/overview")).json()
         assert sorted(map(tuple, v["keyframes"]["r1"])) == [(0, 0), (6, 0), (6, 0)]

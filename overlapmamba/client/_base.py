@@ -59,8 +59,8 @@ class Call:
 # what a query takes beside k and sensor (the server's query parameters)
 QUERY_FILTERS = frozenset(
     {
-        "exclude_session", "exclude_robot", "exclude_recent_s", "session_id", "timestamp",
-        "time_from", "time_to", "max_match_distance", "max_distance", "verify",
+        "exclude_session", "exclude_robot", "exclude_recent_s", "session_id", "robot_id",
+        "timestamp", "time_from", "time_to", "max_match_distance", "max_distance", "verify",
     }
 )  # fmt: skip
 

@@ -96,6 +96,7 @@ class Filters:
     exclude_robot: str | None = None
     exclude_recent_s: float | None = None
     session_id: str | None = None  # the querying session, for exclude_recent_s
+    robot_id: str | None = None  # its robot (a session belongs to one): None, any robot's
     timestamp: float | None = None  # the query's time, for exclude_recent_s
     time_from: float | None = None
     time_to: float | None = None

@@ -427,6 +427,7 @@ class PlaceService:
         filters = Filters(
             exclude_recent_s=self.settings.observe.exclude_recent_s,
             session_id=obs.session_id,
+            robot_id=obs.robot_id,
             timestamp=obs.timestamp,
         )
         answer = await self._search(

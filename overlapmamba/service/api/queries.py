@@ -86,6 +86,14 @@ async def query(
     session_id: Annotated[
         str | None, Query(pattern=NAME_PATTERN, description="the querying session")
     ] = None,
+    robot_id: Annotated[
+        str | None,
+        Query(
+            pattern=NAME_PATTERN,
+            description="the querying session's robot: exclude_recent_s leaves out that "
+            "robot's session only (without it, every robot's session of that name)",
+        ),
+    ] = None,
     timestamp: Annotated[
         float | None, Query(allow_inf_nan=False, description="the query's time")
     ] = None,
@@ -133,6 +141,7 @@ async def query(
         exclude_robot=exclude_robot,
         exclude_recent_s=exclude_recent_s,
         session_id=session_id,
+        robot_id=robot_id,
         timestamp=timestamp,
         time_from=time_from,
         time_to=time_to,

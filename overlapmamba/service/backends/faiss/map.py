@@ -401,6 +401,8 @@ class FaissMap:
         if f.exclude_recent_s is not None:
             assert f.session_id is not None and f.timestamp is not None  # Filters checked it
             own = c.session == c.lookup(f.session_id)
+            if f.robot_id is not None:  # another robot's session of the same name is not own
+                own &= c.robot == c.lookup(f.robot_id)
             mask &= ~(own & (c.ts > f.timestamp - f.exclude_recent_s))
         if f.time_from is not None:
             mask &= c.ts >= f.time_from

@@ -85,13 +85,11 @@ def filter_of(f: Filters) -> models.Filter | None:
     if f.exclude_recent_s is not None:
         assert f.session_id is not None and f.timestamp is not None  # Filters checked it
         recent = models.Range(gt=f.timestamp - f.exclude_recent_s)
+        own = [match_of("session_id", f.session_id)]
+        if f.robot_id is not None:  # another robot's session of the same name is not own
+            own.append(match_of("robot_id", f.robot_id))
         must_not.append(
-            models.Filter(
-                must=[
-                    match_of("session_id", f.session_id),
-                    models.FieldCondition(key="timestamp", range=recent),
-                ]
-            )
+            models.Filter(must=[*own, models.FieldCondition(key="timestamp", range=recent)])
         )
     if f.time_from is not None or f.time_to is not None:
         span = models.Range(gte=f.time_from, lte=f.time_to)
