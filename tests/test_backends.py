@@ -181,9 +181,11 @@ def test_backends_agree_through_inserts_deletes_filters_and_restarts(tmp_path):
                 "pose": [7.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
                 "sensor": "vlp16",
             }
-            last = m.last_keyframe("r2")
+            last = m.last_keyframe("r2", "s3")
             assert last is not None and last.keyframe_id == "kf-158"
-            assert m.last_keyframe("nobody") is None
+            last = m.last_keyframe("r2", "s0")  # the robot's last in that session
+            assert last is not None and last.keyframe_id == "kf-155"
+            assert m.last_keyframe("nobody", "s3") is None
             before = answers(b, queries, k)
             # the yaw features travel with the keyframe and come back for the top-k
             yq = np.asarray(rows["kf-1"].yaw)
@@ -718,16 +720,20 @@ def test_a_robots_last_keyframe_is_the_same_on_either_backend_when_times_tie(kin
     from dataclasses import replace
 
     rng = np.random.default_rng(0)
-    tied = [replace(row(i, rng), robot_id="r", timestamp=5.0) for i in (11, 13, 12)]
+
+    def mine(i: int, t: float):  # type: ignore[no-untyped-def]
+        return replace(row(i, rng), robot_id="r", session_id="s", timestamp=t)
+
+    tied = [mine(i, 5.0) for i in (11, 13, 12)]
     with opened(kind, tmp_path) as b:
         m, _ = b.create("town", "flat")
-        m.insert([replace(row(1, rng), robot_id="r", timestamp=1.0)])
+        m.insert([mine(1, 1.0)])
         m.insert(tied)  # one write: the greatest id
-        assert m.last_keyframe("r").keyframe_id == "kf-13"
+        assert m.last_keyframe("r", "s").keyframe_id == "kf-13"
         time.sleep(0.01)
-        m.insert([replace(row(2, rng), robot_id="r", timestamp=5.0)])  # written last
-        assert m.last_keyframe("r").keyframe_id == "kf-2"
-        assert m.last_keyframe("nobody") is None
+        m.insert([mine(2, 5.0)])  # written last
+        assert m.last_keyframe("r", "s").keyframe_id == "kf-2"
+        assert m.last_keyframe("nobody", "s") is None
 
 
 def test_a_snapshot_written_is_reported_though_its_tombstones_could_not_be_purged(

@@ -21,17 +21,19 @@ class StoredMap:
         self.keyframes = keyframes or {}
         self.reads = 0
 
-    def last_keyframe(self, robot: str) -> Any:
+    def last_keyframe(self, robot: str, session: str) -> Any:
         self.reads += 1
-        mine = [k for k in self.keyframes.values() if k.robot_id == robot]
+        mine = [
+            k for k in self.keyframes.values() if (k.robot_id, k.session_id) == (robot, session)
+        ]
         return max(mine, key=lambda k: k.timestamp, default=None)
 
     def get(self, keyframe_id: str) -> Any:
         return self.keyframes.get(keyframe_id)
 
 
-def kf(robot: str, t: float, pose: list[float] | None) -> Any:
-    return SimpleNamespace(robot_id=robot, timestamp=t, pose=pose)
+def kf(robot: str, t: float, pose: list[float] | None, session: str = "s") -> Any:
+    return SimpleNamespace(robot_id=robot, session_id=session, timestamp=t, pose=pose)
 
 
 def due(s: KeyframeSchedule, m: StoredMap, **obs: Any) -> Any:
@@ -42,7 +44,7 @@ def test_reasons_follow_the_interval_and_the_distance_since_the_last_keyframe() 
     s = KeyframeSchedule(ObserveSettings(insert_min_distance_m=2.0, insert_min_interval_s=10.0))
     m = StoredMap("m")
     assert due(s, m, timestamp=0.0, pose=[0, 0, 0]) == "first"
-    s.remember("m", "r", 0.0, [0, 0, 0])
+    s.remember("m", "r", "s", 0.0, [0, 0, 0])
     assert due(s, m, timestamp=1.0, pose=[1.9, 0, 0]) is None
     assert due(s, m, timestamp=1.0, pose=[2.0, 0, 0]) == "distance"
     assert due(s, m, timestamp=1.0, pose=None) is None  # no pose: only time counts
@@ -55,8 +57,8 @@ def test_reasons_follow_the_interval_and_the_distance_since_the_last_keyframe() 
 def test_an_older_keyframe_never_replaces_a_newer_one() -> None:
     s = KeyframeSchedule(ObserveSettings())
     m = StoredMap("m")
-    s.remember("m", "r", 5.0, [0, 0, 0])
-    s.remember("m", "r", 4.0, [50, 0, 0])  # a late insert of an earlier scan
+    s.remember("m", "r", "s", 5.0, [0, 0, 0])
+    s.remember("m", "r", "s", 4.0, [50, 0, 0])  # a late insert of an earlier scan
     assert due(s, m, timestamp=5.5, pose=[1, 0, 0]) is None
     assert m.reads == 0
 
@@ -66,7 +68,7 @@ def test_a_forgotten_or_dropped_robot_is_read_back_from_its_map(monkeypatch: Any
     s = KeyframeSchedule(ObserveSettings())
     m = StoredMap("m", {"a": kf("r", 3.0, [0, 0, 0])})
     for robot in ("r", "x", "y"):  # r is dropped: two pairs at most
-        s.remember("m", robot, 3.0, [0, 0, 0])
+        s.remember("m", robot, "s", 3.0, [0, 0, 0])
     assert due(s, m, timestamp=3.5, pose=[0.5, 0, 0]) is None and m.reads == 1
     s.forget("m")
     assert due(s, m, timestamp=3.5, pose=[0.5, 0, 0]) is None and m.reads == 2
@@ -80,8 +82,25 @@ def test_a_retry_is_recognised_only_when_its_own_keyframe_is_there() -> None:
     obs = Observation(robot_id="r", session_id="s", timestamp=7.0)
     stored = StoredMap("m", {obs.keyframe_id: kf("r", 7.0, None)})
     assert not asyncio.run(s.retried(stored, obs))  # nothing remembered yet
-    s.remember("m", "r", 7.0, None)
+    s.remember("m", "r", "s", 7.0, None)
     assert asyncio.run(s.retried(stored, obs))
     assert not asyncio.run(s.retried(StoredMap("m"), obs))  # remembered, but not in the map
     later = Observation(robot_id="r", session_id="s", timestamp=8.0)
     assert not asyncio.run(s.retried(stored, later))
+
+
+def test_a_new_session_keeps_its_own_schedule() -> None:
+    """Found in review: the schedule was the robot's across its sessions, so a restarted node
+    whose clock began below its last session's (time since boot, sim time) found every
+    observation "due by time" against the old session's last keyframe, and inserted each
+    until its clock caught up. A session is the robot's clock and odometry frame: the new one
+    starts with its first keyframe and is then due by its own interval and distance."""
+    s = KeyframeSchedule(ObserveSettings(insert_min_distance_m=2.0, insert_min_interval_s=10.0))
+    m = StoredMap("m", {"a": kf("r", 1000.0, [0, 0, 0], session="a")})
+    assert due(s, m, session_id="a", timestamp=1001.0, pose=[0.1, 0, 0]) is None
+    assert due(s, m, session_id="b", timestamp=0.0, pose=[0, 0, 0]) == "first"
+    s.remember("m", "r", "b", 0.0, [0, 0, 0])
+    for t in (1.0, 2.0, 3.0):
+        assert due(s, m, session_id="b", timestamp=t, pose=[0.1 * t, 0, 0]) is None
+    assert due(s, m, session_id="b", timestamp=10.0, pose=[1, 0, 0]) == "time"
+    assert due(s, m, session_id="a", timestamp=1002.0, pose=[0.2, 0, 0]) is None  # a's stands

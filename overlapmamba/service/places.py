@@ -179,7 +179,9 @@ class PlaceService:
                 for r in results:
                     if r.created:
                         kf = r.keyframe
-                        self.keyframing.remember(m.map_id, kf.robot_id, kf.timestamp, kf.pose)
+                        self.keyframing.remember(
+                            m.map_id, kf.robot_id, kf.session_id, kf.timestamp, kf.pose
+                        )
         m.maintain()
         return results
 

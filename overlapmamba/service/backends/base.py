@@ -170,7 +170,8 @@ class PlaceMap(Protocol):
 
     def geometry(self, keyframe_ids: list[str]) -> dict[str, bytes]: ...  # those that have one
 
-    def last_keyframe(self, robot_id: str) -> Keyframe | None: ...
+    # the latest keyframe of the robot's session (its clock and odometry frame)
+    def last_keyframe(self, robot_id: str, session_id: str) -> Keyframe | None: ...
 
     # (robot_id, x, y) of keyframes that have a pose: the latest ``limit`` by timestamp
     def positions(self, limit: int) -> list[tuple[str, float, float]]: ...

@@ -455,10 +455,10 @@ class FaissMap:
             self.check_open()
             return self.store.geometry(keyframe_ids)
 
-    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+    def last_keyframe(self, robot_id: str, session_id: str) -> Keyframe | None:
         with self.lock.read():
             self.check_open()
-            return self.store.last_keyframe(robot_id)
+            return self.store.last_keyframe(robot_id, session_id)
 
     def positions(self, limit: int) -> list[tuple[str, float, float]]:
         with self.lock.read():

@@ -515,12 +515,13 @@ class Store:
         )
         return np.array([r[0] for r in rows], dtype=np.int64)
 
-    def last_keyframe(self, robot_id: str) -> Keyframe | None:
+    def last_keyframe(self, robot_id: str, session_id: str) -> Keyframe | None:
         rows = self._rows(
-            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND keyframe_id IS NOT "
+            f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND session_id = ? AND "
             # of equal times, the one written last, then the greatest id: as Qdrant's map
-            "NULL ORDER BY timestamp DESC, created_at DESC, keyframe_id DESC LIMIT 1",
-            (robot_id,),
+            "keyframe_id IS NOT NULL ORDER BY timestamp DESC, created_at DESC, keyframe_id DESC "
+            "LIMIT 1",
+            (robot_id, session_id),
         )
         return _keyframe(rows[0]) if rows else None
 

@@ -191,13 +191,13 @@ class QdrantMap:
                 out[str(p["keyframe_id"])] = geometry_of(p)
         return out
 
-    def last_keyframe(self, robot_id: str) -> Keyframe | None:
-        """The robot's latest keyframe; of equal times, the one written last, then the
-        greatest id (as the FAISS store's): Qdrant orders by the time alone."""
-        robot = match_of("robot_id", robot_id)
+    def last_keyframe(self, robot_id: str, session_id: str) -> Keyframe | None:
+        """The latest keyframe of the robot's session; of equal times, the one written last,
+        then the greatest id (as the FAISS store's): Qdrant orders by the time alone."""
+        own = [match_of("robot_id", robot_id), match_of("session_id", session_id)]
 
         def latest(limit: int, at: float | None = None) -> list[Keyframe]:
-            must: list[Any] = [robot]
+            must: list[Any] = [*own]
             if at is not None:
                 must.append(
                     models.FieldCondition(key="timestamp", range=models.Range(gte=at, lte=at))
