@@ -208,6 +208,22 @@ def test_filtered_search_returns_k_whenever_k_are_eligible(kind):
     assert len(index.search(q, 5, np.zeros(3000, bool))[1]) == 0
 
 
+def test_an_ivf_map_shrunk_by_deletes_still_returns_k():
+    """Found in review: a map whose lists were sized for 3000 keyframes, 2900 of them deleted,
+    probed a few mostly empty lists and answered an unfiltered query with fewer than k
+    (only the filtered search was repeated over every list)."""
+    rng = np.random.default_rng(4)
+    vecs = places(rng, 3000)
+    ids = np.arange(3000, dtype=np.int64)
+    index = VectorIndex.ivf(vecs, nprobe=2)
+    index.add(ids, vecs)
+    assert index.remove(ids[100:]) == 2900
+    for q in vecs[:20]:
+        _, got = index.search(q, 50)
+        _, want = search_reference(vecs[:100], ids[:100], q, 50)
+        assert list(got) == list(want)
+
+
 # ---- store and maps ------------------------------------------------------------------------
 
 

@@ -12,9 +12,10 @@ small, but it costs nothing to avoid, and a re-visit of the very same place lies
                                           ``nprobe`` of them searched per query
 
 Both take our row ids as FAISS ids and support ``remove_ids``. Filters become an
-``IDSelectorBitmap`` over row ids. IVF with a selector can come back short when the eligible
-rows sit in unprobed lists; then the search is repeated over every list (exact), so a
-query returns k results whenever k eligible keyframes exist.
+``IDSelectorBitmap`` over row ids. IVF can come back short when the eligible rows sit in
+unprobed lists (a filter's, or a map shrunk by deletes below what its lists were sized for);
+then the search is repeated over every list (exact), so a query returns k results whenever
+k eligible keyframes exist.
 
 :func:`search_reference` is the slow, obvious numpy twin for tests.
 
@@ -107,9 +108,12 @@ class VectorIndex:
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
         if allowed is None:
-            params = self._params(None, self.nprobe)
-            d2, ids = self.index.search(q, k, params=params)
-            return _trim(d2[0], ids[0])
+            d2, ids = self.index.search(q, k, params=self._params(None, self.nprobe))
+            dist, ids = _trim(d2[0], ids[0])
+            if len(ids) < k and self.kind == "ivf":  # a shrunk map's lists, mostly empty
+                d2, ids = self.index.search(q, k, params=self._params(None, self.nlist))
+                dist, ids = _trim(d2[0], ids[0])
+            return dist, ids
         eligible = int(allowed.sum())
         k = min(k, eligible)
         if k <= 0:
