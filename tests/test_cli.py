@@ -94,6 +94,24 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     assert res.exit_code == 2 and "--exclude-recent is its old name" in text(res)
     res = runner.invoke(app, ["ground-truth", str(tmp_path), "-q"])
     assert res.exit_code == 2 and "matches no known layout" in text(res)
+    # found in review: --no-cache --out recomputed and wrote nothing; the table's row named
+    # the automatic cache path where the generator's own table was used
+    fresh = tmp_path / "fresh.npz"
+    res = runner.invoke(app, [*args[:-3], "--out", str(fresh), "--no-cache", "-q"])
+    assert res.exit_code == 0 and np.array_equal(np.load(fresh)["query"], first), res.output
+    import shutil
+
+    from overlapmamba.core.datasets import open_sequence
+    from overlapmamba.core.overlap import LoopParams, loop_ground_truth
+    from overlapmamba.core.sensors import get_profile
+
+    seq_dir = shutil.copytree(synthetic_seq_dir, tmp_path / "seq")
+    seq, profile = open_sequence(seq_dir), get_profile("kitti-hdl64")
+    loops = LoopParams(exclude_recent_frames=12, radius=10.0)
+    shipped = seq_dir / "ground_truth" / "loops.npz"  # as the generator ships its own
+    loop_ground_truth(seq, profile, loops, cache=shipped, progress=False)
+    assert loop_ground_truth(seq, profile, loops, progress=False).source == shipped
+    assert loop_ground_truth(seq, profile, loops, cache=False, progress=False).source is None
 
 
 def test_installed_console_script_runs():

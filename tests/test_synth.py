@@ -551,6 +551,7 @@ def test_gen_data_command_writes_a_sequence(tmp_path):
     ("args", "message"),
     [
         (["--preset", "test", "--seed", "1"], "--preset fixes seed"),
+        (["--preset", "test", "--split", "train"], "town size and split"),  # was ignored
         (["--preset", "nope"], "allowed: train, train-b"),
         (["--frames", "10"], "give --seed and --frames"),
         (["--seed", "1", "--frames", "10", "--sensor", "mid360"], "allowed: hdl32, hdl64e"),
@@ -569,6 +570,24 @@ def test_gen_data_refuses_bad_options(tmp_path, args, message):
     assert res.exit_code == 2
     assert message in _plain(res.output), res.output
     assert not (tmp_path / "x").exists()
+
+
+def test_gen_data_session_0_is_the_first_drive_of_a_later_drives_preset(tmp_path, monkeypatch):
+    """Found in review: `--preset val-s1 --session 0` (0 is falsy) kept the preset's session."""
+    from typer.testing import CliRunner
+
+    from overlapmamba.cli import app
+
+    made = []
+
+    def capture(out_dir, cfg, *args, **kwargs):  # type: ignore[no-untyped-def]
+        made.append(cfg)
+        raise OSError("stop here")  # the config is what is checked
+
+    monkeypatch.setattr("overlapmamba.synth.generate.generate", capture)
+    for extra, session in (([], 1), (["--session", "0"], 0), (["--session", "3"], 3)):
+        CliRunner().invoke(app, ["gen-data", str(tmp_path / "x"), "--preset", "val-s1", *extra])
+        assert made.pop().session == session, extra
 
 
 def test_gen_data_reports_a_failed_worker_and_exits_1(tmp_path, monkeypatch):

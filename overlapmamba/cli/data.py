@@ -114,12 +114,15 @@ def ground_truth(
     cache: Annotated[
         Path | None, typer.Option("--out", "-o", help="cache file (.npz); default: automatic")
     ] = None,
-    no_cache: Annotated[bool, typer.Option("--no-cache", help="always recompute")] = False,
+    no_cache: Annotated[
+        bool,
+        typer.Option("--no-cache", help="always recompute (and, with --out, write it there)"),
+    ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
 ) -> None:
     """Compute (or load the cached) loop ground-truth table of a sequence."""
     from overlapmamba.core.datasets import open_sequence
-    from overlapmamba.core.overlap import LoopParams, default_cache_path, loop_ground_truth
+    from overlapmamba.core.overlap import LoopParams, loop_ground_truth
 
     seq = open_sequence(seq_dir, kind=kind)
     profile = sensor_profile(sensor or seq.sensor or "kitti-hdl64", max_range=max_range)
@@ -149,13 +152,9 @@ def ground_truth(
         cache=target,
         progress=not quiet,
     )
-    where = (
-        "not cached"
-        if target is False
-        else cache
-        if cache is not None
-        else default_cache_path(seq, gt.params["fingerprint"])
-    )
+    if no_cache and cache is not None:  # recomputed: written where asked
+        gt.save(cache)
+    where = cache if no_cache and cache is not None else gt.source or "not cached"
     table = Table(title=f"Loop ground truth: {seq.name}", show_header=False)
     for k, v in [
         ("frames", len(seq)),
@@ -220,14 +219,14 @@ def gen_data(
     ],
     seed: Annotated[int | None, typer.Option(min=0, help="world and drive seed")] = None,
     session: Annotated[
-        int,
+        int | None,
         typer.Option(
             min=0,
             max=1000,
             help="0: the town's first drive; k > 0: another drive through the same town "
-            "(own route, parked cars, traffic, people, noise)",
+            "(own route, parked cars, traffic, people, noise); default 0, or the preset's",
         ),
-    ] = 0,
+    ] = None,
     frames: Annotated[
         int | None, typer.Option(min=2, max=100_000, help="scans to simulate")
     ] = None,
@@ -266,8 +265,9 @@ def gen_data(
         typer.Option(help="a preset (train, val, test, …): fixed seed, size and sensor"),
     ] = None,
     split: Annotated[
-        str, typer.Option(help="train, val or test (recorded in the manifest)")
-    ] = "train",
+        str | None,
+        typer.Option(help="train, val or test (recorded in the manifest; default train)"),
+    ] = None,
     nodes: Annotated[
         int | None, typer.Option(min=2, max=20, help="street-grid nodes per side (town size)")
     ] = None,
@@ -312,10 +312,10 @@ def gen_data(
         if v is not None
     }
     if preset is not None:
-        if seed is not None or frames is not None or nodes is not None:
+        if seed is not None or frames is not None or nodes is not None or split is not None:
             raise typer.BadParameter(
-                "--preset fixes seed, frames and town size; drop --seed/--frames/--nodes "
-                "or drop --preset"
+                "--preset fixes seed, frames, town size and split; drop "
+                "--seed/--frames/--nodes/--split or drop --preset"
             )
         try:
             cfg = get_preset(preset)
@@ -324,7 +324,7 @@ def gen_data(
         changes: dict = dict(rig)
         if gt_radius is not None:
             changes["gt_radius"] = gt_radius
-        if session:
+        if session is not None:  # 0 too: the town's first drive of a later drive's preset
             changes["session"] = session
         try:  # validated, unlike model_copy
             cfg = GenConfig.model_validate({**cfg.model_dump(), **changes})
@@ -336,9 +336,9 @@ def gen_data(
         try:
             cfg = GenConfig(
                 seed=seed,
-                session=session,
+                session=session or 0,
                 frames=frames,
-                split=split,
+                split=split or "train",
                 world={"nx": nodes, "ny": nodes} if nodes else {},
                 gt_radius=30.0 if gt_radius is None else gt_radius,
                 **rig,
@@ -423,7 +423,7 @@ def sim_report(
     reference: Annotated[
         Path, typer.Option(help="folder with the real scans that carry intensity")
     ] = Path("../shared/data/kitti00_overlapnet_reference"),
-    scans: Annotated[int, typer.Option(min=1, help="scans to use from each side")] = 50,
+    scans: Annotated[int, typer.Option(min=2, help="scans to use from each side")] = 50,
     output: Annotated[
         Path, typer.Option("--out", "-o", help="folder for realism.json/.png")
     ] = Path("reports/realism"),

@@ -20,7 +20,7 @@ import json
 import os
 from collections.abc import Callable
 from collections.abc import Sequence as Seq
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -200,6 +200,8 @@ class LoopGroundTruth:
     yaw_deg: np.ndarray
     distance: np.ndarray
     params: dict = field(default_factory=dict)
+    # the file it was read from or written to (not stored in it); None: computed, not kept
+    source: Path | None = field(default=None, compare=False)
 
     @property
     def min_overlap(self) -> float:
@@ -270,6 +272,7 @@ class LoopGroundTruth:
                 yaw_deg=z["yaw_deg"],
                 distance=z["distance"],
                 params=json.loads(str(z["params"])),
+                source=Path(path),
             )
 
 
@@ -419,4 +422,5 @@ def loop_ground_truth(
     gt = loop_table_from_pairs(seq, params, pairs[:, 0], pairs[:, 1], overlaps, yaws)
     if path is not None:
         gt.save(path)
+        gt = replace(gt, source=path)
     return gt
