@@ -247,7 +247,14 @@ def model_tables() -> str:
     """The model report's own Markdown (``overlapmamba report`` writes it beside
     report.json), under the command that wrote it."""
     text = (ROOT / MODEL_TABLES).read_text()
-    return source(MODEL_TABLES, "overlapmamba report") + "\n" + text
+    note = (
+        "\nThese tables compare the training runs' checkpoints (`best.pt`), each in one view "
+        'and one stage. The run marked "(shipped)" has the shipped file\'s weights; the file '
+        "runs them with its sub-column views, and its own figures, as the service answers, are "
+        "the headline table (`reports/model/two-stage/report.json`) and the sections below "
+        "that name the file.\n"
+    )
+    return source(MODEL_TABLES, "overlapmamba report") + note + "\n" + text
 
 
 TRAINING_SPEED = "reports/model/training-narrow.json"
