@@ -4,9 +4,13 @@ Variants, all the reference configuration (18.1 M parameters, three scan directi
 the narrow one with ``--narrow``) with the same random weights, exported by
 ``overlapmamba.train.export`` and run by onnxruntime on CPU:
 
-- ``c-kernel (served)`` — the shipped file as the service runs it
-(``overlapmamba.service.encoder``):
-  the graph cut at its scan nodes, each scan by the C kernel (``overlapmamba.service.fastscan``);
+- ``shipped file (served)`` (``--narrow``, the shipped width) — ``models/overlapmamba-hdl64.onnx``
+  itself, trained weights, loaded as the service loads it (``scan_kernel = "auto"``: the C
+  kernel where it agrees and is not the slower, else the portable graph; the path it took is
+  recorded), one image a call;
+- ``c-kernel`` — the same random weights as the rows below on the C-kernel path, forced
+  (``overlapmamba.service.encoder``): the graph cut at its scan nodes, each scan by the C
+  kernel (``overlapmamba.service.fastscan``);
 - ``scan-loop`` — the portable form: the scan as ONNX Scan loops over L/T chunks side by
   side (T = √L = 30), NetVLAD's reduction matrix stored int8;
 - ``scan-loop fp32`` — the same with every weight float32;
@@ -17,7 +21,8 @@ the narrow one with ``--narrow``) with the same random weights, exported by
   encoder for that ratio, and on its own in the table);
 - ``torch eager`` — PyTorch on the same inputs (fused C scan kernel).
 
-**Peer** (``--no-peer`` skips it): OverlapTransformer's network as our OT-style config
+**Peer** (``--no-peer`` skips it; with ``--narrow`` ours is the shipped file, as the service
+loads it): OverlapTransformer's network as our OT-style config
 (``mixer="transformer", spp=False``: OT's backbone, one transformer layer d 256 / 4 heads /
 feed-forward 1024, convLast2 1024, NetVLAD 64 clusters → 256, gating), exported to ONNX with
 the same int8 head and timed **interleaved** with the served encoder on the same image: each
@@ -151,13 +156,14 @@ def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     return res
 
 
-def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
-    """The file on the C-kernel path (the service serves it where it agrees and, with
-    ``scan_kernel = auto``, is not slower than the portable graph)."""
+def served_variant(path: Path, x1, x8, ref, reps: int, scan_kernel: Any) -> dict[str, Any]:
+    """The file through the service's encoder: ``scan_kernel`` True forces the C-kernel
+    path, "auto" chooses as the service does. ``ref`` None: weights other than PyTorch's
+    model here (the shipped file), no error against it."""
     from overlapmamba.service.encoder import Encoder
 
     t = time.perf_counter()
-    encoders = {th: Encoder(path, intra_op_threads=th, scan_kernel=True) for th in (1, 2)}
+    encoders = {th: Encoder(path, intra_op_threads=th, scan_kernel=scan_kernel) for th in (1, 2)}
     load_s = (time.perf_counter() - t) / 2
     current = {"t": 1}
 
@@ -165,13 +171,17 @@ def served_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
         return encoders[current["t"]].encode(x)
 
     res = measure(lambda: run(x1), lambda: run(x8), reps, lambda th: current.update(t=th))
-    d, y = encoders[2].encode(x8)
-    return res | {
+    out = res | {
+        "model_id": encoders[2].model_id,
         "scan_path": encoders[2].scan_path,
-        "descriptor_max_abs": float(np.abs(d - ref[0]).max()),
-        "yaw_max_abs": float(np.abs(y - ref[1]).max()),
+        "scan_path_t1": encoders[1].scan_path,
         "load_s": load_s,
     }
+    if ref is not None:
+        d, y = encoders[2].encode(x8)
+        out["descriptor_max_abs"] = float(np.abs(d - ref[0]).max())
+        out["yaw_max_abs"] = float(np.abs(y - ref[1]).max())
+    return out
 
 
 def alternate(*fns, n: int) -> list[float]:  # type: ignore[no-untyped-def]
@@ -225,9 +235,13 @@ def peer_comparison(
     ours in one pass, and the peer, in turn."""
     from overlapmamba.service.encoder import Encoder
 
-    ours = Encoder(ours_path, intra_op_threads=2)
+    ours = Encoder(ours_path, intra_op_threads=2)  # scan_kernel "auto", as the service
     peer = session(peer_path, 2)
-    out: dict[str, Any] = {"scan_path": ours.scan_path, "views": views}
+    out: dict[str, Any] = {
+        "model_id": ours.model_id,
+        "scan_path": ours.scan_path,
+        "views": views,
+    }
     for name, x, n in (("b1", x1, reps), ("b8", x8, max(5, reps // 4))):
         xv = np.repeat(x, views, axis=0)  # a scan's views: same shape, so the same cost
         v, a, b = alternate(
@@ -310,8 +324,14 @@ def main() -> None:
             # No verification against PyTorch here: without the scan the graphs differ.
             path = Path(tmp) / "noscan.onnx"
             paths["no-scan"] = _export_unverified(model, path)
-        console.print("timing c-kernel (served) …")
-        results["c-kernel (served)"] = served_variant(paths["scan-loop"], x1, x8, ref, args.reps)
+        shipped = args.narrow  # the shipped file has the narrow configuration
+        if shipped:
+            console.print("timing the shipped file as the service loads it …")
+            results["shipped file (served)"] = served_variant(
+                SHIPPED_MODEL, x1, x8, None, args.reps, "auto"
+            )
+        console.print("timing c-kernel …")
+        results["c-kernel"] = served_variant(paths["scan-loop"], x1, x8, ref, args.reps, True)
         for name, path in paths.items():
             console.print(f"timing {name} …")
             results[name] = onnx_variant(path, x1, x8, ref, args.reps)
@@ -324,11 +344,12 @@ def main() -> None:
             torch.manual_seed(1)
             ot = OverlapMamba(OverlapMambaConfig(mixer="transformer", spp=False)).eval()
             ot_path = export_onnx(ot, PROFILE, Path(tmp) / "ot.onnx", images=x8[:2]).path
-            peer = peer_comparison(paths["scan-loop"], ot_path, x1, x8, args.reps, args.views) | {
+            ours = SHIPPED_MODEL if shipped else paths["scan-loop"]
+            peer = peer_comparison(ours, ot_path, x1, x8, args.reps, args.views) | {
                 "peer_params": sum(p.numel() for p in ot.parameters()),
                 "ours_params": sum(p.numel() for p in model.parameters()),
                 "peer_file_mb": ot_path.stat().st_size / 1e6,
-                "ours_file_mb": paths["scan-loop"].stat().st_size / 1e6,
+                "ours_file_mb": ours.stat().st_size / 1e6,
             }
 
     console.print("timing torch eager …")
@@ -346,12 +367,12 @@ def main() -> None:
 
     base = results["no-scan"]
     ship = results["scan-loop"]
-    served = results["c-kernel (served)"]
+    served = results["c-kernel"]
     ratios = {
         # the goal's ratio from the interleaved run (yardstick_comparison)
         "served_over_noscan_b1_t1": yard["b1_t1"]["ratio"],
         "served_over_noscan_b1_t2": yard["b1_t2"]["ratio"],
-        "served_b8_throughput_over_b1_t2": served["b1_t2"]["median_ms"]
+        "c_kernel_b8_throughput_over_b1_t2": served["b1_t2"]["median_ms"]
         / served["b8_t2_per_scan_ms"],
         "scan_over_noscan_b1_t1": ship["b1_t1"]["median_ms"] / base["b1_t1"]["median_ms"],
         "scan_over_noscan_b1_t2": ship["b1_t2"]["median_ms"] / base["b1_t2"]["median_ms"],

@@ -27,7 +27,8 @@ def service() -> str:
 # ---- encoder -------------------------------------------------------------------------------
 ENCODER = "reports/service/encoder-narrow.json"
 VARIANTS = {
-    "c-kernel (served)": "C-kernel path (served where it is the faster), one pass",
+    "shipped file (served)": "the shipped file as the service loads it ({path}), one pass",
+    "c-kernel": "C-kernel path, forced (the rows below: one set of random weights), one pass",
     "scan-loop": "portable graph (ONNX `Scan` loops)",
     "no-scan": "the same graph with the scan removed (yardstick)",
     "torch eager": "PyTorch, eager",
@@ -43,9 +44,10 @@ def encoder() -> str:
         v = r["variants"].get(key)
         if v is None:
             continue
+        path = v.get("scan_path", "")
         rows.append(
             [
-                label,
+                label.format(path=path.split(" (")[0] if path else "?"),
                 ms(v["b1_t1"]["median_ms"]),
                 ms(v["b1_t2"]["median_ms"]),
                 ms(v["b8_t2_per_scan_ms"]),
@@ -59,10 +61,11 @@ def encoder() -> str:
     )
     p = r.get("peer")
     if p:
+        ours = f"`{p['model_id']}`, {p['scan_path'].split(' (')[0]}" if "model_id" in p else ""
         out += (
             f"\nAgainst the OverlapTransformer-style peer ({p['peer_params'] / 1e6:.1f} M "
-            f"parameters; ours {p['ours_params'] / 1e6:.1f} M), interleaved, 2 threads, "
-            "ms a scan:\n\n"
+            f"parameters; ours {p['ours_params'] / 1e6:.1f} M{', ' + ours if ours else ''}), "
+            "interleaved, 2 threads, ms a scan:\n\n"
         )
         prow = []
         for b in ("b1", "b8"):

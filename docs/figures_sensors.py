@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from figures_kit import ROOT, load, source, table, when
 
@@ -164,6 +165,21 @@ VERIFY_ACROSS = "reports/service/verify-across-any-sensor.json"
 VERIFY_ACROSS_PLAIN = "reports/service/verify-across-any-sensor-no-view.json"
 
 
+def _margin_since(model: str, measured: dict[str, Any]) -> str:
+    """Where the file now carries an ambiguity margin the run was measured without: said, as
+    the check only refuses closures (recall as served can only be lower)."""
+    from overlapmamba.service.calibration import read_model_metadata
+
+    now = read_model_metadata(ROOT / model).calibration.get("verify")
+    margin = now.values.get("ambiguity_margin") if now is not None else None
+    if margin is None or measured.get("ambiguity_margin") is not None:
+        return ""
+    return (
+        f", measured before the file carried its ambiguity margin ({margin:g}): the check "
+        "only refuses closures, so recall as served can only be lower"
+    )
+
+
 def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACROSS_PLAIN) -> str:
     """Verified closures across sensors on the sensor test town, pair by pair: precision /
     recall at the file's thresholds, scored within the keyframe sensor's field of view (as
@@ -196,6 +212,7 @@ def verify_across(path: str = VERIFY_ACROSS, plain_path: str | None = VERIFY_ACR
             if plain and plain["verify"].get("ambiguity_margin") != v.get("ambiguity_margin")
             else ""
         )
+        + _margin_since(r["model"], v)
         + ":\n\n"
     )
     cells = {(p["queries_sensor"], p["map_sensor"]): p["verified"] for p in r["test"]["pairs"]}
