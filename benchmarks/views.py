@@ -101,11 +101,15 @@ def ways(model: Path, tmp: Path) -> dict[str, Path]:
     return {"one view": one, "aligned": aligned, "descriptors": descriptors, "tokens": tokens}
 
 
-def cost(paths: dict[str, Path], reps: int) -> list[dict]:
+def cost(paths: dict[str, Path], reps: int) -> tuple[list[dict], dict[str, str]]:
+    """The cost rows, and the scan path each variant's encoder took at 2 threads (each loads
+    as the service loads it, ``scan_kernel = "auto"``)."""
     clouds = [read_points(p) for p in sorted((KITTI / "velodyne").glob("*.bin"))[:16]]
     rows: list[dict] = []
+    scan_paths: dict[str, str] = {}
     for threads in (1, 2):
         encs = {k: Encoder(p, intra_op_threads=threads) for k, p in paths.items()}
+        scan_paths = {k: e.scan_path for k, e in encs.items()}
         for per in (1, 8):
 
             def call(enc: Encoder, per: int = per) -> Callable[[int], object]:
@@ -126,7 +130,7 @@ def cost(paths: dict[str, Path], reps: int) -> list[dict]:
             1,
         )
         rows.append({"threads": threads, "stage": "project", **project})
-    return rows
+    return rows, scan_paths
 
 
 def turn_minima(
@@ -242,7 +246,7 @@ def main() -> None:
                 f"{args.out} measured other files ({kept.get('model_ids')}); run it in full"
             )
         views = read_metadata(paths["tokens"]).views
-        rows = cost(paths, args.reps)
+        rows, scan_paths = cost(paths, args.reps)
         if kept:
             turns = {k: v for k, v in kept["turn_invariance"].items() if k != "seeds"}
             loops = {k: v for k, v in kept["loop_closure"].items() if k != "rerank"}
@@ -259,6 +263,7 @@ def main() -> None:
         "model": str(args.model),
         "views": views,
         "model_ids": ids,
+        "scan_paths": scan_paths,
         "scans": "KITTI 00 frames 0–15",
         "reps": args.reps,
         "rows": rows,

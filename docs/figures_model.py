@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from figures_kit import ROOT, load, ms, source, table, when
 
@@ -21,7 +22,24 @@ def service() -> str:
     out += "\n" + table(["goal", "measured", "status"], rows)
     if parts:
         out += f"\nParts: {parts}.\n"
-    return out
+    return out + _then_and_now(r.get("http", {}))
+
+
+def _then_and_now(http: dict[str, Any]) -> str:
+    """The batching the http part's servers ran with, beside today's defaults where they
+    differ: a run's "defaults" are its day's."""
+    from overlapmamba.service.settings import BatchSettings
+
+    then, now = http.get("defaults") or {}, BatchSettings()
+    if not then or then.get("max_batch") == now.max_batch:
+        return ""
+    return (
+        f"\nThe http part's servers ran with that day's defaults: `max_batch` "
+        f"{then['max_batch']}, `max_wait_ms` {then.get('max_wait_ms', '?')}, "
+        f"{http.get('intra_op_threads', '?')} onnxruntime threads a call. Today's: "
+        f"`max_batch` {now.max_batch} a lane, `max_wait_ms` {now.max_wait_ms:g}, `lanes` "
+        f"{now.lanes or 'one a core'}; the fleet and end-to-end tables measure those.\n"
+    )
 
 
 # ---- encoder -------------------------------------------------------------------------------
@@ -95,6 +113,31 @@ def encoder() -> str:
 
 
 VIEWS = "reports/service/views.json"
+TOKENS_FILE = "models/overlapmamba-hdl64-tokens.onnx"
+
+
+def _which_files(r: dict[str, Any]) -> str:
+    """What the views report's columns were, against the files shipped: each variant's
+    scan path where it recorded one, and a column whose model id no shipped file has."""
+    from overlapmamba.service.calibration import read_model_metadata
+
+    shipped = read_model_metadata(ROOT / TOKENS_FILE).model_id
+    out = ""
+    if r["model_ids"].get("tokens") not in (None, shipped):
+        out += (
+            f" The tokens column is the benchmark's own export (`{r['model_ids']['tokens']}`), "
+            f"not the shipped tokens file (`{shipped}`)."
+        )
+    paths = r.get("scan_paths")
+    if paths:
+        out += " Scan paths: " + "; ".join(f"{k}: {v.split(' (')[0]}" for k, v in paths.items())
+        out += "."
+    else:
+        out += (
+            " Which scan path each variant took (C kernel or portable graph, chosen at each "
+            "load) was not recorded."
+        )
+    return out
 
 
 def views() -> str:
@@ -135,7 +178,8 @@ def views() -> str:
             f"\nThe cost rows are that command's; the turn invariance and loop closure are "
             f"from `{kept['command']}` ({kept['date'][:10]}, commit {kept['commit'][:7]}).\n"
         )
-    out += f"\n{r['scans']}, {r['reps']} repetitions, medians a scan (× one view).\n\n"
+    out += f"\n{r['scans']}, {r['reps']} repetitions, medians a scan (× one view)."
+    out += _which_files(r) + "\n\n"
     out += table(head, rows)
     turns = r.get("turn_invariance") or {}
     sets = [k for k in turns if isinstance(turns[k], dict) and "skipped" not in turns[k]]
