@@ -156,6 +156,17 @@ def onnx_variant(path: Path, x1, x8, ref, reps: int) -> dict[str, Any]:
     return res
 
 
+SHIPPED_ONE_VIEW = ROOT / "models" / "overlapmamba-hdl64-one-view.onnx"  # its weights, one view
+
+
+def _encode(enc: Any, x: np.ndarray) -> Any:
+    """One call of ``enc`` on one image a scan ``x`` (B, 1, H, W), shaped as the file takes
+    it: its views (the same image, so the same cost as a scan's views), and zero column
+    offsets where it aligns its columns."""
+    xv = np.repeat(x, enc.views, axis=1)
+    return enc.encode(xv, np.zeros(len(x)) if enc.meta.aligned else None)
+
+
 def served_variant(path: Path, x1, x8, ref, reps: int, scan_kernel: Any) -> dict[str, Any]:
     """The file through the service's encoder: ``scan_kernel`` True forces the C-kernel
     path, "auto" chooses as the service does. ``ref`` None: weights other than PyTorch's
@@ -168,11 +179,12 @@ def served_variant(path: Path, x1, x8, ref, reps: int, scan_kernel: Any) -> dict
     current = {"t": 1}
 
     def run(x):
-        return encoders[current["t"]].encode(x)
+        return _encode(encoders[current["t"]], x)
 
     res = measure(lambda: run(x1), lambda: run(x8), reps, lambda th: current.update(t=th))
     out = res | {
         "model_id": encoders[2].model_id,
+        "views": encoders[2].views,  # images a scan, one call
         "scan_path": encoders[2].scan_path,
         "scan_path_t1": encoders[1].scan_path,
         "load_s": load_s,
@@ -228,25 +240,35 @@ def yardstick_comparison(ours_path: Path, noscan_path: Path, x1, reps: int) -> d
 
 
 def peer_comparison(
-    ours_path: Path, peer_path: Path, x1, x8, reps: int, views: int
+    ours_path: Path, one_path: Path | None, peer_path: Path, x1, x8, reps: int, views: int
 ) -> dict[str, Any]:
     """Served encoder vs the OT-style peer, 2 threads, alternating every repetition: ours as
-    the product runs it (``views`` images a scan: its sub-column views, one encoder batch),
-    ours in one pass, and the peer, in turn."""
+    the product runs it (its sub-column views, one encoder batch: a file with views takes
+    them, a one-view graph ``views`` images a scan), ours in one pass (``one_path``, else the
+    same graph on one image), and the peer, in turn; each file loaded as the service loads
+    it (``scan_kernel`` "auto")."""
     from overlapmamba.service.encoder import Encoder
 
-    ours = Encoder(ours_path, intra_op_threads=2)  # scan_kernel "auto", as the service
+    ours = Encoder(ours_path, intra_op_threads=2)
+    one = Encoder(one_path, intra_op_threads=2) if one_path is not None else ours
     peer = session(peer_path, 2)
     out: dict[str, Any] = {
         "model_id": ours.model_id,
         "scan_path": ours.scan_path,
-        "views": views,
+        "one_pass_model_id": one.model_id,
+        "one_pass_scan_path": one.scan_path,
+        "views": ours.views if ours.views > 1 else views,
     }
+
+    def as_shipped(x: np.ndarray) -> Any:
+        if ours.views > 1:
+            return _encode(ours, x)
+        return ours.encode(np.repeat(x, views, axis=0))  # a scan's views, one batch
+
     for name, x, n in (("b1", x1, reps), ("b8", x8, max(5, reps // 4))):
-        xv = np.repeat(x, views, axis=0)  # a scan's views: same shape, so the same cost
         v, a, b = alternate(
-            lambda xv=xv: ours.encode(xv),
-            lambda x=x: ours.encode(x),
+            lambda x=x: as_shipped(x),
+            lambda x=x: _encode(one, x),
             lambda x=x: peer.run(None, {"range_image": x}),
             n=n,
         )
@@ -345,7 +367,8 @@ def main() -> None:
             ot = OverlapMamba(OverlapMambaConfig(mixer="transformer", spp=False)).eval()
             ot_path = export_onnx(ot, PROFILE, Path(tmp) / "ot.onnx", images=x8[:2]).path
             ours = SHIPPED_MODEL if shipped else paths["scan-loop"]
-            peer = peer_comparison(ours, ot_path, x1, x8, args.reps, args.views) | {
+            one = SHIPPED_ONE_VIEW if shipped else None
+            peer = peer_comparison(ours, one, ot_path, x1, x8, args.reps, args.views) | {
                 "peer_params": sum(p.numel() for p in ot.parameters()),
                 "ours_params": sum(p.numel() for p in model.parameters()),
                 "peer_file_mb": ot_path.stat().st_size / 1e6,

@@ -45,7 +45,8 @@ def _then_and_now(http: dict[str, Any]) -> str:
 # ---- encoder -------------------------------------------------------------------------------
 ENCODER = "reports/service/encoder-narrow.json"
 VARIANTS = {
-    "shipped file (served)": "the shipped file as the service loads it ({path}), one pass",
+    "shipped file (served)": "the shipped file as the service loads it ({path}), its {views} "
+    "views a scan",
     "c-kernel": "C-kernel path, forced (the rows below: one set of random weights), one pass",
     "scan-loop": "portable graph (ONNX `Scan` loops)",
     "no-scan": "the same graph with the scan removed (yardstick)",
@@ -63,9 +64,13 @@ def encoder() -> str:
         if v is None:
             continue
         path = v.get("scan_path", "")
+        peer = r.get("peer") or {}
+        views = v.get("views") or (
+            peer.get("views") if peer.get("model_id") == v.get("model_id") else "?"
+        )
         rows.append(
             [
-                label.format(path=path.split(" (")[0] if path else "?"),
+                label.format(path=path.split(" (")[0] if path else "?", views=views),
                 ms(v["b1_t1"]["median_ms"]),
                 ms(v["b1_t2"]["median_ms"]),
                 ms(v["b8_t2_per_scan_ms"]),
@@ -79,7 +84,12 @@ def encoder() -> str:
     )
     p = r.get("peer")
     if p:
-        ours = f"`{p['model_id']}`, {p['scan_path'].split(' (')[0]}" if "model_id" in p else ""
+        ours = ""
+        if "one_pass_model_id" in p:
+            ours = (
+                f"as shipped `{p['model_id']}` ({p['scan_path'].split(' (')[0]}), one pass "
+                f"`{p['one_pass_model_id']}` ({p['one_pass_scan_path'].split(' (')[0]})"
+            )
         out += (
             f"\nAgainst the OverlapTransformer-style peer ({p['peer_params'] / 1e6:.1f} M "
             f"parameters; ours {p['ours_params'] / 1e6:.1f} M{', ' + ours if ours else ''}), "
