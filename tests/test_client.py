@@ -10,6 +10,8 @@ import re
 import shutil
 import subprocess
 import time
+from types import SimpleNamespace
+from typing import Any
 
 import httpx
 import numpy as np
@@ -481,7 +483,6 @@ def test_fleet_judges_verified_closures_by_their_pose_beyond_the_loop_radius():
     """Precision counts a closure right when its keyframe lies within the loop radius; a
     verified closure's pose is judged as well, wherever the keyframe lies: a right pose to
     a keyframe 20 m away is an edge a pose graph can take, a wrong one is not."""
-    from types import SimpleNamespace
 
     from overlapmamba.client._replay import Drive
     from overlapmamba.client.fleet import _report, _Sample
@@ -756,7 +757,10 @@ def test_a_fleet_run_ends_at_its_duration_even_when_a_call_hangs(monkeypatch):
     async def nothing(self: object, *args: object, **kwargs: object) -> dict:
         return {}
 
-    monkeypatch.setattr(AsyncPlaceRecognitionClient, "create_map", nothing)
+    async def empty_map(self: object, *args: object, **kwargs: object) -> Any:
+        return SimpleNamespace(keyframes=0)
+
+    monkeypatch.setattr(AsyncPlaceRecognitionClient, "create_map", empty_map)
     monkeypatch.setattr(AsyncPlaceRecognitionClient, "health", nothing)
     url = f"http://127.0.0.1:{server.getsockname()[1]}"
     t0 = time.monotonic()
@@ -791,3 +795,105 @@ async def test_observations_sent_again_on_a_stream_count_their_keyframes(live):
     for results in (sync, asyn):
         assert [r.insert_reason for r in results] == ["existing", "existing"]
         assert all(r.retried for r in results) and [r.keyframe for r in results] == made
+
+
+def test_fleet_scoring_refuses_a_used_map_and_keeps_recall_within_its_loops(live, tiny_seq):
+    """Found in review of the fleet simulator: on a map that already held keyframes (an
+    earlier run's) every closure to them was scored wrong (precision 0.0); a right closure to
+    a keyframe whose robot had not yet been answered counted in recall's numerator but not
+    its denominator (recall 1.25); and after its pacing wait a robot sent once more past the
+    run's end."""
+    from overlapmamba.client._replay import Drive, open_drive
+    from overlapmamba.client.fleet import _report, _Sample, simulate
+
+    drive = open_drive(tiny_seq)
+    with PlaceRecognitionClient(live) as pr:
+        pr.create_map("fleet-used")
+        pr.insert_keyframe("fleet-used", scan(0), keyframe_id="old", timestamp=0.0)
+    with pytest.raises(ValueError, match="already holds 1 keyframes"):
+        asyncio.run(simulate(live, "fleet-used", [drive], robots=1, duration_s=1, rate_hz=1))
+
+    poses = np.zeros((4, 7))
+    poses[:, 6] = 1.0
+    poses[[1, 3], 0] = 100.0  # frames 0 and 2 at one place, 1 and 3 at another
+    d = Drive(seq=drive.seq, times=np.arange(4.0) * 100, poses=poses, loop_radius=5.0)
+    keyframes = {"a": (0, 0, 1.0), "b": (0, 1, 50.0)}  # b acknowledged long after it is used
+    samples = [
+        _Sample("r2", 0, 2, 10.0, 1.0, True, "a", None, None),  # a loop it could count on
+        _Sample("r3", 0, 3, 20.0, 1.0, True, "b", None, None),  # right, but b not yet known
+    ]
+    report = _report(samples, keyframes, [d], 2, 60.0, 1.0, 30.0, 0.0)
+    assert report.precision == 1.0 and report.queries_with_loop == 1 and report.recall == 1.0
+
+    t0 = time.monotonic()
+    late, _ = asyncio.run(
+        simulate(live, "fleet-late", [drive], robots=1, duration_s=1, rate_hz=0.4)
+    )
+    assert late.observations == 1 and time.monotonic() - t0 < 2.0  # the second was due at 2.5 s
+
+
+async def test_the_async_client_counts_the_tries_it_retried_and_sizes_its_pool():
+    """Found in review: a load run's refusals (503 overloaded) that a retry got through were
+    nowhere in its report, and beyond httpx's 100 connections robots waited in the client."""
+    from overlapmamba.client import Retry
+
+    answers = iter([503, 200])
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if next(answers) == 503:
+            body = {"error": {"code": "overloaded", "message": "queue full", "detail": {}}}
+            return httpx.Response(503, json=body, headers={"Retry-After": "0"})
+        return httpx.Response(200, json={"queries": 7})
+
+    transport = httpx.MockTransport(handler)
+    retry = Retry(attempts=3, backoff_s=0.0)
+    async with AsyncPlaceRecognitionClient("http://x", transport=transport, retry=retry) as pr:
+        assert (await pr.stats())["queries"] == 7
+        assert pr.retried == {"overloaded": 1}
+    async with AsyncPlaceRecognitionClient("http://x", max_connections=300) as pr:
+        assert pr._http._transport._pool._max_connections == 300
+
+
+def test_simulate_fleet_exits_1_when_no_observation_was_answered(live, synthetic_seq_dir, tmp_path):
+    """Found in review: every observation refused (a sensor the service does not know) wrote
+    latencies of 0 ms and exited 0."""
+    out = tmp_path / "f.json"
+    args = ["simulate-fleet", "--map", "fleet-none", "-s", str(synthetic_seq_dir), "--robots", "1"]
+    args += ["--scans", "2", "--rate", "5", "--sensor", "lidar9000", "--out", str(out)]
+    res = CliRunner().invoke(
+        cli_app, [*args, "--plot", str(tmp_path / "f.png")], env={"OVERLAPMAMBA_URL": live}
+    )
+    assert res.exit_code == 1 and "no observation was answered" in res.output, res.output
+    got = json.loads(out.read_text())
+    assert got["latency_ms"]["p50"] is None and got["errors"] == {"unknown_sensor": 2}
+
+
+async def test_the_async_client_reads_and_compresses_scans_off_its_event_loop(
+    tmp_path, monkeypatch
+):
+    """Found in review: reading a scan file and compressing it ran on the event loop (stalls
+    of tens of ms for every other task); they now run in a worker thread."""
+    import threading
+
+    from overlapmamba.client import _base
+
+    where: list[str] = []
+    real = _base.Calls.describe
+
+    def spy(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        where.append(threading.current_thread().name)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(_base.Calls, "describe", spy)
+    path = tmp_path / "s.bin"
+    scan(0).tofile(path)
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(400, json={"error": {"code": "bad", "message": "x", "detail": {}}})
+
+    async with AsyncPlaceRecognitionClient(
+        "http://x", transport=httpx.MockTransport(handler), compress=True
+    ) as pr:
+        with pytest.raises(APIError):
+            await pr.describe(path)
+    assert where and where[0] != threading.main_thread().name

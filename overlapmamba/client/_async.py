@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import random
-from collections import deque
-from collections.abc import AsyncIterable, AsyncIterator, Iterable
-from typing import Any
+from collections import Counter, deque
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable
+from typing import Any, TypeVar
 
 import httpx
 
@@ -46,6 +46,8 @@ from overlapmamba.client._stream import (
     ws_url,
 )
 
+T = TypeVar("T")
+
 
 class AsyncPlaceRecognitionClient:
     """Asyncio client of the place-recognition service.
@@ -66,7 +68,10 @@ class AsyncPlaceRecognitionClient:
         seed: int | None = None,
         sensor: str | None = None,
         mount: str | tuple[float, ...] | None = None,
+        max_connections: int = 100,
     ) -> None:
+        """``max_connections``: requests in flight at once (httpx's pool; more wait in the
+        client for a free connection, their wait counted in their time)."""
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
         self.timeout = timeout
@@ -76,8 +81,15 @@ class AsyncPlaceRecognitionClient:
         self._rng = random.Random(seed)
         headers = {"x-api-key": api_key} if api_key else {}
         self._http = httpx.AsyncClient(
-            base_url=self.base_url, timeout=timeout.httpx(), headers=headers, transport=transport
+            base_url=self.base_url,
+            timeout=timeout.httpx(),
+            headers=headers,
+            transport=transport,
+            limits=httpx.Limits(max_connections=max_connections),
         )
+        # tries that failed and were tried again, by error code (or class): a load run's
+        # refusals that a retry then got through
+        self.retried: Counter[str] = Counter()
 
     async def close(self) -> None:
         await self._http.aclose()
@@ -116,6 +128,7 @@ class AsyncPlaceRecognitionClient:
                     raise
                 maybe_applied = maybe_applied or may_have_applied(err)
                 retry_after = err.retry_after if isinstance(err, APIError) else None
+                self.retried[err.code if isinstance(err, APIError) else type(err).__name__] += 1
                 await asyncio.sleep(self.retry.delay(attempt, retry_after, self._rng))
         raise AssertionError("unreachable")
 
@@ -132,12 +145,12 @@ class AsyncPlaceRecognitionClient:
         return await self._run(self._calls.sensors())
 
     async def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
-        return await self._run(self._calls.describe(scan, sensor))
+        return await self._run(await _off_loop(self._calls.describe, scan, sensor))
 
     async def describe_batch(
         self, scans: list[Scan], *, sensor: str | None = None
     ) -> list[Descriptor]:
-        return await self._run(self._calls.describe_batch(scans, sensor))
+        return await self._run(await _off_loop(self._calls.describe_batch, scans, sensor))
 
     async def create_map(
         self,
@@ -177,8 +190,16 @@ class AsyncPlaceRecognitionClient:
         pose: Any = None,
         sensor: str | None = None,
     ) -> Keyframe:
-        call = self._calls.insert_keyframe(
-            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
+        call = await _off_loop(
+            self._calls.insert_keyframe,
+            map_id,
+            scan,
+            keyframe_id,
+            timestamp,
+            robot_id,
+            session_id,
+            pose,
+            sensor,
         )
         return await self._run(call)
 
@@ -207,7 +228,10 @@ class AsyncPlaceRecognitionClient:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
         timestamp), max_match_distance, time_from, time_to; ``verify=False`` skips the geometric
         verification of a scan query's candidates; ``sensor``: the scan's."""
-        return await self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
+        build = self._calls.query
+        if scan is None:  # a descriptor: nothing to read or compress
+            return await self._run(build(map_id, scan, descriptor, k, filters, sensor))
+        return await self._run(await _off_loop(build, map_id, scan, descriptor, k, filters, sensor))
 
     async def observe(
         self,
@@ -225,8 +249,18 @@ class AsyncPlaceRecognitionClient:
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
         geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
-        call = self._calls.observe(
-            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
+        call = await _off_loop(
+            self._calls.observe,
+            map_id,
+            scan,
+            robot_id,
+            session_id,
+            timestamp,
+            pose,
+            insert,
+            k,
+            verify,
+            sensor,
         )
         return await self._run(call)
 
@@ -303,7 +337,7 @@ class AsyncPlaceRecognitionClient:
         retries: set[int] = set()  # the observations sent again (``retry``)
         i = 0
         async for obs in observations:
-            meta, body = observation_frames(obs, i, compress)
+            meta, body = await _off_loop(observation_frames, obs, i, compress)
             try:  # a half-open link takes no data: give up after timeout.write
                 await asyncio.wait_for(_send_both(ws, meta, body), self.timeout.write)
             except TimeoutError:
@@ -322,6 +356,12 @@ class AsyncPlaceRecognitionClient:
             text = await asyncio.wait_for(ws.recv(), self.timeout.read)
             yield stream_result(text, errors, pending[0] in retries)
             pending.popleft()
+
+
+async def _off_loop(build: Callable[..., T], *args: Any) -> T:
+    """A request built off the event loop: reading a scan's file and compressing it take
+    milliseconds a scan (tens with zstd), which every other task on the loop would wait."""
+    return await asyncio.to_thread(build, *args)
 
 
 async def _send_both(ws: Any, meta: str, body: bytes) -> None:

@@ -418,8 +418,15 @@ def simulate_fleet(
     rows = [
         ("observations", str(report.observations)),
         ("throughput (obs/s)", f"{report.throughput_per_s:.2f}"),
-        ("latency p50 / p95 / p99 ms", f"{lat['p50']:.0f} / {lat['p95']:.0f} / {lat['p99']:.0f}"),
+        (
+            "latency p50 / p95 / p99 ms",
+            " / ".join("—" if lat[q] is None else f"{lat[q]:.0f}" for q in ("p50", "p95", "p99")),
+        ),
         ("errors", ", ".join(f"{k}: {v}" for k, v in report.errors.items()) or "none"),
+        (
+            "tries refused, then retried",
+            ", ".join(f"{k}: {v}" for k, v in report.retried.items()) or "none",
+        ),
         ("keyframes inserted", str(report.inserted)),
         ("loop closures accepted", str(report.loop_closures)),
         ("of which verified (with a relative pose)", str(report.verified_closures)),
@@ -441,6 +448,9 @@ def simulate_fleet(
         table.add_row(name, value)
     out.print(table)
     out.print(f"wrote {out_json}" + (f" and {plot}" if plot else ""))
+    if report.observations and report.throughput_per_s == 0:  # every observation failed
+        console.print("[bold red]error:[/] no observation was answered (the errors above)")
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -65,7 +65,7 @@ class FleetReport:
     rate_hz: float
     observations: int
     throughput_per_s: float
-    latency_ms: dict[str, float]
+    latency_ms: dict[str, float | None]  # None where no observation was answered
     errors: dict[str, int]
     inserted: int
     loop_closures: int
@@ -82,6 +82,9 @@ class FleetReport:
     drives: list[str] = field(default_factory=list)
     when: str = ""
     scans_per_robot: int | None = None  # asked of each robot (None: as many as the time let)
+    # tries the server refused (or the link failed) that a retry then got through, by code:
+    # the load it shed, which the errors (final failures only) do not show
+    retried: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -130,9 +133,22 @@ async def simulate(
     deadline = start + duration_s
 
     async with AsyncPlaceRecognitionClient(
-        url, api_key=api_key, retry=retry or Retry(attempts=3, backoff_s=0.2), mount=mount
+        url,
+        api_key=api_key,
+        retry=retry or Retry(attempts=3, backoff_s=0.2),
+        mount=mount,
+        # a connection a robot: beyond httpx's 100, robots would wait in this client, and
+        # that wait (or its timeout) would be measured as the server's
+        max_connections=max(100, robots),
     ) as pr:
-        await pr.create_map(map_id)
+        made = await pr.create_map(map_id)
+        scored = all(d.loop_radius is not None and d.poses is not None for d in drives)
+        if made.keyframes and scored:  # closures to them could not be scored: not misread
+            raise ValueError(
+                f"map {map_id!r} already holds {made.keyframes} keyframes; the simulator "
+                "scores closures against the keyframes its robots insert, so it needs a map "
+                f"of its own: another --map, or `overlapmamba-client maps delete {map_id}`"
+            )
         try:  # what the report measured; a service not ready now is not an error here
             ready = (await pr.health()).get("detail") or {}
         except ClientError:
@@ -152,7 +168,7 @@ async def simulate(
             end = len(drive) if scans is None else min(len(drive), offset + scans)
             for i in range(offset, end):
                 now = time.monotonic()
-                if now >= deadline:
+                if max(now, next_t) >= deadline:  # due after the end: not sent, not waited
                     return
                 if next_t > now:
                     await asyncio.sleep(next_t - now)
@@ -228,8 +244,10 @@ async def simulate(
                     tg.create_task(robot(r))
         except ExceptionGroup as group:
             raise group.exceptions[0] from None  # the caller's own error, as one robot hit it
+        retried = dict(pr.retried)
     elapsed = time.monotonic() - start
     report = _report(samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start)
+    report.retried = retried
     report.server, report.drives = server, [d.name for d in drives]
     report.scans_per_robot = scans
     report.when = datetime.now(UTC).isoformat(timespec="seconds")
@@ -247,14 +265,14 @@ def _report(
     start: float,
 ) -> FleetReport:
     ok = [s for s in samples if s.error is None]
-    lat = np.array([s.latency_ms for s in ok]) if ok else np.zeros(1)
+    lat = np.array([s.latency_ms for s in ok])
     accepted = [s for s in ok if s.accepted]
     has_gt = all(d.loop_radius is not None and d.poses is not None for d in drives)
-    correct = with_loop = pose_right = None
+    correct = with_loop = pose_right = found = None  # found: correct, of those with a loop
     t_err: list[float] = []
     yaw_err: list[float] = []
     if has_gt:
-        correct, with_loop, pose_right = 0, 0, 0
+        correct, with_loop, pose_right, found = 0, 0, 0, 0
         kf_by_drive: dict[int, list[tuple[int, float, str]]] = {}
         for kid, (d, i, t) in keyframes.items():
             kf_by_drive.setdefault(d, []).append((i, t - start, kid))
@@ -280,6 +298,9 @@ def _report(
             d, j, _ = keyframes[s.top]
             near = bool(d == s.drive and np.linalg.norm(drive.poses[j, :3] - p) < radius)
             correct += near
+            # recall's numerator within its denominator: a right closure to a keyframe whose
+            # robot had not yet been answered is right, but no loop the query could count on
+            found += near and bool(cands)
             # a verified closure's pose, wherever its keyframe on this drive lies
             if d == s.drive and s.verified and s.relative_pose is not None:
                 poses = drive.seq.poses
@@ -301,11 +322,11 @@ def _report(
         rate_hz=rate_hz,
         observations=len(samples),
         throughput_per_s=len(ok) / elapsed if elapsed > 0 else 0.0,
-        latency_ms={
-            "p50": float(np.percentile(lat, 50)),
-            "p95": float(np.percentile(lat, 95)),
-            "p99": float(np.percentile(lat, 99)),
-            "max": float(lat.max()),
+        latency_ms={  # None where no observation was answered
+            "p50": float(np.percentile(lat, 50)) if len(lat) else None,
+            "p95": float(np.percentile(lat, 95)) if len(lat) else None,
+            "p99": float(np.percentile(lat, 99)) if len(lat) else None,
+            "max": float(lat.max()) if len(lat) else None,
         },
         errors=dict(Counter(s.error for s in samples if s.error is not None)),
         inserted=len(keyframes),
@@ -313,7 +334,7 @@ def _report(
         correct=correct,
         queries_with_loop=with_loop,
         precision=(correct / len(accepted)) if correct is not None and accepted else None,
-        recall=(correct / with_loop) if correct is not None and with_loop else None,
+        recall=(found / with_loop) if found is not None and with_loop else None,
         verified_closures=sum(bool(s.verified) for s in accepted),
         verified_pose_right=pose_right,
         pose_error=None
@@ -356,7 +377,7 @@ def write_outputs(
     lat = [s.latency_ms for s in samples if s.error is None]
     b.hist(lat, bins=40)
     for q, v in report.latency_ms.items():
-        if q != "max":
+        if q != "max" and v is not None:
             b.axvline(v, ls="--", lw=1, color="k")
             b.text(v, b.get_ylim()[1] * 0.95, q, rotation=90, va="top", fontsize=8)
     b.set_xlabel("observe latency (ms)")
