@@ -3,15 +3,14 @@
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-# `make serve HOST=… PORT=… MODEL=… CONFIG=…` passes those given as options (which outrank
-# OVERLAPMAMBA_* variables and a config file); those not given come from the settings, whose
-# defaults are 127.0.0.1:8000 and the bundled default model (its card: models/README.md).
-HOST   ?=
-PORT   ?=
-MODEL  ?=
-CONFIG ?=
-SERVE_OPTIONS = $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT)) \
-	$(if $(MODEL),--model $(MODEL)) $(if $(CONFIG),--config $(CONFIG))
+# `make serve HOST=… PORT=… MODEL=… CONFIG=…` passes those given on make's command line as
+# options (which outrank OVERLAPMAMBA_* variables and a config file; an environment variable
+# of those names, such as a shell's HOST, is not taken); those not given come from the
+# settings, whose defaults are 127.0.0.1:8000 and the bundled default model (its card:
+# models/README.md).
+given = $(if $(filter command line,$(origin $(1))),$(2) "$($(1))")
+SERVE_OPTIONS = $(call given,HOST,--host) $(call given,PORT,--port) \
+	$(call given,MODEL,--model) $(call given,CONFIG,--config)
 
 # torch is pinned to the CPU build. Use the local wheel where this machine has it; elsewhere
 # ask PyTorch's CPU index, so pip never pulls the multi-GB CUDA build.

@@ -79,7 +79,7 @@ def sizing() -> str:
         ],
     )
     rows = []
-    two = all("search_two_stage" in s for s in r["search_stage"])
+    two = bool(r["search_stage"]) and all("search_two_stage" in s for s in r["search_stage"])
     for s in r["search_stage"]:
         parts = " / ".join(f"{k} {s[k]['p50_ms']:.2f}" for k in ("index", "rows", "yaw") if k in s)
         served = s["search_two_stage"] if two else s["search"]
@@ -154,8 +154,10 @@ def fleet() -> str:
         "--duration 60 --rate 10 --out reports/client/fleet-N.json",
     )
     models = "; ".join(sorted(said))
-    days = sorted({load(f"reports/client/fleet-{n}.json")["when"][:10] for n in (1, 4, 8)})
-    drives = {d for n in (1, 4, 8) for d in load(f"reports/client/fleet-{n}.json")["drives"]}
+    runs = [f"reports/client/fleet-{n}.json" for n in (1, 4, 8)]
+    runs = [load(rel) for rel in runs if (ROOT / rel).is_file()]
+    days = sorted({x.get("when", "")[:10] or "an unrecorded day" for x in runs})
+    drives = {d for x in runs for d in x.get("drives") or []}
     out += (
         f"\nEach against a fresh `overlapmamba serve` with the default settings of "
         f"{', '.join(days)}: model {models}.{''.join(_chosen_on(d) for d in sorted(drives))}\n"

@@ -31,11 +31,14 @@ def _then_and_now(http: dict[str, Any]) -> str:
     from overlapmamba.service.settings import BatchSettings
 
     then, now = http.get("defaults") or {}, BatchSettings()
-    if not then or then.get("max_batch") == now.max_batch:
+    if (then.get("max_batch"), then.get("max_wait_ms")) in (
+        (None, None),
+        (now.max_batch, now.max_wait_ms),
+    ):
         return ""
     return (
         f"\nThe http part's servers ran with that day's defaults: `max_batch` "
-        f"{then['max_batch']}, `max_wait_ms` {then.get('max_wait_ms', '?')}, "
+        f"{then.get('max_batch', '?')}, `max_wait_ms` {then.get('max_wait_ms', '?')}, "
         f"{http.get('intra_op_threads', '?')} onnxruntime threads a call. Today's: "
         f"`max_batch` {now.max_batch} a lane, `max_wait_ms` {now.max_wait_ms:g}, `lanes` "
         f"{now.lanes or 'one a core'}; the fleet and end-to-end tables measure those.\n"
@@ -64,6 +67,8 @@ def encoder() -> str:
         if v is None:
             continue
         path = v.get("scan_path", "")
+        if v.get("scan_path_t1") and v["scan_path_t1"].split(" (")[0] != path.split(" (")[0]:
+            path = f"{v['scan_path_t1'].split(' (')[0]} at 1 thread, {path.split(' (')[0]} at 2"
         peer = r.get("peer") or {}
         views = v.get("views") or (
             peer.get("views") if peer.get("model_id") == v.get("model_id") else "?"

@@ -837,7 +837,7 @@ async def test_the_async_client_counts_the_tries_it_retried_and_sizes_its_pool()
     nowhere in its report, and beyond httpx's 100 connections robots waited in the client."""
     from overlapmamba.client import Retry
 
-    answers = iter([503, 200])
+    answers = iter([503, 200, 503, 503])
 
     def handler(request: httpx.Request) -> httpx.Response:
         if next(answers) == 503:
@@ -846,9 +846,12 @@ async def test_the_async_client_counts_the_tries_it_retried_and_sizes_its_pool()
         return httpx.Response(200, json={"queries": 7})
 
     transport = httpx.MockTransport(handler)
-    retry = Retry(attempts=3, backoff_s=0.0)
+    retry = Retry(attempts=2, backoff_s=0.0)
     async with AsyncPlaceRecognitionClient("http://x", transport=transport, retry=retry) as pr:
         assert (await pr.stats())["queries"] == 7
+        assert pr.retried == {"overloaded": 1}
+        with pytest.raises(APIError, match="queue full"):  # failed for good: an error only
+            await pr.stats()
         assert pr.retried == {"overloaded": 1}
     async with AsyncPlaceRecognitionClient("http://x", max_connections=300) as pr:
         assert pr._http._transport._pool._max_connections == 300

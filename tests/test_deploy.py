@@ -343,15 +343,16 @@ def test_make_serve_leaves_unset_options_to_the_settings():
         )
         return next(ln for ln in done.stdout.splitlines() if "overlapmamba serve" in ln)
 
+    import shlex
+
     assert serve_line(OVERLAPMAMBA_PORT="9001").split()[-1] == "serve"  # nothing outranks it
-    given = serve_line(
-        "PORT=9002", "MODEL=models/overlapmamba-hdl64-one-pass.onnx", "CONFIG=s.toml"
-    )
-    assert given.split("serve", 1)[1].split() == [
+    assert serve_line(CONFIG="x.toml", HOST="box").split()[-1] == "serve"  # a shell's, not make's
+    given = serve_line("PORT=9002", "MODEL=my models/x.onnx", "CONFIG=s.toml")
+    assert shlex.split(given.split("serve", 1)[1]) == [
         "--port",
         "9002",
         "--model",
-        "models/overlapmamba-hdl64-one-pass.onnx",
+        "my models/x.onnx",  # one argument
         "--config",
         "s.toml",
     ]

@@ -87,8 +87,9 @@ class AsyncPlaceRecognitionClient:
             transport=transport,
             limits=httpx.Limits(max_connections=max_connections),
         )
-        # tries that failed and were tried again, by error code (or class): a load run's
-        # refusals that a retry then got through
+        # tries that failed (by error code, or class) of calls a later try then got through:
+        # a load run's refusals that retries absorbed (a call that failed for good is the
+        # caller's error, not counted here)
         self.retried: Counter[str] = Counter()
 
     async def close(self) -> None:
@@ -103,6 +104,7 @@ class AsyncPlaceRecognitionClient:
     async def _run(self, call: Call) -> Any:
         attempts = self.retry.attempts if call.idempotent else 1
         maybe_applied = False  # an earlier try may have been carried out
+        failed: list[str] = []  # this call's tries that failed and were tried again
         for attempt in range(1, attempts + 1):
             try:
                 try:
@@ -120,7 +122,9 @@ class AsyncPlaceRecognitionClient:
                     raise not_this_api(call, None, err) from err
                 if not answered(call, resp):
                     raise_for(resp)
-                return mark_retried(read_answer(call, resp), maybe_applied)
+                result = mark_retried(read_answer(call, resp), maybe_applied)
+                self.retried.update(failed)  # got through after them
+                return result
             except ClientError as err:
                 if deleted_before(call, err, maybe_applied):
                     return None
@@ -128,7 +132,7 @@ class AsyncPlaceRecognitionClient:
                     raise
                 maybe_applied = maybe_applied or may_have_applied(err)
                 retry_after = err.retry_after if isinstance(err, APIError) else None
-                self.retried[err.code if isinstance(err, APIError) else type(err).__name__] += 1
+                failed.append(err.code if isinstance(err, APIError) else type(err).__name__)
                 await asyncio.sleep(self.retry.delay(attempt, retry_after, self._rng))
         raise AssertionError("unreachable")
 

@@ -10,9 +10,10 @@ correct when its top match is a keyframe of the same drive whose pose lies withi
 drive's loop radius of the query's. A query *has* a loop when such a keyframe had been
 acknowledged before the query was sent and the service's own-session recency filter
 (``exclude_recent_s``, the server default) did not hide it. Precision = correct / accepted,
-recall = correct / queries that had a loop. A verified closure's relative pose is scored
-against the drive's poses (T = P_keyframe⁻¹ · P_query): translation and yaw errors of the
-correct ones, and how many verified closures of all had a right pose (within
+recall = correct closures of queries that had a loop / queries that had a loop (a right
+closure to a keyframe not yet acknowledged counts for precision only). A verified closure's
+relative pose is scored against the drive's poses (T = P_keyframe⁻¹ · P_query): translation
+and yaw errors of the correct ones, and how many verified closures of all had a right pose (within
 ``overlapmamba.core.poses.POSE_RIGHT``, wherever their keyframe lies on the same drive: an edge
 a pose graph can take, even beyond the loop radius; one to another drive's keyframe counts
 as not right, its truth unknown here).
@@ -154,6 +155,7 @@ async def simulate(
         except ClientError:
             ready = {}
         server = {k: ready.get(k) for k in ("model_id", "views", "scan", "sensor")}
+        pr.retried.clear()  # the robots' observations only, not the set-up's calls
 
         async def robot(r: int) -> None:
             d = r % len(drives)
@@ -244,7 +246,7 @@ async def simulate(
                     tg.create_task(robot(r))
         except ExceptionGroup as group:
             raise group.exceptions[0] from None  # the caller's own error, as one robot hit it
-        retried = dict(pr.retried)
+        retried = dict(sorted(pr.retried.items()))
     elapsed = time.monotonic() - start
     report = _report(samples, keyframes, drives, robots, elapsed, rate_hz, exclude_recent_s, start)
     report.retried = retried
