@@ -20,6 +20,7 @@ from transport_floor import floor_server
 from overlapmamba.core.io import decode
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.settings import BatchSettings
+from overlapmamba.service.threads import encoder_threads
 
 HEADERS = {"Content-Type": "application/octet-stream", "X-Point-Fields": "xyzi"}
 RATIO_GOAL = 1.10
@@ -187,7 +188,10 @@ def http_part(args: argparse.Namespace, console: Console) -> dict[str, Any]:
     bodies, source = scan_bodies(16)
     body = bodies[0]
     console.print(f"HTTP part: {source}; loading the bare encoder …")
-    enc = Encoder(MODEL)
+    # the bare side with the threads a server's encoder call gets by default (a lane a core,
+    # one thread each on 2 cores): the ratio is then the HTTP path's, not a thread count's
+    lanes, per_call = encoder_threads(DEFAULTS.lanes, DEFAULTS.intra_op_threads)
+    enc = Encoder(MODEL, intra_op_threads=per_call)
     threads = enc.session.get_session_options().intra_op_num_threads
     configs = [
         ("batching", {}, True),
@@ -198,7 +202,11 @@ def http_part(args: argparse.Namespace, console: Console) -> dict[str, Any]:
         "scans": source,
         "body_bytes": len(body),
         "intra_op_threads": threads,
-        "defaults": {"max_batch": DEFAULTS.max_batch, "max_wait_ms": DEFAULTS.max_wait_ms},
+        "defaults": {
+            "max_batch": DEFAULTS.max_batch,
+            "max_wait_ms": DEFAULTS.max_wait_ms,
+            "lanes": lanes,
+        },
         "load_average_at_start": os.getloadavg(),
         "servers": {},
     }
@@ -223,7 +231,8 @@ def print_http(res: dict[str, Any], console: Console) -> None:
     t = Table(
         title="HTTP overhead: POST /v1/descriptors ÷ bare decode+project+encode",
         caption=f"{res['scans']}, {res['body_bytes'] / 1e6:.1f} MB body, B=1, sequential; "
-        f"onnxruntime {res['intra_op_threads']} intra-op threads on both sides. Servers: "
+        f"onnxruntime {res['intra_op_threads']} intra-op threads a call on both sides "
+        f"(the server: {d.get('lanes', '?')} lanes). Servers: "
         f"batching = the defaults (max_batch {d['max_batch']}, max_wait_ms "
         f"{d['max_wait_ms']:g}); wait 0 = OVERLAPMAMBA_BATCHING__MAX_WAIT_MS=0; no batching "
         "= OVERLAPMAMBA_BATCHING__MAX_BATCH=1. Stages dec/proj/enc are medians; rest = HTTP "

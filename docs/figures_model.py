@@ -22,7 +22,15 @@ def service() -> str:
     out += "\n" + table(["goal", "measured", "status"], rows)
     if parts:
         out += f"\nParts: {parts}.\n"
-    return out + _then_and_now(r.get("http", {}))
+    http = r.get("http", {})
+    lanes = (http.get("defaults") or {}).get("lanes")
+    if lanes:
+        out += (
+            f"\nBoth sides of the overhead ratio run {http['intra_op_threads']} onnxruntime "
+            f"thread(s) a call, as each of the server's {lanes} lanes does by default; the "
+            "sgemm runs on every core.\n"
+        )
+    return out + _then_and_now(http)
 
 
 def _then_and_now(http: dict[str, Any]) -> str:
