@@ -373,3 +373,47 @@ def test_the_default_session_is_a_valid_id_and_tells_a_recordings_topics_apart(t
         for t in ("/front/points", "/rear/points")
     ]
     assert [session(b) for b in two] == ["drive_0-front-points", "drive_0-rear-points"]
+
+
+def test_pose_samples_that_are_no_pose_are_gaps_not_identities_or_a_refused_drive(tmp_path):
+    """Found in review: an all-zero quaternion (a publisher's before it has one) was
+    normalised into the identity, so its scan went out with a heading of 0; and one NaN
+    sample on the odometry, or on a /tf link nowhere near the LiDAR's chain (a tracked
+    person's), made the whole recording unreadable. Such samples are left out as gaps, and
+    counted."""
+    from ros_messages import STORE, _cloud, _odometry, _tf
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from overlapmamba.core.poses import rotation_z
+
+    ser, S = STORE.serialize_cdr, 10**9
+    path = tmp_path / "gappy-poses"
+    turned = rotation_z(90.0)
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        pc = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=STORE)
+        od = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=STORE)
+        tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=STORE)
+        rng = np.random.default_rng(0)
+        for i in range(8):
+            t = 100 * S + i * S // 20
+            T = turned.copy()
+            T[0, 3] = float(i)
+            pts = rng.uniform(-20, 20, (300, 4)).astype(np.float32)
+            w.write(pc, t, ser(_cloud(STORE, pts, t), "sensor_msgs/msg/PointCloud2"))
+            odo = _odometry(STORE, T, t)
+            if i == 3:  # not yet initialised: (0, 0, 0, 0)
+                o = odo.pose.pose.orientation
+                o.x = o.y = o.z = o.w = 0.0
+            w.write(od, t + 1, ser(odo, "nav_msgs/msg/Odometry"))
+            links = [("odom", "velodyne", T)]
+            msg = _tf(STORE, t, [*links, ("odom", "person_0", np.eye(4))])
+            if i == 5:  # a tracker's bad sample, off the LiDAR's chain
+                msg.transforms[1].transform.translation.x = float("nan")
+            w.write(tf, t + 2, ser(msg, "tf2_msgs/msg/TFMessage"))
+    for kw in ({"odometry": "/odom"}, {"tf": "odom"}):
+        bag = open_bag(path, **kw)
+        assert bag.poses is not None and np.isfinite(bag.poses).all()
+        for i in range(8):  # scan 3's heading comes from its neighbours: 90°, not 0°
+            np.testing.assert_allclose(bag.poses[i][:2, :2], turned[:2, :2], atol=1e-6)
+            assert abs(bag.poses[i][0, 3] - i) < 1e-6
+        assert bag.bad_pose_samples == 1, kw

@@ -900,3 +900,21 @@ async def test_the_async_client_reads_and_compresses_scans_off_its_event_loop(
         with pytest.raises(APIError):
             await pr.describe(path)
     assert where and where[0] != threading.main_thread().name
+
+
+def test_a_failed_replay_leaves_the_recording_at_its_path_and_keeps_its_own_beside(tmp_path):
+    """Found in review: a replay that failed after recording something renamed its partial
+    file over the whole recording already at the path."""
+    from overlapmamba.client.recording import MapRecording
+
+    path = tmp_path / "drive.mcap"
+    with MapRecording(path) as rec:
+        for i in range(5):
+            rec.observation("r1", float(i), [i, 0, 0, 0, 0, 0, 1], keyframe_id=f"k{i}")
+    whole = path.read_bytes()
+    with pytest.raises(ConnectionError), MapRecording(path) as rec:
+        rec.observation("r1", 9.0, [9, 0, 0, 0, 0, 0, 1])
+        raise ConnectionError("server unreachable")
+    assert path.read_bytes() == whole and rec.incomplete == tmp_path / "drive.incomplete.mcap"
+    assert rec.incomplete.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drive.incomplete.mcap", "drive.mcap"]

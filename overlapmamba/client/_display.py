@@ -78,7 +78,14 @@ def report_skipped(skipped: list[str], frames: int) -> None:
 
 
 def note_unposed(drive: Any) -> None:
-    """Before a drive: how many of its scans go without a pose (none near their stamps)."""
+    """Before a drive: how many of its scans go without a pose (none near their stamps), and
+    how many of its pose samples were left out as no pose."""
+    bad = getattr(drive.seq, "bad_pose_samples", 0)
+    if bad:
+        Console(stderr=True).print(
+            f"[yellow]note:[/] {bad} odometry or /tf samples were left out as no pose (a zero "
+            "or non-finite quaternion or position, an unnamed frame): gaps in the poses",
+        )
     if drive.unposed:
         Console(stderr=True).print(
             f"[yellow]note:[/] {drive.unposed} of {len(drive)} scans have no pose sample "

@@ -15,6 +15,7 @@ from typing import Annotated
 
 import typer
 from rich.live import Live
+from rich.markup import escape
 from rich.table import Table
 
 from overlapmamba.client._cli_options import (
@@ -292,7 +293,17 @@ def observe(
         if record is not None:
             from overlapmamba.client.recording import MapRecording
 
-            rec = stack.enter_context(MapRecording(record))
+            made = MapRecording(record)
+
+            def kept() -> None:  # after the recording's own exit, on a failed replay
+                if made.incomplete is not None:
+                    console.print(
+                        f"[yellow]note:[/] the replay stopped; what it recorded is in "
+                        f"{escape(str(made.incomplete))} ({escape(str(record))} is as it was)"
+                    )
+
+            stack.callback(kept)
+            rec = stack.enter_context(made)
         pr.create_map(map_id)
         for i, points in drive.scans(frames, skipped):
             o = pr.observe(

@@ -85,6 +85,7 @@ class MapRecording:
         # written beside it and renamed over it when closed: what was at the path stays
         # whole until a whole recording replaces it
         self._part = self.path.with_name(f".{self.path.name}.part")
+        self.incomplete: Path | None = None  # where a failed replay's recording was kept
         self._file: IO[bytes] = open(self._part, "wb")  # noqa: SIM115 - closed in close()
         self._writer = Writer(self._file)
         self._writer.start(profile="", library="overlapmamba-client")
@@ -187,9 +188,15 @@ class MapRecording:
         return self
 
     def __exit__(self, kind: object, *exc: object) -> None:
-        if kind is not None and not self.messages:  # failed before anything was recorded
-            self._writer.finish()
-            self._file.close()
+        if kind is None:
+            self.close()
+            return
+        # the replay failed: what stood at the path stays; what was recorded, if anything,
+        # is kept beside it as PATH's stem + ".incomplete" (readable: the writer is finished)
+        self._writer.finish()
+        self._file.close()
+        if not self.messages:
             self._part.unlink(missing_ok=True)
             return
-        self.close()
+        self.incomplete = self.path.with_name(f"{self.path.stem}.incomplete{self.path.suffix}")
+        os.replace(self._part, self.incomplete)

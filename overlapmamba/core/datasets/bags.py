@@ -104,6 +104,9 @@ class Bag:
 
     sensor: str | None = None  # the catalogue sensor, as a Sequence has it (None: not said)
     clouds: tuple[str, ...] = ()  # every PointCloud2 topic the recording holds
+    # odometry or /tf samples left out as unusable (a zero or non-finite quaternion, a
+    # non-finite position, an unnamed frame): gaps, as a publisher still starting leaves them
+    bad_pose_samples: int = 0
 
     @property
     def name(self) -> str:
@@ -251,10 +254,10 @@ def open_bag(
                     headers.append((h.stamp.sec * 10**9 + h.stamp.nanosec, h.frame_id))
             if not stamps:
                 raise DatasetError(f"{path}: topic {topic} holds no messages")
-            poses = None
+            poses, bad = None, 0
             if odometry is not None:
                 with _named(path):
-                    tree = _odometry_tree(r, path, odometry)
+                    tree, bad = _odometry_tree(r, path, odometry)
                     poses = tree.lookup(
                         odometry,
                         "scan",
@@ -265,7 +268,7 @@ def open_bag(
             elif tf is not None:
                 fixed, _, child = tf.partition(":")
                 with _named(path):
-                    tree = _tf_tree(r, path)
+                    tree, bad = _tf_tree(r, path)
                     child = child or _frame(path, topic, headers)
                     poses = tree.lookup(
                         fixed.lstrip("/"),
@@ -281,7 +284,7 @@ def open_bag(
     ns = np.asarray(stamps, dtype=np.int64)
     if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
         raise DatasetError(f"{path}: {topic} is not in time order")
-    return Bag(path, topic, ns, poses, sensor=sensor, clouds=clouds)
+    return Bag(path, topic, ns, poses, sensor=sensor, clouds=clouds, bad_pose_samples=bad)
 
 
 @contextmanager
@@ -339,20 +342,25 @@ def _frame(path: Path, topic: str, headers: list[tuple[int, str]]) -> str:
     return frames[0]
 
 
-def _pose(p: Any) -> np.ndarray:
-    """geometry_msgs Pose or Transform → 4×4."""
+def _pose(p: Any) -> np.ndarray | None:
+    """geometry_msgs Pose or Transform → 4×4; None where it is no pose: a zero quaternion
+    (a publisher's before it has one, which normalising would make the identity) or a
+    non-finite value."""
     xyz = p.position if hasattr(p, "position") else p.translation
     o = p.orientation if hasattr(p, "orientation") else p.rotation
-    return from_quaternion([xyz.x, xyz.y, xyz.z], [o.x, o.y, o.z, o.w])
+    t, q = np.array([xyz.x, xyz.y, xyz.z], float), np.array([o.x, o.y, o.z, o.w], float)
+    if not (np.isfinite(t).all() and np.isfinite(q).all()) or not np.linalg.norm(q) > 1e-9:
+        return None
+    return from_quaternion(t, q)
 
 
 def _stamp(header: Any) -> int:
     return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
 
 
-def _odometry_tree(r: Any, path: Path, topic: str) -> TransformTree:
+def _odometry_tree(r: Any, path: Path, topic: str) -> tuple[TransformTree, int]:
     """The odometry topic as one link, topic → "scan" (its frame names, often unset
-    by hand-written nodes, are not needed)."""
+    by hand-written nodes, are not needed), and how many of its samples were no pose."""
     cons = [c for c in r.connections if c.topic == topic]
     if not cons or cons[0].msgtype not in ODOMETRY:
         have = sorted({c.topic for c in r.connections if c.msgtype in ODOMETRY})
@@ -360,28 +368,38 @@ def _odometry_tree(r: Any, path: Path, topic: str) -> TransformTree:
             f"{path}: no nav_msgs/Odometry topic {topic!r}; it has {', '.join(have) or 'none'}",
             topics=have,
         )
-    tree = TransformTree()
+    tree, bad = TransformTree(), 0
     for con, _, raw in r.messages(connections=cons):
         msg = r.deserialize(raw, con.msgtype)
-        tree.add(topic, "scan", _stamp(msg.header), _pose(msg.pose.pose))
+        pose = _pose(msg.pose.pose)
+        if pose is None:
+            bad += 1
+            continue
+        tree.add(topic, "scan", _stamp(msg.header), pose)
     if not tree.frames:
-        raise DatasetError(f"{path}: odometry topic {topic} holds no messages")
-    return tree
+        raise DatasetError(
+            f"{path}: odometry topic {topic} holds no usable pose ({bad} unusable messages)"
+        )
+    return tree, bad
 
 
-def _tf_tree(r: Any, path: Path) -> TransformTree:
-    """Every transform on /tf (timed) and /tf_static (static)."""
+def _tf_tree(r: Any, path: Path) -> tuple[TransformTree, int]:
+    """Every transform on /tf (timed) and /tf_static (static), and how many were left out as
+    no transform (an unnamed frame, a zero quaternion, a non-finite value: on a link off the
+    LiDAR's chain such a sample must not make the drive unreadable)."""
     cons = [c for c in r.connections if c.topic in TF_TOPICS and c.msgtype in TF]
     if not cons:
         raise DatasetError(
             f"{path}: no /tf or /tf_static topic of tf2_msgs/TFMessage; name an odometry "
             "topic instead (--odometry)"
         )
-    tree = TransformTree()
+    tree, bad = TransformTree(), 0
     for con, _, raw in r.messages(connections=cons):
         for tr in r.deserialize(raw, con.msgtype).transforms:
             parent, child = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
-            tree.add(
-                parent, child, _stamp(tr.header), _pose(tr.transform), static=TF_TOPICS[con.topic]
-            )
-    return tree
+            pose = _pose(tr.transform)
+            if pose is None or not parent or not child or parent == child:
+                bad += 1
+                continue
+            tree.add(parent, child, _stamp(tr.header), pose, static=TF_TOPICS[con.topic])
+    return tree, bad
