@@ -173,7 +173,7 @@ def score_town(
     descs, yaws = [], []
     for start in tqdm(range(0, len(seq), batch), desc=f"encode {seq.name}", unit="batch"):
         pts = [seq.points(i) for i in range(start, min(len(seq), start + batch))]
-        d, y = enc.describe(pts, sensor, batch=len(pts), mapped=False)
+        d, y = enc.describe(pts, sensor, batch=len(pts))  # mapped, as the service answers
         descs.append(d)
         yaws.append(y)
     desc = np.concatenate(descs)

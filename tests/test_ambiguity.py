@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_kit import OCTET, running
+from service_kit import OCTET, ROOT, running
 
 from overlapmamba.service.registration import keyframe_geometry, prepare
 from overlapmamba.service.settings import Settings, VerifySettings
@@ -278,3 +278,23 @@ def test_a_file_calibrated_before_the_margin_serves_with_the_check_off(caplog):
     [warning] = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert "verify.gate_distance" in warning.getMessage()
     assert "ambiguity_margin" not in warning.getMessage()
+
+
+def test_a_model_whose_first_stage_is_its_descriptor_has_no_score_to_calibrate(caplog):
+    """Found in review: the shipped file warned at every start that it "carries no
+    calibration for rerank.score", a choice its first stage does not have (both scores are
+    its descriptor's); a mixed first stage's uncalibrated score still warns."""
+    import logging
+
+    from overlapmamba.service.calibration import log_thresholds, read_model_metadata, resolve
+    from overlapmamba.service.settings import Settings
+
+    for name, warns in (("overlapmamba-hdl64", False), ("overlapmamba-any-sensor", True)):
+        meta = read_model_metadata(ROOT / "models" / f"{name}.onnx")
+        _, used = resolve(Settings(), meta)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="overlapmamba.service"):
+            log_thresholds(meta.model_id, used)
+        warned = [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert bool(warned) == warns, (name, [r.getMessage() for r in warned])
+        assert used["rerank.score"].value == "stage"

@@ -106,6 +106,30 @@ def test_a_model_file_carries_its_maps_in_its_id_and_refuses_stale_ones(tmp_path
     with pytest.raises(ExportError, match="not of the descriptor's dimension"):
         with_sensor_maps(MODEL, tmp_path / "small.onnx", {"vlp16": _map_for(8)})
     assert not (tmp_path / "own.onnx").exists() and not (tmp_path / "small.onnx").exists()
+    # found in review: the maps change the descriptors the file's thresholds were chosen on,
+    # yet the calibration was kept; adding, changing or removing them drops it
+    assert before.calibration and not meta.calibration
+    assert not read_metadata(tmp_path / "plain.onnx").calibration
+    same = with_sensor_maps(out, tmp_path / "same.onnx", {"vlp16": m})
+    assert same.model_id == meta.model_id
+
+
+def test_a_map_for_a_custom_model_sensor_is_refused_by_the_name_scans_are_looked_up_by():
+    """Found in review: the own-sensor check used the profile's name ("My Lidar") where the
+    service looks a scan's sensor up by the catalogue name made of it ("my-lidar"), so a map
+    under that name passed and mapped the model's own scans."""
+    from overlapmamba.core.modelmeta import EncoderMetadata
+    from overlapmamba.core.sensors.catalogue import sensor_of_profile
+
+    meta = Encoder(MODEL, intra_op_threads=1, scan_kernel=False).meta
+    custom = meta.profile.model_copy(update={"name": "My Lidar"})
+    name = sensor_of_profile(custom).name
+    assert name != custom.name
+    fields = meta.model_dump(by_alias=True) | {"profile": custom.model_dump()}
+    with pytest.raises(ValueError, match="the model's own sensor"):
+        EncoderMetadata.model_validate(
+            fields | {"sensor_maps": {name: _map_for(meta.descriptor_dim)}}
+        )
 
 
 pytestmark = pytest.mark.anyio

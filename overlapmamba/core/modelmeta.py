@@ -163,9 +163,14 @@ class EncoderMetadata(BaseModel):
 
     @model_validator(mode="after")
     def _maps_fit_the_model(self) -> EncoderMetadata:
-        if self.profile.name in self.sensor_maps:
+        from overlapmamba.core.sensors.catalogue import sensor_of_profile
+
+        # the profile's name, and the name the service looks its scans up by (a custom
+        # profile's, made a catalogue name)
+        own = {self.profile.name, sensor_of_profile(self.profile).name} & set(self.sensor_maps)
+        if own:
             raise ValueError(
-                f"a sensor map for {self.profile.name!r}, the model's own sensor: its "
+                f"a sensor map for {sorted(own)[0]!r}, the model's own sensor: its "
                 "descriptors are the space the maps lead into and are never mapped"
             )
         wrong = sorted(k for k, v in self.sensor_maps.items() if v.dim != self.descriptor_dim)

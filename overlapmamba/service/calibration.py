@@ -59,6 +59,9 @@ def resolve(settings: Settings, meta: EncoderMetadata) -> tuple[Settings, dict[s
                 value = entry.values[name]
                 updates.setdefault(section, {})[name] = value
                 used[key] = Threshold(value, "model", f"{entry.chosen_by} on {entry.data}")
+            elif key == "rerank.score" and not _scores_its_network(meta):
+                # nothing to choose: "stage" is the only score its first stage gives
+                used[key] = Threshold(getattr(current, name), "model", "its first stage")
             else:
                 used[key] = Threshold(getattr(current, name), "default")
     sections = {}
@@ -77,6 +80,19 @@ def resolve(settings: Settings, meta: EncoderMetadata) -> tuple[Settings, dict[s
     out = settings.model_copy(update=sections)
     rerank_params(out.rerank, meta)  # a second-stage score this model cannot give stops here
     return out, used
+
+
+def _scores_its_network(meta: EncoderMetadata) -> bool:
+    """Whether the model's first stage holds its network's descriptor apart (a mixed or a
+    split-reduced one), so that rerank.score has a choice to calibrate; where its first
+    stage is its descriptor both scores are one."""
+    from overlapmamba.core.rerank import Rerank, with_score
+
+    try:
+        network = with_score(Rerank(), "network", meta)
+    except ValueError:
+        return False
+    return network != with_score(Rerank(), "stage", meta)  # else both score alike
 
 
 def read_model_metadata(path: Path) -> EncoderMetadata:

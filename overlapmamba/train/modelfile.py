@@ -77,20 +77,17 @@ def with_sensor_maps(
 ) -> EncoderMetadata:
     """Write ``src``'s encoder to ``out`` carrying ``maps`` (:mod:`overlapmamba.core.sensormaps`;
     they replace any it had, none removes them): the graph and weights byte for byte, the
-    model id the one that goes with the maps (other sensors' descriptors change with them).
-    Atomic. Returns the new metadata."""
+    model id the one that goes with the maps (other sensors' descriptors change with them),
+    and no calibration where the maps change (its thresholds were chosen on the descriptors
+    the old maps gave). Atomic. Returns the new metadata."""
+    digest = maps_digest(maps) if maps else ""
     return rewrite_metadata(
         src,
         out,
         lambda meta: {
             "sensor_maps": maps,
-            **identity(
-                meta.graph,
-                meta.views,
-                meta.sensor_input,
-                maps_digest(maps) if maps else "",
-                meta.column_phase,
-            ),
+            **identity(meta.graph, meta.views, meta.sensor_input, digest, meta.column_phase),
+            **_calibration_of(meta, meta.maps_digest, digest),
         },
     )
 
