@@ -6,8 +6,8 @@ from __future__ import annotations
 import asyncio
 import random
 from collections import Counter, deque
-from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable
-from typing import Any, TypeVar
+from collections.abc import AsyncIterable, AsyncIterator, Iterable
+from typing import Any
 
 import httpx
 
@@ -46,11 +46,11 @@ from overlapmamba.client._stream import (
     ws_url,
 )
 
-T = TypeVar("T")
-
 
 class AsyncPlaceRecognitionClient:
-    """Asyncio client of the place-recognition service.
+    """Asyncio client of the place-recognition service. A request that carries a scan is
+    built in a worker thread (``asyncio.to_thread``): reading its file and compressing it
+    take milliseconds a scan (tens with zstd), which every other task on the loop would wait.
 
     >>> async with AsyncPlaceRecognitionClient("http://127.0.0.1:8000") as pr:
     ...     await pr.create_map("town")
@@ -149,12 +149,12 @@ class AsyncPlaceRecognitionClient:
         return await self._run(self._calls.sensors())
 
     async def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
-        return await self._run(await _off_loop(self._calls.describe, scan, sensor))
+        return await self._run(await asyncio.to_thread(self._calls.describe, scan, sensor))
 
     async def describe_batch(
         self, scans: list[Scan], *, sensor: str | None = None
     ) -> list[Descriptor]:
-        return await self._run(await _off_loop(self._calls.describe_batch, scans, sensor))
+        return await self._run(await asyncio.to_thread(self._calls.describe_batch, scans, sensor))
 
     async def create_map(
         self,
@@ -194,7 +194,7 @@ class AsyncPlaceRecognitionClient:
         pose: Any = None,
         sensor: str | None = None,
     ) -> Keyframe:
-        call = await _off_loop(
+        call = await asyncio.to_thread(
             self._calls.insert_keyframe,
             map_id,
             scan,
@@ -235,7 +235,9 @@ class AsyncPlaceRecognitionClient:
         build = self._calls.query
         if scan is None:  # a descriptor: nothing to read or compress
             return await self._run(build(map_id, scan, descriptor, k, filters, sensor))
-        return await self._run(await _off_loop(build, map_id, scan, descriptor, k, filters, sensor))
+        return await self._run(
+            await asyncio.to_thread(build, map_id, scan, descriptor, k, filters, sensor)
+        )
 
     async def observe(
         self,
@@ -253,7 +255,7 @@ class AsyncPlaceRecognitionClient:
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
         geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
-        call = await _off_loop(
+        call = await asyncio.to_thread(
             self._calls.observe,
             map_id,
             scan,
@@ -341,7 +343,7 @@ class AsyncPlaceRecognitionClient:
         retries: set[int] = set()  # the observations sent again (``retry``)
         i = 0
         async for obs in observations:
-            meta, body = await _off_loop(observation_frames, obs, i, compress)
+            meta, body = await asyncio.to_thread(observation_frames, obs, i, compress)
             try:  # a half-open link takes no data: give up after timeout.write
                 await asyncio.wait_for(_send_both(ws, meta, body), self.timeout.write)
             except TimeoutError:
@@ -360,12 +362,6 @@ class AsyncPlaceRecognitionClient:
             text = await asyncio.wait_for(ws.recv(), self.timeout.read)
             yield stream_result(text, errors, pending[0] in retries)
             pending.popleft()
-
-
-async def _off_loop(build: Callable[..., T], *args: Any) -> T:
-    """A request built off the event loop: reading a scan's file and compressing it take
-    milliseconds a scan (tens with zstd), which every other task on the loop would wait."""
-    return await asyncio.to_thread(build, *args)
 
 
 async def _send_both(ws: Any, meta: str, body: bytes) -> None:

@@ -143,8 +143,7 @@ async def simulate(
         max_connections=max(100, robots),
     ) as pr:
         made = await pr.create_map(map_id)
-        scored = all(d.loop_radius is not None and d.poses is not None for d in drives)
-        if made.keyframes and scored:  # closures to them could not be scored: not misread
+        if made.keyframes and _scored(drives):  # closures to them could not be scored: not misread
             raise ValueError(
                 f"map {map_id!r} already holds {made.keyframes} keyframes; the simulator "
                 "scores closures against the keyframes its robots insert, so it needs a map "
@@ -256,6 +255,11 @@ async def simulate(
     return report, samples
 
 
+def _scored(drives: list[Drive]) -> bool:
+    """Whether closures can be scored: every drive ships its loop radius and poses."""
+    return all(d.loop_radius is not None and d.poses is not None for d in drives)
+
+
 def _report(
     samples: list[_Sample],
     keyframes: dict[str, tuple[int, int, float]],
@@ -269,7 +273,7 @@ def _report(
     ok = [s for s in samples if s.error is None]
     lat = np.array([s.latency_ms for s in ok])
     accepted = [s for s in ok if s.accepted]
-    has_gt = all(d.loop_radius is not None and d.poses is not None for d in drives)
+    has_gt = _scored(drives)
     correct = with_loop = pose_right = found = None  # found: correct, of those with a loop
     t_err: list[float] = []
     yaw_err: list[float] = []
@@ -325,10 +329,8 @@ def _report(
         observations=len(samples),
         throughput_per_s=len(ok) / elapsed if elapsed > 0 else 0.0,
         latency_ms={  # None where no observation was answered
-            "p50": float(np.percentile(lat, 50)) if len(lat) else None,
-            "p95": float(np.percentile(lat, 95)) if len(lat) else None,
-            "p99": float(np.percentile(lat, 99)) if len(lat) else None,
-            "max": float(lat.max()) if len(lat) else None,
+            name: float(np.percentile(lat, q)) if len(lat) else None
+            for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100))
         },
         errors=dict(Counter(s.error for s in samples if s.error is not None)),
         inserted=len(keyframes),

@@ -35,6 +35,7 @@ from overlapmamba.core.calibration import CALIBRATED, Calibrated, check_calibrat
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.sensormaps import SensorMap, maps_digest
 from overlapmamba.core.sensors import SensorProfile
+from overlapmamba.core.sensors.catalogue import sensor_of_profile
 from overlapmamba.core.sensors.input import Mode
 from overlapmamba.core.views import MAX_VIEWS, check_column_phase
 
@@ -163,8 +164,6 @@ class EncoderMetadata(BaseModel):
 
     @model_validator(mode="after")
     def _maps_fit_the_model(self) -> EncoderMetadata:
-        from overlapmamba.core.sensors.catalogue import sensor_of_profile
-
         # the profile's name, and the name the service looks its scans up by (a custom
         # profile's, made a catalogue name)
         own = {self.profile.name, sensor_of_profile(self.profile).name} & set(self.sensor_maps)

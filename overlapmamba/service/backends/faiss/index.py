@@ -108,12 +108,7 @@ class VectorIndex:
         if k <= 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int64)
         if allowed is None:
-            d2, ids = self.index.search(q, k, params=self._params(None, self.nprobe))
-            dist, ids = _trim(d2[0], ids[0])
-            if len(ids) < k and self.kind == "ivf":  # a shrunk map's lists, mostly empty
-                d2, ids = self.index.search(q, k, params=self._params(None, self.nlist))
-                dist, ids = _trim(d2[0], ids[0])
-            return dist, ids
+            return self._search(q, k, None)
         eligible = int(allowed.sum())
         k = min(k, eligible)
         if k <= 0:
@@ -122,12 +117,21 @@ class VectorIndex:
         bitmap = np.zeros(base // 8 + (len(allowed) + 7) // 8, np.uint8)  # the ids below: 0
         bitmap[base // 8 :] = np.packbits(allowed, bitorder="little")
         selector = faiss.IDSelectorBitmap(len(bitmap), faiss.swig_ptr(bitmap))  # n: bytes
+        out = self._search(q, k, selector)
+        del bitmap  # the selector points into it until here
+        return out
+
+    def _search(
+        self, q: np.ndarray, k: int, selector: faiss.IDSelector | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The k nearest of ``q`` (1, D) among ``selector``'s ids (None: all); an IVF search
+        that comes back short (the eligible rows in unprobed lists: a filter's, or a map
+        shrunk by deletes) is repeated over every list."""
         d2, ids = self.index.search(q, k, params=self._params(selector, self.nprobe))
         dist, ids = _trim(d2[0], ids[0])
-        if len(ids) < k and self.kind == "ivf":  # eligible rows outside the probed lists
+        if len(ids) < k and self.kind == "ivf":
             d2, ids = self.index.search(q, k, params=self._params(selector, self.nlist))
             dist, ids = _trim(d2[0], ids[0])
-        del bitmap  # the selector points into it until here
         return dist, ids
 
     def _params(self, selector: faiss.IDSelector | None, nprobe: int) -> Any:
