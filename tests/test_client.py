@@ -918,3 +918,50 @@ def test_a_failed_replay_leaves_the_recording_at_its_path_and_keeps_its_own_besi
     assert path.read_bytes() == whole and rec.incomplete == tmp_path / "drive.incomplete.mcap"
     assert rec.incomplete.stat().st_size > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive.incomplete.mcap", "drive.mcap"]
+
+
+def test_the_cli_sends_a_drives_manifest_mount_and_the_users_over_it(
+    live, synthetic_seq_dir, tmp_path, monkeypatch
+):
+    """Found in review: ingest, observe and simulate-fleet sent a synthetic drive's scans
+    without the mounting its manifest records (``overlapmamba eval`` reads it): a robot's
+    drive was described as if from the car's roof."""
+    from overlapmamba.client._base import Calls
+
+    drive = tmp_path / "amr"
+    (drive / "velodyne").mkdir(parents=True)
+    for i in range(3):
+        shutil.copy(synthetic_seq_dir / "velodyne" / f"{i:06d}.bin", drive / "velodyne")
+    poses = (synthetic_seq_dir / "poses.txt").read_text().splitlines()[:3]
+    (drive / "poses.txt").write_text("\n".join(poses) + "\n")
+    mounting = {"name": "amr", "height": 0.35, "pitch_deg": 1.5, "roll_deg": 0.0}
+    (drive / "manifest.json").write_text(json.dumps({"resolved": {"mounting": mounting}}))
+    sent: list[str | None] = []
+    params_of = Calls._sensor
+
+    def spy(self, sensor, mount=None):
+        params = params_of(self, sensor, mount)
+        sent.append(params.get("mount"))
+        return params
+
+    monkeypatch.setattr(Calls, "_sensor", spy)
+    env = {"OVERLAPMAMBA_URL": live}
+
+    def run(*args: str) -> None:
+        res = CliRunner().invoke(cli_app, list(args), env=env)
+        assert res.exit_code == 0, res.output
+
+    run("ingest", str(drive), "--map", "cli-mounted")
+    run("observe", str(drive), "--map", "cli-mounted-obs")
+    run("simulate-fleet", "--map", "cli-mounted-fleet", "-s", str(drive), "--robots", "1",
+        "--scans", "3", "--rate", "20", "--out", str(tmp_path / "f.json"),
+        "--plot", str(tmp_path / "f.png"))  # fmt: skip
+    assert sent == ["0.35,1.5,0"] * 9
+    sent.clear()
+    run("ingest", str(drive), "--map", "cli-mounted", "--mount", "0.5")
+    assert sent == ["0.5"] * 3
+    with PlaceRecognitionClient(live) as pr:  # the keyframes were described from 0.35 m
+        scan0 = np.fromfile(drive / "velodyne" / "000000.bin", np.float32).reshape(-1, 4)
+        at = pr.query("cli-mounted", scan0, k=1, verify=False, mount="0.35,1.5")
+        roof = pr.query("cli-mounted", scan0, k=1, verify=False)
+    assert at.matches[0].distance < 1e-4 < roof.matches[0].distance

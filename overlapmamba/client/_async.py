@@ -11,7 +11,7 @@ from typing import Any
 
 import httpx
 
-from overlapmamba.client._base import Call, Calls, Timeouts, check_mount
+from overlapmamba.client._base import Call, Calls, MountArg, Timeouts, check_mount
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._models import (
     BatchInsertResult,
@@ -148,13 +148,18 @@ class AsyncPlaceRecognitionClient:
         table and how its scans enter the model."""
         return await self._run(self._calls.sensors())
 
-    async def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
-        return await self._run(await asyncio.to_thread(self._calls.describe, scan, sensor))
+    async def describe(
+        self, scan: Scan, *, sensor: str | None = None, mount: MountArg = None
+    ) -> Descriptor:
+        """``sensor`` and ``mount``: this scan's, when they are not the client's."""
+        call = await asyncio.to_thread(self._calls.describe, scan, sensor, mount)
+        return await self._run(call)
 
     async def describe_batch(
-        self, scans: list[Scan], *, sensor: str | None = None
+        self, scans: list[Scan], *, sensor: str | None = None, mount: MountArg = None
     ) -> list[Descriptor]:
-        return await self._run(await asyncio.to_thread(self._calls.describe_batch, scans, sensor))
+        call = await asyncio.to_thread(self._calls.describe_batch, scans, sensor, mount)
+        return await self._run(call)
 
     async def create_map(
         self,
@@ -193,6 +198,7 @@ class AsyncPlaceRecognitionClient:
         session_id: str = "default",
         pose: Any = None,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Keyframe:
         call = await asyncio.to_thread(
             self._calls.insert_keyframe,
@@ -204,6 +210,7 @@ class AsyncPlaceRecognitionClient:
             session_id,
             pose,
             sensor,
+            mount,
         )
         return await self._run(call)
 
@@ -227,17 +234,17 @@ class AsyncPlaceRecognitionClient:
         descriptor: Any = None,
         k: int = 10,
         sensor: str | None = None,
+        mount: MountArg = None,
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
         timestamp), max_match_distance, time_from, time_to; ``verify=False`` skips the geometric
-        verification of a scan query's candidates; ``sensor``: the scan's."""
+        verification of a scan query's candidates; ``sensor`` and ``mount``: the scan's."""
         build = self._calls.query
+        args = (map_id, scan, descriptor, k, filters, sensor, mount)
         if scan is None:  # a descriptor: nothing to read or compress
-            return await self._run(build(map_id, scan, descriptor, k, filters, sensor))
-        return await self._run(
-            await asyncio.to_thread(build, map_id, scan, descriptor, k, filters, sensor)
-        )
+            return await self._run(build(*args))
+        return await self._run(await asyncio.to_thread(build, *args))
 
     async def observe(
         self,
@@ -252,9 +259,11 @@ class AsyncPlaceRecognitionClient:
         k: int = 10,
         verify: bool = True,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
-        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        geometry (each match's ``relative_pose``/``verification``, a verified closure).
+        ``sensor`` and ``mount``: the scan's, when they are not the client's."""
         call = await asyncio.to_thread(
             self._calls.observe,
             map_id,
@@ -267,6 +276,7 @@ class AsyncPlaceRecognitionClient:
             k,
             verify,
             sensor,
+            mount,
         )
         return await self._run(call)
 
@@ -284,11 +294,12 @@ class AsyncPlaceRecognitionClient:
         window: int = 2,
         errors: str = "raise",
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> AsyncIterator[ObserveResult | APIError]:
         """Observe over one WebSocket, results in order. At most ``window`` observations are
         in flight (the server closes a client that outruns it). ``errors="return"`` yields a
-        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
-        (an observation may name its own)."""
+        refused observation's APIError instead of raising it. ``sensor`` and ``mount``: the
+        stream's scans' (an observation may name its own)."""
         from websockets.asyncio.client import connect
 
         check_window(window)
@@ -300,7 +311,7 @@ class AsyncPlaceRecognitionClient:
             session_id=session_id,
             k=k,
             sensor=sensor or self._calls.sensor,
-            mount=self._calls.mount,
+            mount=check_mount(mount) or self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
 

@@ -56,6 +56,9 @@ class Call:
     answers: tuple[int, ...] = ()  # error statuses whose body is the answer (readiness: 503)
 
 
+# where a scan's sensor sits: "HEIGHT[,PITCH[,ROLL]]" or those numbers (check_mount)
+MountArg = str | tuple[float, ...] | None
+
 # what a query takes beside k and sensor (the server's query parameters)
 QUERY_FILTERS = frozenset(
     {
@@ -112,10 +115,14 @@ class Calls:
         self.sensor = sensor  # the client's sensor: every scan call names it unless told
         self.mount = mount  # where it sits (HEIGHT[,PITCH[,ROLL]]): every scan call names it
 
-    def _sensor(self, sensor: str | None) -> dict[str, str]:
+    def _sensor(
+        self, sensor: str | None, mount: str | tuple[float, ...] | None = None
+    ) -> dict[str, str]:
+        """A scan call's sensor and mount: the call's own, else the client's."""
         chosen = sensor or self.sensor
+        where = check_mount(mount) or self.mount
         params = {} if chosen is None else {"sensor": chosen}
-        return params if self.mount is None else {**params, "mount": self.mount}
+        return params if where is None else {**params, "mount": where}
 
     def health(self) -> Call:
         # 503 with {"status": "loading" | "failed" | "draining" | "stuck", "detail"}: an answer
@@ -124,7 +131,7 @@ class Calls:
     def sensors(self) -> Call:
         return Call("GET", "/v1/sensors", _json)
 
-    def describe(self, scan: Scan, sensor: str | None = None) -> Call:
+    def describe(self, scan: Scan, sensor: str | None = None, mount: MountArg = None) -> Call:
         body, headers = encode(scan, compress=self.compress)
 
         def parse(r: httpx.Response) -> Descriptor:
@@ -133,10 +140,12 @@ class Calls:
                 np.asarray(d["descriptor"], np.float32), d["model_id"], d["timings_ms"]
             )
 
-        params: dict[str, Any] = self._sensor(sensor)
+        params: dict[str, Any] = self._sensor(sensor, mount)
         return Call("POST", "/v1/descriptors", parse, params=params, content=body, headers=headers)
 
-    def describe_batch(self, scans: list[Scan], sensor: str | None = None) -> Call:
+    def describe_batch(
+        self, scans: list[Scan], sensor: str | None = None, mount: MountArg = None
+    ) -> Call:
         parts = []
         fields = None
         for s in scans:
@@ -163,7 +172,7 @@ class Calls:
                 for v, t in zip(d["descriptors"], d["timings_ms"], strict=True)
             ]
 
-        params: dict[str, Any] = self._sensor(sensor)
+        params: dict[str, Any] = self._sensor(sensor, mount)
         return Call(
             "POST", "/v1/descriptors:batch", parse, params=params, content=content, headers=headers
         )
@@ -206,6 +215,7 @@ class Calls:
         session_id: str,
         pose: Any,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Call:
         body, headers = encode(scan, compress=self.compress)
         params = _filters(
@@ -214,7 +224,7 @@ class Calls:
             robot_id=robot_id,
             session_id=session_id,
             pose=_pose(pose),
-            **self._sensor(sensor),
+            **self._sensor(sensor, mount),
         )
         return Call(
             "POST",
@@ -274,6 +284,7 @@ class Calls:
         k: int,
         filters: dict[str, Any],
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Call:
         if (scan is None) == (descriptor is None):
             raise ValueError("query needs exactly one of scan= or descriptor=")
@@ -284,7 +295,8 @@ class Calls:
                 f"{', '.join(sorted(QUERY_FILTERS - {'max_distance'}))}"
             )
         filters = renamed(filters, "query", stacklevel=5)  # max_distance: deprecated
-        params = _filters(k=k, **filters, **(self._sensor(sensor) if scan is not None else {}))
+        scanned = self._sensor(sensor, mount) if scan is not None else {}
+        params = _filters(k=k, **filters, **scanned)
         path = f"/v1/maps/{_m(map_id)}/query"
         parse = lambda r: QueryResult.from_json(r.json())  # noqa: E731
         if descriptor is not None:
@@ -305,6 +317,7 @@ class Calls:
         k: int,
         verify: bool = True,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Call:
         body, headers = encode(scan, compress=self.compress)
         params = _filters(
@@ -315,7 +328,7 @@ class Calls:
             insert=insert,
             k=k,
             verify=verify,
-            **self._sensor(sensor),
+            **self._sensor(sensor, mount),
         )
         return Call(
             "POST",

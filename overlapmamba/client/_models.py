@@ -221,8 +221,8 @@ class BatchInsertResult:
 class Observation:
     """One scan for ``stream()``: the robot's scan at ``timestamp`` (s), optional pose
     (x, y, z, qx, qy, qz, qw), insert mode ("auto", "always", "never") and whether the
-    server verifies its candidates geometrically; ``sensor``: this scan's, when it is not the
-    stream's."""
+    server verifies its candidates geometrically; ``sensor`` and ``mount``
+    (HEIGHT[,PITCH[,ROLL]]): this scan's, when they are not the stream's."""
 
     scan: Any
     timestamp: float
@@ -230,6 +230,7 @@ class Observation:
     insert: str = "auto"
     verify: bool = True
     sensor: str | None = None
+    mount: str | tuple[float, ...] | None = None
     # sent again after a stream failed with it unanswered (the error's ``unanswered``): it
     # may have been carried out, so its answer comes with ``retried`` set, as an HTTP
     # retry's does (an "existing" keyframe may be this observation's own)

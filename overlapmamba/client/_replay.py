@@ -8,6 +8,8 @@ x,y,z,qx,qy,qz,qw (none for a bag without odometry); the loop radius comes from 
 sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
 A drive's sensor is the one its user names, else the one its ``manifest.json`` records (a
 synthetic drive's); otherwise none is sent, and the server takes the map's or the model's.
+Where the sensor sits (its mount) likewise: the user's, else the manifest's mounting where
+that is not the model's own (``overlapmamba eval`` reads the same), else none is sent.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ class Drive:
     poses: np.ndarray | None  # (N, 7) x, y, z, qx, qy, qz, qw; None: the drive has none
     loop_radius: float | None  # metres, from the shipped ground truth; None: no ground truth
     sensor: str | None = None  # what the scans' requests name; None: the map's, or the model's
+    mount: str | None = None  # HEIGHT,PITCH,ROLL the scans' requests name; None: the map's
 
     @property
     def name(self) -> str:
@@ -98,17 +101,21 @@ def open_drive(
     odometry: str | None = None,
     tf: str | None = None,
     sensor: str | None = None,
+    mount: str | None = None,
 ) -> Drive:
     """``topic``, ``odometry`` and ``tf``: for a ROS recording, which PointCloud2 topic
     (needed when it holds several), and which nav_msgs/Odometry topic or /tf fixed frame
     ("map", or "map:velodyne" for another child frame than the scans') gives the poses.
-    ``sensor``: the sensor that recorded it (default: its manifest's, if any)."""
+    ``sensor``: the sensor that recorded it, ``mount`` (HEIGHT[,PITCH[,ROLL]]) where it sat
+    (default for both: its manifest's, if any)."""
     root = Path(root)
     # a scan with no pose near its stamp (odometry started late) goes without one
     seq = open_recording(root, topic=topic, odometry=odometry, tf=tf, pose_gaps="nan")
     if isinstance(seq, Bag):
         poses = None if seq.poses is None else _pose7(seq.poses)
-        return Drive(seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor)
+        return Drive(
+            seq=seq, times=seq.times, poses=poses, loop_radius=None, sensor=sensor, mount=mount
+        )
     n = len(seq)
     times_file = root / "times.txt"
     times = read_times(times_file, n) if times_file.is_file() else np.arange(n) * 0.1
@@ -122,6 +129,7 @@ def open_drive(
         poses=None if np.isnan(seq.poses).all() else _pose7(seq.poses),  # no poses.txt: none
         loop_radius=radius,
         sensor=sensor or _manifest_sensor(root),
+        mount=mount or (None if seq.mount is None else seq.mount.text()),
     )
 
 

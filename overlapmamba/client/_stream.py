@@ -16,7 +16,7 @@ from urllib.parse import quote
 
 import httpx
 
-from overlapmamba.client._base import NAME, Timeouts, _m, _pose
+from overlapmamba.client._base import NAME, Timeouts, _m, _pose, check_mount
 from overlapmamba.client._exceptions import (
     APIError,
     ClientError,
@@ -52,7 +52,8 @@ def ws_url(base_url: str, map_id: str, **params: Any) -> str:
 
 def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str, bytes]:
     """The two WebSocket frames of one observation at place ``seq`` in its stream (see the
-    service's stream protocol); its ``sensor`` is sent when it is not the stream's."""
+    service's stream protocol); its ``sensor`` and ``mount`` are sent when they are not the
+    stream's."""
     body, headers = encode(obs.scan, compress=compress)
     meta = {
         "seq": seq,
@@ -66,6 +67,8 @@ def observation_frames(obs: Observation, seq: Any, compress: bool) -> tuple[str,
     }
     if obs.sensor is not None:
         meta["sensor"] = obs.sensor
+    if obs.mount is not None:
+        meta["mount"] = check_mount(obs.mount)
     return json.dumps(meta), body
 
 

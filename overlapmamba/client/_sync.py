@@ -10,7 +10,7 @@ from typing import Any
 
 import httpx
 
-from overlapmamba.client._base import Call, Calls, Timeouts, check_mount
+from overlapmamba.client._base import Call, Calls, MountArg, Timeouts, check_mount
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._models import (
     BatchInsertResult,
@@ -130,11 +130,16 @@ class PlaceRecognitionClient:
         table and how its scans enter the model."""
         return self._run(self._calls.sensors())
 
-    def describe(self, scan: Scan, *, sensor: str | None = None) -> Descriptor:
-        return self._run(self._calls.describe(scan, sensor))
+    def describe(
+        self, scan: Scan, *, sensor: str | None = None, mount: MountArg = None
+    ) -> Descriptor:
+        """``sensor`` and ``mount``: this scan's, when they are not the client's."""
+        return self._run(self._calls.describe(scan, sensor, mount))
 
-    def describe_batch(self, scans: list[Scan], *, sensor: str | None = None) -> list[Descriptor]:
-        return self._run(self._calls.describe_batch(scans, sensor))
+    def describe_batch(
+        self, scans: list[Scan], *, sensor: str | None = None, mount: MountArg = None
+    ) -> list[Descriptor]:
+        return self._run(self._calls.describe_batch(scans, sensor, mount))
 
     def create_map(
         self,
@@ -173,9 +178,10 @@ class PlaceRecognitionClient:
         session_id: str = "default",
         pose: Any = None,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Keyframe:
         call = self._calls.insert_keyframe(
-            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor
+            map_id, scan, keyframe_id, timestamp, robot_id, session_id, pose, sensor, mount
         )
         return self._run(call)
 
@@ -199,12 +205,13 @@ class PlaceRecognitionClient:
         descriptor: Any = None,
         k: int = 10,
         sensor: str | None = None,
+        mount: MountArg = None,
         **filters: Any,
     ) -> QueryResult:
         """Filters: exclude_session, exclude_robot, exclude_recent_s (with session_id and
         timestamp), max_match_distance, time_from, time_to; ``verify=False`` skips the geometric
-        verification of a scan query's candidates; ``sensor``: the scan's."""
-        return self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor))
+        verification of a scan query's candidates; ``sensor`` and ``mount``: the scan's."""
+        return self._run(self._calls.query(map_id, scan, descriptor, k, filters, sensor, mount))
 
     def observe(
         self,
@@ -219,11 +226,13 @@ class PlaceRecognitionClient:
         k: int = 10,
         verify: bool = True,
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> ObserveResult:
         """``verify``: the server registers the top candidates against their keyframes'
-        geometry (each match's ``relative_pose``/``verification``, a verified closure)."""
+        geometry (each match's ``relative_pose``/``verification``, a verified closure).
+        ``sensor`` and ``mount``: the scan's, when they are not the client's."""
         call = self._calls.observe(
-            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor
+            map_id, scan, robot_id, session_id, timestamp, pose, insert, k, verify, sensor, mount
         )
         return self._run(call)
 
@@ -241,11 +250,12 @@ class PlaceRecognitionClient:
         window: int = 2,
         errors: str = "raise",
         sensor: str | None = None,
+        mount: MountArg = None,
     ) -> Iterator[ObserveResult | APIError]:
         """Observe over one WebSocket, results in order. At most ``window`` observations are
         in flight (the server closes a client that outruns it). ``errors="return"`` yields a
-        refused observation's APIError instead of raising it. ``sensor``: the stream's scans'
-        (an observation may name its own)."""
+        refused observation's APIError instead of raising it. ``sensor`` and ``mount``: the
+        stream's scans' (an observation may name its own)."""
         from websockets.sync.client import connect
 
         check_window(window)
@@ -257,7 +267,7 @@ class PlaceRecognitionClient:
             session_id=session_id,
             k=k,
             sensor=sensor or self._calls.sensor,
-            mount=self._calls.mount,
+            mount=check_mount(mount) or self._calls.mount,
         )
         headers = {"x-api-key": self.api_key} if self.api_key else {}
         pending: deque[int] = deque()

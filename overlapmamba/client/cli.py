@@ -152,7 +152,7 @@ def ingest(
     api_key: KeyOpt = None,
 ) -> None:
     """Insert a recorded sequence as keyframes (ids SESSION-FRAME; re-running is harmless)."""
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
     note_unposed(drive)
     session = session or drive.session
     frames = range(0, len(drive), every)
@@ -160,7 +160,7 @@ def ingest(
     created = retried = 0
     skipped: list[str] = []  # scans that could not be read: left out, named at the end
     with (
-        PlaceRecognitionClient(url, api_key=api_key, compress=compress, mount=mount) as pr,
+        PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr,
         progress(console) as bar,
     ):
         pr.create_map(map_id)
@@ -176,6 +176,7 @@ def ingest(
                 session_id=session,
                 pose=drive.pose(i),
                 sensor=drive.sensor,
+                mount=drive.mount,
             )
             created += bool(kf.created)
             retried += bool(kf.retried and not kf.created)
@@ -281,14 +282,14 @@ def observe(
             f"--record {record} is the drive {seq_dir} or inside it: the recording would "
             "overwrite what is being replayed; write it elsewhere"
         )
-    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor)
+    drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
     note_unposed(drive)
     session = session or drive.session
     closures = inserted = 0
     frames = range(0, len(drive), every)
     skipped: list[str] = []
     with contextlib.ExitStack() as stack:
-        pr = stack.enter_context(client(url, api_key, mount))
+        pr = stack.enter_context(client(url, api_key))
         rec = None
         if record is not None:
             from overlapmamba.client.recording import MapRecording
@@ -316,6 +317,7 @@ def observe(
                 k=k,
                 verify=verify,
                 sensor=drive.sensor,
+                mount=drive.mount,
             )
             inserted += o.keyframe is not None
             lc = o.loop_closure
@@ -405,7 +407,10 @@ def simulate_fleet(
     errors and loop closures against ground truth."""
     from overlapmamba.client.fleet import simulate, write_outputs
 
-    drives = [open_drive(p, topic=topic, odometry=odometry, tf=tf, sensor=sensor) for p in sequence]
+    drives = [
+        open_drive(p, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
+        for p in sequence
+    ]
     report, samples = asyncio.run(
         simulate(
             url,
@@ -417,7 +422,6 @@ def simulate_fleet(
             api_key=api_key,
             k=k,
             seed=seed,
-            mount=mount,
             scans=scans,
         )
     )

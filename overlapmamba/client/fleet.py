@@ -109,7 +109,8 @@ async def simulate(
 ) -> tuple[FleetReport, list[_Sample]]:
     """``retry``: how each robot retries (default: 3 attempts); ``NO_RETRY`` makes every
     overload or transport error count as an error, as load tests want. ``mount``: where
-    every robot's sensor sits (HEIGHT[,PITCH[,ROLL]]; None: the model's mount).
+    every robot's sensor sits (HEIGHT[,PITCH[,ROLL]]); None: each drive's own (``open_drive``:
+    the one named, else its manifest's), else the map's.
 
     ``scans``: each robot stops after that many scans (or at its drive's end), and
     ``duration_s`` only bounds the run. The robots then cover the same stretches of their
@@ -196,6 +197,7 @@ async def simulate(
                             pose=drive.pose(i),
                             k=k,
                             sensor=drive.sensor,
+                            mount=drive.mount if mount is None else None,  # None: the client's
                         )
                 except (ClientError, TimeoutError) as err:
                     kind = (
