@@ -68,6 +68,15 @@ def main() -> None:
         ap.error("calibrate on the validation town, never on a test town")
 
     t0 = time.perf_counter()
+    val, second = open_sequence(args.val), open_sequence(args.second_session)
+    mapped = sorted({val.sensor, second.sensor} & set(read_metadata(args.model).sensor_maps))
+    if mapped:  # describe_sequence gives the network's descriptors: the service maps these
+        ap.error(
+            f"{args.model} carries a sensor map for {mapped[0]}, the towns' sensor; this grid "
+            "describes scans unmapped, not as the service answers them: choose on a town of "
+            "the model's own sensor"
+        )
+    check_sessions(val, second)
     model, profile, _ = load_model(args.model)
     part = None
     if args.score == "network":
@@ -81,8 +90,6 @@ def main() -> None:
                 f"{args.model}'s first stage {meta.first_stage!r} is the network's descriptor: "
                 "scoring by it is --score stage"
             )
-    val, second = open_sequence(args.val), open_sequence(args.second_session)
-    check_sessions(val, second)
     gt = sequence_loops(val, profile)
     desc, yaw = describe_sequence(model, val, profile)
     desc_q, yaw_q = describe_sequence(model, second, profile)

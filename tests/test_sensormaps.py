@@ -132,6 +132,42 @@ def test_a_map_for_a_custom_model_sensor_is_refused_by_the_name_scans_are_looked
         )
 
 
+def test_the_own_sensor_check_is_the_services_name_only_and_a_refused_file_can_be_repaired(
+    tmp_path,
+):
+    """Found in review: (1) a profile named as a catalogue sensor but built otherwise is the
+    service's "NAME-model", so the catalogue's NAME is another sensor, yet its map was
+    refused; (2) metadata whose profile makes no service sensor (over 256 rows) failed to
+    load although it carried no maps; (3) a file written before the check, with a map for
+    its own sensor, could not have it removed: with_sensor_maps read it with the check."""
+    from overlapmamba.core.modelmeta import EncoderMetadata
+    from overlapmamba.core.sensors.catalogue import sensor_of_profile
+    from overlapmamba.train.errors import ExportError
+    from overlapmamba.train.modelfile import load_encoder, save_encoder, with_sensor_maps
+
+    proto, meta = load_encoder(MODEL)
+    m = _map_for(meta.descriptor_dim)
+    retrained = meta.profile.model_copy(update={"max_range": meta.profile.max_range - 10})
+    assert sensor_of_profile(retrained).name == "kitti-hdl64-model"
+    fields = meta.model_dump(by_alias=True) | {"profile": retrained.model_dump()}
+    ok = EncoderMetadata.model_validate(fields | {"sensor_maps": {"kitti-hdl64": m}})
+    assert set(ok.sensor_maps) == {"kitti-hdl64"}
+    with pytest.raises(ValueError, match="'kitti-hdl64-model', the model's own sensor"):
+        EncoderMetadata.model_validate(fields | {"sensor_maps": {"kitti-hdl64-model": m}})
+    tall = meta.profile.model_copy(update={"name": "tall", "rows": 300})
+    EncoderMetadata.model_validate(meta.model_dump(by_alias=True) | {"profile": tall.model_dump()})
+    # a file with a map for its own sensor, as the code before the check wrote them
+    stale = meta.model_copy(update={"sensor_maps": {"kitti-hdl64": m}})
+    save_encoder(proto, stale, tmp_path / "stale.onnx")
+    with pytest.raises(ExportError, match="the model's own sensor.*with_sensor_maps"):
+        load_encoder(tmp_path / "stale.onnx")
+    mended = with_sensor_maps(tmp_path / "stale.onnx", tmp_path / "mended.onnx", {"vlp16": m})
+    assert set(mended.sensor_maps) == {"vlp16"}
+    assert set(load_encoder(tmp_path / "mended.onnx")[1].sensor_maps) == {"vlp16"}
+    with pytest.raises(ExportError, match="the model's own sensor"):  # the new maps are checked
+        with_sensor_maps(tmp_path / "stale.onnx", tmp_path / "no.onnx", {"kitti-hdl64": m})
+
+
 pytestmark = pytest.mark.anyio
 
 
@@ -187,3 +223,30 @@ def test_an_encoder_describes_a_drive_in_batches_mapped_or_as_the_network_gives_
     np.testing.assert_allclose(own, enc.describe(clouds, mapped=False)[0], atol=0)
     with pytest.raises(ValueError, match="no scans to describe"):
         enc.describe([])
+
+
+def test_the_rerank_grid_refuses_towns_of_a_sensor_its_file_maps(
+    tmp_path, synthetic_seq_dir, monkeypatch, capsys
+):
+    """Found in review: benchmarks/rerank.py describes a town with the network alone; on a
+    town of a sensor the file carries a map for, it would choose the service's second stage
+    on descriptors the service never compares (loop_threshold.py was mended the same way)."""
+    import json
+    import shutil
+    import sys
+
+    from conftest import benchmark_module
+
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_maps
+
+    mapped = tmp_path / "mapped.onnx"
+    with_sensor_maps(MODEL, mapped, {"vlp16": _map_for(read_metadata(MODEL).descriptor_dim)})
+    town = shutil.copytree(synthetic_seq_dir, tmp_path / "vlp16-town")
+    (town / "manifest.json").write_text(json.dumps({"config": {"sensor": "vlp16"}}))
+    rerank = benchmark_module("rerank")
+    argv = ["rerank.py", "--model", str(mapped), "--val", str(town), "--second-session", str(town)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--out", str(tmp_path / "r.json")])
+    with pytest.raises(SystemExit) as stop:
+        rerank.main()
+    assert stop.value.code == 2
+    assert "carries a sensor map for vlp16" in capsys.readouterr().err

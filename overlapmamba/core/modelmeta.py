@@ -27,6 +27,7 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -163,14 +164,19 @@ class EncoderMetadata(BaseModel):
         return self
 
     @model_validator(mode="after")
-    def _maps_fit_the_model(self) -> EncoderMetadata:
-        # the profile's name, and the name the service looks its scans up by (a custom
-        # profile's, made a catalogue name)
-        own = {self.profile.name, sensor_of_profile(self.profile).name} & set(self.sensor_maps)
-        if own:
+    def _maps_fit_the_model(self, info: ValidationInfo) -> EncoderMetadata:
+        # the name the service looks the model's own scans up by: a custom profile's is made
+        # a catalogue-like name, and one named as a catalogue sensor but built otherwise is
+        # "NAME-model", so that the catalogue's NAME is another sensor, which may have a map.
+        # Unchecked where a file is read to have its maps replaced (with_sensor_maps: a file
+        # written before this check is repaired, not stuck).
+        check = self.sensor_maps and (info.context or {}).get("check_maps", True)
+        own = sensor_of_profile(self.profile).name if check else None
+        if own in self.sensor_maps:
             raise ValueError(
-                f"a sensor map for {sorted(own)[0]!r}, the model's own sensor: its "
-                "descriptors are the space the maps lead into and are never mapped"
+                f"a sensor map for {own!r}, the model's own sensor: its descriptors are the "
+                "space the maps lead into and are never mapped; write the file without it "
+                "(overlapmamba.train.modelfile.with_sensor_maps with the other maps)"
             )
         wrong = sorted(k for k, v in self.sensor_maps.items() if v.dim != self.descriptor_dim)
         if wrong:
@@ -217,8 +223,10 @@ class EncoderMetadata(BaseModel):
         return out
 
     @classmethod
-    def from_props(cls, props: dict[str, str]) -> EncoderMetadata:
-        """The inverse of :meth:`to_props`; a model without our metadata is refused."""
+    def from_props(cls, props: dict[str, str], *, check_maps: bool = True) -> EncoderMetadata:
+        """The inverse of :meth:`to_props`; a model without our metadata is refused.
+        ``check_maps=False``: a sensor map for the model's own sensor is let through, for a
+        rewrite that replaces the maps."""
         fields = {k[len(PREFIX) :]: v for k, v in props.items() if k.startswith(PREFIX)}
         if fields.get("format") != FORMAT:
             raise ModelMetadataError(
@@ -240,7 +248,7 @@ class EncoderMetadata(BaseModel):
                 allowed=[VERSION],
             )
         try:
-            return cls.model_validate(values)
+            return cls.model_validate(values, context={"check_maps": check_maps})
         except ValidationError as err:  # one line: the first problem, where and what
             first = err.errors()[0]
             where = ".".join(str(p) for p in first["loc"]) or "metadata"

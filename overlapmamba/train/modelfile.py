@@ -32,9 +32,11 @@ def read_metadata(path: Path | str) -> EncoderMetadata:
     return metadata_of(proto)
 
 
-def metadata_of(proto: onnx.ModelProto) -> EncoderMetadata:
-    """The metadata of a loaded exported model."""
-    return EncoderMetadata.from_props({p.key: p.value for p in proto.metadata_props})
+def metadata_of(proto: onnx.ModelProto, *, check_maps: bool = True) -> EncoderMetadata:
+    """The metadata of a loaded exported model; ``check_maps``: as
+    :meth:`EncoderMetadata.from_props` takes it."""
+    props = {p.key: p.value for p in proto.metadata_props}
+    return EncoderMetadata.from_props(props, check_maps=check_maps)
 
 
 def with_views(src: Path | str, out: Path | str, views: int) -> EncoderMetadata:
@@ -89,6 +91,7 @@ def with_sensor_maps(
             **identity(meta.graph, meta.views, meta.sensor_input, digest, meta.column_phase),
             **_calibration_of(meta, meta.maps_digest, digest),
         },
+        check_maps=False,  # the old maps go: a file refused for one of them is repaired here
     )
 
 
@@ -140,9 +143,11 @@ def with_calibration(path: Path | str, section: str, entry: Calibrated) -> Encod
     )
 
 
-def load_encoder(src: Path | str) -> tuple[onnx.ModelProto, EncoderMetadata]:
+def load_encoder(
+    src: Path | str, *, check_maps: bool = True
+) -> tuple[onnx.ModelProto, EncoderMetadata]:
     """An exported encoder file and its metadata; :class:`ExportError` naming what is wrong
-    when it is missing, not ONNX, or not ours."""
+    when it is missing, not ONNX, or not ours (``check_maps``: :func:`metadata_of`)."""
     src = Path(src)
     if not src.is_file():
         raise ExportError(f"model {src} does not exist")
@@ -151,18 +156,23 @@ def load_encoder(src: Path | str) -> tuple[onnx.ModelProto, EncoderMetadata]:
     except Exception as err:  # protobuf raises its own classes
         raise ExportError(f"{src} is not an ONNX file ({type(err).__name__}: {err})") from None
     try:
-        return proto, metadata_of(proto)
+        return proto, metadata_of(proto, check_maps=check_maps)
     except ValueError as err:
         raise ExportError(f"{src}: {err}") from None
 
 
 def rewrite_metadata(
-    src: Path | str, out: Path | str, update: Callable[[EncoderMetadata], dict[str, Any]]
+    src: Path | str,
+    out: Path | str,
+    update: Callable[[EncoderMetadata], dict[str, Any]],
+    *,
+    check_maps: bool = True,
 ) -> EncoderMetadata:
     """``src``'s graph and weights byte for byte into ``out``, its metadata updated by
-    ``update(metadata)`` (the fields to change); written atomically."""
+    ``update(metadata)`` (the fields to change); written atomically. The new metadata is
+    checked whole; ``check_maps=False`` reads ``src`` as :func:`load_encoder` does then."""
     src, out = Path(src), Path(out)
-    proto, meta = load_encoder(src)
+    proto, meta = load_encoder(src, check_maps=check_maps)
     try:
         new = EncoderMetadata.model_validate(
             {**meta.model_dump(by_alias=True), **update(meta)}, by_alias=True
