@@ -14,7 +14,6 @@ import time
 from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import replace
-from typing import Literal
 
 import numpy as np
 
@@ -24,12 +23,12 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.answers import (
     Answer,
     Inserted,
-    LoopClosure,
     Observation,
     Observed,
 )
 from overlapmamba.service.backends.base import MapBackend, PlaceMap
 from overlapmamba.service.calibration import Threshold
+from overlapmamba.service.closure import unverified_call, verified_closure
 from overlapmamba.service.domain import (
     DescriptorKeyframe,
     Filters,
@@ -337,34 +336,14 @@ class PlaceService:
             return found
 
         matches = await in_thread(search_and_verify)
-        closure = self._unverified_call(matches)
+        closure = unverified_call(matches, self.settings.loop_closure)
         if closure.accepted:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
         if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
-            closure = self._verified_closure(matches[:n_verify], closure)
+            closure = verified_closure(matches[:n_verify], closure)
         if not m.retired:  # a map deleted meanwhile: its forgotten counts stay forgotten
             self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)
-
-    def _unverified_call(self, matches: list[Match]) -> LoopClosure:
-        """The loop-closure call from the order alone: the top-1's score under
-        ``loop_closure.max_score`` when the answer was re-ranked
-        (:mod:`overlapmamba.service.ranking`),
-        else its distance under ``accept_distance``; and the runner-up at least ``min_margin``
-        behind, in the same units."""
-        lc = self.settings.loop_closure
-        rule: Literal["score", "distance"]
-        if matches and matches[0].score is not None:
-            rule, threshold = "score", lc.max_score
-            values = [x.score for x in matches[:2] if x.score is not None]
-        else:
-            rule, threshold = "distance", lc.accept_distance
-            values = [x.distance for x in matches[:2]]
-        margin = values[1] - values[0] if len(values) > 1 else None
-        accepted = bool(
-            values and values[0] <= threshold and (margin is None or margin >= lc.min_margin)
-        )
-        return LoopClosure(accepted, threshold, margin, rule=rule)
 
     def _verify(
         self, m: PlaceMap, prepared: Held, candidates: list[Match], sensor: str | None
@@ -377,29 +356,6 @@ class PlaceService:
             [self.sensors.view(c.keyframe.sensor, sensor) for c in candidates],
         )
         return [replace(c, verification=v) for c, v in zip(candidates, verdicts, strict=True)]
-
-    @staticmethod
-    def _verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
-        """The verified candidate of highest fitness (the only one registered as verified
-        under ``verify.stop_at_first``); the descriptor's call only when no
-        candidate could be judged (none has geometry). Candidates refused by the descriptor
-        gate count as judged: a query far from every keyframe closes no loop."""
-        verdicts = [(c, c.verification) for c in candidates if c.verification is not None]
-        judged = [(c, v) for c, v in verdicts if v.verified is not None]
-        if not judged:
-            return descriptor_call
-        ok = [(c, v) for c, v in judged if v.verified]
-        if not ok:
-            return replace(descriptor_call, accepted=False, keyframe_id=None, verified=False)
-        best, v = max(ok, key=lambda cv: cv[1].fitness or 0.0)
-        return replace(
-            descriptor_call,
-            accepted=True,
-            keyframe_id=best.keyframe.keyframe_id,
-            verified=True,
-            relative_pose=v.relative_pose,
-            fitness=v.fitness,
-        )
 
     # ---- the robot's round trip -------------------------------------------------------------
 
