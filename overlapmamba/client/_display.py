@@ -60,6 +60,46 @@ def stats_table(s: dict[str, Any]) -> Table:
     return table
 
 
+def fleet_table(report: Any, robots: int, rate: float) -> Table:
+    """A fleet run's report (:class:`overlapmamba.client.fleet.FleetReport`), as printed."""
+    table = Table(title=f"fleet: {robots} robots × {rate:g} Hz for {report.duration_s:.1f} s")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    lat = report.latency_ms
+    rows = [
+        ("observations", str(report.observations)),
+        ("throughput (obs/s)", f"{report.throughput_per_s:.2f}"),
+        (
+            "latency p50 / p95 / p99 ms",
+            " / ".join("—" if lat[q] is None else f"{lat[q]:.0f}" for q in ("p50", "p95", "p99")),
+        ),
+        ("errors", ", ".join(f"{k}: {v}" for k, v in report.errors.items()) or "none"),
+        (
+            "tries refused, then retried",
+            ", ".join(f"{k}: {v}" for k, v in report.retried.items()) or "none",
+        ),
+        ("keyframes inserted", str(report.inserted)),
+        ("loop closures accepted", str(report.loop_closures)),
+        ("of which verified (with a relative pose)", str(report.verified_closures)),
+    ]
+    if report.correct is not None:
+        rows += [
+            ("correct (ground truth)", str(report.correct)),
+            ("queries with a loop available", str(report.queries_with_loop)),
+            ("precision", "n/a" if report.precision is None else f"{report.precision:.3f}"),
+            ("recall", "n/a" if report.recall is None else f"{report.recall:.3f}"),
+        ]
+    if report.pose_error:
+        t, y = report.pose_error["translation_m"], report.pose_error["yaw_deg"]
+        rows += [
+            ("pose error median / p90 (m)", f"{t['median']:.3f} / {t['p90']:.3f}"),
+            ("yaw error median / p90 (°)", f"{y['median']:.2f} / {y['p90']:.2f}"),
+        ]
+    for name, value in rows:
+        table.add_row(name, value)
+    return table
+
+
 def report_skipped(skipped: list[str], frames: int) -> None:
     """After a drive: the scans left out because they could not be read, on stderr (the
     first few reasons); a drive none of whose scans could be read is an error (exit 2)."""
