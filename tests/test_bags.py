@@ -417,3 +417,48 @@ def test_pose_samples_that_are_no_pose_are_gaps_not_identities_or_a_refused_driv
             np.testing.assert_allclose(bag.poses[i][:2, :2], turned[:2, :2], atol=1e-6)
             assert abs(bag.poses[i][0, 3] - i) < 1e-6
         assert bag.bad_pose_samples == 1, kw
+
+
+def test_a_huge_quaternion_a_reparented_frame_and_an_all_bad_chain(tmp_path):
+    """Found in review of the gaps: a finite quaternion whose norm overflows (1e200) still
+    became the identity; a tracker that moves a person's frame from odom to map refused the
+    drive, its frame nowhere on the LiDAR's chain; and where every sample of the LiDAR's chain
+    was left out, the error said only that a frame was in no transform."""
+    from ros_messages import STORE, _cloud, _tf
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from overlapmamba.core.poses import rotation_z
+
+    ser, S = STORE.serialize_cdr, 10**9
+    turned = rotation_z(90.0)
+
+    def write(path, spoil):
+        with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+            pc = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=STORE)
+            tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=STORE)
+            rng = np.random.default_rng(0)
+            for i in range(6):
+                t = 100 * S + i * S // 20
+                pts = rng.uniform(-20, 20, (300, 4)).astype(np.float32)
+                w.write(pc, t, ser(_cloud(STORE, pts, t), "sensor_msgs/msg/PointCloud2"))
+                person = "map" if i >= 3 else "odom"  # re-parented half way
+                msg = _tf(STORE, t, [("odom", "velodyne", turned), (person, "person_0", turned)])
+                spoil(i, msg.transforms[0].transform)
+                w.write(tf, t + 2, ser(msg, "tf2_msgs/msg/TFMessage"))
+        return path
+
+    def huge(i, tr):
+        if i == 2:  # the same rotation, scaled by 1e200
+            q = tr.rotation
+            q.x, q.y, q.z, q.w = (v * 1e200 for v in (q.x, q.y, q.z, q.w))
+
+    bag = open_bag(write(tmp_path / "huge", huge), tf="odom")
+    for i in range(6):
+        np.testing.assert_allclose(bag.poses[i][:3, :3], turned[:3, :3], atol=1e-6)
+    assert bag.bad_pose_samples == 0
+
+    def nan(i, tr):
+        tr.translation.x = float("nan")
+
+    with pytest.raises(DatasetError, match=r"velodyne.*\(6 odometry or /tf samples were left out"):
+        open_bag(write(tmp_path / "all-bad", nan), tf="odom")

@@ -920,6 +920,37 @@ def test_a_failed_replay_leaves_the_recording_at_its_path_and_keeps_its_own_besi
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive.incomplete.mcap", "drive.mcap"]
 
 
+def test_failed_replays_keep_every_partial_recording_and_their_own_error(tmp_path, monkeypatch):
+    """Found in review: a second failed replay replaced the first one's incomplete file; a
+    path without .mcap gave one without it; and a disk gone full while finishing raised the
+    disk's error in the replay's place, the file left open and its .part behind."""
+    from overlapmamba.client.recording import MapRecording, Writer
+
+    def fail(path):
+        with pytest.raises(ConnectionError), MapRecording(path) as rec:
+            rec.observation("r1", 1.0, [1, 0, 0, 0, 0, 0, 1])
+            raise ConnectionError("server unreachable")
+        return rec
+
+    first, second = fail(tmp_path / "a.mcap"), fail(tmp_path / "a.mcap")
+    assert (first.incomplete.name, second.incomplete.name) == (
+        "a.incomplete.mcap",
+        "a.incomplete-2.mcap",
+    )
+    assert fail(tmp_path / "drive").incomplete.name == "drive.incomplete.mcap"
+
+    def full(self):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Writer, "finish", full)
+    rec = fail(tmp_path / "b.mcap")  # the replay's ConnectionError, not the disk's
+    assert rec._file.closed and rec.incomplete is None
+    with pytest.raises(OSError, match="No space"), MapRecording(tmp_path / "c.mcap") as rec:
+        rec.observation("r1", 1.0, [1, 0, 0, 0, 0, 0, 1])
+    assert rec._file.closed
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".part")]
+
+
 def test_the_cli_sends_a_drives_manifest_mount_and_the_users_over_it(
     live, synthetic_seq_dir, tmp_path, monkeypatch
 ):
@@ -965,3 +996,41 @@ def test_the_cli_sends_a_drives_manifest_mount_and_the_users_over_it(
         at = pr.query("cli-mounted", scan0, k=1, verify=False, mount="0.35,1.5")
         roof = pr.query("cli-mounted", scan0, k=1, verify=False)
     assert at.matches[0].distance < 1e-4 < roof.matches[0].distance
+
+
+def test_a_stopped_replay_says_whether_a_recording_stood_at_its_path(
+    synthetic_seq_dir, tmp_path, monkeypatch
+):
+    """Found in review: the note said the path "is as it was" where nothing had stood."""
+    import overlapmamba.client.cli as cli
+
+    class Stops:  # a client whose server goes away after two observations
+        calls = 0
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def create_map(self, map_id):
+            return None
+
+        def observe(self, *args, **kwargs):
+            Stops.calls += 1
+            if Stops.calls > 2:
+                raise KeyboardInterrupt
+            lc = SimpleNamespace(accepted=False, keyframe_id=None, verified=None)
+            return SimpleNamespace(keyframe="k", matches=[], loop_closure=lc)
+
+    monkeypatch.setattr(cli, "client", lambda *args: Stops())
+    for existed, says in ((False, "was not written"), (True, "is as it was")):
+        Stops.calls = 0
+        rec = tmp_path / f"{existed}.mcap"
+        if existed:
+            rec.write_bytes(b"an earlier recording")
+        args = ["observe", str(synthetic_seq_dir), "--map", "m", "--record", str(rec)]
+        res = CliRunner().invoke(cli.app, args)
+        assert res.exit_code == 130, res.output
+        assert says in " ".join(res.output.split())
+        assert rec.exists() == existed

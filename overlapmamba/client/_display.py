@@ -124,11 +124,17 @@ def note_unposed(drive: Any) -> None:
     if bad:
         Console(stderr=True).print(
             f"[yellow]note:[/] {bad} odometry or /tf samples were left out as no pose (a zero "
-            "or non-finite quaternion or position, an unnamed frame): gaps in the poses",
+            "or non-finite quaternion or position, an unnamed frame); where they were on the "
+            "LiDAR's chain, its scans near them take the poses around them",
         )
     if drive.unposed:
+        why = (
+            "started later, paused, or its samples there were left out"
+            if bad
+            else ("started later, or paused")
+        )
         Console(stderr=True).print(
             f"[yellow]note:[/] {drive.unposed} of {len(drive)} scans have no pose sample "
-            "within 0.1 s of their stamp (the odometry or /tf started later, or paused): "
-            "they are sent without a pose",
+            f"within 0.1 s of their stamp (the odometry or /tf {why}): they are sent without "
+            "a pose",
         )

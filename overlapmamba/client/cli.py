@@ -295,13 +295,15 @@ def observe(
         if record is not None:
             from overlapmamba.client.recording import MapRecording
 
+            existed = record.exists()
             made = MapRecording(record)
 
             def kept() -> None:  # after the recording's own exit, on a failed replay
                 if made.incomplete is not None:
+                    stays = "is as it was" if existed else "was not written"
                     console.print(
                         f"[yellow]note:[/] the replay stopped; what it recorded is in "
-                        f"{escape(str(made.incomplete))} ({escape(str(record))} is as it was)"
+                        f"{escape(str(made.incomplete))} ({escape(str(record))} {stays})"
                     )
 
             stack.callback(kept)

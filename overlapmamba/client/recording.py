@@ -180,9 +180,15 @@ class MapRecording:
     def close(self) -> None:
         if self._file.closed:
             return
-        self._writer.finish()
-        self._file.close()
-        os.replace(self._part, self.path)
+        try:
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+            os.replace(self._part, self.path)
+        except BaseException:  # a disk gone full: no half-written file left beside the path
+            self._part.unlink(missing_ok=True)
+            raise
 
     def __enter__(self) -> MapRecording:
         return self
@@ -192,11 +198,30 @@ class MapRecording:
             self.close()
             return
         # the replay failed: what stood at the path stays; what was recorded, if anything,
-        # is kept beside it as PATH's stem + ".incomplete" (readable: the writer is finished)
-        self._writer.finish()
-        self._file.close()
-        if not self.messages:
+        # is kept beside it (readable: the writer is finished) under a name no file has. The
+        # replay's error is the one raised: one here (the disk full) only loses the partial.
+        try:
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+            if self.messages:
+                kept = self.incomplete_path()
+                os.replace(self._part, kept)
+                self.incomplete = kept
+        except Exception:  # the replay's error, raised after this, is the one that counts
+            pass
+        finally:
             self._part.unlink(missing_ok=True)
-            return
-        self.incomplete = self.path.with_name(f"{self.path.stem}.incomplete{self.path.suffix}")
-        os.replace(self._part, self.incomplete)
+
+    def incomplete_path(self) -> Path:
+        """Where a failed replay's recording goes: ``NAME.incomplete.mcap`` beside the path
+        (``.mcap`` whatever the path's suffix), else ``NAME.incomplete-2.mcap``, … : an
+        earlier failed replay's is never replaced."""
+        name = f"{self.path.stem}.incomplete"
+        suffix = self.path.suffix or ".mcap"
+        for n in range(1, 10_000):
+            kept = self.path.with_name(f"{name}{'' if n == 1 else f'-{n}'}{suffix}")
+            if not kept.exists():
+                return kept
+        raise OSError(f"no free name for {name}{suffix} beside {self.path}")

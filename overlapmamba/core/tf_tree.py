@@ -11,7 +11,10 @@ either static or a time series, looked up between any two connected frames at gi
 two frames' common ancestor is composed, each time-varying link interpolated between the
 samples around the time (translation linearly, rotation along the great arc). Unlike tf2,
 a time up to ``max_gap_s`` past either end of a link's samples takes the end sample, and a
-time whose nearest sample is farther than ``max_gap_s`` is refused, naming the link.
+time whose nearest sample is farther than ``max_gap_s`` is refused, naming the link. A frame
+has one parent: tf2 lets a frame change parents over time (a tracker that moves a person's
+frame from ``odom`` to ``map``); here the first parent is kept, and a lookup whose chain
+passes through such a frame is refused, naming both parents. Other lookups are answered.
 """
 
 from __future__ import annotations
@@ -62,12 +65,16 @@ class _Link:
 class TransformTree:
     def __init__(self) -> None:
         self._links: dict[str, _Link] = {}  # child frame -> its link to its parent
+        # child frame -> the parents it was sent with after its first (tf2's re-parenting)
+        self._reparented: dict[str, list[str]] = {}
 
     def add(
         self, parent: str, child: str, stamp_ns: int, transform: np.ndarray, *, static: bool = False
     ) -> None:
         """T_parent←child at ``stamp_ns`` (any time, when ``static``). A frame has one
-        parent; a static link that is sent again is replaced (as /tf_static latches)."""
+        parent: a transform from another is noted, not kept, and refuses only the lookups
+        through that frame. A static link that is sent again is replaced (as /tf_static
+        latches)."""
         if not parent or not child or parent == child:
             raise DatasetError(f"transform {parent!r} → {child!r}: frames must be named and differ")
         T = np.asarray(transform, dtype=np.float64)
@@ -82,10 +89,10 @@ class TransformTree:
         if link is None:
             link = self._links[child] = _Link(parent)
         if link.parent != parent:
-            raise DatasetError(
-                f"frame {child!r} has two parents, {link.parent!r} and {parent!r}; "
-                "a transform tree allows one"
-            )
+            others = self._reparented.setdefault(child, [])
+            if parent not in others:
+                others.append(parent)
+            return
         if static:
             link.static = T
         else:
@@ -125,6 +132,15 @@ class TransformTree:
                 f"frames {target!r} and {source!r} are not connected (their roots are "
                 f"{up_target[-1]!r} and {up_source[-1]!r})"
             )
+        for frame in up_source[: up_source.index(common)] + up_target[: up_target.index(common)]:
+            if frame in self._reparented:
+                raise DatasetError(
+                    f"frame {frame!r} has two parents, {self._links[frame].parent!r} and "
+                    f"{self._reparented[frame][0]!r}, and lies between {source!r} and "
+                    f"{target!r}; a transform tree allows one parent a frame",
+                    frame=frame,
+                    parents=[self._links[frame].parent, *self._reparented[frame]],
+                )
         nan = gaps == "nan"
         root_source = self._compose(up_source[: up_source.index(common)], stamps, max_gap_s, nan)
         root_target = self._compose(up_target[: up_target.index(common)], stamps, max_gap_s, nan)

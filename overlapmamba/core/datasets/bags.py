@@ -258,25 +258,27 @@ def open_bag(
             if odometry is not None:
                 with _named(path):
                     tree, bad = _odometry_tree(r, path, odometry)
-                    poses = tree.lookup(
-                        odometry,
-                        "scan",
-                        _stamps(path, headers),
-                        max_gap_s=max_pose_gap_s,
-                        gaps=pose_gaps,
-                    )
+                    with _left_out(bad):
+                        poses = tree.lookup(
+                            odometry,
+                            "scan",
+                            _stamps(path, headers),
+                            max_gap_s=max_pose_gap_s,
+                            gaps=pose_gaps,
+                        )
             elif tf is not None:
                 fixed, _, child = tf.partition(":")
                 with _named(path):
                     tree, bad = _tf_tree(r, path)
                     child = child or _frame(path, topic, headers)
-                    poses = tree.lookup(
-                        fixed.lstrip("/"),
-                        child.lstrip("/"),
-                        _stamps(path, headers),
-                        max_gap_s=max_pose_gap_s,
-                        gaps=pose_gaps,
-                    )
+                    with _left_out(bad):
+                        poses = tree.lookup(
+                            fixed.lstrip("/"),
+                            child.lstrip("/"),
+                            _stamps(path, headers),
+                            max_gap_s=max_pose_gap_s,
+                            gaps=pose_gaps,
+                        )
     except DatasetError:
         raise
     except Exception as err:  # rosbags raises its own types for damaged files
@@ -285,6 +287,23 @@ def open_bag(
     if not np.array_equal(np.argsort(ns, kind="stable"), np.arange(len(ns))):
         raise DatasetError(f"{path}: {topic} is not in time order")
     return Bag(path, topic, ns, poses, sensor=sensor, clouds=clouds, bad_pose_samples=bad)
+
+
+@contextmanager
+def _left_out(bad: int) -> Iterator[None]:
+    """A pose lookup's error, with how many samples were left out as no pose: where all of a
+    link's were, the lookup alone could say only that its frame is in no transform."""
+    try:
+        yield
+    except DatasetError as err:
+        if not bad:
+            raise
+        raise DatasetError(
+            f"{err} ({bad} odometry or /tf samples were left out as no pose: a zero or "
+            "non-finite quaternion or position, an unnamed frame)",
+            **err.detail,
+            left_out=bad,
+        ) from err
 
 
 @contextmanager
@@ -345,13 +364,17 @@ def _frame(path: Path, topic: str, headers: list[tuple[int, str]]) -> str:
 def _pose(p: Any) -> np.ndarray | None:
     """geometry_msgs Pose or Transform → 4×4; None where it is no pose: a zero quaternion
     (a publisher's before it has one, which normalising would make the identity) or a
-    non-finite value."""
+    non-finite value. A quaternion is scaled by its largest part first: one whose norm
+    overflows (1e200) is a rotation still, not the identity."""
     xyz = p.position if hasattr(p, "position") else p.translation
     o = p.orientation if hasattr(p, "orientation") else p.rotation
     t, q = np.array([xyz.x, xyz.y, xyz.z], float), np.array([o.x, o.y, o.z, o.w], float)
-    if not (np.isfinite(t).all() and np.isfinite(q).all()) or not np.linalg.norm(q) > 1e-9:
+    if not (np.isfinite(t).all() and np.isfinite(q).all()):
         return None
-    return from_quaternion(t, q)
+    big = np.abs(q).max()
+    if not big > 0 or not np.linalg.norm(q / big) * big > 1e-9:
+        return None
+    return from_quaternion(t, q / big)
 
 
 def _stamp(header: Any) -> int:
