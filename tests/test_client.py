@@ -926,6 +926,8 @@ def test_failed_replays_keep_every_partial_recording_and_their_own_error(tmp_pat
     disk's error in the replay's place, the file left open and its .part behind."""
     from overlapmamba.client.recording import MapRecording, Writer
 
+    finished = Writer.finish
+
     def fail(path):
         with pytest.raises(ConnectionError), MapRecording(path) as rec:
             rec.observation("r1", 1.0, [1, 0, 0, 0, 0, 0, 1])
@@ -944,11 +946,24 @@ def test_failed_replays_keep_every_partial_recording_and_their_own_error(tmp_pat
 
     monkeypatch.setattr(Writer, "finish", full)
     rec = fail(tmp_path / "b.mcap")  # the replay's ConnectionError, not the disk's
-    assert rec._file.closed and rec.incomplete is None
+    assert rec._file.closed and rec.incomplete == tmp_path / "b.incomplete.mcap"
     with pytest.raises(OSError, match="No space"), MapRecording(tmp_path / "c.mcap") as rec:
         rec.observation("r1", 1.0, [1, 0, 0, 0, 0, 0, 1])
-    assert rec._file.closed
+    assert rec._file.closed and rec.incomplete == tmp_path / "c.incomplete.mcap"
+    assert not (tmp_path / "c.mcap").exists()  # never put at the path unfinished
     assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".part")]
+    # Ctrl-C while finishing (found in the day's review): what was recorded is kept beside
+    monkeypatch.undo()
+
+    def interrupted(self):
+        finished(self)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Writer, "finish", interrupted)
+    with pytest.raises(KeyboardInterrupt), MapRecording(tmp_path / "d.mcap") as rec:
+        rec.observation("r1", 1.0, [1, 0, 0, 0, 0, 0, 1])
+    assert rec.incomplete == tmp_path / "d.incomplete.mcap" and rec.incomplete.stat().st_size
+    assert fail(tmp_path / "e.mcap").incomplete == tmp_path / "e.incomplete.mcap"
 
 
 def test_the_cli_sends_a_drives_manifest_mount_and_the_users_over_it(

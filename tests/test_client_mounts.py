@@ -69,7 +69,14 @@ def test_a_calls_own_mount_wins_over_the_clients_and_the_clients_fills_in():
         pr.observe("m", SCAN, robot_id="r", timestamp=2.0)
         with pytest.raises(ValueError, match="pitch_deg input should be less than or equal to 45"):
             pr.describe(SCAN, mount="0.7,60")
-    assert _mounts(seen) == ["0.7", "1.8,5.0", "0.35,1.5", "0.5", "0.6", None, "0.4,0,2", "0.7"]
+        pr.describe(SCAN, mount=0.35)  # a height alone
+        with pytest.raises(ValueError, match=r"HEIGHT\[,PITCH\[,ROLL\]\] as a string"):
+            pr.describe(SCAN, mount={"height": 0.35})
+        with pytest.raises(ValueError, match="as numbers"):
+            pr.describe(SCAN, mount=("low",))
+    assert _mounts(seen) == [
+        *("0.7", "1.8,5.0", "0.35,1.5", "0.5", "0.6", None, "0.4,0,2", "0.7", "0.35")
+    ]
     assert {r.url.params.get("sensor") for r in seen if r.content[:1] != b"{"} == {"vlp16"}
 
 
@@ -109,6 +116,7 @@ def test_a_drive_takes_its_manifests_mount_unless_one_is_named(synthetic_seq_dir
     drive = open_drive(_with_mounting(synthetic_seq_dir, tmp_path / "amr", low))
     assert (drive.sensor, drive.mount) == ("vlp16", "0.35,1.5,0")
     assert open_drive(tmp_path / "amr", mount="0.5").mount == "0.5"  # the user's wins
+    # the model's own mount is sent too: a map declaring a robot's must not stand in for it
     car = {"name": "car", "height": 1.73, "pitch_deg": 0.0, "roll_deg": 0.0}
-    assert open_drive(_with_mounting(synthetic_seq_dir, tmp_path / "car", car)).mount is None
+    assert open_drive(_with_mounting(synthetic_seq_dir, tmp_path / "car", car)).mount == "1.73,0,0"
     assert open_drive(synthetic_seq_dir).mount is None  # no manifest: none sent

@@ -463,3 +463,18 @@ def test_a_sensor_the_model_cannot_read_stops_the_start_and_an_empty_scan_names_
     with pytest.raises(Unprocessable, match=r"\(0 m < range < 80 m\)") as err:
         check_in_range(image, meta.profile, taken, 500)
     assert err.value.detail["max_range"] == 80.0 and CATALOGUE["os1-64"].max_range == 120.0
+
+
+def test_a_declared_model_mount_is_no_mount_and_wins_over_the_maps():
+    """Found in review: a car's drive names its mount (1.73 m, level) so that a map whose
+    robots sit lower does not stand in for it; declared, the model's own mount must take the
+    scan exactly as an undeclared one (native, intensity kept), not through the levelling."""
+    from overlapmamba.core.sensors.mount import Mount
+    from overlapmamba.service.sensors import Sensors
+
+    sensors = Sensors(Encoder(MODEL).meta)
+    own = sensors.input("kitti-hdl64")
+    assert sensors.input("kitti-hdl64", Mount(height=1.73)) is own and own.native
+    low = sensors.input("kitti-hdl64", Mount(height=0.35))
+    assert low.kind == "native+mount" and not low.native
+    assert sensors.input("kitti-hdl64", Mount(height=1.73, pitch_deg=2.0)).kind == "native+mount"

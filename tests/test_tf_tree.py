@@ -135,3 +135,9 @@ def test_a_frame_sent_with_a_second_parent_refuses_only_the_lookups_through_it()
     with pytest.raises(DatasetError, match="'person' has two parents, 'odom' and 'map'") as err:
         tree.lookup("lidar", "person", np.array([S]))
     assert err.value.detail["parents"] == ["odom", "map"]
+    # a fixed frame reached only through the second parent (found in the day's review)
+    tree.add("base", "velodyne", 0, np.eye(4), static=True)
+    tree.add("map", "base", 2 * S, np.eye(4))
+    for target in ("map", "person"):
+        with pytest.raises(DatasetError, match="'base' has two parents, 'odom' and 'map'"):
+            tree.lookup(target, "velodyne", np.array([S]))

@@ -67,7 +67,7 @@ class AsyncPlaceRecognitionClient:
         transport: httpx.AsyncBaseTransport | None = None,
         seed: int | None = None,
         sensor: str | None = None,
-        mount: str | tuple[float, ...] | None = None,
+        mount: MountArg = None,
         max_connections: int = 100,
     ) -> None:
         """``max_connections``: requests in flight at once (httpx's pool; more wait in the
@@ -168,7 +168,7 @@ class AsyncPlaceRecognitionClient:
         index: str | None = None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
-        mount: str | tuple[float, ...] | None = None,
+        mount: MountArg = None,
     ) -> MapInfo:
         """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
         answers are never verified (default: the server's, true). ``sensor``: the sensor of

@@ -57,7 +57,7 @@ class Call:
 
 
 # where a scan's sensor sits: "HEIGHT[,PITCH[,ROLL]]" or those numbers (check_mount)
-MountArg = str | tuple[float, ...] | None
+MountArg = str | float | tuple[float, ...] | None
 
 # what a query takes beside k and sensor (the server's query parameters)
 QUERY_FILTERS = frozenset(
@@ -115,9 +115,7 @@ class Calls:
         self.sensor = sensor  # the client's sensor: every scan call names it unless told
         self.mount = mount  # where it sits (HEIGHT[,PITCH[,ROLL]]): every scan call names it
 
-    def _sensor(
-        self, sensor: str | None, mount: str | tuple[float, ...] | None = None
-    ) -> dict[str, str]:
+    def _sensor(self, sensor: str | None, mount: MountArg = None) -> dict[str, str]:
         """A scan call's sensor and mount: the call's own, else the client's."""
         chosen = sensor or self.sensor
         where = check_mount(mount) or self.mount
@@ -183,7 +181,7 @@ class Calls:
         index: str | None,
         keep_geometry: bool | None,
         sensor: str | None = None,
-        mount: str | tuple[float, ...] | None = None,
+        mount: MountArg = None,
     ) -> Call:
         settings = {
             "index": index,
@@ -344,12 +342,22 @@ class Calls:
         return Call("GET", path, _json)
 
 
-def check_mount(mount: str | tuple[float, ...] | None) -> str | None:
-    """A client's ``mount``: ``"HEIGHT[,PITCH[,ROLL]]"`` or a tuple of those numbers (metres,
-    degrees), checked here so a robot learns of a typo at start, not at its first scan."""
+def check_mount(mount: str | float | tuple[float, ...] | None) -> str | None:
+    """A client's ``mount``: ``"HEIGHT[,PITCH[,ROLL]]"``, a tuple of those numbers (metres,
+    degrees) or a height alone, checked here so a robot learns of a typo at start, not at its
+    first scan."""
     if mount is None:
         return None
-    text = mount if isinstance(mount, str) else ",".join(repr(float(x)) for x in mount)
+    if isinstance(mount, int | float) and not isinstance(mount, bool):
+        mount = (mount,)
+    if not isinstance(mount, str | tuple | list):
+        raise ValueError(
+            f"mount {mount!r}: give HEIGHT[,PITCH[,ROLL]] as a string, a number or a tuple"
+        )
+    try:
+        text = mount if isinstance(mount, str) else ",".join(repr(float(x)) for x in mount)
+    except (TypeError, ValueError):
+        raise ValueError(f"mount {mount!r}: give HEIGHT[,PITCH[,ROLL]] as numbers") from None
     try:
         Mount.parse(text)
     except ValidationError as err:

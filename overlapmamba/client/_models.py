@@ -230,7 +230,7 @@ class Observation:
     insert: str = "auto"
     verify: bool = True
     sensor: str | None = None
-    mount: str | tuple[float, ...] | None = None
+    mount: str | float | tuple[float, ...] | None = None
     # sent again after a stream failed with it unanswered (the error's ``unanswered``): it
     # may have been carried out, so its answer comes with ``retried`` set, as an HTTP
     # retry's does (an "existing" keyframe may be this observation's own)

@@ -8,8 +8,9 @@ x,y,z,qx,qy,qz,qw (none for a bag without odometry); the loop radius comes from 
 sequence's own ``ground_truth/loops.npz`` when it ships one (the synthetic generator does).
 A drive's sensor is the one its user names, else the one its ``manifest.json`` records (a
 synthetic drive's); otherwise none is sent, and the server takes the map's or the model's.
-Where the sensor sits (its mount) likewise: the user's, else the manifest's mounting where
-that is not the model's own (``overlapmamba eval`` reads the same), else none is sent.
+Where the sensor sits (its mount) likewise: the user's, else the manifest's mounting (the
+one ``overlapmamba eval`` reads; sent even where it is the model's own, so that a map's
+declared mount does not stand in for it), else none is sent.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import quaternion
+from overlapmamba.core.sensors.mount import Mount
 
 _NOT_IN_IDS = re.compile(f"[^{NAME_CHARS}]+")  # what the service's ids may not hold
 
@@ -129,7 +131,7 @@ def open_drive(
         poses=None if np.isnan(seq.poses).all() else _pose7(seq.poses),  # no poses.txt: none
         loop_radius=radius,
         sensor=sensor or _manifest_sensor(root),
-        mount=mount or (None if seq.mount is None else seq.mount.text()),
+        mount=mount or _manifest_mount(root),
     )
 
 
@@ -150,12 +152,35 @@ def read_times(path: Path, n: int) -> np.ndarray:
     return times
 
 
-def _manifest_sensor(root: Path) -> str | None:
+def _manifest(root: Path) -> dict:
     path = root / "manifest.json"
     if not path.is_file():
+        return {}
+    try:
+        manifest = json.loads(path.read_text())
+    except (json.JSONDecodeError, OSError):
+        manifest = None
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{path} is not a readable manifest")
+    return manifest
+
+
+def _manifest_sensor(root: Path) -> str | None:
+    sensor = (_manifest(root).get("config") or {}).get("sensor")
+    return sensor if isinstance(sensor, str) else None
+
+
+def _manifest_mount(root: Path) -> str | None:
+    """The manifest's mounting as a scan call names it (HEIGHT,PITCH,ROLL), the model's own
+    included: a map that declares another must not take its place."""
+    mounting = (_manifest(root).get("resolved") or {}).get("mounting")
+    if not mounting:
         return None
     try:
-        sensor = json.loads(path.read_text()).get("config", {}).get("sensor")
-    except (json.JSONDecodeError, AttributeError, OSError):
-        raise ValueError(f"{path} is not a readable manifest") from None
-    return sensor if isinstance(sensor, str) else None
+        return Mount(
+            height=mounting["height"],
+            pitch_deg=mounting.get("pitch_deg", 0.0),
+            roll_deg=mounting.get("roll_deg", 0.0),
+        ).text()
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{root}/manifest.json: unreadable mounting {mounting!r}: {err}") from None

@@ -64,7 +64,7 @@ class PlaceRecognitionClient:
         transport: httpx.BaseTransport | None = None,
         seed: int | None = None,
         sensor: str | None = None,
-        mount: str | tuple[float, ...] | None = None,
+        mount: MountArg = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.api_key = api_key
@@ -148,7 +148,7 @@ class PlaceRecognitionClient:
         index: str | None = None,
         keep_geometry: bool | None = None,
         sensor: str | None = None,
-        mount: str | tuple[float, ...] | None = None,
+        mount: MountArg = None,
     ) -> MapInfo:
         """Create a map (idempotent). ``keep_geometry=False``: a descriptor-only map, whose
         answers are never verified (default: the server's, true). ``sensor``: the sensor of

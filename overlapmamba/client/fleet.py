@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from overlapmamba.client._async import AsyncPlaceRecognitionClient
+from overlapmamba.client._base import MountArg
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
 from overlapmamba.client._retry import Retry
@@ -104,7 +105,7 @@ async def simulate(
     exclude_recent_s: float = 30.0,
     seed: int = 0,
     retry: Retry | None = None,
-    mount: str | tuple[float, ...] | None = None,
+    mount: MountArg = None,
     scans: int | None = None,
 ) -> tuple[FleetReport, list[_Sample]]:
     """``retry``: how each robot retries (default: 3 attempts); ``NO_RETRY`` makes every

@@ -178,17 +178,20 @@ class MapRecording:
         self.observation(robot, t, listed, answer.keyframe, closure)
 
     def close(self) -> None:
+        """Finish the recording and put it at its path; where finishing or the rename fails
+        (a full disk, Ctrl-C), what was recorded is kept as :meth:`incomplete_path` and the
+        error raised."""
         if self._file.closed:
             return
-        try:
+        err = self._end()
+        if err is None:
             try:
-                self._writer.finish()
-            finally:
-                self._file.close()
-            os.replace(self._part, self.path)
-        except BaseException:  # a disk gone full: no half-written file left beside the path
-            self._part.unlink(missing_ok=True)
-            raise
+                os.replace(self._part, self.path)
+                return
+            except OSError as failed:
+                err = failed
+        self._keep()
+        raise err
 
     def __enter__(self) -> MapRecording:
         return self
@@ -197,27 +200,40 @@ class MapRecording:
         if kind is None:
             self.close()
             return
-        # the replay failed: what stood at the path stays; what was recorded, if anything,
-        # is kept beside it (readable: the writer is finished) under a name no file has. The
-        # replay's error is the one raised: one here (the disk full) only loses the partial.
+        # the replay failed: what stood at the path stays; what was recorded is kept beside
+        # it. The replay's error is the one raised: one while finishing (a full disk, a
+        # second Ctrl-C) is dropped, the partial kept as far as it was written.
+        if not self._file.closed:
+            self._end()
+            self._keep()
+
+    def _end(self) -> BaseException | None:
+        """Finish the writer (readable to its end) and close the file; what stopped that."""
         try:
             try:
                 self._writer.finish()
             finally:
                 self._file.close()
+        except BaseException as err:  # Ctrl-C too: the caller decides what to raise
+            return err
+        return None
+
+    def _keep(self) -> None:
+        """The partial recording, if it holds anything, under :meth:`incomplete_path`."""
+        try:
             if self.messages:
                 kept = self.incomplete_path()
                 os.replace(self._part, kept)
                 self.incomplete = kept
-        except Exception:  # the replay's error, raised after this, is the one that counts
+        except OSError:  # nowhere to keep it: the error that brought us here is raised
             pass
         finally:
             self._part.unlink(missing_ok=True)
 
     def incomplete_path(self) -> Path:
-        """Where a failed replay's recording goes: ``NAME.incomplete.mcap`` beside the path
-        (``.mcap`` whatever the path's suffix), else ``NAME.incomplete-2.mcap``, … : an
-        earlier failed replay's is never replaced."""
+        """Where a failed replay's recording goes: beside the path, ``NAME.incomplete`` and
+        the path's suffix (``.mcap`` for a bare path), else ``NAME.incomplete-2.mcap``, … :
+        an earlier failed replay's is never replaced."""
         name = f"{self.path.stem}.incomplete"
         suffix = self.path.suffix or ".mcap"
         for n in range(1, 10_000):

@@ -120,6 +120,14 @@ class TransformTree:
         stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
         for frame in (target, source):
             if frame not in self.frames:
+                # reached, perhaps, only as a second parent: of a frame on the other's chain
+                # first (the one this lookup would pass through)
+                other = source if frame == target else target
+                near = self._chain(other) if other in self.frames else []
+                children = [c for c, others in self._reparented.items() if frame in others]
+                children.sort(key=lambda c: c not in near)
+                if children:
+                    raise self._two_parents(children[0], source, target)
                 raise DatasetError(
                     f"frame {frame!r} is in no transform; frames: "
                     f"{', '.join(self.frames) or 'none'}",
@@ -128,19 +136,16 @@ class TransformTree:
         up_source, up_target = self._chain(source), self._chain(target)
         common = next((f for f in up_target if f in up_source), None)
         if common is None:
+            for frame in up_source + up_target:  # joined, perhaps, by a second parent
+                if frame in self._reparented:
+                    raise self._two_parents(frame, source, target)
             raise DatasetError(
                 f"frames {target!r} and {source!r} are not connected (their roots are "
                 f"{up_target[-1]!r} and {up_source[-1]!r})"
             )
         for frame in up_source[: up_source.index(common)] + up_target[: up_target.index(common)]:
             if frame in self._reparented:
-                raise DatasetError(
-                    f"frame {frame!r} has two parents, {self._links[frame].parent!r} and "
-                    f"{self._reparented[frame][0]!r}, and lies between {source!r} and "
-                    f"{target!r}; a transform tree allows one parent a frame",
-                    frame=frame,
-                    parents=[self._links[frame].parent, *self._reparented[frame]],
-                )
+                raise self._two_parents(frame, source, target)
         nan = gaps == "nan"
         root_source = self._compose(up_source[: up_source.index(common)], stamps, max_gap_s, nan)
         root_target = self._compose(up_target[: up_target.index(common)], stamps, max_gap_s, nan)
@@ -151,6 +156,15 @@ class TransformTree:
             self._compose(up_source[: up_source.index(common)], stamps, max_gap_s, False)
             self._compose(up_target[: up_target.index(common)], stamps, max_gap_s, False)
         return out
+
+    def _two_parents(self, frame: str, source: str, target: str) -> DatasetError:
+        parents = [self._links[frame].parent, *self._reparented[frame]]
+        return DatasetError(
+            f"frame {frame!r} has two parents, {parents[0]!r} and {parents[1]!r}, and lies "
+            f"between {source!r} and {target!r}; a transform tree allows one parent a frame",
+            frame=frame,
+            parents=parents,
+        )
 
     def _chain(self, frame: str) -> list[str]:
         """The frame, its parent, …, its root."""

@@ -121,7 +121,11 @@ class Sensors:
 
     def input(self, name: str, mount: Mount | None = None) -> SensorInput:
         """The projection of ``name``'s scans into this model's input (cached), from
-        ``mount`` when the scan declares where its sensor sits."""
+        ``mount`` when the scan declares where its sensor sits. The model's own mount,
+        declared, is no mount: the scan is taken as it is (a car's drive sent into a map
+        whose robots sit lower names it, so that the map's does not stand in)."""
+        if mount is not None and mount.at_reference:
+            mount = None
         key = (name, mount)
         if key not in self._inputs:
             self.check(name)

@@ -15,7 +15,7 @@ import numpy as np
 from overlapmamba.core.datasets.base import Sequence, scan_order
 from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import camera_to_lidar, read_calib, read_poses
-from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
+from overlapmamba.core.sensors.mount import Mount
 
 
 def looks_like(root: Path) -> bool:
@@ -54,8 +54,7 @@ def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
         )
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(f"{root}/manifest.json: unreadable mounting {mounting!r}: {e}") from None
-    level = mount.pitch_deg == 0.0 and mount.roll_deg == 0.0
-    return None if level and abs(mount.height - REFERENCE_HEIGHT) < 1e-6 else mount
+    return None if mount.at_reference else mount
 
 
 def open_kitti(

@@ -51,6 +51,12 @@ class Mount(BaseModel):
         """``HEIGHT,PITCH,ROLL``, as :meth:`parse` takes it."""
         return f"{self.height:g},{self.pitch_deg:g},{self.roll_deg:g}"
 
+    @property
+    def at_reference(self) -> bool:
+        """Where the model's sensor sat (level, :data:`REFERENCE_HEIGHT` up): nothing to move."""
+        level = self.pitch_deg == 0.0 and self.roll_deg == 0.0
+        return level and abs(self.height - REFERENCE_HEIGHT) < 1e-6
+
 
 def platform_from_sensor(pitch_deg: float, roll_deg: float) -> np.ndarray | None:
     """(3, 3) rotation platform ← sensor (a level frame from the tilted sensor's), or None
