@@ -757,3 +757,36 @@ def test_a_snapshot_written_is_reported_though_its_tombstones_could_not_be_purge
         assert "tombstones not purged" in caplog.text
         monkeypatch.undo()
         assert m.snapshot()["purged_tombstones"] == 1
+
+
+def test_a_deletion_that_cannot_move_its_folder_leaves_the_map_served(tmp_path, monkeypatch):
+    """Found in review: a deletion whose rename failed (EBUSY on a mount) left the map
+    closed and unserved though its files stayed, and a create of that id then removed them
+    as debris."""
+    import errno
+    import shutil
+
+    import overlapmamba.service.backends.faiss.backend as faiss_backend
+    from overlapmamba.service.errors import Unavailable
+
+    rows = [row(i, np.random.default_rng(i)) for i in range(5)]
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert(rows)
+
+        def busy(src, dst):
+            raise OSError(errno.EBUSY, "Device or resource busy", str(src))
+
+        monkeypatch.setattr(faiss_backend.os, "replace", busy)
+        with pytest.raises(OSError, match="busy"):
+            b.delete("town")
+        monkeypatch.undo()
+        again = b.get("town")  # served again, every keyframe there
+        assert again is not m and again.count == 5
+        hit = again.search(rows[3].descriptor, 1, Filters())[0]
+        assert hit.keyframe.keyframe_id == "kf-3"
+        # a map's files the service does not serve are never taken for debris
+        shutil.copytree(tmp_path / "data" / "maps" / "town", tmp_path / "data" / "maps" / "copy")
+        with pytest.raises(Unavailable, match="not served"):
+            b.create("copy", "flat")
+        assert (tmp_path / "data" / "maps" / "copy" / "store.sqlite").exists()

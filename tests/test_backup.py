@@ -246,3 +246,23 @@ def test_export_and_import_take_the_services_data_folder_from_its_settings(tmp_p
     res = runner.invoke(app, ["import-map", "copy", str(out)], env=env)
     assert res.exit_code == 0, res.output
     assert (tmp_path / "data" / "maps" / "copy" / "store.sqlite").is_file()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root: the files are chowned")
+def test_an_import_run_as_root_leaves_the_map_to_the_services_user(tmp_path):
+    """Found in review: import-map run by root (sudo, a container's default user) beside a
+    service that runs as its own user left root's files, which that service then could not
+    write: the map was refused at start."""
+    with opened("faiss", tmp_path / "a") as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(4)])
+    src = tmp_path / "town.sqlite"
+    backup.export_map(tmp_path / "a" / "data", "town", src)
+    maps = tmp_path / "b" / "data" / "maps"
+    maps.mkdir(parents=True)
+    os.chown(maps, 10001, 10001)  # the image's service user
+    backup.import_map(tmp_path / "b" / "data", "town", src)
+    owners = {
+        (p.stat().st_uid, p.stat().st_gid) for p in [maps / "town", *(maps / "town").iterdir()]
+    }
+    assert owners == {(10001, 10001)}

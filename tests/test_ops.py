@@ -333,3 +333,74 @@ def test_qdrant_backend_serves_and_survives_sigkill(tmp_path):
         r = c.post("/v1/maps/town/query", content=scan(0, 40.0).tobytes(), headers=OCTET).json()
         best = r["matches"][0]
         assert best["keyframe_id"] == "scan0" and abs(best["yaw_deg"] - 40.0) < 3.0
+
+
+def test_doctor_reads_the_whole_store_not_only_its_counts(tmp_path):
+    """Found in review: a store whose newest rows' page was damaged passed the doctor (its
+    counts read the index alone), and the service then refused to open it."""
+    import sqlite3
+
+    root = tmp_path / "data"
+    m = _map_with_rows(root, 200)
+    m.snapshot()
+    unit = np.full(8, 8**-0.5, np.float32)
+    m.insert(
+        [NewKeyframe(f"n{i}", "r", "s", 1e3 + i, None, unit, None, f"n{i}") for i in range(60)]
+    )
+    m.close()
+    store = root / "maps" / "town" / "store.sqlite"
+    assert diagnose(root, model_id="m1", dim=8).healthy
+    with sqlite3.connect(store) as con:
+        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        (page,) = con.execute(
+            "SELECT pageno FROM dbstat WHERE name = 'keyframes' AND pagetype = 'leaf' "
+            "ORDER BY path DESC LIMIT 1"
+        ).fetchone()
+        size = con.execute("PRAGMA page_size").fetchone()[0]
+    con.close()
+    with open(store, "r+b") as f:  # the newest rows' page, as a failing disk leaves it
+        f.seek((page - 1) * size)
+        f.write(bytes(size))
+    report = diagnose(root, model_id="m1", dim=8)
+    assert not report.healthy
+    (found,) = [f for f in _by_check(report, "store") if f.status == "error"]
+    assert "damaged" in found.message and "import-map" in found.message
+
+
+def test_a_snapshot_damaged_on_disk_is_rebuilt_and_the_doctor_says_so(tmp_path):
+    """Found in review: a flipped vector inside index.snap was loaded as it was (that
+    keyframe no longer found) and passed the doctor; the header's CRC-32 now catches it."""
+    from overlapmamba.service.domain import Filters
+
+    root = tmp_path / "data"
+    m = _map_with_rows(root, 30)
+    m.snapshot()
+    target = m.store.descriptor("k0")
+    m.close()
+    snap = root / "maps" / "town" / "index.snap"
+    data = bytearray(snap.read_bytes())
+    at = bytes(data).find(target.tobytes())
+    assert at > 0
+    data[at : at + 32] = np.full(8, -(8**-0.5), np.float32).tobytes()  # k0's vector, turned
+    snap.write_bytes(bytes(data))
+    report = diagnose(root, model_id="m1", dim=8)
+    (found,) = _by_check(report, "snapshot")
+    assert found.status == "warn" and "rebuilds the index" in found.message
+    m = FaissMap.open("town", root / "maps" / "town", IndexSettings(kind="flat"))
+    try:
+        assert m.search(target, 1, Filters())[0].keyframe.keyframe_id == "k0"
+    finally:
+        m.close()
+
+
+def test_the_doctor_names_an_import_cut_off_between_its_renames(tmp_path):
+    """Found in review: a whole import left as .import-<id> (its map folder already moved
+    away) was called debris to be removed, where the next start installs it as the map."""
+    from overlapmamba.service.backends.faiss.store import IMPORTED_MARK
+
+    root = tmp_path / "data"
+    _map_with_rows(root, 5).close()
+    (root / "maps" / "town").rename(root / "maps" / ".import-town")
+    (root / "maps" / ".import-town" / IMPORTED_MARK).touch()
+    (found,) = _by_check(diagnose(root, model_id="m1", dim=8), "import")
+    assert found.map_id == "town" and "installs it as map 'town'" in found.message

@@ -120,6 +120,17 @@ def _check_backup(src: Path) -> dict[str, str]:
     return meta
 
 
+def _owned_as(folder: Path, like: Path) -> None:
+    """``folder`` and what it holds owned as ``like`` is, where this process runs as root
+    and ``like`` is not root's (``import-map`` run by root beside a service that runs as its
+    own user: root's files would be read-only to that service, and its maps refused)."""
+    owner = like.stat()
+    if os.geteuid() != 0 or owner.st_uid == 0:
+        return
+    for path in [folder, *folder.rglob("*")]:
+        os.chown(path, owner.st_uid, owner.st_gid, follow_symlinks=False)
+
+
 def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False) -> dict[str, Any]:
     """Install the export ``src`` as map ``map_id`` (the service stopped). The copy is
     SQLite's own, so writes still in ``src``'s write-ahead log come along; the count
@@ -148,6 +159,7 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
             store.close()
             with open(tmp / "store.sqlite", "rb+") as f:
                 os.fsync(f.fileno())
+            _owned_as(tmp, folder.parent)
         except (OSError, sqlite3.Error, StoreError) as err:
             shutil.rmtree(tmp, ignore_errors=True)
             raise BackupError(f"the import of {src} as map {map_id!r} failed: {err}") from None

@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 from overlapmamba.service.backends.base import MapBackend
 from overlapmamba.service.backends.faiss.snapshot import SNAPSHOT_MAGIC, read_snapshot
-from overlapmamba.service.backends.faiss.store import Store
+from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, Store
 from overlapmamba.service.backup import LOCK_NAME
 from overlapmamba.service.domain import MAP_ID
 from overlapmamba.service.errors import ServiceError
@@ -90,7 +90,20 @@ def diagnose(
     settings = settings or IndexSettings()  # type: ignore[call-arg]
     models: dict[str, str] = {}
     for folder in sorted(root.iterdir()):
-        if folder.name.startswith((".trash-", ".import-", ".create-")):
+        imported = folder.name.removeprefix(".import-")
+        if (
+            folder.name.startswith(".import-")
+            and (folder / IMPORTED_MARK).exists()
+            and not (root / imported).exists()
+        ):  # FaissBackend._finish_imports: the next start moves it in, as the map
+            report.add(
+                imported,
+                "import",
+                "warn",
+                f"{folder.name}: a whole import of map {imported!r} cut off before it was "
+                f"moved in; the next start installs it as map {imported!r}: keep it",
+            )
+        elif folder.name.startswith((".trash-", ".import-", ".create-")):
             report.add(
                 None,
                 "debris",
@@ -152,6 +165,17 @@ def _check_map(
         report.add(map_id, "store", "error", f"the store cannot be read: {err}")
         return None
     try:
+        damaged = store.problems()
+        if damaged:  # a count reads the index alone: the rows a start replays may be gone
+            report.add(
+                map_id,
+                "store",
+                "error",
+                f"the store is damaged (SQLite's quick_check: {'; '.join(damaged)[:300]}); the "
+                "service cannot open it: restore the map from an export (import-map)",
+                problems=damaged,
+            )
+            return meta_model
         last, live, _ = store.census(0)
         report.add(map_id, "store", "ok", f"{live} keyframes, seq {last}", keyframes=live, seq=last)
         if not meta_model or not meta_dim:

@@ -154,6 +154,13 @@ class FaissBackend:
             check_same_settings(m, keep_geometry, sensor, mount, kind)
             return m, False
         folder = self.root / map_id
+        if (folder / "store.sqlite").exists():  # a map's files this service does not serve
+            raise Unavailable(
+                f"map {map_id!r} has its files at {folder} but is not served (a deletion "
+                "that failed, or a copy put there while the service ran); restart the "
+                "service to serve it, or move the folder away",
+                code="map_unavailable",
+            )
         if folder.exists():  # debris without a store (load_all skipped it): not a map
             shutil.rmtree(folder)
         m = FaissMap.create(
@@ -176,16 +183,33 @@ class FaissBackend:
             m = self.get(map_id)
             del self.maps[map_id]
             done = self._deleting[map_id] = threading.Event()
+        trash = self.root / f".trash-{map_id}-{time.time_ns()}"
         try:
             with m.retiring():  # after the writes, snapshot and rebuild under way
-                trash = self.root / f".trash-{map_id}-{time.time_ns()}"
-                os.replace(m.folder, trash)
+                try:
+                    os.replace(m.folder, trash)
+                except OSError:  # not moved (a busy mount): the map is where it was, served
+                    self._reopen(map_id, m.folder)
+                    raise
                 fsync_dir(self.root)
         finally:
             with self._lock:
                 del self._deleting[map_id]
             done.set()
         shutil.rmtree(trash, ignore_errors=True)
+
+    def _reopen(self, map_id: str, folder: Path) -> None:
+        """A map closed for a deletion that could not move its folder: served again (or, if
+        it cannot be opened now, listed as failed, as at start-up)."""
+        try:
+            m = FaissMap.open(map_id, folder, self.settings, rows=self.row_cache)
+        except Exception as err:
+            log.exception("map %s: not deleted, and cannot be opened again", map_id)
+            with self._lock:
+                self.failed[map_id] = f"{type(err).__name__}: {err}"
+            return
+        with self._lock:
+            self.maps[map_id] = m
 
     def snapshot_list(self) -> list[FaissMap]:
         with self._lock:

@@ -295,6 +295,7 @@ class FaissMap:
                     raise full from err
                 raise
             self.snapshot_seq = seq
+            size = path.stat().st_size  # here: a deletion after the lock moves the folder
             try:  # housekeeping: the snapshot is written whatever becomes of it
                 purged = self.store.purge_tombstones(seq)
             except sqlite3.Error as err:  # e.g. a full disk: the next snapshot purges them
@@ -302,7 +303,7 @@ class FaissMap:
                     "map %s: tombstones not purged after its snapshot: %s", self.map_id, err
                 )
                 purged = 0
-        return {"seq": seq, "bytes": path.stat().st_size, "purged_tombstones": purged}
+        return {"seq": seq, "bytes": size, "purged_tombstones": purged}
 
     @contextlib.contextmanager
     def retiring(self) -> Iterator[None]:

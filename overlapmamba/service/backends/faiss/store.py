@@ -400,6 +400,15 @@ class Store:
     def count(self) -> int:
         return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
 
+    def problems(self, limit: int = 5) -> list[str]:
+        """What SQLite's ``quick_check`` finds wrong with the file (every page read, the rows
+        a start would replay included); empty when it is sound."""
+        try:
+            found = [r[0] for r in self._rows(f"PRAGMA quick_check({int(limit)})")]
+        except sqlite3.DatabaseError as err:  # a page it cannot even parse
+            return [str(err)]
+        return [] if found == ["ok"] else found
+
     def census(self, at_seq: int) -> tuple[int, int, int]:
         """(last seq, live keyframes, keyframes alive at ``at_seq``), read in one
         transaction: one consistent view even while a service writes."""
