@@ -170,15 +170,22 @@ async def test_a_frame_nested_past_the_parsers_depth_is_answered_and_the_stream_
         assert (await c.put("/v1/maps/m")).status_code == 201
         body = scan(0).tobytes()
         deep = '{"seq": 2, "timestamp": 2, "pose": ' + "[" * 5000 + "]" * 5000 + "}"
+        # found in review: a seq nested within the parser's depth (400) but past the stack
+        # the echo check took ended the handler all the same
+        seq = "[" * 400 + "1" + "]" * 400
+        deep_seq = '{"seq": ' + seq + ', "timestamp": 4, "pose": "x"}'
         frames = [
             {"type": "websocket.receive", "text": deep},
+            {"type": "websocket.receive", "bytes": body},
+            {"type": "websocket.receive", "text": deep_seq},
             {"type": "websocket.receive", "bytes": body},
             {"type": "websocket.receive", "text": json.dumps({"seq": 3, "timestamp": 3.0})},
             {"type": "websocket.receive", "bytes": body},
         ]
         app = c.app  # type: ignore[attr-defined]
-        bad, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+        bad, bad_seq, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 3)
     assert bad["ok"] is False and bad["status"] == 400, bad
+    assert bad_seq["ok"] is False and bad_seq["seq"] is None, bad_seq
     assert good["seq"] == 3 and good["ok"] is True, good
 
 

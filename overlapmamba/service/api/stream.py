@@ -56,15 +56,23 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["queries"])
 log = logging.getLogger("overlapmamba.service")
 
 
+SEQ_DEPTH = 32  # a seq nested deeper is not echoed: a robot's seq is a number or a small record
+
+
 def _finite(value: Any) -> bool:
-    """Whether a JSON value holds no NaN or infinite number (``1e999`` parses as one), so
-    that it can be echoed in an answer that stays JSON."""
-    if isinstance(value, float):
-        return math.isfinite(value)
-    if isinstance(value, list):
-        return all(_finite(v) for v in value)
-    if isinstance(value, dict):
-        return all(_finite(v) for v in value.values())
+    """Whether a JSON value holds no NaN or infinite number (``1e999`` parses as one) and is
+    nested at most :data:`SEQ_DEPTH` deep, so that it can be echoed in an answer that stays
+    JSON. Walked without recursion: a value nested 900 deep (the parser takes 1,000) ended
+    the stream's receive loop with a RecursionError."""
+    stack = [(value, 0)]
+    while stack:
+        v, depth = stack.pop()
+        if depth > SEQ_DEPTH:
+            return False
+        if isinstance(v, float) and not math.isfinite(v):
+            return False
+        if isinstance(v, list | dict):
+            stack.extend((x, depth + 1) for x in (v.values() if isinstance(v, dict) else v))
     return True
 
 
@@ -86,8 +94,9 @@ class StreamMeta(BaseModel):
     def _echoable(cls, value: Any) -> Any:
         if not _finite(value):
             raise ValueError(
-                "seq holds a NaN or infinite number, which its answer could not echo as "
-                "JSON; allowed: any JSON value with finite numbers"
+                "seq holds a NaN or infinite number, or is nested deeper than "
+                f"{SEQ_DEPTH} levels, which its answer could not echo as JSON; allowed: any "
+                f"JSON value with finite numbers, at most {SEQ_DEPTH} levels deep"
             )
         return value
 
