@@ -377,3 +377,57 @@ def test_a_pose_as_the_server_writes_it_and_a_numpy_timestamp_are_taken():
     from overlapmamba.client._base import _pose
 
     assert _pose("1,2,3, 0,0,0,1") == "1.0,2.0,3.0,0.0,0.0,0.0,1.0"  # the server's own form
+
+
+def _answers_then_restarts(answers: int):
+    """A stream server that answers the first ``answers`` observations, then closes 1012 (a
+    restart) while the client still sends; (url, stop)."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    lc = {"accepted": False, "keyframe_id": None, "threshold": 0.1, "margin_top1_top2": None}
+
+    def handler(ws):
+        for i in range(answers):
+            ws.recv()
+            ws.recv()
+            ws.send(
+                json.dumps(
+                    {"seq": i, "ok": True, "matches": [], "loop_closure": lc, "keyframe": None,
+                     "inserted": False, "timings_ms": {}}
+                )
+            )  # fmt: skip
+        time.sleep(0.2)  # both answers on their way before the close
+        ws.close(1012)
+
+    server = serve(handler, "127.0.0.1", 0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return f"http://127.0.0.1:{server.socket.getsockname()[1]}", server.shutdown
+
+
+def test_answers_received_before_a_restart_are_yielded_not_called_unanswered():
+    """Found in review: a stream whose server closed (1012, a restart) while the client was
+    still sending reported as unanswered the observations whose answers had already come
+    (read only once the window filled), so a robot would send them again."""
+    import numpy as np
+
+    from overlapmamba.client import Observation
+
+    url, stop = _answers_then_restarts(2)
+    scan = np.zeros((10, 4), np.float32)
+
+    def observations():
+        yield Observation(scan, 0.0)
+        yield Observation(scan, 1.0)
+        time.sleep(0.6)  # the third comes once the server has answered both and closed
+        yield Observation(scan, 2.0)
+
+    got = []
+    try:
+        with PlaceRecognitionClient(url) as pr, pytest.raises(TransportError) as err:
+            for result in pr.stream("m", observations(), robot_id="r", window=3):
+                got.append(result)
+    finally:
+        stop()
+    assert len(got) == 2 and err.value.unanswered == [2]

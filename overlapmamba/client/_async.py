@@ -350,18 +350,46 @@ class AsyncPlaceRecognitionClient:
         errors: str,
         pending: deque[int],
     ) -> AsyncIterator[ObserveResult | APIError]:
-        compress = self._calls.compress
+        from websockets.exceptions import ConnectionClosed
+
         retries: set[int] = set()  # the observations sent again (``retry``)
+        try:
+            async for result in self._send_and_read(
+                ws, observations, window, errors, pending, retries
+            ):
+                yield result
+        except ConnectionClosed:
+            # the server closed (a restart's 1012): the answers that came before it are the
+            # robot's, only the rest are unanswered
+            while pending:
+                try:
+                    text = await asyncio.wait_for(ws.recv(), 0.1)
+                except (ConnectionClosed, TimeoutError):
+                    break
+                yield stream_result(text, errors, pending[0] in retries)
+                pending.popleft()
+            raise
+
+    async def _send_and_read(
+        self,
+        ws: Any,
+        observations: AsyncIterator[Observation],
+        window: int,
+        errors: str,
+        pending: deque[int],
+        retries: set[int],
+    ) -> AsyncIterator[ObserveResult | APIError]:
+        compress = self._calls.compress
         i = 0
         async for obs in observations:
             meta, body = await asyncio.to_thread(observation_frames, obs, i, compress)
+            pending.append(i)  # before: one whose sending fails is unanswered too
             try:  # a half-open link takes no data: give up after timeout.write
                 await asyncio.wait_for(_send_both(ws, meta, body), self.timeout.write)
             except TimeoutError:
                 # closing would wait, without a deadline, for the same buffers to drain
                 ws.transport.abort()
                 raise send_timeout(self.timeout.write) from None
-            pending.append(i)
             if obs.retry:
                 retries.add(i)
             i += 1

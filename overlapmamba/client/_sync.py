@@ -292,6 +292,8 @@ class PlaceRecognitionClient:
         errors: str,
         pending: deque[int],
     ) -> Iterator[ObserveResult | APIError]:
+        from websockets.exceptions import ConnectionClosed
+
         compress = self._calls.compress
         retries: set[int] = set()  # the observations sent again (``retry``)
         with connect(
@@ -300,18 +302,30 @@ class PlaceRecognitionClient:
             open_timeout=self.timeout.connect,
             close_timeout=close_within(self.timeout),
         ) as ws:
-            for i, obs in enumerate(observations):
-                send_within(ws, observation_frames(obs, i, compress), self.timeout.write)
-                pending.append(i)
-                if obs.retry:
-                    retries.add(i)
-                while len(pending) >= window:
+            try:
+                for i, obs in enumerate(observations):
+                    pending.append(i)  # before: one whose sending fails is unanswered too
+                    send_within(ws, observation_frames(obs, i, compress), self.timeout.write)
+                    if obs.retry:
+                        retries.add(i)
+                    while len(pending) >= window:
+                        yield stream_result(
+                            ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
+                        )
+                        pending.popleft()
+                while pending:
                     yield stream_result(
                         ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
                     )
                     pending.popleft()
-            while pending:
-                yield stream_result(
-                    ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
-                )
-                pending.popleft()
+            except ConnectionClosed:
+                # the server closed (a restart's 1012): the answers that came before it are
+                # the robot's, only the rest are unanswered
+                while pending:
+                    try:
+                        text = ws.recv(timeout=0)
+                    except (ConnectionClosed, TimeoutError):
+                        break
+                    yield stream_result(text, errors, pending[0] in retries)
+                    pending.popleft()
+                raise
