@@ -292,3 +292,28 @@ async def test_a_metadata_frame_of_megabytes_is_refused_before_it_is_parsed(tmp_
     assert bad["ok"] is False and bad["seq"] is None and "at most 65536" in bad["error"]["message"]
     assert len(json.dumps(bad)) < 1000
     assert good["seq"] == 2 and good["ok"] is True, good
+
+
+async def test_a_handshake_whose_parameters_do_not_validate_is_a_422_naming_them(tmp_path, encoder):
+    """Found in review: a handshake without robot_id, or with a sensor, k or mount the schema
+    refuses, was closed by FastAPI's own handler before our refusal: a bare 403 to the robot,
+    which could not tell a bad k from a refused key."""
+    async with running(Settings(data_dir=tmp_path / "data"), encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+        for query, field in (("k=1001&robot_id=r1", "k"), ("sensor=VLP-16&robot_id=r1", "sensor"),
+                             ("session_id=x", "robot_id")):  # fmt: skip
+            sent: list[dict] = []
+
+            async def keep(message: dict, sent=sent) -> None:
+                sent.append(message)
+
+            scope = ws_scope("/v1/maps/m/stream", query)
+            scope["extensions"] = {"websocket.http.response": {}}
+            inbox: asyncio.Queue[dict] = asyncio.Queue()
+            inbox.put_nowait({"type": "websocket.connect"})
+            await asyncio.wait_for(app(scope, inbox.get, keep), timeout=30)
+            assert sent[0]["type"] == "websocket.http.response.start" and sent[0]["status"] == 422
+            body = json.loads(b"".join(m.get("body", b"") for m in sent[1:]))
+            assert body["error"]["code"] == "invalid_request", body
+            assert field in body["error"]["message"], body

@@ -16,8 +16,8 @@ from types import FrameType
 from typing import Any
 
 import uvicorn
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi import FastAPI, Request, WebSocket
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -33,6 +33,7 @@ from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.errors import (
     ServiceError,
     Unavailable,
+    invalid_request,
     lidar_status,
 )
 from overlapmamba.service.guard import GuardMiddleware, error_response
@@ -182,11 +183,16 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
 
     @app.exception_handler(RequestValidationError)
     async def validationerror_response(_: Request, err: RequestValidationError) -> JSONResponse:
-        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in err.errors()]
-        where = ", ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in errors[:3])
-        return error_response(
-            422, "invalid_request", f"invalid request: {where}", {"errors": errors}
-        )
+        bad = invalid_request(err.errors())
+        return error_response(bad.status, bad.code, bad.message, bad.detail)
+
+    @app.exception_handler(WebSocketRequestValidationError)
+    async def ws_validationerror(
+        websocket: WebSocket, err: WebSocketRequestValidationError
+    ) -> None:
+        # a stream's handshake answered as an HTTP route's (FastAPI's own closed it: a bare
+        # 403 to the robot, which could not tell a bad k from a refused key)
+        await stream.refuse(websocket, invalid_request(err.errors()))
 
     @app.exception_handler(StarletteHTTPException)
     async def httperror_response(_: Request, err: StarletteHTTPException) -> JSONResponse:

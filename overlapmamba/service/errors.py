@@ -21,6 +21,7 @@ response body is ``{"error": {"code", "message", "detail"}}``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from overlapmamba.core.errors import LidarCoreError, PointCountError
@@ -77,6 +78,14 @@ class PayloadTooLarge(ServiceError):
 class Unprocessable(ServiceError):
     status = 422
     code = "unprocessable"
+
+
+def invalid_request(errors: Sequence[Any]) -> Unprocessable:
+    """Pydantic's errors of a request's parameters or body as the 422 ``invalid_request``:
+    the first three named in the message, all of them in ``errors``."""
+    found = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in errors]
+    where = ", ".join(".".join(str(p) for p in e["loc"]) + f": {e['msg']}" for e in found[:3])
+    return Unprocessable(f"invalid request: {where}", code="invalid_request", errors=found)
 
 
 class Overloaded(ServiceError):

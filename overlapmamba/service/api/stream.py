@@ -139,7 +139,7 @@ def _invalid(err: ValidationError) -> str:
     return f"metadata frame is not valid{field}: {first['msg']}: this observation was not made"
 
 
-async def _refuse(websocket: WebSocket, err: ServiceError) -> None:
+async def refuse(websocket: WebSocket, err: ServiceError) -> None:
     """The handshake refused as an HTTP route answers (status, JSON error, Retry-After),
     where the server can send a response instead of the upgrade (uvicorn can: a close
     before the accept reached a client as a bare 403); else closed with 1013 (try again
@@ -173,7 +173,7 @@ async def stream(
         stream_mount = parse_mount(mount)
         m = await svc.open_map(map_id)
     except ServiceError as err:
-        await _refuse(websocket, err)
+        await refuse(websocket, err)
         return
     await websocket.accept()
     limit = svc.settings.observe.stream_queue
