@@ -266,3 +266,43 @@ def test_an_import_run_as_root_leaves_the_map_to_the_services_user(tmp_path):
         (p.stat().st_uid, p.stat().st_gid) for p in [maps / "town", *(maps / "town").iterdir()]
     }
     assert owners == {(10001, 10001)}
+
+
+def test_an_import_refuses_a_database_that_is_no_maps_store(tmp_path):
+    """Found in review: a SQLite file of the store's schema but without a map's meta (its
+    model, dimension and write count) was imported; the map's first insert then failed."""
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    src = tmp_path / "town.sqlite"
+    backup.export_map(tmp_path / "data", "town", src)
+    with contextlib.closing(sqlite3.connect(src)) as con, con:
+        con.execute("DELETE FROM meta WHERE key = 'seq'")
+    with pytest.raises(backup.BackupError, match="not a map export: its meta table lacks seq"):
+        backup.import_map(tmp_path / "data", "copy", src)
+    assert not (tmp_path / "data" / "maps" / "copy").exists()
+
+
+def test_an_import_cut_off_while_moving_in_says_so_and_the_next_start_finishes_it(
+    tmp_path, monkeypatch
+):
+    """Found in review: an error in the import's last steps (a rename) escaped as a raw
+    OSError, with a traceback and no word of what was left."""
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    src = tmp_path / "town.sqlite"
+    backup.export_map(tmp_path / "data", "town", src)
+    real = os.replace
+
+    def cut(a, b):
+        if str(a).endswith(".import-copy"):
+            raise OSError(5, "Input/output error")
+        return real(a, b)
+
+    monkeypatch.setattr(backup.os, "replace", cut)
+    with pytest.raises(backup.BackupError, match="cut off while moving it in .*finishes it"):
+        backup.import_map(tmp_path / "data", "copy", src)
+    monkeypatch.undo()
+    with opened("faiss", tmp_path) as b:
+        assert b.get("copy").count == 3

@@ -117,6 +117,15 @@ def _check_backup(src: Path) -> dict[str, str]:
             f"{src} has store schema {meta.get('schema_version')}; this code reads "
             f"{READABLE_VERSIONS} (an older one is upgraded on import)"
         )
+    # a map's store names its model and dimension and counts its writes: without them the
+    # service could not check it against its model, and its first insert would fail
+    missing = [key for key in ("model_id", "dim", "seq") if not str(meta.get(key, "")).strip()]
+    if missing or not str(meta["dim"]).isdigit() or not str(meta["seq"]).isdigit():
+        raise BackupError(
+            f"{src} is not a map export: its meta table lacks "
+            f"{', '.join(missing) or 'a whole-number dim and seq'} (a map's store has "
+            "model_id, dim and seq); nothing was imported"
+        )
     return meta
 
 
@@ -147,8 +156,8 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         # finishes an import cut off between the two renames (IMPORTED_MARK, load_all).
         tmp = folder.with_name(f".import-{map_id}")
         shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
         try:
+            tmp.mkdir(parents=True)
             source = Store(src, readonly=True)  # SQLite's backup: the -wal's writes too
             try:
                 count = source.backup(tmp / "store.sqlite")  # the copy's live keyframes
@@ -163,13 +172,24 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         except (OSError, sqlite3.Error, StoreError) as err:
             shutil.rmtree(tmp, ignore_errors=True)
             raise BackupError(f"the import of {src} as map {map_id!r} failed: {err}") from None
-        (tmp / IMPORTED_MARK).touch()
-        fsync_dir(tmp)
+        try:
+            (tmp / IMPORTED_MARK).touch()
+            fsync_dir(tmp)
+        except OSError as err:  # not marked whole: the next start clears it, the map stays
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise BackupError(f"the import of {src} as map {map_id!r} failed: {err}") from None
         trash = folder.with_name(f".trash-{map_id}-{time.time_ns()}")
-        if folder.exists():
-            os.replace(folder, trash)
-        os.replace(tmp, folder)
-        fsync_dir(folder.parent)
-        (folder / IMPORTED_MARK).unlink()
+        try:
+            if folder.exists():
+                os.replace(folder, trash)
+            os.replace(tmp, folder)
+            fsync_dir(folder.parent)
+            (folder / IMPORTED_MARK).unlink()
+        except OSError as err:  # whole and marked: the next start finishes what is left
+            raise BackupError(
+                f"the import of {src} as map {map_id!r} was cut off while moving it in "
+                f"({err}); the next start of the service finishes it (`overlapmamba doctor` "
+                f"shows it): keep .import-{map_id} until then"
+            ) from None
         shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}
