@@ -317,3 +317,38 @@ async def test_a_handshake_whose_parameters_do_not_validate_is_a_422_naming_them
             body = json.loads(b"".join(m.get("body", b"") for m in sent[1:]))
             assert body["error"]["code"] == "invalid_request", body
             assert field in body["error"]["message"], body
+
+
+async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, encoder):
+    """Found in review: a browser opens a WebSocket for any page with no preflight, so any
+    site a user visited could observe into, and insert keyframes into, a keyless service on
+    that user's machine. Programs send no Origin; listed origins are let through."""
+    settings = Settings(
+        data_dir=tmp_path / "data", auth={"stream_origins": ["https://ops.example"]}
+    )
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        app = c.app  # type: ignore[attr-defined]
+
+        async def handshake(headers: dict[str, str]) -> dict:
+            sent: list[dict] = []
+
+            async def keep(message: dict) -> None:
+                sent.append(message)
+
+            scope = ws_scope("/v1/maps/m/stream", "robot_id=r1", headers)
+            scope["extensions"] = {"websocket.http.response": {}}
+            inbox: asyncio.Queue[dict] = asyncio.Queue()
+            inbox.put_nowait({"type": "websocket.connect"})
+            inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+            await asyncio.wait_for(app(scope, inbox.get, keep), timeout=30)
+            return sent[0]
+
+        evil = await handshake({"host": "127.0.0.1:8000", "origin": "http://evil.example"})
+        assert evil["type"] == "websocket.http.response.start" and evil["status"] == 403
+        for headers in (
+            {"host": "127.0.0.1:8000"},  # a robot: no Origin
+            {"host": "127.0.0.1:8000", "origin": "http://127.0.0.1:8000"},  # its own page
+            {"host": "127.0.0.1:8000", "origin": "https://ops.example"},  # listed
+        ):
+            assert (await handshake(headers))["type"] == "websocket.accept", headers

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 from fastapi import Request
+from starlette.requests import HTTPConnection
 
 from overlapmamba.service.errors import Forbidden, Unauthorized
 from overlapmamba.service.settings import ApiKey, AuthSettings
@@ -70,6 +71,25 @@ class Principal:
 
 ANONYMOUS_ADMIN = Principal(name="anonymous", role="admin")
 _READS = ("GET", "HEAD")
+
+
+def check_origin(request: HTTPConnection, allowed: list[str]) -> None:
+    """A stream's handshake from a web page of another origin is refused: a browser opens a
+    WebSocket for any page, with no preflight, so without keys any site a user visits could
+    observe into, and insert keyframes into, a service on that user's machine or network.
+    Programs (robots, the clients) send no Origin; the dashboard is this service's own."""
+    origin = request.headers.get("origin")
+    if origin is None or origin.rstrip("/") in (a.rstrip("/") for a in allowed):
+        return
+    host = request.headers.get("host", "")
+    if origin.partition("://")[2].rstrip("/").lower() == host.lower():
+        return
+    raise Forbidden(
+        f"a stream opened by a web page of another origin ({origin[:100]}) is refused; "
+        "allowed: programs (no Origin), this service's own pages, and the origins in "
+        "auth.stream_origins",
+        code="cross_origin",
+    )
 
 
 def presented_key(request: Request) -> str | None:

@@ -213,6 +213,12 @@ class ApiKey(Section):
 
 class AuthSettings(Section):
     keys: list[ApiKey] = Field(default_factory=list)
+    stream_origins: list[str] = Field(
+        default_factory=list,
+        description="web pages of other origins (scheme://host[:port]) that may open a "
+        "stream: a browser sends its page's Origin, and a stream from a page of another "
+        "origin is refused (403 cross_origin) unless listed here; robots send none",
+    )
 
     @field_validator("keys")
     @classmethod

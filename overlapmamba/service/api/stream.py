@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.service.api.openapi import MountQuery, SensorQuery
 from overlapmamba.service.api.queries import InsertMode, KQuery, observe_out
-from overlapmamba.service.auth import Action, presented_key
+from overlapmamba.service.auth import Action, check_origin, presented_key
 from overlapmamba.service.bodies import parse_mount
 from overlapmamba.service.deps import serving
 from overlapmamba.service.domain import check_pose, parse_pose
@@ -166,6 +166,7 @@ async def stream(
     app = websocket.app
     try:
         svc = serving(app.state)
+        check_origin(websocket, svc.settings.auth.stream_origins)
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE, map_id)
         svc.sensors.check(sensor)
