@@ -9,6 +9,7 @@ import contextlib
 import json
 import sqlite3
 
+import numpy as np
 import pytest
 from service_kit import running, scan, ws_scope
 
@@ -324,7 +325,7 @@ async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, e
     site a user visited could observe into, and insert keyframes into, a keyless service on
     that user's machine. Programs send no Origin; listed origins are let through."""
     settings = Settings(
-        data_dir=tmp_path / "data", auth={"stream_origins": ["https://ops.example"]}
+        data_dir=tmp_path / "data", auth={"allowed_origins": ["https://ops.example"]}
     )
     async with running(settings, encoder) as c:
         assert (await c.put("/v1/maps/m")).status_code == 201
@@ -352,3 +353,40 @@ async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, e
             {"host": "127.0.0.1:8000", "origin": "https://ops.example"},  # listed
         ):
             assert (await handshake(headers))["type"] == "websocket.accept", headers
+
+
+async def test_a_write_from_a_web_page_of_another_origin_is_refused(tmp_path, encoder):
+    """Found in review: the JSON routes parse a text/plain body, which a browser sends for
+    any site's page with no preflight: a page a user visited could insert descriptors into
+    a keyless service on that user's machine. Reads, programs (no Origin), the service's own
+    pages and listed origins pass."""
+    settings = Settings(
+        data_dir=tmp_path / "data", auth={"allowed_origins": ["https://ops.example"]}
+    )
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        vec = np.zeros(encoder.meta.descriptor_dim)
+        vec[0] = 1.0
+        body = json.dumps(
+            {
+                "model_id": encoder.model_id,
+                "keyframes": [{"keyframe_id": "x", "timestamp": 0.0, "descriptor": vec.tolist()}],
+            }
+        )
+        plain = {"content-type": "text/plain"}
+        page = await c.post(
+            "/v1/maps/m/keyframes:batch",
+            content=body,
+            headers={**plain, "origin": "http://evil.example"},
+        )
+        assert page.status_code == 403 and page.json()["error"]["code"] == "cross_origin"
+        assert (await c.get("/v1/maps/m")).json()["keyframes"] == 0
+        read = await c.get("/v1/maps/m", headers={"origin": "http://evil.example"})
+        assert read.status_code == 200  # a read: the browser keeps its answer from the page
+        for origin in ("http://test", "https://ops.example"):
+            ok = await c.post(
+                "/v1/maps/m/keyframes:batch",
+                content=body,
+                headers={**plain, "origin": origin},
+            )
+            assert ok.status_code == 200, ok.text

@@ -242,6 +242,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         GuardMiddleware,
         max_body_bytes=settings.limits.max_body_bytes,
         timeout_s=settings.limits.request_timeout_s,
+        allowed_origins=settings.auth.allowed_origins,
     )
     return app
 

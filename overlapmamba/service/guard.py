@@ -14,6 +14,7 @@ from typing import Any
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from overlapmamba.service.auth import cross_origin, foreign_origin
 from overlapmamba.service.errors import PayloadTooLarge, error_body
 from overlapmamba.service.logs import new_request_id, request_id
 from overlapmamba.service.threads import request_deadline
@@ -33,10 +34,17 @@ class GuardMiddleware:
     limit while they stream in (413), cancel a request that runs past its timeout (504),
     count requests by route and status, and write one access log line."""
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int, timeout_s: float) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        max_body_bytes: int,
+        timeout_s: float,
+        allowed_origins: list[str] | None = None,
+    ) -> None:
         self.app = app
         self.max_body = max_body_bytes
         self.timeout_s = timeout_s
+        self.allowed_origins = allowed_origins or []
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
@@ -113,6 +121,18 @@ class GuardMiddleware:
         received = 0
         started = False
         status = 500
+        if scope.get("method") not in ("GET", "HEAD", "OPTIONS"):  # a write: whose page?
+            headers = dict(scope.get("headers", []))
+            origin = headers.get(b"origin")
+            host = headers.get(b"host", b"").decode("latin-1")
+            given = None if origin is None else origin.decode("latin-1")
+            if foreign_origin(given, host, self.allowed_origins):
+                err = cross_origin(str(given))
+                await error_response(
+                    err.status, err.code, err.message, err.detail, {"x-request-id": rid}
+                )(scope, receive, send)
+                _count(scope, err.status, BEFORE_ROUTING)
+                return err.status
         for name, value in scope.get("headers", []):
             if name == b"content-length" and value.isdigit() and int(value) > self.max_body:
                 why = f"body is {int(value)} bytes; allowed: at most {self.max_body}"

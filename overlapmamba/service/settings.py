@@ -213,11 +213,12 @@ class ApiKey(Section):
 
 class AuthSettings(Section):
     keys: list[ApiKey] = Field(default_factory=list)
-    stream_origins: list[str] = Field(
+    allowed_origins: list[str] = Field(
         default_factory=list,
-        description="web pages of other origins (scheme://host[:port]) that may open a "
-        "stream: a browser sends its page's Origin, and a stream from a page of another "
-        "origin is refused (403 cross_origin) unless listed here; robots send none",
+        description="web pages of other origins (scheme://host[:port]) whose browser requests "
+        "may write or open a stream: a browser sends its page's Origin, and a write or "
+        "stream from a page of another origin is refused (403 cross_origin) unless listed "
+        "here; robots and the clients send none",
     )
 
     @field_validator("keys")

@@ -166,7 +166,7 @@ async def stream(
     app = websocket.app
     try:
         svc = serving(app.state)
-        check_origin(websocket, svc.settings.auth.stream_origins)
+        check_origin(websocket, svc.settings.auth.allowed_origins)
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE, map_id)
         svc.sensors.check(sensor)
