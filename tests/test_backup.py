@@ -248,11 +248,12 @@ def test_export_and_import_take_the_services_data_folder_from_its_settings(tmp_p
     assert (tmp_path / "data" / "maps" / "copy" / "store.sqlite").is_file()
 
 
-@pytest.mark.skipif(os.geteuid() != 0, reason="needs root: the files are chowned")
-def test_an_import_run_as_root_leaves_the_map_to_the_services_user(tmp_path):
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root: an import run as root")
+def test_an_import_run_as_root_into_the_services_maps_is_refused_naming_the_user(tmp_path):
     """Found in review: import-map run by root (sudo, a container's default user) beside a
-    service that runs as its own user left root's files, which that service then could not
-    write: the map was refused at start."""
+    service that runs as its own user left root's files, which that service could not write
+    (the map refused at start); handing them over by path would let that user, who may
+    rename entries of its own folder, point root's chown elsewhere."""
     with opened("faiss", tmp_path / "a") as b:
         m, _ = b.create("town", "flat")
         m.insert([row(i, np.random.default_rng(i)) for i in range(4)])
@@ -261,11 +262,9 @@ def test_an_import_run_as_root_leaves_the_map_to_the_services_user(tmp_path):
     maps = tmp_path / "b" / "data" / "maps"
     maps.mkdir(parents=True)
     os.chown(maps, 10001, 10001)  # the image's service user
-    backup.import_map(tmp_path / "b" / "data", "town", src)
-    owners = {
-        (p.stat().st_uid, p.stat().st_gid) for p in [maps / "town", *(maps / "town").iterdir()]
-    }
-    assert owners == {(10001, 10001)}
+    with pytest.raises(backup.BackupError, match="belongs to user 10001.*--user 10001"):
+        backup.import_map(tmp_path / "b" / "data", "town", src)
+    assert not list(maps.iterdir())
 
 
 def test_an_import_refuses_a_database_that_is_no_maps_store(tmp_path):
@@ -306,3 +305,29 @@ def test_an_import_cut_off_while_moving_in_says_so_and_the_next_start_finishes_i
     monkeypatch.undo()
     with opened("faiss", tmp_path) as b:
         assert b.get("copy").count == 3
+
+
+def test_an_import_whose_old_map_cannot_move_away_leaves_it_as_it_was(tmp_path, monkeypatch):
+    """Found in the evening's review: the first rename (the old map away) failing said the
+    next start would finish the import, which that start then cleared as debris."""
+    with opened("faiss", tmp_path) as b:
+        m, _ = b.create("town", "flat")
+        m.insert([row(i, np.random.default_rng(i)) for i in range(3)])
+    src = tmp_path / "town.sqlite"
+    backup.export_map(tmp_path / "data", "town", src)
+    with opened("faiss", tmp_path) as b:
+        b.get("town").insert([row(9, np.random.default_rng(9))])  # the map moves on
+    real = os.replace
+
+    def busy(a, b):
+        if str(b).split("/")[-1].startswith(".trash-town"):
+            raise OSError(16, "Device or resource busy")
+        return real(a, b)
+
+    monkeypatch.setattr(backup.os, "replace", busy)
+    with pytest.raises(backup.BackupError, match="could not be moved away .* it is as it was"):
+        backup.import_map(tmp_path / "data", "town", src, replace=True)
+    monkeypatch.undo()
+    assert not list((tmp_path / "data" / "maps").glob(".import-*"))
+    with opened("faiss", tmp_path) as b:
+        assert b.get("town").count == 4

@@ -9,10 +9,12 @@ import contextlib
 import json
 import sqlite3
 
+import httpx
 import numpy as np
 import pytest
 from service_kit import running, scan, ws_scope
 
+from overlapmamba.service.auth import hash_key
 from overlapmamba.service.settings import Settings
 
 pytestmark = pytest.mark.anyio
@@ -325,7 +327,7 @@ async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, e
     site a user visited could observe into, and insert keyframes into, a keyless service on
     that user's machine. Programs send no Origin; listed origins are let through."""
     settings = Settings(
-        data_dir=tmp_path / "data", auth={"allowed_origins": ["https://ops.example"]}
+        data_dir=tmp_path / "data", auth={"allowed_origins": ["https://OPS.example:443/"]}
     )
     async with running(settings, encoder) as c:
         assert (await c.put("/v1/maps/m")).status_code == 201
@@ -350,7 +352,7 @@ async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, e
         for headers in (
             {"host": "127.0.0.1:8000"},  # a robot: no Origin
             {"host": "127.0.0.1:8000", "origin": "http://127.0.0.1:8000"},  # its own page
-            {"host": "127.0.0.1:8000", "origin": "https://ops.example"},  # listed
+            {"host": "evil.example", "origin": "https://ops.example"},  # listed
         ):
             assert (await handshake(headers))["type"] == "websocket.accept", headers
 
@@ -358,35 +360,52 @@ async def test_a_stream_from_a_web_page_of_another_origin_is_refused(tmp_path, e
 async def test_a_write_from_a_web_page_of_another_origin_is_refused(tmp_path, encoder):
     """Found in review: the JSON routes parse a text/plain body, which a browser sends for
     any site's page with no preflight: a page a user visited could insert descriptors into
-    a keyless service on that user's machine. Reads, programs (no Origin), the service's own
-    pages and listed origins pass."""
+    a keyless service on that user's machine, also by DNS rebinding (its own name resolved
+    to 127.0.0.1, its Origin matching the Host it sends). Reads, programs (no Origin), the
+    service's own pages under a loopback name or an IP, listed origins, and any request to a
+    service with keys (a browser cannot present one without a preflight) pass."""
     settings = Settings(
         data_dir=tmp_path / "data", auth={"allowed_origins": ["https://ops.example"]}
     )
+    vec = np.zeros(encoder.meta.descriptor_dim)
+    vec[0] = 1.0
+
+    def body(i: int) -> str:
+        kf = {"keyframe_id": f"x{i}", "timestamp": 0.0, "descriptor": vec.tolist()}
+        return json.dumps({"model_id": encoder.model_id, "keyframes": [kf]})
+
     async with running(settings, encoder) as c:
         assert (await c.put("/v1/maps/m")).status_code == 201
-        vec = np.zeros(encoder.meta.descriptor_dim)
-        vec[0] = 1.0
-        body = json.dumps(
-            {
-                "model_id": encoder.model_id,
-                "keyframes": [{"keyframe_id": "x", "timestamp": 0.0, "descriptor": vec.tolist()}],
-            }
-        )
-        plain = {"content-type": "text/plain"}
-        page = await c.post(
-            "/v1/maps/m/keyframes:batch",
-            content=body,
-            headers={**plain, "origin": "http://evil.example"},
-        )
-        assert page.status_code == 403 and page.json()["error"]["code"] == "cross_origin"
+
+        async def write(i: int, host: str, origin: str) -> httpx.Response:
+            headers = {"content-type": "text/plain", "host": host, "origin": origin}
+            return await c.post("/v1/maps/m/keyframes:batch", content=body(i), headers=headers)
+
+        refused = [
+            ("127.0.0.1:8000", "http://evil.example"),  # another site's page
+            ("evil.example:8000", "http://evil.example:8000"),  # DNS rebinding
+            ("127.0.0.1:8000", "null"),  # a file:// page, a sandboxed frame
+        ]
+        for host, origin in refused:
+            page = await write(0, host, origin)
+            assert page.status_code == 403, (host, origin)
+            assert page.json()["error"]["code"] == "cross_origin"
         assert (await c.get("/v1/maps/m")).json()["keyframes"] == 0
         read = await c.get("/v1/maps/m", headers={"origin": "http://evil.example"})
         assert read.status_code == 200  # a read: the browser keeps its answer from the page
-        for origin in ("http://test", "https://ops.example"):
-            ok = await c.post(
-                "/v1/maps/m/keyframes:batch",
-                content=body,
-                headers={**plain, "origin": origin},
-            )
-            assert ok.status_code == 200, ok.text
+        passed = [
+            ("127.0.0.1:8000", "http://127.0.0.1:8000"),  # its own page
+            ("localhost", "http://localhost:80"),  # default port, written or not
+            ("[::1]:8000", "http://[::1]:8000"),
+            ("127.0.0.1:8000", "https://ops.example"),  # listed (a proxy's public origin)
+        ]
+        for i, (host, origin) in enumerate(passed, start=1):
+            ok = await write(i, host, origin)
+            assert ok.status_code == 200, (host, origin, ok.text)
+    key = {"name": "ops", "role": "admin", "sha256": hash_key("k-admin")}
+    keyed = Settings(data_dir=tmp_path / "keyed", auth={"keys": [key]})
+    async with running(keyed, encoder) as c:
+        headers = {"x-api-key": "k-admin", "origin": "https://om.example", "host": "10.0.0.2"}
+        assert (await c.put("/v1/maps/m", headers=headers)).status_code == 201
+    with pytest.raises(ValueError, match="'ops.example' is no origin"):
+        Settings(auth={"allowed_origins": ["ops.example"]})

@@ -243,6 +243,7 @@ def create_app(settings: Settings, *, encoder: Encoder | None = None) -> FastAPI
         max_body_bytes=settings.limits.max_body_bytes,
         timeout_s=settings.limits.request_timeout_s,
         allowed_origins=settings.auth.allowed_origins,
+        keyless=not settings.auth.keys,
     )
     return app
 

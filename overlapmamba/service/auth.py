@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 from fastapi import Request
-from starlette.requests import HTTPConnection
 
 from overlapmamba.service.errors import Forbidden, Unauthorized
 from overlapmamba.service.settings import ApiKey, AuthSettings
@@ -71,34 +70,6 @@ class Principal:
 
 ANONYMOUS_ADMIN = Principal(name="anonymous", role="admin")
 _READS = ("GET", "HEAD")
-
-
-def foreign_origin(origin: str | None, host: str, allowed: list[str]) -> bool:
-    """Whether a request comes from a web page of another origin than this service's, not
-    in ``allowed``. A browser sends its page's ``Origin`` with a write and a WebSocket of any
-    site, with no preflight for a WebSocket or a "simple" POST (a text/plain body, which the
-    JSON routes parse): without keys, any site a user visits could insert into, observe into
-    or stream against a service on that user's machine or network. Programs (robots, the
-    clients) send no Origin; the dashboard is this service's own page."""
-    if origin is None or origin.rstrip("/") in (a.rstrip("/") for a in allowed):
-        return False
-    return origin.partition("://")[2].rstrip("/").lower() != host.lower()
-
-
-def cross_origin(origin: str) -> Forbidden:
-    return Forbidden(
-        f"a write or stream from a web page of another origin ({origin[:100]}) is refused; "
-        "allowed: programs (no Origin), this service's own pages, and the origins in "
-        "auth.allowed_origins",
-        code="cross_origin",
-    )
-
-
-def check_origin(request: HTTPConnection, allowed: list[str]) -> None:
-    """A stream's handshake from a web page of another origin: refused (:func:`foreign_origin`)."""
-    origin = request.headers.get("origin")
-    if foreign_origin(origin, request.headers.get("host", ""), allowed):
-        raise cross_origin(str(origin))
 
 
 def presented_key(request: Request) -> str | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import logging
 import os
 import shutil
 import sqlite3
@@ -26,6 +27,8 @@ from overlapmamba.service.backends.faiss.store import (
     sqlite_uri,
 )
 from overlapmamba.service.domain import check_map_id
+
+log = logging.getLogger("overlapmamba.service")
 
 LOCK_NAME = "service.lock"
 
@@ -129,15 +132,18 @@ def _check_backup(src: Path) -> dict[str, str]:
     return meta
 
 
-def _owned_as(folder: Path, like: Path) -> None:
-    """``folder`` and what it holds owned as ``like`` is, where this process runs as root
-    and ``like`` is not root's (``import-map`` run by root beside a service that runs as its
-    own user: root's files would be read-only to that service, and its maps refused)."""
-    owner = like.stat()
-    if os.geteuid() != 0 or owner.st_uid == 0:
-        return
-    for path in [folder, *folder.rglob("*")]:
-        os.chown(path, owner.st_uid, owner.st_gid, follow_symlinks=False)
+def _as_the_owner(maps: Path) -> None:
+    """Refuse to import as root into a maps folder another user owns (the service's): root's
+    files there would be read-only to that service, which then refuses the map, and handing
+    them over by path would let that user point root's chown and writes elsewhere (it may
+    rename entries of its own folder at any time)."""
+    owner = maps.stat().st_uid if maps.exists() else 0
+    if os.geteuid() == 0 and owner != 0:
+        raise BackupError(
+            f"import-map runs as root, and {maps} belongs to user {owner} (the service's): "
+            f"run it as that user (`sudo -u '#{owner}' overlapmamba import-map …`, `docker "
+            f"run --user {owner} …`) so the map is the service's"
+        )
 
 
 def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False) -> dict[str, Any]:
@@ -148,6 +154,7 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
     if not src.is_file():
         raise BackupError(f"{src} does not exist")
     meta = _check_backup(src)
+    _as_the_owner(folder.parent)
     with data_dir_lock(data_dir):
         if folder.exists() and not replace:
             raise BackupError(f"map {map_id!r} exists under {data_dir}; pass --replace")
@@ -168,7 +175,6 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
             store.close()
             with open(tmp / "store.sqlite", "rb+") as f:
                 os.fsync(f.fileno())
-            _owned_as(tmp, folder.parent)
         except (OSError, sqlite3.Error, StoreError) as err:
             shutil.rmtree(tmp, ignore_errors=True)
             raise BackupError(f"the import of {src} as map {map_id!r} failed: {err}") from None
@@ -182,14 +188,24 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
         try:
             if folder.exists():
                 os.replace(folder, trash)
+        except OSError as err:  # the old map is where it was: this import is undone
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise BackupError(
+                f"the import of {src} as map {map_id!r} failed: the map in place could not "
+                f"be moved away ({err}); it is as it was"
+            ) from None
+        try:
             os.replace(tmp, folder)
-            fsync_dir(folder.parent)
-            (folder / IMPORTED_MARK).unlink()
-        except OSError as err:  # whole and marked: the next start finishes what is left
+        except OSError as err:  # whole and marked, the old map away: a start finishes it
             raise BackupError(
                 f"the import of {src} as map {map_id!r} was cut off while moving it in "
                 f"({err}); the next start of the service finishes it (`overlapmamba doctor` "
                 f"shows it): keep .import-{map_id} until then"
             ) from None
+        try:  # done: what is left is housekeeping
+            fsync_dir(folder.parent)
+            (folder / IMPORTED_MARK).unlink()
+        except OSError as err:
+            log.warning("map %s: imported; its last housekeeping failed: %s", map_id, err)
         shutil.rmtree(trash, ignore_errors=True)
     return {"map_id": map_id, "keyframes": count, "model_id": meta.get("model_id")}

@@ -93,6 +93,7 @@ def diagnose(
         imported = folder.name.removeprefix(".import-")
         if (
             folder.name.startswith(".import-")
+            and MAP_ID.fullmatch(imported)
             and (folder / IMPORTED_MARK).exists()
             and not (root / imported).exists()
         ):  # FaissBackend._finish_imports: the next start moves it in, as the map

@@ -14,9 +14,9 @@ from typing import Any
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from overlapmamba.service.auth import cross_origin, foreign_origin
 from overlapmamba.service.errors import PayloadTooLarge, error_body
 from overlapmamba.service.logs import new_request_id, request_id
+from overlapmamba.service.origins import cross_origin, foreign_origin
 from overlapmamba.service.threads import request_deadline
 
 access = logging.getLogger("overlapmamba.access")
@@ -40,11 +40,13 @@ class GuardMiddleware:
         max_body_bytes: int,
         timeout_s: float,
         allowed_origins: list[str] | None = None,
+        keyless: bool = False,
     ) -> None:
         self.app = app
         self.max_body = max_body_bytes
         self.timeout_s = timeout_s
         self.allowed_origins = allowed_origins or []
+        self.keyless = keyless  # overlapmamba.service.origins: only a keyless service checks
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
@@ -126,7 +128,7 @@ class GuardMiddleware:
             origin = headers.get(b"origin")
             host = headers.get(b"host", b"").decode("latin-1")
             given = None if origin is None else origin.decode("latin-1")
-            if foreign_origin(given, host, self.allowed_origins):
+            if foreign_origin(given, host, self.allowed_origins, self.keyless):
                 err = cross_origin(str(given))
                 await error_response(
                     err.status, err.code, err.message, err.detail, {"x-request-id": rid}

@@ -16,6 +16,7 @@ from __future__ import annotations
 import difflib
 import ipaddress
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 from contextvars import ContextVar
@@ -42,6 +43,7 @@ from overlapmamba.service.calibrated_settings import (
 Role = Literal["robot", "mapper", "viewer", "admin"]
 IndexKind = Literal["auto", "flat", "ivf"]
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+ORIGIN = re.compile(r"https?://[^/\s?#@]+", re.IGNORECASE)  # a web page's origin, no path
 
 
 # load_settings(config=...)'s file while it builds a Settings (else OVERLAPMAMBA_CONFIG's)
@@ -215,11 +217,22 @@ class AuthSettings(Section):
     keys: list[ApiKey] = Field(default_factory=list)
     allowed_origins: list[str] = Field(
         default_factory=list,
-        description="web pages of other origins (scheme://host[:port]) whose browser requests "
-        "may write or open a stream: a browser sends its page's Origin, and a write or "
-        "stream from a page of another origin is refused (403 cross_origin) unless listed "
-        "here; robots and the clients send none",
+        description="without keys: web pages (scheme://host[:port]) whose browser writes and "
+        "streams are taken besides the service's own pages under a loopback name or an IP "
+        "address (overlapmamba.service.origins; others: 403 cross_origin); e.g. the public "
+        "origin of a proxy in front. Programs send no Origin and always pass",
     )
+
+    @field_validator("allowed_origins")
+    @classmethod
+    def _origins(cls, origins: list[str]) -> list[str]:
+        bad = [o for o in origins if not ORIGIN.fullmatch(o.strip().rstrip("/"))]
+        if bad:
+            raise ValueError(
+                f"auth.allowed_origins: {bad[0]!r} is no origin; allowed: scheme://host[:port] "
+                "with scheme http or https, no path (e.g. https://ops.example)"
+            )
+        return origins
 
     @field_validator("keys")
     @classmethod

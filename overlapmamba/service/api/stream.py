@@ -42,12 +42,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.service.api.openapi import MountQuery, SensorQuery
 from overlapmamba.service.api.queries import InsertMode, KQuery, observe_out
-from overlapmamba.service.auth import Action, check_origin, presented_key
+from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount
 from overlapmamba.service.deps import serving
 from overlapmamba.service.domain import check_pose, parse_pose
 from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
 from overlapmamba.service.guard import error_response
+from overlapmamba.service.origins import check_origin
 from overlapmamba.service.places import Observation
 from overlapmamba.service.scans import ScanBody
 from overlapmamba.service.schemas import NAME_PATTERN, SENSOR_PATTERN
@@ -166,7 +167,8 @@ async def stream(
     app = websocket.app
     try:
         svc = serving(app.state)
-        check_origin(websocket, svc.settings.auth.allowed_origins)
+        auth = svc.settings.auth
+        check_origin(websocket, auth.allowed_origins, keyless=not auth.keys)
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE, map_id)
         svc.sensors.check(sensor)
