@@ -20,8 +20,6 @@ from __future__ import annotations
 import ipaddress
 from urllib.parse import urlsplit
 
-from starlette.requests import HTTPConnection
-
 from overlapmamba.service.errors import Forbidden
 
 _DEFAULT_PORTS = {"http": 80, "https": 443}
@@ -73,10 +71,3 @@ def cross_origin(origin: str) -> Forbidden:
         "or an IP address, and the origins in auth.allowed_origins",
         code="cross_origin",
     )
-
-
-def check_origin(request: HTTPConnection, allowed: list[str], keyless: bool) -> None:
-    """A stream's handshake: refused where :func:`foreign_origin` says so."""
-    origin = request.headers.get("origin")
-    if foreign_origin(origin, request.headers.get("host", ""), allowed, keyless):
-        raise cross_origin(str(origin))

@@ -48,7 +48,7 @@ from overlapmamba.service.deps import serving
 from overlapmamba.service.domain import check_pose, parse_pose
 from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
 from overlapmamba.service.guard import error_response
-from overlapmamba.service.origins import check_origin
+from overlapmamba.service.origins import cross_origin, foreign_origin
 from overlapmamba.service.places import Observation
 from overlapmamba.service.scans import ScanBody
 from overlapmamba.service.schemas import NAME_PATTERN, SENSOR_PATTERN
@@ -167,8 +167,10 @@ async def stream(
     app = websocket.app
     try:
         svc = serving(app.state)
-        auth = svc.settings.auth
-        check_origin(websocket, auth.allowed_origins, keyless=not auth.keys)
+        auth, origin = svc.settings.auth, websocket.headers.get("origin")
+        host = websocket.headers.get("host", "")
+        if foreign_origin(origin, host, auth.allowed_origins, keyless=not auth.keys):
+            raise cross_origin(str(origin))
         who = app.state.auth.identify(presented_key(websocket))  # type: ignore[arg-type]
         app.state.auth.authorize(who, Action.ENCODE, map_id)
         svc.sensors.check(sensor)
