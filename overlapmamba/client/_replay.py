@@ -15,7 +15,6 @@ declared mount does not stand in for it), else none is sent.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Iterable, Iterator
@@ -28,10 +27,10 @@ from overlapmamba.client._base import NAME_CHARS
 from overlapmamba.core.datasets import open_recording
 from overlapmamba.core.datasets.bags import Bag
 from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.datasets.kitti import manifest_mount, manifest_sensor, read_manifest
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.overlap import LoopGroundTruth
 from overlapmamba.core.poses import quaternion
-from overlapmamba.core.sensors.mount import Mount
 
 _NOT_IN_IDS = re.compile(f"[^{NAME_CHARS}]+")  # what the service's ids may not hold
 
@@ -152,35 +151,12 @@ def read_times(path: Path, n: int) -> np.ndarray:
     return times
 
 
-def _manifest(root: Path) -> dict:
-    path = root / "manifest.json"
-    if not path.is_file():
-        return {}
-    try:
-        manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, OSError):
-        manifest = None
-    if not isinstance(manifest, dict):
-        raise ValueError(f"{path} is not a readable manifest")
-    return manifest
-
-
 def _manifest_sensor(root: Path) -> str | None:
-    sensor = (_manifest(root).get("config") or {}).get("sensor")
-    return sensor if isinstance(sensor, str) else None
+    return manifest_sensor(read_manifest(root))
 
 
 def _manifest_mount(root: Path) -> str | None:
     """The manifest's mounting as a scan call names it (HEIGHT,PITCH,ROLL), the model's own
     included: a map that declares another must not take its place."""
-    mounting = (_manifest(root).get("resolved") or {}).get("mounting")
-    if not mounting:
-        return None
-    try:
-        return Mount(
-            height=mounting["height"],
-            pitch_deg=mounting.get("pitch_deg", 0.0),
-            roll_deg=mounting.get("roll_deg", 0.0),
-        ).text()
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{root}/manifest.json: unreadable mounting {mounting!r}: {err}") from None
+    mount = manifest_mount(root, read_manifest(root), reference=True)
+    return None if mount is None else mount.text()

@@ -22,7 +22,8 @@ def looks_like(root: Path) -> bool:
     return (root / "velodyne").is_dir()
 
 
-def _manifest(root: Path) -> dict:
+def read_manifest(root: Path) -> dict:
+    """A drive's ``manifest.json`` ({} where it has none; a DatasetError where unreadable)."""
     path = root / "manifest.json"
     if not path.is_file():
         return {}
@@ -35,14 +36,15 @@ def _manifest(root: Path) -> dict:
     return manifest
 
 
-def _manifest_sensor(manifest: dict) -> str | None:
+def manifest_sensor(manifest: dict) -> str | None:
     sensor = (manifest.get("config") or {}).get("sensor")
     return sensor if isinstance(sensor, str) else None
 
 
-def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
-    """Where a synthetic drive's sensor sat (its manifest's resolved mounting); None at the
-    reference mount (level, :data:`REFERENCE_HEIGHT` up) or where the manifest says nothing."""
+def manifest_mount(root: Path, manifest: dict, *, reference: bool = False) -> Mount | None:
+    """Where a synthetic drive's sensor sat (its manifest's resolved mounting); None where
+    the manifest says nothing, and at the reference mount (level, 1.73 m up) unless
+    ``reference`` (a client names it, so that a map's declared mount does not stand in)."""
     mounting = (manifest.get("resolved") or {}).get("mounting")
     if not mounting:
         return None
@@ -54,7 +56,7 @@ def _manifest_mount(root: Path, manifest: dict) -> Mount | None:
         )
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(f"{root}/manifest.json: unreadable mounting {mounting!r}: {e}") from None
-    return None if mount.at_reference else mount
+    return None if mount.at_reference and not reference else mount
 
 
 def open_kitti(
@@ -76,9 +78,9 @@ def open_kitti(
             f"{root} is a gen-data output that never finished (its .incomplete marker is "
             "there: the run was killed, or is still going): delete it and generate again"
         )
-    manifest = _manifest(root)
+    manifest = read_manifest(root)
     if sensor is None:
-        sensor = _manifest_sensor(manifest) or "kitti-hdl64"
+        sensor = manifest_sensor(manifest) or "kitti-hdl64"
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
         raise DatasetError(f"{root} is not a KITTI sequence: no velodyne/ folder")
@@ -91,7 +93,7 @@ def open_kitti(
                 scan_paths=scans,
                 poses=np.full((len(scans), 4, 4), np.nan),
                 sensor=sensor,
-                mount=_manifest_mount(root, manifest),
+                mount=manifest_mount(root, manifest),
             )
         raise DatasetError(f"{root}: poses.txt is missing (one 3×4 pose per scan)")
     poses = read_poses(pose_file)
@@ -105,5 +107,5 @@ def open_kitti(
                 poses = camera_to_lidar(poses, calib["Tr"])
             except DatasetError as err:
                 raise DatasetError(f"{root} ({calib_file.name}, {pose_file.name}): {err}") from None
-    mount = _manifest_mount(root, manifest)
+    mount = manifest_mount(root, manifest)
     return Sequence(root=root, scan_paths=scans, poses=poses, sensor=sensor, mount=mount)
