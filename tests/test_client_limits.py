@@ -431,3 +431,20 @@ def test_answers_received_before_a_restart_are_yielded_not_called_unanswered():
     finally:
         stop()
     assert len(got) == 2 and err.value.unanswered == [2]
+
+
+def test_an_answer_under_another_seq_than_the_one_due_is_refused_not_misattributed():
+    """Found in review: the clients matched answers to observations by their order alone; an
+    answer out of order (a proxy reordering frames) would have put one scan's loop closure on
+    another's pose. A refusal whose seq could not be read (null) is taken as the one due."""
+    from overlapmamba.client._exceptions import ResponseError
+    from overlapmamba.client._stream import stream_result
+
+    lc = {"accepted": False, "keyframe_id": None, "threshold": 0.1, "margin_top1_top2": None}
+    answer = {"ok": True, "matches": [], "loop_closure": lc, "keyframe": None,
+              "inserted": False, "timings_ms": {}}  # fmt: skip
+    assert stream_result(json.dumps({**answer, "seq": 3}), expected=3).seq == 3
+    with pytest.raises(ResponseError, match="answered seq 4 where 3 was due"):
+        stream_result(json.dumps({**answer, "seq": 4}), expected=3)
+    refused = {"seq": None, "ok": False, "status": 400, "error": {"code": "bad_stream_frame"}}
+    assert stream_result(json.dumps(refused), errors="return", expected=3).status == 400  # type: ignore[union-attr]

@@ -366,7 +366,7 @@ class AsyncPlaceRecognitionClient:
                     text = await asyncio.wait_for(ws.recv(), 0.1)
                 except (ConnectionClosed, TimeoutError):
                     break
-                yield stream_result(text, errors, pending[0] in retries)
+                yield stream_result(text, errors, pending[0] in retries, pending[0])
                 pending.popleft()
             raise
 
@@ -395,11 +395,11 @@ class AsyncPlaceRecognitionClient:
             i += 1
             while len(pending) >= window:
                 text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-                yield stream_result(text, errors, pending[0] in retries)
+                yield stream_result(text, errors, pending[0] in retries, pending[0])
                 pending.popleft()
         while pending:
             text = await asyncio.wait_for(ws.recv(), self.timeout.read)
-            yield stream_result(text, errors, pending[0] in retries)
+            yield stream_result(text, errors, pending[0] in retries, pending[0])
             pending.popleft()
 
 

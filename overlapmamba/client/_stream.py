@@ -146,15 +146,25 @@ def check_window(window: int) -> int:
 
 
 def stream_result(
-    text: str | bytes, errors: str = "raise", retried: bool = False
+    text: str | bytes, errors: str = "raise", retried: bool = False, expected: Any = None
 ) -> ObserveResult | APIError:
     """One result frame of the stream → its result; a refused observation's APIError is
     raised, or returned with ``errors="return"``. A frame that is not this API's raises
-    :class:`ResponseError`. ``retried``: the observation was sent again (``retry``)."""
+    :class:`ResponseError`. ``retried``: the observation was sent again (``retry``).
+    ``expected``: the ``seq`` due (the oldest observation unanswered); an answer under
+    another is a :class:`ResponseError`, never matched to the wrong scan (a SLAM back end
+    would add its loop closure to another pose). A refusal of a frame whose seq could not
+    be read (null) is taken as the one due."""
     try:
         d = json.loads(text)
         if not isinstance(d, dict):
             raise TypeError(f"a JSON {type(d).__name__}, not an object")
+        if expected is not None and d.get("seq") not in (expected, None):
+            raise ResponseError(
+                f"the stream answered seq {d.get('seq')!r} where {expected!r} was due: an "
+                "answer out of order cannot be matched to its scan (a proxy that reorders "
+                "frames, or not this API's stream)"
+            )
         if d.get("ok"):
             result = ObserveResult.from_json(d)
             return dataclasses.replace(result, retried=True) if retried else result

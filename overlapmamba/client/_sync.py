@@ -309,14 +309,12 @@ class PlaceRecognitionClient:
                     if obs.retry:
                         retries.add(i)
                     while len(pending) >= window:
-                        yield stream_result(
-                            ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
-                        )
+                        text = ws.recv(timeout=self.timeout.read)
+                        yield stream_result(text, errors, pending[0] in retries, pending[0])
                         pending.popleft()
                 while pending:
-                    yield stream_result(
-                        ws.recv(timeout=self.timeout.read), errors, pending[0] in retries
-                    )
+                    text = ws.recv(timeout=self.timeout.read)
+                    yield stream_result(text, errors, pending[0] in retries, pending[0])
                     pending.popleft()
             except ConnectionClosed:
                 # the server closed (a restart's 1012): the answers that came before it are
@@ -326,6 +324,6 @@ class PlaceRecognitionClient:
                         text = ws.recv(timeout=0)
                     except (ConnectionClosed, TimeoutError):
                         break
-                    yield stream_result(text, errors, pending[0] in retries)
+                    yield stream_result(text, errors, pending[0] in retries, pending[0])
                     pending.popleft()
                 raise
