@@ -12,7 +12,7 @@ import sqlite3
 import httpx
 import numpy as np
 import pytest
-from service_kit import running, scan, ws_scope
+from service_kit import OCTET, running, scan, ws_scope
 
 from overlapmamba.service.auth import hash_key
 from overlapmamba.service.settings import Settings
@@ -294,6 +294,32 @@ async def test_a_metadata_frame_of_megabytes_is_refused_before_it_is_parsed(tmp_
         bad, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
     assert bad["ok"] is False and bad["seq"] is None and "at most 65536" in bad["error"]["message"]
     assert len(json.dumps(bad)) < 1000
+    assert good["seq"] == 2 and good["ok"] is True, good
+
+
+async def test_a_scan_frame_past_the_body_limit_is_refused_as_http_refuses_it(tmp_path, encoder):
+    """The socket takes frames up to ``max_body_bytes`` + 64 KiB (the metadata's room), so a
+    scan between the two was observed on the stream while HTTP refused the same bytes with
+    a 413. It is answered with that 413 under its seq, and the stream goes on."""
+    body = scan(0).tobytes()
+    settings = Settings(data_dir=tmp_path / "data", limits={"max_body_bytes": len(body) + 16})
+    async with running(settings, encoder) as c:
+        assert (await c.put("/v1/maps/m")).status_code == 201
+        over = body + bytes(32)  # 16 bytes past the limit, a whole number of points
+        r = await c.post("/v1/maps/m/observe?robot_id=r1&timestamp=1", content=over, headers=OCTET)
+        assert r.status_code == 413
+        frames = []
+        for seq, data in ((1, over), (2, body)):
+            meta = json.dumps({"seq": seq, "timestamp": float(seq)})
+            frames += [
+                {"type": "websocket.receive", "text": meta},
+                {"type": "websocket.receive", "bytes": data},
+            ]
+        app = c.app  # type: ignore[attr-defined]
+        bad, good = await _stream(app, "/v1/maps/m/stream", "robot_id=r1", frames, 2)
+    assert bad["seq"] == 1 and bad["ok"] is False and bad["status"] == 413, bad
+    assert bad["error"]["code"] == "payload_too_large"
+    assert f"at most {len(body) + 16}" in bad["error"]["message"]
     assert good["seq"] == 2 and good["ok"] is True, good
 
 

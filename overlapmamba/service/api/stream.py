@@ -23,7 +23,8 @@ its results is closed with code 1013 (try again later) and a reason. Authenticat
 the same headers as HTTP (HTTP Basic excepted); a refused handshake is answered as a route
 would be (status, JSON error, Retry-After), or closed with 1008 (1013 for a 503) where the
 server cannot send a response in place of the upgrade. A metadata frame longer than
-``META_FRAME_CHARS`` is answered with an error, unparsed.
+``META_FRAME_CHARS`` is answered with an error, unparsed, and a scan frame longer than
+``limits.max_body_bytes`` with a 413 under its ``seq``, as HTTP refuses such a body.
 """
 
 from __future__ import annotations
@@ -46,7 +47,13 @@ from overlapmamba.service.auth import Action, presented_key
 from overlapmamba.service.bodies import parse_mount
 from overlapmamba.service.deps import serving
 from overlapmamba.service.domain import check_pose, parse_pose
-from overlapmamba.service.errors import BadRequest, ServiceError, error_body, lidar_status
+from overlapmamba.service.errors import (
+    BadRequest,
+    PayloadTooLarge,
+    ServiceError,
+    error_body,
+    lidar_status,
+)
 from overlapmamba.service.guard import error_response
 from overlapmamba.service.origins import cross_origin, foreign_origin
 from overlapmamba.service.places import Observation
@@ -133,6 +140,18 @@ def _too_long(chars: int) -> str:
     )
 
 
+def _bad(message: str) -> BadRequest:
+    return BadRequest(message, code="bad_stream_frame")
+
+
+def _over(size: int, max_body: int) -> PayloadTooLarge:
+    """A scan frame past ``limits.max_body_bytes``: refused as an HTTP body that size is."""
+    return PayloadTooLarge(
+        f"scan frame is {size} bytes; allowed: at most {max_body}: this observation was not made",
+        max_body_bytes=max_body,
+    )
+
+
 def _invalid(err: ValidationError) -> str:
     first = err.errors(include_url=False)[0]
     where = ".".join(str(p) for p in first["loc"])
@@ -182,7 +201,8 @@ async def stream(
         return
     await websocket.accept()
     limit = svc.settings.observe.stream_queue
-    queue: asyncio.Queue[tuple[Any, bytes | None, str | None] | None] = asyncio.Queue()
+    max_body = svc.settings.limits.max_body_bytes
+    queue: asyncio.Queue[tuple[Any, bytes | None, ServiceError | None] | None] = asyncio.Queue()
 
     async def process() -> None:
         nonlocal m
@@ -191,7 +211,7 @@ async def stream(
             seq = meta.seq if isinstance(meta, StreamMeta) else meta
             try:
                 if problem is not None:
-                    raise BadRequest(problem, code="bad_stream_frame")
+                    raise problem
                 assert isinstance(meta, StreamMeta) and scan is not None
                 if meta.insert != "never":
                     app.state.auth.authorize(who, Action.INSERT, map_id)
@@ -237,28 +257,34 @@ async def stream(
                 break
             if worker.done():  # the sender failed (client gone)
                 break
-            items: list[tuple[Any, bytes | None, str | None]] = []
+            items: list[tuple[Any, bytes | None, ServiceError | None]] = []
             if frame.get("text") is not None:
                 if isinstance(pending, StreamMeta):  # its scan never came: answer its seq
                     problem = "metadata frame followed by another metadata frame, not its scan"
-                    items.append((pending.seq, None, f"{problem}: this observation was not made"))
+                    items.append(
+                        (pending.seq, None, _bad(f"{problem}: this observation was not made"))
+                    )
                 text = frame["text"]
                 if len(text) > META_FRAME_CHARS:  # parsed on the event loop: bounded first
-                    items.append((None, None, _too_long(len(text))))
+                    items.append((None, None, _bad(_too_long(len(text)))))
                     pending = _Refused(None)  # its scan follows: answered already, dropped
                 else:
                     try:
                         pending = StreamMeta.model_validate_json(text)
                     except ValidationError as err:
                         refused = _Refused(_seq_of(text))
-                        items.append((refused.seq, None, _invalid(err)))
+                        items.append((refused.seq, None, _bad(_invalid(err))))
                         pending = refused  # its scan follows: answered already, dropped
             elif pending is None:
-                items.append((None, None, "binary frame without a metadata frame before it"))
+                items.append((None, None, _bad("binary frame without a metadata frame before it")))
             elif isinstance(pending, _Refused):
                 pending = None
             else:
-                items.append((pending, frame.get("bytes") or b"", None))
+                data = frame.get("bytes") or b""
+                if len(data) > max_body:  # as HTTP refuses it (the socket takes 64 KiB more)
+                    items.append((pending.seq, None, _over(len(data), max_body)))
+                else:
+                    items.append((pending, data, None))
                 pending = None
             if items and queue.qsize() + len(items) > limit:
                 await websocket.close(
