@@ -124,13 +124,14 @@ def open_drive(
     gt = root / "ground_truth" / "loops.npz"
     if gt.is_file():
         radius = float(LoopGroundTruth.load(gt).params.get("radius", 30.0))
+    manifest = {} if sensor and mount else read_manifest(root)
     return Drive(
         seq=seq,
         times=np.asarray(times, dtype=np.float64),
         poses=None if np.isnan(seq.poses).all() else _pose7(seq.poses),  # no poses.txt: none
         loop_radius=radius,
-        sensor=sensor or _manifest_sensor(root),
-        mount=mount or _manifest_mount(root),
+        sensor=sensor or manifest_sensor(manifest),
+        mount=mount or _manifest_mount(root, manifest),
     )
 
 
@@ -151,12 +152,8 @@ def read_times(path: Path, n: int) -> np.ndarray:
     return times
 
 
-def _manifest_sensor(root: Path) -> str | None:
-    return manifest_sensor(read_manifest(root))
-
-
-def _manifest_mount(root: Path) -> str | None:
+def _manifest_mount(root: Path, manifest: dict) -> str | None:
     """The manifest's mounting as a scan call names it (HEIGHT,PITCH,ROLL), the model's own
     included: a map that declares another must not take its place."""
-    mount = manifest_mount(root, read_manifest(root), reference=True)
+    mount = manifest_mount(root, manifest, reference=True)
     return None if mount is None else mount.text()
