@@ -250,3 +250,38 @@ def test_the_rerank_grid_refuses_towns_of_a_sensor_its_file_maps(
         rerank.main()
     assert stop.value.code == 2
     assert "carries a sensor map for vlp16" in capsys.readouterr().err
+
+
+def test_eval_describes_a_drive_of_a_mapped_sensor_as_the_service_answers_it(
+    tmp_path, synthetic_seq_dir
+):
+    """``overlapmamba eval`` (and the report, and across sessions) described every drive with
+    the network alone, so a file carrying a map for the drive's sensor was scored on
+    descriptors its service never gives. The map is applied; the yaw features and the model
+    sensor's own drives are as the network gives them."""
+    import json
+    import shutil
+
+    from overlapmamba.core.datasets import open_recording
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.evaluate import describe_sequence
+    from overlapmamba.train.modelfile import read_metadata, with_sensor_maps
+
+    m = _map_for(read_metadata(MODEL).descriptor_dim)
+    mapped = tmp_path / "mapped.onnx"
+    with_sensor_maps(MODEL, mapped, {"vlp16": m})
+    town = shutil.copytree(synthetic_seq_dir, tmp_path / "vlp16-town")
+    (town / "manifest.json").write_text(json.dumps({"config": {"sensor": "vlp16"}}))
+    got = {}
+    for name, path in (("plain", MODEL), ("mapped", mapped)):
+        model, profile, _ = load_model(path)
+        for drive in (town, synthetic_seq_dir):
+            seq = open_recording(drive, need_poses=True)
+            got[name, drive.name] = describe_sequence(model, seq, profile)
+    raw, raw_yaw = got["plain", town.name]
+    desc, yaw = got["mapped", town.name]
+    np.testing.assert_allclose(desc, m.apply(raw), atol=1e-5)
+    assert float(np.mean(np.sum(desc * raw, axis=1))) < 0.99  # it did move
+    np.testing.assert_allclose(yaw, raw_yaw, atol=1e-6)
+    own = synthetic_seq_dir.name  # the model's own sensor: never mapped
+    np.testing.assert_allclose(got["mapped", own][0], got["plain", own][0], atol=1e-6)

@@ -120,7 +120,9 @@ def describe_sequence(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every scan of ``seq`` described as the model describes a scan: its cached range
     images, from the sequence's sensor (:func:`~overlapmamba.train.checkpoint.input_of`), with as
-    many sub-column views as the model takes (:func:`views_of`)."""
+    many sub-column views as the model takes (:func:`views_of`). An exported file that carries
+    a map for the sequence's sensor (:mod:`overlapmamba.core.sensormaps`) gives its mapped
+    descriptors, as the service answers them; the yaw features stay as the network gives them."""
     from overlapmamba.train.rangecache import range_images, range_offsets
 
     views, sensor, aligned = views_of(model), input_of(model, profile, seq), aligned_of(model)
@@ -128,7 +130,10 @@ def describe_sequence(
         seq, profile, views=views, sensor=sensor, progress=progress, aligned=aligned
     )
     offsets = range_offsets(seq, profile, views=views, sensor=sensor) if aligned else None
-    return describe(model, images, offsets=offsets)
+    desc, yaw = describe(model, images, offsets=offsets)
+    meta = getattr(model, "meta", None)  # an ExportedNetwork's file metadata
+    sensor_map = None if meta is None else meta.sensor_maps.get(sensor.sensor.name)
+    return (desc, yaw) if sensor_map is None else (sensor_map.apply(desc), yaw)
 
 
 def sequence_loops(
