@@ -331,3 +331,26 @@ def test_an_import_whose_old_map_cannot_move_away_leaves_it_as_it_was(tmp_path, 
     assert not list((tmp_path / "data" / "maps").glob(".import-*"))
     with opened("faiss", tmp_path) as b:
         assert b.get("town").count == 4
+
+
+def test_a_service_starting_while_doctor_looks_at_the_lock_waits_for_it(tmp_path):
+    """``doctor`` takes the data folder's lock for a moment to see whether a service holds
+    it; a service started in that moment was refused as if another service ran there. A
+    lock let go within ``wait_s`` is waited for; one held longer is still refused."""
+    import fcntl
+    import threading
+
+    data = tmp_path / "d"
+    data.mkdir()
+    fd = os.open(data / backup.LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # doctor's probe, let go in 0.3 s
+        threading.Timer(0.3, fcntl.flock, (fd, fcntl.LOCK_UN)).start()
+        with backup.data_dir_lock(data):
+            pass
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a service's, held on
+        held = pytest.raises(backup.BackupError, match="in use by a running service")
+        with held, backup.data_dir_lock(data, wait_s=0.2):
+            pass
+    finally:
+        os.close(fd)

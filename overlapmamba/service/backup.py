@@ -37,9 +37,14 @@ class BackupError(RuntimeError):
     pass
 
 
+LOCK_WAIT_S = 2.0  # a holder that lets go within this is waited for (doctor's probe)
+
+
 @contextlib.contextmanager
-def data_dir_lock(data_dir: Path) -> Iterator[None]:
-    """Held by a running service: one process per data folder."""
+def data_dir_lock(data_dir: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
+    """Held by a running service: one process per data folder. A lock held for a moment
+    (``doctor`` takes it to see whether a service runs) is waited for up to ``wait_s``, so a
+    service started at that moment is not refused."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(data_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
@@ -49,13 +54,18 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
             "folder this process may write (--data-dir)"
         ) from None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise BackupError(
-                f"{data_dir} is in use by a running service (lock {data_dir / LOCK_NAME}); "
-                "stop it first, or use another --data-dir"
-            ) from None
+        until = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= until:
+                    raise BackupError(
+                        f"{data_dir} is in use by a running service (lock "
+                        f"{data_dir / LOCK_NAME}); stop it first, or use another --data-dir"
+                    ) from None
+                time.sleep(0.05)
         yield
     finally:
         os.close(fd)
