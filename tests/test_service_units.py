@@ -315,7 +315,7 @@ def test_store_keeps_geometry_and_upgrades_a_schema_1_store(tmp_path):
     import dataclasses
     import sqlite3
 
-    from overlapmamba.service.backends.faiss.store import SCHEMA_VERSION
+    from overlapmamba.service.backends.faiss.sqlfile import SCHEMA_VERSION
 
     rng = np.random.default_rng(4)
     vecs = unit(rng, 3)

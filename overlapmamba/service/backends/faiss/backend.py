@@ -25,7 +25,8 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.service.backends.base import check_same_settings, map_not_found
 from overlapmamba.service.backends.faiss.index import set_threads
 from overlapmamba.service.backends.faiss.map import FaissMap
-from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, fsync_dir
+from overlapmamba.service.backends.faiss.sqlfile import fsync_dir
+from overlapmamba.service.backends.faiss.store import IMPORTED_MARK
 from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import MAP_ID, check_map_id
 from overlapmamba.service.errors import Unavailable

@@ -40,7 +40,8 @@ from overlapmamba.service.backends.faiss.snapshot import (
     read_snapshot,
     write_snapshot,
 )
-from overlapmamba.service.backends.faiss.store import Store, fsync_dir, storage_full
+from overlapmamba.service.backends.faiss.sqlfile import fsync_dir, storage_full
+from overlapmamba.service.backends.faiss.store import Store
 from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import (
     Filters,

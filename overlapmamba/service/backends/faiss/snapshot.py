@@ -18,7 +18,7 @@ import zlib
 from pathlib import Path
 
 from overlapmamba.service.backends.faiss.index import VectorIndex
-from overlapmamba.service.backends.faiss.store import fsync_dir
+from overlapmamba.service.backends.faiss.sqlfile import fsync_dir
 from overlapmamba.service.settings import IndexSettings
 
 log = logging.getLogger("overlapmamba.service")

@@ -27,9 +27,7 @@ opened for writing.
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
-import os
 import queue
 import sqlite3
 import threading
@@ -41,61 +39,14 @@ from typing import Any
 
 import numpy as np
 
+from overlapmamba.service.backends.faiss.sqlfile import (
+    READABLE_VERSIONS,
+    SCHEMA,
+    SCHEMA_VERSION,
+    sqlite_uri,
+    undo,
+)
 from overlapmamba.service.domain import Keyframe, NewKeyframe
-from overlapmamba.service.errors import Unavailable
-
-SCHEMA_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)  # a read-only open (doctor) reads any
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS keyframes (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    keyframe_id TEXT UNIQUE,
-    deleted_keyframe_id TEXT,
-    robot_id TEXT NOT NULL,
-    session_id TEXT NOT NULL,
-    timestamp REAL NOT NULL,
-    pose TEXT,
-    descriptor BLOB NOT NULL,
-    yaw BLOB,
-    yaw_shape TEXT,
-    content_hash TEXT NOT NULL,
-    seq INTEGER NOT NULL,
-    deleted_seq INTEGER,
-    created_at REAL NOT NULL,
-    geometry BLOB,
-    sensor TEXT
-);
-CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes(seq);
-CREATE INDEX IF NOT EXISTS keyframes_deleted_seq ON keyframes(deleted_seq);
-CREATE INDEX IF NOT EXISTS keyframes_robot_time ON keyframes(robot_id, timestamp)
-    WHERE keyframe_id IS NOT NULL;
--- the overview's latest posed keyframes (positions): without it, each of the dashboard's
--- polls read and sorted the whole table under the map's read lock (0.3 s at 150,000 rows).
--- Made on open where missing; an index changes nothing an older reader reads.
-CREATE INDEX IF NOT EXISTS keyframes_posed_time ON keyframes(timestamp)
-    WHERE keyframe_id IS NOT NULL AND pose IS NOT NULL;
-"""
-
-
-def sqlite_uri(path: Path, mode: str) -> str:
-    """SQLite's URI of ``path`` opened in ``mode`` (ro, rw): percent-encoded, so that a
-    ``#`` or ``?`` in a folder's name is part of the path, not the URI's fragment or query
-    (where SQLite would open, or create, another file).
-
-    Read-only beside a folder this process may not write (a backup mount, another account's
-    data folder), SQLite cannot make the shared-memory file a WAL-mode file is read with:
-    such a file with neither a write-ahead log nor its shared memory beside it (its writer
-    closed, or an export) is opened ``immutable``, as the file it then is; one a writer may
-    have open is not (it could change under the reader), and SQLite's error names it."""
-    path = Path(path).absolute()
-    uri = f"{path.as_uri()}?mode={mode}"
-    if mode == "ro" and not os.access(path.parent, os.W_OK):
-        # no log and no shared memory: no writer has it open (a live service keeps both)
-        wal, shm = (path.with_name(path.name + suffix) for suffix in ("-wal", "-shm"))
-        if not wal.exists() and not shm.exists():
-            uri += "&immutable=1"
-    return uri
 
 
 class StoreError(RuntimeError):
@@ -123,15 +74,6 @@ def _keyframe(row: tuple[Any, ...]) -> Keyframe:
     )
 
 
-def fsync_dir(path: Path) -> None:
-    """Make a rename or a new entry in ``path`` durable."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def to_f16(features: np.ndarray) -> np.ndarray:
     return np.asarray(features, dtype=np.float16)
 
@@ -143,33 +85,6 @@ def index_vector(blob: bytes) -> np.ndarray:
 # written into data_dir/maps/.import-<id> once an imported store is whole and on disk
 # (overlapmamba.service.backup; FaissBackend.load_all finishes such an import)
 IMPORTED_MARK = "imported"
-
-
-def _undo(con: sqlite3.Connection, err: BaseException) -> None:
-    """After a failed write: roll its transaction back, unless SQLite already has (it does
-    so itself on a full disk or an I/O error, and a second ROLLBACK would raise in place of
-    the first error). A full disk becomes an error that says so (503 storage_full), not a
-    bare 500."""
-    if con.in_transaction:
-        con.execute("ROLLBACK")
-    full = storage_full(err, "the map's store cannot grow")
-    if full is not None:
-        raise full from err
-
-
-def storage_full(err: BaseException, what: str) -> Unavailable | None:
-    """The 503 ``storage_full`` for an error that means the disk (or the quota) is full —
-    SQLite's or the file system's — else None."""
-    sqlite_full = isinstance(err, sqlite3.OperationalError) and "full" in str(err)
-    if not sqlite_full and not (
-        isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
-    ):
-        return None
-    return Unavailable(  # freeing disk takes an operator: not a retry within the second
-        f"{what}: {err}; free disk space under the data folder",
-        code="storage_full",
-        retry_after_s=30,
-    )
 
 
 class Store:
@@ -200,7 +115,7 @@ class Store:
         # Reader connections are pooled, not per thread: worker threads come and go, and a
         # connection per thread that ever read would leak file descriptors.
         with self._write:
-            self._write.executescript(_SCHEMA)
+            self._write.executescript(SCHEMA)
         version = self.get_meta("schema_version")
         if version is None:
             self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
@@ -243,7 +158,7 @@ class Store:
                 )
                 con.execute("COMMIT")
             except BaseException as err:
-                _undo(con, err)
+                undo(con, err)
                 raise
 
     def _connect(self, *, create: bool = False) -> sqlite3.Connection:
@@ -313,7 +228,7 @@ class Store:
                 )
                 self._write.execute("COMMIT")
             except BaseException as err:
-                _undo(self._write, err)
+                undo(self._write, err)
                 raise
 
     @property
@@ -357,7 +272,7 @@ class Store:
                 con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
                 con.execute("COMMIT")
             except BaseException as err:
-                _undo(con, err)
+                undo(con, err)
                 raise
         return ids, seq
 
@@ -382,7 +297,7 @@ class Store:
                 con.execute("UPDATE meta SET value = ? WHERE key = 'seq'", (str(seq),))
                 con.execute("COMMIT")
             except BaseException as err:
-                _undo(con, err)
+                undo(con, err)
                 raise
         return int(row[0])
 
