@@ -1,5 +1,6 @@
 """``overlapmamba`` evaluation commands: a model on generated sequences (loop closure, across
-sessions and sensors) and on real scans. Each needs PyTorch (the train extra)."""
+sessions and sensors), on real scans, and the model card's report over the training presets'
+runs. Each needs PyTorch (the train extra)."""
 
 from __future__ import annotations
 
@@ -377,3 +378,72 @@ def _known_sensor(name: str) -> str:
     from overlapmamba.core.sensors.catalogue import catalogue_name
 
     return catalogue_name(name)
+
+
+@command(
+    "report",
+    epilog="Example (after `make data` and the training presets):\n\n"
+    "  overlapmamba report --runs runs --test data/synth/test --test data/synth/test-b "
+    "--test data/synth/test-c --second-session data/synth/test-s1 --out reports/model",
+)
+@friendly_errors
+def report_cmd(
+    runs: Annotated[Path, typer.Option(help="folder holding the preset runs")] = Path("runs"),
+    test: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="test town with loops (repeat for several; default: the test, test-b and "
+            "test-c presets that exist, with test-s1 as the second session)"
+        ),
+    ] = None,
+    second_session: Annotated[
+        Path | None,
+        typer.Option(
+            help="a second drive through the first --test town: queried against it "
+            "(AR@1/5/20 across sessions)"
+        ),
+    ] = None,
+    out_dir: Annotated[Path, typer.Option("--out", help="report folder")] = Path("reports/model"),
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            help="the exported encoder the shipped row and the real-scan checks read when the "
+            "shipped run's best.pt is not under --runs (default: models/overlapmamba-hdl64.onnx;"
+            " e.g. the one-view twin)"
+        ),
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars")] = False,
+) -> None:
+    """Model-card tables I–IV, cross-session recall and real-scan checks: JSON, Markdown, PNG."""
+    check_torch()
+    from overlapmamba.train.presets import SECOND_SESSION, TEST_DATA
+    from overlapmamba.train.report import SHIPPED_ONNX, build_report
+
+    if model is not None and (model.suffix != ".onnx" or not model.is_file()):
+        raise typer.BadParameter(f"--model {model}: give an exported encoder (.onnx) that exists")
+
+    tests = test or [Path(t) for t in TEST_DATA if (Path(t) / "manifest.json").is_file()]
+    tests = tests or [Path(TEST_DATA[0])]  # none yet: the message below says what to run
+    if (
+        second_session is None
+        and test is None
+        and (Path(SECOND_SESSION) / "manifest.json").is_file()
+    ):
+        second_session = Path(SECOND_SESSION)
+    for t in [*tests, *([second_session] if second_session else [])]:
+        if not (t / "manifest.json").is_file():
+            raise typer.BadParameter(f"{t} is not a generated sequence: run `make data` first")
+    sessions = (tests[0], second_session) if second_session else None
+    report = build_report(
+        runs,
+        tests,
+        out_dir,
+        progress=not quiet,
+        sessions=sessions,
+        shipped_onnx=model or SHIPPED_ONNX,
+    )
+    for note in report["notes"]:
+        out.print(f"[yellow]note:[/] {note}")
+    for label, subs in report["table1"].items():
+        out.print(metrics_table(f"test towns (mean of {len(tests)}): {label}", subs))
+    out.print(f"wrote {out_dir}/report.json, tables.md, pr_test.png")
