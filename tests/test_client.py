@@ -5,6 +5,7 @@ the README example and the public names."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import shutil
@@ -853,8 +854,50 @@ async def test_the_async_client_counts_the_tries_it_retried_and_sizes_its_pool()
         with pytest.raises(APIError, match="queue full"):  # failed for good: an error only
             await pr.stats()
         assert pr.retried == {"overloaded": 1}
-    async with AsyncPlaceRecognitionClient("http://x", max_connections=300) as pr:
-        assert pr._http._transport._pool._max_connections == 300
+
+
+async def _connections_at_once(max_connections: int | None, calls: int) -> int:
+    """The most connections a server saw open at once while ``calls`` requests of an async
+    client were in flight together (each answered once all have come, or after 1 s)."""
+    open_now = most = 0
+    everyone = asyncio.Event()
+
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        nonlocal open_now, most
+        open_now += 1
+        most = max(most, open_now)
+        try:
+            while (await reader.readuntil(b"\r\n\r\n")) is not None:
+                if most >= calls:
+                    everyone.set()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(everyone.wait(), 1.0)
+                body = b'{"queries": 0}'
+                head = "HTTP/1.1 200 OK\r\ncontent-type: application/json\r\n"
+                writer.write(f"{head}content-length: {len(body)}\r\n\r\n".encode() + body)
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            open_now -= 1
+            writer.close()
+
+    srv = await asyncio.start_server(serve, "127.0.0.1", 0)
+    port = srv.sockets[0].getsockname()[1]
+    sized = {} if max_connections is None else {"max_connections": max_connections}
+    try:
+        async with AsyncPlaceRecognitionClient(f"http://127.0.0.1:{port}", **sized) as pr:
+            await asyncio.gather(*(pr.stats() for _ in range(calls)))
+    finally:
+        srv.close()
+    return most
+
+
+async def test_the_async_client_holds_as_many_requests_in_flight_as_its_pool_is_sized():
+    """Beyond httpx's 100 connections a fleet's robots waited in the client; a client sized
+    for 150 has 150 requests on the wire at once, and the default still 100."""
+    assert await _connections_at_once(150, 150) == 150
+    assert await _connections_at_once(None, 150) == 100
 
 
 def test_simulate_fleet_exits_1_when_no_observation_was_answered(live, synthetic_seq_dir, tmp_path):
