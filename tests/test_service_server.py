@@ -293,14 +293,18 @@ def test_a_model_whose_graph_or_id_disagrees_with_its_metadata_is_refused(tmp_pa
 
 
 def test_serve_refuses_what_its_start_up_would_meet_in_one_line(tmp_path):
-    """A data folder that is a file, a data folder another service holds, a sensor file that
-    is not there: each refused before uvicorn starts (exit 2, one line), where the start-up
-    would otherwise end in uvicorn's traceback (exit 3)."""
+    """A setting out of range, a data folder that is a file, a data folder another service
+    holds, a sensor file that is not there: each refused before uvicorn starts (exit 2, one
+    line), where the start-up would otherwise end in uvicorn's traceback (exit 3), or the
+    setting in typer's usage text and box."""
     (tmp_path / "a-file").write_text("")
     held = tmp_path / "held"
     missing = tmp_path / "sensors.toml"
     missing.write_text(f'[sensors]\nfiles = ["{tmp_path / "nope.toml"}"]\n')
+    inf = tmp_path / "inf.toml"
+    inf.write_text("[limits]\nrequest_timeout_s = inf\n")
     cases = [
+        (["--data-dir", str(tmp_path / "d"), "--config", str(inf)], "request_timeout_s: Input"),
         (["--data-dir", str(tmp_path / "a-file")], "cannot use"),
         (["--data-dir", str(held)], "in use by a running service"),
         (["--data-dir", str(tmp_path / "d"), "--config", str(missing)], "cannot read sensor"),
@@ -316,7 +320,8 @@ def test_serve_refuses_what_its_start_up_would_meet_in_one_line(tmp_path):
             )
             out = " ".join((res.stdout + res.stderr).split())
             assert res.returncode == 2 and why in out, (extra, out)
-            assert "Traceback" not in out, out
+            assert "Traceback" not in out and "Usage:" not in out, out
+            assert len((res.stdout + res.stderr).strip().splitlines()) <= 2, out  # one line
 
 
 def test_dump_config_and_hash_key(tmp_path):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.markup import escape
@@ -33,9 +33,16 @@ def _service_settings(config: Path | None, **overrides: Any) -> Any:
             f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}"
             for e in err.errors(include_url=False, include_input=False)
         )
-        raise typer.BadParameter(f"invalid service settings: {where}") from None
+        _refuse(f"invalid service settings: {where}")
     except ValueError as err:
-        raise typer.BadParameter(f"invalid service settings: {err}") from None
+        _refuse(f"invalid service settings: {err}")
+
+
+def _refuse(message: str) -> NoReturn:
+    """A fault the command meets before it starts: one line naming it, exit 2 (not the
+    usage text and a box, which a service's log keeps as five lines)."""
+    console.print(f"[bold red]error:[/] {escape(message)}")
+    raise typer.Exit(2)
 
 
 ConfigOpt = Annotated[
