@@ -10,6 +10,7 @@ import json
 import re
 import shutil
 import subprocess
+import sys
 import time
 from types import SimpleNamespace
 from typing import Any
@@ -1092,3 +1093,21 @@ def test_a_stopped_replay_says_whether_a_recording_stood_at_its_path(
         assert res.exit_code == 130, res.output
         assert says in " ".join(res.output.split())
         assert rec.exists() == existed
+
+
+def test_stats_watch_into_a_pipe_prints_each_refresh_as_it_comes(live):
+    """Found in review: ``stats --watch`` into a file or a pipe (a log) wrote nothing until
+    Ctrl-C, and nothing at all when stopped by SIGTERM: the table lived in a terminal-only
+    display. Each refresh is now printed whole and flushed."""
+    import signal
+
+    cmd = [sys.executable, "-c", "from overlapmamba.client.cli import main; main()"]
+    args = ["stats", "--watch", "--interval", "0.2", "--url", live]
+    proc = subprocess.Popen([*cmd, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        time.sleep(6.0)  # the interpreter's start, then refreshes every 0.2 s
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=30)
+    tables = stdout.decode().count("loop-closure rate")
+    assert tables >= 2, (stdout.decode()[-500:], stderr.decode()[-500:])

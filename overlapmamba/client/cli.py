@@ -356,11 +356,21 @@ def stats(
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
-    """Recognition statistics (counts, latency percentiles, robots)."""
+    """Recognition statistics (counts, latency percentiles, robots). With ``--watch`` on a
+    terminal the table refreshes in place; written to a file or a pipe, each refresh is
+    printed whole and flushed (a log keeps them, and a stopped watch loses none)."""
     with client(url, api_key) as pr:
         if not watch:
             out.print(stats_table(pr.stats(map_id)))
             return
+        if not out.is_terminal:
+            try:
+                while True:
+                    out.print(stats_table(pr.stats(map_id)))
+                    out.file.flush()
+                    time.sleep(interval)
+            except KeyboardInterrupt:
+                return
         with Live(stats_table(pr.stats(map_id)), console=out, auto_refresh=False) as live:
             try:
                 while True:
