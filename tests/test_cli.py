@@ -86,7 +86,7 @@ def test_ground_truth_command(synthetic_seq_dir, tmp_path):
     first = np.load(out)["query"]
     # the old name still works for one release, with a warning, and means the same
     renames = {"--exclude-recent-frames": "--exclude-recent", str(out): str(tmp_path / "old.npz")}
-    with pytest.warns(DeprecatedName, match="loops.exclude_recent is deprecated"):
+    with pytest.warns(DeprecatedName, match="--exclude-recent is deprecated.*--exclude-recent-fr"):
         res = runner.invoke(app, [renames.get(a, a) for a in args])
     assert res.exit_code == 0, res.output
     assert np.array_equal(np.load(tmp_path / "old.npz")["query"], first)

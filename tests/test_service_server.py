@@ -324,6 +324,23 @@ def test_serve_refuses_what_its_start_up_would_meet_in_one_line(tmp_path):
             assert len((res.stdout + res.stderr).strip().splitlines()) <= 2, out  # one line
 
 
+def test_an_old_settings_name_is_one_warning_line_naming_both_names(tmp_path):
+    """Found in review: an old name in the environment printed a warning that pointed at
+    pydantic_settings' source file and quoted its line; the command line says it in one."""
+    res = subprocess.run(
+        [sys.executable, "-m", "overlapmamba", "dump-config"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={"PATH": "/usr/bin:/bin", "OVERLAPMAMBA_VERIFY__K": "3"},
+    )
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["verify"]["candidates"] == 3
+    line = "warning: verify.k is deprecated and goes in 0.3.0: it is now verify.candidates"
+    assert line in res.stderr.splitlines(), res.stderr
+    assert "pydantic" not in res.stderr and ".py:" not in res.stderr, res.stderr
+
+
 def test_dump_config_and_hash_key(tmp_path):
     cfg = tmp_path / "s.toml"
     cfg.write_text("[batching]\nmax_batch = 5\n")

@@ -9,6 +9,10 @@ message and exit code 2 (bad input) instead of a traceback (``overlapmamba.cli.c
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
+from typing import Any
+
 import typer
 
 from overlapmamba.cli import data, evaluation, model, ops
@@ -29,9 +33,24 @@ for group in (data, model, evaluation, ops):
 _HEAVY = {"train", "eval", "eval-real", "report"}
 
 
-def main() -> None:
-    import sys
+def _one_line(showwarning: Callable[..., None]) -> Callable[..., None]:
+    """``warnings.showwarning`` that prints an old setting's or flag's name in use as one line
+    naming both names (it pointed at pydantic's source and printed that line too)."""
+    from overlapmamba.core.renamed import DeprecatedName
 
+    def show(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> None:
+        if issubclass(category, DeprecatedName):
+            print(f"warning: {message}", file=sys.stderr)
+            return
+        showwarning(message, category, *args, **kwargs)
+
+    return show
+
+
+def main() -> None:
+    import warnings
+
+    warnings.showwarning = _one_line(warnings.showwarning)
     if len(sys.argv) > 1 and sys.argv[1] in _HEAVY:
         from overlapmamba.train.runtime import reexec_with_hugepages
 

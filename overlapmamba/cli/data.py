@@ -3,6 +3,7 @@ their realism against real scans."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -20,7 +21,7 @@ from overlapmamba.cli.common import (
     out,
     sensor_profile,
 )
-from overlapmamba.core.renamed import renamed
+from overlapmamba.core.renamed import REMOVED_IN, DeprecatedName
 
 app, command = command_group("Data")
 
@@ -127,12 +128,19 @@ def ground_truth(
     seq = open_sequence(seq_dir, kind=kind)
     profile = sensor_profile(sensor or seq.sensor or "kitti-hdl64", max_range=max_range)
     target: Path | bool = False if no_cache else (cache if cache is not None else True)
-    given = {"exclude_recent": exclude_recent} if exclude_recent is not None else {}
-    if given and exclude_recent_frames != 100:
-        raise typer.BadParameter(
-            "give --exclude-recent-frames only; --exclude-recent is its old name (deprecated)"
+    frames = exclude_recent_frames
+    if exclude_recent is not None:
+        if exclude_recent_frames != 100:
+            raise typer.BadParameter(
+                "give --exclude-recent-frames only; --exclude-recent is its old name (deprecated)"
+            )
+        warnings.warn(  # the flags by name: the setting's (loops.exclude_recent) is not typed
+            f"--exclude-recent is deprecated and goes in {REMOVED_IN}: it is now "
+            "--exclude-recent-frames",
+            DeprecatedName,
+            stacklevel=2,
         )
-    frames = renamed(given, "loops").get("exclude_recent_frames", exclude_recent_frames)
+        frames = exclude_recent
     from pydantic import ValidationError
 
     try:
