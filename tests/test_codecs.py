@@ -222,7 +222,7 @@ def _pcd(points: int = 3, data: str = "binary", fields: str = "x y z") -> bytes:
 def test_an_organised_pcds_nan_points_are_missing_returns_an_unorganised_ones_an_error():
     """PCL saves a driver's organised cloud (HEIGHT > 1, a row a beam) with NaN where a beam
     had no return, as a non-dense PointCloud2 carries it: those points are dropped. In an
-    unorganised cloud a NaN is a fault, and an infinity is one in either: 400 naming it."""
+    unorganised cloud a NaN is a fault, and an infinity is one in either: 422 naming it."""
     rows = np.random.default_rng(1).uniform(-20, 20, (4, 8, 4)).astype(np.float32)
     rows[1, 3, :3] = np.nan
     rows[2, 5, 0] = np.nan
