@@ -416,8 +416,18 @@ def test_cli_exports_a_checkpoint(tmp_path):
         del g.metadata_props[:]
     assert graphs[0].SerializeToString() == graphs[1].SerializeToString()
     # and back to one view: the first file's id again
-    res = runner.invoke(app, ["export", str(two), "--out", str(tmp_path / "back.onnx")])
+    back = ["export", str(two), "--out", str(tmp_path / "back.onnx"), "--views", "1"]
+    res = runner.invoke(app, back)
     assert res.exit_code == 0 and read_metadata(tmp_path / "back.onnx") == one
+    # found in review: another change asked of an exported file (here none) kept none of its
+    # views, the default being one; its own count is kept unless --views says otherwise
+    res = runner.invoke(app, ["export", str(two), "--out", str(tmp_path / "same.onnx")])
+    assert res.exit_code == 0 and read_metadata(tmp_path / "same.onnx") == meta, res.output
+    # and it never writes over the file it reads (the shipped model was rewritten in place)
+    res = runner.invoke(app, ["export", str(two), "--out", str(two), "--views", "3"])
+    said = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "is the file export reads" in said, said
+    assert read_metadata(two) == meta
     for bad, says in (
         (["--weights", "float32"], "keeps its weights as"),
         (["--views", "9"], "--views"),

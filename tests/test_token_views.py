@@ -147,10 +147,15 @@ def test_a_tokens_graph_goes_back_to_descriptor_views_and_keeps_its_count(files,
     with pytest.raises(ExportError, match="views must be 2, got 3"):
         with_views(files["tokens"], tmp_path / "x.onnx", 3)
     assert not (tmp_path / "x.onnx").exists()
+    # a tokens file rewritten keeps its meeting unless asked (found in review: the default
+    # meeting made it the plain graph unasked)
+    same = tmp_path / "same.onnx"
+    res = CliRunner().invoke(app, ["export", str(files["tokens"]), "--out", str(same)])
+    assert res.exit_code == 0, res.output
+    assert read_metadata(same).model_id == read_metadata(files["tokens"]).model_id
     out = tmp_path / "back.onnx"
-    res = CliRunner().invoke(
-        app, ["export", str(files["tokens"]), "--views", "2", "--out", str(out)]
-    )
+    args = ["export", str(files["tokens"]), "--views", "2", "--meet", "descriptors"]
+    res = CliRunner().invoke(app, [*args, "--out", str(out)])
     assert res.exit_code == 0, res.output
     meta = read_metadata(out)
     assert (meta.views, meta.graph_views, meta.descriptors_per_scan) == (2, 1, 2)

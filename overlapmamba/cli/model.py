@@ -188,24 +188,28 @@ def export_cmd(
         str, typer.Option(help="storage of the large head matrix: int8 or float32")
     ] = "int8",
     views: Annotated[
-        int,
+        int | None,
         typer.Option(
             min=1,
             max=MAX_VIEWS,
             help="sub-column views that describe a scan: its descriptor is the mean of this "
             "many projections, each turned by a further 1/views of a column (a continuous "
-            "turn then barely moves it; the encoder runs this many times per scan)",
+            "turn then barely moves it; the encoder runs this many times per scan) "
+            "[default: an .onnx's own, else 1]",
+            show_default=False,
         ),
-    ] = 1,
+    ] = None,
     meet: Annotated[
-        str,
+        str | None,
         typer.Option(
             help="where a scan's views meet: 'descriptors' (the encoder runs once a view and "
             "their descriptors are averaged) or 'tokens' (the per-column stem runs once a "
             "view, their tokens are averaged and the blocks and head run once a scan: "
-            "the graph is traced anew and its input holds --views images a scan)"
+            "the graph is traced anew and its input holds --views images a scan) "
+            "[default: an .onnx's own, else descriptors]",
+            show_default=False,
         ),
-    ] = "descriptors",
+    ] = None,
     sensor_input: Annotated[
         str | None,
         typer.Option(
@@ -280,6 +284,19 @@ def export_cmd(
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
     if out_path.is_dir():  # found only at the end, after the work, as a traceback
         raise typer.BadParameter(f"--out {out_path} is a folder; give the .onnx file to write")
+    if checkpoint.resolve() == out_path.resolve():
+        raise typer.BadParameter(
+            f"--out {out_path} is the file export reads; write another file (then move it "
+            "over this one, if that is what you want)",
+            param_hint="--out",
+        )
+    # rewriting an exported file changes only what is asked: its views and where they meet
+    # stay its own (a sensor input asked of the three-view file made it one view, unsaid)
+    source = load_encoder(checkpoint)[1] if checkpoint.suffix == ".onnx" else None
+    if views is None:
+        views = 1 if source is None else source.views
+    if meet is None:
+        meet = "tokens" if source is not None and source.graph_views > 1 else "descriptors"
     if meet not in MEET:
         raise typer.BadParameter(
             f"--meet must be one of {', '.join(MEET)}, got {meet!r}", param_hint="--meet"
