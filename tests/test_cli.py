@@ -65,6 +65,14 @@ def test_range_image_errors_are_clear(synthetic_seq_dir, tmp_path):
     bad.write_bytes(b"\0" * 17)
     res = runner.invoke(app, ["range-image", str(bad), "--out", str(tmp_path / "x.npy")])
     assert res.exit_code == 2 and "not a multiple of the 16-byte" in text(res)
+    # found in review: an output the system refuses was a traceback (FileExistsError,
+    # IsADirectoryError), in export and ground-truth after the work; one line, exit 2
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "d.npy").mkdir()
+    for where, says in (("afile/x.npy", "afile is a file, not a folder"), ("d.npy", "d.npy")):
+        res = runner.invoke(app, ["range-image", str(scan), "--out", str(tmp_path / where)])
+        assert res.exit_code == 2 and says in text(res), text(res)
+        assert "Traceback" not in text(res) and res.exception.__class__ is SystemExit
 
 
 def test_ground_truth_command(synthetic_seq_dir, tmp_path):

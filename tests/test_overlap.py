@@ -164,3 +164,28 @@ def test_a_scan_rewritten_in_place_makes_its_caches_again(synthetic_seq_dir, tmp
     assert not np.array_equal(after.overlap[mine], before.overlap[was])
     again = np.array(range_images(seq, KITTI, progress=False))
     assert not np.array_equal(again[30], images[30]) and np.array_equal(again[0], images[0])
+
+
+def test_a_named_table_file_that_is_something_else_is_refused_not_overwritten(
+    synthetic_seq_dir, tmp_path
+):
+    """Found in review: ``ground-truth --out notes.txt`` replaced the user's file with a loop
+    table (an unreadable file was taken for a stale cache). A file that is not a table, by
+    content and name, is refused and left as it was; a folder is named as one."""
+    from overlapmamba.core.errors import DatasetError
+
+    seq = open_sequence(synthetic_seq_dir)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    loops = LoopParams(exclude_recent_frames=12, radius=10.0)
+    with pytest.raises(DatasetError, match="exists and is not a loop table"):
+        loop_ground_truth(seq, KITTI, loops, cache=notes, progress=False)
+    assert notes.read_text() == "my notes"
+    with pytest.raises(DatasetError, match="is a folder"):
+        loop_ground_truth(seq, KITTI, loops, cache=tmp_path, progress=False)
+    gt = loop_ground_truth(seq, KITTI, loops, cache=tmp_path / "table.bin", progress=False)
+    again = loop_ground_truth(seq, KITTI, loops, cache=tmp_path / "table.bin", progress=False)
+    assert np.array_equal(gt.query, again.query)  # a table under another name is one
+    with pytest.raises(IsADirectoryError):  # a save that fails leaves no half table beside
+        gt.save(tmp_path)
+    assert not list(tmp_path.parent.glob(f"{tmp_path.name}.tmp*"))

@@ -23,6 +23,10 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def friendly_errors(func: F) -> F:
+    """Library errors, and a file the system refuses (an output under a file, a folder
+    given for a file, no permission, a full disk), as one red line and exit 2, not a
+    traceback."""
+
     @wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
@@ -30,8 +34,22 @@ def friendly_errors(func: F) -> F:
         except LidarCoreError as err:
             console.print(f"[bold red]error:[/] {escape(err.message)}")
             raise typer.Exit(2) from None
+        except OSError as err:
+            console.print(f"[bold red]error:[/] {escape(os_error(err))}")
+            raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def os_error(err: OSError) -> str:
+    """What the system refused, and on which file(s): ``cannot use PATH: Not a directory``."""
+    paths = [str(p) for p in (err.filename, err.filename2) if p is not None]
+    if isinstance(err, FileExistsError | NotADirectoryError) and paths:
+        for p in Path(paths[0]).parents if isinstance(err, NotADirectoryError) else [paths[0]]:
+            if Path(p).is_file():  # a file where a folder is needed on the way
+                return f"cannot use {paths[0]}: {p} is a file, not a folder"
+    where = " → ".join(paths) if paths else "a file"
+    return f"cannot use {where}: {err.strerror or err}"
 
 
 SensorOpt = Annotated[

@@ -3,6 +3,7 @@ report: ``overlapmamba.cli.evaluation``). Each needs PyTorch (the train extra)."
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 from typing import Annotated, Any
@@ -382,7 +383,8 @@ def export_cmd(
                 meta = with_column_phase(work, column_phase)
             meta = finish(meta)
         finally:
-            work.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # never in place of the error that ended it
+                work.unlink(missing_ok=True)
         out.print(
             f"wrote {out_path}: the weights of {checkpoint} with {meta.views} view(s) per scan"
             f"{f' met at the {meet}' if meta.views > 1 else ''}, "
@@ -403,7 +405,8 @@ def export_cmd(
             meta = with_column_phase(work, column_phase)
         meta = finish(meta)
     finally:
-        work.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # never in place of the error that ended it
+            work.unlink(missing_ok=True)
     table = Table(title=f"exported {out_path}", show_header=False)
     for key, value in (
         ("model id", meta.model_id),

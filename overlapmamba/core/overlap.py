@@ -15,6 +15,7 @@ A *loop* for query i is a frame j with i âˆ’ j > exclude_recent_frames (100), â€
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -30,6 +31,7 @@ from tqdm.auto import tqdm
 
 from overlapmamba.core.cache import cache_root
 from overlapmamba.core.datasets.base import Sequence
+from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.poses import relative_transform, yaw_deg
 from overlapmamba.core.projection import pixel_index
 from overlapmamba.core.sensors import SensorProfile
@@ -249,17 +251,22 @@ class LoopGroundTruth:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
-        np.savez_compressed(
-            tmp,
-            n_frames=self.n_frames,
-            query=self.query,
-            reference=self.reference,
-            overlap=self.overlap,
-            yaw_deg=self.yaw_deg,
-            distance=self.distance,
-            params=json.dumps(self.params, sort_keys=True),
-        )
-        os.replace(tmp, path)
+        try:
+            np.savez_compressed(
+                tmp,
+                n_frames=self.n_frames,
+                query=self.query,
+                reference=self.reference,
+                overlap=self.overlap,
+                yaw_deg=self.yaw_deg,
+                distance=self.distance,
+                params=json.dumps(self.params, sort_keys=True),
+            )
+            os.replace(tmp, path)
+        except BaseException:  # a folder at path, a full disk: no half table left beside it
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: str | Path) -> LoopGroundTruth:
@@ -376,6 +383,23 @@ def _load_matching(path: Path, fingerprint: str, seq: Sequence) -> LoopGroundTru
     return gt if table_matches(gt, fingerprint, seq) else None
 
 
+def _check_replaceable(path: Path) -> None:
+    """A table path the caller named may hold a loop table (of other parameters: written
+    again) or a damaged ``.npz`` (a table is written as one), never another file: a file of
+    another name that is not a loop table is refused, not overwritten."""
+    if path.is_dir():
+        raise DatasetError(f"{path} is a folder; give the .npz file the table is written to")
+    if not path.exists() or path.suffix == ".npz":
+        return
+    try:
+        LoopGroundTruth.load(path)
+    except (OSError, ValueError, KeyError):
+        raise DatasetError(
+            f"{path} exists and is not a loop table, which a table would overwrite; give "
+            "another file, or delete it"
+        ) from None
+
+
 def table_matches(gt: LoopGroundTruth, fingerprint: str, seq: Sequence) -> bool:
     """Whether a loop table stands for ``seq``: its parameters' fingerprint is the one given,
     and the scans' content is the one it was made from (where it records it: tables made
@@ -411,6 +435,8 @@ def loop_ground_truth(
             if shipped is not None:
                 return shipped
         path = default_cache_path(seq, fp) if cache is True else Path(cache)
+        if cache is not True:
+            _check_replaceable(path)
         cached = _load_matching(path, fp, seq)
         if cached is not None:
             return cached
