@@ -203,6 +203,12 @@ def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
     assert Settings(auth={"keys": [toml]}).auth.keys[0].query_maps == ["a-base", "a-old"]
     res = runner.invoke(app, ["hash-key", "--role", "mapper", "--key", "k", "--maps", "a"])
     assert res.exit_code == 2 and "robot keys only" in text(res), text(res)
+    # found in review: an empty --key printed the entry of a new key it never showed, and a
+    # map no id can be (which the key could then never reach) was written into the entry
+    res = runner.invoke(app, ["hash-key", "--key", ""])
+    assert res.exit_code == 2 and "--key is empty" in text(res) and "sha256" not in res.stdout
+    res = runner.invoke(app, ["hash-key", "--key", "k", "--maps", "Town 1"])
+    assert res.exit_code == 2 and "which no map id can be" in text(res), text(res)
 
 
 def test_research_commands_refuse_what_they_cannot_do_in_one_line(

@@ -242,6 +242,11 @@ def hash_key_cmd(
 
     if role not in ROLE_ACTIONS:
         raise typer.BadParameter(f"role {role!r}; allowed: {', '.join(ROLE_ACTIONS)}")
+    if key is not None and not key.strip():
+        raise typer.BadParameter(
+            "--key is empty; give the key to hash, or leave --key out for a new one",
+            param_hint="--key",
+        )
     secret = key or new_key()
     entry: dict[str, object] = {"name": name, "role": role, "sha256": hash_key(secret)}
     for field, value in (("maps", maps), ("query_maps", query_maps)):

@@ -204,6 +204,12 @@ class ApiKey(Section):
                     f"key {self.name!r}: {field} applies to robot keys only, and this key's "
                     f"role is {self.role!r}; allowed: {field} on a robot key, or none"
                 )
+            bad = [m for m in value or () if not re.fullmatch(MAP_ID_PATTERN, m)]
+            if bad:  # it could never match a map: the key would be refused there, unsaid
+                raise ValueError(
+                    f"key {self.name!r}: {field} names {bad}, which no map id can be; allowed: "
+                    f"map ids, {MAP_ID_PATTERN}"
+                )
         if self.query_maps is not None and self.maps is None:
             raise ValueError(
                 f"key {self.name!r}: query_maps limits the maps a robot queries besides those "
