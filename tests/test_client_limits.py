@@ -13,6 +13,7 @@ import pytest
 from overlapmamba.client import (
     BadRequestError,
     ConnectError,
+    NotFoundError,
     OverloadedError,
     PlaceRecognitionClient,
     Retry,
@@ -448,3 +449,17 @@ def test_an_answer_under_another_seq_than_the_one_due_is_refused_not_misattribut
         stream_result(json.dumps({**answer, "seq": 4}), expected=3)
     refused = {"seq": None, "ok": False, "status": 400, "error": {"code": "bad_stream_frame"}}
     assert stream_result(json.dumps(refused), errors="return", expected=3).status == 400  # type: ignore[union-attr]
+
+
+def test_an_error_page_that_is_not_the_services_says_so():
+    """Found in review: a URL that is some other web server answered a 404 HTML page, which
+    the client raised as the error's message, 500 characters of markup and no word of
+    what was wrong. It says the answer is not the service's, and how the body began."""
+    page = "<!DOCTYPE HTML><html><head><title>Error response</title></head>" + "x" * 2000
+    answer = httpx.Response(404, text=page, headers={"content-type": "text/html"})
+    client = PlaceRecognitionClient(transport=_answers([answer], []))
+    with client as pr, pytest.raises(NotFoundError) as e:
+        pr.list_maps()
+    said = str(e.value)
+    assert "is the URL the place-recognition service's" in said and "text/html" in said
+    assert "<!DOCTYPE HTML>" in said and len(said) < 600

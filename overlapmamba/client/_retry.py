@@ -103,8 +103,15 @@ def raise_for(resp: httpx.Response) -> None:
     try:
         err = resp.json()["error"]
         code, message, detail = err["code"], err["message"], err.get("detail") or {}
-    except (ValueError, KeyError, TypeError):
-        code, message, detail = "http_error", resp.text[:500] or resp.reason_phrase, {}
+    except (ValueError, KeyError, TypeError):  # a proxy's page, or not this service at all
+        kind = resp.headers.get("content-type", "no content-type")
+        head = resp.content[:200].decode("utf-8", "replace")
+        message = (
+            f"{resp.reason_phrase or 'error'}, without the service's JSON error ({kind}): is "
+            "the URL the place-recognition service's, or did a proxy in front of it answer?"
+            + (f" The body began: {head!r}" if head else "")
+        )
+        code, detail = "http_error", {}
     raise error_for(resp.status_code)(
         resp.status_code, code, message, detail, retry_after=_retry_after(resp)
     )
