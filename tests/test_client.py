@@ -1111,3 +1111,17 @@ def test_stats_watch_into_a_pipe_prints_each_refresh_as_it_comes(live):
         stdout, stderr = proc.communicate(timeout=30)
     tables = stdout.decode().count("loop-closure rate")
     assert tables >= 2, (stdout.decode()[-500:], stderr.decode()[-500:])
+
+
+def test_a_drive_of_a_sensor_the_service_does_not_know_makes_no_map(live, synthetic_seq_dir):
+    """Found in review: ``ingest`` and ``observe`` made the map, then met the unknown sensor
+    at the first scan (400), leaving an empty map behind. Refused before, naming the ones
+    the service knows."""
+    runner = CliRunner()
+    for command in ("ingest", "observe"):
+        args = [command, str(synthetic_seq_dir), "--map", f"never-{command}", "--sensor", "nosuch"]
+        res = runner.invoke(cli_app, [*args, "--url", live])
+        said = " ".join(res.output.split())
+        assert res.exit_code == 2 and "knows no sensor 'nosuch'" in said and "vlp16" in said
+    with PlaceRecognitionClient(live) as pr:
+        assert not {m.map_id for m in pr.list_maps()} & {"never-ingest", "never-observe"}

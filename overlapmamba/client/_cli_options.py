@@ -105,6 +105,20 @@ def errors(func: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def make_map(pr: PlaceRecognitionClient, map_id: str, sensor: str | None) -> None:
+    """The drive's map, made (or found) once the service is known to take the drive's
+    sensor: one it does not know was refused at the first scan, after an empty map had been
+    made for it."""
+    if sensor is not None:
+        names = [s.get("name") for s in pr.sensors().get("sensors", [])]
+        if sensor not in names:
+            raise ValueError(
+                f"the service knows no sensor {sensor!r}; allowed: {', '.join(map(str, names))}"
+                " (a sensor file under [sensors] files adds one)"
+            )
+    pr.create_map(map_id)
+
+
 def within(path: Path, folder: Path) -> bool:
     """``path`` is ``folder`` or lies inside it (both resolved: links, ``..``)."""
     p, f = path.resolve(), folder.resolve()

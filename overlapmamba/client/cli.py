@@ -33,6 +33,7 @@ from overlapmamba.client._cli_options import (
     client,
     console,
     errors,
+    make_map,
     out,
     within,
 )
@@ -164,7 +165,7 @@ def ingest(
         PlaceRecognitionClient(url, api_key=api_key, compress=compress) as pr,
         progress(console) as bar,
     ):
-        pr.create_map(map_id)
+        make_map(pr, map_id, drive.sensor)
         task = bar.add_task(f"ingest {drive.name}", total=len(frames), rate=0.0, latency=0.0)
         for n, (i, points) in enumerate(drive.scans(frames, skipped), start=1):
             t = time.monotonic()
@@ -308,7 +309,7 @@ def observe(
 
             stack.callback(kept)
             rec = stack.enter_context(made)
-        pr.create_map(map_id)
+        make_map(pr, map_id, drive.sensor)
         for i, points in drive.scans(frames, skipped):
             o = pr.observe(
                 map_id,
