@@ -236,6 +236,17 @@ def test_research_commands_refuse_what_they_cannot_do_in_one_line(
         app, ["eval-real", "--checkpoint", "models/overlapmamba-hdl64.onnx", "--sequence", str(one)]
     )
     assert res.exit_code != 0 and "needs at least 2 scans" in text(res), text(res)
+    # an output that cannot be written is refused before the work (it was a traceback after)
+    (tmp_path / "afile").write_text("")
+
+    def no_work(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the evaluation started before its output was checked")
+
+    monkeypatch.setattr("overlapmamba.train.checkpoint.load_model", no_work)
+    args = ["eval-real", "--checkpoint", "models/overlapmamba-hdl64.onnx", "--sequence"]
+    res = runner.invoke(app, [*args, str(kitti_seq_dir), "--json", f"{tmp_path}/afile/x.json"])
+    said = " ".join(text(res).replace("│", " ").split())
+    assert res.exit_code == 2 and "afile is a file, not a folder" in said, said
 
     def full_disk(out_dir, *args, **kwargs):  # type: ignore[no-untyped-def]
         out_dir.mkdir(parents=True)
@@ -249,6 +260,19 @@ def test_research_commands_refuse_what_they_cannot_do_in_one_line(
     out = text(res)
     assert res.exit_code == 1 and "No space left" in out and "incomplete: delete it" in out, out
     assert "Usage" not in out
+
+    # Ctrl-C said nothing of the partial folder, and a second run called it merely not empty
+    def interrupted(out_dir, *args, **kwargs):  # type: ignore[no-untyped-def]
+        out_dir.mkdir(parents=True)
+        (out_dir / ".incomplete").write_text("")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("overlapmamba.synth.generate.generate", interrupted)
+    res = runner.invoke(app, ["gen-data", str(tmp_path / "cut"), "--seed", "7", "--frames", "3"])
+    assert res.exit_code == 130 and "cut is incomplete: delete it" in text(res), text(res)
+    monkeypatch.undo()
+    res = runner.invoke(app, ["gen-data", str(tmp_path / "cut"), "--seed", "7", "--frames", "3"])
+    assert res.exit_code == 2 and "incomplete run's folder" in text(res), text(res)
 
     record = {"f1max": float("nan"), "t": np.float32("-inf"), "n": np.int64(3), "ok": 0.5}
     assert json.loads(strict_json(record)) == {"f1max": None, "t": None, "n": 3, "ok": 0.5}

@@ -374,6 +374,11 @@ def gen_data(
         why = escape(f"{err} ({out_dir} is incomplete: delete it)")
         console.print(f"[bold red]error:[/] {why}")
         raise typer.Exit(1) from None
+    except KeyboardInterrupt:  # said as a failure is: the folder is a dead partial run
+        if (out_dir / ".incomplete").exists():
+            where = escape(str(out_dir))
+            console.print(f"[yellow]interrupted:[/] {where} is incomplete: delete it")
+        raise typer.Exit(130) from None
     c, t = manifest["counts"], manifest["timing_s"]
     m = cfg.mounting()
     table = Table(title=f"Synthetic sequence: {out_dir}", show_header=False)

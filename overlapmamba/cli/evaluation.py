@@ -17,6 +17,7 @@ from overlapmamba.cli.common import (
     errors_table,
     friendly_errors,
     metrics_table,
+    os_error,
     out,
 )
 from overlapmamba.core.rerank import Rerank
@@ -213,6 +214,17 @@ def _check_outputs(json_out: Path | None, plot: Path | None) -> None:
             f"{plot.name}: allowed plot formats are {', '.join(PLOT_SUFFIXES)}",
             param_hint="--plot",
         )
+    import os
+
+    for path, hint in ((json_out, "--json"), (plot, "--plot")):
+        if path is None:
+            continue
+        try:  # its folder made now (a file in its way was found only after the work)
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise typer.BadParameter(os_error(err), param_hint=hint) from None
+        if not os.access(path.parent, os.W_OK):
+            raise typer.BadParameter(f"cannot write into {path.parent}", param_hint=hint)
 
 
 def _write_json(path: Path, record: dict[str, Any]) -> None:

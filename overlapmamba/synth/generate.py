@@ -257,6 +257,11 @@ def generate(
     worker that dies, or no progress for ``stall_timeout_s``, raises ``WorkerError``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
+        if (out / INCOMPLETE).exists():  # a run that was stopped or failed
+            raise FileExistsError(
+                f"{out} is an incomplete run's folder (stopped, or failed): delete it, or "
+                "choose a new folder for the sequence"
+            )
         raise FileExistsError(f"{out} is not empty; choose a new folder for the sequence")
     out.mkdir(parents=True, exist_ok=True)
     # until the manifest is whole, the folder says it is not (a run killed between the scans
