@@ -1125,3 +1125,19 @@ def test_a_drive_of_a_sensor_the_service_does_not_know_makes_no_map(live, synthe
         assert res.exit_code == 2 and "knows no sensor 'nosuch'" in said and "vlp16" in said
     with PlaceRecognitionClient(live) as pr:
         assert not {m.map_id for m in pr.list_maps()} & {"never-ingest", "never-observe"}
+
+
+def test_simulate_fleet_checks_where_its_outputs_go_before_the_run(synthetic_seq_dir, tmp_path):
+    """Found in review: a --plot format matplotlib does not write, or an --out under a file,
+    was found after the whole simulation (the JSON written, the plot lost). Both are refused
+    before a robot starts (here no service even listens)."""
+    (tmp_path / "afile").write_text("")
+    base = ["simulate-fleet", "--map", "m", "-s", str(synthetic_seq_dir), "--duration", "1"]
+    for extra, says in (
+        (["--plot", str(tmp_path / "p.txt")], "allowed plot formats are .png, .pdf, .svg"),
+        (["--out", str(tmp_path / "afile" / "r.json")], "cannot make its folder"),
+        (["--out", str(tmp_path)], "is a folder"),
+    ):
+        res = CliRunner().invoke(cli_app, [*base, *extra, "--url", "http://127.0.0.1:9"])
+        said = " ".join(res.output.split())
+        assert res.exit_code == 2 and says in said and "connect" not in said, said

@@ -419,8 +419,9 @@ def simulate_fleet(
 ) -> None:
     """N robots replay drives concurrently through observe; report throughput, latency,
     errors and loop closures against ground truth."""
-    from overlapmamba.client.fleet import simulate, write_outputs
+    from overlapmamba.client.fleet import check_outputs, simulate, write_outputs
 
+    check_outputs(out_json, plot)
     drives = [
         open_drive(p, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
         for p in sequence

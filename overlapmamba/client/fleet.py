@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -360,11 +361,38 @@ def _report(
     )
 
 
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+def check_outputs(out: Path, plot: Path | None) -> None:
+    """Where the report and the plot go, checked (their folders made) before the run: a
+    plot format matplotlib does not write, or a file in a folder's place, was found after
+    the whole simulation, with the JSON written and the plot lost. A ValueError names it."""
+    if plot is not None and plot.suffix.lower() not in PLOT_SUFFIXES:
+        raise ValueError(f"--plot {plot}: allowed plot formats are {', '.join(PLOT_SUFFIXES)}")
+    for path, flag in ((out, "--out"), (plot, "--plot")):
+        if path is None:
+            continue
+        if path.is_dir():
+            raise ValueError(f"{flag} {path} is a folder; give a file name")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ValueError(f"{flag} {path}: cannot make its folder: {err.strerror}") from None
+        if not os.access(path.parent, os.W_OK):
+            raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
+
+
 def write_outputs(
     report: FleetReport, samples: list[_Sample], out: Path, plot: Path | None
 ) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")  # whole or not at all
+    try:
+        tmp.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
     if plot is None:
         return
     import matplotlib
