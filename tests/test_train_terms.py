@@ -250,3 +250,16 @@ def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):
             assert ov[g, g + 3] <= 0.1 and ov[g, g + 1] > 0.3
     with pytest.raises(ConfigError, match="0 ≤ hard_negatives ≤ 1"):
         TrainConfig(hard_negatives=1.5)
+
+def test_an_init_file_that_is_nowhere_names_both_places_looked(tmp_path, monkeypatch):
+    """Found in review: ``train --init nope.pt`` run from another folder said only that
+    REPO/nope.pt does not exist, as if the path were taken from the repository; it is
+    looked for from here first, and both places are named."""
+    from overlapmamba.core.errors import ConfigError
+    from overlapmamba.train.train_config import ROOT, TrainConfig
+    from overlapmamba.train.train_inputs import start_config
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        start_config(TrainConfig(init="nope.pt"), None)
+    assert f"neither {tmp_path / 'nope.pt'} nor {ROOT / 'nope.pt'} is a file" in str(err.value)

@@ -183,7 +183,10 @@ def start_config(
     path = train_cfg.init_path()
     assert path is not None
     if not path.is_file():
-        raise ConfigError(f"init {train_cfg.init!r}: {path} does not exist")
+        # looked for from here, then from the repository's root: both named
+        looked = list(dict.fromkeys(str(p) for p in (Path(train_cfg.init).absolute(), path)))
+        where = f"neither {' nor '.join(looked)} is" if len(looked) > 1 else f"{looked[0]} is not"
+        raise ConfigError(f"init {train_cfg.init!r}: {where} a file")
     if path.suffix == ".onnx":
         from overlapmamba.train.modelfile import read_metadata
 
