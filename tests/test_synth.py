@@ -520,6 +520,12 @@ def test_sim_report_compares_with_real_kitti(
     } <= stats
     assert report["compared_within_m"] <= 81
     assert (tmp_path / "r" / "realism.png").stat().st_size > 10_000
+    # found in review: a --reference that is not there (a typo) read as "no intensity"
+    args = ["sim-report", "--synthetic", str(tiny_seq), "--reference", str(tmp_path / "nope")]
+    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "r2")])
+    said = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "does not exist" in said, said
+    assert not (tmp_path / "r2").exists()
 
 
 # ---- command line ----------------------------------------------------------------------------

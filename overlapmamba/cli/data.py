@@ -418,6 +418,9 @@ def gen_data(
     out.print(table)
 
 
+REFERENCE_SCANS = "../shared/data/kitti00_overlapnet_reference"
+
+
 @command(
     "sim-report",
     epilog="Example:\n\n  overlapmamba sim-report --synthetic data/synth/val --out reports/realism",
@@ -434,8 +437,15 @@ def sim_report(
         "../shared/data/kitti00_0000-0100"
     ),
     reference: Annotated[
-        Path, typer.Option(help="folder with the real scans that carry intensity")
-    ] = Path("../shared/data/kitti00_overlapnet_reference"),
+        Path | None,
+        typer.Option(
+            file_okay=False,
+            exists=True,
+            help="folder with the real scans that carry intensity [default: "
+            f"{REFERENCE_SCANS}, where it exists; without it, no intensity row]",
+            show_default=False,
+        ),
+    ] = None,
     scans: Annotated[int, typer.Option(min=2, help="scans to use from each side")] = 50,
     output: Annotated[
         Path, typer.Option("--out", "-o", help="folder for realism.json/.png")
@@ -444,6 +454,8 @@ def sim_report(
     """Compare synthetic scans with real KITTI scans: beams, ranges, empties, ground, intensity."""
     from overlapmamba.synth import realism
 
+    # one named must be there (a typo read as "no intensity"); the default only where it is
+    reference = reference or Path(REFERENCE_SCANS)
     rep = realism.report(real, synthetic, reference, scans, output)
     rows, cap = rep["rows"], rep["compared_within_m"]
     table = Table(
