@@ -387,3 +387,16 @@ def test_the_report_scores_the_service_answer_with_the_files_own_second_stage():
     assert one_pass.meta.calibration["rerank"].values["score"] == "network"
     assert service_rerank(one_pass).part == 256
     assert service_rerank(object()) == SERVICE_RERANK  # a network without a file's metadata
+
+
+def test_the_report_refuses_a_test_town_without_loops(kitti_seq_dir, tmp_path):
+    """Found in review: ``report`` on a test town with no revisit wrote tables of NaN and
+    exited 0, where ``eval`` refuses the same town: it is refused, naming it."""
+    from service_kit import MODEL
+
+    from overlapmamba.core.errors import DatasetError
+    from overlapmamba.train.report import table_one
+
+    (tmp_path / "runs").mkdir()
+    with pytest.raises(DatasetError, match="has no loop closure"):
+        table_one(tmp_path / "runs", kitti_seq_dir, progress=False, onnx=MODEL)
