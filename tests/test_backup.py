@@ -354,3 +354,20 @@ def test_a_service_starting_while_doctor_looks_at_the_lock_waits_for_it(tmp_path
             pass
     finally:
         os.close(fd)
+
+
+def test_a_folder_given_for_a_file_or_a_file_for_the_data_folder_is_named_as_such(tmp_path):
+    """Found in review: a folder given as the config file or as the backup to import, and a
+    file given as the data folder, were each reported as missing."""
+    from overlapmamba.service.doctor import diagnose
+    from overlapmamba.service.settings import load_settings
+
+    folder, afile = tmp_path / "folder", tmp_path / "afile"
+    folder.mkdir()
+    afile.write_text("")
+    with pytest.raises(ValueError, match="is a folder; allowed: a TOML file"):
+        load_settings(folder)
+    with pytest.raises(backup.BackupError, match="is a folder; allowed: a map's backup"):
+        backup.import_map(tmp_path / "data", "m", folder)
+    (finding,) = diagnose(afile).findings
+    assert finding.status == "error" and finding.message == f"{afile} is not a folder"

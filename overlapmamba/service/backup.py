@@ -156,7 +156,8 @@ def import_map(data_dir: Path, map_id: str, src: Path, *, replace: bool = False)
     reported is the copy's."""
     folder = _map_folder(data_dir, map_id)
     if not src.is_file():
-        raise BackupError(f"{src} does not exist")
+        what = "is a folder" if src.is_dir() else "does not exist"
+        raise BackupError(f"{src} {what}; allowed: a map's backup file (export-map writes one)")
     meta = _check_backup(src)
     _as_the_owner(folder.parent)
     with data_dir_lock(data_dir):

@@ -84,7 +84,12 @@ def diagnose(
     report = Report(str(data_dir), model_id)
     root = data_dir / "maps"
     if not root.is_dir():
-        report.add(None, "data_dir", "error", f"{root} does not exist: no maps here")
+        why = (
+            f"{data_dir} is not a folder"
+            if data_dir.exists() and not data_dir.is_dir()
+            else f"{root} does not exist: no maps here"
+        )
+        report.add(None, "data_dir", "error", why)
         return report
     _check_lock(report, data_dir)
     settings = settings or IndexSettings()  # type: ignore[call-arg]

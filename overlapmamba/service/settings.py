@@ -396,7 +396,8 @@ def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
     """Settings from a TOML file (if given), the environment and explicit overrides."""
     values = {k: v for k, v in overrides.items() if v is not None}
     if config is not None and not config.is_file():
-        raise ValueError(f"config file {config} does not exist")
+        what = "is a folder" if config.is_dir() else "does not exist"
+        raise ValueError(f"config file {config} {what}; allowed: a TOML file")
     # the file reaches settings_customise_sources through a context variable: the process
     # environment is never written (another thread's Settings() would read it)
     token = _CONFIG_FILE.set(config)
