@@ -118,7 +118,7 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
             small_run(**turn),
             progress=False,
         )
-    with pytest.raises(ConfigError, match="does not exist"):
+    with pytest.raises(ConfigError, match="is not a file"):
         train(
             [tiny_seq],
             tiny_val_seq,
@@ -250,6 +250,7 @@ def test_mined_negatives_are_the_nearest_clearly_different_scans(tiny_seq):
             assert ov[g, g + 3] <= 0.1 and ov[g, g + 1] > 0.3
     with pytest.raises(ConfigError, match="0 ≤ hard_negatives ≤ 1"):
         TrainConfig(hard_negatives=1.5)
+
 
 def test_an_init_file_that_is_nowhere_names_both_places_looked(tmp_path, monkeypatch):
     """Found in review: ``train --init nope.pt`` run from another folder said only that
