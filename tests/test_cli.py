@@ -180,6 +180,33 @@ def test_serve_names_misspelt_variables_and_never_prints_a_key(tmp_path):
     assert "did you mean OVERLAPMAMBA_BATCHING__MAX_BATCH" in out
 
 
+def test_serve_names_a_variable_that_overrides_the_config_files_setting(tmp_path):
+    """Found in review: the image sets OVERLAPMAMBA_DATA_DIR (and host, port, model) in its
+    environment, which wins over a mounted config file: a file's ``data_dir`` was ignored
+    unsaid, and the maps went to the anonymous volume. Each such variable is named, with
+    the setting it overrides, and never its value (it may be a key)."""
+    from overlapmamba.service.settings import shadowed
+
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text('data_dir = "/srv/om"\n[qdrant]\napi_key = "k"\n[batching]\nmax_batch = 4\n')
+    env = {
+        "OVERLAPMAMBA_DATA_DIR": str(tmp_path / "d"),
+        "OVERLAPMAMBA_QDRANT__API_KEY": "the-secret",
+        "OVERLAPMAMBA_PORT": "8001",  # not in the file: nothing overridden
+        "OVERLAPMAMBA_CONFIG": str(cfg),
+    }
+    assert shadowed(None, env) == [
+        ("OVERLAPMAMBA_DATA_DIR", "data_dir"),
+        ("OVERLAPMAMBA_QDRANT__API_KEY", "qdrant.api_key"),
+    ]
+    assert shadowed(None, {"OVERLAPMAMBA_PORT": "1"}) == []  # no file
+    res = runner.invoke(app, ["serve", "--model", str(tmp_path / "none.onnx")], env=env)
+    out = " ".join(text(res).split())
+    assert "OVERLAPMAMBA_DATA_DIR overrides data_dir in the config file" in out, out
+    assert "OVERLAPMAMBA_QDRANT__API_KEY overrides qdrant.api_key" in out
+    assert "the-secret" not in out and "OVERLAPMAMBA_PORT overrides" not in out
+
+
 def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():
     import json
     import tomllib
@@ -276,3 +303,31 @@ def test_research_commands_refuse_what_they_cannot_do_in_one_line(
 
     record = {"f1max": float("nan"), "t": np.float32("-inf"), "n": np.int64(3), "ok": 0.5}
     assert json.loads(strict_json(record)) == {"f1max": None, "t": None, "n": 3, "ok": 0.5}
+
+
+def test_serve_takes_sigterm_from_its_first_step(monkeypatch):
+    """Found in review: as a container's PID 1 the process has no default action for
+    SIGTERM, so a stop sent during the seconds serve's checks and the model's load take
+    was lost until uvicorn took the signals over (``docker stop`` then waited for its
+    SIGKILL). serve handles SIGTERM before its first check."""
+    import signal
+
+    import overlapmamba.service.settings as settings_module
+
+    seen = []
+
+    def load(*args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(signal.getsignal(signal.SIGTERM))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(settings_module, "load_settings", load)
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        res = runner.invoke(app, ["serve"])
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert res.exit_code == 2 and len(seen) == 1
+    assert callable(seen[0]) and seen[0] not in (signal.SIG_DFL, signal.SIG_IGN), seen
+    with pytest.raises(SystemExit) as stop:
+        seen[0](signal.SIGTERM, None)
+    assert stop.value.code == 128 + signal.SIGTERM

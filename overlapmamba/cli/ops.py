@@ -45,6 +45,11 @@ def _refuse(message: str) -> NoReturn:
     raise typer.Exit(2)
 
 
+def _stopped_while_starting(signum: int, frame: Any) -> None:
+    console.print("stopped before the service started (SIGTERM)")
+    raise SystemExit(128 + signum)
+
+
 ConfigOpt = Annotated[
     Path | None,
     typer.Option(
@@ -102,12 +107,24 @@ def serve_cmd(
 ) -> None:
     """Run the place-recognition HTTP service (uvicorn). SIGTERM drains requests in flight
     and snapshots the maps before it exits."""
+    import signal
+
+    # Until uvicorn takes the signals over, a SIGTERM ends the start: as a container's PID 1
+    # the process has no default action for it, so a stop sent during the seconds the
+    # checks and the model's load take was lost, and `docker stop` waited for its SIGKILL.
+    signal.signal(signal.SIGTERM, _stopped_while_starting)
     from overlapmamba.service.app import run
-    from overlapmamba.service.settings import unknown_variables
+    from overlapmamba.service.settings import shadowed, unknown_variables
 
     for var, near in unknown_variables(os.environ):  # a misspelt one would change nothing
         hint = f"; did you mean {near}?" if near else ""
         console.print(f"[yellow]warning:[/] {escape(var)} is not a setting and is ignored{hint}")
+    for var, key in shadowed(config, os.environ):  # the image's ENV over a mounted file's
+        console.print(  # never the value: it may be a key
+            f"[yellow]warning:[/] {escape(var)} overrides {key} in "
+            "the config file (the environment wins over the file; unset the variable, or set "
+            "the value there)"
+        )
     qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
     settings = _service_settings(
         config,

@@ -392,6 +392,26 @@ def unknown_variables(environ: Mapping[str, str]) -> list[tuple[str, str | None]
     return out
 
 
+def shadowed(config: Path | None, environ: Mapping[str, str]) -> list[tuple[str, str]]:
+    """The OVERLAPMAMBA_ variables in ``environ`` that override a setting the config file
+    (``config``, else OVERLAPMAMBA_CONFIG's) sets, each with that setting's name: the
+    environment wins, so a container image's ENV hid a mounted file's ``data_dir``, unsaid."""
+    named = config or environ.get("OVERLAPMAMBA_CONFIG")
+    try:
+        table = tomllib.loads(Path(named).read_text()) if named else {}
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return []  # load_settings says what is wrong with the file
+    keys = set(table)
+    keys.update(f"{k}.{f}" for k, v in table.items() if isinstance(v, dict) for f in v)
+    out = []
+    for var in sorted(environ):
+        upper = var.upper()
+        key = upper.removeprefix("OVERLAPMAMBA_").lower().replace("__", ".")
+        if upper.startswith("OVERLAPMAMBA_") and upper != "OVERLAPMAMBA_CONFIG" and key in keys:
+            out.append((var, key))
+    return out
+
+
 def load_settings(config: Path | None = None, **overrides: Any) -> Settings:
     """Settings from a TOML file (if given), the environment and explicit overrides."""
     values = {k: v for k, v in overrides.items() if v is not None}
