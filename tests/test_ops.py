@@ -404,3 +404,30 @@ def test_the_doctor_names_an_import_cut_off_between_its_renames(tmp_path):
     (root / "maps" / ".import-town" / IMPORTED_MARK).touch()
     (found,) = _by_check(diagnose(root, model_id="m1", dim=8), "import")
     assert found.map_id == "town" and "installs it as map 'town'" in found.message
+
+
+def test_a_librarys_warning_is_a_json_log_line(capsys):
+    """Found in review: Qdrant's client warns (an API key over http) with Python's warnings,
+    which printed a raw line among the JSON ones; a log shipper could not parse it. The
+    service's logging takes warnings as records."""
+    import warnings
+
+    from overlapmamba.service import logs
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        logs.configure("info", "json")
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.warn("Api key is used with an insecure connection.", UserWarning, stacklevel=1)
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert lines and all(json.loads(ln) for ln in lines), lines
+        assert any("insecure connection" in json.loads(ln)["msg"] for ln in lines), lines
+    finally:
+        logging.captureWarnings(False)
+        for h in list(root.handlers):
+            root.removeHandler(h)
+        for h in handlers:
+            root.addHandler(h)
+        root.setLevel(level)

@@ -69,7 +69,9 @@ class TextFormatter(logging.Formatter):
 
 
 def configure(level: str = "info", fmt: str = "json") -> None:
-    """Route every logger — ours and uvicorn's — through one stderr handler."""
+    """Route every logger — ours and uvicorn's, and Python's warnings — through one stderr
+    handler (a library's warning, such as Qdrant's client on a key sent over http, was a
+    raw line among the JSON ones, which a log shipper could not parse)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
     root = logging.getLogger()
@@ -77,6 +79,7 @@ def configure(level: str = "info", fmt: str = "json") -> None:
         root.removeHandler(h)
     root.addHandler(handler)
     root.setLevel(level.upper())
+    logging.captureWarnings(True)  # as records of the logger "py.warnings"
     for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
         lg = logging.getLogger(name)
         lg.handlers.clear()
