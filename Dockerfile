@@ -2,7 +2,13 @@
 # The place-recognition service: the `serve` extra and the bundled default model, no torch.
 #
 #   docker build -t overlapmamba .
-#   docker run -p 8000:8000 -v om-data:/data -e OVERLAPMAMBA_AUTH__KEYS='[...]' overlapmamba
+#   docker run --init --stop-timeout 60 -p 8000:8000 -v om-data:/data \
+#       -e OVERLAPMAMBA_AUTH__KEYS='[...]' overlapmamba
+#
+# (--stop-timeout: the drain and the maps' snapshots outlast Docker's 10 s; --init: a signal
+# during start-up, before the server handles its own, is not lost on PID 1.) The ENV below
+# outranks a config file: set host, port, data_dir and model as variables, not in the file
+# (serve warns when a variable overrides the file).
 #
 #   make image        # the same with podman (or docker), offline: a Debian bookworm base made
 #                     # with debootstrap and the dependencies from a wheelhouse (deploy/image.py)
