@@ -37,9 +37,11 @@ def pins(frozen: str) -> list[str]:
 
 
 def freeze(python: str = sys.executable) -> str:
-    """``pip freeze`` of ``python``'s environment, editables left out."""
+    """``python``'s environment as ``name==version`` lines, editables left out. ``pip list``,
+    not ``pip freeze``: a package installed from a file or a URL is ``name @ URL`` in a
+    freeze, which :func:`pins` leaves out, so the next lock dropped its pin."""
     return subprocess.run(
-        [python, "-m", "pip", "freeze", "--exclude-editable"],
+        [python, "-m", "pip", "list", "--format=freeze", "--exclude-editable"],
         capture_output=True,
         text=True,
         check=True,

@@ -321,6 +321,16 @@ def test_the_lock_pins_every_requirement_within_what_pyproject_allows():
     # the freeze it is written from: installers, editables and URLs left out, sorted
     frozen = "Zeta==1.0\n-e file:///src\npip==23.2\nuv==0.9\nalpha==2.0+cpu\nx @ file:///x.whl\n"
     assert pins(frozen) == ["alpha==2.0+cpu", "Zeta==1.0"]
+    # found in review: the freeze was pip's, in which a package installed from a file is
+    # "name @ URL": its pin was dropped. Every installed package but the installers and the
+    # project itself is pinned from this environment
+    from importlib.metadata import distributions
+
+    from lock import SKIP, freeze
+
+    got = {canonicalize_name(p.partition("==")[0]) for p in pins(freeze(sys.executable))}
+    have = {canonicalize_name(d.metadata["Name"]) for d in distributions()}
+    assert have - got <= {*SKIP, "overlapmamba"}, have - got
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
