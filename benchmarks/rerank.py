@@ -70,11 +70,11 @@ def main() -> None:
     t0 = time.perf_counter()
     val, second = open_sequence(args.val), open_sequence(args.second_session)
     mapped = sorted({val.sensor, second.sensor} & set(read_metadata(args.model).sensor_maps))
-    if mapped:  # describe_sequence gives the network's descriptors: the service maps these
+    if mapped:  # one second stage serves every sensor: chosen on the model's own, unmapped
         ap.error(
-            f"{args.model} carries a sensor map for {mapped[0]}, the towns' sensor; this grid "
-            "describes scans unmapped, not as the service answers them: choose on a town of "
-            "the model's own sensor"
+            f"{args.model} carries a sensor map for {mapped[0]}, the towns' sensor; the file's "
+            "second stage is chosen on the model's own sensor, whose descriptors no map "
+            "moves: choose on a town of the model's own sensor"
         )
     check_sessions(val, second)
     model, profile, _ = load_model(args.model)

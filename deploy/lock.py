@@ -22,7 +22,9 @@ HEADER = """\
 # (deploy/lock.py), which first upgrades .venv to the newest releases pyproject.toml allows;
 # run `make test` before committing a new one.
 """
-SKIP = ("pip", "uv")  # the installers: the venv module's pip, the Makefile's uv
+# the installers (the venv module's pip, the Makefile's uv) and the build tools a freeze
+# leaves out, which pip list gives
+SKIP = ("pip", "uv", "setuptools", "wheel", "distribute")
 
 
 def pins(frozen: str) -> list[str]:

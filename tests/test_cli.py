@@ -200,6 +200,10 @@ def test_serve_names_a_variable_that_overrides_the_config_files_setting(tmp_path
         ("OVERLAPMAMBA_QDRANT__API_KEY", "qdrant.api_key"),
     ]
     assert shadowed(None, {"OVERLAPMAMBA_PORT": "1"}) == []  # no file
+    # a setting the command line gives wins over both: not said to be the variable's
+    assert shadowed(None, env, given=["data_dir"]) == [
+        ("OVERLAPMAMBA_QDRANT__API_KEY", "qdrant.api_key")
+    ]
     res = runner.invoke(app, ["serve", "--model", str(tmp_path / "none.onnx")], env=env)
     out = " ".join(text(res).split())
     assert "OVERLAPMAMBA_DATA_DIR overrides data_dir in the config file" in out, out

@@ -428,6 +428,14 @@ def test_cli_exports_a_checkpoint(tmp_path):
     said = " ".join(res.output.replace("│", " ").split())
     assert res.exit_code == 2 and "is the file export reads" in said, said
     assert read_metadata(two) == meta
+    # nor one whose work file (NAME.part.onnx beside --out) is the file it reads
+    part = tmp_path / "w.part.onnx"
+    part.write_bytes(two.read_bytes())
+    res = runner.invoke(app, ["export", str(part), "--out", str(tmp_path / "w.onnx")])
+    said = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "works in w.part.onnx, the file export reads" in said, said
+    assert part.read_bytes() == two.read_bytes()
+    part.unlink()  # a source, not a work file left behind (checked below)
     for bad, says in (
         (["--weights", "float32"], "keeps its weights as"),
         (["--views", "9"], "--views"),

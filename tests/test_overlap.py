@@ -175,6 +175,10 @@ def test_a_named_table_file_that_is_something_else_is_refused_not_overwritten(
     from overlapmamba.core.errors import DatasetError
 
     seq = open_sequence(synthetic_seq_dir)
+    empty = tmp_path / "empty.txt"
+    empty.write_text("")  # numpy's EOFError, not one of the errors first caught
+    with pytest.raises(DatasetError, match="exists and is not a loop table"):
+        loop_ground_truth(seq, KITTI, LoopParams(), cache=empty, progress=False)
     notes = tmp_path / "notes.txt"
     notes.write_text("my notes")
     loops = LoopParams(exclude_recent_frames=12, radius=10.0)

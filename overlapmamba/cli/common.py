@@ -48,8 +48,9 @@ def os_error(err: OSError) -> str:
         for p in Path(paths[0]).parents if isinstance(err, NotADirectoryError) else [paths[0]]:
             if Path(p).is_file():  # a file where a folder is needed on the way
                 return f"cannot use {paths[0]}: {p} is a file, not a folder"
-    where = " → ".join(paths) if paths else "a file"
-    return f"cannot use {where}: {err.strerror or err}"
+    if not paths:  # not a file's (a fork, too many open files): said as the system said it
+        return f"{type(err).__name__}: {err}"
+    return f"cannot use {' → '.join(paths)}: {err.strerror or err}"
 
 
 SensorOpt = Annotated[

@@ -285,10 +285,12 @@ def export_cmd(
         raise typer.BadParameter(f"--out must end in .onnx, got {out_path.name!r}")
     if out_path.is_dir():  # found only at the end, after the work, as a traceback
         raise typer.BadParameter(f"--out {out_path} is a folder; give the .onnx file to write")
-    if checkpoint.resolve() == out_path.resolve():
+    work = out_path.with_name(f"{out_path.stem}.part.onnx")  # the steps' file, beside --out
+    if checkpoint.resolve() in (out_path.resolve(), work.resolve()):
+        what = "is" if checkpoint.resolve() == out_path.resolve() else f"works in {work.name},"
         raise typer.BadParameter(
-            f"--out {out_path} is the file export reads; write another file (then move it "
-            "over this one, if that is what you want)",
+            f"--out {out_path} {what} the file export reads; write another file (then move "
+            "it over this one, if that is what you want)",
             param_hint="--out",
         )
     # rewriting an exported file changes only what is asked: its views and where they meet
@@ -340,10 +342,9 @@ def export_cmd(
             parse_reduction(reduce)
         except ValueError as err:
             raise typer.BadParameter(str(err), param_hint="--reduce") from None
-    # every step writes to one work file beside --out, renamed over it at the end: a step
-    # that fails (a town that does not open, a reduction the file cannot take) leaves --out
-    # as it was, never a file that looks whole
-    work = out_path.with_name(f"{out_path.stem}.part.onnx")
+    # every step writes to one work file beside --out (work, above), renamed over it at the
+    # end: a step that fails (a town that does not open, a reduction the file cannot take)
+    # leaves --out as it was, never a file that looks whole
 
     def finish(meta: Any) -> Any:
         """The steps every source ends with (a first stage, a reduction), then --out

@@ -112,14 +112,19 @@ def serve_cmd(
     # Until uvicorn takes the signals over, a SIGTERM ends the start: as a container's PID 1
     # the process has no default action for it, so a stop sent during the seconds the
     # checks and the model's load take was lost, and `docker stop` waited for its SIGKILL.
-    signal.signal(signal.SIGTERM, _stopped_while_starting)
+    stop_default = signal.signal(signal.SIGTERM, _stopped_while_starting)
     from overlapmamba.service.app import run
     from overlapmamba.service.settings import shadowed, unknown_variables
 
     for var, near in unknown_variables(os.environ):  # a misspelt one would change nothing
         hint = f"; did you mean {near}?" if near else ""
         console.print(f"[yellow]warning:[/] {escape(var)} is not a setting and is ignored{hint}")
-    for var, key in shadowed(config, os.environ):  # the image's ENV over a mounted file's
+    flags = {"host": host, "port": port, "data_dir": data_dir, "model": model}
+    flags |= {"log_format": log_format, "index.backend": index_backend}
+    flags |= {"qdrant.url": qdrant_url, "qdrant.path": qdrant_path}
+    flags |= {"insecure": insecure or None}  # --qdrant-api-key is its variable's, not here
+    given = [key for key, value in flags.items() if value is not None]
+    for var, key in shadowed(config, os.environ, given):  # the image's ENV over a file's
         console.print(  # never the value: it may be a key
             f"[yellow]warning:[/] {escape(var)} overrides {key} in "
             "the config file (the environment wins over the file; unset the variable, or set "
@@ -147,6 +152,7 @@ def serve_cmd(
         console.print(f"[bold red]error:[/] model file {missing} does not exist")
         raise typer.Exit(2)
     _preflight(settings, _check_model_file(settings.model))
+    signal.signal(signal.SIGTERM, stop_default)  # uvicorn's from here, then as before
     run(settings)
 
 

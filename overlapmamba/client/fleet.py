@@ -361,15 +361,16 @@ def _report(
     )
 
 
-PLOT_SUFFIXES = (".png", ".pdf", ".svg")
-
-
 def check_outputs(out: Path, plot: Path | None) -> None:
     """Where the report and the plot go, checked (their folders made) before the run: a
     plot format matplotlib does not write, or a file in a folder's place, was found after
     the whole simulation, with the JSON written and the plot lost. A ValueError names it."""
-    if plot is not None and plot.suffix.lower() not in PLOT_SUFFIXES:
-        raise ValueError(f"--plot {plot}: allowed plot formats are {', '.join(PLOT_SUFFIXES)}")
+    if plot is not None:
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        formats = sorted(FigureCanvasBase.get_supported_filetypes())  # what savefig writes
+        if plot.suffix.lower().lstrip(".") not in formats:
+            raise ValueError(f"--plot {plot}: allowed plot formats are {', '.join(formats)}")
     for path, flag in ((out, "--out"), (plot, "--plot")):
         if path is None:
             continue

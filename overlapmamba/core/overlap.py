@@ -378,8 +378,8 @@ def _load_matching(path: Path, fingerprint: str, seq: Sequence) -> LoopGroundTru
         return None
     try:
         gt = LoopGroundTruth.load(path)
-    except (OSError, ValueError, KeyError):
-        return None  # unreadable or stale: recompute
+    except Exception:  # unreadable (empty, cut short, not a zip) or stale: recompute
+        return None
     return gt if table_matches(gt, fingerprint, seq) else None
 
 
@@ -393,7 +393,7 @@ def _check_replaceable(path: Path) -> None:
         return
     try:
         LoopGroundTruth.load(path)
-    except (OSError, ValueError, KeyError):
+    except Exception:  # numpy's and zipfile's many ways to refuse a file that is no table
         raise DatasetError(
             f"{path} exists and is not a loop table, which a table would overwrite; give "
             "another file, or delete it"

@@ -18,7 +18,7 @@ import ipaddress
 import os
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
@@ -392,10 +392,13 @@ def unknown_variables(environ: Mapping[str, str]) -> list[tuple[str, str | None]
     return out
 
 
-def shadowed(config: Path | None, environ: Mapping[str, str]) -> list[tuple[str, str]]:
+def shadowed(
+    config: Path | None, environ: Mapping[str, str], given: Iterable[str] = ()
+) -> list[tuple[str, str]]:
     """The OVERLAPMAMBA_ variables in ``environ`` that override a setting the config file
     (``config``, else OVERLAPMAMBA_CONFIG's) sets, each with that setting's name: the
-    environment wins, so a container image's ENV hid a mounted file's ``data_dir``, unsaid."""
+    environment wins, so a container image's ENV hid a mounted file's ``data_dir``, unsaid.
+    ``given``: the settings the command line sets (dotted), which win over both: left out."""
     named = config or environ.get("OVERLAPMAMBA_CONFIG")
     try:
         table = tomllib.loads(Path(named).read_text()) if named else {}
@@ -403,6 +406,7 @@ def shadowed(config: Path | None, environ: Mapping[str, str]) -> list[tuple[str,
         return []  # load_settings says what is wrong with the file
     keys = set(table)
     keys.update(f"{k}.{f}" for k, v in table.items() if isinstance(v, dict) for f in v)
+    keys -= set(given)
     out = []
     for var in sorted(environ):
         upper = var.upper()
