@@ -328,6 +328,7 @@ def test_serve_takes_sigterm_from_its_first_step(monkeypatch):
     before = signal.getsignal(signal.SIGTERM)
     try:
         res = runner.invoke(app, ["serve"])
+        assert signal.getsignal(signal.SIGTERM) == before  # given back after a refused start
     finally:
         signal.signal(signal.SIGTERM, before)
     assert res.exit_code == 2 and len(seen) == 1
@@ -335,3 +336,22 @@ def test_serve_takes_sigterm_from_its_first_step(monkeypatch):
     with pytest.raises(SystemExit) as stop:
         seen[0](signal.SIGTERM, None)
     assert stop.value.code == 128 + signal.SIGTERM
+
+
+def test_serve_gives_sigterm_back_before_the_server_runs(tmp_path, monkeypatch):
+    """The start-up's SIGTERM handler is the one before it again once the server runs
+    (uvicorn takes the signals over and, when it ends, restores what it found: a SIGTERM
+    after that printed "stopped before the service started")."""
+    import signal
+
+    import overlapmamba.service.app as app_module
+
+    seen = []
+    monkeypatch.setattr(app_module, "run", lambda s: seen.append(signal.getsignal(signal.SIGTERM)))
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        res = runner.invoke(app, ["serve", "--data-dir", str(tmp_path / "d"), "--port", "1"])
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert res.exit_code == 0, text(res)
+    assert seen == [before]

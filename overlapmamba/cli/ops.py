@@ -3,8 +3,10 @@ folder's doctor. None imports PyTorch."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
@@ -48,6 +50,19 @@ def _refuse(message: str) -> NoReturn:
 def _stopped_while_starting(signum: int, frame: Any) -> None:
     console.print("stopped before the service started (SIGTERM)")
     raise SystemExit(128 + signum)
+
+
+@contextlib.contextmanager
+def _stoppable_start() -> Iterator[None]:
+    """SIGTERM ends what runs inside (serve's checks and the model's load); the handler
+    before it is back after, however the block ends."""
+    import signal
+
+    before = signal.signal(signal.SIGTERM, _stopped_while_starting)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 ConfigOpt = Annotated[
@@ -107,53 +122,51 @@ def serve_cmd(
 ) -> None:
     """Run the place-recognition HTTP service (uvicorn). SIGTERM drains requests in flight
     and snapshots the maps before it exits."""
-    import signal
-
     # Until uvicorn takes the signals over, a SIGTERM ends the start: as a container's PID 1
     # the process has no default action for it, so a stop sent during the seconds the
     # checks and the model's load take was lost, and `docker stop` waited for its SIGKILL.
-    stop_default = signal.signal(signal.SIGTERM, _stopped_while_starting)
-    from overlapmamba.service.app import run
-    from overlapmamba.service.settings import shadowed, unknown_variables
+    with _stoppable_start():
+        from overlapmamba.service.app import run
+        from overlapmamba.service.settings import shadowed, unknown_variables
 
-    for var, near in unknown_variables(os.environ):  # a misspelt one would change nothing
-        hint = f"; did you mean {near}?" if near else ""
-        console.print(f"[yellow]warning:[/] {escape(var)} is not a setting and is ignored{hint}")
-    flags = {"host": host, "port": port, "data_dir": data_dir, "model": model}
-    flags |= {"log_format": log_format, "index.backend": index_backend}
-    flags |= {"qdrant.url": qdrant_url, "qdrant.path": qdrant_path}
-    flags |= {"insecure": insecure or None}  # --qdrant-api-key is its variable's, not here
-    given = [key for key, value in flags.items() if value is not None]
-    for var, key in shadowed(config, os.environ, given):  # the image's ENV over a file's
-        console.print(  # never the value: it may be a key
-            f"[yellow]warning:[/] {escape(var)} overrides {key} in "
-            "the config file (the environment wins over the file; unset the variable, or set "
-            "the value there)"
+        for var, near in unknown_variables(os.environ):  # a misspelt one would change nothing
+            hint = f"; did you mean {near}?" if near else ""
+            why = f"{escape(var)} is not a setting and is ignored{hint}"
+            console.print(f"[yellow]warning:[/] {why}")
+        flags = {"host": host, "port": port, "data_dir": data_dir, "model": model}
+        flags |= {"log_format": log_format, "index.backend": index_backend}
+        flags |= {"qdrant.url": qdrant_url, "qdrant.path": qdrant_path}
+        flags |= {"insecure": insecure or None}  # --qdrant-api-key is its variable's, not here
+        given = [key for key, value in flags.items() if value is not None]
+        for var, key in shadowed(config, os.environ, given):  # the image's ENV over a file's
+            console.print(  # never the value: it may be a key
+                f"[yellow]warning:[/] {escape(var)} overrides {key} in "
+                "the config file (the environment wins over the file; unset the variable, or set "
+                "the value there)"
+            )
+        qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
+        settings = _service_settings(
+            config,
+            host=host,
+            port=port,
+            data_dir=data_dir,
+            model=model,
+            insecure=insecure or None,
+            log_format=log_format,
+            index={"backend": index_backend} if index_backend else None,
+            qdrant={k: v for k, v in qdrant.items() if v is not None} or None,
         )
-    qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
-    settings = _service_settings(
-        config,
-        host=host,
-        port=port,
-        data_dir=data_dir,
-        model=model,
-        insecure=insecure or None,
-        log_format=log_format,
-        index={"backend": index_backend} if index_backend else None,
-        qdrant={k: v for k, v in qdrant.items() if v is not None} or None,
-    )
-    try:
-        settings.check_binding()
-    except ValueError as err:
-        console.print(f"[bold red]error:[/] {escape(str(err))}")
-        raise typer.Exit(2) from None
-    if not settings.model.is_file():
-        missing = escape(str(settings.model))
-        console.print(f"[bold red]error:[/] model file {missing} does not exist")
-        raise typer.Exit(2)
-    _preflight(settings, _check_model_file(settings.model))
-    signal.signal(signal.SIGTERM, stop_default)  # uvicorn's from here, then as before
-    run(settings)
+        try:
+            settings.check_binding()
+        except ValueError as err:
+            console.print(f"[bold red]error:[/] {escape(str(err))}")
+            raise typer.Exit(2) from None
+        if not settings.model.is_file():
+            missing = escape(str(settings.model))
+            console.print(f"[bold red]error:[/] model file {missing} does not exist")
+            raise typer.Exit(2)
+        _preflight(settings, _check_model_file(settings.model))
+    run(settings)  # uvicorn's handlers from here; then the ones before, as it found them
 
 
 def _preflight(settings: Any, meta: Any) -> None:
