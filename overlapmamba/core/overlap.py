@@ -371,33 +371,38 @@ def _content(seq: Sequence) -> str:
     return digest() if digest is not None else ""
 
 
-def _load_matching(path: Path, fingerprint: str, seq: Sequence) -> LoopGroundTruth | None:
-    """The table at ``path`` if it was made from this sequence with these parameters, and
-    (where it records one: tables since 2026-12-04) from these scans' content."""
+def _read_table(path: Path) -> LoopGroundTruth | None:
+    """The loop table at ``path``; None where there is none or it cannot be read (empty, cut
+    short, not a zip: numpy and zipfile refuse such files in many ways)."""
     if not path.is_file():
         return None
     try:
-        gt = LoopGroundTruth.load(path)
-    except Exception:  # unreadable (empty, cut short, not a zip) or stale: recompute
+        return LoopGroundTruth.load(path)
+    except Exception:
         return None
-    return gt if table_matches(gt, fingerprint, seq) else None
 
 
-def _check_replaceable(path: Path) -> None:
-    """A table path the caller named may hold a loop table (of other parameters: written
-    again) or a damaged ``.npz`` (a table is written as one), never another file: a file of
-    another name that is not a loop table is refused, not overwritten."""
+def _load_matching(path: Path, fingerprint: str, seq: Sequence) -> LoopGroundTruth | None:
+    """The table at ``path`` if it was made from this sequence with these parameters, and
+    (where it records one: tables since 2026-12-04) from these scans' content."""
+    gt = _read_table(path)
+    return gt if gt is not None and table_matches(gt, fingerprint, seq) else None
+
+
+def _named_table(path: Path) -> LoopGroundTruth | None:
+    """:func:`_read_table` of a table path the caller named, which may hold a loop table (of
+    other parameters: written again) or a damaged ``.npz`` (a table is written as one), never
+    another file: a file of another name that is not a loop table is refused, not
+    overwritten."""
     if path.is_dir():
         raise DatasetError(f"{path} is a folder; give the .npz file the table is written to")
-    if not path.exists() or path.suffix == ".npz":
-        return
-    try:
-        LoopGroundTruth.load(path)
-    except Exception:  # numpy's and zipfile's many ways to refuse a file that is no table
+    gt = _read_table(path)
+    if gt is None and path.exists() and path.suffix != ".npz":
         raise DatasetError(
             f"{path} exists and is not a loop table, which a table would overwrite; give "
             "another file, or delete it"
-        ) from None
+        )
+    return gt
 
 
 def table_matches(gt: LoopGroundTruth, fingerprint: str, seq: Sequence) -> bool:
@@ -435,10 +440,8 @@ def loop_ground_truth(
             if shipped is not None:
                 return shipped
         path = default_cache_path(seq, fp) if cache is True else Path(cache)
-        if cache is not True:
-            _check_replaceable(path)
-        cached = _load_matching(path, fp, seq)
-        if cached is not None:
+        cached = _read_table(path) if cache is True else _named_table(path)  # read once
+        if cached is not None and table_matches(cached, fp, seq):
             return cached
     pos = seq.positions()
     pairs = candidate_pairs(pos, radius=loops.radius, min_gap=loops.exclude_recent_frames + 1)
