@@ -1,7 +1,7 @@
 """``overlapmamba`` — data tools, training and export, evaluation, and the service, as four
-command groups (``overlapmamba.cli.data``, ``overlapmamba.cli.model``,
-``overlapmamba.cli.evaluation``,
-``overlapmamba.cli.ops``) assembled here.
+command groups assembled here: data (``overlapmamba.cli.data``, and the synthetic world's
+``overlapmamba.cli.synthetic``), ``overlapmamba.cli.model``, ``overlapmamba.cli.evaluation``
+and ``overlapmamba.cli.ops``.
 
 Commands are thin: they parse options, call the library, and turn library errors into a red
 message and exit code 2 (bad input) instead of a traceback (``overlapmamba.cli.common``).
@@ -15,7 +15,7 @@ from typing import Any
 
 import typer
 
-from overlapmamba.cli import data, evaluation, model, ops
+from overlapmamba.cli import data, evaluation, model, ops, synthetic
 
 app = typer.Typer(
     name="overlapmamba",
@@ -24,7 +24,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-for group in (data, model, evaluation, ops):
+for group in (data, synthetic, model, evaluation, ops):
     app.add_typer(group.app)
 
 
