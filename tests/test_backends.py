@@ -362,7 +362,7 @@ def test_positions_are_the_latest_keyframes_that_have_a_pose(kind, tmp_path):
         if kind == "faiss":  # an index answers it: the dashboard asks every few seconds, and
             # reading and sorting the whole table took 0.3 s at 150,000 keyframes
             store = m.store  # type: ignore[attr-defined]
-            with store._reading() as con:
+            with store._file.reading() as con:
                 plan = " ".join(
                     str(r[-1])
                     for r in con.execute(
@@ -646,7 +646,7 @@ def test_a_full_disk_is_named_and_the_map_goes_on_afterwards(tmp_path):
     with opened("faiss", tmp_path) as b:
         m, _ = b.create("town", "flat")
         m.insert([row(i, rng) for i in range(2)])
-        con = m.store._write
+        con = m.store._file.writer
         pages = con.execute("PRAGMA page_count").fetchone()[0]
         con.execute(f"PRAGMA max_page_count = {pages + 1}")  # the disk is full
         big = [row(i, rng, yaw=True) for i in range(2, 60)]

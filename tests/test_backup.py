@@ -12,7 +12,8 @@ import pytest
 from test_backends import opened, row
 
 from overlapmamba.service import backup
-from overlapmamba.service.backends.faiss.store import Store, StoreError
+from overlapmamba.service.backends.faiss.sqlfile import StoreError
+from overlapmamba.service.backends.faiss.store import Store
 from overlapmamba.service.domain import Filters
 from overlapmamba.service.errors import Unavailable
 

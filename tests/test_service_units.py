@@ -259,7 +259,7 @@ def test_a_read_returning_its_connection_as_the_store_closes_leaves_none_open(tm
     import sqlite3
     import threading
 
-    from overlapmamba.service.backends.faiss.store import StoreError
+    from overlapmamba.service.backends.faiss.sqlfile import StoreError
 
     store = Store(tmp_path / "s.sqlite", new=True)
     returned: list[sqlite3.Connection] = []
@@ -279,12 +279,12 @@ def test_a_read_returning_its_connection_as_the_store_closes_leaves_none_open(tm
             returned.append(con)
             self.pool.put(con)
 
-    store._pool = Pool(store._pool)  # type: ignore[assignment]
+    store._file.pool = Pool(store._file.pool)  # type: ignore[assignment]
     assert store.get_meta("schema_version") is not None
     closing.join(5)
     assert not closing.is_alive() and len(returned) == 1
     with pytest.raises(queue.Empty):
-        store._pool.get_nowait()  # nothing pooled after close()
+        store._file.pool.get_nowait()  # nothing pooled after close()
     with pytest.raises(sqlite3.ProgrammingError, match="closed"):
         returned[0].execute("SELECT 1")  # closed with the store, not left open
     with pytest.raises(StoreError, match="is closed"):
@@ -301,7 +301,7 @@ def test_a_reader_never_creates_the_store_file_a_deletion_moved_away(tmp_path):
     store = Store(tmp_path / "s.sqlite", new=True)
     with contextlib.suppress(queue.Empty):
         while True:  # no pooled reader left: the next read opens a connection of its own
-            store._pool.get_nowait().close()
+            store._file.pool.get_nowait().close()
     (tmp_path / "s.sqlite").rename(tmp_path / "moved.sqlite")
     with pytest.raises(sqlite3.OperationalError, match="unable to open"):
         store.get_meta("schema_version")
@@ -490,7 +490,7 @@ def test_store_reader_connections_are_pooled_not_per_thread(tmp_path):
         t = threading.Thread(target=store.count)
         t.start()
         t.join()
-    assert store._pool.qsize() == 1
+    assert store._file.pool.qsize() == 1
     store.close()
 
 

@@ -18,8 +18,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from overlapmamba.service.backends.faiss.sqlfile import READABLE_VERSIONS, fsync_dir, sqlite_uri
-from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, Store, StoreError
+from overlapmamba.service.backends.faiss.sqlfile import (
+    READABLE_VERSIONS,
+    StoreError,
+    fsync_dir,
+    sqlite_uri,
+)
+from overlapmamba.service.backends.faiss.store import IMPORTED_MARK, Store
 from overlapmamba.service.domain import check_map_id
 
 log = logging.getLogger("overlapmamba.service")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from overlapmamba.service.domain import Filters
+
 _NAMES = ("robot", "session", "ts", "alive")
 
 
@@ -121,3 +123,25 @@ class FilterColumns:
         for name in _NAMES:
             setattr(self, name, getattr(self, name)[cut:].copy())
         self.base += cut
+
+    def mask(self, f: Filters) -> np.ndarray | None:
+        """The rows ``f`` lets through, over the columns' rows from :attr:`base` (None: every
+        row)."""
+        if not f.restricts_rows:
+            return None
+        mask = self.alive.copy()
+        if f.exclude_session is not None:
+            mask &= self.session != self.lookup(f.exclude_session)
+        if f.exclude_robot is not None:
+            mask &= self.robot != self.lookup(f.exclude_robot)
+        if f.exclude_recent_s is not None:
+            assert f.session_id is not None and f.timestamp is not None  # Filters checked it
+            own = self.session == self.lookup(f.session_id)
+            if f.robot_id is not None:  # another robot's session of the same name is not own
+                own &= self.robot == self.lookup(f.robot_id)
+            mask &= ~(own & (self.ts > f.timestamp - f.exclude_recent_s))
+        if f.time_from is not None:
+            mask &= self.ts >= f.time_from
+        if f.time_to is not None:
+            mask &= self.ts <= f.time_to
+        return mask

@@ -391,27 +391,6 @@ class FaissMap:
 
     # ---- reads ------------------------------------------------------------------------------
 
-    def allowed(self, f: Filters) -> np.ndarray | None:
-        if not f.restricts_rows:
-            return None
-        c = self.columns
-        mask = c.alive.copy()
-        if f.exclude_session is not None:
-            mask &= c.session != c.lookup(f.exclude_session)
-        if f.exclude_robot is not None:
-            mask &= c.robot != c.lookup(f.exclude_robot)
-        if f.exclude_recent_s is not None:
-            assert f.session_id is not None and f.timestamp is not None  # Filters checked it
-            own = c.session == c.lookup(f.session_id)
-            if f.robot_id is not None:  # another robot's session of the same name is not own
-                own &= c.robot == c.lookup(f.robot_id)
-            mask &= ~(own & (c.ts > f.timestamp - f.exclude_recent_s))
-        if f.time_from is not None:
-            mask &= c.ts >= f.time_from
-        if f.time_to is not None:
-            mask &= c.ts <= f.time_to
-        return mask
-
     def search(
         self,
         descriptor: np.ndarray,
@@ -425,7 +404,7 @@ class FaissMap:
         q = np.asarray(descriptor, dtype=np.float32)  # unit norm (see check_rows)
         with self.lock.read():
             self.check_open()
-            mask = self.allowed(filters)  # over the columns' rows, from their base
+            mask = self.columns.mask(filters)  # over the columns' rows, from their base
             dists, ids = self.index.search(q, k, mask, self.columns.base)
             wanted = [int(i) for i in ids]
             rows: dict[int, tuple[Keyframe, np.ndarray | Spectrum | None]]

@@ -1,14 +1,20 @@
 """The SQLite file under a map's store (:mod:`overlapmamba.service.backends.faiss.store`):
 its schema and the versions that can be read, how it is opened by path (a URI that keeps
-the path whole, immutable where no writer can have it), how a new entry in a folder is made
-durable, and what a failed write leaves (rolled back; a full disk named as one)."""
+the path whole, immutable where no writer can have it) and its connections (one writer,
+pooled readers), how a new entry in a folder is made durable, and what a failed write
+leaves (rolled back; a full disk named as one)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
+import queue
 import sqlite3
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from overlapmamba.service.errors import Unavailable
 
@@ -64,6 +70,91 @@ def sqlite_uri(path: Path, mode: str) -> str:
         if not wal.exists() and not shm.exists():
             uri += "&immutable=1"
     return uri
+
+
+class StoreError(RuntimeError):
+    """The store file is missing, of another schema, or of another model."""
+
+
+class Connections:
+    """A store file's connections: one writer, opened first (the only one that may create
+    the file), its transactions taken under ``write_lock``; and readers, pooled, not one per
+    thread: worker threads come and go, and a connection per thread that ever read would
+    leak file descriptors. ``readonly``: the writer too only reads (`overlapmamba doctor`)."""
+
+    def __init__(self, path: Path, *, readonly: bool = False, create: bool = False) -> None:
+        self.path = Path(path)
+        self.readonly = readonly
+        self.pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
+        self.write_lock = threading.Lock()
+        self._pool_lock = threading.Lock()  # a reader's return against close()
+        self._closed = False
+        self.writer = self._connect(create=create)
+
+    def _connect(self, *, create: bool = False) -> sqlite3.Connection:
+        """A connection to the file; only the writer opened at start may create it (a
+        reader's never re-creates a store whose map was deleted under it)."""
+        if self.readonly:
+            uri = sqlite_uri(self.path, "ro")
+            con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+            con.execute("PRAGMA busy_timeout=10000")
+            return con
+        target = str(self.path) if create else sqlite_uri(self.path, "rw")
+        con = sqlite3.connect(target, uri=not create, check_same_thread=False, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA synchronous=FULL")
+        con.execute("PRAGMA busy_timeout=10000")
+        return con
+
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[sqlite3.Connection]:
+        """A reader's connection, from the pool or new, back to the pool afterwards."""
+        with self._pool_lock:
+            if self._closed:
+                raise StoreError(f"{self.path} is closed")
+            try:
+                con: sqlite3.Connection | None = self.pool.get_nowait()
+            except queue.Empty:
+                con = None
+        if con is None:  # a close() from here on closes it on its return, below
+            con = self._connect()
+        try:
+            yield con
+        finally:
+            # checked and returned as one step: a close() between them would leave this
+            # connection pooled after it, open on a file its map may have deleted
+            with self._pool_lock:
+                if self._closed:
+                    con.close()
+                else:
+                    self.pool.put(con)
+
+    def rows(self, sql: str, args: Sequence[Any] = ()) -> list[Any]:
+        with self.reading() as con:
+            return con.execute(sql, args).fetchall()
+
+    def close(self) -> None:
+        with self.write_lock, self._pool_lock:
+            self._closed = True
+            while True:
+                try:
+                    self.pool.get_nowait().close()
+                except queue.Empty:
+                    break
+            self.writer.close()
+
+
+def holds_store(path: Path) -> bool:
+    """Whether the file at ``path`` holds a store (a schema version), read without writing."""
+    uri = sqlite_uri(path, "ro")
+    try:
+        with contextlib.closing(sqlite3.connect(uri, uri=True)) as con:
+            sql = "SELECT value FROM meta WHERE key = 'schema_version'"
+            return bool(con.execute(sql).fetchall())
+    except sqlite3.OperationalError as err:
+        if "no such table" not in str(err):
+            raise
+        return False
 
 
 def fsync_dir(path: Path) -> None:

@@ -26,13 +26,10 @@ opened for writing.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import queue
 import sqlite3
-import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -43,15 +40,12 @@ from overlapmamba.service.backends.faiss.sqlfile import (
     READABLE_VERSIONS,
     SCHEMA,
     SCHEMA_VERSION,
-    sqlite_uri,
+    Connections,
+    StoreError,
+    holds_store,
     undo,
 )
 from overlapmamba.service.domain import Keyframe, NewKeyframe
-
-
-class StoreError(RuntimeError):
-    """The store file is missing, of another schema, or of another model."""
-
 
 _KF_COLUMNS = (
     "id, keyframe_id, robot_id, session_id, timestamp, pose, content_hash, seq, created_at, sensor"
@@ -95,14 +89,10 @@ class Store:
         than write a new schema over what is left of it."""
         self.path = Path(path)
         self.readonly = readonly
-        self._pool: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
-        self._closed = False
-        self._write_lock = threading.Lock()
-        self._pool_lock = threading.Lock()  # a reader's return against close()
         if readonly:
             if not self.path.is_file():
                 raise StoreError(f"{path} does not exist")
-            self._write = self._connect()
+            self._file = Connections(self.path, readonly=True)
             version = self.get_meta("schema_version")
             if version is None or int(version) not in READABLE_VERSIONS:
                 raise StoreError(
@@ -111,11 +101,9 @@ class Store:
             return
         if not new:
             self._check_exists()
-        self._write = self._connect(create=new)
-        # Reader connections are pooled, not per thread: worker threads come and go, and a
-        # connection per thread that ever read would leak file descriptors.
-        with self._write:
-            self._write.executescript(SCHEMA)
+        self._file = Connections(self.path, create=new)
+        with self._file.writer:
+            self._file.writer.executescript(SCHEMA)
         version = self.get_meta("schema_version")
         if version is None:
             self.set_meta(schema_version=SCHEMA_VERSION, seq=0)
@@ -127,16 +115,7 @@ class Store:
     def _check_exists(self) -> None:
         if not self.path.is_file():
             raise StoreError(f"{self.path} does not exist")
-        uri = sqlite_uri(self.path, "ro")
-        try:
-            with contextlib.closing(sqlite3.connect(uri, uri=True)) as con:
-                sql = "SELECT value FROM meta WHERE key = 'schema_version'"
-                found = con.execute(sql).fetchall()
-        except sqlite3.OperationalError as err:
-            if "no such table" not in str(err):
-                raise
-            found = []
-        if not found:
+        if not holds_store(self.path):
             raise StoreError(
                 f"{self.path} holds no map store (no schema version: emptied or overwritten); "
                 "nothing was written to it"
@@ -146,8 +125,8 @@ class Store:
         """Add the columns later schemas have (NULL for every existing keyframe), in one
         transaction."""
         added = {2: "geometry BLOB", 3: "sensor TEXT"}
-        with self._write_lock:
-            con = self._write
+        with self._file.write_lock:
+            con = self._file.writer
             con.execute("BEGIN IMMEDIATE")
             try:
                 for step in range(version + 1, SCHEMA_VERSION + 1):
@@ -161,74 +140,26 @@ class Store:
                 undo(con, err)
                 raise
 
-    def _connect(self, *, create: bool = False) -> sqlite3.Connection:
-        """A connection to the store; only the writer opened at start may create the file (a
-        reader's never re-creates a store whose map was deleted under it)."""
-        if self.readonly:
-            uri = sqlite_uri(self.path, "ro")
-            con = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
-            con.execute("PRAGMA busy_timeout=10000")
-            return con
-        target = str(self.path) if create else sqlite_uri(self.path, "rw")
-        con = sqlite3.connect(target, uri=not create, check_same_thread=False, isolation_level=None)
-        con.execute("PRAGMA journal_mode=WAL")
-        con.execute("PRAGMA synchronous=FULL")
-        con.execute("PRAGMA busy_timeout=10000")
-        return con
-
-    @contextlib.contextmanager
-    def _reading(self) -> Iterator[sqlite3.Connection]:
-        with self._pool_lock:
-            if self._closed:
-                raise StoreError(f"{self.path} is closed")
-            try:
-                con: sqlite3.Connection | None = self._pool.get_nowait()
-            except queue.Empty:
-                con = None
-        if con is None:  # a close() from here on closes it on its return, below
-            con = self._connect()
-        try:
-            yield con
-        finally:
-            # checked and returned as one step: a close() between them would leave this
-            # connection pooled after it, open on a file its map may have deleted
-            with self._pool_lock:
-                if self._closed:
-                    con.close()
-                else:
-                    self._pool.put(con)
-
-    def _rows(self, sql: str, args: Sequence[Any] = ()) -> list[Any]:
-        with self._reading() as con:
-            return con.execute(sql, args).fetchall()
-
     def close(self) -> None:
-        with self._write_lock, self._pool_lock:
-            self._closed = True
-            while True:
-                try:
-                    self._pool.get_nowait().close()
-                except queue.Empty:
-                    break
-            self._write.close()
+        self._file.close()
 
     # ---- meta -----------------------------------------------------------------------------
 
     def get_meta(self, key: str) -> str | None:
-        rows = self._rows("SELECT value FROM meta WHERE key = ?", (key,))
+        rows = self._file.rows("SELECT value FROM meta WHERE key = ?", (key,))
         return rows[0][0] if rows else None
 
     def set_meta(self, **values: Any) -> None:
-        with self._write_lock:
-            self._write.execute("BEGIN IMMEDIATE")
+        with self._file.write_lock:
+            self._file.writer.execute("BEGIN IMMEDIATE")
             try:
-                self._write.executemany(
+                self._file.writer.executemany(
                     "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
                     [(k, v if isinstance(v, str) else json.dumps(v)) for k, v in values.items()],
                 )
-                self._write.execute("COMMIT")
+                self._file.writer.execute("COMMIT")
             except BaseException as err:
-                undo(self._write, err)
+                undo(self._file.writer, err)
                 raise
 
     @property
@@ -240,8 +171,8 @@ class Store:
     def insert(self, rows: list[NewKeyframe]) -> tuple[list[int], int]:
         """Insert rows in one committed transaction → (their ids, the new seq)."""
         now = time.time()
-        with self._write_lock:
-            con = self._write
+        with self._file.write_lock:
+            con = self._file.writer
             con.execute("BEGIN IMMEDIATE")
             try:
                 seq = int(con.execute("SELECT value FROM meta WHERE key='seq'").fetchone()[0]) + 1
@@ -278,8 +209,8 @@ class Store:
 
     def delete(self, keyframe_id: str) -> int | None:
         """Tombstone one keyframe → its id, or None if there is no such live keyframe."""
-        with self._write_lock:
-            con = self._write
+        with self._file.write_lock:
+            con = self._file.writer
             con.execute("BEGIN IMMEDIATE")
             try:
                 row = con.execute(
@@ -303,8 +234,8 @@ class Store:
 
     def purge_tombstones(self, upto_seq: int) -> int:
         """Drop tombstones that a durable snapshot at ``upto_seq`` already reflects."""
-        with self._write_lock:
-            cur = self._write.execute(
+        with self._file.write_lock:
+            cur = self._file.writer.execute(
                 "DELETE FROM keyframes WHERE deleted_seq IS NOT NULL AND deleted_seq <= ?",
                 (upto_seq,),
             )
@@ -313,13 +244,15 @@ class Store:
     # ---- reads ----------------------------------------------------------------------------
 
     def count(self) -> int:
-        return int(self._rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0])
+        return int(
+            self._file.rows("SELECT COUNT(*) FROM keyframes WHERE keyframe_id IS NOT NULL")[0][0]
+        )
 
     def problems(self, limit: int = 5) -> list[str]:
         """What SQLite's ``quick_check`` finds wrong with the file (every page read, the rows
         a start would replay included); empty when it is sound."""
         try:
-            found = [r[0] for r in self._rows(f"PRAGMA quick_check({int(limit)})")]
+            found = [r[0] for r in self._file.rows(f"PRAGMA quick_check({int(limit)})")]
         except sqlite3.DatabaseError as err:  # a page it cannot even parse
             return [str(err)]
         return [] if found == ["ok"] else found
@@ -327,7 +260,7 @@ class Store:
     def census(self, at_seq: int) -> tuple[int, int, int]:
         """(last seq, live keyframes, keyframes alive at ``at_seq``), read in one
         transaction: one consistent view even while a service writes."""
-        with self._reading() as con:
+        with self._file.reading() as con:
             con.execute("BEGIN")
             try:
                 row = con.execute("SELECT value FROM meta WHERE key = 'seq'").fetchone()
@@ -344,7 +277,7 @@ class Store:
         return int(row[0]) if row else 0, int(live), int(at)
 
     def get(self, keyframe_id: str) -> Keyframe | None:
-        rows = self._rows(
+        rows = self._file.rows(
             f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
         )
         return _keyframe(rows[0]) if rows else None
@@ -354,7 +287,7 @@ class Store:
         for start in range(0, len(keyframe_ids), 500):
             chunk = keyframe_ids[start : start + 500]
             marks = ",".join("?" * len(chunk))
-            for row in self._rows(
+            for row in self._file.rows(
                 f"SELECT {_KF_COLUMNS} FROM keyframes WHERE keyframe_id IN ({marks})", chunk
             ):
                 kf = _keyframe(row)
@@ -368,7 +301,7 @@ class Store:
             return {}
         marks = ",".join("?" * len(ids))
         out = {}
-        for row in self._rows(
+        for row in self._file.rows(
             f"SELECT {_KF_COLUMNS}, yaw, yaw_shape, descriptor FROM keyframes "
             f"WHERE id IN ({marks}) AND keyframe_id IS NOT NULL",
             ids,
@@ -387,7 +320,7 @@ class Store:
         if not keyframe_ids:
             return {}
         marks = ",".join("?" * len(keyframe_ids))
-        rows = self._rows(
+        rows = self._file.rows(
             f"SELECT keyframe_id, geometry FROM keyframes WHERE keyframe_id IN ({marks}) "
             "AND geometry IS NOT NULL",
             keyframe_ids,
@@ -395,7 +328,9 @@ class Store:
         return {r[0]: bytes(r[1]) for r in rows}
 
     def descriptor(self, keyframe_id: str) -> np.ndarray | None:
-        rows = self._rows("SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,))
+        rows = self._file.rows(
+            "SELECT descriptor FROM keyframes WHERE keyframe_id = ?", (keyframe_id,)
+        )
         return index_vector(rows[0][0]) if rows else None
 
     def live_rows(
@@ -410,7 +345,7 @@ class Store:
         else:
             where = "seq > ? AND seq <= ? AND (deleted_seq IS NULL OR deleted_seq > ?)"
             args = (after_seq, upto_seq, upto_seq)
-        with self._reading() as con:
+        with self._file.reading() as con:
             cur = con.execute(
                 "SELECT id, descriptor, robot_id, session_id, timestamp FROM keyframes "
                 f"WHERE {where} ORDER BY id",
@@ -425,7 +360,7 @@ class Store:
         self, chunk: int = 50_000
     ) -> Iterator[tuple[np.ndarray, list[tuple[str, str, float]]]]:
         """Every live row's id and (robot, session, timestamp), without the descriptors."""
-        with self._reading() as con:
+        with self._file.reading() as con:
             cur = con.execute(
                 "SELECT id, robot_id, session_id, timestamp FROM keyframes "
                 "WHERE keyframe_id IS NOT NULL ORDER BY id"
@@ -434,13 +369,13 @@ class Store:
                 yield np.array([r[0] for r in rows], np.int64), [(r[1], r[2], r[3]) for r in rows]
 
     def deleted_after(self, after_seq: int) -> np.ndarray:
-        rows = self._rows(
+        rows = self._file.rows(
             "SELECT id FROM keyframes WHERE deleted_seq > ? AND seq <= ?", (after_seq, after_seq)
         )
         return np.array([r[0] for r in rows], dtype=np.int64)
 
     def last_keyframe(self, robot_id: str, session_id: str) -> Keyframe | None:
-        rows = self._rows(
+        rows = self._file.rows(
             f"SELECT {_KF_COLUMNS} FROM keyframes WHERE robot_id = ? AND session_id = ? AND "
             # of equal times, the one written last, then the greatest id: as Qdrant's map
             "keyframe_id IS NOT NULL ORDER BY timestamp DESC, created_at DESC, keyframe_id DESC "
@@ -451,7 +386,7 @@ class Store:
 
     def positions(self, limit: int) -> list[tuple[str, float, float]]:
         """(robot_id, x, y) of the latest ``limit`` keyframes with a pose."""
-        rows = self._rows(
+        rows = self._file.rows(
             "SELECT robot_id, pose FROM keyframes WHERE keyframe_id IS NOT NULL AND pose IS NOT "
             "NULL ORDER BY timestamp DESC LIMIT ?",
             (int(limit),),
@@ -467,7 +402,7 @@ class Store:
         live keyframes the copy holds (not the store's by then)."""
         target = sqlite3.connect(dest)
         try:
-            with self._reading() as con:
+            with self._file.reading() as con:
                 con.backup(target)
             # a file of its own, not a write-ahead log's: it opens read-only anywhere (a
             # store opened on it for writing goes back to WAL)
