@@ -1,7 +1,7 @@
 """Which cells of a polar bird's-eye view agree across sensors: the ``bev`` input's design.
 
 No network: each layout of cells (height bands above the reference ground × rings of range,
-:func:`overlapmamba.core.sensors.input.project_bev_offset`, one view) is described by a hand-made
+:func:`overlapmamba.core.sensors.bev.project_bev_offset`, one view) is described by a hand-made
 turn-invariant spectrum, each row's magnitudes of the first ``--harmonics`` Fourier
 components over the columns, L2-normalised, and scored under the loop-closure protocol on
 the validation drive and its renderings by other sensors (``val-kitti-hdl64`` and
@@ -27,7 +27,7 @@ from reports_kit import REPORTS, ROOT, write_report
 
 from overlapmamba.core.datasets import open_sequence
 from overlapmamba.core.sensors import get_profile
-from overlapmamba.core.sensors.input import BEV_BANDS, BEV_RINGS, project_bev_offset
+from overlapmamba.core.sensors.bev import BEV_BANDS, BEV_RINGS, project_bev_offset
 from overlapmamba.train.evaluate import cross_loop_closure, loop_closure, sequence_loops, summary
 
 SENSORS = ("kitti-hdl64", "vlp16", "os0-128", "xt32", "os1-128")

@@ -12,16 +12,17 @@ from test_catalogue import _cloud
 
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import CATALOGUE, SensorProfile, get_profile
-from overlapmamba.core.sensors.bev import bev_cells, cells_reference
-from overlapmamba.core.sensors.input import (
+from overlapmamba.core.sensors.bev import (
     BEV_BANDS,
     BEV_MODES,
     BEV_RINGS,
-    COMMON_MAX_RANGE,
-    SensorInput,
+    bev_cells,
+    cells_reference,
     project_bev_offset,
     project_bev_reference,
 )
+from overlapmamba.core.sensors.catalogue import COMMON_MAX_RANGE
+from overlapmamba.core.sensors.input import SensorInput
 from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
 
 KITTI = get_profile("kitti-hdl64")

@@ -98,7 +98,7 @@ def test_a_sparse_sensors_lost_returns_leave_gaps_the_fill_closes():
 
 
 def test_the_reach_mode_cuts_every_scan_at_the_common_range_and_fills_other_sensors():
-    from overlapmamba.core.sensors.input import COMMON_MAX_RANGE
+    from overlapmamba.core.sensors.catalogue import COMMON_MAX_RANGE
 
     xyz = _cloud(20_000, 9)
     near = xyz[np.linalg.norm(xyz, axis=1) < COMMON_MAX_RANGE]

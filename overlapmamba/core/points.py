@@ -99,6 +99,14 @@ class PointCloud:
         return out
 
 
+def xyz_of(points: PointCloud | np.ndarray) -> np.ndarray:
+    """(N, 3) coordinates of a cloud, or of an (N, ≥3) array's first three columns."""
+    xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+        raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
+    return xyz[:, :3]
+
+
 def validate(
     xyz: np.ndarray,
     intensity: np.ndarray | None = None,

@@ -1,8 +1,8 @@
-"""The cells of the bird's-eye inputs: from each return's row (ring × band) and its column as a
-continuous number (column c spans [c, c + 1);
-:func:`overlapmamba.core.sensors.input.project_bev_offset` finds both), what each cell of a
-(views, H, W) image shows. Sub-column view j moves every return j/views of a column on; empty
-cells are the profile's ``empty_value``, a full one 1.
+"""The bird's-eye inputs (``input``'s ``bev`` modes): :func:`project_bev_offset` finds each
+levelled return's row (ring × band) and its column as a continuous number (column c spans
+[c, c + 1)); :func:`bev_cells` then says what each cell of a (views, H, W) image shows.
+Sub-column view j moves every return j/views of a column on; empty cells are the profile's
+``empty_value``, a full one 1.
 
     bev        occupied: 1 where any return falls in the cell
     bev-soft   shared: each return gives the two columns whose centres lie either side of it
@@ -14,17 +14,27 @@ cells are the profile's ``empty_value``, a full one 1.
                however densely it is sampled: only where the returns end does the value fall
 
 The columns wrap round (azimuth is a circle) in ``bev-soft`` and ``bev-span``; ``bev``'s first
-view clips, as the range images do. :func:`cells_reference` is the slow per-return version for
-tests.
+view clips, as the range images do. :func:`cells_reference` and :func:`project_bev_reference`
+are the slow per-return versions for tests.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from overlapmamba.core.points import PointCloud, xyz_of
+from overlapmamba.core.sensors.catalogue import COMMON_MAX_RANGE
+from overlapmamba.core.sensors.mount import GROUND_CLEARANCE, REFERENCE_HEIGHT
 from overlapmamba.core.sensors.profile import SensorProfile
+from overlapmamba.core.views import check_views, scan_offset
 
 BEV_MODES = ("bev", "bev-soft", "bev-span")  # the bird's-eye inputs: rows of rings × bands
+# m above the reference ground: the bands of the ``bev`` input (the lowest starts above the
+# ground, as ``structure``'s clearance; the top one ends where a car-mounted HDL-64E, 2.7°
+# up at most, still reaches from 27 m on)
+BEV_BANDS = (GROUND_CLEARANCE, 1.7, 3.0)
+BEV_RINGS = 32  # rings of horizontal range within COMMON_MAX_RANGE
+_PI = np.float32(np.pi)
 
 
 def bev_cells(
@@ -135,3 +145,79 @@ def cells_reference(u: np.ndarray, row: np.ndarray, model: SensorProfile, mode: 
         out[share > 0] = 1.0
         return out
     return _scaled(share, model)[0]
+
+
+def bev_rows(
+    model: SensorProfile, bands: tuple[float, ...] = BEV_BANDS, rings: int = BEV_RINGS
+) -> int:
+    """The rows the ``bev`` input fills (``rings`` × the bands); the model's rows below them
+    stay empty. A profile with fewer rows cannot take it."""
+    rows = rings * (len(bands) - 1)
+    if rows > model.height:
+        raise ValueError(
+            f"the bev input's {rings} rings × {len(bands) - 1} bands need more rows than "
+            f"profile {model.name!r} has ({model.height})"
+        )
+    return rows
+
+
+def project_bev_offset(
+    xyz: np.ndarray,
+    model: SensorProfile,
+    views: int,
+    bands: tuple[float, ...] = BEV_BANDS,
+    rings: int = BEV_RINGS,
+    mode: str = "bev",
+    *,
+    aligned: bool = False,
+) -> tuple[np.ndarray, float]:
+    """(N, 3) levelled points at the reference height → (views, H, W) images of the
+    bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
+    measures others), and the column offset it added: 0 unless ``aligned``, where the
+    columns start at the mean bearing of the returns the input keeps
+    (:func:`overlapmamba.core.views.scan_offset`), so that a scan turned about the vertical
+    gives the plain image rolled by whole columns."""
+    views = check_views(views)
+    bev_rows(model, bands, rings)
+    xyz = np.asarray(xyz, np.float32)
+    x, y = xyz[:, 0], xyz[:, 1]
+    z = xyz[:, 2] + np.float32(REFERENCE_HEIGHT)  # above the reference ground
+    depth = np.sqrt(x * x + y * y + xyz[:, 2] * xyz[:, 2])
+    edges = np.asarray(bands, np.float32)
+    keep = (depth > np.float32(model.min_range)) & (depth < np.float32(COMMON_MAX_RANGE))
+    keep &= (z >= edges[0]) & (z < edges[-1])
+    x, y, z = x[keep], y[keep], z[keep]
+    horizontal = np.sqrt(x * x + y * y)
+    ring = np.minimum(horizontal * np.float32(rings / COMMON_MAX_RANGE), rings - 1)
+    band = np.searchsorted(edges, z, side="right") - 1
+    row = ring.astype(np.int64) * (len(edges) - 1) + band
+    u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
+    offset = 0.0
+    if aligned:
+        offset = scan_offset(x, y, depth[keep], model.width)
+        u = np.mod(u + np.float32(offset), np.float32(model.width))
+    return bev_cells(u, row, model, views, mode), offset
+
+
+def project_bev_reference(
+    points: PointCloud | np.ndarray, model: SensorProfile, mode: str = "bev"
+) -> np.ndarray:
+    """Slow, obvious image of the bird's-eye input ``mode`` (one view, no mount) for tests:
+    per point, its height above the reference ground, its ring of horizontal range and its
+    column, then :func:`~overlapmamba.core.sensors.bev.cells_reference`."""
+    us, rows = [], []
+    nb = len(BEV_BANDS) - 1
+    for x, y, z in np.asarray(xyz_of(points), np.float32):
+        depth = np.sqrt(x * x + y * y + z * z)
+        above = z + np.float32(REFERENCE_HEIGHT)
+        if not (np.float32(model.min_range) < depth < np.float32(COMMON_MAX_RANGE)):
+            continue
+        band = next((b for b in range(nb) if BEV_BANDS[b] <= above < BEV_BANDS[b + 1]), None)
+        if band is None:
+            continue
+        scale = np.float32(BEV_RINGS / COMMON_MAX_RANGE)
+        ring = min(int(np.sqrt(x * x + y * y) * scale), BEV_RINGS - 1)
+        u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
+        rows.append(ring * nb + band)
+        us.append(u)
+    return cells_reference(np.array(us, np.float32), np.array(rows, np.int64), model, mode)

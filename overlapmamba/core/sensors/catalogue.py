@@ -277,6 +277,9 @@ CATALOGUE: dict[str, Sensor] = {
         ),
     )
 }
+# m: the shortest reach of a catalogue spinning sensor (OS0-128): the inputs that cut every
+# sensor's scans to one reach cut them here (overlapmamba.core.sensors.input)
+COMMON_MAX_RANGE = 50.0
 
 
 def sensor_names() -> list[str]:

@@ -84,7 +84,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from overlapmamba.core.points import PointCloud
+from overlapmamba.core.points import PointCloud, xyz_of
 from overlapmamba.core.sensors.beams import (
     COMMON_TOLERANCE_DEG,
     LerpPlan,
@@ -94,10 +94,26 @@ from overlapmamba.core.sensors.beams import (
     on_beams,
     row_beams,
 )
-from overlapmamba.core.sensors.bev import BEV_MODES, bev_cells, cells_reference
-from overlapmamba.core.sensors.catalogue import CATALOGUE, Sensor, sensor_of_profile
+from overlapmamba.core.sensors.bev import (
+    BEV_BANDS,
+    BEV_MODES,
+    BEV_RINGS,
+    bev_rows,
+    project_bev_offset,
+)
+from overlapmamba.core.sensors.catalogue import (
+    CATALOGUE,
+    COMMON_MAX_RANGE,
+    Sensor,
+    sensor_of_profile,
+)
 from overlapmamba.core.sensors.gaps import fill_gaps
-from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount, to_reference
+from overlapmamba.core.sensors.mount import (
+    GROUND_CLEARANCE,
+    REFERENCE_HEIGHT,
+    Mount,
+    to_reference,
+)
 from overlapmamba.core.sensors.profile import SensorProfile
 from overlapmamba.core.views import check_views, project_views_offset, scan_offset
 
@@ -123,13 +139,6 @@ FILL_MODES = ("elevation-fill", "elevation-reach")
 # that mount's): the others take scans as recorded
 LEVELLED_MODES = ("structure", *BEV_MODES)
 COMMON_SENSOR = "vlp16"  # the sparsest spinning sensor of the catalogue: 16 beams, 2° apart
-GROUND_CLEARANCE = 0.3  # m above the reference mount's ground: below it, ``structure`` drops
-COMMON_MAX_RANGE = 50.0  # m: the shortest reach of a catalogue spinning sensor (OS0-128)
-# m above the reference ground: the bands of the ``bev`` input (the lowest starts above the
-# ground, as ``structure``'s clearance; the top one ends where a car-mounted HDL-64E, 2.7°
-# up at most, still reaches from 27 m on)
-BEV_BANDS = (GROUND_CLEARANCE, 1.7, 3.0)
-BEV_RINGS = 32  # rings of horizontal range within COMMON_MAX_RANGE
 _PI = np.float32(np.pi)
 
 
@@ -270,13 +279,13 @@ class SensorInput:
         """:meth:`project` and the column offset of its images (0 unless ``aligned``)."""
         if self.mode in FILL_MODES:
             if self.mode == "elevation-reach":
-                xyz = _xyz(points)
+                xyz = xyz_of(points)
                 points = xyz[np.linalg.norm(xyz, axis=1) < COMMON_MAX_RANGE]
             images, offset = self._elevation.project_offset(points, views, aligned=aligned)
             filled = images if self.own_sensor else fill_gaps(images, self.model.empty_value)
             return filled, offset
         if self.mode in BEV_MODES:
-            xyz = _xyz(points)
+            xyz = xyz_of(points)
             xyz = to_reference(xyz, self.mount) if self.mount is not None else xyz
             return project_bev_offset(xyz, self.model, views, mode=self.mode, aligned=aligned)
         if self.mount is not None or self.mode in COMMON_MODES:
@@ -296,65 +305,6 @@ class SensorInput:
         return _project_beams(
             points, self.model, self.sensor, self.rows(), views, aligned, plan=self.lerp_plan
         )
-
-
-def _xyz(points: PointCloud | np.ndarray) -> np.ndarray:
-    xyz = points.xyz if isinstance(points, PointCloud) else np.asarray(points)
-    if xyz.ndim != 2 or xyz.shape[1] < 3:
-        raise ValueError(f"points must have shape (N, 3) or (N, 4); got {xyz.shape}")
-    return xyz[:, :3]
-
-
-def bev_rows(
-    model: SensorProfile, bands: tuple[float, ...] = BEV_BANDS, rings: int = BEV_RINGS
-) -> int:
-    """The rows the ``bev`` input fills (``rings`` × the bands); the model's rows below them
-    stay empty. A profile with fewer rows cannot take it."""
-    rows = rings * (len(bands) - 1)
-    if rows > model.height:
-        raise ValueError(
-            f"the bev input's {rings} rings × {len(bands) - 1} bands need more rows than "
-            f"profile {model.name!r} has ({model.height})"
-        )
-    return rows
-
-
-def project_bev_offset(
-    xyz: np.ndarray,
-    model: SensorProfile,
-    views: int,
-    bands: tuple[float, ...] = BEV_BANDS,
-    rings: int = BEV_RINGS,
-    mode: str = "bev",
-    *,
-    aligned: bool = False,
-) -> tuple[np.ndarray, float]:
-    """(N, 3) levelled points at the reference height → (views, H, W) images of the
-    bird's-eye input ``mode`` (``bands`` and ``rings``: the input's own unless a benchmark
-    measures others), and the column offset it added: 0 unless ``aligned``, where the
-    columns start at the mean bearing of the returns the input keeps
-    (:func:`overlapmamba.core.views.scan_offset`), so that a scan turned about the vertical
-    gives the plain image rolled by whole columns."""
-    views = check_views(views)
-    bev_rows(model, bands, rings)
-    xyz = np.asarray(xyz, np.float32)
-    x, y = xyz[:, 0], xyz[:, 1]
-    z = xyz[:, 2] + np.float32(REFERENCE_HEIGHT)  # above the reference ground
-    depth = np.sqrt(x * x + y * y + xyz[:, 2] * xyz[:, 2])
-    edges = np.asarray(bands, np.float32)
-    keep = (depth > np.float32(model.min_range)) & (depth < np.float32(COMMON_MAX_RANGE))
-    keep &= (z >= edges[0]) & (z < edges[-1])
-    x, y, z = x[keep], y[keep], z[keep]
-    horizontal = np.sqrt(x * x + y * y)
-    ring = np.minimum(horizontal * np.float32(rings / COMMON_MAX_RANGE), rings - 1)
-    band = np.searchsorted(edges, z, side="right") - 1
-    row = ring.astype(np.int64) * (len(edges) - 1) + band
-    u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-    offset = 0.0
-    if aligned:
-        offset = scan_offset(x, y, depth[keep], model.width)
-        u = np.mod(u + np.float32(offset), np.float32(model.width))
-    return bev_cells(u, row, model, views, mode), offset
 
 
 def _project_beams(
@@ -435,30 +385,6 @@ def project_input_reference(
             if image[row, col] == model.empty_value or r < image[row, col]:
                 image[row, col] = r
     return image
-
-
-def project_bev_reference(
-    points: PointCloud | np.ndarray, model: SensorProfile, mode: str = "bev"
-) -> np.ndarray:
-    """Slow, obvious image of the bird's-eye input ``mode`` (one view, no mount) for tests:
-    per point, its height above the reference ground, its ring of horizontal range and its
-    column, then :func:`~overlapmamba.core.sensors.bev.cells_reference`."""
-    us, rows = [], []
-    nb = len(BEV_BANDS) - 1
-    for x, y, z in np.asarray(_xyz(points), np.float32):
-        depth = np.sqrt(x * x + y * y + z * z)
-        above = z + np.float32(REFERENCE_HEIGHT)
-        if not (np.float32(model.min_range) < depth < np.float32(COMMON_MAX_RANGE)):
-            continue
-        band = next((b for b in range(nb) if BEV_BANDS[b] <= above < BEV_BANDS[b + 1]), None)
-        if band is None:
-            continue
-        scale = np.float32(BEV_RINGS / COMMON_MAX_RANGE)
-        ring = min(int(np.sqrt(x * x + y * y) * scale), BEV_RINGS - 1)
-        u = np.float32(0.5) * (-np.arctan2(y, x) / _PI + np.float32(1.0)) * np.float32(model.width)
-        rows.append(ring * nb + band)
-        us.append(u)
-    return cells_reference(np.array(us, np.float32), np.array(rows, np.int64), model, mode)
 
 
 def _nearest(el: float, table: np.ndarray) -> int:

@@ -21,6 +21,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 REFERENCE_HEIGHT = 1.73  # m: the training towns' sensor, on KITTI's car roof, level
+# m above the reference mount's ground: below it, the ``structure`` and bird's-eye inputs drop
+# a return (overlapmamba.core.sensors.input)
+GROUND_CLEARANCE = 0.3
 
 
 class Mount(BaseModel):
