@@ -1134,7 +1134,7 @@ def test_simulate_fleet_checks_where_its_outputs_go_before_the_run(synthetic_seq
     (tmp_path / "afile").write_text("")
     base = ["simulate-fleet", "--map", "m", "-s", str(synthetic_seq_dir), "--duration", "1"]
     for extra, says in (
-        (["--plot", str(tmp_path / "p.txt")], "allowed plot formats are"),
+        (["--plot", str(tmp_path / "p.txt")], "allowed formats are"),
         (["--out", str(tmp_path / "afile" / "r.json")], "cannot make its folder"),
         (["--out", str(tmp_path)], "is a folder"),
     ):

@@ -237,7 +237,7 @@ def test_bad_inputs_to_train_and_eval_are_named_before_the_work(tmp_path, kitti_
         return " ".join(text.replace("│", " ").split())
 
     res = runner.invoke(app, [*ev, "--plot", str(tmp_path / "pr.txt")])
-    assert res.exit_code == 2 and "allowed plot formats" in flat(res.output)
+    assert res.exit_code == 2 and "allowed formats are" in flat(res.output)
     res = runner.invoke(app, [*ev, "--json", str(tmp_path)])
     assert res.exit_code == 2 and "is a folder" in flat(res.output), res.output
     res = runner.invoke(app, [*ev, "--json", str(tmp_path / "e.json")])  # frames 0–100

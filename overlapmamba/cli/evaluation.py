@@ -17,9 +17,9 @@ from overlapmamba.cli.common import (
     errors_table,
     friendly_errors,
     metrics_table,
-    os_error,
     out,
 )
+from overlapmamba.core.outfiles import check_output, write_whole
 from overlapmamba.core.rerank import Rerank
 
 app, command = command_group("Model")
@@ -201,46 +201,25 @@ def eval_cmd(
         out.print(f"wrote {', '.join(str(p) for p in (json_out, plot) if p)}")
 
 
-PLOT_SUFFIXES = (".png", ".pdf", ".svg")
-
-
 def _check_outputs(json_out: Path | None, plot: Path | None) -> None:
-    """Where the results go, checked before the work that makes them."""
-    for path, hint in ((json_out, "--json"), (plot, "--plot")):
-        if path is not None and path.is_dir():
-            raise typer.BadParameter(f"{path} is a folder; give a file name", param_hint=hint)
-    if plot is not None and plot.suffix.lower() not in PLOT_SUFFIXES:
-        raise typer.BadParameter(
-            f"{plot.name}: allowed plot formats are {', '.join(PLOT_SUFFIXES)}",
-            param_hint="--plot",
-        )
-    import os
+    """Where the results go, checked (their folders made) before the work that makes them;
+    a plot in any format matplotlib writes."""
+    try:
+        if json_out is not None:
+            check_output(json_out, "--json")
+        if plot is not None:
+            from matplotlib.backend_bases import FigureCanvasBase
 
-    for path, hint in ((json_out, "--json"), (plot, "--plot")):
-        if path is None:
-            continue
-        try:  # its folder made now (a file in its way was found only after the work)
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise typer.BadParameter(os_error(err), param_hint=hint) from None
-        if not os.access(path.parent, os.W_OK):
-            raise typer.BadParameter(f"cannot write into {path.parent}", param_hint=hint)
+            check_output(plot, "--plot", FigureCanvasBase.get_supported_filetypes())
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
 
 
 def _write_json(path: Path, record: dict[str, Any]) -> None:
-    """Strict JSON (never NaN), written whole or not at all (a killed run leaves no torn file
-    that a later reader takes for a result)."""
-    import os
-
+    """Strict JSON (never NaN), written whole or not at all."""
     from overlapmamba.train.health import strict_json
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        tmp.write_text(strict_json(record, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_whole(path, strict_json(record, indent=2) + "\n")
 
 
 @command(

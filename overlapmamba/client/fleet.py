@@ -24,7 +24,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
 from overlapmamba.client._retry import Retry
 from overlapmamba.core.errors import LidarCoreError
+from overlapmamba.core.outfiles import check_output, write_whole
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
 # a call started before the run's end may finish this long (s) after it; then it is cut
@@ -365,35 +365,17 @@ def check_outputs(out: Path, plot: Path | None) -> None:
     """Where the report and the plot go, checked (their folders made) before the run: a
     plot format matplotlib does not write, or a file in a folder's place, was found after
     the whole simulation, with the JSON written and the plot lost. A ValueError names it."""
+    check_output(out, "--out")
     if plot is not None:
         from matplotlib.backend_bases import FigureCanvasBase
 
-        formats = sorted(FigureCanvasBase.get_supported_filetypes())  # what savefig writes
-        if plot.suffix.lower().lstrip(".") not in formats:
-            raise ValueError(f"--plot {plot}: allowed plot formats are {', '.join(formats)}")
-    for path, flag in ((out, "--out"), (plot, "--plot")):
-        if path is None:
-            continue
-        if path.is_dir():
-            raise ValueError(f"{flag} {path} is a folder; give a file name")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise ValueError(f"{flag} {path}: cannot make its folder: {err.strerror}") from None
-        if not os.access(path.parent, os.W_OK):
-            raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
+        check_output(plot, "--plot", FigureCanvasBase.get_supported_filetypes())
 
 
 def write_outputs(
     report: FleetReport, samples: list[_Sample], out: Path, plot: Path | None
 ) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")  # whole or not at all
-    try:
-        tmp.write_text(json.dumps(report.to_json(), indent=2) + "\n")
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_whole(out, json.dumps(report.to_json(), indent=2) + "\n")
     if plot is None:
         return
     import matplotlib

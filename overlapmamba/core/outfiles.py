@@ -1,0 +1,44 @@
+"""The files a command writes its results to (``overlapmamba eval``'s JSON and plot,
+``overlapmamba-client simulate-fleet``'s report and plot): checked before the work that fills
+them, and written whole or not at all.
+
+A folder in a file's place, a folder that cannot be made or written into, a plot format
+nothing writes: each used to be found after minutes of work, whose result was then lost. A
+file written in place and cut off (a killed run, a full disk) leaves a torn file that a
+later reader takes for a result; :func:`write_whole` leaves the old one or the new one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Collection
+from pathlib import Path
+
+
+def check_output(path: Path, flag: str, formats: Collection[str] | None = None) -> None:
+    """Make ``path``'s folder, and check that a file can be written there; ``formats``: the
+    suffixes (without the dot) allowed. A ValueError names ``flag``, the path and what is
+    wrong."""
+    if formats is not None and path.suffix.lower().lstrip(".") not in formats:
+        allowed = ", ".join(sorted(formats))
+        raise ValueError(f"{flag} {path}: allowed formats are {allowed}")
+    if path.is_dir():
+        raise ValueError(f"{flag} {path} is a folder; give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{flag} {path}: cannot make its folder: {err.strerror}") from None
+    if not os.access(path.parent, os.W_OK):
+        raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
+
+
+def write_whole(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file beside it, renamed over it once
+    whole (no temporary file is left either way)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
