@@ -209,6 +209,12 @@ def test_serve_names_a_variable_that_overrides_the_config_files_setting(tmp_path
     assert "OVERLAPMAMBA_DATA_DIR overrides data_dir in the config file" in out, out
     assert "OVERLAPMAMBA_QDRANT__API_KEY overrides qdrant.api_key" in out
     assert "the-secret" not in out and "OVERLAPMAMBA_PORT overrides" not in out
+    # a flag's setting is the flag's: its variable is not said to override the file
+    flag = ["--data-dir", str(tmp_path / "flag"), "--index-backend", "faiss"]
+    res = runner.invoke(app, ["serve", "--model", str(tmp_path / "none.onnx"), *flag], env=env)
+    out = " ".join(text(res).split())
+    assert "OVERLAPMAMBA_DATA_DIR overrides" not in out, out
+    assert "OVERLAPMAMBA_QDRANT__API_KEY overrides qdrant.api_key" in out, out
 
 
 def test_hash_key_prints_an_entry_for_the_environment_variable_as_json():

@@ -40,6 +40,17 @@ def _service_settings(config: Path | None, **overrides: Any) -> Any:
         _refuse(f"invalid service settings: {err}")
 
 
+def _dotted(overrides: dict[str, Any]) -> list[str]:
+    """The settings ``overrides`` gives (a value that is not None), by dotted name."""
+    names = []
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            names += [f"{key}.{sub}" for sub, v in value.items() if v is not None]
+        elif value is not None:
+            names.append(key)
+    return names
+
+
 def _refuse(message: str) -> NoReturn:
     """A fault the command meets before it starts: one line naming it, exit 2 (not the
     usage text and a box, which a service's log keeps as five lines)."""
@@ -133,29 +144,27 @@ def serve_cmd(
             hint = f"; did you mean {near}?" if near else ""
             why = f"{escape(var)} is not a setting and is ignored{hint}"
             console.print(f"[yellow]warning:[/] {why}")
-        flags = {"host": host, "port": port, "data_dir": data_dir, "model": model}
-        flags |= {"log_format": log_format, "index.backend": index_backend}
-        flags |= {"qdrant.url": qdrant_url, "qdrant.path": qdrant_path}
-        flags |= {"insecure": insecure or None}  # --qdrant-api-key is its variable's, not here
-        given = [key for key, value in flags.items() if value is not None]
+        qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
+        overrides: dict[str, Any] = {
+            "host": host,
+            "port": port,
+            "data_dir": data_dir,
+            "model": model,
+            "insecure": insecure or None,
+            "log_format": log_format,
+            "index": {"backend": index_backend} if index_backend else None,
+            "qdrant": {k: v for k, v in qdrant.items() if v is not None} or None,
+        }
+        given = [  # --qdrant-api-key is its variable's (typer reads it), not a flag's
+            key for key in _dotted(overrides) if key != "qdrant.api_key"
+        ]
         for var, key in shadowed(config, os.environ, given):  # the image's ENV over a file's
             console.print(  # never the value: it may be a key
                 f"[yellow]warning:[/] {escape(var)} overrides {key} in "
                 "the config file (the environment wins over the file; unset the variable, or set "
                 "the value there)"
             )
-        qdrant = {"url": qdrant_url, "api_key": qdrant_api_key, "path": qdrant_path}
-        settings = _service_settings(
-            config,
-            host=host,
-            port=port,
-            data_dir=data_dir,
-            model=model,
-            insecure=insecure or None,
-            log_format=log_format,
-            index={"backend": index_backend} if index_backend else None,
-            qdrant={k: v for k, v in qdrant.items() if v is not None} or None,
-        )
+        settings = _service_settings(config, **overrides)
         try:
             settings.check_binding()
         except ValueError as err:
