@@ -37,12 +37,14 @@ ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 # 1. Dependencies: the core's and the `serve` extra's, read from pyproject.toml; from the
 #    wheelhouse when it has wheels (an air-gapped build), else from the index.
-#    At the versions of constraints.txt, the lock the suite passed with.
+#    At the versions of constraints.txt, the lock the suite passed with, either way: a
+#    wheelhouse holding another version of a package fails the build rather than ship it.
 COPY pyproject.toml constraints.txt deploy/requirements.py ./
 COPY deploy/wheelhouse /wheels
 RUN python requirements.py serve > requirements.txt \
     && if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
-         pip install --no-cache-dir --no-index --find-links /wheels -r requirements.txt; \
+         pip install --no-cache-dir --no-index --find-links /wheels -c constraints.txt \
+           -r requirements.txt; \
        else pip install --no-cache-dir -c constraints.txt -r requirements.txt; fi
 # 2. The source, without dependencies (they are all above).
 COPY README.md ./

@@ -75,6 +75,12 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     runs = " ".join(a for w, a in ins if w == "RUN")
     assert "requirements.py serve" in runs and "--no-deps ." in runs
     assert "-c constraints.txt -r requirements.txt" in runs  # at the lock's versions
+    # from the wheelhouse too: one built at other versions fails rather than ships them
+    installs = [" ".join(i.split()) for i in re.findall(r"pip install[^;&]*", runs)]
+    from_requirements = [i for i in installs if "-r requirements.txt" in i]
+    assert len(from_requirements) == 2, installs  # the wheelhouse's and the index's
+    for install in from_requirements:
+        assert "-c constraints.txt" in install, install
     assert "torch" not in " ".join(copies) and not re.search(r"\btrain\b", runs)
     # the package's runtime parts, and nothing that trains, synthesises or is a client
     for part in (*RUNTIME_FILES, *RUNTIME_PACKAGES):
