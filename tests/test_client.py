@@ -1135,7 +1135,7 @@ def test_simulate_fleet_checks_where_its_outputs_go_before_the_run(synthetic_seq
     base = ["simulate-fleet", "--map", "m", "-s", str(synthetic_seq_dir), "--duration", "1"]
     for extra, says in (
         (["--plot", str(tmp_path / "p.txt")], "allowed formats are"),
-        (["--out", str(tmp_path / "afile" / "r.json")], "cannot make its folder"),
+        (["--out", str(tmp_path / "afile" / "r.json")], "afile is a file, not a folder"),
         (["--out", str(tmp_path)], "is a folder"),
     ):
         res = CliRunner().invoke(cli_app, [*base, *extra, "--url", "http://127.0.0.1:9"])

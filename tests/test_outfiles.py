@@ -7,20 +7,31 @@ import os
 
 import pytest
 
-from overlapmamba.core.outfiles import check_output, write_whole
+from overlapmamba.core.outfiles import check_outputs, write_whole
 
 
 def test_an_output_is_checked_and_its_folder_made_before_the_work(tmp_path):
-    check_output(tmp_path / "a" / "b" / "r.json", "--json")
+    check_outputs(("--json", tmp_path / "a" / "b" / "r.json", None), ("--plot", None, None))
     assert (tmp_path / "a" / "b").is_dir()  # made now, not after the work
     with pytest.raises(ValueError, match=r"--json .* is a folder; give a file name"):
-        check_output(tmp_path / "a", "--json")
+        check_outputs(("--json", tmp_path / "a", None))
     (tmp_path / "file").write_text("x")
-    with pytest.raises(ValueError, match="--out .*: cannot make its folder"):
-        check_output(tmp_path / "file" / "r.json", "--out")
+    with pytest.raises(ValueError, match=r"--out .*r.json: .*file is a file, not a folder"):
+        check_outputs(("--out", tmp_path / "file" / "deeper" / "r.json", None))
     with pytest.raises(ValueError, match="--plot .*p.txt: allowed formats are pdf, png"):
-        check_output(tmp_path / "p.txt", "--plot", {"png", "pdf"})
-    check_output(tmp_path / "p.PNG", "--plot", {"png", "pdf"})  # the suffix in any case
+        check_outputs(("--plot", tmp_path / "p.txt", {"png", "pdf"}))
+    check_outputs(("--plot", tmp_path / "p.PNG", {"png", "pdf"}))  # the suffix in any case
+
+
+def test_a_refused_output_leaves_no_folder_made_for_another(tmp_path):
+    """Every output is checked before any folder is made: a refused plot leaves no new
+    folder behind for the JSON beside it."""
+    with pytest.raises(ValueError, match="allowed formats"):
+        check_outputs(
+            ("--json", tmp_path / "new" / "r.json", None),
+            ("--plot", tmp_path / "p.txt", {"png"}),
+        )
+    assert not (tmp_path / "new").exists()
 
 
 def test_a_write_cut_off_leaves_the_old_file_and_no_temporary_one(tmp_path, monkeypatch):

@@ -19,7 +19,7 @@ from overlapmamba.cli.common import (
     metrics_table,
     out,
 )
-from overlapmamba.core.outfiles import check_output, write_whole
+from overlapmamba.core.outfiles import check_outputs, write_whole
 from overlapmamba.core.rerank import Rerank
 
 app, command = command_group("Model")
@@ -82,7 +82,10 @@ def eval_cmd(
         typer.Option("--scan-context", help="also Scan Context's loop closure on --sequence"),
     ] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
-    plot: Annotated[Path | None, typer.Option(help="write PR curves here (.png)")] = None,
+    plot: Annotated[
+        Path | None,
+        typer.Option(help="write PR curves here (.png, .pdf, .svg, …: what matplotlib writes)"),
+    ] = None,
     rerank: Annotated[
         str,
         typer.Option(
@@ -204,13 +207,13 @@ def eval_cmd(
 def _check_outputs(json_out: Path | None, plot: Path | None) -> None:
     """Where the results go, checked (their folders made) before the work that makes them;
     a plot in any format matplotlib writes."""
-    try:
-        if json_out is not None:
-            check_output(json_out, "--json")
-        if plot is not None:
-            from matplotlib.backend_bases import FigureCanvasBase
+    formats = None
+    if plot is not None:
+        from matplotlib.backend_bases import FigureCanvasBase
 
-            check_output(plot, "--plot", FigureCanvasBase.get_supported_filetypes())
+        formats = FigureCanvasBase.get_supported_filetypes()
+    try:
+        check_outputs(("--json", json_out, None), ("--plot", plot, formats))
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
 

@@ -38,8 +38,8 @@ from overlapmamba.client._base import MountArg
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
 from overlapmamba.client._retry import Retry
+from overlapmamba.core import outfiles
 from overlapmamba.core.errors import LidarCoreError
-from overlapmamba.core.outfiles import check_output, write_whole
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
 # a call started before the run's end may finish this long (s) after it; then it is cut
@@ -365,17 +365,18 @@ def check_outputs(out: Path, plot: Path | None) -> None:
     """Where the report and the plot go, checked (their folders made) before the run: a
     plot format matplotlib does not write, or a file in a folder's place, was found after
     the whole simulation, with the JSON written and the plot lost. A ValueError names it."""
-    check_output(out, "--out")
+    formats = None
     if plot is not None:
         from matplotlib.backend_bases import FigureCanvasBase
 
-        check_output(plot, "--plot", FigureCanvasBase.get_supported_filetypes())
+        formats = FigureCanvasBase.get_supported_filetypes()  # what savefig writes
+    outfiles.check_outputs(("--out", out, None), ("--plot", plot, formats))
 
 
 def write_outputs(
     report: FleetReport, samples: list[_Sample], out: Path, plot: Path | None
 ) -> None:
-    write_whole(out, json.dumps(report.to_json(), indent=2) + "\n")
+    outfiles.write_whole(out, json.dumps(report.to_json(), indent=2) + "\n")
     if plot is None:
         return
     import matplotlib

@@ -2,10 +2,11 @@
 ``overlapmamba-client simulate-fleet``'s report and plot): checked before the work that fills
 them, and written whole or not at all.
 
-A folder in a file's place, a folder that cannot be made or written into, a plot format
-nothing writes: each used to be found after minutes of work, whose result was then lost. A
-file written in place and cut off (a killed run, a full disk) leaves a torn file that a
-later reader takes for a result; :func:`write_whole` leaves the old one or the new one.
+A folder in a file's place, a file in a folder's, a folder that cannot be made or written
+into, a plot format nothing writes: each used to be found after minutes of work, whose
+result was then lost. A file written in place and cut off (a killed run, a full disk)
+leaves a torn file that a later reader takes for a result; :func:`write_whole` leaves the
+old one or the new one.
 """
 
 from __future__ import annotations
@@ -14,22 +15,33 @@ import os
 from collections.abc import Collection
 from pathlib import Path
 
+# (flag, path or None, allowed suffixes without the dot or None: any)
+Output = tuple[str, Path | None, Collection[str] | None]
 
-def check_output(path: Path, flag: str, formats: Collection[str] | None = None) -> None:
-    """Make ``path``'s folder, and check that a file can be written there; ``formats``: the
-    suffixes (without the dot) allowed. A ValueError names ``flag``, the path and what is
-    wrong."""
-    if formats is not None and path.suffix.lower().lstrip(".") not in formats:
-        allowed = ", ".join(sorted(formats))
-        raise ValueError(f"{flag} {path}: allowed formats are {allowed}")
-    if path.is_dir():
-        raise ValueError(f"{flag} {path} is a folder; give a file name")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"{flag} {path}: cannot make its folder: {err.strerror}") from None
-    if not os.access(path.parent, os.W_OK):
-        raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
+
+def check_outputs(*outputs: Output) -> None:
+    """Check where each output goes, all of them before any folder is made (a refused
+    command leaves nothing behind), then make their folders and check that a file can be
+    written there. A ValueError names the flag, the path and what is wrong."""
+    given = [(flag, path, formats) for flag, path, formats in outputs if path is not None]
+    for flag, path, formats in given:
+        assert path is not None
+        if path.is_dir():
+            raise ValueError(f"{flag} {path} is a folder; give a file name")
+        if formats is not None and path.suffix.lower().lstrip(".") not in formats:
+            allowed = ", ".join(sorted(formats))
+            raise ValueError(f"{flag} {path}: allowed formats are {allowed}")
+        in_the_way = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+        if in_the_way is not None:
+            raise ValueError(f"{flag} {path}: {in_the_way} is a file, not a folder")
+    for flag, path, _ in given:
+        assert path is not None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ValueError(f"{flag} {path}: cannot make its folder: {err.strerror}") from None
+        if not os.access(path.parent, os.W_OK):
+            raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
 
 
 def write_whole(path: Path, text: str) -> None:
