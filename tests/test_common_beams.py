@@ -13,18 +13,17 @@ from test_catalogue import _cloud
 from overlapmamba.core.errors import ProfileError
 from overlapmamba.core.points import PointCloud
 from overlapmamba.core.sensors import CATALOGUE, Sensor, get_profile, sensor_of_profile
+from overlapmamba.core.sensors.catalogue import COMMON_MAX_RANGE
 from overlapmamba.core.sensors.input import (
-    COMMON_MAX_RANGE,
     COMMON_MODES,
     COMMON_SENSOR,
     COMMON_TOLERANCE_DEG,
-    GROUND_CLEARANCE,
     SensorInput,
     common_beams,
     project_input_reference,
     row_beams,
 )
-from overlapmamba.core.sensors.mount import REFERENCE_HEIGHT, Mount
+from overlapmamba.core.sensors.mount import GROUND_CLEARANCE, REFERENCE_HEIGHT, Mount
 
 KITTI = get_profile("kitti-hdl64")
 SENSORS = ("kitti-hdl64", "vlp16", "xt32", "os1-128", "os0-128", "hdl32")

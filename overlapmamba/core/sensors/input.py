@@ -73,7 +73,10 @@ scan is never chosen by its consumer. Columns, sub-column views and the range li
 the model's in every mode, so yaw features keep their meaning.
 
 :func:`project_input_reference` is the slow per-point version kept beside the fast one for
-tests.
+tests. The constants named above are defined where they belong: ``COMMON_MAX_RANGE`` with the
+catalogue (:mod:`overlapmamba.core.sensors.catalogue`), ``GROUND_CLEARANCE`` with the
+reference mount (:mod:`overlapmamba.core.sensors.mount`), ``BEV_RINGS`` and ``BEV_BANDS``
+with the bird's-eye inputs (:mod:`overlapmamba.core.sensors.bev`).
 """
 
 from __future__ import annotations
