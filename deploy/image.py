@@ -249,6 +249,15 @@ def markdown() -> str:
     """The image's figures as docs/deploy.md includes them: size, build times, start-up."""
     build = json.loads(REPORT.read_text()) if REPORT.is_file() else {}
     checks = json.loads(CHECKS.read_text()) if CHECKS.is_file() else {}
+    machine = (build.get("build_cold") or checks or {}).get("machine", {})
+
+    def where(m: dict[str, Any]) -> str:
+        return f"{m.get('cores', '?')} cores, {m.get('cpu', '?')}"
+
+    def elsewhere(record: dict[str, Any]) -> str:  # a row measured on another machine says so
+        m = record.get("machine", {})
+        return "" if not m or where(m) == where(machine) else f" (on {where(m)})"
+
     rows = []
     for key, label in (
         ("base", "base image from Debian's packages (debootstrap, import)"),
@@ -261,13 +270,13 @@ def markdown() -> str:
             b = build[key]
             rows.append(
                 f"| {label} | {b['seconds']:.0f} s | `{b['command']}` at "
-                f"{b['commit'][:12]}, {b['date'][:10]} |"
+                f"{b['commit'][:12]}, {b['date'][:10]}{elsewhere(b)} |"
             )
     if "image_bytes" in checks:
         start = checks["start_to_ready_s"]
         rows += [
             f"| image size | {checks['image_bytes'] / 1e6:.0f} MB | `make image-test` at "
-            f"{checks['commit'][:12]}, {checks['date'][:10]} |",
+            f"{checks['commit'][:12]}, {checks['date'][:10]}{elsewhere(checks)} |",
             f"| `run` to `/readyz` 200, first start / restart on the same volume | "
             f"{start['first']:.1f} / {start['restart']:.1f} s | the same run |",
             f"| a real KITTI scan's descriptor, image against venv (max abs) | "
@@ -276,9 +285,7 @@ def markdown() -> str:
             f"{checks['keyframes_back_after_sigterm']} | the same run |",
         ]
     head = "| what | measured | command |\n|---|---|---|\n"
-    machine = (build.get("build_cold") or checks or {}).get("machine", {})
-    where = f"{machine.get('cores', '?')} cores, {machine.get('cpu', '?')}"
-    return f"On this project's machine ({where}):\n\n" + head + "\n".join(rows) + "\n"
+    return f"On this project's machine ({where(machine)}):\n\n" + head + "\n".join(rows) + "\n"
 
 
 def main() -> int:

@@ -218,6 +218,33 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
     assert doctor.returncode == 0, doctor.stdout + doctor.stderr
 
 
+def test_the_image_figures_name_the_machine_of_a_row_measured_elsewhere(tmp_path, monkeypatch):
+    """reports/deploy/image.md heads its table with one machine (the cold build's); a row
+    kept from a run on another machine (the base is made once and then found present) said
+    nothing of it, so an Intel figure read as the AMD machine's. Such a row names its own."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "deploy"))
+    import image
+
+    here = {"cores": 2, "cpu": "AMD EPYC"}
+    there = {"cores": 2, "cpu": "Intel(R) Xeon(R) Processor"}
+    row = {"seconds": 40.0, "command": "python deploy/image.py all", "commit": "a" * 40}
+    build = {
+        "base": {**row, "machine": there, "date": "2026-12-03T07:19:18+00:00"},
+        "build_cold": {**row, "machine": here, "date": "2026-12-04T21:50:00+00:00"},
+    }
+    (tmp_path / "build.json").write_text(json.dumps(build))
+    monkeypatch.setattr(image, "REPORT", tmp_path / "build.json")
+    monkeypatch.setattr(image, "CHECKS", tmp_path / "none.json")
+    lines = image.markdown().splitlines()
+    assert lines[0] == "On this project's machine (2 cores, AMD EPYC):"
+    base = next(line for line in lines if line.startswith("| base image"))
+    cold = next(line for line in lines if line.startswith("| image build, cold"))
+    assert base.endswith("(on 2 cores, Intel(R) Xeon(R) Processor) |"), base
+    assert "(on " not in cold, cold
+
+
 def test_the_image_script_copies_every_file_the_dockerfile_copies():
     """deploy/image.py's rebuild-after-an-edit copies the build context by a list: every
     source the Dockerfile COPYs from the context must be on it (and let in by
