@@ -306,6 +306,12 @@ def _load_row(rel: str, label: str) -> list[str]:
     ]
 
 
+def _on(record: dict) -> str:
+    """The machine a run's speed-bound figures (times, cases in a budget) were measured on."""
+    m = record.get("machine")
+    return f"; on {m['cpu']}, {m['cores']} cores" if m else ""
+
+
 def e2e() -> str:
     """The end-to-end runs (``make e2e``), one line each from its JSON."""
     rows = [_load_row("reports/e2e/load.json", "load (`tests/test_e2e_load.py`)")]
@@ -329,7 +335,7 @@ def e2e() -> str:
             crash["when"][:10],
             f"{crash['crashes']} SIGKILLs under load; {crash['lost']} acknowledged writes lost; "
             f"ready in {crash['ready_s']['median']:.1f} s median, {crash['ready_s']['max']:.1f} s "
-            "at most",
+            f"at most{_on(crash)}",
         ]
     )
     fz = load("reports/e2e/fuzz_schemathesis.json")
@@ -340,7 +346,7 @@ def e2e() -> str:
             fz["when"][:10],
             f"schemathesis for {fz['budget_s']} s: {fz['test_cases']:,} cases, exit code "
             f"{fz['exit_code']}, server alive: {fz['server_alive']}; {len(corpus['cases'])} "
-            f"hostile bodies, all answered 4xx: {corpus['all_4xx']}",
+            f"hostile bodies, all answered 4xx: {corpus['all_4xx']}{_on(fz)}",
         ]
     )
     auth = load("reports/e2e/auth_matrix.json")
