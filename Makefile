@@ -18,6 +18,9 @@ SERVE_OPTIONS = $(call given,HOST,--host) $(call given,PORT,--port) \
 # others at a few versions only, which the lock's pins may not be: best match across both)
 TORCH_SOURCE := $(if $(wildcard /opt/wheels/torch-2.13.0*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu --index-strategy unsafe-best-match)
 
+# the town `make e2e` drives (tests/e2e_kit.py's HELD_OUT)
+E2E_TOWN := data/synth/test/manifest.json
+
 .PHONY: lock test e2e image image-test chromium lint format typecheck serve bench data data-sensors data-towns data-drift docs docs-site clean
 
 # uv (from PyPI, into the venv) installs the same packages as pip in a tenth of the time:
@@ -75,7 +78,9 @@ test: $(VENV)/.installed-all chromium
 
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
 # `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.
-e2e: $(VENV)/.installed-all chromium image
+# The robots drive the held-out test town, made first where missing (`make data` makes it
+# too; alone about 5 minutes on 2 cores).
+e2e: $(VENV)/.installed-all chromium image $(E2E_TOWN)
 	OVERLAPMAMBA_E2E=full OVERLAPMAMBA_IMAGE_TEST=1 $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
 
 # The container image, built here with podman (installed from Debian where missing) or docker:
@@ -128,6 +133,9 @@ bench: $(VENV)/.installed-all
 # test town. Each is skipped when its manifest exists, so an interrupted `make data`
 # resumes where it stopped.
 DATA_PRESETS := train train-b train-c train-d val val-s1 test test-b test-c test-s1
+
+$(E2E_TOWN): | $(VENV)/.installed-all
+	$(BIN)/overlapmamba gen-data $(patsubst %/,%,$(dir $@)) --preset test -q
 data: $(VENV)/.installed-all
 	for p in $(DATA_PRESETS); do \
 	  test -f data/synth/$$p/manifest.json || $(BIN)/overlapmamba gen-data data/synth/$$p --preset $$p; \

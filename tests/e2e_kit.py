@@ -71,7 +71,7 @@ def drive_dir() -> Path:
     if FULL:  # the evidence run must not pass by skipping, nor on the calibration town
         if (HELD_OUT / "manifest.json").is_file():
             return HELD_OUT
-        pytest.fail(f"no drive: {HELD_OUT} is not made (make data)")
+        pytest.fail(f"no drive: {HELD_OUT} is not made (make e2e makes it; make data too)")
     if KITTI.is_dir():
         return KITTI
     if (SYNTH_VAL / "manifest.json").is_file():
