@@ -192,4 +192,4 @@ def test_a_named_table_file_that_is_something_else_is_refused_not_overwritten(
     assert np.array_equal(gt.query, again.query)  # a table under another name is one
     with pytest.raises(IsADirectoryError):  # a save that fails leaves no half table beside
         gt.save(tmp_path)
-    assert not list(tmp_path.parent.glob(f"{tmp_path.name}.tmp*"))
+    assert not list(tmp_path.parent.glob(f".{tmp_path.name}.tmp*"))

@@ -11,8 +11,9 @@ old one or the new one.
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Collection
+from collections.abc import Collection, Iterator
 from pathlib import Path
 
 # (flag, path or None, allowed suffixes without the dot or None: any)
@@ -44,13 +45,23 @@ def check_outputs(*outputs: Output) -> None:
             raise ValueError(f"{flag} {path}: cannot write into {path.parent}")
 
 
-def write_whole(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file beside it, renamed over it once
-    whole (no temporary file is left either way)."""
+@contextlib.contextmanager
+def replacing(path: Path, suffix: str = "") -> Iterator[Path]:
+    """A temporary file beside ``path`` (ending in ``suffix``, for writers that add their
+    own) for the block to write, renamed over ``path`` once the block ends without error. No
+    temporary file is left either way, and a failure to remove it never hides the error that
+    ended the block."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{suffix}")
     try:
-        tmp.write_text(text)
+        yield tmp
         os.replace(tmp, path)
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+
+
+def write_whole(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all (:func:`replacing`)."""
+    with replacing(path) as tmp:
+        tmp.write_text(text)

@@ -15,10 +15,8 @@ A *loop* for query i is a frame j with i âˆ’ j > exclude_recent_frames (100), â€
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 from collections.abc import Callable
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field, replace
@@ -32,6 +30,7 @@ from tqdm.auto import tqdm
 from overlapmamba.core.cache import cache_root
 from overlapmamba.core.datasets.base import Sequence
 from overlapmamba.core.errors import DatasetError
+from overlapmamba.core.outfiles import replacing
 from overlapmamba.core.poses import relative_transform, yaw_deg
 from overlapmamba.core.projection import pixel_index
 from overlapmamba.core.sensors import SensorProfile
@@ -248,10 +247,9 @@ class LoopGroundTruth:
         return same, reverse
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
-        try:
+        # a folder at path, a full disk: no half table left beside it (``.npz``: numpy
+        # adds it to a name without it)
+        with replacing(Path(path), ".npz") as tmp:
             np.savez_compressed(
                 tmp,
                 n_frames=self.n_frames,
@@ -262,11 +260,6 @@ class LoopGroundTruth:
                 distance=self.distance,
                 params=json.dumps(self.params, sort_keys=True),
             )
-            os.replace(tmp, path)
-        except BaseException:  # a folder at path, a full disk: no half table left beside it
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
-            raise
 
     @classmethod
     def load(cls, path: str | Path) -> LoopGroundTruth:

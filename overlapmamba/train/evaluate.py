@@ -151,6 +151,16 @@ def sequence_loops(
     return loop_ground_truth(seq, _loop_profile(seq, fallback), progress=progress)
 
 
+def require_loops(gt: LoopGroundTruth, seq: Sequence, what_to_do: str) -> None:
+    """Refuse a sequence no scan of which revisits a place seen earlier: every score of it
+    would be NaN (tables of nothing, exit 0). ``what_to_do``: the caller's way out."""
+    if not gt.has_loop().any():
+        raise DatasetError(
+            f"{seq.root} has no loop closure (no scan revisits a place seen earlier): "
+            f"nothing to score; {what_to_do}"
+        )
+
+
 def _loop_profile(seq: Sequence, fallback: SensorProfile | None) -> SensorProfile:
     return get_profile(seq.sensor) if seq.sensor else fallback or get_profile("kitti-hdl64")
 
@@ -396,11 +406,11 @@ def evaluate_checkpoint(
     results: dict[str, LoopClosureResult] = {}
     if db is None or (seq.root / "ground_truth" / "loops.npz").is_file():
         gt = sequence_loops(seq, profile, progress=progress)
-        if db is None and not gt.has_loop().any():  # every score would be NaN
-            raise DatasetError(
-                f"{seq.root} has no loop closure (no scan revisits a place seen earlier): "
-                "nothing to score; evaluate a sequence with revisits, or give --database "
-                "for places across sessions"
+        if db is None:
+            require_loops(
+                gt,
+                seq,
+                "evaluate a sequence with revisits, or give --database for places across sessions",
             )
         desc, yaw = describe_sequence(model, seq, profile, progress=progress)
         results = loop_closure(desc, gt)

@@ -26,7 +26,6 @@ import numpy as np
 import torch
 
 from overlapmamba.core.datasets import open_sequence
-from overlapmamba.core.errors import DatasetError
 from overlapmamba.core.metrics import LoopClosureResult
 from overlapmamba.core.rerank import Rerank, with_score
 from overlapmamba.train.checkpoint import load_model
@@ -38,6 +37,7 @@ from overlapmamba.train.evaluate import (
     loop_closure,
     loop_errors,
     network_digest,
+    require_loops,
     scan_contexts,
     scancontext_loop_closure,
     sequence_loops,
@@ -169,11 +169,7 @@ def table_one(
     for label, model, profile in _networks(runs, onnx):
         if gt is None:
             gt = sequence_loops(seq, profile, progress=progress)
-            if not gt.has_loop().any():  # every score NaN: tables of nothing, exit 0
-                raise DatasetError(
-                    f"{seq.root} has no loop closure (no scan revisits a place seen earlier): "
-                    "nothing to score; give a test town with revisits (--test)"
-                )
+            require_loops(gt, seq, "give a test town with revisits (--test)")
         key = network_digest(model)
         if key not in described:
             described[key] = describe_sequence(model, seq, profile, progress=progress)
