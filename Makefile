@@ -79,9 +79,11 @@ test: $(VENV)/.installed-all chromium
 # End-to-end evidence at full size: load, crash, fuzz, browser, auth matrix (tests/test_e2e_*.py;
 # `make test` runs them small). Figures and the dashboard screenshot go to reports/e2e/.
 # The robots drive the held-out test town, made first where missing (`make data` makes it
-# too; alone about 5 minutes on 2 cores).
+# too; alone about 5 minutes on 2 cores). The image's runs are rendered into its table
+# (reports/deploy/image.md), as `make image-test` does.
 e2e: $(VENV)/.installed-all chromium image $(E2E_TOWN)
 	OVERLAPMAMBA_E2E=full OVERLAPMAMBA_IMAGE_TEST=1 $(BIN)/python -m pytest -m e2e -p no:cacheprovider -v tests
+	$(BIN)/python deploy/image.py report
 
 # The container image, built here with podman (installed from Debian where missing) or docker:
 # a bookworm base made with debootstrap when no registry answers, the dependencies from a

@@ -392,6 +392,24 @@ def test_make_e2e_makes_the_town_its_robots_drive_where_it_is_missing():
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+@pytest.mark.parametrize("target", ["e2e", "image-test"])
+def test_the_image_runs_are_rendered_into_its_table_after_them(target: str):
+    """Found in review: `make e2e` runs the image's checks (OVERLAPMAMBA_IMAGE_TEST=1) and
+    wrote their JSON, but only `make image-test` rendered reports/deploy/image.md, so the
+    table the deploy guide includes stayed stale after the full run."""
+    done = subprocess.run(
+        ["make", "--no-print-directory", "-n", target],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    lines = done.stdout.splitlines()
+    tests = max(i for i, ln in enumerate(lines) if " -m pytest " in ln)
+    assert any("deploy/image.py report" in ln for ln in lines[tests + 1 :]), lines
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
 def test_make_serve_leaves_unset_options_to_the_settings():
     """Found in review: `make serve` always passed --host, --port and --model, which outrank
     OVERLAPMAMBA_* variables and a config file, so OVERLAPMAMBA_PORT=9001 make serve served on
