@@ -9,6 +9,7 @@ same requirements the Dockerfile installs go into a fresh virtual environment, a
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -124,6 +125,41 @@ def test_compose_runs_the_service_on_qdrant():
     example = (ROOT / "deploy" / "example.env").read_text()
     for var in set(re.findall(r"\$\{(\w+)", (ROOT / "docker-compose.yml").read_text())):
         assert f"\n{var}=" in example, var
+
+
+def _megabytes(size: str) -> float:
+    number, unit = re.fullmatch(r"(\d+(?:\.\d+)?)([kmg]?)b?", size.lower()).groups()  # type: ignore[union-attr]
+    return float(number) * {"": 1e-6, "k": 1e-3, "m": 1.0, "g": 1e3}[unit]
+
+
+def test_compose_bounds_the_service_above_what_it_was_measured_to_hold():
+    """The service's CPU and memory bounds (left out before): a leaking or overloaded
+    service is killed and restarted before it starves Qdrant or the host, and the bound
+    leaves room above the most the service and its registration process were measured to
+    hold under a fleet (reports/e2e/load.json, reports/service/server-memory.json)."""
+    text = (ROOT / "docker-compose.yml").read_text()
+    svc = yaml.safe_load(text)["services"]["overlapmamba"]
+
+    def default(value: str) -> str:  # ${VAR:-default}, as compose reads it unset
+        m = re.fullmatch(r"\$\{(\w+):-([^}]+)\}", str(value))
+        assert m, f"{value}: a variable with a default, so that .env can raise it"
+        example = (ROOT / "deploy" / "example.env").read_text()
+        assert f"\n{m[1]}={m[2]}\n" in example, f"{m[1]}: example.env names its default"
+        return m[2]
+
+    cpus, memory = float(default(svc["cpus"])), _megabytes(default(svc["mem_limit"]))
+    assert cpus >= 2  # the sizing tables' node
+    load = json.loads((ROOT / "reports" / "e2e" / "load.json").read_text())
+    e2e = load["server_resident_mb"]["after"] + load["registration_resident_mb"]["after"]
+    bench = json.loads((ROOT / "reports" / "service" / "server-memory.json").read_text())
+    most = max(
+        r["resident_mb"] + r["registration_mb"]
+        for c in bench["configs"].values()
+        if not c["env"].get("OVERLAPMAMBA_BATCHING__MAX_BATCH")  # compose sets batches of 1
+        for r in c["rounds"]
+    )
+    assert memory >= 1.5 * max(e2e, most), (memory, e2e, most)
+    assert "mem_limit" not in yaml.safe_load(text)["services"]["qdrant"]  # grows with the maps
 
 
 @pytest.mark.slow

@@ -234,6 +234,12 @@ def test_compose_starts_the_service_part(tmp_path):
             time.sleep(0.2)
         assert ready is not None and ready.status_code == 503, ready and ready.text
         assert "Qdrant at http://qdrant:6333 is unreachable" in ready.json()["detail"]["stage"]
+        # the file's bounds reach the container (example.env's defaults: 2 cores, 2 GB)
+        service = "label=com.docker.compose.service=overlapmamba"
+        ids = _run("ps", "-q", "--filter", service).stdout.split()
+        limits = "{{.HostConfig.NanoCpus}} {{.HostConfig.Memory}}"
+        bounds = _run("inspect", "--format", limits, ids[0]).stdout.split()
+        assert bounds == [str(2 * 10**9), str(2 * 1024**3)], bounds
     finally:
         down = call("down", "-v")
         assert down.returncode == 0, down.stderr
