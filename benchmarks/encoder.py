@@ -53,10 +53,10 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from encoder_tables import print_tables
 from onnx_profile import op_profile
 from reports_kit import REPORTS, write_report
 from rich.console import Console
-from rich.table import Table
 from torch.utils.flop_counter import FlopCounterMode
 
 import overlapmamba.train.model as model_module
@@ -409,87 +409,6 @@ def main() -> None:
     work |= {"achieved_gflops_b1_t2": achieved, "peak_gflops_2_cores": peak}
     work["fraction_of_peak"] = achieved / peak
 
-    table = Table(title=f"ONNX encoder, {source}, onnxruntime {ort.__version__}")
-    cols = ["variant", "B=1 1T med/p90 ms", "B=1 2T med/p90 ms", "B=8 2T ms/scan"]
-    cols += ["max err desc/yaw", "nodes", "MB", "load s"]
-    for c in cols:
-        table.add_column(c, justify="right")
-    for name, r in results.items():
-        table.add_row(
-            name,
-            f"{r['b1_t1']['median_ms']:.1f} / {r['b1_t1']['p90_ms']:.1f}",
-            f"{r['b1_t2']['median_ms']:.1f} / {r['b1_t2']['p90_ms']:.1f}",
-            f"{r['b8_t2_per_scan_ms']:.1f}",
-            f"{r['descriptor_max_abs']:.1e} / {r['yaw_max_abs']:.1e}"
-            if "descriptor_max_abs" in r
-            else "—",
-            str(r.get("nodes", "—")),
-            f"{r['file_mb']:.1f}" if "file_mb" in r else "—",
-            f"{r['load_s']:.2f}" if "load_s" in r else "—",
-        )
-    console.print(table)
-    yt = Table(title="served vs no-scan, B=1, interleaved: where the served time goes (ms)")
-    for c in ("threads", "served", "no-scan", "ratio", "stages", "kernel", "ratio, free scan"):
-        yt.add_column(c, justify="right")
-    for th in (1, 2):
-        y = yard[f"b1_t{th}"]
-        yt.add_row(
-            str(th),
-            *(f"{y[k]:.2f}" for k in ("served_ms", "noscan_ms", "ratio")),
-            *(f"{y[k]:.2f}" if k in y else "—" for k in ("sessions_ms", "kernel_ms")),
-            f"{y['ratio_with_a_free_scan']:.2f}" if "ratio_with_a_free_scan" in y else "—",
-        )
-    console.print(yt)
-    rt = Table(title="ratios (goal: scan ÷ no-scan ≤ 1.25 at B=1; B=8 ≥ 1.5× B=1 per scan)")
-    rt.add_column("ratio")
-    rt.add_column("value", justify="right")
-    for k, v in ratios.items():
-        rt.add_row(k, f"{v:.2f}")
-    console.print(rt)
-    console.print(
-        f"shipped graph: {work['total_flops'] / 1e9:.2f} GFLOP per scan "
-        f"(dense {work['dense_flops'] / 1e9:.2f}, scan {work['scan_flops'] / 1e9:.2f}); "
-        f"{achieved:.1f} GFLOP/s at B=1, 2 threads = {100 * work['fraction_of_peak']:.1f}% "
-        f"of the {peak:.0f} GFLOP/s peak of 2 cores ({cpu})"
-    )
-    if peer is not None:
-        pt = Table(title="served encoder vs OT-style peer (ONNX, 2 threads, interleaved)")
-        v = peer["views"]
-        for c in (
-            "batch",
-            f"ours, {v} views (as shipped) ms/scan",
-            "ours, one pass ms/scan",
-            "OT-style ms/scan",
-            f"ours {v} views ÷ OT",
-            "ours one pass ÷ OT",
-        ):
-            pt.add_column(c, justify="right")
-        for b in ("b1", "b8"):
-            r = peer[b]
-            pt.add_row(
-                b.upper(),
-                f"{r['ours_views_ms_per_scan']:.1f}",
-                f"{r['ours_ms_per_scan']:.1f}",
-                f"{r['peer_ms_per_scan']:.1f}",
-                f"{r['ours_views_over_peer']:.2f}",
-                f"{r['ours_over_peer']:.2f}",
-            )
-        console.print(pt)
-        console.print(
-            f"parameters: ours {peer['ours_params'] / 1e6:.2f} M, OT-style "
-            f"{peer['peer_params'] / 1e6:.2f} M; files {peer['ours_file_mb']:.1f} / "
-            f"{peer['peer_file_mb']:.1f} MB"
-        )
-    for part, title in (("top_level", "top level"), ("inside_scan", "inside the Scan bodies")):
-        rows = profile[part]
-        total = sum(rows.values())
-        pt = Table(title=f"onnxruntime profile of scan-loop, B=1, 1 thread: {title}")
-        for c in ("op type", "ms/run", "share"):
-            pt.add_column(c, justify="right")
-        for k, v in list(rows.items())[:12]:
-            pt.add_row(k, f"{v:.2f}", f"{100 * v / total:.0f}%")
-        console.print(pt)
-
     record = {
         "machine": {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version()},
         "model_config": cfg.to_dict(),
@@ -503,6 +422,7 @@ def main() -> None:
         "op_profile_ms": profile,
         "peer": peer,
     }
+    print_tables(console, record)
     write_report(args.json, record)
     console.print(f"wrote {args.json}")
 

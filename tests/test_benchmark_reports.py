@@ -70,3 +70,18 @@ def test_a_report_names_a_file_inside_the_checkout_as_a_clone_has_it_and_others_
     assert reports_kit.shown_path(reports_kit.ROOT / "reports") == "reports"
     outside = tmp_path / "candidate.onnx"  # never created: a report names it all the same
     assert reports_kit.shown_path(outside) == str(outside)
+
+
+def test_the_encoder_benchmarks_tables_print_from_its_committed_record():
+    """benchmarks/encoder.py prints its tables from the record it writes (encoder_tables),
+    so a committed JSON prints them again; every variant and ratio is in them."""
+    from rich.console import Console
+
+    tables = benchmark_module("encoder_tables")
+    record = json.loads((ROOT / "reports" / "service" / "encoder-narrow.json").read_text())
+    console = Console(record=True, width=200)
+    tables.print_tables(console, record)
+    text = console.export_text()
+    for name in [*record["variants"], *record["ratios"]]:
+        assert name in text, name
+    assert "OT-style" in text and "GFLOP per scan" in text

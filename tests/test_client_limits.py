@@ -463,3 +463,22 @@ def test_an_error_page_that_is_not_the_services_says_so():
     said = str(e.value)
     assert "is the URL the place-recognition service's" in said and "text/html" in said
     assert "<!DOCTYPE HTML>" in said and len(said) < 600
+
+
+def test_a_stream_closed_for_a_frame_too_large_names_the_servers_limit():
+    """A scan frame past the server's socket cap (its body limit + 64 KiB) is closed with
+    1009 by the websocket layer, before the service can answer 413. The error names the
+    setting that bounds it (checked by hand against a real server: the reason websockets
+    gives is "frame with N bytes exceeds limit of M bytes", M not the setting itself)."""
+    from websockets.exceptions import ConnectionClosedError
+    from websockets.frames import Close
+
+    from overlapmamba.client._stream import stream_failure
+
+    closed = Close(1009, "frame with 1357123 bytes exceeds limit of 165536 bytes")
+    err = stream_failure(ConnectionClosedError(closed, None), [0, 1])
+    assert isinstance(err, TransportError)
+    assert "exceeds limit of 165536 bytes" in str(err) and "limits.max_body_bytes" in str(err)
+    assert err.unanswered == [0, 1]  # type: ignore[attr-defined]
+    other = stream_failure(ConnectionClosedError(Close(1013, "outran"), None), [])
+    assert "max_body_bytes" not in str(other)

@@ -87,6 +87,8 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
     if isinstance(err, ConnectionClosed):
         got = err.rcvd
         why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
+        if got is not None and got.code == 1009:  # the socket's own cap, past the 413's room
+            why += ": a frame past what the server takes; its limits.max_body_bytes bounds a scan"
         out = TransportError(f"the stream closed ({why}){lost}")
     elif isinstance(err, InvalidHandshake):
         out = ConnectError(f"the server refused the stream: {_refusal(err)}{lost}")
