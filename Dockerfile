@@ -41,20 +41,20 @@ WORKDIR /src
 #    wheelhouse holding another version of a package fails the build rather than ship it.
 COPY pyproject.toml constraints.txt deploy/requirements.py ./
 COPY deploy/wheelhouse /wheels
-RUN python requirements.py serve > requirements.txt \
+#    setuptools too, at the lock's version: the source is built with it below.
+RUN { python requirements.py serve; echo setuptools; } > requirements.txt \
     && if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
          pip install --no-cache-dir --no-index --find-links /wheels -c constraints.txt \
            -r requirements.txt; \
        else pip install --no-cache-dir -c constraints.txt -r requirements.txt; fi
-# 2. The source, without dependencies (they are all above).
+# 2. The source, without dependencies (they are all above), built by the setuptools installed
+#    above (no build isolation: nothing is fetched, no build tool moves unasked).
 COPY README.md ./
 COPY overlapmamba/__init__.py overlapmamba/__main__.py overlapmamba/py.typed ./overlapmamba/
 COPY overlapmamba/cli ./overlapmamba/cli
 COPY overlapmamba/core ./overlapmamba/core
 COPY overlapmamba/service ./overlapmamba/service
-RUN if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
-         pip install --no-cache-dir --no-index --find-links /wheels --no-deps .; \
-       else pip install --no-cache-dir --no-deps .; fi \
+RUN pip install --no-cache-dir --no-build-isolation --no-deps . \
     && python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
     && python -m overlapmamba.core.scan_kernel
 

@@ -82,6 +82,17 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     assert len(from_requirements) == 2, installs  # the wheelhouse's and the index's
     for install in from_requirements:
         assert "-c constraints.txt" in install, install
+    # the build backend at the lock's version, and the source built with it: with build
+    # isolation pip fetched the newest setuptools for every build (left out before)
+    assert "echo setuptools; } > requirements.txt" in runs
+    source = [i for i in installs if i.endswith(" .")]
+    assert source and all("--no-build-isolation" in i for i in source), source
+    import tomllib
+
+    backend = tomllib.loads((ROOT / "pyproject.toml").read_text())["build-system"]["requires"]
+    assert [r.split(">=")[0] for r in backend] == ["setuptools"], backend
+    pinned = (ROOT / "constraints.txt").read_text().splitlines()
+    assert any(line.startswith("setuptools==") for line in pinned)
     assert "torch" not in " ".join(copies) and not re.search(r"\btrain\b", runs)
     # the package's runtime parts, and nothing that trains, synthesises or is a client
     for part in (*RUNTIME_FILES, *RUNTIME_PACKAGES):
