@@ -151,7 +151,7 @@ def make_wheels(python: str = sys.executable) -> dict[str, Any]:
         old.unlink()
     with tempfile.TemporaryDirectory(prefix="om-wheels-") as tmp:
         req, constraints = Path(tmp) / "requirements.txt", Path(tmp) / "constraints.txt"
-        req.write_text("\n".join([*reqs, "setuptools"]) + "\n")  # at the lock's version
+        req.write_text("\n".join([*reqs, "setuptools"]) + "\n")  # at the venv's version
         constraints.write_text("\n".join(pins(frozen)) + "\n")
         subprocess.run(
             [

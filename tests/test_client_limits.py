@@ -482,3 +482,10 @@ def test_a_stream_closed_for_a_frame_too_large_names_the_servers_limit():
     assert err.unanswered == [0, 1]  # type: ignore[attr-defined]
     other = stream_failure(ConnectionClosedError(Close(1013, "outran"), None), [])
     assert "max_body_bytes" not in str(other)
+    # the client's own cap on an answer (closed by it first, echoed by the server) is not
+    # the server's limit
+    ours = Close(1009, "frame with 2000000 bytes exceeds limit of 1048576 bytes")
+    echoed = stream_failure(ConnectionClosedError(ours, ours, rcvd_then_sent=False), [3])
+    assert "max_body_bytes" not in str(echoed) and "1009" in str(echoed)
+    theirs = ConnectionClosedError(closed, closed, rcvd_then_sent=True)
+    assert "max_body_bytes" in str(stream_failure(theirs, [3]))

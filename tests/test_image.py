@@ -204,7 +204,10 @@ def test_compose_starts_the_service_part(tmp_path):
 
     env_file = tmp_path / "compose.env"
     keys = json.dumps([{"name": "admin", "role": "admin", "sha256": hash_key(KEY)}])
-    env_file.write_text(f"QDRANT_API_KEY=compose-test\nOVERLAPMAMBA_AUTH__KEYS={keys}\n")
+    bounds_env = "SERVICE_CPUS=1\nSERVICE_MEMORY=1536m\n"  # .env's bounds reach the container
+    env_file.write_text(
+        f"QDRANT_API_KEY=compose-test\nOVERLAPMAMBA_AUTH__KEYS={keys}\n{bounds_env}"
+    )
     base = [compose, "--env-file", str(env_file), "-f", str(ROOT / "docker-compose.yml")]
 
     def call(*args: str) -> subprocess.CompletedProcess[str]:
@@ -234,12 +237,13 @@ def test_compose_starts_the_service_part(tmp_path):
             time.sleep(0.2)
         assert ready is not None and ready.status_code == 503, ready and ready.text
         assert "Qdrant at http://qdrant:6333 is unreachable" in ready.json()["detail"]["stage"]
-        # the file's bounds reach the container (example.env's defaults: 2 cores, 2 GB)
-        service = "label=com.docker.compose.service=overlapmamba"
-        ids = _run("ps", "-q", "--filter", service).stdout.split()
+        # the bounds set in .env reach the container
+        labels = ["--filter", "label=com.docker.compose.project=overlapmamba"]
+        labels += ["--filter", "label=com.docker.compose.service=overlapmamba"]
+        ids = _run("ps", "-q", *labels).stdout.split()
         limits = "{{.HostConfig.NanoCpus}} {{.HostConfig.Memory}}"
         bounds = _run("inspect", "--format", limits, ids[0]).stdout.split()
-        assert bounds == [str(2 * 10**9), str(2 * 1024**3)], bounds
+        assert bounds == [str(10**9), str(1536 * 1024**2)], bounds
     finally:
         down = call("down", "-v")
         assert down.returncode == 0, down.stderr

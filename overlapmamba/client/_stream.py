@@ -87,7 +87,8 @@ def stream_failure(err: Exception, unanswered: Iterable[int]) -> ClientError | N
     if isinstance(err, ConnectionClosed):
         got = err.rcvd
         why = f"{got.code} {got.reason}".strip() if got is not None else "no close frame"
-        if got is not None and got.code == 1009:  # the socket's own cap, past the 413's room
+        server_first = err.sent is None or bool(err.rcvd_then_sent)  # (not its echo of ours)
+        if got is not None and got.code == 1009 and server_first:  # its socket's own cap
             why += ": a frame past what the server takes; its limits.max_body_bytes bounds a scan"
         out = TransportError(f"the stream closed ({why}){lost}")
     elif isinstance(err, InvalidHandshake):
