@@ -403,7 +403,34 @@ def fleet_reach() -> str:
     return out + table(head, rows)
 
 
+def server_profile() -> str:
+    """Where the server's CPU goes under a fleet, each file's share of py-spy's samples
+    (``benchmarks/server_profile.py``)."""
+    rel = "reports/service/server-profile.json"
+    r = load(rel)
+    out = source(rel, "python benchmarks/server_profile.py", when(r))
+    out += (
+        f"\n{r['robots']} robots on `{r['drive']}`, {r['rate_hz']:g} Hz asked each, "
+        f"{r['scans_per_robot']} scans a robot, a fresh server of each file with its "
+        f"defaults; {r['py_spy']} recording the server and its registration process for "
+        f"{r['recorded_s']} s at {r['sample_hz']} Hz after {r['warmup_s']:g} s "
+        f"(machine: {r['machine']['cpu']}, {r['machine']['cores']} cores). A sample counts in "
+        "the first part its stack holds; the observations a second are those of the "
+        "recorded runs, py-spy's own cost included.\n\n"
+    )
+    rows = [
+        [
+            f"`{Path(run['model']).name}` ({run['views']} view{'s' if run['views'] > 1 else ''})",
+            *(f"{100 * run['shares'][p]:.1f}%" for p in r["parts"]),
+            f"{run['fleet']['throughput_per_s']:.1f}",
+        ]
+        for run in r["runs"]
+    ]
+    return out + table(["file", *r["parts"], "observations/s"], rows)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
+    "server-profile": server_profile,
     "fleet-reach": fleet_reach,
     "sizing": sizing,
     "fleet": fleet,

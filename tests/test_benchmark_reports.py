@@ -85,3 +85,35 @@ def test_the_encoder_benchmarks_tables_print_from_its_committed_record():
     for name in [*record["variants"], *record["ratios"]]:
         assert name in text, name
     assert "OT-style" in text and "GFLOP per scan" in text
+
+
+def test_the_server_profile_counts_each_sample_in_the_first_part_its_stack_holds():
+    """benchmarks/server_profile.py groups py-spy's raw stacks: a stack holding two parts'
+    code counts in the first listed (the registrar's call waiting on its pipe is
+    registration), a stack of no part is the rest, and the shares sum to one."""
+    import pytest
+
+    prof = benchmark_module("server_profile")
+    raw = "\n".join(
+        [
+            "process 1:x;run (overlapmamba/service/pipeline.py:10);"
+            "Session.run (onnxruntime/capi/onnxruntime_inference_collection.py:406) 6",
+            "process 2:x;_verify (overlapmamba/service/registrar.py:430);"
+            "register (overlapmamba/service/registration.py:253) 3",
+            "process 1:x;pixel_coordinates (overlapmamba/core/projection.py:71) 1",
+            "process 1:x;Runner.run (asyncio/runners.py:118) 2",
+            "garbage",
+        ]
+    )
+    got, samples = prof.shares(raw)
+    assert samples == 12 and sum(got.values()) == pytest.approx(1.0)
+    assert got["encoder"] == pytest.approx(0.5) and got["registration"] == pytest.approx(0.25)
+    assert got["projection"] == pytest.approx(1 / 12) and got[prof.REST] == pytest.approx(2 / 12)
+    assert prof.part_of("a;scan_forward (overlapmamba/core/scan_kernel.py:282)") == "encoder"
+    waiting = (
+        "a;_call (overlapmamba/service/registrar.py:300);_send (multiprocessing/connection.py:384)"
+    )
+    assert prof.part_of(waiting) == "registration"
+    assert prof.part_of("a;_send (multiprocessing/connection.py:384)").startswith("pipe")
+    with pytest.raises(SystemExit, match="no samples"):
+        prof.shares("")
