@@ -142,6 +142,29 @@ def server(
                     SERVER_CPU_S[0] += _pid_cpu_s(srv.proc.pid)
 
 
+def fleet_command(
+    url: str,
+    out: Path,
+    *,
+    robots: int,
+    sequence: Path,
+    rate: float,
+    duration: float,
+    scans: int | None = None,
+) -> list[str]:
+    """``overlapmamba-client simulate-fleet`` against ``url`` into map ``fleet``: its report
+    to ``out`` and its latency plot beside it (``out`` as .png)."""
+    import sys
+
+    cmd = [str(Path(sys.executable).parent / "overlapmamba-client"), "simulate-fleet"]
+    cmd += ["--robots", str(robots), "--sequence", str(sequence)]
+    cmd += ["--duration", str(duration), "--rate", str(rate)]
+    if scans is not None:
+        cmd += ["--scans", str(scans)]
+    cmd += ["--map", "fleet", "--url", url, "--out", str(out)]
+    return [*cmd, "--plot", str(out.with_suffix(".png"))]
+
+
 # ---- a model's calibration ------------------------------------------------------------------
 
 

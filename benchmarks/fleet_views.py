@@ -55,13 +55,20 @@ import json
 import os
 import resource
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_kit import CORES, ROOT, SERVER_CPU_S, OtherLoad, _pid_cpu_s, other_load
+from bench_kit import (
+    CORES,
+    ROOT,
+    SERVER_CPU_S,
+    OtherLoad,
+    _pid_cpu_s,
+    fleet_command,
+    other_load,
+)
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -150,13 +157,15 @@ def round_of(
     with serve_process(
         data, model=model, env=env, inherit_settings=False, startup_s=180, cwd=ROOT
     ) as srv:
-        cmd = [str(Path(sys.executable).parent / "overlapmamba-client"), "simulate-fleet"]
-        cmd += ["--robots", str(args.robots), "--sequence", str(args.sequence)]
-        cmd += ["--duration", str(args.duration), "--rate", str(args.rate)]
-        if args.scans is not None:
-            cmd += ["--scans", str(args.scans)]
-        cmd += ["--map", "fleet", "--url", srv.url, "--out", str(out)]
-        cmd += ["--plot", str(tmp / f"fleet-{i}.png")]
+        cmd = fleet_command(
+            srv.url,
+            out,
+            robots=args.robots,
+            sequence=args.sequence,
+            rate=args.rate,
+            duration=args.duration,
+            scans=args.scans,
+        )
         server0 = _pid_cpu_s(srv.proc.pid)
         with (tmp / f"client-{i}.log").open("w") as log:
             client = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)

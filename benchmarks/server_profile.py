@@ -20,13 +20,13 @@ import argparse
 import json
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from bench_kit import fleet_command
 from reports_kit import REPORTS, ROOT, shown_path, write_report
 from rich.console import Console
 from rich.table import Table
@@ -44,6 +44,7 @@ PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("pipe to the registration process", ("multiprocessing/connection.py",)),
 )
 REST = "the rest"
+NAMES = (*(part for part, _ in PARTS), REST)  # every sample counts in one of these
 DEFAULT_MODELS = (
     ROOT / "models" / "overlapmamba-hdl64.onnx",
     ROOT / "models" / "overlapmamba-hdl64-one-pass.onnx",
@@ -69,8 +70,7 @@ def shares(raw: str) -> tuple[dict[str, float], int]:
     total = sum(counts.values())
     if total == 0:
         raise SystemExit("py-spy recorded no samples: is the server busy, and may py-spy trace it?")
-    names = [p for p, _ in PARTS] + [REST]
-    return {p: counts[p] / total for p in names}, total
+    return {p: counts[p] / total for p in NAMES}, total
 
 
 def profile(model: Path, args: argparse.Namespace, tmp: Path, spy: str) -> dict[str, Any]:
@@ -80,11 +80,15 @@ def profile(model: Path, args: argparse.Namespace, tmp: Path, spy: str) -> dict[
     with serve_process(
         tmp / f"data-{tag}", model=model, env={}, inherit_settings=False, startup_s=180, cwd=ROOT
     ) as srv:
-        cmd = [str(Path(sys.executable).parent / "overlapmamba-client"), "simulate-fleet"]
-        cmd += ["--robots", str(args.robots), "--sequence", str(args.sequence)]
-        cmd += ["--rate", str(args.rate), "--scans", str(args.scans), "--duration", "600"]
-        cmd += ["--map", "fleet", "--url", srv.url, "--out", str(fleet)]
-        cmd += ["--plot", str(tmp / f"fleet-{tag}.png")]
+        cmd = fleet_command(
+            srv.url,
+            fleet,
+            robots=args.robots,
+            sequence=args.sequence,
+            rate=args.rate,
+            duration=600,  # (the robots stop after --scans)
+            scans=args.scans,
+        )
         with (tmp / f"client-{tag}.log").open("w") as log:
             client = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
             time.sleep(args.warmup)
@@ -123,8 +127,11 @@ def main() -> None:
     ap.add_argument("--py-spy", default=shutil.which("py-spy"), help="py-spy's path")
     ap.add_argument("--out", type=Path, default=REPORTS / "service" / "server-profile.json")
     args = ap.parse_args()
-    if not args.py_spy:
-        ap.error("py-spy is not on PATH: pip install py-spy (anywhere), or give --py-spy PATH")
+    if not args.py_spy or not shutil.which(args.py_spy):
+        ap.error(
+            f"py-spy not found ({args.py_spy or 'not on PATH'}): pip install py-spy "
+            "(anywhere), then put it on PATH or give --py-spy PATH"
+        )
     if not (args.sequence / "manifest.json").exists():
         ap.error(f"{args.sequence} is not made (make data)")
     console = Console()
@@ -143,7 +150,7 @@ def main() -> None:
         "recorded_s": args.seconds,
         "sample_hz": args.hz,
         "py_spy": version.stdout.strip(),
-        "parts": [p for p, _ in PARTS] + [REST],
+        "parts": list(NAMES),
         "runs": runs,
     }
     table = Table(title="where the server's CPU goes (share of py-spy's samples)")
