@@ -21,6 +21,12 @@ from typing import Any
 if (_workers := os.environ.get("PYTEST_XDIST_WORKER_COUNT")) is not None:
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // int(_workers))))
 
+# The commands' rich consoles (and typer's error boxes) wrap at the terminal's width, 80 when
+# there is none: a long temporary path then broke inside a word a test looked for. Wide
+# enough for any path pytest makes; set before the commands' modules make their consoles. A
+# test that wants a width passes COLUMNS itself.
+os.environ["COLUMNS"] = "400"
+
 import numpy as np
 import pytest
 

@@ -363,3 +363,15 @@ def test_serve_gives_sigterm_back_before_the_server_runs(tmp_path, monkeypatch):
         signal.signal(signal.SIGTERM, before)
     assert res.exit_code == 0, text(res)
     assert seen == [before]
+
+
+def test_a_long_path_in_an_error_is_not_wrapped_under_the_tests(tmp_path, kitti_seq_dir):
+    """The suite gives the commands' consoles 400 columns (conftest): at 80, rich wrapped a
+    long temporary path inside a word, and a test reading the error broke on some runs."""
+    deep = tmp_path / ("d" * 60) / ("e" * 60)
+    deep.mkdir(parents=True)
+    (deep / "afile").write_text("")
+    wanted = f"{deep}/afile/x.json"
+    args = ["eval-real", "--checkpoint", "models/overlapmamba-hdl64.onnx", "--sequence"]
+    res = runner.invoke(app, [*args, str(kitti_seq_dir), "--json", wanted])
+    assert res.exit_code == 2 and str(deep / "afile") in res.output, res.output
