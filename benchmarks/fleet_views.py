@@ -21,7 +21,7 @@ the observations, and the server's stage medians (``/v1/stats``). Their sum per 
 bounds the throughput any fleet gets on this machine: cores ÷ (server + client CPU an
 observation), the ``ceiling`` column.
 
-    python benchmarks/fleet_views.py [--rounds 2] [--robots 8] [--sequence data/synth/val]
+    python benchmarks/fleet_views.py [--rounds 2] [--robots 8] [--sequence data/synth/test]
         [--scans 250]
 
 ``--scans N``: each robot observes N scans a round (``simulate-fleet --scans``, as the
@@ -193,7 +193,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=2, help="runs of each model, alternating")
     ap.add_argument("--robots", type=int, default=8)
-    ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "val")
+    ap.add_argument("--sequence", type=Path, default=ROOT / "data" / "synth" / "test")
     ap.add_argument(
         "--duration", type=float, help="seconds a round [60; with --scans, its bound: 300]"
     )

@@ -150,7 +150,7 @@ def fleet() -> str:
         )
     out = source(
         "reports/client/fleet-{1,4,8}.json",
-        "overlapmamba-client simulate-fleet --robots N --map fleet --sequence data/synth/val "
+        "overlapmamba-client simulate-fleet --robots N --map fleet --sequence data/synth/test "
         "--duration 60 --rate 10 --out reports/client/fleet-N.json",
     )
     models = "; ".join(sorted(said))

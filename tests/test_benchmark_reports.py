@@ -117,3 +117,27 @@ def test_the_server_profile_counts_each_sample_in_the_first_part_its_stack_holds
     assert prof.part_of("a;_send (multiprocessing/connection.py:384)").startswith("pipe")
     with pytest.raises(SystemExit, match="no samples"):
         prof.shares("")
+
+
+def _towns(report: dict) -> list[str]:
+    """The towns a fleet or load report ran on, by their folder's name."""
+    named = [report.get("sequence"), report.get("drive"), *(report.get("drives") or [])]
+    return [Path(t).name for t in named if t]
+
+
+def test_fleet_and_load_figures_are_measured_on_a_held_out_town():
+    """Every fleet and end-to-end load report ran on a test town: each file's thresholds were
+    chosen on `val` (and `val-s1`), so precision and recall there are no held-out figures.
+    fleet_views.py runs on `test` unless told otherwise."""
+    reports = sorted((ROOT / "reports" / "client").glob("fleet*.json"))
+    reports += sorted((ROOT / "reports" / "e2e").glob("load*.json"))
+    reports.append(ROOT / "reports" / "service" / "server-profile.json")
+    seen = {}
+    for path in reports:
+        towns = _towns(json.loads(path.read_text()))
+        assert towns, f"{path.relative_to(ROOT)} names no town it ran on"
+        seen[path.relative_to(ROOT).as_posix()] = towns
+    off = {p: t for p, t in seen.items() if not all(x.startswith("test") for x in t)}
+    assert not off, f"fleet figures measured off the test towns: {off}"
+    tree = ast.parse((BENCH / "fleet_views.py").read_text())
+    assert ("--sequence", "ROOT / 'data' / 'synth' / 'test'") in _argument_defaults(tree)
