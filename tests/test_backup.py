@@ -123,9 +123,10 @@ def test_a_full_disk_at_create_or_snapshot_is_named_and_leaves_no_debris(tmp_pat
     written leaves the map serving (the snapshot is derived)."""
     import errno
 
+    from overlapmamba.service.backends.faiss import folder as faiss_folder
     from overlapmamba.service.backends.faiss import map as faiss_map
 
-    real_store = faiss_map.Store
+    real_store = faiss_folder.Store
 
     def full_store(path, **kw):
         raise sqlite3.OperationalError("database or disk is full")
@@ -134,13 +135,13 @@ def test_a_full_disk_at_create_or_snapshot_is_named_and_leaves_no_debris(tmp_pat
         raise OSError(errno.ENOSPC, "No space left on device")
 
     with opened("faiss", tmp_path) as b:
-        monkeypatch.setattr(faiss_map, "Store", full_store)
+        monkeypatch.setattr(faiss_folder, "Store", full_store)
         with pytest.raises(Unavailable, match="cannot be created.*free disk space") as err:
             b.create("town", "flat")
         assert err.value.code == "storage_full" and err.value.status == 503
         assert err.value.headers["Retry-After"] == "30"  # an operator must free disk first
         assert not list((tmp_path / "data" / "maps").glob(".create-*"))
-        monkeypatch.setattr(faiss_map, "Store", real_store)
+        monkeypatch.setattr(faiss_folder, "Store", real_store)
         m, created = b.create("town", "flat")
         assert created
         m.insert([row(i, np.random.default_rng(i)) for i in range(3)])

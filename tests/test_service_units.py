@@ -21,7 +21,12 @@ from prometheus_client import generate_latest
 from overlapmamba.core.errors import DataTooLargeError
 from overlapmamba.service.auth import ROLE_ACTIONS, Action, Authenticator, hash_key
 from overlapmamba.service.backends.faiss.backend import FaissBackend
-from overlapmamba.service.backends.faiss.index import VectorIndex, search_reference
+from overlapmamba.service.backends.faiss.index import (
+    VectorIndex,
+    needs_rebuild,
+    search_reference,
+    wants_ivf,
+)
 from overlapmamba.service.backends.faiss.locks import RWLock
 from overlapmamba.service.backends.faiss.store import Store
 from overlapmamba.service.batcher import MicroBatcher
@@ -408,6 +413,28 @@ def test_map_snapshot_and_replay_after_unsnapshotted_writes(tmp_path):
     assert not (tmp_path / "maps" / "town").exists()
     with pytest.raises(BadRequest, match="allowed"):
         reg.get("Bad Id")
+
+
+def test_index_kind_policy():
+    """Which index a map calls for: IVF for `ivf`, and for `auto` above its threshold, never
+    under 64 vectors; an index of the other kind, or IVF grown to twice its lists, is rebuilt."""
+    assert not wants_ivf("flat", 10_000, 400)
+    assert wants_ivf("ivf", 64, 400) and not wants_ivf("ivf", 63, 400)
+    assert not wants_ivf("auto", 400, 400) and wants_ivf("auto", 401, 400)
+    assert not wants_ivf("auto", 63, 10)
+    rng = np.random.default_rng(3)
+    flat = VectorIndex.flat(8)
+    assert not needs_rebuild(flat, ivf=False) and needs_rebuild(flat, ivf=True)
+    vecs = places(rng, 400, d=8)
+    ivf = VectorIndex.ivf(vecs)
+    ivf.add(np.arange(400, dtype=np.int64), vecs)
+    assert needs_rebuild(ivf, ivf=False) and not needs_rebuild(ivf, ivf=True)
+    assert ivf.nlist == 10  # 400 // 39: 780 vectors want twice as many lists
+    more = places(rng, 380, d=8)
+    ivf.add(np.arange(400, 779, dtype=np.int64), more[:379])
+    assert not needs_rebuild(ivf, ivf=True)
+    ivf.add(np.array([779], dtype=np.int64), more[379:])
+    assert needs_rebuild(ivf, ivf=True)
 
 
 def test_auto_map_switches_to_ivf_and_keeps_deletes(tmp_path):

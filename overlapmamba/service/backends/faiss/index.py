@@ -53,6 +53,23 @@ def ivf_lists(n: int) -> int:
     return int(max(1, min(16384, round(4 * math.sqrt(max(n, 1))), n // 39)))
 
 
+def wants_ivf(kind: str, n: int, approximate_above: int) -> bool:
+    """Whether a map of index ``kind`` (flat, ivf or auto) and ``n`` vectors calls for IVF:
+    auto above ``approximate_above``; never below 64 vectors (IVF needs some to train on)."""
+    auto = kind == "auto" and n > approximate_above
+    return (kind == "ivf" or auto) and n >= 64
+
+
+def needs_rebuild(index: VectorIndex, ivf: bool) -> bool:
+    """Whether ``index`` is not what its map calls for: the other kind (e.g. an IVF snapshot
+    of a map now flat), or IVF grown well past the lists it was sized for."""
+    if not ivf:
+        return index.kind != "flat"
+    if index.kind != "ivf":
+        return True
+    return ivf_lists(index.ntotal) >= 2 * index.nlist
+
+
 class VectorIndex:
     def __init__(self, index: faiss.Index, kind: str, *, nprobe: int = 24) -> None:
         self.index: Any = index  # FAISS's SWIG stubs do not match its Python API

@@ -18,8 +18,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
-import shutil
 import sqlite3
 import threading
 import time
@@ -33,14 +31,15 @@ from overlapmamba.core.sensors.mount import Mount
 from overlapmamba.core.yaw import Spectrum
 from overlapmamba.service.backends.base import build_matches, check_existing, insert_results
 from overlapmamba.service.backends.faiss.columns import FilterColumns
-from overlapmamba.service.backends.faiss.index import VectorIndex, ivf_lists
+from overlapmamba.service.backends.faiss.folder import make_map_folder
+from overlapmamba.service.backends.faiss.index import VectorIndex, needs_rebuild, wants_ivf
 from overlapmamba.service.backends.faiss.locks import RWLock
 from overlapmamba.service.backends.faiss.snapshot import (
     SNAPSHOT_NAME,
     read_snapshot,
     write_snapshot,
 )
-from overlapmamba.service.backends.faiss.sqlfile import fsync_dir, storage_full
+from overlapmamba.service.backends.faiss.sqlfile import storage_full
 from overlapmamba.service.backends.faiss.store import Store
 from overlapmamba.service.backends.rows import RowCache
 from overlapmamba.service.domain import (
@@ -119,34 +118,17 @@ class FaissMap:
         mount: Mount | None = None,
         rows: RowCache | None = None,
     ) -> FaissMap:
-        # Built in a temporary folder and renamed into place: a crash leaves either no map
-        # or a whole one (load_all removes the debris), never a store without its metadata.
-        tmp = folder.with_name(f".create-{map_id}")
-        shutil.rmtree(tmp, ignore_errors=True)
-        try:
-            tmp.mkdir(parents=True)
-            store = Store(tmp / "store.sqlite", new=True)
-            try:
-                store.set_meta(
-                    map_id=map_id,
-                    model_id=model_id,
-                    dim=dim,
-                    index_kind=kind,
-                    keep_geometry="true" if keep_geometry else "false",
-                    created_at=time.time(),
-                    **({} if sensor is None else {"sensor": sensor}),
-                    **({} if mount is None else {"mount": json.dumps(mount.key())}),
-                )
-            finally:
-                store.close()  # a lingering connection would checkpoint into the file later
-            os.replace(tmp, folder)
-            fsync_dir(folder.parent)
-        except Exception as err:
-            shutil.rmtree(tmp, ignore_errors=True)
-            full = storage_full(err.__cause__ or err, f"map {map_id!r} cannot be created")
-            if full is not None:
-                raise full from err
-            raise
+        meta = {
+            "map_id": map_id,
+            "model_id": model_id,
+            "dim": dim,
+            "index_kind": kind,
+            "keep_geometry": "true" if keep_geometry else "false",
+            "created_at": time.time(),
+            **({} if sensor is None else {"sensor": sensor}),
+            **({} if mount is None else {"mount": json.dumps(mount.key())}),
+        }
+        make_map_folder(map_id, folder, meta)
         return cls.open(map_id, folder, settings, rows=rows)
 
     @classmethod
@@ -189,18 +171,10 @@ class FaissMap:
         return m
 
     def _use_ivf(self, n: int) -> bool:
-        auto = self.kind == "auto" and n > self.settings.approximate_above
-        return (self.kind == "ivf" or auto) and n >= 64  # IVF needs vectors to train on
+        return wants_ivf(self.kind, n, self.settings.approximate_above)
 
     def wants_rebuild(self) -> bool:
-        if self.incomplete:
-            return True
-        n = self.index.ntotal
-        if not self._use_ivf(n):
-            return self.index.kind != "flat"  # e.g. an IVF snapshot of a map now flat
-        if self.index.kind != "ivf":
-            return True
-        return ivf_lists(n) >= 2 * self.index.nlist  # grown well past what it was sized for
+        return self.incomplete or needs_rebuild(self.index, self._use_ivf(self.index.ntotal))
 
     def maintain(self) -> None:
         """After writes: rebuild or snapshot in a background thread when due (one at a time)."""
