@@ -23,7 +23,7 @@ loop, over all queries with a loop (what the descriptor's Recall@5 bounds).
 of one against another's map: ``benchmarks/verify_across.py``) to what is calibrated on;
 ``--each`` asks the precision target of each town and each pair, not only of all queries
 together: a fleet whose every sensor pair must be safe. The fitness and rmse thresholds and
-the ambiguity margin are then chosen together (:func:`joint`): the triple of highest recall
+the ambiguity margin are then chosen together (``verify_rules.joint``): the triple of highest recall
 that holds the target everywhere; the gate and a larger margin follow as below.
 
 ``--calibrate`` (the validation town only): sweeps the fitness and rmse thresholds and picks
@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -66,14 +65,12 @@ from rich.console import Console
 from rich.table import Table
 from town_kit import encode_town
 from tqdm import tqdm
+from verify_rules import FITNESS, calibrate
 
 from overlapmamba.core.rerank import Rerank
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.settings import VerifySettings
 from overlapmamba.service.verify import params_of, verify_candidates
-
-FITNESS = np.round(np.arange(0.20, 0.99, 0.02), 2)  # --calibrate's sweep of verify.min_fitness
-MARGINS = np.round(np.arange(0, 0.61, 0.02), 2)  # and of verify.ambiguity_margin
 
 
 def run_town(
@@ -137,78 +134,6 @@ def run_town(
         "verify_ms": ms,
         "geometry_bytes": [len(b) for b in blobs if b is not None],
     }
-
-
-def ambiguity_margin(
-    queries: list[dict[str, Any]], gate: dict[str, Any], holds: Callable[..., bool]
-) -> dict[str, Any]:
-    """``verify.ambiguity_margin``, after the thresholds and the gate (each candidate that may
-    pass them carries its rival's fit: ``run_town(rivals_from=)``): the largest of 0, 0.02, …
-    0.6 that costs at most 0.005 of the gate's recall, precision at the target both ways
-    (``chosen``; None: none does), and the ``sweep``. With ``--across`` the pairs' candidates
-    carry their rivals too (``verify_across.pair_queries(rivals_from=)``), so the margin
-    holds for a map by one sensor and a query by another as well."""
-    f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
-    sweep = [score(queries, f, rmse, d, margin=float(m)) for m in MARGINS]
-    fine = [
-        s
-        for s in sweep
-        if holds(s, d, s["ambiguity_margin"]) and s["recall"] >= gate["recall"] - 0.005
-    ]
-    chosen = max(fine, key=lambda s: s["ambiguity_margin"]) if fine else None
-    return {"chosen": chosen, "sweep": sweep}
-
-
-def by_group(queries: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
-    """The queries of each town and, with ``--across``, of each pair of drives."""
-    groups: dict[str, list[dict[str, Any]]] = {}
-    for q in queries:
-        groups.setdefault(q["group"], []).append(q)
-    return groups
-
-
-def target_holds(queries: list[dict[str, Any]], target: float, each: bool) -> Callable[..., bool]:
-    """Whether thresholds scored on ``queries`` (``s``, from :func:`score`, with a ``gate``
-    and a ``margin`` to score them at) keep precision at ``target`` whichever way the service
-    chooses the closure, over all queries and with ``each`` on every town and pair too."""
-    groups = by_group(queries)
-
-    def holds(s: dict[str, Any], gate: float | None = None, margin: float | None = None) -> bool:
-        f, rmse = s["min_fitness"], s["max_rmse_m"]
-        first = score(queries, f, rmse, gate, stop_at_first=True, margin=margin)
-        if s["precision"] < target or first["precision"] < target:
-            return False
-        return not each or all(
-            score(g, f, rmse, gate, stop_at_first=first_, margin=margin)["precision"] >= target
-            for g in groups.values()
-            for first_ in (False, True)
-        )
-
-    return holds
-
-
-def joint(
-    queries: list[dict[str, Any]], sweep: list[dict[str, Any]], holds: Callable[..., bool]
-) -> dict[str, Any] | None:
-    """With ``--each``: the fitness and rmse thresholds and the ambiguity margin chosen
-    together, the triple of highest recall whose precision holds the target on each town and
-    pair of drives, both ways of choosing the closure (among equals the strictest); None
-    when none does. One after the other, the fitness alone would have to keep every pair at
-    the target, and the margin, which refuses a pair's closures that another turn fits
-    nearly as well, would come too late to spare recall."""
-    combos = [
-        score(queries, s["min_fitness"], s["max_rmse_m"], margin=float(m))
-        for s in sweep
-        if s["accepted"]
-        for m in MARGINS
-    ]
-    combos.sort(
-        key=lambda s: (s["recall"], s["min_fitness"], -s["max_rmse_m"], s["ambiguity_margin"]),
-        reverse=True,
-    )
-    return next(
-        (s for s in combos if s["accepted"] and holds(s, None, s["ambiguity_margin"])), None
-    )
 
 
 def main() -> None:
@@ -304,26 +229,10 @@ def main() -> None:
             across, pairs = val_pair_queries(enc, v, rerank, rivals_from=rivals_from)
             report["across"] = {"pairs": pairs, "queries": len(across)}
             queries += across
-        sweep = [score(queries, f, r) for f in FITNESS for r in (0.5, 0.6, 0.7, 1e9)]
-
-        # highest recall at the target, whichever way the service chooses the closure; among
-        # equals the strictest thresholds (a margin)
-        groups = by_group(queries)  # each town, and each pair of drives with --across
-        holds = target_holds(queries, args.target, args.each)
-
-        if args.each:  # the margin with the thresholds: joint()
-            chosen = joint(queries, sweep, holds)
-        else:
-            ok = [s for s in sweep if s["accepted"] and holds(s)]
-            key = lambda s: (s["recall"], s["min_fitness"], -s["max_rmse_m"])  # noqa: E731
-            chosen = max(ok, key=key) if ok else None
-        report["calibration"] = {
-            "target_precision": args.target,
-            "target_on": "each town and pair" if args.each else "all queries",
-            "rule": "fitness, rmse and margin together" if args.each else "one after the other",
-            "chosen": chosen,
-        }
-        report["sweep"] = sweep
+        out = calibrate(queries, args.target, args.each, in_force)
+        cal = report["calibration"] = out["calibration"]
+        report |= {k: v for k, v in out.items() if k != "calibration"}
+        chosen, gate, margin = cal["chosen"], cal.get("gate"), cal.get("ambiguity")
         table = Table(title=f"verified closures on {', '.join(t.name for t in towns)}")
         for col in (
             "min fitness",
@@ -334,7 +243,7 @@ def main() -> None:
             "recall",
         ):
             table.add_column(col, justify="right")
-        for s in sweep:
+        for s in out["sweep"]:
             if s["max_rmse_m"] == 1e9 or s is chosen:
                 table.add_row(
                     f"{s['min_fitness']:.2f}",
@@ -347,44 +256,16 @@ def main() -> None:
         console.print(table)
         console.print(f"chosen for precision ≥ {args.target}: {chosen}")
         if chosen is not None:
-            # the descriptor gate: the nearest distance that costs at most 0.005 of recall
-            m0 = chosen["ambiguity_margin"]  # None but with --each
-            gates = [
-                score(queries, chosen["min_fitness"], chosen["max_rmse_m"], float(d), margin=m0)
-                for d in np.round(np.arange(0.10, 1.01, 0.01), 2)
-            ]
-            fine = [
-                g
-                for g in gates
-                if holds(g, g["gate_distance"], m0) and g["recall"] >= chosen["recall"] - 0.005
-            ]
-            gate = min(fine, key=lambda g: g["gate_distance"]) if fine else None
-            report["calibration"]["gate"] = gate
-            report["gates"] = gates
             console.print(f"descriptor gate: {gate}")
-            margin = None
-            if gate is not None:
-                margins = ambiguity_margin(queries, gate, holds)
-                margin = margins["chosen"]
-                report["calibration"]["ambiguity"] = margin
-                report["ambiguity_sweep"] = margins["sweep"]
-                console.print(f"ambiguity margin: {margin}")
-        # what the file's thresholds in force and the ones chosen do on the same queries,
-        # all together and on the worst town or pair of drives (as the service answers)
-        final = report["calibration"].get("ambiguity") or report["calibration"].get("gate")
-        for name, t in (("in_force", in_force), ("calibrated", final)):
-            if t is None:
-                continue
-            at = (t["min_fitness"], t["max_rmse_m"], t["gate_distance"], True)
-            s = score(queries, *at, margin=t["ambiguity_margin"])
-            each = {g: score(qs, *at, margin=t["ambiguity_margin"]) for g, qs in groups.items()}
-            worst = min(each, key=lambda g: each[g]["precision"])
-            s["worst_group"] = {"group": worst, **each[worst]}
-            report["calibration"][name] = s
-            console.print(
-                f"{name}: precision {s['precision']:.4f}, recall {s['recall']:.4f}, "
-                f"worst {worst}: {s['worst_group']['precision']:.4f}"
-            )
+        if gate is not None:
+            console.print(f"ambiguity margin: {margin}")
+        for name in ("in_force", "calibrated"):
+            if name in cal:
+                s = cal[name]
+                console.print(
+                    f"{name}: precision {s['precision']:.4f}, recall {s['recall']:.4f}, "
+                    f"worst {s['worst_group']['group']}: {s['worst_group']['precision']:.4f}"
+                )
         if chosen is not None and args.write_calibration and gate is not None:
             values = {
                 "min_fitness": chosen["min_fitness"],

@@ -183,7 +183,7 @@ def test_calibrating_each_pair_chooses_the_margin_with_the_fitness():
     margin refuses the wrong one and keeps them (joint)."""
     from conftest import benchmark_module
 
-    kit, vt = benchmark_module("closure_kit"), benchmark_module("verify_threshold")
+    kit, vt = benchmark_module("closure_kit"), benchmark_module("verify_rules")
 
     def query(group, fitness, rival, t_err):
         c = dict(keyframe=0, distance=0.1, fitness=fitness, rmse=0.5, rival=rival)
@@ -201,6 +201,40 @@ def test_calibrating_each_pair_chooses_the_margin_with_the_fitness():
     both = vt.joint(queries, sweep, holds)
     assert both["min_fitness"] == 0.5 and both["ambiguity_margin"] == 0.44
     assert (both["precision"], both["recall"]) == (1.0, 100 / 101)
+
+
+def test_calibration_chooses_thresholds_then_gate_then_margin_and_scores_both():
+    """verify_rules.calibrate, the whole --calibrate --each rule on the same queries: the
+    fitness and margin together, then the nearest gate that keeps their recall, then the
+    largest margin that does; the thresholds in force (no margin) are scored beside them,
+    and their worst group is the pair whose quarter-turn-wrong closure they accept."""
+    from conftest import benchmark_module
+
+    rules = benchmark_module("verify_rules")
+
+    def query(group, fitness, rival, t_err, distance):
+        c = dict(keyframe=0, distance=distance, fitness=fitness, rmse=0.5, rival=rival)
+        c |= dict(t_err=t_err, yaw_err=0.1, loop=True)
+        return {"has_loop": True, "candidates": [c], "group": group}
+
+    queries = [query("town", 0.8, 0.1, 0.2, 0.2) for _ in range(50)]
+    queries += [query("pair", 0.5, 0.05, 0.2, 0.3) for _ in range(50)]
+    queries += [query("pair", 0.55, 0.5, 70.0, 0.3)]
+    in_force = dict(min_fitness=0.5, max_rmse_m=0.7, gate_distance=None, ambiguity_margin=None)
+    out = rules.calibrate(queries, 0.99, True, in_force)
+    cal = out["calibration"]
+    assert (cal["chosen"]["min_fitness"], cal["chosen"]["ambiguity_margin"]) == (0.5, 0.44)
+    assert cal["gate"]["gate_distance"] == 0.3  # the nearest that keeps every right closure
+    assert cal["ambiguity"]["ambiguity_margin"] == 0.44  # 0.46 refuses the pair's right ones
+    assert len(out["sweep"]) == 4 * len(rules.FITNESS) and len(out["ambiguity_sweep"]) > 1
+    assert (cal["calibrated"]["precision"], cal["calibrated"]["recall"]) == (1.0, 100 / 101)
+    assert cal["in_force"]["worst_group"]["group"] == "pair"
+    assert cal["in_force"]["worst_group"]["precision"] == 50 / 51
+    # without --each the target is over all queries, where the wrong closure is 1 of 101
+    # accepted: the fitness alone keeps it (precision 0.990), with no margin chosen with it
+    alone = rules.calibrate(queries, 0.99, False, in_force)["calibration"]
+    assert alone["rule"] == "one after the other" and alone["chosen"]["ambiguity_margin"] is None
+    assert alone["chosen"]["min_fitness"] == 0.5 and alone["chosen"]["precision"] == 100 / 101
 
 
 def test_statistics_count_ambiguous_refusals_among_the_rejected():
