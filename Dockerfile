@@ -35,21 +35,21 @@ RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
 RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
-# 1. Dependencies: the core's and the `serve` extra's, read from pyproject.toml; from the
-#    wheelhouse when it has wheels (an air-gapped build), else from the index.
-#    At the versions of constraints.txt, the lock the suite passed with, either way: a
-#    wheelhouse holding another version of a package fails the build rather than ship it.
-COPY pyproject.toml constraints.txt deploy/requirements.py ./
+# 1. Dependencies: the `serve` extra's whole closure and the build backend, at the versions
+#    of constraints.txt (the lock the suite passed with), each file checked against the
+#    SHA-256 PyPI lists for it (deploy/requirements-serve.txt, written by `make lock`): from
+#    the wheelhouse when it has wheels (an air-gapped build), else from the index. A file
+#    that is not the one locked, or a wheelhouse holding another version, fails the build
+#    rather than ship it.
+COPY deploy/requirements-serve.txt ./
 COPY deploy/wheelhouse /wheels
-#    setuptools too, at the lock's version: the source is built with it below.
-RUN { python requirements.py serve; echo setuptools; } > requirements.txt \
-    && if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
-         pip install --no-cache-dir --no-index --find-links /wheels -c constraints.txt \
-           -r requirements.txt; \
-       else pip install --no-cache-dir -c constraints.txt -r requirements.txt; fi
+RUN if [ -n "$(find /wheels -name '*.whl' -print -quit)" ]; then \
+      pip install --no-cache-dir --require-hashes --no-index --find-links /wheels \
+        -r requirements-serve.txt; \
+    else pip install --no-cache-dir --require-hashes -r requirements-serve.txt; fi
 # 2. The source, without dependencies (they are all above), built by the setuptools installed
 #    above (no build isolation: nothing is fetched, no build tool moves unasked).
-COPY README.md ./
+COPY pyproject.toml README.md ./
 COPY overlapmamba/__init__.py overlapmamba/__main__.py overlapmamba/py.typed ./overlapmamba/
 COPY overlapmamba/cli ./overlapmamba/cli
 COPY overlapmamba/core ./overlapmamba/core

@@ -1,7 +1,15 @@
 """Write constraints.txt, the lock: the exact version of every package a virtual environment
-holds (by default the one running this), which ``make test``, ``make serve`` and the
-Dockerfile install with (``-c constraints.txt``), so a fresh machine and an image get the
-versions the suite passed with, not whatever was released since.
+holds (by default the one running this), which ``make test`` and ``make serve`` install with
+(``-c constraints.txt``), so a fresh machine gets the versions the suite passed with, not
+whatever was released since.
+
+Then deploy/requirements-serve.txt, what the image installs: the ``serve`` extra's whole
+closure and the build backend at the lock's versions, each with the SHA-256 of every file
+PyPI holds for it (``uv pip compile --generate-hashes --universal``, for the image's Python
+3.11 on any platform). The Dockerfile installs it with ``pip --require-hashes``, from the
+wheelhouse or from PyPI: a file that is not the one locked (a mirror's, a proxy's, a
+re-upload) fails the build instead of entering the image. Writing it asks PyPI (or the
+index uv is configured with) for the hashes.
 
     make lock      # .venv upgraded to the newest releases pyproject.toml allows, then this
 
@@ -10,8 +18,10 @@ Run ``make test`` on the result before committing it.
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -26,6 +36,13 @@ HEADER = """\
 # leaves out, which pip list gives. setuptools is pinned: the image builds the source with
 # it (no build isolation), so a new release cannot break or change a build unasked.
 SKIP = ("pip", "uv", "wheel", "distribute")
+SERVE_LOCK = ROOT / "deploy" / "requirements-serve.txt"
+SERVE_HEADER = """\
+# What the image installs (Dockerfile: pip install --require-hashes): the serve extra's
+# whole closure and the build backend, at the versions of constraints.txt, each with the
+# SHA-256 of every file PyPI holds for that version (Python 3.11, any platform). Written by
+# `make lock` (deploy/lock.py) from pyproject.toml and constraints.txt; do not edit.
+"""
 
 
 def pins(frozen: str) -> list[str]:
@@ -51,6 +68,35 @@ def freeze(python: str = sys.executable) -> str:
     ).stdout
 
 
+def serve_lock(uv: str) -> str:
+    """deploy/requirements-serve.txt's text: the ``serve`` requirements of pyproject.toml and
+    setuptools (the image builds the source with it), resolved at constraints.txt's versions
+    with their hashes by ``uv``."""
+    sys.path.insert(0, str(ROOT / "deploy"))
+    from requirements import requirements  # deploy/requirements.py
+
+    wanted = [*requirements(ROOT / "pyproject.toml", ["serve"]), "setuptools"]
+    with tempfile.TemporaryDirectory(prefix="om-lock-") as tmp:
+        src = Path(tmp) / "serve.in"
+        src.write_text("\n".join(wanted) + "\n")
+        cmd = [uv, "pip", "compile", str(src), "-c", str(ROOT / "constraints.txt")]
+        cmd += ["--generate-hashes", "--universal", "--python-version", "3.11"]
+        cmd += ["--no-header", "--no-annotate", "--quiet"]
+        out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"uv pip compile failed (it asks the package index):\n{out.stderr}")
+    return SERVE_HEADER + out.stdout
+
+
+def find_uv(python: str) -> str:
+    """The uv beside ``python`` (the Makefile's, in .venv), else the one on PATH."""
+    beside = Path(python).parent / "uv"
+    found = str(beside) if beside.is_file() else shutil.which("uv")
+    if found is None:
+        raise SystemExit(f"no uv beside {python} or on PATH: pip install uv")
+    return found
+
+
 def main(python: str = sys.executable) -> None:
     lines = pins(freeze(python))
     if not lines:
@@ -60,6 +106,12 @@ def main(python: str = sys.executable) -> None:
     tmp.write_text(HEADER + "\n".join(lines) + "\n")
     tmp.replace(target)
     print(f"constraints.txt: {len(lines)} packages from {python}")
+    text = serve_lock(find_uv(python))
+    tmp = SERVE_LOCK.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(SERVE_LOCK)
+    n = sum(1 for line in text.splitlines() if "==" in line)
+    print(f"{SERVE_LOCK.relative_to(ROOT)}: {n} packages with their hashes")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Print the requirements of the project's core plus the named extras, one per line, from
-pyproject.toml — so an image can install its dependencies in a layer of their own, before
-the source is copied (the layer is rebuilt only when pyproject.toml changes).
+pyproject.toml: what the image's hashed lock (``deploy/lock.py``) and its wheelhouse
+(``deploy/image.py wheels``) are made from.
 
     python deploy/requirements.py serve > requirements.txt
 """

@@ -2,7 +2,7 @@
 dependency set (what the image installs) is complete without torch; compose is consistent.
 
 Building the image takes minutes, so ``make test`` proves its runtime the long way: the
-same requirements the Dockerfile installs go into a fresh virtual environment, and a real
+same hashed lock the Dockerfile installs goes into a fresh virtual environment, and a real
 ``overlapmamba serve`` from it answers with a descriptor. ``make image-test``
 (tests/test_image.py) checks the image itself.
 """
@@ -74,17 +74,17 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     src = next(i for i, a in enumerate(copies) if "service" in a)
     assert dep < src
     runs = " ".join(a for w, a in ins if w == "RUN")
-    assert "requirements.py serve" in runs and "--no-deps ." in runs
-    assert "-c constraints.txt -r requirements.txt" in runs  # at the lock's versions
-    # from the wheelhouse too: one built at other versions fails rather than ships them
+    assert "--no-deps ." in runs
+    # the hashed lock, from the wheelhouse and from the index alike: a file that is not the
+    # one locked, or one built at other versions, fails the build rather than ships
     installs = [" ".join(i.split()) for i in re.findall(r"pip install[^;&]*", runs)]
-    from_requirements = [i for i in installs if "-r requirements.txt" in i]
-    assert len(from_requirements) == 2, installs  # the wheelhouse's and the index's
-    for install in from_requirements:
-        assert "-c constraints.txt" in install, install
-    # the build backend at the lock's version, and the source built with it: with build
-    # isolation pip fetched the newest setuptools for every build (left out before)
-    assert "echo setuptools; } > requirements.txt" in runs
+    locked = [i for i in installs if "-r requirements-serve.txt" in i]
+    assert len(locked) == 2, installs  # the wheelhouse's and the index's
+    for install in locked:
+        assert "--require-hashes" in install, install
+    assert "deploy/requirements-serve.txt" in " ".join(a for w, a in ins if w == "COPY")
+    # the build backend at the lock's version (in the hashed lock), and the source built
+    # with it: with build isolation pip fetched the newest setuptools for every build
     source = [i for i in installs if i.endswith(" .")]
     assert source and all("--no-build-isolation" in i for i in source), source
     import tomllib
@@ -188,15 +188,8 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     py = venv / "bin" / "python"
-    req = subprocess.run(
-        [sys.executable, str(ROOT / "deploy" / "requirements.py"), "serve"],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
+    req = (ROOT / "deploy" / "requirements-serve.txt").read_text()  # as the Dockerfile
     assert "torch" not in req
-    (tmp_path / "requirements.txt").write_text(req)
     # uv where the dev venv has it (`make test` installs it): the same set in a third of the
     # time. The image installs with pip; what is tested is the set, not the installer.
     uv = shutil.which("uv", path=str(Path(sys.executable).parent))
@@ -206,8 +199,9 @@ def test_runtime_dependency_set_serves_without_torch(tmp_path):
     else:
         pip = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
         pip_list = [str(py), "-m", "pip", "list", "--format=freeze"]
-    constraints = ["-c", str(ROOT / "constraints.txt")]  # as the Dockerfile installs them
-    subprocess.run([*pip, *constraints, "-r", str(tmp_path / "requirements.txt")], check=True)
+    # the hashed lock, as the Dockerfile installs it: every file checked against its hash
+    locked = ["--require-hashes", "-r", str(ROOT / "deploy" / "requirements-serve.txt")]
+    subprocess.run([*pip, *locked], check=True)
     # the source as the image copies it (no training, synthesis or client code, no tests)
     src = tmp_path / "src"
     (src / "overlapmamba").mkdir(parents=True)
@@ -373,52 +367,6 @@ def test_the_images_x86_kernel_target_is_not_given_to_another_processors_compile
     assert "-march=armv8-a" in scan_kernel.cflags()
     monkeypatch.setenv("OVERLAPMAMBA_KERNEL_MARCH", "armv8.2-a")  # named for arm: as named
     assert "-march=armv8.2-a" in scan_kernel.cflags()
-
-
-def test_the_lock_pins_every_requirement_within_what_pyproject_allows():
-    """constraints.txt is what a fresh machine and the image install: every requirement of
-    the project and its extras must be pinned there (one left out would take whatever was
-    released since), at a version pyproject.toml allows, and make's installs must take it."""
-    import tomllib
-
-    from packaging.requirements import Requirement
-    from packaging.utils import canonicalize_name
-
-    sys.path.insert(0, str(ROOT / "deploy"))
-    from lock import pins
-
-    pinned = {}
-    for line in (ROOT / "constraints.txt").read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            name, _, version = line.partition("==")
-            pinned[canonicalize_name(name)] = version
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    extras = project["optional-dependencies"].values()
-    every = [*project["dependencies"], *(req for extra in extras for req in extra)]
-    for text in every:
-        req = Requirement(text)
-        name = canonicalize_name(req.name)
-        assert name in pinned, f"{req.name} is not in constraints.txt: run make lock"
-        version = pinned[name].split("+")[0]  # torch's local tag (+cpu)
-        assert req.specifier.contains(version, prereleases=True), (text, pinned[name])
-    make = (ROOT / "Makefile").read_text()
-    assert make.count("-c constraints.txt -e '.[") == 2  # the dev set and the serve set
-    # uv takes a package from the first index that has it: with PyTorch's beside PyPI, the
-    # pins of numpy, pillow … must be matched across both
-    assert "whl/cpu --index-strategy unsafe-best-match" in make
-    # the freeze it is written from: installers, editables and URLs left out, sorted
-    frozen = "Zeta==1.0\n-e file:///src\npip==23.2\nuv==0.9\nalpha==2.0+cpu\nx @ file:///x.whl\n"
-    assert pins(frozen) == ["alpha==2.0+cpu", "Zeta==1.0"]
-    # found in review: the freeze was pip's, in which a package installed from a file is
-    # "name @ URL": its pin was dropped. Every installed package but the installers and the
-    # project itself is pinned from this environment
-    from importlib.metadata import distributions
-
-    from lock import SKIP, freeze
-
-    got = {canonicalize_name(p.partition("==")[0]) for p in pins(freeze(sys.executable))}
-    have = {canonicalize_name(d.metadata["Name"]) for d in distributions()}
-    assert have - got <= {*SKIP, "overlapmamba"}, have - got
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
