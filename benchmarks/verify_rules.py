@@ -23,11 +23,11 @@ def ambiguity_margin(
     queries: list[dict[str, Any]], gate: dict[str, Any], holds: Callable[..., bool]
 ) -> dict[str, Any]:
     """``verify.ambiguity_margin``, after the thresholds and the gate (each candidate that may
-    pass them carries its rival's fit: ``run_town(rivals_from=)``): the largest of 0, 0.02, …
-    0.6 that costs at most 0.005 of the gate's recall, precision at the target both ways
-    (``chosen``; None: none does), and the ``sweep``. With ``--across`` the pairs' candidates
-    carry their rivals too (``verify_across.pair_queries(rivals_from=)``), so the margin
-    holds for a map by one sensor and a query by another as well."""
+    pass them carries its rival's fit: ``verify_threshold.run_town(rivals_from=)``): the
+    largest of 0, 0.02, … 0.6 that costs at most 0.005 of the gate's recall, precision at the
+    target both ways (``chosen``; None: none does), and the ``sweep``. With ``--across`` the
+    pairs' candidates carry their rivals too (``verify_across.pair_queries(rivals_from=)``),
+    so the margin holds for a map by one sensor and a query by another as well."""
     f, rmse, d = gate["min_fitness"], gate["max_rmse_m"], gate["gate_distance"]
     sweep = [score(queries, f, rmse, d, margin=float(m)) for m in MARGINS]
     fine = [

@@ -231,7 +231,7 @@ def main() -> None:
             queries += across
         out = calibrate(queries, args.target, args.each, in_force)
         cal = report["calibration"] = out["calibration"]
-        report |= {k: v for k, v in out.items() if k != "calibration"}
+        report |= {key: val for key, val in out.items() if key != "calibration"}
         chosen, gate, margin = cal["chosen"], cal.get("gate"), cal.get("ambiguity")
         table = Table(title=f"verified closures on {', '.join(t.name for t in towns)}")
         for col in (

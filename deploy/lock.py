@@ -27,10 +27,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 HEADER = """\
 # The lock: every package of the tested environment (.venv: the project and its serve,
-# train, client and dev extras) at the version the suite passed with. make test, make serve
-# and the Dockerfile install with it (-c constraints.txt). Written by `make lock`
-# (deploy/lock.py), which first upgrades .venv to the newest releases pyproject.toml allows;
-# run `make test` before committing a new one.
+# train, client and dev extras) at the version the suite passed with. make test and make
+# serve install with it (-c constraints.txt); the image installs deploy/requirements-serve.txt,
+# its serve set with hashes. Written by `make lock` (deploy/lock.py), which first upgrades
+# .venv to the newest releases pyproject.toml allows; run `make test` before committing it.
 """
 # the installers (the venv module's pip, the Makefile's uv) and the build tools a freeze
 # leaves out, which pip list gives. setuptools is pinned: the image builds the source with
@@ -68,10 +68,10 @@ def freeze(python: str = sys.executable) -> str:
     ).stdout
 
 
-def serve_lock(uv: str) -> str:
+def serve_lock(uv: str, constraints: Path = ROOT / "constraints.txt") -> str:
     """deploy/requirements-serve.txt's text: the ``serve`` requirements of pyproject.toml and
-    setuptools (the image builds the source with it), resolved at constraints.txt's versions
-    with their hashes by ``uv``."""
+    setuptools (the image builds the source with it), resolved at the versions of
+    ``constraints`` with their hashes by ``uv``."""
     sys.path.insert(0, str(ROOT / "deploy"))
     from requirements import requirements  # deploy/requirements.py
 
@@ -79,7 +79,7 @@ def serve_lock(uv: str) -> str:
     with tempfile.TemporaryDirectory(prefix="om-lock-") as tmp:
         src = Path(tmp) / "serve.in"
         src.write_text("\n".join(wanted) + "\n")
-        cmd = [uv, "pip", "compile", str(src), "-c", str(ROOT / "constraints.txt")]
+        cmd = [uv, "pip", "compile", str(src), "-c", str(constraints)]
         cmd += ["--generate-hashes", "--universal", "--python-version", "3.11"]
         cmd += ["--no-header", "--no-annotate", "--quiet"]
         out = subprocess.run(cmd, capture_output=True, text=True)
@@ -104,12 +104,16 @@ def main(python: str = sys.executable) -> None:
     target = ROOT / "constraints.txt"
     tmp = target.with_suffix(".tmp")
     tmp.write_text(HEADER + "\n".join(lines) + "\n")
+    try:  # the hashed lock from the new one; neither replaced unless both are made
+        text = serve_lock(find_uv(python), tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    serve_tmp = SERVE_LOCK.with_suffix(".tmp")
+    serve_tmp.write_text(text)
     tmp.replace(target)
+    serve_tmp.replace(SERVE_LOCK)
     print(f"constraints.txt: {len(lines)} packages from {python}")
-    text = serve_lock(find_uv(python))
-    tmp = SERVE_LOCK.with_suffix(".tmp")
-    tmp.write_text(text)
-    tmp.replace(SERVE_LOCK)
     n = sum(1 for line in text.splitlines() if "==" in line)
     print(f"{SERVE_LOCK.relative_to(ROOT)}: {n} packages with their hashes")
 

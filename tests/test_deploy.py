@@ -70,7 +70,7 @@ def test_dockerfile_has_the_shape_operations_rely_on():
     assert "/readyz" in (ROOT / "deploy" / "healthcheck.py").read_text()
     # the dependency layer comes before the source
     copies = [a for w, a in ins if w == "COPY"]
-    dep = next(i for i, a in enumerate(copies) if "pyproject.toml" in a)
+    dep = next(i for i, a in enumerate(copies) if "requirements-serve.txt" in a)
     src = next(i for i, a in enumerate(copies) if "service" in a)
     assert dep < src
     runs = " ".join(a for w, a in ins if w == "RUN")

@@ -44,6 +44,7 @@ def hashed_entries(text: str) -> dict[str, tuple[str, list[str], bool]]:
         (pin,) = list(spec.specifier)
         assert pin.operator == "==", line
         here = spec.marker is None or spec.marker.evaluate()
+        assert canonicalize_name(spec.name) not in out, f"{spec.name} is listed twice"
         out[canonicalize_name(spec.name)] = (pin.version, [h.strip() for h in hashes], here)
     return out
 
