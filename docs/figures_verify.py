@@ -233,8 +233,67 @@ def mapclosures() -> str:
     return out
 
 
+# ---- the covariance a verified closure carries ----------------------------------------------
+COVARIANCE = "reports/service/pose-covariance-test.json"
+COVARIANCE_VAL = "reports/service/pose_covariance.json"
+
+
+def covariance() -> str:
+    """The served covariance against one ellipsoid for all, on the test towns; the fit on val."""
+    r, cal = load(COVARIANCE), load(COVARIANCE_VAL)
+    fits = cal["val"]["fits"]
+    chosen = cal["val"]["chosen"]
+    out = source(COVARIANCE_VAL, cal["command"], when(cal))
+    out += source(COVARIANCE, r["command"], when(r))
+    out += (
+        f"\nModel {r['model_id']}. Chosen on `val` ({fits[chosen]['closures']} right closures): "
+        f"`{chosen}`, scale {fits[chosen]['scale']:.3g}, the one of lower mean negative "
+        "log-likelihood there ("
+        + ", ".join(f"{n} {f['nll']:.2f}" for n, f in fits.items() if n != "constant")
+        + "; one ellipsoid for all, fitted there, "
+        f"{fits['constant']['nll']:.2f}). On the test towns, each verified closure whose pose is "
+        "right (within 1 m and 2°): the share inside its ellipsoid of each level (a right "
+        "covariance puts that share inside), the mean negative log-likelihood (nats, lower is "
+        "better), the median predicted σ and the observed RMS error along x and yaw; wrong "
+        "closures are counted apart.\n\n"
+    )
+    rows = []
+    for t in r["towns"]:
+        for label in ("served", "constant"):
+            if label not in t:
+                continue
+            s = t[label]
+            name = f"served ({s['estimator']})" if label == "served" else "one ellipsoid (val)"
+            rows.append(
+                [
+                    Path(t["town"]).name,
+                    name,
+                    s["closures"],
+                    t["wrong"],
+                    " / ".join(f"{x:.3f}" for x in s["inside"].values()),
+                    f"{s['nll']:.2f}",
+                    f"{100 * s['sigma_median']['x_m']:.1f} / {100 * s['error_rms']['x_m']:.1f}",
+                    f"{s['sigma_median']['yaw_deg']:.3f} / {s['error_rms']['yaw_deg']:.3f}",
+                ]
+            )
+    return out + table(
+        [
+            "town",
+            "covariance",
+            "right closures",
+            "wrong",
+            "inside 50 / 90 / 95 / 99 %",
+            "NLL",
+            "x σ / RMS (cm)",
+            "yaw σ / RMS (°)",
+        ],
+        rows,
+    )
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "verify": verify,
+    "covariance": covariance,
     "verify-one-view": lambda: verify(VERIFY_ONE_VIEW, both=False),
     "registration": registration,
     "mapclosures": mapclosures,

@@ -338,12 +338,37 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
               "--no-verify")  # fmt: skip
     assert "descriptor only" in out
     assert "geometry not kept" in run("maps", "create", "cli-bare", "--no-geometry")
-    rec = tmp_path / "drive.mcap"
+    rec, g2o = tmp_path / "drive.mcap", tmp_path / "graph" / "drive.g2o"
     out = run(
         "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r9",
-        "--record", str(rec),
+        "--record", str(rec), "--g2o", str(g2o),
     )  # fmt: skip
     assert "12 scans observed" in out and "recorded" in out
+    # a second session's pose graph: a vertex a scan at its pose, odometry between them, a
+    # loop edge a verified closure onto the first session's keyframes (vertices of their
+    # own at their stored poses), at its relative pose with the server's covariance
+    from overlapmamba.client.posegraph import read_g2o
+    from overlapmamba.core.poses import read_poses
+
+    out2 = run(
+        "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r8",
+        "--session", "again", "--g2o", str(g2o),
+    )  # fmt: skip
+    vertices, edges = read_g2o(g2o)
+    truth = read_poses(synthetic_seq_dir / "poses.txt")
+    scans = [v for v in sorted(vertices) if v < 48]
+    assert scans == list(range(0, 48, 4))
+    assert all(np.abs(vertices[i] - truth[i]).max() < 1e-6 for i in scans)
+    odometry, loops = edges[:11], edges[11:]
+    assert [(a, b) for a, b, _, _ in odometry] == [(i, i + 4) for i in range(0, 44, 4)]
+    verified = out2.count("verified loop closure with")
+    assert verified >= 6 and len(loops) == verified, out2
+    assert f"{verified} loop edges" in " ".join(out2.split())
+    for a, b, measured, info in loops:  # the first session's keyframe is numbered after 47
+        assert a >= 48 and b in scans
+        true = np.linalg.inv(vertices[a]) @ vertices[b]
+        assert np.abs(measured[:3, 3] - true[:3, 3]).max() < 0.5, (a, b)
+        assert np.allclose(info, info.T) and np.linalg.eigvalsh(info).min() > 0
     from mcap.reader import make_reader  # the recording opens with MCAP's own reader
 
     topics: dict[str, list[dict]] = {}

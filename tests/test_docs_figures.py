@@ -52,6 +52,7 @@ def test_the_measured_tables_are_in_their_documents():
         ("docs/results.md", "e2e"),
         ("docs/deploy.md", "sizing"),
         ("docs/service.md", "calibration"),
+        ("docs/service.md", "covariance"),
         ("docs/client.md", "fleet"),
         ("docs/client.md", "tf-memory"),
     } <= rendered

@@ -105,7 +105,11 @@ class Match:
 
 
 def _matrix(values: list[float] | None) -> np.ndarray | None:
-    return None if values is None else np.asarray(values, dtype=np.float64).reshape(4, 4)
+    return _square(values, 4)
+
+
+def _square(values: list[float] | None, n: int) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, dtype=np.float64).reshape(n, n)
 
 
 @dataclass(frozen=True)
@@ -148,6 +152,9 @@ class LoopClosure:
     relative_pose: np.ndarray | None = None
     fitness: float | None = None
     rule: str = "distance"  # what threshold and the margin compare: "score" or "distance"
+    # (6, 6) relative_pose's covariance: x, y, z (m), then the rotation vector (rad), on the
+    # right in the query's frame (overlapmamba.core.posecov); None: the server gives none
+    covariance: np.ndarray | None = None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> LoopClosure:
@@ -160,6 +167,7 @@ class LoopClosure:
             relative_pose=_matrix(d.get("relative_pose")),
             fitness=d.get("fitness"),
             rule=d.get("rule", "distance"),
+            covariance=_square(d.get("covariance"), 6),
         )
 
 

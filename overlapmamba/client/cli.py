@@ -49,6 +49,8 @@ from overlapmamba.client._display import (
 )
 from overlapmamba.client._replay import open_drive
 from overlapmamba.client._sync import PlaceRecognitionClient
+from overlapmamba.client.posegraph import PoseGraph, odometry_information
+from overlapmamba.core import outfiles
 
 app = typer.Typer(
     name="overlapmamba-client",
@@ -204,18 +206,41 @@ def observe(
         Path | None,
         typer.Option(help="write an MCAP of robot poses, keyframes and loop closures (Foxglove)"),
     ] = None,
+    g2o: Annotated[
+        Path | None,
+        typer.Option(
+            help="write the drive's pose graph (g2o text): its scans' poses, odometry edges "
+            "and each verified loop closure with the server's covariance"
+        ),
+    ] = None,
+    odometry_sigma_m: Annotated[
+        float, typer.Option(min=1e-9, help="with --g2o: the odometry edges' σ per axis, metres")
+    ] = 0.1,
+    odometry_sigma_deg: Annotated[
+        float, typer.Option(min=1e-9, help="with --g2o: and per rotation axis, degrees")
+    ] = 1.0,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
     """Replay a drive as a robot (observe: query, then insert when due); print each loop
     closure as it is detected, with its relative pose when verified."""
-    if record is not None and within(record, seq_dir):
-        raise ValueError(
-            f"--record {record} is the drive {seq_dir} or inside it: the recording would "
-            "overwrite what is being replayed; write it elsewhere"
-        )
+    for flag, path in (("--record", record), ("--g2o", g2o)):
+        if path is not None and within(path, seq_dir):
+            raise ValueError(
+                f"{flag} {path} is the drive {seq_dir} or inside it: it would overwrite what "
+                "is being replayed; write it elsewhere"
+            )
+    outfiles.check_outputs(("--g2o", g2o, ("g2o",)))
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
     note_unposed(drive)
+    graph = None
+    if g2o is not None:
+        if drive.poses is None:
+            raise ValueError(
+                f"--g2o needs the drive's poses (its vertices and odometry edges): {seq_dir} "
+                "has none; give --odometry or --tf for a bag"
+            )
+        graph = PoseGraph(odometry_information(odometry_sigma_m, odometry_sigma_deg), len(drive))
     session = session or drive.session
     closures = inserted = 0
     frames = range(0, len(drive), every)
@@ -255,6 +280,13 @@ def observe(
             )
             inserted += o.keyframe is not None
             lc = o.loop_closure
+            if graph is not None:
+                graph.scan(i, drive.pose(i), o.keyframe)
+                if lc.accepted and lc.verified:
+                    stored = next(
+                        (m.pose for m in o.matches if m.keyframe_id == lc.keyframe_id), None
+                    )
+                    graph.closure(i, lc.keyframe_id, lc.relative_pose, lc.covariance, stored)
             if rec is not None:
                 rec.observe(pr, map_id, robot, float(drive.times[i]), drive.pose(i), o)
             if lc.accepted and o.matches:
@@ -275,6 +307,12 @@ def observe(
     out.print(f"{sent} scans observed: {inserted} inserted, {closures} loop closures")
     if record is not None:
         out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
+    if graph is not None and g2o is not None:
+        graph.write(g2o)
+        out.print(
+            f"wrote {g2o}: {len(graph.vertices)} scans, {len(graph.loops)} loop edges"
+            + "".join(f"; {n} closures left out: {why}" for why, n in graph.left_out.items())
+        )
     report_skipped(skipped, len(frames))
 
 

@@ -1,8 +1,9 @@
 """The thresholds calibrated for one model, carried in its file.
 
-Three benchmarks choose them on the validation town, for the model they ran
+Four benchmarks choose them on the validation town, for the model they ran
 (``benchmarks/rerank.py``, ``benchmarks/loop_threshold.py``, ``benchmarks/verify_threshold.py
---calibrate``), and with ``--write-calibration`` write them into the model file's metadata
+--calibrate``, ``benchmarks/pose_covariance.py --calibrate``), and with
+``--write-calibration`` write them into the model file's metadata
 (``EncoderMetadata.calibration``; the graph and the model id stay as they are). The service
 takes them from the model it loads: a threshold calibrated for one model never silently
 serves another.
@@ -12,6 +13,7 @@ serves another.
     loop_closure   accept_distance, max_score            benchmarks/loop_threshold.py
     verify         min_fitness, max_rmse_m, gate_distance,  benchmarks/verify_threshold.py
                    ambiguity_margin
+    covariance     estimator, scale                     benchmarks/pose_covariance.py
 
 Each section records what chose it (the command, the data, the date), so ``/readyz`` and
 the start-up log can say where every threshold came from. A calibration written under the
@@ -32,6 +34,7 @@ CALIBRATED: dict[str, tuple[str, ...]] = {
     "rerank": ("shortlist", "weight", "score"),
     "loop_closure": ("accept_distance", "max_score"),
     "verify": ("min_fitness", "max_rmse_m", "gate_distance", "ambiguity_margin"),
+    "covariance": ("estimator", "scale"),
 }
 
 
@@ -55,7 +58,7 @@ def check_calibration(calibration: dict[str, Any]) -> dict[str, Calibrated]:
                 f"calibration section {section!r} is not known; allowed: {', '.join(CALIBRATED)}"
             )
         c = entry if isinstance(entry, Calibrated) else Calibrated.model_validate(entry)
-        if set(c.values) & set(RENAMED[section]):
+        if set(c.values) & set(RENAMED.get(section, {})):
             c = c.model_copy(update={"values": renamed(c.values, section, stacklevel=4)})
         unknown = sorted(set(c.values) - set(CALIBRATED[section]))
         if unknown:

@@ -30,6 +30,9 @@ class LoopClosure:
     verified: bool | None = None
     relative_pose: np.ndarray | None = None  # (4, 4) T_keyframe←query
     fitness: float | None = None
+    # (6, 6) the relative pose's covariance (overlapmamba.core.posecov: x, y, z, then the
+    # rotation vector, on the right); None without a covariance calibration
+    covariance: np.ndarray | None = None
 
 
 @dataclass

@@ -191,3 +191,35 @@ class VerifySettings(RenamedSection):
         "Python's lock for each call and every other request's Python waits (docs/deploy.md, "
         "sizing)",
     )
+
+
+class CovarianceSettings(Section):
+    """The covariance a verified closure's relative pose carries (overlapmamba.core.posecov):
+    ``scale`` · A⁻¹, A the registration's information under ``estimator``. Both null: closures
+    carry no covariance (a model file not calibrated for it; the defaults are null because
+    the scale is the registration's on a model's own loops, which
+    ``benchmarks/pose_covariance.py --calibrate --write-calibration`` measures on the
+    validation town)."""
+
+    estimator: Literal["hessian", "residual"] | None = Field(
+        None,
+        description="hessian: A is GICP's final Hessian; residual: the Hessian over the "
+        "registration's cost per inlier pair; null: no covariance",
+    )
+    scale: float | None = Field(
+        None,
+        gt=0,
+        le=1e6,
+        description="Σ = scale · A⁻¹ (chosen so that 95% of the validation town's right "
+        "closures lie inside their 95% ellipsoid); null: no covariance",
+    )
+
+    @model_validator(mode="after")
+    def _both_or_neither(self) -> CovarianceSettings:
+        if (self.estimator is None) != (self.scale is None):
+            raise ValueError(
+                "covariance.estimator and covariance.scale go together: set both (a "
+                "calibration of benchmarks/pose_covariance.py) or neither (no covariance); got "
+                f"estimator {self.estimator!r}, scale {self.scale!r}"
+            )
+        return self

@@ -6,11 +6,17 @@ both calls on every scan query and observation."""
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
+import numpy as np
+
+from overlapmamba.core import posecov
 from overlapmamba.service.answers import LoopClosure
-from overlapmamba.service.calibrated_settings import LoopClosureSettings
+from overlapmamba.service.calibrated_settings import CovarianceSettings, LoopClosureSettings
 from overlapmamba.service.domain import Match
+
+if TYPE_CHECKING:
+    from overlapmamba.service.verify import Verdict
 
 
 def unverified_call(matches: list[Match], lc: LoopClosureSettings) -> LoopClosure:
@@ -33,11 +39,16 @@ def unverified_call(matches: list[Match], lc: LoopClosureSettings) -> LoopClosur
     return LoopClosure(accepted, threshold, margin, rule=rule)
 
 
-def verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> LoopClosure:
+def verified_closure(
+    candidates: list[Match],
+    descriptor_call: LoopClosure,
+    cov: CovarianceSettings | None = None,
+) -> LoopClosure:
     """The verified candidate of highest fitness (the only one registered as verified
     under ``verify.stop_at_first``); the descriptor's call only when no
     candidate could be judged (none has geometry). Candidates refused by the descriptor
-    gate count as judged: a query far from every keyframe closes no loop."""
+    gate count as judged: a query far from every keyframe closes no loop. ``cov``: the
+    covariance its relative pose carries (``covariance.*``; none when they are null)."""
     verdicts = [(c, c.verification) for c in candidates if c.verification is not None]
     judged = [(c, v) for c, v in verdicts if v.verified is not None]
     if not judged:
@@ -53,4 +64,11 @@ def verified_closure(candidates: list[Match], descriptor_call: LoopClosure) -> L
         verified=True,
         relative_pose=v.relative_pose,
         fitness=v.fitness,
+        covariance=_covariance(v, cov),
     )
+
+
+def _covariance(v: Verdict, cov: CovarianceSettings | None) -> np.ndarray | None:
+    if cov is None or cov.estimator is None or cov.scale is None:
+        return None
+    return posecov.covariance(v.hessian, v.residual, cov.estimator, cov.scale)

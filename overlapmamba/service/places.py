@@ -340,7 +340,7 @@ class PlaceService:
         if closure.accepted:
             closure = replace(closure, keyframe_id=matches[0].keyframe.keyframe_id)
         if n_verify and matches:  # verified (n_verify > 0 only with a prepared query)
-            closure = verified_closure(matches[:n_verify], closure)
+            closure = verified_closure(matches[:n_verify], closure, self.settings.covariance)
         if not m.retired:  # a map deleted meanwhile: its forgotten counts stay forgotten
             self.stats.query(m.map_id, robot, closure.accepted, matches[:n_verify])
         return Answer(matches[:k], closure, timings)

@@ -129,6 +129,10 @@ class Registration:
     # of the translation block of GICP's final Hessian (:func:`constraint`); None where GICP
     # did not run (a screened seed)
     constraint: float | None = None
+    # GICP's final 6 × 6 Hessian (rotation, translation) and its cost per inlier pair: the
+    # pose's covariance up to a scale (overlapmamba.core.posecov); None where GICP did not run
+    hessian: np.ndarray | None = field(default=None, compare=False, repr=False)
+    residual: float | None = None
 
 
 def constraint(hessian: np.ndarray) -> float:
@@ -267,7 +271,12 @@ def register(
     if isinstance(d2, str):
         return refused(d2)
     scored = _scored(T, d2, p, int(res.iterations), bool(res.converged), reach, t0)
-    return dataclasses.replace(scored, constraint=constraint(res.H))
+    return dataclasses.replace(
+        scored,
+        constraint=constraint(res.H),
+        hessian=np.array(res.H, dtype=np.float64),
+        residual=float(res.error) / max(1, int(res.num_inliers)),
+    )
 
 
 def _distances(

@@ -301,6 +301,17 @@ class LoopClosureOut(BaseModel):
         None, description="4×4 row-major T_keyframe←query of the accepted, verified closure"
     )
     fitness: float | None = None
+    covariance: list[float] | None = Field(
+        None,
+        min_length=36,
+        max_length=36,
+        description="6×6 row-major covariance of relative_pose: its error δ = (x, y, z, rx, "
+        "ry, rz), metres then the rotation vector in radians, with T_true = relative_pose · "
+        "Exp(δ) (on the right, in the query's frame; GTSAM's Pose3 orders rotation first, "
+        "g2o's EDGE_SE3:QUAT takes half the rotation: docs/service.md). From the "
+        "registration's information scaled as the model's calibration says (covariance.*); "
+        "null: not verified, or no covariance calibration",
+    )
 
 
 class QueryOut(BaseModel):

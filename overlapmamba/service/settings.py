@@ -34,6 +34,7 @@ from pydantic_settings import (
 
 from overlapmamba.core.renamed import RENAMED
 from overlapmamba.service.calibrated_settings import (
+    CovarianceSettings,
     LoopClosureSettings,
     RerankSettings,
     Section,
@@ -295,6 +296,7 @@ class Settings(BaseSettings):
     loop_closure: LoopClosureSettings = Field(default_factory=LoopClosureSettings)  # type: ignore[arg-type]
     verify: VerifySettings = Field(default_factory=VerifySettings)  # type: ignore[arg-type]
     rerank: RerankSettings = Field(default_factory=RerankSettings)  # type: ignore[arg-type]
+    covariance: CovarianceSettings = Field(default_factory=CovarianceSettings)  # type: ignore[arg-type]
     auth: AuthSettings = Field(default_factory=AuthSettings)
     qdrant: QdrantSettings = Field(default_factory=QdrantSettings)  # type: ignore[arg-type]
     sensors: SensorSettings = Field(default_factory=SensorSettings)

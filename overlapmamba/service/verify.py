@@ -21,7 +21,7 @@ ways.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,10 @@ class Verdict:
     reason: str | None  # why it is not verified, when it is not
     relative_pose: np.ndarray | None  # (4, 4) T_keyframe←query, when registration ran
     rival_fitness: float | None = None  # the best other turn's fit (verify.ambiguity_margin)
+    # the registration's information about the pose, up to a scale (Registration.hessian,
+    # .residual): the answer's covariance (overlapmamba.core.posecov), when registration ran
+    hessian: np.ndarray | None = field(default=None, compare=False, repr=False)
+    residual: float | None = None
 
     @property
     def ambiguous(self) -> bool:
@@ -85,7 +89,15 @@ def judge(reg: Registration, v: VerifySettings) -> Verdict:
             f" below verify.min_constraint {v.min_constraint}): it slides along one direction"
             " (a corridor, a road cut, a tunnel), so its position is not known"
         )
-    return Verdict(reason is None, reg.fitness, reg.rmse, reason, reg.relative_pose)
+    return Verdict(
+        reason is None,
+        reg.fitness,
+        reg.rmse,
+        reason,
+        reg.relative_pose,
+        hessian=reg.hessian,
+        residual=reg.residual,
+    )
 
 
 # A grid town's crossings look alike turned by a quarter: the other seeds a verified

@@ -251,6 +251,9 @@ def query_out(a: Answer) -> QueryOut:
             if lc.relative_pose is None
             else [float(x) for x in lc.relative_pose.reshape(-1)],
             fitness=lc.fitness,
+            covariance=None
+            if lc.covariance is None
+            else [float(x) for x in lc.covariance.reshape(-1)],
         ),
         timings_ms=Timings(**a.timings),
     )
