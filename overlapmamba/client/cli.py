@@ -310,7 +310,8 @@ def observe(
     if graph is not None and g2o is not None:
         graph.write(g2o)
         out.print(
-            f"wrote {g2o}: {len(graph.vertices)} scans, {len(graph.loops)} loop edges"
+            f"wrote {g2o}: {len(graph.scans)} scans, {graph.others} keyframes of other "
+            f"drives, {len(graph.loops)} loop edges"
             + "".join(f"; {n} closures left out: {why}" for why, n in graph.left_out.items())
         )
     report_skipped(skipped, len(frames))
