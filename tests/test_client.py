@@ -545,6 +545,17 @@ def test_fleet_judges_verified_closures_by_their_pose_beyond_the_loop_radius():
     r = _report(samples, keyframes, [drive], 1, 1.0, 1.0, 0.0, 0.0)
     assert (r.loop_closures, r.correct, r.verified_closures) == (4, 2, 3)
     assert r.precision == 0.5 and r.verified_pose_right == 2
+    assert r.covariance is None  # no closure carried one
+    # the right closures' covariances judged against the truth: a pose 0.3 m off along x is
+    # inside an ellipsoid of σ 0.2 m there, outside one of 1 cm; a wrong pose is not judged
+    off = truth(48, 50) @ np.array([[1, 0, 0, 0.3], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    for sigma, inside in ((0.2, 1.0), (0.01, 0.5)):
+        judged = [sample(50, 48, True, off), sample(60, 40, True, truth(40, 60)), samples[2]]
+        cov = np.diag([sigma**2] * 3 + [1e-4] * 3)
+        for x in judged:
+            x.covariance = cov
+        r = _report(judged, keyframes, [drive], 1, 1.0, 1.0, 0.0, 0.0)
+        assert r.covariance == {"closures": 2, "inside_95": inside}, sigma
 
 
 @pytest.mark.parametrize(

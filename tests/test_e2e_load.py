@@ -137,6 +137,7 @@ def test_fleet_mapper_and_dashboard_together(tmp_path):
             "closure_recall": report.recall,
             "bars": {"precision": PRECISION_BAR, "recall": RECALL_BAR, "asserted": FULL},
             "pose_error": report.pose_error,
+            "covariance": report.covariance,
         },
         "mapper": {
             "batches": mapper.requests,

@@ -95,6 +95,14 @@ def fleet_table(report: Any, robots: int, rate: float) -> Table:
             ("pose error median / p90 (m)", f"{t['median']:.3f} / {t['p90']:.3f}"),
             ("yaw error median / p90 (°)", f"{y['median']:.2f} / {y['p90']:.2f}"),
         ]
+    if report.covariance:
+        c = report.covariance
+        rows.append(
+            (
+                "inside their 95% ellipsoid (covariance)",
+                f"{c['inside_95']:.3f} of {int(c['closures'])} right verified closures",
+            )
+        )
     for name, value in rows:
         table.add_row(name, value)
     return table

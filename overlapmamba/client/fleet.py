@@ -38,7 +38,7 @@ from overlapmamba.client._base import MountArg
 from overlapmamba.client._exceptions import APIError, ClientError
 from overlapmamba.client._replay import Drive
 from overlapmamba.client._retry import Retry
-from overlapmamba.core import outfiles
+from overlapmamba.core import outfiles, posecov
 from overlapmamba.core.errors import LidarCoreError
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
 
@@ -59,6 +59,7 @@ class _Sample:
     error: str | None
     verified: bool | None = None
     relative_pose: np.ndarray | None = None
+    covariance: np.ndarray | None = None  # the closure's, when the server gives one
 
 
 @dataclass
@@ -79,6 +80,9 @@ class FleetReport:
     verified_closures: int = 0
     pose_error: dict[str, dict[str, float]] | None = None  # correct verified closures
     verified_pose_right: int | None = None  # verified closures whose relative pose is right
+    # of those that carry a covariance: how many, and the share whose error against the truth
+    # lies inside their 95 % ellipsoid (a right covariance: 0.95); None: none carried one
+    covariance: dict[str, float] | None = None
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
     # what was measured: the service's model (its /readyz), the drives, when (UTC)
     server: dict[str, Any] = field(default_factory=dict)
@@ -240,6 +244,7 @@ async def simulate(
                         None,
                         lc.verified,
                         lc.relative_pose,
+                        lc.covariance,
                     )
                 )
 
@@ -280,6 +285,7 @@ def _report(
     has_gt = _scored(drives)
     correct = with_loop = pose_right = found = None  # found: correct, of those with a loop
     t_err: list[float] = []
+    chi2: list[float] = []  # right verified closures' δᵀ Σ⁻¹ δ, where they carry Σ
     yaw_err: list[float] = []
     if has_gt:
         correct, with_loop, pose_right, found = 0, 0, 0, 0
@@ -316,7 +322,11 @@ def _report(
                 poses = drive.seq.poses
                 truth = np.linalg.inv(poses[j]) @ poses[s.frame]  # T_keyframe←query
                 t, y = pose_error(s.relative_pose, truth)
-                pose_right += t <= POSE_RIGHT[0] and y <= POSE_RIGHT[1]
+                right = t <= POSE_RIGHT[0] and y <= POSE_RIGHT[1]
+                pose_right += right
+                if right and s.covariance is not None:
+                    delta = posecov.error(s.relative_pose, truth)
+                    chi2.append(posecov.mahalanobis2(delta, s.covariance))
                 if near:
                     t_err.append(t)
                     yaw_err.append(y)
@@ -345,6 +355,12 @@ def _report(
         recall=(found / with_loop) if found is not None and with_loop else None,
         verified_closures=sum(bool(s.verified) for s in accepted),
         verified_pose_right=pose_right,
+        covariance=None
+        if not chi2
+        else {
+            "closures": len(chi2),
+            "inside_95": float(np.mean(np.asarray(chi2) <= posecov.CHI2_6_95)),
+        },
         pose_error=None
         if not t_err
         else {

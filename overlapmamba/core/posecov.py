@@ -59,6 +59,8 @@ def from_hessian(hessian: np.ndarray, scale: float) -> np.ndarray | None:
 
 
 ESTIMATORS = ("hessian", "residual")
+# χ² with 6 degrees of freedom at 0.95: a right covariance's 95 % ellipsoid is δᵀ Σ⁻¹ δ below it
+CHI2_6_95 = 12.591587243743977
 
 
 def covariance(
