@@ -170,13 +170,20 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--town", type=Path, action="append", help="default: data/synth/test")
     ap.add_argument("--val", type=Path, default=ROOT / "data" / "synth" / "val")
-    ap.add_argument("--calibrate", action="store_true", help="choose on --val (default: val)")
+    ap.add_argument(
+        "--calibrate", action="store_true", help="choose on --val, and score nothing else"
+    )
     ap.add_argument(
         "--write-calibration",
         action="store_true",
         help="with --calibrate: record the chosen covariance in the model file",
     )
-    ap.add_argument("--json", type=Path, help="default reports/service/pose-covariance.json")
+    ap.add_argument(
+        "--json",
+        type=Path,
+        help="default reports/service/pose_covariance.json calibrating, else "
+        "pose-covariance-test.json",
+    )
     args = ap.parse_args()
     if args.write_calibration and not args.calibrate:
         ap.error("--write-calibration records what --calibrate chose: give both")

@@ -31,12 +31,12 @@ Edge = tuple[int, int, np.ndarray, np.ndarray]  # from, to, 4Ã—4 measurement, 6Ã
 
 def _se3(T: np.ndarray) -> str:
     t, q = T[:3, 3], quaternion(T[:3, :3])
-    return " ".join(f"{x:.9g}" for x in (*t, *q))
+    return " ".join(f"{x:.17g}" for x in (*t, *q))
 
 
 def _upper(info: np.ndarray) -> str:
     """g2o's information: the upper triangle, row by row."""
-    return " ".join(f"{info[i, j]:.9g}" for i in range(6) for j in range(i, 6))
+    return " ".join(f"{info[i, j]:.17g}" for i in range(6) for j in range(i, 6))
 
 
 def _pose(pose: np.ndarray | list[float] | None) -> np.ndarray:
@@ -100,7 +100,7 @@ class PoseGraph:
         if relative_pose is None or keyframe_id is None:
             why = "no relative pose"
         elif covariance is None:
-            why = "no covariance (the server's model carries no covariance calibration)"
+            why = "the answer carries no covariance (no calibration, or a loose direction)"
         elif frame not in self.vertices:
             why = "its scan has no pose"
         elif keyframe_id not in self.keyframes and keyframe_pose is None:

@@ -310,7 +310,8 @@ class LoopClosureOut(BaseModel):
         "Exp(δ) (on the right, in the query's frame; GTSAM's Pose3 orders rotation first, "
         "g2o's EDGE_SE3:QUAT takes half the rotation: docs/service.md). From the "
         "registration's information scaled as the model's calibration says (covariance.*); "
-        "null: not verified, or no covariance calibration",
+        "null: not verified, no covariance calibration, or a direction the registration "
+        "left unconstrained",
     )
 
 
