@@ -157,11 +157,20 @@ def square_loop_poses(n_per_lap: int, laps: int, side: float = 40.0) -> np.ndarr
     return np.stack(poses)
 
 
-def write_synthetic_kitti(root: Path, seed: int = 0, n_per_lap: int = 24, laps: int = 2) -> Path:
-    """A tiny KITTI-layout sequence (no calib.txt: poses are LiDAR-frame) with a revisit."""
+def write_synthetic_kitti(
+    root: Path,
+    seed: int = 0,
+    n_per_lap: int = 24,
+    laps: int = 2,
+    shift: np.ndarray | None = None,
+) -> Path:
+    """A tiny KITTI-layout sequence (no calib.txt: poses are LiDAR-frame) with a revisit;
+    ``shift`` (4 × 4, in the vehicle's frame) drives the same world along another line."""
     rng = np.random.default_rng(seed)
     world = make_world(rng)
     poses = square_loop_poses(n_per_lap, laps)
+    if shift is not None:
+        poses = poses @ shift
     (root / "velodyne").mkdir(parents=True)
     for i, pose in enumerate(poses):
         inv = np.linalg.inv(pose)
@@ -177,6 +186,15 @@ def write_synthetic_kitti(root: Path, seed: int = 0, n_per_lap: int = 24, laps: 
 @pytest.fixture(scope="session")
 def synthetic_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "loop")
+
+
+@pytest.fixture(scope="session")
+def shifted_seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``synthetic_seq_dir``'s world driven again 1.5 m to the left, 0.6 m back and turned
+    by 12°: a second drive whose loop closures onto the first are far from the identity."""
+    shift = rotation_z(12.0)
+    shift[:3, 3] = (-0.6, 1.5, 0.0)
+    return write_synthetic_kitti(tmp_path_factory.mktemp("synth") / "lane", shift=shift)
 
 
 # The tiny towns, then the shared tiny run, are made from the start of a run in one

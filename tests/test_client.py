@@ -309,7 +309,7 @@ def test_readme_curl_example_runs(live):
     assert len(query["matches"][0]["relative_pose"]) == 16
 
 
-def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_path):
+def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, shifted_seq_dir, tmp_path):
     runner = CliRunner()
     env = {"OVERLAPMAMBA_URL": live}
 
@@ -344,18 +344,20 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
         "--record", str(rec), "--g2o", str(g2o),
     )  # fmt: skip
     assert "12 scans observed" in out and "recorded" in out
-    # a second session's pose graph: a vertex a scan at its pose, odometry between them, a
-    # loop edge a verified closure onto the first session's keyframes (vertices of their
-    # own at their stored poses), at its relative pose with the server's covariance
+    # a second drive's pose graph (the same world driven 1.5 m to the left, turned 12°): a
+    # vertex a scan at its pose, odometry between them, a loop edge a verified closure onto
+    # the first session's keyframes (vertices of their own at their stored poses), at its
+    # relative pose (far from the identity: an edge the wrong way round is 1.5 m off) with
+    # the server's covariance
     from overlapmamba.client.posegraph import read_g2o
     from overlapmamba.core.poses import read_poses
 
     out2 = run(
-        "observe", str(synthetic_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r8",
-        "--session", "again", "--g2o", str(g2o),
+        "observe", str(shifted_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r8",
+        "--g2o", str(g2o),
     )  # fmt: skip
     vertices, edges = read_g2o(g2o)
-    truth = read_poses(synthetic_seq_dir / "poses.txt")
+    truth = read_poses(shifted_seq_dir / "poses.txt")
     scans = [v for v in sorted(vertices) if v < 48]
     assert scans == list(range(0, 48, 4))
     assert all(np.abs(vertices[i] - truth[i]).max() < 1e-6 for i in scans)
@@ -364,10 +366,15 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, tmp_pat
     verified = out2.count("verified loop closure with")
     assert verified >= 6 and len(loops) == verified, out2
     assert f"{verified} loop edges" in " ".join(out2.split())
+    first = read_poses(synthetic_seq_dir / "poses.txt")
     for a, b, measured, info in loops:  # the first session's keyframe is numbered after 47
         assert a >= 48 and b in scans
+        assert any(np.abs(vertices[a] - p).max() < 1e-6 for p in first)  # its stored pose
         true = np.linalg.inv(vertices[a]) @ vertices[b]
-        assert np.abs(measured[:3, 3] - true[:3, 3]).max() < 0.5, (a, b)
+        assert np.linalg.norm(true[:3, 3]) > 1.0  # an inverted edge could not pass
+        assert np.abs(measured[:3, 3] - true[:3, 3]).max() < 0.1, (a, b, measured, true)
+        turn = np.arccos(np.clip((np.trace(measured[:3, :3].T @ true[:3, :3]) - 1) / 2, -1, 1))
+        assert np.degrees(turn) < 1.0, (a, b)
         assert np.allclose(info, info.T) and np.linalg.eigvalsh(info).min() > 0
     from mcap.reader import make_reader  # the recording opens with MCAP's own reader
 

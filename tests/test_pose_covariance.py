@@ -222,6 +222,41 @@ async def test_a_verified_closure_carries_the_model_s_covariance(tmp_path, encod
     assert np.allclose(cov, one * float(served["scale"]), rtol=1e-6)  # type: ignore[arg-type]
 
 
+@pytest.mark.anyio
+async def test_a_model_without_the_calibration_closes_verified_with_no_covariance(
+    tmp_path, encoder
+):
+    """The shipped model's file without its covariance section, and no setting: the same
+    verified closure answers ``covariance: null`` (the client reads None), and /readyz shows
+    the scale as the null default, chosen by no command."""
+    import copy
+
+    from overlapmamba.client import LoopClosure
+    from overlapmamba.service.settings import Settings
+
+    bare = copy.copy(encoder)
+    kept = {k: v for k, v in encoder.meta.calibration.items() if k != "covariance"}
+    bare.meta = encoder.meta.model_copy(update={"calibration": kept})
+    async with running(Settings(data_dir=tmp_path / "data"), bare) as c:
+        shown = (await c.get("/readyz")).json()["detail"]["thresholds"]["covariance.scale"]
+        assert shown == {"value": None, "source": "default"}
+        await c.put("/v1/maps/town")
+        for i in range(2):
+            r = await c.post(
+                "/v1/maps/town/keyframes",
+                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i},
+                content=scan(i).tobytes(),
+                headers=OCTET,
+            )
+            assert r.status_code == 201, r.text
+        q = await c.post("/v1/maps/town/query", content=scan(1, 40.0).tobytes(), headers=OCTET)
+        lc = q.json()["loop_closure"]
+    assert lc["verified"] is True and lc["keyframe_id"] == "k1"
+    assert "covariance" in lc and lc["covariance"] is None
+    assert len(lc["relative_pose"]) == 16
+    assert LoopClosure.from_json(lc).covariance is None
+
+
 def test_a_pose_graph_counts_what_it_leaves_out_and_reads_back(tmp_path):
     from overlapmamba.client.posegraph import PoseGraph, odometry_information, read_g2o
 
