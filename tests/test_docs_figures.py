@@ -126,3 +126,23 @@ def test_a_stale_block_is_found_and_rendered_again():
 def test_the_readme_fits_a_newcomer():
     lines = (ROOT / "README.md").read_text().splitlines()
     assert len(lines) <= 300, f"README.md has {len(lines)} lines; its details belong in docs/"
+
+
+def test_the_covariance_reading_says_what_its_numbers_say():
+    """The sentence under the covariance table is read off the numbers (a recalibration
+    cannot leave it stale): the share inside the 95% ellipsoid is "about" 0.95 within two
+    binomial standard errors, and the 50% ellipsoid holding more than half is a heavy tail."""
+    figures = sys.modules["figures_verify"]  # imported by docs/render.py, beside it
+
+    def town(name: str, n: int, half: float, most: float, nll: float) -> dict:
+        served = {"closures": n, "inside": {"0.5": half, "0.95": most}, "nll": nll}
+        return {"town": f"data/{name}", "served": served, "constant": {"nll": -20.0}}
+
+    said = figures._covariance_reading(
+        [town("a", 400, 0.50, 0.95, -25.0), town("b", 400, 0.70, 0.90, -15.0)]
+    )
+    assert "lower NLL on 1 of 2 test towns (`a`)" in said
+    assert "about their share on `a`; fewer on `b`" in said
+    assert "more than half on `b`:" in said
+    assert figures._share(0.97, 0.95, 100) == "about"  # 2σ is 0.044 for 100 closures
+    assert figures._share(0.97, 0.95, 10_000) == "more"
