@@ -246,6 +246,8 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     needed = [t for f, t in TOWN_FIXTURES.items() if f in used]
     if "tiny_run" in used and importlib.util.find_spec("torch") is not None:
         needed.append("--run")
+        if "tiny_onnx" in used:
+            needed.append("--onnx")
     session.config.stash[_TOWNS_NEEDED] = needed
 
 
@@ -379,6 +381,25 @@ def tiny_run(tiny_seq: Path, tiny_val_seq: Path, tmp_path_factory: pytest.TempPa
         return root / "runs" / "tiny", pickle.loads((root / "tiny-run.pkl").read_bytes())
     out = tmp_path_factory.mktemp("runs") / "tiny"
     return out, train_tiny_run(tiny_seq, tiny_val_seq, out)
+
+
+@pytest.fixture(scope="session")
+def tiny_onnx(tiny_run, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny run's last epoch exported (float32, verified against PyTorch), once per
+    session (an export takes a dozen seconds): tests that change the file copy it first."""
+    if "--onnx" in _background.get("names", ()):
+        return _wait_for_background("tiny-onnx") / "tiny.onnx"
+    return export_tiny_run(tiny_run[0], tmp_path_factory.mktemp("onnx") / "tiny.onnx")
+
+
+def export_tiny_run(run: Path, out: Path) -> Path:
+    """``tiny_onnx``'s export of ``run``'s epoch-002.pt (the background process runs it
+    too)."""
+    from overlapmamba.train.checkpoint import load_model
+    from overlapmamba.train.export import export_onnx
+
+    model, profile, _ = load_model(run / "epoch-002.pt")
+    return export_onnx(model, profile, out, weight_format="float32").path
 
 
 def train_tiny_run(tiny_seq: Path, tiny_val_seq: Path, out: Path) -> list[dict]:

@@ -209,7 +209,7 @@ def test_training_takes_the_models_own_scans_by_its_configs_input(tiny_seq):
 
 @pytest.mark.timeout(900)  # when run alone, its set-up waits for the tiny towns and run
 def test_a_run_continues_a_file_on_its_input_and_exports_it(
-    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+    tiny_seq, tiny_val_seq, tiny_run, tiny_onnx, tmp_path
 ):
     """A continuation of a file stamped ``common`` (``overlapmamba export --sensor-input``)
     trains and validates on common images and exports a file that says so; a config given
@@ -230,8 +230,8 @@ def test_a_run_continues_a_file_on_its_input_and_exports_it(
     from overlapmamba.train.train_config import TrainConfig
     from overlapmamba.train.train_inputs import start_config
 
-    model, profile, _ = load_model(tiny_run[0] / "epoch-002.pt")
-    plain = export_onnx(model, profile, tmp_path / "plain.onnx", weight_format="float32").path
+    profile = load_model(tiny_run[0] / "epoch-002.pt")[1]
+    plain = tiny_onnx  # that checkpoint exported (read, never written)
     start = tmp_path / "start.onnx"
     res = CliRunner().invoke(
         app, ["export", str(plain), "--out", str(start), "--sensor-input", "common"]

@@ -4,6 +4,8 @@ over a few steps, and mined hard negatives."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -79,18 +81,16 @@ def test_band_term_starts_at_its_epoch_and_changes_nothing_before(
 
 @pytest.mark.timeout(900)  # when run alone, its set-up waits for the tiny towns and run
 def test_a_run_continues_an_exported_encoder_with_the_turn_term(
-    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+    tiny_seq, tiny_val_seq, tiny_run, tiny_onnx, tmp_path
 ):
     """--init MODEL.onnx: the run starts from the encoder's recovered weights (epoch 0 is
     that network, validated, its batch norm neither recalibrated nor updated after), and
     the turn term feeds turned copies and the sensor term copies seen as another sensor,
     each recording how far they moved; a start that does not fit the run is refused with
     the reason."""
-    from overlapmamba.train.export import export_onnx
-
     straight, history = tiny_run
-    model, profile, _ = load_model(straight / "epoch-002.pt")
-    onnx_path = export_onnx(model, profile, tmp_path / "start.onnx", weight_format="float32").path
+    model, _, _ = load_model(straight / "epoch-002.pt")
+    onnx_path = tiny_onnx  # that checkpoint exported
     turn = dict(turn_weight=1.0, turn_scans=2, epochs=1, freeze_bn=True, init=str(onnx_path))
     turn |= {"look_weight": 1.0, "look_scans": 3}
     out = tmp_path / "continued"
@@ -131,19 +131,22 @@ def test_a_run_continues_an_exported_encoder_with_the_turn_term(
 
 @pytest.mark.timeout(900)  # when run alone, its set-up waits for the tiny towns and run
 def test_a_run_continues_an_aligned_encoder_on_aligned_images(
-    tiny_seq, tiny_val_seq, tiny_run, tmp_path
+    tiny_seq, tiny_val_seq, tiny_run, tiny_onnx, tmp_path
 ):
     """--init of a file with aligned columns: the run takes the file's column phase, trains
     and validates on aligned images (epoch 0 scores what evaluating the file scores), and its
     export is aligned again; a config given alongside may set the phase, the turn term is
     refused with aligned columns, and a bird's-eye input takes them."""
+    import shutil
+
     from overlapmamba.train.evaluate import describe_sequence, loop_closure, sequence_loops
     from overlapmamba.train.export import export_onnx
     from overlapmamba.train.modelfile import read_metadata, with_column_phase
+    from overlapmamba.train.train_inputs import start_config
 
     straight, _ = tiny_run
     model, profile, _ = load_model(straight / "epoch-002.pt")
-    onnx_path = export_onnx(model, profile, tmp_path / "start.onnx", weight_format="float32").path
+    onnx_path = Path(shutil.copy(tiny_onnx, tmp_path / "start.onnx"))  # epoch-002.pt's
     with_column_phase(onnx_path, "aligned")
     exported, _, _ = load_model(onnx_path)
     val = open_sequence(tiny_val_seq)
@@ -161,9 +164,11 @@ def test_a_run_continues_an_aligned_encoder_on_aligned_images(
     path = export_onnx(continued, profile, tmp_path / "after.onnx", weight_format="float32").path
     assert read_metadata(path).column_phase == "aligned"
 
+    # the run's config is start_config's (its checkpoint kept it, above)
+    assert start_config(small_run(**run), None).column_phase == "aligned"
     sensor = OverlapMambaConfig(**{**SMALL, "column_phase": "sensor"})
-    train([tiny_seq], tiny_val_seq, tmp_path / "s", sensor, small_run(**run), progress=False)
-    assert load_model(tmp_path / "s" / "epoch-000.pt")[0].cfg.column_phase == "sensor"
+    assert start_config(small_run(**run), sensor).column_phase == "sensor"
+    assert start_config(small_run(**run), OverlapMambaConfig(**SMALL)).column_phase == "aligned"
     with pytest.raises(ConfigError, match="the turn term has nothing to teach"):
         train(
             [tiny_seq],
