@@ -989,6 +989,47 @@ async def test_the_async_client_reads_and_compresses_scans_off_its_event_loop(
     assert where and where[0] != threading.main_thread().name
 
 
+def test_a_replay_that_stops_keeps_its_pose_graph_so_far_beside_the_path(
+    live, synthetic_seq_dir, tmp_path, monkeypatch
+):
+    """observe --g2o whose server stops answering at the fifth scan: the graph of the four
+    scans observed is kept as NAME.incomplete.g2o and said, the path is left as it was, a
+    second stop keeps its own; the replay's own error is the one reported."""
+    from overlapmamba.client import PlaceRecognitionClient
+    from overlapmamba.client._exceptions import ConnectError
+    from overlapmamba.client.posegraph import read_g2o
+
+    real, calls = PlaceRecognitionClient.observe, []
+
+    def stops(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) % 5 == 0:
+            raise ConnectError("the server stopped answering")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(PlaceRecognitionClient, "observe", stops)
+    g2o = tmp_path / "drive.g2o"
+    args = ["observe", str(synthetic_seq_dir), "--map", "cli-stops", "--every", "4"]
+    for n, stays in ((1, "was not written"), (2, "is as it was")):
+        res = CliRunner().invoke(
+            cli_app, [*args, "--g2o", str(g2o)], env={"OVERLAPMAMBA_URL": live}
+        )
+        text = " ".join(res.output.split())
+        assert res.exit_code == 2 and "the server stopped answering" in text, text
+        kept = tmp_path / ("drive.incomplete.g2o" if n == 1 else "drive.incomplete-2.g2o")
+        assert f"its pose graph so far is in {kept} ({g2o} {stays})" in text, text
+        vertices, edges = read_g2o(kept)
+        assert sorted(vertices)[:4] == [0, 4, 8, 12] and len(edges) >= 3
+        if n == 1:
+            assert not g2o.exists()
+            g2o.write_text("EARLIER\n")  # a whole graph of an earlier replay
+    assert g2o.read_text() == "EARLIER\n"
+    monkeypatch.setattr(PlaceRecognitionClient, "observe", real)
+    res = CliRunner().invoke(cli_app, [*args, "--g2o", str(g2o)], env={"OVERLAPMAMBA_URL": live})
+    assert res.exit_code == 0 and "pose graph so far" not in res.output, res.output
+    assert read_g2o(g2o)[0] and not (tmp_path / "drive.incomplete-3.g2o").exists()
+
+
 def test_a_failed_replay_leaves_the_recording_at_its_path_and_keeps_its_own_beside(tmp_path):
     """Found in review: a replay that failed after recording something renamed its partial
     file over the whole recording already at the path."""

@@ -264,6 +264,9 @@ def observe(
 
             stack.callback(kept)
             rec = stack.enter_context(made)
+        if graph is not None and g2o is not None:
+            stack.callback(kept_graph, graph, g2o, g2o.exists())  # after the graph's exit
+            stack.enter_context(graph.written_to(g2o))
         make_map(pr, map_id, drive.sensor)
         for i, points in drive.scans(frames, skipped):
             o = pr.observe(
@@ -308,13 +311,22 @@ def observe(
     if record is not None:
         out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
     if graph is not None and g2o is not None:
-        graph.write(g2o)
         out.print(
             f"wrote {g2o}: {len(graph.scans)} scans, {graph.others} keyframes of other "
             f"drives, {len(graph.loops)} loop edges"
             + "".join(f"; {n} closures left out: {why}" for why, n in graph.left_out.items())
         )
     report_skipped(skipped, len(frames))
+
+
+def kept_graph(graph: PoseGraph, g2o: Path, existed: bool) -> None:
+    """A failed replay's note: where its pose graph so far was kept."""
+    if graph.incomplete is not None:
+        stays = "is as it was" if existed else "was not written"
+        console.print(
+            f"[yellow]note:[/] the replay stopped; its pose graph so far is in "
+            f"{escape(str(graph.incomplete))} ({escape(str(g2o))} {stays})"
+        )
 
 
 @app.command("stats")

@@ -17,7 +17,9 @@ left out and counted. The first scan's vertex is fixed (``FIX``).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,7 +61,8 @@ def odometry_information(sigma_m: float, sigma_deg: float) -> np.ndarray:
 @dataclass
 class PoseGraph:
     """What a replay adds, in order: :meth:`scan` for each observed scan, :meth:`closure`
-    for each verified loop closure; :meth:`write` once at the end. A scan's vertex is its
+    for each verified loop closure; :meth:`write` once at the end (:meth:`written_to`
+    keeps what a failed replay made). A scan's vertex is its
     frame number; a keyframe of another drive (another robot's, an earlier session's) is a
     vertex of its own, numbered from ``others_from``, at the pose the map stores for it,
     joined to the drive only by its loop edges."""
@@ -72,6 +75,7 @@ class PoseGraph:
     loops: list[Edge] = field(default_factory=list)
     left_out: dict[str, int] = field(default_factory=dict)  # why a closure is not an edge
     others: int = 0  # another drive's keyframes made vertices so far
+    incomplete: Path | None = None  # where a failed replay's graph was kept (written_to)
 
     def scan(self, frame: int, pose: np.ndarray | None, keyframe_id: str | None) -> None:
         """Observed scan ``frame`` at ``pose`` (None: the drive has none there, so it is not
@@ -130,6 +134,23 @@ class PoseGraph:
         if frames:
             lines.append(f"FIX {frames[0]}")
         outfiles.write_whole(path, "\n".join(lines) + "\n")
+
+    @contextlib.contextmanager
+    def written_to(self, path: Path) -> Iterator[None]:
+        """The graph written to ``path`` when the block ends. Where the block raises (the
+        server gone, Ctrl-C) the graph so far, if it holds a scan, goes beside it instead,
+        to ``NAME.incomplete.g2o`` (``-2``, … : an earlier one is never replaced), named in
+        :attr:`incomplete`, and the block's error goes on; what stood at ``path`` stays."""
+        try:
+            yield
+        except BaseException:
+            if self.scans:
+                with contextlib.suppress(OSError):  # nowhere to keep it: the error goes on
+                    kept = outfiles.incomplete_path(path, ".g2o")
+                    self.write(kept)
+                    self.incomplete = kept
+            raise
+        self.write(path)
 
 
 def read_g2o(path: Path) -> tuple[dict[int, np.ndarray], list[Edge]]:

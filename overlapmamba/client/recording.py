@@ -25,6 +25,8 @@ from typing import IO, Any
 
 from mcap.writer import Writer
 
+from overlapmamba.core import outfiles
+
 VERIFIED = {"r": 0.18, "g": 0.49, "b": 0.2, "a": 1.0}
 DESCRIPTOR_ONLY = {"r": 0.94, "g": 0.42, "b": 0.0, "a": 1.0}
 KEYFRAME = {"r": 0.12, "g": 0.47, "b": 0.71, "a": 0.8}
@@ -234,10 +236,4 @@ class MapRecording:
         """Where a failed replay's recording goes: beside the path, ``NAME.incomplete`` and
         the path's suffix (``.mcap`` for a bare path), else ``NAME.incomplete-2.mcap``, … :
         an earlier failed replay's is never replaced."""
-        name = f"{self.path.stem}.incomplete"
-        suffix = self.path.suffix or ".mcap"
-        for n in range(1, 10_000):
-            kept = self.path.with_name(f"{name}{'' if n == 1 else f'-{n}'}{suffix}")
-            if not kept.exists():
-                return kept
-        raise OSError(f"no free name for {name}{suffix} beside {self.path}")
+        return outfiles.incomplete_path(self.path, ".mcap")

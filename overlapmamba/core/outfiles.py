@@ -65,3 +65,16 @@ def write_whole(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all (:func:`replacing`)."""
     with replacing(path) as tmp:
         tmp.write_text(text)
+
+
+def incomplete_path(path: Path, suffix: str) -> Path:
+    """Where a failed run keeps what it wrote of ``path``: beside it, ``NAME.incomplete``
+    and the path's suffix (``suffix`` for a bare path), else ``NAME.incomplete-2…``: an
+    earlier failed run's is never replaced."""
+    name = f"{path.stem}.incomplete"
+    suffix = path.suffix or suffix
+    for n in range(1, 10_000):
+        kept = path.with_name(f"{name}{'' if n == 1 else f'-{n}'}{suffix}")
+        if not kept.exists():
+            return kept
+    raise OSError(f"no free name for {name}{suffix} beside {path}")
