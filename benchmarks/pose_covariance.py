@@ -17,9 +17,11 @@ Three covariances, each Σ = s · A⁻¹ for one scale s:
 - ``constant``: A = C⁻¹, C the validation closures' sample covariance of δ: one ellipsoid for
   every closure, blind to the geometry (the yardstick the other two must beat).
 
-``--calibrate`` (the validation town only): s is the one that puts 95 % of the validation
-closures inside their 95 % ellipsoid (δᵀ Σ⁻¹ δ ≤ χ²₆(0.95)); the Hessian-based covariance of
-lower mean negative log-likelihood on the validation closures is chosen; with
+``--calibrate`` (validation towns only; ``--val`` repeated pools their closures, as the
+every-sensor option's calibration takes one town of each sensor): s is the one that puts
+95 % of the validation closures inside their 95 % ellipsoid (δᵀ Σ⁻¹ δ ≤ χ²₆(0.95)); the
+Hessian-based covariance of lower mean negative log-likelihood on the validation closures
+is chosen; with
 ``--write-calibration`` it is recorded in the model file (``covariance.estimator``,
 ``covariance.scale``), which the service then answers with. Without it, the model's
 calibration (and the constant one, fitted on ``--val``) is scored on each town given: the
@@ -56,11 +58,13 @@ CALIBRATE_AT = 0.95  # the share of validation closures inside their ellipsoid o
 
 def town_closures(enc: Encoder, path: Path, served: Any, rerank: Any) -> dict[str, Any]:
     """Each query's closure as the service answers it: δ, H and r of the right ones, and how
-    many were wrong."""
+    many were wrong; each record and each wrong one (``wrong_closures``) names its query and
+    keyframe (scan numbers) and carries the relative pose answered."""
     v = served.verify
     t = encode_town(enc, path, params_of(v), rerank)
     right: list[dict[str, Any]] = []
-    wrong = queries = 0
+    wrong_closures: list[dict[str, Any]] = []
+    queries = 0
     for i in tqdm(range(t.recent + 1, len(t.seq)), desc=f"verify {path.name}", unit="query"):
         top, deg = t.order(i, v.candidates)
         queries += 1
@@ -74,17 +78,25 @@ def town_closures(enc: Encoder, path: Path, served: Any, rerank: Any) -> dict[st
         j, best = max(ok, key=lambda jx: jx[1].fitness or 0.0)  # as the service answers
         truth = np.linalg.inv(t.seq.poses[j]) @ t.seq.poses[i]
         t_err, yaw_err = pose_error(best.relative_pose, truth)
+        record = {
+            "query": i,
+            "keyframe": int(j),
+            "pose": best.relative_pose,
+            "delta": posecov.error(best.relative_pose, truth),
+            "hessian": best.hessian,
+            "residual": best.residual,
+        }
         if t_err > POSE_RIGHT[0] or yaw_err > POSE_RIGHT[1] or best.hessian is None:
-            wrong += 1
-            continue
-        right.append(
-            {
-                "delta": posecov.error(best.relative_pose, truth),
-                "hessian": best.hessian,
-                "residual": best.residual,
-            }
-        )
-    return {"town": str(path), "queries": queries, "right": right, "wrong": wrong}
+            wrong_closures.append(record)
+        else:
+            right.append(record)
+    return {
+        "town": str(path),
+        "queries": queries,
+        "right": right,
+        "wrong": len(wrong_closures),
+        "wrong_closures": wrong_closures,
+    }
 
 
 def information(
@@ -169,7 +181,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
     ap.add_argument("--town", type=Path, action="append", help="default: data/synth/test")
-    ap.add_argument("--val", type=Path, default=ROOT / "data" / "synth" / "val")
+    ap.add_argument(
+        "--val",
+        type=Path,
+        action="append",
+        help="validation town (repeat: their closures pooled); default data/synth/val",
+    )
     ap.add_argument(
         "--calibrate", action="store_true", help="choose on --val, and score nothing else"
     )
@@ -187,23 +204,38 @@ def main() -> None:
     args = ap.parse_args()
     if args.write_calibration and not args.calibrate:
         ap.error("--write-calibration records what --calibrate chose: give both")
-    if args.val.name.startswith("test"):
-        ap.error("calibrate on the validation town, never on a test town")
+    vals = args.val or [ROOT / "data" / "synth" / "val"]
+    if any(v.name.startswith("test") for v in vals):
+        ap.error("calibrate on validation towns, never on a test town")
     towns = [] if args.calibrate else args.town or [ROOT / "data" / "synth" / "test"]
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
     rerank = served_rerank(enc.meta)
     console = Console()
-    val = town_closures(enc, args.val, served, rerank)
-    fit = calibrate(val["right"])
+    each = [town_closures(enc, v, served, rerank) for v in vals]
+    fit = calibrate([r for t in each for r in t["right"]])
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
-        "val": {"town": val["town"], "queries": val["queries"], "wrong": val["wrong"], **fit},
+        "val": {
+            "town": ", ".join(t["town"] for t in each),
+            "queries": sum(t["queries"] for t in each),
+            "wrong": sum(t["wrong"] for t in each),
+            **fit,
+        },
         "towns": [],
     }
+    if len(each) > 1:  # how the pooled fit sits on each town (validation data: a diagnosis)
+        chosen = fit["chosen"]
+        scale = fit["fits"][chosen]["scale"]
+        report["val"]["each"] = [
+            {"town": t["town"], "wrong": t["wrong"], **scored(*fitted, scale)}
+            for t in each
+            if (fitted := information(t["right"], chosen))[0]  # a town with a right closure
+        ]
+    names = ", ".join(v.name for v in vals)
     if args.calibrate:
-        table = Table(title=f"right closures on {args.val.name}: each covariance's fit")
+        table = Table(title=f"right closures on {names}: each covariance's fit")
         for col in ("covariance", "scale", "closures", "inside 50/90/95/99 %", "NLL"):
             table.add_column(col, justify="right")
         for name, f in fit["fits"].items():
@@ -211,10 +243,13 @@ def main() -> None:
             table.add_row(name, f"{f['scale']:.4g}", str(f["closures"]), inside, f"{f['nll']:.2f}")
         console.print(table)
         chosen = fit["chosen"]
-        console.print(f"chosen on {args.val}: {chosen}, scale {fit['fits'][chosen]['scale']:.4g}")
+        console.print(f"chosen on {names}: {chosen}, scale {fit['fits'][chosen]['scale']:.4g}")
+        for t in report["val"].get("each", []):
+            inside = " / ".join(f"{x:.3f}" for x in t["inside"].values())
+            console.print(f"  {Path(t['town']).name}: {t['closures']} right, inside {inside}")
         if args.write_calibration:
             values = {"estimator": chosen, "scale": fit["fits"][chosen]["scale"]}
-            write_calibration(args.model, "covariance", values, str(args.val))
+            write_calibration(args.model, "covariance", values, ",".join(map(str, vals)))
     cov = served.covariance
     constant = np.asarray(fit["constant_covariance"])
     table = Table(title=f"verified closures' covariance ({enc.model_id})")

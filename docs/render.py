@@ -30,6 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures_bev  # docs/figures_*.py, beside this file
+import figures_covariance
 import figures_cpu
 import figures_cut
 import figures_fill
@@ -124,6 +125,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     **figures_sensors.RENDERERS,
     **figures_spectrum.RENDERERS,
     **figures_verify.RENDERERS,
+    **figures_covariance.RENDERERS,
 }
 
 

@@ -132,7 +132,7 @@ def test_the_covariance_reading_says_what_its_numbers_say():
     """The sentence under the covariance table is read off the numbers (a recalibration
     cannot leave it stale): the share inside the 95% ellipsoid is "about" 0.95 within two
     binomial standard errors, and the 50% ellipsoid holding more than half is a heavy tail."""
-    figures = sys.modules["figures_verify"]  # imported by docs/render.py, beside it
+    figures = sys.modules["figures_covariance"]  # imported by docs/render.py, beside it
 
     def town(name: str, n: int, half: float, most: float, nll: float) -> dict:
         served = {"closures": n, "inside": {"0.5": half, "0.95": most}, "nll": nll}

@@ -175,6 +175,23 @@ def test_covariance_settings_go_together():
     assert Settings(covariance={"estimator": "hessian", "scale": 2.0}).covariance.scale == 2.0
 
 
+async def turned_keyframe_closure(c) -> dict:
+    """A new map of keyframes k0, k1 (scans 0, 1), then scan 1 turned by 40° queried: the
+    answer's loop closure."""
+    assert (await c.put("/v1/maps/town")).status_code == 201
+    for i in range(2):
+        r = await c.post(
+            "/v1/maps/town/keyframes",
+            params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i},
+            content=scan(i).tobytes(),
+            headers=OCTET,
+        )
+        assert r.status_code == 201, r.text
+    q = await c.post("/v1/maps/town/query", content=scan(1, 40.0).tobytes(), headers=OCTET)
+    assert q.status_code == 200, q.text
+    return q.json()["loop_closure"]
+
+
 @pytest.mark.anyio
 async def test_a_verified_closure_carries_the_model_s_covariance(tmp_path, encoder):
     """The shipped model's file carries its covariance calibration: a turned copy of a
@@ -188,17 +205,7 @@ async def test_a_verified_closure_carries_the_model_s_covariance(tmp_path, encod
         ready = (await c.get("/readyz")).json()
         text = str(ready)
         assert "covariance.scale" in text and "pose_covariance.py" in text
-        assert (await c.put("/v1/maps/town")).status_code == 201
-        for i in range(2):
-            r = await c.post(
-                "/v1/maps/town/keyframes",
-                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i},
-                content=scan(i).tobytes(),
-                headers=OCTET,
-            )
-            assert r.status_code == 201, r.text
-        q = await c.post("/v1/maps/town/query", content=scan(1, 40.0).tobytes(), headers=OCTET)
-        lc = q.json()["loop_closure"]
+        lc = await turned_keyframe_closure(c)
         assert lc["verified"] is True and lc["keyframe_id"] == "k1"
         cov = np.array(lc["covariance"]).reshape(6, 6)
         assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
@@ -207,16 +214,7 @@ async def test_a_verified_closure_carries_the_model_s_covariance(tmp_path, encod
     doubled = {"estimator": "residual", "scale": 1.0}
     settings = Settings(data_dir=tmp_path / "data2", covariance=doubled)
     async with running(settings, encoder) as c:
-        await c.put("/v1/maps/town")
-        for i in range(2):
-            await c.post(
-                "/v1/maps/town/keyframes",
-                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i},
-                content=scan(i).tobytes(),
-                headers=OCTET,
-            )
-        q = await c.post("/v1/maps/town/query", content=scan(1, 40.0).tobytes(), headers=OCTET)
-        one = np.array(q.json()["loop_closure"]["covariance"]).reshape(6, 6)
+        one = np.array((await turned_keyframe_closure(c))["covariance"]).reshape(6, 6)
     served = encoder.meta.calibration["covariance"].values
     assert served["estimator"] == "residual"
     assert np.allclose(cov, one * float(served["scale"]), rtol=1e-6)  # type: ignore[arg-type]
@@ -240,17 +238,7 @@ async def test_a_model_without_the_calibration_closes_verified_with_no_covarianc
     async with running(Settings(data_dir=tmp_path / "data"), bare) as c:
         shown = (await c.get("/readyz")).json()["detail"]["thresholds"]["covariance.scale"]
         assert shown == {"value": None, "source": "default"}
-        await c.put("/v1/maps/town")
-        for i in range(2):
-            r = await c.post(
-                "/v1/maps/town/keyframes",
-                params={"keyframe_id": f"k{i}", "timestamp": 100.0 + i},
-                content=scan(i).tobytes(),
-                headers=OCTET,
-            )
-            assert r.status_code == 201, r.text
-        q = await c.post("/v1/maps/town/query", content=scan(1, 40.0).tobytes(), headers=OCTET)
-        lc = q.json()["loop_closure"]
+        lc = await turned_keyframe_closure(c)
     assert lc["verified"] is True and lc["keyframe_id"] == "k1"
     assert "covariance" in lc and lc["covariance"] is None
     assert len(lc["relative_pose"]) == 16
