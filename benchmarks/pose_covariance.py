@@ -24,7 +24,8 @@ Hessian-based covariance of lower mean negative log-likelihood on the validation
 is chosen; with
 ``--write-calibration`` it is recorded in the model file (``covariance.estimator``,
 ``covariance.scale``), which the service then answers with. Without it, the model's
-calibration (and the constant one, fitted on ``--val``) is scored on each town given: the
+calibration (and the constant one, fitted on ``--val``, or read from the calibration's JSON
+with ``--fit-from``) is scored on each town given: the
 share of closures inside each ellipsoid (50, 90, 95, 99 %), the mean negative
 log-likelihood, and the predicted and observed spread along x, y and yaw. Prints tables,
 writes JSON (``reports/service/pose_covariance.json`` calibrating, else
@@ -34,6 +35,7 @@ writes JSON (``reports/service/pose_covariance.json`` calibrating, else
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import Any
 
@@ -177,6 +179,44 @@ def sample_covariance(records: list[dict[str, Any]]) -> np.ndarray:
     return np.atleast_2d(np.cov(deltas, rowvar=False))
 
 
+def validation_fit(each: list[dict[str, Any]]) -> dict[str, Any]:
+    """The fit (:func:`calibrate`) on the validation towns' closures pooled (``each``:
+    :func:`town_closures` of each town) and, for several towns, how the chosen covariance
+    sits on each (validation data: a diagnosis, not a result)."""
+    fit = calibrate([r for t in each for r in t["right"]])
+    val: dict[str, Any] = {
+        "town": ", ".join(t["town"] for t in each),
+        "queries": sum(t["queries"] for t in each),
+        "wrong": sum(t["wrong"] for t in each),
+        **fit,
+    }
+    if len(each) > 1:
+        chosen = fit["chosen"]
+        scale = fit["fits"][chosen]["scale"]
+        val["each"] = [
+            {"town": t["town"], "wrong": t["wrong"], **scored(*fitted, scale)}
+            for t in each
+            if (fitted := information(t["right"], chosen))[0]  # a town with a right closure
+        ]
+    return val
+
+
+def read_fit(path: Path, model_id: str) -> dict[str, Any]:
+    """The validation fit ``--calibrate`` wrote to ``path`` (its JSON's ``val``), which must
+    be of this model; it names the file it came from (``from``)."""
+    if not path.is_file():
+        raise SystemExit(f"{path} is missing: run benchmarks/pose_covariance.py --calibrate")
+    report = json.loads(path.read_text())
+    if report["model_id"] != model_id:
+        raise SystemExit(
+            f"{path} is of model {report['model_id']}, not {model_id}: run "
+            "benchmarks/pose_covariance.py --calibrate --model on this one"
+        )
+    where = path.resolve()
+    name = str(where.relative_to(ROOT)) if where.is_relative_to(ROOT) else str(path)
+    return {**report["val"], "from": name}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "overlapmamba-hdl64.onnx")
@@ -191,6 +231,12 @@ def main() -> None:
         "--calibrate", action="store_true", help="choose on --val, and score nothing else"
     )
     ap.add_argument(
+        "--fit-from",
+        type=Path,
+        help="scoring: the validation fit (the one ellipsoid) from this --calibrate JSON of "
+        "the same model, instead of computing it on --val again",
+    )
+    ap.add_argument(
         "--write-calibration",
         action="store_true",
         help="with --calibrate: record the chosen covariance in the model file",
@@ -202,6 +248,8 @@ def main() -> None:
         "pose-covariance-test.json",
     )
     args = ap.parse_args()
+    if args.fit_from is not None and args.calibrate:
+        ap.error("--fit-from takes an earlier calibration's fit: not with --calibrate")
     if args.write_calibration and not args.calibrate:
         ap.error("--write-calibration records what --calibrate chose: give both")
     vals = args.val or [ROOT / "data" / "synth" / "val"]
@@ -212,27 +260,17 @@ def main() -> None:
     served = served_settings(enc.meta)
     rerank = served_rerank(enc.meta)
     console = Console()
-    each = [town_closures(enc, v, served, rerank) for v in vals]
-    fit = calibrate([r for t in each for r in t["right"]])
+    if args.fit_from is not None:  # the calibration's fit, as it wrote it
+        val = read_fit(args.fit_from, enc.model_id)
+    else:
+        val = validation_fit([town_closures(enc, v, served, rerank) for v in vals])
+    fit = {k: val[k] for k in ("fits", "constant_covariance", "chosen")}
     report: dict[str, Any] = {
         **provenance(),
         "model_id": enc.model_id,
-        "val": {
-            "town": ", ".join(t["town"] for t in each),
-            "queries": sum(t["queries"] for t in each),
-            "wrong": sum(t["wrong"] for t in each),
-            **fit,
-        },
+        "val": val,
         "towns": [],
     }
-    if len(each) > 1:  # how the pooled fit sits on each town (validation data: a diagnosis)
-        chosen = fit["chosen"]
-        scale = fit["fits"][chosen]["scale"]
-        report["val"]["each"] = [
-            {"town": t["town"], "wrong": t["wrong"], **scored(*fitted, scale)}
-            for t in each
-            if (fitted := information(t["right"], chosen))[0]  # a town with a right closure
-        ]
     names = ", ".join(v.name for v in vals)
     if args.calibrate:
         table = Table(title=f"right closures on {names}: each covariance's fit")
@@ -244,7 +282,7 @@ def main() -> None:
         console.print(table)
         chosen = fit["chosen"]
         console.print(f"chosen on {names}: {chosen}, scale {fit['fits'][chosen]['scale']:.4g}")
-        for t in report["val"].get("each", []):
+        for t in val.get("each", []):
             inside = " / ".join(f"{x:.3f}" for x in t["inside"].values())
             console.print(f"  {Path(t['town']).name}: {t['closures']} right, inside {inside}")
         if args.write_calibration:

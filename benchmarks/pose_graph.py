@@ -25,14 +25,13 @@ truth (the error a map shows as a doubled wall). Prints a table, writes
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 import graph_kit as gk
 import numpy as np
 from bench_kit import ROOT, provenance, served_rerank, served_settings
-from pose_covariance import town_closures
+from pose_covariance import read_fit, town_closures
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from rich.table import Table
@@ -154,17 +153,9 @@ def true_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def read_constant(path: Path, model_id: str) -> tuple[np.ndarray, dict[str, Any]]:
     """The validation closures' one ellipsoid (its covariance times its scale) from
     ``pose_covariance.py --calibrate``'s JSON, which must be of this model."""
-    if not path.is_file():
-        raise SystemExit(f"{path} is missing: run benchmarks/pose_covariance.py --calibrate")
-    report = json.loads(path.read_text())
-    if report["model_id"] != model_id:
-        raise SystemExit(
-            f"{path} is of model {report['model_id']}, not {model_id}: run "
-            "benchmarks/pose_covariance.py --calibrate --model on this one"
-        )
-    val = report["val"]
+    val = read_fit(path, model_id)
     scale = float(val["fits"]["constant"]["scale"])
-    source = {"file": str(path.relative_to(ROOT)), "town": val["town"], "scale": scale}
+    source = {"file": val["from"], "town": val["town"], "scale": scale}
     return scale * np.asarray(val["constant_covariance"]), source
 
 

@@ -160,6 +160,18 @@ def test_calibration_recovers_the_scale_and_prefers_the_hessian_to_one_ellipsoid
     assert pc.calibrate(records)["fits"]["residual"]["scale"] == pytest.approx(
         2 * hess["scale"], rel=1e-6
     )
+    # several validation towns (the every-sensor option's, one a sensor) are pooled, and
+    # the chosen covariance is shown on each; a town without a right closure shows nothing
+    towns = [
+        {"town": f"val-{k}", "queries": 1500, "wrong": k, "right": records[k * 1500 :][:1500]}
+        for k in range(2)
+    ] + [{"town": "val-none", "queries": 9, "wrong": 0, "right": []}]
+    val = pc.validation_fit(towns)
+    assert val["queries"] == 3009 and val["wrong"] == 1 and val["town"].count(",") == 2
+    assert val["fits"] == pc.calibrate(records)["fits"]
+    assert [t["town"] for t in val["each"]] == ["val-0", "val-1"]
+    assert [t["closures"] for t in val["each"]] == [1500, 1500]
+    assert "each" not in pc.validation_fit(towns[:1])
 
 
 def test_covariance_settings_go_together():
