@@ -21,7 +21,7 @@ from overlapmamba.service.settings import Settings
 ROOT = Path(__file__).resolve().parents[1]
 ANY = ROOT / "models" / "overlapmamba-any-sensor.onnx"
 CARD = ROOT / "models" / "README.md"
-SECTIONS = ("rerank", "loop_closure", "verify")
+SECTIONS = ("rerank", "loop_closure", "verify", "covariance")
 
 
 @pytest.fixture(scope="module")
