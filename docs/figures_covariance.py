@@ -13,15 +13,21 @@ COVARIANCE = "reports/service/pose-covariance-test.json"
 COVARIANCE_VAL = "reports/service/pose_covariance.json"
 
 
-def covariance() -> str:
-    """The served covariance against one ellipsoid for all, on the test towns; the fit on val."""
-    r, cal = load(COVARIANCE), load(COVARIANCE_VAL)
+COVARIANCE_ANY = "reports/service/pose-covariance-test-any-sensor.json"
+COVARIANCE_ANY_VAL = "reports/service/pose_covariance-any-sensor.json"
+
+
+def covariance(test: str = COVARIANCE, val: str = COVARIANCE_VAL) -> str:
+    """The served covariance against one ellipsoid for all, on the test towns; the fit on the
+    validation towns."""
+    r, cal = load(test), load(val)
     fits = cal["val"]["fits"]
     chosen = cal["val"]["chosen"]
-    out = source(COVARIANCE_VAL, cal["command"], when(cal))
-    out += source(COVARIANCE, r["command"], when(r))
+    towns = ", ".join(f"`{Path(t.strip()).name}`" for t in cal["val"]["town"].split(","))
+    out = source(val, cal["command"], when(cal))
+    out += source(test, r["command"], when(r))
     out += (
-        f"\nModel {r['model_id']}. Chosen on `val` ({fits[chosen]['closures']} right closures): "
+        f"\nModel {r['model_id']}. Chosen on {towns} ({fits[chosen]['closures']} right closures): "
         f"`{chosen}`, scale {fits[chosen]['scale']:.3g}, the one of lower mean negative "
         "log-likelihood there ("
         + ", ".join(f"{n} {f['nll']:.2f}" for n, f in fits.items() if n != "constant")
@@ -174,14 +180,21 @@ def pose_graph() -> str:
         if t["mean"]["served"]["revisit_rms_m"] < t["mean"]["constant"]["revisit_rms_m"]
     ]
     n = len(r["towns"])
+    paired = [
+        s["revisit_rms_m"] < c["revisit_rms_m"]
+        for t in r["towns"]
+        for s, c in zip(t["runs"]["served"], t["runs"]["constant"], strict=True)
+    ]
     return out + (
         f"\nThe served covariance leaves the map tighter where the drive comes back than one "
-        f"ellipsoid on {len(tighter)} of {n} test towns ({listed(tighter)}), and a lower "
+        f"ellipsoid on {len(tighter)} of {n} test towns ({listed(tighter)}; on {sum(paired)} of "
+        f"{len(paired)} odometry draws, each weighting given the same draw), and a lower "
         f"position RMS on {len(better)} of {n} ({listed(better)}).\n"
     )
 
 
 RENDERERS: dict[str, Callable[[], str]] = {
     "covariance": covariance,
+    "covariance-any-sensor": lambda: covariance(COVARIANCE_ANY, COVARIANCE_ANY_VAL),
     "pose-graph": pose_graph,
 }
