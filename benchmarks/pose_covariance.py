@@ -248,8 +248,8 @@ def main() -> None:
         "pose-covariance-test.json",
     )
     args = ap.parse_args()
-    if args.fit_from is not None and args.calibrate:
-        ap.error("--fit-from takes an earlier calibration's fit: not with --calibrate")
+    if args.fit_from is not None and (args.calibrate or args.val):
+        ap.error("--fit-from takes an earlier calibration's fit: not with --calibrate or --val")
     if args.write_calibration and not args.calibrate:
         ap.error("--write-calibration records what --calibrate chose: give both")
     vals = args.val or [ROOT / "data" / "synth" / "val"]
@@ -262,6 +262,9 @@ def main() -> None:
     console = Console()
     if args.fit_from is not None:  # the calibration's fit, as it wrote it
         val = read_fit(args.fit_from, enc.model_id)
+        fitted = {Path(t.strip()).name for t in val["town"].split(",")}
+        if used := sorted(fitted & {t.name for t in towns}):
+            ap.error(f"{', '.join(used)}: the fit was calibrated there; score other towns")
     else:
         val = validation_fit([town_closures(enc, v, served, rerank) for v in vals])
     fit = {k: val[k] for k in ("fits", "constant_covariance", "chosen")}

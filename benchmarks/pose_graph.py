@@ -133,7 +133,7 @@ def town_graph(
         out["runs"]["dead_reckoning"].append(scores(start, truth, revisits))
         for way in WAYS:
             solved = gk.optimise(start, gk.Edges.join(odo, edges[way]))
-            if not solved.converged:
+            if not (solved.converged and np.isfinite(solved.poses).all()):
                 raise RuntimeError(f"{town['town']} seed {seed} {way}: did not converge")
             out["runs"][way].append(
                 {**scores(solved.poses, truth, revisits), "iterations": solved.iterations}
@@ -155,7 +155,8 @@ def read_constant(path: Path, model_id: str) -> tuple[np.ndarray, dict[str, Any]
     ``pose_covariance.py --calibrate``'s JSON, which must be of this model."""
     val = read_fit(path, model_id)
     scale = float(val["fits"]["constant"]["scale"])
-    source = {"file": val["from"], "town": val["town"], "scale": scale}
+    town = val["town"].replace(f"{ROOT}/", "")  # inside the checkout, as a clone has it
+    source = {"file": val["from"], "town": town, "scale": scale}
     return scale * np.asarray(val["constant_covariance"]), source
 
 

@@ -1008,11 +1008,12 @@ def test_a_replay_that_stops_keeps_its_pose_graph_so_far_beside_the_path(
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(PlaceRecognitionClient, "observe", stops)
-    g2o = tmp_path / "drive.g2o"
+    g2o, rec = tmp_path / "drive.g2o", tmp_path / "drive.mcap"
     args = ["observe", str(synthetic_seq_dir), "--map", "cli-stops", "--every", "4"]
     for n, stays in ((1, "was not written"), (2, "is as it was")):
+        record = ["--record", str(rec)] if n == 1 else []  # both kept, each said
         res = CliRunner().invoke(
-            cli_app, [*args, "--g2o", str(g2o)], env={"OVERLAPMAMBA_URL": live}
+            cli_app, [*args, "--g2o", str(g2o), *record], env={"OVERLAPMAMBA_URL": live}
         )
         text = " ".join(res.output.split())
         assert res.exit_code == 2 and "the server stopped answering" in text, text
@@ -1021,7 +1022,9 @@ def test_a_replay_that_stops_keeps_its_pose_graph_so_far_beside_the_path(
         vertices, edges = read_g2o(kept)
         assert sorted(vertices)[:4] == [0, 4, 8, 12] and len(edges) >= 3
         if n == 1:
-            assert not g2o.exists()
+            assert not g2o.exists() and not rec.exists()
+            assert (tmp_path / "drive.incomplete.mcap").stat().st_size > 0
+            assert "what it recorded is in" in text, text
             g2o.write_text("EARLIER\n")  # a whole graph of an earlier replay
     assert g2o.read_text() == "EARLIER\n"
     monkeypatch.setattr(PlaceRecognitionClient, "observe", real)

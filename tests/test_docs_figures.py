@@ -131,18 +131,30 @@ def test_the_readme_fits_a_newcomer():
 def test_the_covariance_reading_says_what_its_numbers_say():
     """The sentence under the covariance table is read off the numbers (a recalibration
     cannot leave it stale): the share inside the 95% ellipsoid is "about" 0.95 within two
-    binomial standard errors, and the 50% ellipsoid holding more than half is a heavy tail."""
+    binomial standard errors; heavy tails are fewer inside the 95% ellipsoid than a Gaussian
+    fitted to the 50% share would hold, which a Gaussian only too wide is not."""
+    from scipy.stats import chi2
+
     figures = sys.modules["figures_covariance"]  # imported by docs/render.py, beside it
 
     def town(name: str, n: int, half: float, most: float, nll: float) -> dict:
         served = {"closures": n, "inside": {"0.5": half, "0.95": most}, "nll": nll}
         return {"town": f"data/{name}", "served": served, "constant": {"nll": -20.0}}
 
-    said = figures._covariance_reading(
-        [town("a", 400, 0.50, 0.95, -25.0), town("b", 400, 0.70, 0.90, -15.0)]
-    )
-    assert "lower NLL on 1 of 2 test towns (`a`)" in said
-    assert "about their share on `a`; fewer on `b`" in said
-    assert "more than half on `b`:" in said
+    # c: a Gaussian 1.5 times too wide in variance: its 50% and 95% shares, no heavier tail
+    wide = [float(chi2.cdf(chi2.ppf(q, 6) * 1.5, 6)) for q in (0.5, 0.95)]
+    towns = [
+        town("a", 400, 0.50, 0.95, -25.0),
+        town("b", 400, 0.70, 0.90, -15.0),
+        town("c", 400, *wide, -22.0),
+    ]
+    said = figures._covariance_reading(towns)
+    assert "lower NLL on 2 of 3 test towns (`a`, `c`)" in said
+    assert "about their share on `a`; fewer on `b`; more on `c`" in said
+    assert "heavier tails than a Gaussian's on `b`:" in said
+    assert figures._heavy_tailed({"0.5": 0.70, "0.95": 0.90}, 400)
+    assert not figures._heavy_tailed({"0.5": wide[0], "0.95": wide[1]}, 400)
+    assert not figures._heavy_tailed({"0.5": 1.0, "0.95": 1.0}, 50)  # every one inside
+    assert "On no town do the errors show heavier tails" in figures._covariance_reading(towns[2:])
     assert figures._share(0.97, 0.95, 100) == "about"  # 2σ is 0.044 for 100 closures
     assert figures._share(0.97, 0.95, 10_000) == "more"

@@ -296,6 +296,50 @@ def test_a_pose_graph_counts_what_it_leaves_out_and_reads_back(tmp_path):
         read_g2o(path)
 
 
+def test_a_pose_graph_is_kept_beside_its_path_when_the_replay_or_the_write_fails(
+    tmp_path, monkeypatch
+):
+    """PoseGraph.written_to: Ctrl-C inside keeps the graph so far as NAME.incomplete.g2o; a
+    write at the path that fails (a full disk) keeps it there too and says the write failed;
+    where nothing can be kept, why is recorded; a graph without a scan keeps nothing."""
+    from overlapmamba.client.posegraph import PoseGraph, odometry_information, read_g2o
+    from overlapmamba.core import outfiles
+
+    def graph() -> PoseGraph:
+        g = PoseGraph(odometry_information(0.1, 1.0), others_from=10)
+        g.scan(0, pose(0.0, (0, 0, 0)), None)
+        g.scan(1, pose(5.0, (1, 0, 0)), None)
+        return g
+
+    path = tmp_path / "drive.g2o"
+    g = graph()
+    with pytest.raises(KeyboardInterrupt), g.written_to(path):
+        raise KeyboardInterrupt
+    assert g.incomplete == tmp_path / "drive.incomplete.g2o" and not g.write_failed
+    assert sorted(read_g2o(g.incomplete)[0]) == [0, 1] and not path.exists()
+    whole = outfiles.write_whole
+
+    def full(where, text):
+        if where == path:
+            raise OSError(28, "No space left on device")
+        whole(where, text)
+
+    monkeypatch.setattr(outfiles, "write_whole", full)
+    g = graph()
+    with pytest.raises(OSError, match="No space"), g.written_to(path):
+        pass
+    assert g.write_failed and g.incomplete == tmp_path / "drive.incomplete-2.g2o"
+    monkeypatch.setattr(outfiles, "write_whole", lambda where, text: full(path, text))
+    g = graph()
+    with pytest.raises(ConnectionError), g.written_to(path):
+        raise ConnectionError("gone")
+    assert g.incomplete is None and g.lost is not None and "No space" in g.lost
+    empty = PoseGraph(odometry_information(0.1, 1.0), others_from=10)
+    with pytest.raises(ConnectionError), empty.written_to(path):
+        raise ConnectionError("gone")
+    assert empty.incomplete is None and empty.lost is None
+
+
 def test_observe_refuses_a_pose_graph_it_cannot_write_before_replaying(synthetic_seq_dir, tmp_path):
     """Each refusal before a scan is sent (nothing listens at the URL: a check that came
     after connecting would fail there instead)."""

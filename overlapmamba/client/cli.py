@@ -246,6 +246,9 @@ def observe(
     frames = range(0, len(drive), every)
     skipped: list[str] = []
     with contextlib.ExitStack() as stack:
+        if graph is not None and g2o is not None:  # written last: after the recording's end
+            stack.callback(kept_graph, graph, g2o, g2o.exists())  # after the graph's exit
+            stack.enter_context(graph.written_to(g2o))
         pr = stack.enter_context(client(url, api_key))
         rec = None
         if record is not None:
@@ -264,9 +267,6 @@ def observe(
 
             stack.callback(kept)
             rec = stack.enter_context(made)
-        if graph is not None and g2o is not None:
-            stack.callback(kept_graph, graph, g2o, g2o.exists())  # after the graph's exit
-            stack.enter_context(graph.written_to(g2o))
         make_map(pr, map_id, drive.sensor)
         for i, points in drive.scans(frames, skipped):
             o = pr.observe(
@@ -320,13 +320,16 @@ def observe(
 
 
 def kept_graph(graph: PoseGraph, g2o: Path, existed: bool) -> None:
-    """A failed replay's note: where its pose graph so far was kept."""
+    """A failed replay's note: where its pose graph so far was kept, or why it was not."""
+    what = f"writing {escape(str(g2o))} failed" if graph.write_failed else "the replay stopped"
     if graph.incomplete is not None:
         stays = "is as it was" if existed else "was not written"
         console.print(
-            f"[yellow]note:[/] the replay stopped; its pose graph so far is in "
+            f"[yellow]note:[/] {what}; its pose graph so far is in "
             f"{escape(str(graph.incomplete))} ({escape(str(g2o))} {stays})"
         )
+    elif graph.lost is not None:
+        console.print(f"[yellow]note:[/] {what}; its pose graph was lost ({escape(graph.lost)})")
 
 
 @app.command("stats")

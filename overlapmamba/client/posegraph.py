@@ -76,6 +76,8 @@ class PoseGraph:
     left_out: dict[str, int] = field(default_factory=dict)  # why a closure is not an edge
     others: int = 0  # another drive's keyframes made vertices so far
     incomplete: Path | None = None  # where a failed replay's graph was kept (written_to)
+    lost: str | None = None  # why a failed replay's graph could not be kept
+    write_failed: bool = False  # the replay ended, writing the graph at its path did not
 
     def scan(self, frame: int, pose: np.ndarray | None, keyframe_id: str | None) -> None:
         """Observed scan ``frame`` at ``pose`` (None: the drive has none there, so it is not
@@ -138,19 +140,31 @@ class PoseGraph:
     @contextlib.contextmanager
     def written_to(self, path: Path) -> Iterator[None]:
         """The graph written to ``path`` when the block ends. Where the block raises (the
-        server gone, Ctrl-C) the graph so far, if it holds a scan, goes beside it instead,
-        to ``NAME.incomplete.g2o`` (``-2``, … : an earlier one is never replaced), named in
-        :attr:`incomplete`, and the block's error goes on; what stood at ``path`` stays."""
+        server gone, Ctrl-C), or writing it there fails (a full disk), the graph so far, if
+        it holds a scan, goes beside it instead, to ``NAME.incomplete.g2o`` (``-2``, … : an
+        earlier one is never replaced), named in :attr:`incomplete` (or why it could not be
+        kept in :attr:`lost`), and the error goes on; what stood at ``path`` stays."""
         try:
             yield
         except BaseException:
-            if self.scans:
-                with contextlib.suppress(OSError):  # nowhere to keep it: the error goes on
-                    kept = outfiles.incomplete_path(path, ".g2o")
-                    self.write(kept)
-                    self.incomplete = kept
+            self._keep(path)
             raise
-        self.write(path)
+        try:
+            self.write(path)
+        except BaseException:
+            self.write_failed = True
+            self._keep(path)
+            raise
+
+    def _keep(self, path: Path) -> None:
+        if not self.scans:
+            return
+        try:
+            kept = outfiles.incomplete_path(path, ".g2o")
+            self.write(kept)
+            self.incomplete = kept
+        except BaseException as err:  # Ctrl-C too: the error that brought us here goes on
+            self.lost = f"{type(err).__name__}: {err}"
 
 
 def read_g2o(path: Path) -> tuple[dict[int, np.ndarray], list[Edge]]:
