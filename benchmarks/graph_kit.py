@@ -160,6 +160,8 @@ def optimise(
     minimise :func:`cost`. Stops when a step lowers the cost by less than ``tolerance`` of
     it, or after ``iterations`` steps."""
     n = len(poses)
+    if len(edges.a) == 0:
+        raise ValueError("a pose graph needs at least one edge")
     if min(edges.a.min(), edges.b.min()) < 0 or max(edges.a.max(), edges.b.max()) >= n:
         raise ValueError(f"an edge names a vertex outside 0 … {n - 1}")
     x = np.array(poses, dtype=np.float64)

@@ -78,6 +78,8 @@ def scores(estimate: np.ndarray, truth: np.ndarray, revisits: np.ndarray) -> dic
     """Against the truth: each scan's position and rotation (vertex 0 held at its true pose,
     no alignment), and the map where the drive comes back: each revisit pair's (``revisits``,
     (k, 2): query, earlier scan) relative pose."""
+    if len(revisits) == 0:
+        raise ValueError("the town's ground truth has no revisit pair: nothing to score there")
     d = gk.position_errors(estimate, truth)
     rot = gk.yaw_errors_deg(estimate, truth)
     q, r = revisits[:, 0], revisits[:, 1]

@@ -22,6 +22,8 @@ def covariance(test: str = COVARIANCE, val: str = COVARIANCE_VAL) -> str:
     """The served covariance against one ellipsoid for all, on the test towns; the fit on the
     validation towns."""
     r, cal = load(test), load(val)
+    if r["model_id"] != cal["model_id"]:
+        raise ValueError(f"{test} is of model {r['model_id']}, {val} of {cal['model_id']}")
     fits = cal["val"]["fits"]
     chosen = cal["val"]["chosen"]
     towns = ", ".join(f"`{Path(t.strip()).name}`" for t in cal["val"]["town"].split(","))

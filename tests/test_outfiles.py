@@ -21,6 +21,10 @@ def test_an_output_is_checked_and_its_folder_made_before_the_work(tmp_path):
     with pytest.raises(ValueError, match="--plot .*p.txt: allowed formats are pdf, png"):
         check_outputs(("--plot", tmp_path / "p.txt", {"png", "pdf"}))
     check_outputs(("--plot", tmp_path / "p.PNG", {"png", "pdf"}))  # the suffix in any case
+    # two outputs at one file (found in review: observe --record and --g2o), however named
+    same = tmp_path / "a" / "b" / ".." / "b" / "r.json"
+    with pytest.raises(ValueError, match="--json and --plot are the same file"):
+        check_outputs(("--json", tmp_path / "a" / "b" / "r.json", None), ("--plot", same, None))
 
 
 def test_a_refused_output_leaves_no_folder_made_for_another(tmp_path):

@@ -363,3 +363,8 @@ def test_observe_refuses_a_pose_graph_it_cannot_write_before_replaying(synthetic
         text = " ".join(res.output.replace("│", " ").split())
         assert res.exit_code == 2 and says in text, text
         assert not out.exists()
+    same = tmp_path / "both.g2o"  # the recording and the graph at one file
+    args = ["observe", str(synthetic_seq_dir), "--map", "m", "--g2o", str(same), "--record"]
+    res = CliRunner().invoke(app, [*args, str(same)], env=env)
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "--record and --g2o are the same file" in text, text

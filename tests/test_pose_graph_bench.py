@@ -60,6 +60,10 @@ def test_the_optimum_is_the_truth_when_every_edge_is_and_undoes_drift_when_loops
     solved = gk.optimise(start, gk.Edges.join(odo, loops))  # noisy odometry, true loops
     assert solved.converged and solved.cost < solved.cost_start / 100
     assert gk.position_errors(solved.poses, truth).max() < drift.max() / 5
+    with pytest.raises(ValueError, match="at least one edge"):
+        gk.optimise(
+            start, gk.Edges(np.zeros(0, int), np.zeros(0, int), loops.z[:0], loops.info[:0])
+        )
     with pytest.raises(ValueError, match="outside 0 … 239"):
         gk.optimise(start, gk.Edges(np.array([0]), np.array([240]), loops.z[:1], loops.info[:1]))
 
@@ -136,6 +140,8 @@ def test_the_benchmark_builds_its_graph_from_the_closures_and_scores_each_way(tm
     out = pose_graph.town_graph(town, truth, revisits, ("hessian", 1.0), constant, sigma, 2)
     assert out["scans"] == 90 and out["loop_edges"] == 10 and out["without_covariance"] == 1
     assert out["revisit_pairs"] == 30
+    with pytest.raises(ValueError, match="no revisit pair"):
+        pose_graph.scores(truth, truth, np.zeros((0, 2), int))
     assert out["wrong_loop_edges"] == 1
     assert set(out["runs"]) == {"dead_reckoning", "served", "constant"}
     assert all(len(r) == 2 for r in out["runs"].values())

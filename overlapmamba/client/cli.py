@@ -230,7 +230,7 @@ def observe(
                 f"{flag} {path} is the drive {seq_dir} or inside it: it would overwrite what "
                 "is being replayed; write it elsewhere"
             )
-    outfiles.check_outputs(("--g2o", g2o, ("g2o",)))
+    outfiles.check_outputs(("--record", record, None), ("--g2o", g2o, ("g2o",)))
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
     note_unposed(drive)
     graph = None

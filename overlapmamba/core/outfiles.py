@@ -25,6 +25,15 @@ def check_outputs(*outputs: Output) -> None:
     command leaves nothing behind), then make their folders and check that a file can be
     written there. A ValueError names the flag, the path and what is wrong."""
     given = [(flag, path, formats) for flag, path, formats in outputs if path is not None]
+    seen: dict[Path, str] = {}
+    for flag, path, _ in given:
+        assert path is not None
+        where = path.resolve()
+        if where in seen:
+            raise ValueError(
+                f"{seen[where]} and {flag} are the same file, {path}: give each its own"
+            )
+        seen[where] = flag
     for flag, path, formats in given:
         assert path is not None
         if path.is_dir():
