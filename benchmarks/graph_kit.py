@@ -231,7 +231,7 @@ def position_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.linalg.norm(estimate[:, :3, 3] - truth[:, :3, 3], axis=1)
 
 
-def yaw_errors_deg(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+def rotation_errors_deg(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(n,) angles (degrees) of each estimate's rotation against the truth's."""
     rel = np.transpose(estimate[:, :3, :3], (0, 2, 1)) @ truth[:, :3, :3]
     c = np.clip(0.5 * (np.trace(rel, axis1=1, axis2=2) - 1.0), -1.0, 1.0)

@@ -81,12 +81,12 @@ def scores(estimate: np.ndarray, truth: np.ndarray, revisits: np.ndarray) -> dic
     if len(revisits) == 0:
         raise ValueError("the town's ground truth has no revisit pair: nothing to score there")
     d = gk.position_errors(estimate, truth)
-    rot = gk.yaw_errors_deg(estimate, truth)
+    rot = gk.rotation_errors_deg(estimate, truth)
     q, r = revisits[:, 0], revisits[:, 1]
     est = gk.inverse(estimate[r]) @ estimate[q]
     true = gk.inverse(truth[r]) @ truth[q]
     rel_d = gk.position_errors(est, true)
-    rel_rot = gk.yaw_errors_deg(est, true)
+    rel_rot = gk.rotation_errors_deg(est, true)
     return {
         "position_rms_m": float(np.sqrt((d**2).mean())),
         "position_max_m": float(d.max()),

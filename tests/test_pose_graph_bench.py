@@ -56,7 +56,7 @@ def test_the_optimum_is_the_truth_when_every_edge_is_and_undoes_drift_when_loops
     solved = gk.optimise(start, gk.Edges.join(exact, loops))
     assert solved.converged and solved.cost < 1e-12
     assert gk.position_errors(solved.poses, truth).max() < 1e-4
-    assert gk.yaw_errors_deg(solved.poses, truth).max() < 1e-4
+    assert gk.rotation_errors_deg(solved.poses, truth).max() < 1e-4
     solved = gk.optimise(start, gk.Edges.join(odo, loops))  # noisy odometry, true loops
     assert solved.converged and solved.cost < solved.cost_start / 100
     assert gk.position_errors(solved.poses, truth).max() < drift.max() / 5
