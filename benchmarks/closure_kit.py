@@ -4,11 +4,13 @@ record without registering again.
 
 A candidate (:func:`candidate`) is the keyframe, its descriptor distance, whether the town's
 ground truth calls it a loop, the registration's fitness and rmse, its pose's errors against
-the truth, and the seed and pose yaws. :func:`closure` and :func:`score` apply
-``verify.min_fitness``, ``verify.max_rmse_m``, ``verify.gate_distance``,
-``verify.stop_at_first`` and ``verify.ambiguity_margin``; the last needs each passing
-candidate's rival fit (``rival``: ``verify_threshold.run_town(rivals_from=)``, or the
-service's verdict when it registered with the margin on).
+the truth, the seed and pose yaws, and what its covariance is computed from (the pose's
+error δ, GICP's Hessian and residual: ``benchmarks/pose_covariance.py`` scores it).
+:func:`closure` and :func:`score` apply ``verify.min_fitness``, ``verify.max_rmse_m``,
+``verify.gate_distance``, ``verify.stop_at_first`` and ``verify.ambiguity_margin``; the last
+needs each passing candidate's rival fit (``rival``:
+``verify_threshold.run_town(rivals_from=)``, or the service's verdict when it registered with
+the margin on).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from overlapmamba.core import posecov
 from overlapmamba.core.poses import POSE_RIGHT, pose_error, yaw_deg
 from overlapmamba.service.registration import Prepared, Registration, RegistrationParams
 from overlapmamba.service.sensors import FieldOfView
@@ -28,7 +31,9 @@ def candidate(
 ) -> dict[str, Any]:
     """One registered candidate as :func:`score` reads it: keyframe ``j``, its descriptor
     distance, whether it is a true loop, fitness, rmse, and its pose's errors against the
-    truth T = P_keyframe⁻¹ · P_query."""
+    truth T = P_keyframe⁻¹ · P_query; with them ``delta`` (the error as
+    ``overlapmamba.core.posecov.error`` writes it), ``hessian`` and ``residual``, what the
+    answer's covariance is computed from."""
     c: dict[str, Any] = {
         "keyframe": int(j),
         "distance": distance,
@@ -42,6 +47,8 @@ def candidate(
         truth = np.linalg.inv(pose_kf) @ pose_q
         c["t_err"], c["yaw_err"] = pose_error(verdict.relative_pose, truth)
         c["pose_yaw_deg"] = float(yaw_deg(verdict.relative_pose))
+        c["delta"] = posecov.error(verdict.relative_pose, truth)
+        c["hessian"], c["residual"] = verdict.hessian, verdict.residual
     return c
 
 

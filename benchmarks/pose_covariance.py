@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from overlapmamba.core import posecov
 from overlapmamba.core.poses import POSE_RIGHT, pose_error
+from overlapmamba.service.calibrated_settings import CovarianceSettings
 from overlapmamba.service.encoder import Encoder
 from overlapmamba.service.verify import params_of, verify_candidates
 
@@ -155,6 +156,40 @@ def scored(records: list[dict[str, Any]], infos: list[np.ndarray], scale: float)
             "yaw_deg": float(np.degrees(np.sqrt((deltas[:, 5] ** 2).mean()))),
         },
     }
+
+
+def scored_kinds(
+    records: list[dict[str, Any]],
+    kinds: dict[str, tuple[str, float]],
+    constant: np.ndarray,
+) -> dict[str, dict[str, Any]]:
+    """:func:`scored` for each covariance of ``kinds`` (label: estimator, scale; ``constant``
+    the one ellipsoid's C) on the right closures ``records``; a covariance that none of
+    them has is scored as ``closures`` 0."""
+    out = {}
+    for label, (name, scale) in kinds.items():
+        kept, infos = information(records, name, constant)
+        out[label] = {
+            "estimator": name,
+            "scale": scale,
+            "without_covariance": len(records) - len(kept),
+            **(scored(kept, infos, scale) if kept else {"closures": 0}),
+        }
+    return out
+
+
+def covariances(
+    served: CovarianceSettings, fit: dict[str, Any] | None
+) -> dict[str, tuple[str, float]]:
+    """The covariances to score (label: estimator, scale): the file's (``served``) when it
+    is calibrated, and the validation closures' one ellipsoid (``constant``) when a fit
+    (:func:`validation_fit`, :func:`read_fit`) is given."""
+    out = {}
+    if served.estimator is not None and served.scale is not None:
+        out["served"] = (served.estimator, served.scale)
+    if fit is not None:
+        out["constant"] = ("constant", fit["fits"]["constant"]["scale"])
+    return out
 
 
 def calibrate(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -291,26 +326,18 @@ def main() -> None:
         if args.write_calibration:
             values = {"estimator": chosen, "scale": fit["fits"][chosen]["scale"]}
             write_calibration(args.model, "covariance", values, ",".join(map(str, vals)))
-    cov = served.covariance
     constant = np.asarray(fit["constant_covariance"])
     table = Table(title=f"verified closures' covariance ({enc.model_id})")
     for col in ("town", "covariance", "closures", "wrong", "inside 50/90/95/99 %", "NLL"):
         table.add_column(col, justify="right")
-    kinds = {"constant": ("constant", fit["fits"]["constant"]["scale"])}
-    if cov.estimator is not None and cov.scale is not None:
-        kinds = {"served": (cov.estimator, cov.scale), **kinds}
+    kinds = covariances(served.covariance, fit)
     for path in towns:  # none when calibrating
         town = town_closures(enc, path, served, rerank)
         row: dict[str, Any] = {"town": town["town"], "queries": town["queries"]}
         row["wrong"] = town["wrong"]
-        for label, (name, scale) in kinds.items():
-            kept, infos = information(town["right"], name, constant)
-            s = row[label] = {
-                "estimator": name,
-                "scale": scale,
-                "without_covariance": len(town["right"]) - len(kept),
-                **scored(kept, infos, scale),
-            }
+        row.update(scored_kinds(town["right"], kinds, constant))
+        for label, (name, _) in kinds.items():
+            s = row[label]
             table.add_row(
                 Path(town["town"]).name,
                 f"{label} ({name})" if label != name else name,

@@ -17,10 +17,15 @@ calibration, else the service's defaults), the first verified candidate in the a
 order (``verify.stop_at_first``, the default): precision, and recall over the queries with
 a loop, pair by pair.
 
+With the model's covariance calibration (``benchmarks/pose_covariance.py``), each right
+closure's covariance is scored as there (the share inside each level's ellipsoid, the mean
+negative log-likelihood), pair by pair and pooled across sensors and on the same sensor;
+``--fit-from`` (that calibration's JSON) scores its one ellipsoid for every closure beside it.
+
 - ``val``: calibration town ``cal-x00`` (``--frames`` scans a drive);
 - ``test``: the sensor test town (``test-SENSOR`` maps, ``test-s1-SENSOR`` queries).
 
-    python benchmarks/verify_across.py [--model FILE] [--every 2] [--out …]
+    python benchmarks/verify_across.py [--model FILE] [--every 2] [--fit-from JSON] [--out …]
 
 Writes JSON (default reports/service/verify-across.json).
 """
@@ -37,13 +42,15 @@ from typing import Any
 import numpy as np
 from across_pairs import SENSORS, split_towns
 from bench_kit import ROOT, model_record, served_input, served_rerank, served_settings
-from closure_kit import candidate, recorded_rival, score
+from closure_kit import candidate, closure, recorded_rival, score
 from common_beams import drive_arguments
+from pose_covariance import covariances, read_fit, scored_kinds
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 from tqdm import tqdm
 
 from overlapmamba.core.datasets import open_sequence
+from overlapmamba.core.poses import POSE_RIGHT
 from overlapmamba.core.rerank import Rerank, by_score, score_d2
 from overlapmamba.core.sensors.catalogue import CATALOGUE
 from overlapmamba.core.yaw import estimate_yaw
@@ -180,14 +187,31 @@ def val_pair_queries(
     return queries, sorted(path.name for path in towns.values())
 
 
+def right_closures(queries: list[dict[str, Any]], v: VerifySettings) -> list[dict[str, Any]]:
+    """Each query's closure as :func:`closure_kit.score` calls it at the file's thresholds,
+    where its pose is right and it has a Hessian: what ``pose_covariance.scored_kinds``
+    reads (δ, the Hessian, the residual)."""
+    out = []
+    for q in queries:
+        best, _ = closure(
+            q, v.min_fitness, v.max_rmse_m, v.gate_distance, v.stop_at_first, v.ambiguity_margin
+        )
+        if best is None or best.get("hessian") is None:
+            continue
+        if best["t_err"] <= POSE_RIGHT[0] and best["yaw_err"] <= POSE_RIGHT[1]:
+            out.append({k: best[k] for k in ("delta", "hessian", "residual")})
+    return out
+
+
+def _across(row: dict[str, Any]) -> bool:
+    return bool(row["queries_sensor"] != row["map_sensor"])
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Across sensors (the 20 pairs) and the same sensor (the diagonal): mean and lowest
     recall, the lowest precision, and the closures accepted and correct over all."""
     out: dict[str, Any] = {}
-    for name, keep in (
-        ("across", lambda r: r["queries_sensor"] != r["map_sensor"]),
-        ("same", lambda r: r["queries_sensor"] == r["map_sensor"]),
-    ):
+    for name, keep in (("across", _across), ("same", lambda r: not _across(r))):
         sel = [r["verified"] for r in rows if keep(r)]
         accepted = sum(x["accepted"] for x in sel)
         out[name] = {
@@ -213,12 +237,34 @@ def main() -> None:
         help="score fitness over all the query's points, not only those inside the map "
         "sensor's field of view (the service before it knew the two sensors apart)",
     )
+    ap.add_argument(
+        "--fit-from",
+        type=Path,
+        help="score the one ellipsoid for every closure of this benchmarks/pose_covariance.py "
+        "--calibrate JSON (the same model's) beside the served covariance",
+    )
     args = ap.parse_args()
     console = Console(width=120)
     t0 = time.perf_counter()
     enc = Encoder(args.model)
     served = served_settings(enc.meta)
     v, rr = served.verify, served_rerank(enc.meta)
+    fit = read_fit(args.fit_from, enc.model_id) if args.fit_from is not None else None
+    if fit is not None and any(
+        Path(t.strip()).name.startswith("test") for t in fit["town"].split(",")
+    ):
+        ap.error(f"{args.fit_from} was fitted on a test town: fit on validation towns")
+    cov = served.covariance
+    if fit is not None and (cov.estimator, cov.scale) != (
+        fit["chosen"],
+        fit["fits"][fit["chosen"]]["scale"],
+    ):
+        ap.error(
+            f"{args.fit_from} chose {fit['chosen']}, the file serves {cov.estimator} at scale "
+            f"{cov.scale}: give the JSON of the calibration the file carries"
+        )
+    kinds = covariances(cov, fit)
+    constant = np.asarray(fit["constant_covariance"]) if fit is not None else np.eye(6)
     record: dict[str, Any] = {
         **model_record(args.model, enc),
         "verify": v.model_dump(),
@@ -227,12 +273,15 @@ def main() -> None:
         "every": args.every,
         "field_of_view": not args.no_view,
         "pose_ok": {"translation_m": 1.0, "yaw_deg": 2.0},
+        "covariance": {"scored": {k: {"estimator": e, "scale": x} for k, (e, x) in kinds.items()}}
+        | ({"fit_from": fit["from"], "fit_towns": fit["town"]} if fit is not None else {}),
     }
     splits = ("val", "test") if args.split == "both" else (args.split,)
     for split in splits:
         towns = split_towns(split, args.data, args.scratch, args.frames)
         drives = {key: Drive(enc, path, v, keyframes=key[1] == 0) for key, path in towns.items()}
         rows = []
+        pooled: dict[str, list[dict[str, Any]]] = {"across": [], "same": []}
         for m, q in itertools.product(SENSORS, SENSORS):
             view = None if args.no_view else view_of(m, q)
             queries = pair_queries(
@@ -254,21 +303,32 @@ def main() -> None:
                 stop_at_first=v.stop_at_first,
                 margin=v.ambiguity_margin,
             )
-            rows.append(
-                {
-                    "queries_sensor": q,
-                    "map_sensor": m,
-                    "queries": len(queries),
-                    "with_loop": sum(x["has_loop"] for x in queries),
-                    "verified": got,
-                }
-            )
+            row = {
+                "queries_sensor": q,
+                "map_sensor": m,
+                "queries": len(queries),
+                "with_loop": sum(x["has_loop"] for x in queries),
+                "verified": got,
+            }
+            if kinds:
+                right = right_closures(queries, v)
+                pooled["across" if m != q else "same"] += right
+                row["covariance"] = scored_kinds(right, kinds, constant)
+            rows.append(row)
             console.print(
                 f"{split}: {q} queries against {m}'s map: precision {got['precision']:.3f}, "
-                f"recall {got['recall']:.3f} ({got['accepted']} accepted)",
+                f"recall {got['recall']:.3f} ({got['accepted']} accepted)"
+                + "".join(
+                    f"; {label} covariance: inside 95 % {c['inside']['0.95']:.3f}"
+                    f", NLL {c['nll']:.2f}"
+                    for label, c in row.get("covariance", {}).items()
+                    if c["closures"]
+                ),
                 highlight=False,
             )
         record[split] = {"pairs": rows, "summary": summary(rows)}
+        for name, right in pooled.items() if kinds else ():
+            record[split]["summary"][name]["covariance"] = scored_kinds(right, kinds, constant)
         del drives
     record["seconds"] = round(time.perf_counter() - t0, 1)
     write_report(args.out, record)

@@ -41,42 +41,139 @@ def covariance(test: str = COVARIANCE, val: str = COVARIANCE_VAL) -> str:
         "better), the median predicted σ and the observed RMS error along x and yaw; wrong "
         "closures are counted apart.\n\n"
     )
+    rows = [[Path(t["town"]).name, *cells] for t in r["towns"] for cells in _rows(t, t["wrong"])]
+    head = ["town", *HEAD[:2], "wrong", *HEAD[2:]]
+    return out + table(head, rows) + _covariance_reading(r["towns"])
+
+
+HEAD = ["covariance", "right closures", "inside 50 / 90 / 95 / 99 %", "NLL"]
+HEAD += ["x σ / RMS (cm)", "yaw σ / RMS (°)"]
+
+
+def _rows(scores: dict, wrong: int | None = None) -> list[list]:
+    """A table's cells (:data:`HEAD`) for each covariance ``scores`` holds: the served one,
+    then the one ellipsoid; one that no closure had is left out. ``wrong``: the wrong
+    closures' count, after the right ones'."""
     rows = []
-    for t in r["towns"]:
-        for label in ("served", "constant"):
-            if label not in t:
-                continue
-            s = t[label]
-            name = f"served ({s['estimator']})" if label == "served" else "one ellipsoid (val)"
-            rows.append(
-                [
-                    Path(t["town"]).name,
-                    name,
-                    s["closures"],
-                    t["wrong"],
-                    " / ".join(f"{x:.3f}" for x in s["inside"].values()),
-                    f"{s['nll']:.2f}",
-                    f"{100 * s['sigma_median']['x_m']:.1f} / {100 * s['error_rms']['x_m']:.1f}",
-                    f"{s['sigma_median']['yaw_deg']:.3f} / {s['error_rms']['yaw_deg']:.3f}",
-                ]
-            )
-    return (
-        out
-        + table(
+    for label in ("served", "constant"):
+        s = scores.get(label)
+        if s is None or not s["closures"]:
+            continue
+        name = f"served ({s['estimator']})" if label == "served" else "one ellipsoid (val)"
+        rows.append(
             [
-                "town",
-                "covariance",
-                "right closures",
-                "wrong",
-                "inside 50 / 90 / 95 / 99 %",
-                "NLL",
-                "x σ / RMS (cm)",
-                "yaw σ / RMS (°)",
-            ],
-            rows,
+                name,
+                s["closures"],
+                *([] if wrong is None else [wrong]),
+                " / ".join(f"{x:.3f}" for x in s["inside"].values()),
+                f"{s['nll']:.2f}",
+                f"{100 * s['sigma_median']['x_m']:.1f} / {100 * s['error_rms']['x_m']:.1f}",
+                f"{s['sigma_median']['yaw_deg']:.3f} / {s['error_rms']['yaw_deg']:.3f}",
+            ]
         )
-        + _covariance_reading(r["towns"])
+    return rows
+
+
+VERIFY_ACROSS = "reports/service/verify-across-any-sensor.json"
+
+
+def covariance_across(path: str = VERIFY_ACROSS) -> str:
+    """The covariance of verified closures across sensors (``benchmarks/verify_across.py``
+    with the file's calibration): pooled over the pairs across sensors and the same-sensor
+    pairs, then pair by pair, and what it says."""
+    from figures_pairs import NAMES
+
+    r = load(path)
+    cov = r.get("covariance", {}).get("scored")
+    if not cov or "served" not in cov:
+        raise ValueError(f"{path} scored no served covariance: run verify_across.py again")
+    out = source(path, r["command"], when(r))
+    summary = r["test"]["summary"]
+    fitted = r["covariance"].get("fit_towns", "")
+    towns = ", ".join(f"`{Path(t.strip()).name}`" for t in fitted.split(",") if t.strip())
+    out += (
+        f"\nModel {r['model_id']}, the covariance it serves (`{cov['served']['estimator']}`, "
+        f"scale {cov['served']['scale']:.3g})"
+        + (
+            f", calibrated on the right closures within each drive of {towns}, and the one "
+            f"ellipsoid fitted there (from `{r['covariance']['fit_from']}`)"
+            if towns
+            else ""
+        )
+        + ", on the right verified closures of the sensor test town's pairs above, pooled:\n\n"
     )
+    names = {"across": "across sensors (20 pairs)", "same": "same sensor (5 pairs)"}
+    rows = [[names[k], *cells] for k, x in summary.items() for cells in _rows(x["covariance"])]
+    out += table(["pairs", *HEAD], rows)
+    pairs = r["test"]["pairs"]
+    cells = {(p["queries_sensor"], p["map_sensor"]): p["covariance"] for p in pairs}
+
+    def cell(c: dict) -> str:
+        s, k = c["served"], c.get("constant")
+        if not s["closures"]:
+            return "no right closure"
+        text = f"{s['inside']['0.95']:.3f}, {s['nll']:.1f}"
+        return text + (f" ({k['nll']:.1f})" if k is not None and k["closures"] else "")
+
+    sensors = list(dict.fromkeys(q for q, _ in cells))
+    out += (
+        "\nPair by pair: the served covariance's share inside its 95 % ellipsoid and its mean "
+        "NLL" + (" (in brackets one ellipsoid's NLL)" if "constant" in cov else "") + ":\n\n"
+    )
+    grid = [[NAMES[q], *(cell(cells[(q, m)]) for m in sensors)] for q in sensors]
+    out += table(["queries ↓ map →", *(NAMES[m] for m in sensors)], grid)
+    across = [
+        (f"{NAMES[p['queries_sensor']]} → {NAMES[p['map_sensor']]}", p["covariance"])
+        for p in pairs
+        if p["queries_sensor"] != p["map_sensor"] and p["covariance"]["served"]["closures"]
+    ]
+    val = r.get("val", {}).get("summary", {}).get("across", {}).get("covariance")
+    return out + _across_reading(across, summary) + ("" if val is None else _val_reading(val))
+
+
+def _val_reading(val: dict) -> str:
+    """Where a scale of its own for closures across sensors would be chosen: the run's
+    calibration-town pairs (validation data, said as such)."""
+    s = val["served"]
+    held = _share(s["inside"]["0.95"], 0.95, s["closures"])
+    return (
+        f"On the calibration town's pairs across sensors (the same run's `val`, {s['closures']} "
+        "right closures: where a scale of their own for closures across sensors would be "
+        "chosen, validation data and not a result) its 95 % ellipsoids hold " + SAID[held] + ".\n"
+    )
+
+
+def _across_reading(across: list[tuple[str, dict]], summary: dict) -> str:
+    """What the tables say across sensors, from their numbers: pooled, and pair by pair."""
+    pooled = {
+        k: SAID[
+            _share(
+                x["covariance"]["served"]["inside"]["0.95"],
+                0.95,
+                x["covariance"]["served"]["closures"],
+            )
+        ]
+        for k, x in summary.items()
+    }
+    n = len(across)
+    better = [k for k, c in across if "constant" in c and c["served"]["nll"] < c["constant"]["nll"]]
+    share = {
+        p: _share(c["served"]["inside"]["0.95"], 0.95, c["served"]["closures"]) for p, c in across
+    }
+    at = {k: [p for p, x in share.items() if x == k] for k in ("about", "fewer", "more")}
+    return (
+        "\nAgainst 0.95, give or take two binomial standard errors, the served covariance's "
+        f"95 % ellipsoids hold {pooled['across']} across sensors, pooled, and "
+        f"{pooled['same']} on the same sensor's second drive. Across sensors, pair by pair "
+        f"(queries → map), on the {n} pairs with a right closure: its NLL is lower than one "
+        f"ellipsoid's on {len(better)}, and its 95 % ellipsoids hold "
+        + "; ".join(f"{SAID[k]} on {len(v)}" for k, v in at.items() if v)
+        + (f" (fewer: {', '.join(at['fewer'])})" if at["fewer"] else "")
+        + ".\n"
+    )
+
+
+SAID = {"about": "about their share", "fewer": "fewer", "more": "more"}  # _share's answer, said
 
 
 def _share(inside: float, level: float, n: int) -> str:
@@ -102,12 +199,11 @@ def _covariance_reading(towns: list[dict]) -> str:
     def names(xs: list[str]) -> str:
         return ", ".join(f"`{x}`" for x in xs) if xs else "none"
 
-    said = {"about": "about their share", "fewer": "fewer", "more": "more"}
     return (
         f"\nThe served covariance has the lower NLL on {len(better)} of {len(served)} test "
         f"towns ({names(better)}). Against 0.95, give or take two binomial standard errors, its "
         "95 % ellipsoids hold "
-        + "; ".join(f"{said[k]} on {names(v)}" for k, v in at.items() if v)
+        + "; ".join(f"{SAID[k]} on {names(v)}" for k, v in at.items() if v)
         + ". "
         + (
             f"The errors have heavier tails than a Gaussian's on {names(heavy)}: fewer of "
@@ -218,4 +314,6 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "covariance": covariance,
     "covariance-any-sensor": lambda: covariance(COVARIANCE_ANY, COVARIANCE_ANY_VAL),
     "pose-graph": pose_graph,
+    "covariance-across-any-sensor": covariance_across,
+    "covariance-across": lambda: covariance_across("reports/service/verify-across.json"),
 }

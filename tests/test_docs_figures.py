@@ -158,3 +158,23 @@ def test_the_covariance_reading_says_what_its_numbers_say():
     assert "On no town do the errors show heavier tails" in figures._covariance_reading(towns[2:])
     assert figures._share(0.97, 0.95, 100) == "about"  # 2σ is 0.044 for 100 closures
     assert figures._share(0.97, 0.95, 10_000) == "more"
+
+
+def test_the_covariance_across_sensors_reading_says_what_its_numbers_say():
+    """Under the covariance across sensors: the pooled shares across sensors and on the same
+    sensor, each pair's (queries → map) against one ellipsoid, and the calibration town's,
+    each read off its numbers."""
+    figures = sys.modules["figures_covariance"]
+
+    def cov(n: int, most: float, nll: float, k_nll: float) -> dict:
+        served = {"closures": n, "inside": {"0.95": most}, "nll": nll}
+        return {"served": served, "constant": {"closures": n, "nll": k_nll}}
+
+    summary = {"across": {"covariance": cov(4000, 0.88, -27, -17)}}
+    summary["same"] = {"covariance": cov(100, 0.94, -29, -23)}
+    across = [("A → B", cov(400, 0.95, -30, -20)), ("B → A", cov(400, 0.80, -10, -20))]
+    said = figures._across_reading(across, summary)
+    assert "hold fewer across sensors, pooled, and about their share on the same" in said
+    assert "on the 2 pairs with a right closure: its NLL is lower than one ellipsoid's on 1" in said
+    assert "about their share on 1; fewer on 1 (fewer: B → A)" in said
+    assert "hold more.\n" in figures._val_reading(cov(3000, 0.97, -28, -23))

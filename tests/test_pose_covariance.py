@@ -174,6 +174,49 @@ def test_calibration_recovers_the_scale_and_prefers_the_hessian_to_one_ellipsoid
     assert "each" not in pc.validation_fit(towns[:1])
 
 
+def test_closures_across_sensors_are_scored_as_the_service_calls_them():
+    """benchmarks/verify_across.py scores the covariance of the closure each query's answer
+    verified (the first passing candidate, the ambiguity margin applied) when its pose is
+    right, never a skipped, wrong or Hessian-less one; pose_covariance's scoring reports a
+    covariance no closure has as none, and scores only the covariances it is given."""
+    from overlapmamba.service.calibrated_settings import CovarianceSettings
+    from overlapmamba.service.settings import VerifySettings
+
+    pc, va = benchmark_module("pose_covariance"), benchmark_module("verify_across")
+    h = np.diag([400.0, 400.0, 900.0, 1e4, 1e4, 1e4])
+
+    def cand(fitness, rival, t_err, delta, hessian=h):
+        return dict(
+            keyframe=1, distance=0.1, fitness=fitness, rmse=0.2, rival=rival, t_err=t_err,
+            yaw_err=0.1, loop=True, delta=np.full(6, delta), hessian=hessian, residual=1.0,
+        )  # fmt: skip
+
+    v = VerifySettings(min_fitness=0.5, max_rmse_m=0.7, ambiguity_margin=0.2, gate_distance=None)
+    queries = [
+        # an ambiguous first candidate is skipped: the second closes, and is right
+        {"candidates": [cand(0.9, 0.85, 0.0, 9.0), cand(0.8, 0.1, 0.02, 0.01)]},
+        {"candidates": [cand(0.9, 0.1, 3.0, 3.0)]},  # verified, but the pose is wrong
+        {"candidates": [cand(0.9, 0.1, 0.02, 0.02, hessian=None)]},  # nothing to score
+        {"candidates": [cand(0.3, 0.1, 0.02, 0.03)]},  # not verified
+    ]
+    right = va.right_closures(queries, v)
+    assert [r["delta"][0] for r in right] == [0.01]
+    served = CovarianceSettings(estimator="hessian", scale=2.0)
+    fit = {"fits": {"constant": {"scale": 1.5}}}
+    assert pc.covariances(CovarianceSettings(), None) == {}
+    assert pc.covariances(CovarianceSettings(), fit) == {"constant": ("constant", 1.5)}
+    kinds = pc.covariances(served, fit)
+    assert kinds == {"served": ("hessian", 2.0), "constant": ("constant", 1.5)}
+    got = pc.scored_kinds(right, kinds, np.eye(6) * 1e-4)
+    assert got["served"]["closures"] == got["constant"]["closures"] == 1
+    c2 = right[0]["delta"] @ h @ right[0]["delta"] / 2.0
+    assert got["served"]["chi2_median"] == pytest.approx(c2)
+    none = pc.scored_kinds([], kinds, np.eye(6))
+    assert none["served"] == {
+        "estimator": "hessian", "scale": 2.0, "without_covariance": 0, "closures": 0
+    }  # fmt: skip
+
+
 def test_covariance_settings_go_together():
     from pydantic import ValidationError
 
