@@ -171,3 +171,46 @@ def test_the_benchmark_builds_its_graph_from_the_closures_and_scores_each_way(tm
     other.write_text(json.dumps(report))
     with pytest.raises(SystemExit, match="is of model om-1, not om-2"):
         pose_graph.read_constant(other, "om-2")
+
+
+def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path):
+    """benchmarks/g2o_check.py: the client's file carries each closure's information as
+    posecov converts it and the control four times the rotation's weight; g2o_solve.py's
+    reading of a line (run under g2o's Python) gives back the pose and information written;
+    a --python without g2o's bindings is refused with what to install."""
+    import sys
+
+    from overlapmamba.client.posegraph import odometry_information, read_g2o
+    from overlapmamba.core.poses import from_quaternion
+
+    check, solve = benchmark_module("g2o_check"), benchmark_module("g2o_solve")
+    truth = check.circle_drive(120)
+    loops = check.closures(truth, np.random.default_rng(1))
+    assert loops and all(q >= 70 and k < 60 for k, q, *_ in loops)
+    for k, q, rel, cov in loops:
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+        assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[k]) @ truth[q])[:3, 3]) < 0.5
+    odo = odometry_information(0.03, 0.15)
+    for gtsam_reading in (False, True):
+        path = tmp_path / f"{gtsam_reading}.g2o"
+        check.client_graph(truth, loops, odo, gtsam_reading).write(path)
+        vertices, edges = read_g2o(path)
+        assert len(vertices) == 120 and len(edges) == 119 + len(loops)
+        four = np.diag([1.0, 1, 1, 4, 4, 4])
+        want = posecov.g2o_information(loops[0][3])
+        got = edges[119][3]
+        if gtsam_reading:  # every rotation block four times, the cross terms twice
+            want = np.sqrt(four) @ want @ np.sqrt(four)
+            assert np.allclose(edges[0][3], np.sqrt(four) @ odo @ np.sqrt(four))
+        assert np.allclose(got, want)
+        line = path.read_text().splitlines()[120 + 119].split()  # the first loop edge
+        assert line[0] == "EDGE_SE3:QUAT" and (int(line[1]), int(line[2])) == loops[0][:2]
+        assert np.allclose(solve.information(line[10:31]), got)
+        q = np.array(line[6:10], dtype=float)
+        assert np.allclose(solve.rotation(q), from_quaternion(np.zeros(3), q)[:3, :3])
+        assert np.allclose(solve.rotation(q), loops[0][2][:3, :3], atol=1e-9)
+    a, b = truth[:5], truth[:5].copy()
+    b[2, 0, 3] += 0.01
+    assert check.gaps(a, b)["position_max_m"] == pytest.approx(0.01)
+    with pytest.raises(SystemExit, match='pip install g2o-python "numpy<2"'):
+        check.g2o_solve(sys.executable, tmp_path / "False.g2o", 5)
