@@ -13,10 +13,11 @@ columns are scaled). This writes a drifting drive's graph with the client's own
   each odometry edge by its σ's), from the same poses and measurements.
 
 When the file says what the convention says, the two optima agree to the order the two
-errors differ by (g2o's half angle against the rotation vector: second order in the
-residuals). A control file shows that the comparison can fail: the same graph with its
-rotation information read as GTSAM's ``readG2o`` reads it (over the rotation vector, four
-times g2o's weight), optimised by g2o.
+errors differ by (g2o takes the relative pose's translation as it is, posecov the SE(3)
+logarithm's: second order in the residuals; the half angle is scaled away). A control file
+shows that the comparison can fail: the same graph with its rotation information read as
+GTSAM's ``readG2o`` reads it (over the rotation vector, four times g2o's weight), optimised
+by g2o.
 
 The drive: ``--scans`` poses on nearly two laps of a 40 m circle rising and falling, the
 odometry a step drawn with ``--odometry-sigma-m`` and ``--odometry-sigma-deg`` per axis (the
@@ -85,7 +86,8 @@ def client_graph(
     """The graph as ``observe --g2o`` makes it: a vertex a scan at the drive's pose, the
     odometry's information on each consecutive pair, a loop edge a closure with its
     covariance. ``gtsam_reading``: the control, every rotation block as GTSAM reads g2o's
-    (the information a covariance of D⁻¹ Σ D⁻¹ gives: four times the rotation's weight)."""
+    (the information a covariance of D Σ D gives, D = diag(1, 1, 1, ½, ½, ½): four times the
+    rotation's weight)."""
     g = PoseGraph(odometry=HALF @ odometry @ HALF if gtsam_reading else odometry,
                   others_from=len(poses))  # fmt: skip
     for i, p in enumerate(poses):

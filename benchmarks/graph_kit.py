@@ -6,10 +6,11 @@ e = Log(Z⁻¹ · T_a⁻¹ · T_b) (translation, then the rotation vector; pertu
 right), weighted by Ω, the inverse of the covariance the service answers for a closure:
 GTSAM's ``BetweenFactor<Pose3>`` with the blocks swapped (``g2o``'s ``EDGE_SE3:QUAT`` with
 ``posecov.g2o_information`` agrees to first order: its error keeps the quaternion's vector
-part). Levenberg–Marquardt on the whole graph, one vertex held fixed, with the Jacobians
-J_b = J and J_a = −J · Ad(T_b⁻¹ · T_a), J the inverse of the right Jacobian at e (by central
-differences of Log, so the optimum is the exact one even where an edge is metres off),
-solved as one sparse system a step.
+part, and the relative pose's translation as it is where this takes the SE(3) logarithm's:
+``benchmarks/g2o_check.py`` measures the gap). Levenberg–Marquardt on the whole graph, one
+vertex held fixed, with the Jacobians J_b = J and J_a = −J · Ad(T_b⁻¹ · T_a), J the inverse
+of the right Jacobian at e (by central differences of Log, so the optimum is the exact one
+even where an edge is metres off), solved as one sparse system a step.
 """
 
 from __future__ import annotations

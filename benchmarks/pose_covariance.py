@@ -242,6 +242,11 @@ def read_fit(path: Path, model_id: str) -> dict[str, Any]:
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run benchmarks/pose_covariance.py --calibrate")
     report = json.loads(path.read_text())
+    if not {"model_id", "val"} <= report.keys() or "fits" not in report["val"]:
+        raise SystemExit(
+            f"{path} is not a benchmarks/pose_covariance.py --calibrate report (it needs "
+            "model_id and val.fits)"
+        )
     if report["model_id"] != model_id:
         raise SystemExit(
             f"{path} is of model {report['model_id']}, not {model_id}: run "
@@ -343,8 +348,8 @@ def main() -> None:
                 f"{label} ({name})" if label != name else name,
                 str(s["closures"]),
                 str(town["wrong"]),
-                " / ".join(f"{x:.3f}" for x in s["inside"].values()),
-                f"{s['nll']:.2f}",
+                " / ".join(f"{x:.3f}" for x in s["inside"].values()) if s["closures"] else "-",
+                f"{s['nll']:.2f}" if s["closures"] else "no right closure",
             )
         report["towns"].append(row)
     if towns:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -203,6 +204,16 @@ def right_closures(queries: list[dict[str, Any]], v: VerifySettings) -> list[dic
     return out
 
 
+def towns_named(towns: str) -> str:
+    """A calibration's comma-separated towns, each relative to the repository where it lies
+    in it (a report names no machine's paths)."""
+    out = []
+    for t in towns.split(","):
+        p = Path(t.strip()).resolve()
+        out.append(str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else t.strip())
+    return ", ".join(out)
+
+
 def _across(row: dict[str, Any]) -> bool:
     return bool(row["queries_sensor"] != row["map_sensor"])
 
@@ -255,9 +266,15 @@ def main() -> None:
     ):
         ap.error(f"{args.fit_from} was fitted on a test town: fit on validation towns")
     cov = served.covariance
-    if fit is not None and (cov.estimator, cov.scale) != (
-        fit["chosen"],
-        fit["fits"][fit["chosen"]]["scale"],
+    if fit is not None and cov.estimator is None:
+        ap.error(
+            f"{args.model} carries no covariance calibration: run benchmarks/"
+            "pose_covariance.py --calibrate --write-calibration on it first, or leave out "
+            "--fit-from"
+        )
+    if fit is not None and (
+        cov.estimator != fit["chosen"]
+        or not math.isclose(cov.scale or 0.0, fit["fits"][fit["chosen"]]["scale"], rel_tol=1e-9)
     ):
         ap.error(
             f"{args.fit_from} chose {fit['chosen']}, the file serves {cov.estimator} at scale "
@@ -274,7 +291,7 @@ def main() -> None:
         "field_of_view": not args.no_view,
         "pose_ok": {"translation_m": 1.0, "yaw_deg": 2.0},
         "covariance": {"scored": {k: {"estimator": e, "scale": x} for k, (e, x) in kinds.items()}}
-        | ({"fit_from": fit["from"], "fit_towns": fit["town"]} if fit is not None else {}),
+        | ({"fit_from": fit["from"], "fit_towns": towns_named(fit["town"])} if fit else {}),
     }
     splits = ("val", "test") if args.split == "both" else (args.split,)
     for split in splits:

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from figures_kit import load, source, table, when
-from scipy.stats import chi2
+from scipy.stats import binomtest, chi2
 
 COVARIANCE = "reports/service/pose-covariance-test.json"
 COVARIANCE_VAL = "reports/service/pose_covariance.json"
@@ -52,14 +52,18 @@ HEAD += ["x σ / RMS (cm)", "yaw σ / RMS (°)"]
 
 def _rows(scores: dict, wrong: int | None = None) -> list[list]:
     """A table's cells (:data:`HEAD`) for each covariance ``scores`` holds: the served one,
-    then the one ellipsoid; one that no closure had is left out. ``wrong``: the wrong
+    then the one ellipsoid; one that no closure had says so. ``wrong``: the wrong
     closures' count, after the right ones'."""
     rows = []
     for label in ("served", "constant"):
         s = scores.get(label)
-        if s is None or not s["closures"]:
+        if s is None:
             continue
         name = f"served ({s['estimator']})" if label == "served" else "one ellipsoid (val)"
+        if not s["closures"]:
+            rows.append([name, 0, *([] if wrong is None else [wrong]), "no right closure"])
+            rows[-1] += [""] * (len(HEAD) + (wrong is not None) - len(rows[-1]))
+            continue
         rows.append(
             [
                 name,
@@ -85,8 +89,8 @@ def covariance_across(path: str = VERIFY_ACROSS) -> str:
 
     r = load(path)
     cov = r.get("covariance", {}).get("scored")
-    if not cov or "served" not in cov:
-        raise ValueError(f"{path} scored no served covariance: run verify_across.py again")
+    if not cov or "served" not in cov or "test" not in r:
+        raise ValueError(f"{path} scored no served covariance on test: run verify_across.py")
     out = source(path, r["command"], when(r))
     summary = r["test"]["summary"]
     fitted = r["covariance"].get("fit_towns", "")
@@ -102,8 +106,12 @@ def covariance_across(path: str = VERIFY_ACROSS) -> str:
         )
         + ", on the right verified closures of the sensor test town's pairs above, pooled:\n\n"
     )
-    names = {"across": "across sensors (20 pairs)", "same": "same sensor (5 pairs)"}
-    rows = [[names[k], *cells] for k, x in summary.items() for cells in _rows(x["covariance"])]
+    names = {"across": "across sensors", "same": "same sensor"}
+    rows = [
+        [f"{names[k]} ({x['pairs']} pairs)", *cells]
+        for k, x in summary.items()
+        for cells in _rows(x["covariance"])
+    ]
     out += table(["pairs", *HEAD], rows)
     pairs = r["test"]["pairs"]
     cells = {(p["queries_sensor"], p["map_sensor"]): p["covariance"] for p in pairs}
@@ -112,13 +120,15 @@ def covariance_across(path: str = VERIFY_ACROSS) -> str:
         s, k = c["served"], c.get("constant")
         if not s["closures"]:
             return "no right closure"
-        text = f"{s['inside']['0.95']:.3f}, {s['nll']:.1f}"
+        text = f"{s['inside']['0.95']:.3f} of {s['closures']}, {s['nll']:.1f}"
         return text + (f" ({k['nll']:.1f})" if k is not None and k["closures"] else "")
 
     sensors = list(dict.fromkeys(q for q, _ in cells))
     out += (
-        "\nPair by pair: the served covariance's share inside its 95 % ellipsoid and its mean "
-        "NLL" + (" (in brackets one ellipsoid's NLL)" if "constant" in cov else "") + ":\n\n"
+        "\nPair by pair: the served covariance's share inside its 95 % ellipsoid of the pair's "
+        "right closures, and its mean NLL"
+        + (" (in brackets one ellipsoid's NLL)" if "constant" in cov else "")
+        + ":\n\n"
     )
     grid = [[NAMES[q], *(cell(cells[(q, m)]) for m in sensors)] for q in sensors]
     out += table(["queries ↓ map →", *(NAMES[m] for m in sensors)], grid)
@@ -131,42 +141,48 @@ def covariance_across(path: str = VERIFY_ACROSS) -> str:
     return out + _across_reading(across, summary) + ("" if val is None else _val_reading(val))
 
 
+def _held(s: dict) -> str:
+    """How the 95 % ellipsoids of scores ``s`` hold their share (:func:`_share`), said."""
+    if not s["closures"]:
+        return "nothing (no right closure)"
+    return SAID[_share(s["inside"]["0.95"], 0.95, s["closures"])]
+
+
 def _val_reading(val: dict) -> str:
     """Where a scale of its own for closures across sensors would be chosen: the run's
     calibration-town pairs (validation data, said as such)."""
     s = val["served"]
-    held = _share(s["inside"]["0.95"], 0.95, s["closures"])
     return (
         f"On the calibration town's pairs across sensors (the same run's `val`, {s['closures']} "
         "right closures: where a scale of their own for closures across sensors would be "
-        "chosen, validation data and not a result) its 95 % ellipsoids hold " + SAID[held] + ".\n"
+        f"chosen, validation data and not a result) its 95 % ellipsoids hold {_held(s)}.\n"
     )
 
 
 def _across_reading(across: list[tuple[str, dict]], summary: dict) -> str:
-    """What the tables say across sensors, from their numbers: pooled, and pair by pair."""
-    pooled = {
-        k: SAID[
-            _share(
-                x["covariance"]["served"]["inside"]["0.95"],
-                0.95,
-                x["covariance"]["served"]["closures"],
-            )
-        ]
-        for k, x in summary.items()
-    }
+    """What the tables say across sensors, from their numbers: pooled, and pair by pair
+    (each NLL compared where both covariances scored the same closures)."""
+    pooled = {k: _held(x["covariance"]["served"]) for k, x in summary.items()}
     n = len(across)
-    better = [k for k, c in across if "constant" in c and c["served"]["nll"] < c["constant"]["nll"]]
+    alike = [
+        (k, c)
+        for k, c in across
+        if c.get("constant", {}).get("closures") == c["served"]["closures"]
+    ]
+    better = [k for k, c in alike if c["served"]["nll"] < c["constant"]["nll"]]
     share = {
         p: _share(c["served"]["inside"]["0.95"], 0.95, c["served"]["closures"]) for p, c in across
     }
     at = {k: [p for p, x in share.items() if x == k] for k in ("about", "fewer", "more")}
     return (
-        "\nAgainst 0.95, give or take two binomial standard errors, the served covariance's "
+        f"\nAgainst 0.95 ({TEST}, as if the closures were independent: those of one drive "
+        "are not quite, as neighbouring scans see the same place), the served covariance's "
         f"95 % ellipsoids hold {pooled['across']} across sensors, pooled, and "
         f"{pooled['same']} on the same sensor's second drive. Across sensors, pair by pair "
         f"(queries → map), on the {n} pairs with a right closure: its NLL is lower than one "
-        f"ellipsoid's on {len(better)}, and its 95 % ellipsoids hold "
+        f"ellipsoid's on {len(better)}"
+        + (f" of the {len(alike)} where both scored the same closures" if len(alike) < n else "")
+        + ", and its 95 % ellipsoids hold "
         + "; ".join(f"{SAID[k]} on {len(v)}" for k, v in at.items() if v)
         + (f" (fewer: {', '.join(at['fewer'])})" if at["fewer"] else "")
         + ".\n"
@@ -177,19 +193,31 @@ SAID = {"about": "about their share", "fewer": "fewer", "more": "more"}  # _shar
 
 
 def _share(inside: float, level: float, n: int) -> str:
-    """Whether ``inside`` of ``n`` closures is the share ``level`` promises, within two
-    binomial standard errors: "about", "fewer" or "more"."""
-    band = 2 * (level * (1 - level) / max(n, 1)) ** 0.5
-    return "about" if abs(inside - level) <= band else ("fewer" if inside < level else "more")
+    """Whether ``inside`` of ``n`` closures is the share ``level`` promises: "about" unless
+    an exact two-sided binomial test tells them apart at 5 % (:data:`TEST`), else "fewer"
+    or "more". A handful of closures is "about" any share it can be."""
+    k = round(inside * n)
+    if n == 0 or binomtest(k, n, level).pvalue >= 0.05:
+        return "about"
+    return "fewer" if inside < level else "more"
+
+
+TEST = "an exact two-sided binomial test at 5 %"
 
 
 def _covariance_reading(towns: list[dict]) -> str:
     """What the table says, from its numbers: where the served covariance wins in
     likelihood, where its 95% ellipsoids hold their share, where its tails are heavy."""
     served = [
-        (Path(t["town"]).name, t["served"], t.get("constant")) for t in towns if "served" in t
+        (Path(t["town"]).name, t["served"], t.get("constant"))
+        for t in towns
+        if "served" in t and t["served"]["closures"]
     ]
-    better = [n for n, s, c in served if c is not None and s["nll"] < c["nll"]]
+    better = [
+        n
+        for n, s, c in served
+        if c is not None and c["closures"] == s["closures"] and s["nll"] < c["nll"]
+    ]
     at = {
         k: [n for n, s, _ in served if _share(s["inside"]["0.95"], 0.95, s["closures"]) == k]
         for k in ("about", "fewer", "more")
@@ -201,7 +229,7 @@ def _covariance_reading(towns: list[dict]) -> str:
 
     return (
         f"\nThe served covariance has the lower NLL on {len(better)} of {len(served)} test "
-        f"towns ({names(better)}). Against 0.95, give or take two binomial standard errors, its "
+        f"towns ({names(better)}). Against 0.95 ({TEST}), its "
         "95 % ellipsoids hold "
         + "; ".join(f"{SAID[k]} on {names(v)}" for k, v in at.items() if v)
         + ". "
@@ -333,7 +361,8 @@ def g2o_check() -> str:
         f"{g['odometry_sigma']['deg']:g}° per axis) to the poses that minimise the error in "
         f"the covariance's own convention: apart by {gap(c)}, its χ² "
         f"{c['g2o']['chi2']:.4f} against {r['graph_kit']['chi2']:.4f} (the two errors "
-        "differ at second order: g2o's half angle against the rotation vector). The same "
+        "differ at second order: g2o's takes the relative pose's translation as it is, the "
+        "convention's the translation of the SE(3) logarithm). The same "
         "graph with its rotation information read as GTSAM's `readG2o` reads it, optimised "
         f"by g2o, lands {gap(k)} away (χ² {k['g2o']['chi2']:.4f}).\n"
     )

@@ -139,7 +139,11 @@ def test_the_covariance_reading_says_what_its_numbers_say():
 
     def town(name: str, n: int, half: float, most: float, nll: float) -> dict:
         served = {"closures": n, "inside": {"0.5": half, "0.95": most}, "nll": nll}
-        return {"town": f"data/{name}", "served": served, "constant": {"nll": -20.0}}
+        return {
+            "town": f"data/{name}",
+            "served": served,
+            "constant": {"closures": n, "nll": -20.0},
+        }
 
     # c: a Gaussian 1.5 times too wide in variance: its 50% and 95% shares, no heavier tail
     wide = [float(chi2.cdf(chi2.ppf(q, 6) * 1.5, 6)) for q in (0.5, 0.95)]
@@ -178,3 +182,54 @@ def test_the_covariance_across_sensors_reading_says_what_its_numbers_say():
     assert "on the 2 pairs with a right closure: its NLL is lower than one ellipsoid's on 1" in said
     assert "about their share on 1; fewer on 1 (fewer: B → A)" in said
     assert "hold more.\n" in figures._val_reading(cov(3000, 0.97, -28, -23))
+    assert figures._share(0.5, 0.95, 2) == "about"  # 1 of 2: the exact test cannot tell
+    assert figures._share(0.5, 0.95, 4) == "fewer"  # 2 of 4: it can
+    none = {"served": {"closures": 0, "estimator": "residual"}, "constant": {"closures": 0}}
+    empty = {"across": {"covariance": none}, "same": {"covariance": none}}
+    assert "hold nothing (no right closure) across sensors" in figures._across_reading([], empty)
+
+
+def test_the_covariance_across_sensors_figure_reads_its_grid_queries_down_maps_across(tmp_path):
+    """covariance_across: a cell is the queries' sensor's row and the map's column, with its
+    closures counted; a pair without a right closure says so; the pooled rows name their
+    pairs' count from the JSON."""
+    import json
+
+    figures = sys.modules["figures_covariance"]
+
+    def scores(n: int, most: float) -> dict:
+        s = {"closures": n, "estimator": "residual", "scale": 6.0, "nll": -28.0}
+        if n:
+            s |= {"inside": {"0.5": 0.7, "0.9": 0.9, "0.95": most, "0.99": 0.99}}
+            s |= {"sigma_median": {"x_m": 0.01, "yaw_deg": 0.01}}
+            s |= {"error_rms": {"x_m": 0.02, "yaw_deg": 0.01}}
+        return {"served": s}
+
+    pairs = [
+        {"queries_sensor": "vlp16", "map_sensor": "kitti-hdl64", "covariance": scores(7, 0.8)},
+        {"queries_sensor": "kitti-hdl64", "map_sensor": "vlp16", "covariance": scores(0, 0)},
+        {"queries_sensor": "vlp16", "map_sensor": "vlp16", "covariance": scores(50, 0.96)},
+        {"queries_sensor": "kitti-hdl64", "map_sensor": "kitti-hdl64",
+         "covariance": scores(60, 0.95)},
+    ]  # fmt: skip
+    summary = {
+        "across": {"pairs": 2, "covariance": scores(7, 0.8)},
+        "same": {"pairs": 2, "covariance": scores(110, 0.95)},
+    }
+    report = {
+        "command": "python benchmarks/verify_across.py",
+        "date": "2026-12-05T00:00:00+00:00",
+        "model_id": "om-x",
+        "covariance": {"scored": {"served": {"estimator": "residual", "scale": 6.0}}},
+        "test": {"pairs": pairs, "summary": summary},
+    }
+    path = tmp_path / "across.json"
+    path.write_text(json.dumps(report))
+    made = figures.covariance_across(str(path))
+    assert "| across sensors (2 pairs) | served (residual) | 7 |" in made
+    rows = [[c.strip() for c in x.strip("|").split("|")] for x in made.splitlines()]
+    head = next(r for r in rows if r[0] == "queries ↓ map →")
+    grid = {r[0]: dict(zip(head[1:], r[1:], strict=True)) for r in rows if len(r) == len(head)}
+    assert grid["HDL-64E"]["VLP-16"] == "no right closure"  # queries HDL-64E, map VLP-16
+    assert grid["VLP-16"]["HDL-64E"].startswith("0.800 of 7,")  # queries VLP-16, map HDL-64E
+    assert "on the 1 pairs with a right closure" in made

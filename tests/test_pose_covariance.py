@@ -191,16 +191,24 @@ def test_closures_across_sensors_are_scored_as_the_service_calls_them():
             yaw_err=0.1, loop=True, delta=np.full(6, delta), hessian=hessian, residual=1.0,
         )  # fmt: skip
 
-    v = VerifySettings(min_fitness=0.5, max_rmse_m=0.7, ambiguity_margin=0.2, gate_distance=None)
+    v = VerifySettings(min_fitness=0.5, max_rmse_m=0.7, ambiguity_margin=0.2, gate_distance=0.3)
+    far = cand(0.95, 0.1, 0.02, 0.04) | {"distance": 0.4}  # beyond the gate: not registered
     queries = [
         # an ambiguous first candidate is skipped: the second closes, and is right
         {"candidates": [cand(0.9, 0.85, 0.0, 9.0), cand(0.8, 0.1, 0.02, 0.01)]},
         {"candidates": [cand(0.9, 0.1, 3.0, 3.0)]},  # verified, but the pose is wrong
         {"candidates": [cand(0.9, 0.1, 0.02, 0.02, hessian=None)]},  # nothing to score
         {"candidates": [cand(0.3, 0.1, 0.02, 0.03)]},  # not verified
+        # the first verified closes (stop_at_first), not the fitter wrong one after it
+        {"candidates": [cand(0.6, 0.1, 0.02, 0.05), cand(0.95, 0.1, 3.0, 0.06)]},
+        {"candidates": [far]},
     ]
     right = va.right_closures(queries, v)
-    assert [r["delta"][0] for r in right] == [0.01]
+    assert [r["delta"][0] for r in right] == [0.01, 0.05]
+    best = va.right_closures(queries, v.model_copy(update={"stop_at_first": False}))
+    assert [r["delta"][0] for r in best] == [0.01]  # the fitter one is wrong, not scored
+    ungated = va.right_closures(queries, v.model_copy(update={"gate_distance": None}))
+    assert [r["delta"][0] for r in ungated] == [0.01, 0.05, 0.04]
     served = CovarianceSettings(estimator="hessian", scale=2.0)
     fit = {"fits": {"constant": {"scale": 1.5}}}
     assert pc.covariances(CovarianceSettings(), None) == {}
@@ -208,9 +216,9 @@ def test_closures_across_sensors_are_scored_as_the_service_calls_them():
     kinds = pc.covariances(served, fit)
     assert kinds == {"served": ("hessian", 2.0), "constant": ("constant", 1.5)}
     got = pc.scored_kinds(right, kinds, np.eye(6) * 1e-4)
-    assert got["served"]["closures"] == got["constant"]["closures"] == 1
-    c2 = right[0]["delta"] @ h @ right[0]["delta"] / 2.0
-    assert got["served"]["chi2_median"] == pytest.approx(c2)
+    assert got["served"]["closures"] == got["constant"]["closures"] == 2
+    c2 = [r["delta"] @ h @ r["delta"] / 2.0 for r in right]
+    assert got["served"]["chi2_median"] == pytest.approx(np.median(c2))
     none = pc.scored_kinds([], kinds, np.eye(6))
     assert none["served"] == {
         "estimator": "hessian", "scale": 2.0, "without_covariance": 0, "closures": 0
