@@ -1,33 +1,32 @@
-"""Does g2o itself read the client's pose graph as the covariance's convention means it?
+"""Do g2o and GTSAM themselves read the client's pose graph as the covariance means it?
 
 ``overlapmamba-client observe --g2o`` writes a verified closure's covariance as the
-information of g2o's ``EDGE_SE3:QUAT`` (``overlapmamba.core.posecov.g2o_information``: g2o's
-error is the quaternion's vector part, half the rotation vector, so the rotation rows and
-columns are scaled). This writes a drifting drive's graph with the client's own
-``PoseGraph`` and optimises it twice:
+information of ``EDGE_SE3:QUAT``, for the back end named by ``--g2o-for``
+(``overlapmamba.client.posegraph.file_information``): g2o's error takes the quaternion's
+vector part, half the rotation vector, so a file for g2o has the rotation's rows and
+columns doubled; GTSAM's ``readG2o`` reads the same block as over the rotation vector, so a
+file for GTSAM holds the inverse covariance as it is. This writes a drifting drive's graph
+with the client's own ``PoseGraph`` both ways and optimises each file with g2o
+(``benchmarks/g2o_solve.py`` under ``--python``, a Python with g2o's bindings) and, with
+``--gtsam-python``, GTSAM (``benchmarks/gtsam_solve.py``); neither is a dependency here. The
+yardstick is ``benchmarks/graph_kit.py``'s optimum in posecov's convention (the error
+Log(Z⁻¹ · T_a⁻¹ · T_b), each loop edge weighted by the inverse of the covariance the server
+would answer, each odometry edge by its σ's), from the same poses and measurements.
 
-- with g2o (``benchmarks/g2o_solve.py``, run by ``--python``: a Python with g2o's bindings,
-  which are no dependency of this project), from the file;
-- with ``benchmarks/graph_kit.py`` in posecov's convention (the error Log(Z⁻¹ · T_a⁻¹ ·
-  T_b), each loop edge weighted by the inverse of the covariance the server would answer,
-  each odometry edge by its σ's), from the same poses and measurements.
-
-When the file says what the convention says, the two optima agree to the order the two
-errors differ by (g2o takes the relative pose's translation as it is, posecov the SE(3)
-logarithm's: second order in the residuals; the half angle is scaled away). A control file
-shows that the comparison can fail: the same graph with its rotation information read as
-GTSAM's ``readG2o`` reads it (over the rotation vector, four times g2o's weight), optimised
-by g2o.
+A file read by the back end it was written for should land on that optimum, to the order
+the errors differ by (g2o takes the relative pose's translation as it is, posecov the SE(3)
+logarithm's: second order in the residuals); one written for the other back end weighs
+every rotation four times too much or too little and should not: the check can fail.
 
 The drive: ``--scans`` poses on nearly two laps of a 40 m circle rising and falling, the
 odometry a step drawn with ``--odometry-sigma-m`` and ``--odometry-sigma-deg`` per axis (the
 drive's poses dead-reckoned from it, as a robot's odometry gives them), and a loop closure
 from every third scan of the second lap onto the nearest scan of the first, its relative
 pose the truth perturbed by a draw of its own covariance (correlated, different per
-closure). Scored: each optimum's positions against the other's (largest and RMS gap), the
+closure). Scored: each optimum's positions against graph_kit's (largest and RMS gap), the
 largest rotation gap, each one's position RMS against the truth, and the χ² each reports.
 
-    python benchmarks/g2o_check.py --python /path/to/python-with-g2o [--out …]
+    python benchmarks/g2o_check.py --python PY [--gtsam-python PY] [--out …]
 
 Writes JSON (default reports/client/g2o-check.json).
 """
@@ -47,9 +46,7 @@ from bench_kit import provenance
 from reports_kit import REPORTS, write_report
 from rich.console import Console
 
-from overlapmamba.client.posegraph import PoseGraph, odometry_information
-
-HALF = np.diag([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])  # g2o's error → posecov's δ (D⁻¹)
+from overlapmamba.client.posegraph import READERS, PoseGraph
 
 
 def circle_drive(scans: int, laps: float = 1.9, radius: float = 40.0) -> np.ndarray:
@@ -81,20 +78,16 @@ def closures(truth: np.ndarray, rng: np.random.Generator) -> list[tuple[int, int
 
 
 def client_graph(
-    poses: np.ndarray, loops: list, odometry: np.ndarray, gtsam_reading: bool = False
+    poses: np.ndarray, loops: list, sigma: tuple[float, float], reader: str
 ) -> PoseGraph:
-    """The graph as ``observe --g2o`` makes it: a vertex a scan at the drive's pose, the
-    odometry's information on each consecutive pair, a loop edge a closure with its
-    covariance. ``gtsam_reading``: the control, every rotation block as GTSAM reads g2o's
-    (the information a covariance of D Σ D gives, D = diag(1, 1, 1, ½, ½, ½): four times the
-    rotation's weight)."""
-    g = PoseGraph(odometry=HALF @ odometry @ HALF if gtsam_reading else odometry,
-                  others_from=len(poses))  # fmt: skip
+    """The graph as ``observe --g2o --g2o-for READER`` makes it: a vertex a scan at the
+    drive's pose, the odometry's σ (metres, degrees) on each consecutive pair, a loop edge a
+    closure with its covariance."""
+    g = PoseGraph.for_reader(*sigma, len(poses), reader)
     for i, p in enumerate(poses):
         g.scan(i, p, f"scan-{i}")
     for k, q, rel, cov in loops:
-        c = np.linalg.inv(HALF) @ cov @ np.linalg.inv(HALF) if gtsam_reading else cov
-        if not g.closure(q, f"scan-{k}", rel, c):
+        if not g.closure(q, f"scan-{k}", rel, cov):
             raise AssertionError(f"closure {q} → {k} left out: {g.left_out}")
     return g
 
@@ -114,16 +107,24 @@ def position_rms(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt((np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1) ** 2).mean()))
 
 
-def g2o_solve(python: str, graph: Path, iterations: int) -> tuple[np.ndarray, dict[str, Any]]:
-    """g2o's optimum of ``graph`` (``g2o_solve.py`` under ``python``) and what it said."""
-    out = graph.with_suffix(".npy")
-    script = Path(__file__).with_name("g2o_solve.py")
-    cmd = [python, str(script), str(graph), str(out), "--iterations", str(iterations)]
-    run = subprocess.run(cmd, capture_output=True, text=True, check=False)
+SOLVERS = {  # back end → its script, and what the Python that runs it needs
+    "g2o": ("g2o_solve.py", 'g2o\'s bindings: pip install g2o-python "numpy<2"'),
+    "gtsam": ("gtsam_solve.py", "GTSAM's bindings: pip install gtsam"),
+}
+
+
+def solve(
+    backend: str, python: str, graph: Path, iterations: int
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """``backend``'s optimum of ``graph`` (its script under ``python``) and what it said."""
+    script, needs = SOLVERS[backend]
+    out = graph.with_name(f"{graph.stem}-{backend}.npy")
+    cmd = [python, str(Path(__file__).with_name(script)), str(graph), str(out)]
+    run = subprocess.run([*cmd, "--iterations", str(iterations)], capture_output=True, text=True)
     if run.returncode != 0:
         raise SystemExit(
             f"{' '.join(cmd)} failed ({run.returncode}): {run.stderr.strip()[-600:]}\n"
-            f'--python needs g2o\'s bindings: pip install g2o-python "numpy<2"'
+            f"{python} needs {needs}"
         )
     return np.load(out), json.loads(run.stdout.strip().splitlines()[-1])
 
@@ -131,6 +132,7 @@ def g2o_solve(python: str, graph: Path, iterations: int) -> tuple[np.ndarray, di
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--python", required=True, help="a Python with g2o-python and numpy<2")
+    ap.add_argument("--gtsam-python", help="a Python with gtsam: GTSAM reads both files too")
     ap.add_argument("--scans", type=int, default=400)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--odometry-sigma-m", type=float, default=0.03)
@@ -154,7 +156,6 @@ def main() -> None:
         poses.append(poses[-1] @ z)
     drift = np.array(poses)
     loops = closures(truth, rng)
-    info = odometry_information(args.odometry_sigma_m, args.odometry_sigma_deg)
     edges = gk.Edges.join(
         odometry,
         gk.Edges(
@@ -168,6 +169,7 @@ def main() -> None:
     report: dict[str, Any] = {
         **provenance(),
         "python": args.python,
+        "gtsam_python": args.gtsam_python,
         "graph": {
             "scans": args.scans,
             "loop_edges": len(loops),
@@ -184,22 +186,32 @@ def main() -> None:
             "graph_kit": position_rms(ours.poses, truth),
         },
     }
+    pythons = {"g2o": args.python} | ({"gtsam": args.gtsam_python} if args.gtsam_python else {})
+    odo_sigma = (args.odometry_sigma_m, args.odometry_sigma_deg)
+    report["solvers"] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name, gtsam_reading in (("client", False), ("control", True)):
-            path = Path(tmp) / f"{name}.g2o"
-            client_graph(drift, loops, info, gtsam_reading).write(path)
-            solved, said = g2o_solve(args.python, path, args.iterations)
-            report[name] = {"g2o": said, "gap_to_graph_kit": gaps(solved, ours.poses)}
-            report["position_rms_m"][f"g2o_{name}"] = position_rms(solved, truth)
+        for reader in READERS:
+            path = Path(tmp) / f"for-{reader}.g2o"
+            client_graph(drift, loops, odo_sigma, reader).write(path)
+            for backend, python in pythons.items():
+                solved, said = solve(backend, python, path, args.iterations)
+                report["solvers"].setdefault(backend, {})[reader] = {
+                    "said": said,
+                    "gap_to_graph_kit": gaps(solved, ours.poses),
+                    "position_rms_m": position_rms(solved, truth),
+                }
     write_report(args.out, report)
-    c, k = report["client"], report["control"]
-    Console().print(
-        f"g2o {c['g2o']['g2o_python']} on the client's file against graph_kit: positions "
-        f"within {c['gap_to_graph_kit']['position_max_m']:.2e} m, rotations "
-        f"{c['gap_to_graph_kit']['rotation_max_deg']:.2e}°; χ² {c['g2o']['chi2']:.4f} against "
-        f"{report['graph_kit']['chi2']:.4f}. The control (rotation read as GTSAM reads it): "
-        f"{k['gap_to_graph_kit']['position_max_m']:.3f} m. Wrote {args.out}"
-    )
+    for backend, files in report["solvers"].items():
+        for reader, x in files.items():
+            d = x["gap_to_graph_kit"]
+            Console().print(
+                f"{backend} reading the file for {reader}: positions within "
+                f"{d['position_max_m']:.2e} m of graph_kit's, rotations "
+                f"{d['rotation_max_deg']:.2e}°; "
+                f"χ² {x['said']['chi2']:.4f} against {report['graph_kit']['chi2']:.4f}",
+                highlight=False,
+            )
+    Console().print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -11,17 +11,15 @@ a b x y z qx qy qz qw`` then the information's upper triangle row by row (21 num
     python benchmarks/g2o_solve.py GRAPH.g2o POSES.npy [--iterations 200]
 
 Writes the optimised poses (n, 4, 4), in the order of the vertex ids, and prints one JSON
-line: the χ² g2o computes before and after, and the bindings' version.
+line (``solve_kit.hand_back``): the χ² g2o computes before and after, and the versions.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-from importlib.metadata import version
 from typing import Any
 
 import numpy as np
+from solve_kit import arguments, hand_back
 
 
 def rotation(q: np.ndarray) -> np.ndarray:
@@ -52,11 +50,7 @@ def information(fields: list[str]) -> np.ndarray:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("graph")
-    ap.add_argument("poses")
-    ap.add_argument("--iterations", type=int, default=200)
-    args = ap.parse_args()
+    args = arguments(__doc__)
     import g2o
 
     opt = g2o.SparseOptimizer()
@@ -95,19 +89,17 @@ def main() -> None:
     start = opt.active_chi2()
     iterations = opt.optimize(args.iterations)
     opt.compute_active_errors()
-    poses = np.array([vertices[i].estimate().matrix() for i in sorted(vertices)])
-    np.save(args.poses, poses)
-    said = {
-        "chi2_start": start,
-        "chi2": opt.active_chi2(),
-        "iterations": iterations,
-        "vertices": len(vertices),
-        "edges": len(edges),
-        "fixed": fixed,
-        "g2o_python": version("g2o-python"),
-        "numpy": np.__version__,
-    }
-    print(json.dumps(said))
+    hand_back(
+        args.poses,
+        np.array([vertices[i].estimate().matrix() for i in sorted(vertices)]),
+        "g2o-python",
+        chi2_start=start,
+        chi2=opt.active_chi2(),
+        iterations=iterations,
+        vertices=len(vertices),
+        edges=len(edges),
+        fixed=fixed,
+    )
 
 
 if __name__ == "__main__":

@@ -354,9 +354,13 @@ def test_cli_end_to_end_on_a_generated_sequence(live, synthetic_seq_dir, shifted
 
     out2 = run(
         "observe", str(shifted_seq_dir), "--map", "cli-obs", "--every", "4", "--robot", "r8",
-        "--g2o", str(g2o),
+        "--g2o", str(g2o), "--g2o-for", "gtsam",
     )  # fmt: skip
     vertices, edges = read_g2o(g2o)
+    from overlapmamba.client.posegraph import odometry_information
+
+    # written for GTSAM's reader: the odometry's information over the rotation vector
+    assert np.allclose(edges[0][3], odometry_information(0.1, 1.0, "gtsam"))
     truth = read_poses(shifted_seq_dir / "poses.txt")
     scans = [v for v in sorted(vertices) if v < 48]
     assert scans == list(range(0, 48, 4))

@@ -342,6 +342,20 @@ def test_a_pose_graph_counts_what_it_leaves_out_and_reads_back(tmp_path):
     assert np.allclose(edges[0][2][:3, 3], [1, 0, 0]) and np.allclose(edges[0][3], info)
     assert np.allclose(edges[1][2], rel) and np.allclose(edges[1][3], posecov.g2o_information(cov))
     assert path.read_text().splitlines()[-1] == "FIX 0"
+    # for GTSAM's readG2o, which takes the rotation block over the rotation vector: the
+    # inverse covariance as it is, the odometry's too; g2o's has the rotation doubled
+    from overlapmamba.client.posegraph import file_information
+
+    gt = PoseGraph.for_reader(0.1, 1.0, others_from=10, reader="gtsam")
+    assert np.allclose(np.diag(gt.odometry), [100] * 3 + [1 / np.deg2rad(1.0) ** 2] * 3)
+    gt.scan(0, pose(0.0, (0, 0, 0)), "a:0")
+    gt.scan(1, pose(0.0, (1, 0, 0)), None)
+    assert gt.closure(1, "a:0", rel, cov)
+    assert np.allclose(gt.loops[0][3], np.linalg.inv(cov))
+    four = np.diag([1.0, 1, 1, 2, 2, 2])
+    assert np.allclose(file_information(cov, "g2o"), four @ np.linalg.inv(cov) @ four)
+    with pytest.raises(ValueError, match="one of g2o, gtsam; got 'ros'"):
+        file_information(cov, "ros")
     path.write_text("VERTEX_SE2 0 0 0 0\n")
     with pytest.raises(ValueError, match="g.g2o:1: not a VERTEX_SE3:QUAT"):
         read_g2o(path)

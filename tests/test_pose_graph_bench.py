@@ -174,13 +174,14 @@ def test_the_benchmark_builds_its_graph_from_the_closures_and_scores_each_way(tm
 
 
 def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path):
-    """benchmarks/g2o_check.py: the client's file carries each closure's information as
-    posecov converts it and the control four times the rotation's weight; g2o_solve.py's
-    reading of a line (run under g2o's Python) gives back the pose and information written;
-    a --python without g2o's bindings is refused with what to install."""
+    """benchmarks/g2o_check.py: the client's file for each back end carries each closure's
+    information as posecov converts it for that reader; g2o_solve.py's reading of a line
+    (run under g2o's Python) gives back the pose and information written; a Python without
+    a back end's bindings is refused with what to install."""
+    import importlib.util
     import sys
 
-    from overlapmamba.client.posegraph import odometry_information, read_g2o
+    from overlapmamba.client.posegraph import file_information, read_g2o
     from overlapmamba.core.poses import from_quaternion
 
     check, solve = benchmark_module("g2o_check"), benchmark_module("g2o_solve")
@@ -190,19 +191,13 @@ def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path)
     for k, q, rel, cov in loops:
         assert np.all(np.linalg.eigvalsh(cov) > 0)
         assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[k]) @ truth[q])[:3, 3]) < 0.5
-    odo = odometry_information(0.03, 0.15)
-    for gtsam_reading in (False, True):
-        path = tmp_path / f"{gtsam_reading}.g2o"
-        check.client_graph(truth, loops, odo, gtsam_reading).write(path)
+    for reader in ("g2o", "gtsam"):
+        path = tmp_path / f"{reader}.g2o"
+        check.client_graph(truth, loops, (0.03, 0.15), reader).write(path)
         vertices, edges = read_g2o(path)
         assert len(vertices) == 120 and len(edges) == 119 + len(loops)
-        four = np.diag([1.0, 1, 1, 4, 4, 4])
-        want = posecov.g2o_information(loops[0][3])
         got = edges[119][3]
-        if gtsam_reading:  # every rotation block four times, the cross terms twice
-            want = np.sqrt(four) @ want @ np.sqrt(four)
-            assert np.allclose(edges[0][3], np.sqrt(four) @ odo @ np.sqrt(four))
-        assert np.allclose(got, want)
+        assert np.allclose(got, file_information(loops[0][3], reader))
         line = path.read_text().splitlines()[120 + 119].split()  # the first loop edge
         assert line[0] == "EDGE_SE3:QUAT" and (int(line[1]), int(line[2])) == loops[0][:2]
         assert np.allclose(solve.information(line[10:31]), got)
@@ -212,8 +207,7 @@ def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path)
     a, b = truth[:5], truth[:5].copy()
     b[2, 0, 3] += 0.01
     assert check.gaps(a, b)["position_max_m"] == pytest.approx(0.01)
-    import importlib.util
-
-    if importlib.util.find_spec("g2o") is None:  # this Python has no g2o: refused, by name
-        with pytest.raises(SystemExit, match='pip install g2o-python "numpy<2"'):
-            check.g2o_solve(sys.executable, tmp_path / "False.g2o", 5)
+    for backend, module, needs in (("g2o", "g2o", "g2o-python"), ("gtsam", "gtsam", "gtsam")):
+        if importlib.util.find_spec(module) is None:  # this Python lacks it: refused, by name
+            with pytest.raises(SystemExit, match=f"pip install {needs}"):
+                check.solve(backend, sys.executable, tmp_path / "g2o.g2o", 5)

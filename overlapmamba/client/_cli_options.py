@@ -6,6 +6,7 @@ reached, or bad arguments), and the client they talk through."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from enum import StrEnum
 from functools import wraps
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -29,6 +30,23 @@ KeyOpt = Annotated[
     str | None, typer.Option("--api-key", envvar="OVERLAPMAMBA_API_KEY", help="API key")
 ]
 MapOpt = Annotated[str, typer.Option("--map", "-m", help="map id")]
+
+
+class GraphReader(StrEnum):
+    """The back end a ``--g2o`` file is written for (``posegraph.READERS``)."""
+
+    g2o = "g2o"
+    gtsam = "gtsam"
+
+
+GraphReaderOpt = Annotated[
+    GraphReader,
+    typer.Option(
+        help="with --g2o: the back end that reads the file, whose reading of the rotation's "
+        "information it is written for (GTSAM's readG2o takes it over the rotation vector, "
+        "g2o over half of it)"
+    ),
+]
 VerifyOpt = Annotated[
     bool,
     typer.Option(

@@ -22,6 +22,8 @@ from overlapmamba.client._cli_maps import maps_app
 from overlapmamba.client._cli_options import (
     DEFAULT_URL,
     DRIVE_HELP,
+    GraphReader,
+    GraphReaderOpt,
     KeyOpt,
     MapOpt,
     MountOpt,
@@ -49,7 +51,7 @@ from overlapmamba.client._display import (
 )
 from overlapmamba.client._replay import open_drive
 from overlapmamba.client._sync import PlaceRecognitionClient
-from overlapmamba.client.posegraph import PoseGraph, odometry_information
+from overlapmamba.client.posegraph import PoseGraph
 from overlapmamba.core import outfiles
 
 app = typer.Typer(
@@ -219,6 +221,7 @@ def observe(
     odometry_sigma_deg: Annotated[
         float, typer.Option(min=1e-9, help="with --g2o: and per rotation axis, degrees")
     ] = 1.0,
+    g2o_for: GraphReaderOpt = GraphReader.g2o,
     url: UrlOpt = DEFAULT_URL,
     api_key: KeyOpt = None,
 ) -> None:
@@ -240,7 +243,8 @@ def observe(
                 f"--g2o needs the drive's poses (its vertices and odometry edges): {seq_dir} "
                 "has none; give --odometry or --tf for a bag"
             )
-        graph = PoseGraph(odometry_information(odometry_sigma_m, odometry_sigma_deg), len(drive))
+        sigma = (odometry_sigma_m, odometry_sigma_deg)
+        graph = PoseGraph.for_reader(*sigma, len(drive), g2o_for.value)
     session = session or drive.session
     closures = inserted = 0
     frames = range(0, len(drive), every)

@@ -12,7 +12,15 @@ after the drive's frames, at the pose the map stores for it. A closure without a
 covariance (a server or model without its calibration) or whose keyframe has no pose is
 left out and counted. The first scan's vertex is fixed (``FIX``).
 
-``overlapmamba-client observe DRIVE --map M --g2o FILE`` writes one.
+The information is written for the reader that will read the file (``READERS``). g2o's
+``EDGE_SE3:QUAT`` error takes the rotation as the quaternion's vector part, half the
+rotation vector, so ``g2o`` writes ``posecov.g2o_information`` (the rotation's rows and
+columns doubled); GTSAM's ``readG2o`` reads the same block as over the rotation vector (it
+only swaps the blocks into its own order), so ``gtsam`` writes the inverse covariance as it
+is. Either file read by the other back end weighs every rotation four times too much or too
+little (``benchmarks/g2o_check.py`` measures both).
+
+``overlapmamba-client observe DRIVE --map M --g2o FILE [--g2o-for gtsam]`` writes one.
 """
 
 from __future__ import annotations
@@ -47,15 +55,29 @@ def _pose(pose: np.ndarray | list[float] | None) -> np.ndarray:
     return from_quaternion(p[:3], p[3:]) if p.shape == (7,) else p
 
 
-def odometry_information(sigma_m: float, sigma_deg: float) -> np.ndarray:
-    """g2o's information of an odometry edge whose translation and rotation are known to
-    ``sigma_m`` and ``sigma_deg`` on each axis (independent)."""
+READERS = ("g2o", "gtsam")  # whose reading of EDGE_SE3:QUAT's information a file is for
+
+
+def file_information(covariance: np.ndarray, reader: str = "g2o") -> np.ndarray:
+    """The ``EDGE_SE3:QUAT`` information of an edge of this covariance (``posecov``'s δ:
+    translation, then rotation vector), as ``reader`` reads it (module docstring)."""
+    if reader == "g2o":
+        return posecov.g2o_information(covariance)
+    if reader == "gtsam":
+        info = np.linalg.inv(np.asarray(covariance, dtype=np.float64))
+        return 0.5 * (info + info.T)
+    raise ValueError(f"a pose graph's reader is one of {', '.join(READERS)}; got {reader!r}")
+
+
+def odometry_information(sigma_m: float, sigma_deg: float, reader: str = "g2o") -> np.ndarray:
+    """The information of an odometry edge whose translation and rotation are known to
+    ``sigma_m`` and ``sigma_deg`` on each axis (independent), as ``reader`` reads it."""
     if not (sigma_m > 0 and sigma_deg > 0):
         raise ValueError(
             f"odometry standard deviations must be > 0; got {sigma_m} m and {sigma_deg}°"
         )
     cov = np.diag([sigma_m**2] * 3 + [np.deg2rad(sigma_deg) ** 2] * 3)
-    return posecov.g2o_information(cov)
+    return file_information(cov, reader)
 
 
 @dataclass
@@ -67,8 +89,9 @@ class PoseGraph:
     vertex of its own, numbered from ``others_from``, at the pose the map stores for it,
     joined to the drive only by its loop edges."""
 
-    odometry: np.ndarray  # (6, 6) g2o information of every odometry edge
+    odometry: np.ndarray  # (6, 6) information of every odometry edge, for ``reader``
     others_from: int  # the first vertex number of another drive's keyframe (> every frame)
+    reader: str = "g2o"  # whose reading the information is written for (READERS)
     vertices: dict[int, np.ndarray] = field(default_factory=dict)  # vertex → pose
     keyframes: dict[str, int] = field(default_factory=dict)  # keyframe id → its vertex
     scans: list[int] = field(default_factory=list)  # the drive's vertices, in order
@@ -78,6 +101,14 @@ class PoseGraph:
     incomplete: Path | None = None  # where a failed replay's graph was kept (written_to)
     lost: str | None = None  # why a failed replay's graph could not be kept
     write_failed: bool = False  # the replay ended, writing the graph at its path did not
+
+    @classmethod
+    def for_reader(
+        cls, sigma_m: float, sigma_deg: float, others_from: int, reader: str = "g2o"
+    ) -> PoseGraph:
+        """A graph whose every edge's information is written for ``reader``: the odometry's
+        from its σ per axis (metres, degrees), each closure's from its covariance."""
+        return cls(odometry_information(sigma_m, sigma_deg, reader), others_from, reader=reader)
 
     def scan(self, frame: int, pose: np.ndarray | None, keyframe_id: str | None) -> None:
         """Observed scan ``frame`` at ``pose`` (None: the drive has none there, so it is not
@@ -120,7 +151,7 @@ class PoseGraph:
             self.others += 1
             self.keyframes[keyframe_id] = vertex
             self.vertices[vertex] = _pose(keyframe_pose)
-        info = posecov.g2o_information(covariance)
+        info = file_information(covariance, self.reader)
         self.loops.append((self.keyframes[keyframe_id], frame, relative_pose, info))
         return True
 
