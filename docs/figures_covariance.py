@@ -365,7 +365,8 @@ def g2o_check() -> str:
                     f"{x['said']['chi2']:.4f}",
                 ]
             )
-    head = ["read and optimised by", "file written with", "gap: max / RMS (mm)", "max (°)", "χ²"]
+    head = ["read and optimised by", "file written with", "gap: max / RMS (mm)", "max (°)"]
+    head += ["χ² as that back end computes it"]
     return (
         source(G2O_CHECK, r["command"], when(r))
         + f"\n{' and '.join(used)} on the client's files of a drifting drive ({g['scans']} "

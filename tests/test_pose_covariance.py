@@ -344,18 +344,25 @@ def test_a_pose_graph_counts_what_it_leaves_out_and_reads_back(tmp_path):
     assert path.read_text().splitlines()[-1] == "FIX 0"
     # for GTSAM's readG2o, which takes the rotation block over the rotation vector: the
     # inverse covariance as it is, the odometry's too; g2o's has the rotation doubled
-    from overlapmamba.client.posegraph import file_information
+    from overlapmamba.client._cli_options import GraphReader
+    from overlapmamba.client.posegraph import READERS, file_information
 
+    a = np.random.default_rng(5).normal(size=(6, 6)) * 0.01
+    correlated = a @ a.T + cov  # the cross blocks too
     gt = PoseGraph.for_reader(0.1, 1.0, others_from=10, reader="gtsam")
+    assert gt.reader == "gtsam"
     assert np.allclose(np.diag(gt.odometry), [100] * 3 + [1 / np.deg2rad(1.0) ** 2] * 3)
     gt.scan(0, pose(0.0, (0, 0, 0)), "a:0")
     gt.scan(1, pose(0.0, (1, 0, 0)), None)
-    assert gt.closure(1, "a:0", rel, cov)
-    assert np.allclose(gt.loops[0][3], np.linalg.inv(cov))
-    four = np.diag([1.0, 1, 1, 2, 2, 2])
-    assert np.allclose(file_information(cov, "g2o"), four @ np.linalg.inv(cov) @ four)
+    assert gt.closure(1, "a:0", rel, correlated)
+    assert np.allclose(gt.loops[0][3], np.linalg.inv(correlated))
+    two = np.diag([1.0, 1, 1, 2, 2, 2])
+    assert np.allclose(file_information(correlated, "g2o"), two @ gt.loops[0][3] @ two)
     with pytest.raises(ValueError, match="one of g2o, gtsam; got 'ros'"):
         file_information(cov, "ros")
+    with pytest.raises(ValueError, match="one of g2o, gtsam; got 'ros'"):
+        PoseGraph(info, others_from=10, reader="ros")  # at once, not at the first closure
+    assert {r.value for r in GraphReader} == set(READERS)  # the CLI offers each reader
     path.write_text("VERTEX_SE2 0 0 0 0\n")
     with pytest.raises(ValueError, match="g.g2o:1: not a VERTEX_SE3:QUAT"):
         read_g2o(path)
@@ -433,3 +440,10 @@ def test_observe_refuses_a_pose_graph_it_cannot_write_before_replaying(synthetic
     res = CliRunner().invoke(app, [*args, str(same)], env=env)
     text = " ".join(res.output.replace("│", " ").split())
     assert res.exit_code == 2 and "--record and --g2o are the same file" in text, text
+    res = CliRunner().invoke(  # a reader named, no file to write for it
+        app, ["observe", str(synthetic_seq_dir), "--map", "m", "--g2o-for", "gtsam"], env=env
+    )
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and "--g2o-for gtsam says whom --g2o FILE is for" in text, text
+    res = CliRunner().invoke(app, [*args[:-1], "--g2o-for", "ros"], env=env)
+    assert res.exit_code == 2 and "'ros' is not one of" in " ".join(res.output.split())

@@ -181,7 +181,7 @@ def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path)
     import importlib.util
     import sys
 
-    from overlapmamba.client.posegraph import file_information, read_g2o
+    from overlapmamba.client.posegraph import file_information, odometry_information, read_g2o
     from overlapmamba.core.poses import from_quaternion
 
     check, solve = benchmark_module("g2o_check"), benchmark_module("g2o_solve")
@@ -191,19 +191,27 @@ def test_the_g2o_check_writes_what_it_compares_and_reads_the_file_back(tmp_path)
     for k, q, rel, cov in loops:
         assert np.all(np.linalg.eigvalsh(cov) > 0)
         assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[k]) @ truth[q])[:3, 3]) < 0.5
+    written = {}
     for reader in ("g2o", "gtsam"):
         path = tmp_path / f"{reader}.g2o"
         check.client_graph(truth, loops, (0.03, 0.15), reader).write(path)
         vertices, edges = read_g2o(path)
+        written[reader] = edges
         assert len(vertices) == 120 and len(edges) == 119 + len(loops)
         got = edges[119][3]
         assert np.allclose(got, file_information(loops[0][3], reader))
+        assert np.allclose(edges[0][3], odometry_information(0.03, 0.15, reader))
         line = path.read_text().splitlines()[120 + 119].split()  # the first loop edge
         assert line[0] == "EDGE_SE3:QUAT" and (int(line[1]), int(line[2])) == loops[0][:2]
         assert np.allclose(solve.information(line[10:31]), got)
         q = np.array(line[6:10], dtype=float)
         assert np.allclose(solve.rotation(q), from_quaternion(np.zeros(3), q)[:3, :3])
         assert np.allclose(solve.rotation(q), loops[0][2][:3, :3], atol=1e-9)
+    # the g2o file's information is the GTSAM file's with the rotation's rows and columns
+    # doubled, on every edge: correlations and all
+    two = np.diag([1.0, 1, 1, 2, 2, 2])
+    for (*_, g2o_info), (*_, gtsam_info) in zip(written["g2o"], written["gtsam"], strict=True):
+        assert np.allclose(g2o_info, two @ gtsam_info @ two)
     a, b = truth[:5], truth[:5].copy()
     b[2, 0, 3] += 0.01
     assert check.gaps(a, b)["position_max_m"] == pytest.approx(0.01)

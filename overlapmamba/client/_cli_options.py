@@ -43,8 +43,8 @@ GraphReaderOpt = Annotated[
     GraphReader,
     typer.Option(
         help="with --g2o: the back end that reads the file, whose reading of the rotation's "
-        "information it is written for (GTSAM's readG2o takes it over the rotation vector, "
-        "g2o over half of it)"
+        "information it is written for (GTSAM's readG2o, 4.2 or later, takes it over the "
+        "rotation vector, g2o over half of it)"
     ),
 ]
 VerifyOpt = Annotated[

@@ -234,6 +234,8 @@ def observe(
                 "is being replayed; write it elsewhere"
             )
     outfiles.check_outputs(("--record", record, None), ("--g2o", g2o, ("g2o",)))
+    if g2o is None and g2o_for != GraphReader.g2o:
+        raise ValueError(f"--g2o-for {g2o_for.value} says whom --g2o FILE is for: give --g2o")
     drive = open_drive(seq_dir, topic=topic, odometry=odometry, tf=tf, sensor=sensor, mount=mount)
     note_unposed(drive)
     graph = None
@@ -316,7 +318,8 @@ def observe(
         out.print(f"recorded {record} (open it in Foxglove: a 3D panel, frame 'map')")
     if graph is not None and g2o is not None:
         out.print(
-            f"wrote {g2o}: {len(graph.scans)} scans, {graph.others} keyframes of other "
+            f"wrote {g2o} (for {graph.reader}): {len(graph.scans)} scans, {graph.others} "
+            "keyframes of other "
             f"drives, {len(graph.loops)} loop edges"
             + "".join(f"; {n} closures left out: {why}" for why, n in graph.left_out.items())
         )

@@ -1,5 +1,6 @@
 """A replayed drive's pose graph, for a SLAM back end: g2o's text format (``VERTEX_SE3:QUAT``,
-``EDGE_SE3:QUAT``), which g2o, GTSAM's ``readG2o`` and most graph optimisers read.
+``EDGE_SE3:QUAT``), written for g2o or for GTSAM's ``readG2o`` (other readers of the format
+may take its information in yet another convention).
 
 Each observed scan is a vertex at the drive's pose, numbered by its frame; consecutive
 observed scans are joined by an odometry edge (their relative pose from the drive, with a
@@ -15,10 +16,13 @@ left out and counted. The first scan's vertex is fixed (``FIX``).
 The information is written for the reader that will read the file (``READERS``). g2o's
 ``EDGE_SE3:QUAT`` error takes the rotation as the quaternion's vector part, half the
 rotation vector, so ``g2o`` writes ``posecov.g2o_information`` (the rotation's rows and
-columns doubled); GTSAM's ``readG2o`` reads the same block as over the rotation vector (it
-only swaps the blocks into its own order), so ``gtsam`` writes the inverse covariance as it
-is. Either file read by the other back end weighs every rotation four times too much or too
-little (``benchmarks/g2o_check.py`` measures both).
+columns doubled); GTSAM's ``readG2o`` (4.2 and later) reads the same block as over the
+rotation vector (it only swaps the blocks into its own order), so ``gtsam`` writes the
+inverse covariance as it is. Either file read by the other back end weighs it as if every
+rotation σ were halved or doubled, correlations kept (``benchmarks/g2o_check.py`` measures
+both). GTSAM before 4.2 swaps only the diagonal blocks in ``readG2o`` and transposes the
+cross ones: with a correlated covariance, build the factors from
+``posecov.swap_blocks(covariance)`` there instead.
 
 ``overlapmamba-client observe DRIVE --map M --g2o FILE [--g2o-for gtsam]`` writes one.
 """
@@ -101,6 +105,12 @@ class PoseGraph:
     incomplete: Path | None = None  # where a failed replay's graph was kept (written_to)
     lost: str | None = None  # why a failed replay's graph could not be kept
     write_failed: bool = False  # the replay ended, writing the graph at its path did not
+
+    def __post_init__(self) -> None:
+        if self.reader not in READERS:
+            raise ValueError(
+                f"a pose graph's reader is one of {', '.join(READERS)}; got {self.reader!r}"
+            )
 
     @classmethod
     def for_reader(
