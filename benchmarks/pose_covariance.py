@@ -238,7 +238,8 @@ def validation_fit(each: list[dict[str, Any]]) -> dict[str, Any]:
 
 def read_fit(path: Path, model_id: str) -> dict[str, Any]:
     """The validation fit ``--calibrate`` wrote to ``path`` (its JSON's ``val``), which must
-    be of this model; it names the file it came from (``from``)."""
+    be of this model; it names the file it came from (``from``), and its towns (``town``,
+    comma-separated) relative to the checkout where they lie in it, as a clone has them."""
     if not path.is_file():
         raise SystemExit(f"{path} is missing: run benchmarks/pose_covariance.py --calibrate")
     report = json.loads(path.read_text())
@@ -252,9 +253,13 @@ def read_fit(path: Path, model_id: str) -> dict[str, Any]:
             f"{path} is of model {report['model_id']}, not {model_id}: run "
             "benchmarks/pose_covariance.py --calibrate --model on this one"
         )
+    towns = ", ".join(_in_checkout(Path(t.strip())) for t in report["val"]["town"].split(","))
+    return {**report["val"], "town": towns, "from": _in_checkout(path)}
+
+
+def _in_checkout(path: Path) -> str:
     where = path.resolve()
-    name = str(where.relative_to(ROOT)) if where.is_relative_to(ROOT) else str(path)
-    return {**report["val"], "from": name}
+    return str(where.relative_to(ROOT)) if where.is_relative_to(ROOT) else str(path)
 
 
 def main() -> None:

@@ -157,8 +157,7 @@ def read_constant(path: Path, model_id: str) -> tuple[np.ndarray, dict[str, Any]
     ``pose_covariance.py --calibrate``'s JSON, which must be of this model."""
     val = read_fit(path, model_id)
     scale = float(val["fits"]["constant"]["scale"])
-    town = val["town"].replace(f"{ROOT}/", "")  # inside the checkout, as a clone has it
-    source = {"file": val["from"], "town": town, "scale": scale}
+    source = {"file": val["from"], "town": val["town"], "scale": scale}
     return scale * np.asarray(val["constant_covariance"]), source
 
 

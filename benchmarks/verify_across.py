@@ -204,16 +204,6 @@ def right_closures(queries: list[dict[str, Any]], v: VerifySettings) -> list[dic
     return out
 
 
-def towns_named(towns: str) -> str:
-    """A calibration's comma-separated towns, each relative to the repository where it lies
-    in it (a report names no machine's paths)."""
-    out = []
-    for t in towns.split(","):
-        p = Path(t.strip()).resolve()
-        out.append(str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else t.strip())
-    return ", ".join(out)
-
-
 def _across(row: dict[str, Any]) -> bool:
     return bool(row["queries_sensor"] != row["map_sensor"])
 
@@ -291,7 +281,7 @@ def main() -> None:
         "field_of_view": not args.no_view,
         "pose_ok": {"translation_m": 1.0, "yaw_deg": 2.0},
         "covariance": {"scored": {k: {"estimator": e, "scale": x} for k, (e, x) in kinds.items()}}
-        | ({"fit_from": fit["from"], "fit_towns": towns_named(fit["town"])} if fit else {}),
+        | ({"fit_from": fit["from"], "fit_towns": fit["town"]} if fit else {}),
     }
     splits = ("val", "test") if args.split == "both" else (args.split,)
     for split in splits:
